@@ -1,0 +1,263 @@
+//! Semantic class tables: which classes exist, their palette colours, which are dynamic, and how
+//! the ids found in label-map files translate into class indices.
+//!
+//! The default is the 19-class Cityscapes "train id" table (Cordts et al., CVPR 2016), which the
+//! SemLook paper's segmenter (refs 31-32 of the paper) outputs. Class indices are `u8`; [`VOID`]
+//! marks pixels that belong to no class (Cityscapes' ignore label 255).
+
+use crate::config::{ClassSpec, ClassesConfig, LabelIds, TableSpec};
+use crate::error::{Error, Result};
+use std::collections::HashMap;
+
+/// Class index of a pixel that belongs to no class (ignored everywhere).
+pub const VOID: u8 = 255;
+/// Marker in the id look-up table for ids the table does not know (an input error).
+const UNKNOWN: u8 = 254;
+/// Most classes a table may hold: indices 254 and 255 are markers.
+pub const MAX_CLASSES: usize = 254;
+
+/// (name, palette colour, dynamic) of the Cityscapes train ids 0..18.
+pub const CITYSCAPES: [(&str, [u8; 3], bool); 19] = [
+    ("road", [128, 64, 128], false),
+    ("sidewalk", [244, 35, 232], false),
+    ("building", [70, 70, 70], false),
+    ("wall", [102, 102, 156], false),
+    ("fence", [190, 153, 153], false),
+    ("pole", [153, 153, 153], false),
+    ("traffic light", [250, 170, 30], false),
+    ("traffic sign", [220, 220, 0], false),
+    ("vegetation", [107, 142, 35], false),
+    ("terrain", [152, 251, 152], false),
+    ("sky", [70, 130, 180], false),
+    ("person", [220, 20, 60], true),
+    ("rider", [255, 0, 0], true),
+    ("car", [0, 0, 142], true),
+    ("truck", [0, 0, 70], true),
+    ("bus", [0, 60, 100], true),
+    ("train", [0, 80, 100], true),
+    ("motorcycle", [0, 0, 230], true),
+    ("bicycle", [119, 11, 32], true),
+];
+
+/// Colours of Cityscapes' void categories in `*_color.png` files (unlabeled, dynamic, ground,
+/// parking, rail track, guard rail, bridge, tunnel, caravan, trailer).
+const CITYSCAPES_VOID_COLORS: [[u8; 3]; 10] = [
+    [0, 0, 0],
+    [111, 74, 0],
+    [81, 0, 81],
+    [250, 170, 160],
+    [230, 150, 140],
+    [180, 165, 180],
+    [150, 100, 100],
+    [150, 120, 90],
+    [0, 0, 90],
+    [0, 0, 110],
+];
+
+/// Cityscapes full label ids 0..33 to train ids (255 = ignore), from cityscapesScripts' labels.py.
+const CITYSCAPES_LABEL_TO_TRAIN: [u8; 34] = [
+    255, 255, 255, 255, 255, 255, 255, 0, 1, 255, 255, 2, 3, 4, 255, 255, 255, 5, 255, 6, 7, 8, 9,
+    10, 11, 12, 13, 14, 15, 255, 255, 16, 17, 18,
+];
+
+/// SYNTHIA class ids 0..15 (void, sky, building, road, sidewalk, fence, vegetation, pole, car,
+/// traffic sign, pedestrian, bicycle, lanemarking, reserved, reserved, traffic light) to
+/// Cityscapes train ids; lane markings count as road.
+const SYNTHIA_TO_TRAIN: [u8; 16] = [255, 10, 2, 0, 1, 4, 8, 5, 13, 7, 11, 18, 0, 255, 255, 6];
+
+/// A resolved class table.
+#[derive(Debug, Clone)]
+pub struct ClassTable {
+    names: Vec<String>,
+    colors: Vec<[u8; 3]>,
+    dynamic: Vec<bool>,
+    excluded: Vec<bool>,
+    /// file id -> class index, VOID, or UNKNOWN; covers 16-bit ids.
+    id_lut: Vec<u8>,
+    color_lut: HashMap<[u8; 3], u8>,
+}
+
+impl ClassTable {
+    /// Builds the table a config describes; names in `exclude` must exist.
+    pub fn from_config(cfg: &ClassesConfig) -> Result<Self> {
+        let bad = |reason: String| Error::InvalidConfig { source_name: "[classes]".into(), reason };
+        let specs: Vec<ClassSpec> = match &cfg.table {
+            TableSpec::Builtin(name) if name == "cityscapes" => CITYSCAPES
+                .iter()
+                .map(|(n, c, d)| ClassSpec { name: n.to_string(), color: *c, dynamic: *d })
+                .collect(),
+            TableSpec::Builtin(name) => return Err(bad(format!("unknown class table {name:?} (built in: \"cityscapes\")"))),
+            TableSpec::Custom(list) => list.clone(),
+        };
+        if specs.is_empty() || specs.len() > MAX_CLASSES {
+            return Err(bad(format!("class table must hold 1..={MAX_CLASSES} classes, has {}", specs.len())));
+        }
+        let names: Vec<String> = specs.iter().map(|s| s.name.clone()).collect();
+        let index_of = |name: &str| -> Result<u8> {
+            if name == "void" {
+                return Ok(VOID);
+            }
+            names
+                .iter()
+                .position(|n| n == name)
+                .map(|i| i as u8)
+                .ok_or_else(|| bad(format!("class {name:?} is not in the class table")))
+        };
+        let mut excluded = vec![false; names.len()];
+        for name in &cfg.exclude {
+            let i = index_of(name)?;
+            if i == VOID {
+                return Err(bad("\"void\" cannot be excluded: it is never used".into()));
+            }
+            excluded[i as usize] = true;
+        }
+        let mut id_lut = vec![UNKNOWN; 1 << 16];
+        match &cfg.label_ids {
+            LabelIds::Named(n) if n == "train_id" => {
+                for i in 0..names.len() {
+                    id_lut[i] = i as u8;
+                }
+            }
+            LabelIds::Named(n) if n == "cityscapes_label_id" || n == "synthia" => {
+                if !is_cityscapes(&specs) {
+                    return Err(bad(format!("label_ids = {n:?} needs the cityscapes class table")));
+                }
+                let table: &[u8] = if n == "synthia" { &SYNTHIA_TO_TRAIN } else { &CITYSCAPES_LABEL_TO_TRAIN };
+                id_lut[..table.len()].copy_from_slice(table);
+            }
+            LabelIds::Named(n) => {
+                return Err(bad(format!(
+                    "unknown label_ids {n:?} (train_id, cityscapes_label_id, synthia, or a list of [id, \"class\"] pairs)"
+                )))
+            }
+            LabelIds::Custom(pairs) => {
+                for (id, name) in pairs {
+                    let slot = id_lut
+                        .get_mut(*id as usize)
+                        .ok_or_else(|| bad(format!("label id {id} is above 65535")))?;
+                    *slot = index_of(name)?;
+                }
+            }
+        }
+        for &v in &cfg.void_ids {
+            let slot = id_lut.get_mut(v as usize).ok_or_else(|| bad(format!("void id {v} is above 65535")))?;
+            *slot = VOID;
+        }
+        let mut color_lut = HashMap::new();
+        if is_cityscapes(&specs) {
+            for c in CITYSCAPES_VOID_COLORS {
+                color_lut.insert(c, VOID);
+            }
+        }
+        for (i, s) in specs.iter().enumerate() {
+            if let Some(prev) = color_lut.insert(s.color, i as u8) {
+                if prev != VOID {
+                    return Err(bad(format!("classes {:?} and {:?} share colour {:?}", names[prev as usize], s.name, s.color)));
+                }
+            }
+        }
+        Ok(ClassTable {
+            colors: specs.iter().map(|s| s.color).collect(),
+            dynamic: specs.iter().map(|s| s.dynamic).collect(),
+            names,
+            excluded,
+            id_lut,
+            color_lut,
+        })
+    }
+
+    /// The default Cityscapes train-id table with nothing excluded.
+    pub fn cityscapes() -> Self {
+        Self::from_config(&ClassesConfig::default()).expect("built-in table is valid")
+    }
+
+    pub fn len(&self) -> usize {
+        self.names.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.names.is_empty()
+    }
+    pub fn name(&self, class: u8) -> &str {
+        if class == VOID {
+            "void"
+        } else {
+            &self.names[class as usize]
+        }
+    }
+    pub fn index(&self, name: &str) -> Option<u8> {
+        self.names.iter().position(|n| n == name).map(|i| i as u8)
+    }
+    pub fn color(&self, class: u8) -> [u8; 3] {
+        if class == VOID {
+            [0, 0, 0]
+        } else {
+            self.colors[class as usize]
+        }
+    }
+    pub fn is_dynamic(&self, class: u8) -> bool {
+        class != VOID && self.dynamic[class as usize]
+    }
+    /// Whether pixels of `class` take part in objects and edges (not void, not excluded).
+    pub fn is_used(&self, class: u8) -> bool {
+        class != VOID && !self.excluded[class as usize]
+    }
+    /// Per class index 0..=255: whether the class takes part (VOID and excluded: false).
+    pub fn used_mask(&self) -> [bool; 256] {
+        let mut m = [false; 256];
+        for (c, slot) in m.iter_mut().enumerate().take(self.len()) {
+            *slot = !self.excluded[c];
+        }
+        m
+    }
+    /// Class index of a file id: `Some(VOID)` for void ids, `None` for unknown ids.
+    pub fn class_of_id(&self, id: u32) -> Option<u8> {
+        match self.id_lut.get(id as usize).copied() {
+            Some(UNKNOWN) | None => None,
+            c => c,
+        }
+    }
+    /// Class index of a palette colour: `Some(VOID)` for void colours, `None` for unknown ones.
+    pub fn class_of_color(&self, rgb: [u8; 3]) -> Option<u8> {
+        self.color_lut.get(&rgb).copied()
+    }
+}
+
+fn is_cityscapes(specs: &[ClassSpec]) -> bool {
+    specs.len() == CITYSCAPES.len() && specs.iter().zip(CITYSCAPES.iter()).all(|(s, c)| s.name == c.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::ClassesConfig;
+
+    #[test]
+    fn cityscapes_ids_colours_and_void() {
+        let t = ClassTable::cityscapes();
+        assert_eq!(t.len(), 19);
+        assert_eq!(t.class_of_id(13), Some(13));
+        assert_eq!(t.class_of_id(255), Some(VOID));
+        assert_eq!(t.class_of_id(19), None);
+        assert_eq!(t.class_of_color([0, 0, 142]), Some(13));
+        assert_eq!(t.class_of_color([0, 0, 0]), Some(VOID));
+        assert_eq!(t.class_of_color([1, 2, 3]), None);
+    }
+
+    #[test]
+    fn remaps_and_exclusions() {
+        let mut cfg = ClassesConfig { label_ids: LabelIds::Named("cityscapes_label_id".into()), ..Default::default() };
+        cfg.exclude = vec!["car".into(), "sky".into()];
+        let t = ClassTable::from_config(&cfg).unwrap();
+        assert_eq!(t.class_of_id(7), Some(0)); // road
+        assert_eq!(t.class_of_id(26), Some(13)); // car
+        assert_eq!(t.class_of_id(0), Some(VOID));
+        assert!(!t.is_used(13) && !t.is_used(10) && t.is_used(0) && !t.is_used(VOID));
+        cfg.exclude = vec!["spaceship".into()];
+        assert!(ClassTable::from_config(&cfg).is_err());
+        let synthia = ClassesConfig { label_ids: LabelIds::Named("synthia".into()), ..Default::default() };
+        let t = ClassTable::from_config(&synthia).unwrap();
+        assert_eq!(t.class_of_id(3), Some(0));
+        assert_eq!(t.class_of_id(10), Some(11));
+        assert_eq!(t.class_of_id(16), None);
+    }
+}

@@ -1,0 +1,421 @@
+//! Every tunable of the engine, with the defaults of the design reference (`semlook-spec.md` §3).
+//! Choices the paper does not state ([R] in the spec) are all here, so that a user can change them
+//! in a TOML file. `semlook config` prints this struct's defaults.
+//!
+//! Sections split in two groups: the *encoding* sections (`classes`, `objects`, `global`, `local`)
+//! change what is stored in a map, so a map records them and refuses queries encoded differently;
+//! the *matching* sections (`similarity`, `matching`, `eval`) may change at query time.
+
+use crate::error::{Error, Result};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct Config {
+    pub classes: ClassesConfig,
+    pub objects: ObjectsConfig,
+    pub global: GlobalConfig,
+    pub local: LocalConfig,
+    pub similarity: SimilarityConfig,
+    pub matching: MatchingConfig,
+    pub eval: EvalConfig,
+}
+
+/// The sections that determine stored descriptors; a map and its queries must agree on them.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EncodingConfig {
+    pub classes: ClassesConfig,
+    pub objects: ObjectsConfig,
+    pub global: GlobalConfig,
+    pub local: LocalConfig,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ClassesConfig {
+    /// "cityscapes" (19 train ids) or an inline list of `{ name, color, dynamic }`.
+    pub table: TableSpec,
+    /// How ids in single-channel label PNGs map to classes: "train_id" (id = table index),
+    /// "cityscapes_label_id", "synthia", or a list of `[id, "class name" | "void"]` pairs.
+    pub label_ids: LabelIds,
+    /// File ids that mean "no class" (Cityscapes' ignore label is 255).
+    pub void_ids: Vec<u32>,
+    /// Class names left out of objects and edges, e.g. the dynamic classes
+    /// ["person", "rider", "car", "truck", "bus", "train", "motorcycle", "bicycle"]. [R] default: none.
+    pub exclude: Vec<String>,
+}
+
+impl Default for ClassesConfig {
+    fn default() -> Self {
+        ClassesConfig {
+            table: TableSpec::Builtin("cityscapes".into()),
+            label_ids: LabelIds::Named("train_id".into()),
+            void_ids: vec![255],
+            exclude: vec![],
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum TableSpec {
+    Builtin(String),
+    Custom(Vec<ClassSpec>),
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ClassSpec {
+    pub name: String,
+    pub color: [u8; 3],
+    #[serde(default)]
+    pub dynamic: bool,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum LabelIds {
+    Named(String),
+    Custom(Vec<(u32, String)>),
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ObjectsConfig {
+    /// Objects smaller than this fraction of the image area are dropped. [R] 0.1 %.
+    pub min_area_fraction: f64,
+    /// At most this many objects per image, the largest kept (bounds GPU scratch space). [R] 64.
+    pub max_objects: usize,
+    /// Object area: "pixels" (pixel count of the region) or "contour" (shoelace area of the
+    /// Suzuki-Abe outer border, as cv2.contourArea). [R] pixels.
+    pub area: AreaMode,
+}
+
+impl Default for ObjectsConfig {
+    fn default() -> Self {
+        ObjectsConfig { min_area_fraction: 0.001, max_objects: 64, area: AreaMode::Pixels }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AreaMode {
+    Pixels,
+    Contour,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GlobalConfig {
+    /// Distance-transform truncation τ as a fraction of the image diagonal. [R] 0.1.
+    pub truncation: f64,
+    /// Global descriptor width and height after area resizing. [R] 64 x 48.
+    pub width: usize,
+    pub height: usize,
+    /// SSIM window side (uniform window, odd). [R] 7, as skimage.
+    pub ssim_window: usize,
+    /// SSIM stabilisers C1 = (k1 L)^2, C2 = (k2 L)^2 with data range L = 1. [X] Wang et al. 2004.
+    pub ssim_k1: f64,
+    pub ssim_k2: f64,
+    /// Use sample (N-1) rather than population variances, as skimage does by default.
+    pub ssim_sample_covariance: bool,
+}
+
+impl Default for GlobalConfig {
+    fn default() -> Self {
+        GlobalConfig {
+            truncation: 0.1,
+            width: 64,
+            height: 48,
+            ssim_window: 7,
+            ssim_k1: 0.01,
+            ssim_k2: 0.03,
+            ssim_sample_covariance: true,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LocalConfig {
+    /// Neighbours per tree. [Q] 3.
+    pub neighbours: usize,
+    /// Centroid distances (in image diagonals) closer than this count as a tie, broken by the
+    /// larger area. [R] 0.02.
+    pub tie_tolerance: f64,
+}
+
+impl Default for LocalConfig {
+    fn default() -> Self {
+        LocalConfig { neighbours: 3, tie_tolerance: 0.02 }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SimilarityConfig {
+    /// Weights of area, position and appearance inside S_in. [R] equal thirds.
+    pub w_area: f64,
+    pub w_position: f64,
+    pub w_appearance: f64,
+    /// Weights of the intrinsic part and the neighbour part of the tree similarity. [R] 0.5 / 0.5.
+    pub w_intrinsic: f64,
+    pub w_neighbours: f64,
+    /// Position similarity: "linear" max(0, 1 - d) or "gaussian" exp(-d^2 / 2 sigma^2), d in diagonals.
+    pub position: PositionSimilarity,
+    pub position_sigma: f64,
+    /// Appearance missing on either side: "neutral" (score `neutral_appearance`) or "drop" (leave
+    /// the term out and renormalise the weights). [R] neutral 0.5.
+    pub missing_appearance: MissingAppearance,
+    pub neutral_appearance: f64,
+    /// Image similarity from tree similarities: "greedy" one-to-one assignment, or "best_match"
+    /// (each query tree takes its best reference tree). Both divide by the larger forest. [R] greedy.
+    pub assignment: Assignment,
+}
+
+impl Default for SimilarityConfig {
+    fn default() -> Self {
+        SimilarityConfig {
+            w_area: 1.0 / 3.0,
+            w_position: 1.0 / 3.0,
+            w_appearance: 1.0 / 3.0,
+            w_intrinsic: 0.5,
+            w_neighbours: 0.5,
+            position: PositionSimilarity::Linear,
+            position_sigma: 0.1,
+            missing_appearance: MissingAppearance::Neutral,
+            neutral_appearance: 0.5,
+            assignment: Assignment::Greedy,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PositionSimilarity {
+    Linear,
+    Gaussian,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MissingAppearance {
+    Neutral,
+    Drop,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Assignment {
+    Greedy,
+    BestMatch,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MatchingConfig {
+    /// Candidates the coarse stage passes to the fine stage. [R] 10 (spec §6.3).
+    pub top_k: usize,
+    /// References scored per tile while streaming top-K; bounds the scratch memory.
+    pub tile: usize,
+    /// Final score: "fine" (image similarity) or "fine_times_global" (times the SSIM). [R] fine.
+    pub score: ScoreFusion,
+}
+
+impl Default for MatchingConfig {
+    fn default() -> Self {
+        MatchingConfig { top_k: 10, tile: 4096, score: ScoreFusion::Fine }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ScoreFusion {
+    Fine,
+    FineTimesGlobal,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct EvalConfig {
+    /// N of the Recall@N columns.
+    pub recall_at: Vec<usize>,
+}
+
+impl Default for EvalConfig {
+    fn default() -> Self {
+        EvalConfig { recall_at: vec![1, 5, 10] }
+    }
+}
+
+impl Config {
+    /// Parses and validates a TOML config; `source_name` names it in errors.
+    pub fn from_toml(text: &str, source_name: &str) -> Result<Config> {
+        let cfg: Config = toml::from_str(text)
+            .map_err(|e| Error::InvalidConfig { source_name: source_name.into(), reason: e.to_string() })?;
+        cfg.validate(source_name)?;
+        Ok(cfg)
+    }
+
+    pub fn load(path: &Path) -> Result<Config> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        Config::from_toml(&text, &path.display().to_string())
+    }
+
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).expect("config serialises")
+    }
+
+    pub fn encoding(&self) -> EncodingConfig {
+        EncodingConfig {
+            classes: self.classes.clone(),
+            objects: self.objects.clone(),
+            global: self.global.clone(),
+            local: self.local.clone(),
+        }
+    }
+
+    /// Replaces the encoding sections with those a map was built with.
+    pub fn with_encoding(mut self, enc: &EncodingConfig) -> Config {
+        self.classes = enc.classes.clone();
+        self.objects = enc.objects.clone();
+        self.global = enc.global.clone();
+        self.local = enc.local.clone();
+        self
+    }
+
+    /// Checks ranges and finiteness of every number, and that the class table resolves.
+    pub fn validate(&self, source_name: &str) -> Result<()> {
+        let bad = |reason: String| Err(Error::InvalidConfig { source_name: source_name.into(), reason });
+        let finite_in = |name: &str, v: f64, lo: f64, hi: f64| -> Result<()> {
+            if v.is_finite() && v >= lo && v <= hi {
+                Ok(())
+            } else {
+                Err(Error::InvalidConfig {
+                    source_name: source_name.into(),
+                    reason: format!("{name} = {v} must be a finite number in [{lo}, {hi}]"),
+                })
+            }
+        };
+        crate::classes::ClassTable::from_config(&self.classes).map_err(|e| match e {
+            Error::InvalidConfig { reason, .. } => {
+                Error::InvalidConfig { source_name: source_name.into(), reason: format!("[classes] {reason}") }
+            }
+            other => other,
+        })?;
+        finite_in("objects.min_area_fraction", self.objects.min_area_fraction, 0.0, 0.5)?;
+        if self.objects.max_objects == 0 || self.objects.max_objects > 256 {
+            return bad(format!("objects.max_objects = {} must be in 1..=256", self.objects.max_objects));
+        }
+        let g = &self.global;
+        finite_in("global.truncation", g.truncation, 1e-3, 1.0)?;
+        if g.ssim_window < 3 || g.ssim_window % 2 == 0 {
+            return bad(format!("global.ssim_window = {} must be odd and >= 3", g.ssim_window));
+        }
+        if g.width < g.ssim_window || g.height < g.ssim_window || g.width > 1024 || g.height > 1024 {
+            return bad(format!(
+                "global descriptor {}x{} must be at least the SSIM window ({}) and at most 1024",
+                g.width, g.height, g.ssim_window
+            ));
+        }
+        finite_in("global.ssim_k1", g.ssim_k1, 1e-6, 1.0)?;
+        finite_in("global.ssim_k2", g.ssim_k2, 1e-6, 1.0)?;
+        if self.local.neighbours > 8 {
+            return bad(format!("local.neighbours = {} must be at most 8", self.local.neighbours));
+        }
+        finite_in("local.tie_tolerance", self.local.tie_tolerance, 0.0, 1.0)?;
+        let s = &self.similarity;
+        for (name, v) in [
+            ("similarity.w_area", s.w_area),
+            ("similarity.w_position", s.w_position),
+            ("similarity.w_appearance", s.w_appearance),
+            ("similarity.w_intrinsic", s.w_intrinsic),
+            ("similarity.w_neighbours", s.w_neighbours),
+        ] {
+            finite_in(name, v, 0.0, 1e3)?;
+        }
+        if s.w_area + s.w_position + s.w_appearance <= 0.0 || s.w_intrinsic + s.w_neighbours <= 0.0 {
+            return bad("similarity weights must not all be zero".into());
+        }
+        finite_in("similarity.position_sigma", s.position_sigma, 1e-4, 10.0)?;
+        finite_in("similarity.neutral_appearance", s.neutral_appearance, 0.0, 1.0)?;
+        if self.matching.top_k == 0 || self.matching.top_k > 1024 {
+            return bad(format!("matching.top_k = {} must be in 1..=1024", self.matching.top_k));
+        }
+        if self.matching.tile == 0 {
+            return bad("matching.tile must be positive".into());
+        }
+        if self.eval.recall_at.contains(&0) {
+            return bad("eval.recall_at values must be positive".into());
+        }
+        Ok(())
+    }
+}
+
+/// Names the first field where two encodings differ, with both values, or `None` if equal.
+pub fn first_difference(a: &EncodingConfig, b: &EncodingConfig) -> Option<(String, String, String)> {
+    fn walk(path: String, a: &serde_json::Value, b: &serde_json::Value) -> Option<(String, String, String)> {
+        use serde_json::Value::Object;
+        match (a, b) {
+            (Object(ma), Object(mb)) => {
+                for (k, va) in ma {
+                    let vb = mb.get(k).unwrap_or(&serde_json::Value::Null);
+                    let p = if path.is_empty() { k.clone() } else { format!("{path}.{k}") };
+                    if let Some(d) = walk(p, va, vb) {
+                        return Some(d);
+                    }
+                }
+                None
+            }
+            _ if a == b => None,
+            _ => Some((path, a.to_string(), b.to_string())),
+        }
+    }
+    let va = serde_json::to_value(a).expect("serialises");
+    let vb = serde_json::to_value(b).expect("serialises");
+    walk(String::new(), &va, &vb)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_round_trip_through_toml() {
+        let cfg = Config::default();
+        let back = Config::from_toml(&cfg.to_toml(), "test").unwrap();
+        assert_eq!(cfg, back);
+    }
+
+    #[test]
+    fn partial_file_keeps_other_defaults() {
+        let cfg = Config::from_toml("[matching]\ntop_k = 20\n[classes]\nexclude = [\"car\"]\n", "t").unwrap();
+        assert_eq!(cfg.matching.top_k, 20);
+        assert_eq!(cfg.global, GlobalConfig::default());
+    }
+
+    #[test]
+    fn rejects_bad_values_naming_the_field() {
+        for (text, field) in [
+            ("[global]\ntruncation = nan\n", "global.truncation"),
+            ("[global]\nssim_window = 4\n", "ssim_window"),
+            ("[matching]\ntop_k = 0\n", "top_k"),
+            ("[objects]\nmin_area = 1\n", "min_area"),
+            ("[classes]\nexclude = [\"dragon\"]\n", "dragon"),
+        ] {
+            let err = Config::from_toml(text, "x.toml").unwrap_err().to_string();
+            assert!(err.contains(field) && err.contains("x.toml"), "{err}");
+        }
+    }
+
+    #[test]
+    fn difference_names_the_field() {
+        let a = Config::default().encoding();
+        let mut b = a.clone();
+        b.global.width = 32;
+        let (field, va, vb) = first_difference(&a, &b).unwrap();
+        assert_eq!((field.as_str(), va.as_str(), vb.as_str()), ("global.width", "64", "32"));
+        assert!(first_difference(&a, &a).is_none());
+    }
+}

@@ -1,0 +1,65 @@
+//! The one error type of the crate. Every variant names the resource that failed (a file, a map,
+//! a config field) and what was wrong with it, so a CLI user can act on the message alone.
+
+use std::path::PathBuf;
+
+/// Result alias used throughout the crate.
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: cannot decode image: {reason}")]
+    ImageDecode { path: PathBuf, reason: String },
+    #[error("{path}: image is empty ({width}x{height})")]
+    EmptyImage { path: PathBuf, width: u32, height: u32 },
+    #[error("{labels}: label map is {label_size:?} (w, h) but image {image} is {image_size:?}")]
+    SizeMismatch {
+        image: PathBuf,
+        labels: PathBuf,
+        image_size: (u32, u32),
+        label_size: (u32, u32),
+    },
+    #[error("{path}: pixel ({x}, {y}) has class id {id}, which the class table does not know (and is not void)")]
+    UnknownClassId { path: PathBuf, id: u32, x: u32, y: u32 },
+    #[error("{path}: pixel ({x}, {y}) has colour {rgb:?}, which is not in the class palette")]
+    UnknownClassColor { path: PathBuf, rgb: [u8; 3], x: u32, y: u32 },
+    #[error("{path}: unsupported label map: {reason}")]
+    UnsupportedLabelFormat { path: PathBuf, reason: String },
+    #[error("{image}: no label map given and no segmenter configured: pass --labels DIR (or --segmenter MODEL)")]
+    NoLabels { image: PathBuf },
+    #[error("config {source_name}: {reason}")]
+    InvalidConfig { source_name: String, reason: String },
+    #[error("map {path}: corrupt: {reason}")]
+    CorruptMap { path: PathBuf, reason: String },
+    #[error("map {path}: format version {found} is not supported (this build reads version {supported})")]
+    MapVersion { path: PathBuf, found: u32, supported: u32 },
+    #[error("map {map}: built with {field} = {map_value}, but the query config has {given_value}; re-encode or use the map's config")]
+    IncompatibleConfig { map: PathBuf, field: String, map_value: String, given_value: String },
+    #[error("map {map}: image id {id:?} is already stored")]
+    DuplicateImageId { map: PathBuf, id: String },
+    #[error("dataset {path}: {reason}")]
+    Dataset { path: PathBuf, reason: String },
+    #[error("{what}: {reason}")]
+    InvalidInput { what: String, reason: String },
+}
+
+impl Error {
+    pub(crate) fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        Error::Io { path: path.into(), source }
+    }
+    pub(crate) fn corrupt(path: impl Into<PathBuf>, reason: impl Into<String>) -> Self {
+        Error::CorruptMap { path: path.into(), reason: reason.into() }
+    }
+    pub(crate) fn dataset(path: impl Into<PathBuf>, reason: impl Into<String>) -> Self {
+        Error::Dataset { path: path.into(), reason: reason.into() }
+    }
+    pub(crate) fn invalid(what: impl Into<String>, reason: impl Into<String>) -> Self {
+        Error::InvalidInput { what: what.into(), reason: reason.into() }
+    }
+}

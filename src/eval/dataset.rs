@@ -1,0 +1,499 @@
+//! Datasets for evaluation: a reference traversal (the map), one or more query traversals, and
+//! ground truth, read from a `semlook-dataset.json` manifest or discovered from a SYNTHIA-style
+//! folder tree. Layouts:
+//! - `synthia`: `ROOT/<traversal>/RGB/<camera>/<frame>.png`, labels in
+//!   `ROOT/<traversal>/GT/LABELS/<camera>/<frame>.png`, poses in
+//!   `ROOT/<traversal>/CameraParams/<camera>/<frame>.txt` (16 numbers, a column-major 4x4
+//!   camera-to-world matrix); `semlook synth` writes this layout;
+//! - `folders`: an image folder, an optional label folder (same file stems, `.png`), and an
+//!   optional pose list file, one line per image (Extended CMU Seasons, RobotCar Seasons);
+//! - `explicit`: every frame listed with its files, pose and/or ground-truth list.
+
+use crate::error::{Error, Result};
+use crate::input::{FrameSource, LabelFormat};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+pub const MANIFEST: &str = "semlook-dataset.json";
+/// Default SYNTHIA camera folder.
+pub const SYNTHIA_CAMERA: &str = "Stereo_Left/Omni_F";
+
+/// Camera centre and optical axis (unit vector) in world coordinates.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Pose {
+    pub position: [f64; 3],
+    pub forward: [f64; 3],
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct Frame {
+    pub source: FrameSource,
+    pub pose: Option<Pose>,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct Traversal {
+    pub name: String,
+    pub frames: Vec<Frame>,
+    /// Per frame, the valid reference indices, when the dataset lists them.
+    pub ground_truth: Option<Vec<Vec<u32>>>,
+}
+
+/// Rule that makes ground truth from poses.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct GroundTruthRule {
+    /// Camera centres closer than this (dataset units, usually metres) match.
+    pub max_distance: f64,
+    /// And optical axes closer than this angle, when given.
+    #[serde(default)]
+    pub max_angle_deg: Option<f64>,
+}
+
+/// A loaded dataset.
+#[derive(Debug, Clone)]
+pub struct Dataset {
+    pub root: PathBuf,
+    pub name: String,
+    pub label_format: LabelFormat,
+    /// The `classes.label_ids` the dataset's label files use, when it says.
+    pub label_ids: Option<crate::config::LabelIds>,
+    pub reference: Traversal,
+    pub queries: Vec<Traversal>,
+    pub rule: Option<GroundTruthRule>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PoseFormat {
+    /// `name qw qx qy qz cx cy cz`: world-to-camera rotation, camera centre.
+    QuatCenter,
+    /// `name qw qx qy qz tx ty tz`: world-to-camera rotation and translation.
+    QuatTranslation,
+    /// `name` and 16 numbers: row-major 4x4 camera-to-world matrix.
+    MatrixCamToWorld,
+    /// `name` and 16 numbers: row-major 4x4 world-to-camera matrix.
+    MatrixWorldToCam,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum TraversalSpec {
+    /// A traversal folder of the synthia layout.
+    Named(String),
+    Folders {
+        name: String,
+        images: PathBuf,
+        #[serde(default)]
+        labels: Option<PathBuf>,
+        #[serde(default)]
+        poses: Option<PathBuf>,
+        #[serde(default)]
+        pose_format: Option<PoseFormat>,
+    },
+    Explicit {
+        name: String,
+        frames: Vec<FrameSpec>,
+    },
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameSpec {
+    pub id: String,
+    #[serde(default)]
+    pub image: Option<PathBuf>,
+    #[serde(default)]
+    pub labels: Option<PathBuf>,
+    #[serde(default)]
+    pub pose: Option<Pose>,
+    /// Valid reference indices (query frames only).
+    #[serde(default)]
+    pub ground_truth: Option<Vec<u32>>,
+}
+
+/// The `semlook-dataset.json` file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DatasetManifest {
+    pub format: String,
+    pub version: u32,
+    #[serde(default)]
+    pub name: Option<String>,
+    #[serde(default = "default_layout")]
+    pub layout: String,
+    #[serde(default)]
+    pub camera: Option<String>,
+    #[serde(default)]
+    pub label_format: LabelFormat,
+    #[serde(default)]
+    pub label_ids: Option<crate::config::LabelIds>,
+    pub reference: TraversalSpec,
+    pub queries: Vec<TraversalSpec>,
+    #[serde(default)]
+    pub ground_truth: Option<GroundTruthRule>,
+}
+
+fn default_layout() -> String {
+    "synthia".into()
+}
+
+/// Overrides from the command line.
+#[derive(Debug, Clone, Default)]
+pub struct DatasetOptions {
+    pub reference: Option<String>,
+    pub queries: Vec<String>,
+    pub max_distance: Option<f64>,
+    pub max_angle_deg: Option<f64>,
+}
+
+impl Dataset {
+    /// Opens `root`: its manifest if present, else a synthia-layout tree (then `opts.reference`
+    /// is required). Command-line options override the manifest's choices.
+    pub fn open(root: &Path, opts: &DatasetOptions) -> Result<Dataset> {
+        let mpath = root.join(MANIFEST);
+        let manifest = if mpath.exists() {
+            let text = std::fs::read(&mpath).map_err(|e| Error::io(&mpath, e))?;
+            let m: DatasetManifest =
+                serde_json::from_slice(&text).map_err(|e| Error::dataset(&mpath, format!("manifest: {e}")))?;
+            if m.format != "semlook-dataset" || m.version != 1 {
+                return Err(Error::dataset(&mpath, "not a semlook-dataset version 1 manifest"));
+            }
+            m
+        } else {
+            let found = synthia_traversals(root);
+            let reference = opts.reference.clone().ok_or_else(|| {
+                Error::dataset(root, format!("no {MANIFEST}; pass --reference (traversals found: {})", found.join(", ")))
+            })?;
+            DatasetManifest {
+                format: "semlook-dataset".into(),
+                version: 1,
+                name: None,
+                layout: "synthia".into(),
+                camera: None,
+                label_format: LabelFormat::FirstChannel,
+                label_ids: Some(crate::config::LabelIds::Named("synthia".into())),
+                reference: TraversalSpec::Named(reference.clone()),
+                queries: found.into_iter().filter(|n| *n != reference).map(TraversalSpec::Named).collect(),
+                ground_truth: Some(GroundTruthRule { max_distance: 7.0, max_angle_deg: None }),
+            }
+        };
+        let mut manifest = manifest;
+        if let Some(r) = &opts.reference {
+            manifest.reference = TraversalSpec::Named(r.clone());
+        }
+        if !opts.queries.is_empty() {
+            manifest.queries = opts.queries.iter().cloned().map(TraversalSpec::Named).collect();
+        }
+        if let Some(d) = opts.max_distance {
+            manifest.ground_truth = Some(GroundTruthRule { max_distance: d, max_angle_deg: opts.max_angle_deg });
+        } else if let (Some(a), Some(rule)) = (opts.max_angle_deg, manifest.ground_truth.as_mut()) {
+            rule.max_angle_deg = Some(a);
+        }
+        Self::from_manifest(root, &manifest)
+    }
+
+    pub fn from_manifest(root: &Path, m: &DatasetManifest) -> Result<Dataset> {
+        let camera = m.camera.clone().unwrap_or_else(|| SYNTHIA_CAMERA.into());
+        let load = |spec: &TraversalSpec| load_traversal(root, &m.layout, &camera, spec);
+        let reference = load(&m.reference)?;
+        if reference.frames.is_empty() {
+            return Err(Error::dataset(root, format!("reference traversal {:?} has no frames", reference.name)));
+        }
+        let mut queries = Vec::new();
+        for q in &m.queries {
+            let t = load(q)?;
+            if t.name == reference.name {
+                continue;
+            }
+            queries.push(t);
+        }
+        if queries.is_empty() {
+            return Err(Error::dataset(root, "no query traversal"));
+        }
+        let ds = Dataset {
+            root: root.into(),
+            name: m.name.clone().unwrap_or_else(|| root.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default()),
+            label_format: m.label_format,
+            label_ids: m.label_ids.clone(),
+            reference,
+            queries,
+            rule: m.ground_truth,
+        };
+        for q in &ds.queries {
+            ds.ground_truth(q)?;
+        }
+        Ok(ds)
+    }
+
+    /// Valid reference indices for every frame of query traversal `q`: the listed ones, else
+    /// those the pose rule accepts.
+    pub fn ground_truth(&self, q: &Traversal) -> Result<Vec<Vec<u32>>> {
+        if let Some(gt) = &q.ground_truth {
+            let n = self.reference.frames.len() as u32;
+            if let Some(bad) = gt.iter().flatten().find(|&&i| i >= n) {
+                return Err(Error::dataset(&self.root, format!("ground truth of {:?} names reference {bad}, there are {n}", q.name)));
+            }
+            return Ok(gt.clone());
+        }
+        let rule = self
+            .rule
+            .ok_or_else(|| Error::dataset(&self.root, format!("traversal {:?} has no ground-truth lists and no pose rule is set", q.name)))?;
+        if !rule.max_distance.is_finite() || rule.max_distance < 0.0 {
+            return Err(Error::dataset(&self.root, format!("ground-truth distance {} is not a finite non-negative number", rule.max_distance)));
+        }
+        let pose = |f: &Frame| {
+            f.pose.ok_or_else(|| Error::dataset(&self.root, format!("frame {:?} has no pose for pose-based ground truth", f.source.id)))
+        };
+        let refs: Vec<Pose> = self.reference.frames.iter().map(pose).collect::<Result<_>>()?;
+        q.frames.iter().map(|f| Ok(pose_matches(&pose(f)?, &refs, &rule))).collect()
+    }
+}
+
+/// Indices of the reference poses that `rule` accepts for `q`.
+pub fn pose_matches(q: &Pose, refs: &[Pose], rule: &GroundTruthRule) -> Vec<u32> {
+    let cos_limit = rule.max_angle_deg.map(|a| a.to_radians().cos());
+    refs.iter()
+        .enumerate()
+        .filter(|(_, r)| {
+            let d2: f64 = (0..3).map(|i| (q.position[i] - r.position[i]).powi(2)).sum();
+            let angle_ok = cos_limit.is_none_or(|c| (0..3).map(|i| q.forward[i] * r.forward[i]).sum::<f64>() >= c);
+            d2.sqrt() <= rule.max_distance && angle_ok
+        })
+        .map(|(i, _)| i as u32)
+        .collect()
+}
+
+/// Traversal folders of a synthia-layout root (those with an `RGB` folder), sorted.
+pub fn synthia_traversals(root: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(root)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter(|e| e.path().join("RGB").is_dir())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    v.sort();
+    v
+}
+
+fn image_files(dir: &Path) -> Result<Vec<PathBuf>> {
+    let rd = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
+    let mut files: Vec<PathBuf> = rd
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| {
+            matches!(p.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref(), Some("png" | "jpg" | "jpeg"))
+        })
+        .collect();
+    files.sort();
+    Ok(files)
+}
+
+fn stem(p: &Path) -> String {
+    p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default()
+}
+
+fn load_traversal(root: &Path, layout: &str, camera: &str, spec: &TraversalSpec) -> Result<Traversal> {
+    match (layout, spec) {
+        ("synthia", TraversalSpec::Named(name)) => {
+            let base = root.join(name);
+            let rgb_dir = base.join("RGB").join(camera);
+            let mut frames = Vec::new();
+            for img in image_files(&rgb_dir)? {
+                let s = stem(&img);
+                let labels = base.join("GT/LABELS").join(camera).join(format!("{s}.png"));
+                let pose_file = base.join("CameraParams").join(camera).join(format!("{s}.txt"));
+                let pose = if pose_file.exists() { Some(read_synthia_pose(&pose_file)?) } else { None };
+                frames.push(Frame {
+                    source: FrameSource { id: format!("{name}/{s}"), image: Some(img), labels: Some(labels) },
+                    pose,
+                });
+            }
+            Ok(Traversal { name: name.clone(), frames, ground_truth: None })
+        }
+        (_, TraversalSpec::Folders { name, images, labels, poses, pose_format }) => {
+            let dir = root.join(images);
+            let pose_map = match poses {
+                Some(p) => Some(read_pose_list(&root.join(p), pose_format.unwrap_or(PoseFormat::QuatCenter))?),
+                None => None,
+            };
+            let mut frames = Vec::new();
+            for img in image_files(&dir)? {
+                let s = stem(&img);
+                let fname = img.file_name().unwrap().to_string_lossy().into_owned();
+                let pose = match &pose_map {
+                    Some(m) => Some(*m.get(&fname).or_else(|| m.get(&s)).ok_or_else(|| {
+                        Error::dataset(root, format!("pose list has no line for image {fname:?}"))
+                    })?),
+                    None => None,
+                };
+                frames.push(Frame {
+                    source: FrameSource {
+                        id: format!("{name}/{s}"),
+                        labels: labels.as_ref().map(|l| root.join(l).join(format!("{s}.png"))),
+                        image: Some(img),
+                    },
+                    pose,
+                });
+            }
+            Ok(Traversal { name: name.clone(), frames, ground_truth: None })
+        }
+        (_, TraversalSpec::Explicit { name, frames }) => {
+            let gt: Option<Vec<Vec<u32>>> =
+                if frames.iter().all(|f| f.ground_truth.is_some()) && !frames.is_empty() {
+                    Some(frames.iter().map(|f| f.ground_truth.clone().unwrap()).collect())
+                } else {
+                    None
+                };
+            let frames = frames
+                .iter()
+                .map(|f| Frame {
+                    source: FrameSource {
+                        id: f.id.clone(),
+                        image: f.image.as_ref().map(|p| root.join(p)),
+                        labels: f.labels.as_ref().map(|p| root.join(p)),
+                    },
+                    pose: f.pose,
+                })
+                .collect();
+            Ok(Traversal { name: name.clone(), frames, ground_truth: gt })
+        }
+        (layout, spec) => Err(Error::dataset(root, format!("traversal {spec:?} does not fit layout {layout:?}"))),
+    }
+}
+
+fn parse_numbers(text: &str, path: &Path, line: usize) -> Result<Vec<f64>> {
+    text.split_whitespace()
+        .map(|t| {
+            t.parse::<f64>()
+                .ok()
+                .filter(|v| v.is_finite())
+                .ok_or_else(|| Error::dataset(path, format!("line {line}: {t:?} is not a finite number")))
+        })
+        .collect()
+}
+
+/// A SYNTHIA CameraParams file: 16 numbers, column-major 4x4 camera-to-world.
+pub fn read_synthia_pose(path: &Path) -> Result<Pose> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let v = parse_numbers(&text, path, 1)?;
+    if v.len() != 16 {
+        return Err(Error::dataset(path, format!("expected 16 numbers, found {}", v.len())));
+    }
+    // column-major: column j is v[4j..4j+4]; the camera's z axis is column 2, the centre column 3
+    Ok(Pose { position: [v[12], v[13], v[14]], forward: normalise([v[8], v[9], v[10]]) })
+}
+
+/// Writes a pose in the SYNTHIA CameraParams format (camera looking along `forward`, y up).
+pub fn write_synthia_pose(pose: &Pose) -> String {
+    let f = normalise(pose.forward);
+    let up = [0.0, 1.0, 0.0];
+    let x = normalise(cross(up, f));
+    let y = cross(f, x);
+    let p = pose.position;
+    let m = [x[0], x[1], x[2], 0.0, y[0], y[1], y[2], 0.0, f[0], f[1], f[2], 0.0, p[0], p[1], p[2], 1.0];
+    m.iter().map(|v| format!("{v:.6}")).collect::<Vec<_>>().join(" ") + "\n"
+}
+
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+
+fn normalise(v: [f64; 3]) -> [f64; 3] {
+    let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    if n > 0.0 {
+        [v[0] / n, v[1] / n, v[2] / n]
+    } else {
+        [0.0, 0.0, 1.0]
+    }
+}
+
+/// Rotation matrix (row-major) of a unit quaternion (w, x, y, z).
+fn quat_to_matrix(w: f64, x: f64, y: f64, z: f64) -> [[f64; 3]; 3] {
+    let n = (w * w + x * x + y * y + z * z).sqrt();
+    let (w, x, y, z) = (w / n, x / n, y / n, z / n);
+    [
+        [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - z * w), 2.0 * (x * z + y * w)],
+        [2.0 * (x * y + z * w), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - x * w)],
+        [2.0 * (x * z - y * w), 2.0 * (y * z + x * w), 1.0 - 2.0 * (x * x + y * y)],
+    ]
+}
+
+/// Reads a pose list (one `name numbers...` line per image; `#` comments) into name -> pose.
+pub fn read_pose_list(path: &Path, format: PoseFormat) -> Result<std::collections::HashMap<String, Pose>> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let mut out = std::collections::HashMap::new();
+    for (i, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let (name, rest) = line.split_once(char::is_whitespace).unwrap_or((line, ""));
+        let v = parse_numbers(rest, path, i + 1)?;
+        let want = match format {
+            PoseFormat::QuatCenter | PoseFormat::QuatTranslation => 7,
+            _ => 16,
+        };
+        if v.len() != want {
+            return Err(Error::dataset(path, format!("line {}: expected {want} numbers after the name, found {}", i + 1, v.len())));
+        }
+        let pose = match format {
+            PoseFormat::QuatCenter | PoseFormat::QuatTranslation => {
+                let r = quat_to_matrix(v[0], v[1], v[2], v[3]);
+                let t = [v[4], v[5], v[6]];
+                // rows of a world-to-camera rotation are the camera axes in world coordinates
+                let position = if format == PoseFormat::QuatCenter {
+                    t
+                } else {
+                    std::array::from_fn(|j| -(0..3).map(|k| r[k][j] * t[k]).sum::<f64>())
+                };
+                Pose { position, forward: normalise(r[2]) }
+            }
+            PoseFormat::MatrixCamToWorld => Pose { position: [v[3], v[7], v[11]], forward: normalise([v[2], v[6], v[10]]) },
+            PoseFormat::MatrixWorldToCam => {
+                let r = [[v[0], v[1], v[2]], [v[4], v[5], v[6]], [v[8], v[9], v[10]]];
+                let t = [v[3], v[7], v[11]];
+                let position = std::array::from_fn(|j| -(0..3).map(|k| r[k][j] * t[k]).sum::<f64>());
+                Pose { position, forward: normalise(r[2]) }
+            }
+        };
+        out.insert(name.to_string(), pose);
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn synthia_pose_round_trip() {
+        let p = Pose { position: [1.5, 1.6, -20.25], forward: normalise([0.1, 0.0, 1.0]) };
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("p.txt");
+        std::fs::write(&f, write_synthia_pose(&p)).unwrap();
+        let q = read_synthia_pose(&f).unwrap();
+        for i in 0..3 {
+            assert!((p.position[i] - q.position[i]).abs() < 1e-6 && (p.forward[i] - q.forward[i]).abs() < 1e-5);
+        }
+    }
+
+    #[test]
+    fn pose_lists_and_rule() {
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("gt.txt");
+        // identity rotation; world-to-camera translation t = -C
+        std::fs::write(&f, "# comment\na.jpg 1 0 0 0 2 0 0\nb.jpg 1 0 0 0 -2 0 0\n").unwrap();
+        let c = read_pose_list(&f, PoseFormat::QuatCenter).unwrap();
+        let t = read_pose_list(&f, PoseFormat::QuatTranslation).unwrap();
+        assert_eq!(c["a.jpg"].position, [2.0, 0.0, 0.0]);
+        assert_eq!(t["a.jpg"].position, [-2.0, 0.0, 0.0]);
+        assert_eq!(c["a.jpg"].forward, [0.0, 0.0, 1.0]);
+        let refs = [c["a.jpg"], c["b.jpg"]];
+        let q = Pose { position: [1.0, 0.0, 0.0], forward: [0.0, 0.0, 1.0] };
+        assert_eq!(pose_matches(&q, &refs, &GroundTruthRule { max_distance: 1.5, max_angle_deg: None }), vec![0]);
+        let turned = Pose { forward: [1.0, 0.0, 0.0], ..q };
+        assert!(pose_matches(&turned, &refs, &GroundTruthRule { max_distance: 5.0, max_angle_deg: Some(30.0) }).is_empty());
+        std::fs::write(&f, "a.jpg 1 0 0 nan 2 0 0\n").unwrap();
+        let e = read_pose_list(&f, PoseFormat::QuatCenter).unwrap_err().to_string();
+        assert!(e.contains("gt.txt") && e.contains("line 1"), "{e}");
+    }
+}

@@ -1,0 +1,254 @@
+//! Stage 5: evaluation. Encodes a dataset's references (or takes a built map) and queries,
+//! matches every query set in every requested setting, and reports the VPR-Bench metrics plus
+//! per-stage timings in the paper's Table 2 units (ms per frame for encoding, ms per reference
+//! frame for matching).
+
+pub mod dataset;
+pub mod metrics;
+
+use crate::config::Config;
+use crate::encode::{collect_encoded, Encoder, StageTimes};
+use crate::error::{Error, Result};
+use crate::map::{DescriptorSet, Map};
+use crate::matching::{match_batch, Setting};
+use crate::progress;
+use dataset::Dataset;
+use metrics::{pr_metrics, recall_at_n, PrMetrics};
+use serde::Serialize;
+use std::collections::HashMap;
+
+/// Mean per-frame encoding times of a set of frames.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct EncodingSummary {
+    pub frames: usize,
+    pub load_ms: f64,
+    pub global_ms: f64,
+    pub forest_ms: f64,
+    pub appearance_ms: f64,
+}
+
+impl EncodingSummary {
+    pub fn from_total(frames: usize, t: StageTimes) -> Self {
+        let n = frames.max(1) as f64;
+        EncodingSummary { frames, load_ms: t.load_ms / n, global_ms: t.global_ms / n, forest_ms: t.forest_ms / n, appearance_ms: t.appearance_ms / n }
+    }
+    /// Encoding time as the paper counts it: descriptors only, without file decoding.
+    pub fn encode_ms(&self) -> f64 {
+        self.global_ms + self.forest_ms + self.appearance_ms
+    }
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct QueryOutcome {
+    pub query: String,
+    pub top1: Option<String>,
+    pub score: Option<f32>,
+    pub correct: bool,
+    pub valid_references: usize,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct SettingReport {
+    pub query_set: String,
+    pub setting: Setting,
+    pub queries: usize,
+    /// Queries without any valid reference are left out of the metrics.
+    pub queries_without_ground_truth: usize,
+    #[serde(flatten)]
+    pub pr: PrMetrics,
+    /// (N, Recall@N).
+    pub recall_at: Vec<(usize, f64)>,
+    /// Matching time per query per reference frame, as VPR-Bench reports it.
+    pub matching_ms_per_ref: f64,
+    pub outcomes: Vec<QueryOutcome>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct EvalReport {
+    pub dataset: String,
+    pub references: usize,
+    pub reference_encoding: EncodingSummary,
+    pub query_encoding: EncodingSummary,
+    pub results: Vec<SettingReport>,
+}
+
+/// Options of one evaluation run.
+pub struct EvalOptions<'a> {
+    pub settings: Vec<Setting>,
+    /// A map built from the dataset's references, used instead of encoding them again.
+    pub map: Option<&'a Map>,
+    pub skip_invalid: bool,
+    pub quiet: bool,
+}
+
+/// Encodes a list of frames into a descriptor set, with a progress bar.
+pub fn encode_frames(
+    encoder: &Encoder,
+    frames: &[crate::input::FrameSource],
+    format: crate::input::LabelFormat,
+    what: &str,
+    skip_invalid: bool,
+    quiet: bool,
+) -> Result<(DescriptorSet, EncodingSummary, Vec<Error>)> {
+    let pb = progress::bar(frames.len(), what, quiet);
+    let results = encoder.encode_all(frames, format, &|| pb.inc(1));
+    pb.finish_and_clear();
+    let (images, total, skipped) = collect_encoded(results, skip_invalid)?;
+    let mut set = DescriptorSet::new(&encoder.ssim_params(), encoder.config().local.neighbours, 0);
+    for img in &images {
+        set.push(img);
+    }
+    Ok((set, EncodingSummary::from_total(images.len(), total), skipped))
+}
+
+pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions) -> Result<EvalReport> {
+    let encoder = Encoder::new(&cfg.encoding())?;
+    let ref_sources: Vec<_> = ds.reference.frames.iter().map(|f| f.source.clone()).collect();
+    let owned;
+    let (refs, ref_enc): (&DescriptorSet, EncodingSummary) = match opts.map {
+        Some(m) => {
+            m.check_compatible(&cfg.encoding())?;
+            (&m.descriptors, EncodingSummary::default())
+        }
+        None => {
+            let (set, summary, _) = encode_frames(&encoder, &ref_sources, ds.label_format, "references", false, opts.quiet)?;
+            owned = set;
+            (&owned, summary)
+        }
+    };
+    // dataset reference index -> map index
+    let index: HashMap<&str, u32> = refs.ids.iter().enumerate().map(|(i, id)| (id.as_str(), i as u32)).collect();
+    let ref_to_map: Vec<u32> = ref_sources
+        .iter()
+        .map(|s| {
+            index.get(s.id.as_str()).copied().ok_or_else(|| {
+                Error::dataset(&ds.root, format!("reference {:?} is not in the map", s.id))
+            })
+        })
+        .collect::<Result<_>>()?;
+    let mut results = Vec::new();
+    let mut q_total = StageTimes::default();
+    let mut q_frames = 0;
+    for qt in &ds.queries {
+        let gt_ds = ds.ground_truth(qt)?;
+        let sources: Vec<_> = qt.frames.iter().map(|f| f.source.clone()).collect();
+        let pb = progress::bar(sources.len(), &format!("queries {}", qt.name), opts.quiet);
+        let encoded = encoder.encode_all(&sources, ds.label_format, &|| pb.inc(1));
+        pb.finish_and_clear();
+        let mut qset = DescriptorSet::new(&encoder.ssim_params(), encoder.config().local.neighbours, 0);
+        let mut gt = Vec::new();
+        for (r, g) in encoded.into_iter().zip(&gt_ds) {
+            match r {
+                Ok((img, t)) => {
+                    qset.push(&img);
+                    q_total += t;
+                    q_frames += 1;
+                    gt.push(g.iter().map(|&i| ref_to_map[i as usize]).collect::<Vec<u32>>());
+                }
+                Err(e) if opts.skip_invalid => eprintln!("warning: skipped query: {e}"),
+                Err(e) => return Err(e),
+            }
+        }
+        for &setting in &opts.settings {
+            let (matches, times) = match_batch(refs, &qset, setting, cfg);
+            results.push(report(&qt.name, setting, refs, &qset, &matches, &gt, times.coarse_ms + times.fine_ms, cfg));
+        }
+    }
+    Ok(EvalReport {
+        dataset: ds.name.clone(),
+        references: refs.len(),
+        reference_encoding: ref_enc,
+        query_encoding: EncodingSummary::from_total(q_frames, q_total),
+        results,
+    })
+}
+
+#[allow(clippy::too_many_arguments)]
+fn report(
+    query_set: &str,
+    setting: Setting,
+    refs: &DescriptorSet,
+    queries: &DescriptorSet,
+    matches: &[crate::matching::QueryMatch],
+    gt: &[Vec<u32>],
+    matching_ms: f64,
+    cfg: &Config,
+) -> SettingReport {
+    let mut outcomes = Vec::new();
+    let (mut scores, mut correct, mut ranked, mut gts) = (vec![], vec![], vec![], vec![]);
+    for (q, (m, g)) in matches.iter().zip(gt).enumerate() {
+        let best = m.best();
+        let ok = best.is_some_and(|b| g.contains(&b.reference));
+        outcomes.push(QueryOutcome {
+            query: queries.ids[q].clone(),
+            top1: best.map(|b| refs.ids[b.reference as usize].clone()),
+            score: best.map(|b| b.score),
+            correct: ok,
+            valid_references: g.len(),
+        });
+        if g.is_empty() {
+            continue;
+        }
+        scores.push(best.map_or(f64::NEG_INFINITY, |b| b.score as f64));
+        correct.push(ok);
+        ranked.push(m.ranked.iter().map(|c| c.reference).collect::<Vec<u32>>());
+        gts.push(g.clone());
+    }
+    let pairs = (queries.len() * refs.len()).max(1) as f64;
+    SettingReport {
+        query_set: query_set.to_string(),
+        setting,
+        queries: queries.len(),
+        queries_without_ground_truth: queries.len() - scores.len(),
+        pr: pr_metrics(&scores, &correct),
+        recall_at: cfg.eval.recall_at.iter().map(|&n| (n, recall_at_n(&ranked, &gts, n))).collect(),
+        matching_ms_per_ref: matching_ms / pairs,
+        outcomes,
+    }
+}
+
+impl EvalReport {
+    /// The metrics table and the timing table, as plain text.
+    pub fn to_table(&self) -> String {
+        let mut s = String::new();
+        let recall_cols: Vec<usize> = self.results.first().map(|r| r.recall_at.iter().map(|x| x.0).collect()).unwrap_or_default();
+        s += &format!("dataset {}: {} references\n\n", self.dataset, self.references);
+        s += &format!("{:<12} {:<14} {:>6} {:>7} {:>7}", "query set", "setting", "AUC", "R@100P", "P@100R");
+        for n in &recall_cols {
+            s += &format!(" {:>6}", format!("R@{n}"));
+        }
+        s += &format!(" {:>10}\n", "ms/ref");
+        for r in &self.results {
+            s += &format!(
+                "{:<12} {:<14} {:>6.3} {:>7.3} {:>7.3}",
+                r.query_set, r.setting.name(), r.pr.auc, r.pr.recall_at_100_precision, r.pr.precision_at_100_recall
+            );
+            for (_, v) in &r.recall_at {
+                s += &format!(" {:>6.3}", v);
+            }
+            s += &format!(" {:>10.4}\n", r.matching_ms_per_ref);
+        }
+        let e = &self.query_encoding;
+        s += &format!(
+            "\nencoding, ms per frame (mean of {} query frames; file decoding {:.2} ms not included):\n  edge (coarse) {:.2} | forest {:.2} | appearance {:.2} | total {:.2}\n",
+            e.frames, e.load_ms, e.global_ms, e.forest_ms, e.appearance_ms, e.encode_ms()
+        );
+        let mut per_setting: Vec<(Setting, f64, usize)> = Vec::new();
+        for r in &self.results {
+            match per_setting.iter_mut().find(|x| x.0 == r.setting) {
+                Some(x) => {
+                    x.1 += r.matching_ms_per_ref;
+                    x.2 += 1;
+                }
+                None => per_setting.push((r.setting, r.matching_ms_per_ref, 1)),
+            }
+        }
+        s += "matching, ms per reference frame (mean over query sets):\n ";
+        for (st, ms, n) in per_setting {
+            s += &format!(" {} {:.4} |", st.name(), ms / n as f64);
+        }
+        s.pop();
+        s.push('\n');
+        s
+    }
+}

@@ -1,0 +1,227 @@
+//! Stage 0 of the data flow: reading images and semantic label maps from files, with every
+//! failure reported as a typed error naming the file.
+
+use crate::classes::{ClassTable, VOID};
+use crate::error::{Error, Result};
+use image::{DynamicImage, RgbImage};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// Per-pixel class indices of one image (row-major, [`VOID`] for unlabeled pixels).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct LabelMap {
+    width: u32,
+    height: u32,
+    classes: Vec<u8>,
+}
+
+impl LabelMap {
+    /// Wraps class indices; fails if the size is empty or does not match, or if an index is
+    /// neither a class of `table` nor VOID.
+    pub fn new(width: u32, height: u32, classes: Vec<u8>, table: &ClassTable) -> Result<LabelMap> {
+        if width == 0 || height == 0 {
+            return Err(Error::invalid("label map", format!("empty size {width}x{height}")));
+        }
+        if classes.len() != width as usize * height as usize {
+            return Err(Error::invalid(
+                "label map",
+                format!("{} class values for a {width}x{height} map", classes.len()),
+            ));
+        }
+        if let Some(i) = classes.iter().position(|&c| c != VOID && c as usize >= table.len()) {
+            return Err(Error::invalid(
+                "label map",
+                format!("pixel {i} has class index {}, the table has {} classes", classes[i], table.len()),
+            ));
+        }
+        Ok(LabelMap { width, height, classes })
+    }
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+    pub fn classes(&self) -> &[u8] {
+        &self.classes
+    }
+    pub fn get(&self, x: u32, y: u32) -> u8 {
+        self.classes[(y * self.width + x) as usize]
+    }
+}
+
+/// How a label-map file encodes classes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum LabelFormat {
+    /// Grey (8 or 16 bit) files hold ids; colour files use the class palette.
+    #[default]
+    Auto,
+    /// The first channel holds the id, whatever the colour type (SYNTHIA's GT/LABELS).
+    FirstChannel,
+    /// Colour files in the class palette (Cityscapes `*_color.png`).
+    Palette,
+}
+
+fn read_image(path: &Path) -> Result<DynamicImage> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    if bytes.is_empty() {
+        return Err(Error::EmptyImage { path: path.into(), width: 0, height: 0 });
+    }
+    let img = image::ImageReader::new(std::io::Cursor::new(bytes))
+        .with_guessed_format()
+        .map_err(|e| Error::io(path, e))?
+        .decode()
+        .map_err(|e| Error::ImageDecode { path: path.into(), reason: e.to_string() })?;
+    if img.width() == 0 || img.height() == 0 {
+        return Err(Error::EmptyImage { path: path.into(), width: img.width(), height: img.height() });
+    }
+    Ok(img)
+}
+
+/// Reads an RGB image (png or jpeg); alpha is dropped, grey is expanded.
+pub fn load_rgb(path: &Path) -> Result<RgbImage> {
+    Ok(read_image(path)?.to_rgb8())
+}
+
+/// Reads a label map and translates its ids or colours through `table`.
+pub fn load_label_map(path: &Path, table: &ClassTable, format: LabelFormat) -> Result<LabelMap> {
+    let img = read_image(path)?;
+    decode_label_image(&img, path, table, format)
+}
+
+/// Translates a decoded label image; `path` only names the source in errors.
+pub fn decode_label_image(img: &DynamicImage, path: &Path, table: &ClassTable, format: LabelFormat) -> Result<LabelMap> {
+    let (w, h) = (img.width(), img.height());
+    let grey = matches!(img, DynamicImage::ImageLuma8(_) | DynamicImage::ImageLuma16(_) | DynamicImage::ImageLumaA8(_) | DynamicImage::ImageLumaA16(_));
+    let mut classes = Vec::with_capacity(w as usize * h as usize);
+    let unknown_id = |i: usize, id: u32| Error::UnknownClassId { path: path.into(), id, x: i as u32 % w, y: i as u32 / w };
+    let by_ids = format == LabelFormat::FirstChannel || (format == LabelFormat::Auto && grey);
+    if by_ids {
+        let ids: Vec<u32> = match img {
+            DynamicImage::ImageLuma8(g) => g.pixels().map(|p| p.0[0] as u32).collect(),
+            DynamicImage::ImageLumaA8(g) => g.pixels().map(|p| p.0[0] as u32).collect(),
+            DynamicImage::ImageRgb8(g) => g.pixels().map(|p| p.0[0] as u32).collect(),
+            DynamicImage::ImageRgba8(g) => g.pixels().map(|p| p.0[0] as u32).collect(),
+            DynamicImage::ImageLuma16(g) => g.pixels().map(|p| p.0[0] as u32).collect(),
+            DynamicImage::ImageLumaA16(g) => g.pixels().map(|p| p.0[0] as u32).collect(),
+            DynamicImage::ImageRgb16(g) => g.pixels().map(|p| p.0[0] as u32).collect(),
+            DynamicImage::ImageRgba16(g) => g.pixels().map(|p| p.0[0] as u32).collect(),
+            _ => {
+                return Err(Error::UnsupportedLabelFormat {
+                    path: path.into(),
+                    reason: format!("{:?} pixels cannot hold class ids", img.color()),
+                })
+            }
+        };
+        for (i, id) in ids.into_iter().enumerate() {
+            classes.push(table.class_of_id(id).ok_or_else(|| unknown_id(i, id))?);
+        }
+    } else {
+        if grey {
+            return Err(Error::UnsupportedLabelFormat {
+                path: path.into(),
+                reason: "palette format asked for, but the file is grey".into(),
+            });
+        }
+        let rgb = img.to_rgb8();
+        let mut last = ([0u8; 3], None::<u8>);
+        for (i, p) in rgb.pixels().enumerate() {
+            let c = if last.1.is_some() && last.0 == p.0 {
+                last.1.unwrap()
+            } else {
+                let c = table.class_of_color(p.0).ok_or(Error::UnknownClassColor {
+                    path: path.into(),
+                    rgb: p.0,
+                    x: i as u32 % w,
+                    y: i as u32 / w,
+                })?;
+                last = (p.0, Some(c));
+                c
+            };
+            classes.push(c);
+        }
+    }
+    Ok(LabelMap { width: w, height: h, classes })
+}
+
+/// One image to encode: an id and where its pixels and labels come from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameSource {
+    pub id: String,
+    /// RGB image (needed by appearance and segmentation; optional for label-only encoding).
+    pub image: Option<PathBuf>,
+    /// Label map; required unless a segmenter is configured.
+    pub labels: Option<PathBuf>,
+}
+
+/// Loads the label map of a frame and checks it against the image size when both are given.
+pub fn load_frame_labels(src: &FrameSource, table: &ClassTable, format: LabelFormat) -> Result<LabelMap> {
+    let labels_path = match (&src.labels, &src.image) {
+        (Some(l), _) => l,
+        (None, Some(img)) => return Err(Error::NoLabels { image: img.clone() }),
+        (None, None) => return Err(Error::invalid(format!("frame {:?}", src.id), "neither image nor label map given")),
+    };
+    let labels = load_label_map(labels_path, table, format)?;
+    if let Some(img) = &src.image {
+        let (iw, ih) = image_size(img)?;
+        if (iw, ih) != (labels.width, labels.height) {
+            return Err(Error::SizeMismatch {
+                image: img.clone(),
+                labels: labels_path.clone(),
+                image_size: (iw, ih),
+                label_size: (labels.width, labels.height),
+            });
+        }
+    }
+    Ok(labels)
+}
+
+/// Reads only an image's header to get its size.
+pub fn image_size(path: &Path) -> Result<(u32, u32)> {
+    let reader = image::ImageReader::open(path)
+        .map_err(|e| Error::io(path, e))?
+        .with_guessed_format()
+        .map_err(|e| Error::io(path, e))?;
+    let (w, h) = reader
+        .into_dimensions()
+        .map_err(|e| Error::ImageDecode { path: path.into(), reason: e.to_string() })?;
+    if w == 0 || h == 0 {
+        return Err(Error::EmptyImage { path: path.into(), width: w, height: h });
+    }
+    Ok((w, h))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use image::{GrayImage, Luma, Rgb};
+
+    #[test]
+    fn grey_ids_and_palette_decode() {
+        let t = ClassTable::cityscapes();
+        let mut g = GrayImage::new(3, 2);
+        g.put_pixel(1, 0, Luma([13]));
+        g.put_pixel(2, 1, Luma([255]));
+        let m = decode_label_image(&DynamicImage::ImageLuma8(g), Path::new("g.png"), &t, LabelFormat::Auto).unwrap();
+        assert_eq!(m.classes(), &[0, 13, 0, 0, 0, VOID]);
+        let mut c = RgbImage::new(2, 1);
+        c.put_pixel(0, 0, Rgb([70, 130, 180]));
+        let m = decode_label_image(&DynamicImage::ImageRgb8(c), Path::new("c.png"), &t, LabelFormat::Auto).unwrap();
+        assert_eq!(m.classes(), &[10, VOID]);
+    }
+
+    #[test]
+    fn unknown_id_and_colour_are_named() {
+        let t = ClassTable::cityscapes();
+        let mut g = GrayImage::new(4, 4);
+        g.put_pixel(2, 3, Luma([40]));
+        let e = decode_label_image(&DynamicImage::ImageLuma8(g), Path::new("bad.png"), &t, LabelFormat::Auto).unwrap_err();
+        assert!(matches!(e, Error::UnknownClassId { id: 40, x: 2, y: 3, .. }), "{e}");
+        assert!(e.to_string().contains("bad.png"));
+        let mut c = RgbImage::new(2, 2);
+        c.put_pixel(1, 1, Rgb([1, 2, 3]));
+        let e = decode_label_image(&DynamicImage::ImageRgb8(c), Path::new("col.png"), &t, LabelFormat::Auto).unwrap_err();
+        assert!(matches!(e, Error::UnknownClassColor { rgb: [1, 2, 3], x: 1, y: 1, .. }), "{e}");
+    }
+}

@@ -1,0 +1,175 @@
+//! Stage 2b: the local descriptor, a "forest" of one "tree" per semantic object (spec §2.5-2.6).
+//!
+//! A tree holds its object's class C, area A (fraction of the image), centroid P (pixels divided
+//! by the image diagonal, so that ||P_t - P_u|| is the spec's ||ΔP|| / D), an appearance vector V
+//! (SuperPoint/XFeat-VLAD; absent until an appearance model fills it), and the indices of its
+//! neighbour trees in the same image. Neighbours are not copied: their class and appearance are
+//! read through the index (spec §2.6 storage note).
+
+pub mod tree_similarity;
+
+use crate::config::LocalConfig;
+use crate::objects::ObjectMap;
+
+/// Marks an empty neighbour slot.
+pub const NO_NEIGHBOUR: i32 = -1;
+
+/// The forest of one image, as parallel arrays (the layout of the map file and of the GPU).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Forest {
+    pub classes: Vec<u8>,
+    pub areas: Vec<f32>,
+    /// (x, y) per tree, in image diagonals.
+    pub centroids: Vec<f32>,
+    /// `neighbour_slots` entries per tree: indices into this forest, or [`NO_NEIGHBOUR`].
+    pub neighbours: Vec<i32>,
+    pub neighbour_slots: usize,
+    /// `dim` values per tree (zeros where `has_appearance` is 0).
+    pub appearance: Vec<f32>,
+    pub has_appearance: Vec<u8>,
+    pub dim: usize,
+}
+
+/// A borrowed forest: a slice of a map's concatenated arrays or of one [`Forest`].
+#[derive(Debug, Clone, Copy)]
+pub struct ForestRef<'a> {
+    pub classes: &'a [u8],
+    pub areas: &'a [f32],
+    pub centroids: &'a [f32],
+    pub neighbours: &'a [i32],
+    pub neighbour_slots: usize,
+    pub appearance: &'a [f32],
+    pub has_appearance: &'a [u8],
+    pub dim: usize,
+}
+
+impl Forest {
+    pub fn len(&self) -> usize {
+        self.classes.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.classes.is_empty()
+    }
+    pub fn as_ref(&self) -> ForestRef<'_> {
+        ForestRef {
+            classes: &self.classes,
+            areas: &self.areas,
+            centroids: &self.centroids,
+            neighbours: &self.neighbours,
+            neighbour_slots: self.neighbour_slots,
+            appearance: &self.appearance,
+            has_appearance: &self.has_appearance,
+            dim: self.dim,
+        }
+    }
+    /// Neighbour indices of tree `k` (filled slots only).
+    pub fn neighbours_of(&self, k: usize) -> Vec<usize> {
+        self.as_ref().neighbours_of(k).collect()
+    }
+    /// Sets (or replaces) the appearance vectors: `vectors` holds `dim` values per tree, `present`
+    /// says which trees have one.
+    pub fn set_appearance(&mut self, dim: usize, vectors: Vec<f32>, present: Vec<u8>) {
+        assert_eq!(vectors.len(), dim * self.len());
+        assert_eq!(present.len(), self.len());
+        self.dim = dim;
+        self.appearance = vectors;
+        self.has_appearance = present;
+    }
+}
+
+impl<'a> ForestRef<'a> {
+    pub fn len(&self) -> usize {
+        self.classes.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.classes.is_empty()
+    }
+    pub fn neighbours_of(&self, k: usize) -> impl Iterator<Item = usize> + 'a {
+        let n = self.neighbour_slots;
+        self.neighbours[k * n..(k + 1) * n].iter().filter(|&&j| j >= 0).map(|&j| j as usize)
+    }
+    pub fn appearance_of(&self, k: usize) -> Option<&'a [f32]> {
+        (self.dim > 0 && self.has_appearance[k] != 0).then(|| &self.appearance[k * self.dim..(k + 1) * self.dim])
+    }
+}
+
+/// Builds the forest of an image's objects; appearance is left empty (dim 0).
+///
+/// Neighbour rule (spec §2.5, [Q] with [R] tolerance): candidates are ordered by centroid distance;
+/// repeatedly, among the remaining candidates within `tie_tolerance` of the nearest remaining one,
+/// the largest (then the nearest, then the first) is taken, until `neighbours` are chosen.
+pub fn build_forest(objects: &ObjectMap, cfg: &LocalConfig) -> Forest {
+    let (w, h) = (objects.width as f64, objects.height as f64);
+    let diag = (w * w + h * h).sqrt();
+    let n = objects.objects.len();
+    let slots = cfg.neighbours;
+    let mut forest = Forest { neighbour_slots: slots, ..Default::default() };
+    for o in &objects.objects {
+        forest.classes.push(o.class);
+        forest.areas.push((o.area / (w * h)) as f32);
+        forest.centroids.push((o.centroid[0] / diag) as f32);
+        forest.centroids.push((o.centroid[1] / diag) as f32);
+    }
+    forest.has_appearance = vec![0; n];
+    let pos = |k: usize| [forest.centroids[2 * k] as f64, forest.centroids[2 * k + 1] as f64];
+    let mut cand: Vec<(f64, usize)> = Vec::with_capacity(n);
+    for k in 0..n {
+        let pk = pos(k);
+        cand.clear();
+        cand.extend((0..n).filter(|&j| j != k).map(|j| {
+            let pj = pos(j);
+            (((pk[0] - pj[0]).powi(2) + (pk[1] - pj[1]).powi(2)).sqrt(), j)
+        }));
+        cand.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        let mut chosen = Vec::with_capacity(slots);
+        while chosen.len() < slots && !cand.is_empty() {
+            let limit = cand[0].0 + cfg.tie_tolerance;
+            let group = cand.iter().take_while(|c| c.0 < limit).count().max(1);
+            let best = (0..group)
+                .max_by(|&a, &b| {
+                    let (aa, ab) = (objects.objects[cand[a].1].area, objects.objects[cand[b].1].area);
+                    aa.total_cmp(&ab).then(b.cmp(&a)) // larger area; on equal area the earlier (nearer)
+                })
+                .unwrap();
+            chosen.push(cand.remove(best).1 as i32);
+        }
+        chosen.resize(slots, NO_NEIGHBOUR);
+        forest.neighbours.extend(chosen);
+    }
+    forest
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::objects::SemanticObject;
+
+    fn obj(class: u8, area: f64, x: f64, y: f64) -> SemanticObject {
+        SemanticObject { class, area, pixel_count: area as u32, centroid: [x, y], bbox: [0, 0, 1, 1] }
+    }
+
+    #[test]
+    fn neighbours_nearest_first_and_ties_go_to_the_larger() {
+        // image 300 x 400: diagonal 500; tolerance 0.02 -> 10 px
+        let objects = vec![
+            obj(0, 100.0, 100.0, 100.0), // 0: the tree under test
+            obj(1, 10.0, 150.0, 100.0),  // 1: 50 px
+            obj(2, 500.0, 100.0, 155.0), // 2: 55 px, within 10 px of #1 and larger
+            obj(3, 50.0, 100.0, 300.0),  // 3: 200 px
+            obj(4, 60.0, 300.0, 100.0),  // 4: 200 px, tie with #3, larger
+        ];
+        let om = ObjectMap { width: 300, height: 400, objects, object_of_pixel: vec![] };
+        let f = build_forest(&om, &LocalConfig::default());
+        assert_eq!(f.neighbours_of(0), vec![2, 1, 4]);
+        assert!((f.centroids[0] - 0.2).abs() < 1e-6 && (f.areas[2] - 500.0 / 120000.0).abs() < 1e-9);
+        let strict = build_forest(&om, &LocalConfig { tie_tolerance: 0.0, ..Default::default() });
+        assert_eq!(strict.neighbours_of(0), vec![1, 2, 3]);
+    }
+
+    #[test]
+    fn small_forests_leave_slots_empty() {
+        let om = ObjectMap { width: 10, height: 10, objects: vec![obj(0, 5.0, 1.0, 1.0), obj(1, 5.0, 5.0, 5.0)], object_of_pixel: vec![] };
+        let f = build_forest(&om, &LocalConfig::default());
+        assert_eq!(&f.neighbours[..3], &[1, NO_NEIGHBOUR, NO_NEIGHBOUR]);
+    }
+}

@@ -1,0 +1,158 @@
+//! Columnar storage of many encoded images: the in-memory form of a map, of a map segment file,
+//! and of a batch of queries. Forests are concatenated, with `forest_offsets[i]..[i + 1]` the trees
+//! of image i; neighbour indices stay local to their forest.
+
+use crate::encode::EncodedImage;
+use crate::global::ssim::SsimParams;
+use crate::local::ForestRef;
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct DescriptorSet {
+    pub ids: Vec<String>,
+    /// (width, height) of each source image.
+    pub sizes: Vec<[u32; 2]>,
+    pub global_len: usize,
+    pub stats_len: usize,
+    pub globals: Vec<f32>,
+    pub global_stats: Vec<f32>,
+    pub forest_offsets: Vec<u32>,
+    pub tree_classes: Vec<u8>,
+    pub tree_areas: Vec<f32>,
+    pub tree_centroids: Vec<f32>,
+    pub neighbour_slots: usize,
+    pub tree_neighbours: Vec<i32>,
+    pub appearance_dim: usize,
+    pub tree_appearance: Vec<f32>,
+    pub tree_has_appearance: Vec<u8>,
+}
+
+impl DescriptorSet {
+    pub fn new(ssim: &SsimParams, neighbour_slots: usize, appearance_dim: usize) -> Self {
+        DescriptorSet {
+            ids: vec![],
+            sizes: vec![],
+            global_len: ssim.len(),
+            stats_len: ssim.stats_len(),
+            globals: vec![],
+            global_stats: vec![],
+            forest_offsets: vec![0],
+            tree_classes: vec![],
+            tree_areas: vec![],
+            tree_centroids: vec![],
+            neighbour_slots,
+            tree_neighbours: vec![],
+            appearance_dim,
+            tree_appearance: vec![],
+            tree_has_appearance: vec![],
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.ids.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.ids.is_empty()
+    }
+    pub fn n_trees(&self) -> usize {
+        self.tree_classes.len()
+    }
+
+    /// Appends one image. Its global size and neighbour slots must match the set's; an image
+    /// without appearance gets zero vectors flagged absent.
+    pub fn push(&mut self, img: &EncodedImage) {
+        let f = &img.forest;
+        assert_eq!(img.global.len(), self.global_len, "global descriptor size");
+        assert_eq!(img.global_stats.len(), self.stats_len, "global stats size");
+        assert_eq!(f.neighbour_slots, self.neighbour_slots, "neighbour slots");
+        self.ids.push(img.id.clone());
+        self.sizes.push([img.width, img.height]);
+        self.globals.extend_from_slice(&img.global);
+        self.global_stats.extend_from_slice(&img.global_stats);
+        self.tree_classes.extend_from_slice(&f.classes);
+        self.tree_areas.extend_from_slice(&f.areas);
+        self.tree_centroids.extend_from_slice(&f.centroids);
+        self.tree_neighbours.extend_from_slice(&f.neighbours);
+        if f.dim == self.appearance_dim {
+            self.tree_appearance.extend_from_slice(&f.appearance);
+            self.tree_has_appearance.extend_from_slice(&f.has_appearance);
+        } else {
+            assert_eq!(f.dim, 0, "appearance dimension {} in a set of dimension {}", f.dim, self.appearance_dim);
+            self.tree_appearance.resize(self.tree_appearance.len() + f.len() * self.appearance_dim, 0.0);
+            self.tree_has_appearance.resize(self.tree_has_appearance.len() + f.len(), 0);
+        }
+        self.forest_offsets.push(self.tree_classes.len() as u32);
+    }
+
+    /// Appends all images of `other` (same layout).
+    pub fn append(&mut self, other: &DescriptorSet) {
+        assert_eq!((self.global_len, self.stats_len, self.neighbour_slots), (other.global_len, other.stats_len, other.neighbour_slots));
+        assert_eq!(self.appearance_dim, other.appearance_dim);
+        let base = self.n_trees() as u32;
+        self.ids.extend_from_slice(&other.ids);
+        self.sizes.extend_from_slice(&other.sizes);
+        self.globals.extend_from_slice(&other.globals);
+        self.global_stats.extend_from_slice(&other.global_stats);
+        self.forest_offsets.extend(other.forest_offsets[1..].iter().map(|o| o + base));
+        self.tree_classes.extend_from_slice(&other.tree_classes);
+        self.tree_areas.extend_from_slice(&other.tree_areas);
+        self.tree_centroids.extend_from_slice(&other.tree_centroids);
+        self.tree_neighbours.extend_from_slice(&other.tree_neighbours);
+        self.tree_appearance.extend_from_slice(&other.tree_appearance);
+        self.tree_has_appearance.extend_from_slice(&other.tree_has_appearance);
+    }
+
+    pub fn global(&self, i: usize) -> &[f32] {
+        &self.globals[i * self.global_len..(i + 1) * self.global_len]
+    }
+    pub fn stats(&self, i: usize) -> &[f32] {
+        &self.global_stats[i * self.stats_len..(i + 1) * self.stats_len]
+    }
+    pub fn forest(&self, i: usize) -> ForestRef<'_> {
+        let (a, b) = (self.forest_offsets[i] as usize, self.forest_offsets[i + 1] as usize);
+        let (n, d) = (self.neighbour_slots, self.appearance_dim);
+        ForestRef {
+            classes: &self.tree_classes[a..b],
+            areas: &self.tree_areas[a..b],
+            centroids: &self.tree_centroids[2 * a..2 * b],
+            neighbours: &self.tree_neighbours[n * a..n * b],
+            neighbour_slots: n,
+            appearance: &self.tree_appearance[d * a..d * b],
+            has_appearance: &self.tree_has_appearance[a..b],
+            dim: d,
+        }
+    }
+
+    /// Checks internal consistency (lengths, offsets, neighbour indices, classes below
+    /// `n_classes`, finite values); the error says what is wrong. Used on every loaded file.
+    pub fn validate(&self, n_classes: usize) -> Result<(), String> {
+        let n = self.len();
+        let t = self.n_trees();
+        let check = |ok: bool, what: &str| if ok { Ok(()) } else { Err(what.to_string()) };
+        check(self.sizes.len() == n, "image size count differs from id count")?;
+        check(self.globals.len() == n * self.global_len, "global descriptor array has the wrong length")?;
+        check(self.global_stats.len() == n * self.stats_len, "global stats array has the wrong length")?;
+        check(self.forest_offsets.len() == n + 1 && self.forest_offsets[0] == 0, "forest offsets have the wrong length")?;
+        check(self.forest_offsets.windows(2).all(|w| w[0] <= w[1]), "forest offsets decrease")?;
+        check(*self.forest_offsets.last().unwrap() as usize == t, "forest offsets do not end at the tree count")?;
+        check(self.tree_areas.len() == t && self.tree_centroids.len() == 2 * t, "tree arrays have different lengths")?;
+        check(self.tree_neighbours.len() == t * self.neighbour_slots, "neighbour array has the wrong length")?;
+        check(self.tree_appearance.len() == t * self.appearance_dim && self.tree_has_appearance.len() == t, "appearance arrays have the wrong length")?;
+        check(self.sizes.iter().all(|s| s[0] > 0 && s[1] > 0), "an image size is zero")?;
+        check(self.tree_classes.iter().all(|&c| (c as usize) < n_classes), "a tree has a class outside the class table")?;
+        let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
+        check(finite(&self.globals) && finite(&self.global_stats), "global descriptors hold NaN or infinity")?;
+        check(finite(&self.tree_areas) && finite(&self.tree_centroids) && finite(&self.tree_appearance), "trees hold NaN or infinity")?;
+        check(self.globals.iter().all(|v| (0.0..=1.0).contains(v)), "global descriptor values outside [0, 1]")?;
+        for i in 0..n {
+            let (a, b) = (self.forest_offsets[i] as usize, self.forest_offsets[i + 1] as usize);
+            let size = (b - a) as i32;
+            let nb = &self.tree_neighbours[a * self.neighbour_slots..b * self.neighbour_slots];
+            check(nb.iter().all(|&j| j >= -1 && j < size), "a neighbour index points outside its forest")?;
+        }
+        let mut seen = std::collections::HashSet::new();
+        if let Some(dup) = self.ids.iter().find(|id| !seen.insert(id.as_str())) {
+            return Err(format!("image id {dup:?} appears twice"));
+        }
+        Ok(())
+    }
+}
