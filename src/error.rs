@@ -49,17 +49,18 @@ pub enum Error {
     InvalidInput { what: String, reason: String },
 }
 
+/// Short constructors for the common variants.
 impl Error {
-    pub(crate) fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+    pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         Error::Io { path: path.into(), source }
     }
-    pub(crate) fn corrupt(path: impl Into<PathBuf>, reason: impl Into<String>) -> Self {
+    pub fn corrupt(path: impl Into<PathBuf>, reason: impl Into<String>) -> Self {
         Error::CorruptMap { path: path.into(), reason: reason.into() }
     }
-    pub(crate) fn dataset(path: impl Into<PathBuf>, reason: impl Into<String>) -> Self {
+    pub fn dataset(path: impl Into<PathBuf>, reason: impl Into<String>) -> Self {
         Error::Dataset { path: path.into(), reason: reason.into() }
     }
-    pub(crate) fn invalid(what: impl Into<String>, reason: impl Into<String>) -> Self {
+    pub fn invalid(what: impl Into<String>, reason: impl Into<String>) -> Self {
         Error::InvalidInput { what: what.into(), reason: reason.into() }
     }
 }

@@ -46,3 +46,4 @@ pub mod progress;
 pub mod util;
 
 pub use error::{Error, Result};
+pub mod synth;

@@ -252,3 +252,31 @@ impl EvalReport {
         s
     }
 }
+
+impl EvalReport {
+    /// Mean of each metric over the query sets, per setting (the ablation at a glance).
+    pub fn summary_table(&self) -> String {
+        let mut order: Vec<Setting> = Vec::new();
+        for r in &self.results {
+            if !order.contains(&r.setting) {
+                order.push(r.setting);
+            }
+        }
+        let mut s = format!("\nmean over query sets\n{:<14} {:<36} {:>6} {:>7} {:>7} {:>6}\n", "setting", "what", "AUC", "R@100P", "P@100R", "R@1");
+        for st in order {
+            let rows: Vec<&SettingReport> = self.results.iter().filter(|r| r.setting == st).collect();
+            let n = rows.len() as f64;
+            let mean = |f: &dyn Fn(&SettingReport) -> f64| rows.iter().map(|r| f(r)).sum::<f64>() / n;
+            s += &format!(
+                "{:<14} {:<36} {:>6.3} {:>7.3} {:>7.3} {:>6.3}\n",
+                st.name(),
+                st.describe(),
+                mean(&|r| r.pr.auc),
+                mean(&|r| r.pr.recall_at_100_precision),
+                mean(&|r| r.pr.precision_at_100_recall),
+                mean(&|r| r.recall_at.first().map_or(0.0, |x| x.1)),
+            );
+        }
+        s
+    }
+}

@@ -1,0 +1,315 @@
+//! The commands behind the CLI.
+
+use super::*;
+use semlook::config::Config;
+use semlook::encode::Encoder;
+use semlook::error::{Error, Result};
+use semlook::eval::dataset::{Dataset, DatasetOptions};
+use semlook::eval::{encode_frames, evaluate, EvalOptions, EvalReport};
+use semlook::input::FrameSource;
+use semlook::map::{DescriptorSet, Map};
+use semlook::matching::{match_batch, QueryMatch};
+use semlook::progress;
+use semlook::synth::{self, SynthConfig};
+use std::path::Path;
+use std::time::Instant;
+
+pub fn dispatch(cli: Cli) -> Result<()> {
+    let quiet = cli.quiet;
+    match cli.command {
+        Command::Synth(a) => synth_cmd(&a, quiet),
+        Command::Demo(a) => demo(&a, quiet),
+        Command::Map(MapCommand::Build { source, out, config, force }) => map_build(&source, &out, config.as_deref(), force, quiet),
+        Command::Map(MapCommand::Add { source, map }) => map_add(&source, &map, quiet),
+        Command::Map(MapCommand::Info { map, json }) => map_info(&map, json),
+        Command::Query(a) => query(&a, quiet),
+        Command::Eval(a) => eval_cmd(&a, quiet),
+        Command::Config => {
+            print!("{}", Config::default().to_toml());
+            Ok(())
+        }
+    }
+}
+
+fn info(quiet: bool, msg: impl AsRef<str>) {
+    if !quiet {
+        eprintln!("{}", msg.as_ref());
+    }
+}
+
+fn load_config(path: Option<&Path>) -> Result<Config> {
+    match path {
+        Some(p) => Config::load(p),
+        None => Ok(Config::default()),
+    }
+}
+
+fn synth_config(a: &SynthArgs) -> SynthConfig {
+    let mut c = SynthConfig { seed: a.seed, places: a.places, width: a.size.0, height: a.size.1, reference: a.reference, aliasing: a.aliasing, ..Default::default() };
+    if !a.queries.is_empty() {
+        c.queries = a.queries.clone();
+    }
+    c
+}
+
+fn synth_cmd(a: &SynthArgs, quiet: bool) -> Result<()> {
+    let cfg = synth_config(a);
+    cfg.validate()?;
+    let t = Instant::now();
+    let pb = progress::bar(cfg.places * (1 + cfg.queries.len()), "rendering", quiet);
+    synth::generate(&cfg, &a.out, &|| pb.inc(1))?;
+    pb.finish_and_clear();
+    info(quiet, format!("wrote {} frames to {} in {:.1} s", cfg.places * (1 + cfg.queries.len()), a.out.display(), t.elapsed().as_secs_f64()));
+    Ok(())
+}
+
+/// Frames named by the source arguments, with the label format to read them with. Where the
+/// frames come from a dataset whose labels use other ids, `cfg`'s label ids follow the dataset
+/// unless `keep_ids` (the user gave a config).
+fn frame_sources(s: &SourceArgs, cfg: &mut Config, keep_ids: bool) -> Result<(Vec<FrameSource>, LabelFormat)> {
+    if let Some(dir) = &s.dataset {
+        let ds = Dataset::open(dir, &DatasetOptions::default())?;
+        if let (Some(ids), false) = (&ds.label_ids, keep_ids) {
+            cfg.classes.label_ids = ids.clone();
+        }
+        let trav = match &s.traversal {
+            None => &ds.reference,
+            Some(name) if *name == ds.reference.name => &ds.reference,
+            Some(name) => ds
+                .queries
+                .iter()
+                .find(|q| q.name == *name)
+                .ok_or_else(|| Error::dataset(dir, format!("no traversal named {name:?}")))?,
+        };
+        let frames = trav.frames.iter().map(|f| f.source.clone()).collect();
+        return Ok((frames, s.label_format.unwrap_or(ds.label_format)));
+    }
+    let listing = |dir: &Path| -> Result<Vec<std::path::PathBuf>> {
+        let mut v: Vec<_> = std::fs::read_dir(dir)
+            .map_err(|e| Error::io(dir, e))?
+            .flatten()
+            .map(|e| e.path())
+            .filter(|p| matches!(p.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref(), Some("png" | "jpg" | "jpeg")))
+            .collect();
+        v.sort();
+        Ok(v)
+    };
+    let stem = |p: &Path| p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    let frames = match (&s.images, &s.labels) {
+        (Some(img), labels) => listing(img)?
+            .into_iter()
+            .map(|p| FrameSource { id: stem(&p), labels: labels.as_ref().map(|l| l.join(format!("{}.png", stem(&p)))), image: Some(p) })
+            .collect(),
+        (None, Some(labels)) => listing(labels)?.into_iter().map(|p| FrameSource { id: stem(&p), image: None, labels: Some(p) }).collect(),
+        (None, None) => return Err(Error::invalid("arguments", "give --dataset, --images or --labels")),
+    };
+    Ok((frames, s.label_format.unwrap_or_default()))
+}
+
+fn encode_sources(cfg: &Config, frames: &[FrameSource], fmt: LabelFormat, what: &str, skip: bool, quiet: bool) -> Result<DescriptorSet> {
+    if frames.is_empty() {
+        return Err(Error::invalid(what, "no images found"));
+    }
+    let encoder = Encoder::new(&cfg.encoding())?;
+    let (set, summary, skipped) = encode_frames(&encoder, frames, fmt, what, skip, quiet)?;
+    for e in &skipped {
+        eprintln!("warning: skipped: {e}");
+    }
+    info(
+        quiet,
+        format!("encoded {} {what} ({:.2} ms per frame: edge {:.2}, forest {:.2}; decoding {:.2})", set.len(), summary.encode_ms(), summary.global_ms, summary.forest_ms, summary.load_ms),
+    );
+    Ok(set)
+}
+
+fn map_build(s: &SourceArgs, out: &Path, config: Option<&Path>, force: bool, quiet: bool) -> Result<()> {
+    let mut cfg = load_config(config)?;
+    let (frames, fmt) = frame_sources(s, &mut cfg, config.is_some())?;
+    let set = encode_sources(&cfg, &frames, fmt, "references", s.skip_invalid, quiet)?;
+    let map = if force && out.exists() {
+        // build beside, then swap, so the old map survives any failure
+        let staging = out.with_extension("building");
+        let _ = std::fs::remove_dir_all(&staging);
+        Map::create(&staging, &cfg.encoding(), &set)?;
+        let old = out.with_extension("old");
+        let _ = std::fs::remove_dir_all(&old);
+        std::fs::rename(out, &old).map_err(|e| Error::io(out, e))?;
+        std::fs::rename(&staging, out).map_err(|e| Error::io(out, e))?;
+        let _ = std::fs::remove_dir_all(&old);
+        Map::open(out)?
+    } else {
+        Map::create(out, &cfg.encoding(), &set)?
+    };
+    info(quiet, format!("map {}: {} images, {} trees", out.display(), map.len(), map.descriptors.n_trees()));
+    Ok(())
+}
+
+fn map_add(s: &SourceArgs, map_dir: &Path, quiet: bool) -> Result<()> {
+    let mut map = Map::open(map_dir)?;
+    let mut cfg = Config::default().with_encoding(&map.manifest.config);
+    let (frames, fmt) = frame_sources(s, &mut cfg, true)?;
+    let set = encode_sources(&cfg, &frames, fmt, "new images", s.skip_invalid, quiet)?;
+    map.add(&set)?;
+    info(quiet, format!("map {}: now {} images in {} segments", map_dir.display(), map.len(), map.manifest.segments.len()));
+    Ok(())
+}
+
+fn map_info(dir: &Path, json: bool) -> Result<()> {
+    let map = Map::open(dir)?;
+    if json {
+        let v = serde_json::json!({
+            "path": dir,
+            "images": map.len(),
+            "trees": map.descriptors.n_trees(),
+            "segments": map.manifest.segments,
+            "appearance_dim": map.manifest.appearance_dim,
+            "config": map.manifest.config,
+        });
+        println!("{}", serde_json::to_string_pretty(&v).expect("serialises"));
+    } else {
+        println!("map {}: {} images, {} trees, {} segments (all checksums verified)", dir.display(), map.len(), map.descriptors.n_trees(), map.manifest.segments.len());
+        for s in &map.manifest.segments {
+            println!("  {}  {} images  {} bytes  sha256 {}", s.file, s.images, s.bytes, &s.sha256[..16]);
+        }
+        println!("encoding config:\n{}", toml::to_string_pretty(&map.manifest.config).expect("serialises"));
+    }
+    Ok(())
+}
+
+/// CSV and JSON renderings of query results.
+fn query_outputs(refs: &DescriptorSet, queries: &DescriptorSet, matches: &[QueryMatch]) -> (String, String) {
+    let mut csv = String::from("query,best_reference,score,coarse,fine,top_k\n");
+    let mut rows = Vec::new();
+    let f = |v: Option<f32>| v.map_or(String::new(), |x| format!("{x:.6}"));
+    for (q, m) in matches.iter().enumerate() {
+        let best = m.best();
+        let topk: Vec<String> = m.ranked.iter().map(|c| format!("{}:{:.6}", refs.ids[c.reference as usize], c.score)).collect();
+        csv += &format!(
+            "{},{},{},{},{},{}\n",
+            queries.ids[q],
+            best.map_or("", |b| refs.ids[b.reference as usize].as_str()),
+            best.map_or(String::new(), |b| format!("{:.6}", b.score)),
+            f(best.and_then(|b| b.coarse)),
+            f(best.and_then(|b| b.fine)),
+            topk.join(";")
+        );
+        rows.push(serde_json::json!({
+            "query": queries.ids[q],
+            "best_reference": best.map(|b| refs.ids[b.reference as usize].clone()),
+            "score": best.map(|b| b.score),
+            "top_k": m.ranked.iter().map(|c| serde_json::json!({
+                "reference": refs.ids[c.reference as usize], "score": c.score, "coarse": c.coarse, "fine": c.fine
+            })).collect::<Vec<_>>(),
+        }));
+    }
+    (csv, serde_json::to_string_pretty(&rows).expect("serialises"))
+}
+
+fn run_query(map: &Map, cfg: &Config, s: &SourceArgs, setting: Setting, quiet: bool) -> Result<(DescriptorSet, Vec<QueryMatch>)> {
+    map.check_compatible(&cfg.encoding())?;
+    let mut cfg_for_sources = cfg.clone();
+    let (frames, fmt) = frame_sources(s, &mut cfg_for_sources, true)?;
+    let queries = encode_sources(cfg, &frames, fmt, "queries", s.skip_invalid, quiet)?;
+    let t = Instant::now();
+    let (matches, _) = match_batch(&map.descriptors, &queries, setting, cfg);
+    info(quiet, format!("matched {} queries against {} references ({setting}) in {:.1} ms", queries.len(), map.len(), t.elapsed().as_secs_f64() * 1e3));
+    Ok((queries, matches))
+}
+
+fn write_file(path: &Path, text: &str) -> Result<()> {
+    std::fs::write(path, text).map_err(|e| Error::io(path, e))
+}
+
+fn query(a: &QueryArgs, quiet: bool) -> Result<()> {
+    let map = Map::open(&a.map)?;
+    // without --config, the map's encoding and default matching parameters
+    let cfg = match &a.config {
+        Some(p) => Config::load(p)?,
+        None => Config::default().with_encoding(&map.manifest.config),
+    };
+    let (queries, matches) = run_query(&map, &cfg, &a.source, a.setting, quiet)?;
+    let (csv, json) = query_outputs(&map.descriptors, &queries, &matches);
+    if let Some(out) = &a.out {
+        write_file(&out.with_extension("csv"), &csv)?;
+        write_file(&out.with_extension("json"), &json)?;
+    }
+    if a.json {
+        println!("{json}");
+    } else {
+        print!("{csv}");
+    }
+    Ok(())
+}
+
+fn eval_cmd(a: &EvalArgs, quiet: bool) -> Result<()> {
+    let opts = DatasetOptions { reference: a.reference.clone(), queries: a.queries.clone(), max_distance: a.gt_distance, max_angle_deg: a.gt_angle };
+    let ds = Dataset::open(&a.dataset, &opts)?;
+    let map = a.map.as_deref().map(Map::open).transpose()?;
+    let mut cfg = match (&a.config, &map) {
+        (Some(p), _) => Config::load(p)?,
+        (None, Some(m)) => Config::default().with_encoding(&m.manifest.config),
+        (None, None) => Config::default(),
+    };
+    if let (Some(ids), None, None) = (&ds.label_ids, &a.config, &map) {
+        cfg.classes.label_ids = ids.clone();
+    }
+    let settings = match a.setting {
+        Some(s) => vec![s],
+        None => Setting::ALL.to_vec(),
+    };
+    let report = evaluate(&ds, &cfg, &EvalOptions { settings, map: map.as_ref(), skip_invalid: a.skip_invalid, quiet })?;
+    print_report(&report, a.json);
+    Ok(())
+}
+
+fn print_report(report: &EvalReport, json: bool) {
+    if json {
+        println!("{}", serde_json::to_string_pretty(report).expect("serialises"));
+    } else {
+        print!("{}", report.to_table());
+    }
+}
+
+fn demo(a: &DemoArgs, quiet: bool) -> Result<()> {
+    let t0 = Instant::now();
+    let (dir, temporary) = match &a.out {
+        Some(d) => (d.clone(), false),
+        None => (std::env::temp_dir().join(format!("semlook-demo-{}", std::process::id())), true),
+    };
+    let data = dir.join("dataset");
+    let sargs = SynthArgs { out: data.clone(), seed: a.seed, places: a.places, size: a.size, reference: Condition::Day, queries: vec![], aliasing: 0.6 };
+    let scfg = synth_config(&sargs);
+    info(quiet, format!("[1/4] rendering the synthetic benchmark: {} places x {} traversals at {}x{} (seed {})", scfg.places, 1 + scfg.queries.len(), scfg.width, scfg.height, scfg.seed));
+    synth_cmd(&sargs, quiet)?;
+    let map_dir = dir.join("map");
+    let _ = std::fs::remove_dir_all(&map_dir);
+    info(quiet, "[2/4] building the map from the reference traversal");
+    let src = SourceArgs { dataset: Some(data.clone()), traversal: None, images: None, labels: None, label_format: None, skip_invalid: false };
+    map_build(&src, &map_dir, None, false, quiet)?;
+    let map = Map::open(&map_dir)?;
+    let cfg = Config::default().with_encoding(&map.manifest.config);
+    let hardest = scfg.queries.last().expect("queries").name();
+    info(quiet, format!("[3/4] querying the map with the {hardest} traversal (setting semlook)"));
+    let qsrc = SourceArgs { traversal: Some(hardest.to_string()), ..src };
+    let (queries, matches) = run_query(&map, &cfg, &qsrc, Setting::Semlook, quiet)?;
+    let (csv, json) = query_outputs(&map.descriptors, &queries, &matches);
+    let results = dir.join("results");
+    std::fs::create_dir_all(&results).map_err(|e| Error::io(&results, e))?;
+    write_file(&results.join(format!("query-{hardest}.csv")), &csv)?;
+    write_file(&results.join(format!("query-{hardest}.json")), &json)?;
+    info(quiet, "[4/4] evaluating every setting on every query traversal");
+    let ds = Dataset::open(&data, &DatasetOptions::default())?;
+    let report = evaluate(&ds, &cfg, &EvalOptions { settings: Setting::ALL.to_vec(), map: Some(&map), skip_invalid: false, quiet })?;
+    write_file(&results.join("eval.json"), &serde_json::to_string_pretty(&report).expect("serialises"))?;
+    print_report(&report, a.json);
+    if !a.json {
+        println!("{}", report.summary_table());
+    }
+    if temporary {
+        let _ = std::fs::remove_dir_all(&dir);
+    } else {
+        info(quiet, format!("dataset, map and results kept in {}", dir.display()));
+    }
+    info(quiet, format!("demo finished in {:.1} s", t0.elapsed().as_secs_f64()));
+    Ok(())
+}
