@@ -58,33 +58,36 @@ pub fn edt_rows(g: &[i32], s: &mut [i32], t: &mut [i32], d2: &mut [u32], width: 
 
 #[inline]
 pub fn edt_row(g: &[i32], s: &mut [i32], t: &mut [i32], d2: &mut [u32], width: usize, y: usize) {
-    let row = y * width;
-    let gi = |i: i32| g[row + i as usize];
-    let f = |x: i32, i: i32| (x - i) * (x - i) + gi(i) * gi(i);
-    let sep = |i: i32, u: i32| floor_div(u * u - i * i + gi(u) * gi(u) - gi(i) * gi(i), 2 * (u - i));
+    let row = y * width..(y + 1) * width;
+    let (g, s, t, d2) = (&g[row.clone()], &mut s[row.clone()], &mut t[row.clone()], &mut d2[row]);
+    let f = |x: i32, i: i32| (x - i) * (x - i) + g[i as usize] * g[i as usize];
+    let sep = |i: i32, u: i32| {
+        let (gu, gi) = (g[u as usize], g[i as usize]);
+        floor_div(u * u - i * i + gu * gu - gi * gi, 2 * (u - i))
+    };
     let w = width as i32;
     let mut q: i32 = 0;
-    s[row] = 0;
-    t[row] = 0;
+    s[0] = 0;
+    t[0] = 0;
     for u in 1..w {
-        while q >= 0 && f(t[row + q as usize], s[row + q as usize]) > f(t[row + q as usize], u) {
+        while q >= 0 && f(t[q as usize], s[q as usize]) > f(t[q as usize], u) {
             q -= 1;
         }
         if q < 0 {
             q = 0;
-            s[row] = u;
+            s[0] = u;
         } else {
-            let wsep = 1 + sep(s[row + q as usize], u);
+            let wsep = 1 + sep(s[q as usize], u);
             if wsep < w {
                 q += 1;
-                s[row + q as usize] = u;
-                t[row + q as usize] = wsep;
+                s[q as usize] = u;
+                t[q as usize] = wsep;
             }
         }
     }
     for u in (0..w).rev() {
-        d2[row + u as usize] = f(u, s[row + q as usize]) as u32;
-        if u == t[row + q as usize] {
+        d2[u as usize] = f(u, s[q as usize]) as u32;
+        if u == t[q as usize] {
             q -= 1;
         }
     }

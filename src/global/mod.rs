@@ -106,7 +106,7 @@ mod tests {
             let p = SsimParams::new(&cfg);
             let mut rng = crate::util::SplitMix64::new(seed);
             let x: Vec<f32> = (0..p.len()).map(|_| rng.next_f64() as f32).collect();
-            let y: Vec<f32> = x.iter().map(|v| (v * 0.7 + 0.3 * rng.next_f64() as f32)).collect();
+            let y: Vec<f32> = x.iter().map(|v| v * 0.7 + 0.3 * rng.next_f64() as f32).collect();
             let mut sc = SsimScratch::default();
             let (mut sx, mut sy) = (vec![0.0; p.stats_len()], vec![0.0; p.stats_len()]);
             ssim::ssim_stats(&p, &x, &mut sx, &mut sc);

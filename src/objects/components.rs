@@ -1,5 +1,5 @@
-//! 8-connected component labelling of same-class pixels: union-find over a raster scan
-//! (Rosenfeld & Pfaltz two-pass scheme), with a flood-fill reference beside it for tests.
+//! 8-connected component labelling of same-class pixels: union-find over row runs (a run-based
+//! variant of the Rosenfeld & Pfaltz two-pass scheme), with a flood-fill reference beside it.
 
 use super::{SemanticObject, NO_OBJECT};
 use crate::input::LabelMap;
@@ -19,93 +19,89 @@ fn find(parent: &mut [u32], mut x: u32) -> u32 {
     x
 }
 
+/// A horizontal run of equal class in one row: pixels [x0, x1) of row y.
+struct Run {
+    y: u32,
+    x0: u32,
+    x1: u32,
+    class: u8,
+}
+
 /// Labels 8-connected regions of equal class among pixels whose class is `used`.
+///
+/// Run-based: each row is cut into runs of equal class, and a run is united with the runs of
+/// the same class in the previous row that touch it 8-connectedly (overlap widened by one pixel).
+/// Statistics are summed per run, so the per-pixel work is one pass to find runs and one fill.
 pub fn label_components(labels: &LabelMap, used: &[bool; 256]) -> Components {
     let (w, h) = (labels.width() as usize, labels.height() as usize);
     let cls = labels.classes();
-    let mut prov = vec![NO_OBJECT; w * h];
+    let mut runs: Vec<Run> = Vec::new();
     let mut parent: Vec<u32> = Vec::new();
+    let mut prev_start = 0usize; // runs of the previous row: prev_start..row_start
     for y in 0..h {
-        for x in 0..w {
-            let i = y * w + x;
-            let c = cls[i];
-            if !used[c as usize] {
-                continue;
+        let row = &cls[y * w..(y + 1) * w];
+        let row_start = runs.len();
+        let mut x = 0;
+        while x < w {
+            let c = row[x];
+            let x0 = x;
+            while x < w && row[x] == c {
+                x += 1;
             }
-            // already-visited 8-neighbours: W, NW, N, NE
-            let mut label = NO_OBJECT;
-            let mut neighbours = [NO_OBJECT; 4];
-            if x > 0 && cls[i - 1] == c {
-                neighbours[0] = prov[i - 1];
+            if used[c as usize] {
+                runs.push(Run { y: y as u32, x0: x0 as u32, x1: x as u32, class: c });
+                parent.push((runs.len() - 1) as u32);
             }
-            if y > 0 {
-                let up = i - w;
-                if x > 0 && cls[up - 1] == c {
-                    neighbours[1] = prov[up - 1];
-                }
-                if cls[up] == c {
-                    neighbours[2] = prov[up];
-                }
-                if x + 1 < w && cls[up + 1] == c {
-                    neighbours[3] = prov[up + 1];
-                }
+        }
+        // unite with touching runs of the previous row (both lists sorted by x)
+        let mut j = prev_start;
+        for i in row_start..runs.len() {
+            let (x0, x1, c) = (runs[i].x0, runs[i].x1, runs[i].class);
+            while j < row_start && runs[j].x1 < x0 {
+                j += 1; // ends more than one pixel left of this run
             }
-            for n in neighbours.into_iter().filter(|&n| n != NO_OBJECT) {
-                if label == NO_OBJECT {
-                    label = find(&mut parent, n);
-                } else {
-                    let (a, b) = (find(&mut parent, label), find(&mut parent, n));
+            let mut k = j;
+            while k < row_start && runs[k].x0 <= x1 {
+                if runs[k].class == c {
+                    let (a, b) = (find(&mut parent, i as u32), find(&mut parent, k as u32));
                     if a != b {
                         let (lo, hi) = if a < b { (a, b) } else { (b, a) };
                         parent[hi as usize] = lo;
-                        label = lo;
                     }
                 }
+                k += 1;
             }
-            if label == NO_OBJECT {
-                label = parent.len() as u32;
-                parent.push(label);
-            }
-            prov[i] = label;
         }
+        prev_start = row_start;
     }
-    // Roots get dense ids in order of first appearance, which is raster order of first pixels
-    // because a root is always the smallest provisional label of its set.
-    let mut dense = vec![NO_OBJECT; parent.len()];
+    // Dense ids in order of first run, i.e. raster order of first pixels.
+    let mut dense = vec![NO_OBJECT; runs.len()];
     let mut stats: Vec<SemanticObject> = Vec::new();
     let mut sums: Vec<[f64; 2]> = Vec::new();
-    for y in 0..h {
-        for x in 0..w {
-            let i = y * w + x;
-            if prov[i] == NO_OBJECT {
-                continue;
-            }
-            let root = find(&mut parent, prov[i]) as usize;
-            if dense[root] == NO_OBJECT {
-                dense[root] = stats.len() as u32;
-                stats.push(SemanticObject {
-                    class: cls[i],
-                    area: 0.0,
-                    pixel_count: 0,
-                    centroid: [0.0; 2],
-                    bbox: [x as u32, y as u32, x as u32 + 1, y as u32 + 1],
-                });
-                sums.push([0.0; 2]);
-            }
-            let d = dense[root];
-            prov[i] = d;
-            let s = &mut stats[d as usize];
-            s.pixel_count += 1;
-            s.bbox = [s.bbox[0].min(x as u32), s.bbox[1], s.bbox[2].max(x as u32 + 1), y as u32 + 1];
-            sums[d as usize][0] += x as f64;
-            sums[d as usize][1] += y as f64;
+    let mut component_of_pixel = vec![NO_OBJECT; w * h];
+    for (i, r) in runs.iter().enumerate() {
+        let root = find(&mut parent, i as u32) as usize;
+        if dense[root] == NO_OBJECT {
+            dense[root] = stats.len() as u32;
+            stats.push(SemanticObject { class: r.class, area: 0.0, pixel_count: 0, centroid: [0.0; 2], bbox: [r.x0, r.y, r.x1, r.y + 1] });
+            sums.push([0.0; 2]);
         }
+        let d = dense[root];
+        let n = r.x1 - r.x0;
+        let s = &mut stats[d as usize];
+        s.pixel_count += n;
+        s.bbox = [s.bbox[0].min(r.x0), s.bbox[1], s.bbox[2].max(r.x1), r.y + 1];
+        // sum of x over the run, and of y
+        sums[d as usize][0] += (r.x0 + r.x1 - 1) as f64 * n as f64 / 2.0;
+        sums[d as usize][1] += r.y as f64 * n as f64;
+        let base = r.y as usize * w;
+        component_of_pixel[base + r.x0 as usize..base + r.x1 as usize].fill(d);
     }
     for (s, sum) in stats.iter_mut().zip(&sums) {
         s.area = s.pixel_count as f64;
         s.centroid = [sum[0] / s.area, sum[1] / s.area];
     }
-    Components { component_of_pixel: prov, stats }
+    Components { component_of_pixel, stats }
 }
 
 /// Brute-force reference: breadth-first flood fill from each unvisited pixel in raster order.
@@ -147,4 +143,30 @@ pub fn label_components_reference(labels: &LabelMap, used: &[bool; 256]) -> Comp
         stats.push(SemanticObject { class: c, area: n as f64, pixel_count: n, centroid: [sx / n as f64, sy / n as f64], bbox });
     }
     Components { component_of_pixel: comp, stats }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::classes::ClassTable;
+    use proptest::prelude::*;
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(200))]
+        /// Run-based labelling equals flood fill: same components, order, ids and statistics.
+        #[test]
+        fn equals_flood_fill(w in 1u32..30, h in 1u32..30, k in 1u8..5, seed in any::<u64>()) {
+            let t = ClassTable::cityscapes();
+            let mut rng = crate::util::SplitMix64::new(seed);
+            // few classes and void, so regions touch, nest and wrap around
+            let c: Vec<u8> = (0..w * h).map(|_| { let v = rng.below(k as usize + 1) as u8; if v == k { crate::classes::VOID } else { v } }).collect();
+            let m = LabelMap::new(w, h, c, &t).unwrap();
+            let mut used = t.used_mask();
+            used[1] = seed % 3 != 0; // sometimes a class is excluded
+            let fast = label_components(&m, &used);
+            let slow = label_components_reference(&m, &used);
+            prop_assert_eq!(&fast.component_of_pixel, &slow.component_of_pixel);
+            prop_assert_eq!(&fast.stats, &slow.stats);
+        }
+    }
 }

@@ -21,6 +21,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 use world::{Prim, Shape, World};
+pub use world::dynamic_objects;
 
 /// Camera offsets from the place positions, drawn uniformly in +-value.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

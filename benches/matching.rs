@@ -1,0 +1,49 @@
+//! Matching throughput on the CPU path.
+//! - coarse: SSIM of one query against maps of 1k and 10k references with streaming top-K
+//!   (target, issue 2: >= 100,000 reference comparisons per second on 2 cores);
+//! - fine: tree-set similarity of one query forest against one candidate forest.
+
+use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use semlook::config::Config;
+use semlook::global::ssim::SsimParams;
+use semlook::local::tree_similarity::{tree_similarity, TreeSimParams, TreeSimScratch};
+use semlook::matching::coarse_topk;
+use semlook::synth::condition::Condition;
+
+mod common;
+
+fn bench(c: &mut Criterion) {
+    let cfg = Config::default();
+    let images = common::encode_all(&cfg, &common::street_labels(32, 640, 480, Condition::Day));
+    let queries = common::map_of(&cfg, &common::encode_all(&cfg, &common::street_labels(4, 640, 480, Condition::Night)), 4);
+    let p = SsimParams::new(&cfg.global);
+    let mut g = c.benchmark_group("coarse");
+    for n in [1_000usize, 10_000] {
+        let refs = common::map_of(&cfg, &images, n);
+        // a batch of 4 queries per iteration so both cores work; throughput counts comparisons
+        g.throughput(Throughput::Elements((n * queries.len()) as u64));
+        g.bench_function(format!("ssim_topk/{n}_refs_x4_queries"), |b| b.iter(|| coarse_topk(&refs, &queries, &p, cfg.matching.top_k, cfg.matching.tile)));
+    }
+    g.finish();
+    let mut g = c.benchmark_group("fine");
+    let mut scratch = TreeSimScratch::default();
+    for (name, appearance) in [("forest", false), ("forest+appearance (neutral)", true)] {
+        let params = TreeSimParams::new(&cfg.similarity, appearance, cfg.local.neighbours);
+        let mut k = 0;
+        g.throughput(Throughput::Elements(1));
+        g.bench_function(format!("tree_similarity/{name}"), |b| {
+            b.iter(|| {
+                k = (k + 1) % images.len();
+                tree_similarity(&params, queries.forest(k % 4), images[k].forest.as_ref(), &mut scratch)
+            })
+        });
+    }
+    g.finish();
+}
+
+criterion_group! {
+    name = benches;
+    config = Criterion::default().sample_size(10).measurement_time(std::time::Duration::from_secs(5));
+    targets = bench
+}
+criterion_main!(benches);

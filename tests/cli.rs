@@ -1,0 +1,73 @@
+//! The `semlook` binary: commands, outputs and exit codes.
+
+mod common;
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn semlook(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_semlook")).args(args).output().expect("binary runs")
+}
+
+fn ok(args: &[&str]) -> String {
+    let out = semlook(args);
+    assert!(out.status.success(), "semlook {args:?} failed:\n{}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8(out.stdout).unwrap()
+}
+
+fn p(path: &Path) -> &str {
+    path.to_str().unwrap()
+}
+
+#[test]
+fn config_prints_a_loadable_default() {
+    let text = ok(&["config"]);
+    let cfg = semlook::config::Config::from_toml(&text, "stdout").unwrap();
+    assert_eq!(cfg, semlook::config::Config::default());
+}
+
+#[test]
+fn build_add_info_query_and_eval() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    ok(&["synth", "--out", p(&data), "--places", "6", "--size", "160x120", "--query", "overcast", "--query", "fog", "-q"]);
+    let map = dir.path().join("map");
+    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "-q"]);
+    // building again into the same directory is refused; --force replaces it
+    assert!(!semlook(&["map", "build", "--dataset", p(&data), "--out", p(&map), "-q"]).status.success());
+    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--force", "-q"]);
+    ok(&["map", "add", "--dataset", p(&data), "--traversal", "fog", "--map", p(&map), "-q"]);
+    let info: serde_json::Value = serde_json::from_str(&ok(&["map", "info", "--map", p(&map), "--json"])).unwrap();
+    assert_eq!(info["images"], 12);
+    assert_eq!(info["segments"].as_array().unwrap().len(), 2);
+
+    let labels = data.join("overcast/GT/LABELS/Stereo_Left/Omni_F");
+    let images = data.join("overcast/RGB/Stereo_Left/Omni_F");
+    let csv = ok(&["query", "--map", p(&map), "--images", p(&images), "--labels", p(&labels), "-q"]);
+    let lines: Vec<&str> = csv.lines().collect();
+    assert_eq!(lines[0], "query,best_reference,score,coarse,fine,top_k");
+    assert_eq!(lines.len(), 7);
+    let json: serde_json::Value = serde_json::from_str(&ok(&["query", "--map", p(&map), "--labels", p(&labels), "--json", "--setting", "forest", "-q"])).unwrap();
+    assert_eq!(json.as_array().unwrap().len(), 6);
+    assert!(json[0]["top_k"].as_array().unwrap().len() >= 10);
+
+    let report: serde_json::Value = serde_json::from_str(&ok(&["eval", "--dataset", p(&data), "--setting", "semlook", "--json", "-q"])).unwrap();
+    let results = report["results"].as_array().unwrap();
+    assert_eq!(results.len(), 2);
+    assert_eq!(results[0]["setting"], "semlook");
+    assert_eq!(results[0]["outcomes"].as_array().unwrap().len(), 6);
+    assert!(results[0]["auc"].as_f64().unwrap() >= 0.0);
+}
+
+#[test]
+fn errors_exit_non_zero_and_name_the_problem() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = semlook(&["map", "info", "--map", p(&dir.path().join("nowhere"))]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("nowhere") && err.contains("manifest.json"), "{err}");
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(&bad, "[matching]\ntop_k = -3\n").unwrap();
+    let out = semlook(&["map", "build", "--labels", p(dir.path()), "--out", p(&dir.path().join("m")), "--config", p(&bad)]);
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("bad.toml"));
+}

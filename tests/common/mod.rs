@@ -1,0 +1,79 @@
+//! Helpers shared by the integration tests.
+#![allow(dead_code)]
+
+use semlook::config::Config;
+use semlook::encode::Encoder;
+use semlook::input::LabelMap;
+use semlook::map::DescriptorSet;
+use semlook::synth::{self, SynthConfig};
+use std::path::Path;
+
+/// A small synthetic dataset: `places` frames per traversal at 160x120, two query conditions.
+pub fn tiny_synth(dir: &Path, places: usize, seed: u64) -> SynthConfig {
+    let cfg = SynthConfig {
+        seed,
+        places,
+        width: 160,
+        height: 120,
+        queries: vec![semlook::synth::condition::Condition::Overcast, semlook::synth::condition::Condition::Night],
+        ..Default::default()
+    };
+    synth::generate(&cfg, dir, &|| {}).unwrap();
+    cfg
+}
+
+/// Deterministic label maps with a few rectangles of different classes.
+pub fn label_maps(n: usize, w: u32, h: u32) -> Vec<LabelMap> {
+    let table = semlook::classes::ClassTable::cityscapes();
+    (0..n)
+        .map(|k| {
+            let mut rng = semlook::util::SplitMix64::new(k as u64 + 1);
+            let mut c = vec![10u8; (w * h) as usize];
+            for y in h / 2..h {
+                for x in 0..w {
+                    c[(y * w + x) as usize] = 0;
+                }
+            }
+            for _ in 0..6 {
+                let (x0, y0) = (rng.below(w as usize - 10) as u32, rng.below(h as usize - 10) as u32);
+                let (bw, bh) = (5 + rng.below(w as usize / 3) as u32, 5 + rng.below(h as usize / 3) as u32);
+                let class = [2u8, 8, 13, 5, 1, 9][rng.below(6)];
+                for y in y0..(y0 + bh).min(h) {
+                    for x in x0..(x0 + bw).min(w) {
+                        c[(y * w + x) as usize] = class;
+                    }
+                }
+            }
+            LabelMap::new(w, h, c, &table).unwrap()
+        })
+        .collect()
+}
+
+/// Encodes label maps into a descriptor set with ids `prefix{i}`.
+pub fn encode(cfg: &Config, maps: &[LabelMap], prefix: &str) -> DescriptorSet {
+    let enc = Encoder::new(&cfg.encoding()).unwrap();
+    let mut set = DescriptorSet::new(&enc.ssim_params(), cfg.local.neighbours, 0);
+    let mut scratch = Default::default();
+    for (i, m) in maps.iter().enumerate() {
+        set.push(&enc.encode_labels(&format!("{prefix}{i}"), m, &mut scratch).unwrap().0);
+    }
+    set
+}
+
+/// Every file under `dir` with its bytes, sorted by path.
+pub fn snapshot(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut out = vec![];
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap().flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                out.push((p.strip_prefix(dir).unwrap().display().to_string(), std::fs::read(&p).unwrap()));
+            }
+        }
+    }
+    out.sort();
+    out
+}

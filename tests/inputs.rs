@@ -1,0 +1,125 @@
+//! Bad inputs get typed errors that name the file, and never damage a stored map.
+
+mod common;
+
+use image::{GrayImage, Luma, Rgb, RgbImage};
+use semlook::classes::ClassTable;
+use semlook::config::Config;
+use semlook::encode::Encoder;
+use semlook::error::Error;
+use semlook::input::{load_frame_labels, load_label_map, FrameSource, LabelFormat};
+use semlook::map::Map;
+use std::path::Path;
+
+fn grey(path: &Path, w: u32, h: u32, id: u8) {
+    GrayImage::from_pixel(w, h, Luma([id])).save(path).unwrap();
+}
+
+#[test]
+fn each_bad_label_map_is_refused_with_its_file_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let t = ClassTable::cityscapes();
+    let f = LabelFormat::Auto;
+
+    let p = d.join("unknown_id.png");
+    let mut g = GrayImage::from_pixel(8, 8, Luma([0]));
+    g.put_pixel(3, 5, Luma([77]));
+    g.save(&p).unwrap();
+    let e = load_label_map(&p, &t, f).unwrap_err();
+    assert!(matches!(e, Error::UnknownClassId { id: 77, x: 3, y: 5, .. }), "{e}");
+    assert!(e.to_string().contains("unknown_id.png"));
+
+    let p = d.join("unknown_colour.png");
+    RgbImage::from_pixel(4, 4, Rgb([12, 34, 56])).save(&p).unwrap();
+    let e = load_label_map(&p, &t, f).unwrap_err();
+    assert!(matches!(e, Error::UnknownClassColor { rgb: [12, 34, 56], .. }) && e.to_string().contains("unknown_colour.png"), "{e}");
+
+    let p = d.join("empty.png");
+    std::fs::write(&p, b"").unwrap();
+    let e = load_label_map(&p, &t, f).unwrap_err();
+    assert!(matches!(e, Error::EmptyImage { .. }) && e.to_string().contains("empty.png"), "{e}");
+
+    let p = d.join("text.png");
+    std::fs::write(&p, b"this is not a png").unwrap();
+    let e = load_label_map(&p, &t, f).unwrap_err();
+    assert!(matches!(e, Error::ImageDecode { .. }) && e.to_string().contains("text.png"), "{e}");
+
+    let p = d.join("truncated.png");
+    let mut bytes = Vec::new();
+    GrayImage::from_pixel(64, 64, Luma([0])).write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png).unwrap();
+    std::fs::write(&p, &bytes[..bytes.len() / 2]).unwrap();
+    assert!(load_label_map(&p, &t, f).is_err(), "truncated png accepted");
+
+    let e = load_label_map(&d.join("missing.png"), &t, f).unwrap_err();
+    assert!(matches!(e, Error::Io { .. }) && e.to_string().contains("missing.png"), "{e}");
+
+    // size mismatch between image and label map
+    let img = d.join("img.png");
+    RgbImage::new(20, 10).save(&img).unwrap();
+    let lab = d.join("lab.png");
+    grey(&lab, 10, 10, 0);
+    let src = FrameSource { id: "x".into(), image: Some(img.clone()), labels: Some(lab.clone()) };
+    let e = load_frame_labels(&src, &t, f).unwrap_err();
+    assert!(matches!(e, Error::SizeMismatch { image_size: (20, 10), label_size: (10, 10), .. }), "{e}");
+    assert!(e.to_string().contains("lab.png") && e.to_string().contains("img.png"));
+
+    // an image without labels and no segmenter
+    let src = FrameSource { id: "y".into(), image: Some(img), labels: None };
+    assert!(matches!(load_frame_labels(&src, &t, f), Err(Error::NoLabels { .. })));
+}
+
+#[test]
+fn sixteen_bit_and_first_channel_ids_decode() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("l16.png");
+    let mut g = image::ImageBuffer::<Luma<u16>, Vec<u16>>::from_pixel(4, 2, Luma([8u16]));
+    g.put_pixel(0, 0, Luma([255]));
+    g.save(&p).unwrap();
+    let m = load_label_map(&p, &ClassTable::cityscapes(), LabelFormat::Auto).unwrap();
+    assert_eq!(m.classes()[0], semlook::classes::VOID);
+    assert_eq!(m.classes()[1], 8);
+    // SYNTHIA style: class in the red channel of a colour file
+    let p = dir.path().join("synthia.png");
+    RgbImage::from_pixel(3, 3, Rgb([3, 77, 12])).save(&p).unwrap();
+    let cfg = semlook::config::ClassesConfig { label_ids: semlook::config::LabelIds::Named("synthia".into()), ..Default::default() };
+    let t = ClassTable::from_config(&cfg).unwrap();
+    assert!(load_label_map(&p, &t, LabelFormat::FirstChannel).unwrap().classes().iter().all(|&c| c == 0));
+}
+
+#[test]
+fn a_failed_add_loses_nothing_already_stored() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = Config::default();
+    let path = dir.path().join("map");
+    let set = common::encode(&cfg, &common::label_maps(4, 64, 48), "ref");
+    Map::create(&path, &cfg.encoding(), &set).unwrap();
+    let before = common::snapshot(&path);
+    // a batch with one good and one bad file: encoding fails before anything is written
+    let good = dir.path().join("good.png");
+    grey(&good, 64, 48, 0);
+    let bad = dir.path().join("bad.png");
+    grey(&bad, 64, 48, 99);
+    let sources = vec![
+        FrameSource { id: "good".into(), image: None, labels: Some(good) },
+        FrameSource { id: "bad".into(), image: None, labels: Some(bad) },
+    ];
+    let enc = Encoder::new(&cfg.encoding()).unwrap();
+    let results = enc.encode_all(&sources, LabelFormat::Auto, &|| {});
+    let err = semlook::encode::collect_encoded(results, false).unwrap_err();
+    assert!(err.to_string().contains("bad.png"), "{err}");
+    assert_eq!(common::snapshot(&path), before);
+    assert_eq!(Map::open(&path).unwrap().len(), 4);
+    // with skipping, the good one is stored and the bad one reported
+    let results = enc.encode_all(&sources, LabelFormat::Auto, &|| {});
+    let (imgs, _, skipped) = semlook::encode::collect_encoded(results, true).unwrap();
+    assert_eq!((imgs.len(), skipped.len()), (1, 1));
+}
+
+#[test]
+fn invalid_configs_are_refused() {
+    for text in ["[global]\nwidth = 3\n", "[similarity]\nw_area = -1\n", "[local]\ntie_tolerance = inf\n", "[classes]\ntable = \"mapillary\"\n"] {
+        let e = Config::from_toml(text, "bad.toml").unwrap_err();
+        assert!(matches!(e, Error::InvalidConfig { .. }) && e.to_string().contains("bad.toml"), "{text}: {e}");
+    }
+}
