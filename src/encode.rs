@@ -73,18 +73,33 @@ impl Encoder {
 
     /// Encodes a label map already in memory.
     pub fn encode_labels(&self, id: &str, labels: &LabelMap, scratch: &mut GlobalScratch) -> Result<(EncodedImage, StageTimes)> {
-        let mut times = StageTimes::default();
         let t = Instant::now();
         let mut global = vec![0.0; self.ssim.len()];
         let mut global_stats = vec![0.0; self.ssim.stats_len()];
         global::encode_global(labels, &self.used, &self.cfg.global, scratch, &mut global, &mut global_stats)?;
-        times.global_ms = ms_since(t);
+        Ok(self.finish(id, labels, global, global_stats, ms_since(t)))
+    }
+
+    /// Completes an image whose global descriptor was pooled elsewhere (on the GPU): its SSIM
+    /// statistics, objects and forest. `global_ms` is the time already spent on the descriptor.
+    pub fn encode_with_global(&self, id: &str, labels: &LabelMap, global: Vec<f32>, global_ms: f64) -> (EncodedImage, StageTimes) {
+        let t = Instant::now();
+        let mut global_stats = vec![0.0; self.ssim.stats_len()];
+        global::ssim::ssim_stats(&self.ssim, &global, &mut global_stats, &mut Default::default());
+        self.finish(id, labels, global, global_stats, global_ms + ms_since(t))
+    }
+
+    fn finish(&self, id: &str, labels: &LabelMap, global: Vec<f32>, global_stats: Vec<f32>, global_ms: f64) -> (EncodedImage, StageTimes) {
         let t = Instant::now();
         let objects = objects::extract_objects(labels, &self.table, &self.cfg.objects);
         let forest = local::build_forest(&objects, &self.cfg.local);
-        times.forest_ms = ms_since(t);
-        let image = EncodedImage { id: id.to_string(), width: labels.width(), height: labels.height(), global, global_stats, forest };
-        Ok((image, times))
+        let times = StageTimes { global_ms, forest_ms: ms_since(t), ..Default::default() };
+        (EncodedImage { id: id.to_string(), width: labels.width(), height: labels.height(), global, global_stats, forest }, times)
+    }
+
+    /// The classes that make edges (see `ClassTable::used_mask`).
+    pub fn used_mask(&self) -> &[bool; 256] {
+        &self.used
     }
 
     /// Loads a frame's files and encodes it.

@@ -47,6 +47,8 @@ pub enum Error {
     Dataset { path: PathBuf, reason: String },
     #[error("{what}: {reason}")]
     InvalidInput { what: String, reason: String },
+    #[error(transparent)]
+    Gpu(#[from] crate::gpu::GpuError),
 }
 
 /// Short constructors for the common variants.

@@ -34,9 +34,11 @@
 pub mod classes;
 pub mod config;
 pub mod encode;
+pub mod engine;
 pub mod error;
 pub mod eval;
 pub mod global;
+pub mod gpu;
 pub mod input;
 pub mod local;
 pub mod map;

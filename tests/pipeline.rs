@@ -78,7 +78,7 @@ fn evaluation_on_a_tiny_benchmark_reports_every_setting() {
     common::tiny_synth(dir.path(), 12, 5);
     let ds = Dataset::open(dir.path(), &DatasetOptions::default()).unwrap();
     let cfg = Config::default();
-    let report = evaluate(&ds, &cfg, &EvalOptions { settings: Setting::ALL.to_vec(), map: None, skip_invalid: false, quiet: true }).unwrap();
+    let report = evaluate(&ds, &cfg, &EvalOptions { settings: Setting::ALL.to_vec(), map: None, skip_invalid: false, quiet: true }, &mut semlook::engine::Engine::cpu()).unwrap();
     assert_eq!(report.results.len(), 2 * Setting::ALL.len());
     assert_eq!(report.references, 12);
     for r in &report.results {

@@ -3,12 +3,14 @@
 use super::*;
 use semlook::config::Config;
 use semlook::encode::Encoder;
+use semlook::engine::Engine;
+use semlook::gpu::GpuOptions;
 use semlook::error::{Error, Result};
 use semlook::eval::dataset::{Dataset, DatasetOptions};
 use semlook::eval::{encode_frames, evaluate, EvalOptions, EvalReport};
 use semlook::input::FrameSource;
 use semlook::map::{DescriptorSet, Map};
-use semlook::matching::{match_batch, QueryMatch};
+use semlook::matching::QueryMatch;
 use semlook::progress;
 use semlook::synth::{self, SynthConfig};
 use std::path::Path;
@@ -16,14 +18,22 @@ use std::time::Instant;
 
 pub fn dispatch(cli: Cli) -> Result<()> {
     let quiet = cli.quiet;
+    let engine = || -> Result<Engine> {
+        let (engine, fallback) = Engine::new(cli.backend, &GpuOptions::default())?;
+        if let Some(why) = fallback {
+            info(quiet, format!("backend auto: {why}"));
+        }
+        info(quiet, format!("backend: {}", engine.describe()));
+        Ok(engine)
+    };
     match cli.command {
         Command::Synth(a) => synth_cmd(&a, quiet),
-        Command::Demo(a) => demo(&a, quiet),
-        Command::Map(MapCommand::Build { source, out, config, force }) => map_build(&source, &out, config.as_deref(), force, quiet),
-        Command::Map(MapCommand::Add { source, map }) => map_add(&source, &map, quiet),
+        Command::Demo(a) => demo(&a, &mut engine()?, quiet),
+        Command::Map(MapCommand::Build { source, out, config, force }) => map_build(&mut engine()?, &source, &out, config.as_deref(), force, quiet),
+        Command::Map(MapCommand::Add { source, map }) => map_add(&mut engine()?, &source, &map, quiet),
         Command::Map(MapCommand::Info { map, json }) => map_info(&map, json),
-        Command::Query(a) => query(&a, quiet),
-        Command::Eval(a) => eval_cmd(&a, quiet),
+        Command::Query(a) => query(&mut engine()?, &a, quiet),
+        Command::Eval(a) => eval_cmd(&mut engine()?, &a, quiet),
         Command::Config => {
             print!("{}", Config::default().to_toml());
             Ok(())
@@ -106,12 +116,12 @@ fn frame_sources(s: &SourceArgs, cfg: &mut Config, keep_ids: bool) -> Result<(Ve
     Ok((frames, s.label_format.unwrap_or_default()))
 }
 
-fn encode_sources(cfg: &Config, frames: &[FrameSource], fmt: LabelFormat, what: &str, skip: bool, quiet: bool) -> Result<DescriptorSet> {
+fn encode_sources(engine: &mut Engine, cfg: &Config, frames: &[FrameSource], fmt: LabelFormat, what: &str, skip: bool, quiet: bool) -> Result<DescriptorSet> {
     if frames.is_empty() {
         return Err(Error::invalid(what, "no images found"));
     }
     let encoder = Encoder::new(&cfg.encoding())?;
-    let (set, summary, skipped) = encode_frames(&encoder, frames, fmt, what, skip, quiet)?;
+    let (set, summary, skipped) = encode_frames(engine, &encoder, frames, fmt, what, skip, quiet)?;
     for e in &skipped {
         eprintln!("warning: skipped: {e}");
     }
@@ -122,10 +132,10 @@ fn encode_sources(cfg: &Config, frames: &[FrameSource], fmt: LabelFormat, what: 
     Ok(set)
 }
 
-fn map_build(s: &SourceArgs, out: &Path, config: Option<&Path>, force: bool, quiet: bool) -> Result<()> {
+fn map_build(engine: &mut Engine, s: &SourceArgs, out: &Path, config: Option<&Path>, force: bool, quiet: bool) -> Result<()> {
     let mut cfg = load_config(config)?;
     let (frames, fmt) = frame_sources(s, &mut cfg, config.is_some())?;
-    let set = encode_sources(&cfg, &frames, fmt, "references", s.skip_invalid, quiet)?;
+    let set = encode_sources(engine, &cfg, &frames, fmt, "references", s.skip_invalid, quiet)?;
     let map = if force && out.exists() {
         // build beside, then swap, so the old map survives any failure
         let staging = out.with_extension("building");
@@ -144,11 +154,11 @@ fn map_build(s: &SourceArgs, out: &Path, config: Option<&Path>, force: bool, qui
     Ok(())
 }
 
-fn map_add(s: &SourceArgs, map_dir: &Path, quiet: bool) -> Result<()> {
+fn map_add(engine: &mut Engine, s: &SourceArgs, map_dir: &Path, quiet: bool) -> Result<()> {
     let mut map = Map::open(map_dir)?;
     let mut cfg = Config::default().with_encoding(&map.manifest.config);
     let (frames, fmt) = frame_sources(s, &mut cfg, true)?;
-    let set = encode_sources(&cfg, &frames, fmt, "new images", s.skip_invalid, quiet)?;
+    let set = encode_sources(engine, &cfg, &frames, fmt, "new images", s.skip_invalid, quiet)?;
     map.add(&set)?;
     info(quiet, format!("map {}: now {} images in {} segments", map_dir.display(), map.len(), map.manifest.segments.len()));
     Ok(())
@@ -205,13 +215,13 @@ fn query_outputs(refs: &DescriptorSet, queries: &DescriptorSet, matches: &[Query
     (csv, serde_json::to_string_pretty(&rows).expect("serialises"))
 }
 
-fn run_query(map: &Map, cfg: &Config, s: &SourceArgs, setting: Setting, quiet: bool) -> Result<(DescriptorSet, Vec<QueryMatch>)> {
+fn run_query(engine: &mut Engine, map: &Map, cfg: &Config, s: &SourceArgs, setting: Setting, quiet: bool) -> Result<(DescriptorSet, Vec<QueryMatch>)> {
     map.check_compatible(&cfg.encoding())?;
     let mut cfg_for_sources = cfg.clone();
     let (frames, fmt) = frame_sources(s, &mut cfg_for_sources, true)?;
-    let queries = encode_sources(cfg, &frames, fmt, "queries", s.skip_invalid, quiet)?;
+    let queries = encode_sources(engine, cfg, &frames, fmt, "queries", s.skip_invalid, quiet)?;
     let t = Instant::now();
-    let (matches, _) = match_batch(&map.descriptors, &queries, setting, cfg);
+    let (matches, _) = engine.match_batch(&map.descriptors, &queries, setting, cfg)?;
     info(quiet, format!("matched {} queries against {} references ({setting}) in {:.1} ms", queries.len(), map.len(), t.elapsed().as_secs_f64() * 1e3));
     Ok((queries, matches))
 }
@@ -220,14 +230,14 @@ fn write_file(path: &Path, text: &str) -> Result<()> {
     std::fs::write(path, text).map_err(|e| Error::io(path, e))
 }
 
-fn query(a: &QueryArgs, quiet: bool) -> Result<()> {
+fn query(engine: &mut Engine, a: &QueryArgs, quiet: bool) -> Result<()> {
     let map = Map::open(&a.map)?;
     // without --config, the map's encoding and default matching parameters
     let cfg = match &a.config {
         Some(p) => Config::load(p)?,
         None => Config::default().with_encoding(&map.manifest.config),
     };
-    let (queries, matches) = run_query(&map, &cfg, &a.source, a.setting, quiet)?;
+    let (queries, matches) = run_query(engine, &map, &cfg, &a.source, a.setting, quiet)?;
     let (csv, json) = query_outputs(&map.descriptors, &queries, &matches);
     if let Some(out) = &a.out {
         write_file(&out.with_extension("csv"), &csv)?;
@@ -241,7 +251,7 @@ fn query(a: &QueryArgs, quiet: bool) -> Result<()> {
     Ok(())
 }
 
-fn eval_cmd(a: &EvalArgs, quiet: bool) -> Result<()> {
+fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
     let opts = DatasetOptions { reference: a.reference.clone(), queries: a.queries.clone(), max_distance: a.gt_distance, max_angle_deg: a.gt_angle };
     let ds = Dataset::open(&a.dataset, &opts)?;
     let map = a.map.as_deref().map(Map::open).transpose()?;
@@ -257,7 +267,7 @@ fn eval_cmd(a: &EvalArgs, quiet: bool) -> Result<()> {
         Some(s) => vec![s],
         None => Setting::ALL.to_vec(),
     };
-    let report = evaluate(&ds, &cfg, &EvalOptions { settings, map: map.as_ref(), skip_invalid: a.skip_invalid, quiet })?;
+    let report = evaluate(&ds, &cfg, &EvalOptions { settings, map: map.as_ref(), skip_invalid: a.skip_invalid, quiet }, engine)?;
     print_report(&report, a.json);
     Ok(())
 }
@@ -270,7 +280,7 @@ fn print_report(report: &EvalReport, json: bool) {
     }
 }
 
-fn demo(a: &DemoArgs, quiet: bool) -> Result<()> {
+fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     let t0 = Instant::now();
     let (dir, temporary) = match &a.out {
         Some(d) => (d.clone(), false),
@@ -285,13 +295,13 @@ fn demo(a: &DemoArgs, quiet: bool) -> Result<()> {
     let _ = std::fs::remove_dir_all(&map_dir);
     info(quiet, "[2/4] building the map from the reference traversal");
     let src = SourceArgs { dataset: Some(data.clone()), traversal: None, images: None, labels: None, label_format: None, skip_invalid: false };
-    map_build(&src, &map_dir, None, false, quiet)?;
+    map_build(engine, &src, &map_dir, None, false, quiet)?;
     let map = Map::open(&map_dir)?;
     let cfg = Config::default().with_encoding(&map.manifest.config);
     let hardest = scfg.queries.last().expect("queries").name();
     info(quiet, format!("[3/4] querying the map with the {hardest} traversal (setting semlook)"));
     let qsrc = SourceArgs { traversal: Some(hardest.to_string()), ..src };
-    let (queries, matches) = run_query(&map, &cfg, &qsrc, Setting::Semlook, quiet)?;
+    let (queries, matches) = run_query(engine, &map, &cfg, &qsrc, Setting::Semlook, quiet)?;
     let (csv, json) = query_outputs(&map.descriptors, &queries, &matches);
     let results = dir.join("results");
     std::fs::create_dir_all(&results).map_err(|e| Error::io(&results, e))?;
@@ -299,7 +309,7 @@ fn demo(a: &DemoArgs, quiet: bool) -> Result<()> {
     write_file(&results.join(format!("query-{hardest}.json")), &json)?;
     info(quiet, "[4/4] evaluating every setting on every query traversal");
     let ds = Dataset::open(&data, &DatasetOptions::default())?;
-    let report = evaluate(&ds, &cfg, &EvalOptions { settings: Setting::ALL.to_vec(), map: Some(&map), skip_invalid: false, quiet })?;
+    let report = evaluate(&ds, &cfg, &EvalOptions { settings: Setting::ALL.to_vec(), map: Some(&map), skip_invalid: false, quiet }, engine)?;
     write_file(&results.join("eval.json"), &serde_json::to_string_pretty(&report).expect("serialises"))?;
     print_report(&report, a.json);
     if !a.json {

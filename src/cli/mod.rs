@@ -3,6 +3,7 @@
 mod commands;
 
 use clap::{Args, Parser, Subcommand};
+use semlook::engine::Backend;
 use semlook::input::LabelFormat;
 use semlook::matching::Setting;
 use semlook::synth::condition::Condition;
@@ -14,6 +15,10 @@ pub struct Cli {
     /// No progress bars and no informational messages.
     #[arg(long, short, global = true)]
     pub quiet: bool,
+    /// Where encoding and matching run: `cpu`, `gpu` (any adapter, software ones included), or
+    /// `auto` (a hardware GPU if there is one, else the CPU).
+    #[arg(long, global = true, value_enum, default_value_t = Backend::Auto)]
+    pub backend: Backend,
     #[command(subcommand)]
     pub command: Command,
 }

@@ -8,9 +8,10 @@ pub mod metrics;
 
 use crate::config::Config;
 use crate::encode::{collect_encoded, Encoder, StageTimes};
+use crate::engine::Engine;
 use crate::error::{Error, Result};
 use crate::map::{DescriptorSet, Map};
-use crate::matching::{match_batch, Setting};
+use crate::matching::Setting;
 use crate::progress;
 use dataset::Dataset;
 use metrics::{pr_metrics, recall_at_n, PrMetrics};
@@ -66,6 +67,8 @@ pub struct SettingReport {
 #[derive(Debug, Clone, Serialize)]
 pub struct EvalReport {
     pub dataset: String,
+    /// Where it ran: "cpu (N threads)" or "gpu: adapter (backend, type)".
+    pub backend: String,
     pub references: usize,
     pub reference_encoding: EncodingSummary,
     pub query_encoding: EncodingSummary,
@@ -83,6 +86,7 @@ pub struct EvalOptions<'a> {
 
 /// Encodes a list of frames into a descriptor set, with a progress bar.
 pub fn encode_frames(
+    engine: &mut Engine,
     encoder: &Encoder,
     frames: &[crate::input::FrameSource],
     format: crate::input::LabelFormat,
@@ -91,7 +95,7 @@ pub fn encode_frames(
     quiet: bool,
 ) -> Result<(DescriptorSet, EncodingSummary, Vec<Error>)> {
     let pb = progress::bar(frames.len(), what, quiet);
-    let results = encoder.encode_all(frames, format, &|| pb.inc(1));
+    let results = engine.encode_all(encoder, frames, format, &|| pb.inc(1))?;
     pb.finish_and_clear();
     let (images, total, skipped) = collect_encoded(results, skip_invalid)?;
     let mut set = DescriptorSet::new(&encoder.ssim_params(), encoder.config().local.neighbours, 0);
@@ -101,7 +105,7 @@ pub fn encode_frames(
     Ok((set, EncodingSummary::from_total(images.len(), total), skipped))
 }
 
-pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions) -> Result<EvalReport> {
+pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Engine) -> Result<EvalReport> {
     let encoder = Encoder::new(&cfg.encoding())?;
     let ref_sources: Vec<_> = ds.reference.frames.iter().map(|f| f.source.clone()).collect();
     let owned;
@@ -111,7 +115,7 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions) -> Result<EvalRe
             (&m.descriptors, EncodingSummary::default())
         }
         None => {
-            let (set, summary, _) = encode_frames(&encoder, &ref_sources, ds.label_format, "references", false, opts.quiet)?;
+            let (set, summary, _) = encode_frames(engine, &encoder, &ref_sources, ds.label_format, "references", false, opts.quiet)?;
             owned = set;
             (&owned, summary)
         }
@@ -133,7 +137,7 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions) -> Result<EvalRe
         let gt_ds = ds.ground_truth(qt)?;
         let sources: Vec<_> = qt.frames.iter().map(|f| f.source.clone()).collect();
         let pb = progress::bar(sources.len(), &format!("queries {}", qt.name), opts.quiet);
-        let encoded = encoder.encode_all(&sources, ds.label_format, &|| pb.inc(1));
+        let encoded = engine.encode_all(&encoder, &sources, ds.label_format, &|| pb.inc(1))?;
         pb.finish_and_clear();
         let mut qset = DescriptorSet::new(&encoder.ssim_params(), encoder.config().local.neighbours, 0);
         let mut gt = Vec::new();
@@ -150,12 +154,13 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions) -> Result<EvalRe
             }
         }
         for &setting in &opts.settings {
-            let (matches, times) = match_batch(refs, &qset, setting, cfg);
+            let (matches, times) = engine.match_batch(refs, &qset, setting, cfg)?;
             results.push(report(&qt.name, setting, refs, &qset, &matches, &gt, times.coarse_ms + times.fine_ms, cfg));
         }
     }
     Ok(EvalReport {
         dataset: ds.name.clone(),
+        backend: engine.describe(),
         references: refs.len(),
         reference_encoding: ref_enc,
         query_encoding: EncodingSummary::from_total(q_frames, q_total),
@@ -212,7 +217,7 @@ impl EvalReport {
     pub fn to_table(&self) -> String {
         let mut s = String::new();
         let recall_cols: Vec<usize> = self.results.first().map(|r| r.recall_at.iter().map(|x| x.0).collect()).unwrap_or_default();
-        s += &format!("dataset {}: {} references\n\n", self.dataset, self.references);
+        s += &format!("dataset {}: {} references; backend {}\n\n", self.dataset, self.references, self.backend);
         s += &format!("{:<12} {:<14} {:>6} {:>7} {:>7}", "query set", "setting", "AUC", "R@100P", "P@100R");
         for n in &recall_cols {
             s += &format!(" {:>6}", format!("R@{n}"));

@@ -27,6 +27,17 @@ pub struct GlobalScratch {
     ssim: SsimScratch,
 }
 
+impl GlobalScratch {
+    /// Edge flags of the last encoded image.
+    pub fn edges(&self) -> &[u32] {
+        &self.edges
+    }
+    /// Squared distances of the last encoded image.
+    pub fn d2(&self) -> &[u32] {
+        &self.d2
+    }
+}
+
 /// Pooling parameters for an image of the given size.
 pub fn pool_params(cfg: &GlobalConfig, width: u32, height: u32) -> PoolParams {
     let diag = ((width as f64).powi(2) + (height as f64).powi(2)).sqrt();

@@ -124,24 +124,28 @@ pub fn ssim_pair(p: &SsimParams, x: &[f32], xs: &[f32], y: &[f32], ys: &[f32], s
     box_sums(p, &scratch.product, &mut scratch.rows, &mut scratch.sums);
     let (mx, vx) = xs.split_at(n);
     let (my, vy) = ys.split_at(n);
-    // LANES independent partial sums, so the reduction vectorises (the GPU twin reduces in a tree)
+    // The shader's reduction: lane l sums windows l, l + LANES, ...; then a tree over the lanes.
+    // (Independent lanes also let this loop vectorise.)
     let mut acc = [0.0f32; LANES];
-    let windows = scratch.sums.chunks_exact(LANES).zip(mx.chunks_exact(LANES)).zip(my.chunks_exact(LANES));
-    for (k, ((sxy, mx), my)) in windows.enumerate() {
-        let (vx, vy) = (&vx[k * LANES..(k + 1) * LANES], &vy[k * LANES..(k + 1) * LANES]);
-        for l in 0..LANES {
-            acc[l] += ssim_window(p, sxy[l] * inv, mx[l], my[l], vx[l], vy[l]);
+    for start in (0..n).step_by(LANES) {
+        let m = LANES.min(n - start);
+        for l in 0..m {
+            let i = start + l;
+            acc[l] += ssim_window(p, scratch.sums[i] * inv, mx[i], my[i], vx[i], vy[i]);
         }
     }
-    let mut total: f32 = acc.iter().sum();
-    for i in n - n % LANES..n {
-        total += ssim_window(p, scratch.sums[i] * inv, mx[i], my[i], vx[i], vy[i]);
+    let mut h = LANES / 2;
+    while h > 0 {
+        for l in 0..h {
+            acc[l] += acc[l + h];
+        }
+        h /= 2;
     }
-    total / n as f32
+    acc[0] / n as f32
 }
 
-/// Partial sums kept apart in the SSIM mean: one AVX register of f32.
-const LANES: usize = 8;
+/// Lanes of the SSIM reduction: the workgroup size of `ssim_topk.wgsl`.
+pub const LANES: usize = 64;
 
 /// SSIM of one window from the mean of x*y, the two means and the two variances.
 #[inline(always)]

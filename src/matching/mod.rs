@@ -6,16 +6,20 @@
 //! - fine: tree-set similarity of the query's forest against the K candidates (or against the
 //!   whole map when the setting has no coarse stage), best first.
 
+pub mod source;
+pub mod ssim_topk;
 pub mod topk;
 
 use crate::config::{Config, ScoreFusion};
-use crate::global::ssim::{ssim_pair, SsimParams, SsimScratch};
+use crate::error::Result;
+use crate::global::ssim::SsimParams;
 use crate::local::tree_similarity::{tree_similarity, TreeSimParams, TreeSimScratch};
 use crate::map::DescriptorSet;
 use crate::util::ms_since;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
+use source::GlobalSource;
 use topk::TopK;
 
 /// A matching setting: which stages run and whether appearance takes part.
@@ -106,73 +110,121 @@ pub struct MatchTimes {
     pub fine_ms: f64,
 }
 
-/// Matches every query of `queries` against `refs` with `setting`; results in query order.
-/// `list_len` is how many ranked candidates to keep when there is no coarse stage (at least K).
+/// The three heavy operations of matching, implemented by the CPU path ([`CpuStages`]) and by
+/// the GPU path (`engine::GpuStages`); [`match_with`] composes them the same way for both.
+pub trait Stages {
+    /// For each query, the `k` best references by SSIM (best first).
+    fn coarse(&mut self, refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimParams, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>>;
+    /// Tree-set similarity of each (query, reference) pair.
+    fn fine_pairs(&mut self, p: &TreeSimParams, refs: &DescriptorSet, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<f32>>;
+    /// For each query, the `k` best references of the whole map by tree-set similarity.
+    fn fine_topk(&mut self, p: &TreeSimParams, refs: &DescriptorSet, queries: &DescriptorSet, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>>;
+}
+
+/// The CPU reference path (rayon over queries or pairs).
+pub struct CpuStages;
+
+impl Stages for CpuStages {
+    fn coarse(&mut self, refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimParams, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+        Ok(coarse_topk(refs, queries, p, k, tile))
+    }
+    fn fine_pairs(&mut self, p: &TreeSimParams, refs: &DescriptorSet, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<f32>> {
+        Ok(pairs
+            .par_iter()
+            .map_init(TreeSimScratch::default, |s, &(q, r)| tree_similarity(p, queries.forest(q as usize), refs.forest(r as usize), s))
+            .collect())
+    }
+    fn fine_topk(&mut self, p: &TreeSimParams, refs: &DescriptorSet, queries: &DescriptorSet, k: usize, _tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+        Ok((0..queries.len())
+            .into_par_iter()
+            .map_init(TreeSimScratch::default, |scratch, q| {
+                let mut top = TopK::new(k);
+                for r in 0..refs.len() {
+                    top.push(tree_similarity(p, queries.forest(q), refs.forest(r), scratch), r as u32);
+                }
+                top.into_items()
+            })
+            .collect())
+    }
+}
+
+/// Matches every query of `queries` against `refs` with `setting` on the CPU; results in query order.
 pub fn match_batch(refs: &DescriptorSet, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> (Vec<QueryMatch>, MatchTimes) {
+    match_with(&mut CpuStages, refs, queries, setting, cfg).expect("the CPU stages do not fail")
+}
+
+/// Matches with the given stages: coarse top-K, fine re-ranking of the candidates (or fine
+/// top-K over the whole map for settings without a coarse stage), best first.
+pub fn match_with(stages: &mut dyn Stages, refs: &DescriptorSet, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<QueryMatch>, MatchTimes)> {
     let k = cfg.matching.top_k;
     let list_len = k.max(cfg.eval.recall_at.iter().copied().max().unwrap_or(1));
     let mut times = MatchTimes::default();
-    let nq = queries.len();
-    let coarse_lists: Vec<Vec<(f32, u32)>> = if setting.uses_coarse() {
-        let t = Instant::now();
-        let lists = coarse_topk(refs, queries, &SsimParams::new(&cfg.global), k, cfg.matching.tile);
-        times.coarse_ms = ms_since(t);
-        lists
-    } else {
-        vec![vec![]; nq]
-    };
-    let t = Instant::now();
     let params = TreeSimParams::new(&cfg.similarity, setting.uses_appearance(), refs.neighbour_slots);
-    let results: Vec<QueryMatch> = (0..nq)
-        .into_par_iter()
-        .map_init(TreeSimScratch::default, |scratch, q| {
-            let qf = queries.forest(q);
-            let mut ranked: Vec<Candidate> = if !setting.uses_fine() {
-                coarse_lists[q].iter().map(|&(s, r)| Candidate { reference: r, coarse: Some(s), fine: None, score: s }).collect()
-            } else if setting.uses_coarse() {
-                coarse_lists[q]
-                    .iter()
-                    .map(|&(s, r)| {
-                        let fine = tree_similarity(&params, qf, refs.forest(r as usize), scratch);
-                        let score = match cfg.matching.score {
-                            ScoreFusion::Fine => fine,
-                            ScoreFusion::FineTimesGlobal => fine * s,
-                        };
-                        Candidate { reference: r, coarse: Some(s), fine: Some(fine), score }
-                    })
-                    .collect()
-            } else {
-                let mut top = TopK::new(list_len);
-                for r in 0..refs.len() {
-                    top.push(tree_similarity(&params, qf, refs.forest(r), scratch), r as u32);
-                }
-                top.into_items().into_iter().map(|(s, r)| Candidate { reference: r, coarse: None, fine: Some(s), score: s }).collect()
-            };
+    if refs.is_empty() {
+        return Ok((vec![QueryMatch { ranked: vec![] }; queries.len()], times));
+    }
+    let ranked: Vec<Vec<Candidate>> = if setting.uses_coarse() {
+        let t = Instant::now();
+        let lists = stages.coarse(refs, queries, &SsimParams::new(&cfg.global), k, cfg.matching.tile)?;
+        times.coarse_ms = ms_since(t);
+        if setting.uses_fine() {
+            let t = Instant::now();
+            let pairs: Vec<(u32, u32)> = lists.iter().enumerate().flat_map(|(q, l)| l.iter().map(move |&(_, r)| (q as u32, r))).collect();
+            let fine = stages.fine_pairs(&params, refs, queries, &pairs)?;
+            times.fine_ms = ms_since(t);
+            let mut it = fine.into_iter();
+            lists
+                .iter()
+                .map(|l| {
+                    l.iter()
+                        .map(|&(s, r)| {
+                            let f = it.next().expect("one score per pair");
+                            let score = match cfg.matching.score {
+                                ScoreFusion::Fine => f,
+                                ScoreFusion::FineTimesGlobal => f * s,
+                            };
+                            Candidate { reference: r, coarse: Some(s), fine: Some(f), score }
+                        })
+                        .collect()
+                })
+                .collect()
+        } else {
+            lists.iter().map(|l| l.iter().map(|&(s, r)| Candidate { reference: r, coarse: Some(s), fine: None, score: s }).collect()).collect()
+        }
+    } else {
+        let t = Instant::now();
+        let lists = stages.fine_topk(&params, refs, queries, list_len, cfg.matching.tile)?;
+        times.fine_ms = ms_since(t);
+        lists.iter().map(|l| l.iter().map(|&(s, r)| Candidate { reference: r, coarse: None, fine: Some(s), score: s }).collect()).collect()
+    };
+    let results = ranked
+        .into_iter()
+        .map(|mut c| {
             // best first; ties keep the coarse order (stable sort)
-            ranked.sort_by(|a, b| b.score.total_cmp(&a.score));
-            QueryMatch { ranked }
+            c.sort_by(|a, b| b.score.total_cmp(&a.score));
+            QueryMatch { ranked: c }
         })
         .collect();
-    if setting.uses_fine() {
-        times.fine_ms = ms_since(t);
-    }
-    (results, times)
+    Ok((results, times))
 }
 
-/// Coarse stage: for each query, the `k` references of highest SSIM, streamed over tiles of
-/// `tile` references. Tiles are the outer loop so a tile stays in cache for the whole batch.
-pub fn coarse_topk(refs: &DescriptorSet, queries: &DescriptorSet, p: &SsimParams, k: usize, tile: usize) -> Vec<Vec<(f32, u32)>> {
-    let mut state: Vec<(TopK, SsimScratch)> = (0..queries.len()).map(|_| (TopK::new(k), SsimScratch::default())).collect();
+/// Coarse stage on the CPU: for each query, the `k` references of highest SSIM, streamed over
+/// tiles of `tile` references (the twin of the GPU kernels, tile by tile).
+pub fn coarse_topk(refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimParams, k: usize, tile: usize) -> Vec<Vec<(f32, u32)>> {
+    let nq = queries.len();
+    let tile = tile.max(1).min(refs.len().max(1));
+    let mut scores = vec![0.0f32; nq * tile];
+    let mut top_s = vec![ssim_topk::EMPTY_SCORE; nq * k];
+    let mut top_i = vec![ssim_topk::EMPTY_INDEX; nq * k];
+    let mut buf = source::TileBuf::default();
     let mut start = 0;
     while start < refs.len() {
         let end = (start + tile).min(refs.len());
-        state.par_iter_mut().enumerate().for_each(|(q, (top, scratch))| {
-            let (qg, qs) = (queries.global(q), queries.stats(q));
-            for r in start..end {
-                top.push(ssim_pair(p, qg, qs, refs.global(r), refs.stats(r), scratch), r as u32);
-            }
-        });
+        let tp = ssim_topk::TileParams { queries: nq as u32, tile_len: (end - start) as u32, tile_start: start as u32, k: k as u32 };
+        let (g, st) = refs.tile(start, end, &mut buf);
+        ssim_topk::ssim_tile(p, &tp, &queries.globals, &queries.global_stats, g, st, &mut scores);
+        ssim_topk::topk_merge(&tp, &scores, &mut top_s, &mut top_i);
         start = end;
     }
-    state.into_iter().map(|(t, _)| t.into_items()).collect()
+    ssim_topk::topk_lists(k, &top_s, &top_i)
 }

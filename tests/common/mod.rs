@@ -77,3 +77,12 @@ pub fn snapshot(dir: &Path) -> Vec<(String, Vec<u8>)> {
     out.sort();
     out
 }
+
+/// A rendered street scene's label map (day condition), the "real scene" of the GPU tests.
+pub fn street_scene(w: usize, h: usize) -> LabelMap {
+    let cfg = SynthConfig { places: 3, width: w, height: h, ..Default::default() };
+    let scene = synth::Scene::new(&cfg);
+    let dynamic = synth::dynamic_objects(&scene.world, cfg.seed, 0, cfg.persistence);
+    let f = synth::render_frame(&cfg, &scene, &dynamic, 0, 1, semlook::synth::condition::Condition::Day);
+    LabelMap::new(w as u32, h as u32, f.labels, &semlook::classes::ClassTable::cityscapes()).unwrap()
+}

@@ -1,0 +1,244 @@
+// Batched forest-to-forest similarity. CPU twin: src/local/tree_similarity.rs
+// (`tree_similarity`: phase 1 cosines, phase 2 pair scores, phase 3 greedy assignment).
+// One workgroup per (query forest, reference forest) pair; per-pair matrices live in `scratch`.
+
+struct TreeSimParams {
+    w_area: f32,
+    w_position: f32,
+    w_appearance: f32,
+    w_intrinsic: f32,
+    w_neighbours: f32,
+    position_sigma: f32,
+    neutral: f32,
+    gaussian_position: u32,
+    drop_missing: u32,
+    use_appearance: u32,
+    greedy: u32,
+    neighbour_slots: u32,
+}
+
+struct BatchDims {
+    // appearance vector length
+    dim: u32,
+    // pairs in this dispatch
+    pairs: u32,
+    // stride of one pair's matrices in `scratch` (max trees per forest)
+    max_trees: u32,
+    _pad: u32,
+}
+
+struct Tree {
+    class_id: u32,
+    has_app: u32,
+    area: f32,
+    cx: f32,
+    cy: f32,
+    nb: array<i32, 8>,
+}
+
+struct Pair {
+    q_start: u32,
+    q_count: u32,
+    r_start: u32,
+    r_count: u32,
+}
+
+@group(0) @binding(0) var<uniform> p: TreeSimParams;
+@group(0) @binding(1) var<uniform> dims: BatchDims;
+@group(0) @binding(2) var<storage, read> pairs: array<Pair>;
+@group(0) @binding(3) var<storage, read> q_trees: array<Tree>;
+@group(0) @binding(4) var<storage, read> q_app: array<f32>;
+@group(0) @binding(5) var<storage, read> r_trees: array<Tree>;
+@group(0) @binding(6) var<storage, read> r_app: array<f32>;
+@group(0) @binding(7) var<storage, read_write> scratch: array<f32>;
+@group(0) @binding(8) var<storage, read_write> out: array<f32>;
+
+const LANES: u32 = 64u;
+const MISSING: f32 = -2.0;
+const NOT_A_PAIR: f32 = -1.0;
+const NONE: u32 = 0xffffffffu;
+
+var<workgroup> best_val: array<f32, 64>;
+var<workgroup> best_idx: array<u32, 64>;
+var<workgroup> row_used: array<u32, 256>;
+var<workgroup> col_used: array<u32, 256>;
+var<workgroup> steps_shared: u32;
+var<workgroup> total: f32;
+
+fn cos_plus(c: f32) -> f32 {
+    if (c == MISSING) {
+        return p.neutral;
+    }
+    return max(c, 0.0);
+}
+
+fn pair_score(pr: Pair, cos_base: u32, t: u32, u: u32) -> f32 {
+    let nr = pr.r_count;
+    let a = q_trees[pr.q_start + t];
+    let b = r_trees[pr.r_start + u];
+    var s_area = 1.0;
+    if (max(a.area, b.area) > 0.0) {
+        s_area = min(a.area, b.area) / max(a.area, b.area);
+    }
+    let dx = a.cx - b.cx;
+    let dy = a.cy - b.cy;
+    let d = sqrt(dx * dx + dy * dy);
+    var s_pos = max(1.0 - d, 0.0);
+    if (p.gaussian_position != 0u) {
+        s_pos = exp(-(d * d) / (2.0 * p.position_sigma * p.position_sigma));
+    }
+    var num = p.w_area * s_area + p.w_position * s_pos;
+    var den = p.w_area + p.w_position;
+    if (p.use_appearance != 0u) {
+        let c = scratch[cos_base + t * nr + u];
+        if (c != MISSING || p.drop_missing == 0u) {
+            num += p.w_appearance * cos_plus(c);
+            den += p.w_appearance;
+        }
+    }
+    var s_in = 0.0;
+    if (den > 0.0) {
+        s_in = num / den;
+    }
+    var used = array<bool, 8>(false, false, false, false, false, false, false, false);
+    var s_nb = 0.0;
+    let slots = p.neighbour_slots;
+    for (var sa = 0u; sa < slots; sa++) {
+        let na = a.nb[sa];
+        if (na < 0) {
+            continue;
+        }
+        var best = -1.0;
+        var best_slot = NONE;
+        for (var sb = 0u; sb < slots; sb++) {
+            let nb = b.nb[sb];
+            if (nb < 0 || used[sb] || q_trees[pr.q_start + u32(na)].class_id != r_trees[pr.r_start + u32(nb)].class_id) {
+                continue;
+            }
+            var v = 1.0;
+            if (p.use_appearance != 0u) {
+                v = cos_plus(scratch[cos_base + u32(na) * nr + u32(nb)]);
+            }
+            if (v > best) {
+                best = v;
+                best_slot = sb;
+            }
+        }
+        if (best_slot != NONE) {
+            used[best_slot] = true;
+            s_nb += best;
+        }
+    }
+    if (slots > 0u) {
+        s_nb = s_nb / f32(slots);
+    } else {
+        s_nb = 0.0;
+    }
+    return p.w_intrinsic * s_in + p.w_neighbours * s_nb;
+}
+
+@compute @workgroup_size(64, 1, 1)
+fn tree_similarity(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) lane: u32) {
+    let pi = wg.x + wg.y * 65535u;
+    let valid = pi < dims.pairs;
+    var pr = Pair(0u, 0u, 0u, 0u);
+    if (valid) {
+        pr = pairs[pi];
+    }
+    let nq = pr.q_count;
+    let nr = pr.r_count;
+    let n = nq * nr;
+    let cos_base = pi * 2u * dims.max_trees * dims.max_trees;
+    let sc_base = cos_base + dims.max_trees * dims.max_trees;
+    // phase 1: appearance cosines
+    if (p.use_appearance != 0u) {
+        for (var idx = lane; idx < n; idx += LANES) {
+            let t = idx / nr;
+            let u = idx % nr;
+            var c = MISSING;
+            if (q_trees[pr.q_start + t].has_app != 0u && r_trees[pr.r_start + u].has_app != 0u) {
+                let qa = (pr.q_start + t) * dims.dim;
+                let ra = (pr.r_start + u) * dims.dim;
+                c = 0.0;
+                for (var k = 0u; k < dims.dim; k++) {
+                    c += q_app[qa + k] * r_app[ra + k];
+                }
+            }
+            scratch[cos_base + idx] = c;
+        }
+    }
+    storageBarrier();
+    // phase 2: tree similarities of same-class pairs
+    for (var idx = lane; idx < n; idx += LANES) {
+        let t = idx / nr;
+        let u = idx % nr;
+        var s = NOT_A_PAIR;
+        if (q_trees[pr.q_start + t].class_id == r_trees[pr.r_start + u].class_id) {
+            s = pair_score(pr, cos_base, t, u);
+        }
+        scratch[sc_base + idx] = s;
+    }
+    for (var i = lane; i < 256u; i += LANES) {
+        row_used[i] = 0u;
+        col_used[i] = 0u;
+    }
+    if (lane == 0u) {
+        total = 0.0;
+        steps_shared = min(nq, nr);
+        if (p.greedy == 0u) {
+            steps_shared = 0u;
+        }
+    }
+    storageBarrier();
+    workgroupBarrier();
+    // phase 3a: greedy one-to-one assignment, one accepted pair per step
+    let steps = workgroupUniformLoad(&steps_shared);
+    for (var step = 0u; step < steps; step++) {
+        var bv = NOT_A_PAIR;
+        var bi = NONE;
+        for (var idx = lane; idx < n; idx += LANES) {
+            let s = scratch[sc_base + idx];
+            if (row_used[idx / nr] == 0u && col_used[idx % nr] == 0u && s > bv) {
+                bv = s;
+                bi = idx;
+            }
+        }
+        best_val[lane] = bv;
+        best_idx[lane] = bi;
+        workgroupBarrier();
+        for (var h = LANES / 2u; h > 0u; h >>= 1u) {
+            if (lane < h) {
+                let ov = best_val[lane + h];
+                let oi = best_idx[lane + h];
+                if (ov > best_val[lane] || (ov == best_val[lane] && oi < best_idx[lane])) {
+                    best_val[lane] = ov;
+                    best_idx[lane] = oi;
+                }
+            }
+            workgroupBarrier();
+        }
+        if (lane == 0u && best_idx[0] != NONE) {
+            row_used[best_idx[0] / nr] = 1u;
+            col_used[best_idx[0] % nr] = 1u;
+            total += best_val[0];
+        }
+        workgroupBarrier();
+    }
+    // phase 3b: best match per query tree (when not greedy)
+    if (p.greedy == 0u && lane == 0u) {
+        for (var t = 0u; t < nq; t++) {
+            var m = 0.0;
+            for (var u = 0u; u < nr; u++) {
+                m = max(m, scratch[sc_base + t * nr + u]);
+            }
+            total += m;
+        }
+    }
+    if (lane == 0u && valid) {
+        if (n == 0u) {
+            out[pi] = 0.0;
+        } else {
+            out[pi] = total / f32(max(nq, nr));
+        }
+    }
+}

@@ -1,0 +1,178 @@
+//! The execution engine: runs encoding and matching on the CPU reference path or on the GPU.
+//!
+//! `Backend::Auto` takes a hardware GPU adapter when there is one and otherwise falls back to the
+//! CPU with a warning (a software adapter such as lavapipe is slower than the CPU path, so `auto`
+//! never picks it; `gpu` accepts it, which is what the equivalence tests run on).
+
+use crate::config::Config;
+use crate::encode::{EncodedImage, Encoder, StageTimes};
+use crate::error::Result;
+use crate::global::ssim::SsimParams;
+use crate::gpu::{coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, GpuContext, GpuOptions};
+use crate::input::{self, FrameSource, LabelFormat, LabelMap};
+use crate::local::tree_similarity::TreeSimParams;
+use crate::map::DescriptorSet;
+use crate::matching::{match_with, source::GlobalSource, CpuStages, MatchTimes, QueryMatch, Setting, Stages};
+use crate::util::ms_since;
+use rayon::prelude::*;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// Where the heavy work runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum Backend {
+    /// The CPU reference path (all cores, through rayon).
+    #[default]
+    Cpu,
+    /// The WGSL kernels on a GPU adapter (a software one too); fails if there is none.
+    Gpu,
+    /// A hardware GPU if there is one, else the CPU (with a warning).
+    Auto,
+}
+
+/// The GPU executors of an engine; pipelines live in the context, buffers in the executors.
+pub struct GpuStages {
+    pub ctx: Arc<GpuContext>,
+    encoder: GlobalEncoderGpu,
+    coarse: Option<(SsimParams, CoarseMatcherGpu)>,
+    fine: FineMatcherGpu,
+}
+
+impl GpuStages {
+    pub fn new(ctx: Arc<GpuContext>) -> Self {
+        GpuStages { encoder: GlobalEncoderGpu::new(ctx.clone()), fine: FineMatcherGpu::new(ctx.clone()), coarse: None, ctx }
+    }
+
+    fn coarse_for(&mut self, p: &SsimParams) -> Result<&mut CoarseMatcherGpu> {
+        if self.coarse.as_ref().is_none_or(|c| c.0 != *p) {
+            self.coarse = Some((*p, CoarseMatcherGpu::new(self.ctx.clone(), *p)?));
+        }
+        Ok(&mut self.coarse.as_mut().unwrap().1)
+    }
+}
+
+impl Stages for GpuStages {
+    fn coarse(&mut self, refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimParams, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+        let m = self.coarse_for(p)?;
+        let resident = m.upload_queries(queries)?;
+        Ok(m.topk(&resident, refs, k, tile)?)
+    }
+    fn fine_pairs(&mut self, p: &TreeSimParams, refs: &DescriptorSet, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<f32>> {
+        Ok(self.fine.score_pairs(p, queries, refs, pairs)?)
+    }
+    fn fine_topk(&mut self, p: &TreeSimParams, refs: &DescriptorSet, queries: &DescriptorSet, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+        Ok(self.fine.topk_all(p, queries, refs, k, tile)?)
+    }
+}
+
+/// Runs the pipeline on the chosen backend.
+pub struct Engine {
+    gpu: Option<GpuStages>,
+}
+
+impl Engine {
+    pub fn cpu() -> Engine {
+        Engine { gpu: None }
+    }
+
+    /// An engine for `backend`. For `Auto`, the second value is the reason it fell back to the CPU.
+    pub fn new(backend: Backend, opts: &GpuOptions) -> Result<(Engine, Option<String>)> {
+        match backend {
+            Backend::Cpu => Ok((Engine::cpu(), None)),
+            Backend::Gpu => Ok((Engine::with_context(Arc::new(GpuContext::new(opts)?)), None)),
+            Backend::Auto => match GpuContext::new(&GpuOptions { allow_software: false, ..opts.clone() }) {
+                Ok(ctx) => Ok((Engine::with_context(Arc::new(ctx)), None)),
+                Err(e) => Ok((Engine::cpu(), Some(format!("no hardware GPU ({e}); using the CPU path")))),
+            },
+        }
+    }
+
+    /// An engine inside a host application's GPU context (see [`GpuContext::from_device`]).
+    pub fn with_context(ctx: Arc<GpuContext>) -> Engine {
+        Engine { gpu: Some(GpuStages::new(ctx)) }
+    }
+
+    pub fn is_gpu(&self) -> bool {
+        self.gpu.is_some()
+    }
+
+    /// "cpu (N threads)" or "gpu: adapter (backend, device type)".
+    pub fn describe(&self) -> String {
+        match &self.gpu {
+            Some(g) => format!("gpu: {}", g.ctx.describe()),
+            None => format!("cpu ({} threads)", rayon::current_num_threads()),
+        }
+    }
+
+    /// Matches a batch of queries (see [`crate::matching::match_with`]).
+    pub fn match_batch(&mut self, refs: &DescriptorSet, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<QueryMatch>, MatchTimes)> {
+        match &mut self.gpu {
+            Some(g) => match_with(g, refs, queries, setting, cfg),
+            None => match_with(&mut CpuStages, refs, queries, setting, cfg),
+        }
+    }
+
+    /// Encodes frames, in input order; `tick` is called per frame. Per-frame input errors are
+    /// returned per frame; a GPU failure fails the whole call. On the GPU, label maps are decoded
+    /// in parallel on the CPU, their global descriptors computed in batches of one size on the
+    /// GPU, and statistics, objects and forests finished on the CPU.
+    pub fn encode_all(&mut self, encoder: &Encoder, sources: &[FrameSource], format: LabelFormat, tick: &(dyn Fn() + Sync)) -> Result<Vec<Result<(EncodedImage, StageTimes)>>> {
+        let Some(g) = &mut self.gpu else {
+            return Ok(encoder.encode_all(sources, format, tick));
+        };
+        let mut out: Vec<Option<Result<(EncodedImage, StageTimes)>>> = (0..sources.len()).map(|_| None).collect();
+        let mut maps: Vec<Option<(LabelMap, f64)>> = Vec::with_capacity(sources.len());
+        let loaded: Vec<(Result<LabelMap>, f64)> = sources
+            .par_iter()
+            .map(|s| {
+                let t = Instant::now();
+                let r = input::load_frame_labels(s, encoder.class_table(), format);
+                (r, ms_since(t))
+            })
+            .collect();
+        for (i, (r, ms)) in loaded.into_iter().enumerate() {
+            match r {
+                Ok(m) => maps.push(Some((m, ms))),
+                Err(e) => {
+                    out[i] = Some(Err(e));
+                    maps.push(None);
+                    tick();
+                }
+            }
+        }
+        let mut i = 0;
+        while i < maps.len() {
+            let Some((first, _)) = &maps[i] else {
+                i += 1;
+                continue;
+            };
+            let size = (first.width(), first.height());
+            let cap = g.encoder.max_batch(size.0, size.1).clamp(1, 32);
+            let mut j = i;
+            while j < maps.len() && j - i < cap && maps[j].as_ref().is_some_and(|(m, _)| (m.width(), m.height()) == size) {
+                j += 1;
+            }
+            let batch: Vec<&LabelMap> = maps[i..j].iter().map(|m| &m.as_ref().unwrap().0).collect();
+            let t = Instant::now();
+            let globals = g.encoder.encode(&batch, encoder.used_mask(), &encoder.config().global)?;
+            let per = ms_since(t) / batch.len() as f64;
+            let done: Vec<(EncodedImage, StageTimes)> = globals
+                .into_par_iter()
+                .zip(batch.par_iter())
+                .enumerate()
+                .map(|(k, (glob, m))| {
+                    let (img, mut times) = encoder.encode_with_global(&sources[i + k].id, m, glob, per);
+                    times.load_ms = maps[i + k].as_ref().unwrap().1;
+                    tick();
+                    (img, times)
+                })
+                .collect();
+            for (k, d) in done.into_iter().enumerate() {
+                out[i + k] = Some(Ok(d));
+            }
+            i = j;
+        }
+        Ok(out.into_iter().map(|o| o.expect("every frame handled")).collect())
+    }
+}

@@ -1,0 +1,138 @@
+//! GPU executor for the global descriptor: semantic edges, exact EDT and pooling for a batch of
+//! label maps of one size, in one submission. Buffers are kept between batches and regrown only
+//! when a larger batch arrives. Uploads the label maps, reads back only the pooled descriptors.
+
+use super::context::{GpuContext, GpuError};
+use crate::config::GlobalConfig;
+use crate::global::{edt, global_pool::PoolParams, pool_params};
+use crate::input::LabelMap;
+use std::sync::Arc;
+
+#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+struct Dims {
+    width: u32,
+    height: u32,
+    frames: u32,
+    _pad: u32,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+struct GpuPoolParams {
+    src_width: u32,
+    src_height: u32,
+    dst_width: u32,
+    dst_height: u32,
+    tau: f32,
+    frames: u32,
+    _pad: [u32; 2],
+}
+
+struct Buffers {
+    pixels: u64,
+    cells: u64,
+    labels: wgpu::Buffer,
+    used: wgpu::Buffer,
+    edges: wgpu::Buffer,
+    g: wgpu::Buffer,
+    s: wgpu::Buffer,
+    t: wgpu::Buffer,
+    d2: wgpu::Buffer,
+    out: wgpu::Buffer,
+}
+
+/// Reusable executor for global-descriptor encoding on the GPU.
+pub struct GlobalEncoderGpu {
+    ctx: Arc<GpuContext>,
+    buffers: Option<Buffers>,
+}
+
+impl GlobalEncoderGpu {
+    pub fn new(ctx: Arc<GpuContext>) -> Self {
+        GlobalEncoderGpu { ctx, buffers: None }
+    }
+
+    /// Frames of `width` x `height` that fit one batch under the binding limit.
+    pub fn max_batch(&self, width: u32, height: u32) -> usize {
+        ((self.ctx.binding_limit() / (width as u64 * height as u64 * 4)) as usize).clamp(0, 256)
+    }
+
+    /// Pooled global descriptors (`cfg.height` x `cfg.width` each) of label maps that share one size.
+    /// `used` flags the classes that make edges.
+    pub fn encode(&mut self, maps: &[&LabelMap], used: &[bool; 256], cfg: &GlobalConfig) -> Result<Vec<Vec<f32>>, GpuError> {
+        let Some(first) = maps.first() else { return Ok(vec![]) };
+        let (w, h) = (first.width(), first.height());
+        assert!(maps.iter().all(|m| (m.width(), m.height()) == (w, h)), "one size per batch");
+        if w as usize > edt::MAX_SIDE || h as usize > edt::MAX_SIDE {
+            return Err(GpuError::Failed { what: "encoding".into(), reason: format!("{w}x{h} exceeds the EDT side limit") });
+        }
+        let frames = maps.len() as u64;
+        let pixels = frames * w as u64 * h as u64;
+        let cells = frames * (cfg.width * cfg.height) as u64;
+        self.ctx.check_binding("one batch of label maps", pixels * 4)?;
+        let ctx = self.ctx.clone();
+        let k = &ctx.kernels;
+        ctx.scoped("encoding global descriptors", || -> Result<Vec<Vec<f32>>, GpuError> {
+            if self.buffers.as_ref().is_none_or(|b| b.pixels < pixels || b.cells < cells) {
+                let mk = |l: &str, n: u64| ctx.storage(l, n * 4);
+                self.buffers = Some(Buffers {
+                    pixels,
+                    cells,
+                    labels: mk("labels", pixels),
+                    used: mk("used classes", 256),
+                    edges: mk("edges", pixels),
+                    g: mk("edt g", pixels),
+                    s: mk("edt s", pixels),
+                    t: mk("edt t", pixels),
+                    d2: mk("edt d2", pixels),
+                    out: mk("global descriptors", cells),
+                });
+            }
+            let b = self.buffers.as_ref().unwrap();
+            let mut labels = Vec::with_capacity(pixels as usize);
+            for m in maps {
+                labels.extend(m.classes().iter().map(|&c| c as u32));
+            }
+            ctx.queue.write_buffer(&b.labels, 0, bytemuck::cast_slice(&labels));
+            let used32: Vec<u32> = used.iter().map(|&u| u as u32).collect();
+            ctx.queue.write_buffer(&b.used, 0, bytemuck::cast_slice(&used32));
+            let dims = ctx.uniform("dims", &Dims { width: w, height: h, frames: frames as u32, _pad: 0 });
+            let pp: PoolParams = pool_params(cfg, w, h);
+            let pool = ctx.uniform(
+                "pool params",
+                &GpuPoolParams { src_width: w, src_height: h, dst_width: pp.dst_width, dst_height: pp.dst_height, tau: pp.tau, frames: frames as u32, _pad: [0; 2] },
+            );
+            let dev = &ctx.device;
+            let g_edges = k.semantic_edges.bind(dev, &[&dims, &b.labels, &b.used, &b.edges]);
+            let g_edt = k.edt_columns.bind(dev, &[&dims, &b.edges, &b.g, &b.s, &b.t, &b.d2]);
+            let g_rows = k.edt_rows.bind(dev, &[&dims, &b.edges, &b.g, &b.s, &b.t, &b.d2]);
+            let g_pool = k.global_pool.bind(dev, &[&pool, &b.d2, &b.out]);
+            let per_frame = (cfg.width * cfg.height) as u32;
+            ctx.run(
+                "global encoding",
+                &[
+                    (&k.semantic_edges.pipeline, &g_edges, [w.div_ceil(16), h.div_ceil(16), frames as u32]),
+                    (&k.edt_columns.pipeline, &g_edt, [w.div_ceil(64), frames as u32, 1]),
+                    (&k.edt_rows.pipeline, &g_rows, [h.div_ceil(64), frames as u32, 1]),
+                    (&k.global_pool.pipeline, &g_pool, [per_frame.div_ceil(64), frames as u32, 1]),
+                ],
+            );
+            let bytes = ctx.read_back(&b.out, cells * 4)?;
+            let all: Vec<f32> = bytemuck::pod_collect_to_vec(&bytes[..(cells * 4) as usize]);
+            Ok(all.chunks(per_frame as usize).map(|c| c.to_vec()).collect())
+        })?
+    }
+
+    /// Debug/test access: squared distances of the last batch (frames x pixels).
+    pub fn last_d2(&self, pixels: u64) -> Result<Vec<u32>, GpuError> {
+        let b = self.buffers.as_ref().ok_or(GpuError::Failed { what: "reading the EDT".into(), reason: "nothing encoded yet".into() })?;
+        Ok(bytemuck::pod_collect_to_vec(&self.ctx.read_back(&b.d2, pixels * 4)?[..(pixels * 4) as usize]))
+    }
+
+    /// Debug/test access: edge flags of the last batch (frames x pixels).
+    pub fn last_edges(&self, pixels: u64) -> Result<Vec<u32>, GpuError> {
+        let b = self.buffers.as_ref().ok_or(GpuError::Failed { what: "reading edges".into(), reason: "nothing encoded yet".into() })?;
+        Ok(bytemuck::pod_collect_to_vec(&self.ctx.read_back(&b.edges, pixels * 4)?[..(pixels * 4) as usize]))
+    }
+}

@@ -1,0 +1,31 @@
+//! Where the coarse stage reads reference descriptors from, tile by tile: a map in memory, or any
+//! other store (a synthetic map far larger than memory in the benchmarks). Tiles are the unit of
+//! streaming: no stage ever needs the whole map at once.
+
+use crate::map::DescriptorSet;
+
+/// Reusable storage for tiles that a source must assemble (copy or generate).
+#[derive(Debug, Default)]
+pub struct TileBuf {
+    pub globals: Vec<f32>,
+    pub stats: Vec<f32>,
+}
+
+/// Global descriptors and SSIM statistics of a map, readable by tiles.
+pub trait GlobalSource: Sync {
+    fn len(&self) -> usize;
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// Descriptors and stats of references `start..end`, borrowed from the source or built in `buf`.
+    fn tile<'a>(&'a self, start: usize, end: usize, buf: &'a mut TileBuf) -> (&'a [f32], &'a [f32]);
+}
+
+impl GlobalSource for DescriptorSet {
+    fn len(&self) -> usize {
+        self.ids.len()
+    }
+    fn tile<'a>(&'a self, start: usize, end: usize, _buf: &'a mut TileBuf) -> (&'a [f32], &'a [f32]) {
+        (&self.globals[start * self.global_len..end * self.global_len], &self.global_stats[start * self.stats_len..end * self.stats_len])
+    }
+}

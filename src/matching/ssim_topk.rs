@@ -1,0 +1,69 @@
+//! Coarse stage on one tile of the map (CPU twin of `shaders/ssim_topk.wgsl`):
+//! `ssim_tile` scores every (query, reference) pair of the tile, `topk_merge` folds a tile's
+//! scores into each query's running top-K list. Over all tiles this is a streaming top-K: memory
+//! is O(queries x (K + tile)), never queries x map.
+
+use crate::global::ssim::{ssim_pair, SsimParams, SsimScratch};
+use rayon::prelude::*;
+
+/// Score of an empty top-K slot (below any SSIM, which lies in [-1, 1]).
+pub const EMPTY_SCORE: f32 = -3.0e38;
+/// Index of an empty top-K slot.
+pub const EMPTY_INDEX: u32 = u32::MAX;
+
+/// Uniform parameters of a tile, in the shader's field order.
+#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct TileParams {
+    pub queries: u32,
+    pub tile_len: u32,
+    /// Map index of the tile's first reference.
+    pub tile_start: u32,
+    pub k: u32,
+}
+
+/// Bindings: `p`, `tp`, `queries`, `query_stats`, `refs` (the tile), `ref_stats`, `scores` (out,
+/// queries x tile_len). One shader workgroup per pair; here the pairs of a query run in order and
+/// queries run in parallel.
+#[allow(clippy::too_many_arguments)]
+pub fn ssim_tile(p: &SsimParams, tp: &TileParams, queries: &[f32], query_stats: &[f32], refs: &[f32], ref_stats: &[f32], scores: &mut [f32]) {
+    let (len, slen, t) = (p.len(), p.stats_len(), tp.tile_len as usize);
+    scores[..tp.queries as usize * t].par_chunks_mut(t).enumerate().for_each_init(SsimScratch::default, |scratch, (q, row)| {
+        let (x, xs) = (&queries[q * len..(q + 1) * len], &query_stats[q * slen..(q + 1) * slen]);
+        for (r, out) in row.iter_mut().enumerate() {
+            *out = ssim_pair(p, x, xs, &refs[r * len..(r + 1) * len], &ref_stats[r * slen..(r + 1) * slen], scratch);
+        }
+    });
+}
+
+/// Bindings: `tp`, `scores`, `topk_scores`, `topk_index` (queries x k, best first, initialised to
+/// EMPTY_SCORE / EMPTY_INDEX). One invocation per query: insertion of every better score, ties
+/// kept in favour of the lower (earlier) reference index.
+pub fn topk_merge(tp: &TileParams, scores: &[f32], topk_scores: &mut [f32], topk_index: &mut [u32]) {
+    let (k, t) = (tp.k as usize, tp.tile_len as usize);
+    topk_scores.par_chunks_mut(k).zip(topk_index.par_chunks_mut(k)).enumerate().take(tp.queries as usize).for_each(|(q, (ts, ti))| {
+        for j in 0..t {
+            let s = scores[q * t + j];
+            if s <= ts[k - 1] || s.is_nan() {
+                continue;
+            }
+            let mut pos = k - 1;
+            while pos > 0 && ts[pos - 1] < s {
+                ts[pos] = ts[pos - 1];
+                ti[pos] = ti[pos - 1];
+                pos -= 1;
+            }
+            ts[pos] = s;
+            ti[pos] = tp.tile_start + j as u32;
+        }
+    });
+}
+
+/// Reads K-lists back into (score, map index) lists, dropping empty slots.
+pub fn topk_lists(k: usize, topk_scores: &[f32], topk_index: &[u32]) -> Vec<Vec<(f32, u32)>> {
+    topk_scores
+        .chunks(k)
+        .zip(topk_index.chunks(k))
+        .map(|(s, i)| s.iter().zip(i).filter(|(_, &i)| i != EMPTY_INDEX).map(|(&s, &i)| (s, i)).collect())
+        .collect()
+}

@@ -1,0 +1,337 @@
+//! GPU kernels held to their CPU twins (on lavapipe in CI; on a real GPU where there is one).
+//! On a machine without any adapter the tests print why they skip; under CI (CI set) or with
+//! REQUIRE_GPU=1 a missing adapter is a failure, so CI cannot pass without running them.
+
+mod common;
+
+use semlook::gpu::{GpuContext, GpuOptions, SHADERS};
+use std::sync::Arc;
+
+fn gpu_with(opts: &GpuOptions) -> Option<Arc<GpuContext>> {
+    match GpuContext::new(opts) {
+        Ok(c) => {
+            eprintln!("GPU tests on {}", c.describe());
+            Some(Arc::new(c))
+        }
+        Err(e) => {
+            if std::env::var_os("CI").is_some() || std::env::var_os("REQUIRE_GPU").is_some_and(|v| v == "1") {
+                panic!("a GPU adapter is required here (CI or REQUIRE_GPU=1) but: {e}");
+            }
+            eprintln!("SKIPPED: no GPU adapter ({e})");
+            None
+        }
+    }
+}
+
+fn gpu() -> Option<Arc<GpuContext>> {
+    gpu_with(&GpuOptions::default())
+}
+
+#[test]
+fn every_shader_validates_with_naga() {
+    for (name, src) in SHADERS {
+        let module = naga::front::wgsl::parse_str(src).unwrap_or_else(|e| panic!("{name}:\n{}", e.emit_to_string(src)));
+        naga::valid::Validator::new(naga::valid::ValidationFlags::all(), naga::valid::Capabilities::empty())
+            .validate(&module)
+            .unwrap_or_else(|e| panic!("{name}:\n{}", e.emit_to_string(src)));
+    }
+}
+
+#[test]
+fn global_encoding_matches_the_cpu_twins() {
+    let Some(ctx) = gpu() else { return };
+    let cfg = semlook::config::Config::default();
+    let table = semlook::classes::ClassTable::cityscapes();
+    let maps = common::label_maps(3, 97, 61);
+    let refs: Vec<&semlook::input::LabelMap> = maps.iter().collect();
+    let mut enc = semlook::gpu::encode::GlobalEncoderGpu::new(ctx);
+    let out = enc.encode(&refs, &table.used_mask(), &cfg.global).unwrap();
+    let d2 = enc.last_d2(3 * 97 * 61).unwrap();
+    let mut scratch = semlook::global::GlobalScratch::default();
+    let p = semlook::global::ssim::SsimParams::new(&cfg.global);
+    for (i, m) in maps.iter().enumerate() {
+        let (mut d, mut s) = (vec![0.0; p.len()], vec![0.0; p.stats_len()]);
+        semlook::global::encode_global(m, &table.used_mask(), &cfg.global, &mut scratch, &mut d, &mut s).unwrap();
+        assert_eq!(&d2[i * 97 * 61..(i + 1) * 97 * 61], scratch_d2(&scratch), "frame {i}: squared distances differ");
+        let worst = d.iter().zip(&out[i]).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+        assert!(worst <= 1e-5, "frame {i}: pooled values differ by {worst}");
+    }
+}
+
+fn scratch_d2(s: &semlook::global::GlobalScratch) -> &[u32] {
+    s.d2()
+}
+
+use semlook::config::Config;
+use semlook::engine::{Backend, Engine};
+use semlook::global::ssim::SsimParams;
+use semlook::local::tree_similarity::{tree_similarity, TreeSimParams, TreeSimScratch};
+use semlook::local::Forest;
+use semlook::map::DescriptorSet;
+use semlook::matching::{coarse_topk, match_batch, Setting, Stages};
+use semlook::util::SplitMix64;
+
+/// Random label maps of awkward sizes: thin, odd, a single class (no edges), many classes.
+fn random_maps(seed: u64) -> Vec<semlook::input::LabelMap> {
+    let t = semlook::classes::ClassTable::cityscapes();
+    let mut rng = SplitMix64::new(seed);
+    let sizes = [(1u32, 1u32), (1, 17), (23, 1), (5, 9), (33, 31), (64, 3), (40, 40)];
+    sizes
+        .iter()
+        .enumerate()
+        .map(|(k, &(w, h))| {
+            let classes = if k == 4 {
+                vec![2u8; (w * h) as usize]
+            } else {
+                let n = 1 + rng.below(5);
+                (0..w * h).map(|_| { let c = rng.below(n + 1) as u8; if c == n as u8 { 255 } else { c } }).collect()
+            };
+            semlook::input::LabelMap::new(w, h, classes, &t).unwrap()
+        })
+        .collect()
+}
+
+fn cpu_global(m: &semlook::input::LabelMap, cfg: &Config) -> (Vec<u32>, Vec<u32>, Vec<f32>) {
+    let table = semlook::classes::ClassTable::cityscapes();
+    let p = SsimParams::new(&cfg.global);
+    let mut scratch = semlook::global::GlobalScratch::default();
+    let (mut d, mut s) = (vec![0.0; p.len()], vec![0.0; p.stats_len()]);
+    semlook::global::encode_global(m, &table.used_mask(), &cfg.global, &mut scratch, &mut d, &mut s).unwrap();
+    (scratch.edges().to_vec(), scratch.d2().to_vec(), d)
+}
+
+/// Edges and squared distances exactly equal; pooled values within 1e-5 (f32 sqrt and summation
+/// order on the GPU), on random maps of awkward sizes and on a rendered 640x480 street scene.
+#[test]
+fn edges_and_edt_are_exact_and_pooling_within_1e_5() {
+    let Some(ctx) = gpu() else { return };
+    let cfg = Config { global: semlook::config::GlobalConfig { width: 16, height: 12, ..Default::default() }, ..Default::default() };
+    let mut enc = semlook::gpu::encode::GlobalEncoderGpu::new(ctx);
+    let used = semlook::classes::ClassTable::cityscapes().used_mask();
+    let mut maps = random_maps(1);
+    maps.extend(random_maps(2));
+    let street = common::street_scene(640, 480);
+    let full = Config::default();
+    for (i, m) in maps.iter().chain(std::iter::once(&street)).enumerate() {
+        let c = if i == maps.len() { &full } else { &cfg };
+        let out = enc.encode(&[m], &used, &c.global).unwrap();
+        let px = (m.width() * m.height()) as u64;
+        let (edges, d2, pooled) = cpu_global(m, c);
+        assert_eq!(enc.last_edges(px).unwrap(), edges, "map {i} ({}x{}): edges", m.width(), m.height());
+        let gd2 = enc.last_d2(px).unwrap();
+        let inf2 = ((m.width() + m.height()) as u64).pow(2) as u32;
+        if edges.iter().any(|&e| e != 0) {
+            assert_eq!(gd2, d2, "map {i}: squared distances");
+        } else {
+            assert!(gd2.iter().all(|&v| v >= inf2), "map {i}: no edges but finite distances");
+        }
+        let worst = pooled.iter().zip(&out[0]).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+        assert!(worst <= 1e-5, "map {i}: pooled values differ by {worst}");
+    }
+}
+
+fn random_descriptors(n: usize, cfg: &Config, seed: u64) -> DescriptorSet {
+    let p = SsimParams::new(&cfg.global);
+    let mut set = DescriptorSet::new(&p, 3, 0);
+    let mut rng = SplitMix64::new(seed);
+    for i in 0..n {
+        // smooth random fields, like distance maps
+        let (fx, fy, ph) = (rng.range(0.05, 0.4), rng.range(0.05, 0.4), rng.range(0.0, 6.0));
+        let g: Vec<f32> = (0..p.len()).map(|k| { let (x, y) = ((k % p.gw as usize) as f64, (k / p.gw as usize) as f64); (0.5 + 0.5 * (fx * x + ph).sin() * (fy * y).cos()) as f32 }).collect();
+        let mut stats = vec![0.0; p.stats_len()];
+        semlook::global::ssim::ssim_stats(&p, &g, &mut stats, &mut Default::default());
+        let img = semlook::encode::EncodedImage { id: format!("r{i}"), width: 64, height: 48, global: g, global_stats: stats, forest: Forest { neighbour_slots: 3, ..Default::default() } };
+        set.push(&img);
+    }
+    set
+}
+
+/// Batched SSIM and streaming top-K: scores within 1e-5 of the CPU twin, the same K-lists where
+/// scores are not tied within that tolerance.
+#[test]
+fn coarse_top_k_matches_the_cpu_twin() {
+    let Some(ctx) = gpu() else { return };
+    let cfg = Config::default();
+    let p = SsimParams::new(&cfg.global);
+    let refs = random_descriptors(150, &cfg, 3);
+    let queries = random_descriptors(9, &cfg, 4);
+    let mut stages = semlook::engine::GpuStages::new(ctx);
+    for (k, tile) in [(10, 4096), (7, 16), (1, 1)] {
+        let gpu = stages.coarse(&refs, &queries, &p, k, tile).unwrap();
+        let cpu = coarse_topk(&refs, &queries, &p, k, tile);
+        assert_same_lists(&gpu, &cpu, 1e-5, &format!("k {k}, tile {tile}"));
+    }
+}
+
+fn assert_same_lists(gpu: &[Vec<(f32, u32)>], cpu: &[Vec<(f32, u32)>], tol: f32, what: &str) {
+    assert_eq!(gpu.len(), cpu.len());
+    for (q, (g, c)) in gpu.iter().zip(cpu).enumerate() {
+        assert_eq!(g.len(), c.len(), "{what}: query {q} list length");
+        for (j, (a, b)) in g.iter().zip(c).enumerate() {
+            assert!((a.0 - b.0).abs() <= tol, "{what}: query {q} rank {j}: {} vs {}", a.0, b.0);
+            // the same reference unless its neighbours in the CPU list are tied within tolerance
+            let tied = c.iter().filter(|x| (x.0 - b.0).abs() <= tol).count() > 1;
+            assert!(a.1 == b.1 || tied, "{what}: query {q} rank {j}: reference {} vs {}", a.1, b.1);
+        }
+    }
+}
+
+fn random_forest_set(n: usize, dim: usize, seed: u64) -> DescriptorSet {
+    let cfg = Config::default();
+    let p = SsimParams::new(&cfg.global);
+    let mut set = DescriptorSet::new(&p, 3, dim);
+    let mut rng = SplitMix64::new(seed);
+    for i in 0..n {
+        let trees = rng.below(30);
+        let mut f = Forest { neighbour_slots: 3, ..Default::default() };
+        for t in 0..trees {
+            f.classes.push(rng.below(4) as u8);
+            f.areas.push(rng.range(0.001, 0.3) as f32);
+            f.centroids.extend([rng.next_f64() as f32, rng.next_f64() as f32]);
+            for _ in 0..3 {
+                f.neighbours.push(if trees > 1 && rng.chance(0.8) { ((t + 1 + rng.below(trees - 1)) % trees) as i32 } else { -1 });
+            }
+        }
+        let mut app = vec![0.0f32; trees * dim];
+        let mut has = vec![0u8; trees];
+        for t in 0..trees {
+            if rng.chance(0.8) && dim > 0 {
+                has[t] = 1;
+                let v: Vec<f32> = (0..dim).map(|_| rng.normal() as f32).collect();
+                let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+                app[t * dim..(t + 1) * dim].iter_mut().zip(&v).for_each(|(a, b)| *a = b / norm);
+            }
+        }
+        f.set_appearance(dim, app, has);
+        let img = semlook::encode::EncodedImage { id: format!("f{i}"), width: 10, height: 10, global: vec![0.5; p.len()], global_stats: vec![0.0; p.stats_len()], forest: f };
+        set.push(&img);
+    }
+    set
+}
+
+/// Tree-set similarity of random forest pairs (empty forests, missing appearance, all options)
+/// within 1e-5 of the CPU twin; the whole-map fine top-K gives the same lists.
+#[test]
+fn tree_similarity_matches_the_cpu_twin() {
+    let Some(ctx) = gpu() else { return };
+    let refs = random_forest_set(40, 16, 5);
+    let queries = random_forest_set(6, 16, 6);
+    let mut stages = semlook::engine::GpuStages::new(ctx);
+    let pairs: Vec<(u32, u32)> = (0..6).flat_map(|q| (0..40).map(move |r| (q, r))).collect();
+    let variants = [
+        semlook::config::SimilarityConfig::default(),
+        semlook::config::SimilarityConfig { position: semlook::config::PositionSimilarity::Gaussian, missing_appearance: semlook::config::MissingAppearance::Drop, ..Default::default() },
+        semlook::config::SimilarityConfig { assignment: semlook::config::Assignment::BestMatch, ..Default::default() },
+    ];
+    for (v, sim) in variants.iter().enumerate() {
+        for appearance in [false, true] {
+            let p = TreeSimParams::new(sim, appearance, 3);
+            let gpu = stages.fine_pairs(&p, &refs, &queries, &pairs).unwrap();
+            let mut scratch = TreeSimScratch::default();
+            for (i, &(q, r)) in pairs.iter().enumerate() {
+                let c = tree_similarity(&p, queries.forest(q as usize), refs.forest(r as usize), &mut scratch);
+                assert!((gpu[i] - c).abs() <= 1e-5, "variant {v}, appearance {appearance}, pair {q}-{r}: {} vs {c}", gpu[i]);
+            }
+            let g = stages.fine_topk(&p, &refs, &queries, 5, 7).unwrap();
+            let c = semlook::matching::CpuStages.fine_topk(&p, &refs, &queries, 5, 7).unwrap();
+            assert_same_lists(&g, &c, 1e-5, &format!("fine top-k, variant {v}"));
+        }
+    }
+}
+
+/// A binding limit far below the map forces many tiles (and several fine chunks); results
+/// still equal the CPU path.
+#[test]
+fn tiling_under_a_small_binding_limit() {
+    let limit = 64 * 1024; // 64 KiB: 2 references' stats per tile
+    let Some(ctx) = gpu_with(&GpuOptions { max_binding_size: Some(limit), ..Default::default() }) else { return };
+    assert_eq!(ctx.binding_limit(), limit);
+    let cfg = Config::default();
+    let refs = random_descriptors(23, &cfg, 8);
+    let queries = random_descriptors(3, &cfg, 9);
+    let m = semlook::gpu::coarse::CoarseMatcherGpu::new(ctx.clone(), SsimParams::new(&cfg.global)).unwrap();
+    let tile = m.tile_len(3, 4096);
+    assert!(tile < refs.len() / 4, "tile {tile} does not split the map");
+    let mut stages = semlook::engine::GpuStages::new(ctx);
+    let gpu = stages.coarse(&refs, &queries, &SsimParams::new(&cfg.global), 10, 4096).unwrap();
+    assert_same_lists(&gpu, &coarse_topk(&refs, &queries, &SsimParams::new(&cfg.global), 10, 4096), 1e-5, "small binding limit");
+    let frefs = random_forest_set(30, 0, 10);
+    let fq = random_forest_set(4, 0, 11);
+    let p = TreeSimParams::new(&cfg.similarity, false, 3);
+    let g = stages.fine_topk(&p, &frefs, &fq, 10, 4096).unwrap();
+    let c = semlook::matching::CpuStages.fine_topk(&p, &frefs, &fq, 10, 4096).unwrap();
+    assert_same_lists(&g, &c, 1e-5, "fine under a small binding limit");
+}
+
+/// Limits too small for even one reference are a typed error, not a panic.
+#[test]
+fn too_small_limits_are_a_typed_error() {
+    let Some(ctx) = gpu_with(&GpuOptions { max_binding_size: Some(4096), ..Default::default() }) else { return };
+    let cfg = Config::default();
+    let refs = random_descriptors(3, &cfg, 1);
+    let mut stages = semlook::engine::GpuStages::new(ctx);
+    let err = stages.coarse(&refs, &refs, &SsimParams::new(&cfg.global), 2, 10).unwrap_err();
+    assert!(matches!(err, semlook::Error::Gpu(semlook::gpu::GpuError::LimitsTooSmall { .. })), "{err}");
+}
+
+/// End to end: every setting gives the same ranked references and scores (1e-5) on the GPU as
+/// on the CPU, on the synthetic benchmark's label maps.
+#[test]
+fn end_to_end_matching_equals_the_cpu_path() {
+    let Some(ctx) = gpu() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    common::tiny_synth(dir.path(), 10, 21);
+    let ds = semlook::eval::dataset::Dataset::open(dir.path(), &Default::default()).unwrap();
+    let cfg = Config::default();
+    let mut gpu_engine = Engine::with_context(ctx);
+    let opts = |s| semlook::eval::EvalOptions { settings: s, map: None, skip_invalid: false, quiet: true };
+    let g = semlook::eval::evaluate(&ds, &cfg, &opts(Setting::ALL.to_vec()), &mut gpu_engine).unwrap();
+    let c = semlook::eval::evaluate(&ds, &cfg, &opts(Setting::ALL.to_vec()), &mut Engine::cpu()).unwrap();
+    for (a, b) in g.results.iter().zip(&c.results) {
+        assert_eq!((&a.query_set, a.setting), (&b.query_set, b.setting));
+        assert_eq!(a.pr, b.pr, "{} {}: metrics", a.query_set, a.setting);
+        assert_eq!(a.recall_at, b.recall_at);
+        for (x, y) in a.outcomes.iter().zip(&b.outcomes) {
+            assert_eq!(x.top1, y.top1, "{} {} {}", a.query_set, a.setting, x.query);
+            assert!((x.score.unwrap() - y.score.unwrap()).abs() <= 1e-5);
+        }
+    }
+    assert!(g.backend.starts_with("gpu:") && c.backend.starts_with("cpu"));
+}
+
+/// The engine runs inside a device the host application created.
+#[test]
+fn embedding_in_a_host_device() {
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = wgpu::Backends::PRIMARY;
+    let instance = wgpu::Instance::new(desc);
+    let Some(adapter) = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::PRIMARY)).into_iter().next() else {
+        // let gpu() report (and fail under CI)
+        gpu();
+        return;
+    };
+    let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor::default())).unwrap();
+    let ctx = GpuContext::from_device(device, queue, adapter.get_info(), &GpuOptions::default()).unwrap();
+    let mut engine = Engine::with_context(Arc::new(ctx));
+    let cfg = Config::default();
+    let refs = common::encode(&cfg, &common::label_maps(8, 80, 60), "r");
+    let queries = common::encode(&cfg, &common::label_maps(3, 80, 60), "r");
+    let (g, _) = engine.match_batch(&refs, &queries, Setting::Semlook, &cfg).unwrap();
+    let (c, _) = match_batch(&refs, &queries, Setting::Semlook, &cfg);
+    for (a, b) in g.iter().zip(&c) {
+        assert_eq!(a.best().unwrap().reference, b.best().unwrap().reference);
+    }
+}
+
+/// `auto` never picks a software adapter; with only lavapipe it falls back to the CPU and says why.
+#[test]
+fn auto_prefers_hardware_and_falls_back_with_a_reason() {
+    let Some(ctx) = gpu() else { return };
+    let (engine, why) = Engine::new(Backend::Auto, &GpuOptions::default()).unwrap();
+    if ctx.is_software() && !engine.is_gpu() {
+        assert!(why.unwrap().contains("CPU"));
+    } else {
+        assert!(engine.is_gpu() && why.is_none());
+    }
+    assert!(engine.describe().starts_with(if engine.is_gpu() { "gpu:" } else { "cpu" }));
+}
