@@ -12,7 +12,7 @@ use crate::gpu::{coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineM
 use crate::input::{self, FrameSource, LabelFormat, LabelMap};
 use crate::local::tree_similarity::TreeSimParams;
 use crate::map::DescriptorSet;
-use crate::matching::{match_with, source::GlobalSource, CpuStages, MatchTimes, QueryMatch, Setting, Stages};
+use crate::matching::{match_with, source::{GlobalSource, RefSource}, CpuStages, MatchTimes, QueryMatch, Setting, Stages};
 use crate::util::ms_since;
 use rayon::prelude::*;
 use std::sync::Arc;
@@ -58,10 +58,10 @@ impl Stages for GpuStages {
         let resident = m.upload_queries(queries)?;
         Ok(m.topk(&resident, refs, k, tile)?)
     }
-    fn fine_pairs(&mut self, p: &TreeSimParams, refs: &DescriptorSet, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<f32>> {
+    fn fine_pairs(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<f32>> {
         Ok(self.fine.score_pairs(p, queries, refs, pairs)?)
     }
-    fn fine_topk(&mut self, p: &TreeSimParams, refs: &DescriptorSet, queries: &DescriptorSet, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+    fn fine_topk(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
         Ok(self.fine.topk_all(p, queries, refs, k, tile)?)
     }
 }
@@ -106,7 +106,7 @@ impl Engine {
     }
 
     /// Matches a batch of queries (see [`crate::matching::match_with`]).
-    pub fn match_batch(&mut self, refs: &DescriptorSet, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<QueryMatch>, MatchTimes)> {
+    pub fn match_batch(&mut self, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<QueryMatch>, MatchTimes)> {
         match &mut self.gpu {
             Some(g) => match_with(g, refs, queries, setting, cfg),
             None => match_with(&mut CpuStages, refs, queries, setting, cfg),

@@ -3,6 +3,12 @@
 mod cli;
 
 fn main() {
+    // Mesa's Vulkan loader prints a spurious error when XDG_RUNTIME_DIR is unset (headless
+    // machines); it is not used for compute. Set before any thread starts.
+    if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
+        // SAFETY: single-threaded here, at the very start of main.
+        unsafe { std::env::set_var("XDG_RUNTIME_DIR", std::env::temp_dir()) };
+    }
     if let Err(e) = cli::run() {
         eprintln!("error: {e}");
         std::process::exit(1);

@@ -19,7 +19,7 @@ fn round_trip_is_bit_exact() {
     let (_, map) = built(&path);
     let back = Map::open(&path).unwrap();
     assert_eq!(back.manifest, map.manifest);
-    let (a, b) = (&map.descriptors, &back.descriptors);
+    let (a, b) = (&map.to_descriptor_set(), &back.to_descriptor_set());
     let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
     assert_eq!(bits(&a.globals), bits(&b.globals));
     assert_eq!(bits(&a.global_stats), bits(&b.global_stats));
@@ -40,8 +40,8 @@ fn add_appends_a_segment_and_keeps_the_rest() {
     assert_eq!(std::fs::read(path.join("segment-000000.safetensors")).unwrap(), seg0, "stored segment rewritten");
     let back = Map::open(&path).unwrap();
     assert_eq!(back.len(), 9);
-    assert_eq!(back.descriptors, map.descriptors);
-    assert_eq!(back.descriptors.ids[6], "new0");
+    assert_eq!(back.to_descriptor_set(), map.to_descriptor_set());
+    assert_eq!(back.to_descriptor_set().ids[6], "new0");
 }
 
 #[test]
@@ -98,13 +98,13 @@ fn damaged_maps_are_refused() {
     restore();
 
     // a segment whose checksum matches but whose contents break the invariants
-    let mut set = Map::open(&path).unwrap().descriptors;
+    let mut set = Map::open(&path).unwrap().to_descriptor_set();
     set.tree_neighbours[0] = 9999;
     let cfg = Config::default();
     let other = dir.path().join("other");
     Map::create(&other, &cfg.encoding(), &set).unwrap();
     expect_corrupt(&other, "neighbour index out of range");
-    let mut set = Map::open(&path).unwrap().descriptors;
+    let mut set = Map::open(&path).unwrap().to_descriptor_set();
     set.globals[5] = f32::NAN;
     let nan = dir.path().join("nan");
     Map::create(&nan, &cfg.encoding(), &set).unwrap();
@@ -144,4 +144,31 @@ fn create_refuses_a_non_empty_directory_and_a_held_lock() {
     std::fs::write(path.join(".lock"), "1").unwrap();
     let err = map.add(&set).unwrap_err();
     assert!(err.to_string().contains(".lock"), "{err}");
+}
+
+#[test]
+fn segmented_maps_stream_and_match_like_one_set() {
+    use semlook::matching::source::{GlobalSource, RefSource, TileBuf};
+    use semlook::matching::{match_batch, Setting};
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = Config::default();
+    let set = common::encode(&cfg, &common::label_maps(10, 80, 60), "r");
+    let mut map = Map::new(&dir.path().join("m"), &cfg.encoding(), 0);
+    std::fs::create_dir_all(dir.path().join("m")).unwrap();
+    map.add_in_segments(&set, 3).unwrap();
+    assert_eq!(map.manifest.segments.len(), 4);
+    let back = Map::open(&dir.path().join("m")).unwrap();
+    assert_eq!(back.segments().len(), 4);
+    assert_eq!(back.to_descriptor_set(), set);
+    // a tile across segment boundaries equals the same rows of the whole set
+    let (mut b1, mut b2) = (TileBuf::default(), TileBuf::default());
+    let (g, s) = back.tile(2, 8, &mut b1);
+    let (g2, s2) = set.tile(2, 8, &mut b2);
+    assert!(g == g2 && s == s2);
+    assert_eq!(back.id(7), "r7");
+    assert_eq!(back.forest(7).classes, set.forest(7).classes);
+    let queries = common::encode(&cfg, &common::label_maps(4, 80, 60), "q");
+    for setting in Setting::ALL {
+        assert_eq!(match_batch(&back, &queries, setting, &cfg).0, match_batch(&set, &queries, setting, &cfg).0, "{setting}");
+    }
 }

@@ -10,7 +10,7 @@ use semlook::eval::dataset::{Dataset, DatasetOptions};
 use semlook::eval::{encode_frames, evaluate, EvalOptions, EvalReport};
 use semlook::input::FrameSource;
 use semlook::map::{DescriptorSet, Map};
-use semlook::matching::QueryMatch;
+use semlook::matching::{source::RefSource, QueryMatch};
 use semlook::progress;
 use semlook::synth::{self, SynthConfig};
 use std::path::Path;
@@ -150,7 +150,7 @@ fn map_build(engine: &mut Engine, s: &SourceArgs, out: &Path, config: Option<&Pa
     } else {
         Map::create(out, &cfg.encoding(), &set)?
     };
-    info(quiet, format!("map {}: {} images, {} trees", out.display(), map.len(), map.descriptors.n_trees()));
+    info(quiet, format!("map {}: {} images, {} trees", out.display(), map.len(), map.n_trees()));
     Ok(())
 }
 
@@ -170,14 +170,14 @@ fn map_info(dir: &Path, json: bool) -> Result<()> {
         let v = serde_json::json!({
             "path": dir,
             "images": map.len(),
-            "trees": map.descriptors.n_trees(),
+            "trees": map.n_trees(),
             "segments": map.manifest.segments,
             "appearance_dim": map.manifest.appearance_dim,
             "config": map.manifest.config,
         });
         println!("{}", serde_json::to_string_pretty(&v).expect("serialises"));
     } else {
-        println!("map {}: {} images, {} trees, {} segments (all checksums verified)", dir.display(), map.len(), map.descriptors.n_trees(), map.manifest.segments.len());
+        println!("map {}: {} images, {} trees, {} segments (all checksums verified)", dir.display(), map.len(), map.n_trees(), map.manifest.segments.len());
         for s in &map.manifest.segments {
             println!("  {}  {} images  {} bytes  sha256 {}", s.file, s.images, s.bytes, &s.sha256[..16]);
         }
@@ -187,17 +187,17 @@ fn map_info(dir: &Path, json: bool) -> Result<()> {
 }
 
 /// CSV and JSON renderings of query results.
-fn query_outputs(refs: &DescriptorSet, queries: &DescriptorSet, matches: &[QueryMatch]) -> (String, String) {
+fn query_outputs(refs: &dyn RefSource, queries: &DescriptorSet, matches: &[QueryMatch]) -> (String, String) {
     let mut csv = String::from("query,best_reference,score,coarse,fine,top_k\n");
     let mut rows = Vec::new();
     let f = |v: Option<f32>| v.map_or(String::new(), |x| format!("{x:.6}"));
     for (q, m) in matches.iter().enumerate() {
         let best = m.best();
-        let topk: Vec<String> = m.ranked.iter().map(|c| format!("{}:{:.6}", refs.ids[c.reference as usize], c.score)).collect();
+        let topk: Vec<String> = m.ranked.iter().map(|c| format!("{}:{:.6}", refs.id(c.reference as usize), c.score)).collect();
         csv += &format!(
             "{},{},{},{},{},{}\n",
             queries.ids[q],
-            best.map_or("", |b| refs.ids[b.reference as usize].as_str()),
+            best.map_or("", |b| refs.id(b.reference as usize)),
             best.map_or(String::new(), |b| format!("{:.6}", b.score)),
             f(best.and_then(|b| b.coarse)),
             f(best.and_then(|b| b.fine)),
@@ -205,10 +205,10 @@ fn query_outputs(refs: &DescriptorSet, queries: &DescriptorSet, matches: &[Query
         );
         rows.push(serde_json::json!({
             "query": queries.ids[q],
-            "best_reference": best.map(|b| refs.ids[b.reference as usize].clone()),
+            "best_reference": best.map(|b| refs.id(b.reference as usize).to_string()),
             "score": best.map(|b| b.score),
             "top_k": m.ranked.iter().map(|c| serde_json::json!({
-                "reference": refs.ids[c.reference as usize], "score": c.score, "coarse": c.coarse, "fine": c.fine
+                "reference": refs.id(c.reference as usize), "score": c.score, "coarse": c.coarse, "fine": c.fine
             })).collect::<Vec<_>>(),
         }));
     }
@@ -221,7 +221,7 @@ fn run_query(engine: &mut Engine, map: &Map, cfg: &Config, s: &SourceArgs, setti
     let (frames, fmt) = frame_sources(s, &mut cfg_for_sources, true)?;
     let queries = encode_sources(engine, cfg, &frames, fmt, "queries", s.skip_invalid, quiet)?;
     let t = Instant::now();
-    let (matches, _) = engine.match_batch(&map.descriptors, &queries, setting, cfg)?;
+    let (matches, _) = engine.match_batch(map, &queries, setting, cfg)?;
     info(quiet, format!("matched {} queries against {} references ({setting}) in {:.1} ms", queries.len(), map.len(), t.elapsed().as_secs_f64() * 1e3));
     Ok((queries, matches))
 }
@@ -238,7 +238,7 @@ fn query(engine: &mut Engine, a: &QueryArgs, quiet: bool) -> Result<()> {
         None => Config::default().with_encoding(&map.manifest.config),
     };
     let (queries, matches) = run_query(engine, &map, &cfg, &a.source, a.setting, quiet)?;
-    let (csv, json) = query_outputs(&map.descriptors, &queries, &matches);
+    let (csv, json) = query_outputs(&map, &queries, &matches);
     if let Some(out) = &a.out {
         write_file(&out.with_extension("csv"), &csv)?;
         write_file(&out.with_extension("json"), &json)?;
@@ -302,7 +302,7 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     info(quiet, format!("[3/4] querying the map with the {hardest} traversal (setting semlook)"));
     let qsrc = SourceArgs { traversal: Some(hardest.to_string()), ..src };
     let (queries, matches) = run_query(engine, &map, &cfg, &qsrc, Setting::Semlook, quiet)?;
-    let (csv, json) = query_outputs(&map.descriptors, &queries, &matches);
+    let (csv, json) = query_outputs(&map, &queries, &matches);
     let results = dir.join("results");
     std::fs::create_dir_all(&results).map_err(|e| Error::io(&results, e))?;
     write_file(&results.join(format!("query-{hardest}.csv")), &csv)?;

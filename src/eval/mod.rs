@@ -11,6 +11,7 @@ use crate::encode::{collect_encoded, Encoder, StageTimes};
 use crate::engine::Engine;
 use crate::error::{Error, Result};
 use crate::map::{DescriptorSet, Map};
+use crate::matching::source::RefSource;
 use crate::matching::Setting;
 use crate::progress;
 use dataset::Dataset;
@@ -109,10 +110,10 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
     let encoder = Encoder::new(&cfg.encoding())?;
     let ref_sources: Vec<_> = ds.reference.frames.iter().map(|f| f.source.clone()).collect();
     let owned;
-    let (refs, ref_enc): (&DescriptorSet, EncodingSummary) = match opts.map {
+    let (refs, ref_enc): (&dyn RefSource, EncodingSummary) = match opts.map {
         Some(m) => {
             m.check_compatible(&cfg.encoding())?;
-            (&m.descriptors, EncodingSummary::default())
+            (m, EncodingSummary::default())
         }
         None => {
             let (set, summary, _) = encode_frames(engine, &encoder, &ref_sources, ds.label_format, "references", false, opts.quiet)?;
@@ -121,7 +122,7 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
         }
     };
     // dataset reference index -> map index
-    let index: HashMap<&str, u32> = refs.ids.iter().enumerate().map(|(i, id)| (id.as_str(), i as u32)).collect();
+    let index: HashMap<&str, u32> = (0..refs.len()).map(|i| (refs.id(i), i as u32)).collect();
     let ref_to_map: Vec<u32> = ref_sources
         .iter()
         .map(|s| {
@@ -172,7 +173,7 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
 fn report(
     query_set: &str,
     setting: Setting,
-    refs: &DescriptorSet,
+    refs: &dyn RefSource,
     queries: &DescriptorSet,
     matches: &[crate::matching::QueryMatch],
     gt: &[Vec<u32>],
@@ -186,7 +187,7 @@ fn report(
         let ok = best.is_some_and(|b| g.contains(&b.reference));
         outcomes.push(QueryOutcome {
             query: queries.ids[q].clone(),
-            top1: best.map(|b| refs.ids[b.reference as usize].clone()),
+            top1: best.map(|b| refs.id(b.reference as usize).to_string()),
             score: best.map(|b| b.score),
             correct: ok,
             valid_references: g.len(),

@@ -8,6 +8,7 @@ use super::context::{GpuContext, GpuError};
 use crate::local::tree_similarity::TreeSimParams;
 use crate::local::ForestRef;
 use crate::map::DescriptorSet;
+use crate::matching::source::RefSource;
 use crate::matching::ssim_topk::{topk_lists, TileParams, EMPTY_INDEX, EMPTY_SCORE};
 use std::sync::Arc;
 
@@ -87,15 +88,15 @@ impl FineMatcherGpu {
         FineMatcherGpu { ctx }
     }
 
-    fn check(&self, queries: &DescriptorSet, refs: &DescriptorSet) -> Result<(), GpuError> {
-        if queries.neighbour_slots > MAX_SLOTS || queries.appearance_dim != refs.appearance_dim {
+    fn check(&self, queries: &DescriptorSet, refs: &dyn RefSource) -> Result<(), GpuError> {
+        if queries.neighbour_slots > MAX_SLOTS || queries.appearance_dim != refs.appearance_dim() {
             return Err(GpuError::Failed { what: "fine matching".into(), reason: "neighbour slots above 8 or appearance sizes differ".into() });
         }
         Ok(())
     }
 
     /// Scores of `pairs` (query index, reference index).
-    pub fn score_pairs(&mut self, p: &TreeSimParams, queries: &DescriptorSet, refs: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<f32>, GpuError> {
+    pub fn score_pairs(&mut self, p: &TreeSimParams, queries: &DescriptorSet, refs: &dyn RefSource, pairs: &[(u32, u32)]) -> Result<Vec<f32>, GpuError> {
         self.check(queries, refs)?;
         // gather only the references that take part
         let mut slot = std::collections::HashMap::new();
@@ -106,7 +107,7 @@ impl FineMatcherGpu {
                 order.len() as u32 - 1
             });
         }
-        let dim = refs.appearance_dim;
+        let dim = refs.appearance_dim();
         let q = pack((0..queries.len()).map(|i| queries.forest(i)), dim);
         let r = pack(order.iter().map(|&i| refs.forest(i as usize)), dim);
         let list: Vec<Pair> = pairs
@@ -122,10 +123,10 @@ impl FineMatcherGpu {
 
     /// For settings without a coarse stage: the `k` best references of every query over the
     /// whole map, by tree similarity, tiled over the map.
-    pub fn topk_all(&mut self, p: &TreeSimParams, queries: &DescriptorSet, refs: &DescriptorSet, k: usize, max_tile: usize) -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
+    pub fn topk_all(&mut self, p: &TreeSimParams, queries: &DescriptorSet, refs: &dyn RefSource, k: usize, max_tile: usize) -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
         self.check(queries, refs)?;
         let ctx = self.ctx.clone();
-        let dim = refs.appearance_dim;
+        let dim = refs.appearance_dim();
         let q = pack((0..queries.len()).map(|i| queries.forest(i)), dim);
         let nq = queries.len();
         let max_trees = (0..refs.len()).map(|i| refs.forest(i).len()).max().unwrap_or(0).max(q.max_trees).max(1);

@@ -101,6 +101,29 @@ impl DescriptorSet {
         self.tree_has_appearance.extend_from_slice(&other.tree_has_appearance);
     }
 
+    /// Images `start..end` as a set of their own.
+    pub fn slice(&self, start: usize, end: usize) -> DescriptorSet {
+        let (a, b) = (self.forest_offsets[start] as usize, self.forest_offsets[end] as usize);
+        let (n, d) = (self.neighbour_slots, self.appearance_dim);
+        DescriptorSet {
+            ids: self.ids[start..end].to_vec(),
+            sizes: self.sizes[start..end].to_vec(),
+            global_len: self.global_len,
+            stats_len: self.stats_len,
+            globals: self.globals[start * self.global_len..end * self.global_len].to_vec(),
+            global_stats: self.global_stats[start * self.stats_len..end * self.stats_len].to_vec(),
+            forest_offsets: self.forest_offsets[start..=end].iter().map(|o| o - a as u32).collect(),
+            tree_classes: self.tree_classes[a..b].to_vec(),
+            tree_areas: self.tree_areas[a..b].to_vec(),
+            tree_centroids: self.tree_centroids[2 * a..2 * b].to_vec(),
+            neighbour_slots: n,
+            tree_neighbours: self.tree_neighbours[n * a..n * b].to_vec(),
+            appearance_dim: d,
+            tree_appearance: self.tree_appearance[d * a..d * b].to_vec(),
+            tree_has_appearance: self.tree_has_appearance[a..b].to_vec(),
+        }
+    }
+
     pub fn global(&self, i: usize) -> &[f32] {
         &self.globals[i * self.global_len..(i + 1) * self.global_len]
     }

@@ -1,7 +1,10 @@
 //! Stage 3: the map of places. A map directory holds
 //! - `manifest.json`: format version, the encoding config, the image list, and per segment file
 //!   its name, image count, byte size and SHA-256;
-//! - `segment-NNNNNN.safetensors`: the descriptors of the images added in one build or add.
+//! - `segment-NNNNNN.safetensors`: the descriptors of at most [`SEGMENT_IMAGES`] images.
+//!
+//! In memory a map stays a list of segments (no allocation grows with the whole map); matching
+//! reads it through [`GlobalSource`] tiles and [`RefSource`] look-ups.
 //!
 //! Writes are atomic: a segment is written to a temporary file, synced and renamed, and only then
 //! is the manifest replaced the same way, so a crash or a bad input at any point leaves the
@@ -18,12 +21,16 @@ use crate::classes::ClassTable;
 use crate::config::{first_difference, EncodingConfig};
 use crate::error::{Error, Result};
 use crate::global::ssim::SsimParams;
+use crate::local::ForestRef;
+use crate::matching::source::{GlobalSource, RefSource, TileBuf};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
 pub const FORMAT: &str = "semlook-map";
+/// Most images per segment file (about 130 MB of descriptors without appearance).
+pub const SEGMENT_IMAGES: usize = 4096;
 pub const VERSION: u32 = 1;
 const MANIFEST: &str = "manifest.json";
 const LOCK: &str = ".lock";
@@ -50,12 +57,14 @@ pub struct Manifest {
     pub images: Vec<String>,
 }
 
-/// A loaded map: its manifest and all its descriptors in memory.
+/// A loaded map: its manifest and its descriptors, segment by segment.
 #[derive(Debug, Clone)]
 pub struct Map {
     pub path: PathBuf,
     pub manifest: Manifest,
-    pub descriptors: DescriptorSet,
+    segments: Vec<DescriptorSet>,
+    /// First image index of each segment, then the total.
+    starts: Vec<usize>,
 }
 
 fn sha256_hex(bytes: &[u8]) -> String {
@@ -106,7 +115,6 @@ impl Drop for WriteLock {
 impl Map {
     /// An empty, unsaved map for descriptors encoded with `cfg`.
     pub fn new(path: &Path, cfg: &EncodingConfig, appearance_dim: usize) -> Map {
-        let ssim = SsimParams::new(&cfg.global);
         Map {
             path: path.to_path_buf(),
             manifest: Manifest {
@@ -119,15 +127,41 @@ impl Map {
                 segments: vec![],
                 images: vec![],
             },
-            descriptors: DescriptorSet::new(&ssim, cfg.local.neighbours, appearance_dim),
+            segments: vec![],
+            starts: vec![0],
         }
     }
 
     pub fn len(&self) -> usize {
-        self.descriptors.len()
+        *self.starts.last().unwrap()
     }
     pub fn is_empty(&self) -> bool {
-        self.descriptors.is_empty()
+        self.len() == 0
+    }
+    pub fn n_trees(&self) -> usize {
+        self.segments.iter().map(|s| s.n_trees()).sum()
+    }
+    pub fn segments(&self) -> &[DescriptorSet] {
+        &self.segments
+    }
+    /// (segment, index inside it) of image `i`.
+    fn locate(&self, i: usize) -> (usize, usize) {
+        let s = self.starts.partition_point(|&st| st <= i) - 1;
+        (s, i - self.starts[s])
+    }
+    /// All descriptors in one set (one allocation of the whole map: for small maps and tests).
+    pub fn to_descriptor_set(&self) -> DescriptorSet {
+        let g = &self.manifest.config.global;
+        let ssim = SsimParams::new(g);
+        let mut set = DescriptorSet::new(&ssim, self.manifest.neighbour_slots, self.manifest.appearance_dim);
+        for s in &self.segments {
+            set.append(s);
+        }
+        set
+    }
+    fn push_segment(&mut self, set: DescriptorSet) {
+        self.starts.push(self.len() + set.len());
+        self.segments.push(set);
     }
 
     /// Creates a new map directory holding `set` as its first segment. Fails if `dir` exists and
@@ -142,9 +176,15 @@ impl Map {
         Ok(map)
     }
 
-    /// Appends `set` as a new segment and rewrites the manifest, atomically. Ids already stored
-    /// are refused before anything is written.
+    /// Appends `set` as new segments (of at most [`SEGMENT_IMAGES`] images) and then rewrites the
+    /// manifest, atomically. Ids already stored are refused before anything is written.
     pub fn add(&mut self, set: &DescriptorSet) -> Result<()> {
+        self.add_in_segments(set, SEGMENT_IMAGES)
+    }
+
+    /// [`Map::add`] with at most `per_segment` images per segment file.
+    pub fn add_in_segments(&mut self, set: &DescriptorSet, per_segment: usize) -> Result<()> {
+        let per_segment = per_segment.max(1);
         let _lock = WriteLock::take(&self.path)?;
         let mut seen: std::collections::HashSet<&str> = self.manifest.images.iter().map(|s| s.as_str()).collect();
         for id in &set.ids {
@@ -162,22 +202,23 @@ impl Map {
             ));
         }
         let g = &self.manifest.config.global;
-        let bytes = segment::to_bytes(set, g.width, g.height);
-        let file = format!("segment-{:06}.safetensors", self.manifest.segments.len());
-        write_atomic(&self.path, &file, &bytes)?;
         let mut manifest = self.manifest.clone();
-        manifest.segments.push(SegmentEntry {
-            file,
-            images: set.len(),
-            trees: set.n_trees(),
-            bytes: bytes.len() as u64,
-            sha256: sha256_hex(&bytes),
-        });
+        let mut parts = Vec::new();
+        for start in (0..set.len()).step_by(per_segment) {
+            let part = set.slice(start, (start + per_segment).min(set.len()));
+            let bytes = segment::to_bytes(&part, g.width, g.height);
+            let file = format!("segment-{:06}.safetensors", manifest.segments.len());
+            write_atomic(&self.path, &file, &bytes)?;
+            manifest.segments.push(SegmentEntry { file, images: part.len(), trees: part.n_trees(), bytes: bytes.len() as u64, sha256: sha256_hex(&bytes) });
+            parts.push(part);
+        }
         manifest.images.extend(set.ids.iter().cloned());
         let json = serde_json::to_vec_pretty(&manifest).expect("manifest serialises");
         write_atomic(&self.path, MANIFEST, &json)?;
         self.manifest = manifest;
-        self.descriptors.append(set);
+        for part in parts {
+            self.push_segment(part);
+        }
         Ok(())
     }
 
@@ -203,7 +244,8 @@ impl Map {
         }
         let table = ClassTable::from_config(&cfg.classes)?;
         let ssim = SsimParams::new(&cfg.global);
-        let mut set = DescriptorSet::new(&ssim, manifest.neighbour_slots, manifest.appearance_dim);
+        let mut map = Map { path: dir.into(), manifest: manifest.clone(), segments: vec![], starts: vec![0] };
+        let mut ids_seen = std::collections::HashSet::new();
         for seg in &manifest.segments {
             if seg.file.contains('/') || seg.file.contains("..") {
                 return Err(Error::corrupt(&mpath, format!("segment name {:?} leaves the map directory", seg.file)));
@@ -222,13 +264,16 @@ impl Map {
                 return Err(Error::corrupt(&p, "image or tree count differs from the manifest"));
             }
             part.validate(table.len()).map_err(|r| Error::corrupt(&p, r))?;
-            set.append(&part);
+            if let Some(dup) = part.ids.iter().find(|id| !ids_seen.insert(id.to_string())) {
+                return Err(Error::corrupt(&p, format!("image id {dup:?} is stored twice")));
+            }
+            map.push_segment(part);
         }
-        if set.ids != manifest.images {
+        let listed = map.segments.iter().flat_map(|s| s.ids.iter());
+        if map.len() != manifest.images.len() || !listed.zip(&manifest.images).all(|(a, b)| a == b) {
             return Err(Error::corrupt(&mpath, "image list differs from the segments' ids"));
         }
-        set.validate(table.len()).map_err(|r| Error::corrupt(&mpath, r))?;
-        Ok(Map { path: dir.into(), manifest, descriptors: set })
+        Ok(map)
     }
 
     /// Fails with the first differing field if queries encoded with `cfg` cannot be matched here.
@@ -239,5 +284,48 @@ impl Map {
                 Err(Error::IncompatibleConfig { map: self.path.clone(), field, map_value, given_value })
             }
         }
+    }
+}
+
+impl GlobalSource for Map {
+    fn len(&self) -> usize {
+        Map::len(self)
+    }
+    /// Borrowed from one segment when the tile lies inside it, else assembled in `buf`.
+    fn tile<'a>(&'a self, start: usize, end: usize, buf: &'a mut TileBuf) -> (&'a [f32], &'a [f32]) {
+        let (s, i) = self.locate(start);
+        if end - self.starts[s] <= self.segments[s].len() {
+            return self.segments[s].tile(i, i + end - start, buf);
+        }
+        buf.globals.clear();
+        buf.stats.clear();
+        let mut at = start;
+        while at < end {
+            let (s, i) = self.locate(at);
+            let stop = (self.starts[s + 1]).min(end);
+            let seg = &self.segments[s];
+            let n = stop - at;
+            buf.globals.extend_from_slice(&seg.globals[i * seg.global_len..(i + n) * seg.global_len]);
+            buf.stats.extend_from_slice(&seg.global_stats[i * seg.stats_len..(i + n) * seg.stats_len]);
+            at = stop;
+        }
+        (&buf.globals, &buf.stats)
+    }
+}
+
+impl RefSource for Map {
+    fn id(&self, i: usize) -> &str {
+        let (s, j) = self.locate(i);
+        &self.segments[s].ids[j]
+    }
+    fn forest(&self, i: usize) -> ForestRef<'_> {
+        let (s, j) = self.locate(i);
+        self.segments[s].forest(j)
+    }
+    fn neighbour_slots(&self) -> usize {
+        self.manifest.neighbour_slots
+    }
+    fn appearance_dim(&self) -> usize {
+        self.manifest.appearance_dim
     }
 }

@@ -19,7 +19,7 @@ use crate::util::ms_since;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
-use source::GlobalSource;
+use source::{GlobalSource, RefSource};
 use topk::TopK;
 
 /// A matching setting: which stages run and whether appearance takes part.
@@ -116,9 +116,9 @@ pub trait Stages {
     /// For each query, the `k` best references by SSIM (best first).
     fn coarse(&mut self, refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimParams, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>>;
     /// Tree-set similarity of each (query, reference) pair.
-    fn fine_pairs(&mut self, p: &TreeSimParams, refs: &DescriptorSet, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<f32>>;
+    fn fine_pairs(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<f32>>;
     /// For each query, the `k` best references of the whole map by tree-set similarity.
-    fn fine_topk(&mut self, p: &TreeSimParams, refs: &DescriptorSet, queries: &DescriptorSet, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>>;
+    fn fine_topk(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>>;
 }
 
 /// The CPU reference path (rayon over queries or pairs).
@@ -128,13 +128,13 @@ impl Stages for CpuStages {
     fn coarse(&mut self, refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimParams, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
         Ok(coarse_topk(refs, queries, p, k, tile))
     }
-    fn fine_pairs(&mut self, p: &TreeSimParams, refs: &DescriptorSet, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<f32>> {
+    fn fine_pairs(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<f32>> {
         Ok(pairs
             .par_iter()
             .map_init(TreeSimScratch::default, |s, &(q, r)| tree_similarity(p, queries.forest(q as usize), refs.forest(r as usize), s))
             .collect())
     }
-    fn fine_topk(&mut self, p: &TreeSimParams, refs: &DescriptorSet, queries: &DescriptorSet, k: usize, _tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+    fn fine_topk(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, k: usize, _tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
         Ok((0..queries.len())
             .into_par_iter()
             .map_init(TreeSimScratch::default, |scratch, q| {
@@ -149,17 +149,17 @@ impl Stages for CpuStages {
 }
 
 /// Matches every query of `queries` against `refs` with `setting` on the CPU; results in query order.
-pub fn match_batch(refs: &DescriptorSet, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> (Vec<QueryMatch>, MatchTimes) {
+pub fn match_batch(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> (Vec<QueryMatch>, MatchTimes) {
     match_with(&mut CpuStages, refs, queries, setting, cfg).expect("the CPU stages do not fail")
 }
 
 /// Matches with the given stages: coarse top-K, fine re-ranking of the candidates (or fine
 /// top-K over the whole map for settings without a coarse stage), best first.
-pub fn match_with(stages: &mut dyn Stages, refs: &DescriptorSet, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<QueryMatch>, MatchTimes)> {
+pub fn match_with(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<QueryMatch>, MatchTimes)> {
     let k = cfg.matching.top_k;
     let list_len = k.max(cfg.eval.recall_at.iter().copied().max().unwrap_or(1));
     let mut times = MatchTimes::default();
-    let params = TreeSimParams::new(&cfg.similarity, setting.uses_appearance(), refs.neighbour_slots);
+    let params = TreeSimParams::new(&cfg.similarity, setting.uses_appearance(), refs.neighbour_slots());
     if refs.is_empty() {
         return Ok((vec![QueryMatch { ranked: vec![] }; queries.len()], times));
     }

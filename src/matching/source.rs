@@ -2,6 +2,7 @@
 //! other store (a synthetic map far larger than memory in the benchmarks). Tiles are the unit of
 //! streaming: no stage ever needs the whole map at once.
 
+use crate::local::ForestRef;
 use crate::map::DescriptorSet;
 
 /// Reusable storage for tiles that a source must assemble (copy or generate).
@@ -27,5 +28,29 @@ impl GlobalSource for DescriptorSet {
     }
     fn tile<'a>(&'a self, start: usize, end: usize, _buf: &'a mut TileBuf) -> (&'a [f32], &'a [f32]) {
         (&self.globals[start * self.global_len..end * self.global_len], &self.global_stats[start * self.stats_len..end * self.stats_len])
+    }
+}
+
+/// Everything matching reads about references: tiles of global descriptors, and forests and ids
+/// by index. Implemented by a [`DescriptorSet`] and by a segmented [`crate::map::Map`].
+pub trait RefSource: GlobalSource {
+    fn id(&self, i: usize) -> &str;
+    fn forest(&self, i: usize) -> ForestRef<'_>;
+    fn neighbour_slots(&self) -> usize;
+    fn appearance_dim(&self) -> usize;
+}
+
+impl RefSource for DescriptorSet {
+    fn id(&self, i: usize) -> &str {
+        &self.ids[i]
+    }
+    fn forest(&self, i: usize) -> ForestRef<'_> {
+        DescriptorSet::forest(self, i)
+    }
+    fn neighbour_slots(&self) -> usize {
+        self.neighbour_slots
+    }
+    fn appearance_dim(&self) -> usize {
+        self.appearance_dim
     }
 }
