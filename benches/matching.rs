@@ -24,6 +24,19 @@ fn bench(c: &mut Criterion) {
         g.throughput(Throughput::Elements((n * queries.len()) as u64));
         g.bench_function(format!("ssim_topk/{n}_refs_x4_queries"), |b| b.iter(|| coarse_topk(&refs, &queries, &p, cfg.matching.top_k, cfg.matching.tile)));
     }
+    // the same on the GPU path, when there is an adapter (lavapipe counts: it says so in the name)
+    match semlook::gpu::GpuContext::new(&Default::default()) {
+        Ok(ctx) => {
+            let name = ctx.info.name.clone();
+            let mut stages = semlook::engine::GpuStages::new(std::sync::Arc::new(ctx));
+            let refs = common::map_of(&cfg, &images, 1_000);
+            g.throughput(Throughput::Elements((1_000 * queries.len()) as u64));
+            g.bench_function(format!("gpu ssim_topk on {name}/1000_refs_x4_queries"), |b| {
+                b.iter(|| semlook::matching::Stages::coarse(&mut stages, &refs, &queries, &p, cfg.matching.top_k, cfg.matching.tile).unwrap())
+            });
+        }
+        Err(e) => eprintln!("GPU benchmark skipped: {e}"),
+    }
     g.finish();
     let mut g = c.benchmark_group("fine");
     let mut scratch = TreeSimScratch::default();

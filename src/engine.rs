@@ -97,6 +97,11 @@ impl Engine {
         self.gpu.is_some()
     }
 
+    /// The GPU executors, when this engine runs on a GPU.
+    pub fn gpu_stages(&mut self) -> Option<&mut GpuStages> {
+        self.gpu.as_mut()
+    }
+
     /// "cpu (N threads)" or "gpu: adapter (backend, device type)".
     pub fn describe(&self) -> String {
         match &self.gpu {

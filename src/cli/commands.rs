@@ -34,6 +34,7 @@ pub fn dispatch(cli: Cli) -> Result<()> {
         Command::Map(MapCommand::Info { map, json }) => map_info(&map, json),
         Command::Query(a) => query(&mut engine()?, &a, quiet),
         Command::Eval(a) => eval_cmd(&mut engine()?, &a, quiet),
+        Command::Bench(a) => bench_cmd(&a, quiet),
         Command::Config => {
             print!("{}", Config::default().to_toml());
             Ok(())
@@ -321,5 +322,36 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
         info(quiet, format!("dataset, map and results kept in {}", dir.display()));
     }
     info(quiet, format!("demo finished in {:.1} s", t0.elapsed().as_secs_f64()));
+    Ok(())
+}
+
+fn bench_cmd(a: &BenchArgs, quiet: bool) -> Result<()> {
+    let cfg = Config::default();
+    info(quiet, "rendering and encoding the descriptor pools (64 map frames, 32 query frames)");
+    let pool = semlook::bench::street_descriptors(&cfg, 64, Condition::Day, 0)?;
+    let queries = semlook::bench::street_descriptors(&cfg, 32, Condition::Night, 5)?;
+    let mut engines = vec![Engine::cpu()];
+    if !a.cpu_only {
+        match Engine::new(semlook::engine::Backend::Gpu, &GpuOptions::default()) {
+            Ok((e, _)) => engines.push(e),
+            Err(e) => info(quiet, format!("no GPU run: {e}")),
+        }
+    }
+    for e in &engines {
+        info(quiet, format!("backend: {}", e.describe()));
+    }
+    let mut shown = false;
+    let rows = semlook::bench::run(&pool, &queries, &a.sizes, &a.batches, &mut engines, a.seconds, &cfg, &mut |r| {
+        if !quiet && !a.json {
+            let t = semlook::bench::table(std::slice::from_ref(r));
+            eprint!("{}", if shown { t.lines().nth(1).unwrap_or("").to_string() + "\n" } else { t });
+            shown = true;
+        }
+    })?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&rows).expect("serialises"));
+    } else {
+        print!("{}", semlook::bench::table(&rows));
+    }
     Ok(())
 }

@@ -38,6 +38,28 @@ pub enum Command {
     Eval(EvalArgs),
     /// Print the default configuration (TOML); edit it and pass it with --config.
     Config,
+    /// Large-map batch matching benchmark: coarse matching throughput and peak memory for maps of
+    /// 1k to 1M references and query batches of 100 and 1000, on the CPU and on the GPU.
+    Bench(BenchArgs),
+}
+
+#[derive(Args)]
+pub struct BenchArgs {
+    /// Map sizes (references); sizes above 10,000 are streamed synthetic maps.
+    #[arg(long, value_delimiter = ',', default_value = "1000,10000,100000,1000000")]
+    pub sizes: Vec<usize>,
+    /// Query batch sizes.
+    #[arg(long, value_delimiter = ',', default_value = "100,1000")]
+    pub batches: Vec<usize>,
+    /// Time budget per configuration (seconds); a configuration runs as many of its batch's
+    /// queries as fit (at least one) and reports how many.
+    #[arg(long, default_value_t = 10.0)]
+    pub seconds: f64,
+    /// Leave the GPU out (by default every configuration also runs on the GPU when there is one).
+    #[arg(long)]
+    pub cpu_only: bool,
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(Args, Clone)]
