@@ -32,14 +32,14 @@ impl GlobalSource for SyntheticMap<'_> {
         self.len
     }
     fn tile<'a>(&'a self, start: usize, end: usize, buf: &'a mut TileBuf) -> (&'a [f32], &'a [f32]) {
-        buf.globals.clear();
-        buf.stats.clear();
+        use rayon::prelude::*;
         let p = self.pool;
-        for i in start..end {
-            let j = (i.wrapping_mul(7919)) % p.len();
-            buf.globals.extend_from_slice(p.global(j));
-            buf.stats.extend_from_slice(p.stats(j));
-        }
+        let (gl, sl) = (p.global_len, p.stats_len);
+        buf.globals.resize((end - start) * gl, 0.0);
+        buf.stats.resize((end - start) * sl, 0.0);
+        let pick = |i: usize| (i.wrapping_mul(7919)) % p.len();
+        buf.globals.par_chunks_mut(gl).enumerate().for_each(|(k, dst)| dst.copy_from_slice(p.global(pick(start + k))));
+        buf.stats.par_chunks_mut(sl).enumerate().for_each(|(k, dst)| dst.copy_from_slice(p.stats(pick(start + k))));
         (&buf.globals, &buf.stats)
     }
 }

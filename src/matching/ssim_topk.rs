@@ -22,16 +22,21 @@ pub struct TileParams {
     pub k: u32,
 }
 
+/// Pairs per parallel task of the CPU twin: enough work to amortise scheduling, small enough
+/// to keep both cores busy when a batch holds a single query.
+const PAIRS_PER_TASK: usize = 64;
+
 /// Bindings: `p`, `tp`, `queries`, `query_stats`, `refs` (the tile), `ref_stats`, `scores` (out,
-/// queries x tile_len). One shader workgroup per pair; here the pairs of a query run in order and
-/// queries run in parallel.
+/// queries x tile_len). One shader workgroup per pair; here pairs run in query-major order, in
+/// parallel chunks.
 #[allow(clippy::too_many_arguments)]
 pub fn ssim_tile(p: &SsimParams, tp: &TileParams, queries: &[f32], query_stats: &[f32], refs: &[f32], ref_stats: &[f32], scores: &mut [f32]) {
     let (len, slen, t) = (p.len(), p.stats_len(), tp.tile_len as usize);
-    scores[..tp.queries as usize * t].par_chunks_mut(t).enumerate().for_each_init(SsimScratch::default, |scratch, (q, row)| {
-        let (x, xs) = (&queries[q * len..(q + 1) * len], &query_stats[q * slen..(q + 1) * slen]);
-        for (r, out) in row.iter_mut().enumerate() {
-            *out = ssim_pair(p, x, xs, &refs[r * len..(r + 1) * len], &ref_stats[r * slen..(r + 1) * slen], scratch);
+    scores[..tp.queries as usize * t].par_chunks_mut(PAIRS_PER_TASK).enumerate().for_each_init(SsimScratch::default, |scratch, (chunk, out)| {
+        for (j, slot) in out.iter_mut().enumerate() {
+            let pair = chunk * PAIRS_PER_TASK + j;
+            let (q, r) = (pair / t, pair % t);
+            *slot = ssim_pair(p, &queries[q * len..(q + 1) * len], &query_stats[q * slen..(q + 1) * slen], &refs[r * len..(r + 1) * len], &ref_stats[r * slen..(r + 1) * slen], scratch);
         }
     });
 }

@@ -1,0 +1,137 @@
+//! SuperPoint-style keypoint decoding of a network's cell outputs (DeTone, Malisiewicz &
+//! Rabinovich, "SuperPoint", CVPRW 2018; the same layout as XFeat's keypoint head): per 8x8 cell a
+//! softmax over 65 logits, the "no keypoint" dustbin dropped, the 64 probabilities shuffled to
+//! full resolution; the score is that probability times the reliability map (when the network
+//! has one); then non-maximum suppression, a threshold, the best N, and descriptors sampled
+//! bilinearly from the dense map and L2-normalised.
+
+use super::nn::Chw;
+use super::NetOutputs;
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct KeypointParams {
+    /// Keep a pixel only if no pixel within this Chebyshev radius scores higher.
+    pub nms_radius: usize,
+    pub threshold: f32,
+    pub max_keypoints: usize,
+    /// Ignore keypoints this close to the image border (pixels).
+    pub border: usize,
+}
+
+/// Keypoints of one image, in the coordinates of the network input.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Keypoints {
+    pub xy: Vec<[f32; 2]>,
+    pub scores: Vec<f32>,
+    /// `dim` values per keypoint, unit length.
+    pub descriptors: Vec<f32>,
+    pub dim: usize,
+}
+
+impl Keypoints {
+    pub fn len(&self) -> usize {
+        self.xy.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.xy.is_empty()
+    }
+}
+
+/// Bilinear sample of every channel of a 1/8-resolution map at full-resolution pixel (x, y),
+/// treating cell centres as sample points.
+fn sample(map: &Chw, x: f32, y: f32, out: &mut [f32]) {
+    let fx = ((x + 0.5) / 8.0 - 0.5).clamp(0.0, (map.w - 1) as f32);
+    let fy = ((y + 0.5) / 8.0 - 0.5).clamp(0.0, (map.h - 1) as f32);
+    let (x0, y0) = (fx.floor() as usize, fy.floor() as usize);
+    let (x1, y1) = ((x0 + 1).min(map.w - 1), (y0 + 1).min(map.h - 1));
+    let (lx, ly) = (fx - x0 as f32, fy - y0 as f32);
+    for (c, o) in out.iter_mut().enumerate() {
+        let p = map.plane(c);
+        let top = p[y0 * map.w + x0] * (1.0 - lx) + p[y0 * map.w + x1] * lx;
+        let bottom = p[y1 * map.w + x0] * (1.0 - lx) + p[y1 * map.w + x1] * lx;
+        *o = top * (1.0 - ly) + bottom * ly;
+    }
+}
+
+/// Full-resolution score map (H x W = 8h x 8w) from the cell logits and reliability.
+pub fn score_map(out: &NetOutputs) -> (Vec<f32>, usize, usize) {
+    let l = &out.logits;
+    assert_eq!(l.c, 65, "keypoint logits must have 65 channels");
+    let (h, w) = (l.h, l.w);
+    let (hh, ww) = (h * 8, w * 8);
+    let mut scores = vec![0.0f32; hh * ww];
+    let cell = h * w;
+    for cy in 0..h {
+        for cx in 0..w {
+            let i = cy * w + cx;
+            let m = (0..65).map(|c| l.data[c * cell + i]).fold(f32::NEG_INFINITY, f32::max);
+            let sum: f32 = (0..65).map(|c| (l.data[c * cell + i] - m).exp()).sum();
+            for k in 0..64 {
+                let (ky, kx) = (k / 8, k % 8);
+                scores[(cy * 8 + ky) * ww + cx * 8 + kx] = (l.data[k * cell + i] - m).exp() / sum;
+            }
+        }
+    }
+    if let Some(rel) = &out.reliability {
+        let mut v = [0.0f32];
+        for y in 0..hh {
+            for x in 0..ww {
+                sample(rel, x as f32, y as f32, &mut v);
+                scores[y * ww + x] *= v[0];
+            }
+        }
+    }
+    (scores, hh, ww)
+}
+
+/// Decodes keypoints and descriptors from network outputs.
+pub fn extract(out: &NetOutputs, p: &KeypointParams) -> Keypoints {
+    let (scores, hh, ww) = score_map(out);
+    // separable max filter of radius r
+    let r = p.nms_radius;
+    let mut rowmax = vec![0.0f32; hh * ww];
+    for y in 0..hh {
+        for x in 0..ww {
+            let (a, b) = (x.saturating_sub(r), (x + r).min(ww - 1));
+            rowmax[y * ww + x] = scores[y * ww + a..=y * ww + b].iter().fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+        }
+    }
+    let mut cand: Vec<(f32, usize)> = Vec::new();
+    for y in p.border..hh.saturating_sub(p.border) {
+        for x in p.border..ww.saturating_sub(p.border) {
+            let s = scores[y * ww + x];
+            if s <= p.threshold {
+                continue;
+            }
+            let (a, b) = (y.saturating_sub(r), (y + r).min(hh - 1));
+            let local = (a..=b).map(|yy| rowmax[yy * ww + x]).fold(f32::NEG_INFINITY, f32::max);
+            if s >= local {
+                cand.push((s, y * ww + x));
+            }
+        }
+    }
+    cand.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+    cand.truncate(p.max_keypoints);
+    // unit-length dense descriptors, sampled, then normalised again
+    let d = &out.descriptors;
+    let dim = d.c;
+    let mut dense = d.clone();
+    let cell = d.h * d.w;
+    for i in 0..cell {
+        let n = (0..dim).map(|c| dense.data[c * cell + i].powi(2)).sum::<f32>().sqrt().max(1e-12);
+        for c in 0..dim {
+            dense.data[c * cell + i] /= n;
+        }
+    }
+    let mut k = Keypoints { dim, ..Default::default() };
+    let mut v = vec![0.0f32; dim];
+    for (s, i) in cand {
+        let (x, y) = ((i % ww) as f32, (i / ww) as f32);
+        sample(&dense, x, y, &mut v);
+        let n = v.iter().map(|a| a * a).sum::<f32>().sqrt().max(1e-12);
+        k.descriptors.extend(v.iter().map(|a| a / n));
+        k.xy.push([x, y]);
+        k.scores.push(s);
+    }
+    k
+}

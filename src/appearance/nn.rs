@@ -1,0 +1,234 @@
+//! The few neural-network operations XFeat needs, on CHW float tensors (batch 1): convolution by
+//! im2col and a matrix product (matrixmultiply's sgemm, parallel over column bands with rayon),
+//! inference-mode batch norm without affine terms fused with ReLU, average pooling, instance
+//! norm, bilinear resizing (PyTorch's align_corners = False) and 8x8 space-to-depth.
+
+use rayon::prelude::*;
+
+/// A CHW tensor.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Chw {
+    pub c: usize,
+    pub h: usize,
+    pub w: usize,
+    pub data: Vec<f32>,
+}
+
+impl Chw {
+    pub fn zeros(c: usize, h: usize, w: usize) -> Chw {
+        Chw { c, h, w, data: vec![0.0; c * h * w] }
+    }
+    pub fn plane(&self, c: usize) -> &[f32] {
+        &self.data[c * self.h * self.w..(c + 1) * self.h * self.w]
+    }
+    pub fn add(mut self, o: &Chw) -> Chw {
+        assert_eq!((self.c, self.h, self.w), (o.c, o.h, o.w));
+        self.data.iter_mut().zip(&o.data).for_each(|(a, b)| *a += b);
+        self
+    }
+}
+
+/// Columns per im2col band: bounds the scratch of one band (k*k*Cin x BAND floats).
+const BAND: usize = 1024;
+
+/// 2-D convolution of `x` with `weight` [cout, cin, k, k], square stride and zero padding, plus
+/// an optional bias.
+pub fn conv2d(x: &Chw, weight: &[f32], bias: Option<&[f32]>, cout: usize, k: usize, stride: usize, pad: usize) -> Chw {
+    let (cin, h, w) = (x.c, x.h, x.w);
+    assert_eq!(weight.len(), cout * cin * k * k, "weight size");
+    let ho = (h + 2 * pad - k) / stride + 1;
+    let wo = (w + 2 * pad - k) / stride + 1;
+    let n = ho * wo;
+    let kk = cin * k * k;
+    let mut out = Chw::zeros(cout, ho, wo);
+    // each band computes output columns [b0, b1) of every output channel
+    let bands: Vec<(usize, Vec<f32>)> = (0..n.div_ceil(BAND))
+        .into_par_iter()
+        .map(|band| {
+            let (b0, b1) = (band * BAND, ((band + 1) * BAND).min(n));
+            let nb = b1 - b0;
+            let mut cols = vec![0.0f32; kk * nb];
+            for ci in 0..cin {
+                let src = x.plane(ci);
+                for ky in 0..k {
+                    for kx in 0..k {
+                        let row = &mut cols[((ci * k + ky) * k + kx) * nb..][..nb];
+                        for (j, slot) in row.iter_mut().enumerate() {
+                            let p = b0 + j;
+                            let (oy, ox) = (p / wo, p % wo);
+                            let iy = (oy * stride + ky) as isize - pad as isize;
+                            let ix = (ox * stride + kx) as isize - pad as isize;
+                            if iy >= 0 && ix >= 0 && (iy as usize) < h && (ix as usize) < w {
+                                *slot = src[iy as usize * w + ix as usize];
+                            }
+                        }
+                    }
+                }
+            }
+            let mut res = vec![0.0f32; cout * nb];
+            // res[cout x nb] = weight[cout x kk] * cols[kk x nb]
+            unsafe {
+                matrixmultiply::sgemm(
+                    cout, kk, nb, 1.0, weight.as_ptr(), kk as isize, 1, cols.as_ptr(), nb as isize, 1, 0.0, res.as_mut_ptr(), nb as isize, 1,
+                );
+            }
+            (b0, res)
+        })
+        .collect();
+    for (b0, res) in bands {
+        let nb = res.len() / cout;
+        for co in 0..cout {
+            out.data[co * n + b0..co * n + b0 + nb].copy_from_slice(&res[co * nb..(co + 1) * nb]);
+        }
+    }
+    if let Some(b) = bias {
+        for co in 0..cout {
+            out.data[co * n..(co + 1) * n].iter_mut().for_each(|v| *v += b[co]);
+        }
+    }
+    out
+}
+
+/// Inference-mode BatchNorm2d(affine = False), eps 1e-5, followed by ReLU, in place.
+pub fn batchnorm_relu(x: &mut Chw, mean: &[f32], var: &[f32]) {
+    let hw = x.h * x.w;
+    x.data.par_chunks_mut(hw).enumerate().for_each(|(c, plane)| {
+        let inv = 1.0 / (var[c] + 1e-5).sqrt();
+        let m = mean[c];
+        plane.iter_mut().for_each(|v| *v = ((*v - m) * inv).max(0.0));
+    });
+}
+
+/// AvgPool2d(k, stride k) on sizes divisible by k.
+pub fn avg_pool(x: &Chw, k: usize) -> Chw {
+    let (ho, wo) = (x.h / k, x.w / k);
+    let mut out = Chw::zeros(x.c, ho, wo);
+    let inv = 1.0 / (k * k) as f32;
+    for c in 0..x.c {
+        let src = x.plane(c);
+        for oy in 0..ho {
+            for ox in 0..wo {
+                let mut s = 0.0;
+                for dy in 0..k {
+                    for dx in 0..k {
+                        s += src[(oy * k + dy) * x.w + ox * k + dx];
+                    }
+                }
+                out.data[(c * ho + oy) * wo + ox] = s * inv;
+            }
+        }
+    }
+    out
+}
+
+/// InstanceNorm2d(affine = False): per channel, zero mean and unit (biased) variance, eps 1e-5.
+pub fn instance_norm(x: &mut Chw) {
+    let hw = (x.h * x.w) as f64;
+    for c in 0..x.c {
+        let plane = &mut x.data[c * x.h * x.w..(c + 1) * x.h * x.w];
+        let mean = plane.iter().map(|&v| v as f64).sum::<f64>() / hw;
+        let var = plane.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / hw;
+        let inv = 1.0 / (var + 1e-5).sqrt();
+        plane.iter_mut().for_each(|v| *v = ((*v as f64 - mean) * inv) as f32);
+    }
+}
+
+/// Source index and weight of PyTorch's bilinear resize (align_corners = False).
+fn source_index(dst: usize, in_len: usize, out_len: usize) -> (usize, usize, f32) {
+    let scale = in_len as f32 / out_len as f32;
+    let src = (scale * (dst as f32 + 0.5) - 0.5).max(0.0);
+    let i0 = (src.floor() as usize).min(in_len - 1);
+    let i1 = (i0 + 1).min(in_len - 1);
+    (i0, i1, src - i0 as f32)
+}
+
+/// F.interpolate(x, (h, w), mode = "bilinear", align_corners = False).
+pub fn resize_bilinear(x: &Chw, h: usize, w: usize) -> Chw {
+    let mut out = Chw::zeros(x.c, h, w);
+    let xs: Vec<(usize, usize, f32)> = (0..w).map(|i| source_index(i, x.w, w)).collect();
+    out.data.par_chunks_mut(h * w).enumerate().for_each(|(c, plane)| {
+        let src = x.plane(c);
+        for oy in 0..h {
+            let (y0, y1, ly) = source_index(oy, x.h, h);
+            for (ox, &(x0, x1, lx)) in xs.iter().enumerate() {
+                let top = src[y0 * x.w + x0] * (1.0 - lx) + src[y0 * x.w + x1] * lx;
+                let bottom = src[y1 * x.w + x0] * (1.0 - lx) + src[y1 * x.w + x1] * lx;
+                plane[oy * w + ox] = top * (1.0 - ly) + bottom * ly;
+            }
+        }
+    });
+    out
+}
+
+/// XFeat's `_unfold2d(x, 8)` for one channel: [1, H, W] to [64, H/8, W/8], channel ky*8 + kx.
+pub fn space_to_depth8(x: &Chw) -> Chw {
+    assert_eq!(x.c, 1);
+    let (ho, wo) = (x.h / 8, x.w / 8);
+    let mut out = Chw::zeros(64, ho, wo);
+    for ky in 0..8 {
+        for kx in 0..8 {
+            let c = ky * 8 + kx;
+            for oy in 0..ho {
+                for ox in 0..wo {
+                    out.data[(c * ho + oy) * wo + ox] = x.data[(oy * 8 + ky) * x.w + ox * 8 + kx];
+                }
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Convolution by definition, for the im2col path to be held to.
+    fn conv_reference(x: &Chw, wt: &[f32], cout: usize, k: usize, stride: usize, pad: usize) -> Chw {
+        let ho = (x.h + 2 * pad - k) / stride + 1;
+        let wo = (x.w + 2 * pad - k) / stride + 1;
+        let mut out = Chw::zeros(cout, ho, wo);
+        for co in 0..cout {
+            for oy in 0..ho {
+                for ox in 0..wo {
+                    let mut s = 0.0f64;
+                    for ci in 0..x.c {
+                        for ky in 0..k {
+                            for kx in 0..k {
+                                let iy = (oy * stride + ky) as isize - pad as isize;
+                                let ix = (ox * stride + kx) as isize - pad as isize;
+                                if iy >= 0 && ix >= 0 && (iy as usize) < x.h && (ix as usize) < x.w {
+                                    s += x.data[(ci * x.h + iy as usize) * x.w + ix as usize] as f64 * wt[((co * x.c + ci) * k + ky) * k + kx] as f64;
+                                }
+                            }
+                        }
+                    }
+                    out.data[(co * ho + oy) * wo + ox] = s as f32;
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn conv_matches_definition() {
+        let mut rng = crate::util::SplitMix64::new(3);
+        for &(cin, cout, h, w, k, stride, pad) in &[(1, 4, 37, 45, 3, 1, 1), (5, 7, 33, 40, 3, 2, 1), (6, 3, 50, 47, 1, 1, 0)] {
+            let x = Chw { c: cin, h, w, data: (0..cin * h * w).map(|_| rng.normal() as f32).collect() };
+            let wt: Vec<f32> = (0..cout * cin * k * k).map(|_| rng.normal() as f32).collect();
+            let a = conv2d(&x, &wt, None, cout, k, stride, pad);
+            let b = conv_reference(&x, &wt, cout, k, stride, pad);
+            assert_eq!((a.c, a.h, a.w), (b.c, b.h, b.w));
+            let worst = a.data.iter().zip(&b.data).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
+            assert!(worst < 1e-4, "{worst}");
+        }
+    }
+
+    #[test]
+    fn resize_matches_pytorch_on_a_known_case() {
+        // torch.nn.functional.interpolate(torch.arange(4.).view(1,1,2,2), (4,4), mode="bilinear")
+        let x = Chw { c: 1, h: 2, w: 2, data: vec![0.0, 1.0, 2.0, 3.0] };
+        let y = resize_bilinear(&x, 4, 4);
+        let expected = [0.0, 0.25, 0.75, 1.0, 0.5, 0.75, 1.25, 1.5, 1.5, 1.75, 2.25, 2.5, 2.0, 2.25, 2.75, 3.0];
+        assert_eq!(y.data, expected);
+    }
+}

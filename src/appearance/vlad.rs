@@ -1,0 +1,255 @@
+//! VLAD per object (Jégou, Douze, Schmid & Pérez, CVPR 2010; spec §2.4): each keypoint inside an
+//! object is assigned to its nearest codebook centre, residuals are summed per centre, each
+//! centre's sum is L2-normalised (intra-normalisation), optionally power-normalised, and the
+//! concatenation is L2-normalised. CPU twin of `shaders/vlad_accumulate.wgsl` (`vlad_assign`,
+//! `vlad_accumulate`). The codebook is trained by k-means with k-means++ seeding.
+
+use crate::util::SplitMix64;
+
+/// Lanes of the shader's per-object workgroup; reductions over dimensions use the same strides.
+pub const LANES: usize = 64;
+/// Most centres the shader's per-lane state holds.
+pub const MAX_CENTRES: usize = 64;
+
+/// Uniform parameters, in the shader's field order.
+#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct VladParams {
+    pub centres: u32,
+    pub dim: u32,
+    pub keypoints: u32,
+    pub objects: u32,
+    pub power_norm: u32,
+    pub _pad: [u32; 3],
+}
+
+/// Bindings: `p`, `centres` (k x dim), `descriptors` (n x dim), `assignment` (out, n).
+/// One invocation per keypoint: the nearest centre (ties to the lower index).
+pub fn vlad_assign(p: &VladParams, centres: &[f32], descriptors: &[f32], assignment: &mut [u32]) {
+    let (k, d) = (p.centres as usize, p.dim as usize);
+    for (i, slot) in assignment.iter_mut().enumerate().take(p.keypoints as usize) {
+        let x = &descriptors[i * d..(i + 1) * d];
+        let mut best = (f32::INFINITY, 0u32);
+        for j in 0..k {
+            let c = &centres[j * d..(j + 1) * d];
+            let dist: f32 = x.iter().zip(c).map(|(a, b)| (a - b) * (a - b)).sum();
+            if dist < best.0 {
+                best = (dist, j as u32);
+            }
+        }
+        *slot = best.1;
+    }
+}
+
+/// Sum over lanes l = 0..LANES of f(l), each lane summing its strided indices, then a tree:
+/// the reduction order of the shader.
+fn lane_sum(n: usize, f: impl Fn(usize) -> f32) -> f32 {
+    let mut acc = [0.0f32; LANES];
+    for (l, a) in acc.iter_mut().enumerate() {
+        let mut i = l;
+        while i < n {
+            *a += f(i);
+            i += LANES;
+        }
+    }
+    let mut h = LANES / 2;
+    while h > 0 {
+        for l in 0..h {
+            acc[l] += acc[l + h];
+        }
+        h /= 2;
+    }
+    acc[0]
+}
+
+/// Bindings: `p`, `centres`, `descriptors` (sorted by object), `assignment`, `object_offsets`
+/// (objects + 1: object o owns keypoints offsets[o]..offsets[o + 1]), `out` (objects x k x dim).
+/// One workgroup per object: residual sums, intra-normalisation, optional power
+/// normalisation, L2 normalisation. Objects without keypoints stay zero.
+pub fn vlad_accumulate(p: &VladParams, centres: &[f32], descriptors: &[f32], assignment: &[u32], object_offsets: &[u32], out: &mut [f32]) {
+    let (k, d) = (p.centres as usize, p.dim as usize);
+    for o in 0..p.objects as usize {
+        let v = &mut out[o * k * d..(o + 1) * k * d];
+        v.fill(0.0);
+        let (a, b) = (object_offsets[o] as usize, object_offsets[o + 1] as usize);
+        if a == b {
+            continue;
+        }
+        for i in a..b {
+            let j = assignment[i] as usize;
+            for dd in 0..d {
+                v[j * d + dd] += descriptors[i * d + dd] - centres[j * d + dd];
+            }
+        }
+        for j in 0..k {
+            let block = &mut v[j * d..(j + 1) * d];
+            let norm = lane_sum(d, |dd| block[dd] * block[dd]).sqrt();
+            if norm > 0.0 {
+                block.iter_mut().for_each(|x| *x /= norm);
+            }
+        }
+        if p.power_norm != 0 {
+            v.iter_mut().for_each(|x| *x = x.signum() * x.abs().sqrt());
+        }
+        let norm = lane_sum(k * d, |i| v[i] * v[i]).sqrt();
+        if norm > 0.0 {
+            v.iter_mut().for_each(|x| *x /= norm);
+        }
+    }
+}
+
+/// Reference: VLAD of one object straight from the definition, in f64.
+pub fn vlad_reference(centres: &[f32], k: usize, d: usize, descriptors: &[&[f32]], power_norm: bool) -> Vec<f64> {
+    let mut v = vec![0.0f64; k * d];
+    for x in descriptors {
+        let j = (0..k)
+            .min_by(|&a, &b| {
+                let da: f64 = (0..d).map(|t| (x[t] as f64 - centres[a * d + t] as f64).powi(2)).sum();
+                let db: f64 = (0..d).map(|t| (x[t] as f64 - centres[b * d + t] as f64).powi(2)).sum();
+                da.total_cmp(&db)
+            })
+            .unwrap();
+        for t in 0..d {
+            v[j * d + t] += x[t] as f64 - centres[j * d + t] as f64;
+        }
+    }
+    for j in 0..k {
+        let n = v[j * d..(j + 1) * d].iter().map(|x| x * x).sum::<f64>().sqrt();
+        if n > 0.0 {
+            v[j * d..(j + 1) * d].iter_mut().for_each(|x| *x /= n);
+        }
+    }
+    if power_norm {
+        v.iter_mut().for_each(|x| *x = x.signum() * x.abs().sqrt());
+    }
+    let n = v.iter().map(|x| x * x).sum::<f64>().sqrt();
+    if n > 0.0 {
+        v.iter_mut().for_each(|x| *x /= n);
+    }
+    v
+}
+
+/// A VLAD codebook: `k` centres of `dim` values.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Codebook {
+    pub k: usize,
+    pub dim: usize,
+    pub centres: Vec<f32>,
+}
+
+/// k-means (Lloyd) with k-means++ seeding (Arthur & Vassilvitskii 2007), deterministic from
+/// `seed`. `samples` holds `dim` values per sample; needs at least `k` samples.
+pub fn train_codebook(samples: &[f32], dim: usize, k: usize, iterations: usize, seed: u64) -> Result<Codebook, String> {
+    let n = samples.len() / dim;
+    if n < k || k == 0 {
+        return Err(format!("{n} descriptors cannot train {k} centres"));
+    }
+    let x = |i: usize| &samples[i * dim..(i + 1) * dim];
+    let dist2 = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(p, q)| (p - q) * (p - q)).sum::<f32>();
+    let mut rng = SplitMix64::new(seed);
+    let mut centres: Vec<f32> = x(rng.below(n)).to_vec();
+    let mut nearest: Vec<f32> = (0..n).map(|i| dist2(x(i), &centres[..dim])).collect();
+    while centres.len() < k * dim {
+        let total: f64 = nearest.iter().map(|&v| v as f64).sum();
+        let pick = if total <= 0.0 {
+            rng.below(n)
+        } else {
+            let mut r = rng.next_f64() * total;
+            let mut i = 0;
+            while i + 1 < n && r >= nearest[i] as f64 {
+                r -= nearest[i] as f64;
+                i += 1;
+            }
+            i
+        };
+        let c = x(pick).to_vec();
+        for (i, d) in nearest.iter_mut().enumerate() {
+            *d = d.min(dist2(x(i), &c));
+        }
+        centres.extend(c);
+    }
+    let mut assign = vec![0usize; n];
+    for _ in 0..iterations {
+        let mut changed = false;
+        for (i, a) in assign.iter_mut().enumerate() {
+            let best = (0..k).min_by(|&p, &q| dist2(x(i), &centres[p * dim..(p + 1) * dim]).total_cmp(&dist2(x(i), &centres[q * dim..(q + 1) * dim]))).unwrap();
+            changed |= *a != best;
+            *a = best;
+        }
+        let mut sums = vec![0.0f64; k * dim];
+        let mut counts = vec![0usize; k];
+        for (i, &a) in assign.iter().enumerate() {
+            counts[a] += 1;
+            for t in 0..dim {
+                sums[a * dim + t] += x(i)[t] as f64;
+            }
+        }
+        for j in 0..k {
+            if counts[j] == 0 {
+                // an empty cluster takes the sample farthest from its centre
+                let far = (0..n).max_by(|&p, &q| dist2(x(p), &centres[assign[p] * dim..][..dim]).total_cmp(&dist2(x(q), &centres[assign[q] * dim..][..dim]))).unwrap();
+                centres[j * dim..(j + 1) * dim].copy_from_slice(x(far));
+                changed = true;
+            } else {
+                for t in 0..dim {
+                    centres[j * dim + t] = (sums[j * dim + t] / counts[j] as f64) as f32;
+                }
+            }
+        }
+        if !changed {
+            break;
+        }
+    }
+    Ok(Codebook { k, dim, centres })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(60))]
+        /// The twin's VLAD equals the definition on random objects, with and without power norm.
+        #[test]
+        fn vlad_equals_definition(seed in any::<u64>(), k in 1usize..6, d in 1usize..70, objects in 1usize..5, power in any::<bool>()) {
+            let mut rng = SplitMix64::new(seed);
+            let centres: Vec<f32> = (0..k * d).map(|_| rng.normal() as f32).collect();
+            let counts: Vec<usize> = (0..objects).map(|_| rng.below(6)).collect();
+            let n: usize = counts.iter().sum();
+            let descs: Vec<f32> = (0..n * d).map(|_| rng.normal() as f32).collect();
+            let mut offsets = vec![0u32];
+            for c in &counts { offsets.push(offsets.last().unwrap() + *c as u32); }
+            let p = VladParams { centres: k as u32, dim: d as u32, keypoints: n as u32, objects: objects as u32, power_norm: power as u32, _pad: [0; 3] };
+            let mut assign = vec![0u32; n];
+            vlad_assign(&p, &centres, &descs, &mut assign);
+            let mut out = vec![0.0f32; objects * k * d];
+            vlad_accumulate(&p, &centres, &descs, &assign, &offsets, &mut out);
+            for o in 0..objects {
+                let (a, b) = (offsets[o] as usize, offsets[o + 1] as usize);
+                let mine: Vec<&[f32]> = (a..b).map(|i| &descs[i * d..(i + 1) * d]).collect();
+                let r = vlad_reference(&centres, k, d, &mine, power);
+                for (x, y) in out[o * k * d..(o + 1) * k * d].iter().zip(&r) {
+                    prop_assert!((*x as f64 - y).abs() < 1e-4, "{x} vs {y}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn kmeans_finds_separated_clusters_deterministically() {
+        let mut rng = SplitMix64::new(9);
+        let mut s = Vec::new();
+        for c in [[0.0f32, 0.0], [10.0, 0.0], [0.0, 10.0]] {
+            for _ in 0..50 {
+                s.extend([c[0] + rng.normal() as f32 * 0.1, c[1] + rng.normal() as f32 * 0.1]);
+            }
+        }
+        let a = train_codebook(&s, 2, 3, 20, 5).unwrap();
+        assert_eq!(a, train_codebook(&s, 2, 3, 20, 5).unwrap());
+        let mut found: Vec<(i32, i32)> = a.centres.chunks(2).map(|c| (c[0].round() as i32, c[1].round() as i32)).collect();
+        found.sort();
+        assert_eq!(found, vec![(0, 0), (0, 10), (10, 0)]);
+        assert!(train_codebook(&s[..4], 2, 3, 5, 1).is_err());
+    }
+}
