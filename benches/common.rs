@@ -22,7 +22,7 @@ pub fn street_labels(n: usize, w: usize, h: usize, cond: Condition) -> Vec<Label
 }
 
 pub fn encode_all(cfg: &Config, maps: &[LabelMap]) -> Vec<EncodedImage> {
-    let enc = Encoder::new(&cfg.encoding()).unwrap();
+    let enc = Encoder::new(cfg).unwrap();
     let mut scratch = Default::default();
     maps.iter().enumerate().map(|(i, m)| enc.encode_labels(&format!("f{i}"), m, &mut scratch).unwrap().0).collect()
 }

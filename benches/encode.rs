@@ -10,9 +10,9 @@ use semlook::synth::condition::Condition;
 mod common;
 
 fn bench(c: &mut Criterion) {
-    let cfg = Config::default();
+    let cfg = Config::without_appearance();
     let maps = common::street_labels(4, 640, 480, Condition::Day);
-    let enc = Encoder::new(&cfg.encoding()).unwrap();
+    let enc = Encoder::new(&cfg).unwrap();
     let table = enc.class_table().clone();
     let p = SsimParams::new(&cfg.global);
     let mut g = c.benchmark_group("encode_640x480");

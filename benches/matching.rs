@@ -13,7 +13,7 @@ use semlook::synth::condition::Condition;
 mod common;
 
 fn bench(c: &mut Criterion) {
-    let cfg = Config::default();
+    let cfg = Config::without_appearance();
     let images = common::encode_all(&cfg, &common::street_labels(32, 640, 480, Condition::Day));
     let queries = common::map_of(&cfg, &common::encode_all(&cfg, &common::street_labels(4, 640, 480, Condition::Night)), 4);
     let p = SsimParams::new(&cfg.global);

@@ -193,7 +193,7 @@ pub fn street_descriptors(cfg: &Config, n: usize, cond: crate::synth::condition:
     let scfg = SynthConfig { places: n, width: 320, height: 240, ..Default::default() };
     let scene = synth::Scene::new(&scfg);
     let dynamic = synth::dynamic_objects(&scene.world, scfg.seed, traversal, scfg.persistence);
-    let enc = crate::encode::Encoder::new(&cfg.encoding())?;
+    let enc = crate::encode::Encoder::new(&Config { appearance: crate::config::AppearanceConfig { model: crate::config::AppearanceModelKind::None, ..cfg.appearance.clone() }, ..cfg.clone() })?;
     let table = enc.class_table().clone();
     use rayon::prelude::*;
     let images: Vec<_> = (0..n)

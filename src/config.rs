@@ -17,6 +17,9 @@ pub struct Config {
     pub objects: ObjectsConfig,
     pub global: GlobalConfig,
     pub local: LocalConfig,
+    pub appearance: AppearanceConfig,
+    pub segmentation: SegmentationConfig,
+    pub models: ModelPaths,
     pub similarity: SimilarityConfig,
     pub matching: MatchingConfig,
     pub eval: EvalConfig,
@@ -29,6 +32,8 @@ pub struct EncodingConfig {
     pub objects: ObjectsConfig,
     pub global: GlobalConfig,
     pub local: LocalConfig,
+    pub appearance: AppearanceConfig,
+    pub segmentation: SegmentationConfig,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -152,6 +157,98 @@ impl Default for LocalConfig {
     }
 }
 
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AppearanceModelKind {
+    /// XFeat run natively from the authors' weights (`models.xfeat_weights`).
+    Xfeat,
+    /// Any ONNX keypoint network with SuperPoint's output layout (`models.keypoint_onnx`).
+    Onnx,
+    /// No appearance: trees carry class, area, position and neighbours only.
+    None,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AppearanceConfig {
+    /// Keypoint network: "xfeat" (default), "onnx" or "none".
+    pub model: AppearanceModelKind,
+    /// Non-maximum suppression radius in pixels. [X] SuperPoint demo: 4.
+    pub nms_radius: usize,
+    /// Keypoints scoring (probability x reliability) at or below this are dropped. [R]
+    pub score_threshold: f64,
+    /// At most this many keypoints per image, best first. [R]
+    pub max_keypoints: usize,
+    /// Keypoints this close to the border are dropped. [X] SuperPoint demo: 4.
+    pub border: usize,
+    /// VLAD codebook size Kv. [R] 16.
+    pub vlad_centres: usize,
+    /// Signed square root of the VLAD vector before the final L2 normalisation. [R] off.
+    pub power_norm: bool,
+    /// Codebook training: reference images sampled, descriptors kept per image, Lloyd
+    /// iterations and seed. [R]
+    pub codebook_images: usize,
+    pub codebook_samples_per_image: usize,
+    pub codebook_iterations: usize,
+    pub codebook_seed: u64,
+}
+
+impl Default for AppearanceConfig {
+    fn default() -> Self {
+        AppearanceConfig {
+            model: AppearanceModelKind::Xfeat,
+            nms_radius: 4,
+            score_threshold: 0.005,
+            max_keypoints: 1024,
+            border: 4,
+            vlad_centres: 16,
+            power_norm: false,
+            codebook_images: 48,
+            codebook_samples_per_image: 128,
+            codebook_iterations: 20,
+            codebook_seed: 1,
+        }
+    }
+}
+
+/// How a segmentation network's input is prepared and its output read (used when a frame has
+/// no label map and `models.segmenter_onnx` is set). Defaults fit ESPNet's Cityscapes export.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SegmentationConfig {
+    /// Network input size (the image is resized to it); multiples of 32 for most networks.
+    pub input_width: usize,
+    pub input_height: usize,
+    /// input = (pixel * scale - mean) / std per channel, pixel in 0..255.
+    pub scale: f64,
+    pub mean: [f64; 3],
+    pub std: [f64; 3],
+    /// Channel order fed to the network.
+    pub bgr: bool,
+    /// Class of each output channel ("void" for ignore), in the class table's names.
+    pub class_map: Vec<String>,
+}
+
+impl Default for SegmentationConfig {
+    fn default() -> Self {
+        let mut class_map: Vec<String> = crate::classes::CITYSCAPES.iter().map(|c| c.0.to_string()).collect();
+        class_map.push("void".into());
+        SegmentationConfig { input_width: 1024, input_height: 512, scale: 1.0, mean: [0.0; 3], std: [1.0; 3], bgr: false, class_map }
+    }
+}
+
+/// Where model files are. Empty paths are looked up in $SEMLOOK_MODELS, then in the `.semlook`
+/// folder that `setup.sh` fills. Not part of a map's encoding (maps record file checksums).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct ModelPaths {
+    pub xfeat_weights: Option<std::path::PathBuf>,
+    pub keypoint_onnx: Option<std::path::PathBuf>,
+    pub segmenter_onnx: Option<std::path::PathBuf>,
+    /// The ONNX Runtime shared library (else $ORT_DYLIB_PATH, then the setup folder).
+    pub onnxruntime: Option<std::path::PathBuf>,
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SimilarityConfig {
@@ -273,7 +370,14 @@ impl Config {
             objects: self.objects.clone(),
             global: self.global.clone(),
             local: self.local.clone(),
+            appearance: self.appearance.clone(),
+            segmentation: self.segmentation.clone(),
         }
+    }
+
+    /// The defaults without appearance (label maps alone suffice to encode).
+    pub fn without_appearance() -> Config {
+        Config { appearance: AppearanceConfig { model: AppearanceModelKind::None, ..Default::default() }, ..Default::default() }
     }
 
     /// Replaces the encoding sections with those a map was built with.
@@ -282,6 +386,8 @@ impl Config {
         self.objects = enc.objects.clone();
         self.global = enc.global.clone();
         self.local = enc.local.clone();
+        self.appearance = enc.appearance.clone();
+        self.segmentation = enc.segmentation.clone();
         self
     }
 
@@ -321,6 +427,22 @@ impl Config {
         }
         finite_in("global.ssim_k1", g.ssim_k1, 1e-6, 1.0)?;
         finite_in("global.ssim_k2", g.ssim_k2, 1e-6, 1.0)?;
+        let a = &self.appearance;
+        finite_in("appearance.score_threshold", a.score_threshold, 0.0, 1.0)?;
+        if a.max_keypoints == 0 || a.vlad_centres == 0 || a.vlad_centres > 64 || a.codebook_images == 0 || a.codebook_samples_per_image == 0 {
+            return bad("appearance: max_keypoints, codebook_images and codebook_samples_per_image must be positive, vlad_centres in 1..=64".into());
+        }
+        let sg = &self.segmentation;
+        if sg.input_width < 32 || sg.input_height < 32 || sg.class_map.is_empty() {
+            return bad("segmentation: input at least 32x32 and a non-empty class_map".into());
+        }
+        finite_in("segmentation.scale", sg.scale, 1e-6, 1e6)?;
+        for v in sg.mean.iter().chain(&sg.std) {
+            finite_in("segmentation.mean/std", *v, -1e6, 1e6)?;
+        }
+        if sg.std.contains(&0.0) {
+            return bad("segmentation.std must not be zero".into());
+        }
         if self.local.neighbours > 8 {
             return bad(format!("local.neighbours = {} must be at most 8", self.local.neighbours));
         }

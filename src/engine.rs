@@ -5,11 +5,11 @@
 //! never picks it; `gpu` accepts it, which is what the equivalence tests run on).
 
 use crate::config::Config;
-use crate::encode::{EncodedImage, Encoder, StageTimes};
+use crate::encode::{EncodedImage, Encoder, Loaded, Pending, StageTimes};
 use crate::error::Result;
 use crate::global::ssim::SsimParams;
-use crate::gpu::{coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, GpuContext, GpuOptions};
-use crate::input::{self, FrameSource, LabelFormat, LabelMap};
+use crate::gpu::{coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, vlad::VladGpu, GpuContext, GpuOptions};
+use crate::input::{FrameSource, LabelFormat, LabelMap};
 use crate::local::tree_similarity::TreeSimParams;
 use crate::map::DescriptorSet;
 use crate::matching::{match_with, source::{GlobalSource, RefSource}, CpuStages, MatchTimes, QueryMatch, Setting, Stages};
@@ -37,11 +37,12 @@ pub struct GpuStages {
     encoder: GlobalEncoderGpu,
     coarse: Option<(SsimParams, CoarseMatcherGpu)>,
     fine: FineMatcherGpu,
+    vlad: VladGpu,
 }
 
 impl GpuStages {
     pub fn new(ctx: Arc<GpuContext>) -> Self {
-        GpuStages { encoder: GlobalEncoderGpu::new(ctx.clone()), fine: FineMatcherGpu::new(ctx.clone()), coarse: None, ctx }
+        GpuStages { encoder: GlobalEncoderGpu::new(ctx.clone()), fine: FineMatcherGpu::new(ctx.clone()), vlad: VladGpu::new(ctx.clone()), coarse: None, ctx }
     }
 
     fn coarse_for(&mut self, p: &SsimParams) -> Result<&mut CoarseMatcherGpu> {
@@ -119,62 +120,63 @@ impl Engine {
     }
 
     /// Encodes frames, in input order; `tick` is called per frame. Per-frame input errors are
-    /// returned per frame; a GPU failure fails the whole call. On the GPU, label maps are decoded
-    /// in parallel on the CPU, their global descriptors computed in batches of one size on the
-    /// GPU, and statistics, objects and forests finished on the CPU.
+    /// returned per frame; a GPU failure fails the whole call. On the GPU, frames are decoded in
+    /// parallel on the CPU; for each batch of one size the global descriptors are computed on the
+    /// GPU, objects, forests and the keypoint network run on the CPU, and the per-object VLAD of
+    /// the whole batch runs on the GPU.
     pub fn encode_all(&mut self, encoder: &Encoder, sources: &[FrameSource], format: LabelFormat, tick: &(dyn Fn() + Sync)) -> Result<Vec<Result<(EncodedImage, StageTimes)>>> {
         let Some(g) = &mut self.gpu else {
             return Ok(encoder.encode_all(sources, format, tick));
         };
         let mut out: Vec<Option<Result<(EncodedImage, StageTimes)>>> = (0..sources.len()).map(|_| None).collect();
-        let mut maps: Vec<Option<(LabelMap, f64)>> = Vec::with_capacity(sources.len());
-        let loaded: Vec<(Result<LabelMap>, f64)> = sources
-            .par_iter()
-            .map(|s| {
-                let t = Instant::now();
-                let r = input::load_frame_labels(s, encoder.class_table(), format);
-                (r, ms_since(t))
-            })
-            .collect();
-        for (i, (r, ms)) in loaded.into_iter().enumerate() {
+        let mut loaded: Vec<Option<Loaded>> = Vec::with_capacity(sources.len());
+        for (i, r) in sources.par_iter().map(|s| encoder.load(s, format)).collect::<Vec<_>>().into_iter().enumerate() {
             match r {
-                Ok(m) => maps.push(Some((m, ms))),
+                Ok(l) => loaded.push(Some(l)),
                 Err(e) => {
                     out[i] = Some(Err(e));
-                    maps.push(None);
+                    loaded.push(None);
                     tick();
                 }
             }
         }
         let mut i = 0;
-        while i < maps.len() {
-            let Some((first, _)) = &maps[i] else {
+        while i < loaded.len() {
+            let Some(first) = &loaded[i] else {
                 i += 1;
                 continue;
             };
-            let size = (first.width(), first.height());
+            let size = (first.labels.width(), first.labels.height());
             let cap = g.encoder.max_batch(size.0, size.1).clamp(1, 32);
             let mut j = i;
-            while j < maps.len() && j - i < cap && maps[j].as_ref().is_some_and(|(m, _)| (m.width(), m.height()) == size) {
+            while j < loaded.len() && j - i < cap && loaded[j].as_ref().is_some_and(|l| (l.labels.width(), l.labels.height()) == size) {
                 j += 1;
             }
-            let batch: Vec<&LabelMap> = maps[i..j].iter().map(|m| &m.as_ref().unwrap().0).collect();
+            let batch: Vec<&Loaded> = loaded[i..j].iter().map(|l| l.as_ref().unwrap()).collect();
+            let maps: Vec<&LabelMap> = batch.iter().map(|l| &l.labels).collect();
             let t = Instant::now();
-            let globals = g.encoder.encode(&batch, encoder.used_mask(), &encoder.config().global)?;
+            let globals = g.encoder.encode(&maps, encoder.used_mask(), &encoder.config().global)?;
             let per = ms_since(t) / batch.len() as f64;
-            let done: Vec<(EncodedImage, StageTimes)> = globals
+            let pending: Vec<Result<Pending>> = globals
                 .into_par_iter()
                 .zip(batch.par_iter())
                 .enumerate()
-                .map(|(k, (glob, m))| {
-                    let (img, mut times) = encoder.encode_with_global(&sources[i + k].id, m, glob, per);
-                    times.load_ms = maps[i + k].as_ref().unwrap().1;
-                    tick();
-                    (img, times)
-                })
+                .map(|(k, (glob, l))| encoder.encode_rest(&sources[i + k].id, l, glob, None, per))
                 .collect();
-            for (k, d) in done.into_iter().enumerate() {
-                out[i + k] = Some(Ok(d));
+            // VLAD of every frame of the batch in one GPU pass
+            let inputs: Vec<(&[f32], &[u32])> = pending.iter().filter_map(|p| p.as_ref().ok()).filter_map(|p| p.vlad.as_ref()).map(|v| (v.descriptors.as_slice(), v.offsets.as_slice())).collect();
+            let t = Instant::now();
+            let mut vlads = match (encoder.codebook(), inputs.is_empty()) {
+                (Some(cb), false) => g.vlad.run(cb, encoder.config().appearance.power_norm, &inputs)?.into_iter(),
+                _ => Vec::new().into_iter(),
+            };
+            let vlad_ms = ms_since(t) / batch.len() as f64;
+            for (k, p) in pending.into_iter().enumerate() {
+                out[i + k] = Some(p.map(|p| {
+                    let v = if p.vlad.is_some() { vlads.next() } else { None };
+                    encoder.finish(p, v, vlad_ms)
+                }));
+                tick();
             }
             i = j;
         }

@@ -49,6 +49,8 @@ pub enum Error {
     InvalidInput { what: String, reason: String },
     #[error(transparent)]
     Gpu(#[from] crate::gpu::GpuError),
+    #[error("model {path}: {reason}")]
+    Model { path: PathBuf, reason: String },
 }
 
 /// Short constructors for the common variants.

@@ -11,26 +11,28 @@
 //! fine re-ranking) -> [`eval`] (VPR-Bench metrics). [`synth`] renders a procedural benchmark.
 //!
 //! ```no_run
-//! use semlook::{config::Config, encode::Encoder, map::DescriptorSet, matching::{match_batch, Setting}};
+//! use semlook::{config::Config, encode::Encoder, matching::{match_batch, Setting}};
 //! # fn main() -> semlook::error::Result<()> {
-//! let cfg = Config::default();
-//! let encoder = Encoder::new(&cfg.encoding())?;
+//! // label maps only; with appearance (the default), see `Encoder::load` and `train_codebook`
+//! let cfg = Config::without_appearance();
+//! let encoder = Encoder::new(&cfg)?;
 //! let table = encoder.class_table().clone();
 //! let fmt = semlook::input::LabelFormat::Auto;
 //! let mut scratch = Default::default();
-//! let mut refs = DescriptorSet::new(&encoder.ssim_params(), cfg.local.neighbours, 0);
+//! let mut refs = encoder.descriptor_set();
 //! for (i, path) in ["a.png", "b.png"].iter().enumerate() {
 //!     let labels = semlook::input::load_label_map(path.as_ref(), &table, fmt)?;
 //!     refs.push(&encoder.encode_labels(&format!("ref{i}"), &labels, &mut scratch)?.0);
 //! }
 //! let labels = semlook::input::load_label_map("query.png".as_ref(), &table, fmt)?;
-//! let mut queries = DescriptorSet::new(&encoder.ssim_params(), cfg.local.neighbours, 0);
+//! let mut queries = encoder.descriptor_set();
 //! queries.push(&encoder.encode_labels("q", &labels, &mut scratch)?.0);
 //! let (matches, _) = match_batch(&refs, &queries, Setting::Semlook, &cfg);
 //! println!("best reference: {:?}", matches[0].best());
 //! # Ok(()) }
 //! ```
 
+pub mod appearance;
 pub mod bench;
 pub mod classes;
 pub mod config;
@@ -45,7 +47,9 @@ pub mod local;
 pub mod map;
 pub mod matching;
 pub mod objects;
+pub mod onnx;
 pub mod progress;
+pub mod segmentation;
 pub mod util;
 
 pub use error::{Error, Result};

@@ -27,36 +27,67 @@ fn config_prints_a_loadable_default() {
 }
 
 #[test]
-fn build_add_info_query_and_eval() {
+fn build_add_info_query_and_eval_without_appearance() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
     ok(&["synth", "--out", p(&data), "--places", "6", "--size", "160x120", "--query", "overcast", "--query", "fog", "-q"]);
     let map = dir.path().join("map");
-    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "-q"]);
+    let na = "--no-appearance";
+    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), na, "-q"]);
     // building again into the same directory is refused; --force replaces it
-    assert!(!semlook(&["map", "build", "--dataset", p(&data), "--out", p(&map), "-q"]).status.success());
-    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--force", "-q"]);
-    ok(&["map", "add", "--dataset", p(&data), "--traversal", "fog", "--map", p(&map), "-q"]);
+    assert!(!semlook(&["map", "build", "--dataset", p(&data), "--out", p(&map), na, "-q"]).status.success());
+    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--force", na, "-q"]);
+    ok(&["map", "add", "--dataset", p(&data), "--traversal", "fog", "--map", p(&map), na, "-q"]);
     let info: serde_json::Value = serde_json::from_str(&ok(&["map", "info", "--map", p(&map), "--json"])).unwrap();
     assert_eq!(info["images"], 12);
     assert_eq!(info["segments"].as_array().unwrap().len(), 2);
+    assert_eq!(info["appearance_dim"], 0);
 
     let labels = data.join("overcast/GT/LABELS/Stereo_Left/Omni_F");
     let images = data.join("overcast/RGB/Stereo_Left/Omni_F");
-    let csv = ok(&["query", "--map", p(&map), "--images", p(&images), "--labels", p(&labels), "-q"]);
+    let csv = ok(&["query", "--map", p(&map), "--images", p(&images), "--labels", p(&labels), na, "-q"]);
     let lines: Vec<&str> = csv.lines().collect();
     assert_eq!(lines[0], "query,best_reference,score,coarse,fine,top_k");
     assert_eq!(lines.len(), 7);
-    let json: serde_json::Value = serde_json::from_str(&ok(&["query", "--map", p(&map), "--labels", p(&labels), "--json", "--setting", "forest", "-q"])).unwrap();
+    let json: serde_json::Value = serde_json::from_str(&ok(&["query", "--map", p(&map), "--labels", p(&labels), "--json", "--setting", "forest", na, "-q"])).unwrap();
     assert_eq!(json.as_array().unwrap().len(), 6);
     assert!(json[0]["top_k"].as_array().unwrap().len() >= 10);
 
-    let report: serde_json::Value = serde_json::from_str(&ok(&["eval", "--dataset", p(&data), "--setting", "semlook", "--json", "-q"])).unwrap();
+    let report: serde_json::Value = serde_json::from_str(&ok(&["eval", "--dataset", p(&data), "--setting", "semlook", "--json", na, "-q"])).unwrap();
     let results = report["results"].as_array().unwrap();
     assert_eq!(results.len(), 2);
     assert_eq!(results[0]["setting"], "semlook");
     assert_eq!(results[0]["outcomes"].as_array().unwrap().len(), 6);
     assert!(results[0]["auc"].as_f64().unwrap() >= 0.0);
+}
+
+/// With XFeat appearance (the default): the map stores a codebook and the network's checksum,
+/// queries with images work, and queries encoded without appearance are refused.
+#[test]
+fn appearance_through_the_cli() {
+    if !semlook::onnx::models_dir().join(semlook::appearance::XFEAT_WEIGHTS).exists() {
+        assert!(std::env::var_os("CI").is_none(), "setup.sh must provide the XFeat weights under CI");
+        eprintln!("SKIPPED: no XFeat weights (run setup.sh)");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    ok(&["synth", "--out", p(&data), "--places", "5", "--size", "160x128", "--query", "night", "-q"]);
+    let map = dir.path().join("map");
+    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "-q"]);
+    let info: serde_json::Value = serde_json::from_str(&ok(&["map", "info", "--map", p(&map), "--json"])).unwrap();
+    assert_eq!(info["appearance_dim"], 16 * 64);
+    assert!(map.join("codebook.safetensors").exists());
+    let labels = data.join("night/GT/LABELS/Stereo_Left/Omni_F");
+    let images = data.join("night/RGB/Stereo_Left/Omni_F");
+    let json: serde_json::Value = serde_json::from_str(&ok(&["query", "--map", p(&map), "--images", p(&images), "--labels", p(&labels), "--json", "-q"])).unwrap();
+    assert_eq!(json.as_array().unwrap().len(), 5);
+    let refused = semlook(&["query", "--map", p(&map), "--labels", p(&labels), "--no-appearance", "-q"]);
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("appearance"));
+    let report: serde_json::Value = serde_json::from_str(&ok(&["eval", "--dataset", p(&data), "--map", p(&map), "--setting", "semlook", "--json", "-q"])).unwrap();
+    assert_eq!(report["results"][0]["outcomes"].as_array().unwrap().len(), 5);
+    assert!(report["query_encoding"]["network_ms"].as_f64().unwrap() > 0.0);
 }
 
 #[test]

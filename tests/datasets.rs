@@ -53,7 +53,7 @@ fn folders_layout_like_extended_cmu_seasons() {
     let loose = Dataset::open(root, &DatasetOptions { max_distance: Some(5.0), ..Default::default() }).unwrap();
     assert_eq!(loose.ground_truth(&loose.queries[0]).unwrap(), vec![vec![0], vec![1]]);
     // the pipeline runs on it
-    let cfg = semlook::config::Config::default();
+    let cfg = semlook::config::Config::without_appearance();
     let rep = semlook::eval::evaluate(&ds, &cfg, &semlook::eval::EvalOptions { settings: vec![semlook::matching::Setting::Semlook], map: None, skip_invalid: false, quiet: true }, &mut semlook::engine::Engine::cpu()).unwrap();
     assert_eq!(rep.results[0].queries_without_ground_truth, 1);
 }

@@ -90,10 +90,10 @@ fn sixteen_bit_and_first_channel_ids_decode() {
 #[test]
 fn a_failed_add_loses_nothing_already_stored() {
     let dir = tempfile::tempdir().unwrap();
-    let cfg = Config::default();
+    let cfg = Config::without_appearance();
     let path = dir.path().join("map");
     let set = common::encode(&cfg, &common::label_maps(4, 64, 48), "ref");
-    Map::create(&path, &cfg.encoding(), &set).unwrap();
+    Map::create(&path, &cfg.encoding(), &set, None).unwrap();
     let before = common::snapshot(&path);
     // a batch with one good and one bad file: encoding fails before anything is written
     let good = dir.path().join("good.png");
@@ -104,7 +104,7 @@ fn a_failed_add_loses_nothing_already_stored() {
         FrameSource { id: "good".into(), image: None, labels: Some(good) },
         FrameSource { id: "bad".into(), image: None, labels: Some(bad) },
     ];
-    let enc = Encoder::new(&cfg.encoding()).unwrap();
+    let enc = Encoder::new(&cfg).unwrap();
     let results = enc.encode_all(&sources, LabelFormat::Auto, &|| {});
     let err = semlook::encode::collect_encoded(results, false).unwrap_err();
     assert!(err.to_string().contains("bad.png"), "{err}");

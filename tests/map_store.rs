@@ -7,9 +7,9 @@ use semlook::error::Error;
 use semlook::map::Map;
 
 fn built(dir: &std::path::Path) -> (Config, Map) {
-    let cfg = Config::default();
+    let cfg = Config::without_appearance();
     let set = common::encode(&cfg, &common::label_maps(6, 96, 72), "ref");
-    (cfg.clone(), Map::create(dir, &cfg.encoding(), &set).unwrap())
+    (cfg.clone(), Map::create(dir, &cfg.encoding(), &set, None).unwrap())
 }
 
 #[test]
@@ -100,14 +100,14 @@ fn damaged_maps_are_refused() {
     // a segment whose checksum matches but whose contents break the invariants
     let mut set = Map::open(&path).unwrap().to_descriptor_set();
     set.tree_neighbours[0] = 9999;
-    let cfg = Config::default();
+    let cfg = Config::without_appearance();
     let other = dir.path().join("other");
-    Map::create(&other, &cfg.encoding(), &set).unwrap();
+    Map::create(&other, &cfg.encoding(), &set, None).unwrap();
     expect_corrupt(&other, "neighbour index out of range");
     let mut set = Map::open(&path).unwrap().to_descriptor_set();
     set.globals[5] = f32::NAN;
     let nan = dir.path().join("nan");
-    Map::create(&nan, &cfg.encoding(), &set).unwrap();
+    Map::create(&nan, &cfg.encoding(), &set, None).unwrap();
     expect_corrupt(&nan, "NaN descriptor");
 
     std::fs::remove_file(&seg).unwrap();
@@ -140,7 +140,7 @@ fn create_refuses_a_non_empty_directory_and_a_held_lock() {
     let path = dir.path().join("m");
     let (cfg, mut map) = built(&path);
     let set = common::encode(&cfg, &common::label_maps(1, 64, 48), "x");
-    assert!(Map::create(&path, &cfg.encoding(), &set).is_err());
+    assert!(Map::create(&path, &cfg.encoding(), &set, None).is_err());
     std::fs::write(path.join(".lock"), "1").unwrap();
     let err = map.add(&set).unwrap_err();
     assert!(err.to_string().contains(".lock"), "{err}");
@@ -151,7 +151,7 @@ fn segmented_maps_stream_and_match_like_one_set() {
     use semlook::matching::source::{GlobalSource, RefSource, TileBuf};
     use semlook::matching::{match_batch, Setting};
     let dir = tempfile::tempdir().unwrap();
-    let cfg = Config::default();
+    let cfg = Config::without_appearance();
     let set = common::encode(&cfg, &common::label_maps(10, 80, 60), "r");
     let mut map = Map::new(&dir.path().join("m"), &cfg.encoding(), 0);
     std::fs::create_dir_all(dir.path().join("m")).unwrap();

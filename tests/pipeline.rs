@@ -41,7 +41,7 @@ fn synth_layout_is_read_with_and_without_the_manifest() {
 
 #[test]
 fn a_map_queried_with_itself_finds_itself_in_every_setting() {
-    let cfg = Config::default();
+    let cfg = Config::without_appearance();
     let refs = common::encode(&cfg, &common::label_maps(12, 120, 90), "r");
     for setting in Setting::ALL {
         let (m, _) = match_batch(&refs, &refs, setting, &cfg);
@@ -61,7 +61,7 @@ fn a_map_queried_with_itself_finds_itself_in_every_setting() {
 
 #[test]
 fn streaming_top_k_does_not_depend_on_the_tile_size() {
-    let cfg = Config::default();
+    let cfg = Config::without_appearance();
     let refs = common::encode(&cfg, &common::label_maps(23, 80, 60), "r");
     let queries = common::encode(&cfg, &common::label_maps(5, 80, 60), "q");
     let p = SsimParams::new(&cfg.global);
@@ -77,7 +77,7 @@ fn evaluation_on_a_tiny_benchmark_reports_every_setting() {
     let dir = tempfile::tempdir().unwrap();
     common::tiny_synth(dir.path(), 12, 5);
     let ds = Dataset::open(dir.path(), &DatasetOptions::default()).unwrap();
-    let cfg = Config::default();
+    let cfg = Config::without_appearance();
     let report = evaluate(&ds, &cfg, &EvalOptions { settings: Setting::ALL.to_vec(), map: None, skip_invalid: false, quiet: true }, &mut semlook::engine::Engine::cpu()).unwrap();
     assert_eq!(report.results.len(), 2 * Setting::ALL.len());
     assert_eq!(report.references, 12);

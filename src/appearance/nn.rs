@@ -31,8 +31,54 @@ impl Chw {
 /// Columns per im2col band: bounds the scratch of one band (k*k*Cin x BAND floats).
 const BAND: usize = 1024;
 
+/// im2col of output columns [b0, b1) into `cols` (cin*k*k rows of b1 - b0), copying row
+/// segments rather than single elements.
+#[allow(clippy::too_many_arguments)]
+fn im2col_band(x: &Chw, k: usize, stride: usize, pad: usize, wo: usize, b0: usize, b1: usize, cols: &mut [f32]) {
+    let (h, w) = (x.h as isize, x.w as isize);
+    let nb = b1 - b0;
+    for ci in 0..x.c {
+        let src = x.plane(ci);
+        for ky in 0..k {
+            for kx in 0..k {
+                let row = &mut cols[((ci * k + ky) * k + kx) * nb..][..nb];
+                let mut p = b0;
+                while p < b1 {
+                    let (oy, ox0) = (p / wo, p % wo);
+                    let ox1 = wo.min(ox0 + (b1 - p));
+                    let dst = &mut row[p - b0..p - b0 + (ox1 - ox0)];
+                    let iy = (oy * stride + ky) as isize - pad as isize;
+                    if iy < 0 || iy >= h {
+                        dst.fill(0.0);
+                    } else {
+                        let line = &src[iy as usize * x.w..(iy as usize + 1) * x.w];
+                        if stride == 1 {
+                            // ix = ox + kx - pad: one contiguous run, zeros where it leaves the row
+                            let first = ox0 as isize + kx as isize - pad as isize;
+                            let lo = (-first).clamp(0, dst.len() as isize) as usize;
+                            let hi = (w - first).clamp(lo as isize, dst.len() as isize) as usize;
+                            dst[..lo].fill(0.0);
+                            dst[hi..].fill(0.0);
+                            if hi > lo {
+                                let s0 = (first + lo as isize) as usize;
+                                dst[lo..hi].copy_from_slice(&line[s0..s0 + (hi - lo)]);
+                            }
+                        } else {
+                            for (j, slot) in dst.iter_mut().enumerate() {
+                                let ix = ((ox0 + j) * stride + kx) as isize - pad as isize;
+                                *slot = if ix >= 0 && ix < w { line[ix as usize] } else { 0.0 };
+                            }
+                        }
+                    }
+                    p += ox1 - ox0;
+                }
+            }
+        }
+    }
+}
+
 /// 2-D convolution of `x` with `weight` [cout, cin, k, k], square stride and zero padding, plus
-/// an optional bias.
+/// an optional bias. A 1x1 convolution with stride 1 multiplies the input directly.
 pub fn conv2d(x: &Chw, weight: &[f32], bias: Option<&[f32]>, cout: usize, k: usize, stride: usize, pad: usize) -> Chw {
     let (cin, h, w) = (x.c, x.h, x.w);
     assert_eq!(weight.len(), cout * cin * k * k, "weight size");
@@ -40,6 +86,7 @@ pub fn conv2d(x: &Chw, weight: &[f32], bias: Option<&[f32]>, cout: usize, k: usi
     let wo = (w + 2 * pad - k) / stride + 1;
     let n = ho * wo;
     let kk = cin * k * k;
+    let direct = k == 1 && stride == 1 && pad == 0;
     let mut out = Chw::zeros(cout, ho, wo);
     // each band computes output columns [b0, b1) of every output channel
     let bands: Vec<(usize, Vec<f32>)> = (0..n.div_ceil(BAND))
@@ -47,30 +94,21 @@ pub fn conv2d(x: &Chw, weight: &[f32], bias: Option<&[f32]>, cout: usize, k: usi
         .map(|band| {
             let (b0, b1) = (band * BAND, ((band + 1) * BAND).min(n));
             let nb = b1 - b0;
-            let mut cols = vec![0.0f32; kk * nb];
-            for ci in 0..cin {
-                let src = x.plane(ci);
-                for ky in 0..k {
-                    for kx in 0..k {
-                        let row = &mut cols[((ci * k + ky) * k + kx) * nb..][..nb];
-                        for (j, slot) in row.iter_mut().enumerate() {
-                            let p = b0 + j;
-                            let (oy, ox) = (p / wo, p % wo);
-                            let iy = (oy * stride + ky) as isize - pad as isize;
-                            let ix = (ox * stride + kx) as isize - pad as isize;
-                            if iy >= 0 && ix >= 0 && (iy as usize) < h && (ix as usize) < w {
-                                *slot = src[iy as usize * w + ix as usize];
-                            }
-                        }
-                    }
-                }
-            }
             let mut res = vec![0.0f32; cout * nb];
-            // res[cout x nb] = weight[cout x kk] * cols[kk x nb]
+            let cols;
+            // B = cols [kk x nb] (row stride nb), or the input itself (row stride n, offset b0)
+            let (b_ptr, rsb) = if direct {
+                (x.data[b0..].as_ptr(), n as isize)
+            } else {
+                let mut c = vec![0.0f32; kk * nb];
+                im2col_band(x, k, stride, pad, wo, b0, b1, &mut c);
+                cols = c;
+                (cols.as_ptr(), nb as isize)
+            };
+            // SAFETY: a is cout x kk, b is kk x nb with the row stride given, c is cout x nb; all
+            // three live for the call and c does not alias them.
             unsafe {
-                matrixmultiply::sgemm(
-                    cout, kk, nb, 1.0, weight.as_ptr(), kk as isize, 1, cols.as_ptr(), nb as isize, 1, 0.0, res.as_mut_ptr(), nb as isize, 1,
-                );
+                matrixmultiply::sgemm(cout, kk, nb, 1.0, weight.as_ptr(), kk as isize, 1, b_ptr, rsb, 1, 0.0, res.as_mut_ptr(), nb as isize, 1);
             }
             (b0, res)
         })

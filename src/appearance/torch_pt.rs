@@ -18,7 +18,7 @@ pub struct Tensor {
 #[derive(Debug, Clone)]
 enum Val {
     None,
-    Bool(bool),
+    Bool,
     Int(i64),
     Str(String),
     Tuple(Vec<Val>),
@@ -91,8 +91,7 @@ fn unpickle(data: &[u8]) -> Result<Vec<(Val, Val)>, String> {
             b'}' => stack.push(Val::Dict(vec![])),
             b'(' => stack.push(Val::Mark),
             b'N' => stack.push(Val::None),
-            0x88 => stack.push(Val::Bool(true)),
-            0x89 => stack.push(Val::Bool(false)),
+            0x88 | 0x89 => stack.push(Val::Bool),
             b'K' => stack.push(Val::Int(take(&mut pos, 1)?[0] as i64)),
             b'M' => {
                 let b = take(&mut pos, 2)?;
@@ -193,7 +192,7 @@ fn unpickle(data: &[u8]) -> Result<Vec<(Val, Val)>, String> {
 pub fn read_state_dict(path: &Path) -> Result<HashMap<String, Tensor>, String> {
     let file = std::fs::File::open(path).map_err(|e| e.to_string())?;
     let mut zip = zip::ZipArchive::new(file).map_err(|e| format!("not a PyTorch zip archive: {e}"))?;
-    let names: Vec<String> = zip.file_names().map(|s| s.to_string()).collect();
+    let names: Vec<String> = zip.file_names().filter_map(|s| s.ok().map(|s| s.to_string())).collect();
     let pkl = names.iter().find(|n| n.ends_with("/data.pkl") || *n == "data.pkl").ok_or("no data.pkl in the archive")?.clone();
     let prefix = pkl.trim_end_matches("data.pkl").to_string();
     let mut bytes = Vec::new();

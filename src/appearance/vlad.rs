@@ -41,17 +41,8 @@ pub fn vlad_assign(p: &VladParams, centres: &[f32], descriptors: &[f32], assignm
     }
 }
 
-/// Sum over lanes l = 0..LANES of f(l), each lane summing its strided indices, then a tree:
-/// the reduction order of the shader.
-fn lane_sum(n: usize, f: impl Fn(usize) -> f32) -> f32 {
-    let mut acc = [0.0f32; LANES];
-    for (l, a) in acc.iter_mut().enumerate() {
-        let mut i = l;
-        while i < n {
-            *a += f(i);
-            i += LANES;
-        }
-    }
+/// Sum of per-lane partial sums by a tree over the lanes: the shader's reduction.
+fn tree(mut acc: [f32; LANES]) -> f32 {
     let mut h = LANES / 2;
     while h > 0 {
         for l in 0..h {
@@ -81,17 +72,29 @@ pub fn vlad_accumulate(p: &VladParams, centres: &[f32], descriptors: &[f32], ass
                 v[j * d + dd] += descriptors[i * d + dd] - centres[j * d + dd];
             }
         }
+        // lane l owns dimensions l, l + LANES, ... of every centre
         for j in 0..k {
             let block = &mut v[j * d..(j + 1) * d];
-            let norm = lane_sum(d, |dd| block[dd] * block[dd]).sqrt();
+            let mut acc = [0.0f32; LANES];
+            for (dd, x) in block.iter().enumerate() {
+                acc[dd % LANES] += x * x;
+            }
+            let norm = tree(acc).sqrt();
             if norm > 0.0 {
                 block.iter_mut().for_each(|x| *x /= norm);
             }
         }
-        if p.power_norm != 0 {
-            v.iter_mut().for_each(|x| *x = x.signum() * x.abs().sqrt());
+        let mut acc = [0.0f32; LANES];
+        for j in 0..k {
+            for dd in 0..d {
+                let x = &mut v[j * d + dd];
+                if p.power_norm != 0 {
+                    *x = x.signum() * x.abs().sqrt();
+                }
+                acc[dd % LANES] += *x * *x;
+            }
         }
-        let norm = lane_sum(k * d, |i| v[i] * v[i]).sqrt();
+        let norm = tree(acc).sqrt();
         if norm > 0.0 {
             v.iter_mut().for_each(|x| *x /= norm);
         }

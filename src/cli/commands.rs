@@ -55,6 +55,25 @@ fn load_config(path: Option<&Path>) -> Result<Config> {
     }
 }
 
+/// Applies the model flags to a config.
+fn apply_models(mut cfg: Config, m: &ModelArgs) -> Config {
+    use semlook::config::AppearanceModelKind;
+    if let Some(k) = &m.keypoints {
+        cfg.appearance.model = AppearanceModelKind::Onnx;
+        cfg.models.keypoint_onnx = Some(k.clone());
+    }
+    if let Some(w) = &m.xfeat_weights {
+        cfg.models.xfeat_weights = Some(w.clone());
+    }
+    if let Some(s) = &m.segmenter {
+        cfg.models.segmenter_onnx = Some(s.clone());
+    }
+    if m.no_appearance {
+        cfg.appearance.model = AppearanceModelKind::None;
+    }
+    cfg
+}
+
 fn synth_config(a: &SynthArgs) -> SynthConfig {
     let mut c = SynthConfig { seed: a.seed, places: a.places, width: a.size.0, height: a.size.1, reference: a.reference, aliasing: a.aliasing, ..Default::default() };
     if !a.queries.is_empty() {
@@ -117,31 +136,41 @@ fn frame_sources(s: &SourceArgs, cfg: &mut Config, keep_ids: bool) -> Result<(Ve
     Ok((frames, s.label_format.unwrap_or_default()))
 }
 
-fn encode_sources(engine: &mut Engine, cfg: &Config, frames: &[FrameSource], fmt: LabelFormat, what: &str, skip: bool, quiet: bool) -> Result<DescriptorSet> {
+fn encode_sources(engine: &mut Engine, encoder: &Encoder, frames: &[FrameSource], fmt: LabelFormat, what: &str, skip: bool, quiet: bool) -> Result<DescriptorSet> {
     if frames.is_empty() {
         return Err(Error::invalid(what, "no images found"));
     }
-    let encoder = Encoder::new(&cfg.encoding())?;
-    let (set, summary, skipped) = encode_frames(engine, &encoder, frames, fmt, what, skip, quiet)?;
+    let (set, summary, skipped) = encode_frames(engine, encoder, frames, fmt, what, skip, quiet)?;
     for e in &skipped {
         eprintln!("warning: skipped: {e}");
     }
     info(
         quiet,
-        format!("encoded {} {what} ({:.2} ms per frame: edge {:.2}, forest {:.2}; decoding {:.2})", set.len(), summary.encode_ms(), summary.global_ms, summary.forest_ms, summary.load_ms),
+        format!(
+            "encoded {} {what} ({:.2} ms per frame: edge {:.2}, forest {:.2}, appearance {:.2} of which network {:.2}; decoding {:.2})",
+            set.len(),
+            summary.encode_ms(),
+            summary.global_ms,
+            summary.forest_ms,
+            summary.appearance_ms,
+            summary.network_ms,
+            summary.load_ms
+        ),
     );
     Ok(set)
 }
 
 fn map_build(engine: &mut Engine, s: &SourceArgs, out: &Path, config: Option<&Path>, force: bool, quiet: bool) -> Result<()> {
-    let mut cfg = load_config(config)?;
+    let mut cfg = apply_models(load_config(config)?, &s.models);
     let (frames, fmt) = frame_sources(s, &mut cfg, config.is_some())?;
-    let set = encode_sources(engine, &cfg, &frames, fmt, "references", s.skip_invalid, quiet)?;
+    let mut encoder = Encoder::new(&cfg)?;
+    semlook::eval::train_codebook(&mut encoder, &frames, quiet)?;
+    let set = encode_sources(engine, &encoder, &frames, fmt, "references", s.skip_invalid, quiet)?;
     let map = if force && out.exists() {
         // build beside, then swap, so the old map survives any failure
         let staging = out.with_extension("building");
         let _ = std::fs::remove_dir_all(&staging);
-        Map::create(&staging, &cfg.encoding(), &set)?;
+        Map::create(&staging, &cfg.encoding(), &set, encoder.appearance_record())?;
         let old = out.with_extension("old");
         let _ = std::fs::remove_dir_all(&old);
         std::fs::rename(out, &old).map_err(|e| Error::io(out, e))?;
@@ -149,17 +178,32 @@ fn map_build(engine: &mut Engine, s: &SourceArgs, out: &Path, config: Option<&Pa
         let _ = std::fs::remove_dir_all(&old);
         Map::open(out)?
     } else {
-        Map::create(out, &cfg.encoding(), &set)?
+        Map::create(out, &cfg.encoding(), &set, encoder.appearance_record())?
     };
     info(quiet, format!("map {}: {} images, {} trees", out.display(), map.len(), map.n_trees()));
     Ok(())
 }
 
+/// The config for queries of a map: the map's encoding, `config`'s matching (or the defaults),
+/// model paths from the flags.
+fn map_config(map: &Map, config: Option<&Path>, models: &ModelArgs) -> Result<Config> {
+    let base = match config {
+        Some(p) => Config::load(p)?,
+        None => Config::default().with_encoding(&map.manifest.config),
+    };
+    let mut cfg = apply_models(base, models);
+    if config.is_none() && models.keypoints.is_none() && !models.no_appearance {
+        cfg.appearance.model = map.manifest.config.appearance.model;
+    }
+    Ok(cfg)
+}
+
 fn map_add(engine: &mut Engine, s: &SourceArgs, map_dir: &Path, quiet: bool) -> Result<()> {
     let mut map = Map::open(map_dir)?;
-    let mut cfg = Config::default().with_encoding(&map.manifest.config);
+    let mut cfg = map_config(&map, None, &s.models)?;
     let (frames, fmt) = frame_sources(s, &mut cfg, true)?;
-    let set = encode_sources(engine, &cfg, &frames, fmt, "new images", s.skip_invalid, quiet)?;
+    let encoder = Encoder::for_map(&cfg, &map)?;
+    let set = encode_sources(engine, &encoder, &frames, fmt, "new images", s.skip_invalid, quiet)?;
     map.add(&set)?;
     info(quiet, format!("map {}: now {} images in {} segments", map_dir.display(), map.len(), map.manifest.segments.len()));
     Ok(())
@@ -217,10 +261,10 @@ fn query_outputs(refs: &dyn RefSource, queries: &DescriptorSet, matches: &[Query
 }
 
 fn run_query(engine: &mut Engine, map: &Map, cfg: &Config, s: &SourceArgs, setting: Setting, quiet: bool) -> Result<(DescriptorSet, Vec<QueryMatch>)> {
-    map.check_compatible(&cfg.encoding())?;
+    let encoder = Encoder::for_map(cfg, map)?;
     let mut cfg_for_sources = cfg.clone();
     let (frames, fmt) = frame_sources(s, &mut cfg_for_sources, true)?;
-    let queries = encode_sources(engine, cfg, &frames, fmt, "queries", s.skip_invalid, quiet)?;
+    let queries = encode_sources(engine, &encoder, &frames, fmt, "queries", s.skip_invalid, quiet)?;
     let t = Instant::now();
     let (matches, _) = engine.match_batch(map, &queries, setting, cfg)?;
     info(quiet, format!("matched {} queries against {} references ({setting}) in {:.1} ms", queries.len(), map.len(), t.elapsed().as_secs_f64() * 1e3));
@@ -234,10 +278,7 @@ fn write_file(path: &Path, text: &str) -> Result<()> {
 fn query(engine: &mut Engine, a: &QueryArgs, quiet: bool) -> Result<()> {
     let map = Map::open(&a.map)?;
     // without --config, the map's encoding and default matching parameters
-    let cfg = match &a.config {
-        Some(p) => Config::load(p)?,
-        None => Config::default().with_encoding(&map.manifest.config),
-    };
+    let cfg = map_config(&map, a.config.as_deref(), &a.source.models)?;
     let (queries, matches) = run_query(engine, &map, &cfg, &a.source, a.setting, quiet)?;
     let (csv, json) = query_outputs(&map, &queries, &matches);
     if let Some(out) = &a.out {
@@ -256,10 +297,9 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
     let opts = DatasetOptions { reference: a.reference.clone(), queries: a.queries.clone(), max_distance: a.gt_distance, max_angle_deg: a.gt_angle };
     let ds = Dataset::open(&a.dataset, &opts)?;
     let map = a.map.as_deref().map(Map::open).transpose()?;
-    let mut cfg = match (&a.config, &map) {
-        (Some(p), _) => Config::load(p)?,
-        (None, Some(m)) => Config::default().with_encoding(&m.manifest.config),
-        (None, None) => Config::default(),
+    let mut cfg = match &map {
+        Some(m) => map_config(m, a.config.as_deref(), &a.models)?,
+        None => apply_models(load_config(a.config.as_deref())?, &a.models),
     };
     if let (Some(ids), None, None) = (&ds.label_ids, &a.config, &map) {
         cfg.classes.label_ids = ids.clone();
@@ -295,10 +335,10 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     let map_dir = dir.join("map");
     let _ = std::fs::remove_dir_all(&map_dir);
     info(quiet, "[2/4] building the map from the reference traversal");
-    let src = SourceArgs { dataset: Some(data.clone()), traversal: None, images: None, labels: None, label_format: None, skip_invalid: false };
+    let src = SourceArgs { dataset: Some(data.clone()), traversal: None, images: None, labels: None, label_format: None, skip_invalid: false, models: a.models.clone() };
     map_build(engine, &src, &map_dir, None, false, quiet)?;
     let map = Map::open(&map_dir)?;
-    let cfg = Config::default().with_encoding(&map.manifest.config);
+    let cfg = map_config(&map, None, &a.models)?;
     let hardest = scfg.queries.last().expect("queries").name();
     info(quiet, format!("[3/4] querying the map with the {hardest} traversal (setting semlook)"));
     let qsrc = SourceArgs { traversal: Some(hardest.to_string()), ..src };

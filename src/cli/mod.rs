@@ -100,6 +100,25 @@ pub struct DemoArgs {
     /// Print the evaluation report as JSON.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub models: ModelArgs,
+}
+
+/// Models for appearance and segmentation.
+#[derive(Args, Clone, Default)]
+pub struct ModelArgs {
+    /// Use this ONNX keypoint network (SuperPoint output layout) instead of XFeat.
+    #[arg(long, value_name = "MODEL.onnx")]
+    pub keypoints: Option<PathBuf>,
+    /// XFeat weights (default: the ones setup.sh fetched).
+    #[arg(long, value_name = "xfeat.pt")]
+    pub xfeat_weights: Option<PathBuf>,
+    /// Segment RGB images that have no label map with this ONNX network (see [segmentation]).
+    #[arg(long, value_name = "MODEL.onnx")]
+    pub segmenter: Option<PathBuf>,
+    /// Trees without appearance (label maps alone are enough to encode).
+    #[arg(long)]
+    pub no_appearance: bool,
 }
 
 #[derive(Args, Clone)]
@@ -122,6 +141,8 @@ pub struct SourceArgs {
     /// Skip (and report) images that fail to load instead of stopping.
     #[arg(long)]
     pub skip_invalid: bool,
+    #[command(flatten)]
+    pub models: ModelArgs,
 }
 
 #[derive(Subcommand)]
@@ -206,6 +227,8 @@ pub struct EvalArgs {
     pub json: bool,
     #[arg(long)]
     pub skip_invalid: bool,
+    #[command(flatten)]
+    pub models: ModelArgs,
 }
 
 fn parse_size(s: &str) -> Result<(usize, usize), String> {

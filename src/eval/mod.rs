@@ -27,12 +27,21 @@ pub struct EncodingSummary {
     pub global_ms: f64,
     pub forest_ms: f64,
     pub appearance_ms: f64,
+    /// Of `appearance_ms`, the keypoint network alone.
+    pub network_ms: f64,
 }
 
 impl EncodingSummary {
     pub fn from_total(frames: usize, t: StageTimes) -> Self {
         let n = frames.max(1) as f64;
-        EncodingSummary { frames, load_ms: t.load_ms / n, global_ms: t.global_ms / n, forest_ms: t.forest_ms / n, appearance_ms: t.appearance_ms / n }
+        EncodingSummary {
+            frames,
+            load_ms: t.load_ms / n,
+            global_ms: t.global_ms / n,
+            forest_ms: t.forest_ms / n,
+            appearance_ms: t.appearance_ms / n,
+            network_ms: t.network_ms / n,
+        }
     }
     /// Encoding time as the paper counts it: descriptors only, without file decoding.
     pub fn encode_ms(&self) -> f64 {
@@ -85,6 +94,18 @@ pub struct EvalOptions<'a> {
     pub quiet: bool,
 }
 
+/// Trains the encoder's VLAD codebook on reference frames (when appearance is on), with a bar.
+pub fn train_codebook(encoder: &mut Encoder, refs: &[crate::input::FrameSource], quiet: bool) -> Result<()> {
+    if encoder.appearance_model().is_none() {
+        return Ok(());
+    }
+    let n = encoder.config().appearance.codebook_images.min(refs.len());
+    let pb = progress::bar(n, "codebook", quiet);
+    encoder.train_codebook(refs, &|| pb.inc(1))?;
+    pb.finish_and_clear();
+    Ok(())
+}
+
 /// Encodes a list of frames into a descriptor set, with a progress bar.
 pub fn encode_frames(
     engine: &mut Engine,
@@ -99,7 +120,7 @@ pub fn encode_frames(
     let results = engine.encode_all(encoder, frames, format, &|| pb.inc(1))?;
     pb.finish_and_clear();
     let (images, total, skipped) = collect_encoded(results, skip_invalid)?;
-    let mut set = DescriptorSet::new(&encoder.ssim_params(), encoder.config().local.neighbours, 0);
+    let mut set = encoder.descriptor_set();
     for img in &images {
         set.push(img);
     }
@@ -107,15 +128,17 @@ pub fn encode_frames(
 }
 
 pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Engine) -> Result<EvalReport> {
-    let encoder = Encoder::new(&cfg.encoding())?;
     let ref_sources: Vec<_> = ds.reference.frames.iter().map(|f| f.source.clone()).collect();
     let owned;
+    let mut encoder;
     let (refs, ref_enc): (&dyn RefSource, EncodingSummary) = match opts.map {
         Some(m) => {
-            m.check_compatible(&cfg.encoding())?;
+            encoder = Encoder::for_map(cfg, m)?;
             (m, EncodingSummary::default())
         }
         None => {
+            encoder = Encoder::new(cfg)?;
+            train_codebook(&mut encoder, &ref_sources, opts.quiet)?;
             let (set, summary, _) = encode_frames(engine, &encoder, &ref_sources, ds.label_format, "references", false, opts.quiet)?;
             owned = set;
             (&owned, summary)
@@ -140,7 +163,7 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
         let pb = progress::bar(sources.len(), &format!("queries {}", qt.name), opts.quiet);
         let encoded = engine.encode_all(&encoder, &sources, ds.label_format, &|| pb.inc(1))?;
         pb.finish_and_clear();
-        let mut qset = DescriptorSet::new(&encoder.ssim_params(), encoder.config().local.neighbours, 0);
+        let mut qset = encoder.descriptor_set();
         let mut gt = Vec::new();
         for (r, g) in encoded.into_iter().zip(&gt_ds) {
             match r {
@@ -236,8 +259,15 @@ impl EvalReport {
         }
         let e = &self.query_encoding;
         s += &format!(
-            "\nencoding, ms per frame (mean of {} query frames; file decoding {:.2} ms not included):\n  edge (coarse) {:.2} | forest {:.2} | appearance {:.2} | total {:.2}\n",
-            e.frames, e.load_ms, e.global_ms, e.forest_ms, e.appearance_ms, e.encode_ms()
+            "\nencoding, ms per frame (mean of {} query frames; file decoding {:.2} ms not included):\n  edge (coarse) {:.2} | forest {:.2} | appearance {:.2} (network {:.2}, decoding and VLAD {:.2}) | total {:.2}\n",
+            e.frames,
+            e.load_ms,
+            e.global_ms,
+            e.forest_ms,
+            e.appearance_ms,
+            e.network_ms,
+            e.appearance_ms - e.network_ms,
+            e.encode_ms()
         );
         let mut per_setting: Vec<(Setting, f64, usize)> = Vec::new();
         for r in &self.results {

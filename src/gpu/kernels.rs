@@ -4,12 +4,13 @@
 use super::context::GpuError;
 
 /// WGSL sources, by file name.
-pub const SHADERS: [(&str, &str); 5] = [
+pub const SHADERS: [(&str, &str); 6] = [
     ("semantic_edges.wgsl", include_str!("../../shaders/semantic_edges.wgsl")),
     ("edt.wgsl", include_str!("../../shaders/edt.wgsl")),
     ("global_pool.wgsl", include_str!("../../shaders/global_pool.wgsl")),
     ("ssim_topk.wgsl", include_str!("../../shaders/ssim_topk.wgsl")),
     ("tree_similarity.wgsl", include_str!("../../shaders/tree_similarity.wgsl")),
+    ("vlad_accumulate.wgsl", include_str!("../../shaders/vlad_accumulate.wgsl")),
 ];
 
 #[derive(Clone, Copy)]
@@ -49,6 +50,8 @@ pub(crate) struct Kernels {
     pub ssim_tile: Kernel,
     pub topk_merge: Kernel,
     pub tree_similarity: Kernel,
+    pub vlad_assign: Kernel,
+    pub vlad_accumulate: Kernel,
 }
 
 fn module(device: &wgpu::Device, name: &str) -> Result<wgpu::ShaderModule, GpuError> {
@@ -104,6 +107,7 @@ impl Kernels {
         let pool = module(device, "global_pool.wgsl")?;
         let ssim = module(device, "ssim_topk.wgsl")?;
         let tree = module(device, "tree_similarity.wgsl")?;
+        let vlad = module(device, "vlad_accumulate.wgsl")?;
         let edt_slots = [(0, Uniform), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite), (5, ReadWrite)];
         Ok(Kernels {
             semantic_edges: kernel(device, &edges, "semantic_edges.wgsl", "semantic_edges", &[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite)])?,
@@ -124,6 +128,14 @@ impl Kernels {
                 "tree_similarity.wgsl",
                 "tree_similarity",
                 &[(0, Uniform), (1, Uniform), (2, Read), (3, Read), (4, Read), (5, Read), (6, Read), (7, ReadWrite), (8, ReadWrite)],
+            )?,
+            vlad_assign: kernel(device, &vlad, "vlad_accumulate.wgsl", "vlad_assign", &[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite)])?,
+            vlad_accumulate: kernel(
+                device,
+                &vlad,
+                "vlad_accumulate.wgsl",
+                "vlad_accumulate",
+                &[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite), (4, Read), (5, ReadWrite)],
             )?,
         })
     }

@@ -36,6 +36,11 @@ impl LabelMap {
         }
         Ok(LabelMap { width, height, classes })
     }
+    /// Wraps class indices the caller produced from a class table itself (a segmenter).
+    pub(crate) fn from_classes_unchecked(width: u32, height: u32, classes: Vec<u8>) -> LabelMap {
+        debug_assert_eq!(classes.len(), width as usize * height as usize);
+        LabelMap { width, height, classes }
+    }
     pub fn width(&self) -> u32 {
         self.width
     }

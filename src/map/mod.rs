@@ -20,6 +20,7 @@ pub use descriptor_set::DescriptorSet;
 use crate::classes::ClassTable;
 use crate::config::{first_difference, EncodingConfig};
 use crate::error::{Error, Result};
+use crate::appearance::vlad::Codebook;
 use crate::global::ssim::SsimParams;
 use crate::local::ForestRef;
 use crate::matching::source::{GlobalSource, RefSource, TileBuf};
@@ -33,6 +34,7 @@ pub const FORMAT: &str = "semlook-map";
 pub const SEGMENT_IMAGES: usize = 4096;
 pub const VERSION: u32 = 1;
 const MANIFEST: &str = "manifest.json";
+const CODEBOOK: &str = "codebook.safetensors";
 const LOCK: &str = ".lock";
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -55,6 +57,12 @@ pub struct Manifest {
     pub segments: Vec<SegmentEntry>,
     /// Image ids in storage order (segment by segment).
     pub images: Vec<String>,
+    /// The VLAD codebook file, when trees carry appearance.
+    #[serde(default)]
+    pub codebook: Option<SegmentEntry>,
+    /// SHA-256 of the keypoint network's weights the appearance was computed with.
+    #[serde(default)]
+    pub appearance_model: Option<String>,
 }
 
 /// A loaded map: its manifest and its descriptors, segment by segment.
@@ -65,6 +73,7 @@ pub struct Map {
     segments: Vec<DescriptorSet>,
     /// First image index of each segment, then the total.
     starts: Vec<usize>,
+    codebook: Option<Codebook>,
 }
 
 fn sha256_hex(bytes: &[u8]) -> String {
@@ -126,10 +135,18 @@ impl Map {
                 appearance_dim,
                 segments: vec![],
                 images: vec![],
+                codebook: None,
+                appearance_model: None,
             },
             segments: vec![],
             starts: vec![0],
+            codebook: None,
         }
+    }
+
+    /// The VLAD codebook of the map's appearance vectors.
+    pub fn codebook(&self) -> Option<&Codebook> {
+        self.codebook.as_ref()
     }
 
     pub fn len(&self) -> usize {
@@ -164,16 +181,45 @@ impl Map {
         self.segments.push(set);
     }
 
-    /// Creates a new map directory holding `set` as its first segment. Fails if `dir` exists and
-    /// is not empty.
-    pub fn create(dir: &Path, cfg: &EncodingConfig, set: &DescriptorSet) -> Result<Map> {
+    /// Creates a new map directory holding `set`. With appearance, `appearance` gives the VLAD
+    /// codebook and the SHA-256 of the keypoint network, both recorded in the map. Fails if `dir`
+    /// exists and is not empty.
+    pub fn create(dir: &Path, cfg: &EncodingConfig, set: &DescriptorSet, appearance: Option<(&Codebook, &str)>) -> Result<Map> {
         if dir.exists() && std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?.next().is_some() {
             return Err(Error::invalid(format!("map {}", dir.display()), "directory exists and is not empty (use map add, or --force)"));
         }
         std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
         let mut map = Map::new(dir, cfg, set.appearance_dim);
+        if let Some((cb, sha)) = appearance {
+            if cb.k * cb.dim != set.appearance_dim {
+                return Err(Error::invalid(format!("map {}", dir.display()), "codebook size differs from the appearance vectors"));
+            }
+            let centres = safetensors::tensor::TensorView::new(safetensors::tensor::Dtype::F32, vec![cb.k, cb.dim], bytemuck::cast_slice(&cb.centres)).expect("shape matches");
+            let bytes = safetensors::serialize([("centres", centres)], None).expect("serialises");
+            write_atomic(dir, CODEBOOK, &bytes)?;
+            map.manifest.codebook = Some(SegmentEntry { file: CODEBOOK.into(), images: 0, trees: 0, bytes: bytes.len() as u64, sha256: sha256_hex(&bytes) });
+            map.manifest.appearance_model = Some(sha.to_string());
+            map.codebook = Some(cb.clone());
+        } else if set.appearance_dim != 0 {
+            return Err(Error::invalid(format!("map {}", dir.display()), "appearance vectors without a codebook"));
+        }
         map.add(set)?;
         Ok(map)
+    }
+
+    /// Fails naming the difference if images encoded with `model_sha256` (the keypoint network's
+    /// checksum, or none without appearance) cannot be matched against this map.
+    pub fn check_model(&self, model_sha256: Option<&str>) -> Result<()> {
+        if self.manifest.appearance_model.as_deref() != model_sha256 {
+            let show = |v: Option<&str>| v.map_or("none".to_string(), |s| format!("sha256 {}", &s[..12.min(s.len())]));
+            return Err(Error::IncompatibleConfig {
+                map: self.path.clone(),
+                field: "appearance keypoint network".into(),
+                map_value: show(self.manifest.appearance_model.as_deref()),
+                given_value: show(model_sha256),
+            });
+        }
+        Ok(())
     }
 
     /// Appends `set` as new segments (of at most [`SEGMENT_IMAGES`] images) and then rewrites the
@@ -244,7 +290,12 @@ impl Map {
         }
         let table = ClassTable::from_config(&cfg.classes)?;
         let ssim = SsimParams::new(&cfg.global);
-        let mut map = Map { path: dir.into(), manifest: manifest.clone(), segments: vec![], starts: vec![0] };
+        let codebook = match &manifest.codebook {
+            Some(entry) => Some(read_codebook(dir, entry, manifest.appearance_dim)?),
+            None if manifest.appearance_dim != 0 => return Err(Error::corrupt(&mpath, "appearance vectors but no codebook")),
+            None => None,
+        };
+        let mut map = Map { path: dir.into(), manifest: manifest.clone(), segments: vec![], starts: vec![0], codebook };
         let mut ids_seen = std::collections::HashSet::new();
         for seg in &manifest.segments {
             if seg.file.contains('/') || seg.file.contains("..") {
@@ -285,6 +336,29 @@ impl Map {
             }
         }
     }
+}
+
+/// Reads and checks the codebook file.
+fn read_codebook(dir: &Path, entry: &SegmentEntry, appearance_dim: usize) -> Result<Codebook> {
+    let p = dir.join(&entry.file);
+    if entry.file != CODEBOOK {
+        return Err(Error::corrupt(&p, "unexpected codebook file name"));
+    }
+    let bytes = std::fs::read(&p).map_err(|e| Error::io(&p, e))?;
+    if bytes.len() as u64 != entry.bytes || sha256_hex(&bytes) != entry.sha256 {
+        return Err(Error::corrupt(&p, "size or SHA-256 differs from the manifest"));
+    }
+    let st = safetensors::SafeTensors::deserialize(&bytes).map_err(|e| Error::corrupt(&p, e.to_string()))?;
+    let t = st.tensor("centres").map_err(|_| Error::corrupt(&p, "no centres tensor"))?;
+    let shape = t.shape().to_vec();
+    if t.dtype() != safetensors::tensor::Dtype::F32 || shape.len() != 2 || shape[0] * shape[1] != appearance_dim || shape[0] == 0 {
+        return Err(Error::corrupt(&p, format!("centres are {:?} {shape:?}; the map's appearance vectors have {appearance_dim} values", t.dtype())));
+    }
+    let centres: Vec<f32> = bytemuck::pod_collect_to_vec(t.data());
+    if centres.iter().any(|v| !v.is_finite()) {
+        return Err(Error::corrupt(&p, "centres hold NaN or infinity"));
+    }
+    Ok(Codebook { k: shape[0], dim: shape[1], centres })
 }
 
 impl GlobalSource for Map {

@@ -51,8 +51,8 @@ pub fn label_maps(n: usize, w: u32, h: u32) -> Vec<LabelMap> {
 
 /// Encodes label maps into a descriptor set with ids `prefix{i}`.
 pub fn encode(cfg: &Config, maps: &[LabelMap], prefix: &str) -> DescriptorSet {
-    let enc = Encoder::new(&cfg.encoding()).unwrap();
-    let mut set = DescriptorSet::new(&enc.ssim_params(), cfg.local.neighbours, 0);
+    let enc = Encoder::new(cfg).unwrap();
+    let mut set = enc.descriptor_set();
     let mut scratch = Default::default();
     for (i, m) in maps.iter().enumerate() {
         set.push(&enc.encode_labels(&format!("{prefix}{i}"), m, &mut scratch).unwrap().0);

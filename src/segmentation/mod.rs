@@ -1,0 +1,113 @@
+//! Stage 0b: label maps from RGB images with an ONNX segmentation network, for frames given
+//! without a label map. The adapter (`[segmentation]` in the config) says how to feed the
+//! network (input size, scale, mean and std per channel, RGB or BGR) and what each output channel
+//! means (a class of the table, or "void"): logits -> argmax -> class -> nearest-neighbour resize
+//! back to the image size. Defaults fit ESPNet's Cityscapes export (19 classes + ignore).
+
+use crate::classes::{ClassTable, VOID};
+use crate::config::SegmentationConfig;
+use crate::error::{Error, Result};
+use crate::input::LabelMap;
+use image::RgbImage;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+pub struct Segmenter {
+    session: Mutex<ort::session::Session>,
+    cfg: SegmentationConfig,
+    class_of_channel: Vec<u8>,
+    path: PathBuf,
+    /// The network takes any batch size (first input dimension dynamic).
+    dynamic_batch: bool,
+}
+
+impl std::fmt::Debug for Segmenter {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Segmenter({})", self.path.display())
+    }
+}
+
+impl Segmenter {
+    pub fn load(path: &Path, cfg: &SegmentationConfig, table: &ClassTable, onnxruntime: Option<&Path>) -> Result<Segmenter> {
+        let class_of_channel = cfg
+            .class_map
+            .iter()
+            .map(|n| if n == "void" { Ok(VOID) } else { table.index(n).ok_or_else(|| Error::InvalidConfig { source_name: "[segmentation]".into(), reason: format!("class_map names {n:?}, which is not in the class table") }) })
+            .collect::<Result<Vec<u8>>>()?;
+        let session = crate::onnx::session(path, onnxruntime)?;
+        let channels = crate::onnx::output_shape(&session, 0).get(1).copied().unwrap_or(-1);
+        if channels > 0 && channels as usize != class_of_channel.len() {
+            return Err(Error::Model { path: path.into(), reason: format!("{channels} output channels, but segmentation.class_map names {}", class_of_channel.len()) });
+        }
+        let dynamic_batch = match session.inputs().first().map(|i| i.dtype()) {
+            Some(ort::value::ValueType::Tensor { shape, .. }) => shape.first().is_some_and(|&d| d < 0),
+            _ => false,
+        };
+        Ok(Segmenter { session: Mutex::new(session), cfg: cfg.clone(), class_of_channel, path: path.into(), dynamic_batch })
+    }
+
+    /// Label map of one image; `name` names the image in errors.
+    pub fn segment(&self, rgb: &RgbImage, name: &Path) -> Result<LabelMap> {
+        Ok(self.segment_batch(&[rgb]).map_err(|e| match e {
+            Error::Model { reason, .. } => Error::Model { path: self.path.clone(), reason: format!("segmenting {}: {reason}", name.display()) },
+            other => other,
+        })?
+        .remove(0))
+    }
+
+    /// Label maps of several images: one network call when the network takes batches, else one
+    /// call per image.
+    pub fn segment_batch(&self, images: &[&RgbImage]) -> Result<Vec<LabelMap>> {
+        if !self.dynamic_batch && images.len() > 1 {
+            return images.iter().map(|i| self.segment_batch(std::slice::from_ref(i)).map(|mut v| v.remove(0))).collect();
+        }
+        let (w, h) = (self.cfg.input_width, self.cfg.input_height);
+        let n = images.len();
+        let mut input = vec![0.0f32; n * 3 * h * w];
+        for (b, img) in images.iter().enumerate() {
+            if img.width() == 0 || img.height() == 0 {
+                return Err(Error::invalid("image", "empty image"));
+            }
+            let small = image::imageops::resize(*img, w as u32, h as u32, image::imageops::FilterType::Triangle);
+            for (i, p) in small.pixels().enumerate() {
+                for c in 0..3 {
+                    let src = if self.cfg.bgr { 2 - c } else { c };
+                    input[((b * 3 + c) * h * w) + i] = ((p.0[src] as f64 * self.cfg.scale - self.cfg.mean[c]) / self.cfg.std[c]) as f32;
+                }
+            }
+        }
+        let fail = |reason: String| Error::Model { path: self.path.clone(), reason };
+        let tensor = ort::value::TensorRef::from_array_view(([n, 3, h, w], input.as_slice())).map_err(|e| fail(e.to_string()))?;
+        let mut session = self.session.lock().unwrap();
+        let outputs = session.run(ort::inputs![tensor]).map_err(|e| fail(e.to_string()))?;
+        let (shape, logits) = outputs[0].try_extract_tensor::<f32>().map_err(|e| fail(e.to_string()))?;
+        if shape.len() != 4 || shape[0] as usize != n || shape[1] as usize != self.class_of_channel.len() {
+            return Err(fail(format!("output shape {shape:?}, expected [{n}, {}, h, w]", self.class_of_channel.len())));
+        }
+        let (c, oh, ow) = (shape[1] as usize, shape[2] as usize, shape[3] as usize);
+        let mut maps = Vec::with_capacity(n);
+        for (b, img) in images.iter().enumerate() {
+            let plane = &logits[b * c * oh * ow..(b + 1) * c * oh * ow];
+            let mut small = vec![VOID; oh * ow];
+            for (i, slot) in small.iter_mut().enumerate() {
+                let mut best = (f32::NEG_INFINITY, 0usize);
+                for ch in 0..c {
+                    let v = plane[ch * oh * ow + i];
+                    if v > best.0 {
+                        best = (v, ch);
+                    }
+                }
+                *slot = self.class_of_channel[best.1];
+            }
+            let (iw, ih) = (img.width() as usize, img.height() as usize);
+            let full: Vec<u8> = (0..ih * iw)
+                .map(|i| {
+                    let (x, y) = (i % iw, i / iw);
+                    small[(y * oh / ih) * ow + x * ow / iw]
+                })
+                .collect();
+            maps.push(LabelMap::from_classes_unchecked(iw as u32, ih as u32, full));
+        }
+        Ok(maps)
+    }
+}
