@@ -34,6 +34,31 @@ fn bench(c: &mut Criterion) {
             semlook::local::build_forest(&o, &cfg.local)
         })
     });
+    // appearance, reported apart from the rest as the paper's Table 2 does (needs setup.sh)
+    match semlook::appearance::AppearanceModel::load(&Default::default(), &Default::default()) {
+        Ok(Some(model)) => {
+            let scfg = semlook::synth::SynthConfig { places: 3, width: 640, height: 480, ..Default::default() };
+            let scene = semlook::synth::Scene::new(&scfg);
+            let dynamic = semlook::synth::dynamic_objects(&scene.world, scfg.seed, 0, scfg.persistence);
+            let f = semlook::synth::render_frame(&scfg, &scene, &dynamic, 0, 1, Condition::Day);
+            let rgb = image::RgbImage::from_raw(640, 480, f.rgb).unwrap();
+            let (grey, _, _) = semlook::appearance::network_input(&rgb).unwrap();
+            g.bench_function("appearance: XFeat network (native)", |b| b.iter(|| model.run(&grey).unwrap()));
+            let out = model.run(&grey).unwrap();
+            let params = semlook::appearance::keypoints::KeypointParams { nms_radius: 4, threshold: 0.005, max_keypoints: 1024, border: 4 };
+            g.bench_function("appearance: keypoint decoding", |b| b.iter(|| semlook::appearance::keypoints::extract(&out, &params)));
+            let k = model.keypoints(&rgb).unwrap();
+            let objects = semlook::objects::extract_objects(&maps[1], &table, &cfg.objects);
+            let cb = semlook::appearance::vlad::train_codebook(&semlook::appearance::sample_descriptors(&k, 512), k.dim, 16, 10, 1).unwrap();
+            g.bench_function("appearance: VLAD per object (CPU)", |b| {
+                b.iter(|| {
+                    let (d, o) = semlook::appearance::group_by_object(&k, &objects);
+                    semlook::appearance::object_vlad(&d, &o, &cb, false)
+                })
+            });
+        }
+        other => eprintln!("appearance benchmarks skipped: {:?}", other.err()),
+    }
     g.finish();
 }
 

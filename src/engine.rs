@@ -70,11 +70,13 @@ impl Stages for GpuStages {
 /// Runs the pipeline on the chosen backend.
 pub struct Engine {
     gpu: Option<GpuStages>,
+    /// `auto`: a GPU failure during work switches to the CPU (with a warning) instead of failing.
+    fall_back: bool,
 }
 
 impl Engine {
     pub fn cpu() -> Engine {
-        Engine { gpu: None }
+        Engine { gpu: None, fall_back: false }
     }
 
     /// An engine for `backend`. For `Auto`, the second value is the reason it fell back to the CPU.
@@ -83,15 +85,60 @@ impl Engine {
             Backend::Cpu => Ok((Engine::cpu(), None)),
             Backend::Gpu => Ok((Engine::with_context(Arc::new(GpuContext::new(opts)?)), None)),
             Backend::Auto => match GpuContext::new(&GpuOptions { allow_software: false, ..opts.clone() }) {
-                Ok(ctx) => Ok((Engine::with_context(Arc::new(ctx)), None)),
+                Ok(ctx) => Ok((Engine { fall_back: true, ..Engine::with_context(Arc::new(ctx)) }, None)),
                 Err(e) => Ok((Engine::cpu(), Some(format!("no hardware GPU ({e}); using the CPU path")))),
             },
         }
     }
 
     /// An engine inside a host application's GPU context (see [`GpuContext::from_device`]).
+    ///
+    /// ```no_run
+    /// # fn main() -> semlook::Result<()> {
+    /// use semlook::{config::Config, encode::Encoder, engine::Engine, gpu::{GpuContext, GpuOptions}, map::Map, matching::Setting};
+    /// use std::sync::Arc;
+    /// // the host application's own wgpu setup
+    /// let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle());
+    /// let adapter = pollster::block_on(instance.request_adapter(&Default::default())).expect("adapter");
+    /// let (device, queue) = pollster::block_on(adapter.request_device(&Default::default())).expect("device");
+    /// // semlook runs inside it: pipelines are added to that device, errors come back typed
+    /// let ctx = GpuContext::from_device(device, queue, adapter.get_info(), &GpuOptions::default())?;
+    /// let mut engine = Engine::with_context(Arc::new(ctx));
+    /// let map = Map::open("my-map".as_ref())?;
+    /// let cfg = Config::default().with_encoding(&map.manifest.config);
+    /// let encoder = Encoder::for_map(&cfg, &map)?;
+    /// let sources = vec![semlook::input::FrameSource { id: "q".into(), image: Some("q.png".into()), labels: Some("q_labels.png".into()) }];
+    /// let encoded = engine.encode_all(&encoder, &sources, Default::default(), &|| {})?;
+    /// let mut queries = encoder.descriptor_set();
+    /// queries.push(&encoded.into_iter().next().unwrap()?.0);
+    /// // uploads the queries once, streams the map in tiles, reads back only the top-K lists
+    /// let (matches, _) = engine.match_batch(&map, &queries, Setting::Semlook, &cfg)?;
+    /// println!("{:?}", matches[0].best());
+    /// # Ok(()) }
+    /// ```
     pub fn with_context(ctx: Arc<GpuContext>) -> Engine {
-        Engine { gpu: Some(GpuStages::new(ctx)) }
+        Engine { gpu: Some(GpuStages::new(ctx)), fall_back: false }
+    }
+
+    /// Whether a GPU failure during work switches to the CPU path (what `auto` does) instead of
+    /// failing.
+    pub fn fall_back_to_cpu(mut self, yes: bool) -> Engine {
+        self.fall_back = yes;
+        self
+    }
+
+    /// With `auto`, turns a GPU failure into a switch to the CPU path (and says so); otherwise
+    /// passes the error on.
+    fn recover<T>(&mut self, r: Result<T>) -> Result<std::result::Result<T, ()>> {
+        match r {
+            Err(crate::error::Error::Gpu(e)) if self.fall_back => {
+                eprintln!("warning: GPU failed ({e}); continuing on the CPU path");
+                self.gpu = None;
+                Ok(Err(()))
+            }
+            Err(e) => Err(e),
+            Ok(v) => Ok(Ok(v)),
+        }
     }
 
     pub fn is_gpu(&self) -> bool {
@@ -113,10 +160,13 @@ impl Engine {
 
     /// Matches a batch of queries (see [`crate::matching::match_with`]).
     pub fn match_batch(&mut self, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<QueryMatch>, MatchTimes)> {
-        match &mut self.gpu {
-            Some(g) => match_with(g, refs, queries, setting, cfg),
-            None => match_with(&mut CpuStages, refs, queries, setting, cfg),
+        if let Some(g) = &mut self.gpu {
+            let r = match_with(g, refs, queries, setting, cfg);
+            if let Ok(v) = self.recover(r)? {
+                return Ok(v);
+            }
         }
+        match_with(&mut CpuStages, refs, queries, setting, cfg)
     }
 
     /// Encodes frames, in input order; `tick` is called per frame. Per-frame input errors are
@@ -125,9 +175,17 @@ impl Engine {
     /// GPU, objects, forests and the keypoint network run on the CPU, and the per-object VLAD of
     /// the whole batch runs on the GPU.
     pub fn encode_all(&mut self, encoder: &Encoder, sources: &[FrameSource], format: LabelFormat, tick: &(dyn Fn() + Sync)) -> Result<Vec<Result<(EncodedImage, StageTimes)>>> {
-        let Some(g) = &mut self.gpu else {
-            return Ok(encoder.encode_all(sources, format, tick));
-        };
+        if self.gpu.is_some() {
+            let r = self.encode_all_gpu(encoder, sources, format, tick);
+            if let Ok(v) = self.recover(r)? {
+                return Ok(v);
+            }
+        }
+        Ok(encoder.encode_all(sources, format, tick))
+    }
+
+    fn encode_all_gpu(&mut self, encoder: &Encoder, sources: &[FrameSource], format: LabelFormat, tick: &(dyn Fn() + Sync)) -> Result<Vec<Result<(EncodedImage, StageTimes)>>> {
+        let g = self.gpu.as_mut().expect("called with a GPU");
         let mut out: Vec<Option<Result<(EncodedImage, StageTimes)>>> = (0..sources.len()).map(|_| None).collect();
         let mut loaded: Vec<Option<Loaded>> = Vec::with_capacity(sources.len());
         for (i, r) in sources.par_iter().map(|s| encoder.load(s, format)).collect::<Vec<_>>().into_iter().enumerate() {

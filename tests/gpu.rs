@@ -423,3 +423,17 @@ fn kernels_on_a_real_street_frame() {
     assert_eq!(g[0].1, cp);
     assert!(g[0].0.iter().zip(&cv).all(|(a, b)| (a - b).abs() <= 1e-5));
 }
+
+/// A GPU failure during work: a typed error for `gpu`, a warning and the CPU path for `auto`.
+#[test]
+fn auto_falls_back_to_the_cpu_when_the_gpu_fails_mid_run() {
+    let Some(ctx) = gpu_with(&GpuOptions { max_binding_size: Some(4096), ..Default::default() }) else { return };
+    let cfg = Config::without_appearance();
+    let refs = common::encode(&cfg, &common::label_maps(5, 64, 48), "r");
+    let mut strict = Engine::with_context(ctx.clone());
+    assert!(matches!(strict.match_batch(&refs, &refs, Setting::Semlook, &cfg), Err(semlook::Error::Gpu(_))));
+    let mut auto = Engine::with_context(ctx).fall_back_to_cpu(true);
+    let (m, _) = auto.match_batch(&refs, &refs, Setting::Semlook, &cfg).unwrap();
+    assert_eq!(m, match_batch(&refs, &refs, Setting::Semlook, &cfg).0);
+    assert!(!auto.is_gpu(), "the engine continues on the CPU");
+}

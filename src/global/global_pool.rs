@@ -14,7 +14,9 @@ pub struct PoolParams {
     pub dst_height: u32,
     /// Truncation distance τ in pixels.
     pub tau: f32,
-    pub _pad: [u32; 3],
+    /// Frames in a GPU batch (the twin handles one frame).
+    pub frames: u32,
+    pub _pad: [u32; 2],
 }
 
 /// Bindings: `params`, `d2` (squared distances), `out` (dst_width x dst_height).

@@ -47,7 +47,8 @@ pub fn pool_params(cfg: &GlobalConfig, width: u32, height: u32) -> PoolParams {
         dst_width: cfg.width as u32,
         dst_height: cfg.height as u32,
         tau: (cfg.truncation * diag) as f32,
-        _pad: [0; 3],
+        frames: 1,
+        _pad: [0; 2],
     }
 }
 

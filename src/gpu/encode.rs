@@ -17,18 +17,6 @@ struct Dims {
     _pad: u32,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-#[repr(C)]
-struct GpuPoolParams {
-    src_width: u32,
-    src_height: u32,
-    dst_width: u32,
-    dst_height: u32,
-    tau: f32,
-    frames: u32,
-    _pad: [u32; 2],
-}
-
 struct Buffers {
     pixels: u64,
     cells: u64,
@@ -98,11 +86,7 @@ impl GlobalEncoderGpu {
             let used32: Vec<u32> = used.iter().map(|&u| u as u32).collect();
             ctx.queue.write_buffer(&b.used, 0, bytemuck::cast_slice(&used32));
             let dims = ctx.uniform("dims", &Dims { width: w, height: h, frames: frames as u32, _pad: 0 });
-            let pp: PoolParams = pool_params(cfg, w, h);
-            let pool = ctx.uniform(
-                "pool params",
-                &GpuPoolParams { src_width: w, src_height: h, dst_width: pp.dst_width, dst_height: pp.dst_height, tau: pp.tau, frames: frames as u32, _pad: [0; 2] },
-            );
+            let pool = ctx.uniform("pool params", &PoolParams { frames: frames as u32, ..pool_params(cfg, w, h) });
             let dev = &ctx.device;
             let g_edges = k.semantic_edges.bind(dev, &[&dims, &b.labels, &b.used, &b.edges]);
             let g_edt = k.edt_columns.bind(dev, &[&dims, &b.edges, &b.g, &b.s, &b.t, &b.d2]);
