@@ -114,16 +114,7 @@ fn frame_sources(s: &SourceArgs, cfg: &mut Config, keep_ids: bool) -> Result<(Ve
         let frames = trav.frames.iter().map(|f| f.source.clone()).collect();
         return Ok((frames, s.label_format.unwrap_or(ds.label_format)));
     }
-    let listing = |dir: &Path| -> Result<Vec<std::path::PathBuf>> {
-        let mut v: Vec<_> = std::fs::read_dir(dir)
-            .map_err(|e| Error::io(dir, e))?
-            .flatten()
-            .map(|e| e.path())
-            .filter(|p| matches!(p.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref(), Some("png" | "jpg" | "jpeg")))
-            .collect();
-        v.sort();
-        Ok(v)
-    };
+    let listing = semlook::eval::dataset::image_files;
     let stem = |p: &Path| p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
     let frames = match (&s.images, &s.labels) {
         (Some(img), labels) => listing(img)?

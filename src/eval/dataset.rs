@@ -274,7 +274,8 @@ pub fn synthia_traversals(root: &Path) -> Vec<String> {
     v
 }
 
-fn image_files(dir: &Path) -> Result<Vec<PathBuf>> {
+/// The png and jpeg files of a folder, sorted by name.
+pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>> {
     let rd = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
     let mut files: Vec<PathBuf> = rd
         .flatten()

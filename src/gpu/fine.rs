@@ -118,7 +118,7 @@ impl FineMatcherGpu {
                 Pair { q_start: qs, q_count: qc, r_start: rs, r_count: rc }
             })
             .collect();
-        self.run(p, &q, &r, &list, dim, None).map(|o| o.0)
+        self.run(p, &q, &r, &list, dim, None)
     }
 
     /// For settings without a coarse stage: the `k` best references of every query over the
@@ -160,9 +160,10 @@ impl FineMatcherGpu {
         })?
     }
 
-    /// Runs `list` in chunks that fit the scratch binding. With `merge`, the scores (laid out
-    /// queries x tile) are folded into the given top-K buffers on the GPU and not read back.
-    fn run(&mut self, p: &TreeSimParams, q: &Packed, r: &Packed, list: &[Pair], dim: usize, merge: Option<(&TileParams, &wgpu::Buffer, &wgpu::Buffer)>) -> Result<(Vec<f32>, ()), GpuError> {
+    /// Runs `list` in chunks that fit the scratch binding and returns the scores. With `merge`, the
+    /// scores (laid out queries x tile) are folded into the given top-K buffers on the GPU instead
+    /// and not read back (the result is then empty).
+    fn run(&mut self, p: &TreeSimParams, q: &Packed, r: &Packed, list: &[Pair], dim: usize, merge: Option<(&TileParams, &wgpu::Buffer, &wgpu::Buffer)>) -> Result<Vec<f32>, GpuError> {
         let ctx = self.ctx.clone();
         let kr = &ctx.kernels;
         let max_trees = q.max_trees.max(r.max_trees).max(1);
@@ -175,7 +176,7 @@ impl FineMatcherGpu {
             ctx.check_binding(what, bytes as u64)?;
         }
         let chunk = if merge.is_some() { list.len() } else { ((ctx.binding_limit() / per_pair) as usize).min(list.len()).max(1) };
-        ctx.scoped("fine matching", || -> Result<(Vec<f32>, ()), GpuError> {
+        ctx.scoped("fine matching", || -> Result<Vec<f32>, GpuError> {
             let params = ctx.uniform("tree sim params", p);
             let upload = |label: &str, bytes: &[u8]| {
                 let b = ctx.storage(label, bytes.len() as u64);
@@ -208,7 +209,7 @@ impl FineMatcherGpu {
                 }
                 ctx.check_lost()?;
             }
-            Ok((scores, ()))
+            Ok(scores)
         })?
     }
 }

@@ -8,7 +8,6 @@
 
 pub mod source;
 pub mod ssim_topk;
-pub mod topk;
 
 use crate::config::{Config, ScoreFusion};
 use crate::error::Result;
@@ -20,7 +19,6 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 use source::{GlobalSource, RefSource};
-use topk::TopK;
 
 /// A matching setting: which stages run and whether appearance takes part.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
@@ -134,17 +132,26 @@ impl Stages for CpuStages {
             .map_init(TreeSimScratch::default, |s, &(q, r)| tree_similarity(p, queries.forest(q as usize), refs.forest(r as usize), s))
             .collect())
     }
-    fn fine_topk(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, k: usize, _tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
-        Ok((0..queries.len())
-            .into_par_iter()
-            .map_init(TreeSimScratch::default, |scratch, q| {
-                let mut top = TopK::new(k);
-                for r in 0..refs.len() {
-                    top.push(tree_similarity(p, queries.forest(q), refs.forest(r), scratch), r as u32);
-                }
-                top.into_items()
-            })
-            .collect())
+    /// Tree similarities of all queries against one tile of references at a time, folded into
+    /// the per-query top-K by `topk_merge`, as the GPU path does.
+    fn fine_topk(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+        let nq = queries.len();
+        let tile = tile.max(1).min(refs.len().max(1));
+        let mut scores = vec![0.0f32; nq * tile];
+        let mut top_s = vec![ssim_topk::EMPTY_SCORE; nq * k];
+        let mut top_i = vec![ssim_topk::EMPTY_INDEX; nq * k];
+        let mut start = 0;
+        while start < refs.len() {
+            let end = (start + tile).min(refs.len());
+            let t = end - start;
+            scores[..nq * t].par_iter_mut().enumerate().for_each_init(TreeSimScratch::default, |scratch, (i, s)| {
+                *s = tree_similarity(p, queries.forest(i / t), refs.forest(start + i % t), scratch);
+            });
+            let tp = ssim_topk::TileParams { queries: nq as u32, tile_len: t as u32, tile_start: start as u32, k: k as u32 };
+            ssim_topk::topk_merge(&tp, &scores, &mut top_s, &mut top_i);
+            start = end;
+        }
+        Ok(ssim_topk::topk_lists(k, &top_s, &top_i))
     }
 }
 

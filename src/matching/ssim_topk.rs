@@ -72,3 +72,31 @@ pub fn topk_lists(k: usize, topk_scores: &[f32], topk_index: &[u32]) -> Vec<Vec<
         .map(|(s, i)| s.iter().zip(i).filter(|(_, &i)| i != EMPTY_INDEX).map(|(&s, &i)| (s, i)).collect())
         .collect()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        /// Streaming tiles through topk_merge keeps exactly the K best of a full sort, ties to the
+        /// lower index, whatever the tile size.
+        #[test]
+        fn streaming_equals_full_sort(scores in prop::collection::vec(0u8..20, 1..200), k in 1usize..15, tile in 1usize..50) {
+            let n = scores.len();
+            let (mut ts, mut ti) = (vec![EMPTY_SCORE; k], vec![EMPTY_INDEX; k]);
+            let mut start = 0;
+            while start < n {
+                let end = (start + tile).min(n);
+                let block: Vec<f32> = scores[start..end].iter().map(|&s| s as f32).collect();
+                let tp = TileParams { queries: 1, tile_len: (end - start) as u32, tile_start: start as u32, k: k as u32 };
+                topk_merge(&tp, &block, &mut ts, &mut ti);
+                start = end;
+            }
+            let mut all: Vec<(f32, u32)> = scores.iter().enumerate().map(|(i, &s)| (s as f32, i as u32)).collect();
+            all.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+            all.truncate(k);
+            prop_assert_eq!(topk_lists(k, &ts, &ti).remove(0), all);
+        }
+    }
+}
