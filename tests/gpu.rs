@@ -366,7 +366,7 @@ fn random_vlad_frames(k: usize, d: usize, seed: u64) -> (semlook::appearance::vl
 #[test]
 fn vlad_kernels_match_the_cpu_twin() {
     let Some(ctx) = gpu() else { return };
-    let vg = semlook::gpu::vlad::VladGpu::new(ctx);
+    let mut vg = semlook::gpu::vlad::VladGpu::new(ctx);
     for (i, &(k, d, power)) in [(16usize, 64usize, false), (5, 37, true), (3, 100, false), (64, 64, true), (1, 1, false)].iter().enumerate() {
         let (cb, frames) = random_vlad_frames(k, d, i as u64 + 40);
         let inputs: Vec<(&[f32], &[u32])> = frames.iter().map(|(a, b)| (a.as_slice(), b.as_slice())).collect();

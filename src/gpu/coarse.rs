@@ -3,7 +3,7 @@
 //! `ssim_tile` scores all pairs and `topk_merge` folds them into the per-query top-K on the GPU.
 //! Only the final K-lists (queries x K) are read back.
 
-use super::context::{GpuContext, GpuError};
+use super::context::{GpuContext, GpuError, Reused};
 use crate::global::ssim::SsimParams;
 use crate::map::DescriptorSet;
 use crate::matching::source::{GlobalSource, TileBuf};
@@ -26,8 +26,11 @@ pub struct CoarseMatcherGpu {
     ctx: Arc<GpuContext>,
     p: SsimParams,
     params: wgpu::Buffer,
-    /// (capacity in references, descriptor buffer, stats buffer)
-    tile: Option<(usize, wgpu::Buffer, wgpu::Buffer)>,
+    tile_globals: Reused,
+    tile_stats: Reused,
+    scores: Reused,
+    top_s: Reused,
+    top_i: Reused,
 }
 
 impl CoarseMatcherGpu {
@@ -41,7 +44,7 @@ impl CoarseMatcherGpu {
             });
         }
         let params = ctx.uniform("ssim params", &p);
-        Ok(CoarseMatcherGpu { ctx, p, params, tile: None })
+        Ok(CoarseMatcherGpu { ctx, p, params, tile_globals: Reused::default(), tile_stats: Reused::default(), scores: Reused::default(), top_s: Reused::default(), top_i: Reused::default() })
     }
 
     /// Uploads a query batch (explicitly: it stays on the GPU until dropped).
@@ -79,16 +82,15 @@ impl CoarseMatcherGpu {
         if (tile * len * 4) as u64 > ctx.binding_limit() || (tile * slen * 4) as u64 > ctx.binding_limit() {
             return Err(GpuError::LimitsTooSmall { adapter: ctx.describe(), what: "one reference per tile".into(), needed: (slen * 4) as u64, available: ctx.binding_limit() });
         }
+        let params = &self.params;
+        let (tgb, tsb) = (&mut self.tile_globals, &mut self.tile_stats);
+        let (sb, tsc, tic) = (&mut self.scores, &mut self.top_s, &mut self.top_i);
         ctx.scoped("coarse matching", || -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
-            if self.tile.as_ref().is_none_or(|t| t.0 < tile) {
-                self.tile = Some((tile, ctx.storage("tile descriptors", (tile * len * 4) as u64), ctx.storage("tile stats", (tile * slen * 4) as u64)));
-            }
-            let (_, tg, ts) = self.tile.as_ref().unwrap();
-            let scores = ctx.storage("tile scores", (nq * tile * 4) as u64);
-            let top_s = ctx.storage("top-k scores", (nq * k * 4) as u64);
-            let top_i = ctx.storage("top-k indices", (nq * k * 4) as u64);
-            ctx.queue.write_buffer(&top_s, 0, bytemuck::cast_slice(&vec![EMPTY_SCORE; nq * k]));
-            ctx.queue.write_buffer(&top_i, 0, bytemuck::cast_slice(&vec![EMPTY_INDEX; nq * k]));
+            let tg = tgb.get(&ctx, "tile descriptors", (tile * len * 4) as u64);
+            let ts = tsb.get(&ctx, "tile stats", (tile * slen * 4) as u64);
+            let scores = sb.get(&ctx, "tile scores", (nq * tile * 4) as u64);
+            let top_s = tsc.upload(&ctx, "top-k scores", bytemuck::cast_slice(&vec![EMPTY_SCORE; nq * k]));
+            let top_i = tic.upload(&ctx, "top-k indices", bytemuck::cast_slice(&vec![EMPTY_INDEX; nq * k]));
             let mut buf = TileBuf::default();
             let mut start = 0;
             while start < refs.len() {
@@ -98,8 +100,8 @@ impl CoarseMatcherGpu {
                 ctx.queue.write_buffer(ts, 0, bytemuck::cast_slice(st));
                 let tp = TileParams { queries: nq as u32, tile_len: (end - start) as u32, tile_start: start as u32, k: k as u32 };
                 let tpb = ctx.uniform("tile params", &tp);
-                let g1 = kr.ssim_tile.bind(&ctx.device, &[&self.params, &tpb, &queries.globals, &queries.stats, tg, ts, &scores]);
-                let g2 = kr.topk_merge.bind(&ctx.device, &[&tpb, &scores, &top_s, &top_i]);
+                let g1 = kr.ssim_tile.bind(&ctx.device, &[params, &tpb, &queries.globals, &queries.stats, tg, ts, scores]);
+                let g2 = kr.topk_merge.bind(&ctx.device, &[&tpb, scores, top_s, top_i]);
                 ctx.run(
                     "coarse tile",
                     &[(&kr.ssim_tile.pipeline, &g1, [(end - start) as u32, nq as u32, 1]), (&kr.topk_merge.pipeline, &g2, [(nq as u32).div_ceil(64), 1, 1])],
@@ -107,8 +109,8 @@ impl CoarseMatcherGpu {
                 ctx.check_lost()?;
                 start = end;
             }
-            let s: Vec<f32> = bytemuck::pod_collect_to_vec(&ctx.read_back(&top_s, (nq * k * 4) as u64)?[..nq * k * 4]);
-            let i: Vec<u32> = bytemuck::pod_collect_to_vec(&ctx.read_back(&top_i, (nq * k * 4) as u64)?[..nq * k * 4]);
+            let s: Vec<f32> = bytemuck::pod_collect_to_vec(&ctx.read_back(top_s, (nq * k * 4) as u64)?[..nq * k * 4]);
+            let i: Vec<u32> = bytemuck::pod_collect_to_vec(&ctx.read_back(top_i, (nq * k * 4) as u64)?[..nq * k * 4]);
             Ok(topk_lists(k, &s, &i))
         })?
     }

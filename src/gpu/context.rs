@@ -25,6 +25,30 @@ pub enum GpuError {
     Failed { what: String, reason: String },
 }
 
+/// A storage buffer kept by an executor between batches, regrown only when a batch needs more.
+#[derive(Default)]
+pub(crate) struct Reused(Option<wgpu::Buffer>);
+
+impl Reused {
+    /// The buffer, at least `bytes` long (contents unspecified).
+    pub fn get(&mut self, ctx: &GpuContext, label: &str, bytes: u64) -> &wgpu::Buffer {
+        let need = bytes.max(4).next_multiple_of(4);
+        if self.0.as_ref().is_none_or(|b| b.size() < need) {
+            self.0 = Some(ctx.storage(label, need));
+        }
+        self.0.as_ref().unwrap()
+    }
+
+    /// The buffer holding `data` (written through the queue).
+    pub fn upload(&mut self, ctx: &GpuContext, label: &str, data: &[u8]) -> &wgpu::Buffer {
+        let b = self.get(ctx, label, data.len() as u64);
+        if !data.is_empty() {
+            ctx.queue.write_buffer(b, 0, data);
+        }
+        b
+    }
+}
+
 /// How to pick an adapter and how much of it to use.
 #[derive(Debug, Clone)]
 pub struct GpuOptions {

@@ -4,7 +4,7 @@
 //! the map is processed in tiles whose scores stay on the GPU and go through the same
 //! `topk_merge` kernel as the coarse stage.
 
-use super::context::{GpuContext, GpuError};
+use super::context::{GpuContext, GpuError, Reused};
 use crate::local::tree_similarity::TreeSimParams;
 use crate::local::ForestRef;
 use crate::map::DescriptorSet;
@@ -79,13 +79,28 @@ fn pack<'a>(forests: impl Iterator<Item = ForestRef<'a>>, dim: usize) -> Packed 
     p
 }
 
+/// Buffers kept between batches.
+#[derive(Default)]
+struct Buffers {
+    q_trees: Reused,
+    q_app: Reused,
+    r_trees: Reused,
+    r_app: Reused,
+    pairs: Reused,
+    scratch: Reused,
+    out: Reused,
+    top_s: Reused,
+    top_i: Reused,
+}
+
 pub struct FineMatcherGpu {
     ctx: Arc<GpuContext>,
+    buffers: Buffers,
 }
 
 impl FineMatcherGpu {
     pub fn new(ctx: Arc<GpuContext>) -> Self {
-        FineMatcherGpu { ctx }
+        FineMatcherGpu { ctx, buffers: Buffers::default() }
     }
 
     fn check(&self, queries: &DescriptorSet, refs: &dyn RefSource) -> Result<(), GpuError> {
@@ -133,11 +148,11 @@ impl FineMatcherGpu {
         let per_pair = (2 * max_trees * max_trees * 4) as u64;
         let pairs_fit = (ctx.binding_limit() / per_pair).max(1) as usize;
         let tile = (pairs_fit / nq.max(1)).min(max_tile).min(refs.len()).max(1);
-        ctx.scoped("fine matching (whole map)", || -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
-            let top_s = ctx.storage("top-k scores", (nq * k * 4) as u64);
-            let top_i = ctx.storage("top-k indices", (nq * k * 4) as u64);
-            ctx.queue.write_buffer(&top_s, 0, bytemuck::cast_slice(&vec![EMPTY_SCORE; nq * k]));
-            ctx.queue.write_buffer(&top_i, 0, bytemuck::cast_slice(&vec![EMPTY_INDEX; nq * k]));
+        let mut top_s_buf = std::mem::take(&mut self.buffers.top_s);
+        let mut top_i_buf = std::mem::take(&mut self.buffers.top_i);
+        let result = ctx.scoped("fine matching (whole map)", || -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
+            let top_s = top_s_buf.upload(&ctx, "top-k scores", bytemuck::cast_slice(&vec![EMPTY_SCORE; nq * k]));
+            let top_i = top_i_buf.upload(&ctx, "top-k indices", bytemuck::cast_slice(&vec![EMPTY_INDEX; nq * k]));
             let mut start = 0;
             while start < refs.len() {
                 let end = (start + tile).min(refs.len());
@@ -151,13 +166,16 @@ impl FineMatcherGpu {
                     }
                 }
                 let tp = TileParams { queries: nq as u32, tile_len: (end - start) as u32, tile_start: start as u32, k: k as u32 };
-                self.run(p, &q, &r, &list, dim, Some((&tp, &top_s, &top_i)))?;
+                self.run(p, &q, &r, &list, dim, Some((&tp, top_s, top_i)))?;
                 start = end;
             }
-            let s: Vec<f32> = bytemuck::pod_collect_to_vec(&ctx.read_back(&top_s, (nq * k * 4) as u64)?[..nq * k * 4]);
-            let i: Vec<u32> = bytemuck::pod_collect_to_vec(&ctx.read_back(&top_i, (nq * k * 4) as u64)?[..nq * k * 4]);
+            let s: Vec<f32> = bytemuck::pod_collect_to_vec(&ctx.read_back(top_s, (nq * k * 4) as u64)?[..nq * k * 4]);
+            let i: Vec<u32> = bytemuck::pod_collect_to_vec(&ctx.read_back(top_i, (nq * k * 4) as u64)?[..nq * k * 4]);
             Ok(topk_lists(k, &s, &i))
-        })?
+        });
+        self.buffers.top_s = top_s_buf;
+        self.buffers.top_i = top_i_buf;
+        result?
     }
 
     /// Runs `list` in chunks that fit the scratch binding and returns the scores. With `merge`, the
@@ -176,35 +194,31 @@ impl FineMatcherGpu {
             ctx.check_binding(what, bytes as u64)?;
         }
         let chunk = if merge.is_some() { list.len() } else { ((ctx.binding_limit() / per_pair) as usize).min(list.len()).max(1) };
+        let b = &mut self.buffers;
         ctx.scoped("fine matching", || -> Result<Vec<f32>, GpuError> {
             let params = ctx.uniform("tree sim params", p);
-            let upload = |label: &str, bytes: &[u8]| {
-                let b = ctx.storage(label, bytes.len() as u64);
-                ctx.queue.write_buffer(&b, 0, bytes);
-                b
-            };
-            let qt = upload("query trees", bytemuck::cast_slice(&q.trees));
-            let qa = upload("query appearance", bytemuck::cast_slice(&q.app));
-            let rt = upload("reference trees", bytemuck::cast_slice(&r.trees));
-            let ra = upload("reference appearance", bytemuck::cast_slice(&r.app));
-            let scratch = ctx.storage("pair matrices", chunk as u64 * per_pair);
-            let out = ctx.storage("pair scores", (chunk * 4) as u64);
+            let qt = b.q_trees.upload(&ctx, "query trees", bytemuck::cast_slice(&q.trees));
+            let qa = b.q_app.upload(&ctx, "query appearance", bytemuck::cast_slice(&q.app));
+            let rt = b.r_trees.upload(&ctx, "reference trees", bytemuck::cast_slice(&r.trees));
+            let ra = b.r_app.upload(&ctx, "reference appearance", bytemuck::cast_slice(&r.app));
+            let scratch = b.scratch.get(&ctx, "pair matrices", chunk as u64 * per_pair);
+            let out = b.out.get(&ctx, "pair scores", (chunk * 4) as u64);
             let mut scores = Vec::with_capacity(if merge.is_some() { 0 } else { list.len() });
             for part in list.chunks(chunk) {
                 let dims = ctx.uniform("batch dims", &BatchDims { dim: dim as u32, pairs: part.len() as u32, max_trees: max_trees as u32, _pad: 0 });
-                let pairs = upload("pairs", bytemuck::cast_slice(part));
-                let g = kr.tree_similarity.bind(&ctx.device, &[&params, &dims, &pairs, &qt, &qa, &rt, &ra, &scratch, &out]);
+                let pairs = b.pairs.upload(&ctx, "pairs", bytemuck::cast_slice(part));
+                let g = kr.tree_similarity.bind(&ctx.device, &[&params, &dims, pairs, qt, qa, rt, ra, scratch, out]);
                 let n = part.len() as u32;
                 let grid = [n.min(65_535), n.div_ceil(65_535), 1];
                 match merge {
                     Some((tp, ts, ti)) => {
                         let tpb = ctx.uniform("tile params", tp);
-                        let g2 = kr.topk_merge.bind(&ctx.device, &[&tpb, &out, ts, ti]);
+                        let g2 = kr.topk_merge.bind(&ctx.device, &[&tpb, out, ts, ti]);
                         ctx.run("fine tile", &[(&kr.tree_similarity.pipeline, &g, grid), (&kr.topk_merge.pipeline, &g2, [tp.queries.div_ceil(64), 1, 1])]);
                     }
                     None => {
                         ctx.run("fine pairs", &[(&kr.tree_similarity.pipeline, &g, grid)]);
-                        scores.extend(bytemuck::pod_collect_to_vec::<u8, f32>(&ctx.read_back(&out, (part.len() * 4) as u64)?[..part.len() * 4]));
+                        scores.extend(bytemuck::pod_collect_to_vec::<u8, f32>(&ctx.read_back(out, (part.len() * 4) as u64)?[..part.len() * 4]));
                     }
                 }
                 ctx.check_lost()?;

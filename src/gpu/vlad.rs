@@ -2,23 +2,34 @@
 //! (sorted by object) and object runs are concatenated, assigned to centres by `vlad_assign`,
 //! and aggregated with normalisations by `vlad_accumulate`, one workgroup per object.
 
-use super::context::{GpuContext, GpuError};
+use super::context::{GpuContext, GpuError, Reused};
 use crate::appearance::vlad::{Codebook, VladParams, MAX_CENTRES};
 use std::sync::Arc;
 
+/// Buffers kept between batches.
+#[derive(Default)]
+struct Buffers {
+    centres: Reused,
+    descriptors: Reused,
+    assignment: Reused,
+    offsets: Reused,
+    out: Reused,
+}
+
 pub struct VladGpu {
     ctx: Arc<GpuContext>,
+    buffers: Buffers,
 }
 
 impl VladGpu {
     pub fn new(ctx: Arc<GpuContext>) -> Self {
-        VladGpu { ctx }
+        VladGpu { ctx, buffers: Buffers::default() }
     }
 
     /// VLAD vectors of every object of every frame: `frames` holds (descriptors sorted by
     /// object, object offsets) per frame; returns per frame (vectors, objects with keypoints).
-    pub fn run(&self, codebook: &Codebook, power_norm: bool, frames: &[(&[f32], &[u32])]) -> Result<Vec<(Vec<f32>, Vec<u8>)>, GpuError> {
-        let ctx = &self.ctx;
+    pub fn run(&mut self, codebook: &Codebook, power_norm: bool, frames: &[(&[f32], &[u32])]) -> Result<Vec<(Vec<f32>, Vec<u8>)>, GpuError> {
+        let ctx = self.ctx.clone();
         if codebook.k > MAX_CENTRES {
             return Err(GpuError::LimitsTooSmall { adapter: ctx.describe(), what: "VLAD centres".into(), needed: codebook.k as u64, available: MAX_CENTRES as u64 });
         }
@@ -38,28 +49,24 @@ impl VladGpu {
             ctx.check_binding(what, bytes as u64)?;
         }
         let k = &ctx.kernels;
+        let b = &mut self.buffers;
         let vectors: Vec<f32> = ctx.scoped("VLAD aggregation", || -> Result<Vec<f32>, GpuError> {
             let p = VladParams { centres: codebook.k as u32, dim: d as u32, keypoints: n as u32, objects: objects as u32, power_norm: power_norm as u32, _pad: [0; 3] };
             let params = ctx.uniform("vlad params", &p);
-            let upload = |label: &str, bytes: &[u8]| {
-                let b = ctx.storage(label, bytes.len() as u64);
-                ctx.queue.write_buffer(&b, 0, bytes);
-                b
-            };
-            let centres = upload("centres", bytemuck::cast_slice(&codebook.centres));
-            let desc_buf = upload("descriptors", bytemuck::cast_slice(&descs));
-            let assign = ctx.storage("assignment", (n * 4) as u64);
-            let off = upload("object offsets", bytemuck::cast_slice(&offsets));
-            let out = ctx.storage("vlad vectors", (out_len * 4) as u64);
-            let g1 = k.vlad_assign.bind(&ctx.device, &[&params, &centres, &desc_buf, &assign]);
-            let g2 = k.vlad_accumulate.bind(&ctx.device, &[&params, &centres, &desc_buf, &assign, &off, &out]);
+            let centres = b.centres.upload(&ctx, "centres", bytemuck::cast_slice(&codebook.centres));
+            let desc_buf = b.descriptors.upload(&ctx, "descriptors", bytemuck::cast_slice(&descs));
+            let assign = b.assignment.get(&ctx, "assignment", (n * 4) as u64);
+            let off = b.offsets.upload(&ctx, "object offsets", bytemuck::cast_slice(&offsets));
+            let out = b.out.get(&ctx, "vlad vectors", (out_len * 4) as u64);
+            let g1 = k.vlad_assign.bind(&ctx.device, &[&params, centres, desc_buf, assign]);
+            let g2 = k.vlad_accumulate.bind(&ctx.device, &[&params, centres, desc_buf, assign, off, out]);
             let groups = (n as u32).div_ceil(64);
             let o = objects as u32;
             ctx.run(
                 "vlad",
                 &[(&k.vlad_assign.pipeline, &g1, [groups.min(65_535), groups.div_ceil(65_535), 1]), (&k.vlad_accumulate.pipeline, &g2, [o.min(65_535), o.div_ceil(65_535), 1])],
             );
-            Ok(bytemuck::pod_collect_to_vec(&ctx.read_back(&out, (out_len * 4) as u64)?[..out_len * 4]))
+            Ok(bytemuck::pod_collect_to_vec(&ctx.read_back(out, (out_len * 4) as u64)?[..out_len * 4]))
         })??;
         let mut res = Vec::with_capacity(frames.len());
         let (mut at, per) = (0usize, codebook.k * d);
