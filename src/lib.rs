@@ -10,25 +10,31 @@
 //! (descriptors; [`encode`] runs both) -> [`map`] (the stored map) -> [`matching`] (coarse top-K,
 //! fine re-ranking) -> [`eval`] (VPR-Bench metrics). [`synth`] renders a procedural benchmark.
 //!
+//! The README's example (compiled here):
+//!
 //! ```no_run
-//! use semlook::{config::Config, encode::Encoder, matching::{match_batch, Setting}};
-//! # fn main() -> semlook::error::Result<()> {
-//! // label maps only; with appearance (the default), see `Encoder::load` and `train_codebook`
-//! let cfg = Config::without_appearance();
-//! let encoder = Encoder::new(&cfg)?;
-//! let table = encoder.class_table().clone();
-//! let fmt = semlook::input::LabelFormat::Auto;
-//! let mut scratch = Default::default();
-//! let mut refs = encoder.descriptor_set();
-//! for (i, path) in ["a.png", "b.png"].iter().enumerate() {
-//!     let labels = semlook::input::load_label_map(path.as_ref(), &table, fmt)?;
-//!     refs.push(&encoder.encode_labels(&format!("ref{i}"), &labels, &mut scratch)?.0);
+//! # fn main() -> semlook::Result<()> {
+//! use semlook::{config::Config, encode::Encoder, engine::{Backend, Engine}, input::FrameSource, map::Map, matching::Setting};
+//!
+//! let frame = |id: &str| FrameSource { id: id.into(), image: Some(format!("{id}.png").into()), labels: Some(format!("{id}_labels.png").into()) };
+//! let cfg = Config::default(); // XFeat appearance: needs the weights setup.sh fetches
+//! let (mut engine, _) = Engine::new(Backend::Auto, &Default::default())?;
+//! let refs = vec![frame("ref0"), frame("ref1")];
+//! let mut encoder = Encoder::new(&cfg)?;
+//! encoder.train_codebook(&refs, &|| {})?; // VLAD codebook from the references
+//! let mut set = encoder.descriptor_set();
+//! for r in engine.encode_all(&encoder, &refs, Default::default(), &|| {})? {
+//!     set.push(&r?.0);
 //! }
-//! let labels = semlook::input::load_label_map("query.png".as_ref(), &table, fmt)?;
+//! let map = Map::create("my-map".as_ref(), &cfg.encoding(), &set, encoder.appearance_record())?;
+//! // later, or elsewhere: Map::open, then an encoder that checks config, network and codebook
+//! let encoder = Encoder::for_map(&cfg, &map)?;
 //! let mut queries = encoder.descriptor_set();
-//! queries.push(&encoder.encode_labels("q", &labels, &mut scratch)?.0);
-//! let (matches, _) = match_batch(&refs, &queries, Setting::Semlook, &cfg);
-//! println!("best reference: {:?}", matches[0].best());
+//! for r in engine.encode_all(&encoder, &[frame("query")], Default::default(), &|| {})? {
+//!     queries.push(&r?.0);
+//! }
+//! let (matches, times) = engine.match_batch(&map, &queries, Setting::Semlook, &cfg)?;
+//! println!("{:?} (coarse {:.2} ms, fine {:.2} ms)", matches[0].best(), times.coarse_ms, times.fine_ms);
 //! # Ok(()) }
 //! ```
 
