@@ -46,11 +46,16 @@ impl GlobalSource for SyntheticMap<'_> {
 
 /// A set of `n` references cycling through `pool` (ids made unique).
 pub fn resident_map(pool: &DescriptorSet, n: usize) -> DescriptorSet {
+    cycle(pool, n, "r", 7919)
+}
+
+/// `n` entries of `pool`, entry i taken from position i * stride (mod the pool), ids `prefix{i}`.
+fn cycle(pool: &DescriptorSet, n: usize, prefix: &str, stride: usize) -> DescriptorSet {
     let mut set = pool.slice(0, 0);
     for i in 0..n {
-        let j = (i.wrapping_mul(7919)) % pool.len();
+        let j = i.wrapping_mul(stride) % pool.len();
         let mut one = pool.slice(j, j + 1);
-        one.ids[0] = format!("r{i}");
+        one.ids[0] = format!("{prefix}{i}");
         set.append(&one);
     }
     set
@@ -86,13 +91,7 @@ fn peak_mib() -> f64 {
 
 /// Queries `0..n` of `queries`, cycling (ids made unique).
 fn batch_of(queries: &DescriptorSet, n: usize) -> DescriptorSet {
-    let mut set = queries.slice(0, 0);
-    for i in 0..n {
-        let mut one = queries.slice(i % queries.len(), i % queries.len() + 1);
-        one.ids[0] = format!("q{i}");
-        set.append(&one);
-    }
-    set
+    cycle(queries, n, "q", 1)
 }
 
 /// Runs every (map size, batch, backend) configuration. `engines` are (label, engine) pairs; the

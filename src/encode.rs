@@ -172,6 +172,8 @@ impl Encoder {
         };
         let labels = match (&src.labels, &self.segmenter, &rgb) {
             (None, Some(seg), Some(img)) => seg.segment(img, src.image.as_deref().unwrap_or(std::path::Path::new(&src.id)))?,
+            // the decoded image is compared below; no need to read its header again
+            (Some(path), _, Some(_)) => input::load_label_map(path, &self.table, format)?,
             _ => input::load_frame_labels(src, &self.table, format)?,
         };
         if let Some(img) = &rgb {

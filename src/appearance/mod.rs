@@ -15,7 +15,6 @@ use crate::objects::{ObjectMap, NO_OBJECT};
 use image::RgbImage;
 use keypoints::{KeypointParams, Keypoints};
 use nn::Chw;
-use sha2::{Digest, Sha256};
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use vlad::{Codebook, VladParams};
@@ -56,7 +55,7 @@ impl std::fmt::Debug for AppearanceModel {
 
 pub(crate) fn sha256_file(path: &Path) -> Result<String> {
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    Ok(Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect())
+    Ok(crate::map::sha256_hex(&bytes))
 }
 
 impl AppearanceModel {

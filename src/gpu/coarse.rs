@@ -7,7 +7,7 @@ use super::context::{GpuContext, GpuError, Reused};
 use crate::global::ssim::SsimParams;
 use crate::map::DescriptorSet;
 use crate::matching::source::{GlobalSource, TileBuf};
-use crate::matching::ssim_topk::{topk_lists, TileParams, EMPTY_INDEX, EMPTY_SCORE};
+use crate::matching::ssim_topk::{TileParams, EMPTY_INDEX, EMPTY_SCORE};
 use std::sync::Arc;
 
 /// Largest value of gh x nw the shader's workgroup array holds.
@@ -109,9 +109,7 @@ impl CoarseMatcherGpu {
                 ctx.check_lost()?;
                 start = end;
             }
-            let s: Vec<f32> = bytemuck::pod_collect_to_vec(&ctx.read_back(top_s, (nq * k * 4) as u64)?[..nq * k * 4]);
-            let i: Vec<u32> = bytemuck::pod_collect_to_vec(&ctx.read_back(top_i, (nq * k * 4) as u64)?[..nq * k * 4]);
-            Ok(topk_lists(k, &s, &i))
+            ctx.read_topk(top_s, top_i, nq, k)
         })?
     }
 }

@@ -261,6 +261,18 @@ impl GpuContext {
         Ok(data)
     }
 
+    /// Reads back the first `n` 32-bit values (f32 or u32) of `src`.
+    pub(crate) fn read_back_values<T: bytemuck::Pod>(&self, src: &wgpu::Buffer, n: usize) -> Result<Vec<T>, GpuError> {
+        Ok(bytemuck::pod_collect_to_vec(&self.read_back(src, (n * 4) as u64)?[..n * 4]))
+    }
+
+    /// The K-lists of `nq` queries from top-K score and index buffers.
+    pub(crate) fn read_topk(&self, top_s: &wgpu::Buffer, top_i: &wgpu::Buffer, nq: usize, k: usize) -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
+        let s: Vec<f32> = self.read_back_values(top_s, nq * k)?;
+        let i: Vec<u32> = self.read_back_values(top_i, nq * k)?;
+        Ok(crate::matching::ssim_topk::topk_lists(k, &s, &i))
+    }
+
     /// Records one compute pass with `dispatches` of (pipeline, bind group, workgroups) and submits it.
     pub(crate) fn run(&self, label: &str, dispatches: &[(&wgpu::ComputePipeline, &wgpu::BindGroup, [u32; 3])]) {
         let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) });

@@ -102,21 +102,23 @@ impl GlobalEncoderGpu {
                     (&k.global_pool.pipeline, &g_pool, [per_frame.div_ceil(64), frames as u32, 1]),
                 ],
             );
-            let bytes = ctx.read_back(&b.out, cells * 4)?;
-            let all: Vec<f32> = bytemuck::pod_collect_to_vec(&bytes[..(cells * 4) as usize]);
+            let all: Vec<f32> = ctx.read_back_values(&b.out, cells as usize)?;
             Ok(all.chunks(per_frame as usize).map(|c| c.to_vec()).collect())
         })?
     }
 
     /// Debug/test access: squared distances of the last batch (frames x pixels).
     pub fn last_d2(&self, pixels: u64) -> Result<Vec<u32>, GpuError> {
-        let b = self.buffers.as_ref().ok_or(GpuError::Failed { what: "reading the EDT".into(), reason: "nothing encoded yet".into() })?;
-        Ok(bytemuck::pod_collect_to_vec(&self.ctx.read_back(&b.d2, pixels * 4)?[..(pixels * 4) as usize]))
+        self.read_last(pixels, |b| &b.d2)
     }
 
     /// Debug/test access: edge flags of the last batch (frames x pixels).
     pub fn last_edges(&self, pixels: u64) -> Result<Vec<u32>, GpuError> {
-        let b = self.buffers.as_ref().ok_or(GpuError::Failed { what: "reading edges".into(), reason: "nothing encoded yet".into() })?;
-        Ok(bytemuck::pod_collect_to_vec(&self.ctx.read_back(&b.edges, pixels * 4)?[..(pixels * 4) as usize]))
+        self.read_last(pixels, |b| &b.edges)
+    }
+
+    fn read_last(&self, pixels: u64, which: impl Fn(&Buffers) -> &wgpu::Buffer) -> Result<Vec<u32>, GpuError> {
+        let b = self.buffers.as_ref().ok_or(GpuError::Failed { what: "reading a scratch buffer".into(), reason: "nothing encoded yet".into() })?;
+        self.ctx.read_back_values(which(b), pixels as usize)
     }
 }

@@ -9,7 +9,7 @@ use crate::local::tree_similarity::TreeSimParams;
 use crate::local::ForestRef;
 use crate::map::DescriptorSet;
 use crate::matching::source::RefSource;
-use crate::matching::ssim_topk::{topk_lists, TileParams, EMPTY_INDEX, EMPTY_SCORE};
+use crate::matching::ssim_topk::{TileParams, EMPTY_INDEX, EMPTY_SCORE};
 use std::sync::Arc;
 
 /// Most neighbour slots the shader's tree record holds.
@@ -169,9 +169,7 @@ impl FineMatcherGpu {
                 self.run(p, &q, &r, &list, dim, Some((&tp, top_s, top_i)))?;
                 start = end;
             }
-            let s: Vec<f32> = bytemuck::pod_collect_to_vec(&ctx.read_back(top_s, (nq * k * 4) as u64)?[..nq * k * 4]);
-            let i: Vec<u32> = bytemuck::pod_collect_to_vec(&ctx.read_back(top_i, (nq * k * 4) as u64)?[..nq * k * 4]);
-            Ok(topk_lists(k, &s, &i))
+            ctx.read_topk(top_s, top_i, nq, k)
         });
         self.buffers.top_s = top_s_buf;
         self.buffers.top_i = top_i_buf;
@@ -218,7 +216,7 @@ impl FineMatcherGpu {
                     }
                     None => {
                         ctx.run("fine pairs", &[(&kr.tree_similarity.pipeline, &g, grid)]);
-                        scores.extend(bytemuck::pod_collect_to_vec::<u8, f32>(&ctx.read_back(out, (part.len() * 4) as u64)?[..part.len() * 4]));
+                        scores.extend(ctx.read_back_values::<f32>(out, part.len())?);
                     }
                 }
                 ctx.check_lost()?;

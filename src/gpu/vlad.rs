@@ -66,7 +66,7 @@ impl VladGpu {
                 "vlad",
                 &[(&k.vlad_assign.pipeline, &g1, [groups.min(65_535), groups.div_ceil(65_535), 1]), (&k.vlad_accumulate.pipeline, &g2, [o.min(65_535), o.div_ceil(65_535), 1])],
             );
-            Ok(bytemuck::pod_collect_to_vec(&ctx.read_back(out, (out_len * 4) as u64)?[..out_len * 4]))
+            ctx.read_back_values(out, out_len)
         })??;
         let mut res = Vec::with_capacity(frames.len());
         let (mut at, per) = (0usize, codebook.k * d);

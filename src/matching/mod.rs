@@ -38,8 +38,6 @@ pub enum Setting {
 
 impl Setting {
     pub const ALL: [Setting; 5] = [Setting::Global, Setting::Forest, Setting::Local, Setting::GlobalForest, Setting::Semlook];
-    /// The four settings of the paper's ablation.
-    pub const ABLATION: [Setting; 4] = [Setting::Forest, Setting::Local, Setting::GlobalForest, Setting::Semlook];
 
     pub fn uses_coarse(self) -> bool {
         matches!(self, Setting::Global | Setting::GlobalForest | Setting::Semlook)
@@ -135,23 +133,12 @@ impl Stages for CpuStages {
     /// Tree similarities of all queries against one tile of references at a time, folded into
     /// the per-query top-K by `topk_merge`, as the GPU path does.
     fn fine_topk(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
-        let nq = queries.len();
-        let tile = tile.max(1).min(refs.len().max(1));
-        let mut scores = vec![0.0f32; nq * tile];
-        let mut top_s = vec![ssim_topk::EMPTY_SCORE; nq * k];
-        let mut top_i = vec![ssim_topk::EMPTY_INDEX; nq * k];
-        let mut start = 0;
-        while start < refs.len() {
-            let end = (start + tile).min(refs.len());
-            let t = end - start;
-            scores[..nq * t].par_iter_mut().enumerate().for_each_init(TreeSimScratch::default, |scratch, (i, s)| {
+        Ok(stream_topk(queries.len(), refs.len(), k, tile, |tp, scores| {
+            let (start, t) = (tp.tile_start as usize, tp.tile_len as usize);
+            scores.par_iter_mut().enumerate().for_each_init(TreeSimScratch::default, |scratch, (i, s)| {
                 *s = tree_similarity(p, queries.forest(i / t), refs.forest(start + i % t), scratch);
             });
-            let tp = ssim_topk::TileParams { queries: nq as u32, tile_len: t as u32, tile_start: start as u32, k: k as u32 };
-            ssim_topk::topk_merge(&tp, &scores, &mut top_s, &mut top_i);
-            start = end;
-        }
-        Ok(ssim_topk::topk_lists(k, &top_s, &top_i))
+        }))
     }
 }
 
@@ -218,18 +205,26 @@ pub fn match_with(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &Descr
 /// Coarse stage on the CPU: for each query, the `k` references of highest SSIM, streamed over
 /// tiles of `tile` references (the twin of the GPU kernels, tile by tile).
 pub fn coarse_topk(refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimParams, k: usize, tile: usize) -> Vec<Vec<(f32, u32)>> {
-    let nq = queries.len();
-    let tile = tile.max(1).min(refs.len().max(1));
+    let mut buf = source::TileBuf::default();
+    stream_topk(queries.len(), refs.len(), k, tile, |tp, scores| {
+        let (start, end) = (tp.tile_start as usize, (tp.tile_start + tp.tile_len) as usize);
+        let (g, st) = refs.tile(start, end, &mut buf);
+        ssim_topk::ssim_tile(p, tp, &queries.globals, &queries.global_stats, g, st, scores);
+    })
+}
+
+/// The CPU streaming top-K over a map of `n` references: per tile of at most `tile` references,
+/// `score` fills the queries x tile scores, which `topk_merge` folds into each query's K-list.
+fn stream_topk(nq: usize, n: usize, k: usize, tile: usize, mut score: impl FnMut(&ssim_topk::TileParams, &mut [f32])) -> Vec<Vec<(f32, u32)>> {
+    let tile = tile.max(1).min(n.max(1));
     let mut scores = vec![0.0f32; nq * tile];
     let mut top_s = vec![ssim_topk::EMPTY_SCORE; nq * k];
     let mut top_i = vec![ssim_topk::EMPTY_INDEX; nq * k];
-    let mut buf = source::TileBuf::default();
     let mut start = 0;
-    while start < refs.len() {
-        let end = (start + tile).min(refs.len());
+    while start < n {
+        let end = (start + tile).min(n);
         let tp = ssim_topk::TileParams { queries: nq as u32, tile_len: (end - start) as u32, tile_start: start as u32, k: k as u32 };
-        let (g, st) = refs.tile(start, end, &mut buf);
-        ssim_topk::ssim_tile(p, &tp, &queries.globals, &queries.global_stats, g, st, &mut scores);
+        score(&tp, &mut scores[..nq * (end - start)]);
         ssim_topk::topk_merge(&tp, &scores, &mut top_s, &mut top_i);
         start = end;
     }
