@@ -169,7 +169,7 @@ fn appearance_in_maps_and_evaluation() {
     }
     let dir = tempfile::tempdir().unwrap();
     common::tiny_synth(dir.path(), 8, 3);
-    let ds = semlook::eval::dataset::Dataset::open(dir.path(), &Default::default()).unwrap();
+    let ds = semlook::dataset::Dataset::open(dir.path(), &Default::default()).unwrap();
     let cfg = semlook::config::Config::default();
     let mut enc = semlook::encode::Encoder::new(&cfg).unwrap();
     let refs: Vec<_> = ds.reference.frames.iter().map(|f| f.source.clone()).collect();

@@ -282,7 +282,7 @@ fn end_to_end_matching_equals_the_cpu_path() {
     let Some(ctx) = gpu() else { return };
     let dir = tempfile::tempdir().unwrap();
     common::tiny_synth(dir.path(), 10, 21);
-    let ds = semlook::eval::dataset::Dataset::open(dir.path(), &Default::default()).unwrap();
+    let ds = semlook::dataset::Dataset::open(dir.path(), &Default::default()).unwrap();
     let cfg = if semlook::onnx::models_dir().join(semlook::appearance::XFEAT_WEIGHTS).exists() {
         Config::default()
     } else {

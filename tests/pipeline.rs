@@ -3,7 +3,7 @@
 mod common;
 
 use semlook::config::Config;
-use semlook::eval::dataset::{Dataset, DatasetOptions};
+use semlook::dataset::{Dataset, DatasetOptions};
 use semlook::eval::{evaluate, EvalOptions};
 use semlook::global::ssim::SsimParams;
 use semlook::matching::{coarse_topk, match_batch, Setting};

@@ -6,7 +6,7 @@ use semlook::encode::Encoder;
 use semlook::engine::Engine;
 use semlook::gpu::GpuOptions;
 use semlook::error::{Error, Result};
-use semlook::eval::dataset::{Dataset, DatasetOptions};
+use semlook::dataset::{Dataset, DatasetOptions};
 use semlook::eval::{encode_frames, evaluate, EvalOptions, EvalReport};
 use semlook::input::FrameSource;
 use semlook::map::{DescriptorSet, Map};
@@ -114,7 +114,7 @@ fn frame_sources(s: &SourceArgs, cfg: &mut Config, keep_ids: bool) -> Result<(Ve
         let frames = trav.frames.iter().map(|f| f.source.clone()).collect();
         return Ok((frames, s.label_format.unwrap_or(ds.label_format)));
     }
-    let listing = semlook::eval::dataset::image_files;
+    let listing = semlook::dataset::image_files;
     let stem = |p: &Path| p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
     let frames = match (&s.images, &s.labels) {
         (Some(img), labels) => listing(img)?
@@ -284,9 +284,25 @@ fn query(engine: &mut Engine, a: &QueryArgs, quiet: bool) -> Result<()> {
     Ok(())
 }
 
-fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
+/// The dataset an `eval` names: a dataset directory, or a reference and a query folder.
+fn eval_dataset(a: &EvalArgs) -> Result<Dataset> {
+    use semlook::dataset::pairs::{self, PairTruth};
     let opts = DatasetOptions { reference: a.reference.clone(), queries: a.queries.clone(), max_distance: a.gt_distance, max_angle_deg: a.gt_angle };
-    let ds = Dataset::open(&a.dataset, &opts)?;
+    match (&a.dataset, &a.references, &a.queries_dir) {
+        (Some(dir), _, _) => Dataset::open(dir, &opts),
+        (None, Some(refs), Some(queries)) => {
+            let truth = match &a.ground_truth {
+                Some(f) => PairTruth::from_file(f)?,
+                None => PairTruth::Utm(a.gt_distance.unwrap_or(pairs::UTM_DEFAULT_DISTANCE)),
+            };
+            pairs::from_folders(refs, queries, &truth)
+        }
+        _ => Err(Error::invalid("arguments", "give --dataset DIR, or --references DIR --queries DIR [--ground-truth FILE]")),
+    }
+}
+
+fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
+    let ds = eval_dataset(a)?;
     let map = a.map.as_deref().map(Map::open).transpose()?;
     let mut cfg = match &map {
         Some(m) => map_config(m, a.config.as_deref(), &a.models)?,

@@ -198,8 +198,21 @@ pub struct QueryArgs {
 
 #[derive(Args)]
 pub struct EvalArgs {
-    #[arg(long)]
-    pub dataset: PathBuf,
+    /// A dataset directory: a semlook-dataset.json manifest, ref/ + query/ + ground_truth.csv,
+    /// ref/ + query/ + ground_truth_new.npy (VPR-Bench), database/ + queries/ with UTM file names,
+    /// or a SYNTHIA-style tree.
+    #[arg(long, required_unless_present = "references", conflicts_with = "references")]
+    pub dataset: Option<PathBuf>,
+    /// A folder of reference images (the map); with --queries and --ground-truth.
+    #[arg(long, requires = "queries_dir")]
+    pub references: Option<PathBuf>,
+    /// A folder of query images.
+    #[arg(long = "queries", value_name = "DIR", requires = "references")]
+    pub queries_dir: Option<PathBuf>,
+    /// Ground truth for --references/--queries: a CSV of query,reference rows (paths relative to
+    /// the CSV's folder) or VPR-Bench's .npy; without it, UTM positions in the file names.
+    #[arg(long, requires = "references")]
+    pub ground_truth: Option<PathBuf>,
     /// One setting (default: all).
     #[arg(long, value_enum, conflicts_with = "all_settings")]
     pub setting: Option<Setting>,

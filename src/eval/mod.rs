@@ -3,7 +3,7 @@
 //! per-stage timings in the paper's Table 2 units (ms per frame for encoding, ms per reference
 //! frame for matching).
 
-pub mod dataset;
+
 pub mod metrics;
 
 use crate::config::Config;
@@ -14,7 +14,7 @@ use crate::map::{DescriptorSet, Map};
 use crate::matching::source::RefSource;
 use crate::matching::Setting;
 use crate::progress;
-use dataset::Dataset;
+use crate::dataset::Dataset;
 use metrics::{pr_metrics, recall_at_n, PrMetrics};
 use serde::Serialize;
 use std::collections::HashMap;

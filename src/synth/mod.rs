@@ -14,7 +14,7 @@ pub mod render;
 pub mod world;
 
 use crate::error::{Error, Result};
-use crate::eval::dataset::{write_synthia_pose, DatasetManifest, GroundTruthRule, Pose, TraversalSpec, MANIFEST, SYNTHIA_CAMERA};
+use crate::dataset::{write_synthia_pose, DatasetManifest, GroundTruthRule, Pose, TraversalSpec, MANIFEST, SYNTHIA_CAMERA};
 use crate::util::SplitMix64;
 use condition::Condition;
 use rayon::prelude::*;
