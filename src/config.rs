@@ -13,6 +13,7 @@ use std::path::Path;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 #[serde(default, deny_unknown_fields)]
 pub struct Config {
+    pub input: InputConfig,
     pub classes: ClassesConfig,
     pub objects: ObjectsConfig,
     pub global: GlobalConfig,
@@ -28,12 +29,30 @@ pub struct Config {
 /// The sections that determine stored descriptors; a map and its queries must agree on them.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EncodingConfig {
+    pub input: InputConfig,
     pub classes: ClassesConfig,
     pub objects: ObjectsConfig,
     pub global: GlobalConfig,
     pub local: LocalConfig,
     pub appearance: AppearanceConfig,
     pub segmentation: SegmentationConfig,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct InputConfig {
+    /// Label maps and images are brought to this long side (keeping the aspect ratio) before
+    /// edges, objects and keypoints: descriptors then cost the same for any input resolution, and
+    /// the keypoint network sees structures at a scale that survives seasons. 0: native size.
+    /// [R] 640, the resolution XFeat was trained and evaluated at (640x480). A segmenter runs on
+    /// the full image at its own input size.
+    pub working_long_side: usize,
+}
+
+impl Default for InputConfig {
+    fn default() -> Self {
+        InputConfig { working_long_side: 640 }
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -168,11 +187,24 @@ pub enum AppearanceModelKind {
     None,
 }
 
+/// Where appearance descriptors are taken.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Sampling {
+    /// At the detected keypoints (SuperPoint-style decoding), as the paper does.
+    Keypoints,
+    /// At every cell of the network's descriptor map (1/8 resolution): every object gets
+    /// descriptors in proportion to its area, whatever the texture (DenseVLAD, Torii et al. 2015).
+    Dense,
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct AppearanceConfig {
     /// Keypoint network: "xfeat" (default), "onnx" or "none".
     pub model: AppearanceModelKind,
+    /// Descriptors at "keypoints" or "dense" over the descriptor map. [R]
+    pub sampling: Sampling,
     /// Non-maximum suppression radius in pixels. [X] SuperPoint demo: 4.
     pub nms_radius: usize,
     /// Keypoints scoring (probability x reliability) at or below this are dropped. [R]
@@ -183,8 +215,12 @@ pub struct AppearanceConfig {
     pub border: usize,
     /// VLAD codebook size Kv. [R] 16.
     pub vlad_centres: usize,
+    /// L2-normalise each centre's residual sum (intra-normalisation, Arandjelovic & Zisserman 2013). [R] on.
+    pub intra_norm: bool,
     /// Signed square root of the VLAD vector before the final L2 normalisation. [R] off.
     pub power_norm: bool,
+    /// Objects with fewer descriptors than this carry no appearance (their VLAD is noise). [R] 1.
+    pub min_descriptors: usize,
     /// Codebook training: reference images sampled, descriptors kept per image, Lloyd
     /// iterations and seed. [R]
     pub codebook_images: usize,
@@ -197,12 +233,15 @@ impl Default for AppearanceConfig {
     fn default() -> Self {
         AppearanceConfig {
             model: AppearanceModelKind::Xfeat,
+            sampling: Sampling::Keypoints,
             nms_radius: 4,
             score_threshold: 0.005,
             max_keypoints: 1024,
             border: 4,
             vlad_centres: 16,
+            intra_norm: true,
             power_norm: false,
+            min_descriptors: 1,
             codebook_images: 48,
             codebook_samples_per_image: 128,
             codebook_iterations: 20,
@@ -237,16 +276,26 @@ impl Default for SegmentationConfig {
     }
 }
 
-/// Where model files are. Empty paths are looked up in $SEMLOOK_MODELS, then in the `.semlook`
-/// folder that `setup.sh` fills. Not part of a map's encoding (maps record file checksums).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+/// Where model files are. Paths not given are looked up in the model folders
+/// (`onnx::model_dirs`: $SEMLOOK_MODELS, `.semlook` beside the working directory or the
+/// executable, the user's data directory). Not part of a map's encoding (maps record checksums).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ModelPaths {
     pub xfeat_weights: Option<std::path::PathBuf>,
     pub keypoint_onnx: Option<std::path::PathBuf>,
     pub segmenter_onnx: Option<std::path::PathBuf>,
-    /// The ONNX Runtime shared library (else $ORT_DYLIB_PATH, then the setup folder).
+    /// Without `segmenter_onnx`, segment frames that have no label map with the default
+    /// segmenter when it is installed (`segmentation::DEFAULT_SEGMENTER`).
+    pub default_segmenter: bool,
+    /// The ONNX Runtime shared library (else $ORT_DYLIB_PATH, then the model folders).
     pub onnxruntime: Option<std::path::PathBuf>,
+}
+
+impl Default for ModelPaths {
+    fn default() -> Self {
+        ModelPaths { xfeat_weights: None, keypoint_onnx: None, segmenter_onnx: None, default_segmenter: true, onnxruntime: None }
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -267,8 +316,30 @@ pub struct SimilarityConfig {
     pub missing_appearance: MissingAppearance,
     pub neutral_appearance: f64,
     /// Image similarity from tree similarities: "greedy" one-to-one assignment, or "best_match"
-    /// (each query tree takes its best reference tree). Both divide by the larger forest. [R] greedy.
+    /// (each query tree takes its best reference tree). [R] greedy.
     pub assignment: Assignment,
+    /// Weight of a tree in the image similarity: "uniform", "area", "sqrt_area", or
+    /// "descriptors" (its appearance descriptor count + 1). A pair counts sqrt(w_t w_u). [R] uniform.
+    pub tree_weight: TreeWeight,
+    /// The sum of weighted pair scores is divided by "larger_forest" (the larger total tree
+    /// weight, spec §2.8) or "geometric_mean" (sqrt of the product of the totals). [R] larger_forest.
+    pub normalise: Normalise,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TreeWeight {
+    Uniform,
+    Area,
+    SqrtArea,
+    Descriptors,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Normalise {
+    LargerForest,
+    GeometricMean,
 }
 
 impl Default for SimilarityConfig {
@@ -284,6 +355,8 @@ impl Default for SimilarityConfig {
             missing_appearance: MissingAppearance::Neutral,
             neutral_appearance: 0.5,
             assignment: Assignment::Greedy,
+            tree_weight: TreeWeight::Uniform,
+            normalise: Normalise::LargerForest,
         }
     }
 }
@@ -364,8 +437,14 @@ impl Config {
         toml::to_string_pretty(self).expect("config serialises")
     }
 
+    /// SHA-256 of the configuration's TOML: names exactly what ran in reports.
+    pub fn sha256(&self) -> String {
+        crate::util::sha256_hex(self.to_toml().as_bytes())
+    }
+
     pub fn encoding(&self) -> EncodingConfig {
         EncodingConfig {
+            input: self.input.clone(),
             classes: self.classes.clone(),
             objects: self.objects.clone(),
             global: self.global.clone(),
@@ -382,6 +461,7 @@ impl Config {
 
     /// Replaces the encoding sections with those a map was built with.
     pub fn with_encoding(mut self, enc: &EncodingConfig) -> Config {
+        self.input = enc.input.clone();
         self.classes = enc.classes.clone();
         self.objects = enc.objects.clone();
         self.global = enc.global.clone();
@@ -427,8 +507,14 @@ impl Config {
         }
         finite_in("global.ssim_k1", g.ssim_k1, 1e-6, 1.0)?;
         finite_in("global.ssim_k2", g.ssim_k2, 1e-6, 1.0)?;
+        if self.input.working_long_side != 0 && !(32..=8192).contains(&self.input.working_long_side) {
+            return bad(format!("input.working_long_side = {} must be 0 (native) or in 32..=8192", self.input.working_long_side));
+        }
         let a = &self.appearance;
         finite_in("appearance.score_threshold", a.score_threshold, 0.0, 1.0)?;
+        if a.min_descriptors > 1_000_000 {
+            return bad(format!("appearance.min_descriptors = {} must be at most 1000000", a.min_descriptors));
+        }
         if a.max_keypoints == 0 || a.vlad_centres == 0 || a.vlad_centres > 64 || a.codebook_images == 0 || a.codebook_samples_per_image == 0 {
             return bad("appearance: max_keypoints, codebook_images and codebook_samples_per_image must be positive, vlad_centres in 1..=64".into());
         }

@@ -3,7 +3,7 @@
 //! "edge (coarse)" = global descriptor, "forest" = objects and trees, "appearance" = keypoint
 //! network and per-object VLAD.
 
-use crate::appearance::{self, vlad::Codebook, AppearanceModel};
+use crate::appearance::{self, vlad::{Codebook, VladNorm}, AppearanceModel};
 use crate::classes::ClassTable;
 use crate::config::{Config, EncodingConfig};
 use crate::error::{Error, Result};
@@ -21,6 +21,7 @@ use std::time::Instant;
 #[derive(Debug, Clone, PartialEq)]
 pub struct EncodedImage {
     pub id: String,
+    /// Size of the source image (descriptors are computed at the working size).
     pub width: u32,
     pub height: u32,
     /// Global descriptor, `global.height` x `global.width`, values in [0, 1].
@@ -28,13 +29,20 @@ pub struct EncodedImage {
     /// SSIM window means then variances of `global`.
     pub global_stats: Vec<f32>,
     pub forest: Forest,
+    /// VLAD of all the image's appearance descriptors (the `appearance` baseline); empty without
+    /// appearance.
+    pub appearance: Vec<f32>,
+    /// VPR-Bench HOG (the `hog` baseline); empty unless the encoder computes it.
+    pub hog: Vec<f32>,
 }
 
 /// Milliseconds spent per stage on one image.
 #[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
 pub struct StageTimes {
-    /// Reading and decoding the input files (and segmenting, without label maps).
-    pub load_ms: f64,
+    /// Reading and decoding the input files, and bringing them to the working size.
+    pub decode_ms: f64,
+    /// The segmentation network (frames without a label map).
+    pub segment_ms: f64,
     /// "Edge (coarse)": edges, distance transform, pooling, SSIM stats.
     pub global_ms: f64,
     /// "Forest": objects, trees and neighbours.
@@ -43,30 +51,80 @@ pub struct StageTimes {
     pub appearance_ms: f64,
     /// Of `appearance_ms`, the network alone.
     pub network_ms: f64,
+    /// The HOG baseline descriptor.
+    pub hog_ms: f64,
+}
+
+impl StageTimes {
+    /// Encoding as the paper counts it: descriptors only (no decoding, segmentation, baselines).
+    pub fn encode_ms(&self) -> f64 {
+        self.global_ms + self.forest_ms + self.appearance_ms
+    }
+    /// Everything but the segmentation network.
+    pub fn without_segmentation_ms(&self) -> f64 {
+        self.decode_ms + self.encode_ms()
+    }
+    /// Each field of `self` through `f` with the same field of `o`.
+    fn zip(self, o: StageTimes, f: impl Fn(f64, f64) -> f64) -> StageTimes {
+        StageTimes {
+            decode_ms: f(self.decode_ms, o.decode_ms),
+            segment_ms: f(self.segment_ms, o.segment_ms),
+            global_ms: f(self.global_ms, o.global_ms),
+            forest_ms: f(self.forest_ms, o.forest_ms),
+            appearance_ms: f(self.appearance_ms, o.appearance_ms),
+            network_ms: f(self.network_ms, o.network_ms),
+            hog_ms: f(self.hog_ms, o.hog_ms),
+        }
+    }
+    pub fn scaled(self, by: f64) -> StageTimes {
+        self.zip(self, |a, _| a * by)
+    }
+    /// Per-field medians of `times`.
+    pub fn median(times: &[StageTimes]) -> StageTimes {
+        let pick = |f: fn(&StageTimes) -> f64| -> f64 {
+            let mut v: Vec<f64> = times.iter().map(f).collect();
+            v.sort_by(f64::total_cmp);
+            match v.len() {
+                0 => 0.0,
+                n if n % 2 == 1 => v[n / 2],
+                n => 0.5 * (v[n / 2 - 1] + v[n / 2]),
+            }
+        };
+        StageTimes {
+            decode_ms: pick(|t| t.decode_ms),
+            segment_ms: pick(|t| t.segment_ms),
+            global_ms: pick(|t| t.global_ms),
+            forest_ms: pick(|t| t.forest_ms),
+            appearance_ms: pick(|t| t.appearance_ms),
+            network_ms: pick(|t| t.network_ms),
+            hog_ms: pick(|t| t.hog_ms),
+        }
+    }
 }
 
 impl std::ops::AddAssign for StageTimes {
     fn add_assign(&mut self, o: StageTimes) {
-        self.load_ms += o.load_ms;
-        self.global_ms += o.global_ms;
-        self.forest_ms += o.forest_ms;
-        self.appearance_ms += o.appearance_ms;
-        self.network_ms += o.network_ms;
+        *self = self.zip(o, |a, b| a + b);
     }
 }
 
-/// A frame's decoded inputs.
+/// A frame's decoded inputs, at the working size.
 #[derive(Debug, Clone)]
 pub struct Loaded {
     pub labels: LabelMap,
     pub rgb: Option<RgbImage>,
-    pub load_ms: f64,
+    /// Size of the source image.
+    pub source_size: (u32, u32),
+    pub hog: Option<Vec<f32>>,
+    pub times: StageTimes,
 }
 
-/// Keypoint descriptors of one frame sorted by object, and each object's run: what VLAD needs.
+/// Appearance descriptors of one frame sorted by object, with each object's run, and last a run
+/// of all the frame's descriptors (for the whole-image VLAD): what the VLAD kernels take.
 #[derive(Debug, Clone, Default)]
 pub struct VladInput {
     pub descriptors: Vec<f32>,
+    /// objects + 2 entries: object o owns offsets[o]..offsets[o + 1]; the last run is the image.
     pub offsets: Vec<u32>,
 }
 
@@ -87,7 +145,33 @@ pub struct Encoder {
     ssim: SsimParams,
     appearance: Option<Arc<AppearanceModel>>,
     codebook: Option<Arc<Codebook>>,
-    segmenter: Option<Arc<crate::segmentation::Segmenter>>,
+    segmenter: Option<Arc<LazySegmenter>>,
+    /// Also compute the VPR-Bench HOG baseline descriptor.
+    hog: bool,
+}
+
+/// A segmenter loaded on first use: encoding label maps never needs ONNX Runtime.
+struct LazySegmenter {
+    path: std::path::PathBuf,
+    cfg: crate::config::SegmentationConfig,
+    table: ClassTable,
+    onnxruntime: Option<std::path::PathBuf>,
+    loaded: std::sync::OnceLock<std::result::Result<crate::segmentation::Segmenter, String>>,
+}
+
+impl std::fmt::Debug for LazySegmenter {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Segmenter({})", self.path.display())
+    }
+}
+
+impl LazySegmenter {
+    fn get(&self) -> Result<&crate::segmentation::Segmenter> {
+        self.loaded
+            .get_or_init(|| crate::segmentation::Segmenter::load(&self.path, &self.cfg, &self.table, self.onnxruntime.as_deref()).map_err(|e| e.to_string()))
+            .as_ref()
+            .map_err(|reason| Error::Model { path: self.path.clone(), reason: reason.clone() })
+    }
 }
 
 impl Encoder {
@@ -95,11 +179,28 @@ impl Encoder {
     pub fn new(cfg: &Config) -> Result<Encoder> {
         let table = ClassTable::from_config(&cfg.classes)?;
         let appearance = AppearanceModel::load(&cfg.appearance, &cfg.models)?.map(Arc::new);
-        let segmenter = match &cfg.models.segmenter_onnx {
-            Some(path) => Some(Arc::new(crate::segmentation::Segmenter::load(path, &cfg.segmentation, &table, cfg.models.onnxruntime.as_deref())?)),
+        // the configured segmenter, else the default one when it is installed
+        let seg_path = match &cfg.models.segmenter_onnx {
+            Some(p) => Some(crate::onnx::find_model(crate::segmentation::DEFAULT_SEGMENTER, Some(p), "segmenter")?),
+            None if cfg.models.default_segmenter => crate::onnx::find_model(crate::segmentation::DEFAULT_SEGMENTER, None, "segmenter").ok(),
             None => None,
         };
-        Ok(Encoder { used: table.used_mask(), ssim: SsimParams::new(&cfg.global), table, cfg: cfg.encoding(), appearance, codebook: None, segmenter })
+        let segmenter = seg_path.map(|path| {
+            Arc::new(LazySegmenter { path, cfg: cfg.segmentation.clone(), table: table.clone(), onnxruntime: cfg.models.onnxruntime.clone(), loaded: Default::default() })
+        });
+        Ok(Encoder { used: table.used_mask(), ssim: SsimParams::new(&cfg.global), table, cfg: cfg.encoding(), appearance, codebook: None, segmenter, hog: false })
+    }
+    /// Whether the encoder also computes the HOG baseline (VPR-Bench's, [`crate::baseline`]).
+    pub fn with_hog(mut self, hog: bool) -> Encoder {
+        self.hog = hog;
+        self
+    }
+    pub fn computes_hog(&self) -> bool {
+        self.hog
+    }
+    /// The segmentation network, once a frame without a label map was segmented.
+    pub fn segmenter(&self) -> Option<&crate::segmentation::Segmenter> {
+        self.segmenter.as_ref().and_then(|s| s.loaded.get()).and_then(|r| r.as_ref().ok())
     }
     /// An encoder for queries of `map`: `cfg`'s encoding must equal the map's, its keypoint
     /// network must be the one the map was built with, and the map's codebook is used.
@@ -152,41 +253,76 @@ impl Encoder {
     }
     /// An empty descriptor set laid out for this encoder's images.
     pub fn descriptor_set(&self) -> crate::map::DescriptorSet {
-        crate::map::DescriptorSet::new(&self.ssim, self.cfg.local.neighbours, self.appearance_dim())
+        let hog = if self.hog { crate::baseline::HOG_DIM } else { 0 };
+        crate::map::DescriptorSet::new(&self.ssim, self.cfg.local.neighbours, self.appearance_dim(), hog)
     }
 
-    /// Loads a frame: its label map (from file, or segmented from the image) and, when
-    /// appearance is on, its RGB image.
+    /// Loads a frame at the working size: its label map (from file, or segmented from the
+    /// image), and the RGB image when appearance is on; the HOG baseline from the full image.
     pub fn load(&self, src: &FrameSource, format: LabelFormat) -> Result<Loaded> {
+        let mut times = StageTimes::default();
         let t = Instant::now();
-        let needs_rgb = self.appearance.is_some() || (src.labels.is_none() && self.segmenter.is_some());
+        let segment = src.labels.is_none() && self.segmenter.is_some();
+        let needs_rgb = self.appearance.is_some() || segment || self.hog;
         let rgb = match (&src.image, needs_rgb) {
             (Some(p), true) => Some(input::load_rgb(p)?),
-            (None, true) if self.appearance.is_some() => {
+            (None, true) => {
                 return Err(Error::invalid(
                     format!("frame {:?}", src.id),
-                    "appearance needs the RGB image (pass --images), or turn appearance off (--no-appearance)",
+                    "appearance, segmentation and HOG need the RGB image (pass --images), or turn appearance off (--no-appearance)",
                 ))
             }
             _ => None,
         };
-        let labels = match (&src.labels, &self.segmenter, &rgb) {
-            (None, Some(seg), Some(img)) => seg.segment(img, src.image.as_deref().unwrap_or(std::path::Path::new(&src.id)))?,
+        times.decode_ms = ms_since(t);
+        let full_labels = match (&src.labels, &self.segmenter, &rgb) {
+            (None, Some(_), Some(_)) => None,
             // the decoded image is compared below; no need to read its header again
-            (Some(path), _, Some(_)) => input::load_label_map(path, &self.table, format)?,
-            _ => input::load_frame_labels(src, &self.table, format)?,
+            (Some(path), _, Some(_)) => Some(input::load_label_map(path, &self.table, format)?),
+            _ => Some(input::load_frame_labels(src, &self.table, format)?),
         };
-        if let Some(img) = &rgb {
-            if (img.width(), img.height()) != (labels.width(), labels.height()) {
+        let source_size = match (&rgb, &full_labels) {
+            (Some(img), _) => (img.width(), img.height()),
+            (None, Some(l)) => (l.width(), l.height()),
+            (None, None) => return Err(Error::invalid(format!("frame {:?}", src.id), "neither image nor label map")),
+        };
+        if let (Some(img), Some(l)) = (&rgb, &full_labels) {
+            if (img.width(), img.height()) != (l.width(), l.height()) {
                 return Err(Error::SizeMismatch {
                     image: src.image.clone().unwrap_or_default(),
                     labels: src.labels.clone().unwrap_or_default(),
                     image_size: (img.width(), img.height()),
-                    label_size: (labels.width(), labels.height()),
+                    label_size: (l.width(), l.height()),
                 });
             }
         }
-        Ok(Loaded { labels, rgb, load_ms: ms_since(t) })
+        let (ww, wh) = input::working_size(source_size.0, source_size.1, self.cfg.input.working_long_side);
+        let labels = match (full_labels, &self.segmenter, &rgb) {
+            (Some(l), _, _) => l.resized_nearest(ww, wh),
+            (None, Some(seg), Some(img)) => {
+                let t = Instant::now();
+                let l = seg.get()?.segment_to(img, src.image.as_deref().unwrap_or(std::path::Path::new(&src.id)), (ww, wh))?;
+                times.segment_ms = ms_since(t);
+                l
+            }
+            _ => return Err(Error::invalid(format!("frame {:?}", src.id), "no label map")),
+        };
+        let hog = match (&rgb, self.hog) {
+            (Some(img), true) => {
+                let t = Instant::now();
+                let h = crate::baseline::vprbench_hog(img);
+                times.hog_ms = ms_since(t);
+                Some(h)
+            }
+            _ => None,
+        };
+        let t = Instant::now();
+        let rgb = match rgb {
+            Some(img) if self.appearance.is_some() => Some(input::resize_rgb(&img, ww, wh)),
+            _ => None,
+        };
+        times.decode_ms += ms_since(t);
+        Ok(Loaded { labels, rgb, source_size, hog, times })
     }
 
     /// Encodes a label map alone (no appearance: only for encoders with appearance off).
@@ -194,7 +330,7 @@ impl Encoder {
         if self.appearance.is_some() {
             return Err(Error::invalid(format!("frame {id:?}"), "appearance is on, so the RGB image is needed: use encode_loaded"));
         }
-        let loaded = Loaded { labels: labels.clone(), rgb: None, load_ms: 0.0 };
+        let loaded = Loaded { labels: labels.clone(), rgb: None, source_size: (labels.width(), labels.height()), hog: None, times: StageTimes::default() };
         self.encode_loaded(id, &loaded, scratch)
     }
 
@@ -205,7 +341,7 @@ impl Encoder {
         let mut stats = vec![0.0; self.ssim.stats_len()];
         global::encode_global(&loaded.labels, &self.used, &self.cfg.global, scratch, &mut global, &mut stats)?;
         let pending = self.encode_rest(id, loaded, global, Some(stats), ms_since(t))?;
-        Ok(self.finish_on_cpu(pending))
+        self.finish_on_cpu(pending)
     }
 
     /// Loads and encodes one frame on the CPU.
@@ -228,7 +364,7 @@ impl Encoder {
         let objects = objects::extract_objects(&loaded.labels, &self.table, &self.cfg.objects);
         let forest = local::build_forest(&objects, &self.cfg.local);
         let forest_ms = ms_since(t);
-        let mut times = StageTimes { load_ms: loaded.load_ms, global_ms, forest_ms, ..Default::default() };
+        let mut times = StageTimes { global_ms, forest_ms, ..loaded.times };
         let vlad = match (&self.appearance, &loaded.rgb) {
             (Some(model), Some(rgb)) => {
                 let codebook = self.codebook.as_ref().ok_or_else(|| Error::invalid("encoder", "appearance is on but no VLAD codebook is set (train one, or open a map that has one)"))?;
@@ -238,37 +374,54 @@ impl Encoder {
                 if k.dim != codebook.dim {
                     return Err(Error::Model { path: model.path.clone(), reason: format!("descriptors have {} values, the codebook {}", k.dim, codebook.dim) });
                 }
-                let (descriptors, offsets) = appearance::group_by_object(&k, &objects);
+                let (mut descriptors, mut offsets) = appearance::group_by_object(&k, &objects);
+                // the last run: every descriptor of the image
+                descriptors.extend_from_slice(&k.descriptors);
+                offsets.push(offsets.last().copied().unwrap_or(0) + k.len() as u32);
                 times.appearance_ms = ms_since(t);
                 Some(VladInput { descriptors, offsets })
             }
             (Some(_), None) => return Err(Error::invalid(format!("frame {id:?}"), "appearance needs the RGB image")),
             _ => None,
         };
-        let image = EncodedImage { id: id.to_string(), width: loaded.labels.width(), height: loaded.labels.height(), global, global_stats, forest };
+        let (width, height) = loaded.source_size;
+        let hog = loaded.hog.clone().unwrap_or_default();
+        let image = EncodedImage { id: id.to_string(), width, height, global, global_stats, forest, appearance: vec![], hog };
         Ok(Pending { image, times, vlad })
     }
 
-    /// Completes a pending frame with its VLAD vectors (computed by `vlad_cpu` or on the GPU).
-    pub fn finish(&self, mut p: Pending, vlad: Option<(Vec<f32>, Vec<u8>)>, vlad_ms: f64) -> (EncodedImage, StageTimes) {
-        if let Some((vectors, present)) = vlad {
-            p.image.forest.set_appearance(self.appearance_dim(), vectors, present);
+    /// Completes a pending frame with its VLAD vectors (computed by `vlad_cpu` or on the GPU:
+    /// one vector per run of its [`VladInput`], the image's last).
+    pub fn finish(&self, mut p: Pending, vlad: Option<Vec<f32>>, vlad_ms: f64) -> (EncodedImage, StageTimes) {
+        if let (Some(mut vectors), Some(input)) = (vlad, &p.vlad) {
+            let dim = self.appearance_dim();
+            let image = vectors.split_off(vectors.len().saturating_sub(dim));
+            let mut counts = appearance::object_counts(&input.offsets);
+            counts.pop();
+            p.image.forest.set_appearance(dim, vectors, counts, self.cfg.appearance.min_descriptors);
+            p.image.appearance = image;
             p.times.appearance_ms += vlad_ms;
         }
         (p.image, p.times)
     }
 
-    /// VLAD of a pending frame's objects on the CPU (the twins of the GPU kernels).
-    pub fn vlad_cpu(&self, input: &VladInput) -> (Vec<f32>, Vec<u8>) {
-        let cb = self.codebook.as_ref().expect("codebook set when there is VLAD input");
-        appearance::object_vlad(&input.descriptors, &input.offsets, cb, self.cfg.appearance.power_norm)
+    /// The VLAD normalisations of this encoder's config.
+    pub fn vlad_norm(&self) -> VladNorm {
+        VladNorm::from_config(&self.cfg.appearance)
     }
 
-    fn finish_on_cpu(&self, p: Pending) -> (EncodedImage, StageTimes) {
+    /// VLAD of a pending frame's objects and of the whole image on the CPU (the twins of the GPU
+    /// kernels).
+    pub fn vlad_cpu(&self, input: &VladInput) -> Result<Vec<f32>> {
+        let cb = self.codebook.as_ref().ok_or_else(|| Error::invalid("encoder", "VLAD input without a codebook"))?;
+        Ok(appearance::object_vlad(&input.descriptors, &input.offsets, cb, self.vlad_norm()))
+    }
+
+    fn finish_on_cpu(&self, p: Pending) -> Result<(EncodedImage, StageTimes)> {
         let t = Instant::now();
-        let vlad = p.vlad.as_ref().map(|v| self.vlad_cpu(v));
+        let vlad = p.vlad.as_ref().map(|v| self.vlad_cpu(v)).transpose()?;
         let ms = ms_since(t);
-        self.finish(p, vlad, ms)
+        Ok(self.finish(p, vlad, ms))
     }
 
     /// Encodes many frames in parallel, in order; `tick` is called once per finished frame.
@@ -298,7 +451,9 @@ impl Encoder {
             .par_iter()
             .map(|src| {
                 let path = src.image.as_ref().ok_or_else(|| Error::invalid(format!("frame {:?}", src.id), "appearance needs the RGB image"))?;
-                let k = model.keypoints(&input::load_rgb(path)?)?;
+                let rgb = input::load_rgb(path)?;
+                let (w, h) = input::working_size(rgb.width(), rgb.height(), self.cfg.input.working_long_side);
+                let k = model.keypoints(&input::resize_rgb(&rgb, w, h))?;
                 tick();
                 Ok((k.dim, appearance::sample_descriptors(&k, per_image)))
             })
@@ -314,17 +469,17 @@ impl Encoder {
 
 /// Splits encoding results into successes and errors; with `skip_invalid` false, the first error
 /// (in input order) is returned instead.
-pub fn collect_encoded(results: Vec<Result<(EncodedImage, StageTimes)>>, skip_invalid: bool) -> Result<(Vec<EncodedImage>, StageTimes, Vec<Error>)> {
+pub fn collect_encoded(results: Vec<Result<(EncodedImage, StageTimes)>>, skip_invalid: bool) -> Result<(Vec<EncodedImage>, Vec<StageTimes>, Vec<(usize, Error)>)> {
     let mut images = Vec::with_capacity(results.len());
-    let mut total = StageTimes::default();
+    let mut total = Vec::with_capacity(results.len());
     let mut skipped = Vec::new();
-    for r in results {
+    for (i, r) in results.into_iter().enumerate() {
         match r {
             Ok((img, t)) => {
                 images.push(img);
-                total += t;
+                total.push(t);
             }
-            Err(e) if skip_invalid => skipped.push(e),
+            Err(e) if skip_invalid => skipped.push((i, e)),
             Err(e) => return Err(e),
         }
     }

@@ -132,7 +132,7 @@ impl Engine {
     fn recover<T>(&mut self, r: Result<T>) -> Result<std::result::Result<T, ()>> {
         match r {
             Err(crate::error::Error::Gpu(e)) if self.fall_back => {
-                eprintln!("warning: GPU failed ({e}); continuing on the CPU path");
+                log::warn!("GPU failed ({e}); continuing on the CPU path");
                 self.gpu = None;
                 Ok(Err(()))
             }
@@ -225,7 +225,7 @@ impl Engine {
             let inputs: Vec<(&[f32], &[u32])> = pending.iter().filter_map(|p| p.as_ref().ok()).filter_map(|p| p.vlad.as_ref()).map(|v| (v.descriptors.as_slice(), v.offsets.as_slice())).collect();
             let t = Instant::now();
             let mut vlads = match (encoder.codebook(), inputs.is_empty()) {
-                (Some(cb), false) => g.vlad.run(cb, encoder.config().appearance.power_norm, &inputs)?.into_iter(),
+                (Some(cb), false) => g.vlad.run(cb, encoder.vlad_norm(), &inputs)?.into_iter(),
                 _ => Vec::new().into_iter(),
             };
             let vlad_ms = ms_since(t) / batch.len() as f64;

@@ -39,6 +39,7 @@
 //! ```
 
 pub mod appearance;
+pub mod baseline;
 pub mod bench;
 pub mod classes;
 pub mod config;

@@ -11,27 +11,60 @@ pub const ORT_LIBRARY: &str = "libonnxruntime.so.1.31.1";
 
 static ENV: OnceLock<std::result::Result<ort::environment::Environment, String>> = OnceLock::new();
 
-/// The folder `setup.sh` fills with models and libraries, or $SEMLOOK_MODELS.
-pub fn models_dir() -> PathBuf {
-    match std::env::var_os("SEMLOOK_MODELS") {
-        Some(d) => PathBuf::from(d),
-        None => Path::new(env!("CARGO_MANIFEST_DIR")).join(".semlook"),
+/// The folders searched for model files, in order: $SEMLOOK_MODELS, `.semlook` in the working
+/// directory, `.semlook` beside the executable and up to three folders above it (the repository of
+/// a `target/release/semlook`), then the user's data directory ($XDG_DATA_HOME or
+/// ~/.local/share, `semlook/models`).
+pub fn model_dirs() -> Vec<PathBuf> {
+    let mut dirs = Vec::new();
+    if let Some(d) = std::env::var_os("SEMLOOK_MODELS") {
+        dirs.push(PathBuf::from(d));
     }
+    if let Ok(cwd) = std::env::current_dir() {
+        dirs.push(cwd.join(".semlook"));
+    }
+    if let Ok(exe) = std::env::current_exe() {
+        for dir in exe.ancestors().skip(1).take(4) {
+            dirs.push(dir.join(".semlook"));
+        }
+    }
+    let data = std::env::var_os("XDG_DATA_HOME").map(PathBuf::from).or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".local/share")));
+    if let Some(d) = data {
+        dirs.push(d.join("semlook/models"));
+    }
+    dirs.dedup();
+    dirs
 }
 
-/// The ONNX Runtime library: `configured`, else $ORT_DYLIB_PATH, else the setup folder.
+/// A model file: `configured` (an option or config key) if given, else `name` in the first of
+/// [`model_dirs`] that has it. The error lists every place it looked.
+pub fn find_model(name: &str, configured: Option<&Path>, what: &str) -> Result<PathBuf> {
+    if let Some(p) = configured {
+        return if p.exists() { Ok(p.to_path_buf()) } else { Err(Error::Model { path: p.to_path_buf(), reason: format!("{what}: file not found") }) };
+    }
+    let dirs = model_dirs();
+    if let Some(found) = dirs.iter().map(|d| d.join(name)).find(|p| p.exists()) {
+        return Ok(found);
+    }
+    let looked: Vec<String> = dirs.iter().map(|d| d.join(name).display().to_string()).collect();
+    Err(Error::Model { path: name.into(), reason: format!("{what} not found; looked in: {} (run `bash setup.sh`, set SEMLOOK_MODELS, or give the path)", looked.join(", ")) })
+}
+
+/// The ONNX Runtime library: `configured`, else $ORT_DYLIB_PATH, else the model folders.
 pub fn library_path(configured: Option<&Path>) -> PathBuf {
     configured
         .map(Path::to_path_buf)
         .or_else(|| std::env::var_os("ORT_DYLIB_PATH").map(PathBuf::from))
-        .unwrap_or_else(|| models_dir().join(ORT_LIBRARY))
+        .or_else(|| find_model(ORT_LIBRARY, None, "ONNX Runtime").ok())
+        .unwrap_or_else(|| PathBuf::from(ORT_LIBRARY))
 }
 
 fn environment(library: Option<&Path>) -> Result<&'static ort::environment::Environment> {
     let env = ENV.get_or_init(|| {
         let path = library_path(library);
         if !path.exists() {
-            return Err(format!("ONNX Runtime library {} not found: run `bash setup.sh` (it unpacks it from the onnxruntime wheel) or set ORT_DYLIB_PATH", path.display()));
+            let looked: Vec<String> = model_dirs().iter().map(|d| d.join(ORT_LIBRARY).display().to_string()).collect();
+            return Err(format!("ONNX Runtime library {} not found (looked in {}): run `bash setup.sh` (it unpacks it from the onnxruntime wheel) or set ORT_DYLIB_PATH", path.display(), looked.join(", ")));
         }
         ort::init_from(&path).map_err(|e| format!("{}: {e}", path.display()))?.with_name("semlook").build().map_err(|e| e.to_string())
     });

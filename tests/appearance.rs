@@ -142,19 +142,20 @@ fn vlad_on_a_real_scene() {
     let samples = semlook::appearance::sample_descriptors(&k, 400);
     let cb = semlook::appearance::vlad::train_codebook(&samples, k.dim, 8, 10, 1).unwrap();
     let (descs, offsets) = semlook::appearance::group_by_object(&k, &objects);
-    let (vectors, present) = semlook::appearance::object_vlad(&descs, &offsets, &cb, false);
-    let with = present.iter().filter(|&&p| p == 1).count();
+    let vectors = semlook::appearance::object_vlad(&descs, &offsets, &cb, Default::default());
+    let present: Vec<bool> = semlook::appearance::object_counts(&offsets).iter().map(|&c| c > 0).collect();
+    let with = present.iter().filter(|&&p| p).count();
     assert!(with >= 3, "only {with} objects hold keypoints");
     let per = cb.k * cb.dim;
     for o in 0..objects.objects.len() {
         let v = &vectors[o * per..(o + 1) * per];
         let (a, b) = (offsets[o] as usize, offsets[o + 1] as usize);
-        if present[o] == 0 {
+        if !present[o] {
             assert!(v.iter().all(|&x| x == 0.0));
             continue;
         }
         let mine: Vec<&[f32]> = (a..b).map(|i| &descs[i * k.dim..(i + 1) * k.dim]).collect();
-        let r = semlook::appearance::vlad::vlad_reference(&cb.centres, cb.k, cb.dim, &mine, false);
+        let r = semlook::appearance::vlad::vlad_reference(&cb.centres, cb.k, cb.dim, &mine, Default::default());
         assert!(v.iter().zip(&r).all(|(x, y)| (*x as f64 - y).abs() < 1e-4));
         assert!((v.iter().map(|x| x * x).sum::<f32>() - 1.0).abs() < 1e-4);
     }
@@ -175,7 +176,8 @@ fn appearance_in_maps_and_evaluation() {
     let refs: Vec<_> = ds.reference.frames.iter().map(|f| f.source.clone()).collect();
     enc.train_codebook(&refs, &|| {}).unwrap();
     let mut engine = semlook::engine::Engine::cpu();
-    let (set, summary, _) = semlook::eval::encode_frames(&mut engine, &enc, &refs, ds.label_format, "refs", false, true).unwrap();
+    let encoded = semlook::eval::encode_frames(&mut engine, &enc, &refs, ds.label_format, "refs", false, true).unwrap();
+    let (set, summary) = (encoded.set.clone(), encoded.summary().mean);
     assert_eq!(set.appearance_dim, 16 * 64);
     let with = set.tree_has_appearance.iter().filter(|&&p| p == 1).count();
     assert!(with * 2 > set.n_trees(), "{with} of {} trees have appearance", set.n_trees());

@@ -46,26 +46,35 @@ fn build_add_info_query_and_eval_without_appearance() {
     let labels = data.join("overcast/GT/LABELS/Stereo_Left/Omni_F");
     let images = data.join("overcast/RGB/Stereo_Left/Omni_F");
     let csv = ok(&["query", "--map", p(&map), "--images", p(&images), "--labels", p(&labels), na, "-q"]);
-    let lines: Vec<&str> = csv.lines().collect();
+    // comment lines name what ran, then the table
+    let comments: Vec<&str> = csv.lines().filter(|l| l.starts_with('#')).collect();
+    assert!(comments.iter().any(|l| l.starts_with("# keypoints: none")) && comments.iter().any(|l| l.starts_with("# config sha256: ")), "{csv}");
+    assert!(comments.iter().any(|l| l.starts_with("# backend: ")) && comments.iter().any(|l| l == &"# setting: semlook"), "{csv}");
+    let lines: Vec<&str> = csv.lines().filter(|l| !l.starts_with('#')).collect();
     assert_eq!(lines[0], "query,best_reference,score,coarse,fine,top_k");
     assert_eq!(lines.len(), 7);
     let json: serde_json::Value = serde_json::from_str(&ok(&["query", "--map", p(&map), "--labels", p(&labels), "--json", "--setting", "forest", na, "-q"])).unwrap();
-    assert_eq!(json.as_array().unwrap().len(), 6);
-    assert!(json[0]["top_k"].as_array().unwrap().len() >= 10);
+    assert_eq!(json["queries"].as_array().unwrap().len(), 6);
+    assert_eq!(json["setting"], "forest");
+    assert!(json["run"]["keypoints"].is_null() && json["run"]["config_sha256"].as_str().unwrap().len() == 64);
+    assert!(json["queries"][0]["top_k"].as_array().unwrap().len() >= 10);
 
     let report: serde_json::Value = serde_json::from_str(&ok(&["eval", "--dataset", p(&data), "--setting", "semlook", "--json", na, "-q"])).unwrap();
     let results = report["results"].as_array().unwrap();
     assert_eq!(results.len(), 2);
     assert_eq!(results[0]["setting"], "semlook");
     assert_eq!(results[0]["outcomes"].as_array().unwrap().len(), 6);
-    assert!(results[0]["auc"].as_f64().unwrap() >= 0.0);
+    assert!(report["run"]["backend"].as_str().unwrap().starts_with("cpu") || report["run"]["backend"].as_str().unwrap().starts_with("gpu"));
+    // the text report names what ran too
+    let text = ok(&["eval", "--dataset", p(&data), "--setting", "global", na, "-q"]);
+    assert!(text.contains("keypoints: none") && text.contains("config sha256: ") && text.contains("backend: "), "{text}");
 }
 
 /// With XFeat appearance (the default): the map stores a codebook and the network's checksum,
 /// queries with images work, and queries encoded without appearance are refused.
 #[test]
 fn appearance_through_the_cli() {
-    if !semlook::onnx::models_dir().join(semlook::appearance::XFEAT_WEIGHTS).exists() {
+    if semlook::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, None, "XFeat").is_err() {
         assert!(std::env::var_os("CI").is_none(), "setup.sh must provide the XFeat weights under CI");
         eprintln!("SKIPPED: no XFeat weights (run setup.sh)");
         return;
@@ -81,13 +90,15 @@ fn appearance_through_the_cli() {
     let labels = data.join("night/GT/LABELS/Stereo_Left/Omni_F");
     let images = data.join("night/RGB/Stereo_Left/Omni_F");
     let json: serde_json::Value = serde_json::from_str(&ok(&["query", "--map", p(&map), "--images", p(&images), "--labels", p(&labels), "--json", "-q"])).unwrap();
-    assert_eq!(json.as_array().unwrap().len(), 5);
+    assert_eq!(json["queries"].as_array().unwrap().len(), 5);
+    assert_eq!(json["run"]["keypoints"]["sha256"].as_str().unwrap().len(), 64);
     let refused = semlook(&["query", "--map", p(&map), "--labels", p(&labels), "--no-appearance", "-q"]);
     assert!(!refused.status.success());
     assert!(String::from_utf8_lossy(&refused.stderr).contains("appearance"));
     let report: serde_json::Value = serde_json::from_str(&ok(&["eval", "--dataset", p(&data), "--map", p(&map), "--setting", "semlook", "--json", "-q"])).unwrap();
     assert_eq!(report["results"][0]["outcomes"].as_array().unwrap().len(), 5);
-    assert!(report["query_encoding"]["network_ms"].as_f64().unwrap() > 0.0);
+    assert!(report["query_encoding"]["mean"]["network_ms"].as_f64().unwrap() > 0.0);
+    assert!(report["run"]["keypoints"]["path"].as_str().unwrap().ends_with("xfeat.pt"));
 }
 
 #[test]

@@ -132,7 +132,7 @@ fn edges_and_edt_are_exact_and_pooling_within_1e_5() {
 
 fn random_descriptors(n: usize, cfg: &Config, seed: u64) -> DescriptorSet {
     let p = SsimParams::new(&cfg.global);
-    let mut set = DescriptorSet::new(&p, 3, 0);
+    let mut set = DescriptorSet::new(&p, 3, 0, 0);
     let mut rng = SplitMix64::new(seed);
     for i in 0..n {
         // smooth random fields, like distance maps
@@ -140,8 +140,8 @@ fn random_descriptors(n: usize, cfg: &Config, seed: u64) -> DescriptorSet {
         let g: Vec<f32> = (0..p.len()).map(|k| { let (x, y) = ((k % p.gw as usize) as f64, (k / p.gw as usize) as f64); (0.5 + 0.5 * (fx * x + ph).sin() * (fy * y).cos()) as f32 }).collect();
         let mut stats = vec![0.0; p.stats_len()];
         semlook::global::ssim::ssim_stats(&p, &g, &mut stats, &mut Default::default());
-        let img = semlook::encode::EncodedImage { id: format!("r{i}"), width: 64, height: 48, global: g, global_stats: stats, forest: Forest { neighbour_slots: 3, ..Default::default() } };
-        set.push(&img);
+        let img = semlook::encode::EncodedImage { id: format!("r{i}"), width: 64, height: 48, global: g, global_stats: stats, forest: Forest { neighbour_slots: 3, ..Default::default() }, appearance: vec![], hog: vec![] };
+        set.push(&img).unwrap();
     }
     set
 }
@@ -179,7 +179,7 @@ fn assert_same_lists(gpu: &[Vec<(f32, u32)>], cpu: &[Vec<(f32, u32)>], tol: f32,
 fn random_forest_set(n: usize, dim: usize, seed: u64) -> DescriptorSet {
     let cfg = Config::without_appearance();
     let p = SsimParams::new(&cfg.global);
-    let mut set = DescriptorSet::new(&p, 3, dim);
+    let mut set = DescriptorSet::new(&p, 3, dim, 0);
     let mut rng = SplitMix64::new(seed);
     for i in 0..n {
         let trees = rng.below(30);
@@ -193,18 +193,18 @@ fn random_forest_set(n: usize, dim: usize, seed: u64) -> DescriptorSet {
             }
         }
         let mut app = vec![0.0f32; trees * dim];
-        let mut has = vec![0u8; trees];
+        let mut counts = vec![0u32; trees];
         for t in 0..trees {
             if rng.chance(0.8) && dim > 0 {
-                has[t] = 1;
+                counts[t] = 1 + rng.below(40) as u32;
                 let v: Vec<f32> = (0..dim).map(|_| rng.normal() as f32).collect();
                 let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
                 app[t * dim..(t + 1) * dim].iter_mut().zip(&v).for_each(|(a, b)| *a = b / norm);
             }
         }
-        f.set_appearance(dim, app, has);
-        let img = semlook::encode::EncodedImage { id: format!("f{i}"), width: 10, height: 10, global: vec![0.5; p.len()], global_stats: vec![0.0; p.stats_len()], forest: f };
-        set.push(&img);
+        f.set_appearance(dim, app, counts, 1);
+        let img = semlook::encode::EncodedImage { id: format!("f{i}"), width: 10, height: 10, global: vec![0.5; p.len()], global_stats: vec![0.0; p.stats_len()], forest: f, appearance: vec![], hog: vec![] };
+        set.push(&img).unwrap();
     }
     set
 }
@@ -222,6 +222,9 @@ fn tree_similarity_matches_the_cpu_twin() {
         semlook::config::SimilarityConfig::default(),
         semlook::config::SimilarityConfig { position: semlook::config::PositionSimilarity::Gaussian, missing_appearance: semlook::config::MissingAppearance::Drop, ..Default::default() },
         semlook::config::SimilarityConfig { assignment: semlook::config::Assignment::BestMatch, ..Default::default() },
+        semlook::config::SimilarityConfig { tree_weight: semlook::config::TreeWeight::Descriptors, normalise: semlook::config::Normalise::GeometricMean, ..Default::default() },
+        semlook::config::SimilarityConfig { tree_weight: semlook::config::TreeWeight::SqrtArea, assignment: semlook::config::Assignment::BestMatch, ..Default::default() },
+        semlook::config::SimilarityConfig { tree_weight: semlook::config::TreeWeight::Area, w_area: 0.0, w_position: 0.0, missing_appearance: semlook::config::MissingAppearance::Drop, ..Default::default() },
     ];
     for (v, sim) in variants.iter().enumerate() {
         for appearance in [false, true] {
@@ -283,7 +286,7 @@ fn end_to_end_matching_equals_the_cpu_path() {
     let dir = tempfile::tempdir().unwrap();
     common::tiny_synth(dir.path(), 10, 21);
     let ds = semlook::dataset::Dataset::open(dir.path(), &Default::default()).unwrap();
-    let cfg = if semlook::onnx::models_dir().join(semlook::appearance::XFEAT_WEIGHTS).exists() {
+    let cfg = if semlook::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, None, "XFeat").is_ok() {
         Config::default()
     } else {
         assert!(std::env::var_os("CI").is_none(), "setup.sh must provide the XFeat weights under CI");
@@ -303,7 +306,7 @@ fn end_to_end_matching_equals_the_cpu_path() {
             assert!((x.score.unwrap() - y.score.unwrap()).abs() <= 1e-5);
         }
     }
-    assert!(g.backend.starts_with("gpu:") && c.backend.starts_with("cpu"));
+    assert!(g.run.backend.starts_with("gpu:") && c.run.backend.starts_with("cpu"));
 }
 
 /// The engine runs inside a device the host application created.
@@ -362,19 +365,21 @@ fn random_vlad_frames(k: usize, d: usize, seed: u64) -> (semlook::appearance::vl
 }
 
 /// VLAD assignment and aggregation on the GPU within 1e-5 of the CPU twin (empty objects,
-/// dimensions that are not multiples of the 64 lanes, with and without power normalisation).
+/// dimensions that are not multiples of the 64 lanes, every combination of intra and power
+/// normalisation).
 #[test]
 fn vlad_kernels_match_the_cpu_twin() {
     let Some(ctx) = gpu() else { return };
     let mut vg = semlook::gpu::vlad::VladGpu::new(ctx);
-    for (i, &(k, d, power)) in [(16usize, 64usize, false), (5, 37, true), (3, 100, false), (64, 64, true), (1, 1, false)].iter().enumerate() {
+    for (i, &(k, d, power, intra)) in [(16usize, 64usize, false, true), (5, 37, true, true), (3, 100, false, false), (64, 64, true, false), (1, 1, false, true)].iter().enumerate() {
+        let norm = semlook::appearance::vlad::VladNorm { intra, power };
         let (cb, frames) = random_vlad_frames(k, d, i as u64 + 40);
         let inputs: Vec<(&[f32], &[u32])> = frames.iter().map(|(a, b)| (a.as_slice(), b.as_slice())).collect();
-        let gpu = vg.run(&cb, power, &inputs).unwrap();
+        let gpu = vg.run(&cb, norm, &inputs).unwrap();
         for (f, (descs, offsets)) in frames.iter().enumerate() {
-            let (cv, cp) = semlook::appearance::object_vlad(descs, offsets, &cb, power);
-            assert_eq!(gpu[f].1, cp, "case {i} frame {f}: objects with keypoints");
-            let worst = gpu[f].0.iter().zip(&cv).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+            let cv = semlook::appearance::object_vlad(descs, offsets, &cb, norm);
+            assert_eq!(gpu[f].len(), cv.len(), "case {i} frame {f}: vector count");
+            let worst = gpu[f].iter().zip(&cv).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
             assert!(worst <= 1e-5, "case {i} frame {f}: VLAD differs by {worst}");
         }
     }
@@ -418,10 +423,10 @@ fn kernels_on_a_real_street_frame() {
     let k = xfeat.keypoints(&small).unwrap();
     let cb = semlook::appearance::vlad::train_codebook(&semlook::appearance::sample_descriptors(&k, 512), k.dim, 16, 10, 2).unwrap();
     let (descs, offsets) = semlook::appearance::group_by_object(&k, &objects);
-    let (cv, cp) = semlook::appearance::object_vlad(&descs, &offsets, &cb, false);
-    let g = semlook::gpu::vlad::VladGpu::new(ctx).run(&cb, false, &[(&descs, &offsets)]).unwrap();
-    assert_eq!(g[0].1, cp);
-    assert!(g[0].0.iter().zip(&cv).all(|(a, b)| (a - b).abs() <= 1e-5));
+    let norm = semlook::appearance::vlad::VladNorm::from_config(&cfg.appearance);
+    let cv = semlook::appearance::object_vlad(&descs, &offsets, &cb, norm);
+    let g = semlook::gpu::vlad::VladGpu::new(ctx).run(&cb, norm, &[(&descs, &offsets)]).unwrap();
+    assert!(g[0].iter().zip(&cv).all(|(a, b)| (a - b).abs() <= 1e-5));
 }
 
 /// A GPU failure during work: a typed error for `gpu`, a warning and the CPU path for `auto`.

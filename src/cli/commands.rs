@@ -7,7 +7,7 @@ use semlook::engine::Engine;
 use semlook::gpu::GpuOptions;
 use semlook::error::{Error, Result};
 use semlook::dataset::{Dataset, DatasetOptions};
-use semlook::eval::{encode_frames, evaluate, EvalOptions, EvalReport};
+use semlook::eval::{encode_frames, evaluate, EvalOptions, EvalReport, RunRecord};
 use semlook::input::FrameSource;
 use semlook::map::{DescriptorSet, Map};
 use semlook::matching::{source::RefSource, QueryMatch};
@@ -29,7 +29,7 @@ pub fn dispatch(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Synth(a) => synth_cmd(&a, quiet),
         Command::Demo(a) => demo(&a, &mut engine()?, quiet),
-        Command::Map(MapCommand::Build { source, out, config, force }) => map_build(&mut engine()?, &source, &out, config.as_deref(), force, quiet),
+        Command::Map(MapCommand::Build { source, out, config, force, hog }) => map_build(&mut engine()?, &source, &out, config.as_deref(), force, hog, quiet),
         Command::Map(MapCommand::Add { source, map }) => map_add(&mut engine()?, &source, &map, quiet),
         Command::Map(MapCommand::Info { map, json }) => map_info(&map, json),
         Command::Query(a) => query(&mut engine()?, &a, quiet),
@@ -70,6 +70,9 @@ fn apply_models(mut cfg: Config, m: &ModelArgs) -> Config {
     }
     if m.no_appearance {
         cfg.appearance.model = AppearanceModelKind::None;
+    }
+    if m.no_segmenter {
+        cfg.models.default_segmenter = false;
     }
     cfg
 }
@@ -131,30 +134,32 @@ fn encode_sources(engine: &mut Engine, encoder: &Encoder, frames: &[FrameSource]
     if frames.is_empty() {
         return Err(Error::invalid(what, "no images found"));
     }
-    let (set, summary, skipped) = encode_frames(engine, encoder, frames, fmt, what, skip, quiet)?;
-    for e in &skipped {
-        eprintln!("warning: skipped: {e}");
+    let enc = encode_frames(engine, encoder, frames, fmt, what, skip, quiet)?;
+    for (i, e) in &enc.skipped {
+        log::warn!("skipped {}: {e}", frames[*i].id);
     }
+    let m = enc.summary().mean;
     info(
         quiet,
         format!(
-            "encoded {} {what} ({:.2} ms per frame: edge {:.2}, forest {:.2}, appearance {:.2} of which network {:.2}; decoding {:.2})",
-            set.len(),
-            summary.encode_ms(),
-            summary.global_ms,
-            summary.forest_ms,
-            summary.appearance_ms,
-            summary.network_ms,
-            summary.load_ms
+            "encoded {} {what} ({:.2} ms per frame: edge {:.2}, forest {:.2}, appearance {:.2} of which network {:.2}; decoding {:.2}, segmentation {:.2})",
+            enc.set.len(),
+            m.encode_ms(),
+            m.global_ms,
+            m.forest_ms,
+            m.appearance_ms,
+            m.network_ms,
+            m.decode_ms,
+            m.segment_ms
         ),
     );
-    Ok(set)
+    Ok(enc.set)
 }
 
-fn map_build(engine: &mut Engine, s: &SourceArgs, out: &Path, config: Option<&Path>, force: bool, quiet: bool) -> Result<()> {
+fn map_build(engine: &mut Engine, s: &SourceArgs, out: &Path, config: Option<&Path>, force: bool, hog: bool, quiet: bool) -> Result<()> {
     let mut cfg = apply_models(load_config(config)?, &s.models);
     let (frames, fmt) = frame_sources(s, &mut cfg, config.is_some())?;
-    let mut encoder = Encoder::new(&cfg)?;
+    let mut encoder = Encoder::new(&cfg)?.with_hog(hog);
     semlook::eval::train_codebook(&mut encoder, &frames, quiet)?;
     let set = encode_sources(engine, &encoder, &frames, fmt, "references", s.skip_invalid, quiet)?;
     let map = if force && out.exists() {
@@ -193,7 +198,7 @@ fn map_add(engine: &mut Engine, s: &SourceArgs, map_dir: &Path, quiet: bool) -> 
     let mut map = Map::open(map_dir)?;
     let mut cfg = map_config(&map, None, &s.models)?;
     let (frames, fmt) = frame_sources(s, &mut cfg, true)?;
-    let encoder = Encoder::for_map(&cfg, &map)?;
+    let encoder = Encoder::for_map(&cfg, &map)?.with_hog(map.manifest.hog_dim > 0);
     let set = encode_sources(engine, &encoder, &frames, fmt, "new images", s.skip_invalid, quiet)?;
     map.add(&set)?;
     info(quiet, format!("map {}: now {} images in {} segments", map_dir.display(), map.len(), map.manifest.segments.len()));
@@ -222,9 +227,11 @@ fn map_info(dir: &Path, json: bool) -> Result<()> {
     Ok(())
 }
 
-/// CSV and JSON renderings of query results.
-fn query_outputs(refs: &dyn RefSource, queries: &DescriptorSet, matches: &[QueryMatch]) -> (String, String) {
-    let mut csv = String::from("query,best_reference,score,coarse,fine,top_k\n");
+/// CSV and JSON renderings of query results. The CSV starts with `#` comment lines naming what
+/// ran; the JSON is `{run, setting, queries: [...]}`.
+fn query_outputs(refs: &dyn RefSource, queries: &DescriptorSet, matches: &[QueryMatch], run: &RunRecord, setting: Setting) -> (String, String) {
+    let mut csv: String = run.describe().lines().map(|l| format!("# {l}\n")).collect();
+    csv += &format!("# setting: {setting}\nquery,best_reference,score,coarse,fine,top_k\n");
     let mut rows = Vec::new();
     let f = |v: Option<f32>| v.map_or(String::new(), |x| format!("{x:.6}"));
     for (q, m) in matches.iter().enumerate() {
@@ -248,18 +255,19 @@ fn query_outputs(refs: &dyn RefSource, queries: &DescriptorSet, matches: &[Query
             })).collect::<Vec<_>>(),
         }));
     }
-    (csv, serde_json::to_string_pretty(&rows).expect("serialises"))
+    let doc = serde_json::json!({ "run": run, "setting": setting, "queries": rows });
+    (csv, serde_json::to_string_pretty(&doc).expect("serialises"))
 }
 
-fn run_query(engine: &mut Engine, map: &Map, cfg: &Config, s: &SourceArgs, setting: Setting, quiet: bool) -> Result<(DescriptorSet, Vec<QueryMatch>)> {
-    let encoder = Encoder::for_map(cfg, map)?;
+fn run_query(engine: &mut Engine, map: &Map, cfg: &Config, s: &SourceArgs, setting: Setting, quiet: bool) -> Result<(DescriptorSet, Vec<QueryMatch>, RunRecord)> {
+    let encoder = Encoder::for_map(cfg, map)?.with_hog(setting == Setting::Hog);
     let mut cfg_for_sources = cfg.clone();
     let (frames, fmt) = frame_sources(s, &mut cfg_for_sources, true)?;
     let queries = encode_sources(engine, &encoder, &frames, fmt, "queries", s.skip_invalid, quiet)?;
     let t = Instant::now();
     let (matches, _) = engine.match_batch(map, &queries, setting, cfg)?;
     info(quiet, format!("matched {} queries against {} references ({setting}) in {:.1} ms", queries.len(), map.len(), t.elapsed().as_secs_f64() * 1e3));
-    Ok((queries, matches))
+    Ok((queries, matches, RunRecord::new(&encoder, cfg, engine)))
 }
 
 fn write_file(path: &Path, text: &str) -> Result<()> {
@@ -270,8 +278,8 @@ fn query(engine: &mut Engine, a: &QueryArgs, quiet: bool) -> Result<()> {
     let map = Map::open(&a.map)?;
     // without --config, the map's encoding and default matching parameters
     let cfg = map_config(&map, a.config.as_deref(), &a.source.models)?;
-    let (queries, matches) = run_query(engine, &map, &cfg, &a.source, a.setting, quiet)?;
-    let (csv, json) = query_outputs(&map, &queries, &matches);
+    let (queries, matches, run) = run_query(engine, &map, &cfg, &a.source, a.setting, quiet)?;
+    let (csv, json) = query_outputs(&map, &queries, &matches, &run, a.setting);
     if let Some(out) = &a.out {
         write_file(&out.with_extension("csv"), &csv)?;
         write_file(&out.with_extension("json"), &json)?;
@@ -343,14 +351,14 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     let _ = std::fs::remove_dir_all(&map_dir);
     info(quiet, "[2/4] building the map from the reference traversal");
     let src = SourceArgs { dataset: Some(data.clone()), traversal: None, images: None, labels: None, label_format: None, skip_invalid: false, models: a.models.clone() };
-    map_build(engine, &src, &map_dir, None, false, quiet)?;
+    map_build(engine, &src, &map_dir, None, false, true, quiet)?;
     let map = Map::open(&map_dir)?;
     let cfg = map_config(&map, None, &a.models)?;
     let hardest = scfg.queries.last().expect("queries").name();
     info(quiet, format!("[3/4] querying the map with the {hardest} traversal (setting semlook)"));
     let qsrc = SourceArgs { traversal: Some(hardest.to_string()), ..src };
-    let (queries, matches) = run_query(engine, &map, &cfg, &qsrc, Setting::Semlook, quiet)?;
-    let (csv, json) = query_outputs(&map, &queries, &matches);
+    let (queries, matches, run) = run_query(engine, &map, &cfg, &qsrc, Setting::Semlook, quiet)?;
+    let (csv, json) = query_outputs(&map, &queries, &matches, &run, Setting::Semlook);
     let results = dir.join("results");
     std::fs::create_dir_all(&results).map_err(|e| Error::io(&results, e))?;
     write_file(&results.join(format!("query-{hardest}.csv")), &csv)?;

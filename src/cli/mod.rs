@@ -1,6 +1,7 @@
 //! Command-line interface: argument parsing and the commands, each a thin layer over the library.
 
 mod commands;
+mod logger;
 
 use clap::{Args, Parser, Subcommand};
 use semlook::engine::Backend;
@@ -119,6 +120,10 @@ pub struct ModelArgs {
     /// Trees without appearance (label maps alone are enough to encode).
     #[arg(long)]
     pub no_appearance: bool,
+    /// Never segment: frames without a label map are an error (by default the installed
+    /// segmenter labels them).
+    #[arg(long, conflicts_with = "segmenter")]
+    pub no_segmenter: bool,
 }
 
 #[derive(Args, Clone)]
@@ -160,6 +165,10 @@ pub enum MapCommand {
         /// Replace an existing map directory (the old one is removed only after the new one is complete).
         #[arg(long)]
         force: bool,
+        /// Also store each image's VPR-Bench HOG descriptor (35,721 floats), so that the `hog`
+        /// baseline can be matched and evaluated against this map.
+        #[arg(long)]
+        hog: bool,
     },
     /// Append images to a map without re-encoding what it holds.
     Add {
@@ -213,10 +222,10 @@ pub struct EvalArgs {
     /// the CSV's folder) or VPR-Bench's .npy; without it, UTM positions in the file names.
     #[arg(long, requires = "references")]
     pub ground_truth: Option<PathBuf>,
-    /// One setting (default: all).
+    /// One setting (default: all, baselines included).
     #[arg(long, value_enum, conflicts_with = "all_settings")]
     pub setting: Option<Setting>,
-    /// All settings (the default).
+    /// All settings: the baselines `hog` and `appearance`, `global`, and the paper's four (the default).
     #[arg(long)]
     pub all_settings: bool,
     /// Use this map for the references instead of encoding them.
@@ -252,5 +261,6 @@ fn parse_size(s: &str) -> Result<(usize, usize), String> {
 
 pub fn run() -> semlook::Result<()> {
     let cli = Cli::parse();
+    logger::init(cli.quiet);
     commands::dispatch(cli)
 }

@@ -19,33 +19,25 @@ use metrics::{pr_metrics, recall_at_n, PrMetrics};
 use serde::Serialize;
 use std::collections::HashMap;
 
-/// Mean per-frame encoding times of a set of frames.
+/// Per-frame encoding times of a set of frames: mean and median per stage, and the wall-clock
+/// time per frame of the whole (parallel) encoding.
 #[derive(Debug, Clone, Copy, Default, Serialize)]
 pub struct EncodingSummary {
     pub frames: usize,
-    pub load_ms: f64,
-    pub global_ms: f64,
-    pub forest_ms: f64,
-    pub appearance_ms: f64,
-    /// Of `appearance_ms`, the keypoint network alone.
-    pub network_ms: f64,
+    pub mean: StageTimes,
+    pub median: StageTimes,
+    /// Wall-clock milliseconds per frame over the batch (frames run in parallel).
+    pub wall_ms_per_frame: f64,
 }
 
 impl EncodingSummary {
-    pub fn from_total(frames: usize, t: StageTimes) -> Self {
-        let n = frames.max(1) as f64;
-        EncodingSummary {
-            frames,
-            load_ms: t.load_ms / n,
-            global_ms: t.global_ms / n,
-            forest_ms: t.forest_ms / n,
-            appearance_ms: t.appearance_ms / n,
-            network_ms: t.network_ms / n,
+    pub fn new(times: &[StageTimes], wall_ms: f64) -> Self {
+        let mut total = StageTimes::default();
+        for t in times {
+            total += *t;
         }
-    }
-    /// Encoding time as the paper counts it: descriptors only, without file decoding.
-    pub fn encode_ms(&self) -> f64 {
-        self.global_ms + self.forest_ms + self.appearance_ms
+        let n = times.len().max(1) as f64;
+        EncodingSummary { frames: times.len(), mean: total.scaled(1.0 / n), median: StageTimes::median(times), wall_ms_per_frame: wall_ms / n }
     }
 }
 
@@ -56,6 +48,11 @@ pub struct QueryOutcome {
     pub score: Option<f32>,
     pub correct: bool,
     pub valid_references: usize,
+    /// The best-ranked valid reference in the query's list, and its rank (0 = top-1), when one
+    /// made the list.
+    pub best_valid: Option<(String, usize)>,
+    /// Some valid reference (the first by index), for pictures of what should have matched.
+    pub a_valid_reference: Option<String>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -71,18 +68,66 @@ pub struct SettingReport {
     pub recall_at: Vec<(usize, f64)>,
     /// Matching time per query per reference frame, as VPR-Bench reports it.
     pub matching_ms_per_ref: f64,
+    /// Every query's top-1 and score, for the precision-recall curve and --explain.
     pub outcomes: Vec<QueryOutcome>,
+}
+
+/// A model file that ran: where, and its SHA-256.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct ModelRecord {
+    pub path: String,
+    pub sha256: String,
+}
+
+/// What ran: the models, the configuration and the backend.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct RunRecord {
+    /// The keypoint network (none without appearance).
+    pub keypoints: Option<ModelRecord>,
+    /// The segmentation network (none when every frame had a label map).
+    pub segmenter: Option<ModelRecord>,
+    /// SHA-256 of the whole configuration (its TOML).
+    pub config_sha256: String,
+    /// "cpu (N threads)" or "gpu: adapter (backend, type)".
+    pub backend: String,
+}
+
+impl RunRecord {
+    pub fn new(encoder: &Encoder, cfg: &Config, engine: &Engine) -> Self {
+        RunRecord {
+            keypoints: encoder.appearance_model().map(|m| ModelRecord { path: m.path.display().to_string(), sha256: m.sha256.clone() }),
+            segmenter: encoder.segmenter().map(|s| ModelRecord { path: s.path().display().to_string(), sha256: s.sha256().to_string() }),
+            config_sha256: cfg.sha256(),
+            backend: engine.describe(),
+        }
+    }
+    /// One line per item, for text reports.
+    pub fn describe(&self) -> String {
+        let model = |m: &Option<ModelRecord>| m.as_ref().map_or("none".to_string(), |m| format!("{} (sha256 {})", m.path, m.sha256));
+        format!(
+            "keypoints: {}
+segmenter: {}
+config sha256: {}
+backend: {}
+",
+            model(&self.keypoints),
+            model(&self.segmenter),
+            self.config_sha256,
+            self.backend
+        )
+    }
 }
 
 #[derive(Debug, Clone, Serialize)]
 pub struct EvalReport {
     pub dataset: String,
-    /// Where it ran: "cpu (N threads)" or "gpu: adapter (backend, type)".
-    pub backend: String,
+    pub run: RunRecord,
     pub references: usize,
     pub reference_encoding: EncodingSummary,
     pub query_encoding: EncodingSummary,
     pub results: Vec<SettingReport>,
+    /// Settings asked for that could not run, with the reason (e.g. a map without HOG).
+    pub skipped: Vec<(Setting, String)>,
 }
 
 /// Options of one evaluation run.
@@ -106,6 +151,17 @@ pub fn train_codebook(encoder: &mut Encoder, refs: &[crate::input::FrameSource],
     Ok(())
 }
 
+/// A set of frames encoded into a descriptor set.
+pub struct EncodedFrames {
+    pub set: DescriptorSet,
+    /// Per encoded frame, in set order.
+    pub times: Vec<StageTimes>,
+    /// Wall-clock milliseconds of the whole batch.
+    pub wall_ms: f64,
+    /// Frames that failed (index in the input, error), when skipping invalid input.
+    pub skipped: Vec<(usize, Error)>,
+}
+
 /// Encodes a list of frames into a descriptor set, with a progress bar.
 pub fn encode_frames(
     engine: &mut Engine,
@@ -115,32 +171,42 @@ pub fn encode_frames(
     what: &str,
     skip_invalid: bool,
     quiet: bool,
-) -> Result<(DescriptorSet, EncodingSummary, Vec<Error>)> {
+) -> Result<EncodedFrames> {
     let pb = progress::bar(frames.len(), what, quiet);
+    let t = std::time::Instant::now();
     let results = engine.encode_all(encoder, frames, format, &|| pb.inc(1))?;
+    let wall = crate::util::ms_since(t);
     pb.finish_and_clear();
-    let (images, total, skipped) = collect_encoded(results, skip_invalid)?;
+    let (images, times, skipped) = collect_encoded(results, skip_invalid)?;
     let mut set = encoder.descriptor_set();
     for img in &images {
-        set.push(img);
+        set.push(img).map_err(|r| Error::invalid(what, r))?;
     }
-    Ok((set, EncodingSummary::from_total(images.len(), total), skipped))
+    Ok(EncodedFrames { set, times, wall_ms: wall, skipped })
+}
+
+impl EncodedFrames {
+    pub fn summary(&self) -> EncodingSummary {
+        EncodingSummary::new(&self.times, self.wall_ms)
+    }
 }
 
 pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Engine) -> Result<EvalReport> {
     let ref_sources: Vec<_> = ds.reference.frames.iter().map(|f| f.source.clone()).collect();
+    let wants_hog = opts.settings.contains(&Setting::Hog);
     let owned;
     let mut encoder;
     let (refs, ref_enc): (&dyn RefSource, EncodingSummary) = match opts.map {
         Some(m) => {
-            encoder = Encoder::for_map(cfg, m)?;
+            encoder = Encoder::for_map(cfg, m)?.with_hog(wants_hog && m.manifest.hog_dim > 0);
             (m, EncodingSummary::default())
         }
         None => {
-            encoder = Encoder::new(cfg)?;
+            encoder = Encoder::new(cfg)?.with_hog(wants_hog);
             train_codebook(&mut encoder, &ref_sources, opts.quiet)?;
-            let (set, summary, _) = encode_frames(engine, &encoder, &ref_sources, ds.label_format, "references", false, opts.quiet)?;
-            owned = set;
+            let enc = encode_frames(engine, &encoder, &ref_sources, ds.label_format, "references", false, opts.quiet)?;
+            let summary = enc.summary();
+            owned = enc.set;
             (&owned, summary)
         }
     };
@@ -148,47 +214,43 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
     let index: HashMap<&str, u32> = (0..refs.len()).map(|i| (refs.id(i), i as u32)).collect();
     let ref_to_map: Vec<u32> = ref_sources
         .iter()
-        .map(|s| {
-            index.get(s.id.as_str()).copied().ok_or_else(|| {
-                Error::dataset(&ds.root, format!("reference {:?} is not in the map", s.id))
-            })
-        })
+        .map(|s| index.get(s.id.as_str()).copied().ok_or_else(|| Error::dataset(&ds.root, format!("reference {:?} is not in the map", s.id))))
         .collect::<Result<_>>()?;
     let mut results = Vec::new();
-    let mut q_total = StageTimes::default();
-    let mut q_frames = 0;
+    let mut skipped = Vec::new();
+    let mut q_times = Vec::new();
+    let mut q_wall = 0.0;
     for qt in &ds.queries {
         let gt_ds = ds.ground_truth(qt)?;
         let sources: Vec<_> = qt.frames.iter().map(|f| f.source.clone()).collect();
-        let pb = progress::bar(sources.len(), &format!("queries {}", qt.name), opts.quiet);
-        let encoded = engine.encode_all(&encoder, &sources, ds.label_format, &|| pb.inc(1))?;
-        pb.finish_and_clear();
-        let mut qset = encoder.descriptor_set();
-        let mut gt = Vec::new();
-        for (r, g) in encoded.into_iter().zip(&gt_ds) {
-            match r {
-                Ok((img, t)) => {
-                    qset.push(&img);
-                    q_total += t;
-                    q_frames += 1;
-                    gt.push(g.iter().map(|&i| ref_to_map[i as usize]).collect::<Vec<u32>>());
-                }
-                Err(e) if opts.skip_invalid => eprintln!("warning: skipped query: {e}"),
-                Err(e) => return Err(e),
-            }
+        let enc = encode_frames(engine, &encoder, &sources, ds.label_format, &format!("queries {}", qt.name), opts.skip_invalid, opts.quiet)?;
+        for (i, e) in &enc.skipped {
+            log::warn!("skipped query {}: {e}", sources[*i].id);
         }
+        let dropped: std::collections::HashSet<usize> = enc.skipped.iter().map(|(i, _)| *i).collect();
+        let gt: Vec<Vec<u32>> = gt_ds.iter().enumerate().filter(|(i, _)| !dropped.contains(i)).map(|(_, g)| g.iter().map(|&i| ref_to_map[i as usize]).collect()).collect();
+        q_times.extend_from_slice(&enc.times);
+        q_wall += enc.wall_ms;
+        let qset = enc.set;
         for &setting in &opts.settings {
+            if let Some(why) = setting.is_baseline().then(|| crate::matching::baseline::unavailable(refs, &qset, setting)).flatten() {
+                if !skipped.iter().any(|(s, _)| *s == setting) {
+                    skipped.push((setting, why));
+                }
+                continue;
+            }
             let (matches, times) = engine.match_batch(refs, &qset, setting, cfg)?;
             results.push(report(&qt.name, setting, refs, &qset, &matches, &gt, times.coarse_ms + times.fine_ms, cfg));
         }
     }
     Ok(EvalReport {
         dataset: ds.name.clone(),
-        backend: engine.describe(),
+        run: RunRecord::new(&encoder, cfg, engine),
         references: refs.len(),
         reference_encoding: ref_enc,
-        query_encoding: EncodingSummary::from_total(q_frames, q_total),
+        query_encoding: EncodingSummary::new(&q_times, q_wall),
         results,
+        skipped,
     })
 }
 
@@ -208,12 +270,15 @@ fn report(
     for (q, (m, g)) in matches.iter().zip(gt).enumerate() {
         let best = m.best();
         let ok = best.is_some_and(|b| g.contains(&b.reference));
+        let best_valid = m.ranked.iter().position(|c| g.contains(&c.reference)).map(|r| (refs.id(m.ranked[r].reference as usize).to_string(), r));
         outcomes.push(QueryOutcome {
             query: queries.ids[q].clone(),
             top1: best.map(|b| refs.id(b.reference as usize).to_string()),
             score: best.map(|b| b.score),
             correct: ok,
             valid_references: g.len(),
+            best_valid,
+            a_valid_reference: g.iter().min().map(|&r| refs.id(r as usize).to_string()),
         });
         if g.is_empty() {
             continue;
@@ -241,7 +306,7 @@ impl EvalReport {
     pub fn to_table(&self) -> String {
         let mut s = String::new();
         let recall_cols: Vec<usize> = self.results.first().map(|r| r.recall_at.iter().map(|x| x.0).collect()).unwrap_or_default();
-        s += &format!("dataset {}: {} references; backend {}\n\n", self.dataset, self.references, self.backend);
+        s += &format!("dataset {}: {} references\n{}\n", self.dataset, self.references, self.run.describe());
         s += &format!("{:<12} {:<14} {:>6} {:>7} {:>7}", "query set", "setting", "AUC", "R@100P", "P@100R");
         for n in &recall_cols {
             s += &format!(" {:>6}", format!("R@{n}"));
@@ -257,17 +322,31 @@ impl EvalReport {
             }
             s += &format!(" {:>10.4}\n", r.matching_ms_per_ref);
         }
+        for (st, why) in &self.skipped {
+            s += &format!("{:<12} {:<14} skipped: {why}\n", "", st.name());
+        }
         let e = &self.query_encoding;
+        let (m, md) = (&e.mean, &e.median);
         s += &format!(
-            "\nencoding, ms per frame (mean of {} query frames; file decoding {:.2} ms not included):\n  edge (coarse) {:.2} | forest {:.2} | appearance {:.2} (network {:.2}, decoding and VLAD {:.2}) | total {:.2}\n",
+            "\nencoding, ms per frame ({} query frames; mean / median):\n  file decoding and resizing {:.2} / {:.2} | segmentation {:.2} / {:.2}\n  edge (coarse) {:.2} / {:.2} | forest {:.2} / {:.2} | appearance {:.2} / {:.2} (network {:.2} / {:.2}) | SemLook total {:.2} / {:.2}\n  HOG baseline {:.2} / {:.2} | wall clock, frames in parallel: {:.2} per frame\n",
             e.frames,
-            e.load_ms,
-            e.global_ms,
-            e.forest_ms,
-            e.appearance_ms,
-            e.network_ms,
-            e.appearance_ms - e.network_ms,
-            e.encode_ms()
+            m.decode_ms,
+            md.decode_ms,
+            m.segment_ms,
+            md.segment_ms,
+            m.global_ms,
+            md.global_ms,
+            m.forest_ms,
+            md.forest_ms,
+            m.appearance_ms,
+            md.appearance_ms,
+            m.network_ms,
+            md.network_ms,
+            m.encode_ms(),
+            md.encode_ms(),
+            m.hog_ms,
+            md.hog_ms,
+            e.wall_ms_per_frame,
         );
         let mut per_setting: Vec<(Setting, f64, usize)> = Vec::new();
         for r in &self.results {

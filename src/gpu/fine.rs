@@ -25,6 +25,7 @@ struct GpuTree {
     area: f32,
     cx: f32,
     cy: f32,
+    weight: f32,
     nb: [i32; MAX_SLOTS],
 }
 
@@ -55,7 +56,7 @@ struct Packed {
     max_trees: usize,
 }
 
-fn pack<'a>(forests: impl Iterator<Item = ForestRef<'a>>, dim: usize) -> Packed {
+fn pack<'a>(forests: impl Iterator<Item = ForestRef<'a>>, dim: usize, params: &TreeSimParams) -> Packed {
     let mut p = Packed { trees: vec![], app: vec![], spans: vec![], max_trees: 0 };
     for f in forests {
         p.spans.push((p.trees.len() as u32, f.len() as u32));
@@ -69,6 +70,7 @@ fn pack<'a>(forests: impl Iterator<Item = ForestRef<'a>>, dim: usize) -> Packed 
                 area: f.areas[t],
                 cx: f.centroids[2 * t],
                 cy: f.centroids[2 * t + 1],
+                weight: params.tree_weight(f.areas[t], f.descriptors[t]),
                 nb,
             });
         }
@@ -123,8 +125,8 @@ impl FineMatcherGpu {
             });
         }
         let dim = refs.appearance_dim();
-        let q = pack((0..queries.len()).map(|i| queries.forest(i)), dim);
-        let r = pack(order.iter().map(|&i| refs.forest(i as usize)), dim);
+        let q = pack((0..queries.len()).map(|i| queries.forest(i)), dim, p);
+        let r = pack(order.iter().map(|&i| refs.forest(i as usize)), dim, p);
         let list: Vec<Pair> = pairs
             .iter()
             .map(|&(qi, ri)| {
@@ -142,7 +144,7 @@ impl FineMatcherGpu {
         self.check(queries, refs)?;
         let ctx = self.ctx.clone();
         let dim = refs.appearance_dim();
-        let q = pack((0..queries.len()).map(|i| queries.forest(i)), dim);
+        let q = pack((0..queries.len()).map(|i| queries.forest(i)), dim, p);
         let nq = queries.len();
         let max_trees = (0..refs.len()).map(|i| refs.forest(i).len()).max().unwrap_or(0).max(q.max_trees).max(1);
         let per_pair = (2 * max_trees * max_trees * 4) as u64;
@@ -156,7 +158,7 @@ impl FineMatcherGpu {
             let mut start = 0;
             while start < refs.len() {
                 let end = (start + tile).min(refs.len());
-                let r = pack((start..end).map(|i| refs.forest(i)), dim);
+                let r = pack((start..end).map(|i| refs.forest(i)), dim, p);
                 let mut list = Vec::with_capacity(nq * (end - start));
                 for qi in 0..nq {
                     for ri in 0..end - start {

@@ -3,7 +3,7 @@
 //! and aggregated with normalisations by `vlad_accumulate`, one workgroup per object.
 
 use super::context::{GpuContext, GpuError, Reused};
-use crate::appearance::vlad::{Codebook, VladParams, MAX_CENTRES};
+use crate::appearance::vlad::{Codebook, VladNorm, VladParams, MAX_CENTRES};
 use std::sync::Arc;
 
 /// Buffers kept between batches.
@@ -26,9 +26,9 @@ impl VladGpu {
         VladGpu { ctx, buffers: Buffers::default() }
     }
 
-    /// VLAD vectors of every object of every frame: `frames` holds (descriptors sorted by
-    /// object, object offsets) per frame; returns per frame (vectors, objects with keypoints).
-    pub fn run(&mut self, codebook: &Codebook, power_norm: bool, frames: &[(&[f32], &[u32])]) -> Result<Vec<(Vec<f32>, Vec<u8>)>, GpuError> {
+    /// VLAD vectors of every run of every frame: `frames` holds (descriptors sorted by run,
+    /// run offsets) per frame; returns the vectors per frame.
+    pub fn run(&mut self, codebook: &Codebook, norm: VladNorm, frames: &[(&[f32], &[u32])]) -> Result<Vec<Vec<f32>>, GpuError> {
         let ctx = self.ctx.clone();
         if codebook.k > MAX_CENTRES {
             return Err(GpuError::LimitsTooSmall { adapter: ctx.describe(), what: "VLAD centres".into(), needed: codebook.k as u64, available: MAX_CENTRES as u64 });
@@ -51,7 +51,7 @@ impl VladGpu {
         let k = &ctx.kernels;
         let b = &mut self.buffers;
         let vectors: Vec<f32> = ctx.scoped("VLAD aggregation", || -> Result<Vec<f32>, GpuError> {
-            let p = VladParams { centres: codebook.k as u32, dim: d as u32, keypoints: n as u32, objects: objects as u32, power_norm: power_norm as u32, _pad: [0; 3] };
+            let p = VladParams::new(codebook, n, objects, norm);
             let params = ctx.uniform("vlad params", &p);
             let centres = b.centres.upload(&ctx, "centres", bytemuck::cast_slice(&codebook.centres));
             let desc_buf = b.descriptors.upload(&ctx, "descriptors", bytemuck::cast_slice(&descs));
@@ -70,9 +70,8 @@ impl VladGpu {
         })??;
         let mut res = Vec::with_capacity(frames.len());
         let (mut at, per) = (0usize, codebook.k * d);
-        for ((_, fo), &count) in frames.iter().zip(&object_counts) {
-            let present = fo.windows(2).map(|w| (w[1] > w[0]) as u8).collect();
-            res.push((vectors[at * per..(at + count) * per].to_vec(), present));
+        for &count in &object_counts {
+            res.push(vectors[at * per..(at + count) * per].to_vec());
             at += count;
         }
         Ok(res)

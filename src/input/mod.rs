@@ -53,6 +53,33 @@ impl LabelMap {
     pub fn get(&self, x: u32, y: u32) -> u8 {
         self.classes[(y * self.width + x) as usize]
     }
+    /// Nearest-neighbour resize (class ids are never blended): pixel (x, y) of the result takes
+    /// the source pixel under its centre.
+    pub fn resized_nearest(&self, width: u32, height: u32) -> LabelMap {
+        if (width, height) == (self.width, self.height) {
+            return self.clone();
+        }
+        let (sw, sh) = (self.width as u64, self.height as u64);
+        let cols: Vec<usize> = (0..width as u64).map(|x| ((2 * x + 1) * sw / (2 * width as u64)).min(sw - 1) as usize).collect();
+        let mut classes = Vec::with_capacity(width as usize * height as usize);
+        for y in 0..height as u64 {
+            let sy = ((2 * y + 1) * sh / (2 * height as u64)).min(sh - 1) as usize;
+            let row = &self.classes[sy * self.width as usize..(sy + 1) * self.width as usize];
+            classes.extend(cols.iter().map(|&x| row[x]));
+        }
+        LabelMap { width, height, classes }
+    }
+}
+
+/// The size an image of `width` x `height` is worked at for a long side of `long_side` (0: its
+/// own size): scaled down keeping the aspect ratio, never enlarged, at least 1 x 1.
+pub fn working_size(width: u32, height: u32, long_side: usize) -> (u32, u32) {
+    let long = width.max(height) as u64;
+    if long_side == 0 || long <= long_side as u64 {
+        return (width, height);
+    }
+    let scale = |v: u32| ((v as u64 * long_side as u64 + long / 2) / long).max(1) as u32;
+    (scale(width), scale(height))
 }
 
 /// How a label-map file encodes classes.
@@ -82,6 +109,15 @@ fn read_image(path: &Path) -> Result<DynamicImage> {
         return Err(Error::EmptyImage { path: path.into(), width: img.width(), height: img.height() });
     }
     Ok(img)
+}
+
+/// An RGB image brought to `width` x `height` (area-weighted when shrinking; the same image when
+/// the size is already right).
+pub fn resize_rgb(img: &RgbImage, width: u32, height: u32) -> RgbImage {
+    if (img.width(), img.height()) == (width, height) {
+        return img.clone();
+    }
+    image::imageops::resize(img, width, height, image::imageops::FilterType::Triangle)
 }
 
 /// Reads an RGB image (png or jpeg); alpha is dropped, grey is expanded.
@@ -201,6 +237,19 @@ pub fn image_size(path: &Path) -> Result<(u32, u32)> {
 mod tests {
     use super::*;
     use image::{GrayImage, Luma, Rgb};
+
+    #[test]
+    fn working_size_and_nearest_resize() {
+        assert_eq!(working_size(1920, 1080, 640), (640, 360));
+        assert_eq!(working_size(480, 360, 640), (480, 360), "never enlarged");
+        assert_eq!(working_size(1000, 3, 100), (100, 1));
+        assert_eq!(working_size(1920, 1080, 0), (1920, 1080));
+        let t = ClassTable::cityscapes();
+        // 4 x 2 map, left half class 0, right half class 2: halved, each side keeps its class
+        let m = LabelMap::new(4, 2, vec![0, 0, 2, 2, 0, 0, 2, 2], &t).unwrap();
+        assert_eq!(m.resized_nearest(2, 1).classes(), &[0, 2]);
+        assert_eq!(m.resized_nearest(8, 4).resized_nearest(4, 2), m);
+    }
 
     #[test]
     fn grey_ids_and_palette_decode() {

@@ -27,6 +27,8 @@ pub struct Forest {
     /// `dim` values per tree (zeros where `has_appearance` is 0).
     pub appearance: Vec<f32>,
     pub has_appearance: Vec<u8>,
+    /// Appearance descriptors (keypoints or dense cells) inside each tree's object.
+    pub descriptors: Vec<u32>,
     pub dim: usize,
 }
 
@@ -40,6 +42,7 @@ pub struct ForestRef<'a> {
     pub neighbour_slots: usize,
     pub appearance: &'a [f32],
     pub has_appearance: &'a [u8],
+    pub descriptors: &'a [u32],
     pub dim: usize,
 }
 
@@ -59,6 +62,7 @@ impl Forest {
             neighbour_slots: self.neighbour_slots,
             appearance: &self.appearance,
             has_appearance: &self.has_appearance,
+            descriptors: &self.descriptors,
             dim: self.dim,
         }
     }
@@ -66,14 +70,22 @@ impl Forest {
     pub fn neighbours_of(&self, k: usize) -> Vec<usize> {
         self.as_ref().neighbours_of(k).collect()
     }
-    /// Sets (or replaces) the appearance vectors: `vectors` holds `dim` values per tree, `present`
-    /// says which trees have one.
-    pub fn set_appearance(&mut self, dim: usize, vectors: Vec<f32>, present: Vec<u8>) {
-        assert_eq!(vectors.len(), dim * self.len());
-        assert_eq!(present.len(), self.len());
+    /// Sets (or replaces) the appearance vectors: `vectors` holds `dim` values per tree,
+    /// `counts` the descriptors each was aggregated from; trees with fewer than `min_count`
+    /// (and at least one) have no appearance.
+    pub fn set_appearance(&mut self, dim: usize, mut vectors: Vec<f32>, counts: Vec<u32>, min_count: usize) {
+        debug_assert_eq!(vectors.len(), dim * self.len());
+        debug_assert_eq!(counts.len(), self.len());
+        let present: Vec<u8> = counts.iter().map(|&c| (c > 0 && c as usize >= min_count) as u8).collect();
+        for (k, &p) in present.iter().enumerate() {
+            if p == 0 {
+                vectors[k * dim..(k + 1) * dim].fill(0.0);
+            }
+        }
         self.dim = dim;
         self.appearance = vectors;
         self.has_appearance = present;
+        self.descriptors = counts;
     }
 }
 
@@ -111,6 +123,7 @@ pub fn build_forest(objects: &ObjectMap, cfg: &LocalConfig) -> Forest {
         forest.centroids.push((o.centroid[1] / diag) as f32);
     }
     forest.has_appearance = vec![0; n];
+    forest.descriptors = vec![0; n];
     let pos = |k: usize| [forest.centroids[2 * k] as f64, forest.centroids[2 * k + 1] as f64];
     let mut cand: Vec<(f64, usize)> = Vec::with_capacity(n);
     for k in 0..n {

@@ -10,10 +10,13 @@
 //!    its appearance cosine (1 without appearance: the fraction of matching categories);
 //!    S = w_in S_in + w_N S_N;
 //! 3. image similarity: greedy one-to-one assignment (repeatedly the largest remaining S, ties to
-//!    the lowest (t, u)), summed and divided by the larger forest size.
+//!    the lowest (t, u)); an accepted pair adds S(t, u) sqrt(w_t w_u), with w the tree weight
+//!    (1, the area, its square root, or the descriptor count + 1); the sum is divided by the larger
+//!    total tree weight of the two forests (spec §2.8: the larger forest size, for unit weights)
+//!    or by the geometric mean of the totals.
 
 use super::ForestRef;
-use crate::config::{Assignment, MissingAppearance, PositionSimilarity, SimilarityConfig};
+use crate::config::{Assignment, MissingAppearance, Normalise, PositionSimilarity, SimilarityConfig, TreeWeight};
 
 /// Uniform parameters of the kernel, in the shader's field order.
 #[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
@@ -36,6 +39,11 @@ pub struct TreeSimParams {
     pub greedy: u32,
     /// Neighbour slots per tree (the S_N denominator).
     pub neighbour_slots: u32,
+    /// Tree weight: 0 uniform, 1 area, 2 sqrt(area), 3 descriptor count + 1.
+    pub tree_weight: u32,
+    /// 1: divide by the geometric mean of the forests' total weights, 0: by the larger total.
+    pub geometric_norm: u32,
+    pub _pad: [u32; 2],
 }
 
 impl TreeSimParams {
@@ -53,6 +61,25 @@ impl TreeSimParams {
             use_appearance: use_appearance as u32,
             greedy: (cfg.assignment == Assignment::Greedy) as u32,
             neighbour_slots: neighbour_slots as u32,
+            tree_weight: match cfg.tree_weight {
+                TreeWeight::Uniform => 0,
+                TreeWeight::Area => 1,
+                TreeWeight::SqrtArea => 2,
+                TreeWeight::Descriptors => 3,
+            },
+            geometric_norm: (cfg.normalise == Normalise::GeometricMean) as u32,
+            _pad: [0; 2],
+        }
+    }
+
+    /// The weight of a tree of relative area `area` aggregated from `descriptors` descriptors.
+    #[inline]
+    pub fn tree_weight(&self, area: f32, descriptors: u32) -> f32 {
+        match self.tree_weight {
+            1 => area,
+            2 => area.max(0.0).sqrt(),
+            3 => descriptors as f32 + 1.0,
+            _ => 1.0,
         }
     }
 }
@@ -67,6 +94,8 @@ pub const NOT_A_PAIR: f32 = -1.0;
 pub struct TreeSimScratch {
     cosines: Vec<f32>,
     scores: Vec<f32>,
+    wq: Vec<f32>,
+    wr: Vec<f32>,
     row_used: Vec<bool>,
     col_used: Vec<bool>,
 }
@@ -97,13 +126,40 @@ pub fn tree_similarity(p: &TreeSimParams, q: ForestRef, r: ForestRef, scratch: &
                 if q.classes[t] == r.classes[u] { pair_score(p, &q, &r, &scratch.cosines, t, u) } else { NOT_A_PAIR };
         }
     }
-    // phase 3: assignment
+    // phase 3: assignment, weighted sum, normalisation
+    scratch.wq.clear();
+    scratch.wq.extend((0..nq).map(|t| p.tree_weight(q.areas[t], q.descriptors[t])));
+    scratch.wr.clear();
+    scratch.wr.extend((0..nr).map(|u| p.tree_weight(r.areas[u], r.descriptors[u])));
     let total = if p.greedy != 0 {
-        greedy_assignment(&scratch.scores, nq, nr, &mut scratch.row_used, &mut scratch.col_used)
+        greedy_assignment(&scratch.scores, nq, nr, &scratch.wq, &scratch.wr, &mut scratch.row_used, &mut scratch.col_used)
     } else {
-        (0..nq).map(|t| scratch.scores[t * nr..(t + 1) * nr].iter().fold(0.0f32, |m, &s| m.max(s))).sum()
+        best_match(&scratch.scores, nq, nr, &scratch.wq, &scratch.wr)
     };
-    total / nq.max(nr) as f32
+    let (sq, sr) = (scratch.wq.iter().sum::<f32>(), scratch.wr.iter().sum::<f32>());
+    let norm = if p.geometric_norm != 0 { (sq * sr).sqrt() } else { sq.max(sr) };
+    if norm > 0.0 {
+        total / norm
+    } else {
+        0.0
+    }
+}
+
+/// Each query tree takes its best reference tree (first of equal scores), weighted.
+fn best_match(scores: &[f32], nq: usize, nr: usize, wq: &[f32], wr: &[f32]) -> f32 {
+    let mut total = 0.0f32;
+    for t in 0..nq {
+        let mut best = (0.0f32, usize::MAX);
+        for u in 0..nr {
+            if scores[t * nr + u] > best.0 {
+                best = (scores[t * nr + u], u);
+            }
+        }
+        if best.1 != usize::MAX {
+            total += best.0 * (wq[t] * wr[best.1]).sqrt();
+        }
+    }
+    total
 }
 
 /// Appearance term of a pair from its cosine slot: max(0, cos), or `neutral` when missing.
@@ -171,8 +227,8 @@ fn pair_score(p: &TreeSimParams, q: &ForestRef, r: &ForestRef, cosines: &[f32], 
 }
 
 /// Repeatedly accepts the largest remaining pair score (ties: lowest t, then lowest u) whose row
-/// and column are both free; returns the sum of accepted scores.
-fn greedy_assignment(scores: &[f32], nq: usize, nr: usize, row_used: &mut Vec<bool>, col_used: &mut Vec<bool>) -> f32 {
+/// and column are both free; returns the sum of accepted scores, each times sqrt(w_t w_u).
+fn greedy_assignment(scores: &[f32], nq: usize, nr: usize, wq: &[f32], wr: &[f32], row_used: &mut Vec<bool>, col_used: &mut Vec<bool>) -> f32 {
     row_used.clear();
     row_used.resize(nq, false);
     col_used.clear();
@@ -196,15 +252,16 @@ fn greedy_assignment(scores: &[f32], nq: usize, nr: usize, row_used: &mut Vec<bo
         if best_i == usize::MAX {
             break;
         }
-        row_used[best_i / nr] = true;
-        col_used[best_i % nr] = true;
-        total += best;
+        let (t, u) = (best_i / nr, best_i % nr);
+        row_used[t] = true;
+        col_used[u] = true;
+        total += best * (wq[t] * wr[u]).sqrt();
     }
     total
 }
 
 /// Reference for phase 3: sort all same-class pairs by score (descending, stable in (t, u)) and
-/// accept each whose row and column are free, as spec §2.8 writes it.
+/// accept each whose row and column are free, as spec §2.8 writes it (unit weights).
 pub fn greedy_assignment_reference(scores: &[f32], nq: usize, nr: usize) -> f32 {
     let mut pairs: Vec<usize> = (0..nq * nr).filter(|&i| scores[i] > NOT_A_PAIR).collect();
     pairs.sort_by(|&a, &b| scores[b].total_cmp(&scores[a]).then(a.cmp(&b)));
@@ -236,6 +293,7 @@ mod tests {
             neighbours: nb.iter().flatten().copied().collect(),
             neighbour_slots: 3,
             has_appearance: vec![0; trees.len()],
+            descriptors: vec![0; trees.len()],
             ..Default::default()
         }
     }
@@ -271,8 +329,8 @@ mod tests {
     fn appearance_separates_same_geometry() {
         let mut a = forest(&[(2, 0.3, 0.2, 0.5), (8, 0.2, 0.5, 0.4)], &[[1, -1, -1], [0, -1, -1]]);
         let mut b = a.clone();
-        a.set_appearance(2, vec![1.0, 0.0, 0.0, 1.0], vec![1, 1]);
-        b.set_appearance(2, vec![0.0, 1.0, 1.0, 0.0], vec![1, 1]);
+        a.set_appearance(2, vec![1.0, 0.0, 0.0, 1.0], vec![1, 1], 1);
+        b.set_appearance(2, vec![0.0, 1.0, 1.0, 0.0], vec![1, 1], 1);
         let mut s = TreeSimScratch::default();
         let forest_only = TreeSimParams::new(&SimilarityConfig::default(), false, 3);
         let semlook = TreeSimParams::new(&SimilarityConfig::default(), true, 3);
@@ -290,7 +348,7 @@ mod tests {
             // few distinct values, so ties happen
             let scores: Vec<f32> = (0..nq * nr).map(|_| if rng.chance(0.3) { NOT_A_PAIR } else { (rng.below(5) as f32) / 4.0 }).collect();
             let (mut r, mut c) = (vec![], vec![]);
-            let fast = greedy_assignment(&scores, nq, nr, &mut r, &mut c);
+            let fast = greedy_assignment(&scores, nq, nr, &vec![1.0; nq], &vec![1.0; nr], &mut r, &mut c);
             prop_assert_eq!(fast, greedy_assignment_reference(&scores, nq, nr));
         }
     }

@@ -24,10 +24,18 @@ pub struct DescriptorSet {
     pub appearance_dim: usize,
     pub tree_appearance: Vec<f32>,
     pub tree_has_appearance: Vec<u8>,
+    /// Appearance descriptors each tree's VLAD was aggregated from.
+    pub tree_descriptors: Vec<u32>,
+    /// Per image, the VLAD of all its descriptors (`appearance_dim` values; zeros without
+    /// appearance): the whole-image `appearance` baseline.
+    pub image_appearance: Vec<f32>,
+    /// Per image, the VPR-Bench HOG descriptor (`hog_dim` values; 0 when not computed).
+    pub hog_dim: usize,
+    pub image_hog: Vec<f32>,
 }
 
 impl DescriptorSet {
-    pub fn new(ssim: &SsimParams, neighbour_slots: usize, appearance_dim: usize) -> Self {
+    pub fn new(ssim: &SsimParams, neighbour_slots: usize, appearance_dim: usize, hog_dim: usize) -> Self {
         DescriptorSet {
             ids: vec![],
             sizes: vec![],
@@ -44,6 +52,10 @@ impl DescriptorSet {
             appearance_dim,
             tree_appearance: vec![],
             tree_has_appearance: vec![],
+            tree_descriptors: vec![],
+            image_appearance: vec![],
+            hog_dim,
+            image_hog: vec![],
         }
     }
 
@@ -57,13 +69,20 @@ impl DescriptorSet {
         self.tree_classes.len()
     }
 
-    /// Appends one image. Its global size and neighbour slots must match the set's; an image
-    /// without appearance gets zero vectors flagged absent.
-    pub fn push(&mut self, img: &EncodedImage) {
+    /// Appends one image. Its global size, neighbour slots and appearance dimension must match
+    /// the set's (an image without appearance gets zero vectors flagged absent; without HOG,
+    /// zeros), else the set is unchanged and the mismatch is returned.
+    pub fn push(&mut self, img: &EncodedImage) -> Result<(), String> {
         let f = &img.forest;
-        assert_eq!(img.global.len(), self.global_len, "global descriptor size");
-        assert_eq!(img.global_stats.len(), self.stats_len, "global stats size");
-        assert_eq!(f.neighbour_slots, self.neighbour_slots, "neighbour slots");
+        if img.global.len() != self.global_len || img.global_stats.len() != self.stats_len || f.neighbour_slots != self.neighbour_slots {
+            return Err(format!("image {:?} has another global descriptor size or neighbour count than the set", img.id));
+        }
+        if (f.dim != self.appearance_dim && f.dim != 0) || (!img.appearance.is_empty() && img.appearance.len() != self.appearance_dim) {
+            return Err(format!("image {:?} has appearance of dimension {}, the set {}", img.id, f.dim, self.appearance_dim));
+        }
+        if !img.hog.is_empty() && img.hog.len() != self.hog_dim {
+            return Err(format!("image {:?} has a HOG descriptor of {} values, the set {}", img.id, img.hog.len(), self.hog_dim));
+        }
         self.ids.push(img.id.clone());
         self.sizes.push([img.width, img.height]);
         self.globals.extend_from_slice(&img.global);
@@ -76,17 +95,28 @@ impl DescriptorSet {
             self.tree_appearance.extend_from_slice(&f.appearance);
             self.tree_has_appearance.extend_from_slice(&f.has_appearance);
         } else {
-            assert_eq!(f.dim, 0, "appearance dimension {} in a set of dimension {}", f.dim, self.appearance_dim);
             self.tree_appearance.resize(self.tree_appearance.len() + f.len() * self.appearance_dim, 0.0);
             self.tree_has_appearance.resize(self.tree_has_appearance.len() + f.len(), 0);
         }
+        self.tree_descriptors.extend_from_slice(&f.descriptors);
+        self.tree_descriptors.resize(self.tree_classes.len(), 0);
+        let fill = |dst: &mut Vec<f32>, src: &[f32], dim: usize| {
+            if src.len() == dim {
+                dst.extend_from_slice(src);
+            } else {
+                dst.resize(dst.len() + dim, 0.0);
+            }
+        };
+        fill(&mut self.image_appearance, &img.appearance, self.appearance_dim);
+        fill(&mut self.image_hog, &img.hog, self.hog_dim);
         self.forest_offsets.push(self.tree_classes.len() as u32);
+        Ok(())
     }
 
     /// Appends all images of `other` (same layout).
     pub fn append(&mut self, other: &DescriptorSet) {
         assert_eq!((self.global_len, self.stats_len, self.neighbour_slots), (other.global_len, other.stats_len, other.neighbour_slots));
-        assert_eq!(self.appearance_dim, other.appearance_dim);
+        assert_eq!((self.appearance_dim, self.hog_dim), (other.appearance_dim, other.hog_dim));
         let base = self.n_trees() as u32;
         self.ids.extend_from_slice(&other.ids);
         self.sizes.extend_from_slice(&other.sizes);
@@ -99,6 +129,9 @@ impl DescriptorSet {
         self.tree_neighbours.extend_from_slice(&other.tree_neighbours);
         self.tree_appearance.extend_from_slice(&other.tree_appearance);
         self.tree_has_appearance.extend_from_slice(&other.tree_has_appearance);
+        self.tree_descriptors.extend_from_slice(&other.tree_descriptors);
+        self.image_appearance.extend_from_slice(&other.image_appearance);
+        self.image_hog.extend_from_slice(&other.image_hog);
     }
 
     /// Images `start..end` as a set of their own.
@@ -121,6 +154,10 @@ impl DescriptorSet {
             appearance_dim: d,
             tree_appearance: self.tree_appearance[d * a..d * b].to_vec(),
             tree_has_appearance: self.tree_has_appearance[a..b].to_vec(),
+            tree_descriptors: self.tree_descriptors[a..b].to_vec(),
+            image_appearance: self.image_appearance[start * d..end * d].to_vec(),
+            hog_dim: self.hog_dim,
+            image_hog: self.image_hog[start * self.hog_dim..end * self.hog_dim].to_vec(),
         }
     }
 
@@ -129,6 +166,14 @@ impl DescriptorSet {
     }
     pub fn stats(&self, i: usize) -> &[f32] {
         &self.global_stats[i * self.stats_len..(i + 1) * self.stats_len]
+    }
+    /// The whole-image appearance vector of image i (empty without appearance).
+    pub fn image_appearance(&self, i: usize) -> &[f32] {
+        &self.image_appearance[i * self.appearance_dim..(i + 1) * self.appearance_dim]
+    }
+    /// The HOG descriptor of image i (empty when the set holds none).
+    pub fn image_hog(&self, i: usize) -> &[f32] {
+        &self.image_hog[i * self.hog_dim..(i + 1) * self.hog_dim]
     }
     pub fn forest(&self, i: usize) -> ForestRef<'_> {
         let (a, b) = (self.forest_offsets[i] as usize, self.forest_offsets[i + 1] as usize);
@@ -141,6 +186,7 @@ impl DescriptorSet {
             neighbour_slots: n,
             appearance: &self.tree_appearance[d * a..d * b],
             has_appearance: &self.tree_has_appearance[a..b],
+            descriptors: &self.tree_descriptors[a..b],
             dim: d,
         }
     }
@@ -159,12 +205,14 @@ impl DescriptorSet {
         check(*self.forest_offsets.last().unwrap() as usize == t, "forest offsets do not end at the tree count")?;
         check(self.tree_areas.len() == t && self.tree_centroids.len() == 2 * t, "tree arrays have different lengths")?;
         check(self.tree_neighbours.len() == t * self.neighbour_slots, "neighbour array has the wrong length")?;
-        check(self.tree_appearance.len() == t * self.appearance_dim && self.tree_has_appearance.len() == t, "appearance arrays have the wrong length")?;
+        check(self.tree_appearance.len() == t * self.appearance_dim && self.tree_has_appearance.len() == t && self.tree_descriptors.len() == t, "appearance arrays have the wrong length")?;
+        check(self.image_appearance.len() == n * self.appearance_dim && self.image_hog.len() == n * self.hog_dim, "image appearance or HOG arrays have the wrong length")?;
         check(self.sizes.iter().all(|s| s[0] > 0 && s[1] > 0), "an image size is zero")?;
         check(self.tree_classes.iter().all(|&c| (c as usize) < n_classes), "a tree has a class outside the class table")?;
         let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
         check(finite(&self.globals) && finite(&self.global_stats), "global descriptors hold NaN or infinity")?;
         check(finite(&self.tree_areas) && finite(&self.tree_centroids) && finite(&self.tree_appearance), "trees hold NaN or infinity")?;
+        check(finite(&self.image_appearance) && finite(&self.image_hog), "image appearance or HOG holds NaN or infinity")?;
         check(self.globals.iter().all(|v| (0.0..=1.0).contains(v)), "global descriptor values outside [0, 1]")?;
         for i in 0..n {
             let (a, b) = (self.forest_offsets[i] as usize, self.forest_offsets[i + 1] as usize);

@@ -25,14 +25,14 @@ use crate::global::ssim::SsimParams;
 use crate::local::ForestRef;
 use crate::matching::source::{GlobalSource, RefSource, TileBuf};
 use serde::{Deserialize, Serialize};
-use sha2::{Digest, Sha256};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
 pub const FORMAT: &str = "semlook-map";
 /// Most images per segment file (about 130 MB of descriptors without appearance).
 pub const SEGMENT_IMAGES: usize = 4096;
-pub const VERSION: u32 = 1;
+/// Version 2 added per-tree descriptor counts, whole-image appearance and HOG.
+pub const VERSION: u32 = 2;
 const MANIFEST: &str = "manifest.json";
 const CODEBOOK: &str = "codebook.safetensors";
 const LOCK: &str = ".lock";
@@ -54,6 +54,9 @@ pub struct Manifest {
     pub config: EncodingConfig,
     pub neighbour_slots: usize,
     pub appearance_dim: usize,
+    /// Values of each image's HOG baseline descriptor (0: the map holds none).
+    #[serde(default)]
+    pub hog_dim: usize,
     pub segments: Vec<SegmentEntry>,
     /// Image ids in storage order (segment by segment).
     pub images: Vec<String>,
@@ -76,9 +79,7 @@ pub struct Map {
     codebook: Option<Codebook>,
 }
 
-pub(crate) fn sha256_hex(bytes: &[u8]) -> String {
-    Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
-}
+use crate::util::sha256_hex;
 
 /// Writes `bytes` to `dir/name` atomically: temporary file, fsync, rename, directory fsync.
 fn write_atomic(dir: &Path, name: &str, bytes: &[u8]) -> Result<()> {
@@ -123,7 +124,7 @@ impl Drop for WriteLock {
 
 impl Map {
     /// An empty, unsaved map for descriptors encoded with `cfg`.
-    pub fn new(path: &Path, cfg: &EncodingConfig, appearance_dim: usize) -> Map {
+    pub fn new(path: &Path, cfg: &EncodingConfig, appearance_dim: usize, hog_dim: usize) -> Map {
         Map {
             path: path.to_path_buf(),
             manifest: Manifest {
@@ -133,6 +134,7 @@ impl Map {
                 config: cfg.clone(),
                 neighbour_slots: cfg.local.neighbours,
                 appearance_dim,
+                hog_dim,
                 segments: vec![],
                 images: vec![],
                 codebook: None,
@@ -170,7 +172,7 @@ impl Map {
     pub fn to_descriptor_set(&self) -> DescriptorSet {
         let g = &self.manifest.config.global;
         let ssim = SsimParams::new(g);
-        let mut set = DescriptorSet::new(&ssim, self.manifest.neighbour_slots, self.manifest.appearance_dim);
+        let mut set = DescriptorSet::new(&ssim, self.manifest.neighbour_slots, self.manifest.appearance_dim, self.manifest.hog_dim);
         for s in &self.segments {
             set.append(s);
         }
@@ -189,7 +191,7 @@ impl Map {
             return Err(Error::invalid(format!("map {}", dir.display()), "directory exists and is not empty (use map add, or --force)"));
         }
         std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-        let mut map = Map::new(dir, cfg, set.appearance_dim);
+        let mut map = Map::new(dir, cfg, set.appearance_dim, set.hog_dim);
         if let Some((cb, sha)) = appearance {
             if cb.k * cb.dim != set.appearance_dim {
                 return Err(Error::invalid(format!("map {}", dir.display()), "codebook size differs from the appearance vectors"));
@@ -238,12 +240,12 @@ impl Map {
                 return Err(Error::DuplicateImageId { map: self.path.clone(), id: id.clone() });
             }
         }
-        if set.appearance_dim != self.manifest.appearance_dim || set.neighbour_slots != self.manifest.neighbour_slots {
+        if set.appearance_dim != self.manifest.appearance_dim || set.neighbour_slots != self.manifest.neighbour_slots || set.hog_dim != self.manifest.hog_dim {
             return Err(Error::invalid(
                 format!("map {}", self.path.display()),
                 format!(
-                    "new images have appearance dim {} / {} neighbour slots, the map {} / {}",
-                    set.appearance_dim, set.neighbour_slots, self.manifest.appearance_dim, self.manifest.neighbour_slots
+                    "new images have appearance dim {} / {} neighbour slots / HOG dim {}, the map {} / {} / {}",
+                    set.appearance_dim, set.neighbour_slots, set.hog_dim, self.manifest.appearance_dim, self.manifest.neighbour_slots, self.manifest.hog_dim
                 ),
             ));
         }
@@ -309,7 +311,7 @@ impl Map {
             if sha256_hex(&bytes) != seg.sha256 {
                 return Err(Error::corrupt(&p, "SHA-256 differs from the manifest (file altered)"));
             }
-            let part = segment::from_bytes(&bytes, cfg.global.width, cfg.global.height, ssim.stats_len(), manifest.neighbour_slots, manifest.appearance_dim)
+            let part = segment::from_bytes(&bytes, cfg.global.width, cfg.global.height, ssim.stats_len(), manifest.neighbour_slots, manifest.appearance_dim, manifest.hog_dim)
                 .map_err(|r| Error::corrupt(&p, r))?;
             if part.len() != seg.images || part.n_trees() != seg.trees {
                 return Err(Error::corrupt(&p, "image or tree count differs from the manifest"));
@@ -401,5 +403,16 @@ impl RefSource for Map {
     }
     fn appearance_dim(&self) -> usize {
         self.manifest.appearance_dim
+    }
+    fn image_appearance(&self, i: usize) -> &[f32] {
+        let (s, j) = self.locate(i);
+        self.segments[s].image_appearance(j)
+    }
+    fn hog_dim(&self) -> usize {
+        self.manifest.hog_dim
+    }
+    fn image_hog(&self, i: usize) -> &[f32] {
+        let (s, j) = self.locate(i);
+        self.segments[s].image_hog(j)
     }
 }

@@ -25,6 +25,9 @@ pub fn to_bytes(set: &DescriptorSet, gw: usize, gh: usize) -> Vec<u8> {
         ("tree_neighbours", view(Dtype::I32, vec![t, set.neighbour_slots], bytemuck::cast_slice(&set.tree_neighbours))),
         ("tree_appearance", view(Dtype::F32, vec![t, set.appearance_dim], bytemuck::cast_slice(&set.tree_appearance))),
         ("tree_has_appearance", view(Dtype::U8, vec![t], &set.tree_has_appearance)),
+        ("tree_descriptors", view(Dtype::U32, vec![t], bytemuck::cast_slice(&set.tree_descriptors))),
+        ("image_appearance", view(Dtype::F32, vec![n, set.appearance_dim], bytemuck::cast_slice(&set.image_appearance))),
+        ("image_hog", view(Dtype::F32, vec![n, set.hog_dim], bytemuck::cast_slice(&set.image_hog))),
     ];
     let meta = HashMap::from([("ids".to_string(), serde_json::to_string(&set.ids).expect("ids serialise"))]);
     safetensors::serialize(tensors, Some(meta)).expect("tensors serialise")
@@ -32,7 +35,7 @@ pub fn to_bytes(set: &DescriptorSet, gw: usize, gh: usize) -> Vec<u8> {
 
 /// Parses segment bytes; every shape and dtype is checked against the expected layout. The
 /// caller validates the values (`DescriptorSet::validate`).
-pub fn from_bytes(bytes: &[u8], gw: usize, gh: usize, stats_len: usize, slots: usize, dim: usize) -> Result<DescriptorSet, String> {
+pub fn from_bytes(bytes: &[u8], gw: usize, gh: usize, stats_len: usize, slots: usize, dim: usize, hog_dim: usize) -> Result<DescriptorSet, String> {
     let (_, meta) = SafeTensors::read_metadata(bytes).map_err(|e| format!("not a safetensors file: {e}"))?;
     let st = SafeTensors::deserialize(bytes).map_err(|e| format!("not a safetensors file: {e}"))?;
     let ids: Vec<String> = meta
@@ -71,6 +74,10 @@ pub fn from_bytes(bytes: &[u8], gw: usize, gh: usize, stats_len: usize, slots: u
         appearance_dim: dim,
         tree_appearance: f32s(get("tree_appearance", Dtype::F32, &[Some(t), Some(dim)])?),
         tree_has_appearance: get("tree_has_appearance", Dtype::U8, &[Some(t)])?.to_vec(),
+        tree_descriptors: bytemuck::pod_collect_to_vec(get("tree_descriptors", Dtype::U32, &[Some(t)])?),
+        image_appearance: f32s(get("image_appearance", Dtype::F32, &[Some(n), Some(dim)])?),
+        hog_dim,
+        image_hog: f32s(get("image_hog", Dtype::F32, &[Some(n), Some(hog_dim)])?),
         ids,
     })
 }

@@ -6,6 +6,7 @@
 //! - fine: tree-set similarity of the query's forest against the K candidates (or against the
 //!   whole map when the setting has no coarse stage), best first.
 
+pub mod baseline;
 pub mod source;
 pub mod ssim_topk;
 
@@ -24,6 +25,10 @@ use source::{GlobalSource, RefSource};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum Setting {
+    /// Baseline: VPR-Bench's HOG (grey 512 x 512, cosine), the floor any VPR method must beat.
+    Hog,
+    /// Baseline: the VLAD of all the image's appearance descriptors with the map's codebook (cosine).
+    Appearance,
     /// Coarse stage only: rank by SSIM of the global descriptors ("Edge (Coarse)").
     Global,
     /// §6.1 (1): Forest descriptors only, against the whole map, no appearance.
@@ -37,19 +42,28 @@ pub enum Setting {
 }
 
 impl Setting {
-    pub const ALL: [Setting; 5] = [Setting::Global, Setting::Forest, Setting::Local, Setting::GlobalForest, Setting::Semlook];
+    /// Every setting: the two baselines, then the coarse stage and the paper's four.
+    pub const ALL: [Setting; 7] = [Setting::Hog, Setting::Appearance, Setting::Global, Setting::Forest, Setting::Local, Setting::GlobalForest, Setting::Semlook];
+    /// The coarse stage and the paper's four settings (no baselines).
+    pub const SEMLOOK: [Setting; 5] = [Setting::Global, Setting::Forest, Setting::Local, Setting::GlobalForest, Setting::Semlook];
 
+    /// A baseline, not a SemLook setting: one whole-image vector per image, cosine similarity.
+    pub fn is_baseline(self) -> bool {
+        matches!(self, Setting::Hog | Setting::Appearance)
+    }
     pub fn uses_coarse(self) -> bool {
         matches!(self, Setting::Global | Setting::GlobalForest | Setting::Semlook)
     }
     pub fn uses_fine(self) -> bool {
-        self != Setting::Global
+        !self.is_baseline() && self != Setting::Global
     }
     pub fn uses_appearance(self) -> bool {
         matches!(self, Setting::Local | Setting::Semlook)
     }
     pub fn name(self) -> &'static str {
         match self {
+            Setting::Hog => "hog",
+            Setting::Appearance => "appearance",
             Setting::Global => "global",
             Setting::Forest => "forest",
             Setting::Local => "local",
@@ -59,6 +73,8 @@ impl Setting {
     }
     pub fn describe(self) -> &'static str {
         match self {
+            Setting::Hog => "baseline: VPR-Bench HOG",
+            Setting::Appearance => "baseline: whole-image VLAD",
             Setting::Global => "global SSIM only",
             Setting::Forest => "Forest, whole map",
             Setting::Local => "Forest+appearance, whole map",
@@ -157,7 +173,12 @@ pub fn match_with(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &Descr
     if refs.is_empty() {
         return Ok((vec![QueryMatch { ranked: vec![] }; queries.len()], times));
     }
-    let ranked: Vec<Vec<Candidate>> = if setting.uses_coarse() {
+    let ranked: Vec<Vec<Candidate>> = if setting.is_baseline() {
+        let t = Instant::now();
+        let lists = baseline::topk(refs, queries, setting, list_len, cfg.matching.tile)?;
+        times.coarse_ms = ms_since(t);
+        lists.iter().map(|l| l.iter().map(|&(s, r)| Candidate { reference: r, coarse: None, fine: None, score: s }).collect()).collect()
+    } else if setting.uses_coarse() {
         let t = Instant::now();
         let lists = stages.coarse(refs, queries, &SsimParams::new(&cfg.global), k, cfg.matching.tile)?;
         times.coarse_ms = ms_since(t);
@@ -215,7 +236,7 @@ pub fn coarse_topk(refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimPar
 
 /// The CPU streaming top-K over a map of `n` references: per tile of at most `tile` references,
 /// `score` fills the queries x tile scores, which `topk_merge` folds into each query's K-list.
-fn stream_topk(nq: usize, n: usize, k: usize, tile: usize, mut score: impl FnMut(&ssim_topk::TileParams, &mut [f32])) -> Vec<Vec<(f32, u32)>> {
+pub(crate) fn stream_topk(nq: usize, n: usize, k: usize, tile: usize, mut score: impl FnMut(&ssim_topk::TileParams, &mut [f32])) -> Vec<Vec<(f32, u32)>> {
     let tile = tile.max(1).min(n.max(1));
     let mut scores = vec![0.0f32; nq * tile];
     let mut top_s = vec![ssim_topk::EMPTY_SCORE; nq * k];

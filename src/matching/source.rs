@@ -38,6 +38,11 @@ pub trait RefSource: GlobalSource {
     fn forest(&self, i: usize) -> ForestRef<'_>;
     fn neighbour_slots(&self) -> usize;
     fn appearance_dim(&self) -> usize;
+    /// The whole-image appearance vector of reference i (`appearance_dim` values).
+    fn image_appearance(&self, i: usize) -> &[f32];
+    /// Values of each reference's HOG descriptor (0: the source holds none).
+    fn hog_dim(&self) -> usize;
+    fn image_hog(&self, i: usize) -> &[f32];
 }
 
 impl RefSource for DescriptorSet {
@@ -52,5 +57,14 @@ impl RefSource for DescriptorSet {
     }
     fn appearance_dim(&self) -> usize {
         self.appearance_dim
+    }
+    fn image_appearance(&self, i: usize) -> &[f32] {
+        DescriptorSet::image_appearance(self, i)
+    }
+    fn hog_dim(&self) -> usize {
+        self.hog_dim
+    }
+    fn image_hog(&self, i: usize) -> &[f32] {
+        DescriptorSet::image_hog(self, i)
     }
 }

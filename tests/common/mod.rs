@@ -55,7 +55,7 @@ pub fn encode(cfg: &Config, maps: &[LabelMap], prefix: &str) -> DescriptorSet {
     let mut set = enc.descriptor_set();
     let mut scratch = Default::default();
     for (i, m) in maps.iter().enumerate() {
-        set.push(&enc.encode_labels(&format!("{prefix}{i}"), m, &mut scratch).unwrap().0);
+        set.push(&enc.encode_labels(&format!("{prefix}{i}"), m, &mut scratch).unwrap().0).unwrap();
     }
     set
 }

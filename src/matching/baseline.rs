@@ -1,0 +1,44 @@
+//! Matching for the baselines (`hog`, `appearance`): one vector per image, unit length, ranked by
+//! cosine similarity (a dot product), streamed over tiles of the map into per-query top-K lists
+//! like the coarse stage. Runs on the CPU whatever the backend: baselines are a floor to compare
+//! against, not a path to accelerate.
+
+use super::source::RefSource;
+use super::{stream_topk, Setting};
+use crate::error::{Error, Result};
+use crate::map::DescriptorSet;
+use rayon::prelude::*;
+
+/// The vector a baseline compares, of query `i` and of reference `j`.
+fn vectors(setting: Setting) -> (fn(&DescriptorSet, usize) -> &[f32], fn(&dyn RefSource, usize) -> &[f32]) {
+    match setting {
+        Setting::Hog => (DescriptorSet::image_hog, |r, j| r.image_hog(j)),
+        _ => (DescriptorSet::image_appearance, |r, j| r.image_appearance(j)),
+    }
+}
+
+/// Why `refs` and `queries` cannot be compared by `setting`, if they cannot.
+pub fn unavailable(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting) -> Option<String> {
+    match setting {
+        Setting::Hog if refs.hog_dim() == 0 || queries.hog_dim == 0 => {
+            Some("no HOG descriptors (encode the references with HOG: `map build --hog`, or evaluate without --map)".into())
+        }
+        Setting::Appearance if refs.appearance_dim() == 0 || queries.appearance_dim == 0 => Some("no appearance (the keypoint network is off)".into()),
+        _ => None,
+    }
+}
+
+/// For each query, the `k` references of highest cosine similarity under `setting`.
+pub fn topk(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+    if let Some(why) = unavailable(refs, queries, setting) {
+        return Err(Error::invalid(format!("setting {setting}"), why));
+    }
+    let (query_vec, ref_vec) = vectors(setting);
+    Ok(stream_topk(queries.len(), refs.len(), k, tile, |tp, scores| {
+        let (start, t) = (tp.tile_start as usize, tp.tile_len as usize);
+        scores.par_iter_mut().enumerate().for_each(|(i, s)| {
+            let (q, r) = (query_vec(queries, i / t), ref_vec(refs, start + i % t));
+            *s = q.iter().zip(r).map(|(a, b)| a * b).sum();
+        });
+    }))
+}
