@@ -39,6 +39,35 @@ pub const CITYSCAPES: [(&str, [u8; 3], bool); 19] = [
     ("bicycle", [119, 11, 32], true),
 ];
 
+/// (name, palette colour, dynamic) of the 11 CamVid classes in the SegNet convention (label
+/// values 0..10; 11 is "Unlabelled"), colours from the SegNet tutorial's palette.
+pub const CAMVID: [(&str, [u8; 3], bool); 11] = [
+    ("Sky", [128, 128, 128], false),
+    ("Building", [128, 0, 0], false),
+    ("Pole", [192, 192, 128], false),
+    ("Road", [128, 64, 128], false),
+    ("Pavement", [60, 40, 222], false),
+    ("Tree", [128, 128, 0], false),
+    ("SignSymbol", [192, 128, 128], false),
+    ("Fence", [64, 64, 128], false),
+    ("Car", [64, 0, 128], true),
+    ("Pedestrian", [64, 64, 0], true),
+    ("Bicyclist", [0, 128, 192], true),
+];
+
+/// The CamVid label value of unlabelled pixels.
+pub const CAMVID_VOID_ID: u32 = 11;
+
+/// The CamVid class of each output channel of a Cityscapes segmenter (19 train ids, then the
+/// background channel): road->Road, sidewalk->Pavement, building+wall->Building, fence->Fence,
+/// pole->Pole, traffic light+sign->SignSymbol, vegetation+terrain->Tree, sky->Sky,
+/// person->Pedestrian, rider+motorcycle+bicycle->Bicyclist, car+truck+bus+train->Car (the mapping
+/// `../shared/models/README.md` evaluates the segmenters with).
+pub const CITYSCAPES_TO_CAMVID: [&str; 20] = [
+    "Road", "Pavement", "Building", "Building", "Fence", "Pole", "SignSymbol", "SignSymbol", "Tree", "Tree", "Sky", "Pedestrian", "Bicyclist", "Car", "Car", "Car", "Car",
+    "Bicyclist", "Bicyclist", "void",
+];
+
 /// Colours of Cityscapes' void categories in `*_color.png` files (unlabeled, dynamic, ground,
 /// parking, rail track, guard rail, bridge, tunnel, caravan, trailer).
 const CITYSCAPES_VOID_COLORS: [[u8; 3]; 10] = [
@@ -86,7 +115,8 @@ impl ClassTable {
                 .iter()
                 .map(|(n, c, d)| ClassSpec { name: n.to_string(), color: *c, dynamic: *d })
                 .collect(),
-            TableSpec::Builtin(name) => return Err(bad(format!("unknown class table {name:?} (built in: \"cityscapes\")"))),
+            TableSpec::Builtin(name) if name == "camvid" => CAMVID.iter().map(|(n, c, d)| ClassSpec { name: n.to_string(), color: *c, dynamic: *d }).collect(),
+            TableSpec::Builtin(name) => return Err(bad(format!("unknown class table {name:?} (built in: \"cityscapes\", \"camvid\")"))),
             TableSpec::Custom(list) => list.clone(),
         };
         if specs.is_empty() || specs.len() > MAX_CLASSES {
@@ -125,9 +155,18 @@ impl ClassTable {
                 let table: &[u8] = if n == "synthia" { &SYNTHIA_TO_TRAIN } else { &CITYSCAPES_LABEL_TO_TRAIN };
                 id_lut[..table.len()].copy_from_slice(table);
             }
+            LabelIds::Named(n) if n == "camvid" => {
+                if !(specs.len() == CAMVID.len() && specs.iter().zip(CAMVID.iter()).all(|(s, c)| s.name == c.0)) {
+                    return Err(bad("label_ids = \"camvid\" needs the camvid class table".into()));
+                }
+                for i in 0..CAMVID.len() {
+                    id_lut[i] = i as u8;
+                }
+                id_lut[CAMVID_VOID_ID as usize] = VOID;
+            }
             LabelIds::Named(n) => {
                 return Err(bad(format!(
-                    "unknown label_ids {n:?} (train_id, cityscapes_label_id, synthia, or a list of [id, \"class\"] pairs)"
+                    "unknown label_ids {n:?} (train_id, cityscapes_label_id, synthia, camvid, or a list of [id, \"class\"] pairs)"
                 )))
             }
             LabelIds::Custom(pairs) => {
@@ -241,6 +280,18 @@ mod tests {
         assert_eq!(t.class_of_color([0, 0, 142]), Some(13));
         assert_eq!(t.class_of_color([0, 0, 0]), Some(VOID));
         assert_eq!(t.class_of_color([1, 2, 3]), None);
+    }
+
+    #[test]
+    fn camvid_table_and_ids() {
+        let cfg = ClassesConfig { table: TableSpec::Builtin("camvid".into()), label_ids: LabelIds::Named("camvid".into()), void_ids: vec![], exclude: vec![] };
+        let t = ClassTable::from_config(&cfg).unwrap();
+        assert_eq!((t.len(), t.name(3), t.class_of_id(8), t.class_of_id(11), t.class_of_id(12)), (11, "Road", Some(8), Some(VOID), None));
+        assert!(t.is_dynamic(8) && !t.is_dynamic(5));
+        // every Cityscapes channel maps to a CamVid class
+        assert!(CITYSCAPES_TO_CAMVID.iter().all(|n| *n == "void" || t.index(n).is_some()));
+        let wrong = ClassesConfig { label_ids: LabelIds::Named("camvid".into()), ..Default::default() };
+        assert!(ClassTable::from_config(&wrong).is_err());
     }
 
     #[test]

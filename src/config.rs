@@ -266,13 +266,16 @@ pub struct SegmentationConfig {
     pub bgr: bool,
     /// Class of each output channel ("void" for ignore), in the class table's names.
     pub class_map: Vec<String>,
+    /// Dark frames (mean grey level below this, in [0, 1]) are brightened by a gamma curve to
+    /// this mean before segmentation; 0 turns it off. [R]
+    pub brighten_dark: f64,
 }
 
 impl Default for SegmentationConfig {
     fn default() -> Self {
         let mut class_map: Vec<String> = crate::classes::CITYSCAPES.iter().map(|c| c.0.to_string()).collect();
         class_map.push("void".into());
-        SegmentationConfig { input_width: 1024, input_height: 512, scale: 1.0, mean: [0.0; 3], std: [1.0; 3], bgr: false, class_map }
+        SegmentationConfig { input_width: 1024, input_height: 512, scale: 1.0, mean: [0.0; 3], std: [1.0; 3], bgr: false, class_map, brighten_dark: 0.0 }
     }
 }
 
@@ -319,7 +322,8 @@ pub struct SimilarityConfig {
     /// (each query tree takes its best reference tree). [R] greedy.
     pub assignment: Assignment,
     /// Weight of a tree in the image similarity: "uniform", "area", "sqrt_area", or
-    /// "descriptors" (its appearance descriptor count + 1). A pair counts sqrt(w_t w_u). [R] uniform.
+    /// "descriptors" (its appearance descriptor count + 1; settings without appearance use the
+    /// area instead). A pair counts sqrt(w_t w_u). [R] uniform.
     pub tree_weight: TreeWeight,
     /// The sum of weighted pair scores is divided by "larger_forest" (the larger total tree
     /// weight, spec §2.8) or "geometric_mean" (sqrt of the product of the totals). [R] larger_forest.
@@ -454,6 +458,15 @@ impl Config {
         }
     }
 
+    /// The defaults for CamVid's 11 classes: label files hold CamVid ids (11 = void), and a
+    /// Cityscapes segmenter's channels map to CamVid classes (`classes::CITYSCAPES_TO_CAMVID`).
+    pub fn camvid() -> Config {
+        let mut c = Config::default();
+        c.classes = ClassesConfig { table: TableSpec::Builtin("camvid".into()), label_ids: LabelIds::Named("camvid".into()), void_ids: vec![], exclude: vec![] };
+        c.segmentation.class_map = crate::classes::CITYSCAPES_TO_CAMVID.iter().map(|s| s.to_string()).collect();
+        c
+    }
+
     /// The defaults without appearance (label maps alone suffice to encode).
     pub fn without_appearance() -> Config {
         Config { appearance: AppearanceConfig { model: AppearanceModelKind::None, ..Default::default() }, ..Default::default() }
@@ -523,6 +536,7 @@ impl Config {
             return bad("segmentation: input at least 32x32 and a non-empty class_map".into());
         }
         finite_in("segmentation.scale", sg.scale, 1e-6, 1e6)?;
+        finite_in("segmentation.brighten_dark", sg.brighten_dark, 0.0, 0.95)?;
         for v in sg.mean.iter().chain(&sg.std) {
             finite_in("segmentation.mean/std", *v, -1e6, 1e6)?;
         }

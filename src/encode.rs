@@ -3,7 +3,7 @@
 //! "edge (coarse)" = global descriptor, "forest" = objects and trees, "appearance" = keypoint
 //! network and per-object VLAD.
 
-use crate::appearance::{self, vlad::{Codebook, VladNorm}, AppearanceModel};
+use crate::appearance::{self, keypoints::Keypoints, vlad::{Codebook, VladNorm}, AppearanceModel};
 use crate::classes::ClassTable;
 use crate::config::{Config, EncodingConfig};
 use crate::error::{Error, Result};
@@ -198,6 +198,15 @@ impl Encoder {
     pub fn computes_hog(&self) -> bool {
         self.hog
     }
+    /// The segmentation network (loaded now if it was not yet); `image` names the frame in
+    /// the error when there is none.
+    pub fn segmenter_for(&self, image: &std::path::Path) -> Result<&crate::segmentation::Segmenter> {
+        match &self.segmenter {
+            Some(s) => s.get(),
+            None => Err(Error::NoLabels { image: image.to_path_buf() }),
+        }
+    }
+
     /// The segmentation network, once a frame without a label map was segmented.
     pub fn segmenter(&self) -> Option<&crate::segmentation::Segmenter> {
         self.segmenter.as_ref().and_then(|s| s.loaded.get()).and_then(|r| r.as_ref().ok())
@@ -336,11 +345,16 @@ impl Encoder {
 
     /// Encodes a loaded frame on the CPU: every stage.
     pub fn encode_loaded(&self, id: &str, loaded: &Loaded, scratch: &mut GlobalScratch) -> Result<(EncodedImage, StageTimes)> {
+        self.encode_loaded_with(id, loaded, None, scratch)
+    }
+
+    /// [`Encoder::encode_loaded`] with the keypoint network's output given.
+    pub fn encode_loaded_with(&self, id: &str, loaded: &Loaded, keypoints: Option<&Keypoints>, scratch: &mut GlobalScratch) -> Result<(EncodedImage, StageTimes)> {
         let t = Instant::now();
         let mut global = vec![0.0; self.ssim.len()];
         let mut stats = vec![0.0; self.ssim.stats_len()];
         global::encode_global(&loaded.labels, &self.used, &self.cfg.global, scratch, &mut global, &mut stats)?;
-        let pending = self.encode_rest(id, loaded, global, Some(stats), ms_since(t))?;
+        let pending = self.encode_rest_with(id, loaded, global, Some(stats), ms_since(t), keypoints)?;
         self.finish_on_cpu(pending)
     }
 
@@ -353,6 +367,12 @@ impl Encoder {
     /// Everything after the global descriptor (pooled here or on the GPU; its stats are computed
     /// if not given): objects, forest, and the appearance network; VLAD is left to the caller.
     pub fn encode_rest(&self, id: &str, loaded: &Loaded, global: Vec<f32>, stats: Option<Vec<f32>>, global_ms: f64) -> Result<Pending> {
+        self.encode_rest_with(id, loaded, global, stats, global_ms, None)
+    }
+
+    /// [`Encoder::encode_rest`] with the keypoint network's output given (cached by a caller that
+    /// encodes the same frames with several configurations, such as `tune`).
+    pub fn encode_rest_with(&self, id: &str, loaded: &Loaded, global: Vec<f32>, stats: Option<Vec<f32>>, global_ms: f64, keypoints: Option<&Keypoints>) -> Result<Pending> {
         let t = Instant::now();
         let global_stats = stats.unwrap_or_else(|| {
             let mut s = vec![0.0; self.ssim.stats_len()];
@@ -369,8 +389,16 @@ impl Encoder {
             (Some(model), Some(rgb)) => {
                 let codebook = self.codebook.as_ref().ok_or_else(|| Error::invalid("encoder", "appearance is on but no VLAD codebook is set (train one, or open a map that has one)"))?;
                 let t = Instant::now();
-                let (k, network_ms) = model.keypoints_timed(rgb)?;
-                times.network_ms = network_ms;
+                let computed;
+                let k = match keypoints {
+                    Some(k) => k,
+                    None => {
+                        let (k, network_ms) = model.keypoints_timed(rgb)?;
+                        times.network_ms = network_ms;
+                        computed = k;
+                        &computed
+                    }
+                };
                 if k.dim != codebook.dim {
                     return Err(Error::Model { path: model.path.clone(), reason: format!("descriptors have {} values, the codebook {}", k.dim, codebook.dim) });
                 }
@@ -436,34 +464,43 @@ impl Encoder {
             .collect()
     }
 
+    /// Indices of the reference frames the codebook is trained on: up to
+    /// `appearance.codebook_images`, spread evenly over `n` frames.
+    pub fn codebook_picks(&self, n: usize) -> Vec<usize> {
+        let m = self.cfg.appearance.codebook_images.min(n);
+        (0..m).map(|i| i * n / m).collect()
+    }
+
+    /// Trains the VLAD codebook on the keypoints of the picked reference frames (see
+    /// [`Encoder::codebook_picks`]) and sets it.
+    pub fn train_codebook_from(&mut self, keypoints: &[&Keypoints]) -> Result<()> {
+        let a = &self.cfg.appearance;
+        let dim = keypoints.first().map(|k| k.dim).ok_or_else(|| Error::invalid("codebook", "no reference images to train it on"))?;
+        let all: Vec<f32> = keypoints.iter().flat_map(|k| appearance::sample_descriptors(k, a.codebook_samples_per_image)).collect();
+        let cb = appearance::vlad::train_codebook(&all, dim, a.vlad_centres, a.codebook_iterations, a.codebook_seed)
+            .map_err(|r| Error::invalid("codebook", format!("{r} (too few keypoints in the reference images)")))?;
+        self.set_codebook(cb);
+        Ok(())
+    }
+
     /// Trains the VLAD codebook on descriptors of up to `appearance.codebook_images` frames
     /// spread evenly over `sources` (the map's references), and sets it.
     pub fn train_codebook(&mut self, sources: &[FrameSource], tick: &(dyn Fn() + Sync)) -> Result<()> {
         let Some(model) = self.appearance.clone() else { return Ok(()) };
-        let a = &self.cfg.appearance;
-        let n = a.codebook_images.min(sources.len());
-        if n == 0 {
-            return Err(Error::invalid("codebook", "no reference images to train it on"));
-        }
-        let picks: Vec<&FrameSource> = (0..n).map(|i| &sources[i * sources.len() / n]).collect();
-        let per_image = a.codebook_samples_per_image;
-        let samples: Vec<(usize, Vec<f32>)> = picks
+        let picks = self.codebook_picks(sources.len());
+        let keypoints: Vec<Keypoints> = picks
             .par_iter()
-            .map(|src| {
+            .map(|&i| {
+                let src = &sources[i];
                 let path = src.image.as_ref().ok_or_else(|| Error::invalid(format!("frame {:?}", src.id), "appearance needs the RGB image"))?;
                 let rgb = input::load_rgb(path)?;
                 let (w, h) = input::working_size(rgb.width(), rgb.height(), self.cfg.input.working_long_side);
                 let k = model.keypoints(&input::resize_rgb(&rgb, w, h))?;
                 tick();
-                Ok((k.dim, appearance::sample_descriptors(&k, per_image)))
+                Ok(k)
             })
             .collect::<Result<_>>()?;
-        let dim = samples[0].0;
-        let all: Vec<f32> = samples.into_iter().flat_map(|s| s.1).collect();
-        let cb = appearance::vlad::train_codebook(&all, dim, a.vlad_centres, a.codebook_iterations, a.codebook_seed)
-            .map_err(|r| Error::invalid("codebook", format!("{r} (too few keypoints in the reference images)")))?;
-        self.set_codebook(cb);
-        Ok(())
+        self.train_codebook_from(&keypoints.iter().collect::<Vec<_>>())
     }
 }
 

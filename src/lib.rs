@@ -60,6 +60,8 @@ pub mod pickle;
 pub mod progress;
 pub mod segmentation;
 pub mod util;
+pub mod viz;
 
 pub use error::{Error, Result};
 pub mod synth;
+pub mod tune;

@@ -73,18 +73,67 @@ fn environment(library: Option<&Path>) -> Result<&'static ort::environment::Envi
 
 /// Opens an ONNX model with intra-op threads for the whole machine.
 pub fn session(model: &Path, library: Option<&Path>) -> Result<Session> {
+    session_with_threads(model, library, std::thread::available_parallelism().map_or(1, |n| n.get()))
+}
+
+/// Opens an ONNX model with `threads` intra-op threads that do not spin when idle (so that
+/// they leave the cores to rayon's workers between runs).
+pub fn session_with_threads(model: &Path, library: Option<&Path>, threads: usize) -> Result<Session> {
     let env = environment(library)?;
     let fail = |reason: String| Error::Model { path: model.to_path_buf(), reason };
     if !model.exists() {
         return Err(fail("file not found".into()));
     }
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     Session::builder(env)
         .map_err(|e| fail(e.to_string()))?
         .with_intra_threads(threads)
         .map_err(|e| fail(e.to_string()))?
+        .with_inter_threads(1)
+        .map_err(|e| fail(e.to_string()))?
+        .with_intra_op_spinning(false)
+        .map_err(|e| fail(e.to_string()))?
         .commit_from_file(model)
         .map_err(|e| fail(e.to_string()))
+}
+
+/// Sessions of one model that never oversubscribe the cores together with rayon: a call from
+/// inside a rayon worker runs on that worker's own single-threaded session (created on first
+/// use), so N workers run N frames on N threads; a call from outside the pool (one frame, a
+/// test) runs on a session with a thread per core.
+pub struct SessionPool {
+    model: std::path::PathBuf,
+    library: Option<std::path::PathBuf>,
+    shared: std::sync::Mutex<Session>,
+    workers: std::sync::OnceLock<Vec<std::sync::Mutex<Option<Session>>>>,
+}
+
+impl SessionPool {
+    pub fn new(model: &Path, library: Option<&Path>) -> Result<SessionPool> {
+        Ok(SessionPool { shared: std::sync::Mutex::new(session(model, library)?), model: model.into(), library: library.map(Path::to_path_buf), workers: Default::default() })
+    }
+    /// The session opened first (for reading the model's inputs and outputs).
+    pub fn with_shared<R>(&self, f: impl FnOnce(&mut Session) -> R) -> R {
+        let mut s = self.shared.lock().unwrap_or_else(|p| p.into_inner());
+        f(&mut s)
+    }
+    /// Runs `f` on the session for the calling thread.
+    pub fn run<R>(&self, f: impl FnOnce(&mut Session) -> Result<R>) -> Result<R> {
+        match rayon::current_thread_index() {
+            Some(i) if rayon::current_num_threads() > 1 => {
+                let workers = self.workers.get_or_init(|| (0..rayon::current_num_threads()).map(|_| std::sync::Mutex::new(None)).collect());
+                let Some(slot) = workers.get(i) else { return self.with_shared(f) };
+                let mut guard = slot.lock().unwrap_or_else(|p| p.into_inner());
+                if guard.is_none() {
+                    *guard = Some(session_with_threads(&self.model, self.library.as_deref(), 1)?);
+                }
+                match guard.as_mut() {
+                    Some(s) => f(s),
+                    None => self.with_shared(f),
+                }
+            }
+            _ => self.with_shared(f),
+        }
+    }
 }
 
 /// Static dimensions of a session's output (negative where dynamic).

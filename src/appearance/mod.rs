@@ -16,7 +16,6 @@ use image::RgbImage;
 use keypoints::{KeypointParams, Keypoints};
 use nn::Chw;
 use std::path::PathBuf;
-use std::sync::Mutex;
 use vlad::{Codebook, VladNorm, VladParams};
 
 /// File name of the XFeat weights in the setup folder.
@@ -35,7 +34,7 @@ pub struct NetOutputs {
 
 enum Network {
     XFeat(xfeat::XFeat),
-    Onnx { session: Mutex<ort::session::Session>, logits: usize, reliability: Option<usize>, descriptors: usize },
+    Onnx { sessions: crate::onnx::SessionPool, logits: usize, reliability: Option<usize>, descriptors: usize },
 }
 
 /// A loaded keypoint network and its decoding parameters.
@@ -72,11 +71,11 @@ impl AppearanceModel {
                     source_name: "[models]".into(),
                     reason: "appearance.model = \"onnx\" needs models.keypoint_onnx (or --keypoints MODEL)".into(),
                 })?;
-                let session = crate::onnx::session(&path, paths.onnxruntime.as_deref())?;
-                let (logits, reliability, descriptors) = identify_outputs(&session).map_err(|reason| Error::Model { path: path.clone(), reason })?;
+                let sessions = crate::onnx::SessionPool::new(&path, paths.onnxruntime.as_deref())?;
+                let (logits, reliability, descriptors) = sessions.with_shared(|s| identify_outputs(s)).map_err(|reason| Error::Model { path: path.clone(), reason })?;
                 Ok(Some(AppearanceModel {
                     sha256: sha256_file(&path)?,
-                    net: Network::Onnx { session: Mutex::new(session), logits, reliability, descriptors },
+                    net: Network::Onnx { sessions, logits, reliability, descriptors },
                     params,
                     sampling: cfg.sampling,
                     path,
@@ -89,19 +88,32 @@ impl AppearanceModel {
     pub fn run(&self, grey: &Chw) -> Result<NetOutputs> {
         match &self.net {
             Network::XFeat(x) => Ok(x.forward(grey)),
-            Network::Onnx { session, logits, reliability, descriptors } => {
+            Network::Onnx { sessions, logits, reliability, descriptors } => {
                 let fail = |reason: String| Error::Model { path: self.path.clone(), reason };
-                let input = ort::value::TensorRef::from_array_view(([1usize, 1, grey.h, grey.w], grey.data.as_slice())).map_err(|e| fail(e.to_string()))?;
-                let mut s = session.lock().unwrap();
-                let outputs = s.run(ort::inputs![input]).map_err(|e| fail(e.to_string()))?;
-                let get = |i: usize| -> Result<Chw> {
-                    let (shape, data) = outputs[i].try_extract_tensor::<f32>().map_err(|e| fail(e.to_string()))?;
-                    if shape.len() != 4 || shape[0] != 1 {
-                        return Err(fail(format!("output {i} has shape {shape:?}, expected [1, C, h, w]")));
+                sessions.run(|s| {
+                    let input = ort::value::TensorRef::from_array_view(([1usize, 1, grey.h, grey.w], grey.data.as_slice())).map_err(|e| fail(e.to_string()))?;
+                    let outputs = s.run(ort::inputs![input]).map_err(|e| fail(e.to_string()))?;
+                    let get = |i: usize| -> Result<Chw> {
+                        let (shape, data) = outputs[i].try_extract_tensor::<f32>().map_err(|e| fail(e.to_string()))?;
+                        if shape.len() != 4 || shape[0] != 1 || shape[1..].iter().any(|&d| d <= 0) {
+                            return Err(fail(format!("output {i} has shape {shape:?}, expected [1, C, h, w]")));
+                        }
+                        let (c, h, w) = (shape[1] as usize, shape[2] as usize, shape[3] as usize);
+                        if data.len() != c * h * w {
+                            return Err(fail(format!("output {i} holds {} values for shape {shape:?}", data.len())));
+                        }
+                        Ok(Chw { c, h, w, data: data.to_vec() })
+                    };
+                    let out = NetOutputs { descriptors: get(*descriptors)?, logits: get(*logits)?, reliability: reliability.map(get).transpose()? };
+                    let same = |m: &Chw| (m.h, m.w) == (out.descriptors.h, out.descriptors.w);
+                    if out.logits.c != 65 || !same(&out.logits) || !out.reliability.as_ref().is_none_or(|r| r.c == 1 && same(r)) || out.descriptors.c == 0 {
+                        return Err(fail(format!(
+                            "outputs are not SuperPoint's layout: logits {}x{}x{} (need 65 channels), descriptors {}x{}x{}, all at one resolution",
+                            out.logits.c, out.logits.h, out.logits.w, out.descriptors.c, out.descriptors.h, out.descriptors.w
+                        )));
                     }
-                    Ok(Chw { c: shape[1] as usize, h: shape[2] as usize, w: shape[3] as usize, data: data.to_vec() })
-                };
-                Ok(NetOutputs { descriptors: get(*descriptors)?, logits: get(*logits)?, reliability: reliability.map(get).transpose()? })
+                    Ok(out)
+                })
             }
         }
     }

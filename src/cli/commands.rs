@@ -10,7 +10,7 @@ use semlook::dataset::{Dataset, DatasetOptions};
 use semlook::eval::{encode_frames, evaluate, EvalOptions, EvalReport, RunRecord};
 use semlook::input::FrameSource;
 use semlook::map::{DescriptorSet, Map};
-use semlook::matching::{source::RefSource, QueryMatch};
+use semlook::matching::{source::RefSource, QueryMatch, Setting};
 use semlook::progress;
 use semlook::synth::{self, SynthConfig};
 use std::path::Path;
@@ -27,7 +27,10 @@ pub fn dispatch(cli: Cli) -> Result<()> {
         Ok(engine)
     };
     match cli.command {
-        Command::Synth(a) => synth_cmd(&a, quiet),
+        Command::Synth(a) => match &a.from_camvid {
+            Some(dir) => camvid_cmd(dir, &a, &engine, quiet),
+            None => synth_cmd(&a, quiet),
+        },
         Command::Demo(a) => demo(&a, &mut engine()?, quiet),
         Command::Map(MapCommand::Build { source, out, config, force, hog }) => map_build(&mut engine()?, &source, &out, config.as_deref(), force, hog, quiet),
         Command::Map(MapCommand::Add { source, map }) => map_add(&mut engine()?, &source, &map, quiet),
@@ -35,6 +38,9 @@ pub fn dispatch(cli: Cli) -> Result<()> {
         Command::Query(a) => query(&mut engine()?, &a, quiet),
         Command::Eval(a) => eval_cmd(&mut engine()?, &a, quiet),
         Command::Bench(a) => bench_cmd(&a, quiet),
+        Command::Tune(a) => tune_cmd(&a, &mut engine()?, quiet),
+        Command::Inspect(a) => inspect_cmd(&a, quiet),
+        Command::SegmenterAccuracy(a) => segacc_cmd(&a, quiet),
         Command::Config => {
             print!("{}", Config::default().to_toml());
             Ok(())
@@ -83,6 +89,33 @@ fn synth_config(a: &SynthArgs) -> SynthConfig {
         c.queries = a.queries.clone();
     }
     c
+}
+
+/// `synth --from-camvid`: the real-label benchmark, and with --evaluate its two evaluations.
+fn camvid_cmd(camvid: &Path, a: &SynthArgs, engine: &dyn Fn() -> Result<Engine>, quiet: bool) -> Result<()> {
+    use semlook::synth::camvid::{self, Change};
+    let changes = if a.changes.is_empty() { Change::ALL.to_vec() } else { a.changes.clone() };
+    let t = Instant::now();
+    let pb = progress::bar(0, "frames", quiet);
+    let n = camvid::generate(camvid, &a.out, &changes, a.step, &|| pb.inc(1))?;
+    pb.finish_and_clear();
+    info(quiet, format!("wrote {n} frames x {} traversals to {} in {:.1} s", 1 + changes.len(), a.out.display(), t.elapsed().as_secs_f64()));
+    if !a.evaluate {
+        return Ok(());
+    }
+    let cfg = apply_models(Config::camvid(), &a.models);
+    let ds = Dataset::open(&a.out, &DatasetOptions::default())?;
+    let mut engine = engine()?;
+    let opts = EvalOptions { settings: Setting::ALL.to_vec(), map: None, skip_invalid: false, quiet };
+    info(quiet, "evaluating with the real labels");
+    let real = evaluate(&ds, &cfg, &opts, &mut engine)?;
+    info(quiet, "evaluating with the segmenter's labels");
+    let seg = evaluate(&ds.without_labels(), &cfg, &opts, &mut engine)?;
+    write_file(&a.out.join("eval-real-labels.json"), &serde_json::to_string_pretty(&real).expect("serialises"))?;
+    write_file(&a.out.join("eval-segmenter-labels.json"), &serde_json::to_string_pretty(&seg).expect("serialises"))?;
+    print!("{}", semlook::eval::label_source_table(&[("real labels", &real), ("segmenter labels", &seg)]));
+    print!("\nsegmenter run:\n{}", seg.run.describe());
+    Ok(())
 }
 
 fn synth_cmd(a: &SynthArgs, quiet: bool) -> Result<()> {
@@ -316,15 +349,31 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
         Some(m) => map_config(m, a.config.as_deref(), &a.models)?,
         None => apply_models(load_config(a.config.as_deref())?, &a.models),
     };
-    if let (Some(ids), None, None) = (&ds.label_ids, &a.config, &map) {
-        cfg.classes.label_ids = ids.clone();
+    if a.config.is_none() && map.is_none() {
+        cfg = ds.adapt_config(cfg);
     }
     let settings = match a.setting {
         Some(s) => vec![s],
         None => Setting::ALL.to_vec(),
     };
-    let report = evaluate(&ds, &cfg, &EvalOptions { settings, map: map.as_ref(), skip_invalid: a.skip_invalid, quiet }, engine)?;
+    let report = evaluate(&ds, &cfg, &EvalOptions { settings: settings.clone(), map: map.as_ref(), skip_invalid: a.skip_invalid, quiet }, engine)?;
     print_report(&report, a.json);
+    if let Some(dir) = &a.plots {
+        for f in semlook::viz::plots::write_pr_plots(&report, dir)? {
+            info(quiet, format!("wrote {}", f.display()));
+        }
+    }
+    if let (Some(n), Some(dir)) = (a.explain, &a.out) {
+        let setting = if settings.contains(&Setting::Semlook) { Setting::Semlook } else { settings[0] };
+        // frames are loaded again with the configuration that encoded them
+        let encoder = match &map {
+            Some(m) => Encoder::for_map(&cfg, m)?,
+            None => Encoder::new(&cfg)?,
+        };
+        for f in semlook::viz::explain(&report, setting, &ds, &encoder, n, dir)? {
+            info(quiet, format!("wrote {}", f.display()));
+        }
+    }
     Ok(())
 }
 
@@ -343,7 +392,7 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
         None => (std::env::temp_dir().join(format!("semlook-demo-{}", std::process::id())), true),
     };
     let data = dir.join("dataset");
-    let sargs = SynthArgs { out: data.clone(), seed: a.seed, places: a.places, size: a.size, reference: Condition::Day, queries: vec![], aliasing: 0.6 };
+    let sargs = SynthArgs { out: data.clone(), seed: a.seed, places: a.places, size: a.size, reference: Condition::Day, queries: vec![], aliasing: 0.6, from_camvid: None, changes: vec![], step: 1, evaluate: false, models: a.models.clone() };
     let scfg = synth_config(&sargs);
     info(quiet, format!("[1/4] rendering the synthetic benchmark: {} places x {} traversals at {}x{} (seed {})", scfg.places, 1 + scfg.queries.len(), scfg.width, scfg.height, scfg.seed));
     synth_cmd(&sargs, quiet)?;
@@ -377,6 +426,77 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
         info(quiet, format!("dataset, map and results kept in {}", dir.display()));
     }
     info(quiet, format!("demo finished in {:.1} s", t0.elapsed().as_secs_f64()));
+    Ok(())
+}
+
+fn segacc_cmd(a: &SegAccArgs, quiet: bool) -> Result<()> {
+    let base = if a.camvid { Config::camvid() } else { load_config(a.config.as_deref())? };
+    let cfg = apply_models(base, &a.models);
+    let encoder = Encoder::new(&cfg)?;
+    let table = encoder.class_table().clone();
+    let images = semlook::dataset::image_files(&a.images)?;
+    if images.is_empty() {
+        return Err(Error::invalid(a.images.display().to_string(), "no images"));
+    }
+    let pb = progress::bar(images.len(), "segmenting", quiet);
+    let mut confusion = semlook::eval::segmenter::Confusion::new(table.len());
+    for img in &images {
+        let stem = img.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+        let real = semlook::input::load_label_map(&a.labels.join(format!("{stem}.png")), &table, LabelFormat::Auto)?;
+        let rgb = semlook::input::load_rgb(img)?;
+        let seg = encoder.segmenter_for(img)?;
+        let predicted = seg.segment(&rgb, img)?;
+        confusion.add(&real, &predicted)?;
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+    let r = confusion.report(&table);
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&r).expect("serialises"));
+    } else {
+        print!("{} images\n{}", images.len(), r.to_table());
+    }
+    Ok(())
+}
+
+fn inspect_cmd(a: &InspectArgs, quiet: bool) -> Result<()> {
+    let cfg = apply_models(load_config(a.config.as_deref())?, &a.models);
+    let encoder = Encoder::new(&cfg)?;
+    let id = a.image.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    let src = FrameSource { id, image: Some(a.image.clone()), labels: a.labels.clone() };
+    let panels = semlook::viz::inspect(&encoder, &src, a.label_format.unwrap_or_default())?;
+    let files = semlook::viz::write_panels(&panels, &a.out)?;
+    for f in &files {
+        info(quiet, format!("wrote {}", f.display()));
+    }
+    Ok(())
+}
+
+fn tune_cmd(a: &TuneArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
+    let base = apply_models(load_config(a.config.as_deref())?, &a.models);
+    let text = std::fs::read_to_string(&a.sweep).map_err(|e| Error::io(&a.sweep, e))?;
+    let sweep = semlook::tune::Sweep::parse(&text, &a.sweep.display().to_string(), &base)?;
+    let mut datasets: Vec<Dataset> = a.datasets.iter().map(|d| Dataset::open(d, &DatasetOptions::default())).collect::<Result<_>>()?;
+    for d in &a.segmented {
+        let mut ds = Dataset::open(d, &DatasetOptions::default())?.without_labels();
+        ds.name += " (segmented)";
+        datasets.push(ds);
+    }
+    let settings = if a.settings.is_empty() { vec![Setting::Semlook, Setting::Local, Setting::Forest, Setting::Global] } else { a.settings.clone() };
+    let n = sweep.combinations().len();
+    info(quiet, format!("{n} configurations x {} datasets", datasets.len()));
+    let pb = progress::bar(0, "frames", quiet);
+    let rows = semlook::tune::run(&datasets, &sweep, &settings, engine, &|| pb.inc(1), &mut |ds, row| {
+        let vals: Vec<String> = row.values.iter().map(|(k, v)| format!("{k}={v}")).collect();
+        let r: Vec<String> = row.results.iter().filter(|r| r.0 == ds).map(|r| format!("{} {:.3}", r.1, r.2)).collect();
+        pb.suspend(|| info(quiet, format!("{ds}: {} -> R@1 {}", vals.join(" "), r.join(", "))));
+    })?;
+    pb.finish_and_clear();
+    let table = semlook::tune::table(&rows);
+    if let Some(out) = &a.out {
+        write_file(out, &table)?;
+    }
+    print!("{table}");
     Ok(())
 }
 

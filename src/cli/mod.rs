@@ -39,9 +39,79 @@ pub enum Command {
     Eval(EvalArgs),
     /// Print the default configuration (TOML); edit it and pass it with --config.
     Config,
+    /// Sweep configuration values over datasets and tabulate Recall@1 and AUC per setting.
+    Tune(TuneArgs),
+    /// Accuracy of the segmenter against real label maps (pixel accuracy, IoU per class, mean IoU).
+    SegmenterAccuracy(SegAccArgs),
+    /// Pictures of every stage for one frame: image, labels, semantic edges, truncated EDT, global
+    /// descriptor, trees with neighbour links, keypoints.
+    Inspect(InspectArgs),
     /// Large-map batch matching benchmark: coarse matching throughput and peak memory for maps of
     /// 1k to 1M references and query batches of 100 and 1000, on the CPU and on the GPU.
     Bench(BenchArgs),
+}
+
+#[derive(Args)]
+pub struct SegAccArgs {
+    /// Folder of images.
+    #[arg(long)]
+    pub images: PathBuf,
+    /// Folder of their real label maps (`<stem>.png`).
+    #[arg(long)]
+    pub labels: PathBuf,
+    /// The labels are CamVid's (11 classes, SegNet ids); a Cityscapes segmenter is mapped to them.
+    #[arg(long)]
+    pub camvid: bool,
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Also write the result as JSON to stdout.
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub models: ModelArgs,
+}
+
+#[derive(Args)]
+pub struct InspectArgs {
+    /// The image (png or jpeg).
+    pub image: PathBuf,
+    /// Its label map (else the segmenter labels it).
+    #[arg(long)]
+    pub labels: Option<PathBuf>,
+    /// Folder for the PNGs (one per stage, and sheet.png with all of them).
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    #[arg(long, value_enum)]
+    pub label_format: Option<LabelFormat>,
+    #[command(flatten)]
+    pub models: ModelArgs,
+}
+
+#[derive(Args)]
+pub struct TuneArgs {
+    /// Dataset directories (any layout `eval --dataset` reads); repeat for several.
+    #[arg(long = "dataset", required_unless_present = "segmented")]
+    pub datasets: Vec<PathBuf>,
+    /// Datasets whose label maps are ignored: every frame segmented (to tune on the segmenter's
+    /// labels where real ones exist); repeat for several.
+    #[arg(long = "segmented")]
+    pub segmented: Vec<PathBuf>,
+    /// The sweep file: `[values]` with a list per dotted config key, optional `[base]`.
+    #[arg(long)]
+    pub sweep: PathBuf,
+    /// Base config (TOML) the sweep starts from (default: built-in defaults).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Settings to score (default: semlook, local, forest, global).
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub settings: Vec<Setting>,
+    /// Also write the table (tab-separated) to this file.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    #[command(flatten)]
+    pub models: ModelArgs,
 }
 
 #[derive(Args)]
@@ -68,6 +138,22 @@ pub struct SynthArgs {
     /// Output directory.
     #[arg(long)]
     pub out: PathBuf,
+    /// Instead of rendering: build the real-label benchmark from a CamVid folder (images/,
+    /// labels/): the frames as references, the same frames under controlled changes as queries.
+    #[arg(long, value_name = "DIR")]
+    pub from_camvid: Option<PathBuf>,
+    /// With --from-camvid: the changes (default: night, fog, blur, shift).
+    #[arg(long = "change", value_enum, requires = "from_camvid")]
+    pub changes: Vec<semlook::synth::camvid::Change>,
+    /// With --from-camvid: keep every N-th frame.
+    #[arg(long, default_value_t = 1, requires = "from_camvid")]
+    pub step: usize,
+    /// With --from-camvid: also evaluate every setting on it, once with the real labels and once
+    /// with the segmenter's, and print the tables.
+    #[arg(long, requires = "from_camvid")]
+    pub evaluate: bool,
+    #[command(flatten)]
+    pub models: ModelArgs,
     #[arg(long, default_value_t = 7)]
     pub seed: u64,
     /// Places along the route (frames per traversal).
@@ -249,6 +335,16 @@ pub struct EvalArgs {
     pub json: bool,
     #[arg(long)]
     pub skip_invalid: bool,
+    /// Write sheets (query | top-1 | a valid reference, with labels and scores) for the N worst
+    /// queries of the `semlook` setting (or the only setting) into --out.
+    #[arg(long, value_name = "N", requires = "out")]
+    pub explain: Option<usize>,
+    /// Folder for --explain sheets.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Draw the precision-recall curve of every setting (PNG and SVG per query set) into DIR.
+    #[arg(long, value_name = "DIR")]
+    pub plots: Option<PathBuf>,
     #[command(flatten)]
     pub models: ModelArgs,
 }

@@ -253,6 +253,33 @@ impl Dataset {
         Ok(ds)
     }
 
+    /// `cfg` with its class settings following this dataset's label files: CamVid ids take the
+    /// CamVid table (and a Cityscapes segmenter's channels mapped to it), other named ids set
+    /// `classes.label_ids`.
+    pub fn adapt_config(&self, mut cfg: crate::config::Config) -> crate::config::Config {
+        match &self.label_ids {
+            Some(crate::config::LabelIds::Named(n)) if n == "camvid" => {
+                let camvid = crate::config::Config::camvid();
+                cfg.classes = camvid.classes;
+                cfg.segmentation.class_map = camvid.segmentation.class_map;
+            }
+            Some(ids) => cfg.classes.label_ids = ids.clone(),
+            None => {}
+        }
+        cfg
+    }
+
+    /// The same dataset with its label maps dropped: every frame is then segmented from its
+    /// image (to measure a segmenter against the real labels' results).
+    pub fn without_labels(mut self) -> Dataset {
+        for t in std::iter::once(&mut self.reference).chain(self.queries.iter_mut()) {
+            for f in &mut t.frames {
+                f.source.labels = None;
+            }
+        }
+        self
+    }
+
     /// Valid reference indices for every frame of query traversal `q`: the listed ones, else
     /// those the pose rule accepts.
     pub fn ground_truth(&self, q: &Traversal) -> Result<Vec<Vec<u32>>> {

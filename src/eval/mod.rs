@@ -5,6 +5,7 @@
 
 
 pub mod metrics;
+pub mod segmenter;
 
 use crate::config::Config;
 use crate::encode::{collect_encoded, Encoder, StageTimes};
@@ -231,17 +232,7 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
         let gt: Vec<Vec<u32>> = gt_ds.iter().enumerate().filter(|(i, _)| !dropped.contains(i)).map(|(_, g)| g.iter().map(|&i| ref_to_map[i as usize]).collect()).collect();
         q_times.extend_from_slice(&enc.times);
         q_wall += enc.wall_ms;
-        let qset = enc.set;
-        for &setting in &opts.settings {
-            if let Some(why) = setting.is_baseline().then(|| crate::matching::baseline::unavailable(refs, &qset, setting)).flatten() {
-                if !skipped.iter().any(|(s, _)| *s == setting) {
-                    skipped.push((setting, why));
-                }
-                continue;
-            }
-            let (matches, times) = engine.match_batch(refs, &qset, setting, cfg)?;
-            results.push(report(&qt.name, setting, refs, &qset, &matches, &gt, times.coarse_ms + times.fine_ms, cfg));
-        }
+        match_query_set(engine, refs, &qt.name, &enc.set, &gt, &opts.settings, cfg, &mut results, &mut skipped)?;
     }
     Ok(EvalReport {
         dataset: ds.name.clone(),
@@ -252,6 +243,33 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
         results,
         skipped,
     })
+}
+
+/// Matches one encoded query set (ground truth in map indices) in every setting, appending a
+/// report per setting to `results`, or the reason a baseline could not run to `skipped`.
+#[allow(clippy::too_many_arguments)]
+pub fn match_query_set(
+    engine: &mut Engine,
+    refs: &dyn RefSource,
+    name: &str,
+    queries: &DescriptorSet,
+    gt: &[Vec<u32>],
+    settings: &[Setting],
+    cfg: &Config,
+    results: &mut Vec<SettingReport>,
+    skipped: &mut Vec<(Setting, String)>,
+) -> Result<()> {
+    for &setting in settings {
+        if let Some(why) = setting.is_baseline().then(|| crate::matching::baseline::unavailable(refs, queries, setting)).flatten() {
+            if !skipped.iter().any(|(s, _)| *s == setting) {
+                skipped.push((setting, why));
+            }
+            continue;
+        }
+        let (matches, times) = engine.match_batch(refs, queries, setting, cfg)?;
+        results.push(report(name, setting, refs, queries, &matches, gt, times.coarse_ms + times.fine_ms, cfg));
+    }
+    Ok(())
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -394,4 +412,48 @@ impl EvalReport {
         }
         s
     }
+}
+
+/// R@1 and AUC per setting (rows) and query set (columns), side by side for several reports of
+/// the same dataset (e.g. real labels vs a segmenter's).
+pub fn label_source_table(reports: &[(&str, &EvalReport)]) -> String {
+    let mut sets: Vec<&str> = Vec::new();
+    let mut settings: Vec<Setting> = Vec::new();
+    for (_, r) in reports {
+        for s in &r.results {
+            if !sets.contains(&s.query_set.as_str()) {
+                sets.push(&s.query_set);
+            }
+            if !settings.contains(&s.setting) {
+                settings.push(s.setting);
+            }
+        }
+    }
+    let mut out = String::new();
+    for (metric, get) in [("R@1", (|r: &SettingReport| r.recall_at.first().map_or(0.0, |x| x.1)) as fn(&SettingReport) -> f64), ("AUC", |r: &SettingReport| r.pr.auc)] {
+        out += &format!("\n{metric}: rows settings, columns query set / label source\n{:<14}", "setting");
+        for set in &sets {
+            for (name, _) in reports {
+                out += &format!(" {:>18}", format!("{set}/{}", name.split(' ').next().unwrap_or(name)));
+            }
+        }
+        out += &format!(" {:>10}\n", "mean");
+        for st in &settings {
+            out += &format!("{:<14}", st.name());
+            let mut all = Vec::new();
+            for set in &sets {
+                for (_, rep) in reports {
+                    match rep.results.iter().find(|r| r.setting == *st && r.query_set == *set) {
+                        Some(r) => {
+                            all.push(get(r));
+                            out += &format!(" {:>18.3}", get(r));
+                        }
+                        None => out += &format!(" {:>18}", "-"),
+                    }
+                }
+            }
+            out += &format!(" {:>10.3}\n", all.iter().sum::<f64>() / all.len().max(1) as f64);
+        }
+    }
+    out
 }

@@ -61,11 +61,13 @@ impl TreeSimParams {
             use_appearance: use_appearance as u32,
             greedy: (cfg.assignment == Assignment::Greedy) as u32,
             neighbour_slots: neighbour_slots as u32,
+            // settings without appearance never see descriptor counts: they weigh by area instead
             tree_weight: match cfg.tree_weight {
                 TreeWeight::Uniform => 0,
                 TreeWeight::Area => 1,
                 TreeWeight::SqrtArea => 2,
-                TreeWeight::Descriptors => 3,
+                TreeWeight::Descriptors if use_appearance => 3,
+                TreeWeight::Descriptors => 1,
             },
             geometric_norm: (cfg.normalise == Normalise::GeometricMean) as u32,
             _pad: [0; 2],

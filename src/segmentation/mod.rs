@@ -10,7 +10,6 @@ use crate::error::{Error, Result};
 use crate::input::LabelMap;
 use image::RgbImage;
 use std::path::{Path, PathBuf};
-use std::sync::Mutex;
 
 /// File name of the default segmenter in the model folders: ESPNetv2 (Mehta et al., CVPR 2019)
 /// trained on Cityscapes, which `setup.sh` installs when it can. Chosen over ESPNet for real
@@ -18,7 +17,7 @@ use std::sync::Mutex;
 pub const DEFAULT_SEGMENTER: &str = "espnetv2_cityscapes.onnx";
 
 pub struct Segmenter {
-    session: Mutex<ort::session::Session>,
+    sessions: crate::onnx::SessionPool,
     cfg: SegmentationConfig,
     class_of_channel: Vec<u8>,
     path: PathBuf,
@@ -33,6 +32,27 @@ impl std::fmt::Debug for Segmenter {
     }
 }
 
+/// Dark-frame normalisation before segmentation: when the mean grey level of `img` (in [0, 1])
+/// is below `target`, a gamma curve that brings the mean to `target` (x -> x^g with
+/// g = ln(target) / ln(mean)); otherwise, or with `target` 0, the identity. As a lookup table
+/// over 8-bit values.
+pub fn brighten_lut(img: &RgbImage, target: f64) -> [f32; 256] {
+    let mut lut: [f32; 256] = std::array::from_fn(|v| v as f32);
+    if target <= 0.0 || img.is_empty() {
+        return lut;
+    }
+    let n = img.pixels().len() as f64;
+    let mean = img.pixels().map(|p| (p.0[0] as f64 + p.0[1] as f64 + p.0[2] as f64) / 765.0).sum::<f64>() / n;
+    if mean >= target || mean <= 0.0 {
+        return lut;
+    }
+    let g = target.ln() / mean.ln();
+    for (v, slot) in lut.iter_mut().enumerate() {
+        *slot = (255.0 * (v as f64 / 255.0).powf(g)) as f32;
+    }
+    lut
+}
+
 impl Segmenter {
     pub fn load(path: &Path, cfg: &SegmentationConfig, table: &ClassTable, onnxruntime: Option<&Path>) -> Result<Segmenter> {
         let class_of_channel = cfg
@@ -40,16 +60,20 @@ impl Segmenter {
             .iter()
             .map(|n| if n == "void" { Ok(VOID) } else { table.index(n).ok_or_else(|| Error::InvalidConfig { source_name: "[segmentation]".into(), reason: format!("class_map names {n:?}, which is not in the class table") }) })
             .collect::<Result<Vec<u8>>>()?;
-        let session = crate::onnx::session(path, onnxruntime)?;
-        let channels = crate::onnx::output_shape(&session, 0).get(1).copied().unwrap_or(-1);
+        let sessions = crate::onnx::SessionPool::new(path, onnxruntime)?;
+        let (outputs, inputs) = sessions.with_shared(|s| (s.outputs().len(), s.inputs().len()));
+        if outputs == 0 || inputs == 0 {
+            return Err(Error::Model { path: path.into(), reason: format!("{inputs} inputs and {outputs} outputs; a segmenter has an image input and a logits output") });
+        }
+        let channels = sessions.with_shared(|s| crate::onnx::output_shape(s, 0)).get(1).copied().unwrap_or(-1);
         if channels > 0 && channels as usize != class_of_channel.len() {
             return Err(Error::Model { path: path.into(), reason: format!("{channels} output channels, but segmentation.class_map names {}", class_of_channel.len()) });
         }
-        let dynamic_batch = match session.inputs().first().map(|i| i.dtype()) {
+        let dynamic_batch = sessions.with_shared(|s| match s.inputs().first().map(|i| i.dtype()) {
             Some(ort::value::ValueType::Tensor { shape, .. }) => shape.first().is_some_and(|&d| d < 0),
             _ => false,
-        };
-        Ok(Segmenter { session: Mutex::new(session), cfg: cfg.clone(), class_of_channel, path: path.into(), dynamic_batch, sha256: crate::util::sha256_file(path)? })
+        });
+        Ok(Segmenter { sessions, cfg: cfg.clone(), class_of_channel, path: path.into(), dynamic_batch, sha256: crate::util::sha256_file(path)? })
     }
 
     /// The model file.
@@ -98,22 +122,28 @@ impl Segmenter {
                 return Err(Error::invalid("image", "empty image"));
             }
             let small = image::imageops::resize(*img, w as u32, h as u32, image::imageops::FilterType::Triangle);
+            let lut = brighten_lut(&small, self.cfg.brighten_dark);
             for (i, p) in small.pixels().enumerate() {
                 for c in 0..3 {
                     let src = if self.cfg.bgr { 2 - c } else { c };
-                    input[((b * 3 + c) * h * w) + i] = ((p.0[src] as f64 * self.cfg.scale - self.cfg.mean[c]) / self.cfg.std[c]) as f32;
+                    input[((b * 3 + c) * h * w) + i] = ((lut[p.0[src] as usize] as f64 * self.cfg.scale - self.cfg.mean[c]) / self.cfg.std[c]) as f32;
                 }
             }
         }
         let fail = |reason: String| Error::Model { path: self.path.clone(), reason };
-        let tensor = ort::value::TensorRef::from_array_view(([n, 3, h, w], input.as_slice())).map_err(|e| fail(e.to_string()))?;
-        let mut session = self.session.lock().unwrap();
-        let outputs = session.run(ort::inputs![tensor]).map_err(|e| fail(e.to_string()))?;
-        let (shape, logits) = outputs[0].try_extract_tensor::<f32>().map_err(|e| fail(e.to_string()))?;
-        if shape.len() != 4 || shape[0] as usize != n || shape[1] as usize != self.class_of_channel.len() {
+        let (shape, logits) = self.sessions.run(|session| {
+            let tensor = ort::value::TensorRef::from_array_view(([n, 3, h, w], input.as_slice())).map_err(|e| fail(e.to_string()))?;
+            let outputs = session.run(ort::inputs![tensor]).map_err(|e| fail(e.to_string()))?;
+            let (shape, logits) = outputs[0].try_extract_tensor::<f32>().map_err(|e| fail(e.to_string()))?;
+            Ok((shape.to_vec(), logits.to_vec()))
+        })?;
+        if shape.len() != 4 || shape[0] != n as i64 || shape[1] != self.class_of_channel.len() as i64 || shape[2] <= 0 || shape[3] <= 0 {
             return Err(fail(format!("output shape {shape:?}, expected [{n}, {}, h, w]", self.class_of_channel.len())));
         }
         let (c, oh, ow) = (shape[1] as usize, shape[2] as usize, shape[3] as usize);
+        if logits.len() != n * c * oh * ow {
+            return Err(fail(format!("output holds {} values for shape {shape:?}", logits.len())));
+        }
         let mut maps = Vec::with_capacity(n);
         for (b, &(tw, th)) in sizes.iter().enumerate() {
             let plane = &logits[b * c * oh * ow..(b + 1) * c * oh * ow];

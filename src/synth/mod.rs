@@ -8,6 +8,7 @@
 //! cars and pedestrians change between traversals; and each condition degrades the label maps as
 //! a segmenter would (far and thin objects lost, boundaries jittered, classes confused).
 
+pub mod camvid;
 pub mod condition;
 mod noise;
 pub mod render;

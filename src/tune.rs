@@ -1,0 +1,307 @@
+//! `semlook tune`: sweeps configuration values over one or more datasets and tabulates Recall@1
+//! and AUC per setting, so that every default can name the sweep it came from.
+//!
+//! A sweep file (TOML) lists, per dotted config key, the values to try; every combination runs:
+//!
+//! ```toml
+//! [base]                     # optional: a partial config applied first
+//! matching.top_k = 20
+//! [values]
+//! "appearance.vlad_centres" = [16, 32, 64]
+//! "similarity.w_appearance" = [0.34, 0.8]
+//! ```
+//!
+//! The expensive part of encoding (decoding, segmentation, the keypoint network) depends only on
+//! the input, class, segmentation, model and keypoint-decoding settings; it is run once per
+//! distinct group of those and cached in memory, and every configuration of the group encodes
+//! from the cache (objects, forests, codebook, VLAD, global descriptor). Configurations that differ
+//! only in matching settings share one encoding.
+
+use crate::appearance::keypoints::Keypoints;
+use crate::config::{Config, EncodingConfig};
+use crate::dataset::Dataset;
+use crate::encode::{Encoder, Loaded};
+use crate::engine::Engine;
+use crate::error::{Error, Result};
+use crate::eval::{match_query_set, SettingReport};
+use crate::map::DescriptorSet;
+use crate::matching::Setting;
+use rayon::prelude::*;
+use serde::Serialize;
+use std::collections::HashMap;
+
+/// A parsed sweep: the base config and the axes (dotted key, values).
+#[derive(Debug, Clone)]
+pub struct Sweep {
+    base: toml::Table,
+    pub axes: Vec<(String, Vec<toml::Value>)>,
+}
+
+/// Most combinations one sweep may hold (a guard against a typo exploding the product).
+pub const MAX_COMBINATIONS: usize = 10_000;
+
+impl Sweep {
+    pub fn parse(text: &str, name: &str, base: &Config) -> Result<Sweep> {
+        let bad = |reason: String| Error::InvalidConfig { source_name: name.into(), reason };
+        let doc: toml::Table = toml::from_str(text).map_err(|e| bad(e.to_string()))?;
+        let mut base_table: toml::Table = toml::from_str(&base.to_toml()).map_err(|e| bad(e.to_string()))?;
+        if let Some(b) = doc.get("base") {
+            let b = b.as_table().ok_or_else(|| bad("[base] must be a table".into()))?;
+            merge(&mut base_table, b);
+        }
+        let mut axes = Vec::new();
+        if let Some(v) = doc.get("values") {
+            let v = v.as_table().ok_or_else(|| bad("[values] must be a table of dotted keys".into()))?;
+            for (key, vals) in v {
+                let list = vals.as_array().filter(|a| !a.is_empty()).ok_or_else(|| bad(format!("values of {key:?} must be a non-empty list")))?;
+                axes.push((key.clone(), list.clone()));
+            }
+        }
+        for k in doc.keys().filter(|k| *k != "base" && *k != "values") {
+            return Err(bad(format!("unknown section [{k}] (expected [base] and [values])")));
+        }
+        let sweep = Sweep { base: base_table, axes };
+        let n = sweep.axes.iter().try_fold(1usize, |a, (_, v)| a.checked_mul(v.len())).filter(|&n| n <= MAX_COMBINATIONS);
+        n.ok_or_else(|| bad(format!("more than {MAX_COMBINATIONS} combinations")))?;
+        // every combination must make a valid config
+        for values in sweep.combinations() {
+            sweep.config(&values, name)?;
+        }
+        Ok(sweep)
+    }
+
+    /// Every combination of the axes' values, the last axis fastest.
+    pub fn combinations(&self) -> Vec<Vec<(String, toml::Value)>> {
+        let mut out: Vec<Vec<(String, toml::Value)>> = vec![vec![]];
+        for (key, vals) in &self.axes {
+            out = out.into_iter().flat_map(|c| vals.iter().map(move |v| {
+                let mut c = c.clone();
+                c.push((key.clone(), v.clone()));
+                c
+            })).collect();
+        }
+        out
+    }
+
+    /// The config of one combination.
+    pub fn config(&self, values: &[(String, toml::Value)], name: &str) -> Result<Config> {
+        let mut t = self.base.clone();
+        for (key, v) in values {
+            set_dotted(&mut t, key, v.clone()).map_err(|reason| Error::InvalidConfig { source_name: name.into(), reason })?;
+        }
+        Config::from_toml(&toml::to_string(&t).map_err(|e| Error::InvalidConfig { source_name: name.into(), reason: e.to_string() })?, name)
+    }
+}
+
+fn merge(dst: &mut toml::Table, src: &toml::Table) {
+    for (k, v) in src {
+        match (dst.get_mut(k), v) {
+            (Some(toml::Value::Table(d)), toml::Value::Table(s)) => merge(d, s),
+            _ => {
+                dst.insert(k.clone(), v.clone());
+            }
+        }
+    }
+}
+
+fn set_dotted(t: &mut toml::Table, key: &str, v: toml::Value) -> std::result::Result<(), String> {
+    let mut parts: Vec<&str> = key.split('.').collect();
+    let last = parts.pop().filter(|l| !l.is_empty()).ok_or_else(|| format!("empty key {key:?}"))?;
+    let mut cur = t;
+    for p in parts {
+        cur = cur.entry(p.to_string()).or_insert_with(|| toml::Value::Table(Default::default())).as_table_mut().ok_or_else(|| format!("{key:?}: {p:?} is not a section"))?;
+    }
+    cur.insert(last.to_string(), v);
+    Ok(())
+}
+
+/// What the network-dependent cache is keyed by: everything that changes decoding,
+/// segmentation or the keypoint network's output.
+fn frame_key(cfg: &Config) -> String {
+    let mut a = cfg.appearance.clone();
+    let d = crate::config::AppearanceConfig::default();
+    (a.vlad_centres, a.intra_norm, a.power_norm, a.min_descriptors) = (d.vlad_centres, d.intra_norm, d.power_norm, d.min_descriptors);
+    (a.codebook_images, a.codebook_samples_per_image, a.codebook_iterations, a.codebook_seed) = (d.codebook_images, d.codebook_samples_per_image, d.codebook_iterations, d.codebook_seed);
+    serde_json::json!([cfg.input, cfg.classes, cfg.segmentation, cfg.models, a]).to_string()
+}
+
+/// One decoded frame and its keypoint network output.
+struct Cached {
+    id: String,
+    loaded: Loaded,
+    keypoints: Option<Keypoints>,
+}
+
+/// A dataset's frames, decoded once: references, then each query traversal with its ground truth.
+struct CachedDataset {
+    name: String,
+    refs: Vec<Cached>,
+    queries: Vec<(String, Vec<Cached>, Vec<Vec<u32>>)>,
+}
+
+fn cache_dataset(ds: &Dataset, encoder: &Encoder, tick: &(dyn Fn() + Sync)) -> Result<CachedDataset> {
+    let load = |frames: &[crate::dataset::Frame]| -> Result<Vec<Cached>> {
+        frames
+            .par_iter()
+            .map(|f| {
+                let loaded = encoder.load(&f.source, ds.label_format)?;
+                let keypoints = match (encoder.appearance_model(), &loaded.rgb) {
+                    (Some(m), Some(rgb)) => Some(m.keypoints(rgb)?),
+                    _ => None,
+                };
+                tick();
+                Ok(Cached { id: f.source.id.clone(), loaded, keypoints })
+            })
+            .collect()
+    };
+    let refs = load(&ds.reference.frames)?;
+    let mut queries = Vec::new();
+    for q in &ds.queries {
+        queries.push((q.name.clone(), load(&q.frames)?, ds.ground_truth(q)?));
+    }
+    Ok(CachedDataset { name: ds.name.clone(), refs, queries })
+}
+
+fn encode_cached(encoder: &Encoder, frames: &[Cached]) -> Result<DescriptorSet> {
+    let images: Vec<_> = frames
+        .par_iter()
+        .map_init(Default::default, |scratch, c| encoder.encode_loaded_with(&c.id, &c.loaded, c.keypoints.as_ref(), scratch).map(|r| r.0))
+        .collect::<Result<_>>()?;
+    let mut set = encoder.descriptor_set();
+    for img in &images {
+        set.push(img).map_err(|r| Error::invalid("tune", r))?;
+    }
+    Ok(set)
+}
+
+/// The results of one configuration.
+#[derive(Debug, Clone, Serialize)]
+pub struct TuneRow {
+    /// The swept keys and their values in this configuration.
+    pub values: Vec<(String, String)>,
+    /// Per dataset, per setting: mean Recall@1 and mean AUC over the dataset's query sets.
+    pub results: Vec<(String, Setting, f64, f64)>,
+}
+
+impl TuneRow {
+    /// Mean Recall@1 of `setting` over the datasets.
+    pub fn mean_r1(&self, setting: Setting) -> f64 {
+        let v: Vec<f64> = self.results.iter().filter(|r| r.1 == setting).map(|r| r.2).collect();
+        v.iter().sum::<f64>() / v.len().max(1) as f64
+    }
+}
+
+/// Runs every combination of `sweep` on `datasets` in `settings` (each dataset's class settings
+/// follow it: [`Dataset::adapt_config`]). `progress` hears about each finished dataset and row.
+pub fn run(datasets: &[Dataset], sweep: &Sweep, settings: &[Setting], engine: &mut Engine, tick: &(dyn Fn() + Sync), progress: &mut dyn FnMut(&str, &TuneRow)) -> Result<Vec<TuneRow>> {
+    let combos = sweep.combinations();
+    let base: Vec<Config> = combos.iter().map(|c| sweep.config(c, "sweep")).collect::<Result<_>>()?;
+    let wants_hog = settings.contains(&Setting::Hog);
+    let mut rows: Vec<TuneRow> = combos.iter().map(|c| TuneRow { values: c.iter().map(|(k, v)| (k.clone(), v.to_string())).collect(), results: vec![] }).collect();
+    for ds in datasets {
+        let configs: Vec<Config> = base.iter().map(|c| ds.adapt_config(c.clone())).collect();
+        // groups of configurations that share decoded frames, in first-appearance order
+        let mut groups: Vec<(String, Vec<usize>)> = Vec::new();
+        for (i, c) in configs.iter().enumerate() {
+            let key = frame_key(c);
+            match groups.iter_mut().find(|g| g.0 == key) {
+                Some(g) => g.1.push(i),
+                None => groups.push((key, vec![i])),
+            }
+        }
+        for (_, members) in &groups {
+            let first = Encoder::new(&configs[members[0]])?.with_hog(wants_hog);
+            let cd = cache_dataset(ds, &first, tick)?;
+            let mut encoded: HashMap<String, (DescriptorSet, Vec<(String, DescriptorSet, Vec<Vec<u32>>)>)> = HashMap::new();
+            for &i in members {
+                let cfg = &configs[i];
+                let enc_key = serde_json::to_string::<EncodingConfig>(&cfg.encoding()).expect("serialises");
+                if !encoded.contains_key(&enc_key) {
+                    let mut encoder = Encoder::new(cfg)?.with_hog(wants_hog);
+                    if encoder.appearance_model().is_some() {
+                        let picks = encoder.codebook_picks(cd.refs.len());
+                        let kps: Vec<&Keypoints> = picks.iter().filter_map(|&p| cd.refs[p].keypoints.as_ref()).collect();
+                        encoder.train_codebook_from(&kps)?;
+                    }
+                    let refs = encode_cached(&encoder, &cd.refs)?;
+                    let mut qs = Vec::new();
+                    for (name, frames, gt) in &cd.queries {
+                        qs.push((name.clone(), encode_cached(&encoder, frames)?, gt.clone()));
+                    }
+                    encoded.insert(enc_key.clone(), (refs, qs));
+                }
+                let (refs, qs) = &encoded[&enc_key];
+                let (mut reports, mut skipped): (Vec<SettingReport>, Vec<(Setting, String)>) = (vec![], vec![]);
+                for (name, set, gt) in qs {
+                    match_query_set(engine, refs, name, set, gt, settings, cfg, &mut reports, &mut skipped)?;
+                }
+                for &st in settings {
+                    let r: Vec<&SettingReport> = reports.iter().filter(|r| r.setting == st).collect();
+                    if r.is_empty() {
+                        continue;
+                    }
+                    let n = r.len() as f64;
+                    let r1 = r.iter().map(|x| x.recall_at.first().map_or(0.0, |v| v.1)).sum::<f64>() / n;
+                    let auc = r.iter().map(|x| x.pr.auc).sum::<f64>() / n;
+                    rows[i].results.push((cd.name.clone(), st, r1, auc));
+                }
+                progress(&cd.name, &rows[i]);
+            }
+        }
+    }
+    Ok(rows)
+}
+
+/// The rows as a table: swept values, R@1 per dataset and setting, and the mean over datasets.
+pub fn table(rows: &[TuneRow]) -> String {
+    let Some(first) = rows.first() else { return String::new() };
+    let mut out = String::new();
+    for (k, _) in &first.values {
+        out += &format!("{k}\t");
+    }
+    for (d, st, _, _) in &first.results {
+        out += &format!("{d}:{st}:R@1\t{d}:{st}:AUC\t");
+    }
+    let mut settings: Vec<Setting> = first.results.iter().map(|r| r.1).collect();
+    settings.dedup();
+    settings.sort_by_key(|s| Setting::ALL.iter().position(|x| x == s));
+    settings.dedup();
+    for st in &settings {
+        out += &format!("mean:{st}:R@1\t");
+    }
+    out.pop();
+    out.push('\n');
+    for r in rows {
+        for (_, v) in &r.values {
+            out += &format!("{v}\t");
+        }
+        for (_, _, r1, auc) in &r.results {
+            out += &format!("{r1:.3}\t{auc:.3}\t");
+        }
+        for st in &settings {
+            out += &format!("{:.3}\t", r.mean_r1(*st));
+        }
+        out.pop();
+        out.push('\n');
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sweeps_expand_and_validate() {
+        let text = "[base]\nmatching.top_k = 20\n[values]\n\"appearance.vlad_centres\" = [16, 32]\n\"similarity.w_appearance\" = [0.5, 1.0, 2.0]\n";
+        let s = Sweep::parse(text, "s.toml", &Config::default()).unwrap();
+        let combos = s.combinations();
+        assert_eq!(combos.len(), 6);
+        let c = s.config(&combos[5], "s").unwrap();
+        assert_eq!((c.matching.top_k, c.appearance.vlad_centres, c.similarity.w_appearance), (20, 32, 2.0));
+        let bad = Sweep::parse("[values]\n\"matching.top_k\" = [0]\n", "bad.toml", &Config::default()).unwrap_err().to_string();
+        assert!(bad.contains("top_k") && bad.contains("bad.toml"), "{bad}");
+        assert!(Sweep::parse("[values]\n\"matching.nonsense\" = [1]\n", "x", &Config::default()).is_err());
+        assert!(Sweep::parse("[other]\n", "x", &Config::default()).is_err());
+    }
+}

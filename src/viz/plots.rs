@@ -1,0 +1,148 @@
+//! Precision-recall curves (VPR-Bench's, [`crate::eval::metrics::precision_recall_curve`]) of
+//! every setting of an evaluation, one chart per query set, drawn with plotters as SVG (text as
+//! SVG text) and PNG (grid and curves by plotters, text in the built-in bitmap font, so no font
+//! files are needed).
+
+use super::font;
+use crate::error::{Error, Result};
+use crate::eval::metrics::precision_recall_curve;
+use crate::eval::{EvalReport, SettingReport};
+use plotters::prelude::*;
+use std::path::{Path, PathBuf};
+
+const SIZE: (u32, u32) = (720, 540);
+/// Series colours, one per setting in report order.
+const COLOURS: [RGBColor; 8] = [
+    RGBColor(228, 26, 28),
+    RGBColor(55, 126, 184),
+    RGBColor(77, 175, 74),
+    RGBColor(152, 78, 163),
+    RGBColor(255, 127, 0),
+    RGBColor(166, 86, 40),
+    RGBColor(0, 0, 0),
+    RGBColor(247, 129, 191),
+];
+
+/// (recall, precision) points of a setting's curve, queries without ground truth left out.
+pub fn curve(r: &SettingReport) -> Vec<(f64, f64)> {
+    let (scores, correct): (Vec<f64>, Vec<bool>) =
+        r.outcomes.iter().filter(|o| o.valid_references > 0).map(|o| (o.score.map_or(f64::NEG_INFINITY, |s| s as f64), o.correct)).unzip();
+    if !correct.iter().any(|&c| c) {
+        return vec![(0.0, 1.0), (0.0, 0.0)];
+    }
+    let (p, rc) = precision_recall_curve(&scores, &correct);
+    rc.into_iter().zip(p).collect()
+}
+
+fn err(path: &Path, e: impl std::fmt::Display) -> Error {
+    Error::invalid(path.display().to_string(), e.to_string())
+}
+
+/// Writes `pr-<query set>.svg` and `.png` for every query set of `report` into `dir`.
+pub fn write_pr_plots(report: &EvalReport, dir: &Path) -> Result<Vec<PathBuf>> {
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    let mut sets: Vec<&str> = Vec::new();
+    for r in &report.results {
+        if !sets.contains(&r.query_set.as_str()) {
+            sets.push(&r.query_set);
+        }
+    }
+    let mut written = Vec::new();
+    for set in sets {
+        let series: Vec<(String, Vec<(f64, f64)>)> = report
+            .results
+            .iter()
+            .filter(|r| r.query_set == set)
+            .map(|r| (format!("{} (AUC {:.3})", r.setting.name(), r.pr.auc), curve(r)))
+            .collect();
+        let slug: String = set.chars().map(|c| if c.is_ascii_alphanumeric() { c } else { '-' }).collect();
+        let title = format!("{}: {set}", report.dataset);
+        let svg = dir.join(format!("pr-{slug}.svg"));
+        svg_chart(&svg, &title, &series)?;
+        let png = dir.join(format!("pr-{slug}.png"));
+        png_chart(&png, &title, &series)?;
+        written.extend([svg, png]);
+    }
+    Ok(written)
+}
+
+fn svg_chart(path: &Path, title: &str, series: &[(String, Vec<(f64, f64)>)]) -> Result<()> {
+    let root = SVGBackend::new(path, SIZE).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| err(path, e))?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 20))
+        .margin(16)
+        .x_label_area_size(40)
+        .y_label_area_size(50)
+        .build_cartesian_2d(0f64..1.0f64, 0f64..1.02f64)
+        .map_err(|e| err(path, e))?;
+    chart.configure_mesh().x_desc("recall").y_desc("precision").draw().map_err(|e| err(path, e))?;
+    for (i, (name, pts)) in series.iter().enumerate() {
+        let c = COLOURS[i % COLOURS.len()];
+        chart
+            .draw_series(LineSeries::new(pts.iter().copied(), c.stroke_width(2)))
+            .map_err(|e| err(path, e))?
+            .label(name)
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+    }
+    chart.configure_series_labels().position(SeriesLabelPosition::LowerLeft).background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(|e| err(path, e))?;
+    root.present().map_err(|e| err(path, e))
+}
+
+fn png_chart(path: &Path, title: &str, series: &[(String, Vec<(f64, f64)>)]) -> Result<()> {
+    let (w, h) = SIZE;
+    let mut buf = vec![255u8; (w * h * 3) as usize];
+    let mut ticks = Vec::new();
+    let legend_at;
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, SIZE).into_drawing_area();
+        // no text through plotters (it has no font here): tick labels, title and legend are
+        // drawn below in the bitmap font at the positions plotters maps them to
+        let mut chart = ChartBuilder::on(&root)
+            .margin_top(40)
+            .margin_right(16)
+            .x_label_area_size(40)
+            .y_label_area_size(50)
+            .build_cartesian_2d(0f64..1.0f64, 0f64..1.02f64)
+            .map_err(|e| err(path, e))?;
+        chart.configure_mesh().x_labels(0).y_labels(0).light_line_style(BLACK.mix(0.08)).bold_line_style(BLACK.mix(0.2)).draw().map_err(|e| err(path, e))?;
+        for (i, (_, pts)) in series.iter().enumerate() {
+            chart.draw_series(LineSeries::new(pts.iter().copied(), COLOURS[i % COLOURS.len()].stroke_width(2))).map_err(|e| err(path, e))?;
+        }
+        for k in 0..=5 {
+            let v = k as f64 / 5.0;
+            ticks.push((chart.backend_coord(&(v, 0.0)), format!("{v:.1}"), true));
+            ticks.push((chart.backend_coord(&(0.0, v)), format!("{v:.1}"), false));
+        }
+        legend_at = chart.backend_coord(&(0.02, 0.02 + 0.06 * series.len() as f64));
+        root.present().map_err(|e| err(path, e))?;
+    }
+    let mut img = image::RgbImage::from_raw(w, h, buf).ok_or_else(|| err(path, "plot buffer size"))?;
+    let black = image::Rgb([0, 0, 0]);
+    let text = |img: &mut image::RgbImage, x: i64, y: i64, s: &str, c: image::Rgb<u8>| font::render(s, x, y, 2, |px, py| {
+        if px >= 0 && py >= 0 && (px as u32) < w && (py as u32) < h {
+            img.put_pixel(px as u32, py as u32, c);
+        }
+    });
+    text(&mut img, 16, 12, title, black);
+    for ((x, y), s, on_x) in &ticks {
+        if *on_x {
+            text(&mut img, *x as i64 - font::width(s, 2) as i64 / 2, *y as i64 + 6, s, black);
+        } else {
+            text(&mut img, *x as i64 - font::width(s, 2) as i64 - 6, *y as i64 - 7, s, black);
+        }
+    }
+    text(&mut img, (w / 2) as i64 - 30, (h - 22) as i64, "recall", black);
+    text(&mut img, 4, 24, "precision", black);
+    for (i, (name, _)) in series.iter().enumerate() {
+        let c = COLOURS[i % COLOURS.len()];
+        let (x, y) = (legend_at.0 as i64 + 4, legend_at.1 as i64 + i as i64 * 20);
+        for dx in 0..20 {
+            for dy in 0..3 {
+                img.put_pixel((x + dx) as u32, (y + 6 + dy) as u32, image::Rgb([c.0, c.1, c.2]));
+            }
+        }
+        text(&mut img, x + 26, y, name, black);
+    }
+    super::save(&img, path)
+}
