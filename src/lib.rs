@@ -40,10 +40,13 @@
 
 pub mod appearance;
 pub mod baseline;
+pub mod batch;
 pub mod bench;
+pub mod bench_store;
 pub mod classes;
 pub mod config;
 pub mod dataset;
+pub mod descriptors;
 pub mod encode;
 pub mod engine;
 pub mod error;
@@ -60,6 +63,7 @@ pub mod pickle;
 pub mod progress;
 pub mod segmentation;
 pub mod util;
+pub mod values;
 pub mod viz;
 
 pub use error::{Error, Result};

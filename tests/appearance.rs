@@ -187,7 +187,7 @@ fn appearance_in_maps_and_evaluation() {
     let map = semlook::map::Map::create(&path, &cfg.encoding(), &set, Some((cb, sha))).unwrap();
     let back = semlook::map::Map::open(&path).unwrap();
     assert_eq!(back.codebook(), map.codebook());
-    assert_eq!(back.to_descriptor_set(), set);
+    assert_eq!(back.to_descriptor_set().unwrap(), set);
     semlook::encode::Encoder::for_map(&cfg, &back).unwrap();
     assert!(back.check_model(Some("0123456789abcdef")).is_err());
     assert!(back.check_model(None).is_err());

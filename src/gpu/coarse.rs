@@ -5,7 +5,7 @@
 
 use super::context::{GpuContext, GpuError, Reused};
 use crate::global::ssim::SsimParams;
-use crate::map::DescriptorSet;
+use crate::descriptors::DescriptorSet;
 use crate::matching::source::{GlobalSource, TileBuf};
 use crate::matching::ssim_topk::{TileParams, EMPTY_INDEX, EMPTY_SCORE};
 use std::sync::Arc;

@@ -7,7 +7,7 @@
 use super::context::{GpuContext, GpuError, Reused};
 use crate::local::tree_similarity::TreeSimParams;
 use crate::local::ForestRef;
-use crate::map::DescriptorSet;
+use crate::descriptors::DescriptorSet;
 use crate::matching::source::RefSource;
 use crate::matching::ssim_topk::{TileParams, EMPTY_INDEX, EMPTY_SCORE};
 use std::sync::Arc;
@@ -75,7 +75,7 @@ fn pack<'a>(forests: impl Iterator<Item = ForestRef<'a>>, dim: usize, params: &T
             });
         }
         if dim > 0 {
-            p.app.extend_from_slice(f.appearance);
+            f.appearance.extend_into(&mut p.app);
         }
     }
     p

@@ -115,7 +115,7 @@ pub fn tree_similarity(p: &TreeSimParams, q: ForestRef, r: ForestRef, scratch: &
         for t in 0..nq {
             for u in 0..nr {
                 scratch.cosines[t * nr + u] = match (q.appearance_of(t), r.appearance_of(u)) {
-                    (Some(a), Some(b)) => a.iter().zip(b).map(|(x, y)| x * y).sum(),
+                    (Some(a), Some(b)) => a.dot(&b),
                     _ => MISSING,
                 };
             }

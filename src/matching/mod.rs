@@ -14,7 +14,7 @@ use crate::config::{Config, ScoreFusion};
 use crate::error::Result;
 use crate::global::ssim::SsimParams;
 use crate::local::tree_similarity::{tree_similarity, TreeSimParams, TreeSimScratch};
-use crate::map::DescriptorSet;
+use crate::descriptors::DescriptorSet;
 use crate::util::ms_since;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -159,8 +159,10 @@ impl Stages for CpuStages {
 }
 
 /// Matches every query of `queries` against `refs` with `setting` on the CPU; results in query order.
+/// Panics if `refs` is a stored map with a damaged segment: use [`match_with`] or
+/// `Engine::match_batch`, which return that as an error.
 pub fn match_batch(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> (Vec<QueryMatch>, MatchTimes) {
-    match_with(&mut CpuStages, refs, queries, setting, cfg).expect("the CPU stages do not fail")
+    match_with(&mut CpuStages, refs, queries, setting, cfg).expect("the CPU stages do not fail on a sound source")
 }
 
 /// Matches with the given stages: coarse top-K, fine re-ranking of the candidates (or fine
@@ -212,6 +214,8 @@ pub fn match_with(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &Descr
         times.fine_ms = ms_since(t);
         lists.iter().map(|l| l.iter().map(|&(s, r)| Candidate { reference: r, coarse: None, fine: Some(s), score: s }).collect()).collect()
     };
+    // a stored map checks each segment on first read; one that failed was read as empty
+    refs.check()?;
     let results = ranked
         .into_iter()
         .map(|mut c| {
