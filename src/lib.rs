@@ -9,6 +9,9 @@
 //! [`input`] (images, label maps) -> [`objects`] (semantic regions) -> [`global`] and [`local`]
 //! (descriptors; [`encode`] runs both) -> [`map`] (the stored map) -> [`matching`] (coarse top-K,
 //! fine re-ranking) -> [`eval`] (VPR-Bench metrics). [`synth`] renders a procedural benchmark.
+//! [`descriptors`] (descriptor sets, the source traits matching reads, value checks) is the layer
+//! encoding, the map store, matching and appearance share; [`batch`] encodes many frames (into a
+//! set, or streamed into a map).
 //!
 //! The README's example (compiled here):
 //!

@@ -402,3 +402,31 @@ fn readers_see_whole_generations_while_a_writer_commits() {
     assert_eq!(writer.join().unwrap(), 21);
     eprintln!("generations seen while writing: {seen:?}");
 }
+
+#[test]
+fn two_writers_committing_in_turn_both_land_and_a_raced_id_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m");
+    let (cfg, _) = built(&path);
+    let enc = semlook::encode::Encoder::new(&cfg).unwrap();
+    let maps = common::label_maps(12, 64, 48);
+    let img = |id: &str, k: usize| enc.encode_labels(id, &maps[k], &mut Default::default()).unwrap().0;
+    let one = StoreOptions { segment_images: 1, ..Default::default() };
+    // two writers that opened the same generation: each commit must re-read the manifest under
+    // the lock and append to what the other committed
+    let (mut w1, mut w2) = (MapWriter::append(&path, one).unwrap(), MapWriter::append(&path, one).unwrap());
+    for k in 0..5 {
+        w1.push(&img(&format!("a{k}"), k)).unwrap();
+        w2.push(&img(&format!("b{k}"), k + 5)).unwrap();
+    }
+    // both buffer the same id; the second to commit learns of the first's segment and refuses
+    w2.push(&img("same", 10)).unwrap();
+    assert!(matches!(w1.push(&img("same", 11)), Err(Error::DuplicateImageId { id, .. }) if id == "same"));
+    drop(w1);
+    let map = w2.finish().unwrap();
+    assert_eq!((map.len(), map.manifest.generation), (6 + 11, 1 + 11));
+    let ids: Vec<String> = (0..map.len()).map(|i| map.id(i).to_string()).collect();
+    let expect: Vec<String> = (0..6).map(|i| format!("ref{i}")).chain((0..5).flat_map(|k| [format!("a{k}"), format!("b{k}")])).chain(["same".to_string()]).collect();
+    assert_eq!(ids, expect);
+    map.check_all().unwrap();
+}

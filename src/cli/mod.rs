@@ -329,16 +329,17 @@ pub struct StoreBenchArgs {
     /// Map sizes (references).
     #[arg(long, value_delimiter = ',', default_value = "100000")]
     pub sizes: Vec<usize>,
-    /// Queries in the coarse pass.
-    #[arg(long, default_value_t = 1000)]
-    pub queries: usize,
+    /// Coarse passes on each map: QUERIES (against every reference) or QUERIES:REFS (against the
+    /// first REFS references, streamed from the stored map like the rest).
+    #[arg(long, value_delimiter = ',', default_value = "1000")]
+    pub passes: Vec<semlook::bench_store::Pass>,
     /// Store f16 (default f32).
     #[arg(long)]
     pub f16: bool,
-    /// Score only the first N references of each map in the coarse pass (the pass still streams
-    /// them from the stored map); default: all.
-    #[arg(long, value_name = "N")]
-    pub query_refs: Option<usize>,
+    /// Query batch sizes for which a pass with stored SSIM statistics (the map in memory) is
+    /// timed against one recomputing them per tile (maps up to 50,000 references).
+    #[arg(long, value_delimiter = ',')]
+    pub stats_comparison: Vec<usize>,
     /// Folder for the maps (default: the system temporary folder); each is deleted afterwards
     /// unless --keep.
     #[arg(long)]

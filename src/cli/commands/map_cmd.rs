@@ -220,22 +220,25 @@ fn bench(a: &StoreBenchArgs, quiet: bool) -> Result<()> {
     let cfg = Config::default();
     let opts = semlook::bench_store::StoreBenchOptions {
         sizes: a.sizes.clone(),
-        queries: a.queries,
+        passes: a.passes.clone(),
         values: if a.f16 { ValueType::F16 } else { ValueType::F32 },
-        query_refs: a.query_refs,
         dir: a.dir.clone().unwrap_or_else(std::env::temp_dir),
         keep: a.keep,
+        stats_comparison: a.stats_comparison.clone(),
     };
     info(quiet, "rendering and encoding the descriptor pools (64 map frames, 32 query frames)");
-    let rows = semlook::bench_store::run(&cfg, &opts, &mut |r| {
+    let report = semlook::bench_store::run(&cfg, &opts, &mut |r| {
         if !quiet && !a.json {
             eprint!("{}", semlook::bench_store::table(std::slice::from_ref(r)));
         }
     })?;
     if a.json {
-        println!("{}", serde_json::to_string_pretty(&rows).expect("serialises"));
+        println!("{}", serde_json::to_string_pretty(&report).expect("serialises"));
     } else {
-        print!("{}", semlook::bench_store::table(&rows));
+        print!("{}", semlook::bench_store::table(&report.passes));
+        if !report.stats_comparison.is_empty() {
+            print!("\nSSIM statistics: stored (in memory) vs recomputed per tile\n{}", semlook::bench_store::stats_table(&report.stats_comparison));
+        }
     }
     Ok(())
 }
