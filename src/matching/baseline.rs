@@ -10,8 +10,12 @@ use crate::descriptors::DescriptorSet;
 use crate::values::Values;
 use rayon::prelude::*;
 
+/// How a baseline reads a query's vector and a reference's.
+type QueryVector = fn(&DescriptorSet, usize) -> &[f32];
+type RefVector = fn(&dyn RefSource, usize) -> Values<'_>;
+
 /// The vector a baseline compares, of query `i` and of reference `j`.
-fn vectors(setting: Setting) -> (fn(&DescriptorSet, usize) -> &[f32], fn(&dyn RefSource, usize) -> Values<'_>) {
+fn vectors(setting: Setting) -> (QueryVector, RefVector) {
     match setting {
         Setting::Hog => (DescriptorSet::image_hog, |r, j| Values::F32(r.image_hog(j))),
         _ => (DescriptorSet::image_appearance, |r, j| r.image_appearance(j)),
