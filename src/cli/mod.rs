@@ -41,6 +41,10 @@ pub enum Command {
     Config,
     /// Sweep configuration values over datasets and tabulate Recall@1 and AUC per setting.
     Tune(TuneArgs),
+    /// Encoding speed on real images: segmentation, then everything else (decoding at the
+    /// working size, edges, EDT, objects, forest, keypoint network, VLAD), per-stage medians and
+    /// wall clock per frame with frames in parallel.
+    BenchEncode(BenchEncodeArgs),
     /// Accuracy of the segmenter against real label maps (pixel accuracy, IoU per class, mean IoU).
     SegmenterAccuracy(SegAccArgs),
     /// Pictures of every stage for one frame: image, labels, semantic edges, truncated EDT, global
@@ -49,6 +53,22 @@ pub enum Command {
     /// Large-map batch matching benchmark: coarse matching throughput and peak memory for maps of
     /// 1k to 1M references and query batches of 100 and 1000, on the CPU and on the GPU.
     Bench(BenchArgs),
+}
+
+#[derive(Args)]
+pub struct BenchEncodeArgs {
+    /// Folder of images (png/jpg).
+    #[arg(long)]
+    pub images: PathBuf,
+    /// At most this many frames.
+    #[arg(long, default_value_t = 60)]
+    pub frames: usize,
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub models: ModelArgs,
 }
 
 #[derive(Args)]
