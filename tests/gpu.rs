@@ -68,7 +68,7 @@ use semlook::global::ssim::SsimParams;
 use semlook::local::tree_similarity::{tree_similarity, TreeSimParams, TreeSimScratch};
 use semlook::local::Forest;
 use semlook::map::DescriptorSet;
-use semlook::matching::{coarse_topk, match_batch, Setting, Stages};
+use semlook::matching::{coarse_topk_twin, match_batch, Setting, Stages};
 use semlook::util::SplitMix64;
 
 /// Random label maps of awkward sizes: thin, odd, a single class (no edges), many classes.
@@ -158,7 +158,7 @@ fn coarse_top_k_matches_the_cpu_twin() {
     let mut stages = semlook::engine::GpuStages::new(ctx);
     for (k, tile) in [(10, 4096), (7, 16), (1, 1)] {
         let gpu = stages.coarse(&refs, &queries, &p, k, tile).unwrap();
-        let cpu = coarse_topk(&refs, &queries, &p, k, tile);
+        let cpu = coarse_topk_twin(&refs, &queries, &p, k, tile);
         assert_same_lists(&gpu, &cpu, 1e-5, &format!("k {k}, tile {tile}"));
     }
 }
@@ -254,7 +254,7 @@ fn tiling_under_a_small_binding_limit() {
     assert!(tile < refs.len() / 4, "tile {tile} does not split the map");
     let mut stages = semlook::engine::GpuStages::new(ctx);
     let gpu = stages.coarse(&refs, &queries, &SsimParams::new(&cfg.global), 10, 4096).unwrap();
-    assert_same_lists(&gpu, &coarse_topk(&refs, &queries, &SsimParams::new(&cfg.global), 10, 4096), 1e-5, "small binding limit");
+    assert_same_lists(&gpu, &coarse_topk_twin(&refs, &queries, &SsimParams::new(&cfg.global), 10, 4096), 1e-5, "small binding limit");
     let frefs = random_forest_set(30, 0, 10);
     let fq = random_forest_set(4, 0, 11);
     let p = TreeSimParams::new(&cfg.similarity, false, 3);
