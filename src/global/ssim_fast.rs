@@ -128,7 +128,11 @@ pub fn ssim_pair_fast<S: Simd>(simd: S, p: &SsimParams, l: &FastLayout, x: &[f32
     let (mut slot, mut first) = (0, 0);
     for (r, (xr, yr)) in x.chunks_exact(gw).zip(y.chunks_exact(gw)).take(l.gh).enumerate() {
         // products, then horizontal window sums ((p[c] + p[c+1]) + ...) + p[c+win-1], as the twin adds them
-        for ((d, a), b) in prod[..gw].iter_mut().zip(xr).zip(yr) {
+        let ((pv, pt), (xv, xt), (yv, yt)) = (S::as_mut_simd_f32s(&mut prod[..gw]), S::as_simd_f32s(xr), S::as_simd_f32s(yr));
+        for ((d, a), b) in pv.iter_mut().zip(xv).zip(yv) {
+            *d = simd.mul_f32s(*a, *b);
+        }
+        for ((d, a), b) in pt.iter_mut().zip(xt).zip(yt) {
             *d = a * b;
         }
         let dst = &mut ring[slot * stw..(slot + 1) * stw];
@@ -189,8 +193,10 @@ fn horizontal<S: Simd, const N: usize>(simd: S, prod: &[f32], dst: &mut [f32], j
     let src = &prod[c0..c0 + N * lanes + win - 1];
     let mut acc: [S::f32s; N] = std::array::from_fn(|i| ld::<S>(src, i * lanes));
     for k in 1..win {
+        // one bounds check per shift, none per load
+        let shifted = &src[k..k + N * lanes];
         for (i, a) in acc.iter_mut().enumerate() {
-            *a = simd.add_f32s(*a, ld::<S>(src, i * lanes + k));
+            *a = simd.add_f32s(*a, ld::<S>(shifted, i * lanes));
         }
     }
     let dst = &mut dst[c0..c0 + N * lanes];
