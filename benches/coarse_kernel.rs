@@ -1,12 +1,15 @@
-//! The coarse stage's SSIM kernel, one pair on one thread: the twin `ssim_pair` (the
-//! straightforward form the shader mirrors) against the fast path's `ssim_pair_fast`, with the
-//! best instruction set pulp finds and with its scalar fallback. Throughput counts pairs.
+//! The coarse stage's SSIM kernel on one thread:
+//! - one pair: the twin `ssim_pair` (the straightforward form the shader mirrors) against the
+//!   fast path's `ssim_pair_fast`, with the best instruction set pulp finds and with its scalar
+//!   fallback; throughput counts pairs;
+//! - one descriptor's terms for the fast path, from its stored stats or from the descriptor
+//!   alone (a store that keeps no stats); throughput counts descriptors.
 //! Inputs are real global descriptors of rendered street frames (64x48, 7x7 windows).
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use semlook::config::Config;
 use semlook::global::ssim::{ssim_pair, SsimParams, SsimScratch};
-use semlook::global::ssim_fast::{ssim_pair_fast, terms_from_stats, FastLayout, FastScratch};
+use semlook::global::ssim_fast::{ssim_pair_fast, terms_from_descriptor, terms_from_stats, FastLayout, FastScratch};
 use semlook::synth::condition::Condition;
 
 mod common;
@@ -48,6 +51,12 @@ fn bench(c: &mut Criterion) {
             b.iter(|| arch.dispatch(Fast { p: &p, l: &l, x: &x.global, tx: &tx, y: &y.global, ty: &ty, s: &mut fs }))
         });
     }
+    g.finish();
+    let mut g = c.benchmark_group("fast-path terms (1 thread)");
+    g.throughput(Throughput::Elements(1));
+    g.bench_function("terms_from_stats", |b| b.iter(|| terms_from_stats(&l, &x.global_stats, &mut tx)));
+    let (mut st, mut sc) = (vec![0.0; p.stats_len()], SsimScratch::default());
+    g.bench_function("terms_from_descriptor", |b| b.iter(|| terms_from_descriptor(&p, &l, &x.global, &mut st, &mut sc, &mut tx)));
     g.finish();
 }
 

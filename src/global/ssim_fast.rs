@@ -21,7 +21,7 @@
 //! E[xy] - mx*my that difference is amplified by up to 2 / C2 in flat windows (descriptors are
 //! flat wherever the distance map is truncated), so the direct sums were kept for exact equality.
 
-use super::ssim::{SsimParams, LANES};
+use super::ssim::{ssim_stats, SsimParams, SsimScratch, LANES};
 use pulp::Simd;
 
 /// Row padding in f32 lanes: a multiple of every vector width the kernel is built for (8 for
@@ -71,6 +71,14 @@ pub fn terms_from_stats(l: &FastLayout, stats: &[f32], out: &mut [f32]) {
             v_out[o] = v;
         }
     }
+}
+
+/// The terms of one descriptor from the descriptor itself, for stores that keep no stats: its
+/// stats are computed into `stats` exactly as `ssim_stats` computes them (the same bits as stored
+/// stats), then [`terms_from_stats`].
+pub fn terms_from_descriptor(p: &SsimParams, l: &FastLayout, x: &[f32], stats: &mut [f32], scratch: &mut SsimScratch, out: &mut [f32]) {
+    ssim_stats(p, x, stats, scratch);
+    terms_from_stats(l, stats, out);
 }
 
 /// Per-thread scratch of the kernel (owned by the executor, reused for every pair). Everything

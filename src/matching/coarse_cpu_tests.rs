@@ -110,3 +110,19 @@ fn several_query_passes_equal_the_twin() {
     assert_eq!(fast_scores(&p, Simd::Best, &q, &r), twin);
     assert_eq!(coarse_topk(&r, &q, &p, 5, 7), coarse_topk_twin(&r, &q, &p, 5, 7));
 }
+
+/// Terms derived from the descriptor alone (a store without stats) are the terms of the stored
+/// stats, bit for bit.
+#[test]
+fn terms_from_the_descriptor_equal_terms_from_stats() {
+    use crate::global::ssim_fast::{terms_from_descriptor, terms_from_stats, FastLayout};
+    let p = params(64, 48, 7, true, (0.01, 0.03));
+    let l = FastLayout::new(&p);
+    let s = set(&p, 6, 6, &mut SplitMix64::new(4));
+    let (mut a, mut b, mut st) = (vec![0.0; l.terms_len()], vec![0.0; l.terms_len()], vec![0.0; p.stats_len()]);
+    for i in 0..s.len() {
+        terms_from_stats(&l, s.stats(i), &mut a);
+        terms_from_descriptor(&p, &l, s.global(i), &mut st, &mut SsimScratch::default(), &mut b);
+        assert_eq!(a.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), b.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), "descriptor {i}");
+    }
+}
