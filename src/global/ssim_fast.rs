@@ -9,17 +9,20 @@
 //!   addition chains hide the adders' latency;
 //! - the image is streamed row by row: one product row, a ring of `win` rows of horizontal sums
 //!   and the window values are all a pair writes, so its scratch stays in L1;
-//! - what depends on one descriptor only is prepared once per descriptor ([`terms_from_stats`]:
-//!   window means m, squared means m*m, variances v), not once per pair; the "+ C1" and "+ C2"
-//!   are added per pair, after the sums, exactly where the twin adds them;
+//! - what depends on one descriptor only is laid out once per descriptor ([`terms_from_stats`]:
+//!   window means m and variances v in padded rows), not once per pair. Pre-adding the
+//!   constants (m*m + C1/2, v + C2/2) would round differently from the twin, which adds C1 and
+//!   C2 after summing the two descriptors' terms; pre-squaring m (a third plane) was measured
+//!   and bought nothing, since the kernel is not bound by those multiplications;
 //! - the per-window values go to a row-major buffer and are reduced as the twin reduces them.
 //!
 //! IEEE operations evaluated in the same order give the same bits (Rust neither contracts
 //! a*b+c into a fused multiply-add nor reassociates, and only plain add/sub/mul/div are used), so
 //! scores equal the twin's exactly (a zero may differ in sign only), on every instruction set.
-//! Running-sum box filters would do fewer additions but round differently; in the covariance
-//! E[xy] - mx*my that difference is amplified by up to 2 / C2 in flat windows (descriptors are
-//! flat wherever the distance map is truncated), so the direct sums were kept for exact equality.
+//! Running-sum box filters would do fewer additions but round differently, and in the covariance
+//! E[xy] - mx*my a rounding difference is amplified by up to 2 / C2 (~2200 at the defaults) in
+//! windows of near-zero variance, so no tolerance like 1e-5 holds for every input; the direct
+//! sums were kept for exact equality.
 
 use super::ssim::{ssim_stats, SsimParams, SsimScratch, LANES};
 use pulp::Simd;
@@ -50,9 +53,9 @@ impl FastLayout {
         let (nw, nh) = (p.nw as usize, p.nh as usize);
         FastLayout { gw: p.gw as usize, gh: p.gh as usize, win: p.win as usize, nw, nh, stride: nw.next_multiple_of(W), n: nw * nh }
     }
-    /// Floats of one descriptor's terms: m, m*m and v, each `nh` rows of `stride`.
+    /// Floats of one descriptor's terms: m and v, each `nh` rows of `stride`.
     pub fn terms_len(&self) -> usize {
-        3 * self.nh * self.stride
+        2 * self.nh * self.stride
     }
 }
 
@@ -60,14 +63,12 @@ impl FastLayout {
 /// writes it). Padding columns are zero; they only ever produce lanes that are discarded.
 pub fn terms_from_stats(l: &FastLayout, stats: &[f32], out: &mut [f32]) {
     let plane = l.nh * l.stride;
-    let (m_out, rest) = out[..3 * plane].split_at_mut(plane);
-    let (sq_out, v_out) = rest.split_at_mut(plane);
+    let (m_out, v_out) = out[..2 * plane].split_at_mut(plane);
     for r in 0..l.nh {
         for c in 0..l.stride {
             let (m, v) = if c < l.nw { (stats[r * l.nw + c], stats[l.n + r * l.nw + c]) } else { (0.0, 0.0) };
             let o = r * l.stride + c;
             m_out[o] = m;
-            sq_out[o] = m * m;
             v_out[o] = v;
         }
     }
@@ -236,17 +237,16 @@ fn windows<S: Simd, const N: usize>(simd: S, k: &Consts<S::f32s>, l: &FastLayout
     let o = wr * stw + c0;
     let span = |i: usize| i * plane + o..i * plane + o + N * lanes;
     let (mx, my) = (&tx[span(0)], &ty[span(0)]);
-    let (sqx, sqy) = (&tx[span(1)], &ty[span(1)]);
-    let (vx, vy) = (&tx[span(2)], &ty[span(2)]);
+    let (vx, vy) = (&tx[span(1)], &ty[span(1)]);
     let v0 = wr * l.nw + c0;
     let out = &mut vals[v0..v0 + N * lanes];
     for (i, sum) in sum.into_iter().enumerate() {
         let e = i * lanes;
         let (mx, my) = (ld::<S>(mx, e), ld::<S>(my, e));
-        // ssim::ssim_window, with mx*mx and my*my read from the terms
+        // ssim::ssim_window, operation for operation
         let cov = simd.mul_f32s(simd.sub_f32s(simd.mul_f32s(sum, k.inv), simd.mul_f32s(mx, my)), k.cn);
         let num = simd.mul_f32s(simd.add_f32s(simd.mul_f32s(simd.mul_f32s(k.two, mx), my), k.c1), simd.add_f32s(simd.mul_f32s(k.two, cov), k.c2));
-        let den = simd.mul_f32s(simd.add_f32s(simd.add_f32s(ld::<S>(sqx, e), ld::<S>(sqy, e)), k.c1), simd.add_f32s(simd.add_f32s(ld::<S>(vx, e), ld::<S>(vy, e)), k.c2));
+        let den = simd.mul_f32s(simd.add_f32s(simd.add_f32s(simd.mul_f32s(mx, mx), simd.mul_f32s(my, my)), k.c1), simd.add_f32s(simd.add_f32s(ld::<S>(vx, e), ld::<S>(vy, e)), k.c2));
         st::<S>(out, e, simd.div_f32s(num, den));
     }
 }

@@ -23,12 +23,13 @@ use crate::global::ssim_fast::{ssim_pair_fast, terms_from_stats, FastLayout, Fas
 use rayon::prelude::*;
 use std::sync::{Mutex, PoisonError};
 
-/// References per task. Each takes ~44 KiB at the default 64x48 size (descriptor 12 KiB, terms
-/// 31.5 KiB), so 8 of them plus one query's ~44 KiB stay within a 512 KiB-1 MiB L2 while the
+/// References per task. Each takes ~34 KiB at the default 64x48 size (descriptor 12 KiB, terms
+/// 21 KiB), so 8 of them plus one query's ~34 KiB stay within a 512 KiB-1 MiB L2 while the
 /// pass's queries stream past; a 4096-reference tile still makes 512 tasks for the workers.
+/// (Measured on the 2-core Zen 4 machine: 4 and 16 were 5-10% slower.)
 pub const REFS_PER_BLOCK: usize = 8;
 
-/// Queries per pass over a tile. Their descriptors and terms (~5.5 MiB at the default size)
+/// Queries per pass over a tile. Their descriptors and terms (~4.3 MiB at the default size)
 /// stay in a shared L3 while every block reads them; larger batches take several passes, each
 /// re-reading the tile's references from memory once.
 pub const QUERIES_PER_PASS: usize = 128;
