@@ -341,7 +341,12 @@ pub fn legend(rows: &[BenchRow]) -> String {
     for r in rows {
         if !seen.contains(&&r.adapter) {
             seen.push(&r.adapter);
-            s += &format!("{}: {}; peak {}\n", r.backend, r.adapter, r.peak_source.as_deref().unwrap_or("unknown"));
+            let peak = match (&r.peak_source, r.note.contains("correctness only")) {
+                (Some(p), _) => p.clone(),
+                (None, true) => "none: a software adapter, correctness only".into(),
+                (None, false) => "unknown (give --peak-gflops)".into(),
+            };
+            s += &format!("{}: {}; peak {}\n", r.backend, r.adapter, peak);
         }
     }
     s
