@@ -4,6 +4,7 @@
 //!   fallback; throughput counts pairs;
 //! - one descriptor's terms for the fast path, from its stored stats or from the descriptor
 //!   alone (a store that keeps no stats); throughput counts descriptors.
+//!
 //! Inputs are real global descriptors of rendered street frames (64x48, 7x7 windows).
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
