@@ -77,7 +77,7 @@ proptest! {
         let tp = TileParams { queries: nq as u32, tile_len: nr as u32, tile_start: 0, k: 1 };
         let mut twin = vec![0.0; nq * nr];
         ssim_tile(&p, &tp, &q.globals, &q.global_stats, &r.globals, &r.global_stats, &mut twin);
-        for simd in [Simd::Best, Simd::Scalar] {
+        for simd in [Simd::Best, Simd::Scalar, Simd::Twin] {
             let fast = fast_scores(&p, simd, &q, &r);
             for (i, (a, b)) in fast.iter().zip(&twin).enumerate() {
                 prop_assert!(same(*a, *b), "{simd:?} pair {i}: fast {a:e} ({:#x}) twin {b:e} ({:#x})", a.to_bits(), b.to_bits());
