@@ -63,13 +63,11 @@ impl FastLayout {
 /// writes it). Padding columns are zero; they only ever produce lanes that are discarded.
 pub fn terms_from_stats(l: &FastLayout, stats: &[f32], out: &mut [f32]) {
     let plane = l.nh * l.stride;
-    let (m_out, v_out) = out[..2 * plane].split_at_mut(plane);
-    for r in 0..l.nh {
-        for c in 0..l.stride {
-            let (m, v) = if c < l.nw { (stats[r * l.nw + c], stats[l.n + r * l.nw + c]) } else { (0.0, 0.0) };
-            let o = r * l.stride + c;
-            m_out[o] = m;
-            v_out[o] = v;
+    let (means, vars) = stats[..2 * l.n].split_at(l.n);
+    for (src, dst) in [means, vars].into_iter().zip(out[..2 * plane].chunks_exact_mut(plane)) {
+        for (s, d) in src.chunks_exact(l.nw).zip(dst.chunks_exact_mut(l.stride)) {
+            d[..l.nw].copy_from_slice(s);
+            d[l.nw..].fill(0.0);
         }
     }
 }
