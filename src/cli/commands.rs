@@ -578,18 +578,25 @@ fn bench_cmd(a: &BenchArgs, quiet: bool) -> Result<()> {
     for e in &engines {
         info(quiet, format!("backend: {}", e.describe()));
     }
+    let opts = semlook::bench::BenchOptions {
+        sizes: a.sizes.clone(),
+        batches: a.batches.clone(),
+        max_row_seconds: a.max_row_seconds,
+        resident_limit: semlook::bench::RESIDENT_LIMIT,
+        gpu_peak_gflops: a.peak_gflops,
+    };
     let mut shown = false;
-    let rows = semlook::bench::run(&pool, &queries, &a.sizes, &a.batches, &mut engines, a.seconds, &cfg, &mut |r| {
-        if !quiet && !a.json {
+    let rows = semlook::bench::run(&pool, &queries, &opts, &mut engines, &cfg, &mut |r| {
+        if a.json {
+            println!("{}", serde_json::to_string(r).expect("a row serialises"));
+        } else if !quiet {
             let t = semlook::bench::table(std::slice::from_ref(r));
             eprint!("{}", if shown { t.lines().nth(1).unwrap_or("").to_string() + "\n" } else { t });
             shown = true;
         }
     })?;
-    if a.json {
-        println!("{}", serde_json::to_string_pretty(&rows).expect("serialises"));
-    } else {
-        print!("{}", semlook::bench::table(&rows));
+    if !a.json {
+        print!("{}{}", semlook::bench::table(&rows), semlook::bench::legend(&rows));
     }
     Ok(())
 }

@@ -136,19 +136,25 @@ pub struct TuneArgs {
 
 #[derive(Args)]
 pub struct BenchArgs {
-    /// Map sizes (references); sizes above 10,000 are streamed synthetic maps.
-    #[arg(long, value_delimiter = ',', default_value = "1000,10000,100000,1000000")]
+    /// Map sizes (references); sizes above 10,000 are synthetic maps served from one block of
+    /// real descriptors (see `semlook::bench`).
+    #[arg(long, value_delimiter = ',', default_value = "1000,10000,100000")]
     pub sizes: Vec<usize>,
-    /// Query batch sizes.
+    /// Query batch sizes; every row runs its whole batch.
     #[arg(long, value_delimiter = ',', default_value = "100,1000")]
     pub batches: Vec<usize>,
-    /// Time budget per configuration (seconds); a configuration runs as many of its batch's
-    /// queries as fit (at least one) and reports how many.
-    #[arg(long, default_value_t = 10.0)]
-    pub seconds: f64,
+    /// Rows predicted (by an untimed probe) to take longer than this are not run, and the table
+    /// says so; no row runs part of its batch.
+    #[arg(long, default_value_t = 600.0)]
+    pub max_row_seconds: f64,
+    /// The GPU's FP32 peak in GFLOP/s, for the fraction of peak where the built-in table does not
+    /// know the adapter.
+    #[arg(long)]
+    pub peak_gflops: Option<f64>,
     /// Leave the GPU out (by default every configuration also runs on the GPU when there is one).
     #[arg(long)]
     pub cpu_only: bool,
+    /// One JSON object per row and line (JSON Lines), as rows finish.
     #[arg(long)]
     pub json: bool,
 }
