@@ -6,7 +6,8 @@
 // window sums of x*y into workgroup memory, then the vertical sums and the per-window SSIM of
 // windows lane, lane + 64, ..., then a tree reduction gives the mean.
 // topk_merge: one invocation per query folds the tile's scores into its running top-K list
-// (ties go to the lower reference index). Only the K-lists are ever read back.
+// (ties go to the lower reference index; NaN scores are skipped). Only the K-lists are ever
+// read back.
 
 struct SsimParams {
     gw: u32,
@@ -96,6 +97,12 @@ fn ssim_tile(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_ind
     }
 }
 
+// NaN by its bits (exponent all ones, mantissa non-zero): `s != s` may be folded to false by
+// shader compilers that assume finite floats.
+fn is_nan(s: f32) -> bool {
+    return (bitcast<u32>(s) & 0x7fffffffu) > 0x7f800000u;
+}
+
 @compute @workgroup_size(64, 1, 1)
 fn topk_merge(@builtin(global_invocation_id) gid: vec3<u32>) {
     let q = gid.x;
@@ -105,7 +112,7 @@ fn topk_merge(@builtin(global_invocation_id) gid: vec3<u32>) {
     let base = q * tp.k;
     for (var j = 0u; j < tp.tile_len; j++) {
         let s = scores[q * tp.tile_len + j];
-        if (s <= topk_scores[base + tp.k - 1u]) {
+        if (is_nan(s) || s <= topk_scores[base + tp.k - 1u]) {
             continue;
         }
         var pos = tp.k - 1u;

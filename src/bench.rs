@@ -1,11 +1,29 @@
-//! Large-map batch matching benchmark (`semlook bench`): coarse matching of query batches against
-//! maps of 1k to 1M references, on every available backend, with throughput and peak memory.
+//! Large-map batch matching benchmark (`semlook bench`): the coarse stage (SSIM top-K) of query
+//! batches against maps of 1k to 1M references, on every available backend.
 //!
-//! Maps up to [`RESIDENT_LIMIT`] references are real in-memory descriptor sets; larger ones are a
-//! [`SyntheticMap`] that assembles each tile from a pool of real descriptors as it is streamed, so
-//! a million references never need to exist at once (this is how a map larger than memory is read).
-//! Each configuration runs as many queries of its batch as fit a time budget (at least one), and
-//! reports how many it ran.
+//! What a row measures: one call of `Stages::coarse` (query preparation, the scores of every
+//! tile, the streaming top-K) for a batch of exactly `batch` queries against `map_size`
+//! references, wall clock. Nothing else is in the timed region:
+//! - maps up to `resident_limit` references are real in-memory descriptor sets;
+//! - larger maps are a [`SyntheticMap`]: one block of references (real descriptors from the
+//!   pool) is assembled before timing and every tile is served from it without copying
+//!   (reference i is block entry i mod block). A block far larger than the caches is read from
+//!   memory exactly as a real map of that size would be. A tile that does not line up with the
+//!   block is copied in the timed region and the row counts it (`tiles_copied`);
+//! - batches are assembled before timing.
+//!
+//! Rows never run part of their batch. An untimed probe (a few queries against one tile)
+//! predicts each row's time; a row predicted to exceed `max_row_seconds` is not run, and the
+//! table and JSON say so (`status: "skipped"`, with the prediction).
+//!
+//! Reported: comparisons/s; bytes/s (the map's descriptor and stats bytes, counted once per
+//! batch); effective GFLOP/s at [`flops_per_comparison`]; the fraction of the device's peak where
+//! it is known ([`peak`]); peak RSS; the process's CPU time over the row and the 1-minute load
+//! average before it (other processes on the machine take cores from the run: the cores column
+//! says how many the row had). Software GPU adapters (lavapipe, llvmpipe) are
+//! correctness-only backends: their rows say so and carry no peak.
+
+pub mod peak;
 
 use crate::config::Config;
 use crate::engine::Engine;
@@ -15,31 +33,79 @@ use crate::map::DescriptorSet;
 use crate::matching::source::{GlobalSource, TileBuf};
 use crate::matching::{CpuStages, Stages};
 use serde::Serialize;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
-/// Maps up to this size are materialised in memory.
+/// Maps up to this size are materialised in memory by the CLI.
 pub const RESIDENT_LIMIT: usize = 10_000;
 
-/// A map of `len` references whose descriptors cycle through a pool (a large prime stride, so
-/// neighbouring references differ).
-pub struct SyntheticMap<'a> {
-    pub len: usize,
-    pub pool: &'a DescriptorSet,
+/// What to run.
+#[derive(Debug, Clone)]
+pub struct BenchOptions {
+    pub sizes: Vec<usize>,
+    pub batches: Vec<usize>,
+    /// Rows predicted to take longer are not run (and reported as skipped).
+    pub max_row_seconds: f64,
+    /// Maps up to this size are materialised in memory; larger ones are synthetic.
+    pub resident_limit: usize,
+    /// The GPU's peak (GFLOP/s), where the built-in table does not know the adapter.
+    pub gpu_peak_gflops: Option<f64>,
 }
 
-impl GlobalSource for SyntheticMap<'_> {
+/// Operations of one SSIM comparison by the direct algorithm (the twin `ssim_pair` without its
+/// precomputed statistics): gw*gh products; (win - 1) additions per window sum, horizontally
+/// (gh rows x nw) and vertically (nh x nw); and per window 19 operations of the SSIM formula
+/// (mean of xy 1, covariance 3, numerator 6, denominator 7, division 1, accumulation 1).
+/// A division counts as one. Precomputed per-descriptor terms do not lower the count: it is the
+/// work a comparison represents, not the work an implementation happens to do.
+pub fn flops_per_comparison(p: &SsimParams) -> f64 {
+    let (gw, gh, win, nw, nh) = (p.gw as f64, p.gh as f64, p.win as f64, p.nw as f64, p.nh as f64);
+    gw * gh + (gh * nw + nh * nw) * (win - 1.0) + nw * nh * 19.0
+}
+
+/// Bytes of one reference the coarse stage reads: its descriptor and its stats record.
+pub fn bytes_per_reference(p: &SsimParams) -> usize {
+    (p.len() + p.stats_len()) * 4
+}
+
+/// A map of `len` references served from one pre-assembled block (see the module doc).
+pub struct SyntheticMap {
+    len: usize,
+    block: DescriptorSet,
+    copied: AtomicUsize,
+}
+
+impl SyntheticMap {
+    /// A map of `len` references whose block holds `block` references cycling through `pool`.
+    pub fn new(pool: &DescriptorSet, len: usize, block: usize) -> Self {
+        SyntheticMap { len, block: resident_map(pool, block.clamp(1, len.max(1))), copied: AtomicUsize::new(0) }
+    }
+    /// Tiles copied since the last call (those that did not line up with the block).
+    pub fn take_copied(&self) -> usize {
+        self.copied.swap(0, Ordering::Relaxed)
+    }
+}
+
+impl GlobalSource for SyntheticMap {
     fn len(&self) -> usize {
         self.len
     }
     fn tile<'a>(&'a self, start: usize, end: usize, buf: &'a mut TileBuf) -> (&'a [f32], &'a [f32]) {
-        use rayon::prelude::*;
-        let p = self.pool;
-        let (gl, sl) = (p.global_len, p.stats_len);
-        buf.globals.resize((end - start) * gl, 0.0);
-        buf.stats.resize((end - start) * sl, 0.0);
-        let pick = |i: usize| (i.wrapping_mul(7919)) % p.len();
-        buf.globals.par_chunks_mut(gl).enumerate().for_each(|(k, dst)| dst.copy_from_slice(p.global(pick(start + k))));
-        buf.stats.par_chunks_mut(sl).enumerate().for_each(|(k, dst)| dst.copy_from_slice(p.stats(pick(start + k))));
+        let (b, n) = (self.block.len(), end - start);
+        let s = start % b;
+        if s + n <= b {
+            return self.block.tile(s, s + n, buf);
+        }
+        self.copied.fetch_add(1, Ordering::Relaxed);
+        let (gl, sl) = (self.block.global_len, self.block.stats_len);
+        buf.globals.clear();
+        buf.stats.clear();
+        for i in start..end {
+            buf.globals.extend_from_slice(self.block.global(i % b));
+            buf.stats.extend_from_slice(self.block.stats(i % b));
+        }
+        debug_assert_eq!(buf.globals.len(), n * gl);
+        debug_assert_eq!(buf.stats.len(), n * sl);
         (&buf.globals, &buf.stats)
     }
 }
@@ -61,101 +127,156 @@ fn cycle(pool: &DescriptorSet, n: usize, prefix: &str, stride: usize) -> Descrip
     set
 }
 
+/// One (map size, batch, backend) configuration.
 #[derive(Debug, Clone, Serialize)]
 pub struct BenchRow {
     pub map_size: usize,
     pub batch: usize,
+    /// "cpu" or "gpu".
     pub backend: String,
+    /// The processor or GPU adapter (and, for the CPU, threads and SIMD instruction set).
+    pub adapter: String,
+    /// "ran" (the whole batch) or "skipped" (nothing ran; see `note`).
+    pub status: String,
+    /// Queries scored: the batch, or 0 when skipped.
     pub queries_run: usize,
-    pub seconds: f64,
-    pub queries_per_s: f64,
-    pub comparisons_per_s: f64,
-    /// Peak resident memory of the process during this configuration (MiB).
-    pub peak_mib: f64,
+    pub seconds: Option<f64>,
+    pub queries_per_s: Option<f64>,
+    pub comparisons_per_s: Option<f64>,
+    /// Map bytes (descriptors and stats) per second, the map counted once per batch.
+    pub bytes_per_s: Option<f64>,
+    /// Effective GFLOP/s at `flops_per_comparison`.
+    pub gflops: Option<f64>,
+    pub flops_per_comparison: f64,
+    pub peak_gflops: Option<f64>,
+    pub peak_source: Option<String>,
+    pub fraction_of_peak: Option<f64>,
+    /// Peak resident memory of the process during this row (MiB).
+    pub peak_rss_mib: f64,
+    /// Tiles copied inside the timed region (synthetic maps whose tiles miss the block).
+    pub tiles_copied: usize,
+    /// 1-minute load average just before the row.
+    pub loadavg_1m: f64,
+    /// CPU time of the whole process during the row (user + system, all threads); over
+    /// `seconds`, the cores the row had (less than the worker threads: other processes competed).
+    pub cpu_seconds: Option<f64>,
     /// This backend's comparisons per second over the CPU's, for the same configuration.
     pub gpu_cpu_ratio: Option<f64>,
+    /// "correctness only" for software adapters; the prediction for skipped rows.
+    pub note: String,
 }
 
-/// Resets the kernel's peak-RSS counter of this process (Linux), so each configuration reports
-/// its own peak.
+/// Resets the kernel's peak-RSS counter of this process (Linux), so each row reports its own peak.
 fn reset_peak() {
     let _ = std::fs::write("/proc/self/clear_refs", "5");
 }
 
-fn peak_mib() -> f64 {
+fn peak_rss_mib() -> f64 {
     std::fs::read_to_string("/proc/self/status")
         .ok()
         .and_then(|s| s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| l.split_whitespace().nth(1)).and_then(|v| v.parse::<f64>().ok()))
         .map_or(f64::NAN, |kb| kb / 1024.0)
 }
 
-/// Queries `0..n` of `queries`, cycling (ids made unique).
-fn batch_of(queries: &DescriptorSet, n: usize) -> DescriptorSet {
-    cycle(queries, n, "q", 1)
+/// User + system CPU time of this process so far (Linux /proc, USER_HZ = 100 ticks per second).
+fn process_cpu_s() -> f64 {
+    std::fs::read_to_string("/proc/self/stat")
+        .ok()
+        .and_then(|s| {
+            // fields after the parenthesised command name: state is field 3, utime 14, stime 15
+            let rest = s.rsplit_once(')')?.1;
+            let f: Vec<&str> = rest.split_whitespace().collect();
+            Some((f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?) / 100.0)
+        })
+        .unwrap_or(f64::NAN)
 }
 
-/// Runs every (map size, batch, backend) configuration. `engines` are (label, engine) pairs; the
-/// first CPU one is the reference for the GPU/CPU ratio. `tick` reports each finished row.
-pub fn run(
-    pool: &DescriptorSet,
-    queries: &DescriptorSet,
-    sizes: &[usize],
-    batches: &[usize],
-    engines: &mut [Engine],
-    budget_s: f64,
-    cfg: &Config,
-    tick: &mut dyn FnMut(&BenchRow),
-) -> Result<Vec<BenchRow>> {
+fn loadavg() -> f64 {
+    std::fs::read_to_string("/proc/loadavg").ok().and_then(|s| s.split_whitespace().next().and_then(|v| v.parse().ok())).unwrap_or(f64::NAN)
+}
+
+/// Runs every (map size, batch, engine) configuration; the first CPU engine is the reference of
+/// the GPU/CPU ratio. `tick` reports each finished row.
+pub fn run(pool: &DescriptorSet, queries: &DescriptorSet, opts: &BenchOptions, engines: &mut [Engine], cfg: &Config, tick: &mut dyn FnMut(&BenchRow)) -> Result<Vec<BenchRow>> {
     let p = SsimParams::new(&cfg.global);
-    let k = cfg.matching.top_k;
+    let (k, tile) = (cfg.matching.top_k, cfg.matching.tile);
+    let flops = flops_per_comparison(&p);
+    let devices: Vec<peak::Device> = engines.iter_mut().map(|e| peak::Device::of(e, &p, opts.gpu_peak_gflops)).collect();
     let mut rows = Vec::new();
-    for &n in sizes {
-        let resident = (n <= RESIDENT_LIMIT).then(|| resident_map(pool, n));
-        let synthetic = SyntheticMap { len: n, pool };
-        let source: &dyn GlobalSource = match &resident {
-            Some(r) => r,
-            None => &synthetic,
+    for &n in &opts.sizes {
+        let (resident, synthetic) = if n <= opts.resident_limit { (Some(resident_map(pool, n)), None) } else { (None, Some(SyntheticMap::new(pool, n, tile))) };
+        let source: &dyn GlobalSource = match (&resident, &synthetic) {
+            (Some(r), _) => r,
+            (None, Some(s)) => s,
+            (None, None) => return Ok(rows),
         };
-        for &b in batches {
+        // untimed probe per engine: a few queries against one tile of this map (also a warm-up)
+        let probe_q = batch_of(queries, 4);
+        let probe_map = SyntheticMap::new(pool, n.min(tile), tile);
+        let mut per_pair = Vec::new();
+        for engine in engines.iter_mut() {
+            let t = Instant::now();
+            coarse(engine, &probe_q, &probe_map, &p, k, tile)?;
+            per_pair.push(t.elapsed().as_secs_f64() / (probe_q.len() * probe_map.len()) as f64);
+        }
+        for &b in &opts.batches {
+            let batch = batch_of(queries, b);
             let mut cpu_rate = None;
-            for engine in engines.iter_mut() {
-                let label = engine.describe();
-                let mut stages: Box<dyn FnMut(&DescriptorSet, &dyn GlobalSource) -> Result<Vec<Vec<(f32, u32)>>>> = match engine.gpu_stages() {
-                    Some(g) => Box::new(move |q, s| g.coarse(s, q, &p, k, cfg.matching.tile)),
-                    None => Box::new(move |q, s| CpuStages.coarse(s, q, &p, k, cfg.matching.tile)),
-                };
-                // probe: a few queries against at most 20k references, to size the run to the budget
-                let probe_refs = n.min(20_000);
-                let probe_q = b.min(4);
-                let probe_map = SyntheticMap { len: probe_refs, pool };
-                let t = Instant::now();
-                stages(&batch_of(queries, probe_q), &probe_map)?;
-                let per_pair = t.elapsed().as_secs_f64() / (probe_refs * probe_q) as f64;
-                let m = ((budget_s / (per_pair * n as f64)) as usize).clamp(1, b);
-                let batch = batch_of(queries, m);
-                reset_peak();
-                let t = Instant::now();
-                let lists = stages(&batch, source)?;
-                let secs = t.elapsed().as_secs_f64();
-                assert_eq!(lists.len(), m);
-                let rate = (m * n) as f64 / secs;
-                let ratio = if label.starts_with("cpu") {
-                    cpu_rate.get_or_insert(rate);
-                    None
-                } else {
-                    cpu_rate.map(|c| rate / c)
-                };
-                let row = BenchRow {
+            for (e, engine) in engines.iter_mut().enumerate() {
+                let dev = &devices[e];
+                let predicted = per_pair[e] * (n * b) as f64;
+                let mut row = BenchRow {
                     map_size: n,
                     batch: b,
-                    backend: label,
-                    queries_run: m,
-                    seconds: secs,
-                    queries_per_s: m as f64 / secs,
-                    comparisons_per_s: rate,
-                    peak_mib: peak_mib(),
-                    gpu_cpu_ratio: ratio,
+                    backend: dev.backend.clone(),
+                    adapter: dev.adapter.clone(),
+                    status: "skipped".into(),
+                    queries_run: 0,
+                    seconds: None,
+                    queries_per_s: None,
+                    comparisons_per_s: None,
+                    bytes_per_s: None,
+                    gflops: None,
+                    flops_per_comparison: flops,
+                    peak_gflops: dev.peak_gflops,
+                    peak_source: dev.peak_source.clone(),
+                    fraction_of_peak: None,
+                    peak_rss_mib: f64::NAN,
+                    tiles_copied: 0,
+                    loadavg_1m: loadavg(),
+                    cpu_seconds: None,
+                    gpu_cpu_ratio: None,
+                    note: dev.note.clone(),
                 };
+                if predicted > opts.max_row_seconds {
+                    row.note = format!("not run: predicted {predicted:.0} s > --max-row-seconds {:.0}; {}", opts.max_row_seconds, row.note);
+                } else {
+                    if let Some(s) = &synthetic {
+                        s.take_copied();
+                    }
+                    reset_peak();
+                    let (t, cpu0) = (Instant::now(), process_cpu_s());
+                    let lists = coarse(engine, &batch, source, &p, k, tile)?;
+                    let secs = t.elapsed().as_secs_f64();
+                    row.cpu_seconds = Some(process_cpu_s() - cpu0);
+                    assert_eq!(lists.len(), b, "one K-list per query");
+                    let rate = (n * b) as f64 / secs;
+                    row.status = "ran".into();
+                    row.queries_run = b;
+                    row.seconds = Some(secs);
+                    row.queries_per_s = Some(b as f64 / secs);
+                    row.comparisons_per_s = Some(rate);
+                    row.bytes_per_s = Some((n * bytes_per_reference(&p)) as f64 / secs);
+                    row.gflops = Some(rate * flops / 1e9);
+                    row.fraction_of_peak = dev.peak_gflops.map(|pk| rate * flops / 1e9 / pk);
+                    row.peak_rss_mib = peak_rss_mib();
+                    row.tiles_copied = synthetic.as_ref().map_or(0, |s| s.take_copied());
+                    if dev.backend == "cpu" {
+                        cpu_rate.get_or_insert(rate);
+                    } else {
+                        row.gpu_cpu_ratio = cpu_rate.map(|c| rate / c);
+                    }
+                }
                 tick(&row);
                 rows.push(row);
             }
@@ -164,24 +285,69 @@ pub fn run(
     Ok(rows)
 }
 
-/// The rows as a plain-text table.
+fn coarse(engine: &mut Engine, q: &DescriptorSet, refs: &dyn GlobalSource, p: &SsimParams, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+    match engine.gpu_stages() {
+        Some(g) => g.coarse(refs, q, p, k, tile),
+        None => CpuStages.coarse(refs, q, p, k, tile),
+    }
+}
+
+/// Queries `0..n` of `queries`, cycling (ids made unique).
+fn batch_of(queries: &DescriptorSet, n: usize) -> DescriptorSet {
+    cycle(queries, n, "q", 1)
+}
+
+fn opt(v: Option<f64>, scale: f64, digits: usize) -> String {
+    v.map_or("-".into(), |x| format!("{:.*}", digits, x * scale))
+}
+
+/// The rows as a plain-text table, with the adapters, the flop count and the peaks below it.
 pub fn table(rows: &[BenchRow]) -> String {
     let mut s = format!(
-        "{:>9} {:>6} {:<52} {:>8} {:>10} {:>14} {:>9} {:>8}\n",
-        "map size", "batch", "backend", "queries", "queries/s", "comparisons/s", "peak MiB", "GPU/CPU"
+        "{:>9} {:>6} {:>4} {:>8} {:>9} {:>6} {:>14} {:>7} {:>8} {:>7} {:>9} {:>5} {:>8}  {}\n",
+        "map size", "batch", "on", "queries", "seconds", "cores", "comparisons/s", "GB/s", "GFLOP/s", "% peak", "peak MiB", "load", "GPU/CPU", "note"
     );
     for r in rows {
         s += &format!(
-            "{:>9} {:>6} {:<52} {:>8} {:>10.2} {:>14.0} {:>9.0} {:>8}\n",
+            "{:>9} {:>6} {:>4} {:>8} {:>9} {:>6} {:>14} {:>7} {:>8} {:>7} {:>9.0} {:>5.2} {:>8}  {}\n",
             r.map_size,
             r.batch,
             r.backend,
             r.queries_run,
-            r.queries_per_s,
-            r.comparisons_per_s,
-            r.peak_mib,
-            r.gpu_cpu_ratio.map_or("-".to_string(), |x| format!("{x:.2}"))
+            opt(r.seconds, 1.0, 2),
+            opt(r.cpu_seconds.zip(r.seconds).map(|(c, s)| c / s), 1.0, 2),
+            opt(r.comparisons_per_s, 1.0, 0),
+            opt(r.bytes_per_s, 1e-9, 2),
+            opt(r.gflops, 1.0, 1),
+            opt(r.fraction_of_peak, 100.0, 1),
+            r.peak_rss_mib,
+            r.loadavg_1m,
+            opt(r.gpu_cpu_ratio, 1.0, 2),
+            r.note
         );
+    }
+    s
+}
+
+/// What the table's columns mean, and each adapter with its peak.
+pub fn legend(rows: &[BenchRow]) -> String {
+    let mut s = String::new();
+    if let Some(r) = rows.first() {
+        s += &format!("flops per comparison: {:.0} (the direct algorithm: products, window sums, 19 per window formula; see bench::flops_per_comparison)\n", r.flops_per_comparison);
+    }
+    s += "GB/s: map descriptors and stats read per second, the map counted once per batch; cores: process CPU time / wall time\n";
+    s += "(below the worker threads when other processes competed); load: 1-minute load average before the row\n";
+    let mut seen = Vec::new();
+    for r in rows {
+        if !seen.contains(&&r.adapter) {
+            seen.push(&r.adapter);
+            let peak = match (&r.peak_source, r.note.contains("correctness only")) {
+                (Some(p), _) => p.clone(),
+                (None, true) => "none: a software adapter, correctness only".into(),
+                (None, false) => "unknown (give --peak-gflops)".into(),
+            };
+            s += &format!("{}: {}; peak {}\n", r.backend, r.adapter, peak);
+        }
     }
     s
 }
@@ -209,3 +375,7 @@ pub fn street_descriptors(cfg: &Config, n: usize, cond: crate::synth::condition:
     }
     Ok(set)
 }
+
+#[cfg(test)]
+#[path = "bench_tests.rs"]
+mod tests;

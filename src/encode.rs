@@ -256,15 +256,31 @@ impl Encoder {
         let t = Instant::now();
         let segment = src.labels.is_none() && self.segmenter.is_some();
         let needs_rgb = self.appearance.is_some() || segment || self.hog;
-        let rgb = match (&src.image, needs_rgb) {
-            (Some(p), true) => Some(input::load_rgb(p)?),
+        let long = self.cfg.input.working_long_side;
+        let seg = &self.cfg.segmentation;
+        let needed = |full: (u32, u32)| -> (u32, u32) {
+            if self.hog {
+                return full; // VPR-Bench's HOG resizes the full image
+            }
+            let (w, h) = input::working_size(full.0, full.1, long);
+            match segment {
+                // the segmenter resizes to its input; 10 % short of it costs nothing visible
+                true => (w.max((seg.input_width as f64 * 0.9) as u32), h.max((seg.input_height as f64 * 0.9) as u32)),
+                false => (w, h),
+            }
+        };
+        let (rgb, decoded_size) = match (&src.image, needs_rgb) {
+            (Some(p), true) => {
+                let (img, full) = input::load_rgb_at_least(p, needed)?;
+                (Some(img), Some(full))
+            }
             (None, true) => {
                 return Err(Error::invalid(
                     format!("frame {:?}", src.id),
                     "appearance, segmentation and HOG need the RGB image (pass --images), or turn appearance off (--no-appearance)",
                 ))
             }
-            _ => None,
+            _ => (None, None),
         };
         times.decode_ms = ms_since(t);
         let full_labels = match (&src.labels, &self.segmenter, &rgb) {
@@ -273,17 +289,17 @@ impl Encoder {
             (Some(path), _, Some(_)) => Some(input::load_label_map(path, &self.table, format)?),
             _ => Some(input::load_frame_labels(src, &self.table, format)?),
         };
-        let source_size = match (&rgb, &full_labels) {
-            (Some(img), _) => (img.width(), img.height()),
+        let source_size = match (decoded_size, &full_labels) {
+            (Some(size), _) => size,
             (None, Some(l)) => (l.width(), l.height()),
             (None, None) => return Err(Error::invalid(format!("frame {:?}", src.id), "neither image nor label map")),
         };
-        if let (Some(img), Some(l)) = (&rgb, &full_labels) {
-            if (img.width(), img.height()) != (l.width(), l.height()) {
+        if let (Some(size), Some(l)) = (decoded_size, &full_labels) {
+            if size != (l.width(), l.height()) {
                 return Err(Error::SizeMismatch {
                     image: src.image.clone().unwrap_or_default(),
                     labels: src.labels.clone().unwrap_or_default(),
-                    image_size: (img.width(), img.height()),
+                    image_size: size,
                     label_size: (l.width(), l.height()),
                 });
             }

@@ -68,7 +68,7 @@ use semlook::global::ssim::SsimParams;
 use semlook::local::tree_similarity::{tree_similarity, TreeSimParams, TreeSimScratch};
 use semlook::local::Forest;
 use semlook::map::DescriptorSet;
-use semlook::matching::{coarse_topk, match_batch, Setting, Stages};
+use semlook::matching::{coarse_topk_twin, match_batch, Setting, Stages};
 use semlook::util::SplitMix64;
 
 /// Random label maps of awkward sizes: thin, odd, a single class (no edges), many classes.
@@ -158,7 +158,7 @@ fn coarse_top_k_matches_the_cpu_twin() {
     let mut stages = semlook::engine::GpuStages::new(ctx);
     for (k, tile) in [(10, 4096), (7, 16), (1, 1)] {
         let gpu = stages.coarse(&refs, &queries, &p, k, tile).unwrap();
-        let cpu = coarse_topk(&refs, &queries, &p, k, tile);
+        let cpu = coarse_topk_twin(&refs, &queries, &p, k, tile);
         assert_same_lists(&gpu, &cpu, 1e-5, &format!("k {k}, tile {tile}"));
     }
 }
@@ -257,7 +257,7 @@ fn tiling_under_a_small_binding_limit() {
     assert!(tile < refs.len() / 4, "tile {tile} does not split the map");
     let mut stages = semlook::engine::GpuStages::new(ctx);
     let gpu = stages.coarse(&refs, &queries, &SsimParams::new(&cfg.global), 10, 4096).unwrap();
-    assert_same_lists(&gpu, &coarse_topk(&refs, &queries, &SsimParams::new(&cfg.global), 10, 4096), 1e-5, "small binding limit");
+    assert_same_lists(&gpu, &coarse_topk_twin(&refs, &queries, &SsimParams::new(&cfg.global), 10, 4096), 1e-5, "small binding limit");
     let frefs = random_forest_set(30, 0, 10);
     let fq = random_forest_set(4, 0, 11);
     let p = TreeSimParams::new(&cfg.similarity, false, 3);
@@ -441,4 +441,36 @@ fn auto_falls_back_to_the_cpu_when_the_gpu_fails_mid_run() {
     let (m, _) = auto.match_batch(&refs, &refs, Setting::Semlook, &cfg).unwrap();
     assert_eq!(m, match_batch(&refs, &refs, Setting::Semlook, &cfg).0);
     assert!(!auto.is_gpu(), "the engine continues on the CPU");
+}
+
+/// NaN scores are skipped by the GPU `topk_merge` as by its CPU twin: the same K-lists, bit for
+/// bit, from tiles with NaNs first, last, between equal scores, in place of every score, and
+/// (quiet and signalling, either sign) against lists that already hold entries.
+#[test]
+fn topk_merge_skips_nan_like_its_twin() {
+    let Some(ctx) = gpu() else { return };
+    use semlook::matching::ssim_topk::{topk_merge, TileParams, EMPTY_INDEX, EMPTY_SCORE};
+    let (nan, snan, neg_nan) = (f32::NAN, f32::from_bits(0x7f80_0001), f32::from_bits(0xffc0_0000));
+    let rows: [[f32; 6]; 5] = [
+        [nan, 0.5, 0.2, 0.9, 0.1, 0.3],
+        [0.4, 0.4, snan, 0.4, -0.2, nan],
+        [nan; 6],
+        [neg_nan, -1.0, 0.7, neg_nan, 0.8, 0.0],
+        [0.9, 0.95, nan, 0.05, snan, 0.6],
+    ];
+    let scores: Vec<f32> = rows.iter().flatten().copied().collect();
+    let k = 4;
+    // lists that already hold one entry each (from an earlier tile), then empty slots
+    let mut ts = vec![EMPTY_SCORE; rows.len() * k];
+    let mut ti = vec![EMPTY_INDEX; rows.len() * k];
+    for q in 0..rows.len() {
+        ts[q * k] = 0.45;
+        ti[q * k] = 1000 + q as u32;
+    }
+    let tp = TileParams { queries: rows.len() as u32, tile_len: 6, tile_start: 20, k: k as u32 };
+    let (gs, gi) = semlook::gpu::coarse::merge_scores(&ctx, &tp, &scores, &ts, &ti).unwrap();
+    topk_merge(&tp, &scores, &mut ts, &mut ti);
+    assert!(ts.iter().all(|s| !s.is_nan()), "the twin keeps no NaN: {ts:?}");
+    assert_eq!(gi, ti, "indices (GPU {gs:?}, CPU {ts:?})");
+    assert_eq!(gs.iter().map(|s| s.to_bits()).collect::<Vec<_>>(), ts.iter().map(|s| s.to_bits()).collect::<Vec<_>>(), "scores");
 }

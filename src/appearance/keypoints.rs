@@ -157,3 +157,32 @@ pub fn dense(out: &NetOutputs) -> Keypoints {
     }
     k
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn dense_sampling_takes_every_cell_at_its_centre() {
+        // 2 x 3 cells, 2 channels: cell (x, y) holds (x + 1, y + 1) before normalisation
+        let (h, w) = (2, 3);
+        let mut data = vec![0.0; 2 * h * w];
+        for y in 0..h {
+            for x in 0..w {
+                data[y * w + x] = (x + 1) as f32;
+                data[h * w + y * w + x] = (y + 1) as f32;
+            }
+        }
+        let out = NetOutputs { descriptors: Chw { c: 2, h, w, data }, logits: Chw::zeros(0, h, w), reliability: None };
+        let k = dense(&out);
+        assert_eq!((k.len(), k.dim), (6, 2));
+        assert_eq!(k.xy[4], [11.5, 11.5]);
+        // the descriptor at a cell centre is exactly the cell's, as `sample` reads it
+        let mut v = [0.0f32; 2];
+        sample(&out.descriptors, k.xy[5][0], k.xy[5][1], &mut v);
+        assert_eq!(v, [3.0, 2.0]);
+        let n = (9.0f32 + 4.0).sqrt();
+        assert!((k.descriptors[10] - 3.0 / n).abs() < 1e-6 && (k.descriptors[11] - 2.0 / n).abs() < 1e-6);
+        assert!(k.scores.iter().all(|&s| s == 1.0));
+    }
+}

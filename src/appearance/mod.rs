@@ -84,10 +84,11 @@ impl AppearanceModel {
         }
     }
 
-    /// Runs the network on a grey image [1, H, W] in [0, 1] (H, W multiples of 32).
+    /// Runs the network on a grey image [1, H, W] in [0, 1] (H, W multiples of 32); with dense
+    /// sampling the native XFeat skips its keypoint heads.
     pub fn run(&self, grey: &Chw) -> Result<NetOutputs> {
         match &self.net {
-            Network::XFeat(x) => Ok(x.forward(grey)),
+            Network::XFeat(x) => Ok(x.forward_with(grey, self.sampling == Sampling::Keypoints)),
             Network::Onnx { sessions, logits, reliability, descriptors } => {
                 let fail = |reason: String| Error::Model { path: self.path.clone(), reason };
                 sessions.run(|s| {

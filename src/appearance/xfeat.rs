@@ -108,6 +108,13 @@ impl XFeat {
 
     /// Runs the network on a grey image [1, H, W] (values in [0, 1]; H and W multiples of 32).
     pub fn forward(&self, grey: &Chw) -> NetOutputs {
+        self.forward_with(grey, true)
+    }
+
+    /// [`XFeat::forward`]; without `heads` only the dense descriptors are computed (what dense
+    /// sampling needs): the keypoint and reliability heads are skipped, `logits` is empty
+    /// (0 channels) and `reliability` none.
+    pub fn forward_with(&self, grey: &Chw, heads: bool) -> NetOutputs {
         assert!(grey.c == 1 && grey.h % 32 == 0 && grey.w % 32 == 0, "input must be 1 x (32k) x (32k)");
         let seq = |layers: &[Basic], x: Chw| layers.iter().fold(x, |x, l| l.run(&x));
         let mut x = grey.clone();
@@ -121,6 +128,9 @@ impl XFeat {
         let (h, w) = (x3.h, x3.w);
         let fused = x3.add(&resize_bilinear(&x4, h, w)).add(&resize_bilinear(&x5, h, w));
         let feats = self.fusion_out.run(&seq(&self.fusion, fused));
+        if !heads {
+            return NetOutputs { logits: Chw::zeros(0, feats.h, feats.w), descriptors: feats, reliability: None };
+        }
         let mut heat = self.heatmap_out.run(&seq(&self.heatmap, feats.clone()));
         heat.data.iter_mut().for_each(|v| *v = 1.0 / (1.0 + (-*v).exp()));
         let logits = self.keypoint_out.run(&seq(&self.keypoint, space_to_depth8(&x)));

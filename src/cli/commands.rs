@@ -41,6 +41,7 @@ pub fn dispatch(cli: Cli) -> Result<()> {
         Command::Tune(a) => tune_cmd(&a, &mut engine()?, quiet),
         Command::Inspect(a) => inspect_cmd(&a, quiet),
         Command::SegmenterAccuracy(a) => segacc_cmd(&a, quiet),
+        Command::BenchEncode(a) => bench_encode_cmd(&a, &mut engine()?, quiet),
         Command::Config => {
             print!("{}", Config::default().to_toml());
             Ok(())
@@ -372,6 +373,68 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     Ok(())
 }
 
+/// Two timed phases: the segmenter on every frame (labels written at full size to a temporary
+/// folder), then encoding of the frames with those label maps: everything but segmentation.
+fn bench_encode_cmd(a: &BenchEncodeArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
+    use semlook::encode::StageTimes;
+    let cfg = apply_models(load_config(a.config.as_deref())?, &a.models);
+    let images: Vec<_> = semlook::dataset::image_files(&a.images)?.into_iter().take(a.frames).collect();
+    if images.is_empty() {
+        return Err(Error::invalid(a.images.display().to_string(), "no images"));
+    }
+    let sources: Vec<FrameSource> = images.iter().map(|p| FrameSource { id: p.display().to_string(), image: Some(p.clone()), labels: None }).collect();
+    let mut encoder = Encoder::new(&cfg)?;
+    semlook::eval::train_codebook(&mut encoder, &sources, quiet)?;
+    // phase 1: segmentation alone, frames in parallel, label maps at the image size
+    let tmp = std::env::temp_dir().join(format!("semlook-bench-encode-{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).map_err(|e| Error::io(&tmp, e))?;
+    let t = Instant::now();
+    let seg_times: Vec<Result<(f64, std::path::PathBuf)>> = {
+        use rayon::prelude::*;
+        sources
+            .par_iter()
+            .enumerate()
+            .map(|(i, s)| {
+                let path = s.image.clone().unwrap_or_default();
+                let rgb = semlook::input::load_rgb(&path)?;
+                let seg = encoder.segmenter_for(&path)?;
+                let t = Instant::now();
+                let labels = seg.segment(&rgb, &path)?;
+                let ms = t.elapsed().as_secs_f64() * 1e3;
+                let out = tmp.join(format!("{i:06}.png"));
+                let ids = image::GrayImage::from_fn(labels.width(), labels.height(), |x, y| image::Luma([labels.get(x, y)]));
+                ids.save(&out).map_err(|e| Error::invalid(out.display().to_string(), e.to_string()))?;
+                Ok((ms, out))
+            })
+            .collect()
+    };
+    let seg_wall = t.elapsed().as_secs_f64() * 1e3 / sources.len() as f64;
+    let mut labelled = Vec::new();
+    let mut seg_ms = Vec::new();
+    for (s, r) in sources.iter().zip(seg_times) {
+        let (ms, path) = r?;
+        seg_ms.push(StageTimes { segment_ms: ms, ..Default::default() });
+        labelled.push(FrameSource { labels: Some(path), ..s.clone() });
+    }
+    // phase 2: everything else, with those label maps (train ids: the default class table's)
+    let enc = encode_frames(engine, &encoder, &labelled, LabelFormat::Auto, "encoding", false, quiet)?;
+    let _ = std::fs::remove_dir_all(&tmp);
+    let summary = enc.summary();
+    let seg = semlook::eval::EncodingSummary::new(&seg_ms, seg_wall * sources.len() as f64);
+    let size = semlook::input::image_size(&images[0])?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&serde_json::json!({ "frames": sources.len(), "image_size": size, "backend": engine.describe(), "segmentation": seg, "everything_else": summary })).expect("serialises"));
+    } else {
+        let (m, md) = (summary.mean, summary.median);
+        println!("{} frames of {}x{}; backend {}", sources.len(), size.0, size.1, engine.describe());
+        println!("segmentation ({}): median {:.1} ms per frame, wall clock {:.1} ms per frame (frames in parallel)", encoder.segmenter().map_or("-".into(), |s| s.path().display().to_string()), seg.median.segment_ms, seg.wall_ms_per_frame);
+        println!("everything but segmentation: wall clock {:.1} ms per frame (frames in parallel)", summary.wall_ms_per_frame);
+        println!("  per frame, median (mean): decode+resize {:.1} ({:.1}) | edges+EDT+pool {:.1} ({:.1}) | objects+forest {:.1} ({:.1}) | appearance {:.1} ({:.1}), of which network {:.1} ({:.1}) | sum {:.1} ({:.1})",
+            md.decode_ms, m.decode_ms, md.global_ms, m.global_ms, md.forest_ms, m.forest_ms, md.appearance_ms, m.appearance_ms, md.network_ms, m.network_ms, md.without_segmentation_ms(), m.without_segmentation_ms());
+    }
+    Ok(())
+}
+
 fn segacc_cmd(a: &SegAccArgs, quiet: bool) -> Result<()> {
     let base = if a.camvid { Config::camvid() } else { load_config(a.config.as_deref())? };
     let cfg = apply_models(base, &a.models);
@@ -458,18 +521,25 @@ fn bench_cmd(a: &BenchArgs, quiet: bool) -> Result<()> {
     for e in &engines {
         info(quiet, format!("backend: {}", e.describe()));
     }
+    let opts = semlook::bench::BenchOptions {
+        sizes: a.sizes.clone(),
+        batches: a.batches.clone(),
+        max_row_seconds: a.max_row_seconds,
+        resident_limit: semlook::bench::RESIDENT_LIMIT,
+        gpu_peak_gflops: a.peak_gflops,
+    };
     let mut shown = false;
-    let rows = semlook::bench::run(&pool, &queries, &a.sizes, &a.batches, &mut engines, a.seconds, &cfg, &mut |r| {
-        if !quiet && !a.json {
+    let rows = semlook::bench::run(&pool, &queries, &opts, &mut engines, &cfg, &mut |r| {
+        if a.json {
+            println!("{}", serde_json::to_string(r).expect("a row serialises"));
+        } else if !quiet {
             let t = semlook::bench::table(std::slice::from_ref(r));
             eprint!("{}", if shown { t.lines().nth(1).unwrap_or("").to_string() + "\n" } else { t });
             shown = true;
         }
     })?;
-    if a.json {
-        println!("{}", serde_json::to_string_pretty(&rows).expect("serialises"));
-    } else {
-        print!("{}", semlook::bench::table(&rows));
+    if !a.json {
+        print!("{}{}", semlook::bench::table(&rows), semlook::bench::legend(&rows));
     }
     Ok(())
 }

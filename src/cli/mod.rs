@@ -41,6 +41,10 @@ pub enum Command {
     Config,
     /// Sweep configuration values over datasets and tabulate Recall@1 and AUC per setting.
     Tune(TuneArgs),
+    /// Encoding speed on real images: segmentation, then everything else (decoding at the
+    /// working size, edges, EDT, objects, forest, keypoint network, VLAD), per-stage medians and
+    /// wall clock per frame with frames in parallel.
+    BenchEncode(BenchEncodeArgs),
     /// Accuracy of the segmenter against real label maps (pixel accuracy, IoU per class, mean IoU).
     SegmenterAccuracy(SegAccArgs),
     /// Pictures of every stage for one frame: image, labels, semantic edges, truncated EDT, global
@@ -49,6 +53,22 @@ pub enum Command {
     /// Large-map batch matching benchmark: coarse matching throughput and peak memory for maps of
     /// 1k to 1M references and query batches of 100 and 1000, on the CPU and on the GPU.
     Bench(BenchArgs),
+}
+
+#[derive(Args)]
+pub struct BenchEncodeArgs {
+    /// Folder of images (png/jpg).
+    #[arg(long)]
+    pub images: PathBuf,
+    /// At most this many frames.
+    #[arg(long, default_value_t = 60)]
+    pub frames: usize,
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub models: ModelArgs,
 }
 
 #[derive(Args)]
@@ -116,19 +136,25 @@ pub struct TuneArgs {
 
 #[derive(Args)]
 pub struct BenchArgs {
-    /// Map sizes (references); sizes above 10,000 are streamed synthetic maps.
-    #[arg(long, value_delimiter = ',', default_value = "1000,10000,100000,1000000")]
+    /// Map sizes (references); sizes above 10,000 are synthetic maps served from one block of
+    /// real descriptors (see `semlook::bench`).
+    #[arg(long, value_delimiter = ',', default_value = "1000,10000,100000")]
     pub sizes: Vec<usize>,
-    /// Query batch sizes.
+    /// Query batch sizes; every row runs its whole batch.
     #[arg(long, value_delimiter = ',', default_value = "100,1000")]
     pub batches: Vec<usize>,
-    /// Time budget per configuration (seconds); a configuration runs as many of its batch's
-    /// queries as fit (at least one) and reports how many.
-    #[arg(long, default_value_t = 10.0)]
-    pub seconds: f64,
+    /// Rows predicted (by an untimed probe) to take longer than this are not run, and the table
+    /// says so; no row runs part of its batch.
+    #[arg(long, default_value_t = 600.0)]
+    pub max_row_seconds: f64,
+    /// The GPU's FP32 peak in GFLOP/s, for the fraction of peak where the built-in table does not
+    /// know the adapter.
+    #[arg(long)]
+    pub peak_gflops: Option<f64>,
     /// Leave the GPU out (by default every configuration also runs on the GPU when there is one).
     #[arg(long)]
     pub cpu_only: bool,
+    /// One JSON object per row and line (JSON Lines), as rows finish.
     #[arg(long)]
     pub json: bool,
 }

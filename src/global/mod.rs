@@ -8,6 +8,7 @@ pub mod edt;
 pub mod global_pool;
 pub mod semantic_edges;
 pub mod ssim;
+pub mod ssim_fast;
 
 use crate::config::GlobalConfig;
 use crate::error::{Error, Result};

@@ -113,3 +113,22 @@ impl CoarseMatcherGpu {
         })?
     }
 }
+
+/// Runs the `topk_merge` kernel alone: folds `scores` (tile scores, query-major) into the K-lists
+/// `top_s` / `top_i` (queries x k, best first) and reads them back. It lets tests feed the
+/// kernel scores no SSIM produces (NaN) and compare with its twin `ssim_topk::topk_merge`.
+pub fn merge_scores(ctx: &GpuContext, tp: &TileParams, scores: &[f32], top_s: &[f32], top_i: &[u32]) -> Result<(Vec<f32>, Vec<u32>), GpuError> {
+    let n = tp.queries as usize * tp.k as usize;
+    ctx.scoped("merging scores", || -> Result<(Vec<f32>, Vec<u32>), GpuError> {
+        let upload = |label: &str, data: &[u8]| {
+            let b = ctx.storage(label, data.len() as u64);
+            ctx.queue.write_buffer(&b, 0, data);
+            b
+        };
+        let (sb, tsb, tib) = (upload("scores", bytemuck::cast_slice(scores)), upload("top-k scores", bytemuck::cast_slice(&top_s[..n])), upload("top-k indices", bytemuck::cast_slice(&top_i[..n])));
+        let tpb = ctx.uniform("tile params", tp);
+        let g = ctx.kernels.topk_merge.bind(&ctx.device, &[&tpb, &sb, &tsb, &tib]);
+        ctx.run("topk merge", &[(&ctx.kernels.topk_merge.pipeline, &g, [tp.queries.div_ceil(64), 1, 1])]);
+        Ok((ctx.read_back_values(&tsb, n)?, ctx.read_back_values(&tib, n)?))
+    })?
+}

@@ -97,6 +97,61 @@ pub enum LabelFormat {
 
 fn read_image(path: &Path) -> Result<DynamicImage> {
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    decode_bytes(bytes, path)
+}
+
+/// An RGB image brought to `width` x `height` (area-weighted when shrinking; the same image when
+/// the size is already right).
+pub fn resize_rgb(img: &RgbImage, width: u32, height: u32) -> RgbImage {
+    if (img.width(), img.height()) == (width, height) {
+        return img.clone();
+    }
+    image::imageops::resize(img, width, height, image::imageops::FilterType::Triangle)
+}
+
+/// Reads an RGB image at no less than `min(full size)` (width, height) where the format lets
+/// the decoder skip detail: a JPEG is decoded by its DCT at the smallest of 1/8, 1/4, 1/2 or
+/// full scale that is at least that size on both sides (jpeg-decoder's scaled IDCT), which costs
+/// a fraction of a full decode for a large frame. Other formats decode in full. Returns the
+/// image and the size of the full image.
+pub fn load_rgb_at_least(path: &Path, min: impl Fn((u32, u32)) -> (u32, u32)) -> Result<(RgbImage, (u32, u32))> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    if bytes.starts_with(&[0xFF, 0xD8]) {
+        if let Some(r) = decode_jpeg_scaled(&bytes, path, &min)? {
+            return Ok(r);
+        }
+    }
+    let img = decode_bytes(bytes, path)?.to_rgb8();
+    let size = img.dimensions();
+    Ok((img, size))
+}
+
+/// A JPEG decoded at a reduced scale, or `None` for the pixel formats left to the image crate.
+fn decode_jpeg_scaled(bytes: &[u8], path: &Path, min: &dyn Fn((u32, u32)) -> (u32, u32)) -> Result<Option<(RgbImage, (u32, u32))>> {
+    let bad = |e: jpeg_decoder::Error| Error::ImageDecode { path: path.into(), reason: e.to_string() };
+    let mut d = jpeg_decoder::Decoder::new(std::io::Cursor::new(bytes));
+    d.read_info().map_err(bad)?;
+    let info = d.info().ok_or_else(|| Error::ImageDecode { path: path.into(), reason: "no JPEG header".into() })?;
+    let full = (info.width as u32, info.height as u32);
+    if full.0 == 0 || full.1 == 0 {
+        return Err(Error::EmptyImage { path: path.into(), width: full.0, height: full.1 });
+    }
+    let min = min(full);
+    let req = (min.0.clamp(1, full.0) as u16, min.1.clamp(1, full.1) as u16);
+    let (w, h) = d.scale(req.0, req.1).map_err(bad)?;
+    let pixels = d.decode().map_err(bad)?;
+    let format = d.info().map(|i| i.pixel_format);
+    let (w, h) = (w as u32, h as u32);
+    let img = match format {
+        Some(jpeg_decoder::PixelFormat::RGB24) => RgbImage::from_raw(w, h, pixels),
+        Some(jpeg_decoder::PixelFormat::L8) => RgbImage::from_raw(w, h, pixels.iter().flat_map(|&v| [v, v, v]).collect()),
+        _ => return Ok(None),
+    };
+    let img = img.ok_or_else(|| Error::ImageDecode { path: path.into(), reason: "decoded JPEG has the wrong number of pixels".into() })?;
+    Ok(Some((img, full)))
+}
+
+fn decode_bytes(bytes: Vec<u8>, path: &Path) -> Result<DynamicImage> {
     if bytes.is_empty() {
         return Err(Error::EmptyImage { path: path.into(), width: 0, height: 0 });
     }
@@ -109,15 +164,6 @@ fn read_image(path: &Path) -> Result<DynamicImage> {
         return Err(Error::EmptyImage { path: path.into(), width: img.width(), height: img.height() });
     }
     Ok(img)
-}
-
-/// An RGB image brought to `width` x `height` (area-weighted when shrinking; the same image when
-/// the size is already right).
-pub fn resize_rgb(img: &RgbImage, width: u32, height: u32) -> RgbImage {
-    if (img.width(), img.height()) == (width, height) {
-        return img.clone();
-    }
-    image::imageops::resize(img, width, height, image::imageops::FilterType::Triangle)
 }
 
 /// Reads an RGB image (png or jpeg); alpha is dropped, grey is expanded.
@@ -237,6 +283,27 @@ pub fn image_size(path: &Path) -> Result<(u32, u32)> {
 mod tests {
     use super::*;
     use image::{GrayImage, Luma, Rgb};
+
+    #[test]
+    fn jpegs_decode_at_the_smallest_scale_that_covers_the_request() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("f.jpg");
+        let img = RgbImage::from_fn(800, 600, |x, y| Rgb([(x % 256) as u8, (y % 256) as u8, 128]));
+        img.save(&p).unwrap();
+        // 1/2 scale (400 x 300) covers 350 x 250; 1/4 (200 x 150) would not
+        let (half, full) = load_rgb_at_least(&p, |_| (350, 250)).unwrap();
+        assert_eq!((half.dimensions(), full), ((400, 300), (800, 600)));
+        let (whole, _) = load_rgb_at_least(&p, |f| f).unwrap();
+        assert_eq!(whole.dimensions(), (800, 600));
+        // the scaled decode is a faithful small version of the image
+        let small = resize_rgb(&whole, 400, 300);
+        let diff: f64 = small.pixels().zip(half.pixels()).map(|(a, b)| (a.0[0] as f64 - b.0[0] as f64).abs()).sum::<f64>() / (400.0 * 300.0);
+        assert!(diff < 6.0, "mean difference {diff}");
+        // PNGs decode in full whatever the request
+        let q = dir.path().join("f.png");
+        img.save(&q).unwrap();
+        assert_eq!(load_rgb_at_least(&q, |_| (10, 10)).unwrap().0.dimensions(), (800, 600));
+    }
 
     #[test]
     fn working_size_and_nearest_resize() {

@@ -7,6 +7,7 @@
 //!   whole map when the setting has no coarse stage), best first.
 
 pub mod baseline;
+pub mod coarse_cpu;
 pub mod source;
 pub mod ssim_topk;
 
@@ -149,7 +150,7 @@ impl Stages for CpuStages {
     /// Tree similarities of all queries against one tile of references at a time, folded into
     /// the per-query top-K by `topk_merge`, as the GPU path does.
     fn fine_topk(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
-        Ok(stream_topk(queries.len(), refs.len(), k, tile, |tp, scores| {
+        Ok(stream_topk(queries.len(), refs.len(), k, tile, ssim_topk::topk_merge, |tp, scores| {
             let (start, t) = (tp.tile_start as usize, tp.tile_len as usize);
             scores.par_iter_mut().enumerate().for_each_init(TreeSimScratch::default, |scratch, (i, s)| {
                 *s = tree_similarity(p, queries.forest(i / t), refs.forest(start + i % t), scratch);
@@ -228,19 +229,36 @@ pub fn match_with(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &Descr
 }
 
 /// Coarse stage on the CPU: for each query, the `k` references of highest SSIM, streamed over
-/// tiles of `tile` references (the twin of the GPU kernels, tile by tile).
+/// tiles of `tile` references, scored by the fast path ([`coarse_cpu::CoarseCpu`]; the same
+/// scores as the twin, bit for bit).
 pub fn coarse_topk(refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimParams, k: usize, tile: usize) -> Vec<Vec<(f32, u32)>> {
+    let mut exec = coarse_cpu::CoarseCpu::new(p);
+    exec.prepare(&queries.global_stats, queries.len());
     let mut buf = source::TileBuf::default();
-    stream_topk(queries.len(), refs.len(), k, tile, |tp, scores| {
+    stream_topk(queries.len(), refs.len(), k, tile, ssim_topk::topk_merge_ref_major, |tp, scores| {
+        let (start, end) = (tp.tile_start as usize, (tp.tile_start + tp.tile_len) as usize);
+        let (g, st) = refs.tile(start, end, &mut buf);
+        exec.score_tile(&queries.globals, g, st, scores);
+    })
+}
+
+/// The coarse stage through the GPU kernels' CPU twins (`ssim_tile`, `topk_merge`), tile by
+/// tile: the reference the fast path and the GPU path are held to.
+pub fn coarse_topk_twin(refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimParams, k: usize, tile: usize) -> Vec<Vec<(f32, u32)>> {
+    let mut buf = source::TileBuf::default();
+    stream_topk(queries.len(), refs.len(), k, tile, ssim_topk::topk_merge, |tp, scores| {
         let (start, end) = (tp.tile_start as usize, (tp.tile_start + tp.tile_len) as usize);
         let (g, st) = refs.tile(start, end, &mut buf);
         ssim_topk::ssim_tile(p, tp, &queries.globals, &queries.global_stats, g, st, scores);
     })
 }
 
+/// A function folding one tile's scores into the K-lists (`topk_merge` or its reference-major form).
+type Merge = fn(&ssim_topk::TileParams, &[f32], &mut [f32], &mut [u32]);
+
 /// The CPU streaming top-K over a map of `n` references: per tile of at most `tile` references,
-/// `score` fills the queries x tile scores, which `topk_merge` folds into each query's K-list.
-pub(crate) fn stream_topk(nq: usize, n: usize, k: usize, tile: usize, mut score: impl FnMut(&ssim_topk::TileParams, &mut [f32])) -> Vec<Vec<(f32, u32)>> {
+/// `score` fills the queries x tile scores, which `merge` folds into each query's K-list.
+pub(crate) fn stream_topk(nq: usize, n: usize, k: usize, tile: usize, merge: Merge, mut score: impl FnMut(&ssim_topk::TileParams, &mut [f32])) -> Vec<Vec<(f32, u32)>> {
     let tile = tile.max(1).min(n.max(1));
     let mut scores = vec![0.0f32; nq * tile];
     let mut top_s = vec![ssim_topk::EMPTY_SCORE; nq * k];
@@ -250,7 +268,7 @@ pub(crate) fn stream_topk(nq: usize, n: usize, k: usize, tile: usize, mut score:
         let end = (start + tile).min(n);
         let tp = ssim_topk::TileParams { queries: nq as u32, tile_len: (end - start) as u32, tile_start: start as u32, k: k as u32 };
         score(&tp, &mut scores[..nq * (end - start)]);
-        ssim_topk::topk_merge(&tp, &scores, &mut top_s, &mut top_i);
+        merge(&tp, &scores[..nq * (end - start)], &mut top_s, &mut top_i);
         start = end;
     }
     ssim_topk::topk_lists(k, &top_s, &top_i)

@@ -43,25 +43,40 @@ pub fn ssim_tile(p: &SsimParams, tp: &TileParams, queries: &[f32], query_stats: 
 
 /// Bindings: `tp`, `scores`, `topk_scores`, `topk_index` (queries x k, best first, initialised to
 /// EMPTY_SCORE / EMPTY_INDEX). One invocation per query: insertion of every better score, ties
-/// kept in favour of the lower (earlier) reference index.
+/// kept in favour of the lower (earlier) reference index; NaN scores are skipped.
 pub fn topk_merge(tp: &TileParams, scores: &[f32], topk_scores: &mut [f32], topk_index: &mut [u32]) {
     let (k, t) = (tp.k as usize, tp.tile_len as usize);
     topk_scores.par_chunks_mut(k).zip(topk_index.par_chunks_mut(k)).enumerate().take(tp.queries as usize).for_each(|(q, (ts, ti))| {
-        for j in 0..t {
-            let s = scores[q * t + j];
-            if s <= ts[k - 1] || s.is_nan() {
-                continue;
-            }
-            let mut pos = k - 1;
-            while pos > 0 && ts[pos - 1] < s {
-                ts[pos] = ts[pos - 1];
-                ti[pos] = ti[pos - 1];
-                pos -= 1;
-            }
-            ts[pos] = s;
-            ti[pos] = tp.tile_start + j as u32;
-        }
+        fold(tp.tile_start, (0..t).map(|j| scores[q * t + j]), ts, ti);
     });
+}
+
+/// `topk_merge` for scores laid out reference-major (`scores[j * queries + q]`), as the fast CPU
+/// coarse path writes them (CPU only).
+pub fn topk_merge_ref_major(tp: &TileParams, scores: &[f32], topk_scores: &mut [f32], topk_index: &mut [u32]) {
+    let (k, t, nq) = (tp.k as usize, tp.tile_len as usize, tp.queries as usize);
+    topk_scores.par_chunks_mut(k).zip(topk_index.par_chunks_mut(k)).enumerate().take(nq).for_each(|(q, (ts, ti))| {
+        fold(tp.tile_start, (0..t).map(|j| scores[j * nq + q]), ts, ti);
+    });
+}
+
+/// Folds the scores of references `tile_start, tile_start + 1, ...` into one K-list (best first):
+/// insertion of every score above the last kept one; equal scores keep the earlier reference.
+fn fold(tile_start: u32, scores: impl Iterator<Item = f32>, ts: &mut [f32], ti: &mut [u32]) {
+    let k = ts.len();
+    for (j, s) in scores.enumerate() {
+        if s <= ts[k - 1] || s.is_nan() {
+            continue;
+        }
+        let mut pos = k - 1;
+        while pos > 0 && ts[pos - 1] < s {
+            ts[pos] = ts[pos - 1];
+            ti[pos] = ti[pos - 1];
+            pos -= 1;
+        }
+        ts[pos] = s;
+        ti[pos] = tile_start + j as u32;
+    }
 }
 
 /// Reads K-lists back into (score, map index) lists, dropping empty slots.
