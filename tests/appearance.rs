@@ -176,7 +176,7 @@ fn appearance_in_maps_and_evaluation() {
     let refs: Vec<_> = ds.reference.frames.iter().map(|f| f.source.clone()).collect();
     enc.train_codebook(&refs, &|| {}).unwrap();
     let mut engine = semlook::engine::Engine::cpu();
-    let encoded = semlook::eval::encode_frames(&mut engine, &enc, &refs, ds.label_format, "refs", false, true).unwrap();
+    let encoded = semlook::batch::encode_frames(&mut engine, &enc, &refs, ds.label_format, "refs", false, true).unwrap();
     let (set, summary) = (encoded.set.clone(), encoded.summary().mean);
     assert_eq!(set.appearance_dim, 16 * 64);
     let with = set.tree_has_appearance.iter().filter(|&&p| p == 1).count();

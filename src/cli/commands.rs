@@ -9,7 +9,8 @@ use semlook::engine::Engine;
 use semlook::gpu::GpuOptions;
 use semlook::error::{Error, Result};
 use semlook::dataset::{Dataset, DatasetOptions};
-use semlook::eval::{encode_frames, evaluate, EvalOptions, EvalReport, RunRecord};
+use semlook::batch::encode_frames;
+use semlook::eval::{evaluate, EvalOptions, EvalReport, RunRecord};
 use semlook::input::FrameSource;
 use semlook::map::{DescriptorSet, Map};
 use semlook::matching::{source::RefSource, QueryMatch, Setting};
@@ -384,7 +385,7 @@ fn bench_encode_cmd(a: &BenchEncodeArgs, engine: &mut Engine, quiet: bool) -> Re
     }
     let sources: Vec<FrameSource> = images.iter().map(|p| FrameSource { id: p.display().to_string(), image: Some(p.clone()), labels: None }).collect();
     let mut encoder = Encoder::new(&cfg)?;
-    semlook::eval::train_codebook(&mut encoder, &sources, quiet)?;
+    semlook::batch::train_codebook(&mut encoder, &sources, quiet)?;
     // phase 1: segmentation alone, frames in parallel, label maps at the image size
     let tmp = std::env::temp_dir().join(format!("semlook-bench-encode-{}", std::process::id()));
     std::fs::create_dir_all(&tmp).map_err(|e| Error::io(&tmp, e))?;
@@ -420,7 +421,7 @@ fn bench_encode_cmd(a: &BenchEncodeArgs, engine: &mut Engine, quiet: bool) -> Re
     let enc = encode_frames(engine, &encoder, &labelled, LabelFormat::Auto, "encoding", false, quiet)?;
     let _ = std::fs::remove_dir_all(&tmp);
     let summary = enc.summary();
-    let seg = semlook::eval::EncodingSummary::new(&seg_ms, seg_wall * sources.len() as f64);
+    let seg = semlook::batch::EncodingSummary::new(&seg_ms, seg_wall * sources.len() as f64);
     let size = semlook::input::image_size(&images[0])?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&serde_json::json!({ "frames": sources.len(), "image_size": size, "backend": engine.describe(), "segmentation": seg, "everything_else": summary })).expect("serialises"));

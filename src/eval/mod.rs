@@ -7,7 +7,7 @@
 pub mod metrics;
 pub mod segmenter;
 
-pub use crate::batch::{encode_frames, train_codebook, EncodedFrames, EncodingSummary};
+use crate::batch::{encode_frames, train_codebook, EncodingSummary};
 use crate::config::Config;
 use crate::encode::Encoder;
 use crate::engine::Engine;

@@ -2,10 +2,10 @@
 
 use super::*;
 use crate::config::GlobalConfig;
-use crate::encode::EncodedImage;
+use crate::descriptors::EncodedImage;
 use crate::global::ssim::{ssim_stats, SsimScratch};
 use crate::local::Forest;
-use crate::map::DescriptorSet;
+use crate::descriptors::DescriptorSet;
 use crate::matching::ssim_topk::{ssim_tile, TileParams};
 use crate::matching::{coarse_topk, coarse_topk_twin};
 use crate::util::SplitMix64;
