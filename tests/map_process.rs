@@ -230,3 +230,23 @@ fn remove_and_compact_from_the_command_line() {
     assert_eq!((info["images"].as_u64(), info["removed"].as_u64()), (Some(5), Some(0)));
     ok(&["map", "verify", "--map", p(&m)]);
 }
+
+#[test]
+fn map_bench_writes_opens_and_queries_a_stored_map() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = ok(&["map", "bench", "--sizes", "5000", "--passes", "3,4:1000", "--json", "--dir", p(dir.path()), "-q"]);
+    let r: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let passes = r["passes"].as_array().unwrap();
+    assert_eq!(passes.len(), 2, "{out}");
+    for (row, (queries, refs)) in passes.iter().zip([(3, 5000), (4, 1000)]) {
+        assert_eq!((row["map_size"].as_u64(), row["segments"].as_u64()), (Some(5000), Some(2)), "{row}");
+        assert_eq!((row["queries"].as_u64(), row["refs_scored"].as_u64()), (Some(queries), Some(refs)), "{row}");
+        for field in ["build_s", "build_peak_rss_mib", "open_ms", "query_s", "query_peak_rss_anon_mib", "query_peak_rss_mib", "bytes_per_reference"] {
+            let v = row[field].as_f64().unwrap_or(f64::NAN);
+            assert!(v.is_finite() && v > 0.0, "{field} = {v} in {row}");
+        }
+        // the pass's anonymous memory is part of its total
+        assert!(row["query_peak_rss_anon_mib"].as_f64() <= row["query_peak_rss_mib"].as_f64(), "{row}");
+    }
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0, "the benchmark map was not deleted");
+}
