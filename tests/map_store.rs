@@ -326,6 +326,47 @@ fn segmented_maps_stream_and_match_like_one_set() {
     }
 }
 
+/// `set` with synthetic appearance: unit vectors of `dim` values per tree (every fifth tree
+/// without) and per image.
+fn with_appearance(mut set: DescriptorSet, dim: usize, seed: u64) -> DescriptorSet {
+    let mut rng = semlook::util::SplitMix64::new(seed);
+    let mut unit = |n: usize| -> Vec<f32> {
+        let v: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0) as f32).collect();
+        let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+        v.iter().map(|x| x / norm).collect()
+    };
+    let t = set.n_trees();
+    set.appearance_dim = dim;
+    set.tree_appearance = (0..t).flat_map(|_| unit(dim)).collect();
+    set.tree_has_appearance = (0..t).map(|k| u8::from(k % 5 != 4)).collect();
+    set.image_appearance = (0..set.len()).flat_map(|_| unit(dim)).collect();
+    set
+}
+
+#[test]
+fn an_f16_map_with_appearance_matches_like_its_widened_set() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m");
+    let cfg = Config::without_appearance();
+    // 300 values: more than one block of the f16 dot product
+    let set = with_appearance(common::encode(&cfg, &common::label_maps(8, 80, 60), "r"), 300, 1);
+    let queries = with_appearance(common::encode(&cfg, &common::label_maps(8, 80, 60)[2..5], "q"), 300, 2);
+    let codebook = semlook::appearance::vlad::Codebook { k: 3, dim: 100, centres: vec![0.0; 300] };
+    let map = Map::create_with(&path, &cfg.encoding(), &set, Some((&codebook, "test-network")), StoreOptions { values: ValueType::F16, segment_images: 3, ..Default::default() }).unwrap();
+    let wide = map.to_descriptor_set().unwrap();
+    let mut rounded = set.tree_appearance.clone();
+    semlook::values::round_through_f16(&mut rounded);
+    assert_eq!(bits(&wide.tree_appearance), bits(&rounded));
+    assert_ne!(bits(&wide.tree_appearance), bits(&set.tree_appearance), "f16 should round appearance values");
+    // matching reads f16 straight from the mapped files: the same scores, bit for bit, as the
+    // widened f32 set
+    for setting in [Setting::Local, Setting::Semlook, Setting::Appearance] {
+        let (a, b) = (ranked(&map, &queries, setting, &cfg), ranked(&wide, &queries, setting, &cfg));
+        assert!(a.iter().all(|l| !l.is_empty()));
+        assert_eq!(a, b, "{setting}");
+    }
+}
+
 /// Ids and scores of every query's ranked list.
 fn ranked(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Vec<Vec<(String, u32)>> {
     match_batch(refs, queries, setting, cfg).0.iter().map(|m| m.ranked.iter().map(|c| (refs.id(c.reference as usize).to_string(), c.score.to_bits())).collect()).collect()
