@@ -42,6 +42,12 @@ struct FinePass {
     ref_first: u32,
     // listed passes: where this pass's pairs start after the query spans
     list_first: u32,
+    // workgroups per row of the dispatch grid (pair = x + y * row)
+    row: u32,
+    // where this pass's scores start in `out`
+    out_first: u32,
+    _pad0: u32,
+    _pad1: u32,
 }
 
 struct Tree {
@@ -181,7 +187,7 @@ fn pair_score(pr: Pair, cos_base: u32, t: u32, u: u32) -> f32 {
 
 @compute @workgroup_size(64, 1, 1)
 fn tree_similarity(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) lane: u32) {
-    let pi = wg.x + wg.y * 65535u;
+    let pi = wg.x + wg.y * fp.row;
     let valid = pi < fp.pairs;
     var pr = Pair(0u, 0u, 0u, 0u);
     if (valid) {
@@ -300,9 +306,9 @@ fn tree_similarity(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocati
             norm = sqrt(sq * sr);
         }
         if (n == 0u || norm <= 0.0) {
-            out[pi] = 0.0;
+            out[fp.out_first + pi] = 0.0;
         } else {
-            out[pi] = total / norm;
+            out[fp.out_first + pi] = total / norm;
         }
     }
 }

@@ -1,0 +1,1 @@
+//! The fine stage on the device.

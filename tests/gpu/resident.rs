@@ -1,0 +1,1 @@
+//! The map resident on the device.
