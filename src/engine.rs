@@ -59,6 +59,24 @@ impl GpuStages {
         self.coarse.as_ref().is_some_and(|c| c.1.map_is_resident())
     }
 
+    /// Whether the last fine-stage map's forests were kept resident (false: streamed).
+    pub fn fine_map_is_resident(&self) -> bool {
+        self.fine.map_is_resident()
+    }
+
+    /// Bytes of the last maps on the device: (coarse descriptors and statistics, fine packed
+    /// forests).
+    pub fn map_bytes(&self) -> (u64, u64) {
+        (self.coarse.as_ref().map_or(0, |c| c.1.map_bytes()), self.fine.map_bytes())
+    }
+
+    /// Uploads `refs` as the coarse stage's map for SSIM parameters `p` ahead of a batch (the
+    /// first batch against a map would otherwise upload it); true if it is kept resident, false
+    /// if it is beyond the budget and will be streamed with every batch.
+    pub fn upload_coarse_map(&mut self, refs: &dyn GlobalSource, p: &SsimParams) -> Result<bool> {
+        Ok(self.coarse_for(p)?.upload_map(refs)?)
+    }
+
     /// Kernel time since the last call, from timestamp queries (`None` without them).
     pub fn take_kernel_seconds(&self) -> Result<Option<f64>> {
         Ok(self.ctx.take_kernel_seconds()?)

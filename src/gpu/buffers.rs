@@ -43,7 +43,7 @@ pub(crate) struct PassBuffer<T> {
 
 impl<T: bytemuck::Pod> PassBuffer<T> {
     pub fn new(ctx: &GpuContext) -> Self {
-        PassBuffer { buf: None, stride: (std::mem::size_of::<T>() as u64).next_multiple_of(ctx.uniform_align() as u64), _t: std::marker::PhantomData }
+        PassBuffer { buf: None, stride: (std::mem::size_of::<T>() as u64).next_multiple_of(ctx.uniform_offset_alignment() as u64), _t: std::marker::PhantomData }
     }
 
     /// Writes `entries` (one write; the buffer regrows when a batch has more passes).

@@ -71,6 +71,11 @@ impl CoarseMatcherGpu {
         (self.ctx.binding_limit() as usize / (self.p.len().max(self.p.stats_len()) * 4)).max(1)
     }
 
+    /// Bytes of the last map's descriptors and SSIM statistics on the device (or streamed through it).
+    pub fn map_bytes(&self) -> u64 {
+        self.map.bytes()
+    }
+
     /// Whether the last map was kept resident (false: it was streamed).
     pub fn map_is_resident(&self) -> bool {
         !self.map.is_streaming()
@@ -108,13 +113,11 @@ impl CoarseMatcherGpu {
         Ok((qc, pass as usize))
     }
 
-    /// The `k` best references of every query, best first (ties to the lower index).
-    pub fn topk(&mut self, queries: &DescriptorSet, refs: &dyn GlobalSource, k: usize) -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
-        let (nq, n) = (queries.len(), refs.len());
-        if nq == 0 || n == 0 || k == 0 {
-            return Ok(vec![Vec::new(); nq]);
-        }
-        let (qc, pass_refs) = self.plan(k)?;
+    /// Makes `refs` the map on the device: uploads it (once per [`SourceKey`]) when it fits the
+    /// budget, else prepares to stream it. A batch against the same map afterwards uploads none
+    /// of it; [`CoarseMatcherGpu::topk`] calls this itself. Returns whether the map is resident.
+    pub fn upload_map(&mut self, refs: &dyn GlobalSource) -> Result<bool, GpuError> {
+        let n = refs.len();
         let chunk = self.chunk_len();
         let (lb, sb) = ((self.p.len() * 4) as u64, (self.p.stats_len() * 4) as u64);
         let plans = || -> Vec<ChunkPlan> {
@@ -127,9 +130,22 @@ impl CoarseMatcherGpu {
                 .collect()
         };
         let ctx = self.ctx.clone();
+        let bind = |b: &[&wgpu::Buffer]| ctx.kernels.ssim_block.bind_group(&ctx.device, 1, b);
+        self.map.prepare(&ctx, SourceKey::of(refs), plans, &MapChunks(refs), &bind)?;
+        Ok(self.map_is_resident())
+    }
+
+    /// The `k` best references of every query, best first (ties to the lower index).
+    pub fn topk(&mut self, queries: &DescriptorSet, refs: &dyn GlobalSource, k: usize) -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
+        let (nq, n) = (queries.len(), refs.len());
+        if nq == 0 || n == 0 || k == 0 {
+            return Ok(vec![Vec::new(); nq]);
+        }
+        let (qc, pass_refs) = self.plan(k)?;
+        self.upload_map(refs)?;
+        let ctx = self.ctx.clone();
         let data = MapChunks(refs);
         let bind = |b: &[&wgpu::Buffer]| ctx.kernels.ssim_block.bind_group(&ctx.device, 1, b);
-        self.map.prepare(&ctx, SourceKey::of(refs), plans, &data, &bind)?;
         let mut lists = Vec::with_capacity(nq);
         for q0 in (0..nq).step_by(qc) {
             let q1 = (q0 + qc).min(nq);

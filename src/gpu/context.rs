@@ -210,8 +210,8 @@ impl GpuContext {
         self.max_workgroups
     }
 
-    /// Alignment of dynamic offsets into a uniform buffer.
-    pub(crate) fn uniform_align(&self) -> u32 {
+    /// Alignment of dynamic offsets into a uniform buffer: the stride of per-pass parameters.
+    pub fn uniform_offset_alignment(&self) -> u32 {
         self.uniform_align
     }
 

@@ -55,6 +55,11 @@ impl FineMatcherGpu {
         FineMatcherGpu { ctx, map: Resident::default(), planned: None, lookup: Reused::default(), q_trees: Reused::default(), q_app: Reused::default(), scratch: Reused::default(), out: Reused::default(), passes, topk_passes, topk: TopK::default() }
     }
 
+    /// Bytes of the last map's packed forests on the device (or streamed through it).
+    pub fn map_bytes(&self) -> u64 {
+        self.map.bytes()
+    }
+
     /// Whether the last map's forests were kept resident (false: streamed).
     pub fn map_is_resident(&self) -> bool {
         !self.map.is_streaming()
@@ -230,7 +235,7 @@ impl FineMatcherGpu {
             };
             let mut i = 0;
             for c in 0..self.map.chunk_count() {
-                if !w.passes[i..].first().is_some_and(|e| e.0 == c) {
+                if w.passes[i..].first().is_none_or(|e| e.0 != c) {
                     continue;
                 }
                 let chunk = self.map.chunk(&ctx, c, &data, &bind)?;

@@ -52,3 +52,42 @@ pub fn merge_scores(ctx: &GpuContext, tp: &TileParams, scores: &[f32], top_s: &[
         Ok((ctx.read_back_values(&tsb, n)?, ctx.read_back_values(&tib, n)?))
     })?
 }
+
+/// The parallel top-K kernels alone (`topk_partial`, `topk_merge_lists`) on given scores
+/// (queries x n, query-major), in passes of `pass` references: the device side of
+/// `topk_select`'s twin, fed scores no SSIM produces (NaN, infinities, exact ties).
+pub fn select_topk(ctx: &GpuContext, scores: &[f32], nq: usize, k: usize, pass: usize) -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
+    use super::buffers::{PassBuffer, Reused};
+    use super::topk::{TopK, MAX_PASS_REFS};
+    use crate::matching::ssim_block::PassParams;
+    use crate::matching::topk_select::SEG;
+    let n = scores.len() / nq.max(1);
+    let pass = pass.clamp(1, MAX_PASS_REFS);
+    let starts: Vec<usize> = (0..n).step_by(pass).collect();
+    let entries: Vec<PassParams> = starts
+        .iter()
+        .enumerate()
+        .map(|(i, &s)| {
+            let refs = pass.min(n - s);
+            PassParams { queries: nq as u32, refs: refs as u32, ref_index: s as u32, k: k as u32, segs: refs.div_ceil(SEG) as u32, parity: (i % 2) as u32, ..Default::default() }
+        })
+        .collect();
+    let (mut topk, mut passes, mut block) = (TopK::default(), PassBuffer::new(ctx), Reused::default());
+    ctx.scoped("selecting top-k lists", || -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
+        let pbuf = passes.write(ctx, &entries);
+        let sbuf = block.get(ctx, "scores", (nq * pass * 4) as u64).clone();
+        let group = topk.begin(ctx, nq, k, pass, pbuf, &sbuf);
+        for (i, ps) in entries.iter().enumerate() {
+            let s = starts[i];
+            let rows: Vec<f32> = (0..nq).flat_map(|q| scores[q * n + s..q * n + s + ps.refs as usize].iter().copied()).collect();
+            ctx.write(&sbuf, 0, bytemuck::cast_slice(&rows));
+            let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("top-k pass") });
+            {
+                let mut cp = ctx.begin_pass(&mut enc, "top-k pass")?;
+                TopK::record(ctx, &mut cp, &group, passes.offset(i), ps);
+            }
+            ctx.queue.submit([enc.finish()]);
+        }
+        topk.read(ctx, nq, k, (entries.len() % 2) as u32)
+    })?
+}

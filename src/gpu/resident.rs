@@ -54,6 +54,11 @@ impl Resident {
         self.key.is_none() && !self.plans.is_empty()
     }
 
+    /// Bytes of the map being served (all its chunks' buffers).
+    pub fn bytes(&self) -> u64 {
+        self.plans.iter().flat_map(|p| &p.bytes).sum()
+    }
+
     /// The chunks of the map being served.
     pub fn plans(&self) -> &[ChunkPlan] {
         &self.plans

@@ -4,6 +4,7 @@
 
 #[path = "../common/mod.rs"]
 mod common;
+mod bench;
 mod fine;
 mod resident;
 
@@ -352,7 +353,10 @@ fn auto_prefers_hardware_and_falls_back_with_a_reason() {
     assert!(engine.describe().starts_with(if engine.is_gpu() { "gpu:" } else { "cpu" }));
 }
 
-fn random_vlad_frames(k: usize, d: usize, seed: u64) -> (semlook::appearance::vlad::Codebook, Vec<(Vec<f32>, Vec<u32>)>) {
+/// Per frame: descriptors and per-object offsets.
+type VladFrames = Vec<(Vec<f32>, Vec<u32>)>;
+
+fn random_vlad_frames(k: usize, d: usize, seed: u64) -> (semlook::appearance::vlad::Codebook, VladFrames) {
     let mut rng = SplitMix64::new(seed);
     let centres: Vec<f32> = (0..k * d).map(|_| rng.normal() as f32).collect();
     let frames = (0..3)
