@@ -5,7 +5,7 @@
 mod common;
 
 use semlook::appearance::{network_input, AppearanceModel};
-use semlook::config::{AppearanceConfig, AppearanceModelKind, ModelPaths};
+use semlook::config::{AppearanceConfig, AppearanceModelKind, ModelPaths, Sampling};
 use std::path::{Path, PathBuf};
 
 fn shared(rel: &str) -> Option<PathBuf> {
@@ -18,9 +18,15 @@ fn shared(rel: &str) -> Option<PathBuf> {
     }
 }
 
+/// Keypoint sampling: these tests hold the keypoint heads and their decoding (the default,
+/// dense sampling, skips those heads).
+fn keypoint_config() -> AppearanceConfig {
+    AppearanceConfig { sampling: Sampling::Keypoints, ..Default::default() }
+}
+
 /// The native model from the setup folder (required under CI).
 fn native() -> Option<AppearanceModel> {
-    match AppearanceModel::load(&AppearanceConfig::default(), &ModelPaths::default()) {
+    match AppearanceModel::load(&keypoint_config(), &ModelPaths::default()) {
         Ok(m) => m,
         Err(e) if std::env::var_os("CI").is_none() => {
             eprintln!("SKIPPED: {e}");
@@ -31,7 +37,7 @@ fn native() -> Option<AppearanceModel> {
 }
 
 fn onnx(model: &Path) -> Option<AppearanceModel> {
-    let cfg = AppearanceConfig { model: AppearanceModelKind::Onnx, ..Default::default() };
+    let cfg = AppearanceConfig { model: AppearanceModelKind::Onnx, ..keypoint_config() };
     match AppearanceModel::load(&cfg, &ModelPaths { keypoint_onnx: Some(model.into()), ..Default::default() }) {
         Ok(m) => m,
         Err(e) if std::env::var_os("CI").is_none() => {
@@ -92,7 +98,7 @@ fn street_rgb(name: &str, w: u32, h: u32) -> Option<image::RgbImage> {
 #[test]
 fn keypoint_decoding_properties_on_a_real_frame() {
     let (Some(model), Some(rgb)) = (native(), street_rgb("frankfurt_000000_000294_leftImg8bit.png", 640, 480)) else { return };
-    let cfg = AppearanceConfig::default();
+    let cfg = keypoint_config();
     let (grey, _, _) = network_input(&rgb).unwrap();
     let out = model.run(&grey).unwrap();
     let (scores, h, w) = semlook::appearance::keypoints::score_map(&out);
@@ -178,7 +184,7 @@ fn appearance_in_maps_and_evaluation() {
     let mut engine = semlook::engine::Engine::cpu();
     let encoded = semlook::eval::encode_frames(&mut engine, &enc, &refs, ds.label_format, "refs", false, true).unwrap();
     let (set, summary) = (encoded.set.clone(), encoded.summary().mean);
-    assert_eq!(set.appearance_dim, 16 * 64);
+    assert_eq!(set.appearance_dim, 64 * 64);
     let with = set.tree_has_appearance.iter().filter(|&&p| p == 1).count();
     assert!(with * 2 > set.n_trees(), "{with} of {} trees have appearance", set.n_trees());
     assert!(summary.network_ms > 0.0 && summary.appearance_ms >= summary.network_ms);

@@ -85,7 +85,7 @@ fn appearance_through_the_cli() {
     let map = dir.path().join("map");
     ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "-q"]);
     let info: serde_json::Value = serde_json::from_str(&ok(&["map", "info", "--map", p(&map), "--json"])).unwrap();
-    assert_eq!(info["appearance_dim"], 16 * 64);
+    assert_eq!(info["appearance_dim"], 64 * 64);
     assert!(map.join("codebook.safetensors").exists());
     let labels = data.join("night/GT/LABELS/Stereo_Left/Omni_F");
     let images = data.join("night/RGB/Stereo_Left/Omni_F");

@@ -47,13 +47,16 @@ pub struct TreeSimParams {
 }
 
 impl TreeSimParams {
+    /// Parameters of `cfg`; the intrinsic and neighbour weights are normalised to sum to 1, so
+    /// identical forests score 1 whatever the weights.
     pub fn new(cfg: &SimilarityConfig, use_appearance: bool, neighbour_slots: usize) -> Self {
+        let wsum = (cfg.w_intrinsic + cfg.w_neighbours).max(f64::MIN_POSITIVE);
         TreeSimParams {
             w_area: cfg.w_area as f32,
             w_position: cfg.w_position as f32,
             w_appearance: cfg.w_appearance as f32,
-            w_intrinsic: cfg.w_intrinsic as f32,
-            w_neighbours: cfg.w_neighbours as f32,
+            w_intrinsic: (cfg.w_intrinsic / wsum) as f32,
+            w_neighbours: (cfg.w_neighbours / wsum) as f32,
             position_sigma: cfg.position_sigma as f32,
             neutral: cfg.neutral_appearance as f32,
             gaussian_position: (cfg.position == PositionSimilarity::Gaussian) as u32,
@@ -318,11 +321,11 @@ mod tests {
     #[test]
     fn neutral_appearance_when_missing() {
         let f = forest(&[(0, 0.3, 0.2, 0.5)], &[[-1, -1, -1]]);
-        let p = TreeSimParams::new(&SimilarityConfig::default(), true, 3);
+        let p = TreeSimParams::new(&SimilarityConfig::spec(), true, 3);
         let mut s = TreeSimScratch::default();
         // S_in = (1 + 1 + 0.5) / 3, S_N = 0  ->  S = 0.5 * 2.5 / 3
         assert!((tree_similarity(&p, f.as_ref(), f.as_ref(), &mut s) - 0.5 * 2.5 / 3.0).abs() < 1e-6);
-        let drop = SimilarityConfig { missing_appearance: MissingAppearance::Drop, ..Default::default() };
+        let drop = SimilarityConfig { missing_appearance: MissingAppearance::Drop, ..SimilarityConfig::spec() };
         let p = TreeSimParams::new(&drop, true, 3);
         assert!((tree_similarity(&p, f.as_ref(), f.as_ref(), &mut s) - 0.5).abs() < 1e-6);
     }
