@@ -57,7 +57,7 @@ impl Sweep {
                 axes.push((key.clone(), list.clone()));
             }
         }
-        for k in doc.keys().filter(|k| *k != "base" && *k != "values") {
+        if let Some(k) = doc.keys().find(|k| *k != "base" && *k != "values") {
             return Err(bad(format!("unknown section [{k}] (expected [base] and [values])")));
         }
         let sweep = Sweep { base: base_table, axes };
