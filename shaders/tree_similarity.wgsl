@@ -1,6 +1,9 @@
 // Batched forest-to-forest similarity. CPU twin: src/local/tree_similarity.rs
 // (`tree_similarity`: phase 1 cosines, phase 2 pair scores, phase 3 greedy assignment).
 // One workgroup per (query forest, reference forest) pair; per-pair matrices live in `scratch`.
+// The references' forests are resident on the device, one bind group (group 1) per map chunk;
+// a pass either lists its pairs (`lookup` after the query spans) or takes every query against a
+// run of the chunk's references (`grid`), which is how the whole-map top-K runs.
 
 struct TreeSimParams {
     w_area: f32,
@@ -22,14 +25,29 @@ struct TreeSimParams {
     _pad1: u32,
 }
 
-struct BatchDims {
+// One pass, at a dynamic offset of one parameter buffer.
+struct FinePass {
     // appearance vector length
     dim: u32,
-    // pairs in this dispatch
+    // pairs in this pass
     pairs: u32,
     // stride of one pair's matrices in `scratch` (max trees per forest)
     max_trees: u32,
-    _pad: u32,
+    // 1: pair pi is (query pi / refs, reference ref_first + pi % refs); 0: listed in `lookup`
+    grid: u32,
+    // queries of the batch: their spans head `lookup`
+    queries: u32,
+    // grid passes: references per query (the row length of `out`) and the first one in the chunk
+    refs: u32,
+    ref_first: u32,
+    // listed passes: where this pass's pairs start after the query spans
+    list_first: u32,
+    // workgroups per row of the dispatch grid (pair = x + y * row)
+    row: u32,
+    // where this pass's scores start in `out`
+    out_first: u32,
+    _pad0: u32,
+    _pad1: u32,
 }
 
 struct Tree {
@@ -40,7 +58,7 @@ struct Tree {
     cy: f32,
     // the tree's weight in the image similarity (TreeSimParams::tree_weight on the host)
     weight: f32,
-    nb: array<i32, 8>,
+    nb: array<i32, MAX_SLOTS>,
 }
 
 struct Pair {
@@ -51,26 +69,49 @@ struct Pair {
 }
 
 @group(0) @binding(0) var<uniform> p: TreeSimParams;
-@group(0) @binding(1) var<uniform> dims: BatchDims;
-@group(0) @binding(2) var<storage, read> pairs: array<Pair>;
+@group(0) @binding(1) var<uniform> fp: FinePass;
+// the queries' (first tree, tree count), then the listed pairs' (query, chunk reference)
+@group(0) @binding(2) var<storage, read> lookup: array<vec2<u32>>;
 @group(0) @binding(3) var<storage, read> q_trees: array<Tree>;
 @group(0) @binding(4) var<storage, read> q_app: array<f32>;
-@group(0) @binding(5) var<storage, read> r_trees: array<Tree>;
-@group(0) @binding(6) var<storage, read> r_app: array<f32>;
-@group(0) @binding(7) var<storage, read_write> scratch: array<f32>;
-@group(0) @binding(8) var<storage, read_write> out: array<f32>;
+@group(0) @binding(5) var<storage, read_write> scratch: array<f32>;
+@group(0) @binding(6) var<storage, read_write> out: array<f32>;
+// the map chunk: each reference's (first tree, tree count), its trees and their appearance
+@group(1) @binding(0) var<storage, read> r_spans: array<vec2<u32>>;
+@group(1) @binding(1) var<storage, read> r_trees: array<Tree>;
+@group(1) @binding(2) var<storage, read> r_app: array<f32>;
 
 const LANES: u32 = 64u;
+// most trees per forest (the workgroup's row and column flags)
+const MAX_TREES: u32 = 256u;
+// most neighbour slots of a tree record
+const MAX_SLOTS: u32 = 8u;
 const MISSING: f32 = -2.0;
 const NOT_A_PAIR: f32 = -1.0;
 const NONE: u32 = 0xffffffffu;
 
-var<workgroup> best_val: array<f32, 64>;
-var<workgroup> best_idx: array<u32, 64>;
-var<workgroup> row_used: array<u32, 256>;
-var<workgroup> col_used: array<u32, 256>;
+var<workgroup> best_val: array<f32, LANES>;
+var<workgroup> best_idx: array<u32, LANES>;
+var<workgroup> row_used: array<u32, MAX_TREES>;
+var<workgroup> col_used: array<u32, MAX_TREES>;
 var<workgroup> steps_shared: u32;
 var<workgroup> total: f32;
+
+fn pair_at(pi: u32) -> Pair {
+    var q: u32;
+    var r: u32;
+    if (fp.grid != 0u) {
+        q = pi / fp.refs;
+        r = fp.ref_first + pi % fp.refs;
+    } else {
+        let e = lookup[fp.queries + fp.list_first + pi];
+        q = e.x;
+        r = e.y;
+    }
+    let qs = lookup[q];
+    let rs = r_spans[r];
+    return Pair(qs.x, qs.y, rs.x, rs.y);
+}
 
 fn cos_plus(c: f32) -> f32 {
     if (c == MISSING) {
@@ -107,7 +148,7 @@ fn pair_score(pr: Pair, cos_base: u32, t: u32, u: u32) -> f32 {
     if (den > 0.0) {
         s_in = num / den;
     }
-    var used = array<bool, 8>(false, false, false, false, false, false, false, false);
+    var used = array<bool, MAX_SLOTS>();
     var s_nb = 0.0;
     let slots = p.neighbour_slots;
     for (var sa = 0u; sa < slots; sa++) {
@@ -146,17 +187,17 @@ fn pair_score(pr: Pair, cos_base: u32, t: u32, u: u32) -> f32 {
 
 @compute @workgroup_size(64, 1, 1)
 fn tree_similarity(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) lane: u32) {
-    let pi = wg.x + wg.y * 65535u;
-    let valid = pi < dims.pairs;
+    let pi = wg.x + wg.y * fp.row;
+    let valid = pi < fp.pairs;
     var pr = Pair(0u, 0u, 0u, 0u);
     if (valid) {
-        pr = pairs[pi];
+        pr = pair_at(pi);
     }
     let nq = pr.q_count;
     let nr = pr.r_count;
     let n = nq * nr;
-    let cos_base = pi * 2u * dims.max_trees * dims.max_trees;
-    let sc_base = cos_base + dims.max_trees * dims.max_trees;
+    let cos_base = pi * 2u * fp.max_trees * fp.max_trees;
+    let sc_base = cos_base + fp.max_trees * fp.max_trees;
     // phase 1: appearance cosines
     if (p.use_appearance != 0u) {
         for (var idx = lane; idx < n; idx += LANES) {
@@ -164,10 +205,10 @@ fn tree_similarity(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocati
             let u = idx % nr;
             var c = MISSING;
             if (q_trees[pr.q_start + t].has_app != 0u && r_trees[pr.r_start + u].has_app != 0u) {
-                let qa = (pr.q_start + t) * dims.dim;
-                let ra = (pr.r_start + u) * dims.dim;
+                let qa = (pr.q_start + t) * fp.dim;
+                let ra = (pr.r_start + u) * fp.dim;
                 c = 0.0;
-                for (var k = 0u; k < dims.dim; k++) {
+                for (var k = 0u; k < fp.dim; k++) {
                     c += q_app[qa + k] * r_app[ra + k];
                 }
             }
@@ -185,7 +226,7 @@ fn tree_similarity(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocati
         }
         scratch[sc_base + idx] = s;
     }
-    for (var i = lane; i < 256u; i += LANES) {
+    for (var i = lane; i < MAX_TREES; i += LANES) {
         row_used[i] = 0u;
         col_used[i] = 0u;
     }
@@ -265,9 +306,9 @@ fn tree_similarity(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocati
             norm = sqrt(sq * sr);
         }
         if (n == 0u || norm <= 0.0) {
-            out[pi] = 0.0;
+            out[fp.out_first + pi] = 0.0;
         } else {
-            out[pi] = total / norm;
+            out[fp.out_first + pi] = total / norm;
         }
     }
 }

@@ -10,7 +10,13 @@
 //!   (reference i is block entry i mod block). A block far larger than the caches is read from
 //!   memory exactly as a real map of that size would be. A tile that does not line up with the
 //!   block is copied in the timed region and the row counts it (`tiles_copied`);
-//! - batches are assembled before timing.
+//! - batches are assembled before timing;
+//! - on a GPU, the map is uploaded once per map size before its first row, untimed (its time is
+//!   reported as `upload_seconds`), and stays resident across the rows, as it stays across a
+//!   deployment's batches; each GPU row reports the bytes written to the device inside its timed
+//!   region (`device_bytes_written`: the batch's queries, lists and pass parameters only). A map
+//!   beyond the device's resident budget is streamed inside every timed batch instead, and the
+//!   row says so (`map_resident: false`).
 //!
 //! Rows never run part of their batch. An untimed probe (a few queries against one tile)
 //! predicts each row's time; a row predicted to exceed `max_row_seconds` is not run, and the
@@ -155,6 +161,17 @@ pub struct BenchRow {
     pub peak_rss_mib: f64,
     /// Tiles copied inside the timed region (synthetic maps whose tiles miss the block).
     pub tiles_copied: usize,
+    /// GPU rows: whether the map stayed resident on the device (false: beyond the resident
+    /// budget, streamed through two slots inside every timed batch).
+    pub map_resident: Option<bool>,
+    /// GPU rows: seconds the untimed upload of this map to the device took (once per map size,
+    /// before its first row; 0 upload bytes in later rows show it was not repeated).
+    pub upload_seconds: Option<f64>,
+    /// GPU rows: bytes written to the device inside the timed region (queries, empty lists, pass
+    /// parameters; plus the whole map when it is streamed).
+    pub device_bytes_written: Option<u64>,
+    /// GPU rows: kernel time from timestamp queries, where the adapter has them.
+    pub kernel_seconds: Option<f64>,
     /// 1-minute load average just before the row.
     pub loadavg_1m: f64,
     /// CPU time of the whole process during the row (user + system, all threads); over
@@ -219,6 +236,19 @@ pub fn run(pool: &DescriptorSet, queries: &DescriptorSet, opts: &BenchOptions, e
             coarse(engine, &probe_q, &probe_map, &p, k, tile)?;
             per_pair.push(t.elapsed().as_secs_f64() / (probe_q.len() * probe_map.len()) as f64);
         }
+        // untimed: each GPU engine uploads this map once (kept resident within its budget)
+        let mut uploads = Vec::new();
+        for engine in engines.iter_mut() {
+            uploads.push(match engine.gpu_stages() {
+                Some(g) => {
+                    let t = Instant::now();
+                    let resident = g.upload_coarse_map(source, &p)?;
+                    g.take_kernel_seconds()?;
+                    Some((resident, t.elapsed().as_secs_f64()))
+                }
+                None => None,
+            });
+        }
         for &b in &opts.batches {
             let batch = batch_of(queries, b);
             let mut cpu_rate = None;
@@ -243,11 +273,19 @@ pub fn run(pool: &DescriptorSet, queries: &DescriptorSet, opts: &BenchOptions, e
                     fraction_of_peak: None,
                     peak_rss_mib: f64::NAN,
                     tiles_copied: 0,
+                    map_resident: uploads[e].map(|u| u.0),
+                    upload_seconds: uploads[e].map(|u| u.1),
+                    device_bytes_written: None,
+                    kernel_seconds: None,
                     loadavg_1m: loadavg(),
                     cpu_seconds: None,
                     gpu_cpu_ratio: None,
                     note: dev.note.clone(),
                 };
+                if let Some((resident, secs)) = uploads[e] {
+                    let how = if resident { format!("map resident (uploaded untimed, {secs:.2} s)") } else { "map streamed in every batch (beyond the resident budget)".into() };
+                    row.note = if row.note.is_empty() { how } else { format!("{}; {how}", row.note) };
+                }
                 if predicted > opts.max_row_seconds {
                     row.note = format!("not run: predicted {predicted:.0} s > --max-row-seconds {:.0}; {}", opts.max_row_seconds, row.note);
                 } else {
@@ -255,10 +293,16 @@ pub fn run(pool: &DescriptorSet, queries: &DescriptorSet, opts: &BenchOptions, e
                         s.take_copied();
                     }
                     reset_peak();
+                    let written = engine.gpu_stages().map(|g| g.ctx.bytes_uploaded());
                     let (t, cpu0) = (Instant::now(), process_cpu_s());
                     let lists = coarse(engine, &batch, source, &p, k, tile)?;
                     let secs = t.elapsed().as_secs_f64();
                     row.cpu_seconds = Some(process_cpu_s() - cpu0);
+                    if let Some(g) = engine.gpu_stages() {
+                        row.device_bytes_written = written.map(|w| g.ctx.bytes_uploaded() - w);
+                        row.kernel_seconds = g.take_kernel_seconds()?;
+                        row.map_resident = Some(g.coarse_map_is_resident());
+                    }
                     assert_eq!(lists.len(), b, "one K-list per query");
                     let rate = (n * b) as f64 / secs;
                     row.status = "ran".into();
@@ -337,6 +381,10 @@ pub fn legend(rows: &[BenchRow]) -> String {
     }
     s += "GB/s: map descriptors and stats read per second, the map counted once per batch; cores: process CPU time / wall time\n";
     s += "(below the worker threads when other processes competed); load: 1-minute load average before the row\n";
+    if rows.iter().any(|r| r.backend == "gpu") {
+        s += "gpu rows: the map is uploaded once per map size before its first row, untimed (the note gives the time); the JSON\n";
+        s += "gives the bytes written to the device inside each timed region (device_bytes_written) and timestamp kernel time\n";
+    }
     let mut seen = Vec::new();
     for r in rows {
         if !seen.contains(&&r.adapter) {

@@ -45,6 +45,43 @@ impl GpuStages {
         GpuStages { encoder: GlobalEncoderGpu::new(ctx.clone()), fine: FineMatcherGpu::new(ctx.clone()), vlad: VladGpu::new(ctx.clone()), coarse: None, ctx }
     }
 
+    /// Forgets the maps kept on the device (call after editing a map's vectors in place: the
+    /// resident copy is keyed by the map's identity and sampled content, see `SourceKey`).
+    pub fn forget_map(&mut self) {
+        if let Some((_, c)) = &mut self.coarse {
+            c.forget_map();
+        }
+        self.fine.forget_map();
+    }
+
+    /// Whether the last coarse map was kept resident (false: streamed, or none yet).
+    pub fn coarse_map_is_resident(&self) -> bool {
+        self.coarse.as_ref().is_some_and(|c| c.1.map_is_resident())
+    }
+
+    /// Whether the last fine-stage map's forests were kept resident (false: streamed).
+    pub fn fine_map_is_resident(&self) -> bool {
+        self.fine.map_is_resident()
+    }
+
+    /// Bytes of the last maps on the device: (coarse descriptors and statistics, fine packed
+    /// forests).
+    pub fn map_bytes(&self) -> (u64, u64) {
+        (self.coarse.as_ref().map_or(0, |c| c.1.map_bytes()), self.fine.map_bytes())
+    }
+
+    /// Uploads `refs` as the coarse stage's map for SSIM parameters `p` ahead of a batch (the
+    /// first batch against a map would otherwise upload it); true if it is kept resident, false
+    /// if it is beyond the budget and will be streamed with every batch.
+    pub fn upload_coarse_map(&mut self, refs: &dyn GlobalSource, p: &SsimParams) -> Result<bool> {
+        Ok(self.coarse_for(p)?.upload_map(refs)?)
+    }
+
+    /// Kernel time since the last call, from timestamp queries (`None` without them).
+    pub fn take_kernel_seconds(&self) -> Result<Option<f64>> {
+        Ok(self.ctx.take_kernel_seconds()?)
+    }
+
     fn coarse_for(&mut self, p: &SsimParams) -> Result<&mut CoarseMatcherGpu> {
         if self.coarse.as_ref().is_none_or(|c| c.0 != *p) {
             self.coarse = Some((*p, CoarseMatcherGpu::new(self.ctx.clone(), *p)?));
@@ -54,16 +91,16 @@ impl GpuStages {
 }
 
 impl Stages for GpuStages {
-    fn coarse(&mut self, refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimParams, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
-        let m = self.coarse_for(p)?;
-        let resident = m.upload_queries(queries)?;
-        Ok(m.topk(&resident, refs, k, tile)?)
+    /// On the device the map stays resident and passes are sized by the device's limits, so
+    /// `tile` (the CPU path's scratch bound) does not apply.
+    fn coarse(&mut self, refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimParams, k: usize, _tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+        Ok(self.coarse_for(p)?.topk(queries, refs, k)?)
     }
     fn fine_pairs(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<f32>> {
         Ok(self.fine.score_pairs(p, queries, refs, pairs)?)
     }
-    fn fine_topk(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
-        Ok(self.fine.topk_all(p, queries, refs, k, tile)?)
+    fn fine_topk(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, k: usize, _tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+        Ok(self.fine.topk_all(p, queries, refs, k)?)
     }
 }
 
@@ -111,7 +148,8 @@ impl Engine {
     /// let encoded = engine.encode_all(&encoder, &sources, Default::default(), &|| {})?;
     /// let mut queries = encoder.descriptor_set();
     /// queries.push(&encoded.into_iter().next().unwrap()?.0);
-    /// // uploads the queries once, streams the map in tiles, reads back only the top-K lists
+    /// // uploads the map once (later batches find it resident) and the queries, reads back
+    /// // only the top-K lists
     /// let (matches, _) = engine.match_batch(&map, &queries, Setting::Semlook, &cfg)?;
     /// println!("{:?}", matches[0].best());
     /// # Ok(()) }

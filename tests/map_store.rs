@@ -367,6 +367,24 @@ fn an_f16_map_with_appearance_matches_like_its_widened_set() {
     }
 }
 
+#[test]
+fn device_cache_keys_follow_the_map_and_its_generation() {
+    use semlook::matching::source::SourceKey;
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, set, mut a) = segmented(&dir.path().join("a"), 6, 4, ValueType::F16);
+    let (_, _, b) = segmented(&dir.path().join("b"), 6, 4, ValueType::F16);
+    let key = SourceKey::of(&a);
+    assert_eq!(key, SourceKey::of(&a), "one open map, one key (f16 tiles are assembled in buffers that move)");
+    assert_eq!(key, SourceKey::of(&Map::open(&dir.path().join("a")).unwrap()), "reopened at the same generation");
+    assert_ne!(key, SourceKey::of(&b), "another map with the same contents, size and generation");
+    a.add(&common::encode(&cfg, &common::label_maps(1, 80, 60), "new")).unwrap();
+    assert_ne!(key, SourceKey::of(&a), "after a commit");
+    let after_add = SourceKey::of(&a);
+    edit::remove(&dir.path().join("a"), &[set.ids[0].clone()]).unwrap();
+    let removed = Map::open(&dir.path().join("a")).unwrap();
+    assert_ne!(after_add, SourceKey::of(&removed), "after a removal");
+}
+
 /// Ids and scores of every query's ranked list.
 fn ranked(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Vec<Vec<(String, u32)>> {
     match_batch(refs, queries, setting, cfg).0.iter().map(|m| m.ranked.iter().map(|c| (refs.id(c.reference as usize).to_string(), c.score.to_bits())).collect()).collect()

@@ -7,6 +7,7 @@ pub mod keypoints;
 pub mod nn;
 pub mod torch_pt;
 pub mod vlad;
+pub mod vlad_accumulate;
 pub mod xfeat;
 
 use crate::config::{AppearanceConfig, AppearanceModelKind, ModelPaths, Sampling};

@@ -514,7 +514,8 @@ fn bench_cmd(a: &BenchArgs, quiet: bool) -> Result<()> {
     let queries = semlook::bench::street_descriptors(&cfg, 32, Condition::Night, 5)?;
     let mut engines = vec![Engine::cpu()];
     if !a.cpu_only {
-        match Engine::new(semlook::engine::Backend::Gpu, &GpuOptions::default()) {
+        let gopts = GpuOptions { resident_budget: a.resident_budget_mib.map(|m| m << 20), max_binding_size: a.max_binding_mib.map(|m| m << 20), ..Default::default() };
+        match Engine::new(semlook::engine::Backend::Gpu, &gopts) {
             Ok((e, _)) => engines.push(e),
             Err(e) => info(quiet, format!("no GPU run: {e}")),
         }

@@ -154,6 +154,14 @@ pub struct BenchArgs {
     /// Leave the GPU out (by default every configuration also runs on the GPU when there is one).
     #[arg(long)]
     pub cpu_only: bool,
+    /// Bytes of map the GPU keeps resident, in MiB (default: half the adapter's largest buffer);
+    /// a map beyond it is streamed in every batch.
+    #[arg(long)]
+    pub resident_budget_mib: Option<u64>,
+    /// Largest storage binding the GPU executors use, in MiB (default: the adapter's limit);
+    /// lower it to force map and query chunking.
+    #[arg(long)]
+    pub max_binding_mib: Option<u64>,
     /// One JSON object per row and line (JSON Lines), as rows finish.
     #[arg(long)]
     pub json: bool,

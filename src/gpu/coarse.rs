@@ -1,134 +1,204 @@
-//! GPU executor for the coarse stage: the query batch is uploaded once and stays resident; the
-//! map is streamed tile by tile (each tile no larger than the binding limit allows); per tile,
-//! `ssim_tile` scores all pairs and `topk_merge` folds them into the per-query top-K on the GPU.
-//! Only the final K-lists (queries x K) are read back.
+//! GPU executor for the coarse stage, with the map resident on the device.
+//!
+//! What is uploaded when:
+//! - the map (descriptors and SSIM statistics), once, in chunks of at most one binding each, the
+//!   first time a batch meets it; later batches against the same map ([`SourceKey`]) upload none
+//!   of it. A map beyond the budget is streamed through two chunk slots (`gpu::resident`);
+//! - per batch: the queries, in chunks sized so that every binding and every dispatch dimension
+//!   stays within the device's limits (any batch size runs), the parameters of all the chunk's
+//!   passes in one write (one buffer, dynamic offsets), and the empty running lists;
+//! - back: only the K-lists.
+//!
+//! Per pass (some queries x a run of one map chunk's references): `ssim_block` scores the block
+//! grid, `topk_partial` and `topk_merge_lists` fold the scores into the running lists. Each map
+//! chunk's passes go in one compute pass and one submission (timed where the adapter has
+//! timestamps). No buffer or bind group is created per pass: bind groups are made once per
+//! resident chunk and once per query chunk.
 
-use super::context::{GpuContext, GpuError, Reused};
+use super::buffers::{PassBuffer, Reused};
+use super::context::{GpuContext, GpuError};
+use super::resident::{ChunkData, ChunkPlan, Resident};
+use super::topk::{bytes_per_query, TopK, MAX_PASS_REFS};
 use crate::global::ssim::SsimParams;
 use crate::descriptors::DescriptorSet;
-use crate::matching::source::{GlobalSource, TileBuf};
-use crate::matching::ssim_topk::{TileParams, EMPTY_INDEX, EMPTY_SCORE};
+use crate::matching::source::{GlobalSource, SourceKey, TileBuf};
+use crate::matching::ssim_block::{block_shape, PassParams};
+use crate::matching::topk_select::SEG;
 use std::sync::Arc;
-
-/// Largest value of gh x nw the shader's workgroup array holds.
-const MAX_ROW_SUMS: u32 = 3840;
-/// Most queries per dispatch row (workgroups per dimension).
-const MAX_DISPATCH: usize = 65_535;
-
-/// A batch of queries resident on the GPU.
-pub struct GpuQueries {
-    pub len: usize,
-    globals: wgpu::Buffer,
-    stats: wgpu::Buffer,
-}
 
 pub struct CoarseMatcherGpu {
     ctx: Arc<GpuContext>,
     p: SsimParams,
+    /// References and queries per workgroup.
+    shape: (u32, u32),
     params: wgpu::Buffer,
-    tile_globals: Reused,
-    tile_stats: Reused,
+    map: Resident,
+    queries: Reused,
+    query_stats: Reused,
     scores: Reused,
-    top_s: Reused,
-    top_i: Reused,
+    passes: PassBuffer<PassParams>,
+    topk: TopK,
+}
+
+/// A map's references written chunk by chunk (descriptors, then stats).
+struct MapChunks<'a>(&'a dyn GlobalSource);
+
+impl ChunkData for MapChunks<'_> {
+    fn write(&self, ctx: &GpuContext, plan: &ChunkPlan, buffers: &[&wgpu::Buffer]) -> Result<(), GpuError> {
+        let mut buf = TileBuf::default();
+        let (g, s) = self.0.tile(plan.first, plan.first + plan.len, &mut buf);
+        ctx.write(buffers[0], 0, bytemuck::cast_slice(g));
+        ctx.write(buffers[1], 0, bytemuck::cast_slice(s));
+        Ok(())
+    }
 }
 
 impl CoarseMatcherGpu {
     pub fn new(ctx: Arc<GpuContext>, p: SsimParams) -> Result<Self, GpuError> {
-        if p.gh * p.nw > MAX_ROW_SUMS {
-            return Err(GpuError::LimitsTooSmall {
-                adapter: ctx.describe(),
-                what: "SSIM row sums in workgroup memory (global height x valid windows per row)".into(),
-                needed: (p.gh * p.nw) as u64,
-                available: MAX_ROW_SUMS as u64,
-            });
-        }
+        let shape = block_shape(&p).ok_or_else(|| GpuError::LimitsTooSmall {
+            adapter: ctx.describe(),
+            what: "the SSIM block kernel's workgroup arrays (descriptor width, and window x valid windows per row)".into(),
+            needed: (p.gw.max(p.win * p.nw)) as u64,
+            available: crate::matching::ssim_block::PROD_CAP.min(crate::matching::ssim_block::RING_CAP) as u64,
+        })?;
         let params = ctx.uniform("ssim params", &p);
-        Ok(CoarseMatcherGpu { ctx, p, params, tile_globals: Reused::default(), tile_stats: Reused::default(), scores: Reused::default(), top_s: Reused::default(), top_i: Reused::default() })
+        let passes = PassBuffer::new(&ctx);
+        Ok(CoarseMatcherGpu { ctx, p, shape, params, map: Resident::default(), queries: Reused::default(), query_stats: Reused::default(), scores: Reused::default(), passes, topk: TopK::default() })
     }
 
-    /// Uploads a query batch (explicitly: it stays on the GPU until dropped).
-    pub fn upload_queries(&self, queries: &DescriptorSet) -> Result<GpuQueries, GpuError> {
-        let ctx = &self.ctx;
-        ctx.check_binding("query descriptors", (queries.globals.len() * 4) as u64)?;
-        ctx.check_binding("query statistics", (queries.global_stats.len() * 4) as u64)?;
-        if queries.len() > MAX_DISPATCH {
-            return Err(GpuError::LimitsTooSmall { adapter: ctx.describe(), what: "queries per batch".into(), needed: queries.len() as u64, available: MAX_DISPATCH as u64 });
+    /// References per map chunk: as many as one binding holds (descriptors and stats alike).
+    pub fn chunk_len(&self) -> usize {
+        (self.ctx.binding_limit() as usize / (self.p.len().max(self.p.stats_len()) * 4)).max(1)
+    }
+
+    /// Bytes of the last map's descriptors and SSIM statistics on the device (or streamed through it).
+    pub fn map_bytes(&self) -> u64 {
+        self.map.bytes()
+    }
+
+    /// Whether the last map was kept resident (false: it was streamed).
+    pub fn map_is_resident(&self) -> bool {
+        !self.map.is_streaming()
+    }
+
+    /// Forgets the resident map: the next batch uploads its map again.
+    pub fn forget_map(&mut self) {
+        self.map.forget(&self.ctx);
+    }
+
+    /// Queries per chunk of a batch and references per pass, within every binding and dispatch
+    /// limit; a typed error if the device cannot take one query or one reference.
+    pub fn plan(&self, k: usize) -> Result<(usize, usize), GpuError> {
+        let (lim, groups) = (self.ctx.binding_limit(), self.ctx.max_workgroups() as u64);
+        let too_small = |what: &str, needed: u64| GpuError::LimitsTooSmall { adapter: self.ctx.describe(), what: what.into(), needed, available: lim };
+        let per_ref = (self.p.len().max(self.p.stats_len()) * 4) as u64;
+        if per_ref > lim {
+            return Err(too_small("one reference's descriptor or SSIM statistics in one binding", per_ref));
         }
-        ctx.scoped("uploading queries", || {
-            let globals = ctx.storage("query descriptors", (queries.globals.len() * 4) as u64);
-            let stats = ctx.storage("query stats", (queries.global_stats.len() * 4) as u64);
-            ctx.queue.write_buffer(&globals, 0, bytemuck::cast_slice(&queries.globals));
-            ctx.queue.write_buffer(&stats, 0, bytemuck::cast_slice(&queries.global_stats));
-            GpuQueries { len: queries.len(), globals, stats }
-        })
+        let [_, top] = bytes_per_query(k, 1);
+        if top > lim {
+            return Err(too_small("one query's top-K list in one binding", top));
+        }
+        let qc = groups.min(lim / per_ref).min(lim / top).min((lim / (SEG as u64 * 4)).max(1)) as usize;
+        let part = bytes_per_query(k, SEG)[0];
+        let pass = (self.chunk_len() as u64)
+            .min(MAX_PASS_REFS as u64)
+            .min(groups * self.shape.0 as u64)
+            .min(groups * SEG as u64)
+            .min(lim / (qc as u64 * 4))
+            .min((lim / (qc as u64 * part)).max(1) * SEG as u64);
+        if qc as u64 * part > lim || pass == 0 {
+            return Err(too_small("the scores and partial top-K lists of one query", part.max(4)));
+        }
+        Ok((qc, pass as usize))
     }
 
-    /// References per tile for `queries` queries: the largest count whose descriptors, stats and
-    /// score block each fit one binding, capped by `max_tile`.
-    pub fn tile_len(&self, queries: usize, max_tile: usize) -> usize {
-        let lim = self.ctx.binding_limit() as usize;
-        let per_ref = (self.p.len() * 4).max(self.p.stats_len() * 4).max(queries * 4);
-        (lim / per_ref).min(max_tile).min(MAX_DISPATCH).max(1)
-    }
-
-    /// The `k` best references of every query, best first, streaming `refs` in tiles.
-    pub fn topk(&mut self, queries: &GpuQueries, refs: &dyn GlobalSource, k: usize, max_tile: usize) -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
+    /// Makes `refs` the map on the device: uploads it (once per [`SourceKey`]) when it fits the
+    /// budget, else prepares to stream it. A batch against the same map afterwards uploads none
+    /// of it; [`CoarseMatcherGpu::topk`] calls this itself. Returns whether the map is resident.
+    pub fn upload_map(&mut self, refs: &dyn GlobalSource) -> Result<bool, GpuError> {
+        let n = refs.len();
+        let chunk = self.chunk_len();
+        let (lb, sb) = ((self.p.len() * 4) as u64, (self.p.stats_len() * 4) as u64);
+        let plans = || -> Vec<ChunkPlan> {
+            (0..n)
+                .step_by(chunk)
+                .map(|first| {
+                    let len = chunk.min(n - first);
+                    ChunkPlan { first, len, bytes: vec![len as u64 * lb, len as u64 * sb] }
+                })
+                .collect()
+        };
         let ctx = self.ctx.clone();
-        let kr = &ctx.kernels;
-        let nq = queries.len;
-        let tile = self.tile_len(nq, max_tile).min(refs.len().max(1));
-        let (len, slen) = (self.p.len(), self.p.stats_len());
-        if (tile * len * 4) as u64 > ctx.binding_limit() || (tile * slen * 4) as u64 > ctx.binding_limit() {
-            return Err(GpuError::LimitsTooSmall { adapter: ctx.describe(), what: "one reference per tile".into(), needed: (slen * 4) as u64, available: ctx.binding_limit() });
+        let bind = |b: &[&wgpu::Buffer]| ctx.kernels.ssim_block.bind_group(&ctx.device, 1, b);
+        self.map.prepare(&ctx, SourceKey::of(refs), plans, &MapChunks(refs), &bind)?;
+        Ok(self.map_is_resident())
+    }
+
+    /// The `k` best references of every query, best first (ties to the lower index).
+    pub fn topk(&mut self, queries: &DescriptorSet, refs: &dyn GlobalSource, k: usize) -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
+        let (nq, n) = (queries.len(), refs.len());
+        if nq == 0 || n == 0 || k == 0 {
+            return Ok(vec![Vec::new(); nq]);
         }
-        let params = &self.params;
-        let (tgb, tsb) = (&mut self.tile_globals, &mut self.tile_stats);
-        let (sb, tsc, tic) = (&mut self.scores, &mut self.top_s, &mut self.top_i);
-        ctx.scoped("coarse matching", || -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
-            let tg = tgb.get(&ctx, "tile descriptors", (tile * len * 4) as u64);
-            let ts = tsb.get(&ctx, "tile stats", (tile * slen * 4) as u64);
-            let scores = sb.get(&ctx, "tile scores", (nq * tile * 4) as u64);
-            let top_s = tsc.upload(&ctx, "top-k scores", bytemuck::cast_slice(&vec![EMPTY_SCORE; nq * k]));
-            let top_i = tic.upload(&ctx, "top-k indices", bytemuck::cast_slice(&vec![EMPTY_INDEX; nq * k]));
-            let mut buf = TileBuf::default();
-            let mut start = 0;
-            while start < refs.len() {
-                let end = (start + tile).min(refs.len());
-                let (g, st) = refs.tile(start, end, &mut buf);
-                ctx.queue.write_buffer(tg, 0, bytemuck::cast_slice(g));
-                ctx.queue.write_buffer(ts, 0, bytemuck::cast_slice(st));
-                let tp = TileParams { queries: nq as u32, tile_len: (end - start) as u32, tile_start: start as u32, k: k as u32 };
-                let tpb = ctx.uniform("tile params", &tp);
-                let g1 = kr.ssim_tile.bind(&ctx.device, &[params, &tpb, &queries.globals, &queries.stats, tg, ts, scores]);
-                let g2 = kr.topk_merge.bind(&ctx.device, &[&tpb, scores, top_s, top_i]);
-                ctx.run(
-                    "coarse tile",
-                    &[(&kr.ssim_tile.pipeline, &g1, [(end - start) as u32, nq as u32, 1]), (&kr.topk_merge.pipeline, &g2, [(nq as u32).div_ceil(64), 1, 1])],
-                );
-                ctx.check_lost()?;
-                start = end;
+        let (qc, pass_refs) = self.plan(k)?;
+        self.upload_map(refs)?;
+        let ctx = self.ctx.clone();
+        let data = MapChunks(refs);
+        let bind = |b: &[&wgpu::Buffer]| ctx.kernels.ssim_block.bind_group(&ctx.device, 1, b);
+        let mut lists = Vec::with_capacity(nq);
+        for q0 in (0..nq).step_by(qc) {
+            let q1 = (q0 + qc).min(nq);
+            lists.extend(self.query_chunk(queries, q0..q1, k, pass_refs, &data, &bind)?);
+        }
+        Ok(lists)
+    }
+
+    /// Queries `qs` against the whole map.
+    fn query_chunk(&mut self, queries: &DescriptorSet, qs: std::ops::Range<usize>, k: usize, pass_refs: usize, data: &MapChunks, bind: &dyn Fn(&[&wgpu::Buffer]) -> wgpu::BindGroup) -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
+        let ctx = self.ctx.clone();
+        let nq = qs.len();
+        let (rb, qb) = self.shape;
+        // every pass of this query chunk, map chunk by map chunk
+        let mut passes: Vec<(usize, PassParams)> = Vec::new();
+        let mut parity = 0;
+        for (c, plan) in self.map.plans().iter().enumerate() {
+            for start in (0..plan.len).step_by(pass_refs) {
+                let refs = pass_refs.min(plan.len - start);
+                let ps = PassParams { queries: nq as u32, refs: refs as u32, ref_first: start as u32, ref_index: (plan.first + start) as u32, rb, qb, k: k as u32, segs: refs.div_ceil(SEG) as u32, parity, ..Default::default() };
+                passes.push((c, ps));
+                parity ^= 1;
             }
-            ctx.read_topk(top_s, top_i, nq, k)
+        }
+        ctx.scoped("coarse matching", || -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
+            let (len, slen) = (self.p.len(), self.p.stats_len());
+            let qg = self.queries.upload(&ctx, "query descriptors", bytemuck::cast_slice(&queries.globals[qs.start * len..qs.end * len]));
+            let qst = self.query_stats.upload(&ctx, "query statistics", bytemuck::cast_slice(&queries.global_stats[qs.start * slen..qs.end * slen]));
+            let scores = self.scores.get(&ctx, "pass scores", (nq * pass_refs * 4) as u64);
+            let entries: Vec<PassParams> = passes.iter().map(|p| p.1).collect();
+            let pbuf = self.passes.write(&ctx, &entries);
+            let g_ssim = ctx.kernels.ssim_block.bind(&ctx.device, &[&self.params, pbuf, qg, qst, scores]);
+            let g_topk = self.topk.begin(&ctx, nq, k, pass_refs, pbuf, scores);
+            let mut i = 0;
+            for c in 0..self.map.chunk_count() {
+                let chunk = self.map.chunk(&ctx, c, data, bind)?;
+                let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("coarse chunk") });
+                {
+                    let mut pass = ctx.begin_pass(&mut enc, "coarse chunk")?;
+                    while i < passes.len() && passes[i].0 == c {
+                        let (off, ps) = (self.passes.offset(i), passes[i].1);
+                        pass.set_pipeline(&ctx.kernels.ssim_block.pipeline);
+                        pass.set_bind_group(0, Some(&g_ssim), &[off]);
+                        pass.set_bind_group(1, Some(&chunk), &[]);
+                        pass.dispatch_workgroups(ps.queries.div_ceil(qb), ps.refs.div_ceil(rb), 1);
+                        TopK::record(&ctx, &mut pass, &g_topk, off, &ps);
+                        i += 1;
+                    }
+                }
+                ctx.queue.submit([enc.finish()]);
+                ctx.check_lost()?;
+            }
+            self.topk.read(&ctx, nq, k, (passes.len() % 2) as u32)
         })?
     }
-}
-
-/// Runs the `topk_merge` kernel alone: folds `scores` (tile scores, query-major) into the K-lists
-/// `top_s` / `top_i` (queries x k, best first) and reads them back. It lets tests feed the
-/// kernel scores no SSIM produces (NaN) and compare with its twin `ssim_topk::topk_merge`.
-pub fn merge_scores(ctx: &GpuContext, tp: &TileParams, scores: &[f32], top_s: &[f32], top_i: &[u32]) -> Result<(Vec<f32>, Vec<u32>), GpuError> {
-    let n = tp.queries as usize * tp.k as usize;
-    ctx.scoped("merging scores", || -> Result<(Vec<f32>, Vec<u32>), GpuError> {
-        let upload = |label: &str, data: &[u8]| {
-            let b = ctx.storage(label, data.len() as u64);
-            ctx.queue.write_buffer(&b, 0, data);
-            b
-        };
-        let (sb, tsb, tib) = (upload("scores", bytemuck::cast_slice(scores)), upload("top-k scores", bytemuck::cast_slice(&top_s[..n])), upload("top-k indices", bytemuck::cast_slice(&top_i[..n])));
-        let tpb = ctx.uniform("tile params", tp);
-        let g = ctx.kernels.topk_merge.bind(&ctx.device, &[&tpb, &sb, &tsb, &tib]);
-        ctx.run("topk merge", &[(&ctx.kernels.topk_merge.pipeline, &g, [tp.queries.div_ceil(64), 1, 1])]);
-        Ok((ctx.read_back_values(&tsb, n)?, ctx.read_back_values(&tib, n)?))
-    })?
 }

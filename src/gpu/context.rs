@@ -2,10 +2,20 @@
 //! executors plan with. Either created here (`GpuContext::new`) or wrapped around a host
 //! application's device (`GpuContext::from_device`), so the engine can run inside someone else's
 //! wgpu context. Every GPU operation runs inside error scopes, so validation errors, out-of-memory
-//! and device loss come back as typed [`GpuError`]s instead of panics.
+//! and device loss come back as typed [`GpuError`]s instead of panics. The context also counts
+//! every byte written to the device (`bytes_uploaded`), holds the budget that resident maps share,
+//! and the timestamp queries that time the kernels where the adapter has them.
 
 use super::kernels::Kernels;
+use super::timer::Timer;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
+
+/// Default budget of resident map data: this fraction of the adapter's largest buffer. wgpu
+/// reports no memory size, and the largest buffer is what an adapter promises to allocate at
+/// once; a budget the device cannot honour shows as an out-of-memory error on upload, after
+/// which the executor streams instead.
+pub const RESIDENT_FRACTION: f64 = 0.5;
 
 #[derive(Debug, thiserror::Error)]
 pub enum GpuError {
@@ -25,30 +35,6 @@ pub enum GpuError {
     Failed { what: String, reason: String },
 }
 
-/// A storage buffer kept by an executor between batches, regrown only when a batch needs more.
-#[derive(Default)]
-pub(crate) struct Reused(Option<wgpu::Buffer>);
-
-impl Reused {
-    /// The buffer, at least `bytes` long (contents unspecified).
-    pub fn get(&mut self, ctx: &GpuContext, label: &str, bytes: u64) -> &wgpu::Buffer {
-        let need = bytes.max(4).next_multiple_of(4);
-        if self.0.as_ref().is_none_or(|b| b.size() < need) {
-            self.0 = Some(ctx.storage(label, need));
-        }
-        self.0.as_ref().unwrap()
-    }
-
-    /// The buffer holding `data` (written through the queue).
-    pub fn upload(&mut self, ctx: &GpuContext, label: &str, data: &[u8]) -> &wgpu::Buffer {
-        let b = self.get(ctx, label, data.len() as u64);
-        if !data.is_empty() {
-            ctx.queue.write_buffer(b, 0, data);
-        }
-        b
-    }
-}
-
 /// How to pick an adapter and how much of it to use.
 #[derive(Debug, Clone)]
 pub struct GpuOptions {
@@ -59,11 +45,23 @@ pub struct GpuOptions {
     /// Backends to try. Default: Vulkan, Metal, DX12 (not GL: wgpu would silently fall back to
     /// llvmpipe through it).
     pub backends: wgpu::Backends,
+    /// Bytes of map data (descriptors, statistics, forests) kept on the device between batches;
+    /// a map larger than this is streamed (double-buffered). Default: [`RESIDENT_FRACTION`] of
+    /// the adapter's largest buffer.
+    pub resident_budget: Option<u64>,
+    /// Use at most this many workgroups per dispatch dimension (lower than the device's to force
+    /// chunking of query batches and passes).
+    pub max_workgroups: Option<u32>,
+    /// Reduce through subgroup operations where the adapter has them (off: the workgroup-memory
+    /// fallback everywhere).
+    pub subgroups: bool,
+    /// Time the kernels with timestamp queries where the adapter has them.
+    pub timestamps: bool,
 }
 
 impl Default for GpuOptions {
     fn default() -> Self {
-        GpuOptions { allow_software: true, max_binding_size: None, backends: wgpu::Backends::PRIMARY }
+        GpuOptions { allow_software: true, max_binding_size: None, backends: wgpu::Backends::PRIMARY, resident_budget: None, max_workgroups: None, subgroups: true, timestamps: true }
     }
 }
 
@@ -73,6 +71,14 @@ pub struct GpuContext {
     pub queue: wgpu::Queue,
     pub info: wgpu::AdapterInfo,
     binding_limit: u64,
+    max_workgroups: u32,
+    uniform_align: u32,
+    budget: u64,
+    /// Bytes of the budget that resident sets hold now.
+    resident: AtomicU64,
+    uploaded: AtomicU64,
+    subgroups: bool,
+    timer: Mutex<Option<Timer>>,
     lost: Arc<Mutex<Option<String>>>,
     pub(crate) kernels: Kernels,
 }
@@ -116,9 +122,10 @@ impl GpuContext {
             })?;
         let info = adapter.get_info();
         let limits = adapter.limits();
+        let wanted = wgpu::Features::SUBGROUP | wgpu::Features::TIMESTAMP_QUERY;
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("semlook"),
-            required_features: wgpu::Features::empty(),
+            required_features: adapter.features() & wanted,
             required_limits: limits,
             ..Default::default()
         }))
@@ -149,17 +156,38 @@ impl GpuContext {
         let limits = device.limits();
         let binding_limit = (limits.max_storage_buffer_binding_size).min(limits.max_buffer_size).min(opts.max_binding_size.unwrap_or(u64::MAX));
         let needs = [
-            ("storage buffers per shader stage", 7u64, limits.max_storage_buffers_per_shader_stage as u64),
+            ("storage buffers per shader stage", 8u64, limits.max_storage_buffers_per_shader_stage as u64),
+            ("dynamic uniform buffers per pipeline layout", 1, limits.max_dynamic_uniform_buffers_per_pipeline_layout as u64),
             ("workgroup storage (bytes)", 15_616, limits.max_compute_workgroup_storage_size as u64),
             ("invocations per workgroup", 256, limits.max_compute_invocations_per_workgroup as u64),
+            ("bind groups", 2, limits.max_bind_groups as u64),
         ];
         for (what, needed, available) in needs {
             if available < needed {
                 return Err(GpuError::LimitsTooSmall { adapter: adapter_name(&info), what: what.into(), needed, available });
             }
         }
-        let kernels = Kernels::new(&device)?;
-        Ok(GpuContext { device, queue, info, binding_limit, lost, kernels })
+        let features = device.features();
+        let subgroups = opts.subgroups && features.contains(wgpu::Features::SUBGROUP);
+        let kernels = Kernels::new(&device, subgroups)?;
+        let timer = (opts.timestamps && features.contains(wgpu::Features::TIMESTAMP_QUERY)).then(|| Timer::new(&device, &queue));
+        let budget = opts.resident_budget.unwrap_or((limits.max_buffer_size as f64 * RESIDENT_FRACTION) as u64);
+        let max_workgroups = limits.max_compute_workgroups_per_dimension.min(opts.max_workgroups.unwrap_or(u32::MAX)).max(1);
+        Ok(GpuContext {
+            device,
+            queue,
+            info,
+            binding_limit,
+            max_workgroups,
+            uniform_align: limits.min_uniform_buffer_offset_alignment,
+            budget,
+            resident: AtomicU64::new(0),
+            uploaded: AtomicU64::new(0),
+            subgroups,
+            timer: Mutex::new(timer),
+            lost,
+            kernels,
+        })
     }
 
     /// "name (backend, device type)".
@@ -175,6 +203,76 @@ impl GpuContext {
     /// Largest storage binding the executors may use, in bytes.
     pub fn binding_limit(&self) -> u64 {
         self.binding_limit
+    }
+
+    /// Most workgroups per dispatch dimension the executors use.
+    pub fn max_workgroups(&self) -> u32 {
+        self.max_workgroups
+    }
+
+    /// Alignment of dynamic offsets into a uniform buffer: the stride of per-pass parameters.
+    pub fn uniform_offset_alignment(&self) -> u32 {
+        self.uniform_align
+    }
+
+    /// Whether the reductions run through subgroup operations.
+    pub fn uses_subgroups(&self) -> bool {
+        self.subgroups
+    }
+
+    /// Whether the kernels are timed (timestamp queries).
+    pub fn has_timestamps(&self) -> bool {
+        self.timer.lock().unwrap_or_else(|e| e.into_inner()).is_some()
+    }
+
+    /// Bytes of map data the device may keep between batches.
+    pub fn resident_budget(&self) -> u64 {
+        self.budget
+    }
+
+    /// Reserves `bytes` of the resident budget; false (nothing reserved) if they do not fit.
+    pub(crate) fn reserve(&self, bytes: u64) -> bool {
+        self.resident.fetch_update(Ordering::SeqCst, Ordering::SeqCst, |held| (held + bytes <= self.budget).then_some(held + bytes)).is_ok()
+    }
+
+    /// Returns `bytes` reserved earlier.
+    pub(crate) fn release(&self, bytes: u64) {
+        let _ = self.resident.fetch_update(Ordering::SeqCst, Ordering::SeqCst, |held| Some(held.saturating_sub(bytes)));
+    }
+
+    /// Bytes written to the device through the queue since the context was made: every upload
+    /// the executors do goes through [`GpuContext::write`].
+    pub fn bytes_uploaded(&self) -> u64 {
+        self.uploaded.load(Ordering::Relaxed)
+    }
+
+    /// Writes `data` into `buffer` at `offset` through the queue, counting the bytes.
+    pub(crate) fn write(&self, buffer: &wgpu::Buffer, offset: u64, data: &[u8]) {
+        if !data.is_empty() {
+            self.uploaded.fetch_add(data.len() as u64, Ordering::Relaxed);
+            self.queue.write_buffer(buffer, offset, data);
+        }
+    }
+
+    /// Kernel time (s) measured by timestamp queries since the last call; `None` where the adapter
+    /// has no timestamps.
+    pub fn take_kernel_seconds(&self) -> Result<Option<f64>, GpuError> {
+        let mut t = self.timer.lock().unwrap_or_else(|e| e.into_inner());
+        match t.as_mut() {
+            Some(t) => Ok(Some(t.take_seconds(self)?)),
+            None => Ok(None),
+        }
+    }
+
+    /// Begins a compute pass on `enc`, timed where timestamps are on.
+    pub(crate) fn begin_pass<'e>(&self, enc: &'e mut wgpu::CommandEncoder, label: &str) -> Result<wgpu::ComputePass<'e>, GpuError> {
+        let mut t = self.timer.lock().unwrap_or_else(|e| e.into_inner());
+        let writes = match t.as_mut() {
+            Some(t) => Some(t.next_writes(self)?),
+            None => None,
+        };
+        let writes = writes.as_ref().map(|(set, i)| wgpu::ComputePassTimestampWrites { query_set: set, beginning_of_pass_write_index: Some(*i), end_of_pass_write_index: Some(*i + 1) });
+        Ok(enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: writes }))
     }
 
     pub(crate) fn check_lost(&self) -> Result<(), GpuError> {
@@ -201,27 +299,6 @@ impl GpuContext {
         }
     }
 
-    /// A storage buffer of `size` bytes (at least 4), copyable both ways.
-    pub(crate) fn storage(&self, label: &str, size: u64) -> wgpu::Buffer {
-        self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some(label),
-            size: size.max(4).next_multiple_of(4),
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        })
-    }
-
-    pub(crate) fn uniform<T: bytemuck::Pod>(&self, label: &str, value: &T) -> wgpu::Buffer {
-        let buf = self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some(label),
-            size: (std::mem::size_of::<T>() as u64).next_multiple_of(16),
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        self.queue.write_buffer(&buf, 0, bytemuck::bytes_of(value));
-        buf
-    }
-
     /// Fails with `LimitsTooSmall` if one binding of `bytes` exceeds the binding limit.
     pub(crate) fn check_binding(&self, what: &str, bytes: u64) -> Result<(), GpuError> {
         if bytes > self.binding_limit {
@@ -230,54 +307,11 @@ impl GpuContext {
         Ok(())
     }
 
-    /// Copies `bytes` bytes of `src` back to the host (waits for the queue).
-    pub(crate) fn read_back(&self, src: &wgpu::Buffer, bytes: u64) -> Result<Vec<u8>, GpuError> {
-        let bytes = bytes.next_multiple_of(4).max(4);
-        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("readback"),
-            size: bytes,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
-        enc.copy_buffer_to_buffer(src, 0, &staging, 0, bytes);
-        self.queue.submit([enc.finish()]);
-        let (tx, rx) = std::sync::mpsc::channel();
-        staging.map_async(wgpu::MapMode::Read, .., move |r| {
-            let _ = tx.send(r);
-        });
-        self.device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::DeviceLost(format!("waiting for the queue: {e}")))?;
-        rx.recv()
-            .map_err(|_| GpuError::Failed { what: "reading back".into(), reason: "map callback dropped".into() })?
-            .map_err(|e| GpuError::Failed { what: "reading back".into(), reason: e.to_string() })?;
-        let data = staging
-            .get_mapped_range(..)
-            .map_err(|e| GpuError::Failed { what: "reading back".into(), reason: e.to_string() })?
-            .to_vec();
-        staging.unmap();
-        self.check_lost()?;
-        Ok(data)
-    }
-
-    /// Reads back the first `n` 32-bit values (f32 or u32) of `src`.
-    pub(crate) fn read_back_values<T: bytemuck::Pod>(&self, src: &wgpu::Buffer, n: usize) -> Result<Vec<T>, GpuError> {
-        Ok(bytemuck::pod_collect_to_vec(&self.read_back(src, (n * 4) as u64)?[..n * 4]))
-    }
-
-    /// The K-lists of `nq` queries from top-K score and index buffers.
-    pub(crate) fn read_topk(&self, top_s: &wgpu::Buffer, top_i: &wgpu::Buffer, nq: usize, k: usize) -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
-        let s: Vec<f32> = self.read_back_values(top_s, nq * k)?;
-        let i: Vec<u32> = self.read_back_values(top_i, nq * k)?;
-        Ok(crate::matching::ssim_topk::topk_lists(k, &s, &i))
-    }
-
     /// Records one compute pass with `dispatches` of (pipeline, bind group, workgroups) and submits it.
-    pub(crate) fn run(&self, label: &str, dispatches: &[(&wgpu::ComputePipeline, &wgpu::BindGroup, [u32; 3])]) {
+    pub(crate) fn run(&self, label: &str, dispatches: &[(&wgpu::ComputePipeline, &wgpu::BindGroup, [u32; 3])]) -> Result<(), GpuError> {
         let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) });
         {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: None });
+            let mut pass = self.begin_pass(&mut enc, label)?;
             for (pipeline, bind, [x, y, z]) in dispatches {
                 if *x == 0 || *y == 0 || *z == 0 {
                     continue;
@@ -288,5 +322,6 @@ impl GpuContext {
             }
         }
         self.queue.submit([enc.finish()]);
+        Ok(())
     }
 }

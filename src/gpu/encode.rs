@@ -8,13 +8,14 @@ use crate::global::{edt, global_pool::PoolParams, pool_params};
 use crate::input::LabelMap;
 use std::sync::Arc;
 
+/// The `Dims` uniform of `semantic_edges.wgsl` and `edt.wgsl`.
 #[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
-struct Dims {
-    width: u32,
-    height: u32,
-    frames: u32,
-    _pad: u32,
+pub(crate) struct Dims {
+    pub width: u32,
+    pub height: u32,
+    pub frames: u32,
+    pub _pad: u32,
 }
 
 struct Buffers {
@@ -82,9 +83,9 @@ impl GlobalEncoderGpu {
             for m in maps {
                 labels.extend(m.classes().iter().map(|&c| c as u32));
             }
-            ctx.queue.write_buffer(&b.labels, 0, bytemuck::cast_slice(&labels));
+            ctx.write(&b.labels, 0, bytemuck::cast_slice(&labels));
             let used32: Vec<u32> = used.iter().map(|&u| u as u32).collect();
-            ctx.queue.write_buffer(&b.used, 0, bytemuck::cast_slice(&used32));
+            ctx.write(&b.used, 0, bytemuck::cast_slice(&used32));
             let dims = ctx.uniform("dims", &Dims { width: w, height: h, frames: frames as u32, _pad: 0 });
             let pool = ctx.uniform("pool params", &PoolParams { frames: frames as u32, ..pool_params(cfg, w, h) });
             let dev = &ctx.device;
@@ -101,7 +102,7 @@ impl GlobalEncoderGpu {
                     (&k.edt_rows.pipeline, &g_rows, [h.div_ceil(64), frames as u32, 1]),
                     (&k.global_pool.pipeline, &g_pool, [per_frame.div_ceil(64), frames as u32, 1]),
                 ],
-            );
+            )?;
             let all: Vec<f32> = ctx.read_back_values(&b.out, cells as usize)?;
             Ok(all.chunks(per_frame as usize).map(|c| c.to_vec()).collect())
         })?

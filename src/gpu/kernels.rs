@@ -1,44 +1,47 @@
-//! The compute pipelines, created once per context: one per WGSL entry point, each with an
-//! explicit bind-group layout whose order is the shader's (and its CPU twin's) binding order.
+//! The compute pipelines, created once per context: one per WGSL entry point, each with explicit
+//! bind-group layouts whose order is the shader's (and its CPU twin's) binding order. Shaders
+//! with a `SUBGROUPS` variant are built in the variant the device can run.
 
 use super::context::GpuError;
-
-/// WGSL sources, by file name.
-pub const SHADERS: [(&str, &str); 6] = [
-    ("semantic_edges.wgsl", include_str!("../../shaders/semantic_edges.wgsl")),
-    ("edt.wgsl", include_str!("../../shaders/edt.wgsl")),
-    ("global_pool.wgsl", include_str!("../../shaders/global_pool.wgsl")),
-    ("ssim_topk.wgsl", include_str!("../../shaders/ssim_topk.wgsl")),
-    ("tree_similarity.wgsl", include_str!("../../shaders/tree_similarity.wgsl")),
-    ("vlad_accumulate.wgsl", include_str!("../../shaders/vlad_accumulate.wgsl")),
-];
+use super::wgsl::{preprocess, SHADERS};
 
 #[derive(Clone, Copy)]
 pub(crate) enum Slot {
     Uniform,
+    /// A uniform selected per dispatch by a dynamic offset; the binding is `size` bytes.
+    UniformAt(u64),
     Read,
     ReadWrite,
 }
 
-/// A pipeline and its bind-group layout.
+/// A pipeline and its bind-group layouts (group 0, 1, ...).
 pub(crate) struct Kernel {
     pub pipeline: wgpu::ComputePipeline,
-    pub layout: wgpu::BindGroupLayout,
-    /// Binding numbers, in layout order.
-    bindings: Vec<u32>,
+    layouts: Vec<(wgpu::BindGroupLayout, Vec<(u32, Slot)>)>,
 }
 
 impl Kernel {
-    /// A bind group with `buffers` bound to this kernel's bindings, in order.
-    pub fn bind(&self, device: &wgpu::Device, buffers: &[&wgpu::Buffer]) -> wgpu::BindGroup {
-        assert_eq!(buffers.len(), self.bindings.len(), "binding count");
-        let entries: Vec<wgpu::BindGroupEntry> = self
-            .bindings
+    /// A bind group of group `group` with `buffers` bound to its bindings, in order.
+    pub fn bind_group(&self, device: &wgpu::Device, group: usize, buffers: &[&wgpu::Buffer]) -> wgpu::BindGroup {
+        let (layout, slots) = &self.layouts[group];
+        assert_eq!(buffers.len(), slots.len(), "binding count");
+        let entries: Vec<wgpu::BindGroupEntry> = slots
             .iter()
             .zip(buffers)
-            .map(|(&binding, b)| wgpu::BindGroupEntry { binding, resource: b.as_entire_binding() })
+            .map(|(&(binding, slot), b)| wgpu::BindGroupEntry {
+                binding,
+                resource: match slot {
+                    Slot::UniformAt(size) => wgpu::BindingResource::Buffer(wgpu::BufferBinding { buffer: b, offset: 0, size: std::num::NonZeroU64::new(size) }),
+                    _ => b.as_entire_binding(),
+                },
+            })
             .collect();
-        device.create_bind_group(&wgpu::BindGroupDescriptor { label: None, layout: &self.layout, entries: &entries })
+        device.create_bind_group(&wgpu::BindGroupDescriptor { label: None, layout, entries: &entries })
+    }
+
+    /// A bind group of group 0.
+    pub fn bind(&self, device: &wgpu::Device, buffers: &[&wgpu::Buffer]) -> wgpu::BindGroup {
+        self.bind_group(device, 0, buffers)
     }
 }
 
@@ -49,42 +52,46 @@ pub(crate) struct Kernels {
     pub global_pool: Kernel,
     pub ssim_tile: Kernel,
     pub topk_merge: Kernel,
+    pub ssim_block: Kernel,
+    pub topk_partial: Kernel,
+    pub topk_merge_lists: Kernel,
     pub tree_similarity: Kernel,
     pub vlad_assign: Kernel,
     pub vlad_accumulate: Kernel,
 }
 
-fn module(device: &wgpu::Device, name: &str) -> Result<wgpu::ShaderModule, GpuError> {
+fn module(device: &wgpu::Device, name: &str, subgroups: bool) -> Result<wgpu::ShaderModule, GpuError> {
     let src = SHADERS.iter().find(|s| s.0 == name).expect("known shader").1;
+    let text = preprocess(src, if subgroups { &["SUBGROUPS"] } else { &[] }).map_err(|message| GpuError::Shader { name: name.into(), message })?;
     let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-    let m = device.create_shader_module(wgpu::ShaderModuleDescriptor { label: Some(name), source: wgpu::ShaderSource::Wgsl(src.into()) });
+    let m = device.create_shader_module(wgpu::ShaderModuleDescriptor { label: Some(name), source: wgpu::ShaderSource::Wgsl(text.into()) });
     match pollster::block_on(scope.pop()) {
         Some(e) => Err(GpuError::Shader { name: name.into(), message: e.to_string() }),
         None => Ok(m),
     }
 }
 
-fn kernel(device: &wgpu::Device, module: &wgpu::ShaderModule, file: &str, entry: &str, slots: &[(u32, Slot)]) -> Result<Kernel, GpuError> {
-    let entries: Vec<wgpu::BindGroupLayoutEntry> = slots
+fn layout_entry(binding: u32, slot: Slot) -> wgpu::BindGroupLayoutEntry {
+    let (ty, dynamic, min) = match slot {
+        Slot::Uniform => (wgpu::BufferBindingType::Uniform, false, None),
+        Slot::UniformAt(size) => (wgpu::BufferBindingType::Uniform, true, std::num::NonZeroU64::new(size)),
+        Slot::Read => (wgpu::BufferBindingType::Storage { read_only: true }, false, None),
+        Slot::ReadWrite => (wgpu::BufferBindingType::Storage { read_only: false }, false, None),
+    };
+    wgpu::BindGroupLayoutEntry { binding, visibility: wgpu::ShaderStages::COMPUTE, ty: wgpu::BindingType::Buffer { ty, has_dynamic_offset: dynamic, min_binding_size: min }, count: None }
+}
+
+fn kernel(device: &wgpu::Device, module: &wgpu::ShaderModule, file: &str, entry: &str, groups: &[&[(u32, Slot)]]) -> Result<Kernel, GpuError> {
+    let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+    let layouts: Vec<(wgpu::BindGroupLayout, Vec<(u32, Slot)>)> = groups
         .iter()
-        .map(|&(binding, slot)| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer {
-                ty: match slot {
-                    Slot::Uniform => wgpu::BufferBindingType::Uniform,
-                    Slot::Read => wgpu::BufferBindingType::Storage { read_only: true },
-                    Slot::ReadWrite => wgpu::BufferBindingType::Storage { read_only: false },
-                },
-                has_dynamic_offset: false,
-                min_binding_size: None,
-            },
-            count: None,
+        .map(|slots| {
+            let entries: Vec<wgpu::BindGroupLayoutEntry> = slots.iter().map(|&(b, s)| layout_entry(b, s)).collect();
+            (device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor { label: Some(entry), entries: &entries }), slots.to_vec())
         })
         .collect();
-    let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-    let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor { label: Some(entry), entries: &entries });
-    let pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor { label: Some(entry), bind_group_layouts: &[Some(&layout)], immediate_size: 0 });
+    let refs: Vec<Option<&wgpu::BindGroupLayout>> = layouts.iter().map(|l| Some(&l.0)).collect();
+    let pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor { label: Some(entry), bind_group_layouts: &refs, immediate_size: 0 });
     let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
         label: Some(entry),
         layout: Some(&pl),
@@ -96,47 +103,41 @@ fn kernel(device: &wgpu::Device, module: &wgpu::ShaderModule, file: &str, entry:
     if let Some(e) = pollster::block_on(scope.pop()) {
         return Err(GpuError::Shader { name: format!("{file}:{entry}"), message: e.to_string() });
     }
-    Ok(Kernel { pipeline, layout, bindings: slots.iter().map(|s| s.0).collect() })
+    Ok(Kernel { pipeline, layouts })
 }
 
+/// Bytes of the per-pass parameters the coarse kernels bind at dynamic offsets.
+const PASS: u64 = std::mem::size_of::<crate::matching::ssim_block::PassParams>() as u64;
+/// Bytes of the fine stage's per-pass parameters.
+const FINE_PASS: u64 = std::mem::size_of::<super::fine_pack::FinePass>() as u64;
+
 impl Kernels {
-    pub fn new(device: &wgpu::Device) -> Result<Kernels, GpuError> {
+    pub fn new(device: &wgpu::Device, subgroups: bool) -> Result<Kernels, GpuError> {
         use Slot::*;
-        let edges = module(device, "semantic_edges.wgsl")?;
-        let edt = module(device, "edt.wgsl")?;
-        let pool = module(device, "global_pool.wgsl")?;
-        let ssim = module(device, "ssim_topk.wgsl")?;
-        let tree = module(device, "tree_similarity.wgsl")?;
-        let vlad = module(device, "vlad_accumulate.wgsl")?;
-        let edt_slots = [(0, Uniform), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite), (5, ReadWrite)];
+        let m = |name| module(device, name, subgroups);
+        let (edges, edt, pool, ssim, block, topk, tree, vlad) =
+            (m("semantic_edges.wgsl")?, m("edt.wgsl")?, m("global_pool.wgsl")?, m("ssim_topk.wgsl")?, m("ssim_block.wgsl")?, m("topk_select.wgsl")?, m("tree_similarity.wgsl")?, m("vlad_accumulate.wgsl")?);
+        let edt_slots: &[(u32, Slot)] = &[(0, Uniform), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite), (5, ReadWrite)];
+        let topk_slots: &[(u32, Slot)] = &[(0, UniformAt(PASS)), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite)];
         Ok(Kernels {
-            semantic_edges: kernel(device, &edges, "semantic_edges.wgsl", "semantic_edges", &[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite)])?,
-            edt_columns: kernel(device, &edt, "edt.wgsl", "edt_columns", &edt_slots)?,
-            edt_rows: kernel(device, &edt, "edt.wgsl", "edt_rows", &edt_slots)?,
-            global_pool: kernel(device, &pool, "global_pool.wgsl", "global_pool", &[(0, Uniform), (1, Read), (2, ReadWrite)])?,
-            ssim_tile: kernel(
-                device,
-                &ssim,
-                "ssim_topk.wgsl",
-                "ssim_tile",
-                &[(0, Uniform), (1, Uniform), (2, Read), (3, Read), (4, Read), (5, Read), (6, ReadWrite)],
-            )?,
-            topk_merge: kernel(device, &ssim, "ssim_topk.wgsl", "topk_merge", &[(1, Uniform), (6, ReadWrite), (7, ReadWrite), (8, ReadWrite)])?,
+            semantic_edges: kernel(device, &edges, "semantic_edges.wgsl", "semantic_edges", &[&[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite)]])?,
+            edt_columns: kernel(device, &edt, "edt.wgsl", "edt_columns", &[edt_slots])?,
+            edt_rows: kernel(device, &edt, "edt.wgsl", "edt_rows", &[edt_slots])?,
+            global_pool: kernel(device, &pool, "global_pool.wgsl", "global_pool", &[&[(0, Uniform), (1, Read), (2, ReadWrite)]])?,
+            ssim_tile: kernel(device, &ssim, "ssim_topk.wgsl", "ssim_tile", &[&[(0, Uniform), (1, Uniform), (2, Read), (3, Read), (4, Read), (5, Read), (6, ReadWrite)]])?,
+            topk_merge: kernel(device, &ssim, "ssim_topk.wgsl", "topk_merge", &[&[(1, Uniform), (6, ReadWrite), (7, ReadWrite), (8, ReadWrite)]])?,
+            ssim_block: kernel(device, &block, "ssim_block.wgsl", "ssim_block", &[&[(0, Uniform), (1, UniformAt(PASS)), (2, Read), (3, Read), (4, ReadWrite)], &[(0, Read), (1, Read)]])?,
+            topk_partial: kernel(device, &topk, "topk_select.wgsl", "topk_partial", &[topk_slots])?,
+            topk_merge_lists: kernel(device, &topk, "topk_select.wgsl", "topk_merge_lists", &[topk_slots])?,
             tree_similarity: kernel(
                 device,
                 &tree,
                 "tree_similarity.wgsl",
                 "tree_similarity",
-                &[(0, Uniform), (1, Uniform), (2, Read), (3, Read), (4, Read), (5, Read), (6, Read), (7, ReadWrite), (8, ReadWrite)],
+                &[&[(0, Uniform), (1, UniformAt(FINE_PASS)), (2, Read), (3, Read), (4, Read), (5, ReadWrite), (6, ReadWrite)], &[(0, Read), (1, Read), (2, Read)]],
             )?,
-            vlad_assign: kernel(device, &vlad, "vlad_accumulate.wgsl", "vlad_assign", &[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite)])?,
-            vlad_accumulate: kernel(
-                device,
-                &vlad,
-                "vlad_accumulate.wgsl",
-                "vlad_accumulate",
-                &[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite), (4, Read), (5, ReadWrite)],
-            )?,
+            vlad_assign: kernel(device, &vlad, "vlad_accumulate.wgsl", "vlad_assign", &[&[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite)]])?,
+            vlad_accumulate: kernel(device, &vlad, "vlad_accumulate.wgsl", "vlad_accumulate", &[&[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite), (4, Read), (5, ReadWrite)]])?,
         })
     }
 }

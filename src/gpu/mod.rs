@@ -7,19 +7,31 @@
 //! | `edt.wgsl` | `edt_columns`, `edt_rows` | `global::edt::{edt_columns, edt_rows}` |
 //! | `global_pool.wgsl` | `global_pool` | `global::global_pool::global_pool` |
 //! | `ssim_topk.wgsl` | `ssim_tile`, `topk_merge` | `matching::ssim_topk::{ssim_tile, topk_merge}` |
+//! | `ssim_block.wgsl` | `ssim_block` | `matching::ssim_block::ssim_block` |
+//! | `topk_select.wgsl` | `topk_partial`, `topk_merge_lists` | `matching::topk_select::{topk_partial, topk_merge_lists}` |
 //! | `tree_similarity.wgsl` | `tree_similarity` | `local::tree_similarity::tree_similarity` |
-//! | `vlad_accumulate.wgsl` | `vlad_assign`, `vlad_accumulate` | `appearance::vlad::{vlad_assign, vlad_accumulate}` |
+//! | `vlad_accumulate.wgsl` | `vlad_assign`, `vlad_accumulate` | `appearance::vlad_accumulate::{vlad_assign, vlad_accumulate}` |
 //!
 //! Residency is explicit: executors own their device buffers and reuse them between batches;
-//! uploads and read-backs happen only where their methods say (queries are uploaded once per
-//! batch, map tiles are streamed, only top-K lists or pair scores come back).
+//! the map (coarse: descriptors and statistics; fine: packed forests) is uploaded once and kept
+//! while its key stays the same, within the context's budget (`gpu::resident`); queries are
+//! uploaded once per batch; only top-K lists or pair scores come back.
 
+mod buffers;
 pub mod coarse;
 mod context;
 pub mod encode;
 pub mod fine;
+mod fine_pack;
 mod kernels;
+#[cfg(test)]
+mod layout_tests;
+pub mod reference;
+mod resident;
+mod timer;
+mod topk;
 pub mod vlad;
+pub mod wgsl;
 
-pub use context::{GpuContext, GpuError, GpuOptions};
-pub use kernels::SHADERS;
+pub use context::{GpuContext, GpuError, GpuOptions, RESIDENT_FRACTION};
+pub use wgsl::SHADERS;

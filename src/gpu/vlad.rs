@@ -2,7 +2,8 @@
 //! (sorted by object) and object runs are concatenated, assigned to centres by `vlad_assign`,
 //! and aggregated with normalisations by `vlad_accumulate`, one workgroup per object.
 
-use super::context::{GpuContext, GpuError, Reused};
+use super::buffers::Reused;
+use super::context::{GpuContext, GpuError};
 use crate::appearance::vlad::{Codebook, VladNorm, VladParams, MAX_CENTRES};
 use std::sync::Arc;
 
@@ -65,7 +66,7 @@ impl VladGpu {
             ctx.run(
                 "vlad",
                 &[(&k.vlad_assign.pipeline, &g1, [groups.min(65_535), groups.div_ceil(65_535), 1]), (&k.vlad_accumulate.pipeline, &g2, [o.min(65_535), o.div_ceil(65_535), 1])],
-            );
+            )?;
             ctx.read_back_values(out, out_len)
         })??;
         let mut res = Vec::with_capacity(frames.len());

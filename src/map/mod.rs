@@ -262,6 +262,15 @@ impl GlobalSource for Map {
         compute_stats(&self.ssim, g, stats);
         (g, stats)
     }
+    /// The map's identity (random at creation) with the generation it was opened at: an open map
+    /// never changes, and any commit (add, remove, compact, a rebuild) makes a new generation or
+    /// a new map, so a device cache keyed by it is exact.
+    fn generation(&self) -> Option<u64> {
+        use std::hash::{Hash, Hasher};
+        let mut h = std::hash::DefaultHasher::new();
+        (&self.manifest.uid, self.manifest.generation).hash(&mut h);
+        Some(h.finish())
+    }
     fn check(&self) -> Result<()> {
         match self.segments.iter().find_map(|s| s.failure().map(|r| (s, r))) {
             Some((s, reason)) => Err(Error::corrupt(&s.path, reason)),

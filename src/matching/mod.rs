@@ -9,7 +9,11 @@
 pub mod baseline;
 pub mod coarse_cpu;
 pub mod source;
+pub mod ssim_block;
 pub mod ssim_topk;
+#[cfg(test)]
+pub(crate) mod test_data;
+pub mod topk_select;
 
 use crate::config::{Config, ScoreFusion};
 use crate::error::Result;

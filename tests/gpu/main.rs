@@ -2,12 +2,16 @@
 //! On a machine without any adapter the tests print why they skip; under CI (CI set) or with
 //! REQUIRE_GPU=1 a missing adapter is a failure, so CI cannot pass without running them.
 
+#[path = "../common/mod.rs"]
 mod common;
+mod bench;
+mod fine;
+mod resident;
 
 use semlook::gpu::{GpuContext, GpuOptions, SHADERS};
 use std::sync::Arc;
 
-fn gpu_with(opts: &GpuOptions) -> Option<Arc<GpuContext>> {
+pub fn gpu_with(opts: &GpuOptions) -> Option<Arc<GpuContext>> {
     match GpuContext::new(opts) {
         Ok(c) => {
             eprintln!("GPU tests on {}", c.describe());
@@ -23,13 +27,16 @@ fn gpu_with(opts: &GpuOptions) -> Option<Arc<GpuContext>> {
     }
 }
 
-fn gpu() -> Option<Arc<GpuContext>> {
+pub fn gpu() -> Option<Arc<GpuContext>> {
     gpu_with(&GpuOptions::default())
 }
 
+/// The build script validates every shader; this repeats it for the variant without subgroups
+/// (what every adapter runs), so a test run names the line too.
 #[test]
 fn every_shader_validates_with_naga() {
     for (name, src) in SHADERS {
+        let src = &semlook::gpu::wgsl::preprocess(src, &[]).unwrap();
         let module = naga::front::wgsl::parse_str(src).unwrap_or_else(|e| panic!("{name}:\n{}", e.emit_to_string(src)));
         naga::valid::Validator::new(naga::valid::ValidationFlags::all(), naga::valid::Capabilities::empty())
             .validate(&module)
@@ -130,7 +137,7 @@ fn edges_and_edt_are_exact_and_pooling_within_1e_5() {
     }
 }
 
-fn random_descriptors(n: usize, cfg: &Config, seed: u64) -> DescriptorSet {
+pub fn random_descriptors(n: usize, cfg: &Config, seed: u64) -> DescriptorSet {
     let p = SsimParams::new(&cfg.global);
     let mut set = DescriptorSet::new(&p, 3, 0, 0);
     let mut rng = SplitMix64::new(seed);
@@ -163,7 +170,7 @@ fn coarse_top_k_matches_the_cpu_twin() {
     }
 }
 
-fn assert_same_lists(gpu: &[Vec<(f32, u32)>], cpu: &[Vec<(f32, u32)>], tol: f32, what: &str) {
+pub fn assert_same_lists(gpu: &[Vec<(f32, u32)>], cpu: &[Vec<(f32, u32)>], tol: f32, what: &str) {
     assert_eq!(gpu.len(), cpu.len());
     for (q, (g, c)) in gpu.iter().zip(cpu).enumerate() {
         assert_eq!(g.len(), c.len(), "{what}: query {q} list length");
@@ -176,7 +183,7 @@ fn assert_same_lists(gpu: &[Vec<(f32, u32)>], cpu: &[Vec<(f32, u32)>], tol: f32,
     }
 }
 
-fn random_forest_set(n: usize, dim: usize, seed: u64) -> DescriptorSet {
+pub fn random_forest_set(n: usize, dim: usize, seed: u64) -> DescriptorSet {
     let cfg = Config::without_appearance();
     let p = SsimParams::new(&cfg.global);
     let mut set = DescriptorSet::new(&p, 3, dim, 0);
@@ -253,8 +260,8 @@ fn tiling_under_a_small_binding_limit() {
     let refs = random_descriptors(23, &cfg, 8);
     let queries = random_descriptors(3, &cfg, 9);
     let m = semlook::gpu::coarse::CoarseMatcherGpu::new(ctx.clone(), SsimParams::new(&cfg.global)).unwrap();
-    let tile = m.tile_len(3, 4096);
-    assert!(tile < refs.len() / 4, "tile {tile} does not split the map");
+    let chunk = m.chunk_len();
+    assert!(chunk < refs.len() / 4, "chunks of {chunk} references do not split the map");
     let mut stages = semlook::engine::GpuStages::new(ctx);
     let gpu = stages.coarse(&refs, &queries, &SsimParams::new(&cfg.global), 10, 4096).unwrap();
     assert_same_lists(&gpu, &coarse_topk_twin(&refs, &queries, &SsimParams::new(&cfg.global), 10, 4096), 1e-5, "small binding limit");
@@ -346,7 +353,10 @@ fn auto_prefers_hardware_and_falls_back_with_a_reason() {
     assert!(engine.describe().starts_with(if engine.is_gpu() { "gpu:" } else { "cpu" }));
 }
 
-fn random_vlad_frames(k: usize, d: usize, seed: u64) -> (semlook::appearance::vlad::Codebook, Vec<(Vec<f32>, Vec<u32>)>) {
+/// Per frame: descriptors and per-object offsets.
+type VladFrames = Vec<(Vec<f32>, Vec<u32>)>;
+
+fn random_vlad_frames(k: usize, d: usize, seed: u64) -> (semlook::appearance::vlad::Codebook, VladFrames) {
     let mut rng = SplitMix64::new(seed);
     let centres: Vec<f32> = (0..k * d).map(|_| rng.normal() as f32).collect();
     let frames = (0..3)
@@ -468,7 +478,7 @@ fn topk_merge_skips_nan_like_its_twin() {
         ti[q * k] = 1000 + q as u32;
     }
     let tp = TileParams { queries: rows.len() as u32, tile_len: 6, tile_start: 20, k: k as u32 };
-    let (gs, gi) = semlook::gpu::coarse::merge_scores(&ctx, &tp, &scores, &ts, &ti).unwrap();
+    let (gs, gi) = semlook::gpu::reference::merge_scores(&ctx, &tp, &scores, &ts, &ti).unwrap();
     topk_merge(&tp, &scores, &mut ts, &mut ti);
     assert!(ts.iter().all(|s| !s.is_nan()), "the twin keeps no NaN: {ts:?}");
     assert_eq!(gi, ti, "indices (GPU {gs:?}, CPU {ts:?})");

@@ -1,0 +1,133 @@
+//! Device buffers of the executors: storage and uniform buffers, buffers kept between batches
+//! ([`Reused`]), the parameter buffer of a batch's passes ([`PassBuffer`], one entry per pass at
+//! dynamic offsets) and typed read-backs. Every write goes through [`GpuContext::write`], which
+//! counts the bytes.
+
+use super::context::{GpuContext, GpuError};
+
+/// A storage buffer kept by an executor between batches, regrown only when a batch needs more.
+#[derive(Default)]
+pub(crate) struct Reused(Option<wgpu::Buffer>);
+
+impl Reused {
+    /// The buffer, at least `bytes` long (contents unspecified).
+    pub fn get(&mut self, ctx: &GpuContext, label: &str, bytes: u64) -> &wgpu::Buffer {
+        let need = bytes.max(4).next_multiple_of(4);
+        if self.0.as_ref().is_none_or(|b| b.size() < need) {
+            self.0 = Some(ctx.storage(label, need));
+        }
+        self.0.as_ref().unwrap()
+    }
+
+    /// The buffer as it is now, if any.
+    pub fn current(&self) -> Option<&wgpu::Buffer> {
+        self.0.as_ref()
+    }
+
+    /// The buffer holding `data` (written through the queue).
+    pub fn upload(&mut self, ctx: &GpuContext, label: &str, data: &[u8]) -> &wgpu::Buffer {
+        let b = self.get(ctx, label, data.len() as u64);
+        ctx.write(b, 0, data);
+        b
+    }
+}
+
+/// One uniform buffer holding a batch's per-pass parameters, each at a dynamic offset (the
+/// device's uniform offset alignment apart): written once per batch, bound once, selected per
+/// dispatch by its offset. No buffer or bind group is made per pass.
+pub(crate) struct PassBuffer<T> {
+    buf: Option<wgpu::Buffer>,
+    stride: u64,
+    _t: std::marker::PhantomData<T>,
+}
+
+impl<T: bytemuck::Pod> PassBuffer<T> {
+    pub fn new(ctx: &GpuContext) -> Self {
+        PassBuffer { buf: None, stride: (std::mem::size_of::<T>() as u64).next_multiple_of(ctx.uniform_offset_alignment() as u64), _t: std::marker::PhantomData }
+    }
+
+    /// Writes `entries` (one write; the buffer regrows when a batch has more passes).
+    pub fn write(&mut self, ctx: &GpuContext, entries: &[T]) -> &wgpu::Buffer {
+        let need = (entries.len().max(1) as u64) * self.stride;
+        if self.buf.as_ref().is_none_or(|b| b.size() < need) {
+            self.buf = Some(ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("pass parameters"),
+                size: need,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }));
+        }
+        let mut bytes = vec![0u8; entries.len() * self.stride as usize];
+        for (e, dst) in entries.iter().zip(bytes.chunks_exact_mut(self.stride as usize)) {
+            dst[..std::mem::size_of::<T>()].copy_from_slice(bytemuck::bytes_of(e));
+        }
+        let b = self.buf.as_ref().unwrap();
+        ctx.write(b, 0, &bytes);
+        b
+    }
+
+    /// The dynamic offset of entry `i`.
+    pub fn offset(&self, i: usize) -> u32 {
+        (i as u64 * self.stride) as u32
+    }
+}
+
+impl GpuContext {
+    /// A storage buffer of `size` bytes (at least 4), copyable both ways.
+    pub(crate) fn storage(&self, label: &str, size: u64) -> wgpu::Buffer {
+        self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: size.max(4).next_multiple_of(4),
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        })
+    }
+
+    pub(crate) fn uniform<T: bytemuck::Pod>(&self, label: &str, value: &T) -> wgpu::Buffer {
+        let buf = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: (std::mem::size_of::<T>() as u64).next_multiple_of(16),
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        self.write(&buf, 0, bytemuck::bytes_of(value));
+        buf
+    }
+
+
+    /// Copies `bytes` bytes of `src` back to the host (waits for the queue).
+    pub(crate) fn read_back(&self, src: &wgpu::Buffer, bytes: u64) -> Result<Vec<u8>, GpuError> {
+        let bytes = bytes.next_multiple_of(4).max(4);
+        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("readback"),
+            size: bytes,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
+        enc.copy_buffer_to_buffer(src, 0, &staging, 0, bytes);
+        self.queue.submit([enc.finish()]);
+        let (tx, rx) = std::sync::mpsc::channel();
+        staging.map_async(wgpu::MapMode::Read, .., move |r| {
+            let _ = tx.send(r);
+        });
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::DeviceLost(format!("waiting for the queue: {e}")))?;
+        rx.recv()
+            .map_err(|_| GpuError::Failed { what: "reading back".into(), reason: "map callback dropped".into() })?
+            .map_err(|e| GpuError::Failed { what: "reading back".into(), reason: e.to_string() })?;
+        let data = staging
+            .get_mapped_range(..)
+            .map_err(|e| GpuError::Failed { what: "reading back".into(), reason: e.to_string() })?
+            .to_vec();
+        staging.unmap();
+        self.check_lost()?;
+        Ok(data)
+    }
+
+    /// Reads back the first `n` 32-bit values (f32 or u32) of `src`.
+    pub(crate) fn read_back_values<T: bytemuck::Pod>(&self, src: &wgpu::Buffer, n: usize) -> Result<Vec<T>, GpuError> {
+        Ok(bytemuck::pod_collect_to_vec(&self.read_back(src, (n * 4) as u64)?[..n * 4]))
+    }
+}

@@ -1,0 +1,140 @@
+//! The Rust side of every shader interface, held to naga's reflection of the WGSL: each struct the
+//! host writes (sizes and member offsets), each constant both sides must agree on, and each
+//! entry point's same-name CPU twin. Nothing here is hand-mirrored: a field added, moved or
+//! retyped on one side only fails these tests.
+
+use super::wgsl::{preprocess, SHADERS};
+use naga::{Expression, Literal, TypeInner};
+use std::mem::{offset_of, size_of};
+
+fn module(file: &str) -> naga::Module {
+    let src = SHADERS.iter().find(|s| s.0 == file).unwrap_or_else(|| panic!("no shader {file}")).1;
+    naga::front::wgsl::parse_str(&preprocess(src, &[]).unwrap()).unwrap_or_else(|e| panic!("{file}: {e}"))
+}
+
+/// (size, [(member, offset)]) of the WGSL struct `name`.
+fn wgsl_struct(m: &naga::Module, file: &str, name: &str) -> (usize, Vec<(String, usize)>) {
+    let ty = m.types.iter().find(|(_, t)| t.name.as_deref() == Some(name)).unwrap_or_else(|| panic!("{file}: no struct {name}")).1;
+    match &ty.inner {
+        TypeInner::Struct { members, span } => (*span as usize, members.iter().map(|mb| (mb.name.clone().unwrap_or_default(), mb.offset as usize)).collect()),
+        other => panic!("{file}: {name} is {other:?}"),
+    }
+}
+
+/// The size and the named members' offsets of a Rust struct.
+macro_rules! rust {
+    ($t:ty { $($f:ident),* $(,)? }) => {
+        (size_of::<$t>(), vec![$((stringify!($f), offset_of!($t, $f))),*])
+    };
+}
+
+/// The struct `name` of `file` has the Rust struct's size, and every member the same offset on
+/// both sides (WGSL padding members, named `_...`, are covered by the size).
+fn same_layout(file: &str, name: &str, rust: (usize, Vec<(&str, usize)>)) {
+    let (size, members) = wgsl_struct(&module(file), file, name);
+    assert_eq!(size, rust.0, "{file}: {name} is {size} bytes in WGSL, {} in Rust", rust.0);
+    for (m, off) in members.iter().filter(|(m, _)| !m.starts_with('_')) {
+        let r = rust.1.iter().find(|(f, _)| f == m).unwrap_or_else(|| panic!("{file}: {name}.{m} has no Rust field"));
+        assert_eq!(*off, r.1, "{file}: {name}.{m} at {off} in WGSL, {} in Rust", r.1);
+    }
+    for (f, _) in &rust.1 {
+        assert!(members.iter().any(|(m, _)| m == f), "{file}: Rust field {name}.{f} is not in the WGSL struct");
+    }
+}
+
+#[test]
+fn shared_structs_have_the_shaders_layouts() {
+    use crate::appearance::vlad::VladParams;
+    use crate::global::{global_pool::PoolParams, ssim::SsimParams};
+    use crate::gpu::encode::Dims;
+    use crate::gpu::fine_pack::{FinePass, GpuTree};
+    use crate::local::tree_similarity::TreeSimParams;
+    use crate::matching::{ssim_block::PassParams, ssim_topk::TileParams, topk_select::Entry};
+    for file in ["ssim_topk.wgsl", "ssim_block.wgsl"] {
+        same_layout(file, "SsimParams", rust!(SsimParams { gw, gh, win, nw, nh, c1, c2, cov_norm }));
+    }
+    same_layout("ssim_topk.wgsl", "TileParams", rust!(TileParams { queries, tile_len, tile_start, k }));
+    for file in ["ssim_block.wgsl", "topk_select.wgsl"] {
+        same_layout(file, "PassParams", rust!(PassParams { queries, refs, ref_first, ref_index, rb, qb, k, segs, parity }));
+    }
+    same_layout("topk_select.wgsl", "Entry", rust!(Entry { score, index }));
+    same_layout(
+        "tree_similarity.wgsl",
+        "TreeSimParams",
+        rust!(TreeSimParams { w_area, w_position, w_appearance, w_intrinsic, w_neighbours, position_sigma, neutral, gaussian_position, drop_missing, use_appearance, greedy, neighbour_slots, tree_weight, geometric_norm }),
+    );
+    same_layout("tree_similarity.wgsl", "FinePass", rust!(FinePass { dim, pairs, max_trees, grid, queries, refs, ref_first, list_first, row, out_first }));
+    same_layout("tree_similarity.wgsl", "Tree", rust!(GpuTree { class_id, has_app, area, cx, cy, weight, nb }));
+    same_layout("vlad_accumulate.wgsl", "VladParams", rust!(VladParams { centres, dim, keypoints, objects, power_norm, intra_norm }));
+    same_layout("global_pool.wgsl", "PoolParams", rust!(PoolParams { src_width, src_height, dst_width, dst_height, tau, frames }));
+    for file in ["semantic_edges.wgsl", "edt.wgsl"] {
+        same_layout(file, "Dims", rust!(Dims { width, height, frames }));
+    }
+}
+
+/// The value of the WGSL constant `name` of `file`, as f64.
+fn wgsl_const(file: &str, name: &str) -> f64 {
+    let m = module(file);
+    let c = m.constants.iter().find(|(_, c)| c.name.as_deref() == Some(name)).unwrap_or_else(|| panic!("{file}: no const {name}")).1;
+    match m.global_expressions[c.init] {
+        Expression::Literal(Literal::U32(v)) => v as f64,
+        Expression::Literal(Literal::I32(v)) => v as f64,
+        Expression::Literal(Literal::F32(v)) => v as f64,
+        ref e => panic!("{file}: {name} = {e:?}"),
+    }
+}
+
+#[test]
+fn shared_constants_agree() {
+    use crate::matching::{ssim_block as b, ssim_topk, topk_select as t};
+    let checks: [(&str, &str, f64); 18] = [
+        ("ssim_topk.wgsl", "LANES", crate::global::ssim::LANES as f64),
+        ("ssim_topk.wgsl", "MAX_ROW_SUMS", super::reference::MAX_ROW_SUMS as f64),
+        ("ssim_block.wgsl", "LANES", crate::global::ssim::LANES as f64),
+        ("ssim_block.wgsl", "PAIR_CAP", b::PAIR_CAP as f64),
+        ("ssim_block.wgsl", "PROD_CAP", b::PROD_CAP as f64),
+        ("ssim_block.wgsl", "RING_CAP", b::RING_CAP as f64),
+        ("topk_select.wgsl", "LANES", t::LANES as f64),
+        ("topk_select.wgsl", "SEG", t::SEG as f64),
+        ("topk_select.wgsl", "MAX_LISTS", t::MAX_LISTS as f64),
+        ("topk_select.wgsl", "EMPTY_SCORE", ssim_topk::EMPTY_SCORE as f64),
+        ("topk_select.wgsl", "EMPTY_INDEX", ssim_topk::EMPTY_INDEX as f64),
+        ("topk_select.wgsl", "NONE", ssim_topk::EMPTY_INDEX as f64),
+        ("tree_similarity.wgsl", "LANES", crate::global::ssim::LANES as f64),
+        ("tree_similarity.wgsl", "MAX_TREES", super::fine_pack::MAX_TREES as f64),
+        ("tree_similarity.wgsl", "MAX_SLOTS", super::fine_pack::MAX_SLOTS as f64),
+        ("tree_similarity.wgsl", "MISSING", crate::local::tree_similarity::MISSING as f64),
+        ("tree_similarity.wgsl", "NOT_A_PAIR", crate::local::tree_similarity::NOT_A_PAIR as f64),
+        ("vlad_accumulate.wgsl", "LANES", crate::appearance::vlad::LANES as f64),
+    ];
+    for (file, name, rust) in checks {
+        assert_eq!(wgsl_const(file, name), rust, "{file}: {name}");
+    }
+}
+
+/// Every entry point of every shader has a CPU twin of the same name in a file named after the
+/// shader (`shaders/x.wgsl` -> `src/**/x.rs`, `pub fn entry(`).
+#[test]
+fn every_kernel_has_a_same_name_twin() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut files = Vec::new();
+    let mut stack = vec![root];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap().flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                files.push(p);
+            }
+        }
+    }
+    for (file, _) in SHADERS {
+        let stem = file.trim_end_matches(".wgsl");
+        let twin = files.iter().find(|p| p.file_stem().is_some_and(|s| s == stem)).unwrap_or_else(|| panic!("{file}: no src/**/{stem}.rs"));
+        let text = std::fs::read_to_string(twin).unwrap();
+        for ep in &module(file).entry_points {
+            assert!(text.contains(&format!("pub fn {}(", ep.name)), "{file}: entry point {} has no `pub fn {}(` in {}", ep.name, ep.name, twin.display());
+        }
+    }
+}

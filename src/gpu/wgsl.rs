@@ -1,0 +1,76 @@
+//! The shader sources and their one preprocessor directive, shared by the pipelines
+//! (`kernels.rs`) and the build script (`build.rs` includes this file), which validates every
+//! variant of every shader with naga before the crate compiles.
+//!
+//! A shader may hold lines that only one variant compiles, between `//#if NAME`, an optional
+//! `//#else` and `//#endif` (no nesting). Lines a variant leaves out become empty lines, so naga's
+//! line numbers are the file's. The only name in use is `SUBGROUPS`: reductions through subgroup
+//! operations where the adapter has them, through workgroup memory where it does not.
+
+/// The names a shader's variants are chosen by.
+pub const DEFINES: [&str; 1] = ["SUBGROUPS"];
+
+/// WGSL sources, by file name.
+pub const SHADERS: [(&str, &str); 8] = [
+    ("semantic_edges.wgsl", include_str!("../../shaders/semantic_edges.wgsl")),
+    ("edt.wgsl", include_str!("../../shaders/edt.wgsl")),
+    ("global_pool.wgsl", include_str!("../../shaders/global_pool.wgsl")),
+    ("ssim_topk.wgsl", include_str!("../../shaders/ssim_topk.wgsl")),
+    ("ssim_block.wgsl", include_str!("../../shaders/ssim_block.wgsl")),
+    ("topk_select.wgsl", include_str!("../../shaders/topk_select.wgsl")),
+    ("tree_similarity.wgsl", include_str!("../../shaders/tree_similarity.wgsl")),
+    ("vlad_accumulate.wgsl", include_str!("../../shaders/vlad_accumulate.wgsl")),
+];
+
+/// The names `src` branches on (in `DEFINES` order).
+pub fn defines_used(src: &str) -> Vec<&'static str> {
+    DEFINES.iter().copied().filter(|d| src.lines().any(|l| l.trim() == format!("//#if {d}"))).collect()
+}
+
+/// `src` with the lines of the variant where the names in `on` are set; an error names the line
+/// of a directive out of place.
+pub fn preprocess(src: &str, on: &[&str]) -> Result<String, String> {
+    let mut out = String::with_capacity(src.len());
+    // None: outside a block; Some(keep): inside one, keeping its lines or not
+    let mut state: Option<bool> = None;
+    let mut seen_else = false;
+    for (n, line) in src.lines().enumerate() {
+        let t = line.trim();
+        let keep = match (t.strip_prefix("//#if "), t, state) {
+            (Some(name), _, None) => {
+                if !DEFINES.contains(&name.trim()) {
+                    return Err(format!("line {}: unknown name {name:?} (known: {DEFINES:?})", n + 1));
+                }
+                state = Some(on.contains(&name.trim()));
+                seen_else = false;
+                false
+            }
+            (None, "//#else", Some(k)) if !seen_else => {
+                state = Some(!k);
+                seen_else = true;
+                false
+            }
+            (None, "//#endif", Some(_)) => {
+                state = None;
+                false
+            }
+            (Some(_), _, Some(_)) => return Err(format!("line {}: nested //#if", n + 1)),
+            (None, "//#else" | "//#endif", _) => return Err(format!("line {}: {t} without //#if", n + 1)),
+            (None, _, s) => s.unwrap_or(true),
+        };
+        if keep {
+            out.push_str(line);
+        }
+        out.push('\n');
+    }
+    match state {
+        Some(_) => Err("//#if without //#endif".into()),
+        None => Ok(out),
+    }
+}
+
+/// Every variant of `src`: one per subset of the names it uses, with those names set.
+pub fn variants(src: &str) -> Vec<Vec<&'static str>> {
+    let used = defines_used(src);
+    (0..1usize << used.len()).map(|mask| used.iter().enumerate().filter(|(i, _)| mask >> i & 1 == 1).map(|(_, d)| *d).collect()).collect()
+}
