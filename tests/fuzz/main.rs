@@ -13,7 +13,8 @@
 //!
 //! `cargo test` runs a short, fixed-seed pass over every target. The long run:
 //! `SEMLOOK_FUZZ_SECS=600 cargo test --release --test fuzz -- --ignored --nocapture`
-//! (the time is shared by the targets; `SEMLOOK_FUZZ_SEED` picks the seed, else the clock).
+//! (the time is shared by the targets; `SEMLOOK_FUZZ_SEED` picks the seed, else the clock;
+//! `SEMLOOK_FUZZ_TARGETS=a,b` runs only those).
 //!
 //! Adding a parser: write a constructor returning a [`Target`] and list it in [`TARGETS`] (the
 //! map manifest and segment readers belong there, with seeds from a small map).
@@ -222,7 +223,9 @@ fn long_run() {
     let seed: u64 = std::env::var("SEMLOOK_FUZZ_SEED").ok().and_then(|s| s.parse().ok()).unwrap_or_else(|| {
         std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(1, |d| d.as_nanos() as u64)
     });
-    let targets: Vec<Target> = TARGETS.iter().filter_map(|(_, make)| make()).collect();
+    let only = std::env::var("SEMLOOK_FUZZ_TARGETS").unwrap_or_default();
+    let chosen = |name: &str| only.is_empty() || only.split(',').any(|n| n.trim() == name);
+    let targets: Vec<Target> = TARGETS.iter().filter(|(name, _)| chosen(name)).filter_map(|(_, make)| make()).collect();
     let each = Duration::from_secs_f64(secs / targets.len().max(1) as f64);
     eprintln!("fuzzing {} targets for {each:?} each, seed {seed}", targets.len());
     let mut failures = Vec::new();
