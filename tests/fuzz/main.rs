@@ -62,15 +62,20 @@ pub struct Target {
     /// Valid (or deliberately wrong) inputs the mutations start from.
     pub seeds: Vec<Vec<u8>>,
     /// Run after each mutation (checksums), so mutations reach the parser proper.
-    pub fixup: Option<fn(&mut Vec<u8>)>,
+    pub fixup: Option<fn(&mut [u8])>,
     /// Inputs of the short pass in `cargo test`.
     pub quick: usize,
-    pub run: Box<dyn Fn(&[u8]) -> Verdict>,
+    pub run: Run,
 }
+
+/// Feeds one input to a target.
+pub type Run = Box<dyn Fn(&[u8]) -> Verdict>;
+/// Builds a target (`None` when a prerequisite is missing).
+pub type Make = fn() -> Option<Target>;
 
 /// Every target: its name and constructor (`None`, after saying why, when a prerequisite such
 /// as ONNX Runtime is missing). The extension point for new parsers.
-pub const TARGETS: &[(&str, fn() -> Option<Target>)] = &[
+pub const TARGETS: &[(&str, Make)] = &[
     ("label_png_grey", parsers::label_png_grey),
     ("label_png_palette", parsers::label_png_palette),
     ("rgb_image", parsers::rgb_image),

@@ -86,7 +86,7 @@ pub fn crc32(bytes: &[u8]) -> u32 {
 }
 
 /// Recomputes the CRC of every whole PNG chunk, so the decoder reads the mutated data.
-pub fn png_fixup(v: &mut Vec<u8>) {
+pub fn png_fixup(v: &mut [u8]) {
     let mut at = 8;
     while at + 12 <= v.len() {
         let len = u32::from_be_bytes([v[at], v[at + 1], v[at + 2], v[at + 3]]) as usize;
