@@ -58,6 +58,26 @@ pub struct BenchOptions {
     pub gpu_peak_gflops: Option<f64>,
 }
 
+impl BenchOptions {
+    /// Checks every option's range; the error names the option.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |what: &str, why: String| Err(crate::error::Error::invalid(what, why));
+        if self.sizes.is_empty() || self.sizes.iter().any(|&n| !(1..=100_000_000).contains(&n)) {
+            return bad("--sizes", format!("{:?}: map sizes must be in 1..=100000000", self.sizes));
+        }
+        if self.batches.is_empty() || self.batches.iter().any(|&b| !(1..=100_000).contains(&b)) {
+            return bad("--batches", format!("{:?}: batch sizes must be in 1..=100000", self.batches));
+        }
+        if !(self.max_row_seconds.is_finite() && self.max_row_seconds >= 0.0) {
+            return bad("--max-row-seconds", format!("{} must be a number of seconds, 0 or more", self.max_row_seconds));
+        }
+        if let Some(p) = self.gpu_peak_gflops.filter(|p| !(p.is_finite() && *p > 0.0)) {
+            return bad("--peak-gflops", format!("{p} must be a positive number"));
+        }
+        Ok(())
+    }
+}
+
 /// Operations of one SSIM comparison by the direct algorithm (the twin `ssim_pair` without its
 /// precomputed statistics): gw*gh products; (win - 1) additions per window sum, horizontally
 /// (gh rows x nw) and vertically (nh x nw); and per window 19 operations of the SSIM formula
@@ -215,6 +235,7 @@ fn loadavg() -> f64 {
 /// Runs every (map size, batch, engine) configuration; the first CPU engine is the reference of
 /// the GPU/CPU ratio. `tick` reports each finished row.
 pub fn run(pool: &DescriptorSet, queries: &DescriptorSet, opts: &BenchOptions, engines: &mut [Engine], cfg: &Config, tick: &mut dyn FnMut(&BenchRow)) -> Result<Vec<BenchRow>> {
+    opts.validate()?;
     let p = SsimParams::new(&cfg.global);
     let (k, tile) = (cfg.matching.top_k, cfg.matching.tile);
     let flops = flops_per_comparison(&p);
@@ -303,7 +324,9 @@ pub fn run(pool: &DescriptorSet, queries: &DescriptorSet, opts: &BenchOptions, e
                         row.kernel_seconds = g.take_kernel_seconds()?;
                         row.map_resident = Some(g.coarse_map_is_resident());
                     }
-                    assert_eq!(lists.len(), b, "one K-list per query");
+                    if lists.len() != b {
+                        return Err(crate::error::Error::invalid("bench", format!("{} K-lists for {b} queries", lists.len())));
+                    }
                     let rate = (n * b) as f64 / secs;
                     row.status = "ran".into();
                     row.queries_run = b;

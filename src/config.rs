@@ -290,14 +290,26 @@ impl Default for SegmentationConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ModelPaths {
+    #[serde(serialize_with = "lossy_path")]
     pub xfeat_weights: Option<std::path::PathBuf>,
+    #[serde(serialize_with = "lossy_path")]
     pub keypoint_onnx: Option<std::path::PathBuf>,
+    #[serde(serialize_with = "lossy_path")]
     pub segmenter_onnx: Option<std::path::PathBuf>,
     /// Without `segmenter_onnx`, segment frames that have no label map with the default
     /// segmenter when it is installed (`segmentation::DEFAULT_SEGMENTER`).
     pub default_segmenter: bool,
     /// The ONNX Runtime shared library (else $ORT_DYLIB_PATH, then the model folders).
+    #[serde(serialize_with = "lossy_path")]
     pub onnxruntime: Option<std::path::PathBuf>,
+}
+
+/// Paths are written as text even when they are not UTF-8 (serde's own impl fails on those).
+fn lossy_path<S: serde::Serializer>(p: &Option<std::path::PathBuf>, s: S) -> std::result::Result<S::Ok, S::Error> {
+    match p {
+        Some(p) => s.serialize_some(&p.to_string_lossy()),
+        None => s.serialize_none(),
+    }
 }
 
 impl Default for ModelPaths {
@@ -456,13 +468,15 @@ impl Config {
         Config::from_toml(&text, &path.display().to_string())
     }
 
-    pub fn to_toml(&self) -> String {
-        toml::to_string_pretty(self).expect("config serialises")
+    /// The configuration as TOML; fails only for values TOML cannot hold (an integer above
+    /// i64::MAX set in code), which [`Config::validate`] refuses.
+    pub fn to_toml(&self) -> Result<String> {
+        toml::to_string_pretty(self).map_err(|e| Error::InvalidConfig { source_name: "(in memory)".into(), reason: e.to_string() })
     }
 
     /// SHA-256 of the configuration's TOML: names exactly what ran in reports.
-    pub fn sha256(&self) -> String {
-        crate::util::sha256_hex(self.to_toml().as_bytes())
+    pub fn sha256(&self) -> Result<String> {
+        Ok(crate::util::sha256_hex(self.to_toml()?.as_bytes()))
     }
 
     pub fn encoding(&self) -> EncodingConfig {
@@ -503,94 +517,99 @@ impl Config {
         self
     }
 
-    /// Checks ranges and finiteness of every number, and that the class table resolves.
+    /// Checks that every value is in its range (numbers finite) and that the class table
+    /// resolves; the error names the field.
     pub fn validate(&self, source_name: &str) -> Result<()> {
-        let bad = |reason: String| Err(Error::InvalidConfig { source_name: source_name.into(), reason });
-        let finite_in = |name: &str, v: f64, lo: f64, hi: f64| -> Result<()> {
-            if v.is_finite() && v >= lo && v <= hi {
-                Ok(())
-            } else {
-                Err(Error::InvalidConfig {
-                    source_name: source_name.into(),
-                    reason: format!("{name} = {v} must be a finite number in [{lo}, {hi}]"),
-                })
-            }
-        };
+        let v = Check(source_name);
         crate::classes::ClassTable::from_config(&self.classes).map_err(|e| match e {
-            Error::InvalidConfig { reason, .. } => {
-                Error::InvalidConfig { source_name: source_name.into(), reason: format!("[classes] {reason}") }
-            }
+            Error::InvalidConfig { reason, .. } => v.err(format!("[classes] {reason}")),
             other => other,
         })?;
-        finite_in("objects.min_area_fraction", self.objects.min_area_fraction, 0.0, 0.5)?;
-        if self.objects.max_objects == 0 || self.objects.max_objects > 256 {
-            return bad(format!("objects.max_objects = {} must be in 1..=256", self.objects.max_objects));
+        let i = &self.input;
+        if i.working_long_side != 0 {
+            v.int("input.working_long_side", i.working_long_side, 32, 8192)?;
         }
+        v.real("objects.min_area_fraction", self.objects.min_area_fraction, 0.0, 0.5)?;
+        v.int("objects.max_objects", self.objects.max_objects, 1, 256)?;
         let g = &self.global;
-        finite_in("global.truncation", g.truncation, 1e-3, 1.0)?;
-        if g.ssim_window < 3 || g.ssim_window % 2 == 0 {
-            return bad(format!("global.ssim_window = {} must be odd and >= 3", g.ssim_window));
+        v.real("global.truncation", g.truncation, 1e-3, 1.0)?;
+        v.int("global.ssim_window", g.ssim_window, 3, 1023)?;
+        if g.ssim_window % 2 == 0 {
+            return Err(v.err(format!("global.ssim_window = {} must be odd", g.ssim_window)));
         }
-        if g.width < g.ssim_window || g.height < g.ssim_window || g.width > 1024 || g.height > 1024 {
-            return bad(format!(
-                "global descriptor {}x{} must be at least the SSIM window ({}) and at most 1024",
-                g.width, g.height, g.ssim_window
-            ));
-        }
-        finite_in("global.ssim_k1", g.ssim_k1, 1e-6, 1.0)?;
-        finite_in("global.ssim_k2", g.ssim_k2, 1e-6, 1.0)?;
-        if self.input.working_long_side != 0 && !(32..=8192).contains(&self.input.working_long_side) {
-            return bad(format!("input.working_long_side = {} must be 0 (native) or in 32..=8192", self.input.working_long_side));
-        }
+        v.int("global.width", g.width, g.ssim_window, 1024)?;
+        v.int("global.height", g.height, g.ssim_window, 1024)?;
+        v.real("global.ssim_k1", g.ssim_k1, 1e-6, 1.0)?;
+        v.real("global.ssim_k2", g.ssim_k2, 1e-6, 1.0)?;
+        v.int("local.neighbours", self.local.neighbours, 0, 8)?;
+        v.real("local.tie_tolerance", self.local.tie_tolerance, 0.0, 1.0)?;
         let a = &self.appearance;
-        finite_in("appearance.score_threshold", a.score_threshold, 0.0, 1.0)?;
-        if a.min_descriptors > 1_000_000 {
-            return bad(format!("appearance.min_descriptors = {} must be at most 1000000", a.min_descriptors));
-        }
-        if a.max_keypoints == 0 || a.vlad_centres == 0 || a.vlad_centres > 64 || a.codebook_images == 0 || a.codebook_samples_per_image == 0 {
-            return bad("appearance: max_keypoints, codebook_images and codebook_samples_per_image must be positive, vlad_centres in 1..=64".into());
+        v.int("appearance.nms_radius", a.nms_radius, 0, 64)?;
+        v.real("appearance.score_threshold", a.score_threshold, 0.0, 1.0)?;
+        v.int("appearance.max_keypoints", a.max_keypoints, 1, 1 << 20)?;
+        v.int("appearance.border", a.border, 0, 4096)?;
+        v.int("appearance.vlad_centres", a.vlad_centres, 1, 64)?;
+        v.int("appearance.min_descriptors", a.min_descriptors, 0, 1_000_000)?;
+        v.int("appearance.codebook_images", a.codebook_images, 1, 100_000)?;
+        v.int("appearance.codebook_samples_per_image", a.codebook_samples_per_image, 1, 100_000)?;
+        v.int("appearance.codebook_iterations", a.codebook_iterations, 0, 10_000)?;
+        if a.codebook_seed > i64::MAX as u64 {
+            return Err(v.err(format!("appearance.codebook_seed = {} must be at most {}", a.codebook_seed, i64::MAX)));
         }
         let sg = &self.segmentation;
-        if sg.input_width < 32 || sg.input_height < 32 || sg.class_map.is_empty() {
-            return bad("segmentation: input at least 32x32 and a non-empty class_map".into());
+        v.int("segmentation.input_width", sg.input_width, 32, 4096)?;
+        v.int("segmentation.input_height", sg.input_height, 32, 4096)?;
+        v.real("segmentation.scale", sg.scale, 1e-6, 1e6)?;
+        for (c, (&m, &d)) in sg.mean.iter().zip(&sg.std).enumerate() {
+            v.real(&format!("segmentation.mean[{c}]"), m, -1e6, 1e6)?;
+            v.real(&format!("segmentation.std[{c}]"), d.abs(), 1e-6, 1e6)?;
         }
-        finite_in("segmentation.scale", sg.scale, 1e-6, 1e6)?;
-        finite_in("segmentation.brighten_dark", sg.brighten_dark, 0.0, 0.95)?;
-        for v in sg.mean.iter().chain(&sg.std) {
-            finite_in("segmentation.mean/std", *v, -1e6, 1e6)?;
-        }
-        if sg.std.contains(&0.0) {
-            return bad("segmentation.std must not be zero".into());
-        }
-        if self.local.neighbours > 8 {
-            return bad(format!("local.neighbours = {} must be at most 8", self.local.neighbours));
-        }
-        finite_in("local.tie_tolerance", self.local.tie_tolerance, 0.0, 1.0)?;
+        v.real("segmentation.brighten_dark", sg.brighten_dark, 0.0, 0.95)?;
+        // its names are checked against the class table when a segmenter is loaded
+        v.int("segmentation.class_map (entries)", sg.class_map.len(), 1, 4096)?;
         let s = &self.similarity;
-        for (name, v) in [
+        for (name, w) in [
             ("similarity.w_area", s.w_area),
             ("similarity.w_position", s.w_position),
             ("similarity.w_appearance", s.w_appearance),
             ("similarity.w_intrinsic", s.w_intrinsic),
             ("similarity.w_neighbours", s.w_neighbours),
         ] {
-            finite_in(name, v, 0.0, 1e3)?;
+            v.real(name, w, 0.0, 1e3)?;
         }
         if s.w_area + s.w_position + s.w_appearance <= 0.0 || s.w_intrinsic + s.w_neighbours <= 0.0 {
-            return bad("similarity weights must not all be zero".into());
+            return Err(v.err("similarity weights must not all be zero (w_area + w_position + w_appearance, w_intrinsic + w_neighbours)".into()));
         }
-        finite_in("similarity.position_sigma", s.position_sigma, 1e-4, 10.0)?;
-        finite_in("similarity.neutral_appearance", s.neutral_appearance, 0.0, 1.0)?;
-        if self.matching.top_k == 0 || self.matching.top_k > 1024 {
-            return bad(format!("matching.top_k = {} must be in 1..=1024", self.matching.top_k));
-        }
-        if self.matching.tile == 0 {
-            return bad("matching.tile must be positive".into());
-        }
-        if self.eval.recall_at.contains(&0) {
-            return bad("eval.recall_at values must be positive".into());
+        v.real("similarity.position_sigma", s.position_sigma, 1e-4, 10.0)?;
+        v.real("similarity.neutral_appearance", s.neutral_appearance, 0.0, 1.0)?;
+        v.int("matching.top_k", self.matching.top_k, 1, 1024)?;
+        v.int("matching.tile", self.matching.tile, 1, 65536)?;
+        v.int("eval.recall_at (entries)", self.eval.recall_at.len(), 0, 16)?;
+        for (k, &n) in self.eval.recall_at.iter().enumerate() {
+            v.int(&format!("eval.recall_at[{k}]"), n, 1, 1000)?;
         }
         Ok(())
+    }
+}
+
+/// Range checks whose errors name the config source and the field.
+struct Check<'a>(&'a str);
+
+impl Check<'_> {
+    fn err(&self, reason: String) -> Error {
+        Error::InvalidConfig { source_name: self.0.into(), reason }
+    }
+    fn real(&self, name: &str, v: f64, lo: f64, hi: f64) -> Result<()> {
+        if v.is_finite() && (lo..=hi).contains(&v) {
+            return Ok(());
+        }
+        Err(self.err(format!("{name} = {v} must be a finite number in [{lo}, {hi}]")))
+    }
+    fn int(&self, name: &str, v: usize, lo: usize, hi: usize) -> Result<()> {
+        if (lo..=hi).contains(&v) {
+            return Ok(());
+        }
+        Err(self.err(format!("{name} = {v} must be in {lo}..={hi}")))
     }
 }
 
@@ -613,9 +632,11 @@ pub fn first_difference(a: &EncodingConfig, b: &EncodingConfig) -> Option<(Strin
             _ => Some((path, a.to_string(), b.to_string())),
         }
     }
-    let va = serde_json::to_value(a).expect("serialises");
-    let vb = serde_json::to_value(b).expect("serialises");
-    walk(String::new(), &va, &vb)
+    // JSON holds every value of these structs; should it ever fail, the configs count as different
+    match (serde_json::to_value(a), serde_json::to_value(b)) {
+        (Ok(va), Ok(vb)) => walk(String::new(), &va, &vb),
+        _ => (a != b).then(|| ("(encoding)".into(), format!("{a:?}"), format!("{b:?}"))),
+    }
 }
 
 #[cfg(test)]
@@ -625,7 +646,7 @@ mod tests {
     #[test]
     fn defaults_round_trip_through_toml() {
         let cfg = Config::default();
-        let back = Config::from_toml(&cfg.to_toml(), "test").unwrap();
+        let back = Config::from_toml(&cfg.to_toml().unwrap(), "test").unwrap();
         assert_eq!(cfg, back);
     }
 
@@ -644,6 +665,12 @@ mod tests {
             ("[matching]\ntop_k = 0\n", "top_k"),
             ("[objects]\nmin_area = 1\n", "min_area"),
             ("[classes]\nexclude = [\"dragon\"]\n", "dragon"),
+            ("[eval]\nrecall_at = [1, 100000]\n", "eval.recall_at[1]"),
+            ("[matching]\ntile = 100000000\n", "matching.tile"),
+            ("[appearance]\nnms_radius = 1000000\n", "appearance.nms_radius"),
+            ("[appearance]\ncodebook_seed = 9223372036854775807\ncodebook_iterations = 99999\n", "appearance.codebook_iterations"),
+            ("[segmentation]\ninput_width = 100000\n", "segmentation.input_width"),
+            ("[segmentation]\nstd = [1.0, 0.0, 1.0]\n", "segmentation.std[1]"),
         ] {
             let err = Config::from_toml(text, "x.toml").unwrap_err().to_string();
             assert!(err.contains(field) && err.contains("x.toml"), "{err}");

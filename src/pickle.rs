@@ -5,7 +5,9 @@
 //! Objects live in an arena and the stack holds indices, so a memoised object that is mutated
 //! later (a list filled by APPENDS after BINPUT) is seen the same through every reference, as in
 //! Python, and a malicious pickle cannot blow up memory by re-reading the memo: every opcode adds
-//! at most one node, so the arena is bounded by the input length. Calls (REDUCE, NEWOBJ) are
+//! at most one node, so the arena is bounded by the input length; what an opcode copies (call
+//! arguments, joined global names) is charged to a budget proportional to the input, so a short
+//! pickle cannot make quadratic copies either. Calls (REDUCE, NEWOBJ) are
 //! never executed: they become [`Node::Call`] nodes that the reader interprets.
 
 use std::collections::HashMap;
@@ -80,9 +82,13 @@ impl Pickle {
 
     /// Runs the pickle program in `data`.
     pub fn load(data: &[u8]) -> Result<Pickle, String> {
-        Machine { data, pos: 0, nodes: Vec::new(), stack: Vec::new(), memo: HashMap::new() }.run()
+        let budget = data.len().saturating_mul(COPY_BUDGET_PER_BYTE).saturating_add(4096);
+        Machine { data, pos: 0, nodes: Vec::new(), stack: Vec::new(), memo: HashMap::new(), budget }.run()
     }
 }
+
+/// Items or bytes an opcode may copy, in all, per byte of input.
+const COPY_BUDGET_PER_BYTE: usize = 16;
 
 struct Machine<'a> {
     data: &'a [u8],
@@ -90,9 +96,15 @@ struct Machine<'a> {
     nodes: Vec<Node>,
     stack: Vec<Slot>,
     memo: HashMap<u32, Id>,
+    /// What copies may still cost (items or bytes).
+    budget: usize,
 }
 
 impl<'a> Machine<'a> {
+    fn spend(&mut self, n: usize) -> Result<(), String> {
+        self.budget = self.budget.checked_sub(n).ok_or("the pickle copies more data than its size allows")?;
+        Ok(())
+    }
     fn take(&mut self, n: usize) -> Result<&'a [u8], String> {
         let end = self.pos.checked_add(n).filter(|&e| e <= self.data.len()).ok_or("pickle ends early")?;
         let s = &self.data[self.pos..end];
@@ -141,7 +153,8 @@ impl<'a> Machine<'a> {
     }
     fn pop_mark(&mut self) -> Result<Vec<Id>, String> {
         let m = self.stack.iter().rposition(|s| matches!(s, Slot::Mark)).ok_or("MARK missing")?;
-        let items = self.stack.split_off(m + 1).into_iter().map(|s| if let Slot::Node(id) = s { id } else { unreachable!("marks were searched") }).collect();
+        // `m` is the last mark, so everything above it is a node
+        let items = self.stack.split_off(m + 1).into_iter().filter_map(|s| if let Slot::Node(id) = s { Some(id) } else { None }).collect();
         self.stack.pop();
         Ok(items)
     }
@@ -155,11 +168,11 @@ impl<'a> Machine<'a> {
         self.stack.push(Slot::Node(id));
         Ok(())
     }
-    fn global(&self, id: Id) -> Result<String, String> {
-        match &self.nodes[id] {
-            Node::Global(g) => Ok(g.clone()),
-            other => Err(format!("call of a non-global {other:?}")),
-        }
+    fn global(&mut self, id: Id) -> Result<String, String> {
+        let Node::Global(g) = &self.nodes[id] else { return Err("call of something that is not a global".into()) };
+        let g = g.clone();
+        self.spend(g.len())?;
+        Ok(g)
     }
     fn set_items(&mut self, target: Id, kv: Vec<(Id, Id)>) -> Result<(), String> {
         match &mut self.nodes[target] {
@@ -200,6 +213,7 @@ impl<'a> Machine<'a> {
                     let module = self.pop("STACK_GLOBAL")?;
                     let (Node::Str(m), Node::Str(n)) = (&self.nodes[module], &self.nodes[name]) else { return Err("STACK_GLOBAL of non-strings".into()) };
                     let g = format!("{m}.{n}");
+                    self.spend(g.len())?;
                     self.push(Node::Global(g));
                 }
                 b'p' => {
@@ -367,6 +381,7 @@ impl<'a> Machine<'a> {
                         Node::Tuple(a) => a.clone(),
                         _ => return Err("REDUCE arguments are not a tuple".into()),
                     };
+                    self.spend(args.len())?;
                     self.push(Node::Call { func, args, state: None, items: vec![], appended: vec![] });
                 }
                 b'b' => {
@@ -441,5 +456,18 @@ mod tests {
         for bad in [&b"\x80\x02h\x05."[..], b"X\xff\xff\xff\xffabc", b"\x8b\xff\xff\xff\xff", b"(t\x8a\x09123456789.", b"R.", b"e."] {
             assert!(Pickle::load(bad).is_err(), "{bad:?}");
         }
+    }
+
+    #[test]
+    fn repeated_calls_on_one_large_tuple_run_out_of_budget_not_memory() {
+        // f = a global, t = a tuple of 20000 ints, both memoised; then f(*t) 20000 times: each call
+        // would copy the tuple, 400M ids from a 140 kB pickle
+        let mut p = b"\x80\x02cm\nf\nq\x00(".to_vec();
+        p.extend(std::iter::repeat_n(&b"K\x01"[..], 20_000).flatten());
+        p.extend_from_slice(b"tq\x01");
+        p.extend(std::iter::repeat_n(&b"h\x00h\x01R0"[..], 20_000).flatten());
+        p.push(b'.');
+        let err = Pickle::load(&p).unwrap_err();
+        assert!(err.contains("copies more"), "{err}");
     }
 }

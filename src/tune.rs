@@ -44,7 +44,7 @@ impl Sweep {
     pub fn parse(text: &str, name: &str, base: &Config) -> Result<Sweep> {
         let bad = |reason: String| Error::InvalidConfig { source_name: name.into(), reason };
         let doc: toml::Table = toml::from_str(text).map_err(|e| bad(e.to_string()))?;
-        let mut base_table: toml::Table = toml::from_str(&base.to_toml()).map_err(|e| bad(e.to_string()))?;
+        let mut base_table: toml::Table = toml::from_str(&base.to_toml()?).map_err(|e| bad(e.to_string()))?;
         if let Some(b) = doc.get("base") {
             let b = b.as_table().ok_or_else(|| bad("[base] must be a table".into()))?;
             merge(&mut base_table, b);
@@ -215,7 +215,7 @@ pub fn run(datasets: &[Dataset], sweep: &Sweep, settings: &[Setting], engine: &m
             let mut encoded: HashMap<String, (DescriptorSet, Vec<(String, DescriptorSet, Vec<Vec<u32>>)>)> = HashMap::new();
             for &i in members {
                 let cfg = &configs[i];
-                let enc_key = serde_json::to_string::<EncodingConfig>(&cfg.encoding()).expect("serialises");
+                let enc_key = serde_json::to_string::<EncodingConfig>(&cfg.encoding()).map_err(|e| Error::invalid("sweep", e.to_string()))?;
                 if !encoded.contains_key(&enc_key) {
                     let mut encoder = Encoder::new(cfg)?.with_hog(wants_hog);
                     if encoder.appearance_model().is_some() {

@@ -1,6 +1,8 @@
 //! Label maps from RGB with ONNX segmenters: a tiny model built by scripts/make_tiny_segmenter.py
 //! (checked in), and the real ESPNet Cityscapes model on real street frames when ../shared holds them.
 
+mod common;
+
 use image::{Rgb, RgbImage};
 use semlook::classes::ClassTable;
 use semlook::config::{Config, SegmentationConfig};
@@ -19,8 +21,8 @@ fn tiny_cfg() -> SegmentationConfig {
 fn load(path: &Path, cfg: &SegmentationConfig) -> Option<Segmenter> {
     match Segmenter::load(path, cfg, &ClassTable::cityscapes(), None) {
         Ok(s) => Some(s),
-        Err(e @ semlook::Error::Model { .. }) if std::env::var_os("CI").is_none() && e.to_string().contains("ONNX Runtime library") => {
-            eprintln!("SKIPPED: {e}");
+        Err(e @ semlook::Error::Model { .. }) if e.to_string().contains("ONNX Runtime library") => {
+            common::skip_unless_required("REQUIRE_MODELS", e);
             None
         }
         Err(e) => panic!("{e}"),
@@ -102,7 +104,7 @@ fn espnet_segments_real_street_frames_plausibly() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared");
     let (model, frames) = (root.join("models/espnet_cityscapes.onnx"), root.join("data/street-frames"));
     if !model.exists() || !frames.exists() {
-        eprintln!("SKIPPED: {} or {} is absent", model.display(), frames.display());
+        common::skip(format!("{} or {} is absent", model.display(), frames.display()));
         return;
     }
     let cfg = Config::default();

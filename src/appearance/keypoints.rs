@@ -53,10 +53,14 @@ fn sample(map: &Chw, x: f32, y: f32, out: &mut [f32]) {
     }
 }
 
-/// Full-resolution score map (H x W = 8h x 8w) from the cell logits and reliability.
-pub fn score_map(out: &NetOutputs) -> (Vec<f32>, usize, usize) {
+/// Full-resolution score map (H x W = 8h x 8w) from the cell logits and reliability; fails
+/// when the outputs are not SuperPoint's layout.
+pub fn score_map(out: &NetOutputs) -> Result<(Vec<f32>, usize, usize), String> {
     let l = &out.logits;
-    assert_eq!(l.c, 65, "keypoint logits must have 65 channels");
+    let rel_ok = out.reliability.as_ref().is_none_or(|r| r.c == 1 && r.h > 0 && r.w > 0 && r.is_consistent());
+    if l.c != 65 || !l.is_consistent() || !rel_ok {
+        return Err(format!("keypoint logits are {}x{}x{} (need 65 channels) or the reliability map is not one channel", l.c, l.h, l.w));
+    }
     let (h, w) = (l.h, l.w);
     let (hh, ww) = (h * 8, w * 8);
     let mut scores = vec![0.0f32; hh * ww];
@@ -81,12 +85,16 @@ pub fn score_map(out: &NetOutputs) -> (Vec<f32>, usize, usize) {
             }
         }
     }
-    (scores, hh, ww)
+    Ok((scores, hh, ww))
 }
 
 /// Decodes keypoints and descriptors from network outputs.
-pub fn extract(out: &NetOutputs, p: &KeypointParams) -> Keypoints {
-    let (scores, hh, ww) = score_map(out);
+pub fn extract(out: &NetOutputs, p: &KeypointParams) -> Result<Keypoints, String> {
+    let d = &out.descriptors;
+    if d.c == 0 || d.h == 0 || d.w == 0 || !d.is_consistent() {
+        return Err(format!("descriptor map is {}x{}x{}", d.c, d.h, d.w));
+    }
+    let (scores, hh, ww) = score_map(out)?;
     // separable max filter of radius r
     let r = p.nms_radius;
     let mut rowmax = vec![0.0f32; hh * ww];
@@ -113,7 +121,6 @@ pub fn extract(out: &NetOutputs, p: &KeypointParams) -> Keypoints {
     cand.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
     cand.truncate(p.max_keypoints);
     // unit-length dense descriptors, sampled, then normalised again
-    let d = &out.descriptors;
     let dim = d.c;
     let mut dense = d.clone();
     let cell = d.h * d.w;
@@ -133,7 +140,7 @@ pub fn extract(out: &NetOutputs, p: &KeypointParams) -> Keypoints {
         k.xy.push([x, y]);
         k.scores.push(s);
     }
-    k
+    Ok(k)
 }
 
 /// Dense sampling: the descriptor of every cell of the 1/8-resolution map, L2-normalised, at the
@@ -143,6 +150,9 @@ pub fn dense(out: &NetOutputs) -> Keypoints {
     let d = &out.descriptors;
     let (dim, cells) = (d.c, d.h * d.w);
     let mut k = Keypoints { dim, ..Default::default() };
+    if !d.is_consistent() {
+        return k;
+    }
     k.descriptors.reserve(dim * cells);
     for i in 0..cells {
         let n = (0..dim).map(|c| d.data[c * cells + i].powi(2)).sum::<f32>().sqrt().max(1e-12);
@@ -150,7 +160,7 @@ pub fn dense(out: &NetOutputs) -> Keypoints {
         let (cx, cy) = ((i % d.w) as f32, (i / d.w) as f32);
         k.xy.push([cx * 8.0 + 3.5, cy * 8.0 + 3.5]);
         let score = match &out.reliability {
-            Some(r) if r.h == d.h && r.w == d.w => r.data[i],
+            Some(r) if r.h == d.h && r.w == d.w => r.data.get(i).copied().unwrap_or(1.0),
             _ => 1.0,
         };
         k.scores.push(score);

@@ -89,19 +89,19 @@ impl AppearanceModel {
     /// sampling the native XFeat skips its keypoint heads.
     pub fn run(&self, grey: &Chw) -> Result<NetOutputs> {
         match &self.net {
-            Network::XFeat(x) => Ok(x.forward_with(grey, self.sampling == Sampling::Keypoints)),
+            Network::XFeat(x) => x.forward_with(grey, self.sampling == Sampling::Keypoints).map_err(|reason| Error::Model { path: self.path.clone(), reason }),
             Network::Onnx { sessions, logits, reliability, descriptors } => {
                 let fail = |reason: String| Error::Model { path: self.path.clone(), reason };
                 sessions.run(|s| {
                     let input = ort::value::TensorRef::from_array_view(([1usize, 1, grey.h, grey.w], grey.data.as_slice())).map_err(|e| fail(e.to_string()))?;
                     let outputs = s.run(ort::inputs![input]).map_err(|e| fail(e.to_string()))?;
                     let get = |i: usize| -> Result<Chw> {
-                        let (shape, data) = outputs[i].try_extract_tensor::<f32>().map_err(|e| fail(e.to_string()))?;
-                        if shape.len() != 4 || shape[0] != 1 || shape[1..].iter().any(|&d| d <= 0) {
-                            return Err(fail(format!("output {i} has shape {shape:?}, expected [1, C, h, w]")));
-                        }
-                        let (c, h, w) = (shape[1] as usize, shape[2] as usize, shape[3] as usize);
-                        if data.len() != c * h * w {
+                        let value = outputs.values().nth(i).ok_or_else(|| fail(format!("the model returned no output {i}")))?;
+                        let (shape, data) = value.try_extract_tensor::<f32>().map_err(|e| fail(format!("output {i}: {e}")))?;
+                        let [1, c, h, w] = shape[..] else { return Err(fail(format!("output {i} has shape {shape:?}, expected [1, C, h, w]"))) };
+                        let dims = [c, h, w].map(|d| usize::try_from(d).ok().filter(|&d| d > 0));
+                        let [Some(c), Some(h), Some(w)] = dims else { return Err(fail(format!("output {i} has shape {shape:?}, expected [1, C, h, w]"))) };
+                        if c.checked_mul(h).and_then(|v| v.checked_mul(w)) != Some(data.len()) {
                             return Err(fail(format!("output {i} holds {} values for shape {shape:?}", data.len())));
                         }
                         Ok(Chw { c, h, w, data: data.to_vec() })
@@ -133,7 +133,7 @@ impl AppearanceModel {
         let out = self.run(&grey)?;
         let network_ms = crate::util::ms_since(t);
         let mut k = match self.sampling {
-            Sampling::Keypoints => keypoints::extract(&out, &self.params),
+            Sampling::Keypoints => keypoints::extract(&out, &self.params).map_err(|reason| Error::Model { path: self.path.clone(), reason })?,
             Sampling::Dense => keypoints::dense(&out),
         };
         for p in &mut k.xy {
@@ -177,7 +177,7 @@ pub fn network_input(rgb: &RgbImage) -> Result<(Chw, f32, f32)> {
     }
     let data = rgb.pixels().map(|p| (p.0[0] as f32 + p.0[1] as f32 + p.0[2] as f32) / (3.0 * 255.0)).collect();
     let grey = Chw { c: 1, h, w, data };
-    let grey = if (w32, h32) == (w, h) { grey } else { nn::resize_bilinear(&grey, h32, w32) };
+    let grey = if (w32, h32) == (w, h) { grey } else { nn::resize_bilinear(&grey, h32, w32).map_err(|r| Error::invalid("image", r))? };
     Ok((grey, w as f32 / w32 as f32, h as f32 / h32 as f32))
 }
 

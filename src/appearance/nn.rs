@@ -2,6 +2,8 @@
 //! im2col and a matrix product (matrixmultiply's sgemm, parallel over column bands with rayon),
 //! inference-mode batch norm without affine terms fused with ReLU, average pooling, instance
 //! norm, bilinear resizing (PyTorch's align_corners = False) and 8x8 space-to-depth.
+//! Shapes come from a weights file, so every operation checks them and returns an error rather
+//! than panicking.
 
 use rayon::prelude::*;
 
@@ -21,10 +23,17 @@ impl Chw {
     pub fn plane(&self, c: usize) -> &[f32] {
         &self.data[c * self.h * self.w..(c + 1) * self.h * self.w]
     }
-    pub fn add(mut self, o: &Chw) -> Chw {
-        assert_eq!((self.c, self.h, self.w), (o.c, o.h, o.w));
+    /// Element-wise sum of two tensors of one shape.
+    pub fn add(mut self, o: &Chw) -> Result<Chw, String> {
+        if (self.c, self.h, self.w) != (o.c, o.h, o.w) || self.data.len() != o.data.len() {
+            return Err(format!("cannot add a {}x{}x{} tensor to a {}x{}x{} one", o.c, o.h, o.w, self.c, self.h, self.w));
+        }
         self.data.iter_mut().zip(&o.data).for_each(|(a, b)| *a += b);
-        self
+        Ok(self)
+    }
+    /// Whether `data` holds exactly c x h x w values.
+    pub fn is_consistent(&self) -> bool {
+        self.c.checked_mul(self.h).and_then(|v| v.checked_mul(self.w)) == Some(self.data.len())
     }
 }
 
@@ -78,10 +87,20 @@ fn im2col_band(x: &Chw, k: usize, stride: usize, pad: usize, wo: usize, b0: usiz
 }
 
 /// 2-D convolution of `x` with `weight` [cout, cin, k, k], square stride and zero padding, plus
-/// an optional bias. A 1x1 convolution with stride 1 multiplies the input directly.
-pub fn conv2d(x: &Chw, weight: &[f32], bias: Option<&[f32]>, cout: usize, k: usize, stride: usize, pad: usize) -> Chw {
+/// an optional bias. A 1x1 convolution with stride 1 multiplies the input directly. Fails when
+/// the sizes do not fit together.
+pub fn conv2d(x: &Chw, weight: &[f32], bias: Option<&[f32]>, cout: usize, k: usize, stride: usize, pad: usize) -> Result<Chw, String> {
     let (cin, h, w) = (x.c, x.h, x.w);
-    assert_eq!(weight.len(), cout * cin * k * k, "weight size");
+    let want = cout.checked_mul(cin).and_then(|v| v.checked_mul(k)).and_then(|v| v.checked_mul(k));
+    if want != Some(weight.len()) || k == 0 || stride == 0 || !x.is_consistent() {
+        return Err(format!("convolution weights of {} values do not fit {cout} outputs, {cin} inputs and a {k}x{k} kernel (stride {stride})", weight.len()));
+    }
+    if bias.is_some_and(|b| b.len() != cout) {
+        return Err(format!("convolution bias of {} values for {cout} outputs", bias.map_or(0, <[f32]>::len)));
+    }
+    if h + 2 * pad < k || w + 2 * pad < k {
+        return Err(format!("{k}x{k} kernel on a {h}x{w} input"));
+    }
     let ho = (h + 2 * pad - k) / stride + 1;
     let wo = (w + 2 * pad - k) / stride + 1;
     let n = ho * wo;
@@ -124,21 +143,31 @@ pub fn conv2d(x: &Chw, weight: &[f32], bias: Option<&[f32]>, cout: usize, k: usi
             out.data[co * n..(co + 1) * n].iter_mut().for_each(|v| *v += b[co]);
         }
     }
-    out
+    Ok(out)
 }
 
 /// Inference-mode BatchNorm2d(affine = False), eps 1e-5, followed by ReLU, in place.
-pub fn batchnorm_relu(x: &mut Chw, mean: &[f32], var: &[f32]) {
+pub fn batchnorm_relu(x: &mut Chw, mean: &[f32], var: &[f32]) -> Result<(), String> {
+    if mean.len() != x.c || var.len() != x.c || !x.is_consistent() {
+        return Err(format!("batch norm of {} channels with {} means and {} variances", x.c, mean.len(), var.len()));
+    }
     let hw = x.h * x.w;
+    if hw == 0 {
+        return Ok(());
+    }
     x.data.par_chunks_mut(hw).enumerate().for_each(|(c, plane)| {
         let inv = 1.0 / (var[c] + 1e-5).sqrt();
         let m = mean[c];
         plane.iter_mut().for_each(|v| *v = ((*v - m) * inv).max(0.0));
     });
+    Ok(())
 }
 
 /// AvgPool2d(k, stride k) on sizes divisible by k.
-pub fn avg_pool(x: &Chw, k: usize) -> Chw {
+pub fn avg_pool(x: &Chw, k: usize) -> Result<Chw, String> {
+    if k == 0 || !x.is_consistent() {
+        return Err(format!("{k}x{k} average pooling of a {}x{}x{} tensor", x.c, x.h, x.w));
+    }
     let (ho, wo) = (x.h / k, x.w / k);
     let mut out = Chw::zeros(x.c, ho, wo);
     let inv = 1.0 / (k * k) as f32;
@@ -156,11 +185,14 @@ pub fn avg_pool(x: &Chw, k: usize) -> Chw {
             }
         }
     }
-    out
+    Ok(out)
 }
 
 /// InstanceNorm2d(affine = False): per channel, zero mean and unit (biased) variance, eps 1e-5.
 pub fn instance_norm(x: &mut Chw) {
+    if !x.is_consistent() || x.h * x.w == 0 {
+        return;
+    }
     let hw = (x.h * x.w) as f64;
     for c in 0..x.c {
         let plane = &mut x.data[c * x.h * x.w..(c + 1) * x.h * x.w];
@@ -181,8 +213,14 @@ fn source_index(dst: usize, in_len: usize, out_len: usize) -> (usize, usize, f32
 }
 
 /// F.interpolate(x, (h, w), mode = "bilinear", align_corners = False).
-pub fn resize_bilinear(x: &Chw, h: usize, w: usize) -> Chw {
+pub fn resize_bilinear(x: &Chw, h: usize, w: usize) -> Result<Chw, String> {
+    if !x.is_consistent() || (h * w > 0 && x.h * x.w == 0) {
+        return Err(format!("cannot resize a {}x{}x{} tensor to {h}x{w}", x.c, x.h, x.w));
+    }
     let mut out = Chw::zeros(x.c, h, w);
+    if h * w == 0 {
+        return Ok(out);
+    }
     let xs: Vec<(usize, usize, f32)> = (0..w).map(|i| source_index(i, x.w, w)).collect();
     out.data.par_chunks_mut(h * w).enumerate().for_each(|(c, plane)| {
         let src = x.plane(c);
@@ -195,12 +233,14 @@ pub fn resize_bilinear(x: &Chw, h: usize, w: usize) -> Chw {
             }
         }
     });
-    out
+    Ok(out)
 }
 
 /// XFeat's `_unfold2d(x, 8)` for one channel: [1, H, W] to [64, H/8, W/8], channel ky*8 + kx.
-pub fn space_to_depth8(x: &Chw) -> Chw {
-    assert_eq!(x.c, 1);
+pub fn space_to_depth8(x: &Chw) -> Result<Chw, String> {
+    if x.c != 1 || !x.is_consistent() {
+        return Err(format!("space-to-depth of a {}-channel tensor (needs 1)", x.c));
+    }
     let (ho, wo) = (x.h / 8, x.w / 8);
     let mut out = Chw::zeros(64, ho, wo);
     for ky in 0..8 {
@@ -213,7 +253,7 @@ pub fn space_to_depth8(x: &Chw) -> Chw {
             }
         }
     }
-    out
+    Ok(out)
 }
 
 #[cfg(test)]
@@ -253,7 +293,7 @@ mod tests {
         for &(cin, cout, h, w, k, stride, pad) in &[(1, 4, 37, 45, 3, 1, 1), (5, 7, 33, 40, 3, 2, 1), (6, 3, 50, 47, 1, 1, 0)] {
             let x = Chw { c: cin, h, w, data: (0..cin * h * w).map(|_| rng.normal() as f32).collect() };
             let wt: Vec<f32> = (0..cout * cin * k * k).map(|_| rng.normal() as f32).collect();
-            let a = conv2d(&x, &wt, None, cout, k, stride, pad);
+            let a = conv2d(&x, &wt, None, cout, k, stride, pad).unwrap();
             let b = conv_reference(&x, &wt, cout, k, stride, pad);
             assert_eq!((a.c, a.h, a.w), (b.c, b.h, b.w));
             let worst = a.data.iter().zip(&b.data).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
@@ -265,7 +305,7 @@ mod tests {
     fn resize_matches_pytorch_on_a_known_case() {
         // torch.nn.functional.interpolate(torch.arange(4.).view(1,1,2,2), (4,4), mode="bilinear")
         let x = Chw { c: 1, h: 2, w: 2, data: vec![0.0, 1.0, 2.0, 3.0] };
-        let y = resize_bilinear(&x, 4, 4);
+        let y = resize_bilinear(&x, 4, 4).unwrap();
         let expected = [0.0, 0.25, 0.75, 1.0, 0.5, 0.75, 1.25, 1.5, 1.5, 1.75, 2.25, 2.5, 2.0, 2.25, 2.75, 3.0];
         assert_eq!(y.data, expected);
     }

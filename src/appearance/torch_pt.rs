@@ -8,6 +8,11 @@ use std::collections::HashMap;
 use std::io::Read;
 use std::path::Path;
 
+/// Most bytes read for the pickle, and for one tensor storage: far above any keypoint network,
+/// far below what a lying archive could make us allocate.
+const MAX_PICKLE_BYTES: u64 = 64 << 20;
+const MAX_STORAGE_BYTES: u64 = 1 << 30;
+
 /// A float tensor (row-major, contiguous).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Tensor {
@@ -64,7 +69,11 @@ pub fn read_state_dict(path: &Path) -> Result<HashMap<String, Tensor>, String> {
     let pkl = names.iter().find(|n| n.ends_with("/data.pkl") || *n == "data.pkl").ok_or("no data.pkl in the archive")?.clone();
     let prefix = pkl.trim_end_matches("data.pkl").to_string();
     let mut bytes = Vec::new();
-    zip.by_name(&pkl).map_err(|e| e.to_string())?.read_to_end(&mut bytes).map_err(|e| e.to_string())?;
+    let entry = zip.by_name(&pkl).map_err(|e| e.to_string())?;
+    entry.take(MAX_PICKLE_BYTES + 1).read_to_end(&mut bytes).map_err(|e| format!("{pkl}: {e}"))?;
+    if bytes.len() as u64 > MAX_PICKLE_BYTES {
+        return Err(format!("{pkl} is larger than {MAX_PICKLE_BYTES} bytes"));
+    }
     let p = Pickle::load(&bytes)?;
     let entries = p.pairs(p.root).ok_or("the pickle does not hold a dict")?;
     let mut out = HashMap::new();
@@ -75,30 +84,34 @@ pub fn read_state_dict(path: &Path) -> Result<HashMap<String, Tensor>, String> {
         if storage_type != "FloatStorage" {
             continue;
         }
-        if numel < 0 || offset < 0 || shape.iter().chain(&stride).any(|&d| d < 0) || shape.len() != stride.len() {
-            return Err(format!("{name}: negative size, offset or stride, or shape and stride of different lengths"));
+        let as_sizes = |v: &[i64]| v.iter().map(|&d| usize::try_from(d).ok()).collect::<Option<Vec<usize>>>();
+        let (Ok(numel), Ok(offset), Some(shape), Some(stride)) = (u64::try_from(numel), usize::try_from(offset), as_sizes(&shape), as_sizes(&stride)) else {
+            return Err(format!("{name}: negative size, offset, shape or stride"));
+        };
+        if shape.len() != stride.len() {
+            return Err(format!("{name}: shape {shape:?} and stride {stride:?} of different lengths"));
         }
-        let shape: Vec<usize> = shape.iter().map(|&s| s as usize).collect();
-        let count = shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d)).filter(|&c| c as u64 <= numel as u64);
+        let want = numel.checked_mul(4).filter(|&b| b <= MAX_STORAGE_BYTES).ok_or_else(|| format!("{name}: storage of {numel} floats is larger than {MAX_STORAGE_BYTES} bytes"))?;
+        let count = shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d)).filter(|&c| c as u64 <= numel);
         let count = count.ok_or_else(|| format!("{name}: shape {shape:?} holds more values than its storage ({numel})"))?;
-        let want = (numel as u64).saturating_mul(4);
         let mut raw = Vec::new();
         // read at most one byte more than the storage should hold: a lying archive cannot make us allocate more
         zip.by_name(&format!("{prefix}data/{key}"))
             .map_err(|e| format!("{name}: storage {key}: {e}"))?
-            .take(want.saturating_add(1))
+            .take(want + 1)
             .read_to_end(&mut raw)
-            .map_err(|e| e.to_string())?;
+            .map_err(|e| format!("{name}: storage {key}: {e}"))?;
         if raw.len() as u64 != want {
             return Err(format!("{name}: storage {key} holds {} bytes, expected {want}", raw.len()));
         }
         let all: Vec<f32> = raw.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
         // gather by strides (state dicts are contiguous, but do not assume it)
+        let leaves = || format!("{name}: shape {shape:?}, stride {stride:?} and offset {offset} leave the storage ({numel} values)");
         let mut data = Vec::with_capacity(count);
         let mut idx = vec![0usize; shape.len()];
         for _ in 0..count {
-            let at = offset + idx.iter().zip(&stride).map(|(&i, &s)| i as i64 * s).sum::<i64>();
-            data.push(*all.get(at as usize).ok_or_else(|| format!("{name}: strides leave the storage"))?);
+            let at = idx.iter().zip(&stride).try_fold(offset, |a, (&i, &s)| i.checked_mul(s).and_then(|v| v.checked_add(a)));
+            data.push(*at.and_then(|at| all.get(at)).ok_or_else(leaves)?);
             for d in (0..shape.len()).rev() {
                 idx[d] += 1;
                 if idx[d] < shape[d] {

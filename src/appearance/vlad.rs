@@ -26,6 +26,9 @@ impl VladNorm {
 /// Reference: VLAD of one object straight from the definition, in f64.
 pub fn vlad_reference(centres: &[f32], k: usize, d: usize, descriptors: &[&[f32]], norm: VladNorm) -> Vec<f64> {
     let mut v = vec![0.0f64; k * d];
+    if k == 0 || centres.len() < k * d || descriptors.iter().any(|x| x.len() < d) {
+        return v;
+    }
     for x in descriptors {
         let j = (0..k)
             .min_by(|&a, &b| {
@@ -33,7 +36,7 @@ pub fn vlad_reference(centres: &[f32], k: usize, d: usize, descriptors: &[&[f32]
                 let db: f64 = (0..d).map(|t| (x[t] as f64 - centres[b * d + t] as f64).powi(2)).sum();
                 da.total_cmp(&db)
             })
-            .unwrap();
+            .unwrap_or(0); // k >= 1 (checked above)
         for t in 0..d {
             v[j * d + t] += x[t] as f64 - centres[j * d + t] as f64;
         }
@@ -65,7 +68,7 @@ pub struct Codebook {
 /// k-means (Lloyd) with k-means++ seeding (Arthur & Vassilvitskii 2007), deterministic from
 /// `seed`. `samples` holds `dim` values per sample; needs at least `k` samples.
 pub fn train_codebook(samples: &[f32], dim: usize, k: usize, iterations: usize, seed: u64) -> Result<Codebook, String> {
-    let n = samples.len() / dim;
+    let n = samples.len().checked_div(dim).unwrap_or(0);
     if n < k || k == 0 {
         return Err(format!("{n} descriptors cannot train {k} centres"));
     }
@@ -97,7 +100,7 @@ pub fn train_codebook(samples: &[f32], dim: usize, k: usize, iterations: usize, 
     for _ in 0..iterations {
         let mut changed = false;
         for (i, a) in assign.iter_mut().enumerate() {
-            let best = (0..k).min_by(|&p, &q| dist2(x(i), &centres[p * dim..(p + 1) * dim]).total_cmp(&dist2(x(i), &centres[q * dim..(q + 1) * dim]))).unwrap();
+            let best = (0..k).min_by(|&p, &q| dist2(x(i), &centres[p * dim..(p + 1) * dim]).total_cmp(&dist2(x(i), &centres[q * dim..(q + 1) * dim]))).unwrap_or(0); // k >= 1
             changed |= *a != best;
             *a = best;
         }
@@ -112,7 +115,7 @@ pub fn train_codebook(samples: &[f32], dim: usize, k: usize, iterations: usize, 
         for j in 0..k {
             if counts[j] == 0 {
                 // an empty cluster takes the sample farthest from its centre
-                let far = (0..n).max_by(|&p, &q| dist2(x(p), &centres[assign[p] * dim..][..dim]).total_cmp(&dist2(x(q), &centres[assign[q] * dim..][..dim]))).unwrap();
+                let far = (0..n).max_by(|&p, &q| dist2(x(p), &centres[assign[p] * dim..][..dim]).total_cmp(&dist2(x(q), &centres[assign[q] * dim..][..dim]))).unwrap_or(0); // n >= k >= 1
                 centres[j * dim..(j + 1) * dim].copy_from_slice(x(far));
                 changed = true;
             } else {

@@ -13,6 +13,7 @@ use std::path::Path;
 /// Conv2d (no bias) + BatchNorm2d(affine = False) + ReLU.
 struct Basic {
     weight: Vec<f32>,
+    cin: usize,
     cout: usize,
     k: usize,
     stride: usize,
@@ -21,10 +22,10 @@ struct Basic {
 }
 
 impl Basic {
-    fn run(&self, x: &Chw) -> Chw {
-        let mut y = conv2d(x, &self.weight, None, self.cout, self.k, self.stride, self.k / 2);
-        batchnorm_relu(&mut y, &self.mean, &self.var);
-        y
+    fn run(&self, x: &Chw) -> Result<Chw, String> {
+        let mut y = conv2d(x, &self.weight, None, self.cout, self.k, self.stride, self.k / 2)?;
+        batchnorm_relu(&mut y, &self.mean, &self.var)?;
+        Ok(y)
     }
 }
 
@@ -32,12 +33,13 @@ impl Basic {
 struct Conv {
     weight: Vec<f32>,
     bias: Vec<f32>,
+    cin: usize,
     cout: usize,
     k: usize,
 }
 
 impl Conv {
-    fn run(&self, x: &Chw) -> Chw {
+    fn run(&self, x: &Chw) -> Result<Chw, String> {
         conv2d(x, &self.weight, Some(&self.bias), self.cout, self.k, 1, self.k / 2)
     }
 }
@@ -59,38 +61,67 @@ pub struct XFeat {
 
 struct Weights(HashMap<String, Tensor>);
 
+/// Largest kernel side accepted (XFeat uses 1 and 3).
+const MAX_KERNEL: usize = 15;
+
 impl Weights {
     fn get(&self, name: &str) -> Result<&Tensor, String> {
         self.0.get(name).ok_or_else(|| format!("tensor {name:?} missing from the state dict"))
     }
-    fn basic(&self, prefix: &str, stride: usize) -> Result<Basic, String> {
-        let w = self.get(&format!("{prefix}.layer.0.weight"))?;
-        if w.shape.len() != 4 || w.shape[2] != w.shape[3] {
-            return Err(format!("{prefix}: unexpected weight shape {:?}", w.shape));
+    /// A [cout, cin, k, k] weight with an odd k (same-size padding): (weights, cin, cout, k).
+    fn kernel(&self, name: &str) -> Result<(Vec<f32>, usize, usize, usize), String> {
+        let w = self.get(name)?;
+        match w.shape[..] {
+            [cout, cin, k, k2] if k == k2 && k % 2 == 1 && k <= MAX_KERNEL && cout > 0 && cin > 0 => Ok((w.data.clone(), cin, cout, k)),
+            _ => Err(format!("{name}: weight shape {:?}, expected [out, in, k, k] with an odd k up to {MAX_KERNEL}", w.shape)),
         }
-        Ok(Basic {
-            weight: w.data.clone(),
-            cout: w.shape[0],
-            k: w.shape[2],
-            stride,
-            mean: self.get(&format!("{prefix}.layer.1.running_mean"))?.data.clone(),
-            var: self.get(&format!("{prefix}.layer.1.running_var"))?.data.clone(),
-        })
+    }
+    /// A per-channel vector of `n` values.
+    fn vector(&self, name: &str, n: usize) -> Result<Vec<f32>, String> {
+        let t = self.get(name)?;
+        if t.shape != [n] {
+            return Err(format!("{name}: shape {:?}, expected [{n}]", t.shape));
+        }
+        Ok(t.data.clone())
+    }
+    fn basic(&self, prefix: &str, stride: usize) -> Result<Basic, String> {
+        let (weight, cin, cout, k) = self.kernel(&format!("{prefix}.layer.0.weight"))?;
+        let mean = self.vector(&format!("{prefix}.layer.1.running_mean"), cout)?;
+        let var = self.vector(&format!("{prefix}.layer.1.running_var"), cout)?;
+        Ok(Basic { weight, cin, cout, k, stride, mean, var })
     }
     fn conv(&self, prefix: &str) -> Result<Conv, String> {
-        let w = self.get(&format!("{prefix}.weight"))?;
-        Ok(Conv { weight: w.data.clone(), bias: self.get(&format!("{prefix}.bias"))?.data.clone(), cout: w.shape[0], k: w.shape[2] })
+        let (weight, cin, cout, k) = self.kernel(&format!("{prefix}.weight"))?;
+        Ok(Conv { bias: self.vector(&format!("{prefix}.bias"), cout)?, weight, cin, cout, k })
     }
     fn block(&self, name: &str, strides: &[usize]) -> Result<Vec<Basic>, String> {
         strides.iter().enumerate().map(|(i, &s)| self.basic(&format!("{name}.{i}"), s)).collect()
     }
 }
 
+/// The channel count after `layers` applied to `cin` channels, or which layer does not fit.
+fn chain(name: &str, layers: &[Basic], cin: usize) -> Result<usize, String> {
+    layers.iter().enumerate().try_fold(cin, |c, (i, l)| {
+        if l.cin == c {
+            Ok(l.cout)
+        } else {
+            Err(format!("{name}.{i} takes {} channels but receives {c}", l.cin))
+        }
+    })
+}
+
+fn fits(name: &str, conv: &Conv, cin: usize, cout: Option<usize>) -> Result<usize, String> {
+    if conv.cin != cin || cout.is_some_and(|c| c != conv.cout) {
+        return Err(format!("{name} maps {} to {} channels; the network needs {cin} to {}", conv.cin, conv.cout, cout.map_or("any".into(), |c| c.to_string())));
+    }
+    Ok(conv.cout)
+}
+
 impl XFeat {
     /// Loads the weights of `xfeat.pt`.
     pub fn load(path: &Path) -> Result<XFeat, String> {
         let w = Weights(read_state_dict(path)?);
-        Ok(XFeat {
+        let net = XFeat {
             skip1: w.conv("skip1.1")?,
             block1: w.block("block1", &[1, 2, 1, 2])?,
             block2: w.block("block2", &[1, 1])?,
@@ -103,37 +134,57 @@ impl XFeat {
             heatmap_out: w.conv("heatmap_head.2")?,
             keypoint: w.block("keypoint_head", &[1, 1, 1])?,
             keypoint_out: w.conv("keypoint_head.3")?,
-        })
+        };
+        net.check()?;
+        Ok(net)
+    }
+
+    /// Whether the layers' channel counts fit together as XFeat's graph joins them.
+    fn check(&self) -> Result<(), String> {
+        let c1 = chain("block1", &self.block1, 1)?;
+        fits("skip1.1", &self.skip1, 1, Some(c1))?;
+        let c3 = chain("block3", &self.block3, chain("block2", &self.block2, c1)?)?;
+        let c4 = chain("block4", &self.block4, c3)?;
+        let c5 = chain("block5", &self.block5, c4)?;
+        if c4 != c3 || c5 != c3 {
+            return Err(format!("blocks 3, 4 and 5 end in {c3}, {c4} and {c5} channels; they are summed"));
+        }
+        let dim = fits("block_fusion.2", &self.fusion_out, chain("block_fusion", &self.fusion, c3)?, None)?;
+        fits("heatmap_head.2", &self.heatmap_out, chain("heatmap_head", &self.heatmap, dim)?, Some(1))?;
+        fits("keypoint_head.3", &self.keypoint_out, chain("keypoint_head", &self.keypoint, 64)?, Some(65))?;
+        Ok(())
     }
 
     /// Runs the network on a grey image [1, H, W] (values in [0, 1]; H and W multiples of 32).
-    pub fn forward(&self, grey: &Chw) -> NetOutputs {
+    pub fn forward(&self, grey: &Chw) -> Result<NetOutputs, String> {
         self.forward_with(grey, true)
     }
 
     /// [`XFeat::forward`]; without `heads` only the dense descriptors are computed (what dense
     /// sampling needs): the keypoint and reliability heads are skipped, `logits` is empty
     /// (0 channels) and `reliability` none.
-    pub fn forward_with(&self, grey: &Chw, heads: bool) -> NetOutputs {
-        assert!(grey.c == 1 && grey.h % 32 == 0 && grey.w % 32 == 0, "input must be 1 x (32k) x (32k)");
-        let seq = |layers: &[Basic], x: Chw| layers.iter().fold(x, |x, l| l.run(&x));
+    pub fn forward_with(&self, grey: &Chw, heads: bool) -> Result<NetOutputs, String> {
+        if grey.c != 1 || grey.h % 32 != 0 || grey.w % 32 != 0 || grey.h == 0 || grey.w == 0 || !grey.is_consistent() {
+            return Err(format!("input is {}x{}x{}; it must be 1 x (32k) x (32k)", grey.c, grey.h, grey.w));
+        }
+        let seq = |layers: &[Basic], x: Chw| layers.iter().try_fold(x, |x, l| l.run(&x));
         let mut x = grey.clone();
         instance_norm(&mut x);
-        let x1 = seq(&self.block1, x.clone());
-        let skip = self.skip1.run(&avg_pool(&x, 4));
-        let x2 = seq(&self.block2, x1.add(&skip));
-        let x3 = seq(&self.block3, x2);
-        let x4 = seq(&self.block4, x3.clone());
-        let x5 = seq(&self.block5, x4.clone());
+        let x1 = seq(&self.block1, x.clone())?;
+        let skip = self.skip1.run(&avg_pool(&x, 4)?)?;
+        let x2 = seq(&self.block2, x1.add(&skip)?)?;
+        let x3 = seq(&self.block3, x2)?;
+        let x4 = seq(&self.block4, x3.clone())?;
+        let x5 = seq(&self.block5, x4.clone())?;
         let (h, w) = (x3.h, x3.w);
-        let fused = x3.add(&resize_bilinear(&x4, h, w)).add(&resize_bilinear(&x5, h, w));
-        let feats = self.fusion_out.run(&seq(&self.fusion, fused));
+        let fused = x3.add(&resize_bilinear(&x4, h, w)?)?.add(&resize_bilinear(&x5, h, w)?)?;
+        let feats = self.fusion_out.run(&seq(&self.fusion, fused)?)?;
         if !heads {
-            return NetOutputs { logits: Chw::zeros(0, feats.h, feats.w), descriptors: feats, reliability: None };
+            return Ok(NetOutputs { logits: Chw::zeros(0, feats.h, feats.w), descriptors: feats, reliability: None });
         }
-        let mut heat = self.heatmap_out.run(&seq(&self.heatmap, feats.clone()));
+        let mut heat = self.heatmap_out.run(&seq(&self.heatmap, feats.clone())?)?;
         heat.data.iter_mut().for_each(|v| *v = 1.0 / (1.0 + (-*v).exp()));
-        let logits = self.keypoint_out.run(&seq(&self.keypoint, space_to_depth8(&x)));
-        NetOutputs { descriptors: feats, logits, reliability: Some(heat) }
+        let logits = self.keypoint_out.run(&seq(&self.keypoint, space_to_depth8(&x)?)?)?;
+        Ok(NetOutputs { descriptors: feats, logits, reliability: Some(heat) })
     }
 }

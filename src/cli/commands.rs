@@ -44,7 +44,7 @@ pub fn dispatch(cli: Cli) -> Result<()> {
         Command::SegmenterAccuracy(a) => segacc_cmd(&a, quiet),
         Command::BenchEncode(a) => bench_encode_cmd(&a, &mut engine()?, quiet),
         Command::Config => {
-            print!("{}", Config::default().to_toml());
+            print!("{}", Config::default().to_toml()?);
             Ok(())
         }
     }
@@ -63,6 +63,11 @@ fn load_config(path: Option<&Path>) -> Result<Config> {
     }
 }
 
+/// Pretty JSON of a report.
+fn to_json<T: serde::Serialize + ?Sized>(v: &T) -> Result<String> {
+    serde_json::to_string_pretty(v).map_err(|e| Error::invalid("JSON output", e.to_string()))
+}
+
 /// Applies the model flags to a config.
 fn apply_models(mut cfg: Config, m: &ModelArgs) -> Config {
     use semlook::config::AppearanceModelKind;
@@ -70,8 +75,9 @@ fn apply_models(mut cfg: Config, m: &ModelArgs) -> Config {
         cfg.appearance.model = AppearanceModelKind::Onnx;
         cfg.models.keypoint_onnx = Some(k.clone());
     }
-    if let Some(w) = &m.xfeat_weights {
-        cfg.models.xfeat_weights = Some(w.clone());
+    // option, then $SEMLOOK_MODELS, then the config key, then the data folders (in the library)
+    if let Some(w) = m.xfeat_weights.clone().or_else(|| semlook::onnx::env_model(semlook::appearance::XFEAT_WEIGHTS)) {
+        cfg.models.xfeat_weights = Some(w);
     }
     if let Some(s) = &m.segmenter {
         cfg.models.segmenter_onnx = Some(s.clone());
@@ -113,8 +119,8 @@ fn camvid_cmd(camvid: &Path, a: &SynthArgs, engine: &dyn Fn() -> Result<Engine>,
     let real = evaluate(&ds, &cfg, &opts, &mut engine)?;
     info(quiet, "evaluating with the segmenter's labels");
     let seg = evaluate(&ds.without_labels(), &cfg, &opts, &mut engine)?;
-    write_file(&a.out.join("eval-real-labels.json"), &serde_json::to_string_pretty(&real).expect("serialises"))?;
-    write_file(&a.out.join("eval-segmenter-labels.json"), &serde_json::to_string_pretty(&seg).expect("serialises"))?;
+    write_file(&a.out.join("eval-real-labels.json"), &to_json(&real)?)?;
+    write_file(&a.out.join("eval-segmenter-labels.json"), &to_json(&seg)?)?;
     print!("{}", semlook::eval::label_source_table(&[("real labels", &real), ("segmenter labels", &seg)]));
     print!("\nsegmenter run:\n{}", seg.run.describe());
     Ok(())
@@ -207,7 +213,7 @@ fn map_config(map: &Map, config: Option<&Path>, models: &ModelArgs) -> Result<Co
 
 /// CSV and JSON renderings of query results. The CSV starts with `#` comment lines naming what
 /// ran; the JSON is `{run, setting, queries: [...]}`.
-fn query_outputs(refs: &dyn RefSource, queries: &DescriptorSet, matches: &[QueryMatch], run: &RunRecord, setting: Setting) -> (String, String) {
+fn query_outputs(refs: &dyn RefSource, queries: &DescriptorSet, matches: &[QueryMatch], run: &RunRecord, setting: Setting) -> Result<(String, String)> {
     let mut csv: String = run.describe().lines().map(|l| format!("# {l}\n")).collect();
     csv += &format!("# setting: {setting}\nquery,best_reference,score,coarse,fine,top_k\n");
     let mut rows = Vec::new();
@@ -234,7 +240,7 @@ fn query_outputs(refs: &dyn RefSource, queries: &DescriptorSet, matches: &[Query
         }));
     }
     let doc = serde_json::json!({ "run": run, "setting": setting, "queries": rows });
-    (csv, serde_json::to_string_pretty(&doc).expect("serialises"))
+    Ok((csv, to_json(&doc)?))
 }
 
 fn run_query(engine: &mut Engine, map: &Map, cfg: &Config, s: &SourceArgs, setting: Setting, quiet: bool) -> Result<(DescriptorSet, Vec<QueryMatch>, RunRecord)> {
@@ -245,7 +251,7 @@ fn run_query(engine: &mut Engine, map: &Map, cfg: &Config, s: &SourceArgs, setti
     let t = Instant::now();
     let (matches, _) = engine.match_batch(map, &queries, setting, cfg)?;
     info(quiet, format!("matched {} queries against {} references ({setting}) in {:.1} ms", queries.len(), map.len(), t.elapsed().as_secs_f64() * 1e3));
-    Ok((queries, matches, RunRecord::new(&encoder, cfg, engine)))
+    Ok((queries, matches, RunRecord::new(&encoder, cfg, engine)?))
 }
 
 fn write_file(path: &Path, text: &str) -> Result<()> {
@@ -257,7 +263,7 @@ fn query(engine: &mut Engine, a: &QueryArgs, quiet: bool) -> Result<()> {
     // without --config, the map's encoding and default matching parameters
     let cfg = map_config(&map, a.config.as_deref(), &a.source.models)?;
     let (queries, matches, run) = run_query(engine, &map, &cfg, &a.source, a.setting, quiet)?;
-    let (csv, json) = query_outputs(&map, &queries, &matches, &run, a.setting);
+    let (csv, json) = query_outputs(&map, &queries, &matches, &run, a.setting)?;
     if let Some(out) = &a.out {
         write_file(&out.with_extension("csv"), &csv)?;
         write_file(&out.with_extension("json"), &json)?;
@@ -302,7 +308,7 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
         None => Setting::ALL.to_vec(),
     };
     let report = evaluate(&ds, &cfg, &EvalOptions { settings: settings.clone(), map: map.as_ref(), skip_invalid: a.skip_invalid, quiet }, engine)?;
-    print_report(&report, a.json);
+    print_report(&report, a.json)?;
     if let Some(dir) = &a.plots {
         for f in semlook::viz::plots::write_pr_plots(&report, dir)? {
             info(quiet, format!("wrote {}", f.display()));
@@ -322,12 +328,13 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
     Ok(())
 }
 
-fn print_report(report: &EvalReport, json: bool) {
+fn print_report(report: &EvalReport, json: bool) -> Result<()> {
     if json {
-        println!("{}", serde_json::to_string_pretty(report).expect("serialises"));
+        println!("{}", to_json(report)?);
     } else {
         print!("{}", report.to_table());
     }
+    Ok(())
 }
 
 fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
@@ -348,11 +355,11 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     map_cmd::build(engine, &src, &map_dir, None, &map_cmd::BuildFlags { hog: true, ..Default::default() }, quiet)?;
     let map = Map::open(&map_dir)?;
     let cfg = map_config(&map, None, &a.models)?;
-    let hardest = scfg.queries.last().expect("queries").name();
+    let hardest = scfg.queries.last().ok_or_else(|| Error::invalid("demo", "no query condition"))?.name();
     info(quiet, format!("[3/4] querying the map with the {hardest} traversal (setting semlook)"));
     let qsrc = SourceArgs { traversal: Some(hardest.to_string()), ..src };
     let (queries, matches, run) = run_query(engine, &map, &cfg, &qsrc, Setting::Semlook, quiet)?;
-    let (csv, json) = query_outputs(&map, &queries, &matches, &run, Setting::Semlook);
+    let (csv, json) = query_outputs(&map, &queries, &matches, &run, Setting::Semlook)?;
     let results = dir.join("results");
     std::fs::create_dir_all(&results).map_err(|e| Error::io(&results, e))?;
     write_file(&results.join(format!("query-{hardest}.csv")), &csv)?;
@@ -360,8 +367,8 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     info(quiet, "[4/4] evaluating every setting on every query traversal");
     let ds = Dataset::open(&data, &DatasetOptions::default())?;
     let report = evaluate(&ds, &cfg, &EvalOptions { settings: Setting::ALL.to_vec(), map: Some(&map), skip_invalid: false, quiet }, engine)?;
-    write_file(&results.join("eval.json"), &serde_json::to_string_pretty(&report).expect("serialises"))?;
-    print_report(&report, a.json);
+    write_file(&results.join("eval.json"), &to_json(&report)?)?;
+    print_report(&report, a.json)?;
     if !a.json {
         println!("{}", report.summary_table());
     }
@@ -424,7 +431,7 @@ fn bench_encode_cmd(a: &BenchEncodeArgs, engine: &mut Engine, quiet: bool) -> Re
     let seg = semlook::batch::EncodingSummary::new(&seg_ms, seg_wall * sources.len() as f64);
     let size = semlook::input::image_size(&images[0])?;
     if a.json {
-        println!("{}", serde_json::to_string_pretty(&serde_json::json!({ "frames": sources.len(), "image_size": size, "backend": engine.describe(), "segmentation": seg, "everything_else": summary })).expect("serialises"));
+        println!("{}", to_json(&serde_json::json!({ "frames": sources.len(), "image_size": size, "backend": engine.describe(), "segmentation": seg, "everything_else": summary }))?);
     } else {
         let (m, md) = (summary.mean, summary.median);
         println!("{} frames of {}x{}; backend {}", sources.len(), size.0, size.1, engine.describe());
@@ -459,7 +466,7 @@ fn segacc_cmd(a: &SegAccArgs, quiet: bool) -> Result<()> {
     pb.finish_and_clear();
     let r = confusion.report(&table);
     if a.json {
-        println!("{}", serde_json::to_string_pretty(&r).expect("serialises"));
+        println!("{}", to_json(&r)?);
     } else {
         print!("{} images\n{}", images.len(), r.to_table());
     }
@@ -509,6 +516,14 @@ fn tune_cmd(a: &TuneArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
 
 fn bench_cmd(a: &BenchArgs, quiet: bool) -> Result<()> {
     let cfg = Config::default();
+    let opts = semlook::bench::BenchOptions {
+        sizes: a.sizes.clone(),
+        batches: a.batches.clone(),
+        max_row_seconds: a.max_row_seconds,
+        resident_limit: semlook::bench::RESIDENT_LIMIT,
+        gpu_peak_gflops: a.peak_gflops,
+    };
+    opts.validate()?;
     info(quiet, "rendering and encoding the descriptor pools (64 map frames, 32 query frames)");
     let pool = semlook::bench::street_descriptors(&cfg, 64, Condition::Day, 0)?;
     let queries = semlook::bench::street_descriptors(&cfg, 32, Condition::Night, 5)?;
@@ -523,17 +538,13 @@ fn bench_cmd(a: &BenchArgs, quiet: bool) -> Result<()> {
     for e in &engines {
         info(quiet, format!("backend: {}", e.describe()));
     }
-    let opts = semlook::bench::BenchOptions {
-        sizes: a.sizes.clone(),
-        batches: a.batches.clone(),
-        max_row_seconds: a.max_row_seconds,
-        resident_limit: semlook::bench::RESIDENT_LIMIT,
-        gpu_peak_gflops: a.peak_gflops,
-    };
     let mut shown = false;
     let rows = semlook::bench::run(&pool, &queries, &opts, &mut engines, &cfg, &mut |r| {
         if a.json {
-            println!("{}", serde_json::to_string(r).expect("a row serialises"));
+            match serde_json::to_string(r) {
+                Ok(line) => println!("{line}"),
+                Err(e) => log::error!("bench row: {e}"),
+            }
         } else if !quiet {
             let t = semlook::bench::table(std::slice::from_ref(r));
             eprint!("{}", if shown { t.lines().nth(1).unwrap_or("").to_string() + "\n" } else { t });

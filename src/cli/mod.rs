@@ -470,5 +470,6 @@ fn parse_size(s: &str) -> Result<(usize, usize), String> {
 pub fn run() -> semlook::Result<()> {
     let cli = Cli::parse();
     logger::init(cli.quiet);
+    semlook::progress::show(!cli.quiet);
     commands::dispatch(cli)
 }

@@ -18,7 +18,7 @@ mod poses;
 use crate::error::{Error, Result};
 use crate::input::{FrameSource, LabelFormat};
 use pairs::PairTruth;
-pub use poses::{read_pose_list, read_synthia_pose, write_synthia_pose};
+pub use poses::{parse_pose_list, parse_synthia_pose, read_pose_list, read_synthia_pose, write_synthia_pose};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -296,6 +296,9 @@ impl Dataset {
         if !rule.max_distance.is_finite() || rule.max_distance < 0.0 {
             return Err(Error::dataset(&self.root, format!("ground-truth distance {} is not a finite non-negative number", rule.max_distance)));
         }
+        if let Some(a) = rule.max_angle_deg.filter(|a| !(0.0..=180.0).contains(a)) {
+            return Err(Error::dataset(&self.root, format!("ground-truth angle {a} is not a number of degrees in [0, 180]")));
+        }
         let pose = |f: &Frame| {
             f.pose.ok_or_else(|| Error::dataset(&self.root, format!("frame {:?} has no pose for pose-based ground truth", f.source.id)))
         };
@@ -376,7 +379,7 @@ fn load_traversal(root: &Path, layout: &str, camera: &str, spec: &TraversalSpec)
             let mut frames = Vec::new();
             for img in image_files(&dir)? {
                 let s = stem(&img);
-                let fname = img.file_name().unwrap().to_string_lossy().into_owned();
+                let fname = img.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
                 let pose = match &pose_map {
                     Some(m) => Some(*m.get(&fname).or_else(|| m.get(&s)).ok_or_else(|| {
                         Error::dataset(root, format!("pose list has no line for image {fname:?}"))
@@ -395,12 +398,8 @@ fn load_traversal(root: &Path, layout: &str, camera: &str, spec: &TraversalSpec)
             Ok(Traversal { name: name.clone(), frames, ground_truth: None })
         }
         (_, TraversalSpec::Explicit { name, frames }) => {
-            let gt: Option<Vec<Vec<u32>>> =
-                if frames.iter().all(|f| f.ground_truth.is_some()) && !frames.is_empty() {
-                    Some(frames.iter().map(|f| f.ground_truth.clone().unwrap()).collect())
-                } else {
-                    None
-                };
+            // ground-truth lists count only when every frame has one
+            let gt: Option<Vec<Vec<u32>>> = frames.iter().map(|f| f.ground_truth.clone()).collect::<Option<_>>().filter(|g: &Vec<_>| !g.is_empty());
             let frames = frames
                 .iter()
                 .map(|f| Frame {

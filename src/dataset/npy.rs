@@ -8,6 +8,9 @@ use crate::pickle::{Id, Node, Pickle};
 
 /// Most ground-truth rows a file may hold (a guard against absurd shapes in damaged files).
 const MAX_ROWS: usize = 100_000_000;
+/// Reference indices read in all, per byte of the file (a memoised list named by many rows
+/// would otherwise be copied once per row).
+const INDICES_PER_BYTE: usize = 16;
 
 /// Per query index, the valid reference indices, from the bytes of a `.npy` file.
 pub fn read_ground_truth(bytes: &[u8]) -> Result<Vec<(u64, Vec<u64>)>, String> {
@@ -40,6 +43,7 @@ pub fn read_ground_truth(bytes: &[u8]) -> Result<Vec<(u64, Vec<u64>)>, String> {
     if rows.len() > MAX_ROWS {
         return Err(format!("{} rows is more than the {MAX_ROWS} this reader accepts", rows.len()));
     }
+    let mut budget = bytes.len().saturating_mul(INDICES_PER_BYTE).saturating_add(1 << 20);
     rows.into_iter()
         .enumerate()
         .map(|(i, (q, r))| {
@@ -49,6 +53,7 @@ pub fn read_ground_truth(bytes: &[u8]) -> Result<Vec<(u64, Vec<u64>)>, String> {
                 Some(Items::Objects(v)) => v.iter().map(|&x| index(&p, x)).collect::<Option<_>>().ok_or_else(|| format!("row {i}: a reference index is not a non-negative integer"))?,
                 None => vec![index(&p, r).ok_or_else(|| format!("row {i}: references are neither a list nor an integer"))?],
             };
+            budget = budget.checked_sub(refs.len()).ok_or_else(|| format!("row {i}: more reference indices than a file of {} bytes can hold", bytes.len()))?;
             Ok((q, refs))
         })
         .collect()
@@ -112,7 +117,7 @@ fn array(p: &Pickle, id: Id) -> Result<Option<(Vec<usize>, Items)>, String> {
     }
     let count = shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d)).ok_or("array shape overflows")?;
     let code = dtype_code(p, *dtype)?;
-    let items = if code[1..].starts_with('O') {
+    let items = if code.get(1..).is_some_and(|c| c.starts_with('O')) {
         let v = p.seq(*data).ok_or("object array data is not a list")?.to_vec();
         Items::Objects(v)
     } else {
@@ -143,7 +148,8 @@ fn dtype_code(p: &Pickle, id: Id) -> Result<String, String> {
 /// Non-negative integers from a NumPy buffer of type `code` ("<i8", ">u4", ...).
 fn int_values(code: &str, raw: &[u8]) -> Result<Vec<u64>, String> {
     let big = code.starts_with('>');
-    let (kind, size) = code[1..].split_at(1);
+    let body = code.get(1..).unwrap_or("");
+    let (kind, size) = body.split_at(body.char_indices().nth(1).map_or(body.len(), |(i, _)| i));
     let size: usize = size.parse().map_err(|_| format!("dtype {code:?}"))?;
     if !matches!(kind, "i" | "u") || !matches!(size, 1 | 2 | 4 | 8) {
         return Err(format!("dtype {code:?}: reference indices must be integers"));
@@ -202,5 +208,18 @@ fn bytes_of(p: &Pickle, id: Id) -> Option<Vec<u8>> {
             p.str(*args.first()?)?.chars().map(|c| u8::try_from(c as u32).ok()).collect()
         }
         _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn odd_dtype_codes_are_errors() {
+        for code in ["<", "<\u{e9}8", "<i", "<i3", "<f8", ">u"] {
+            assert!(int_values(code, &[0; 8]).is_err(), "{code:?}");
+        }
+        assert_eq!(int_values(">u2", &[1, 2]).unwrap(), vec![258]);
     }
 }

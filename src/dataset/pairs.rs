@@ -132,12 +132,18 @@ fn read_csv(csv: &Path, refs: &Traversal, queries: &Traversal) -> Result<Vec<Vec
 /// VPR-Bench's rows, checked against the folder sizes.
 fn read_npy(file: &Path, n_refs: usize, n_queries: usize) -> Result<Vec<Vec<u32>>> {
     let bytes = std::fs::read(file).map_err(|e| Error::io(file, e))?;
-    let rows = npy::read_ground_truth(&bytes).map_err(|r| Error::dataset(file, r))?;
+    parse_npy_ground_truth(&bytes, file, n_refs, n_queries)
+}
+
+/// Per query, the valid reference indices of a VPR-Bench `ground_truth_new.npy` held in `bytes`
+/// (`file` names it in errors), checked against the folder sizes.
+pub fn parse_npy_ground_truth(bytes: &[u8], file: &Path, n_refs: usize, n_queries: usize) -> Result<Vec<Vec<u32>>> {
+    let rows = npy::read_ground_truth(bytes).map_err(|r| Error::dataset(file, r))?;
     let mut gt = vec![Vec::new(); n_queries];
     for (q, refs) in rows {
-        let slot = gt.get_mut(q as usize).ok_or_else(|| Error::dataset(file, format!("query index {q}, there are {n_queries} query images")))?;
+        let slot = usize::try_from(q).ok().and_then(|q| gt.get_mut(q)).ok_or_else(|| Error::dataset(file, format!("query index {q}, there are {n_queries} query images")))?;
         for r in refs {
-            if r as usize >= n_refs {
+            if r >= n_refs as u64 {
                 return Err(Error::dataset(file, format!("query {q}: reference index {r}, there are {n_refs} reference images")));
             }
             if !slot.contains(&(r as u32)) {

@@ -20,7 +20,12 @@ fn parse_numbers(text: &str, path: &Path, line: usize) -> Result<Vec<f64>> {
 /// A SYNTHIA CameraParams file: 16 numbers, column-major 4x4 camera-to-world.
 pub fn read_synthia_pose(path: &Path) -> Result<Pose> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    let v = parse_numbers(&text, path, 1)?;
+    parse_synthia_pose(&text, path)
+}
+
+/// [`read_synthia_pose`] on a file's text; `path` only names the source in errors.
+pub fn parse_synthia_pose(text: &str, path: &Path) -> Result<Pose> {
+    let v = parse_numbers(text, path, 1)?;
     if v.len() != 16 {
         return Err(Error::dataset(path, format!("expected 16 numbers, found {}", v.len())));
     }
@@ -66,6 +71,11 @@ fn quat_to_matrix(w: f64, x: f64, y: f64, z: f64) -> [[f64; 3]; 3] {
 /// Reads a pose list (one `name numbers...` line per image; `#` comments) into name -> pose.
 pub fn read_pose_list(path: &Path, format: PoseFormat) -> Result<std::collections::HashMap<String, Pose>> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    parse_pose_list(&text, path, format)
+}
+
+/// [`read_pose_list`] on a file's text; `path` only names the source in errors.
+pub fn parse_pose_list(text: &str, path: &Path, format: PoseFormat) -> Result<std::collections::HashMap<String, Pose>> {
     let mut out = std::collections::HashMap::new();
     for (i, line) in text.lines().enumerate() {
         let line = line.trim();
@@ -83,6 +93,9 @@ pub fn read_pose_list(path: &Path, format: PoseFormat) -> Result<std::collection
         }
         let pose = match format {
             PoseFormat::QuatCenter | PoseFormat::QuatTranslation => {
+                if v[..4].iter().all(|&c| c == 0.0) {
+                    return Err(Error::dataset(path, format!("line {}: the rotation quaternion is zero", i + 1)));
+                }
                 let r = quat_to_matrix(v[0], v[1], v[2], v[3]);
                 let t = [v[4], v[5], v[6]];
                 // rows of a world-to-camera rotation are the camera axes in world coordinates

@@ -72,13 +72,13 @@ pub struct RunRecord {
 }
 
 impl RunRecord {
-    pub fn new(encoder: &Encoder, cfg: &Config, engine: &Engine) -> Self {
-        RunRecord {
+    pub fn new(encoder: &Encoder, cfg: &Config, engine: &Engine) -> Result<Self> {
+        Ok(RunRecord {
             keypoints: encoder.appearance_model().map(|m| ModelRecord { path: m.path.display().to_string(), sha256: m.sha256.clone() }),
             segmenter: encoder.segmenter().map(|s| ModelRecord { path: s.path().display().to_string(), sha256: s.sha256().to_string() }),
-            config_sha256: cfg.sha256(),
+            config_sha256: cfg.sha256()?,
             backend: engine.describe(),
-        }
+        })
     }
     /// One line per item, for text reports.
     pub fn describe(&self) -> String {
@@ -162,7 +162,7 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
     }
     Ok(EvalReport {
         dataset: ds.name.clone(),
-        run: RunRecord::new(&encoder, cfg, engine),
+        run: RunRecord::new(&encoder, cfg, engine)?,
         references: refs.len(),
         reference_encoding: ref_enc,
         query_encoding: EncodingSummary::new(&q_times, q_wall),

@@ -95,6 +95,10 @@ pub enum LabelFormat {
     Palette,
 }
 
+/// Most bytes one decoded image may take (the image crate's default, stated here because the
+/// JPEG path enforces it too): a damaged header cannot make a decoder allocate more.
+pub const MAX_DECODED_BYTES: u64 = 512 << 20;
+
 fn read_image(path: &Path) -> Result<DynamicImage> {
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
     decode_bytes(bytes, path)
@@ -116,6 +120,11 @@ pub fn resize_rgb(img: &RgbImage, width: u32, height: u32) -> RgbImage {
 /// image and the size of the full image.
 pub fn load_rgb_at_least(path: &Path, min: impl Fn((u32, u32)) -> (u32, u32)) -> Result<(RgbImage, (u32, u32))> {
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    decode_rgb_at_least(bytes, path, min)
+}
+
+/// [`load_rgb_at_least`] on a file's bytes; `path` only names the source in errors.
+pub fn decode_rgb_at_least(bytes: Vec<u8>, path: &Path, min: impl Fn((u32, u32)) -> (u32, u32)) -> Result<(RgbImage, (u32, u32))> {
     if bytes.starts_with(&[0xFF, 0xD8]) {
         if let Some(r) = decode_jpeg_scaled(&bytes, path, &min)? {
             return Ok(r);
@@ -130,6 +139,7 @@ pub fn load_rgb_at_least(path: &Path, min: impl Fn((u32, u32)) -> (u32, u32)) ->
 fn decode_jpeg_scaled(bytes: &[u8], path: &Path, min: &dyn Fn((u32, u32)) -> (u32, u32)) -> Result<Option<(RgbImage, (u32, u32))>> {
     let bad = |e: jpeg_decoder::Error| Error::ImageDecode { path: path.into(), reason: e.to_string() };
     let mut d = jpeg_decoder::Decoder::new(std::io::Cursor::new(bytes));
+    d.set_max_decoding_buffer_size(usize::try_from(MAX_DECODED_BYTES).unwrap_or(usize::MAX));
     d.read_info().map_err(bad)?;
     let info = d.info().ok_or_else(|| Error::ImageDecode { path: path.into(), reason: "no JPEG header".into() })?;
     let full = (info.width as u32, info.height as u32);
@@ -155,9 +165,11 @@ fn decode_bytes(bytes: Vec<u8>, path: &Path) -> Result<DynamicImage> {
     if bytes.is_empty() {
         return Err(Error::EmptyImage { path: path.into(), width: 0, height: 0 });
     }
-    let img = image::ImageReader::new(std::io::Cursor::new(bytes))
-        .with_guessed_format()
-        .map_err(|e| Error::io(path, e))?
+    let mut reader = image::ImageReader::new(std::io::Cursor::new(bytes)).with_guessed_format().map_err(|e| Error::io(path, e))?;
+    let mut limits = image::Limits::default();
+    limits.max_alloc = Some(MAX_DECODED_BYTES);
+    reader.limits(limits);
+    let img = reader
         .decode()
         .map_err(|e| Error::ImageDecode { path: path.into(), reason: e.to_string() })?;
     if img.width() == 0 || img.height() == 0 {
@@ -175,6 +187,11 @@ pub fn load_rgb(path: &Path) -> Result<RgbImage> {
 pub fn load_label_map(path: &Path, table: &ClassTable, format: LabelFormat) -> Result<LabelMap> {
     let img = read_image(path)?;
     decode_label_image(&img, path, table, format)
+}
+
+/// [`load_label_map`] on a file's bytes; `path` only names the source in errors.
+pub fn decode_label_bytes(bytes: Vec<u8>, path: &Path, table: &ClassTable, format: LabelFormat) -> Result<LabelMap> {
+    decode_label_image(&decode_bytes(bytes, path)?, path, table, format)
 }
 
 /// Translates a decoded label image; `path` only names the source in errors.
@@ -214,17 +231,18 @@ pub fn decode_label_image(img: &DynamicImage, path: &Path, table: &ClassTable, f
         let rgb = img.to_rgb8();
         let mut last = ([0u8; 3], None::<u8>);
         for (i, p) in rgb.pixels().enumerate() {
-            let c = if last.1.is_some() && last.0 == p.0 {
-                last.1.unwrap()
-            } else {
-                let c = table.class_of_color(p.0).ok_or(Error::UnknownClassColor {
-                    path: path.into(),
-                    rgb: p.0,
-                    x: i as u32 % w,
-                    y: i as u32 / w,
-                })?;
-                last = (p.0, Some(c));
-                c
+            let c = match last {
+                (colour, Some(c)) if colour == p.0 => c,
+                _ => {
+                    let c = table.class_of_color(p.0).ok_or(Error::UnknownClassColor {
+                        path: path.into(),
+                        rgb: p.0,
+                        x: i as u32 % w,
+                        y: i as u32 / w,
+                    })?;
+                    last = (p.0, Some(c));
+                    c
+                }
             };
             classes.push(c);
         }

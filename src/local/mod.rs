@@ -145,7 +145,7 @@ pub fn build_forest(objects: &ObjectMap, cfg: &LocalConfig) -> Forest {
                     let (aa, ab) = (objects.objects[cand[a].1].area, objects.objects[cand[b].1].area);
                     aa.total_cmp(&ab).then(b.cmp(&a)) // larger area; on equal area the earlier (nearer)
                 })
-                .unwrap();
+                .unwrap_or(0); // group >= 1
             chosen.push(cand.remove(best).1 as i32);
         }
         chosen.resize(slots, NO_NEIGHBOUR);

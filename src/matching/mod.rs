@@ -16,7 +16,7 @@ pub(crate) mod test_data;
 pub mod topk_select;
 
 use crate::config::{Config, ScoreFusion};
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::global::ssim::SsimParams;
 use crate::local::tree_similarity::{tree_similarity, TreeSimParams, TreeSimScratch};
 use crate::descriptors::DescriptorSet;
@@ -108,7 +108,8 @@ pub struct Candidate {
     pub score: f32,
 }
 
-/// Ranked candidates of one query, best first (empty only for an empty map).
+/// Ranked candidates of one query, best first (empty for an empty map, or a baseline that
+/// could not run).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct QueryMatch {
     pub ranked: Vec<Candidate>,
@@ -163,11 +164,20 @@ impl Stages for CpuStages {
     }
 }
 
-/// Matches every query of `queries` against `refs` with `setting` on the CPU; results in query order.
-/// Panics if `refs` is a stored map with a damaged segment: use [`match_with`] or
-/// `Engine::match_batch`, which return that as an error.
+/// Matches every query of `queries` against `refs` with `setting` on the CPU; results in query
+/// order. A baseline the descriptors lack (see [`baseline::unavailable`]), or a stored map with a
+/// damaged segment, ranks nothing (a warning is logged); [`try_match_batch`] returns either as an
+/// error instead.
 pub fn match_batch(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> (Vec<QueryMatch>, MatchTimes) {
-    match_with(&mut CpuStages, refs, queries, setting, cfg).expect("the CPU stages do not fail on a sound source")
+    try_match_batch(refs, queries, setting, cfg).unwrap_or_else(|e| {
+        log::warn!("{e}");
+        (vec![QueryMatch { ranked: vec![] }; queries.len()], MatchTimes::default())
+    })
+}
+
+/// [`match_batch`], failing when `setting` cannot run on these descriptors.
+pub fn try_match_batch(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<QueryMatch>, MatchTimes)> {
+    match_with(&mut CpuStages, refs, queries, setting, cfg)
 }
 
 /// Matches with the given stages: coarse top-K, fine re-ranking of the candidates (or fine
@@ -194,13 +204,17 @@ pub fn match_with(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &Descr
             let pairs: Vec<(u32, u32)> = lists.iter().enumerate().flat_map(|(q, l)| l.iter().map(move |&(_, r)| (q as u32, r))).collect();
             let fine = stages.fine_pairs(&params, refs, queries, &pairs)?;
             times.fine_ms = ms_since(t);
+            if fine.len() != pairs.len() {
+                return Err(Error::invalid("fine stage", format!("{} scores for {} pairs", fine.len(), pairs.len())));
+            }
             let mut it = fine.into_iter();
             lists
                 .iter()
                 .map(|l| {
                     l.iter()
                         .map(|&(s, r)| {
-                            let f = it.next().expect("one score per pair");
+                            // as many scores as pairs, checked above
+                            let f = it.next().unwrap_or(f32::NAN);
                             let score = match cfg.matching.score {
                                 ScoreFusion::Fine => f,
                                 ScoreFusion::FineTimesGlobal => f * s,

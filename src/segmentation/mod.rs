@@ -112,7 +112,10 @@ impl Segmenter {
             return Err(Error::invalid("segmenter", "one output size per image"));
         }
         if !self.dynamic_batch && images.len() > 1 {
-            return images.iter().zip(sizes).map(|(i, s)| self.segment_batch_to(std::slice::from_ref(i), std::slice::from_ref(s)).map(|mut v| v.remove(0))).collect();
+            let one = |(i, s): (&&RgbImage, &(u32, u32))| -> Result<LabelMap> {
+                self.segment_batch_to(std::slice::from_ref(i), std::slice::from_ref(s))?.pop().ok_or_else(|| Error::Model { path: self.path.clone(), reason: "no output".into() })
+            };
+            return images.iter().zip(sizes).map(one).collect();
         }
         let (w, h) = (self.cfg.input_width, self.cfg.input_height);
         let n = images.len();
@@ -134,14 +137,18 @@ impl Segmenter {
         let (shape, logits) = self.sessions.run(|session| {
             let tensor = ort::value::TensorRef::from_array_view(([n, 3, h, w], input.as_slice())).map_err(|e| fail(e.to_string()))?;
             let outputs = session.run(ort::inputs![tensor]).map_err(|e| fail(e.to_string()))?;
-            let (shape, logits) = outputs[0].try_extract_tensor::<f32>().map_err(|e| fail(e.to_string()))?;
+            let value = outputs.values().next().ok_or_else(|| fail("the model returned no output".into()))?;
+            let (shape, logits) = value.try_extract_tensor::<f32>().map_err(|e| fail(format!("output 0: {e}")))?;
             Ok((shape.to_vec(), logits.to_vec()))
         })?;
-        if shape.len() != 4 || shape[0] != n as i64 || shape[1] != self.class_of_channel.len() as i64 || shape[2] <= 0 || shape[3] <= 0 {
-            return Err(fail(format!("output shape {shape:?}, expected [{n}, {}, h, w]", self.class_of_channel.len())));
+        let c = self.class_of_channel.len();
+        let wrong = || fail(format!("output shape {shape:?}, expected [{n}, {c}, h, w] (segmentation.class_map names {c} channels)"));
+        let [b, ch, oh, ow] = shape[..] else { return Err(wrong()) };
+        let (Ok(oh), Ok(ow)) = (usize::try_from(oh), usize::try_from(ow)) else { return Err(wrong()) };
+        if b != n as i64 || ch != c as i64 || oh == 0 || ow == 0 || oh > u32::MAX as usize || ow > u32::MAX as usize {
+            return Err(wrong());
         }
-        let (c, oh, ow) = (shape[1] as usize, shape[2] as usize, shape[3] as usize);
-        if logits.len() != n * c * oh * ow {
+        if n.checked_mul(c).and_then(|v| v.checked_mul(oh)).and_then(|v| v.checked_mul(ow)) != Some(logits.len()) {
             return Err(fail(format!("output holds {} values for shape {shape:?}", logits.len())));
         }
         let mut maps = Vec::with_capacity(n);
@@ -156,7 +163,7 @@ impl Segmenter {
                         best = (v, ch);
                     }
                 }
-                *slot = self.class_of_channel[best.1];
+                *slot = self.class_of_channel.get(best.1).copied().unwrap_or(VOID);
             }
             if tw == 0 || th == 0 {
                 return Err(Error::invalid("segmenter", "empty output size"));

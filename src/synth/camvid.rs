@@ -155,7 +155,7 @@ pub fn generate(camvid: &Path, out: &Path, changes: &[Change], step: usize, tick
         ground_truth: None,
     };
     let mpath = out.join(MANIFEST);
-    std::fs::write(&mpath, serde_json::to_vec_pretty(&manifest).expect("serialises")).map_err(|e| Error::io(&mpath, e))?;
+    std::fs::write(&mpath, serde_json::to_vec_pretty(&manifest).map_err(|e| Error::invalid("dataset manifest", e.to_string()))?).map_err(|e| Error::io(&mpath, e))?;
     Ok(images.len())
 }
 

@@ -195,8 +195,8 @@ pub fn generate(cfg: &SynthConfig, out: &Path, tick: &(dyn Fn() + Sync)) -> Resu
         ground_truth: Some(GroundTruthRule { max_distance: cfg.gt_distance_m, max_angle_deg: None }),
     };
     let mpath = out.join(MANIFEST);
-    std::fs::write(&mpath, serde_json::to_vec_pretty(&manifest).expect("serialises")).map_err(|e| Error::io(&mpath, e))?;
+    std::fs::write(&mpath, serde_json::to_vec_pretty(&manifest).map_err(|e| Error::invalid("dataset manifest", e.to_string()))?).map_err(|e| Error::io(&mpath, e))?;
     let spath = out.join("synth.json");
-    std::fs::write(&spath, serde_json::to_vec_pretty(cfg).expect("serialises")).map_err(|e| Error::io(&spath, e))?;
+    std::fs::write(&spath, serde_json::to_vec_pretty(cfg).map_err(|e| Error::invalid("synth config", e.to_string()))?).map_err(|e| Error::io(&spath, e))?;
     Ok(())
 }

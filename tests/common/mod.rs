@@ -7,6 +7,34 @@ use semlook::input::LabelMap;
 use semlook::map::DescriptorSet;
 use semlook::synth::{self, SynthConfig};
 use std::path::Path;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+static SKIPS: AtomicUsize = AtomicUsize::new(0);
+
+/// Says that the running test skips, and why, on a line that starts with `SKIPPED` and counts the
+/// skips of this test binary so far. Written to stderr directly, past the harness's output
+/// capture, so it shows in a plain `cargo test`; `.ci/run` sums these lines.
+pub fn skip(reason: impl std::fmt::Display) {
+    use std::io::Write;
+    let n = SKIPS.fetch_add(1, Ordering::Relaxed) + 1;
+    let test = std::thread::current().name().unwrap_or("?").to_string();
+    let binary = module_path!().trim_end_matches("::common");
+    let _ = writeln!(std::io::stderr(), "SKIPPED ({n} in {binary}): {test}: {reason}");
+}
+
+/// Whether a missing resource must fail the test: under CI (`CI` set) or with `var`=1 (e.g.
+/// `REQUIRE_GPU=1`).
+pub fn required(var: &str) -> bool {
+    std::env::var_os("CI").is_some() || std::env::var(var).is_ok_and(|v| v == "1")
+}
+
+/// [`skip`], or a failure when [`required`]`(var)`.
+pub fn skip_unless_required(var: &str, reason: impl std::fmt::Display) {
+    if required(var) {
+        panic!("required here (CI or {var}=1) but missing: {reason}");
+    }
+    skip(reason);
+}
 
 /// A small synthetic dataset: `places` frames per traversal at 160x120, two query conditions.
 pub fn tiny_synth(dir: &Path, places: usize, seed: u64) -> SynthConfig {

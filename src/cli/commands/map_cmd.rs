@@ -127,7 +127,7 @@ fn show(dir: &Path, json: bool) -> Result<()> {
             "hog_dim": m.hog_dim,
             "config": m.config,
         });
-        println!("{}", serde_json::to_string_pretty(&v).expect("serialises"));
+        println!("{}", to_json(&v)?);
     } else {
         println!(
             "map {}: {} images ({removed} removed, not compacted), {} trees, {} segments, {bytes} bytes ({:.0} per stored image), values {}, generation {}",
@@ -143,7 +143,7 @@ fn show(dir: &Path, json: bool) -> Result<()> {
             println!("  {}  {} images ({} removed)  {} bytes  sha256 {}", s.file, s.images, s.removed.len(), s.bytes, &s.sha256[..16]);
         }
         println!("(checksums are checked on first use and by `semlook map verify`)");
-        println!("encoding config:\n{}", toml::to_string_pretty(&m.config).expect("serialises"));
+        println!("encoding config:\n{}", toml::to_string_pretty(&m.config).map_err(|e| Error::invalid("map config", e.to_string()))?);
     }
     Ok(())
 }
@@ -172,7 +172,7 @@ fn remove(dir: &Path, values: &[String], quiet: bool) -> Result<()> {
 fn compact(dir: &Path, json: bool) -> Result<()> {
     let r = edit::compact(dir, StoreOptions::default())?;
     if json {
-        println!("{}", serde_json::to_string_pretty(&r).expect("serialises"));
+        println!("{}", to_json(&r)?);
     } else {
         println!(
             "map {}: {} -> {} segments, {} removed images dropped, {} -> {} bytes, {} stray files deleted",
@@ -191,7 +191,7 @@ fn compact(dir: &Path, json: bool) -> Result<()> {
 fn verify(dir: &Path, json: bool) -> Result<()> {
     let r = edit::verify(dir)?;
     if json {
-        println!("{}", serde_json::to_string_pretty(&r).expect("serialises"));
+        println!("{}", to_json(&r)?);
     } else {
         for f in &r.files {
             match &f.problem {
@@ -233,7 +233,7 @@ fn bench(a: &StoreBenchArgs, quiet: bool) -> Result<()> {
         }
     })?;
     if a.json {
-        println!("{}", serde_json::to_string_pretty(&report).expect("serialises"));
+        println!("{}", to_json(&report)?);
     } else {
         print!("{}", semlook::bench_store::table(&report.passes));
         if !report.stats_comparison.is_empty() {
