@@ -1,7 +1,7 @@
 //! The benchmark runs what its rows name.
 
 use super::*;
-use crate::encode::EncodedImage;
+use crate::descriptors::EncodedImage;
 use crate::global::ssim::{ssim_stats, SsimScratch};
 use crate::local::Forest;
 

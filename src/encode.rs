@@ -9,7 +9,7 @@ use crate::config::{Config, EncodingConfig};
 use crate::error::{Error, Result};
 use crate::global::{self, ssim::SsimParams, GlobalScratch};
 use crate::input::{self, FrameSource, LabelFormat, LabelMap};
-use crate::local::{self, Forest};
+use crate::local;
 use crate::objects;
 use crate::util::ms_since;
 use image::RgbImage;
@@ -17,24 +17,7 @@ use rayon::prelude::*;
 use std::sync::Arc;
 use std::time::Instant;
 
-/// Everything stored for one image.
-#[derive(Debug, Clone, PartialEq)]
-pub struct EncodedImage {
-    pub id: String,
-    /// Size of the source image (descriptors are computed at the working size).
-    pub width: u32,
-    pub height: u32,
-    /// Global descriptor, `global.height` x `global.width`, values in [0, 1].
-    pub global: Vec<f32>,
-    /// SSIM window means then variances of `global`.
-    pub global_stats: Vec<f32>,
-    pub forest: Forest,
-    /// VLAD of all the image's appearance descriptors (the `appearance` baseline); empty without
-    /// appearance.
-    pub appearance: Vec<f32>,
-    /// VPR-Bench HOG (the `hog` baseline); empty unless the encoder computes it.
-    pub hog: Vec<f32>,
-}
+pub use crate::descriptors::EncodedImage;
 
 /// Milliseconds spent per stage on one image.
 #[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
@@ -261,9 +244,9 @@ impl Encoder {
         }
     }
     /// An empty descriptor set laid out for this encoder's images.
-    pub fn descriptor_set(&self) -> crate::map::DescriptorSet {
+    pub fn descriptor_set(&self) -> crate::descriptors::DescriptorSet {
         let hog = if self.hog { crate::baseline::HOG_DIM } else { 0 };
-        crate::map::DescriptorSet::new(&self.ssim, self.cfg.local.neighbours, self.appearance_dim(), hog)
+        crate::descriptors::DescriptorSet::new(&self.ssim, self.cfg.local.neighbours, self.appearance_dim(), hog)
     }
 
     /// Loads a frame at the working size: its label map (from file, or segmented from the

@@ -11,7 +11,7 @@ use crate::global::ssim::SsimParams;
 use crate::gpu::{coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, vlad::VladGpu, GpuContext, GpuOptions};
 use crate::input::{FrameSource, LabelFormat, LabelMap};
 use crate::local::tree_similarity::TreeSimParams;
-use crate::map::DescriptorSet;
+use crate::descriptors::DescriptorSet;
 use crate::matching::{match_with, source::{GlobalSource, RefSource}, CpuStages, MatchTimes, QueryMatch, Setting, Stages};
 use crate::util::ms_since;
 use rayon::prelude::*;

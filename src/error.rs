@@ -43,6 +43,8 @@ pub enum Error {
     IncompatibleConfig { map: PathBuf, field: String, map_value: String, given_value: String },
     #[error("map {map}: image id {id:?} is already stored")]
     DuplicateImageId { map: PathBuf, id: String },
+    #[error("image {id:?} refused, nothing of it written: {reason}")]
+    InvalidImage { id: String, reason: String },
     #[error("dataset {path}: {reason}")]
     Dataset { path: PathBuf, reason: String },
     #[error("{what}: {reason}")]

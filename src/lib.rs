@@ -9,6 +9,9 @@
 //! [`input`] (images, label maps) -> [`objects`] (semantic regions) -> [`global`] and [`local`]
 //! (descriptors; [`encode`] runs both) -> [`map`] (the stored map) -> [`matching`] (coarse top-K,
 //! fine re-ranking) -> [`eval`] (VPR-Bench metrics). [`synth`] renders a procedural benchmark.
+//! [`descriptors`] (descriptor sets, the source traits matching reads, value checks) is the layer
+//! encoding, the map store, matching and appearance share; [`batch`] encodes many frames (into a
+//! set, or streamed into a map).
 //!
 //! The README's example (compiled here):
 //!
@@ -40,10 +43,13 @@
 
 pub mod appearance;
 pub mod baseline;
+pub mod batch;
 pub mod bench;
+pub mod bench_store;
 pub mod classes;
 pub mod config;
 pub mod dataset;
+pub mod descriptors;
 pub mod encode;
 pub mod engine;
 pub mod error;
@@ -60,6 +66,7 @@ pub mod pickle;
 pub mod progress;
 pub mod segmentation;
 pub mod util;
+pub mod values;
 pub mod viz;
 
 pub use error::{Error, Result};

@@ -180,7 +180,7 @@ fn appearance_in_maps_and_evaluation() {
     let refs: Vec<_> = ds.reference.frames.iter().map(|f| f.source.clone()).collect();
     enc.train_codebook(&refs, &|| {}).unwrap();
     let mut engine = semlook::engine::Engine::cpu();
-    let encoded = semlook::eval::encode_frames(&mut engine, &enc, &refs, ds.label_format, "refs", false, true).unwrap();
+    let encoded = semlook::batch::encode_frames(&mut engine, &enc, &refs, ds.label_format, "refs", false, true).unwrap();
     let (set, summary) = (encoded.set.clone(), encoded.summary().mean);
     assert_eq!(set.appearance_dim, 64 * 64);
     let with = set.tree_has_appearance.iter().filter(|&&p| p == 1).count();
@@ -191,7 +191,7 @@ fn appearance_in_maps_and_evaluation() {
     let map = semlook::map::Map::create(&path, &cfg.encoding(), &set, Some((cb, sha))).unwrap();
     let back = semlook::map::Map::open(&path).unwrap();
     assert_eq!(back.codebook(), map.codebook());
-    assert_eq!(back.to_descriptor_set(), set);
+    assert_eq!(back.to_descriptor_set().unwrap(), set);
     semlook::encode::Encoder::for_map(&cfg, &back).unwrap();
     assert!(back.check_model(Some("0123456789abcdef")).is_err());
     assert!(back.check_model(None).is_err());

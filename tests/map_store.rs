@@ -1,32 +1,75 @@
-//! The map store: bit-exact round trips, appends, and refusal of every kind of damaged map.
+//! The map store: bit-exact round trips (f32 and f16), appends, removal and compaction with exact
+//! top-K, refusal of bad values before writing, damaged files named, the advisory lock, and
+//! readers that never see a partial state.
 
 mod common;
 
 use semlook::config::Config;
+use semlook::descriptors::DescriptorSet;
 use semlook::error::Error;
-use semlook::map::Map;
+use semlook::map::{edit, Map, MapWriter, StoreOptions};
+use semlook::matching::source::{GlobalSource, RefSource, TileBuf};
+use semlook::matching::{match_batch, match_with, CpuStages, Setting};
+use semlook::values::ValueType;
+use std::path::Path;
 
-fn built(dir: &std::path::Path) -> (Config, Map) {
+fn built(dir: &Path) -> (Config, Map) {
     let cfg = Config::without_appearance();
     let set = common::encode(&cfg, &common::label_maps(6, 96, 72), "ref");
     (cfg.clone(), Map::create(dir, &cfg.encoding(), &set, None).unwrap())
+}
+
+/// A map of `n` images in segments of `per` images.
+fn segmented(dir: &Path, n: usize, per: usize, values: ValueType) -> (Config, DescriptorSet, Map) {
+    let cfg = Config::without_appearance();
+    let set = common::encode(&cfg, &common::label_maps(n, 80, 60), "r");
+    let map = Map::create_with(dir, &cfg.encoding(), &set, None, StoreOptions { values, segment_images: per, ..Default::default() }).unwrap();
+    (cfg, set, map)
+}
+
+fn bits(v: &[f32]) -> Vec<u32> {
+    v.iter().map(|x| x.to_bits()).collect()
 }
 
 #[test]
 fn round_trip_is_bit_exact() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("m");
-    let (_, map) = built(&path);
+    let cfg = Config::without_appearance();
+    let set = common::encode(&cfg, &common::label_maps(6, 96, 72), "ref");
+    let map = Map::create(&path, &cfg.encoding(), &set, None).unwrap();
     let back = Map::open(&path).unwrap();
     assert_eq!(back.manifest, map.manifest);
-    let (a, b) = (&map.to_descriptor_set(), &back.to_descriptor_set());
-    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-    assert_eq!(bits(&a.globals), bits(&b.globals));
-    assert_eq!(bits(&a.global_stats), bits(&b.global_stats));
-    assert_eq!(bits(&a.tree_areas), bits(&b.tree_areas));
-    assert_eq!(bits(&a.tree_centroids), bits(&b.tree_centroids));
-    assert_eq!(a, b);
-    assert!(a.n_trees() > 6, "label maps should give several objects each");
+    assert_eq!(back.manifest.generation, 1);
+    let b = back.to_descriptor_set().unwrap();
+    assert_eq!(bits(&set.globals), bits(&b.globals));
+    // statistics are not stored: recomputed on read, they equal the encoder's bit for bit
+    assert_eq!(bits(&set.global_stats), bits(&b.global_stats));
+    assert_eq!(bits(&set.tree_areas), bits(&b.tree_areas));
+    assert_eq!(set, b);
+    assert!(b.n_trees() > 6, "label maps should give several objects each");
+}
+
+#[test]
+fn f16_maps_round_values_and_keep_everything_else() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, set, map) = segmented(&dir.path().join("m"), 8, 3, ValueType::F16);
+    assert_eq!(map.manifest.values, ValueType::F16);
+    let back = Map::open(&dir.path().join("m")).unwrap().to_descriptor_set().unwrap();
+    let mut rounded = set.globals.clone();
+    semlook::values::round_through_f16(&mut rounded);
+    assert_eq!(bits(&back.globals), bits(&rounded));
+    assert_ne!(bits(&back.globals), bits(&set.globals), "f16 should round some values");
+    assert_eq!((&back.ids, &back.tree_areas, &back.tree_neighbours), (&set.ids, &set.tree_areas, &set.tree_neighbours));
+    // half the bytes of the global descriptors
+    let f32_dir = dir.path().join("m32");
+    segmented(&f32_dir, 8, 3, ValueType::F32);
+    let size = |m: &Map| m.manifest.segments.iter().map(|s| s.bytes).sum::<u64>();
+    let (a, b) = (size(&Map::open(&f32_dir).unwrap()), size(&map));
+    assert!((b as f64) < 0.6 * a as f64, "f16 {b} bytes, f32 {a}");
+    let queries = common::encode(&cfg, &common::label_maps(3, 80, 60), "q");
+    let (m, _) = match_batch(&map, &queries, Setting::Semlook, &cfg);
+    assert_eq!(m.len(), 3);
 }
 
 #[test]
@@ -34,14 +77,15 @@ fn add_appends_a_segment_and_keeps_the_rest() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("m");
     let (cfg, mut map) = built(&path);
-    let seg0 = std::fs::read(path.join("segment-000000.safetensors")).unwrap();
+    let first = map.manifest.segments[0].file.clone();
+    let seg0 = std::fs::read(path.join(&first)).unwrap();
     let more = common::encode(&cfg, &common::label_maps(3, 80, 60), "new");
     map.add(&more).unwrap();
-    assert_eq!(std::fs::read(path.join("segment-000000.safetensors")).unwrap(), seg0, "stored segment rewritten");
+    assert_eq!(std::fs::read(path.join(&first)).unwrap(), seg0, "stored segment rewritten");
     let back = Map::open(&path).unwrap();
-    assert_eq!(back.len(), 9);
-    assert_eq!(back.to_descriptor_set(), map.to_descriptor_set());
-    assert_eq!(back.to_descriptor_set().ids[6], "new0");
+    assert_eq!((back.len(), back.manifest.generation, back.manifest.segments.len()), (9, 2, 2));
+    assert_eq!(back.to_descriptor_set().unwrap(), map.to_descriptor_set().unwrap());
+    assert_eq!(back.id(6), "new0");
 }
 
 #[test]
@@ -56,7 +100,49 @@ fn duplicate_ids_are_refused_before_writing() {
     assert_eq!(common::snapshot(&path), before, "a refused add changed the map");
 }
 
-fn expect_corrupt(path: &std::path::Path, what: &str) {
+#[test]
+fn bad_values_are_refused_naming_the_image_before_anything_is_written() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = Config::without_appearance();
+    let good = common::encode(&cfg, &common::label_maps(4, 64, 48), "g");
+    type Spoil = fn(&mut DescriptorSet);
+    let spoils: [(&str, Spoil); 5] = [
+        ("NaN global value", |s| s.globals[s.global_len * 2 + 5] = f32::NAN),
+        ("infinite tree area", |s| s.tree_areas[s.forest_offsets[2] as usize] = f32::INFINITY),
+        ("global value above 1", |s| s.globals[s.global_len * 2] = 1.5),
+        ("class outside the table", |s| s.tree_classes[s.forest_offsets[2] as usize] = 200),
+        ("neighbour outside the forest", |s| s.tree_neighbours[s.forest_offsets[2] as usize * s.neighbour_slots] = 999),
+    ];
+    let path = dir.path().join("m");
+    let mut map = Map::create(&path, &cfg.encoding(), &good.slice(0, 2), None).unwrap();
+    let before = common::snapshot(&path);
+    for (what, spoil) in spoils {
+        let mut bad = good.clone();
+        spoil(&mut bad);
+        // a new map: nothing created
+        let fresh = dir.path().join("fresh");
+        let err = Map::create(&fresh, &cfg.encoding(), &bad, None).unwrap_err();
+        assert!(matches!(&err, Error::InvalidImage { id, .. } if id == "g2"), "{what}: {err}");
+        assert!(!fresh.exists(), "{what}: a refused map was created");
+        // an existing map: nothing changed
+        let err = map.add(&bad.slice(2, 4)).unwrap_err();
+        assert!(matches!(&err, Error::InvalidImage { id, .. } if id == "g2"), "{what}: {err}");
+        assert_eq!(common::snapshot(&path), before, "{what}: a refused add changed the map");
+    }
+    // the streaming writer refuses the image and keeps the others
+    let mut w = MapWriter::append(&path, StoreOptions::default()).unwrap();
+    let enc = semlook::encode::Encoder::new(&cfg).unwrap();
+    let maps = common::label_maps(2, 64, 48);
+    let mut img = enc.encode_labels("nan", &maps[0], &mut Default::default()).unwrap().0;
+    img.global[0] = f32::NAN;
+    assert!(matches!(w.push(&img), Err(Error::InvalidImage { id, .. }) if id == "nan"));
+    let ok = enc.encode_labels("fine", &maps[1], &mut Default::default()).unwrap().0;
+    w.push(&ok).unwrap();
+    let map = w.finish().unwrap();
+    assert_eq!((map.len(), map.id(2)), (3, "fine"));
+}
+
+fn expect_corrupt_at_open(path: &Path, what: &str) {
     match Map::open(path) {
         Err(Error::CorruptMap { reason, .. }) => eprintln!("{what}: refused ({reason})"),
         Err(other) => panic!("{what}: expected CorruptMap, got {other}"),
@@ -68,8 +154,9 @@ fn expect_corrupt(path: &std::path::Path, what: &str) {
 fn damaged_maps_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("m");
-    built(&path);
-    let seg = path.join("segment-000000.safetensors");
+    let (cfg, map) = built(&path);
+    let seg = path.join(&map.manifest.segments[0].file);
+    drop(map);
     let manifest = path.join("manifest.json");
     let good_seg = std::fs::read(&seg).unwrap();
     let good_manifest = std::fs::read_to_string(&manifest).unwrap();
@@ -79,41 +166,104 @@ fn damaged_maps_are_refused() {
     };
 
     std::fs::write(&seg, &good_seg[..good_seg.len() - 100]).unwrap();
-    expect_corrupt(&path, "truncated segment");
+    expect_corrupt_at_open(&path, "truncated segment");
     restore();
 
+    // a flipped data byte: opening stays cheap (no hashing); the first use finds it and names the file
     let mut flipped = good_seg.clone();
     let k = flipped.len() / 2;
     flipped[k] ^= 0x40;
     std::fs::write(&seg, &flipped).unwrap();
-    expect_corrupt(&path, "flipped byte");
+    let m = Map::open(&path).unwrap();
+    let queries = common::encode(&cfg, &common::label_maps(2, 96, 72), "q");
+    match match_with(&mut CpuStages, &m, &queries, Setting::Semlook, &cfg) {
+        Err(Error::CorruptMap { path: p, .. }) => assert_eq!(p, seg),
+        other => panic!("matching a damaged map: {:?}", other.map(|_| ())),
+    }
+    assert!(matches!(m.to_descriptor_set(), Err(Error::CorruptMap { .. })));
+    drop(m);
     restore();
 
     std::fs::write(&manifest, &good_manifest[..good_manifest.len() / 2]).unwrap();
-    expect_corrupt(&path, "truncated manifest");
+    expect_corrupt_at_open(&path, "truncated manifest");
     restore();
 
     std::fs::write(&manifest, good_manifest.replace("semlook-map", "something-else")).unwrap();
-    expect_corrupt(&path, "foreign manifest");
+    expect_corrupt_at_open(&path, "foreign manifest");
     restore();
 
-    // a segment whose checksum matches but whose contents break the invariants
-    let mut set = Map::open(&path).unwrap().to_descriptor_set();
-    set.tree_neighbours[0] = 9999;
-    let cfg = Config::without_appearance();
-    let other = dir.path().join("other");
-    Map::create(&other, &cfg.encoding(), &set, None).unwrap();
-    expect_corrupt(&other, "neighbour index out of range");
-    let mut set = Map::open(&path).unwrap().to_descriptor_set();
-    set.globals[5] = f32::NAN;
-    let nan = dir.path().join("nan");
-    Map::create(&nan, &cfg.encoding(), &set, None).unwrap();
-    expect_corrupt(&nan, "NaN descriptor");
+    std::fs::write(&manifest, good_manifest.replace("segment-", "../segment-")).unwrap();
+    expect_corrupt_at_open(&path, "segment outside the map folder");
+    restore();
 
     std::fs::remove_file(&seg).unwrap();
     assert!(matches!(Map::open(&path), Err(Error::Io { .. })), "missing segment");
     restore();
-    assert!(Map::open(&path).is_ok(), "restored map opens again");
+    Map::open(&path).unwrap().check_all().unwrap();
+}
+
+#[test]
+fn a_flipped_byte_anywhere_in_a_segment_is_named_by_verify() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m");
+    let (_, _, map) = segmented(&path, 9, 3, ValueType::F32);
+    let files: Vec<String> = map.manifest.segments.iter().map(|s| s.file.clone()).collect();
+    drop(map);
+    assert_eq!(files.len(), 3);
+    let mut rng = semlook::util::SplitMix64::new(11);
+    for f in &files {
+        let p = path.join(f);
+        let good = std::fs::read(&p).unwrap();
+        // the length field, the header, the data, the last byte, and random places
+        let mut at = vec![0, 3, 8, 40, good.len() / 2, good.len() - 1];
+        at.extend((0..30).map(|_| rng.below(good.len())));
+        for k in at {
+            let mut bad = good.clone();
+            bad[k] ^= 1 << rng.below(8);
+            std::fs::write(&p, &bad).unwrap();
+            let report = edit::verify(&path).unwrap();
+            let damaged: Vec<&str> = report.damaged().map(|d| d.file.as_str()).collect();
+            assert_eq!(damaged, vec![f.as_str()], "byte {k} of {f}");
+        }
+        std::fs::write(&p, &good).unwrap();
+    }
+    assert_eq!(edit::verify(&path).unwrap().damaged().count(), 0);
+}
+
+#[test]
+fn misaligned_tensors_are_refused_with_a_typed_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m");
+    let (_, map) = built(&path);
+    let entry = map.manifest.segments[0].clone();
+    drop(map);
+    // rewrite the file with a one-byte tensor first: every tensor after it starts one byte late
+    let bytes = std::fs::read(path.join(&entry.file)).unwrap();
+    let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let mut header: serde_json::Map<String, serde_json::Value> = serde_json::from_slice(&bytes[8..8 + n]).unwrap();
+    for (name, t) in header.iter_mut() {
+        if name != "__metadata__" {
+            for k in 0..2 {
+                let v = t["data_offsets"][k].as_u64().unwrap();
+                t["data_offsets"][k] = (v + 1).into();
+            }
+        }
+    }
+    header.insert("a_pad".into(), serde_json::json!({"dtype": "U8", "shape": [1], "data_offsets": [0, 1]}));
+    let mut h = serde_json::to_vec(&header).unwrap();
+    h.resize(h.len().next_multiple_of(8), b' ');
+    let mut out = (h.len() as u64).to_le_bytes().to_vec();
+    out.extend_from_slice(&h);
+    out.push(0);
+    out.extend_from_slice(&bytes[8 + n..]);
+    std::fs::write(path.join(&entry.file), &out).unwrap();
+    let mtext = std::fs::read_to_string(path.join("manifest.json")).unwrap();
+    let mtext = mtext.replace(&format!("\"bytes\": {}", entry.bytes), &format!("\"bytes\": {}", out.len())).replace(&entry.sha256, &semlook::util::sha256_hex(&out));
+    std::fs::write(path.join("manifest.json"), mtext).unwrap();
+    match Map::open(&path) {
+        Err(Error::CorruptMap { reason, .. }) => assert!(reason.contains("not a multiple"), "{reason}"),
+        other => panic!("misaligned file: {:?}", other.map(|_| ())),
+    }
 }
 
 #[test]
@@ -123,8 +273,8 @@ fn version_and_config_mismatches_are_named() {
     let (cfg, map) = built(&path);
     let manifest = path.join("manifest.json");
     let text = std::fs::read_to_string(&manifest).unwrap();
-    std::fs::write(&manifest, text.replace(&format!("\"version\": {}", semlook::map::VERSION), "\"version\": 99")).unwrap();
-    assert!(matches!(Map::open(&path), Err(Error::MapVersion { found: 99, .. })));
+    std::fs::write(&manifest, text.replace(&format!("\"version\": {}", semlook::map::VERSION), "\"version\": 2")).unwrap();
+    assert!(matches!(Map::open(&path), Err(Error::MapVersion { found: 2, .. })));
     let mut other = cfg.encoding();
     other.objects.min_area_fraction = 0.01;
     let err = map.check_compatible(&other).unwrap_err();
@@ -135,31 +285,34 @@ fn version_and_config_mismatches_are_named() {
 }
 
 #[test]
-fn create_refuses_a_non_empty_directory_and_a_held_lock() {
+fn a_stale_lock_file_does_not_block_and_a_held_lock_makes_writers_wait() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("m");
     let (cfg, mut map) = built(&path);
-    let set = common::encode(&cfg, &common::label_maps(1, 64, 48), "x");
-    assert!(Map::create(&path, &cfg.encoding(), &set, None).is_err());
-    std::fs::write(path.join(".lock"), "1").unwrap();
-    let err = map.add(&set).unwrap_err();
-    assert!(err.to_string().contains(".lock"), "{err}");
+    let set = common::encode(&cfg, &common::label_maps(2, 64, 48), "x");
+    assert!(Map::create(&path, &cfg.encoding(), &set, None).is_err(), "created over a map");
+    // a lock file left by a dead process is just a file
+    std::fs::write(path.join(".lock"), "12345").unwrap();
+    map.add(&set.slice(0, 1)).unwrap();
+    // a live holder (another open file description: flock excludes it like another process)
+    let held = semlook::map::files::WriteLock::take(&path).unwrap();
+    let t = std::time::Instant::now();
+    let releaser = std::thread::spawn(move || {
+        std::thread::sleep(std::time::Duration::from_millis(400));
+        drop(held);
+    });
+    map.add(&set.slice(1, 2)).unwrap();
+    assert!(t.elapsed().as_millis() >= 350, "the add did not wait for the lock ({:?})", t.elapsed());
+    releaser.join().unwrap();
+    assert_eq!(Map::open(&path).unwrap().len(), 8);
 }
 
 #[test]
 fn segmented_maps_stream_and_match_like_one_set() {
-    use semlook::matching::source::{GlobalSource, RefSource, TileBuf};
-    use semlook::matching::{match_batch, Setting};
     let dir = tempfile::tempdir().unwrap();
-    let cfg = Config::without_appearance();
-    let set = common::encode(&cfg, &common::label_maps(10, 80, 60), "r");
-    let mut map = Map::new(&dir.path().join("m"), &cfg.encoding(), 0, 0);
-    std::fs::create_dir_all(dir.path().join("m")).unwrap();
-    map.add_in_segments(&set, 3).unwrap();
-    assert_eq!(map.manifest.segments.len(), 4);
-    let back = Map::open(&dir.path().join("m")).unwrap();
+    let (cfg, set, back) = segmented(&dir.path().join("m"), 10, 3, ValueType::F32);
     assert_eq!(back.segments().len(), 4);
-    assert_eq!(back.to_descriptor_set(), set);
+    assert_eq!(back.to_descriptor_set().unwrap(), set);
     // a tile across segment boundaries equals the same rows of the whole set
     let (mut b1, mut b2) = (TileBuf::default(), TileBuf::default());
     let (g, s) = back.tile(2, 8, &mut b1);
@@ -171,4 +324,168 @@ fn segmented_maps_stream_and_match_like_one_set() {
     for setting in Setting::SEMLOOK {
         assert_eq!(match_batch(&back, &queries, setting, &cfg).0, match_batch(&set, &queries, setting, &cfg).0, "{setting}");
     }
+}
+
+/// `set` with synthetic appearance: unit vectors of `dim` values per tree (every fifth tree
+/// without) and per image.
+fn with_appearance(mut set: DescriptorSet, dim: usize, seed: u64) -> DescriptorSet {
+    let mut rng = semlook::util::SplitMix64::new(seed);
+    let mut unit = |n: usize| -> Vec<f32> {
+        let v: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0) as f32).collect();
+        let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+        v.iter().map(|x| x / norm).collect()
+    };
+    let t = set.n_trees();
+    set.appearance_dim = dim;
+    set.tree_appearance = (0..t).flat_map(|_| unit(dim)).collect();
+    set.tree_has_appearance = (0..t).map(|k| u8::from(k % 5 != 4)).collect();
+    set.image_appearance = (0..set.len()).flat_map(|_| unit(dim)).collect();
+    set
+}
+
+#[test]
+fn an_f16_map_with_appearance_matches_like_its_widened_set() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m");
+    let cfg = Config::without_appearance();
+    // 300 values: more than one block of the f16 dot product
+    let set = with_appearance(common::encode(&cfg, &common::label_maps(8, 80, 60), "r"), 300, 1);
+    let queries = with_appearance(common::encode(&cfg, &common::label_maps(8, 80, 60)[2..5], "q"), 300, 2);
+    let codebook = semlook::appearance::vlad::Codebook { k: 3, dim: 100, centres: vec![0.0; 300] };
+    let map = Map::create_with(&path, &cfg.encoding(), &set, Some((&codebook, "test-network")), StoreOptions { values: ValueType::F16, segment_images: 3, ..Default::default() }).unwrap();
+    let wide = map.to_descriptor_set().unwrap();
+    let mut rounded = set.tree_appearance.clone();
+    semlook::values::round_through_f16(&mut rounded);
+    assert_eq!(bits(&wide.tree_appearance), bits(&rounded));
+    assert_ne!(bits(&wide.tree_appearance), bits(&set.tree_appearance), "f16 should round appearance values");
+    // matching reads f16 straight from the mapped files: the same scores, bit for bit, as the
+    // widened f32 set
+    for setting in [Setting::Local, Setting::Semlook, Setting::Appearance] {
+        let (a, b) = (ranked(&map, &queries, setting, &cfg), ranked(&wide, &queries, setting, &cfg));
+        assert!(a.iter().all(|l| !l.is_empty()));
+        assert_eq!(a, b, "{setting}");
+    }
+}
+
+#[test]
+fn device_cache_keys_follow_the_map_and_its_generation() {
+    use semlook::matching::source::SourceKey;
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, set, mut a) = segmented(&dir.path().join("a"), 6, 4, ValueType::F16);
+    let (_, _, b) = segmented(&dir.path().join("b"), 6, 4, ValueType::F16);
+    let key = SourceKey::of(&a);
+    assert_eq!(key, SourceKey::of(&a), "one open map, one key (f16 tiles are assembled in buffers that move)");
+    assert_eq!(key, SourceKey::of(&Map::open(&dir.path().join("a")).unwrap()), "reopened at the same generation");
+    assert_ne!(key, SourceKey::of(&b), "another map with the same contents, size and generation");
+    a.add(&common::encode(&cfg, &common::label_maps(1, 80, 60), "new")).unwrap();
+    assert_ne!(key, SourceKey::of(&a), "after a commit");
+    let after_add = SourceKey::of(&a);
+    edit::remove(&dir.path().join("a"), &[set.ids[0].clone()]).unwrap();
+    let removed = Map::open(&dir.path().join("a")).unwrap();
+    assert_ne!(after_add, SourceKey::of(&removed), "after a removal");
+}
+
+/// Ids and scores of every query's ranked list.
+fn ranked(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Vec<Vec<(String, u32)>> {
+    match_batch(refs, queries, setting, cfg).0.iter().map(|m| m.ranked.iter().map(|c| (refs.id(c.reference as usize).to_string(), c.score.to_bits())).collect()).collect()
+}
+
+#[test]
+fn removed_images_never_come_back_and_compaction_keeps_the_rest() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m");
+    let (cfg, set, map) = segmented(&path, 14, 4, ValueType::F32);
+    let queries = common::encode(&cfg, &common::label_maps(3, 80, 60), "q");
+    // remove a spread of images, then every image a query's best match was
+    let best: Vec<String> = ranked(&map, &queries, Setting::Global, &cfg).iter().map(|l| l[0].0.clone()).collect();
+    let mut gone: Vec<String> = vec!["r1".into(), "r4".into(), "r5".into(), "r13".into()];
+    gone.extend(best);
+    gone.sort();
+    gone.dedup();
+    drop(map);
+    assert!(edit::remove(&path, &["r1".into(), "nope".into()]).is_err(), "an unknown id was accepted");
+    assert_eq!(Map::open(&path).unwrap().len(), 14, "a refused removal changed the map");
+    assert_eq!(edit::remove(&path, &gone).unwrap(), gone.len());
+    // what the map serves now equals a set without the removed images, K live results each
+    let keep: Vec<usize> = (0..set.len()).filter(|&i| !gone.contains(&set.ids[i])).collect();
+    let mut live = set.empty_like();
+    for &i in &keep {
+        live.append_range(&set, i, i + 1);
+    }
+    let map = Map::open(&path).unwrap();
+    assert_eq!(map.len(), keep.len());
+    for setting in Setting::SEMLOOK {
+        let got = ranked(&map, &queries, setting, &cfg);
+        assert_eq!(got, ranked(&live, &queries, setting, &cfg), "{setting}");
+        assert!(got.iter().flatten().all(|(id, _)| !gone.contains(id)), "{setting}: a removed image came back");
+    }
+    let expected = ranked(&map, &queries, Setting::Semlook, &cfg);
+    drop(map);
+    // compaction drops them from the files and changes no result
+    let before: u64 = Map::open(&path).unwrap().manifest.segments.iter().map(|s| s.bytes).sum();
+    std::fs::write(path.join("segment-0000000000000000.safetensors"), b"stray").unwrap();
+    let r = edit::compact(&path, StoreOptions { segment_images: 4, ..Default::default() }).unwrap();
+    assert_eq!((r.dropped, r.stray_files), (gone.len(), 1));
+    let map = Map::open(&path).unwrap();
+    assert!(map.manifest.segments.iter().all(|s| s.removed.is_empty()));
+    assert!(map.manifest.segments.iter().map(|s| s.bytes).sum::<u64>() < before);
+    assert_eq!(ranked(&map, &queries, Setting::Semlook, &cfg), expected);
+    assert_eq!(map.to_descriptor_set().unwrap(), live);
+    assert!(!path.join("segment-0000000000000000.safetensors").exists());
+    let listed: std::collections::HashSet<String> = map.manifest.segments.iter().map(|s| s.file.clone()).collect();
+    for e in std::fs::read_dir(&path).unwrap().flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        assert!(!name.starts_with("segment-") || listed.contains(&name), "{name} left behind");
+    }
+}
+
+#[test]
+fn readers_see_whole_generations_while_a_writer_commits() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m");
+    let (cfg, _) = built(&path);
+    let more = common::encode(&cfg, &common::label_maps(20, 64, 48), "w");
+    let p2 = path.clone();
+    let writer = std::thread::spawn(move || {
+        let mut w = MapWriter::append(&p2, StoreOptions { segment_images: 1, ..Default::default() }).unwrap();
+        w.push_set(&more).unwrap();
+        w.finish().unwrap().manifest.generation
+    });
+    let mut seen = std::collections::BTreeSet::new();
+    while !writer.is_finished() {
+        let m = Map::open(&path).unwrap();
+        assert_eq!(m.len(), 6 + m.manifest.segments.len() - 1, "generation {}", m.manifest.generation);
+        m.check_all().unwrap();
+        seen.insert(m.manifest.generation);
+    }
+    assert_eq!(writer.join().unwrap(), 21);
+    eprintln!("generations seen while writing: {seen:?}");
+}
+
+#[test]
+fn two_writers_committing_in_turn_both_land_and_a_raced_id_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m");
+    let (cfg, _) = built(&path);
+    let enc = semlook::encode::Encoder::new(&cfg).unwrap();
+    let maps = common::label_maps(12, 64, 48);
+    let img = |id: &str, k: usize| enc.encode_labels(id, &maps[k], &mut Default::default()).unwrap().0;
+    let one = StoreOptions { segment_images: 1, ..Default::default() };
+    // two writers that opened the same generation: each commit must re-read the manifest under
+    // the lock and append to what the other committed
+    let (mut w1, mut w2) = (MapWriter::append(&path, one).unwrap(), MapWriter::append(&path, one).unwrap());
+    for k in 0..5 {
+        w1.push(&img(&format!("a{k}"), k)).unwrap();
+        w2.push(&img(&format!("b{k}"), k + 5)).unwrap();
+    }
+    // both buffer the same id; the second to commit learns of the first's segment and refuses
+    w2.push(&img("same", 10)).unwrap();
+    assert!(matches!(w1.push(&img("same", 11)), Err(Error::DuplicateImageId { id, .. }) if id == "same"));
+    drop(w1);
+    let map = w2.finish().unwrap();
+    assert_eq!((map.len(), map.manifest.generation), (6 + 11, 1 + 11));
+    let ids: Vec<String> = (0..map.len()).map(|i| map.id(i).to_string()).collect();
+    let expect: Vec<String> = (0..6).map(|i| format!("ref{i}")).chain((0..5).flat_map(|k| [format!("a{k}"), format!("b{k}")])).chain(["same".to_string()]).collect();
+    assert_eq!(ids, expect);
+    map.check_all().unwrap();
 }

@@ -1,5 +1,7 @@
 //! The commands behind the CLI.
 
+mod map_cmd;
+
 use super::*;
 use semlook::config::Config;
 use semlook::encode::Encoder;
@@ -7,7 +9,8 @@ use semlook::engine::Engine;
 use semlook::gpu::GpuOptions;
 use semlook::error::{Error, Result};
 use semlook::dataset::{Dataset, DatasetOptions};
-use semlook::eval::{encode_frames, evaluate, EvalOptions, EvalReport, RunRecord};
+use semlook::batch::encode_frames;
+use semlook::eval::{evaluate, EvalOptions, EvalReport, RunRecord};
 use semlook::input::FrameSource;
 use semlook::map::{DescriptorSet, Map};
 use semlook::matching::{source::RefSource, QueryMatch, Setting};
@@ -32,9 +35,7 @@ pub fn dispatch(cli: Cli) -> Result<()> {
             None => synth_cmd(&a, quiet),
         },
         Command::Demo(a) => demo(&a, &mut engine()?, quiet),
-        Command::Map(MapCommand::Build { source, out, config, force, hog }) => map_build(&mut engine()?, &source, &out, config.as_deref(), force, hog, quiet),
-        Command::Map(MapCommand::Add { source, map }) => map_add(&mut engine()?, &source, &map, quiet),
-        Command::Map(MapCommand::Info { map, json }) => map_info(&map, json),
+        Command::Map(m) => map_cmd::run(m, &engine, quiet),
         Command::Query(a) => query(&mut engine()?, &a, quiet),
         Command::Eval(a) => eval_cmd(&mut engine()?, &a, quiet),
         Command::Bench(a) => bench_cmd(&a, quiet),
@@ -196,30 +197,6 @@ fn encode_sources(engine: &mut Engine, encoder: &Encoder, frames: &[FrameSource]
     Ok(enc.set)
 }
 
-fn map_build(engine: &mut Engine, s: &SourceArgs, out: &Path, config: Option<&Path>, force: bool, hog: bool, quiet: bool) -> Result<()> {
-    let mut cfg = apply_models(load_config(config)?, &s.models);
-    let (frames, fmt) = frame_sources(s, &mut cfg, config.is_some())?;
-    let mut encoder = Encoder::new(&cfg)?.with_hog(hog);
-    semlook::eval::train_codebook(&mut encoder, &frames, quiet)?;
-    let set = encode_sources(engine, &encoder, &frames, fmt, "references", s.skip_invalid, quiet)?;
-    let map = if force && out.exists() {
-        // build beside, then swap, so the old map survives any failure
-        let staging = out.with_extension("building");
-        let _ = std::fs::remove_dir_all(&staging);
-        Map::create(&staging, &cfg.encoding(), &set, encoder.appearance_record())?;
-        let old = out.with_extension("old");
-        let _ = std::fs::remove_dir_all(&old);
-        std::fs::rename(out, &old).map_err(|e| Error::io(out, e))?;
-        std::fs::rename(&staging, out).map_err(|e| Error::io(out, e))?;
-        let _ = std::fs::remove_dir_all(&old);
-        Map::open(out)?
-    } else {
-        Map::create(out, &cfg.encoding(), &set, encoder.appearance_record())?
-    };
-    info(quiet, format!("map {}: {} images, {} trees", out.display(), map.len(), map.n_trees()));
-    Ok(())
-}
-
 /// The config for queries of a map: the map's encoding, `config`'s matching (or the defaults),
 /// model paths from the flags.
 fn map_config(map: &Map, config: Option<&Path>, models: &ModelArgs) -> Result<Config> {
@@ -232,39 +209,6 @@ fn map_config(map: &Map, config: Option<&Path>, models: &ModelArgs) -> Result<Co
         cfg.appearance.model = map.manifest.config.appearance.model;
     }
     Ok(cfg)
-}
-
-fn map_add(engine: &mut Engine, s: &SourceArgs, map_dir: &Path, quiet: bool) -> Result<()> {
-    let mut map = Map::open(map_dir)?;
-    let mut cfg = map_config(&map, None, &s.models)?;
-    let (frames, fmt) = frame_sources(s, &mut cfg, true)?;
-    let encoder = Encoder::for_map(&cfg, &map)?.with_hog(map.manifest.hog_dim > 0);
-    let set = encode_sources(engine, &encoder, &frames, fmt, "new images", s.skip_invalid, quiet)?;
-    map.add(&set)?;
-    info(quiet, format!("map {}: now {} images in {} segments", map_dir.display(), map.len(), map.manifest.segments.len()));
-    Ok(())
-}
-
-fn map_info(dir: &Path, json: bool) -> Result<()> {
-    let map = Map::open(dir)?;
-    if json {
-        let v = serde_json::json!({
-            "path": dir,
-            "images": map.len(),
-            "trees": map.n_trees(),
-            "segments": map.manifest.segments,
-            "appearance_dim": map.manifest.appearance_dim,
-            "config": map.manifest.config,
-        });
-        println!("{}", to_json(&v)?);
-    } else {
-        println!("map {}: {} images, {} trees, {} segments (all checksums verified)", dir.display(), map.len(), map.n_trees(), map.manifest.segments.len());
-        for s in &map.manifest.segments {
-            println!("  {}  {} images  {} bytes  sha256 {}", s.file, s.images, s.bytes, &s.sha256[..16]);
-        }
-        println!("encoding config:\n{}", toml::to_string_pretty(&map.manifest.config).map_err(|e| Error::invalid("map config", e.to_string()))?);
-    }
-    Ok(())
 }
 
 /// CSV and JSON renderings of query results. The CSV starts with `#` comment lines naming what
@@ -408,7 +352,7 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     let _ = std::fs::remove_dir_all(&map_dir);
     info(quiet, "[2/4] building the map from the reference traversal");
     let src = SourceArgs { dataset: Some(data.clone()), traversal: None, images: None, labels: None, label_format: None, skip_invalid: false, models: a.models.clone() };
-    map_build(engine, &src, &map_dir, None, false, true, quiet)?;
+    map_cmd::build(engine, &src, &map_dir, None, &map_cmd::BuildFlags { hog: true, ..Default::default() }, quiet)?;
     let map = Map::open(&map_dir)?;
     let cfg = map_config(&map, None, &a.models)?;
     let hardest = scfg.queries.last().ok_or_else(|| Error::invalid("demo", "no query condition"))?.name();
@@ -448,7 +392,7 @@ fn bench_encode_cmd(a: &BenchEncodeArgs, engine: &mut Engine, quiet: bool) -> Re
     }
     let sources: Vec<FrameSource> = images.iter().map(|p| FrameSource { id: p.display().to_string(), image: Some(p.clone()), labels: None }).collect();
     let mut encoder = Encoder::new(&cfg)?;
-    semlook::eval::train_codebook(&mut encoder, &sources, quiet)?;
+    semlook::batch::train_codebook(&mut encoder, &sources, quiet)?;
     // phase 1: segmentation alone, frames in parallel, label maps at the image size
     let tmp = std::env::temp_dir().join(format!("semlook-bench-encode-{}", std::process::id()));
     std::fs::create_dir_all(&tmp).map_err(|e| Error::io(&tmp, e))?;
@@ -484,7 +428,7 @@ fn bench_encode_cmd(a: &BenchEncodeArgs, engine: &mut Engine, quiet: bool) -> Re
     let enc = encode_frames(engine, &encoder, &labelled, LabelFormat::Auto, "encoding", false, quiet)?;
     let _ = std::fs::remove_dir_all(&tmp);
     let summary = enc.summary();
-    let seg = semlook::eval::EncodingSummary::new(&seg_ms, seg_wall * sources.len() as f64);
+    let seg = semlook::batch::EncodingSummary::new(&seg_ms, seg_wall * sources.len() as f64);
     let size = semlook::input::image_size(&images[0])?;
     if a.json {
         println!("{}", to_json(&serde_json::json!({ "frames": sources.len(), "image_size": size, "backend": engine.describe(), "segmentation": seg, "everything_else": summary }))?);

@@ -270,9 +270,22 @@ pub struct SourceArgs {
     pub models: ModelArgs,
 }
 
+/// How a map stores what it is given.
+#[derive(Args, Clone, Default)]
+pub struct StoreArgs {
+    /// Store global descriptors and appearance vectors as f16 (half the bytes; matching still
+    /// computes in f32). Recorded in the map; `map add` follows the map.
+    #[arg(long)]
+    pub f16: bool,
+    /// Most images per segment file (a segment is committed when full; a crash loses at most the
+    /// segment in progress). Default 4096, fewer when images are large (64 MiB per segment).
+    #[arg(long, value_name = "N")]
+    pub segment_images: Option<usize>,
+}
+
 #[derive(Subcommand)]
 pub enum MapCommand {
-    /// Encode images into a new map directory.
+    /// Encode images into a new map directory, committing a segment at a time.
     Build {
         #[command(flatten)]
         source: SourceArgs,
@@ -282,13 +295,19 @@ pub enum MapCommand {
         /// Encoding config (TOML); default: built-in defaults.
         #[arg(long)]
         config: Option<PathBuf>,
-        /// Replace an existing map directory (the old one is removed only after the new one is complete).
-        #[arg(long)]
+        /// Replace an existing map: the new one is built beside it (same folder, unique name) and
+        /// swapped in once complete; no other path is touched.
+        #[arg(long, conflicts_with = "resume")]
         force: bool,
+        /// Continue an interrupted build: images the map holds are skipped, the rest are added.
+        #[arg(long)]
+        resume: bool,
         /// Also store each image's VPR-Bench HOG descriptor (35,721 floats), so that the `hog`
         /// baseline can be matched and evaluated against this map.
         #[arg(long)]
         hog: bool,
+        #[command(flatten)]
+        store: StoreArgs,
     },
     /// Append images to a map without re-encoding what it holds.
     Add {
@@ -296,14 +315,73 @@ pub enum MapCommand {
         source: SourceArgs,
         #[arg(long)]
         map: PathBuf,
+        /// Continue an interrupted add: images the map holds are skipped.
+        #[arg(long)]
+        resume: bool,
+        /// Most images per segment file (see `map build`).
+        #[arg(long, value_name = "N")]
+        segment_images: Option<usize>,
     },
-    /// Show a map's size, config and segments.
+    /// Show a map's size, layout, config and segments (reads the manifest; checks nothing).
     Info {
         #[arg(long)]
         map: PathBuf,
         #[arg(long)]
         json: bool,
     },
+    /// Remove images from a map (they leave every query at once; `map compact` frees the space).
+    Remove {
+        #[arg(long)]
+        map: PathBuf,
+        /// Image ids, or one file of ids (one per line; empty lines and `#` lines ignored).
+        #[arg(long, num_args = 1.., required = true, value_name = "FILE|ID")]
+        ids: Vec<String>,
+    },
+    /// Rewrite the segments that hold removed images or are small; delete files no manifest needs.
+    Compact {
+        #[arg(long)]
+        map: PathBuf,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Check every file of a map in full (checksums and values); names each damaged file and
+    /// exits with status 1 if there is one.
+    Verify {
+        #[arg(long)]
+        map: PathBuf,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Map-store benchmark: writes a synthetic map of each size through the store, opens it and
+    /// runs a coarse pass of a query batch from it; reports build peak RSS, open time, query-pass
+    /// memory without mapped file pages, and bytes per reference.
+    Bench(StoreBenchArgs),
+}
+
+#[derive(Args)]
+pub struct StoreBenchArgs {
+    /// Map sizes (references).
+    #[arg(long, value_delimiter = ',', default_value = "100000")]
+    pub sizes: Vec<usize>,
+    /// Coarse passes on each map: QUERIES (against every reference) or QUERIES:REFS (against the
+    /// first REFS references, streamed from the stored map like the rest).
+    #[arg(long, value_delimiter = ',', default_value = "1000")]
+    pub passes: Vec<semlook::bench_store::Pass>,
+    /// Store f16 (default f32).
+    #[arg(long)]
+    pub f16: bool,
+    /// Query batch sizes for which a pass with stored SSIM statistics (the map in memory) is
+    /// timed against one recomputing them per tile (maps up to 50,000 references).
+    #[arg(long, value_delimiter = ',')]
+    pub stats_comparison: Vec<usize>,
+    /// Folder for the maps (default: the system temporary folder); each is deleted afterwards
+    /// unless --keep.
+    #[arg(long)]
+    pub dir: Option<PathBuf>,
+    #[arg(long)]
+    pub keep: bool,
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(Args)]

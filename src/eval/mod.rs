@@ -7,40 +7,18 @@
 pub mod metrics;
 pub mod segmenter;
 
+use crate::batch::{encode_frames, train_codebook, EncodingSummary};
 use crate::config::Config;
-use crate::encode::{collect_encoded, Encoder, StageTimes};
+use crate::encode::Encoder;
 use crate::engine::Engine;
 use crate::error::{Error, Result};
 use crate::map::{DescriptorSet, Map};
 use crate::matching::source::RefSource;
 use crate::matching::Setting;
-use crate::progress;
 use crate::dataset::Dataset;
 use metrics::{pr_metrics, recall_at_n, PrMetrics};
 use serde::Serialize;
 use std::collections::HashMap;
-
-/// Per-frame encoding times of a set of frames: mean and median per stage, and the wall-clock
-/// time per frame of the whole (parallel) encoding.
-#[derive(Debug, Clone, Copy, Default, Serialize)]
-pub struct EncodingSummary {
-    pub frames: usize,
-    pub mean: StageTimes,
-    pub median: StageTimes,
-    /// Wall-clock milliseconds per frame over the batch (frames run in parallel).
-    pub wall_ms_per_frame: f64,
-}
-
-impl EncodingSummary {
-    pub fn new(times: &[StageTimes], wall_ms: f64) -> Self {
-        let mut total = StageTimes::default();
-        for t in times {
-            total += *t;
-        }
-        let n = times.len().max(1) as f64;
-        EncodingSummary { frames: times.len(), mean: total.scaled(1.0 / n), median: StageTimes::median(times), wall_ms_per_frame: wall_ms / n }
-    }
-}
 
 #[derive(Debug, Clone, Serialize)]
 pub struct QueryOutcome {
@@ -138,58 +116,6 @@ pub struct EvalOptions<'a> {
     pub map: Option<&'a Map>,
     pub skip_invalid: bool,
     pub quiet: bool,
-}
-
-/// Trains the encoder's VLAD codebook on reference frames (when appearance is on), with a bar.
-pub fn train_codebook(encoder: &mut Encoder, refs: &[crate::input::FrameSource], quiet: bool) -> Result<()> {
-    if encoder.appearance_model().is_none() {
-        return Ok(());
-    }
-    let n = encoder.config().appearance.codebook_images.min(refs.len());
-    let pb = progress::bar(n, "codebook", quiet);
-    encoder.train_codebook(refs, &|| pb.inc(1))?;
-    pb.finish_and_clear();
-    Ok(())
-}
-
-/// A set of frames encoded into a descriptor set.
-pub struct EncodedFrames {
-    pub set: DescriptorSet,
-    /// Per encoded frame, in set order.
-    pub times: Vec<StageTimes>,
-    /// Wall-clock milliseconds of the whole batch.
-    pub wall_ms: f64,
-    /// Frames that failed (index in the input, error), when skipping invalid input.
-    pub skipped: Vec<(usize, Error)>,
-}
-
-/// Encodes a list of frames into a descriptor set, with a progress bar.
-pub fn encode_frames(
-    engine: &mut Engine,
-    encoder: &Encoder,
-    frames: &[crate::input::FrameSource],
-    format: crate::input::LabelFormat,
-    what: &str,
-    skip_invalid: bool,
-    quiet: bool,
-) -> Result<EncodedFrames> {
-    let pb = progress::bar(frames.len(), what, quiet);
-    let t = std::time::Instant::now();
-    let results = engine.encode_all(encoder, frames, format, &|| pb.inc(1))?;
-    let wall = crate::util::ms_since(t);
-    pb.finish_and_clear();
-    let (images, times, skipped) = collect_encoded(results, skip_invalid)?;
-    let mut set = encoder.descriptor_set();
-    for img in &images {
-        set.push(img).map_err(|r| Error::invalid(what, r))?;
-    }
-    Ok(EncodedFrames { set, times, wall_ms: wall, skipped })
-}
-
-impl EncodedFrames {
-    pub fn summary(&self) -> EncodingSummary {
-        EncodingSummary::new(&self.times, self.wall_ms)
-    }
 }
 
 pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Engine) -> Result<EvalReport> {

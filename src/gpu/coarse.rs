@@ -20,7 +20,7 @@ use super::context::{GpuContext, GpuError};
 use super::resident::{ChunkData, ChunkPlan, Resident};
 use super::topk::{bytes_per_query, TopK, MAX_PASS_REFS};
 use crate::global::ssim::SsimParams;
-use crate::map::DescriptorSet;
+use crate::descriptors::DescriptorSet;
 use crate::matching::source::{GlobalSource, SourceKey, TileBuf};
 use crate::matching::ssim_block::{block_shape, PassParams};
 use crate::matching::topk_select::SEG;

@@ -19,7 +19,7 @@ use super::fine_pack::{forest_key, pack, plan_chunks, FinePass, ForestChunks, Pa
 use super::resident::{ChunkPlan, Resident};
 use super::topk::{bytes_per_query, TopK, MAX_PASS_REFS};
 use crate::local::tree_similarity::TreeSimParams;
-use crate::map::DescriptorSet;
+use crate::descriptors::DescriptorSet;
 use crate::matching::source::{RefSource, SourceKey};
 use crate::matching::ssim_block::PassParams;
 use crate::matching::topk_select::SEG;

@@ -75,7 +75,7 @@ pub(crate) fn pack<'a>(forests: impl Iterator<Item = ForestRef<'a>>, dim: usize,
             });
         }
         if dim > 0 {
-            p.app.extend_from_slice(f.appearance);
+            f.appearance.extend_into(&mut p.app);
         }
     }
     p
@@ -137,7 +137,8 @@ pub(crate) fn forest_key(refs: &dyn RefSource, params: &TreeSimParams) -> Source
     for j in 0..samples {
         let i = if samples == 1 { 0 } else { j * (n - 1) / (samples - 1) };
         let f = refs.forest(i);
-        let words = f.classes.iter().map(|&c| c as u32).chain(f.areas.iter().chain(f.centroids).chain(f.appearance).map(|v| v.to_bits())).chain(f.neighbours.iter().map(|&v| v as u32)).chain(f.descriptors.iter().copied()).chain(f.has_appearance.iter().map(|&v| v as u32));
+        let app = f.appearance.to_vec();
+        let words = f.classes.iter().map(|&c| c as u32).chain(f.areas.iter().chain(f.centroids).chain(&app).map(|v| v.to_bits())).chain(f.neighbours.iter().map(|&v| v as u32)).chain(f.descriptors.iter().copied()).chain(f.has_appearance.iter().map(|&v| v as u32));
         for w in words {
             h = (h ^ w as u64).wrapping_mul(0x0000_0100_0000_01b3);
         }

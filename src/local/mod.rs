@@ -10,6 +10,7 @@ pub mod tree_similarity;
 
 use crate::config::LocalConfig;
 use crate::objects::ObjectMap;
+use crate::values::Values;
 
 /// Marks an empty neighbour slot.
 pub const NO_NEIGHBOUR: i32 = -1;
@@ -32,7 +33,8 @@ pub struct Forest {
     pub dim: usize,
 }
 
-/// A borrowed forest: a slice of a map's concatenated arrays or of one [`Forest`].
+/// A borrowed forest: a slice of a map's concatenated arrays or of one [`Forest`]. Appearance
+/// vectors may be stored f16 (a map built with `--f16`); they are widened where they are scored.
 #[derive(Debug, Clone, Copy)]
 pub struct ForestRef<'a> {
     pub classes: &'a [u8],
@@ -40,7 +42,7 @@ pub struct ForestRef<'a> {
     pub centroids: &'a [f32],
     pub neighbours: &'a [i32],
     pub neighbour_slots: usize,
-    pub appearance: &'a [f32],
+    pub appearance: Values<'a>,
     pub has_appearance: &'a [u8],
     pub descriptors: &'a [u32],
     pub dim: usize,
@@ -60,7 +62,7 @@ impl Forest {
             centroids: &self.centroids,
             neighbours: &self.neighbours,
             neighbour_slots: self.neighbour_slots,
-            appearance: &self.appearance,
+            appearance: Values::F32(&self.appearance),
             has_appearance: &self.has_appearance,
             descriptors: &self.descriptors,
             dim: self.dim,
@@ -100,8 +102,8 @@ impl<'a> ForestRef<'a> {
         let n = self.neighbour_slots;
         self.neighbours[k * n..(k + 1) * n].iter().filter(|&&j| j >= 0).map(|&j| j as usize)
     }
-    pub fn appearance_of(&self, k: usize) -> Option<&'a [f32]> {
-        (self.dim > 0 && self.has_appearance[k] != 0).then(|| &self.appearance[k * self.dim..(k + 1) * self.dim])
+    pub fn appearance_of(&self, k: usize) -> Option<Values<'a>> {
+        (self.dim > 0 && self.has_appearance[k] != 0).then(|| self.appearance.slice(k * self.dim, (k + 1) * self.dim))
     }
 }
 

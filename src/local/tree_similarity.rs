@@ -16,6 +16,7 @@
 //!    or by the geometric mean of the totals.
 
 use super::ForestRef;
+use crate::values::Values;
 use crate::config::{Assignment, MissingAppearance, Normalise, PositionSimilarity, SimilarityConfig, TreeWeight};
 
 /// Uniform parameters of the kernel, in the shader's field order.
@@ -98,6 +99,9 @@ pub const NOT_A_PAIR: f32 = -1.0;
 #[derive(Debug, Default, Clone)]
 pub struct TreeSimScratch {
     cosines: Vec<f32>,
+    /// The forests' appearance vectors widened to f32 (maps storing f16).
+    q_wide: Vec<f32>,
+    r_wide: Vec<f32>,
     scores: Vec<f32>,
     wq: Vec<f32>,
     wr: Vec<f32>,
@@ -113,12 +117,15 @@ pub fn tree_similarity(p: &TreeSimParams, q: ForestRef, r: ForestRef, scratch: &
     }
     scratch.cosines.resize(nq * nr, MISSING);
     scratch.scores.resize(nq * nr, NOT_A_PAIR);
-    // phase 1: appearance cosines
+    // phase 1: appearance cosines (f16 vectors widened once per forest, not once per pair of trees)
     if p.use_appearance != 0 {
+        let TreeSimScratch { cosines, q_wide, r_wide, .. } = scratch;
+        let (qa, ra) = (q.appearance.widened(q_wide), r.appearance.widened(r_wide));
+        let (dq, dr) = (q.dim, r.dim);
         for t in 0..nq {
             for u in 0..nr {
-                scratch.cosines[t * nr + u] = match (q.appearance_of(t), r.appearance_of(u)) {
-                    (Some(a), Some(b)) => a.iter().zip(b).map(|(x, y)| x * y).sum(),
+                cosines[t * nr + u] = match (dq > 0 && q.has_appearance[t] != 0, dr > 0 && r.has_appearance[u] != 0) {
+                    (true, true) => Values::F32(&qa[t * dq..(t + 1) * dq]).dot(&Values::F32(&ra[u * dr..(u + 1) * dr])),
                     _ => MISSING,
                 };
             }

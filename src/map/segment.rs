@@ -1,83 +1,320 @@
-//! One map segment file: a [`DescriptorSet`] as safetensors (readable from Python with
-//! `safetensors.numpy.load_file`), with the image ids in the header metadata.
+//! One segment file: the descriptors of up to a few thousand images as safetensors (readable from
+//! Python with `safetensors.numpy.load_file`), read through a memory map without copying.
+//!
+//! Tensors (n images, t trees, f = f32 or f16 as the manifest says): `global` [n, gh, gw] f,
+//! `image_size` [n, 2] u32, `forest_offsets` [n + 1] u32, `tree_class` [t] u8, `tree_area` [t] f32,
+//! `tree_centroid` [t, 2] f32, `tree_neighbours` [t, slots] i32, `tree_appearance` [t, dim] f,
+//! `tree_has_appearance` [t] u8, `tree_descriptors` [t] u32, `image_appearance` [n, dim] f,
+//! `image_hog` [n, hog] f32, and the ids as UTF-8 bytes `id_bytes` [b] u8 with `id_offsets`
+//! [n + 1] u32. SSIM statistics are not stored: readers recompute them per tile.
+//!
+//! Opening checks the header: every tensor's dtype, shape, and alignment (safetensors writers sort
+//! tensors by element size and pad the header to 8 bytes, so each tensor starts at a multiple of
+//! its element size; a file that breaks this is refused rather than copied), and the file size. The
+//! SHA-256 and the values are checked on first use ([`Mapped::ensure`]).
 
-use super::DescriptorSet;
+use super::manifest::SegmentEntry;
+use crate::descriptors::{validate, DescriptorSet};
+use crate::error::{Error, Result};
+use crate::local::ForestRef;
+use crate::values::{to_f16_bits, ValueType, Values};
+use memmap2::Mmap;
 use safetensors::tensor::{Dtype, TensorView};
-use safetensors::SafeTensors;
-use std::collections::HashMap;
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+/// What every segment of a map shares: sizes from the manifest.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Layout {
+    pub gw: usize,
+    pub gh: usize,
+    pub slots: usize,
+    pub dim: usize,
+    pub hog: usize,
+    pub values: ValueType,
+    pub n_classes: usize,
+}
+
+impl Layout {
+    pub fn global_len(&self) -> usize {
+        self.gw * self.gh
+    }
+    /// Bytes of one image without its trees.
+    pub fn image_bytes(&self) -> usize {
+        let v = self.values.bytes();
+        self.global_len() * v + self.dim * v + self.hog * 4 + 2 * 4 + 2 * 4
+    }
+    /// Bytes of one tree.
+    pub fn tree_bytes(&self) -> usize {
+        1 + 4 + 8 + 4 * self.slots + self.dim * self.values.bytes() + 1 + 4
+    }
+}
 
 fn view<'a>(dtype: Dtype, shape: Vec<usize>, bytes: &'a [u8]) -> TensorView<'a> {
     TensorView::new(dtype, shape, bytes).expect("shape matches data")
 }
 
-/// Serialises a descriptor set to safetensors bytes.
-pub fn to_bytes(set: &DescriptorSet, gw: usize, gh: usize) -> Vec<u8> {
-    let (n, t) = (set.len(), set.n_trees());
+/// Serialises a set (its rows must hold `layout.global_len()` global values) to segment bytes.
+pub fn to_bytes(set: &DescriptorSet, layout: &Layout) -> Vec<u8> {
+    let (n, t, dim) = (set.len(), set.n_trees(), layout.dim);
     let sizes: Vec<u32> = set.sizes.iter().flatten().copied().collect();
+    let mut id_bytes = Vec::new();
+    let mut id_offsets = vec![0u32];
+    for id in &set.ids {
+        id_bytes.extend_from_slice(id.as_bytes());
+        id_offsets.push(id_bytes.len() as u32);
+    }
+    let (fdt, narrow) = match layout.values {
+        ValueType::F32 => (Dtype::F32, None),
+        ValueType::F16 => (Dtype::F16, Some((to_f16_bits(&set.globals), to_f16_bits(&set.tree_appearance), to_f16_bits(&set.image_appearance)))),
+    };
+    let (g, ta, ia): (&[u8], &[u8], &[u8]) = match &narrow {
+        None => (bytemuck::cast_slice(&set.globals), bytemuck::cast_slice(&set.tree_appearance), bytemuck::cast_slice(&set.image_appearance)),
+        Some((g, ta, ia)) => (bytemuck::cast_slice(g), bytemuck::cast_slice(ta), bytemuck::cast_slice(ia)),
+    };
     let tensors = vec![
-        ("global", view(Dtype::F32, vec![n, gh, gw], bytemuck::cast_slice(&set.globals))),
-        ("global_stats", view(Dtype::F32, vec![n, set.stats_len], bytemuck::cast_slice(&set.global_stats))),
+        ("global", view(fdt, vec![n, layout.gh, layout.gw], g)),
         ("image_size", view(Dtype::U32, vec![n, 2], bytemuck::cast_slice(&sizes))),
         ("forest_offsets", view(Dtype::U32, vec![n + 1], bytemuck::cast_slice(&set.forest_offsets))),
         ("tree_class", view(Dtype::U8, vec![t], &set.tree_classes)),
         ("tree_area", view(Dtype::F32, vec![t], bytemuck::cast_slice(&set.tree_areas))),
         ("tree_centroid", view(Dtype::F32, vec![t, 2], bytemuck::cast_slice(&set.tree_centroids))),
-        ("tree_neighbours", view(Dtype::I32, vec![t, set.neighbour_slots], bytemuck::cast_slice(&set.tree_neighbours))),
-        ("tree_appearance", view(Dtype::F32, vec![t, set.appearance_dim], bytemuck::cast_slice(&set.tree_appearance))),
+        ("tree_neighbours", view(Dtype::I32, vec![t, layout.slots], bytemuck::cast_slice(&set.tree_neighbours))),
+        ("tree_appearance", view(fdt, vec![t, dim], ta)),
         ("tree_has_appearance", view(Dtype::U8, vec![t], &set.tree_has_appearance)),
         ("tree_descriptors", view(Dtype::U32, vec![t], bytemuck::cast_slice(&set.tree_descriptors))),
-        ("image_appearance", view(Dtype::F32, vec![n, set.appearance_dim], bytemuck::cast_slice(&set.image_appearance))),
-        ("image_hog", view(Dtype::F32, vec![n, set.hog_dim], bytemuck::cast_slice(&set.image_hog))),
+        ("image_appearance", view(fdt, vec![n, dim], ia)),
+        ("image_hog", view(Dtype::F32, vec![n, layout.hog], bytemuck::cast_slice(&set.image_hog))),
+        ("id_bytes", view(Dtype::U8, vec![id_bytes.len()], &id_bytes)),
+        ("id_offsets", view(Dtype::U32, vec![n + 1], bytemuck::cast_slice(&id_offsets))),
     ];
-    let meta = HashMap::from([("ids".to_string(), serde_json::to_string(&set.ids).expect("ids serialise"))]);
+    let meta = std::collections::HashMap::from([("format".to_string(), "semlook-map-segment 3".to_string())]);
     safetensors::serialize(tensors, Some(meta)).expect("tensors serialise")
 }
 
-/// Parses segment bytes; every shape and dtype is checked against the expected layout. The
-/// caller validates the values (`DescriptorSet::validate`).
-pub fn from_bytes(bytes: &[u8], gw: usize, gh: usize, stats_len: usize, slots: usize, dim: usize, hog_dim: usize) -> Result<DescriptorSet, String> {
-    let (_, meta) = SafeTensors::read_metadata(bytes).map_err(|e| format!("not a safetensors file: {e}"))?;
-    let st = SafeTensors::deserialize(bytes).map_err(|e| format!("not a safetensors file: {e}"))?;
-    let ids: Vec<String> = meta
-        .metadata()
-        .as_ref()
-        .and_then(|m| m.get("ids"))
-        .ok_or("header metadata has no image ids")
-        .and_then(|s| serde_json::from_str(s).map_err(|_| "image ids in the header are not a JSON list of strings"))?;
-    let n = ids.len();
-    let get = |name: &str, dtype: Dtype, shape: &[Option<usize>]| -> Result<&[u8], String> {
-        let t = st.tensor(name).map_err(|_| format!("tensor {name:?} is missing"))?;
-        let ok = t.dtype() == dtype
-            && t.shape().len() == shape.len()
-            && t.shape().iter().zip(shape).all(|(a, b)| b.is_none_or(|b| *a == b));
-        if !ok {
-            return Err(format!("tensor {name:?} is {:?} {:?}, expected {dtype:?} {shape:?}", t.dtype(), t.shape()));
+/// Absolute byte ranges of the tensors in the file.
+#[derive(Debug, Clone, Default)]
+struct Ranges {
+    global: Range<usize>,
+    image_size: Range<usize>,
+    forest_offsets: Range<usize>,
+    tree_class: Range<usize>,
+    tree_area: Range<usize>,
+    tree_centroid: Range<usize>,
+    tree_neighbours: Range<usize>,
+    tree_appearance: Range<usize>,
+    tree_has_appearance: Range<usize>,
+    tree_descriptors: Range<usize>,
+    image_appearance: Range<usize>,
+    image_hog: Range<usize>,
+    id_bytes: Range<usize>,
+    id_offsets: Range<usize>,
+}
+
+/// A memory-mapped segment file.
+#[derive(Debug)]
+pub struct Mapped {
+    pub path: PathBuf,
+    pub entry: SegmentEntry,
+    pub layout: Layout,
+    mmap: Mmap,
+    n: usize,
+    t: usize,
+    r: Ranges,
+    verified: OnceLock<std::result::Result<(), String>>,
+}
+
+impl Mapped {
+    /// Maps `dir/entry.file` and checks its size and header against the manifest.
+    pub fn open(dir: &Path, entry: &SegmentEntry, layout: Layout) -> Result<Mapped> {
+        let path = dir.join(&entry.file);
+        let file = std::fs::File::open(&path).map_err(|e| Error::io(&path, e))?;
+        let len = file.metadata().map_err(|e| Error::io(&path, e))?.len();
+        if len != entry.bytes {
+            return Err(Error::corrupt(&path, format!("file is {len} bytes, the manifest says {} (truncated or replaced)", entry.bytes)));
         }
-        Ok(t.data())
+        // SAFETY: the store never changes a segment file after renaming it into place (new
+        // contents always go to new files), so the mapped bytes do not change under the map.
+        let mmap = unsafe { Mmap::map(&file) }.map_err(|e| Error::io(&path, e))?;
+        let r = ranges(&mmap, entry, &layout).map_err(|reason| Error::corrupt(&path, reason))?;
+        Ok(Mapped { path, entry: entry.clone(), layout, mmap, n: entry.images, t: entry.trees, r, verified: OnceLock::new() })
+    }
+
+    pub fn len(&self) -> usize {
+        self.n
+    }
+    pub fn is_empty(&self) -> bool {
+        self.n == 0
+    }
+    pub fn n_trees(&self) -> usize {
+        self.t
+    }
+    /// The whole file, as mapped.
+    pub fn bytes(&self) -> &[u8] {
+        &self.mmap
+    }
+
+    // Ranges were checked at open to lie in the file and to be aligned to their element size,
+    // so these casts cannot fail.
+    fn raw(&self, r: &Range<usize>) -> &[u8] {
+        &self.mmap[r.clone()]
+    }
+    fn u32s(&self, r: &Range<usize>) -> &[u32] {
+        bytemuck::cast_slice(self.raw(r))
+    }
+    fn f32s(&self, r: &Range<usize>) -> &[f32] {
+        bytemuck::cast_slice(self.raw(r))
+    }
+    fn vals(&self, r: &Range<usize>) -> Values<'_> {
+        match self.layout.values {
+            ValueType::F32 => Values::F32(bytemuck::cast_slice(self.raw(r))),
+            ValueType::F16 => Values::F16(bytemuck::cast_slice(self.raw(r))),
+        }
+    }
+
+    /// Global descriptors of rows `a..b`.
+    pub fn globals(&self, a: usize, b: usize) -> Values<'_> {
+        let g = self.layout.global_len();
+        self.vals(&self.r.global).slice(a * g, b * g)
+    }
+    pub fn size(&self, j: usize) -> [u32; 2] {
+        let s = self.u32s(&self.r.image_size);
+        [s[2 * j], s[2 * j + 1]]
+    }
+    /// Trees `a..b` of row `j` from an offsets table, or an empty run where the table is broken
+    /// (a segment that failed its checks is never served, but reading it must not panic).
+    fn span(offsets: &[u32], j: usize, limit: usize) -> (usize, usize) {
+        match (offsets.get(j), offsets.get(j + 1)) {
+            (Some(&a), Some(&b)) if a <= b && b as usize <= limit => (a as usize, b as usize),
+            _ => (0, 0),
+        }
+    }
+    pub fn forest(&self, j: usize) -> ForestRef<'_> {
+        let (a, b) = Self::span(self.u32s(&self.r.forest_offsets), j, self.t);
+        let (s, d) = (self.layout.slots, self.layout.dim);
+        ForestRef {
+            classes: &self.raw(&self.r.tree_class)[a..b],
+            areas: &self.f32s(&self.r.tree_area)[a..b],
+            centroids: &self.f32s(&self.r.tree_centroid)[2 * a..2 * b],
+            neighbours: &bytemuck::cast_slice::<u8, i32>(self.raw(&self.r.tree_neighbours))[s * a..s * b],
+            neighbour_slots: s,
+            appearance: self.vals(&self.r.tree_appearance).slice(d * a, d * b),
+            has_appearance: &self.raw(&self.r.tree_has_appearance)[a..b],
+            descriptors: &self.u32s(&self.r.tree_descriptors)[a..b],
+            dim: d,
+        }
+    }
+    /// The id of row `j` (empty where the id table is broken).
+    pub fn id(&self, j: usize) -> &str {
+        let bytes = self.raw(&self.r.id_bytes);
+        let (a, b) = Self::span(self.u32s(&self.r.id_offsets), j, bytes.len());
+        std::str::from_utf8(&bytes[a..b]).unwrap_or("")
+    }
+    pub fn image_appearance(&self, j: usize) -> Values<'_> {
+        let d = self.layout.dim;
+        self.vals(&self.r.image_appearance).slice(j * d, (j + 1) * d)
+    }
+    pub fn image_hog(&self, j: usize) -> &[f32] {
+        let h = self.layout.hog;
+        &self.f32s(&self.r.image_hog)[j * h..(j + 1) * h]
+    }
+
+    /// Checks the SHA-256 against the manifest, then every value (offsets, ids, and each image
+    /// with [`validate::image`]); the reason names the image where there is one.
+    pub fn verify(&self) -> std::result::Result<(), String> {
+        if crate::util::sha256_hex(&self.mmap) != self.entry.sha256 {
+            return Err("SHA-256 differs from the manifest (file altered or damaged)".into());
+        }
+        let table_ok = |offsets: &[u32], end: usize| offsets.first() == Some(&0) && offsets.windows(2).all(|w| w[0] <= w[1]) && offsets.last().map(|&l| l as usize) == Some(end);
+        if !table_ok(self.u32s(&self.r.forest_offsets), self.t) {
+            return Err("forest offsets do not run from 0 to the tree count".into());
+        }
+        if !table_ok(self.u32s(&self.r.id_offsets), self.r.id_bytes.len()) {
+            return Err("id offsets do not run over the id bytes".into());
+        }
+        let mut ids = std::collections::HashSet::with_capacity(self.n);
+        for j in 0..self.n {
+            let raw = &self.raw(&self.r.id_bytes)[{
+                let (a, b) = Self::span(self.u32s(&self.r.id_offsets), j, self.r.id_bytes.len());
+                a..b
+            }];
+            let id = std::str::from_utf8(raw).map_err(|_| format!("the id of row {j} is not UTF-8"))?;
+            if !ids.insert(id) {
+                return Err(format!("image id {id:?} is stored twice"));
+            }
+            let g = self.globals(j, j + 1);
+            validate::image(id, self.size(j), g, self.forest(j), self.image_appearance(j), self.image_hog(j), self.layout.n_classes, self.layout.values)
+                .map_err(|r| format!("image {id:?}: {r}"))?;
+        }
+        Ok(())
+    }
+
+    /// [`Mapped::verify`], once per process: later calls return the first call's result.
+    pub fn ensure(&self) -> std::result::Result<(), &str> {
+        self.verified.get_or_init(|| self.verify()).as_ref().map_err(|r| r.as_str()).copied()
+    }
+    /// The stored verification failure, if the segment was checked and failed.
+    pub fn failure(&self) -> Option<&str> {
+        self.verified.get().and_then(|r| r.as_ref().err()).map(|s| s.as_str())
+    }
+
+    /// Appends row `j` to `set` (a [`DescriptorSet::for_storage`] of the same layout), widened
+    /// to f32 (an f16 value widens exactly, so writing it back as f16 gives the same bits).
+    pub fn append_row(&self, j: usize, set: &mut DescriptorSet) {
+        let f = self.forest(j);
+        set.ids.push(self.id(j).to_string());
+        set.sizes.push(self.size(j));
+        self.globals(j, j + 1).extend_into(&mut set.globals);
+        set.tree_classes.extend_from_slice(f.classes);
+        set.tree_areas.extend_from_slice(f.areas);
+        set.tree_centroids.extend_from_slice(f.centroids);
+        set.tree_neighbours.extend_from_slice(f.neighbours);
+        f.appearance.extend_into(&mut set.tree_appearance);
+        set.tree_has_appearance.extend_from_slice(f.has_appearance);
+        set.tree_descriptors.extend_from_slice(f.descriptors);
+        self.image_appearance(j).extend_into(&mut set.image_appearance);
+        set.image_hog.extend_from_slice(self.image_hog(j));
+        set.forest_offsets.push(set.tree_classes.len() as u32);
+    }
+}
+
+/// The checked byte ranges of every tensor.
+fn ranges(bytes: &[u8], entry: &SegmentEntry, l: &Layout) -> std::result::Result<Ranges, String> {
+    let (header, meta) = safetensors::SafeTensors::read_metadata(bytes).map_err(|e| format!("not a safetensors file: {e}"))?;
+    let start = 8 + header;
+    let (n, t) = (entry.images, entry.trees);
+    let fdt = match l.values {
+        ValueType::F32 => Dtype::F32,
+        ValueType::F16 => Dtype::F16,
     };
-    let f32s = |b: &[u8]| -> Vec<f32> { bytemuck::pod_collect_to_vec(b) };
-    let offsets: Vec<u32> = bytemuck::pod_collect_to_vec(get("forest_offsets", Dtype::U32, &[Some(n + 1)])?);
-    let t = *offsets.last().ok_or("forest offsets are empty")? as usize;
-    let sizes: Vec<u32> = bytemuck::pod_collect_to_vec(get("image_size", Dtype::U32, &[Some(n), Some(2)])?);
-    Ok(DescriptorSet {
-        sizes: sizes.chunks_exact(2).map(|c| [c[0], c[1]]).collect(),
-        global_len: gw * gh,
-        stats_len,
-        globals: f32s(get("global", Dtype::F32, &[Some(n), Some(gh), Some(gw)])?),
-        global_stats: f32s(get("global_stats", Dtype::F32, &[Some(n), Some(stats_len)])?),
-        forest_offsets: offsets,
-        tree_classes: get("tree_class", Dtype::U8, &[Some(t)])?.to_vec(),
-        tree_areas: f32s(get("tree_area", Dtype::F32, &[Some(t)])?),
-        tree_centroids: f32s(get("tree_centroid", Dtype::F32, &[Some(t), Some(2)])?),
-        neighbour_slots: slots,
-        tree_neighbours: bytemuck::pod_collect_to_vec(get("tree_neighbours", Dtype::I32, &[Some(t), Some(slots)])?),
-        appearance_dim: dim,
-        tree_appearance: f32s(get("tree_appearance", Dtype::F32, &[Some(t), Some(dim)])?),
-        tree_has_appearance: get("tree_has_appearance", Dtype::U8, &[Some(t)])?.to_vec(),
-        tree_descriptors: bytemuck::pod_collect_to_vec(get("tree_descriptors", Dtype::U32, &[Some(t)])?),
-        image_appearance: f32s(get("image_appearance", Dtype::F32, &[Some(n), Some(dim)])?),
-        hog_dim,
-        image_hog: f32s(get("image_hog", Dtype::F32, &[Some(n), Some(hog_dim)])?),
-        ids,
+    let get = |name: &str, dtype: Dtype, shape: &[Option<usize>]| -> std::result::Result<Range<usize>, String> {
+        let info = meta.info(name).ok_or_else(|| format!("tensor {name:?} is missing"))?;
+        let ok = info.dtype == dtype && info.shape.len() == shape.len() && info.shape.iter().zip(shape).all(|(a, b)| b.is_none_or(|b| *a == b));
+        if !ok {
+            return Err(format!("tensor {name:?} is {:?} {:?}, expected {dtype:?} {shape:?}", info.dtype, info.shape));
+        }
+        let (a, b) = info.data_offsets;
+        let size = dtype.bitsize() / 8;
+        if (start + a) % size != 0 {
+            return Err(format!("tensor {name:?} starts at byte {}, not a multiple of its {size}-byte elements (written by another tool?)", start + a));
+        }
+        Ok(start + a..start + b)
+    };
+    Ok(Ranges {
+        global: get("global", fdt, &[Some(n), Some(l.gh), Some(l.gw)])?,
+        image_size: get("image_size", Dtype::U32, &[Some(n), Some(2)])?,
+        forest_offsets: get("forest_offsets", Dtype::U32, &[Some(n + 1)])?,
+        tree_class: get("tree_class", Dtype::U8, &[Some(t)])?,
+        tree_area: get("tree_area", Dtype::F32, &[Some(t)])?,
+        tree_centroid: get("tree_centroid", Dtype::F32, &[Some(t), Some(2)])?,
+        tree_neighbours: get("tree_neighbours", Dtype::I32, &[Some(t), Some(l.slots)])?,
+        tree_appearance: get("tree_appearance", fdt, &[Some(t), Some(l.dim)])?,
+        tree_has_appearance: get("tree_has_appearance", Dtype::U8, &[Some(t)])?,
+        tree_descriptors: get("tree_descriptors", Dtype::U32, &[Some(t)])?,
+        image_appearance: get("image_appearance", fdt, &[Some(n), Some(l.dim)])?,
+        image_hog: get("image_hog", Dtype::F32, &[Some(n), Some(l.hog)])?,
+        id_bytes: get("id_bytes", Dtype::U8, &[None])?,
+        id_offsets: get("id_offsets", Dtype::U32, &[Some(n + 1)])?,
     })
 }

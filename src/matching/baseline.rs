@@ -6,13 +6,18 @@
 use super::source::RefSource;
 use super::{stream_topk, Setting};
 use crate::error::{Error, Result};
-use crate::map::DescriptorSet;
+use crate::descriptors::DescriptorSet;
+use crate::values::Values;
 use rayon::prelude::*;
 
+/// How a baseline reads a query's vector and a reference's.
+type QueryVector = fn(&DescriptorSet, usize) -> &[f32];
+type RefVector = fn(&dyn RefSource, usize) -> Values<'_>;
+
 /// The vector a baseline compares, of query `i` and of reference `j`.
-fn vectors(setting: Setting) -> (fn(&DescriptorSet, usize) -> &[f32], fn(&dyn RefSource, usize) -> &[f32]) {
+fn vectors(setting: Setting) -> (QueryVector, RefVector) {
     match setting {
-        Setting::Hog => (DescriptorSet::image_hog, |r, j| r.image_hog(j)),
+        Setting::Hog => (DescriptorSet::image_hog, |r, j| Values::F32(r.image_hog(j))),
         _ => (DescriptorSet::image_appearance, |r, j| r.image_appearance(j)),
     }
 }
@@ -38,7 +43,7 @@ pub fn topk(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, k: 
         let (start, t) = (tp.tile_start as usize, tp.tile_len as usize);
         scores.par_iter_mut().enumerate().for_each(|(i, s)| {
             let (q, r) = (query_vec(queries, i / t), ref_vec(refs, start + i % t));
-            *s = q.iter().zip(r).map(|(a, b)| a * b).sum();
+            *s = Values::F32(q).dot(&r);
         });
     }))
 }

@@ -2,7 +2,7 @@
 
 use super::*;
 use crate::global::ssim::SsimScratch;
-use crate::map::DescriptorSet;
+use crate::descriptors::DescriptorSet;
 use crate::matching::test_data::{params, set, shape};
 use crate::matching::ssim_topk::{ssim_tile, TileParams};
 use crate::matching::{coarse_topk, coarse_topk_twin};

@@ -19,7 +19,7 @@ use crate::config::{Config, ScoreFusion};
 use crate::error::{Error, Result};
 use crate::global::ssim::SsimParams;
 use crate::local::tree_similarity::{tree_similarity, TreeSimParams, TreeSimScratch};
-use crate::map::DescriptorSet;
+use crate::descriptors::DescriptorSet;
 use crate::util::ms_since;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -165,8 +165,9 @@ impl Stages for CpuStages {
 }
 
 /// Matches every query of `queries` against `refs` with `setting` on the CPU; results in query
-/// order. A baseline the descriptors lack (see [`baseline::unavailable`]) ranks nothing (a
-/// warning is logged); [`try_match_batch`] returns that as an error instead.
+/// order. A baseline the descriptors lack (see [`baseline::unavailable`]), or a stored map with a
+/// damaged segment, ranks nothing (a warning is logged); [`try_match_batch`] returns either as an
+/// error instead.
 pub fn match_batch(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> (Vec<QueryMatch>, MatchTimes) {
     try_match_batch(refs, queries, setting, cfg).unwrap_or_else(|e| {
         log::warn!("{e}");
@@ -232,6 +233,8 @@ pub fn match_with(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &Descr
         times.fine_ms = ms_since(t);
         lists.iter().map(|l| l.iter().map(|&(s, r)| Candidate { reference: r, coarse: None, fine: Some(s), score: s }).collect()).collect()
     };
+    // a stored map checks each segment on first read; one that failed was read as empty
+    refs.check()?;
     let results = ranked
         .into_iter()
         .map(|mut c| {

@@ -2,10 +2,10 @@
 //! score alike (smooth fields, noise, flat windows and exact ties, constants).
 
 use crate::config::GlobalConfig;
-use crate::encode::EncodedImage;
+use crate::descriptors::EncodedImage;
 use crate::global::ssim::{ssim_stats, SsimParams, SsimScratch};
 use crate::local::Forest;
-use crate::map::DescriptorSet;
+use crate::descriptors::DescriptorSet;
 use crate::util::SplitMix64;
 use proptest::prelude::*;
 

@@ -1,0 +1,160 @@
+//! Encoding many frames: into one descriptor set with a progress bar (queries, evaluation), or
+//! streamed into a map chunk by chunk (`map build`, `map add`), so that building a map runs
+//! cli -> batch -> engine/encode -> map and never passes through evaluation. Also the VLAD codebook
+//! training with a progress bar, which a new map needs before its first segment.
+
+use crate::descriptors::DescriptorSet;
+use crate::encode::{collect_encoded, Encoder, StageTimes};
+use crate::engine::Engine;
+use crate::error::{Error, Result};
+use crate::input::{FrameSource, LabelFormat};
+use crate::map::MapWriter;
+use crate::progress;
+use serde::Serialize;
+use std::collections::HashSet;
+
+/// Frames encoded per call while streaming into a map: enough to keep every core (and a GPU
+/// batch of 32) busy, few enough that the chunk's encoded images (about 40 kB each without
+/// appearance, a few hundred kB with HOG) stay far below a segment's buffer.
+pub const ENCODE_CHUNK: usize = 256;
+
+/// Per-frame encoding times of a set of frames: mean and median per stage, and the wall-clock
+/// time per frame of the whole (parallel) encoding.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct EncodingSummary {
+    pub frames: usize,
+    pub mean: StageTimes,
+    pub median: StageTimes,
+    /// Wall-clock milliseconds per frame over the batch (frames run in parallel).
+    pub wall_ms_per_frame: f64,
+}
+
+impl EncodingSummary {
+    pub fn new(times: &[StageTimes], wall_ms: f64) -> Self {
+        let mut total = StageTimes::default();
+        for t in times {
+            total += *t;
+        }
+        let n = times.len().max(1) as f64;
+        EncodingSummary { frames: times.len(), mean: total.scaled(1.0 / n), median: StageTimes::median(times), wall_ms_per_frame: wall_ms / n }
+    }
+}
+
+/// Trains the encoder's VLAD codebook on reference frames (when appearance is on), with a bar.
+pub fn train_codebook(encoder: &mut Encoder, refs: &[FrameSource], quiet: bool) -> Result<()> {
+    if encoder.appearance_model().is_none() {
+        return Ok(());
+    }
+    let n = encoder.config().appearance.codebook_images.min(refs.len());
+    let pb = progress::bar(n, "codebook", quiet);
+    encoder.train_codebook(refs, &|| pb.inc(1))?;
+    pb.finish_and_clear();
+    Ok(())
+}
+
+/// A set of frames encoded into a descriptor set.
+pub struct EncodedFrames {
+    pub set: DescriptorSet,
+    /// Per encoded frame, in set order.
+    pub times: Vec<StageTimes>,
+    /// Wall-clock milliseconds of the whole batch.
+    pub wall_ms: f64,
+    /// Frames that failed (index in the input, error), when skipping invalid input.
+    pub skipped: Vec<(usize, Error)>,
+}
+
+impl EncodedFrames {
+    pub fn summary(&self) -> EncodingSummary {
+        EncodingSummary::new(&self.times, self.wall_ms)
+    }
+}
+
+/// Encodes a list of frames into a descriptor set, with a progress bar.
+pub fn encode_frames(engine: &mut Engine, encoder: &Encoder, frames: &[FrameSource], format: LabelFormat, what: &str, skip_invalid: bool, quiet: bool) -> Result<EncodedFrames> {
+    let pb = progress::bar(frames.len(), what, quiet);
+    let t = std::time::Instant::now();
+    let results = engine.encode_all(encoder, frames, format, &|| pb.inc(1))?;
+    let wall = crate::util::ms_since(t);
+    pb.finish_and_clear();
+    let (images, times, skipped) = collect_encoded(results, skip_invalid)?;
+    let mut set = encoder.descriptor_set();
+    for img in &images {
+        set.push(img).map_err(|r| Error::invalid(what, r))?;
+    }
+    Ok(EncodedFrames { set, times, wall_ms: wall, skipped })
+}
+
+/// How [`encode_into`] treats frames.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct IntoOptions {
+    /// Skip (and report) frames that fail to load or encode, instead of stopping.
+    pub skip_invalid: bool,
+    /// Skip frames whose id the map already holds (`--resume`); otherwise such a frame is an
+    /// error before anything is encoded.
+    pub skip_stored: bool,
+    pub quiet: bool,
+}
+
+/// What [`encode_into`] did.
+#[derive(Debug, Default)]
+pub struct IntoReport {
+    /// Images written (committed) by this run.
+    pub added: usize,
+    /// Frames skipped because the map held them already.
+    pub already_stored: usize,
+    /// Frames skipped as invalid: (id, error).
+    pub invalid: Vec<(String, Error)>,
+    pub summary: EncodingSummary,
+}
+
+/// Encodes `frames` chunk by chunk ([`ENCODE_CHUNK`]) into `writer`, which commits a segment
+/// whenever its buffer is full; memory is one chunk plus one segment, whatever the number of
+/// frames. On an error the images already encoded are committed first, so `--resume` continues
+/// after them. The caller finishes the writer.
+pub fn encode_into(engine: &mut Engine, encoder: &Encoder, frames: &[FrameSource], format: LabelFormat, writer: &mut MapWriter, opts: IntoOptions) -> Result<IntoReport> {
+    let mut ids = HashSet::new();
+    if let Some(dup) = frames.iter().find(|f| !ids.insert(f.id.as_str())) {
+        return Err(Error::invalid(format!("frame {:?}", dup.id), "two input frames have this id"));
+    }
+    let stored = writer.stored_among(frames.iter().map(|f| f.id.as_str()));
+    if let (false, Some(id)) = (opts.skip_stored, frames.iter().find(|f| stored.contains(&f.id))) {
+        return Err(Error::DuplicateImageId { map: writer.dir().to_path_buf(), id: id.id.clone() });
+    }
+    let todo: Vec<&FrameSource> = frames.iter().filter(|f| !stored.contains(&f.id)).collect();
+    let mut report = IntoReport { already_stored: frames.len() - todo.len(), ..Default::default() };
+    let pb = progress::bar(todo.len(), "images", opts.quiet);
+    let (mut times, t0) = (Vec::new(), std::time::Instant::now());
+    let before = writer.committed();
+    let outcome = (|| -> Result<()> {
+        for chunk in todo.chunks(ENCODE_CHUNK) {
+            let chunk: Vec<FrameSource> = chunk.iter().map(|f| (*f).clone()).collect();
+            for (src, r) in chunk.iter().zip(engine.encode_all(encoder, &chunk, format, &|| pb.inc(1))?) {
+                match r {
+                    Ok((img, t)) => {
+                        writer.push(&img)?;
+                        times.push(t);
+                    }
+                    Err(e) if opts.skip_invalid => {
+                        log::warn!("skipped {}: {e}", src.id);
+                        report.invalid.push((src.id.clone(), e));
+                    }
+                    Err(e) => return Err(e),
+                }
+            }
+        }
+        Ok(())
+    })();
+    pb.finish_and_clear();
+    if let Err(e) = outcome {
+        if let Err(fe) = writer.flush() {
+            log::error!("{fe}");
+        }
+        let done = writer.committed() - before;
+        log::error!("stopped after committing {done} images; fix the input and run again with --resume to continue");
+        return Err(e);
+    }
+    writer.flush()?;
+    report.added = writer.committed() - before;
+    report.summary = EncodingSummary::new(&times, crate::util::ms_since(t0));
+    Ok(report)
+}

@@ -1,0 +1,244 @@
+//! The `map` subcommands: build (streamed into segments, `--resume`, `--force`, `--f16`), add,
+//! info, remove, compact, verify, and the store benchmark.
+
+use super::*;
+use semlook::batch::{self, IntoOptions};
+use semlook::map::{edit, MapWriter, StoreOptions};
+use semlook::values::ValueType;
+
+pub fn run(cmd: MapCommand, engine: &dyn Fn() -> Result<Engine>, quiet: bool) -> Result<()> {
+    match cmd {
+        MapCommand::Build { source, out, config, force, resume, hog, store } => build(&mut engine()?, &source, &out, config.as_deref(), &BuildFlags { force, resume, hog, store }, quiet),
+        MapCommand::Add { source, map, resume, segment_images } => add(&mut engine()?, &source, &map, resume, segment_images, quiet),
+        MapCommand::Info { map, json } => show(&map, json),
+        MapCommand::Remove { map, ids } => remove(&map, &ids, quiet),
+        MapCommand::Compact { map, json } => compact(&map, json),
+        MapCommand::Verify { map, json } => verify(&map, json),
+        MapCommand::Bench(a) => bench(&a, quiet),
+    }
+}
+
+/// The switches of `map build`.
+#[derive(Clone, Default)]
+pub struct BuildFlags {
+    pub force: bool,
+    pub resume: bool,
+    pub hog: bool,
+    pub store: StoreArgs,
+}
+
+fn store_options(f16: bool, segment_images: Option<usize>) -> StoreOptions {
+    let d = StoreOptions::default();
+    StoreOptions { values: if f16 { ValueType::F16 } else { ValueType::F32 }, segment_images: segment_images.unwrap_or(d.segment_images).max(1), ..d }
+}
+
+pub fn build(engine: &mut Engine, s: &SourceArgs, out: &Path, config: Option<&Path>, f: &BuildFlags, quiet: bool) -> Result<()> {
+    let mut cfg = apply_models(load_config(config)?, &s.models);
+    let (frames, fmt) = frame_sources(s, &mut cfg, config.is_some())?;
+    if frames.is_empty() {
+        return Err(Error::invalid("references", "no images found"));
+    }
+    let opts = store_options(f.store.f16, f.store.segment_images);
+    let map = if f.force && out.exists() {
+        edit::build_replacing(out, |dir| build_into(engine, &cfg, &frames, fmt, dir, f, opts, s.skip_invalid, quiet))?;
+        Map::open(out)?
+    } else {
+        build_into(engine, &cfg, &frames, fmt, out, f, opts, s.skip_invalid, quiet)?
+    };
+    info(quiet, format!("map {}: {} images, {} trees, {} segments ({})", out.display(), map.len(), map.n_trees(), map.manifest.segments.len(), map.manifest.values.name()));
+    Ok(())
+}
+
+/// Builds (or, with `--resume` and a manifest there, continues building) the map in `dir`.
+#[allow(clippy::too_many_arguments)]
+fn build_into(engine: &mut Engine, cfg: &Config, frames: &[FrameSource], fmt: LabelFormat, dir: &Path, f: &BuildFlags, opts: StoreOptions, skip: bool, quiet: bool) -> Result<Map> {
+    let resuming = f.resume && dir.join(semlook::map::manifest::MANIFEST).exists();
+    let (encoder, mut writer) = if resuming {
+        let map = Map::open(dir)?;
+        map.check_compatible(&cfg.encoding())?;
+        if (map.manifest.hog_dim > 0) != f.hog {
+            return Err(Error::invalid(format!("map {}", dir.display()), "--hog differs from the interrupted build's"));
+        }
+        let encoder = Encoder::for_map(cfg, &map)?.with_hog(f.hog);
+        info(quiet, format!("resuming: the map holds {} images (generation {})", map.len(), map.manifest.generation));
+        (encoder, MapWriter::append(dir, opts)?)
+    } else {
+        MapWriter::check_new_dir(dir, f.resume)?;
+        let mut encoder = Encoder::new(cfg)?.with_hog(f.hog);
+        // the codebook comes first: it is stored with the first segment
+        batch::train_codebook(&mut encoder, frames, quiet)?;
+        let hog_dim = if f.hog { semlook::baseline::HOG_DIM } else { 0 };
+        let writer = MapWriter::create(dir, &cfg.encoding(), encoder.appearance_dim(), hog_dim, encoder.appearance_record(), opts, f.resume)?;
+        (encoder, writer)
+    };
+    let r = batch::encode_into(engine, &encoder, frames, fmt, &mut writer, IntoOptions { skip_invalid: skip, skip_stored: f.resume, quiet })?;
+    report_encoding(&r, quiet);
+    writer.finish()
+}
+
+fn report_encoding(r: &batch::IntoReport, quiet: bool) {
+    let m = r.summary.mean;
+    let stored = if r.already_stored > 0 { format!(", {} already stored", r.already_stored) } else { String::new() };
+    info(
+        quiet,
+        format!(
+            "encoded {} images{stored} ({:.2} ms per frame: edge {:.2}, forest {:.2}, appearance {:.2} of which network {:.2}; decoding {:.2}, segmentation {:.2})",
+            r.added, m.encode_ms(), m.global_ms, m.forest_ms, m.appearance_ms, m.network_ms, m.decode_ms, m.segment_ms
+        ),
+    );
+    if !r.invalid.is_empty() {
+        info(quiet, format!("skipped {} invalid frames", r.invalid.len()));
+    }
+}
+
+fn add(engine: &mut Engine, s: &SourceArgs, dir: &Path, resume: bool, segment_images: Option<usize>, quiet: bool) -> Result<()> {
+    let map = Map::open(dir)?;
+    let mut cfg = map_config(&map, None, &s.models)?;
+    let (frames, fmt) = frame_sources(s, &mut cfg, true)?;
+    if frames.is_empty() {
+        return Err(Error::invalid("new images", "no images found"));
+    }
+    let encoder = Encoder::for_map(&cfg, &map)?.with_hog(map.manifest.hog_dim > 0);
+    drop(map);
+    let mut writer = MapWriter::append(dir, store_options(false, segment_images))?;
+    let r = batch::encode_into(engine, &encoder, &frames, fmt, &mut writer, IntoOptions { skip_invalid: s.skip_invalid, skip_stored: resume, quiet })?;
+    report_encoding(&r, quiet);
+    let map = writer.finish()?;
+    info(quiet, format!("map {}: now {} images in {} segments (generation {})", dir.display(), map.len(), map.manifest.segments.len(), map.manifest.generation));
+    Ok(())
+}
+
+fn show(dir: &Path, json: bool) -> Result<()> {
+    let map = Map::open(dir)?;
+    let m = &map.manifest;
+    let bytes: u64 = m.segments.iter().map(|s| s.bytes).sum();
+    let removed = m.stored_images() - m.live_images();
+    if json {
+        let v = serde_json::json!({
+            "path": dir,
+            "images": map.len(),
+            "removed": removed,
+            "trees": map.n_trees(),
+            "generation": m.generation,
+            "values": m.values,
+            "bytes": bytes,
+            "segments": m.segments,
+            "appearance_dim": m.appearance_dim,
+            "hog_dim": m.hog_dim,
+            "config": m.config,
+        });
+        println!("{}", to_json(&v)?);
+    } else {
+        println!(
+            "map {}: {} images ({removed} removed, not compacted), {} trees, {} segments, {bytes} bytes ({:.0} per stored image), values {}, generation {}",
+            dir.display(),
+            map.len(),
+            map.n_trees(),
+            m.segments.len(),
+            bytes as f64 / m.stored_images().max(1) as f64,
+            m.values.name(),
+            m.generation
+        );
+        for s in &m.segments {
+            println!("  {}  {} images ({} removed)  {} bytes  sha256 {}", s.file, s.images, s.removed.len(), s.bytes, &s.sha256[..16]);
+        }
+        println!("(checksums are checked on first use and by `semlook map verify`)");
+        println!("encoding config:\n{}", toml::to_string_pretty(&m.config).map_err(|e| Error::invalid("map config", e.to_string()))?);
+    }
+    Ok(())
+}
+
+/// Ids from the command line: one value naming an existing file is read as a list of ids.
+fn read_ids(values: &[String]) -> Result<Vec<String>> {
+    match values {
+        [one] if Path::new(one).is_file() => {
+            let text = std::fs::read_to_string(one).map_err(|e| Error::io(one, e))?;
+            Ok(text.lines().map(str::trim).filter(|l| !l.is_empty() && !l.starts_with('#')).map(String::from).collect())
+        }
+        _ => Ok(values.to_vec()),
+    }
+}
+
+fn remove(dir: &Path, values: &[String], quiet: bool) -> Result<()> {
+    let ids = read_ids(values)?;
+    if ids.is_empty() {
+        return Err(Error::invalid("--ids", "no image ids given"));
+    }
+    let n = edit::remove(dir, &ids)?;
+    info(quiet, format!("map {}: removed {n} images (queries no longer return them; `semlook map compact` frees their space)", dir.display()));
+    Ok(())
+}
+
+fn compact(dir: &Path, json: bool) -> Result<()> {
+    let r = edit::compact(dir, StoreOptions::default())?;
+    if json {
+        println!("{}", to_json(&r)?);
+    } else {
+        println!(
+            "map {}: {} -> {} segments, {} removed images dropped, {} -> {} bytes, {} stray files deleted",
+            dir.display(),
+            r.segments_before,
+            r.segments_after,
+            r.dropped,
+            r.bytes_before,
+            r.bytes_after,
+            r.stray_files
+        );
+    }
+    Ok(())
+}
+
+fn verify(dir: &Path, json: bool) -> Result<()> {
+    let r = edit::verify(dir)?;
+    if json {
+        println!("{}", to_json(&r)?);
+    } else {
+        for f in &r.files {
+            match &f.problem {
+                None => println!("ok       {}", f.file),
+                Some(p) => println!("DAMAGED  {}: {p}", f.file),
+            }
+        }
+    }
+    let damaged: Vec<&str> = r.damaged().map(|f| f.file.as_str()).collect();
+    match damaged.first() {
+        None => {
+            if !json {
+                println!("map {}: {} files sound, {} images (generation {})", dir.display(), r.files.len(), r.images, r.generation);
+            }
+            Ok(())
+        }
+        Some(first) => {
+            let problem = r.damaged().next().and_then(|f| f.problem.clone()).unwrap_or_default();
+            let others = if damaged.len() > 1 { format!(" (and {} more damaged: {})", damaged.len() - 1, damaged[1..].join(", ")) } else { String::new() };
+            Err(Error::corrupt(dir.join(first), format!("{problem}{others}")))
+        }
+    }
+}
+
+fn bench(a: &StoreBenchArgs, quiet: bool) -> Result<()> {
+    let cfg = Config::default();
+    let opts = semlook::bench_store::StoreBenchOptions {
+        sizes: a.sizes.clone(),
+        passes: a.passes.clone(),
+        values: if a.f16 { ValueType::F16 } else { ValueType::F32 },
+        dir: a.dir.clone().unwrap_or_else(std::env::temp_dir),
+        keep: a.keep,
+        stats_comparison: a.stats_comparison.clone(),
+    };
+    info(quiet, "rendering and encoding the descriptor pools (64 map frames, 32 query frames)");
+    let report = semlook::bench_store::run(&cfg, &opts, &mut |r| {
+        if !quiet && !a.json {
+            eprint!("{}", semlook::bench_store::table(std::slice::from_ref(r)));
+        }
+    })?;
+    if a.json {
+        println!("{}", to_json(&report)?);
+    } else {
+        print!("{}", semlook::bench_store::table(&report.passes));
+        if !report.stats_comparison.is_empty() {
+            print!("\nSSIM statistics: stored (in memory) vs recomputed per tile\n{}", semlook::bench_store::stats_table(&report.stats_comparison));
+        }
+    }
+    Ok(())
+}

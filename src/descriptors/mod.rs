@@ -1,0 +1,10 @@
+//! The bottom layer that encoding, the map store, matching and appearance share: the columnar
+//! [`DescriptorSet`] and one encoded image ([`EncodedImage`]), the [`source`] traits matching
+//! reads references through, and the value checks of a stored image ([`validate`]). It imports
+//! none of those stages, so none of them imports another in a circle.
+
+mod set;
+pub mod source;
+pub mod validate;
+
+pub use set::{DescriptorSet, EncodedImage};

@@ -1,0 +1,222 @@
+//! Columnar storage of many encoded images: the in-memory form of a map, of a map segment being
+//! written, and of a batch of queries; and [`EncodedImage`], what the encoder makes of one frame.
+//! Forests are concatenated, with `forest_offsets[i]..[i + 1]` the trees of image i; neighbour
+//! indices stay local to their forest.
+
+use crate::global::ssim::SsimParams;
+use crate::local::{Forest, ForestRef};
+use crate::values::Values;
+
+/// Everything stored for one image.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EncodedImage {
+    pub id: String,
+    /// Size of the source image (descriptors are computed at the working size).
+    pub width: u32,
+    pub height: u32,
+    /// Global descriptor, `global.height` x `global.width`, values in [0, 1].
+    pub global: Vec<f32>,
+    /// SSIM window means then variances of `global`.
+    pub global_stats: Vec<f32>,
+    pub forest: Forest,
+    /// VLAD of all the image's appearance descriptors (the `appearance` baseline); empty without
+    /// appearance.
+    pub appearance: Vec<f32>,
+    /// VPR-Bench HOG (the `hog` baseline); empty unless the encoder computes it.
+    pub hog: Vec<f32>,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct DescriptorSet {
+    pub ids: Vec<String>,
+    /// (width, height) of each source image.
+    pub sizes: Vec<[u32; 2]>,
+    pub global_len: usize,
+    pub stats_len: usize,
+    pub globals: Vec<f32>,
+    pub global_stats: Vec<f32>,
+    pub forest_offsets: Vec<u32>,
+    pub tree_classes: Vec<u8>,
+    pub tree_areas: Vec<f32>,
+    pub tree_centroids: Vec<f32>,
+    pub neighbour_slots: usize,
+    pub tree_neighbours: Vec<i32>,
+    pub appearance_dim: usize,
+    pub tree_appearance: Vec<f32>,
+    pub tree_has_appearance: Vec<u8>,
+    /// Appearance descriptors each tree's VLAD was aggregated from.
+    pub tree_descriptors: Vec<u32>,
+    /// Per image, the VLAD of all its descriptors (`appearance_dim` values; zeros without
+    /// appearance): the whole-image `appearance` baseline.
+    pub image_appearance: Vec<f32>,
+    /// Per image, the VPR-Bench HOG descriptor (`hog_dim` values; 0 when not computed).
+    pub hog_dim: usize,
+    pub image_hog: Vec<f32>,
+}
+
+impl DescriptorSet {
+    pub fn new(ssim: &SsimParams, neighbour_slots: usize, appearance_dim: usize, hog_dim: usize) -> Self {
+        DescriptorSet {
+            ids: vec![],
+            sizes: vec![],
+            global_len: ssim.len(),
+            stats_len: ssim.stats_len(),
+            globals: vec![],
+            global_stats: vec![],
+            forest_offsets: vec![0],
+            tree_classes: vec![],
+            tree_areas: vec![],
+            tree_centroids: vec![],
+            neighbour_slots,
+            tree_neighbours: vec![],
+            appearance_dim,
+            tree_appearance: vec![],
+            tree_has_appearance: vec![],
+            tree_descriptors: vec![],
+            image_appearance: vec![],
+            hog_dim,
+            image_hog: vec![],
+        }
+    }
+
+    /// An empty set that keeps no SSIM statistics (`stats_len` 0): the buffer of a map segment
+    /// being written, since maps recompute statistics as they are read. Not a matching source.
+    pub fn for_storage(global_len: usize, neighbour_slots: usize, appearance_dim: usize, hog_dim: usize) -> Self {
+        DescriptorSet { global_len, stats_len: 0, ..DescriptorSet::new(&bytemuck::Zeroable::zeroed(), neighbour_slots, appearance_dim, hog_dim) }
+    }
+
+    pub fn len(&self) -> usize {
+        self.ids.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.ids.is_empty()
+    }
+    pub fn n_trees(&self) -> usize {
+        self.tree_classes.len()
+    }
+
+    /// Appends one image. Its global size, neighbour slots and appearance dimension must match
+    /// the set's (an image without appearance gets zero vectors flagged absent; without HOG,
+    /// zeros), else the set is unchanged and the mismatch is returned. A set without statistics
+    /// ([`DescriptorSet::for_storage`]) ignores the image's.
+    pub fn push(&mut self, img: &EncodedImage) -> Result<(), String> {
+        let f = &img.forest;
+        let stats_ok = self.stats_len == 0 || img.global_stats.len() == self.stats_len;
+        if img.global.len() != self.global_len || !stats_ok || f.neighbour_slots != self.neighbour_slots {
+            return Err(format!("image {:?} has another global descriptor size or neighbour count than the set", img.id));
+        }
+        if (f.dim != self.appearance_dim && f.dim != 0) || (!img.appearance.is_empty() && img.appearance.len() != self.appearance_dim) {
+            return Err(format!("image {:?} has appearance of dimension {}, the set {}", img.id, f.dim, self.appearance_dim));
+        }
+        if !img.hog.is_empty() && img.hog.len() != self.hog_dim {
+            return Err(format!("image {:?} has a HOG descriptor of {} values, the set {}", img.id, img.hog.len(), self.hog_dim));
+        }
+        self.ids.push(img.id.clone());
+        self.sizes.push([img.width, img.height]);
+        self.globals.extend_from_slice(&img.global);
+        if self.stats_len > 0 {
+            self.global_stats.extend_from_slice(&img.global_stats);
+        }
+        self.tree_classes.extend_from_slice(&f.classes);
+        self.tree_areas.extend_from_slice(&f.areas);
+        self.tree_centroids.extend_from_slice(&f.centroids);
+        self.tree_neighbours.extend_from_slice(&f.neighbours);
+        if f.dim == self.appearance_dim {
+            self.tree_appearance.extend_from_slice(&f.appearance);
+            self.tree_has_appearance.extend_from_slice(&f.has_appearance);
+        } else {
+            self.tree_appearance.resize(self.tree_appearance.len() + f.len() * self.appearance_dim, 0.0);
+            self.tree_has_appearance.resize(self.tree_has_appearance.len() + f.len(), 0);
+        }
+        self.tree_descriptors.extend_from_slice(&f.descriptors);
+        self.tree_descriptors.resize(self.tree_classes.len(), 0);
+        let fill = |dst: &mut Vec<f32>, src: &[f32], dim: usize| {
+            if src.len() == dim {
+                dst.extend_from_slice(src);
+            } else {
+                dst.resize(dst.len() + dim, 0.0);
+            }
+        };
+        fill(&mut self.image_appearance, &img.appearance, self.appearance_dim);
+        fill(&mut self.image_hog, &img.hog, self.hog_dim);
+        self.forest_offsets.push(self.tree_classes.len() as u32);
+        Ok(())
+    }
+
+    /// Appends all images of `other` (same layout).
+    pub fn append(&mut self, other: &DescriptorSet) {
+        self.append_range(other, 0, other.len());
+    }
+
+    /// Appends images `start..end` of `other` (same layout; a set without statistics takes none).
+    pub fn append_range(&mut self, other: &DescriptorSet, start: usize, end: usize) {
+        assert!(self.stats_len == 0 || self.stats_len == other.stats_len, "statistics lengths differ");
+        assert_eq!((self.global_len, self.neighbour_slots), (other.global_len, other.neighbour_slots));
+        assert_eq!((self.appearance_dim, self.hog_dim), (other.appearance_dim, other.hog_dim));
+        let (a, b) = (other.forest_offsets[start] as usize, other.forest_offsets[end] as usize);
+        let (n, d, h, g, sl) = (self.neighbour_slots, self.appearance_dim, self.hog_dim, self.global_len, self.stats_len);
+        let base = self.n_trees() as u32;
+        self.ids.extend_from_slice(&other.ids[start..end]);
+        self.sizes.extend_from_slice(&other.sizes[start..end]);
+        self.globals.extend_from_slice(&other.globals[start * g..end * g]);
+        self.global_stats.extend_from_slice(&other.global_stats[start * sl..end * sl]);
+        self.forest_offsets.extend(other.forest_offsets[start + 1..=end].iter().map(|o| o - a as u32 + base));
+        self.tree_classes.extend_from_slice(&other.tree_classes[a..b]);
+        self.tree_areas.extend_from_slice(&other.tree_areas[a..b]);
+        self.tree_centroids.extend_from_slice(&other.tree_centroids[2 * a..2 * b]);
+        self.tree_neighbours.extend_from_slice(&other.tree_neighbours[n * a..n * b]);
+        self.tree_appearance.extend_from_slice(&other.tree_appearance[d * a..d * b]);
+        self.tree_has_appearance.extend_from_slice(&other.tree_has_appearance[a..b]);
+        self.tree_descriptors.extend_from_slice(&other.tree_descriptors[a..b]);
+        self.image_appearance.extend_from_slice(&other.image_appearance[start * d..end * d]);
+        self.image_hog.extend_from_slice(&other.image_hog[start * h..end * h]);
+    }
+
+    /// Images `start..end` as a set of their own.
+    pub fn slice(&self, start: usize, end: usize) -> DescriptorSet {
+        let mut out = self.empty_like();
+        out.append_range(self, start, end);
+        out
+    }
+
+    /// An empty set of the same layout.
+    pub fn empty_like(&self) -> DescriptorSet {
+        DescriptorSet { global_len: self.global_len, stats_len: self.stats_len, ..DescriptorSet::new(&bytemuck::Zeroable::zeroed(), self.neighbour_slots, self.appearance_dim, self.hog_dim) }
+    }
+
+    pub fn global(&self, i: usize) -> &[f32] {
+        &self.globals[i * self.global_len..(i + 1) * self.global_len]
+    }
+    pub fn stats(&self, i: usize) -> &[f32] {
+        &self.global_stats[i * self.stats_len..(i + 1) * self.stats_len]
+    }
+    /// The whole-image appearance vector of image i (empty without appearance).
+    pub fn image_appearance(&self, i: usize) -> &[f32] {
+        &self.image_appearance[i * self.appearance_dim..(i + 1) * self.appearance_dim]
+    }
+    /// The HOG descriptor of image i (empty when the set holds none).
+    pub fn image_hog(&self, i: usize) -> &[f32] {
+        &self.image_hog[i * self.hog_dim..(i + 1) * self.hog_dim]
+    }
+    pub fn forest(&self, i: usize) -> ForestRef<'_> {
+        let (a, b) = (self.forest_offsets[i] as usize, self.forest_offsets[i + 1] as usize);
+        let (n, d) = (self.neighbour_slots, self.appearance_dim);
+        ForestRef {
+            classes: &self.tree_classes[a..b],
+            areas: &self.tree_areas[a..b],
+            centroids: &self.tree_centroids[2 * a..2 * b],
+            neighbours: &self.tree_neighbours[n * a..n * b],
+            neighbour_slots: n,
+            appearance: Values::F32(&self.tree_appearance[d * a..d * b]),
+            has_appearance: &self.tree_has_appearance[a..b],
+            descriptors: &self.tree_descriptors[a..b],
+            dim: d,
+        }
+    }
+
+    /// Checks image `i` with [`crate::descriptors::validate::image`].
+    pub fn check_image(&self, i: usize, n_classes: usize, store: crate::values::ValueType) -> Result<(), String> {
+        let g = Values::F32(self.global(i));
+        crate::descriptors::validate::image(&self.ids[i], self.sizes[i], g, self.forest(i), Values::F32(self.image_appearance(i)), self.image_hog(i), n_classes, store)
+    }
+}

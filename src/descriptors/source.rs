@@ -1,0 +1,145 @@
+//! Where matching reads reference descriptors from, tile by tile: a descriptor set in memory, a
+//! stored (memory-mapped) map, or any other store (a synthetic map far larger than memory in the
+//! benchmarks). Tiles are the unit of streaming: no stage ever needs the whole map at once.
+
+use super::DescriptorSet;
+use crate::local::ForestRef;
+use crate::values::Values;
+
+/// Reusable storage for tiles that a source must assemble (copy or generate).
+#[derive(Debug, Default)]
+pub struct TileBuf {
+    pub globals: Vec<f32>,
+    pub stats: Vec<f32>,
+}
+
+/// Global descriptors and SSIM statistics of a map, readable by tiles.
+pub trait GlobalSource: Sync {
+    fn len(&self) -> usize;
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// Descriptors and stats of references `start..end`, borrowed from the source or built in `buf`.
+    fn tile<'a>(&'a self, start: usize, end: usize, buf: &'a mut TileBuf) -> (&'a [f32], &'a [f32]);
+    /// Whether everything read so far was sound. A stored map checks each segment's checksum and
+    /// values the first time it is read; a segment that fails is served as empty (zeros, no
+    /// trees) and reported here, naming its file. Matching calls this after reading.
+    fn check(&self) -> crate::Result<()> {
+        Ok(())
+    }
+    /// A number the source changes whenever its content changes, if it keeps one: with it, a
+    /// device cache of the source is exact. Without it ([`None`], the default) caches go by
+    /// [`SourceKey::of`]'s fingerprint. A stored map gives one for its identity and generation.
+    fn generation(&self) -> Option<u64> {
+        None
+    }
+}
+
+/// References hashed into a [`SourceKey`]'s fingerprint (evenly spaced, first and last included):
+/// 64 x 31.8 KB at the default size, about 2 MB, well under a millisecond per batch, against the
+/// 32 GB a 1M-reference map would take to upload again.
+pub const FINGERPRINT_SAMPLES: usize = 64;
+
+/// Names the content of a source for caches on a device (a GPU executor keeps a map resident
+/// while the key of the map it is given stays the same).
+///
+/// With a [`GlobalSource::generation`], the key is that number with the source's length and
+/// sizes. Without one, it is the length and sizes, where the source's first tile lies in memory,
+/// and a hash of [`FINGERPRINT_SAMPLES`] whole references (descriptor and stats bits). Another map,
+/// a map grown or shrunk, a copy, or a map whose sampled references changed gets another key. An
+/// edit in place of a reference that is not sampled keeps the key: code that edits a map's vectors
+/// in place must call the executor's `forget_map` (or give the source a generation).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct SourceKey {
+    pub len: usize,
+    pub generation: Option<u64>,
+    /// Floats per descriptor and per stats record.
+    pub sizes: (usize, usize),
+    /// Address of the first reference's descriptor (0 for an empty source, and for a source with
+    /// a generation, whose tiles may be assembled in a buffer that moves).
+    pub address: usize,
+    pub fingerprint: u64,
+}
+
+impl SourceKey {
+    pub fn of(src: &dyn GlobalSource) -> SourceKey {
+        let n = src.len();
+        let generation = src.generation();
+        let mut buf = TileBuf::default();
+        let (mut h, mut sizes, mut address) = (FNV_OFFSET, (0, 0), 0);
+        if n > 0 {
+            let (g, s) = src.tile(0, 1, &mut buf);
+            sizes = (g.len(), s.len());
+            if generation.is_none() {
+                address = g.as_ptr() as usize;
+            }
+        }
+        if generation.is_none() {
+            let samples = FINGERPRINT_SAMPLES.min(n);
+            for j in 0..samples {
+                let i = if samples == 1 { 0 } else { j * (n - 1) / (samples - 1) };
+                let (g, s) = src.tile(i, i + 1, &mut buf);
+                h = fnv(fnv(fnv(h, &[i as u32]), bytemuck::cast_slice(g)), bytemuck::cast_slice(s));
+            }
+        }
+        SourceKey { len: n, generation, sizes, address, fingerprint: h }
+    }
+}
+
+const FNV_OFFSET: u64 = 0xcbf2_9ce4_8422_2325;
+
+/// FNV-1a over 32-bit words.
+fn fnv(mut h: u64, words: &[u32]) -> u64 {
+    for &w in words {
+        h = (h ^ w as u64).wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    h
+}
+
+impl GlobalSource for DescriptorSet {
+    fn len(&self) -> usize {
+        self.ids.len()
+    }
+    fn tile<'a>(&'a self, start: usize, end: usize, _buf: &'a mut TileBuf) -> (&'a [f32], &'a [f32]) {
+        (&self.globals[start * self.global_len..end * self.global_len], &self.global_stats[start * self.stats_len..end * self.stats_len])
+    }
+}
+
+/// Everything matching reads about references: tiles of global descriptors, and forests and ids
+/// by index. Implemented by a [`DescriptorSet`] and by a stored [`crate::map::Map`]. Indices run
+/// over the references a source serves (a map leaves out removed images), `0..len()`.
+pub trait RefSource: GlobalSource {
+    fn id(&self, i: usize) -> &str;
+    fn forest(&self, i: usize) -> ForestRef<'_>;
+    fn neighbour_slots(&self) -> usize;
+    fn appearance_dim(&self) -> usize;
+    /// The whole-image appearance vector of reference i (`appearance_dim` values).
+    fn image_appearance(&self, i: usize) -> Values<'_>;
+    /// Values of each reference's HOG descriptor (0: the source holds none).
+    fn hog_dim(&self) -> usize;
+    fn image_hog(&self, i: usize) -> &[f32];
+}
+
+impl RefSource for DescriptorSet {
+    fn id(&self, i: usize) -> &str {
+        &self.ids[i]
+    }
+    fn forest(&self, i: usize) -> ForestRef<'_> {
+        DescriptorSet::forest(self, i)
+    }
+    fn neighbour_slots(&self) -> usize {
+        self.neighbour_slots
+    }
+    fn appearance_dim(&self) -> usize {
+        self.appearance_dim
+    }
+    fn image_appearance(&self, i: usize) -> Values<'_> {
+        Values::F32(DescriptorSet::image_appearance(self, i))
+    }
+    fn hog_dim(&self) -> usize {
+        self.hog_dim
+    }
+    fn image_hog(&self, i: usize) -> &[f32] {
+        DescriptorSet::image_hog(self, i)
+    }
+}

@@ -1,0 +1,70 @@
+//! The value checks of one stored image: what a map refuses before it writes an image, and what it
+//! checks again when it first reads a segment. Each check says what is wrong; the caller names the
+//! image or the file.
+
+use crate::local::ForestRef;
+use crate::values::{ValueType, Values, F16_MAX};
+
+/// Longest image id, in bytes: ids are file stems or dataset keys, and a bound keeps a damaged or
+/// hostile id table from producing megabyte-long messages and lines.
+pub const MAX_ID_BYTES: usize = 1024;
+
+/// Where a global descriptor value may lie: the encoder's pooled distance transform is in [0, 1].
+const GLOBAL_RANGE: std::ops::RangeInclusive<f32> = 0.0..=1.0;
+/// Where a tree's area fraction may lie.
+const AREA_RANGE: std::ops::RangeInclusive<f32> = 0.0..=1.0;
+
+/// Checks an image id: not empty, at most [`MAX_ID_BYTES`], no control characters (ids are written
+/// one per line and into CSV files).
+pub fn id(id: &str) -> Result<(), String> {
+    if id.is_empty() || id.len() > MAX_ID_BYTES {
+        return Err(format!("image id is empty or longer than {MAX_ID_BYTES} bytes"));
+    }
+    if id.chars().any(char::is_control) {
+        return Err("image id holds a control character".into());
+    }
+    Ok(())
+}
+
+/// Checks every value of one image: id, size, global descriptor in [0, 1], tree classes below
+/// `n_classes`, areas in [0, 1], finite centroids, neighbour indices inside the forest, finite
+/// appearance and HOG values, and, for f16 storage, appearance values that f16 can hold.
+#[allow(clippy::too_many_arguments)]
+pub fn image(id_: &str, size: [u32; 2], global: Values, forest: ForestRef, appearance: Values, hog: &[f32], n_classes: usize, store: ValueType) -> Result<(), String> {
+    id(id_)?;
+    if size[0] == 0 || size[1] == 0 {
+        return Err(format!("image size {}x{} is empty", size[0], size[1]));
+    }
+    if let Some((k, v)) = global.position(|v| !GLOBAL_RANGE.contains(&v)) {
+        return Err(format!("global descriptor value {k} is {v}, outside [0, 1]"));
+    }
+    let t = forest.len();
+    let f = &forest;
+    if f.areas.len() != t || f.centroids.len() != 2 * t || f.neighbours.len() != t * f.neighbour_slots || f.has_appearance.len() != t || f.appearance.len() != t * f.dim {
+        return Err("tree arrays have different lengths".into());
+    }
+    if let Some(c) = f.classes.iter().find(|&&c| c as usize >= n_classes) {
+        return Err(format!("a tree has class {c}, outside the class table of {n_classes}"));
+    }
+    if let Some(a) = f.areas.iter().find(|a| !AREA_RANGE.contains(*a)) {
+        return Err(format!("a tree has area fraction {a}, outside [0, 1]"));
+    }
+    if f.centroids.iter().any(|c| !c.is_finite()) {
+        return Err("a tree centroid is NaN or infinite".into());
+    }
+    if let Some(j) = f.neighbours.iter().find(|&&j| j < -1 || j >= t as i32) {
+        return Err(format!("a neighbour index {j} points outside the forest of {t} trees"));
+    }
+    if f.has_appearance.iter().any(|&h| h > 1) {
+        return Err("an appearance flag is neither 0 nor 1".into());
+    }
+    let limit = if store == ValueType::F16 { F16_MAX } else { f32::MAX };
+    let bad = |v: Values| v.position(|x| !x.is_finite() || x.abs() > limit).is_some();
+    if bad(f.appearance) || bad(appearance) {
+        return Err(format!("an appearance value is NaN, infinite or beyond what {} holds", store.name()));
+    }
+    if hog.iter().any(|x| !x.is_finite()) {
+        return Err("a HOG value is NaN or infinite".into());
+    }
+    Ok(())
+}

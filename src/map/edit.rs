@@ -1,0 +1,232 @@
+//! Changing a stored map as a whole: removing images (tombstones in the manifest), compacting
+//! (rewriting the segments that hold removed images or are too small), verifying every file, and
+//! replacing a map by one built beside it (`build --force`). Each change is one commit under the
+//! map's write lock.
+
+use super::files::{self, write_atomic, WriteLock};
+use super::manifest::{self, Manifest, SegmentEntry};
+use super::segment::{self, Mapped};
+use super::{layout_of, writer::StoreOptions};
+use crate::classes::ClassTable;
+use crate::descriptors::DescriptorSet;
+use crate::error::{Error, Result};
+use rayon::prelude::*;
+use serde::Serialize;
+use std::collections::HashSet;
+use std::path::Path;
+
+/// Unknown ids named in a refused removal (the rest are counted).
+const SHOW_UNKNOWN: usize = 5;
+
+fn read_map(dir: &Path) -> Result<Manifest> {
+    manifest::read(dir)?.ok_or_else(|| Error::io(dir.join(manifest::MANIFEST), std::io::ErrorKind::NotFound.into()))
+}
+
+/// Removes the images `ids` (tombstones: their rows are marked in the manifest and left out of
+/// every query; `compact` drops them from the files). Every id must be in the map, or nothing is
+/// changed. Returns the number removed.
+pub fn remove(dir: &Path, ids: &[String]) -> Result<usize> {
+    let _lock = WriteLock::take(dir)?;
+    let mut m = read_map(dir)?;
+    let layout = layout_of(&m, ClassTable::from_config(&m.config.classes)?.len());
+    let wanted: HashSet<&str> = ids.iter().map(|s| s.as_str()).collect();
+    let mut found: HashSet<String> = HashSet::new();
+    let mut marks: Vec<Vec<u32>> = vec![vec![]; m.segments.len()];
+    for (k, entry) in m.segments.iter().enumerate() {
+        let seg = Mapped::open(dir, entry, layout)?;
+        for j in 0..seg.len() {
+            let id = seg.id(j);
+            if wanted.contains(id) && entry.is_live(j) {
+                marks[k].push(j as u32);
+                found.insert(id.to_string());
+            }
+        }
+    }
+    let unknown: Vec<&str> = ids.iter().map(|s| s.as_str()).filter(|id| !found.contains(*id)).collect();
+    if !unknown.is_empty() {
+        let shown: Vec<String> = unknown.iter().take(SHOW_UNKNOWN).map(|s| format!("{s:?}")).collect();
+        let more = unknown.len().saturating_sub(SHOW_UNKNOWN);
+        let tail = if more > 0 { format!(" and {more} more") } else { String::new() };
+        return Err(Error::invalid(format!("map {}", dir.display()), format!("not in the map (or removed already), nothing removed: {}{tail}", shown.join(", "))));
+    }
+    for (entry, new) in m.segments.iter_mut().zip(marks) {
+        entry.removed.extend(new);
+        entry.removed.sort_unstable();
+    }
+    m.generation += 1;
+    manifest::write(dir, &m)?;
+    Ok(found.len())
+}
+
+/// What `compact` did.
+#[derive(Debug, Clone, Serialize)]
+pub struct CompactReport {
+    pub segments_before: usize,
+    pub segments_after: usize,
+    /// Removed images dropped from the files.
+    pub dropped: usize,
+    pub bytes_before: u64,
+    pub bytes_after: u64,
+    /// Files deleted that no manifest referenced (left by interrupted writers).
+    pub stray_files: usize,
+}
+
+/// Rewrites the segments that hold removed images, merging runs of small segments (below half of
+/// `opts`' segment size) into full ones, in order; leaves the others as they are. Every rewritten
+/// segment is verified first: a damaged one stops the compaction, naming it, before anything is
+/// committed. Then deletes the replaced files and any store file no manifest references. Holds the
+/// write lock throughout (writers wait, see [`files::LOCK_WAIT`]).
+pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
+    let _lock = WriteLock::take(dir)?;
+    let old = read_map(dir)?;
+    let layout = layout_of(&old, ClassTable::from_config(&old.config.classes)?.len());
+    let small = |e: &SegmentEntry| e.live() * 2 < opts.segment_images && (e.bytes as usize) * 2 < opts.segment_bytes;
+    let mut out: Vec<SegmentEntry> = Vec::new();
+    let mut buf = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog);
+    let mut run: Vec<&SegmentEntry> = Vec::new();
+    let flush = |buf: &mut DescriptorSet, out: &mut Vec<SegmentEntry>| -> Result<()> {
+        if buf.is_empty() {
+            return Ok(());
+        }
+        let bytes = segment::to_bytes(buf, &layout);
+        let sha = crate::util::sha256_hex(&bytes);
+        let entry = SegmentEntry { file: format!("segment-{}.safetensors", &sha[..16]), images: buf.len(), trees: buf.n_trees(), bytes: bytes.len() as u64, sha256: sha, removed: vec![] };
+        write_atomic(dir, &entry.file, &bytes)?;
+        out.push(entry);
+        *buf = buf.empty_like();
+        Ok(())
+    };
+    // a run of segments to rewrite, flushed when a segment to keep follows (order is kept)
+    let rewrite = |run: &mut Vec<&SegmentEntry>, buf: &mut DescriptorSet, out: &mut Vec<SegmentEntry>| -> Result<()> {
+        if run.len() == 1 && run[0].removed.is_empty() {
+            out.push(run[0].clone());
+        } else {
+            for entry in run.iter() {
+                let seg = Mapped::open(dir, entry, layout)?;
+                seg.ensure().map_err(|r| Error::corrupt(&seg.path, r))?;
+                                for j in 0..seg.len() {
+                    if entry.is_live(j) {
+                        seg.append_row(j, buf);
+                        if buf.len() >= opts.segment_images || buf.len() * layout.image_bytes() + buf.n_trees() * layout.tree_bytes() >= opts.segment_bytes {
+                            flush(buf, out)?;
+                        }
+                    }
+                }
+            }
+            flush(buf, out)?;
+        }
+        run.clear();
+        Ok(())
+    };
+    for entry in &old.segments {
+        if entry.removed.is_empty() && !small(entry) {
+            rewrite(&mut run, &mut buf, &mut out)?;
+            out.push(entry.clone());
+        } else {
+            run.push(entry);
+        }
+    }
+    rewrite(&mut run, &mut buf, &mut out)?;
+    let mut m = old.clone();
+    m.segments = out;
+    m.generation += 1;
+    manifest::write(dir, &m)?;
+    // delete what the new manifest does not reference: replaced segments and strays
+    let keep: HashSet<&str> = m.segments.iter().map(|s| s.file.as_str()).chain(m.codebook.as_ref().map(|c| c.file.as_str())).chain([manifest::MANIFEST, files::LOCK]).collect();
+    let replaced: HashSet<&str> = old.segments.iter().map(|s| s.file.as_str()).collect();
+    let mut stray = 0;
+    for e in std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        if manifest::is_store_file(&name) && !keep.contains(name.as_str()) {
+            stray += usize::from(!replaced.contains(name.as_str()));
+            std::fs::remove_file(e.path()).map_err(|err| Error::io(e.path(), err))?;
+        }
+    }
+    files::sync_dir(dir);
+    Ok(CompactReport {
+        segments_before: old.segments.len(),
+        segments_after: m.segments.len(),
+        dropped: old.segments.iter().map(|s| s.removed.len()).sum(),
+        bytes_before: old.segments.iter().map(|s| s.bytes).sum(),
+        bytes_after: m.segments.iter().map(|s| s.bytes).sum(),
+        stray_files: stray,
+    })
+}
+
+/// The check of one file.
+#[derive(Debug, Clone, Serialize)]
+pub struct FileCheck {
+    pub file: String,
+    /// What is wrong with it; `None` when sound.
+    pub problem: Option<String>,
+}
+
+/// What `verify` found.
+#[derive(Debug, Clone, Serialize)]
+pub struct VerifyReport {
+    pub generation: u64,
+    pub images: usize,
+    pub files: Vec<FileCheck>,
+}
+
+impl VerifyReport {
+    pub fn damaged(&self) -> impl Iterator<Item = &FileCheck> {
+        self.files.iter().filter(|f| f.problem.is_some())
+    }
+}
+
+/// Checks every file of the map in full (in parallel): the codebook, and each segment's header,
+/// size, SHA-256 and values. Reports every damaged file, not just the first.
+pub fn verify(dir: &Path) -> Result<VerifyReport> {
+    let m = read_map(dir)?;
+    let layout = layout_of(&m, ClassTable::from_config(&m.config.classes)?.len());
+    let mut files: Vec<FileCheck> = m
+        .segments
+        .par_iter()
+        .map(|entry| {
+            let problem = match Mapped::open(dir, entry, layout) {
+                Ok(seg) => seg.verify().err(),
+                Err(e) => Some(e.to_string()),
+            };
+            FileCheck { file: entry.file.clone(), problem }
+        })
+        .collect();
+    if let Some(entry) = &m.codebook {
+        let problem = super::read_codebook(dir, entry, m.appearance_dim).err().map(|e| e.to_string());
+        files.push(FileCheck { file: entry.file.clone(), problem });
+    }
+    Ok(VerifyReport { generation: m.generation, images: m.live_images(), files })
+}
+
+/// Builds a map with `build` into a new directory beside `out` (same folder, unique name) and,
+/// once it is complete, swaps it with `out` (atomically on Linux) and deletes the old one. `out`
+/// must be a map (or a folder holding only map files) or not exist; no other path is touched. A
+/// failed build leaves `out` as it was.
+pub fn build_replacing<T>(out: &Path, build: impl FnOnce(&Path) -> Result<T>) -> Result<T> {
+    if out.exists() {
+        let entries: Vec<String> = std::fs::read_dir(out).map_err(|e| Error::io(out, e))?.flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+        if let Some(other) = entries.iter().find(|n| !manifest::is_store_file(n)) {
+            return Err(Error::invalid(format!("map {}", out.display()), format!("--force replaces only a map, and this folder holds {other:?}")));
+        }
+    }
+    let staging = files::sibling(out, "building")?;
+    let result = build(&staging);
+    let value = match result {
+        Ok(v) => v,
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&staging);
+            return Err(e);
+        }
+    };
+    if !out.exists() {
+        std::fs::rename(&staging, out).map_err(|e| Error::io(out, e))?;
+        return Ok(value);
+    }
+    {
+        // no writer of the old map is between reading and committing while the two swap
+        let _old = WriteLock::take(out)?;
+        files::exchange(&staging, out)?;
+    }
+    std::fs::remove_dir_all(&staging).map_err(|e| Error::io(&staging, e))?;
+    Ok(value)
+}

@@ -1,0 +1,120 @@
+//! File-system primitives of the map store: atomic replacement of a file, the advisory write lock
+//! of a map directory, names that no other process can pick, and the atomic swap of two
+//! directories (`map build --force`).
+
+use crate::error::{Error, Result};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// The lock file in a map directory. It is never deleted: the lock is the OS advisory lock on it
+/// (`flock`), which the kernel releases when the holding process exits or dies, so a file left
+/// behind by a crash does not block anyone.
+pub const LOCK: &str = ".lock";
+/// How long a writer waits for another writer's lock before giving up. Writers hold it only to
+/// write one segment and the manifest (well under a second); `map compact` holds it while it
+/// rewrites the segments that have removed images, which takes minutes on million-image maps.
+pub const LOCK_WAIT: Duration = Duration::from_secs(600);
+/// Poll interval while waiting for the lock (a blocking `flock` could not time out).
+const LOCK_POLL: Duration = Duration::from_millis(20);
+
+/// Writes `bytes` to `dir/name` atomically: temporary file, fsync, rename, directory fsync. Callers
+/// hold the map's write lock, so the temporary name is never shared.
+pub fn write_atomic(dir: &Path, name: &str, bytes: &[u8]) -> Result<()> {
+    let tmp = dir.join(format!(".{name}.tmp"));
+    let dst = dir.join(name);
+    let mut f = std::fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
+    f.write_all(bytes).map_err(|e| Error::io(&tmp, e))?;
+    f.sync_all().map_err(|e| Error::io(&tmp, e))?;
+    drop(f);
+    std::fs::rename(&tmp, &dst).map_err(|e| Error::io(&dst, e))?;
+    sync_dir(dir);
+    Ok(())
+}
+
+/// Makes a directory's entries (renames, new files) durable; best effort where the platform has
+/// no directory fsync.
+pub fn sync_dir(dir: &Path) {
+    if let Ok(d) = std::fs::File::open(dir) {
+        let _ = d.sync_all();
+    }
+}
+
+/// The exclusive write lock of a map directory, held until dropped (or the process ends).
+pub struct WriteLock {
+    file: std::fs::File,
+}
+
+impl WriteLock {
+    /// Takes the lock of `dir` (which must exist), waiting up to [`LOCK_WAIT`] for another
+    /// writer; says so on the log once it has waited a second.
+    pub fn take(dir: &Path) -> Result<WriteLock> {
+        let p = dir.join(LOCK);
+        let file = std::fs::OpenOptions::new().create(true).truncate(false).write(true).open(&p).map_err(|e| Error::io(&p, e))?;
+        let t = Instant::now();
+        let mut said = false;
+        loop {
+            match fs4::FileExt::try_lock(&file) {
+                Ok(()) => return Ok(WriteLock { file }),
+                Err(fs4::TryLockError::WouldBlock) => {}
+                Err(fs4::TryLockError::Error(e)) => return Err(Error::io(&p, e)),
+            }
+            if t.elapsed() > LOCK_WAIT {
+                return Err(Error::invalid(
+                    format!("map {}", dir.display()),
+                    format!("another semlook process has held the write lock {} for more than {} s", p.display(), LOCK_WAIT.as_secs()),
+                ));
+            }
+            if !said && t.elapsed() > Duration::from_secs(1) {
+                log::info!("waiting for another writer of {} (lock {})", dir.display(), p.display());
+                said = true;
+            }
+            std::thread::sleep(LOCK_POLL);
+        }
+    }
+}
+
+impl Drop for WriteLock {
+    fn drop(&mut self) {
+        let _ = fs4::FileExt::unlock(&self.file);
+    }
+}
+
+/// A name no other process picks: `prefix`, this process id, the time in nanoseconds and a
+/// counter (for several names within one process).
+pub fn unique_suffix() -> String {
+    static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos());
+    format!("{}-{nanos:x}-{n}", std::process::id())
+}
+
+/// A fresh path beside `path` (same folder, so renames stay atomic): `.NAME.what-UNIQUE`.
+pub fn sibling(path: &Path, what: &str) -> Result<PathBuf> {
+    let name = path.file_name().ok_or_else(|| Error::invalid(format!("path {}", path.display()), "has no final component"))?;
+    let parent = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    Ok(parent.join(format!(".{}.{what}-{}", name.to_string_lossy(), unique_suffix())))
+}
+
+/// Swaps the directories `a` and `b` (both exist): atomically on Linux (`renameat2` with
+/// `RENAME_EXCHANGE`), elsewhere by two renames through a third unique name.
+pub fn exchange(a: &Path, b: &Path) -> Result<()> {
+    #[cfg(target_os = "linux")]
+    {
+        use rustix::fs::{renameat_with, RenameFlags, CWD};
+        match renameat_with(CWD, a, CWD, b, RenameFlags::EXCHANGE) {
+            Ok(()) => return Ok(()),
+            // file systems without RENAME_EXCHANGE fall through to the two renames
+            Err(e) if e == rustix::io::Errno::INVAL || e == rustix::io::Errno::NOSYS => {}
+            Err(e) => return Err(Error::io(a, e.into())),
+        }
+    }
+    let third = sibling(a, "swap")?;
+    std::fs::rename(a, &third).map_err(|e| Error::io(a, e))?;
+    std::fs::rename(b, a).map_err(|e| Error::io(b, e))?;
+    std::fs::rename(&third, b).map_err(|e| Error::io(&third, e))?;
+    Ok(())
+}

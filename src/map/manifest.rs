@@ -1,0 +1,156 @@
+//! `manifest.json`, the one file that says what a map holds: format version, generation, the
+//! encoding config, storage layout, and per segment its file, sizes, SHA-256 and removed rows.
+//! It is replaced atomically by every commit; readers see one generation or the next, never a mix.
+
+use crate::config::EncodingConfig;
+use crate::error::{Error, Result};
+use crate::values::ValueType;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+pub const FORMAT: &str = "semlook-map";
+/// Version 3: memory-mapped segments with ids as tensors and no SSIM statistics, f16 option,
+/// generations, tombstones, content-named segment files.
+pub const VERSION: u32 = 3;
+pub const MANIFEST: &str = "manifest.json";
+pub const CODEBOOK: &str = "codebook.safetensors";
+/// Largest manifest read: a million-image map has a few hundred segment entries (about 100 kB),
+/// so anything near this bound is not a manifest.
+const MAX_MANIFEST_BYTES: u64 = 256 << 20;
+
+/// A file of the map with its size and checksum.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FileEntry {
+    pub file: String,
+    pub bytes: u64,
+    pub sha256: String,
+}
+
+/// One segment file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SegmentEntry {
+    pub file: String,
+    /// Images stored in the file (removed ones included).
+    pub images: usize,
+    pub trees: usize,
+    pub bytes: u64,
+    pub sha256: String,
+    /// Rows of removed images (tombstones), ascending; `map compact` drops them from the file.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub removed: Vec<u32>,
+}
+
+impl SegmentEntry {
+    /// Images of the file that are not removed.
+    pub fn live(&self) -> usize {
+        self.images - self.removed.len()
+    }
+    /// Whether row `j` is not removed.
+    pub fn is_live(&self, j: usize) -> bool {
+        self.removed.binary_search(&(j as u32)).is_err()
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    pub format: String,
+    pub version: u32,
+    /// Number of commits so far: every build, add, remove or compact step writes the next one.
+    pub generation: u64,
+    /// Random id given at creation. A writer that finds another id under its lock knows the map
+    /// was replaced (`build --force`) while it worked, and stops.
+    pub uid: String,
+    pub created_by: String,
+    pub config: EncodingConfig,
+    pub neighbour_slots: usize,
+    pub appearance_dim: usize,
+    /// Values of each image's HOG baseline descriptor (0: the map holds none).
+    pub hog_dim: usize,
+    /// How global descriptors and appearance vectors are stored.
+    pub values: ValueType,
+    pub segments: Vec<SegmentEntry>,
+    /// The VLAD codebook file, when trees carry appearance.
+    pub codebook: Option<FileEntry>,
+    /// SHA-256 of the keypoint network's weights the appearance was computed with.
+    pub appearance_model: Option<String>,
+}
+
+impl Manifest {
+    /// Images the map serves (removed ones left out).
+    pub fn live_images(&self) -> usize {
+        self.segments.iter().map(SegmentEntry::live).sum()
+    }
+    /// Images stored in segment files, removed ones included.
+    pub fn stored_images(&self) -> usize {
+        self.segments.iter().map(|s| s.images).sum()
+    }
+    pub fn to_json(&self) -> Vec<u8> {
+        serde_json::to_vec_pretty(self).expect("a manifest serialises")
+    }
+}
+
+/// Whether `name` is a file name the store itself writes (segments, codebook, temporary files,
+/// lock, manifest): what a directory may hold for `--resume` or `--force` to treat it as a map.
+pub fn is_store_file(name: &str) -> bool {
+    name == MANIFEST || name == super::files::LOCK || name == CODEBOOK || (name.starts_with("segment-") && name.ends_with(".safetensors")) || (name.starts_with('.') && name.ends_with(".tmp"))
+}
+
+/// Reads and checks `dir/manifest.json`; `Ok(None)` when there is none.
+pub fn read(dir: &Path) -> Result<Option<Manifest>> {
+    let path = dir.join(MANIFEST);
+    let f = match std::fs::File::open(&path) {
+        Ok(f) => f,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(Error::io(&path, e)),
+    };
+    let len = f.metadata().map_err(|e| Error::io(&path, e))?.len();
+    if len > MAX_MANIFEST_BYTES {
+        return Err(Error::corrupt(&path, format!("manifest is {len} bytes, more than any map needs")));
+    }
+    let text = std::fs::read(&path).map_err(|e| Error::io(&path, e))?;
+    let value: serde_json::Value = serde_json::from_slice(&text).map_err(|e| Error::corrupt(&path, format!("manifest is not valid JSON: {e}")))?;
+    if value.get("format").and_then(|f| f.as_str()) != Some(FORMAT) {
+        return Err(Error::corrupt(&path, format!("not a {FORMAT} manifest")));
+    }
+    let version = value.get("version").and_then(|v| v.as_u64()).unwrap_or(0) as u32;
+    if version != VERSION {
+        return Err(Error::MapVersion { path: dir.into(), found: version, supported: VERSION });
+    }
+    let m: Manifest = serde_json::from_value(value).map_err(|e| Error::corrupt(&path, format!("manifest fields: {e}")))?;
+    check(&m).map_err(|r| Error::corrupt(&path, r))?;
+    Ok(Some(m))
+}
+
+/// Internal consistency of a manifest's fields.
+fn check(m: &Manifest) -> std::result::Result<(), String> {
+    if m.neighbour_slots != m.config.local.neighbours {
+        return Err("neighbour slots differ from the config".into());
+    }
+    let names = m.segments.iter().map(|s| s.file.as_str()).chain(m.codebook.as_ref().map(|c| c.file.as_str()));
+    for name in names {
+        if name.contains('/') || name.contains('\\') || name.contains("..") || !is_store_file(name) {
+            return Err(format!("file name {name:?} is not one the store writes (or leaves the map directory)"));
+        }
+    }
+    let mut seen = std::collections::HashSet::new();
+    for s in &m.segments {
+        if !seen.insert(&s.file) {
+            return Err(format!("segment {} is listed twice", s.file));
+        }
+        if s.images == 0 || s.removed.len() > s.images || !s.removed.windows(2).all(|w| w[0] < w[1]) || s.removed.last().is_some_and(|&r| r as usize >= s.images) {
+            return Err(format!("segment {}: image count or removed rows are inconsistent", s.file));
+        }
+        if s.sha256.len() != 64 || !s.sha256.bytes().all(|b| b.is_ascii_hexdigit()) {
+            return Err(format!("segment {}: the SHA-256 is not 64 hex digits", s.file));
+        }
+    }
+    if m.appearance_dim != 0 && m.codebook.is_none() {
+        return Err("appearance vectors but no codebook".into());
+    }
+    Ok(())
+}
+
+/// Writes the manifest atomically (the caller holds the write lock).
+pub fn write(dir: &Path, m: &Manifest) -> Result<()> {
+    super::files::write_atomic(dir, MANIFEST, &m.to_json())
+}

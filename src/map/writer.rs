@@ -1,0 +1,371 @@
+//! Streaming writes: [`MapWriter`] takes encoded images one at a time, checks each before it is
+//! buffered, and commits a segment whenever the buffer is full, so memory stays that of one
+//! segment whatever the map's size, and a crash loses at most the segment in progress.
+//!
+//! A commit: take the directory's advisory lock; re-read the manifest; check that the map is still
+//! the one this writer started on (its uid) and that no other writer committed one of the buffered
+//! ids meanwhile; write the segment file (atomic rename); write the manifest of the next
+//! generation (atomic rename); release. Files are only ever added by renames, and the manifest is
+//! replaced last, so every reader sees a whole generation.
+
+use super::files::{write_atomic, WriteLock};
+use super::manifest::{self, FileEntry, Manifest, SegmentEntry, CODEBOOK, FORMAT, VERSION};
+use super::segment::{self, Layout, Mapped};
+use super::Map;
+use crate::appearance::vlad::Codebook;
+use crate::classes::ClassTable;
+use crate::config::EncodingConfig;
+use crate::descriptors::{validate, DescriptorSet, EncodedImage};
+use crate::error::{Error, Result};
+use crate::util::sha256_hex;
+use crate::values::{ValueType, Values};
+use std::collections::HashSet;
+use std::hash::{Hash, Hasher};
+use std::path::{Path, PathBuf};
+
+/// Most images per segment file: a few thousand keeps the manifest short (a few hundred entries
+/// for a million images) and one segment's buffer small (about 50 MB of f32 global descriptors).
+pub const SEGMENT_IMAGES: usize = 4096;
+/// Largest segment buffer: with appearance (4 kB per tree) or HOG (140 kB per image), fewer
+/// images than [`SEGMENT_IMAGES`] fill a segment, so memory stays bounded either way.
+pub const SEGMENT_BYTES: usize = 64 << 20;
+
+/// How a writer stores what it is given.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StoreOptions {
+    /// Storage type of global descriptors and appearance vectors (new maps; an existing map keeps
+    /// its own).
+    pub values: ValueType,
+    /// Most images per segment file.
+    pub segment_images: usize,
+    /// Most bytes per segment file (approximately: the buffer is committed once it exceeds it).
+    pub segment_bytes: usize,
+}
+
+impl Default for StoreOptions {
+    fn default() -> Self {
+        StoreOptions { values: ValueType::F32, segment_images: SEGMENT_IMAGES, segment_bytes: SEGMENT_BYTES }
+    }
+}
+
+/// Hash of an id for the set of known ids (8 bytes per image instead of the id itself; a hit is
+/// confirmed against the stored ids before it counts).
+fn id_hash(id: &str) -> u64 {
+    let mut h = std::hash::DefaultHasher::new();
+    id.hash(&mut h);
+    h.finish()
+}
+
+/// Writes images into a new or an existing map, segment by segment.
+pub struct MapWriter {
+    dir: PathBuf,
+    layout: Layout,
+    /// The last manifest this writer committed or read (for a new map: the one it will commit).
+    manifest: Manifest,
+    /// For a map not committed yet: the codebook file to write with the first commit.
+    first: Option<Option<(Vec<u8>, FileEntry)>>,
+    /// Hashes of the live ids stored or buffered.
+    known: HashSet<u64>,
+    /// Segment files whose ids are in `known`.
+    seen: HashSet<String>,
+    pending: DescriptorSet,
+    opts: StoreOptions,
+    committed: usize,
+}
+
+impl MapWriter {
+    /// A writer for a new map in `dir`, which must not exist, or be empty, or (with `resume`) hold
+    /// only files an interrupted build left (no manifest). With appearance, `appearance` gives the
+    /// VLAD codebook and the keypoint network's SHA-256, both stored with the first commit.
+    pub fn create(dir: &Path, cfg: &EncodingConfig, appearance_dim: usize, hog_dim: usize, appearance: Option<(&Codebook, &str)>, opts: StoreOptions, resume: bool) -> Result<MapWriter> {
+        let what = || format!("map {}", dir.display());
+        MapWriter::check_new_dir(dir, resume)?;
+        let codebook = match (appearance, appearance_dim) {
+            (Some((cb, _)), d) if cb.k * cb.dim != d => return Err(Error::invalid(what(), "codebook size differs from the appearance vectors")),
+            (None, d) if d != 0 => return Err(Error::invalid(what(), "appearance vectors without a codebook")),
+            (Some((cb, _)), _) => {
+                let centres = safetensors::tensor::TensorView::new(safetensors::tensor::Dtype::F32, vec![cb.k, cb.dim], bytemuck::cast_slice(&cb.centres)).expect("shape matches");
+                let bytes = safetensors::serialize([("centres", centres)], None).expect("serialises");
+                let entry = FileEntry { file: CODEBOOK.into(), bytes: bytes.len() as u64, sha256: sha256_hex(&bytes) };
+                Some((bytes, entry))
+            }
+            (None, _) => None,
+        };
+        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+        let n_classes = ClassTable::from_config(&cfg.classes)?.len();
+        let manifest = Manifest {
+            format: FORMAT.into(),
+            version: VERSION,
+            generation: 0,
+            uid: sha256_hex(super::files::unique_suffix().as_bytes())[..16].to_string(),
+            created_by: format!("semlook {}", env!("CARGO_PKG_VERSION")),
+            config: cfg.clone(),
+            neighbour_slots: cfg.local.neighbours,
+            appearance_dim,
+            hog_dim,
+            values: opts.values,
+            segments: vec![],
+            codebook: None,
+            appearance_model: appearance.map(|(_, sha)| sha.to_string()),
+        };
+        let layout = super::layout_of(&manifest, n_classes);
+        let pending = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog);
+        Ok(MapWriter { dir: dir.into(), layout, manifest, first: Some(codebook), known: HashSet::new(), seen: HashSet::new(), pending, opts, committed: 0 })
+    }
+
+    /// Fails unless a new map may be created in `dir`: it does not exist, or is empty, or (with
+    /// `resume`) holds only files an interrupted build left and no manifest.
+    pub fn check_new_dir(dir: &Path, resume: bool) -> Result<()> {
+        let what = || format!("map {}", dir.display());
+        if manifest::read(dir)?.is_some() {
+            return Err(Error::invalid(what(), "a map already exists there (use map add, --resume to continue its build, or --force to replace it)"));
+        }
+        if dir.exists() {
+            let entries: Vec<String> = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?.flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+            if let Some(other) = entries.iter().find(|n| !manifest::is_store_file(n)) {
+                return Err(Error::invalid(what(), format!("directory exists and holds {other:?}, which is not a map file")));
+            }
+            if !entries.is_empty() && !resume {
+                return Err(Error::invalid(what(), "directory exists and is not empty (an interrupted build? use --resume, or --force)"));
+            }
+        }
+        Ok(())
+    }
+
+    /// A writer that appends to the map in `dir` (its storage type applies; `opts.values` is
+    /// ignored). Reads the ids of every stored segment (not their checksums).
+    pub fn append(dir: &Path, opts: StoreOptions) -> Result<MapWriter> {
+        let manifest = manifest::read(dir)?.ok_or_else(|| Error::invalid(format!("map {}", dir.display()), "no manifest.json: not a map (build it first, or --resume an interrupted build)"))?;
+        let n_classes = ClassTable::from_config(&manifest.config.classes)?.len();
+        let layout = super::layout_of(&manifest, n_classes);
+        let pending = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog);
+        let mut w = MapWriter { dir: dir.into(), layout, first: None, known: HashSet::new(), seen: HashSet::new(), pending, opts: StoreOptions { values: manifest.values, ..opts }, committed: 0, manifest };
+        let segments = w.manifest.segments.clone();
+        w.learn(&segments, &HashSet::new())?;
+        Ok(w)
+    }
+
+    /// Adds the live ids of `segments` not seen yet to the known ids; fails if one of them is in
+    /// `buffered` (another writer committed it meanwhile).
+    fn learn(&mut self, segments: &[SegmentEntry], buffered: &HashSet<&str>) -> Result<()> {
+        for entry in segments {
+            if self.seen.contains(&entry.file) {
+                continue;
+            }
+            let seg = Mapped::open(&self.dir, entry, self.layout)?;
+            for j in 0..seg.len() {
+                if !entry.is_live(j) {
+                    continue;
+                }
+                let id = seg.id(j);
+                if buffered.contains(id) {
+                    return Err(Error::DuplicateImageId { map: self.dir.clone(), id: id.to_string() });
+                }
+                self.known.insert(id_hash(id));
+            }
+            self.seen.insert(entry.file.clone());
+        }
+        Ok(())
+    }
+
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+    pub fn layout(&self) -> Layout {
+        self.layout
+    }
+    pub fn manifest(&self) -> &Manifest {
+        &self.manifest
+    }
+    /// Images committed by this writer so far.
+    pub fn committed(&self) -> usize {
+        self.committed
+    }
+    /// Images per segment this writer aims at.
+    pub fn segment_images(&self) -> usize {
+        self.opts.segment_images.max(1)
+    }
+
+    /// Whether image `id` is stored (and not removed) or buffered.
+    pub fn contains(&self, id: &str) -> bool {
+        self.known.contains(&id_hash(id)) && (self.pending.ids.iter().any(|p| p == id) || self.stored(id))
+    }
+
+    /// The ids among `ids` that are stored and not removed, exactly (one pass over the stored
+    /// ids when any hash matches): what `--resume` skips.
+    pub fn stored_among<'a>(&self, ids: impl IntoIterator<Item = &'a str>) -> HashSet<String> {
+        let candidates: HashSet<&str> = ids.into_iter().filter(|id| self.known.contains(&id_hash(id))).collect();
+        let mut found: HashSet<String> = self.pending.ids.iter().filter(|id| candidates.contains(id.as_str())).cloned().collect();
+        if candidates.is_empty() {
+            return found;
+        }
+        for e in self.manifest.segments.iter().filter(|e| self.seen.contains(&e.file)) {
+            if let Ok(seg) = Mapped::open(&self.dir, e, self.layout) {
+                                for j in 0..seg.len() {
+                    if e.is_live(j) && candidates.contains(seg.id(j)) {
+                        found.insert(seg.id(j).to_string());
+                    }
+                }
+            }
+        }
+        found
+    }
+
+    /// Whether a committed segment this writer knows holds live image `id` (the slow, exact check
+    /// behind a hash hit).
+    fn stored(&self, id: &str) -> bool {
+        self.manifest.segments.iter().filter(|e| self.seen.contains(&e.file)).any(|e| match Mapped::open(&self.dir, e, self.layout) {
+            Ok(seg) => (0..seg.len()).any(|j| seg.id(j) == id && e.is_live(j)),
+            Err(_) => false,
+        })
+    }
+
+    /// Checks an image and buffers it; commits a segment when the buffer is full. An image with a
+    /// bad value (NaN, infinity, out of range) or a stored id is refused, naming it, before it
+    /// joins the buffer.
+    pub fn push(&mut self, img: &EncodedImage) -> Result<()> {
+        let f = img.forest.as_ref();
+        let app = if img.appearance.is_empty() { Values::F32(&[]) } else { Values::F32(&img.appearance) };
+        validate::image(&img.id, [img.width, img.height], Values::F32(&img.global), f, app, &img.hog, self.layout.n_classes, self.opts.values)
+            .map_err(|reason| Error::InvalidImage { id: img.id.clone(), reason })?;
+        if self.contains(&img.id) {
+            return Err(Error::DuplicateImageId { map: self.dir.clone(), id: img.id.clone() });
+        }
+        self.pending.push(img).map_err(|r| Error::invalid(format!("map {}", self.dir.display()), r))?;
+        self.known.insert(id_hash(&img.id));
+        self.flush_if_full()
+    }
+
+    /// Adds every image of `set` (same layout): all are checked first (values, ids), so a refused
+    /// set writes nothing.
+    pub fn push_set(&mut self, set: &DescriptorSet) -> Result<()> {
+        let l = &self.layout;
+        if set.global_len != l.global_len() || set.neighbour_slots != l.slots || set.appearance_dim != l.dim || set.hog_dim != l.hog {
+            return Err(Error::invalid(
+                format!("map {}", self.dir.display()),
+                format!(
+                    "new images have {} global values / {} neighbour slots / appearance dim {} / HOG dim {}, the map {} / {} / {} / {}",
+                    set.global_len, set.neighbour_slots, set.appearance_dim, set.hog_dim, l.global_len(), l.slots, l.dim, l.hog
+                ),
+            ));
+        }
+        let mut ids = HashSet::new();
+        for i in 0..set.len() {
+            set.check_image(i, l.n_classes, self.opts.values).map_err(|reason| Error::InvalidImage { id: set.ids[i].clone(), reason })?;
+            if !ids.insert(set.ids[i].as_str()) || self.contains(&set.ids[i]) {
+                return Err(Error::DuplicateImageId { map: self.dir.clone(), id: set.ids[i].clone() });
+            }
+        }
+        for i in 0..set.len() {
+            self.pending.append_range(set, i, i + 1);
+            self.known.insert(id_hash(&set.ids[i]));
+            self.flush_if_full()?;
+        }
+        Ok(())
+    }
+
+    fn flush_if_full(&mut self) -> Result<()> {
+        let bytes = self.pending.len() * self.layout.image_bytes() + self.pending.n_trees() * self.layout.tree_bytes();
+        if self.pending.len() >= self.segment_images() || bytes >= self.opts.segment_bytes {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    /// Commits the buffered images as one segment (nothing when the buffer is empty).
+    pub fn flush(&mut self) -> Result<()> {
+        if self.pending.is_empty() {
+            return Ok(());
+        }
+        let bytes = segment::to_bytes(&self.pending, &self.layout);
+        let sha = sha256_hex(&bytes);
+        let entry = SegmentEntry { file: format!("segment-{}.safetensors", &sha[..16]), images: self.pending.len(), trees: self.pending.n_trees(), bytes: bytes.len() as u64, sha256: sha, removed: vec![] };
+        let ids: Vec<String> = self.pending.ids.clone();
+        self.commit(|m| m.segments.push(entry.clone()), Some((&entry.file, &bytes)), &ids)?;
+        self.seen.insert(entry.file);
+        self.committed += self.pending.len();
+        self.pending = self.pending.empty_like();
+        Ok(())
+    }
+
+    /// One commit under the lock: `change` applied to the current manifest, `file` written first.
+    fn commit(&mut self, change: impl FnOnce(&mut Manifest), file: Option<(&str, &[u8])>, buffered: &[String]) -> Result<()> {
+        let _lock = WriteLock::take(&self.dir)?;
+        let what = || format!("map {}", self.dir.display());
+        let mut m = match (manifest::read(&self.dir)?, &self.first) {
+            (None, Some(codebook)) => {
+                let mut m = self.manifest.clone();
+                if let Some((bytes, entry)) = codebook {
+                    write_atomic(&self.dir, &entry.file, bytes)?;
+                    m.codebook = Some(entry.clone());
+                }
+                m
+            }
+            (Some(_), Some(_)) => return Err(Error::invalid(what(), "another process created a map there while this build ran")),
+            (None, None) => return Err(Error::invalid(what(), "the map's manifest is gone (removed or replaced while writing)")),
+            (Some(m), None) if m.uid != self.manifest.uid => return Err(Error::invalid(what(), "the map was replaced (build --force) while this writer ran")),
+            (Some(m), None) => m,
+        };
+        let buffered: HashSet<&str> = buffered.iter().map(|s| s.as_str()).collect();
+        let others = m.segments.clone();
+        self.learn(&others, &buffered)?;
+        if let Some((name, bytes)) = file {
+            write_atomic(&self.dir, name, bytes)?;
+        }
+        change(&mut m);
+        m.generation += 1;
+        manifest::write(&self.dir, &m)?;
+        self.manifest = m;
+        self.first = None;
+        Ok(())
+    }
+
+    /// Commits what is buffered and opens the map. A new map that received no image is committed
+    /// empty (with its codebook), so that it exists.
+    pub fn finish(mut self) -> Result<Map> {
+        self.flush()?;
+        if self.first.is_some() {
+            self.commit(|_| {}, None, &[])?;
+        }
+        Map::open(&self.dir)
+    }
+}
+
+impl Map {
+    /// Creates a new map directory holding `set` (f32, default segments). With appearance,
+    /// `appearance` gives the VLAD codebook and the SHA-256 of the keypoint network, both recorded
+    /// in the map. Fails if `dir` exists and is not empty; every image is checked first, so a
+    /// refused set creates nothing.
+    pub fn create(dir: &Path, cfg: &EncodingConfig, set: &DescriptorSet, appearance: Option<(&Codebook, &str)>) -> Result<Map> {
+        Map::create_with(dir, cfg, set, appearance, StoreOptions::default())
+    }
+
+    /// [`Map::create`] with storage options.
+    pub fn create_with(dir: &Path, cfg: &EncodingConfig, set: &DescriptorSet, appearance: Option<(&Codebook, &str)>, opts: StoreOptions) -> Result<Map> {
+        let n_classes = ClassTable::from_config(&cfg.classes)?.len();
+        let mut ids = HashSet::new();
+        for i in 0..set.len() {
+            set.check_image(i, n_classes, opts.values).map_err(|reason| Error::InvalidImage { id: set.ids[i].clone(), reason })?;
+            if !ids.insert(&set.ids[i]) {
+                return Err(Error::DuplicateImageId { map: dir.into(), id: set.ids[i].clone() });
+            }
+        }
+        let mut w = MapWriter::create(dir, cfg, set.appearance_dim, set.hog_dim, appearance, opts, false)?;
+        w.push_set(set)?;
+        w.finish()
+    }
+
+    /// Appends `set` as new segments and reopens the map. Every image is checked and every id
+    /// compared with the stored ones before anything is written.
+    pub fn add(&mut self, set: &DescriptorSet) -> Result<()> {
+        self.add_in_segments(set, SEGMENT_IMAGES)
+    }
+
+    /// [`Map::add`] with at most `per_segment` images per segment file.
+    pub fn add_in_segments(&mut self, set: &DescriptorSet, per_segment: usize) -> Result<()> {
+        let mut w = MapWriter::append(&self.path, StoreOptions { segment_images: per_segment.max(1), ..StoreOptions::default() })?;
+        w.push_set(set)?;
+        *self = w.finish()?;
+        Ok(())
+    }
+}
