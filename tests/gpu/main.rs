@@ -18,10 +18,8 @@ pub fn gpu_with(opts: &GpuOptions) -> Option<Arc<GpuContext>> {
             Some(Arc::new(c))
         }
         Err(e) => {
-            if std::env::var_os("CI").is_some() || std::env::var_os("REQUIRE_GPU").is_some_and(|v| v == "1") {
-                panic!("a GPU adapter is required here (CI or REQUIRE_GPU=1) but: {e}");
-            }
-            eprintln!("SKIPPED: no GPU adapter ({e})");
+            // Printed past the output capture and counted, so a plain `cargo test` shows it.
+            common::skip_unless_required("REQUIRE_GPU", format!("no GPU adapter ({e})"));
             None
         }
     }
