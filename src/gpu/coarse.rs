@@ -55,6 +55,8 @@ impl ChunkData for MapChunks<'_> {
 
 impl CoarseMatcherGpu {
     pub fn new(ctx: Arc<GpuContext>, p: SsimParams) -> Result<Self, GpuError> {
+        // Its parameter buffer is written here, outside any error scope: refuse a lost device first.
+        ctx.check_lost()?;
         let shape = block_shape(&p).ok_or_else(|| GpuError::LimitsTooSmall {
             adapter: ctx.describe(),
             what: "the SSIM block kernel's workgroup arrays (descriptor width, and window x valid windows per row)".into(),

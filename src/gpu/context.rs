@@ -138,21 +138,33 @@ impl GpuContext {
                 *l = Some(format!("uncaptured error: {e}"));
             }
         }));
+        let sink = lost.clone();
+        device.set_device_lost_callback(move |reason, msg| {
+            *sink.lock().unwrap_or_else(|p| p.into_inner()) = Some(format!("{reason:?}: {msg}"));
+        });
         Self::finish(device, queue, info, opts, lost)
     }
 
     /// Wraps a device and queue that belong to the host application. The engine adds its
-    /// pipelines to that device and uses error scopes for everything it submits; it does not
-    /// replace the host's uncaptured-error handler.
+    /// pipelines to that device and uses error scopes for everything it submits; it installs
+    /// no callback (neither the uncaptured-error handler nor the device-lost callback, of which
+    /// wgpu keeps one per device), so the host's stay in place. A host that wants the engine to
+    /// refuse work on a lost device forwards the loss from its own callback with
+    /// [`GpuContext::report_device_lost`].
     pub fn from_device(device: wgpu::Device, queue: wgpu::Queue, info: wgpu::AdapterInfo, opts: &GpuOptions) -> Result<GpuContext, GpuError> {
         Self::finish(device, queue, info, opts, Arc::new(Mutex::new(None)))
     }
 
+    /// Marks the device lost (what the engine's own callback does for devices it created);
+    /// every later call returns [`GpuError::DeviceLost`] with this message.
+    pub fn report_device_lost(&self, message: impl Into<String>) {
+        let mut l = self.lost.lock().unwrap_or_else(|p| p.into_inner());
+        if l.is_none() {
+            *l = Some(message.into());
+        }
+    }
+
     fn finish(device: wgpu::Device, queue: wgpu::Queue, info: wgpu::AdapterInfo, opts: &GpuOptions, lost: Arc<Mutex<Option<String>>>) -> Result<GpuContext, GpuError> {
-        let sink = lost.clone();
-        device.set_device_lost_callback(move |reason, msg| {
-            *sink.lock().unwrap() = Some(format!("{reason:?}: {msg}"));
-        });
         let limits = device.limits();
         let binding_limit = (limits.max_storage_buffer_binding_size).min(limits.max_buffer_size).min(opts.max_binding_size.unwrap_or(u64::MAX));
         let needs = [

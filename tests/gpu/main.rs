@@ -338,6 +338,35 @@ fn embedding_in_a_host_device() {
     }
 }
 
+/// Embedding leaves the host's device-lost callback in place (wgpu keeps one per device, so
+/// installing ours would drop the host's), and a loss the host forwards makes the engine refuse
+/// work with `DeviceLost`.
+#[test]
+fn embedding_keeps_the_hosts_device_lost_callback() {
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = wgpu::Backends::PRIMARY;
+    let instance = wgpu::Instance::new(desc);
+    let Some(adapter) = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::PRIMARY)).into_iter().next() else {
+        gpu();
+        return;
+    };
+    let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor::default())).unwrap();
+    let host_saw = Arc::new(std::sync::Mutex::new(None::<String>));
+    let sink = host_saw.clone();
+    device.set_device_lost_callback(move |reason, msg| *sink.lock().unwrap() = Some(format!("{reason:?}: {msg}")));
+    let ctx = Arc::new(GpuContext::from_device(device.clone(), queue, adapter.get_info(), &GpuOptions::default()).unwrap());
+    device.destroy();
+    let _ = device.poll(wgpu::PollType::wait_indefinitely());
+    let seen = host_saw.lock().unwrap().clone();
+    assert!(seen.as_deref().is_some_and(|m| m.contains("Destroyed")), "host callback replaced: {seen:?}");
+    ctx.report_device_lost(seen.unwrap());
+    let mut engine = Engine::with_context(ctx);
+    let cfg = Config::without_appearance();
+    let refs = common::encode(&cfg, &common::label_maps(4, 80, 60), "r");
+    let err = engine.match_batch(&refs, &refs, Setting::Global, &cfg).map(|_| ()).unwrap_err();
+    assert!(err.to_string().contains("lost"), "{err}");
+}
+
 /// `auto` never picks a software adapter; with only lavapipe it falls back to the CPU and says why.
 #[test]
 fn auto_prefers_hardware_and_falls_back_with_a_reason() {
