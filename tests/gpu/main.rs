@@ -314,18 +314,24 @@ fn end_to_end_matching_equals_the_cpu_path() {
     assert!(g.run.backend.starts_with("gpu:") && c.run.backend.starts_with("cpu"));
 }
 
-/// The engine runs inside a device the host application created.
-#[test]
-fn embedding_in_a_host_device() {
+/// A device made the way a host application makes its own (not through `GpuContext`); without
+/// an adapter, `gpu()` reports the skip (or fails under CI).
+fn host_device() -> Option<(wgpu::Adapter, wgpu::Device, wgpu::Queue)> {
     let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
     desc.backends = wgpu::Backends::PRIMARY;
     let instance = wgpu::Instance::new(desc);
     let Some(adapter) = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::PRIMARY)).into_iter().next() else {
-        // let gpu() report (and fail under CI)
         gpu();
-        return;
+        return None;
     };
     let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor::default())).unwrap();
+    Some((adapter, device, queue))
+}
+
+/// The engine runs inside a device the host application created.
+#[test]
+fn embedding_in_a_host_device() {
+    let Some((adapter, device, queue)) = host_device() else { return };
     let ctx = GpuContext::from_device(device, queue, adapter.get_info(), &GpuOptions::default()).unwrap();
     let mut engine = Engine::with_context(Arc::new(ctx));
     let cfg = Config::without_appearance();
@@ -343,14 +349,7 @@ fn embedding_in_a_host_device() {
 /// work with `DeviceLost`.
 #[test]
 fn embedding_keeps_the_hosts_device_lost_callback() {
-    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
-    desc.backends = wgpu::Backends::PRIMARY;
-    let instance = wgpu::Instance::new(desc);
-    let Some(adapter) = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::PRIMARY)).into_iter().next() else {
-        gpu();
-        return;
-    };
-    let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor::default())).unwrap();
+    let Some((adapter, device, queue)) = host_device() else { return };
     let host_saw = Arc::new(std::sync::Mutex::new(None::<String>));
     let sink = host_saw.clone();
     device.set_device_lost_callback(move |reason, msg| *sink.lock().unwrap() = Some(format!("{reason:?}: {msg}")));
