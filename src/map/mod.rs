@@ -26,6 +26,7 @@ pub mod edit;
 pub mod files;
 pub mod manifest;
 pub mod segment;
+pub mod shard;
 pub mod writer;
 
 pub use crate::descriptors::DescriptorSet;
@@ -82,7 +83,7 @@ impl Map {
         Err(Error::corrupt(dir, format!("segments listed by the manifest kept disappearing over {OPEN_ATTEMPTS} reads (deleted by hand, or compacted without pause)")))
     }
 
-    fn open_generation(dir: &Path, manifest: Manifest) -> Result<Map> {
+    pub(crate) fn open_generation(dir: &Path, manifest: Manifest) -> Result<Map> {
         let mpath = dir.join(manifest::MANIFEST);
         let cfg = &manifest.config;
         crate::config::Config::default().with_encoding(cfg).validate(&mpath.display().to_string())?;
