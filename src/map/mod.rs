@@ -103,6 +103,12 @@ impl Map {
         Ok(map)
     }
 
+    /// The configuration queries of this map are encoded and matched with when none is given:
+    /// the map's encoding (appearance network included) and default matching parameters.
+    pub fn query_config(&self) -> crate::config::Config {
+        crate::config::Config::default().with_encoding(&self.manifest.config)
+    }
+
     /// The VLAD codebook of the map's appearance vectors.
     pub fn codebook(&self) -> Option<&Codebook> {
         self.codebook.as_ref()
