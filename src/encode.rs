@@ -289,16 +289,40 @@ impl Encoder {
             (Some(path), _, Some(_)) => Some(input::load_label_map(path, &self.table, format)?),
             _ => Some(input::load_frame_labels(src, &self.table, format)?),
         };
+        self.load_decoded(&src.id, src.image.as_deref(), src.labels.as_deref(), rgb, decoded_size, full_labels, times)
+    }
+
+    /// [`Encoder::load`] for frames already in memory: the RGB image (needed by appearance,
+    /// segmentation and HOG) and the label map at the image's size (needed unless a segmenter is
+    /// configured), both at full size.
+    pub fn load_arrays(&self, id: &str, rgb: Option<RgbImage>, labels: Option<LabelMap>) -> Result<Loaded> {
+        let needs_rgb = self.appearance.is_some() || (labels.is_none() && self.segmenter.is_some()) || self.hog;
+        if needs_rgb && rgb.is_none() {
+            return Err(Error::invalid(format!("frame {id:?}"), "appearance, segmentation and HOG need the RGB image, or turn appearance off"));
+        }
+        if let Some(img) = rgb.as_ref().filter(|i| i.width() == 0 || i.height() == 0) {
+            return Err(Error::invalid(format!("frame {id:?}"), format!("empty image {}x{}", img.width(), img.height())));
+        }
+        let size = rgb.as_ref().map(|i| i.dimensions());
+        let rgb = rgb.filter(|_| needs_rgb);
+        self.load_decoded(id, None, None, rgb, size, labels, StageTimes::default())
+    }
+
+    /// The part of loading after decoding: sizes checked, labels at the working size (segmented
+    /// when not given), HOG from the full image, RGB at the working size. The paths only name
+    /// the inputs in errors.
+    #[allow(clippy::too_many_arguments)]
+    fn load_decoded(&self, id: &str, image: Option<&std::path::Path>, label_path: Option<&std::path::Path>, rgb: Option<RgbImage>, decoded_size: Option<(u32, u32)>, full_labels: Option<LabelMap>, mut times: StageTimes) -> Result<Loaded> {
         let source_size = match (decoded_size, &full_labels) {
             (Some(size), _) => size,
             (None, Some(l)) => (l.width(), l.height()),
-            (None, None) => return Err(Error::invalid(format!("frame {:?}", src.id), "neither image nor label map")),
+            (None, None) => return Err(Error::invalid(format!("frame {id:?}"), "neither image nor label map")),
         };
         if let (Some(size), Some(l)) = (decoded_size, &full_labels) {
             if size != (l.width(), l.height()) {
                 return Err(Error::SizeMismatch {
-                    image: src.image.clone().unwrap_or_default(),
-                    labels: src.labels.clone().unwrap_or_default(),
+                    image: image.map_or_else(|| format!("{id} (image)").into(), Into::into),
+                    labels: label_path.map_or_else(|| format!("{id} (labels)").into(), Into::into),
                     image_size: size,
                     label_size: (l.width(), l.height()),
                 });
@@ -309,11 +333,11 @@ impl Encoder {
             (Some(l), _, _) => l.resized_nearest(ww, wh),
             (None, Some(seg), Some(img)) => {
                 let t = Instant::now();
-                let l = seg.get()?.segment_to(img, src.image.as_deref().unwrap_or(std::path::Path::new(&src.id)), (ww, wh))?;
+                let l = seg.get()?.segment_to(img, image.unwrap_or(std::path::Path::new(id)), (ww, wh))?;
                 times.segment_ms = ms_since(t);
                 l
             }
-            _ => return Err(Error::invalid(format!("frame {:?}", src.id), "no label map")),
+            _ => return Err(Error::invalid(format!("frame {id:?}"), "no label map")),
         };
         let hog = match (&rgb, self.hog) {
             (Some(img), true) => {

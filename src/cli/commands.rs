@@ -202,7 +202,7 @@ fn encode_sources(engine: &mut Engine, encoder: &Encoder, frames: &[FrameSource]
 fn map_config(map: &Map, config: Option<&Path>, models: &ModelArgs) -> Result<Config> {
     let base = match config {
         Some(p) => Config::load(p)?,
-        None => Config::default().with_encoding(&map.manifest.config),
+        None => map.query_config(),
     };
     let mut cfg = apply_models(base, models);
     if config.is_none() && models.keypoints.is_none() && !models.no_appearance {
@@ -278,19 +278,8 @@ fn query(engine: &mut Engine, a: &QueryArgs, quiet: bool) -> Result<()> {
 
 /// The dataset an `eval` names: a dataset directory, or a reference and a query folder.
 fn eval_dataset(a: &EvalArgs) -> Result<Dataset> {
-    use semlook::dataset::pairs::{self, PairTruth};
     let opts = DatasetOptions { reference: a.reference.clone(), queries: a.queries.clone(), max_distance: a.gt_distance, max_angle_deg: a.gt_angle };
-    match (&a.dataset, &a.references, &a.queries_dir) {
-        (Some(dir), _, _) => Dataset::open(dir, &opts),
-        (None, Some(refs), Some(queries)) => {
-            let truth = match &a.ground_truth {
-                Some(f) => PairTruth::from_file(f)?,
-                None => PairTruth::Utm(a.gt_distance.unwrap_or(pairs::UTM_DEFAULT_DISTANCE)),
-            };
-            pairs::from_folders(refs, queries, &truth)
-        }
-        _ => Err(Error::invalid("arguments", "give --dataset DIR, or --references DIR --queries DIR [--ground-truth FILE]")),
-    }
+    Dataset::open_any(a.dataset.as_deref(), a.references.as_deref(), a.queries_dir.as_deref(), a.ground_truth.as_deref(), &opts)
 }
 
 fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {

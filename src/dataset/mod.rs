@@ -153,6 +153,23 @@ pub struct DatasetOptions {
 }
 
 impl Dataset {
+    /// The dataset a caller names: a dataset directory (see [`Dataset::open`]), or a reference and
+    /// a query folder with a ground-truth file (else UTM names within `opts.max_distance`, default
+    /// [`pairs::UTM_DEFAULT_DISTANCE`] metres; see [`pairs::from_folders`]).
+    pub fn open_any(dir: Option<&Path>, references: Option<&Path>, queries: Option<&Path>, ground_truth: Option<&Path>, opts: &DatasetOptions) -> Result<Dataset> {
+        match (dir, references, queries) {
+            (Some(dir), _, _) => Dataset::open(dir, opts),
+            (None, Some(refs), Some(queries)) => {
+                let truth = match ground_truth {
+                    Some(f) => PairTruth::from_file(f)?,
+                    None => PairTruth::Utm(opts.max_distance.unwrap_or(pairs::UTM_DEFAULT_DISTANCE)),
+                };
+                pairs::from_folders(refs, queries, &truth)
+            }
+            _ => Err(Error::invalid("arguments", "give a dataset directory, or a reference and a query folder (and a ground-truth file)")),
+        }
+    }
+
     /// Opens `root`: its manifest if present, else a synthia-layout tree (then `opts.reference`
     /// is required). Command-line options override the manifest's choices.
     pub fn open(root: &Path, opts: &DatasetOptions) -> Result<Dataset> {

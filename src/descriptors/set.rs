@@ -214,6 +214,37 @@ impl DescriptorSet {
         }
     }
 
+    /// Checks that every column holds as many values as the ids, sizes and forest offsets say
+    /// (a set assembled from outside, e.g. numpy arrays); the message names the first column that
+    /// does not. Values are checked per image by [`DescriptorSet::check_image`].
+    pub fn check_layout(&self) -> Result<(), String> {
+        let (n, o) = (self.ids.len(), &self.forest_offsets);
+        if o.len() != n + 1 || o[0] != 0 || o.windows(2).any(|w| w[0] > w[1]) {
+            return Err(format!("forest_offsets: {} offsets for {n} images, from 0 and ascending", o.len()));
+        }
+        let t = o[n] as usize;
+        let (s, d) = (self.neighbour_slots, self.appearance_dim);
+        let columns: [(&str, usize, usize); 13] = [
+            ("sizes", self.sizes.len(), n),
+            ("globals", self.globals.len(), n * self.global_len),
+            ("global_stats", self.global_stats.len(), n * self.stats_len),
+            ("tree_classes", self.tree_classes.len(), t),
+            ("tree_areas", self.tree_areas.len(), t),
+            ("tree_centroids", self.tree_centroids.len(), 2 * t),
+            ("tree_neighbours", self.tree_neighbours.len(), s * t),
+            ("tree_appearance", self.tree_appearance.len(), d * t),
+            ("tree_has_appearance", self.tree_has_appearance.len(), t),
+            ("tree_descriptors", self.tree_descriptors.len(), t),
+            ("image_appearance", self.image_appearance.len(), d * n),
+            ("image_hog", self.image_hog.len(), self.hog_dim * n),
+            ("global_len", self.global_len.min(1), 1),
+        ];
+        match columns.iter().find(|(_, got, want)| got != want) {
+            Some((name, got, want)) => Err(format!("{name}: {got} values, the layout needs {want}")),
+            None => Ok(()),
+        }
+    }
+
     /// Checks image `i` with [`crate::descriptors::validate::image`].
     pub fn check_image(&self, i: usize, n_classes: usize, store: crate::values::ValueType) -> Result<(), String> {
         let g = Values::F32(self.global(i));

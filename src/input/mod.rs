@@ -199,7 +199,6 @@ pub fn decode_label_image(img: &DynamicImage, path: &Path, table: &ClassTable, f
     let (w, h) = (img.width(), img.height());
     let grey = matches!(img, DynamicImage::ImageLuma8(_) | DynamicImage::ImageLuma16(_) | DynamicImage::ImageLumaA8(_) | DynamicImage::ImageLumaA16(_));
     let mut classes = Vec::with_capacity(w as usize * h as usize);
-    let unknown_id = |i: usize, id: u32| Error::UnknownClassId { path: path.into(), id, x: i as u32 % w, y: i as u32 / w };
     let by_ids = format == LabelFormat::FirstChannel || (format == LabelFormat::Auto && grey);
     if by_ids {
         let ids: Vec<u32> = match img {
@@ -218,9 +217,7 @@ pub fn decode_label_image(img: &DynamicImage, path: &Path, table: &ClassTable, f
                 })
             }
         };
-        for (i, id) in ids.into_iter().enumerate() {
-            classes.push(table.class_of_id(id).ok_or_else(|| unknown_id(i, id))?);
-        }
+        classes = classes_of_ids(ids.into_iter(), w, path, table)?;
     } else {
         if grey {
             return Err(Error::UnsupportedLabelFormat {
@@ -248,6 +245,23 @@ pub fn decode_label_image(img: &DynamicImage, path: &Path, table: &ClassTable, f
         }
     }
     Ok(LabelMap { width: w, height: h, classes })
+}
+
+/// Class indices of label ids (row-major, rows `width` long) by `table`; an unknown id fails
+/// naming `path` and the pixel.
+fn classes_of_ids(ids: impl Iterator<Item = u32>, width: u32, path: &Path, table: &ClassTable) -> Result<Vec<u8>> {
+    ids.enumerate()
+        .map(|(i, id)| table.class_of_id(id).ok_or_else(|| Error::UnknownClassId { path: path.into(), id, x: i as u32 % width, y: i as u32 / width }))
+        .collect()
+}
+
+/// A label map from label ids in memory (row-major, `width` x `height`), translated by `table`
+/// as a grey label PNG is; `name` names the source in errors.
+pub fn label_map_from_ids(width: u32, height: u32, ids: &[u32], name: &Path, table: &ClassTable) -> Result<LabelMap> {
+    if width == 0 || height == 0 || ids.len() != width as usize * height as usize {
+        return Err(Error::invalid(name.display().to_string(), format!("{} label ids for a {width}x{height} map", ids.len())));
+    }
+    Ok(LabelMap { width, height, classes: classes_of_ids(ids.iter().copied(), width, name, table)? })
 }
 
 /// One image to encode: an id and where its pixels and labels come from.

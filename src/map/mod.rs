@@ -26,6 +26,7 @@ pub mod edit;
 pub mod files;
 pub mod manifest;
 pub mod segment;
+pub mod shard;
 pub mod writer;
 
 pub use crate::descriptors::DescriptorSet;
@@ -82,7 +83,7 @@ impl Map {
         Err(Error::corrupt(dir, format!("segments listed by the manifest kept disappearing over {OPEN_ATTEMPTS} reads (deleted by hand, or compacted without pause)")))
     }
 
-    fn open_generation(dir: &Path, manifest: Manifest) -> Result<Map> {
+    pub(crate) fn open_generation(dir: &Path, manifest: Manifest) -> Result<Map> {
         let mpath = dir.join(manifest::MANIFEST);
         let cfg = &manifest.config;
         crate::config::Config::default().with_encoding(cfg).validate(&mpath.display().to_string())?;
@@ -100,6 +101,12 @@ impl Map {
             map.starts.push(map.len() + entry.live());
         }
         Ok(map)
+    }
+
+    /// The configuration queries of this map are encoded and matched with when none is given:
+    /// the map's encoding (appearance network included) and default matching parameters.
+    pub fn query_config(&self) -> crate::config::Config {
+        crate::config::Config::default().with_encoding(&self.manifest.config)
     }
 
     /// The VLAD codebook of the map's appearance vectors.

@@ -215,6 +215,10 @@ impl Mapped {
         let d = self.layout.dim;
         self.vals(&self.r.image_appearance).slice(j * d, (j + 1) * d)
     }
+    /// The whole-image appearance vectors of every row (removed ones included).
+    pub fn image_appearances(&self) -> Values<'_> {
+        self.vals(&self.r.image_appearance)
+    }
     pub fn image_hog(&self, j: usize) -> &[f32] {
         let h = self.layout.hog;
         &self.f32s(&self.r.image_hog)[j * h..(j + 1) * h]

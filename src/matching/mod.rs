@@ -181,69 +181,112 @@ pub fn try_match_batch(refs: &dyn RefSource, queries: &DescriptorSet, setting: S
 }
 
 /// Matches with the given stages: coarse top-K, fine re-ranking of the candidates (or fine
-/// top-K over the whole map for settings without a coarse stage), best first.
+/// top-K over the whole map for settings without a coarse stage), best first. The same three
+/// steps ([`candidates`], [`fine_scores`], [`rank`]) serve a map split into shards: each shard
+/// gives its candidates, [`ssim_topk::merge_lists`] keeps the global K, the owners score the pairs.
 pub fn match_with(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<QueryMatch>, MatchTimes)> {
-    let k = cfg.matching.top_k;
-    let list_len = k.max(cfg.eval.recall_at.iter().copied().max().unwrap_or(1));
-    let mut times = MatchTimes::default();
-    let params = TreeSimParams::new(&cfg.similarity, setting.uses_appearance(), refs.neighbour_slots());
-    if refs.is_empty() {
-        return Ok((vec![QueryMatch { ranked: vec![] }; queries.len()], times));
-    }
-    let ranked: Vec<Vec<Candidate>> = if setting.is_baseline() {
-        let t = Instant::now();
-        let lists = baseline::topk(refs, queries, setting, list_len, cfg.matching.tile)?;
-        times.coarse_ms = ms_since(t);
-        lists.iter().map(|l| l.iter().map(|&(s, r)| Candidate { reference: r, coarse: None, fine: None, score: s }).collect()).collect()
-    } else if setting.uses_coarse() {
-        let t = Instant::now();
-        let lists = stages.coarse(refs, queries, &SsimParams::new(&cfg.global), k, cfg.matching.tile)?;
-        times.coarse_ms = ms_since(t);
-        if setting.uses_fine() {
+    let (lists, mut times) = candidates(stages, refs, queries, setting, cfg)?;
+    let fine = match setting.uses_coarse() && setting.uses_fine() {
+        true => {
             let t = Instant::now();
-            let pairs: Vec<(u32, u32)> = lists.iter().enumerate().flat_map(|(q, l)| l.iter().map(move |&(_, r)| (q as u32, r))).collect();
-            let fine = stages.fine_pairs(&params, refs, queries, &pairs)?;
+            let f = fine_scores(stages, refs, queries, setting, cfg, &pairs_of(&lists))?;
             times.fine_ms = ms_since(t);
-            if fine.len() != pairs.len() {
-                return Err(Error::invalid("fine stage", format!("{} scores for {} pairs", fine.len(), pairs.len())));
-            }
-            let mut it = fine.into_iter();
-            lists
-                .iter()
-                .map(|l| {
-                    l.iter()
-                        .map(|&(s, r)| {
-                            // as many scores as pairs, checked above
-                            let f = it.next().unwrap_or(f32::NAN);
-                            let score = match cfg.matching.score {
-                                ScoreFusion::Fine => f,
-                                ScoreFusion::FineTimesGlobal => f * s,
-                            };
-                            Candidate { reference: r, coarse: Some(s), fine: Some(f), score }
-                        })
-                        .collect()
-                })
-                .collect()
-        } else {
-            lists.iter().map(|l| l.iter().map(|&(s, r)| Candidate { reference: r, coarse: Some(s), fine: None, score: s }).collect()).collect()
+            Some(f)
         }
-    } else {
-        let t = Instant::now();
-        let lists = stages.fine_topk(&params, refs, queries, list_len, cfg.matching.tile)?;
-        times.fine_ms = ms_since(t);
-        lists.iter().map(|l| l.iter().map(|&(s, r)| Candidate { reference: r, coarse: None, fine: Some(s), score: s }).collect()).collect()
+        false => None,
     };
+    Ok((rank(setting, &lists, fine.as_deref(), cfg.matching.score)?, times))
+}
+
+/// Length of the candidate lists of `setting`: K for the settings with a coarse stage, else the
+/// longest recall@N asked for (at least K), since those lists are the final ranking.
+pub fn list_len(setting: Setting, cfg: &Config) -> usize {
+    match setting.uses_coarse() {
+        true => cfg.matching.top_k,
+        false => cfg.matching.top_k.max(cfg.eval.recall_at.iter().copied().max().unwrap_or(1)),
+    }
+}
+
+/// Each query's candidates, best first, as (score, index in `refs`): the coarse K-list for the
+/// settings with a coarse stage, else the final list of the fine stage or baseline ([`list_len`]
+/// long). Fails if a segment of a stored map was damaged or the setting cannot run here.
+pub fn candidates(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<Vec<(f32, u32)>>, MatchTimes)> {
+    let mut times = MatchTimes::default();
+    if refs.is_empty() {
+        return Ok((vec![vec![]; queries.len()], times));
+    }
+    let t = Instant::now();
+    let len = list_len(setting, cfg);
+    let lists = if setting.is_baseline() {
+        baseline::topk(refs, queries, setting, len, cfg.matching.tile)?
+    } else if setting.uses_coarse() {
+        stages.coarse(refs, queries, &SsimParams::new(&cfg.global), len, cfg.matching.tile)?
+    } else {
+        let params = TreeSimParams::new(&cfg.similarity, setting.uses_appearance(), refs.neighbour_slots());
+        stages.fine_topk(&params, refs, queries, len, cfg.matching.tile)?
+    };
+    match setting.uses_coarse() || setting.is_baseline() {
+        true => times.coarse_ms = ms_since(t),
+        false => times.fine_ms = ms_since(t),
+    }
     // a stored map checks each segment on first read; one that failed was read as empty
     refs.check()?;
-    let results = ranked
-        .into_iter()
-        .map(|mut c| {
+    Ok((lists, times))
+}
+
+/// The (query, reference) pairs of candidate lists, in list order.
+pub fn pairs_of(lists: &[Vec<(f32, u32)>]) -> Vec<(u32, u32)> {
+    lists.iter().enumerate().flat_map(|(q, l)| l.iter().map(move |&(_, r)| (q as u32, r))).collect()
+}
+
+/// Tree-set similarity of each (query, reference index in `refs`) pair under `setting`.
+pub fn fine_scores(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config, pairs: &[(u32, u32)]) -> Result<Vec<f32>> {
+    if let Some(&(q, r)) = pairs.iter().find(|&&(q, r)| q as usize >= queries.len() || r as usize >= refs.len()) {
+        return Err(Error::invalid("fine stage", format!("pair ({q}, {r}) outside {} queries x {} references", queries.len(), refs.len())));
+    }
+    let params = TreeSimParams::new(&cfg.similarity, setting.uses_appearance(), refs.neighbour_slots());
+    let fine = stages.fine_pairs(&params, refs, queries, pairs)?;
+    if fine.len() != pairs.len() {
+        return Err(Error::invalid("fine stage", format!("{} scores for {} pairs", fine.len(), pairs.len())));
+    }
+    refs.check()?;
+    Ok(fine)
+}
+
+/// The final ranking from candidate lists and, for settings with both stages, the fine score of
+/// every candidate in list order (as [`pairs_of`] lists them): the score is the fine one (or fine
+/// x SSIM), best first, ties keeping the coarse order (stable sort).
+pub fn rank(setting: Setting, lists: &[Vec<(f32, u32)>], fine: Option<&[f32]>, fusion: ScoreFusion) -> Result<Vec<QueryMatch>> {
+    let total: usize = lists.iter().map(Vec::len).sum();
+    let two_stages = setting.uses_coarse() && setting.uses_fine();
+    match (two_stages, fine) {
+        (true, Some(f)) if f.len() == total => {}
+        (false, None) => {}
+        (true, got) => return Err(Error::invalid("ranking", format!("setting {setting} needs {total} fine scores, got {}", got.map_or(0, <[f32]>::len)))),
+        (false, Some(_)) => return Err(Error::invalid("ranking", format!("setting {setting} takes no fine scores for its candidates"))),
+    }
+    let mut fine = fine.unwrap_or(&[]).iter();
+    let candidate = |s: f32, r: u32, f: Option<f32>| match (setting.is_baseline(), setting.uses_coarse(), f) {
+        (true, _, _) => Candidate { reference: r, coarse: None, fine: None, score: s },
+        (_, true, None) => Candidate { reference: r, coarse: Some(s), fine: None, score: s },
+        (_, true, Some(f)) => {
+            let score = match fusion {
+                ScoreFusion::Fine => f,
+                ScoreFusion::FineTimesGlobal => f * s,
+            };
+            Candidate { reference: r, coarse: Some(s), fine: Some(f), score }
+        }
+        (_, false, _) => Candidate { reference: r, coarse: None, fine: Some(s), score: s },
+    };
+    Ok(lists
+        .iter()
+        .map(|l| {
+            let mut ranked: Vec<Candidate> = l.iter().map(|&(s, r)| candidate(s, r, if two_stages { fine.next().copied() } else { None })).collect();
             // best first; ties keep the coarse order (stable sort)
-            c.sort_by(|a, b| b.score.total_cmp(&a.score));
-            QueryMatch { ranked: c }
+            ranked.sort_by(|a, b| b.score.total_cmp(&a.score));
+            QueryMatch { ranked }
         })
-        .collect();
-    Ok((results, times))
+        .collect())
 }
 
 /// Coarse stage on the CPU: for each query, the `k` references of highest SSIM, streamed over

@@ -60,11 +60,18 @@ pub fn topk_merge_ref_major(tp: &TileParams, scores: &[f32], topk_scores: &mut [
     });
 }
 
-/// Folds the scores of references `tile_start, tile_start + 1, ...` into one K-list (best first):
-/// insertion of every score above the last kept one; equal scores keep the earlier reference.
+/// Folds the scores of references `tile_start, tile_start + 1, ...` into one K-list (best first).
 fn fold(tile_start: u32, scores: impl Iterator<Item = f32>, ts: &mut [f32], ti: &mut [u32]) {
+    fold_indexed(scores.enumerate().map(|(j, s)| (s, tile_start + j as u32)), ts, ti)
+}
+
+/// Folds (score, reference) pairs, in ascending reference order, into one K-list (best first):
+/// insertion of every score above the last kept one; equal scores keep the earlier reference;
+/// NaN is skipped. The list after a prefix is the K best of that prefix under (score descending,
+/// index ascending), which is what makes [`merge_lists`] exact.
+fn fold_indexed(items: impl Iterator<Item = (f32, u32)>, ts: &mut [f32], ti: &mut [u32]) {
     let k = ts.len();
-    for (j, s) in scores.enumerate() {
+    for (s, r) in items {
         if s <= ts[k - 1] || s.is_nan() {
             continue;
         }
@@ -75,8 +82,35 @@ fn fold(tile_start: u32, scores: impl Iterator<Item = f32>, ts: &mut [f32], ti: 
             pos -= 1;
         }
         ts[pos] = s;
-        ti[pos] = tile_start + j as u32;
+        ti[pos] = r;
     }
+}
+
+/// Merges per-part K-lists of the same queries (indices already in one global index space, each
+/// part's list holding the K best of its references) into the global K-lists: candidates sorted
+/// by index go through the same fold as one pass over the whole map, so the result is the one a
+/// single process computes, ties across parts included. Fails if the parts disagree on the
+/// number of queries, or a list holds one reference twice.
+pub fn merge_lists(parts: &[&[Vec<(f32, u32)>]], k: usize) -> Result<Vec<Vec<(f32, u32)>>, String> {
+    let nq = parts.first().map_or(0, |p| p.len());
+    if let Some(p) = parts.iter().find(|p| p.len() != nq) {
+        return Err(format!("parts hold {} and {nq} queries", p.len()));
+    }
+    if k == 0 {
+        return Ok(vec![vec![]; nq]);
+    }
+    (0..nq)
+        .map(|q| {
+            let mut all: Vec<(f32, u32)> = parts.iter().flat_map(|p| p[q].iter().copied()).collect();
+            all.sort_by_key(|&(_, r)| r);
+            if let Some(w) = all.windows(2).find(|w| w[0].1 == w[1].1) {
+                return Err(format!("reference {} is a candidate of query {q} twice", w[0].1));
+            }
+            let (mut ts, mut ti) = (vec![EMPTY_SCORE; k], vec![EMPTY_INDEX; k]);
+            fold_indexed(all.into_iter(), &mut ts, &mut ti);
+            Ok(topk_lists(k, &ts, &ti).remove(0))
+        })
+        .collect()
 }
 
 /// Reads K-lists back into (score, map index) lists, dropping empty slots.
@@ -112,6 +146,25 @@ mod tests {
             all.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
             all.truncate(k);
             prop_assert_eq!(topk_lists(k, &ts, &ti).remove(0), all);
+        }
+
+        /// Merging the K-lists of contiguous parts (any split, dense ties) equals one pass over
+        /// the whole list.
+        #[test]
+        fn merging_parts_equals_one_pass(scores in prop::collection::vec(0u8..20, 1..200), k in 1usize..15, cuts in prop::collection::vec(0usize..200, 0..6)) {
+            let n = scores.len();
+            let one_pass = |a: usize, b: usize| {
+                let (mut ts, mut ti) = (vec![EMPTY_SCORE; k], vec![EMPTY_INDEX; k]);
+                let tp = TileParams { queries: 1, tile_len: (b - a) as u32, tile_start: a as u32, k: k as u32 };
+                let block: Vec<f32> = scores[a..b].iter().map(|&s| s as f32).collect();
+                topk_merge(&tp, &block, &mut ts, &mut ti);
+                topk_lists(k, &ts, &ti)
+            };
+            let mut bounds: Vec<usize> = cuts.into_iter().map(|c| c % (n + 1)).chain([0, n]).collect();
+            bounds.sort();
+            let parts: Vec<Vec<Vec<(f32, u32)>>> = bounds.windows(2).map(|w| one_pass(w[0], w[1])).collect();
+            let refs: Vec<&[Vec<(f32, u32)>]> = parts.iter().map(|p| p.as_slice()).collect();
+            prop_assert_eq!(merge_lists(&refs, k).unwrap(), one_pass(0, n));
         }
     }
 }

@@ -1,0 +1,64 @@
+"""semlook: SemLook visual place recognition (semantic edge + forest descriptors).
+
+Encode frames to ``Descriptors``, build and grow a ``Map`` (memory-mapped segments), query it,
+evaluate datasets; ``semlook.distributed`` matches against a map sharded over Ray actors with
+exactly the results of one process.
+
+    import semlook
+    enc = semlook.Encoder(semlook.Config.without_appearance())
+    refs = enc.encode_files(ids, labels=label_paths)
+    m = semlook.Map.create("my-map", refs, enc)
+    matches = m.query(semlook.Encoder.for_map(m).encode_files(qids, labels=qpaths))
+    matches.references, matches.scores, matches.ids(0)
+
+Processes: heavy calls release the GIL and run on rayon threads. Do not fork a process that has
+used semlook (``multiprocessing``'s default on Linux): use the 'spawn' start method (Ray does).
+
+Model files (XFeat weights, ONNX Runtime, segmenter) are looked up at run time: the
+``SEMLOOK_MODELS`` folder, else the repository's ``.semlook`` folder for a development install.
+"""
+
+import os as _os
+from pathlib import Path as _Path
+
+_repo_models = _Path(__file__).resolve().parents[2] / ".semlook"
+if "SEMLOOK_MODELS" not in _os.environ and _repo_models.is_dir():
+    _os.environ["SEMLOOK_MODELS"] = str(_repo_models)
+
+from ._native import (  # noqa: E402
+    Config,
+    CorruptMapError,
+    DatasetError,
+    Descriptors,
+    DuplicateImageIdError,
+    Encoder,
+    GpuError,
+    IncompatibleConfigError,
+    InputFileError,
+    InvalidConfigError,
+    InvalidImageError,
+    InvalidInputError,
+    Map,
+    MapVersionError,
+    Matches,
+    ModelError,
+    SemlookError,
+    Shard,
+    __version__,
+    evaluate,
+    list_len,
+    merge_candidates,
+    plan_shards,
+    rank,
+    settings,
+)
+
+SETTINGS = tuple(settings())
+
+__all__ = [
+    "Config", "Descriptors", "Encoder", "Map", "Matches", "Shard", "evaluate", "list_len",
+    "merge_candidates", "plan_shards", "rank", "settings", "SETTINGS", "__version__",
+    "SemlookError", "CorruptMapError", "DatasetError", "DuplicateImageIdError", "GpuError",
+    "IncompatibleConfigError", "InputFileError", "InvalidConfigError", "InvalidImageError",
+    "InvalidInputError", "MapVersionError", "ModelError",
+]

@@ -1,0 +1,213 @@
+//! `Descriptors`: an immutable batch of encoded images (a `DescriptorSet`), with read-only numpy
+//! views of its columns (no copies), conversion to and from plain arrays, and pickling (so Ray
+//! can ship query batches).
+
+use crate::arrays::view;
+use crate::errors::invalid;
+use numpy::{Element, PyReadonlyArrayDyn, PyUntypedArrayMethods};
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList};
+use semlook::descriptors::DescriptorSet;
+use semlook::values::ValueType;
+use std::sync::Arc;
+
+/// Encoded images: global descriptors, forests of trees, appearance vectors. Immutable; numpy
+/// properties are read-only views that keep the batch alive.
+#[pyclass(frozen, module = "semlook._native", name = "Descriptors")]
+pub struct PyDescriptors {
+    pub inner: Arc<DescriptorSet>,
+}
+
+impl PyDescriptors {
+    pub fn new(set: DescriptorSet) -> Self {
+        PyDescriptors { inner: Arc::new(set) }
+    }
+}
+
+/// Every column as (name, shape) of a set.
+fn columns(d: &DescriptorSet) -> Vec<(&'static str, Vec<usize>)> {
+    let (n, t) = (d.len(), d.n_trees());
+    vec![
+        ("sizes", vec![n, 2]),
+        ("globals", vec![n, d.global_len]),
+        ("global_stats", vec![n, d.stats_len]),
+        ("forest_offsets", vec![n + 1]),
+        ("tree_classes", vec![t]),
+        ("tree_areas", vec![t]),
+        ("tree_centroids", vec![t, 2]),
+        ("tree_neighbours", vec![t, d.neighbour_slots]),
+        ("tree_appearance", vec![t, d.appearance_dim]),
+        ("tree_has_appearance", vec![t]),
+        ("tree_descriptors", vec![t]),
+        ("image_appearance", vec![n, d.appearance_dim]),
+        ("image_hog", vec![n, d.hog_dim]),
+    ]
+}
+
+fn column_view<'py>(owner: Bound<'py, PyAny>, d: &DescriptorSet, name: &str, shape: &[usize]) -> PyResult<Bound<'py, PyAny>> {
+    Ok(match name {
+        "sizes" => view(owner, bytemuck_u32(&d.sizes), shape)?.into_any(),
+        "globals" => view(owner, &d.globals, shape)?.into_any(),
+        "global_stats" => view(owner, &d.global_stats, shape)?.into_any(),
+        "forest_offsets" => view(owner, &d.forest_offsets, shape)?.into_any(),
+        "tree_classes" => view(owner, &d.tree_classes, shape)?.into_any(),
+        "tree_areas" => view(owner, &d.tree_areas, shape)?.into_any(),
+        "tree_centroids" => view(owner, &d.tree_centroids, shape)?.into_any(),
+        "tree_neighbours" => view(owner, &d.tree_neighbours, shape)?.into_any(),
+        "tree_appearance" => view(owner, &d.tree_appearance, shape)?.into_any(),
+        "tree_has_appearance" => view(owner, &d.tree_has_appearance, shape)?.into_any(),
+        "tree_descriptors" => view(owner, &d.tree_descriptors, shape)?.into_any(),
+        "image_appearance" => view(owner, &d.image_appearance, shape)?.into_any(),
+        "image_hog" => view(owner, &d.image_hog, shape)?.into_any(),
+        _ => return Err(invalid("descriptor column", format!("no column {name:?}"))),
+    })
+}
+
+fn bytemuck_u32(sizes: &[[u32; 2]]) -> &[u32] {
+    sizes.as_flattened()
+}
+
+/// A column from a dict of arrays, copied, its shape checked.
+fn take_column<T: Element + Copy>(d: &Bound<'_, PyDict>, name: &str, shape: &[usize]) -> PyResult<Vec<T>> {
+    let a = d.get_item(name)?.ok_or_else(|| invalid("descriptor arrays", format!("no {name:?}")))?;
+    let a: PyReadonlyArrayDyn<T> = a.extract().map_err(|e| invalid(&format!("descriptor arrays[{name:?}]"), format!("wrong dtype or not an array: {e}")))?;
+    if a.shape() != shape {
+        return Err(invalid(&format!("descriptor arrays[{name:?}]"), format!("shape {:?}, the layout needs {shape:?}", a.shape())));
+    }
+    Ok(a.as_array().iter().copied().collect())
+}
+
+fn dim(d: &Bound<'_, PyDict>, name: &str) -> PyResult<usize> {
+    d.get_item(name)?.ok_or_else(|| invalid("descriptor arrays", format!("no {name:?}")))?.extract().map_err(|e| invalid(&format!("descriptor arrays[{name:?}]"), e))
+}
+
+#[pymethods]
+impl PyDescriptors {
+    fn __len__(&self) -> usize {
+        self.inner.len()
+    }
+    fn __repr__(&self) -> String {
+        let d = &self.inner;
+        format!("Descriptors({} images, {} trees, global {}, appearance {}, hog {})", d.len(), d.n_trees(), d.global_len, d.appearance_dim, d.hog_dim)
+    }
+    /// Image ids, in order.
+    #[getter]
+    fn ids(&self) -> Vec<String> {
+        self.inner.ids.clone()
+    }
+    #[getter]
+    fn n_trees(&self) -> usize {
+        self.inner.n_trees()
+    }
+    #[getter]
+    fn appearance_dim(&self) -> usize {
+        self.inner.appearance_dim
+    }
+    /// A read-only view of one column (see `columns()`), no copy.
+    fn column<'py>(slf: Bound<'py, Self>, name: &str) -> PyResult<Bound<'py, PyAny>> {
+        let d = slf.get().inner.clone();
+        let shape = columns(&d).into_iter().find(|(n, _)| *n == name).map(|(_, s)| s).ok_or_else(|| invalid("descriptor column", format!("no column {name:?}")))?;
+        column_view(slf.into_any(), &d, name, &shape)
+    }
+    /// Names of the columns, in the order `to_arrays` lists them.
+    #[staticmethod]
+    fn columns() -> Vec<&'static str> {
+        columns(&DescriptorSet::for_storage(0, 0, 0, 0)).into_iter().map(|(n, _)| n).collect()
+    }
+    /// Global descriptors, float32 [images, global_len] (read-only view).
+    #[getter]
+    fn globals<'py>(slf: Bound<'py, Self>) -> PyResult<Bound<'py, PyAny>> {
+        Self::column(slf, "globals")
+    }
+    /// Whole-image appearance vectors, float32 [images, appearance_dim] (read-only view).
+    #[getter]
+    fn image_appearance<'py>(slf: Bound<'py, Self>) -> PyResult<Bound<'py, PyAny>> {
+        Self::column(slf, "image_appearance")
+    }
+    /// Every column as a read-only view, with `ids` and the layout's dimensions: what
+    /// `from_arrays` takes back (and what pickling stores).
+    fn to_arrays<'py>(slf: Bound<'py, Self>) -> PyResult<Bound<'py, PyDict>> {
+        let py = slf.py();
+        let d = slf.get().inner.clone();
+        let out = PyDict::new(py);
+        out.set_item("ids", PyList::new(py, &d.ids)?)?;
+        for (k, v) in [("global_len", d.global_len), ("stats_len", d.stats_len), ("neighbour_slots", d.neighbour_slots), ("appearance_dim", d.appearance_dim), ("hog_dim", d.hog_dim)] {
+            out.set_item(k, v)?;
+        }
+        for (name, shape) in columns(&d) {
+            out.set_item(name, column_view(slf.clone().into_any(), &d, name, &shape)?)?;
+        }
+        Ok(out)
+    }
+    /// A batch from `to_arrays`-style arrays (copied); every length and every value is checked
+    /// (NaN, ranges, forest offsets), so bad arrays raise instead of reaching the engine.
+    #[staticmethod]
+    fn from_arrays(d: &Bound<'_, PyDict>) -> PyResult<PyDescriptors> {
+        let ids: Vec<String> = d.get_item("ids")?.ok_or_else(|| invalid("descriptor arrays", "no \"ids\""))?.extract()?;
+        let (g, sl, s, a, h) = (dim(d, "global_len")?, dim(d, "stats_len")?, dim(d, "neighbour_slots")?, dim(d, "appearance_dim")?, dim(d, "hog_dim")?);
+        let n = ids.len();
+        let offsets: Vec<u32> = take_column(d, "forest_offsets", &[n + 1])?;
+        let t = offsets.last().copied().unwrap_or(0) as usize;
+        let sizes: Vec<u32> = take_column(d, "sizes", &[n, 2])?;
+        let set = DescriptorSet {
+            ids,
+            sizes: sizes.chunks(2).map(|c| [c[0], c[1]]).collect(),
+            global_len: g,
+            stats_len: sl,
+            globals: take_column(d, "globals", &[n, g])?,
+            global_stats: take_column(d, "global_stats", &[n, sl])?,
+            forest_offsets: offsets,
+            tree_classes: take_column(d, "tree_classes", &[t])?,
+            tree_areas: take_column(d, "tree_areas", &[t])?,
+            tree_centroids: take_column(d, "tree_centroids", &[t, 2])?,
+            neighbour_slots: s,
+            tree_neighbours: take_column(d, "tree_neighbours", &[t, s])?,
+            appearance_dim: a,
+            tree_appearance: take_column(d, "tree_appearance", &[t, a])?,
+            tree_has_appearance: take_column(d, "tree_has_appearance", &[t])?,
+            tree_descriptors: take_column(d, "tree_descriptors", &[t])?,
+            image_appearance: take_column(d, "image_appearance", &[n, a])?,
+            hog_dim: h,
+            image_hog: take_column(d, "image_hog", &[n, h])?,
+        };
+        set.check_layout().map_err(|r| invalid("descriptor arrays", r))?;
+        if set.global_stats.iter().any(|v| !v.is_finite()) {
+            return Err(invalid("descriptor arrays", "global_stats hold NaN or infinity"));
+        }
+        for i in 0..set.len() {
+            set.check_image(i, 256, ValueType::F32).map_err(|r| invalid("descriptor arrays", format!("image {:?}: {r}", set.ids[i])))?;
+        }
+        Ok(PyDescriptors::new(set))
+    }
+    /// The images at `indices`, in that order, as a new batch.
+    fn take(&self, indices: Vec<usize>) -> PyResult<PyDescriptors> {
+        let d = &self.inner;
+        let mut out = d.empty_like();
+        for &i in &indices {
+            if i >= d.len() {
+                return Err(invalid("take", format!("index {i} of a batch of {}", d.len())));
+            }
+            out.append_range(d, i, i + 1);
+        }
+        Ok(PyDescriptors::new(out))
+    }
+    /// One batch of several (same layout).
+    #[staticmethod]
+    fn concat(parts: Vec<PyRef<'_, PyDescriptors>>) -> PyResult<PyDescriptors> {
+        let first = parts.first().ok_or_else(|| invalid("concat", "no batches given"))?;
+        let mut out = first.inner.empty_like();
+        for p in &parts {
+            let d = &p.inner;
+            if (d.global_len, d.stats_len, d.neighbour_slots, d.appearance_dim, d.hog_dim) != (out.global_len, out.stats_len, out.neighbour_slots, out.appearance_dim, out.hog_dim) {
+                return Err(invalid("concat", "batches of different layouts (encoded with different configs)"));
+            }
+            out.append(d);
+        }
+        Ok(PyDescriptors::new(out))
+    }
+    fn __reduce__<'py>(slf: Bound<'py, Self>) -> PyResult<(Bound<'py, PyAny>, (Bound<'py, PyDict>,))> {
+        let py = slf.py();
+        let rebuild = py.import("semlook._pickle")?.getattr("rebuild_descriptors")?;
+        Ok((rebuild, (Self::to_arrays(slf)?,)))
+    }
+}

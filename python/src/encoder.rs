@@ -1,0 +1,201 @@
+//! `Config` and `Encoder`: a configuration (TOML, the CLI's format) and the encoder of frames
+//! (from files, or from numpy arrays) into `Descriptors`.
+
+use crate::arrays::{detached, pool};
+use crate::descriptors::PyDescriptors;
+use crate::errors::{invalid, OrPy};
+use crate::map::PyMap;
+use numpy::{PyReadonlyArrayDyn, PyUntypedArrayMethods};
+use pyo3::prelude::*;
+use semlook::config::Config;
+use semlook::encode::{collect_encoded, Encoder};
+use semlook::input::{self, FrameSource, LabelFormat};
+use std::path::PathBuf;
+
+/// A semlook configuration (the TOML of `semlook --config`; missing keys take the defaults).
+#[pyclass(frozen, module = "semlook._native", name = "Config")]
+#[derive(Clone)]
+pub struct PyConfig {
+    pub inner: Config,
+}
+
+#[pymethods]
+impl PyConfig {
+    /// The defaults (XFeat appearance on), or the TOML given; values are checked.
+    #[new]
+    #[pyo3(signature = (toml=None))]
+    fn new(toml: Option<&str>) -> PyResult<Self> {
+        let inner = match toml {
+            Some(t) => Config::from_toml(t, "Config(toml)").py_err()?,
+            None => Config::default(),
+        };
+        Ok(PyConfig { inner })
+    }
+    /// The defaults with appearance off: label maps alone suffice to encode.
+    #[staticmethod]
+    fn without_appearance() -> Self {
+        PyConfig { inner: Config::without_appearance() }
+    }
+    /// What `semlook query` uses on this map without --config: the map's encoding, default matching.
+    #[staticmethod]
+    fn for_map(map: &PyMap) -> Self {
+        PyConfig { inner: map.inner.query_config() }
+    }
+    fn to_toml(&self) -> PyResult<String> {
+        self.inner.to_toml().py_err()
+    }
+    /// Candidates the coarse stage keeps per query (K).
+    #[getter]
+    fn top_k(&self) -> usize {
+        self.inner.matching.top_k
+    }
+    /// How the final score combines the stages: "fine" or "fine_times_global".
+    #[getter]
+    fn score_fusion(&self) -> &'static str {
+        match self.inner.matching.score {
+            semlook::config::ScoreFusion::Fine => "fine",
+            semlook::config::ScoreFusion::FineTimesGlobal => "fine_times_global",
+        }
+    }
+    /// A copy with K candidates per query.
+    fn with_top_k(&self, k: usize) -> PyResult<Self> {
+        let mut inner = self.inner.clone();
+        inner.matching.top_k = k;
+        inner.validate("with_top_k").py_err()?;
+        Ok(PyConfig { inner })
+    }
+    fn __repr__(&self) -> String {
+        format!("Config(appearance {:?}, top_k {})", self.inner.appearance.model, self.inner.matching.top_k)
+    }
+}
+
+fn label_format(name: &str) -> PyResult<LabelFormat> {
+    match name {
+        "auto" => Ok(LabelFormat::Auto),
+        "first-channel" => Ok(LabelFormat::FirstChannel),
+        "palette" => Ok(LabelFormat::Palette),
+        _ => Err(invalid("label_format", format!("{name:?} is not auto, first-channel or palette"))),
+    }
+}
+
+/// Encodes frames with one configuration (and, with appearance, its keypoint network and VLAD
+/// codebook). Immutable: `train_codebook` returns a new encoder.
+#[pyclass(frozen, module = "semlook._native", name = "Encoder")]
+pub struct PyEncoder {
+    inner: Encoder,
+}
+
+#[pymethods]
+impl PyEncoder {
+    /// An encoder for `config` (default: the defaults, which need the XFeat weights; see
+    /// `SEMLOOK_MODELS`). With appearance, train a codebook before encoding.
+    #[new]
+    #[pyo3(signature = (config=None))]
+    fn new(py: Python<'_>, config: Option<PyRef<'_, PyConfig>>) -> PyResult<Self> {
+        let cfg = config.map_or_else(Config::default, |c| c.inner.clone());
+        Ok(PyEncoder { inner: py.detach(|| Encoder::new(&cfg)).py_err()? })
+    }
+    /// The encoder a map's queries need: its config (or `config`, checked against the map),
+    /// keypoint network and codebook.
+    #[staticmethod]
+    #[pyo3(signature = (map, config=None))]
+    fn for_map(py: Python<'_>, map: &PyMap, config: Option<PyRef<'_, PyConfig>>) -> PyResult<Self> {
+        let cfg = config.map_or_else(|| map.inner.query_config(), |c| c.inner.clone());
+        let m = map.inner.clone();
+        Ok(PyEncoder { inner: py.detach(|| Encoder::for_map(&cfg, &m)).py_err()? })
+    }
+    /// Values per appearance vector (0 without appearance).
+    #[getter]
+    fn appearance_dim(&self) -> usize {
+        self.inner.appearance_dim()
+    }
+    /// A copy of this encoder with a VLAD codebook trained on these frames (files, as in
+    /// `encode_files`); without appearance, the same encoder.
+    #[pyo3(signature = (ids, images, labels=None, threads=None))]
+    fn train_codebook(&self, py: Python<'_>, ids: Vec<String>, images: Vec<PathBuf>, labels: Option<Vec<PathBuf>>, threads: Option<usize>) -> PyResult<Self> {
+        let frames = frames(ids, Some(images), labels)?;
+        let mut enc = self.inner.clone();
+        detached(py, pool(threads)?, || semlook::batch::train_codebook(&mut enc, &frames, true)).py_err()?;
+        Ok(PyEncoder { inner: enc })
+    }
+    /// Encodes frames from files: `images` (RGB; needed with appearance or a segmenter) and/or
+    /// `labels` (label maps), one per id, in parallel. With `skip_invalid`, frames that fail are
+    /// left out (else the first failure raises, naming the file).
+    #[pyo3(signature = (ids, images=None, labels=None, label_format="auto", skip_invalid=false, threads=None))]
+    fn encode_files(&self, py: Python<'_>, ids: Vec<String>, images: Option<Vec<PathBuf>>, labels: Option<Vec<PathBuf>>, label_format: &str, skip_invalid: bool, threads: Option<usize>) -> PyResult<PyDescriptors> {
+        let frames = frames(ids, images, labels)?;
+        let fmt = self::label_format(label_format)?;
+        let enc = &self.inner;
+        let set = detached(py, pool(threads)?, || -> semlook::Result<_> {
+            let (images, _, _) = collect_encoded(enc.encode_all(&frames, fmt, &|| {}), skip_invalid)?;
+            let mut set = enc.descriptor_set();
+            for img in &images {
+                set.push(img).map_err(|r| semlook::Error::invalid(format!("image {:?}", img.id), r))?;
+            }
+            Ok(set)
+        })
+        .py_err()?;
+        Ok(PyDescriptors::new(set))
+    }
+    /// Encodes one frame from memory: `image` uint8 [H, W, 3] (RGB) and/or `labels` [H, W] of
+    /// label ids (any integer type; translated by the config's class table like a grey PNG).
+    #[pyo3(signature = (id, image=None, labels=None))]
+    fn encode(&self, py: Python<'_>, id: String, image: Option<PyReadonlyArrayDyn<'_, u8>>, labels: Option<&Bound<'_, PyAny>>) -> PyResult<PyDescriptors> {
+        let name = PathBuf::from(format!("{id} (labels array)"));
+        let rgb = match image {
+            Some(a) => {
+                let s = a.shape();
+                if s.len() != 3 || s[2] != 3 || s[0] == 0 || s[1] == 0 || s[0] > 1 << 15 || s[1] > 1 << 15 {
+                    return Err(invalid(&format!("image of {id:?}"), format!("shape {s:?}, expected [H, W, 3] uint8 (H, W at most 32768)")));
+                }
+                let (h, w) = (s[0] as u32, s[1] as u32);
+                let pixels: Vec<u8> = a.as_array().iter().copied().collect();
+                Some(image::RgbImage::from_raw(w, h, pixels).ok_or_else(|| invalid(&format!("image of {id:?}"), "size"))?)
+            }
+            None => None,
+        };
+        let labels = match labels {
+            Some(l) => {
+                let ids: PyReadonlyArrayDyn<'_, i64> = l
+                    .call_method1("astype", ("int64",))?
+                    .extract()
+                    .map_err(|e| invalid(&format!("labels of {id:?}"), format!("not an integer array: {e}")))?;
+                let s = ids.shape().to_vec();
+                if s.len() != 2 {
+                    return Err(invalid(&format!("labels of {id:?}"), format!("shape {s:?}, expected [H, W]")));
+                }
+                let v: Vec<u32> = ids.as_array().iter().map(|&x| u32::try_from(x).unwrap_or(u32::MAX)).collect();
+                Some(input::label_map_from_ids(s[1] as u32, s[0] as u32, &v, &name, self.inner.class_table()).py_err()?)
+            }
+            None => None,
+        };
+        let enc = &self.inner;
+        let set = py
+            .detach(|| -> semlook::Result<_> {
+                let loaded = enc.load_arrays(&id, rgb, labels)?;
+                let (img, _) = enc.encode_loaded(&id, &loaded, &mut Default::default())?;
+                let mut set = enc.descriptor_set();
+                set.push(&img).map_err(|r| semlook::Error::invalid(format!("image {id:?}"), r))?;
+                Ok(set)
+            })
+            .py_err()?;
+        Ok(PyDescriptors::new(set))
+    }
+}
+
+impl PyEncoder {
+    pub fn inner(&self) -> &Encoder {
+        &self.inner
+    }
+}
+
+/// Frame sources from parallel lists of ids, image paths and label paths.
+fn frames(ids: Vec<String>, images: Option<Vec<PathBuf>>, labels: Option<Vec<PathBuf>>) -> PyResult<Vec<FrameSource>> {
+    for (what, list) in [("images", &images), ("labels", &labels)] {
+        if let Some(l) = list.as_ref().filter(|l| l.len() != ids.len()) {
+            return Err(invalid(what, format!("{} paths for {} ids", l.len(), ids.len())));
+        }
+    }
+    let at = |l: &Option<Vec<PathBuf>>, i: usize| l.as_ref().map(|v| v[i].clone());
+    Ok(ids.into_iter().enumerate().map(|(i, id)| FrameSource { id, image: at(&images, i), labels: at(&labels, i) }).collect())
+}

@@ -1,0 +1,33 @@
+//! `semlook._native`: the Python bindings of semlook (pyo3, abi3). Heavy calls release the GIL
+//! and run on a rayon pool (`threads=`); errors arrive as exceptions of the `SemlookError`
+//! family carrying the engine's message. The Python package `semlook` (python/semlook/) wraps
+//! this module and adds the Ray driver.
+
+mod arrays;
+mod descriptors;
+mod encoder;
+mod errors;
+mod map;
+mod matches;
+mod shard;
+
+use pyo3::prelude::*;
+
+#[pymodule]
+fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    errors::register(m)?;
+    m.add_class::<encoder::PyConfig>()?;
+    m.add_class::<encoder::PyEncoder>()?;
+    m.add_class::<descriptors::PyDescriptors>()?;
+    m.add_class::<map::PyMap>()?;
+    m.add_class::<matches::PyMatches>()?;
+    m.add_class::<shard::PyShard>()?;
+    m.add_function(wrap_pyfunction!(map::evaluate, m)?)?;
+    m.add_function(wrap_pyfunction!(shard::plan_shards, m)?)?;
+    m.add_function(wrap_pyfunction!(shard::merge_candidates, m)?)?;
+    m.add_function(wrap_pyfunction!(shard::rank, m)?)?;
+    m.add_function(wrap_pyfunction!(shard::list_len, m)?)?;
+    m.add_function(wrap_pyfunction!(shard::settings, m)?)?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}

@@ -1,0 +1,107 @@
+//! `Matches`: the ranked references of a batch of queries, as padded numpy arrays and as lists.
+
+use numpy::ndarray::Array2;
+use numpy::{IntoPyArray, PyArray1, PyArray2};
+use pyo3::prelude::*;
+use semlook::matching::{QueryMatch, Setting};
+
+/// Ranked references per query, best first. Arrays are [queries, longest list], padded with -1
+/// (references) and NaN (scores); `counts` says how many entries of each row are real.
+#[pyclass(frozen, module = "semlook._native", name = "Matches")]
+pub struct PyMatches {
+    setting: Setting,
+    queries: Vec<String>,
+    ranked: Vec<QueryMatch>,
+    ids: Vec<Vec<String>>,
+}
+
+impl PyMatches {
+    /// Matches with the id of every ranked reference from `id_of`.
+    pub fn new(setting: Setting, queries: &[String], ranked: Vec<QueryMatch>, id_of: impl Fn(u32) -> String) -> Self {
+        let ids = ranked.iter().map(|q| q.ranked.iter().map(|c| id_of(c.reference)).collect()).collect();
+        PyMatches { setting, queries: queries.to_vec(), ranked, ids }
+    }
+    fn width(&self) -> usize {
+        self.ranked.iter().map(|q| q.ranked.len()).max().unwrap_or(0)
+    }
+    fn padded<T: Copy>(&self, pad: T, f: impl Fn(&semlook::matching::Candidate) -> T) -> Array2<T> {
+        let w = self.width();
+        let mut a = Array2::from_elem((self.ranked.len(), w), pad);
+        for (q, m) in self.ranked.iter().enumerate() {
+            for (j, c) in m.ranked.iter().enumerate() {
+                a[(q, j)] = f(c);
+            }
+        }
+        a
+    }
+}
+
+#[pymethods]
+impl PyMatches {
+    fn __len__(&self) -> usize {
+        self.ranked.len()
+    }
+    fn __repr__(&self) -> String {
+        format!("Matches({} queries, setting {}, up to {} each)", self.ranked.len(), self.setting, self.width())
+    }
+    #[getter]
+    fn setting(&self) -> &'static str {
+        self.setting.name()
+    }
+    /// Query ids, in order.
+    #[getter]
+    fn queries(&self) -> Vec<String> {
+        self.queries.clone()
+    }
+    /// Map indices of the ranked references, int64 [queries, L] (-1 padding).
+    #[getter]
+    fn references<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<i64>> {
+        self.padded(-1, |c| c.reference as i64).into_pyarray(py)
+    }
+    /// Ranking scores, float32 [queries, L] (NaN padding).
+    #[getter]
+    fn scores<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f32>> {
+        self.padded(f32::NAN, |c| c.score).into_pyarray(py)
+    }
+    /// SSIM of the global descriptors (NaN where the coarse stage did not run).
+    #[getter]
+    fn coarse<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f32>> {
+        self.padded(f32::NAN, |c| c.coarse.unwrap_or(f32::NAN)).into_pyarray(py)
+    }
+    /// Tree-set similarity (NaN where the fine stage did not run).
+    #[getter]
+    fn fine<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f32>> {
+        self.padded(f32::NAN, |c| c.fine.unwrap_or(f32::NAN)).into_pyarray(py)
+    }
+    /// Entries per query, int32 [queries].
+    #[getter]
+    fn counts<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<i32>> {
+        self.ranked.iter().map(|q| q.ranked.len() as i32).collect::<Vec<_>>().into_pyarray(py)
+    }
+    /// Ids of the ranked references of query `q`.
+    fn ids(&self, q: usize) -> PyResult<Vec<String>> {
+        self.ids.get(q).cloned().ok_or_else(|| crate::errors::invalid("query", format!("{q} of {} queries", self.ids.len())))
+    }
+    /// Per query a dict {query, top_k: [{reference, score, coarse, fine}]}: the shape of
+    /// `semlook query --json`'s "queries".
+    fn to_list<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let rows: Vec<serde_json::Value> = self
+            .ranked
+            .iter()
+            .zip(&self.ids)
+            .zip(&self.queries)
+            .map(|((m, ids), q)| {
+                let top: Vec<serde_json::Value> = m.ranked.iter().zip(ids).map(|(c, id)| serde_json::json!({"reference": id, "index": c.reference, "score": c.score, "coarse": c.coarse, "fine": c.fine})).collect();
+                serde_json::json!({"query": q, "top_k": top})
+            })
+            .collect();
+        crate::map::to_py_object(py, &rows)
+    }
+    /// Whether `other` ranks the same references with the same ids and bit-identical scores.
+    fn equals(&self, other: &PyMatches) -> bool {
+        let bits = |m: &PyMatches| -> Vec<Vec<(u32, u32, Option<u32>, Option<u32>)>> {
+            m.ranked.iter().map(|q| q.ranked.iter().map(|c| (c.reference, c.score.to_bits(), c.coarse.map(f32::to_bits), c.fine.map(f32::to_bits))).collect()).collect()
+        };
+        self.setting == other.setting && self.queries == other.queries && self.ids == other.ids && bits(self) == bits(other)
+    }
+}

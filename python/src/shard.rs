@@ -1,0 +1,170 @@
+//! Sharded matching: `Shard` opens a range of a map's segments (what one Ray actor serves) and
+//! gives candidate lists in the whole map's index space and fine scores for pairs it owns;
+//! `merge_candidates` and `rank` are what the driver runs. Candidate lists travel as padded
+//! arrays: scores float32 [Q, L], references int64 [Q, L] (-1 padding), counts int32 [Q].
+
+use crate::arrays::{detached, fusion, pool, setting};
+use crate::descriptors::PyDescriptors;
+use crate::encoder::PyConfig;
+use crate::errors::{invalid, OrPy};
+use crate::map::{query_config, to_py_object};
+use crate::matches::PyMatches;
+use numpy::ndarray::Array2;
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
+use pyo3::prelude::*;
+use rayon::ThreadPool;
+use semlook::config::Config;
+use semlook::map::{shard, Map};
+use semlook::matching::ssim_topk::merge_lists;
+use semlook::matching::{self, source::RefSource, CpuStages};
+use std::path::PathBuf;
+use std::sync::Arc;
+
+type Lists = Vec<Vec<(f32, u32)>>;
+type ListArrays<'py> = (Bound<'py, PyArray2<f32>>, Bound<'py, PyArray2<i64>>, Bound<'py, PyArray1<i32>>);
+
+fn to_arrays<'py>(py: Python<'py>, lists: &Lists, width: usize) -> ListArrays<'py> {
+    let mut s = Array2::from_elem((lists.len(), width), f32::NAN);
+    let mut r = Array2::from_elem((lists.len(), width), -1i64);
+    for (q, l) in lists.iter().enumerate() {
+        for (j, &(score, i)) in l.iter().enumerate().take(width) {
+            s[(q, j)] = score;
+            r[(q, j)] = i as i64;
+        }
+    }
+    let counts: Vec<i32> = lists.iter().map(|l| l.len().min(width) as i32).collect();
+    (s.into_pyarray(py), r.into_pyarray(py), counts.into_pyarray(py))
+}
+
+fn from_arrays(scores: &PyReadonlyArray2<'_, f32>, refs: &PyReadonlyArray2<'_, i64>, counts: &PyReadonlyArray1<'_, i32>) -> PyResult<Lists> {
+    let (s, r, c) = (scores.as_array(), refs.as_array(), counts.as_array());
+    if s.shape() != r.shape() || c.len() != s.shape()[0] {
+        return Err(invalid("candidate arrays", format!("scores {:?}, references {:?}, counts {:?} disagree", s.shape(), r.shape(), c.shape())));
+    }
+    (0..c.len())
+        .map(|q| {
+            let n = usize::try_from(c[q]).ok().filter(|&n| n <= s.shape()[1]).ok_or_else(|| invalid("candidate arrays", format!("count {} of query {q}", c[q])))?;
+            (0..n).map(|j| u32::try_from(r[(q, j)]).map(|i| (s[(q, j)], i)).map_err(|_| invalid("candidate arrays", format!("reference {} of query {q}", r[(q, j)])))).collect()
+        })
+        .collect()
+}
+
+/// One shard of a map: the segments `seg_start..seg_end` opened alone (memory-mapped). Methods
+/// run on a pool of `threads` threads of its own (rayon ignores Ray's CPU limits).
+#[pyclass(frozen, module = "semlook._native", name = "Shard")]
+pub struct PyShard {
+    map: Arc<Map>,
+    spec: shard::ShardSpec,
+    cfg: Config,
+    pool: Option<Arc<ThreadPool>>,
+}
+
+#[pymethods]
+impl PyShard {
+    /// Opens the shard; with `generation`, fails if the map changed since it was planned.
+    /// `config_toml` as `Config(toml)` (default: the map's), `k` candidates per query.
+    #[new]
+    #[pyo3(signature = (map_dir, seg_start, seg_end, generation=None, config_toml=None, k=None, threads=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(py: Python<'_>, map_dir: PathBuf, seg_start: usize, seg_end: usize, generation: Option<u64>, config_toml: Option<&str>, k: Option<usize>, threads: Option<usize>) -> PyResult<Self> {
+        let (map, spec) = py.detach(|| Map::open_range(&map_dir, seg_start..seg_end, generation)).py_err()?;
+        let config = config_toml.map(|t| Config::from_toml(t, "config_toml")).transpose().py_err()?;
+        let cfg = query_config(&map, config, k)?;
+        Ok(PyShard { map: Arc::new(map), spec, cfg, pool: pool(threads)? })
+    }
+    /// Each query's candidates in the whole map's index space (see `list_len`).
+    fn candidates<'py>(&self, py: Python<'py>, queries: &PyDescriptors, setting: &str) -> PyResult<ListArrays<'py>> {
+        let s = self::setting(setting)?;
+        let (map, set, cfg, start) = (self.map.clone(), queries.inner.clone(), &self.cfg, self.spec.global_start as u32);
+        let (lists, _) = detached(py, self.pool.clone(), || matching::candidates(&mut CpuStages, map.as_ref(), &set, s, cfg)).py_err()?;
+        let lists: Lists = lists.into_iter().map(|l| l.into_iter().map(|(sc, r)| (sc, r + start)).collect()).collect();
+        Ok(to_arrays(py, &lists, matching::list_len(s, cfg)))
+    }
+    /// Fine scores of pairs (query index `q[i]`, whole-map reference `r[i]`), all owned here.
+    fn fine<'py>(&self, py: Python<'py>, queries: &PyDescriptors, setting: &str, q: PyReadonlyArray1<'_, u32>, r: PyReadonlyArray1<'_, i64>) -> PyResult<Bound<'py, PyArray1<f32>>> {
+        let s = self::setting(setting)?;
+        if q.len() != r.len() {
+            return Err(invalid("pairs", format!("{} queries and {} references", q.len(), r.len())));
+        }
+        let range = self.spec.global_start as i64..(self.spec.global_start + self.spec.len) as i64;
+        let pairs = q
+            .as_array()
+            .iter()
+            .zip(r.as_array().iter())
+            .map(|(&q, &r)| match range.contains(&r) {
+                true => Ok((q, (r - range.start) as u32)),
+                false => Err(invalid("pairs", format!("reference {r} is not in this shard ({range:?})"))),
+            })
+            .collect::<PyResult<Vec<_>>>()?;
+        let (map, set, cfg) = (self.map.clone(), queries.inner.clone(), &self.cfg);
+        let f = detached(py, self.pool.clone(), || matching::fine_scores(&mut CpuStages, map.as_ref(), &set, s, cfg, &pairs)).py_err()?;
+        Ok(f.into_pyarray(py))
+    }
+    /// Ids of whole-map references owned here.
+    fn ids(&self, r: Vec<i64>) -> PyResult<Vec<String>> {
+        let start = self.spec.global_start as i64;
+        r.iter()
+            .map(|&i| match (i - start) as usize {
+                j if i >= start && j < self.map.len() => Ok(self.map.id(j).to_string()),
+                _ => Err(invalid("ids", format!("reference {i} is not in this shard"))),
+            })
+            .collect()
+    }
+    /// {segments, global_start, len, generation}.
+    fn info<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        to_py_object(py, &self.spec)
+    }
+}
+
+/// Cuts the map in `map_dir` into `shards` contiguous segment ranges of about equal images: a
+/// list of {segments: {start, end}, global_start, len, generation}.
+#[pyfunction]
+pub fn plan_shards<'py>(py: Python<'py>, map_dir: PathBuf, shards: usize) -> PyResult<Bound<'py, PyAny>> {
+    let m = py.detach(|| Map::open(&map_dir)).py_err()?;
+    to_py_object(py, &shard::plan(&m.manifest, shards).py_err()?)
+}
+
+/// The global candidate lists from per-shard ones (each as `Shard.candidates` returns them):
+/// exactly the lists one process computes over the whole map, ties to the lower index.
+#[pyfunction]
+pub fn merge_candidates<'py>(py: Python<'py>, parts: Vec<(PyReadonlyArray2<'py, f32>, PyReadonlyArray2<'py, i64>, PyReadonlyArray1<'py, i32>)>, k: usize) -> PyResult<ListArrays<'py>> {
+    let lists = parts.iter().map(|(s, r, c)| from_arrays(s, r, c)).collect::<PyResult<Vec<_>>>()?;
+    let views: Vec<&[Vec<(f32, u32)>]> = lists.iter().map(Vec::as_slice).collect();
+    let merged = merge_lists(&views, k).map_err(|r| invalid("merge_candidates", r))?;
+    Ok(to_arrays(py, &merged, k))
+}
+
+/// The final ranking of merged candidates, as `Map.query` returns it: `fine` holds the fine score
+/// of every candidate in row order (settings with both stages; else None), `ids` the id of
+/// every candidate in the same order, `queries` the query ids.
+#[pyfunction]
+#[pyo3(signature = (setting, scores, references, counts, fine, queries, ids, fusion="fine"))]
+#[allow(clippy::too_many_arguments)]
+pub fn rank(setting: &str, scores: PyReadonlyArray2<'_, f32>, references: PyReadonlyArray2<'_, i64>, counts: PyReadonlyArray1<'_, i32>, fine: Option<PyReadonlyArray1<'_, f32>>, queries: Vec<String>, ids: Vec<String>, fusion: &str) -> PyResult<PyMatches> {
+    let s = self::setting(setting)?;
+    let lists = from_arrays(&scores, &references, &counts)?;
+    if queries.len() != lists.len() {
+        return Err(invalid("rank", format!("{} query ids for {} lists", queries.len(), lists.len())));
+    }
+    let pairs = matching::pairs_of(&lists);
+    if ids.len() != pairs.len() {
+        return Err(invalid("rank", format!("{} ids for {} candidates", ids.len(), pairs.len())));
+    }
+    let fine: Option<Vec<f32>> = fine.map(|f| f.as_array().to_vec());
+    let ranked = matching::rank(s, &lists, fine.as_deref(), self::fusion(fusion)?).py_err()?;
+    let id_of: std::collections::HashMap<u32, String> = pairs.iter().map(|&(_, r)| r).zip(ids).collect();
+    Ok(PyMatches::new(s, &queries, ranked, |r| id_of.get(&r).cloned().unwrap_or_default()))
+}
+
+/// Length of the candidate lists of `setting` under `config` (default: the defaults).
+#[pyfunction]
+#[pyo3(signature = (setting, config=None))]
+pub fn list_len(setting: &str, config: Option<PyRef<'_, PyConfig>>) -> PyResult<usize> {
+    Ok(matching::list_len(self::setting(setting)?, &config.map_or_else(Config::default, |c| c.inner.clone())))
+}
+
+/// Names of the matching settings.
+#[pyfunction]
+pub fn settings() -> Vec<&'static str> {
+    matching::Setting::ALL.iter().map(|s| s.name()).collect()
+}

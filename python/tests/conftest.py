@@ -1,0 +1,63 @@
+"""Fixtures: small synthetic places as label-id arrays (no model files needed), label PNGs
+written without extra packages, maps in segments small enough to shard."""
+
+import os
+import struct
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import semlook
+
+REPO = Path(__file__).resolve().parents[2]
+CLI = REPO / "target" / "release" / "semlook"
+
+# Cityscapes train ids of the default class table: road, sidewalk, building, wall, vegetation,
+# terrain, sky, car, person, pole
+CLASSES = [0, 1, 2, 3, 8, 9, 10, 13, 11, 5]
+
+
+def place(seed, h=72, w=96, shift=0):
+    """A street-like label map of place `seed`: sky, buildings, road, then objects; `shift`
+    moves the view sideways by that many pixels (a query of the same place)."""
+    rng = np.random.default_rng(seed)
+    big = np.full((h, w + 16), 10, np.uint8)
+    big[h // 2:, :] = 0
+    for _ in range(rng.integers(4, 8)):
+        c = CLASSES[rng.integers(1, len(CLASSES))]
+        y0, x0 = rng.integers(0, h - 8), rng.integers(0, w + 8)
+        big[y0:y0 + rng.integers(6, h // 2), x0:x0 + rng.integers(6, w // 3)] = c
+    return big[:, 8 + shift:8 + shift + w].copy()
+
+
+def write_png(path, a):
+    """An 8-bit grey PNG of array `a`."""
+    h, w = a.shape
+    raw = b"".join(b"\x00" + a[y].astype(np.uint8).tobytes() for y in range(h))
+    chunk = lambda t, d: struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d) & 0xFFFFFFFF)  # noqa: E731
+    Path(path).write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0)) + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
+
+
+@pytest.fixture(scope="session")
+def encoder():
+    return semlook.Encoder(semlook.Config.without_appearance())
+
+
+def encode_places(enc, seeds, prefix, shift=0):
+    return semlook.Descriptors.concat([enc.encode(f"{prefix}{s}", labels=place(s, shift=shift)) for s in seeds])
+
+
+@pytest.fixture
+def small_map(tmp_path, encoder):
+    """12 places stored twice (ids a*, b*: identical descriptors 12 apart, so ties cross
+    segments and shards), 3 images per segment (8 segments), two images removed."""
+    refs = semlook.Descriptors.concat([encode_places(encoder, range(12), "a"), encode_places(encoder, range(12), "b")])
+    m = semlook.Map.create(str(tmp_path / "map"), refs, encoder, segment_images=3)
+    return m.remove(["a3", "b10"])
+
+
+@pytest.fixture
+def queries(encoder):
+    return encode_places(encoder, range(1, 11), "q", shift=3)

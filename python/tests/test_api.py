@@ -1,0 +1,111 @@
+"""The Python API: descriptors in and out of numpy, maps built, grown, edited and queried,
+zero-copy segment views, and errors as exceptions carrying the engine's message."""
+
+import pickle
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+import semlook
+from conftest import CLI, encode_places, place
+
+
+def test_descriptor_arrays_round_trip_and_pickle(encoder):
+    d = encode_places(encoder, range(3), "x")
+    assert len(d) == 3 and d.ids == ["x0", "x1", "x2"]
+    arrays = d.to_arrays()
+    back = semlook.Descriptors.from_arrays(arrays)
+    for name in semlook.Descriptors.columns():
+        assert np.array_equal(back.column(name), d.column(name)), name
+    p = pickle.loads(pickle.dumps(d))
+    assert p.ids == d.ids and np.array_equal(p.globals, d.globals)
+    assert not d.globals.flags.writeable
+    with pytest.raises(ValueError):
+        d.globals[0, 0] = 1.0
+    t = d.take([2, 0])
+    assert t.ids == ["x2", "x0"] and np.array_equal(t.globals[1], d.globals[0])
+
+
+def test_bad_arrays_raise_typed_errors(encoder):
+    arrays = dict(encode_places(encoder, range(2), "x").to_arrays())
+    g = np.array(arrays["globals"])
+    g[1, 5] = np.nan
+    with pytest.raises(semlook.InvalidInputError, match="x1"):
+        semlook.Descriptors.from_arrays({**arrays, "globals": g})
+    with pytest.raises(semlook.InvalidInputError, match="tree_areas"):
+        semlook.Descriptors.from_arrays({**arrays, "tree_areas": np.zeros(1, np.float32)})
+    with pytest.raises(semlook.InvalidInputError, match="shape"):
+        encoder.encode("bad", labels=np.zeros((4, 4, 2), np.uint8))
+    with pytest.raises(semlook.InputFileError, match="pixel"):
+        encoder.encode("bad", labels=np.full((8, 8), 250, np.uint8))
+
+
+def test_build_add_remove_compact_and_query(tmp_path, encoder, queries):
+    refs = encode_places(encoder, range(12), "r")
+    m = semlook.Map.create(str(tmp_path / "m"), refs.take(list(range(8))), encoder, segment_images=3)
+    assert (len(m), m.n_segments, m.generation) == (8, 3, 3)
+    m = m.add(refs.take(list(range(8, 12))), segment_images=3)
+    assert len(m) == 12 and m.ids() == refs.ids
+    with pytest.raises(semlook.DuplicateImageIdError) as e:
+        m.add(refs.take([0]))
+    assert e.value.id == "r0" and len(semlook.Map.open(str(tmp_path / "m"))) == 12
+    res = m.query(queries, "semlook", k=5)
+    assert res.references.shape == (10, 5) and res.scores.dtype == np.float32
+    # query q_s is place s seen 3 pixels to the side: its place ranks first
+    assert [res.ids(i)[0] for i in range(10)] == [f"r{s}" for s in range(1, 11)]
+    m = m.remove(["r4"])
+    res = m.query(queries, "semlook", k=5)
+    assert all("r4" not in res.ids(i) for i in range(10)) and len(m) == 11
+    m, report = m.compact()
+    assert report["dropped"] == 1 and len(m) == 11
+    assert m.verify()["files"] and all(f["problem"] is None for f in m.verify()["files"])
+    assert set(m.manifest()) >= {"generation", "segments", "config"}
+
+
+def test_segment_views_are_zero_copy_read_only_and_outlive_the_map(tmp_path, encoder):
+    refs = encode_places(encoder, range(7), "r")
+    m = semlook.Map.create(str(tmp_path / "m"), refs, encoder, segment_images=4)
+    v = m.segment_view(1, "globals")
+    assert v.shape[0] == 3 and v.dtype == np.float32 and not v.flags.writeable and not v.flags.owndata
+    assert np.array_equal(v.reshape(3, -1), refs.globals[4:7])
+    with pytest.raises(ValueError):
+        v[0, 0, 0] = 0.5
+    del m
+    assert np.array_equal(v.reshape(3, -1), refs.globals[4:7])
+    h = semlook.Map.create(str(tmp_path / "h"), refs, encoder, segment_images=4, f16=True).segment_view(0, "globals")
+    assert h.dtype == np.float16
+    assert np.array_equal(h.reshape(4, -1), refs.globals[:4].astype(np.float16))
+
+
+def test_a_damaged_segment_raises_naming_the_file(tmp_path, encoder, queries):
+    m = semlook.Map.create(str(tmp_path / "m"), encode_places(encoder, range(6), "r"), encoder, segment_images=3)
+    seg = tmp_path / "m" / m.manifest()["segments"][1]["file"]
+    data = bytearray(seg.read_bytes())
+    data[-5] ^= 0x40
+    seg.write_bytes(bytes(data))
+    m = semlook.Map.open(str(tmp_path / "m"))
+    with pytest.raises(semlook.CorruptMapError, match=seg.name) as e:
+        m.query(queries)
+    assert e.value.path.endswith(seg.name)
+    assert [f["problem"] is not None for f in m.verify()["files"] if f["file"].startswith("segment")] == [False, True]
+
+
+def test_incompatible_config_is_refused(tmp_path, encoder, queries):
+    m = semlook.Map.create(str(tmp_path / "m"), encode_places(encoder, range(4), "r"), encoder)
+    other = semlook.Config("[appearance]\nmodel = \"none\"\n[global]\nwidth = 32\nheight = 24\n")
+    with pytest.raises(semlook.IncompatibleConfigError, match="global"):
+        m.query(queries, config=other)
+    with pytest.raises(semlook.InvalidInputError, match="setting"):
+        m.query(queries, setting="nope")
+
+
+def test_evaluate_reports_every_setting_asked(tmp_path):
+    if not CLI.exists():
+        pytest.skip(f"{CLI} not built (cargo build --release)")
+    ds = tmp_path / "bench"
+    subprocess.run([str(CLI), "synth", "--out", str(ds), "--places", "8", "--size", "160x120"], check=True, capture_output=True)
+    r = semlook.evaluate(dataset=str(ds), settings=["global", "semlook"], config=semlook.Config.without_appearance())
+    assert [s["setting"] for s in r["results"]] == ["global", "semlook"] * (len(r["results"]) // 2)
+    assert r["references"] == 8

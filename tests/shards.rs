@@ -1,0 +1,89 @@
+//! A map split into shards ([`semlook::map::shard`]) matches exactly like the whole map: per-shard
+//! candidates merged by `merge_lists`, fine scores from the owning shard, ranked by `rank`, equal
+//! `match_with` bit for bit, with removed images and identical references straddling shards.
+
+mod common;
+
+use semlook::config::{Config, ScoreFusion};
+use semlook::descriptors::DescriptorSet;
+use semlook::map::{edit, shard, Map, StoreOptions};
+use semlook::matching::ssim_topk::merge_lists;
+use semlook::matching::{candidates, fine_scores, list_len, match_with, pairs_of, rank, CpuStages, QueryMatch, Setting};
+use std::path::Path;
+
+/// The sharding protocol of the Python driver, in one process.
+fn sharded(dir: &Path, n_shards: usize, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Vec<QueryMatch> {
+    let m = Map::open(dir).unwrap().manifest;
+    let shards: Vec<(Map, shard::ShardSpec)> = shard::plan(&m, n_shards).unwrap().iter().map(|s| Map::open_range(dir, s.segments.clone(), Some(s.generation)).unwrap()).collect();
+    let parts: Vec<Vec<Vec<(f32, u32)>>> = shards
+        .iter()
+        .map(|(map, spec)| {
+            let (lists, _) = candidates(&mut CpuStages, map, queries, setting, cfg).unwrap();
+            lists.into_iter().map(|l| l.into_iter().map(|(s, r)| (s, r + spec.global_start as u32)).collect()).collect()
+        })
+        .collect();
+    let views: Vec<&[Vec<(f32, u32)>]> = parts.iter().map(Vec::as_slice).collect();
+    let lists = merge_lists(&views, list_len(setting, cfg)).unwrap();
+    let fine = (setting.uses_coarse() && setting.uses_fine()).then(|| {
+        pairs_of(&lists)
+            .into_iter()
+            .map(|(q, r)| {
+                let (map, spec) = shards.iter().find(|(_, s)| (s.global_start..s.global_start + s.len).contains(&(r as usize))).unwrap();
+                fine_scores(&mut CpuStages, map, queries, setting, cfg, &[(q, r - spec.global_start as u32)]).unwrap()[0]
+            })
+            .collect::<Vec<f32>>()
+    });
+    rank(setting, &lists, fine.as_deref(), cfg.matching.score).unwrap()
+}
+
+fn bits(m: &[QueryMatch]) -> Vec<Vec<(u32, u32, Option<u32>, Option<u32>)>> {
+    m.iter().map(|q| q.ranked.iter().map(|c| (c.reference, c.score.to_bits(), c.coarse.map(f32::to_bits), c.fine.map(f32::to_bits))).collect()).collect()
+}
+
+#[test]
+fn shards_give_exactly_the_lists_of_the_whole_map() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m");
+    let mut cfg = Config::without_appearance();
+    cfg.matching.top_k = 4;
+    let maps = common::label_maps(9, 80, 60);
+    // every image twice (ids a*, b*), 3 images per segment: identical references 9 apart, so
+    // ties cross segment and shard boundaries
+    let mut set = common::encode(&cfg, &maps, "a");
+    set.append(&common::encode(&cfg, &maps, "b"));
+    Map::create_with(&path, &cfg.encoding(), &set, None, StoreOptions { segment_images: 3, ..Default::default() }).unwrap();
+    edit::remove(&path, &["a1".into(), "b7".into()]).unwrap_or_else(|e| panic!("{e}"));
+    let queries = common::encode(&cfg, &maps[2..7], "q");
+    let whole = Map::open(&path).unwrap();
+    assert_eq!(whole.len(), 16);
+    let mut compared = 0;
+    for fusion in [ScoreFusion::Fine, ScoreFusion::FineTimesGlobal] {
+        cfg.matching.score = fusion;
+        for setting in [Setting::Global, Setting::Forest, Setting::GlobalForest, Setting::Semlook] {
+            let (single, _) = match_with(&mut CpuStages, &whole, &queries, setting, &cfg).unwrap();
+            let ties = single.iter().filter(|q| q.ranked.windows(2).any(|w| w[0].score == w[1].score)).count();
+            assert!(ties > 0 || setting != Setting::Global, "the fixture should make ties");
+            for n in [1, 2, 3, 6] {
+                assert_eq!(bits(&sharded(&path, n, &queries, setting, &cfg)), bits(&single), "{setting} {fusion:?} over {n} shards");
+                compared += 1;
+            }
+        }
+    }
+    assert_eq!(compared, 32);
+}
+
+#[test]
+fn a_shard_planned_before_a_change_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m");
+    let cfg = Config::without_appearance();
+    let set = common::encode(&cfg, &common::label_maps(6, 80, 60), "r");
+    let map = Map::create_with(&path, &cfg.encoding(), &set, None, StoreOptions { segment_images: 2, ..Default::default() }).unwrap();
+    let plan = shard::plan(&map.manifest, 3).unwrap();
+    edit::remove(&path, &["r0".into()]).unwrap();
+    let err = Map::open_range(&path, plan[1].segments.clone(), Some(plan[1].generation)).unwrap_err().to_string();
+    assert!(err.contains("plan again") && err.contains("manifest.json"), "{err}");
+    assert!(Map::open_range(&path, 2..9, None).is_err());
+    let (part, spec) = Map::open_range(&path, 1..3, None).unwrap();
+    assert_eq!((spec.global_start, part.len()), (1, 4));
+}
