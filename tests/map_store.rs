@@ -410,7 +410,7 @@ fn removed_images_never_come_back_and_compaction_keeps_the_rest() {
     let keep: Vec<usize> = (0..set.len()).filter(|&i| !gone.contains(&set.ids[i])).collect();
     let mut live = set.empty_like();
     for &i in &keep {
-        live.append_range(&set, i, i + 1);
+        live.append_range(&set, i, i + 1).unwrap();
     }
     let map = Map::open(&path).unwrap();
     assert_eq!(map.len(), keep.len());

@@ -257,7 +257,7 @@ impl MapWriter {
             }
         }
         for i in 0..set.len() {
-            self.pending.append_range(set, i, i + 1);
+            self.pending.extend_from(set, i, i + 1);
             self.known.insert(id_hash(&set.ids[i]));
             self.flush_if_full()?;
         }
