@@ -269,7 +269,7 @@ impl Engine {
             };
             let vlad_ms = ms_since(t) / batch.len() as f64;
             for (k, p) in pending.into_iter().enumerate() {
-                out[i + k] = Some(p.map(|p| {
+                out[i + k] = Some(p.and_then(|p| {
                     let v = if p.vlad.is_some() { vlads.next() } else { None };
                     encoder.finish(p, v, vlad_ms)
                 }));

@@ -4,6 +4,7 @@
 
 use super::buffers::Reused;
 use super::context::{GpuContext, GpuError};
+use crate::appearance::check_vlad_input;
 use crate::appearance::vlad::{Codebook, VladNorm, VladParams, MAX_CENTRES};
 use std::sync::Arc;
 
@@ -35,19 +36,11 @@ impl VladGpu {
             return Err(GpuError::LimitsTooSmall { adapter: ctx.describe(), what: "VLAD centres".into(), needed: codebook.k as u64, available: MAX_CENTRES as u64 });
         }
         let d = codebook.dim;
-        let bad = |reason: String| GpuError::Failed { what: "VLAD aggregation".into(), reason };
-        if d == 0 || codebook.centres.len() != codebook.k * d {
-            return Err(bad(format!("a codebook of {} x {d} with {} values", codebook.k, codebook.centres.len())));
-        }
         let mut descs: Vec<f32> = Vec::new();
         let mut offsets: Vec<u32> = vec![0];
         let mut object_counts = Vec::with_capacity(frames.len());
         for (f, (fd, fo)) in frames.iter().enumerate() {
-            // runs from 0 to the frame's descriptor count, never decreasing
-            let runs_ok = fo.first() == Some(&0) && fo.windows(2).all(|w| w[0] <= w[1]) && fd.len() % d == 0 && fo.last().map(|&l| l as usize) == Some(fd.len() / d);
-            if !runs_ok {
-                return Err(bad(format!("frame {f}: {} descriptor values and object runs {fo:?} do not agree (runs from 0 to the descriptor count of dimension {d})", fd.len())));
-            }
+            check_vlad_input(fd, fo, codebook).map_err(|r| GpuError::Failed { what: "VLAD aggregation".into(), reason: format!("frame {f}: {r}") })?;
             let base = (descs.len() / d) as u32;
             offsets.extend(fo[1..].iter().map(|o| o + base));
             descs.extend_from_slice(fd);

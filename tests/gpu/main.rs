@@ -207,7 +207,7 @@ pub fn random_forest_set(n: usize, dim: usize, seed: u64) -> DescriptorSet {
                 app[t * dim..(t + 1) * dim].iter_mut().zip(&v).for_each(|(a, b)| *a = b / norm);
             }
         }
-        f.set_appearance(dim, app, counts, 1);
+        f.set_appearance(dim, app, counts, 1).unwrap();
         let img = semlook::encode::EncodedImage { id: format!("f{i}"), width: 10, height: 10, global: vec![0.5; p.len()], global_stats: vec![0.0; p.stats_len()], forest: f, appearance: vec![], hog: vec![] };
         set.push(&img).unwrap();
     }
