@@ -148,7 +148,7 @@ fn cycle(pool: &DescriptorSet, n: usize, prefix: &str, stride: usize) -> Descrip
         let j = i.wrapping_mul(stride) % pool.len();
         let mut one = pool.slice(j, j + 1);
         one.ids[0] = format!("{prefix}{i}");
-        set.append(&one);
+        set.extend_from(&one, 0, 1);
     }
     set
 }

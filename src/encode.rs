@@ -442,18 +442,23 @@ impl Encoder {
     }
 
     /// Completes a pending frame with its VLAD vectors (computed by `vlad_cpu` or on the GPU:
-    /// one vector per run of its [`VladInput`], the image's last).
-    pub fn finish(&self, mut p: Pending, vlad: Option<Vec<f32>>, vlad_ms: f64) -> (EncodedImage, StageTimes) {
+    /// one vector of the encoder's appearance size per run of its [`VladInput`], the image's
+    /// last); other counts fail, naming the image.
+    pub fn finish(&self, mut p: Pending, vlad: Option<Vec<f32>>, vlad_ms: f64) -> Result<(EncodedImage, StageTimes)> {
         if let (Some(mut vectors), Some(input)) = (vlad, &p.vlad) {
             let dim = self.appearance_dim();
-            let image = vectors.split_off(vectors.len().saturating_sub(dim));
+            let bad = |r: String| Error::invalid(format!("VLAD vectors of image {:?}", p.image.id), r);
+            if vectors.len() != dim * input.offsets.len().saturating_sub(1) {
+                return Err(bad(format!("{} values for {} runs of dimension {dim}", vectors.len(), input.offsets.len().saturating_sub(1))));
+            }
+            let image = vectors.split_off(vectors.len() - dim);
             let mut counts = appearance::object_counts(&input.offsets);
             counts.pop();
-            p.image.forest.set_appearance(dim, vectors, counts, self.cfg.appearance.min_descriptors);
+            p.image.forest.set_appearance(dim, vectors, counts, self.cfg.appearance.min_descriptors).map_err(bad)?;
             p.image.appearance = image;
             p.times.appearance_ms += vlad_ms;
         }
-        (p.image, p.times)
+        Ok((p.image, p.times))
     }
 
     /// The VLAD normalisations of this encoder's config.
@@ -465,6 +470,7 @@ impl Encoder {
     /// kernels).
     pub fn vlad_cpu(&self, input: &VladInput) -> Result<Vec<f32>> {
         let cb = self.codebook.as_ref().ok_or_else(|| Error::invalid("encoder", "VLAD input without a codebook"))?;
+        appearance::check_vlad_input(&input.descriptors, &input.offsets, cb).map_err(|r| Error::invalid("VLAD input", r))?;
         Ok(appearance::object_vlad(&input.descriptors, &input.offsets, cb, self.vlad_norm()))
     }
 
@@ -472,7 +478,7 @@ impl Encoder {
         let t = Instant::now();
         let vlad = p.vlad.as_ref().map(|v| self.vlad_cpu(v)).transpose()?;
         let ms = ms_since(t);
-        Ok(self.finish(p, vlad, ms))
+        self.finish(p, vlad, ms)
     }
 
     /// Encodes many frames in parallel, in order; `tick` is called once per finished frame.

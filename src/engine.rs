@@ -83,10 +83,11 @@ impl GpuStages {
     }
 
     fn coarse_for(&mut self, p: &SsimParams) -> Result<&mut CoarseMatcherGpu> {
-        if self.coarse.as_ref().is_none_or(|c| c.0 != *p) {
-            self.coarse = Some((*p, CoarseMatcherGpu::new(self.ctx.clone(), *p)?));
-        }
-        Ok(&mut self.coarse.as_mut().unwrap().1)
+        let matcher = match self.coarse.take() {
+            Some(c) if c.0 == *p => c,
+            _ => (*p, CoarseMatcherGpu::new(self.ctx.clone(), *p)?),
+        };
+        Ok(&mut self.coarse.insert(matcher).1)
     }
 }
 
@@ -213,8 +214,8 @@ impl Engine {
     /// GPU, objects, forests and the keypoint network run on the CPU, and the per-object VLAD of
     /// the whole batch runs on the GPU.
     pub fn encode_all(&mut self, encoder: &Encoder, sources: &[FrameSource], format: LabelFormat, tick: &(dyn Fn() + Sync)) -> Result<Vec<Result<(EncodedImage, StageTimes)>>> {
-        if self.gpu.is_some() {
-            let r = self.encode_all_gpu(encoder, sources, format, tick);
+        if let Some(g) = &mut self.gpu {
+            let r = Self::encode_all_gpu(g, encoder, sources, format, tick);
             if let Ok(v) = self.recover(r)? {
                 return Ok(v);
             }
@@ -222,8 +223,7 @@ impl Engine {
         Ok(encoder.encode_all(sources, format, tick))
     }
 
-    fn encode_all_gpu(&mut self, encoder: &Encoder, sources: &[FrameSource], format: LabelFormat, tick: &(dyn Fn() + Sync)) -> Result<Vec<Result<(EncodedImage, StageTimes)>>> {
-        let g = self.gpu.as_mut().expect("called with a GPU");
+    fn encode_all_gpu(g: &mut GpuStages, encoder: &Encoder, sources: &[FrameSource], format: LabelFormat, tick: &(dyn Fn() + Sync)) -> Result<Vec<Result<(EncodedImage, StageTimes)>>> {
         let mut out: Vec<Option<Result<(EncodedImage, StageTimes)>>> = (0..sources.len()).map(|_| None).collect();
         let mut loaded: Vec<Option<Loaded>> = Vec::with_capacity(sources.len());
         for (i, r) in sources.par_iter().map(|s| encoder.load(s, format)).collect::<Vec<_>>().into_iter().enumerate() {
@@ -248,7 +248,8 @@ impl Engine {
             while j < loaded.len() && j - i < cap && loaded[j].as_ref().is_some_and(|l| (l.labels.width(), l.labels.height()) == size) {
                 j += 1;
             }
-            let batch: Vec<&Loaded> = loaded[i..j].iter().map(|l| l.as_ref().unwrap()).collect();
+            // every entry of i..j is loaded (the loop above stopped at the first that is not)
+            let batch: Vec<&Loaded> = loaded[i..j].iter().flatten().collect();
             let maps: Vec<&LabelMap> = batch.iter().map(|l| &l.labels).collect();
             let t = Instant::now();
             let globals = g.encoder.encode(&maps, encoder.used_mask(), &encoder.config().global)?;
@@ -268,7 +269,7 @@ impl Engine {
             };
             let vlad_ms = ms_since(t) / batch.len() as f64;
             for (k, p) in pending.into_iter().enumerate() {
-                out[i + k] = Some(p.map(|p| {
+                out[i + k] = Some(p.and_then(|p| {
                     let v = if p.vlad.is_some() { vlads.next() } else { None };
                     encoder.finish(p, v, vlad_ms)
                 }));

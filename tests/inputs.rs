@@ -1,14 +1,16 @@
-//! Bad inputs get typed errors that name the file, and never damage a stored map.
+//! Bad inputs get typed errors that name the file, and never damage a stored map; nor does a
+//! write that fails inside `Map::add`.
 
 mod common;
 
 use image::{GrayImage, Luma, Rgb, RgbImage};
 use semlook::classes::ClassTable;
 use semlook::config::Config;
+use semlook::descriptors::DescriptorSet;
 use semlook::encode::Encoder;
 use semlook::error::Error;
 use semlook::input::{load_frame_labels, load_label_map, FrameSource, LabelFormat};
-use semlook::map::Map;
+use semlook::map::{files, Map};
 use std::path::Path;
 
 fn grey(path: &Path, w: u32, h: u32, id: u8) {
@@ -88,7 +90,7 @@ fn sixteen_bit_and_first_channel_ids_decode() {
 }
 
 #[test]
-fn a_failed_add_loses_nothing_already_stored() {
+fn a_batch_with_a_bad_file_writes_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = Config::without_appearance();
     let path = dir.path().join("map");
@@ -114,6 +116,46 @@ fn a_failed_add_loses_nothing_already_stored() {
     let results = enc.encode_all(&sources, LabelFormat::Auto, &|| {});
     let (imgs, _, skipped) = semlook::encode::collect_encoded(results, true).unwrap();
     assert_eq!((imgs.len(), skipped.len()), (1, 1));
+}
+
+fn bits(set: &DescriptorSet) -> Vec<u32> {
+    set.globals.iter().chain(&set.tree_areas).chain(&set.tree_centroids).map(|v| v.to_bits()).collect()
+}
+
+/// A write that fails inside `Map::add` (the segment file; or the manifest, once the segment is in
+/// place) gives a typed error naming the file, and the map reads back as it was: every stored image
+/// bit for bit, none of the new ones. The next add then stores them.
+#[test]
+fn a_failed_add_loses_nothing_already_stored() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = Config::without_appearance();
+    let path = dir.path().join("map");
+    let maps = common::label_maps(6, 64, 48);
+    let stored = common::encode(&cfg, &maps[..4], "ref");
+    let new = common::encode(&cfg, &maps[4..], "new");
+    Map::create(&path, &cfg.encoding(), &stored, None).unwrap();
+    for (fault, named) in [("segment-", ".segment-"), ("manifest.json", ".manifest.json.tmp")] {
+        let manifest = std::fs::read(path.join("manifest.json")).unwrap();
+        let mut map = Map::open(&path).unwrap();
+        files::fail_next_write(Some(fault));
+        let result = map.add(&new);
+        files::fail_next_write(None);
+        match result {
+            Err(e @ Error::Io { .. }) if e.to_string().contains(named) => {}
+            other => panic!("{fault}: expected an I/O error naming {named}, got {other:?}"),
+        }
+        let back = Map::open(&path).unwrap_or_else(|e| panic!("{fault}: the map no longer opens after a failed add: {e}"));
+        let back = back.to_descriptor_set().unwrap_or_else(|e| panic!("{fault}: the map no longer reads back after a failed add: {e}"));
+        assert_eq!(back.ids, stored.ids, "{fault}: images lost or the failed ones stored");
+        assert_eq!((bits(&back), &back), (bits(&stored), &stored), "{fault}: stored images changed");
+        assert_eq!(std::fs::read(path.join("manifest.json")).unwrap(), manifest, "{fault}: the manifest changed");
+    }
+    let mut map = Map::open(&path).unwrap();
+    map.add(&new).unwrap();
+    let mut all = stored.clone();
+    all.append(&new).unwrap();
+    let back = Map::open(&path).unwrap().to_descriptor_set().unwrap();
+    assert_eq!((bits(&back), &back), (bits(&all), &all));
 }
 
 #[test]

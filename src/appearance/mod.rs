@@ -208,6 +208,22 @@ pub fn group_by_object(k: &Keypoints, objects: &ObjectMap) -> (Vec<f32>, Vec<u32
     (descs, offsets)
 }
 
+/// Checks a VLAD input against `codebook`: a codebook of k x dim values (dim > 0), descriptors of
+/// dim values, and runs from 0 to the descriptor count, never decreasing (what [`object_vlad`]
+/// and the GPU executor index by).
+pub fn check_vlad_input(descs: &[f32], offsets: &[u32], codebook: &Codebook) -> Result<(), String> {
+    let d = codebook.dim;
+    if d == 0 || codebook.centres.len() != codebook.k * d {
+        return Err(format!("a codebook of {} x {d} with {} values", codebook.k, codebook.centres.len()));
+    }
+    let runs_ok = offsets.first() == Some(&0) && offsets.windows(2).all(|w| w[0] <= w[1]) && offsets.last().map(|&l| l as usize * d) == Some(descs.len());
+    if !runs_ok {
+        let ends = (offsets.first(), offsets.last());
+        return Err(format!("{} descriptor values of dimension {d} and {} run offsets (first, last {ends:?}) do not agree", descs.len(), offsets.len()));
+    }
+    Ok(())
+}
+
 /// VLAD of every object on the CPU (the twins of the GPU kernels): vectors of Kv x D values
 /// (objects without descriptors stay zero).
 pub fn object_vlad(descs: &[f32], offsets: &[u32], codebook: &Codebook, norm: VladNorm) -> Vec<f32> {

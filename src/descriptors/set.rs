@@ -143,16 +143,34 @@ impl DescriptorSet {
         Ok(())
     }
 
-    /// Appends all images of `other` (same layout).
-    pub fn append(&mut self, other: &DescriptorSet) {
-        self.append_range(other, 0, other.len());
+    /// Appends all images of `other`; fails, leaving the set unchanged, when the layouts differ.
+    pub fn append(&mut self, other: &DescriptorSet) -> Result<(), String> {
+        self.append_range(other, 0, other.len())
     }
 
-    /// Appends images `start..end` of `other` (same layout; a set without statistics takes none).
-    pub fn append_range(&mut self, other: &DescriptorSet, start: usize, end: usize) {
-        assert!(self.stats_len == 0 || self.stats_len == other.stats_len, "statistics lengths differ");
-        assert_eq!((self.global_len, self.neighbour_slots), (other.global_len, other.neighbour_slots));
-        assert_eq!((self.appearance_dim, self.hog_dim), (other.appearance_dim, other.hog_dim));
+    /// Appends images `start..end` of `other` (a set without statistics takes none); fails,
+    /// leaving the set unchanged, when the layouts differ or the range is not in `other`.
+    pub fn append_range(&mut self, other: &DescriptorSet, start: usize, end: usize) -> Result<(), String> {
+        let sizes = |s: &DescriptorSet| (s.global_len, s.neighbour_slots, s.appearance_dim, s.hog_dim);
+        if sizes(self) != sizes(other) || (self.stats_len != 0 && self.stats_len != other.stats_len) {
+            return Err(format!(
+                "images with (global values, neighbour slots, appearance dim, HOG dim, statistics) {:?} / {} do not join a set of {:?} / {}",
+                sizes(other),
+                other.stats_len,
+                sizes(self),
+                self.stats_len
+            ));
+        }
+        if start > end || end > other.len() {
+            return Err(format!("images {start}..{end} of a set of {}", other.len()));
+        }
+        self.extend_from(other, start, end);
+        Ok(())
+    }
+
+    /// [`DescriptorSet::append_range`] where the caller knows the layouts agree and the range lies
+    /// in `other` (sets of one writer or one encoder).
+    pub(crate) fn extend_from(&mut self, other: &DescriptorSet, start: usize, end: usize) {
         let (a, b) = (other.forest_offsets[start] as usize, other.forest_offsets[end] as usize);
         let (n, d, h, g, sl) = (self.neighbour_slots, self.appearance_dim, self.hog_dim, self.global_len, self.stats_len);
         let base = self.n_trees() as u32;
@@ -172,10 +190,11 @@ impl DescriptorSet {
         self.image_hog.extend_from_slice(&other.image_hog[start * h..end * h]);
     }
 
-    /// Images `start..end` as a set of their own.
+    /// Images `start..end` as a set of their own. Panics, as slice indexing does, when the range
+    /// is not within the set.
     pub fn slice(&self, start: usize, end: usize) -> DescriptorSet {
         let mut out = self.empty_like();
-        out.append_range(self, start, end);
+        out.extend_from(self, start, end);
         out
     }
 
@@ -249,5 +268,34 @@ impl DescriptorSet {
     pub fn check_image(&self, i: usize, n_classes: usize, store: crate::values::ValueType) -> Result<(), String> {
         let g = Values::F32(self.global(i));
         crate::descriptors::validate::image(&self.ids[i], self.sizes[i], g, self.forest(i), Values::F32(self.image_appearance(i)), self.image_hog(i), n_classes, store)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn set(n: usize, global_len: usize, hog_dim: usize) -> DescriptorSet {
+        let mut s = DescriptorSet::for_storage(global_len, 1, 0, hog_dim);
+        for i in 0..n {
+            let forest = crate::local::Forest { neighbour_slots: 1, ..Default::default() };
+            let img = EncodedImage { id: format!("i{i}"), width: 1, height: 1, global: vec![0.5; global_len], global_stats: vec![], forest, appearance: vec![], hog: vec![1.0; hog_dim] };
+            s.push(&img).unwrap();
+        }
+        s
+    }
+
+    #[test]
+    fn appending_another_layout_or_a_range_outside_fails_and_changes_nothing() {
+        let mut a = set(2, 4, 0);
+        let before = a.clone();
+        assert!(a.append(&set(1, 5, 0)).unwrap_err().contains("do not join"));
+        assert!(a.append(&set(1, 4, 3)).is_err());
+        assert!(a.append_range(&set(2, 4, 0), 1, 3).unwrap_err().contains("1..3 of a set of 2"));
+        assert!(a.append_range(&set(2, 4, 0), 2, 1).is_err());
+        assert_eq!(a, before);
+        a.append_range(&set(3, 4, 0), 1, 3).unwrap();
+        assert_eq!(a.ids, ["i0", "i1", "i1", "i2"]);
+        assert_eq!(a.forest_offsets.len(), 5);
     }
 }

@@ -15,7 +15,8 @@
 use serde::Serialize;
 
 /// Points of the precision-recall curve, ordered as scikit-learn returns them: by increasing
-/// threshold, then the appended (precision 1, recall 0).
+/// threshold, then the appended (precision 1, recall 0). `scores` and `correct` are parallel
+/// (one entry per query); slices of different lengths panic, as `copy_from_slice` does.
 pub fn precision_recall_curve(scores: &[f64], correct: &[bool]) -> (Vec<f64>, Vec<f64>) {
     assert_eq!(scores.len(), correct.len());
     let mut order: Vec<usize> = (0..scores.len()).collect();
@@ -65,7 +66,8 @@ pub fn pr_metrics(scores: &[f64], correct: &[bool]) -> PrMetrics {
     let r100p = if p[p.len() - 2] < 1.0 {
         0.0
     } else {
-        let first = p.iter().position(|&v| v == 1.0).unwrap();
+        // the curve ends with the appended precision-1 point
+        let first = p.iter().position(|&v| v == 1.0).unwrap_or(p.len() - 1);
         r[first]
     };
     let p100r = p.iter().zip(&r).filter(|(_, &rr)| rr == 1.0).map(|(&pp, _)| pp).fold(0.0, f64::max);
@@ -73,6 +75,8 @@ pub fn pr_metrics(scores: &[f64], correct: &[bool]) -> PrMetrics {
 }
 
 /// Fraction of queries with a correct reference among their first `n` ranked references.
+/// `ranked` and `ground_truth` are parallel (one entry per query); slices of different lengths
+/// panic, as `copy_from_slice` does.
 pub fn recall_at_n(ranked: &[Vec<u32>], ground_truth: &[Vec<u32>], n: usize) -> f64 {
     assert_eq!(ranked.len(), ground_truth.len());
     if ranked.is_empty() {

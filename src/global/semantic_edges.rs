@@ -5,7 +5,8 @@
 //! §2.2, marked on both sides of each boundary.
 
 /// Bindings, in shader order: `labels` (one class per pixel, u32), `used` (256 flags), `edges` (out).
-/// One invocation per pixel; this loop visits them in the shader's global-id order.
+/// One invocation per pixel; this loop visits them in the shader's global-id order. Buffers that
+/// do not hold `width` x `height` pixels panic (the shader's binding contract).
 pub fn semantic_edges(labels: &[u32], used: &[u32; 256], edges: &mut [u32], width: usize, height: usize) {
     assert_eq!(labels.len(), width * height);
     assert_eq!(edges.len(), width * height);

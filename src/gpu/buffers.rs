@@ -13,10 +13,10 @@ impl Reused {
     /// The buffer, at least `bytes` long (contents unspecified).
     pub fn get(&mut self, ctx: &GpuContext, label: &str, bytes: u64) -> &wgpu::Buffer {
         let need = bytes.max(4).next_multiple_of(4);
-        if self.0.as_ref().is_none_or(|b| b.size() < need) {
-            self.0 = Some(ctx.storage(label, need));
+        if self.0.as_ref().is_some_and(|b| b.size() < need) {
+            self.0 = None;
         }
-        self.0.as_ref().unwrap()
+        self.0.get_or_insert_with(|| ctx.storage(label, need))
     }
 
     /// The buffer as it is now, if any.
@@ -49,19 +49,21 @@ impl<T: bytemuck::Pod> PassBuffer<T> {
     /// Writes `entries` (one write; the buffer regrows when a batch has more passes).
     pub fn write(&mut self, ctx: &GpuContext, entries: &[T]) -> &wgpu::Buffer {
         let need = (entries.len().max(1) as u64) * self.stride;
-        if self.buf.as_ref().is_none_or(|b| b.size() < need) {
-            self.buf = Some(ctx.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("pass parameters"),
-                size: need,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            }));
+        if self.buf.as_ref().is_some_and(|b| b.size() < need) {
+            self.buf = None;
         }
         let mut bytes = vec![0u8; entries.len() * self.stride as usize];
         for (e, dst) in entries.iter().zip(bytes.chunks_exact_mut(self.stride as usize)) {
             dst[..std::mem::size_of::<T>()].copy_from_slice(bytemuck::bytes_of(e));
         }
-        let b = self.buf.as_ref().unwrap();
+        let b = self.buf.get_or_insert_with(|| {
+            ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("pass parameters"),
+                size: need,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        });
         ctx.write(b, 0, &bytes);
         b
     }

@@ -133,7 +133,8 @@ impl GpuContext {
         let lost = Arc::new(Mutex::new(None));
         let sink = lost.clone();
         device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
-            let mut l = sink.lock().unwrap();
+            // a poisoned lock still holds a whole Option<String>
+            let mut l = sink.lock().unwrap_or_else(|p| p.into_inner());
             if l.is_none() {
                 *l = Some(format!("uncaptured error: {e}"));
             }
@@ -288,7 +289,7 @@ impl GpuContext {
     }
 
     pub(crate) fn check_lost(&self) -> Result<(), GpuError> {
-        match self.lost.lock().unwrap().clone() {
+        match self.lost.lock().unwrap_or_else(|p| p.into_inner()).clone() {
             Some(m) => Err(GpuError::DeviceLost(m)),
             None => Ok(()),
         }

@@ -52,7 +52,9 @@ impl GlobalEncoderGpu {
     pub fn encode(&mut self, maps: &[&LabelMap], used: &[bool; 256], cfg: &GlobalConfig) -> Result<Vec<Vec<f32>>, GpuError> {
         let Some(first) = maps.first() else { return Ok(vec![]) };
         let (w, h) = (first.width(), first.height());
-        assert!(maps.iter().all(|m| (m.width(), m.height()) == (w, h)), "one size per batch");
+        if let Some(m) = maps.iter().find(|m| (m.width(), m.height()) != (w, h)) {
+            return Err(GpuError::Failed { what: "encoding".into(), reason: format!("label maps of {w}x{h} and {}x{} in one batch (one size per batch)", m.width(), m.height()) });
+        }
         if w as usize > edt::MAX_SIDE || h as usize > edt::MAX_SIDE {
             return Err(GpuError::Failed { what: "encoding".into(), reason: format!("{w}x{h} exceeds the EDT side limit") });
         }
@@ -63,9 +65,12 @@ impl GlobalEncoderGpu {
         let ctx = self.ctx.clone();
         let k = &ctx.kernels;
         ctx.scoped("encoding global descriptors", || -> Result<Vec<Vec<f32>>, GpuError> {
-            if self.buffers.as_ref().is_none_or(|b| b.pixels < pixels || b.cells < cells) {
+            if self.buffers.as_ref().is_some_and(|b| b.pixels < pixels || b.cells < cells) {
+                self.buffers = None;
+            }
+            let b = self.buffers.get_or_insert_with(|| {
                 let mk = |l: &str, n: u64| ctx.storage(l, n * 4);
-                self.buffers = Some(Buffers {
+                Buffers {
                     pixels,
                     cells,
                     labels: mk("labels", pixels),
@@ -76,9 +81,8 @@ impl GlobalEncoderGpu {
                     t: mk("edt t", pixels),
                     d2: mk("edt d2", pixels),
                     out: mk("global descriptors", cells),
-                });
-            }
-            let b = self.buffers.as_ref().unwrap();
+                }
+            });
             let mut labels = Vec::with_capacity(pixels as usize);
             for m in maps {
                 labels.extend(m.classes().iter().map(|&c| c as u32));

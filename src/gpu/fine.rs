@@ -78,11 +78,14 @@ impl FineMatcherGpu {
             return Err(GpuError::Failed { what: "fine matching".into(), reason: format!("neighbour slots above {MAX_SLOTS} or appearance sizes differ") });
         }
         let key = forest_key(refs, p);
-        if self.planned.as_ref().is_none_or(|(k, _, _)| *k != key) {
-            let (plans, max) = plan_chunks(&ctx, refs, ctx.binding_limit())?;
-            self.planned = Some((key, plans, max));
-        }
-        let (_, plans, map_max) = self.planned.as_ref().expect("planned above");
+        let planned = match self.planned.take() {
+            Some(old) if old.0 == key => old,
+            _ => {
+                let (plans, max) = plan_chunks(&ctx, refs, ctx.binding_limit())?;
+                (key, plans, max)
+            }
+        };
+        let (_, plans, map_max) = self.planned.insert(planned);
         let qmax = (0..queries.len()).map(|i| queries.forest(i).len()).max().unwrap_or(0);
         let max_trees = qmax.max(*map_max).max(1);
         if max_trees > MAX_TREES {

@@ -143,10 +143,12 @@ impl Resident {
         let buffers: Vec<wgpu::Buffer> = slot.buffers.iter_mut().zip(&sizes).map(|(r, &s)| r.get(ctx, "streamed map chunk", s).clone()).collect();
         let regrown = before.iter().zip(&buffers).any(|(b, n)| b.as_ref() != Some(n));
         let refs: Vec<&wgpu::Buffer> = buffers.iter().collect();
-        if regrown || slot.group.is_none() {
-            slot.group = Some(bind(&refs));
-        }
+        let group = match slot.group.take() {
+            Some(g) if !regrown => g,
+            _ => bind(&refs),
+        };
+        let group = slot.group.insert(group).clone();
         data.write(ctx, &self.plans[c], &refs)?;
-        Ok(slot.group.clone().expect("made above"))
+        Ok(group)
     }
 }

@@ -4,6 +4,7 @@
 
 use super::buffers::Reused;
 use super::context::{GpuContext, GpuError};
+use crate::appearance::check_vlad_input;
 use crate::appearance::vlad::{Codebook, VladNorm, VladParams, MAX_CENTRES};
 use std::sync::Arc;
 
@@ -38,8 +39,9 @@ impl VladGpu {
         let mut descs: Vec<f32> = Vec::new();
         let mut offsets: Vec<u32> = vec![0];
         let mut object_counts = Vec::with_capacity(frames.len());
-        for (fd, fo) in frames {
-            let base = *offsets.last().unwrap();
+        for (f, (fd, fo)) in frames.iter().enumerate() {
+            check_vlad_input(fd, fo, codebook).map_err(|r| GpuError::Failed { what: "VLAD aggregation".into(), reason: format!("frame {f}: {r}") })?;
+            let base = (descs.len() / d) as u32;
             offsets.extend(fo[1..].iter().map(|o| o + base));
             descs.extend_from_slice(fd);
             object_counts.push(fo.len() - 1);

@@ -74,10 +74,11 @@ impl Forest {
     }
     /// Sets (or replaces) the appearance vectors: `vectors` holds `dim` values per tree,
     /// `counts` the descriptors each was aggregated from; trees with fewer than `min_count`
-    /// (and at least one) have no appearance.
-    pub fn set_appearance(&mut self, dim: usize, mut vectors: Vec<f32>, counts: Vec<u32>, min_count: usize) {
-        debug_assert_eq!(vectors.len(), dim * self.len());
-        debug_assert_eq!(counts.len(), self.len());
+    /// (and at least one) have no appearance. Other lengths fail, the forest unchanged.
+    pub fn set_appearance(&mut self, dim: usize, mut vectors: Vec<f32>, counts: Vec<u32>, min_count: usize) -> Result<(), String> {
+        if vectors.len() != dim * self.len() || counts.len() != self.len() {
+            return Err(format!("{} appearance values and {} counts for {} trees of dimension {dim}", vectors.len(), counts.len(), self.len()));
+        }
         let present: Vec<u8> = counts.iter().map(|&c| (c > 0 && c as usize >= min_count) as u8).collect();
         for (k, &p) in present.iter().enumerate() {
             if p == 0 {
@@ -88,6 +89,7 @@ impl Forest {
         self.appearance = vectors;
         self.has_appearance = present;
         self.descriptors = counts;
+        Ok(())
     }
 }
 

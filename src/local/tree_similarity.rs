@@ -341,8 +341,9 @@ mod tests {
     fn appearance_separates_same_geometry() {
         let mut a = forest(&[(2, 0.3, 0.2, 0.5), (8, 0.2, 0.5, 0.4)], &[[1, -1, -1], [0, -1, -1]]);
         let mut b = a.clone();
-        a.set_appearance(2, vec![1.0, 0.0, 0.0, 1.0], vec![1, 1], 1);
-        b.set_appearance(2, vec![0.0, 1.0, 1.0, 0.0], vec![1, 1], 1);
+        a.set_appearance(2, vec![1.0, 0.0, 0.0, 1.0], vec![1, 1], 1).unwrap();
+        b.set_appearance(2, vec![0.0, 1.0, 1.0, 0.0], vec![1, 1], 1).unwrap();
+        assert!(a.clone().set_appearance(2, vec![1.0; 3], vec![1, 1], 1).is_err(), "3 values for 2 trees of 2");
         let mut s = TreeSimScratch::default();
         let forest_only = TreeSimParams::new(&SimilarityConfig::default(), false, 3);
         let semlook = TreeSimParams::new(&SimilarityConfig::default(), true, 3);

@@ -88,7 +88,7 @@ pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
         if buf.is_empty() {
             return Ok(());
         }
-        let bytes = segment::to_bytes(buf, &layout);
+        let bytes = segment::to_bytes(buf, &layout).map_err(|r| Error::invalid(format!("map {}", dir.display()), r))?;
         let sha = crate::util::sha256_hex(&bytes);
         let entry = SegmentEntry { file: format!("segment-{}.safetensors", &sha[..16]), images: buf.len(), trees: buf.n_trees(), bytes: bytes.len() as u64, sha256: sha, removed: vec![] };
         write_atomic(dir, &entry.file, &bytes)?;
@@ -104,7 +104,7 @@ pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
             for entry in run.iter() {
                 let seg = Mapped::open(dir, entry, layout)?;
                 seg.ensure().map_err(|r| Error::corrupt(&seg.path, r))?;
-                                for j in 0..seg.len() {
+                for j in 0..seg.len() {
                     if entry.is_live(j) {
                         seg.append_row(j, buf);
                         if buf.len() >= opts.segment_images || buf.len() * layout.image_bytes() + buf.n_trees() * layout.tree_bytes() >= opts.segment_bytes {

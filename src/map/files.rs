@@ -18,6 +18,25 @@ pub const LOCK_WAIT: Duration = Duration::from_secs(600);
 /// Poll interval while waiting for the lock (a blocking `flock` could not time out).
 const LOCK_POLL: Duration = Duration::from_millis(20);
 
+thread_local! {
+    /// The name prefix of the next write to fail on this thread ([`fail_next_write`]).
+    static FAULT: std::cell::Cell<Option<&'static str>> = const { std::cell::Cell::new(None) };
+}
+
+/// Test hook: the next [`write_atomic`] on this thread of a file whose name starts with `prefix`
+/// (`"segment-"`, `"manifest.json"`, ...) fails after its temporary file is written and before
+/// the rename, as a full disk or a crash there would, with an I/O error naming the temporary
+/// file. `None` disarms it. Per thread, so tests running in parallel do not see each other's.
+#[doc(hidden)]
+pub fn fail_next_write(prefix: Option<&'static str>) {
+    FAULT.with(|f| f.set(prefix));
+}
+
+/// Whether an armed [`fail_next_write`] matches `name` (disarming it).
+fn fault_at(name: &str) -> bool {
+    FAULT.with(|f| f.get().is_some_and(|p| name.starts_with(p)) && f.take().is_some())
+}
+
 /// Writes `bytes` to `dir/name` atomically: temporary file, fsync, rename, directory fsync. Callers
 /// hold the map's write lock, so the temporary name is never shared.
 pub fn write_atomic(dir: &Path, name: &str, bytes: &[u8]) -> Result<()> {
@@ -27,6 +46,9 @@ pub fn write_atomic(dir: &Path, name: &str, bytes: &[u8]) -> Result<()> {
     f.write_all(bytes).map_err(|e| Error::io(&tmp, e))?;
     f.sync_all().map_err(|e| Error::io(&tmp, e))?;
     drop(f);
+    if fault_at(name) {
+        return Err(Error::io(&tmp, std::io::Error::other("injected fault: stopped before the rename")));
+    }
     std::fs::rename(&tmp, &dst).map_err(|e| Error::io(&dst, e))?;
     sync_dir(dir);
     Ok(())

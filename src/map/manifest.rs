@@ -84,8 +84,8 @@ impl Manifest {
     pub fn stored_images(&self) -> usize {
         self.segments.iter().map(|s| s.images).sum()
     }
-    pub fn to_json(&self) -> Vec<u8> {
-        serde_json::to_vec_pretty(self).expect("a manifest serialises")
+    pub fn to_json(&self) -> serde_json::Result<Vec<u8>> {
+        serde_json::to_vec_pretty(self)
     }
 }
 
@@ -112,7 +112,7 @@ pub fn read(dir: &Path) -> Result<Option<Manifest>> {
     if value.get("format").and_then(|f| f.as_str()) != Some(FORMAT) {
         return Err(Error::corrupt(&path, format!("not a {FORMAT} manifest")));
     }
-    let version = value.get("version").and_then(|v| v.as_u64()).unwrap_or(0) as u32;
+    let version = value.get("version").and_then(|v| v.as_u64()).and_then(|v| u32::try_from(v).ok()).unwrap_or(0);
     if version != VERSION {
         return Err(Error::MapVersion { path: dir.into(), found: version, supported: VERSION });
     }
@@ -126,6 +126,9 @@ fn check(m: &Manifest) -> std::result::Result<(), String> {
     if m.neighbour_slots != m.config.local.neighbours {
         return Err("neighbour slots differ from the config".into());
     }
+    if m.generation == u64::MAX {
+        return Err("the generation count is at its maximum (no further commit could be numbered)".into());
+    }
     let names = m.segments.iter().map(|s| s.file.as_str()).chain(m.codebook.as_ref().map(|c| c.file.as_str()));
     for name in names {
         if name.contains('/') || name.contains('\\') || name.contains("..") || !is_store_file(name) {
@@ -136,6 +139,10 @@ fn check(m: &Manifest) -> std::result::Result<(), String> {
     for s in &m.segments {
         if !seen.insert(&s.file) {
             return Err(format!("segment {} is listed twice", s.file));
+        }
+        // forest and id offsets are u32
+        if s.images > u32::MAX as usize - 1 || s.trees > u32::MAX as usize {
+            return Err(format!("segment {}: {} images and {} trees are more than a segment file can index", s.file, s.images, s.trees));
         }
         if s.images == 0 || s.removed.len() > s.images || !s.removed.windows(2).all(|w| w[0] < w[1]) || s.removed.last().is_some_and(|&r| r as usize >= s.images) {
             return Err(format!("segment {}: image count or removed rows are inconsistent", s.file));
@@ -152,5 +159,6 @@ fn check(m: &Manifest) -> std::result::Result<(), String> {
 
 /// Writes the manifest atomically (the caller holds the write lock).
 pub fn write(dir: &Path, m: &Manifest) -> Result<()> {
-    super::files::write_atomic(dir, MANIFEST, &m.to_json())
+    let bytes = m.to_json().map_err(|e| Error::invalid(format!("map {}", dir.display()), format!("the manifest does not serialise: {e}")))?;
+    super::files::write_atomic(dir, MANIFEST, &bytes)
 }

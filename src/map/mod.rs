@@ -178,7 +178,8 @@ impl Map {
     /// checksum, or none without appearance) cannot be matched against this map.
     pub fn check_model(&self, model_sha256: Option<&str>) -> Result<()> {
         if self.manifest.appearance_model.as_deref() != model_sha256 {
-            let show = |v: Option<&str>| v.map_or("none".to_string(), |s| format!("sha256 {}", &s[..12.min(s.len())]));
+            // the first 12 characters (the manifest's value is any string, not necessarily hex)
+            let show = |v: Option<&str>| v.map_or("none".to_string(), |s| format!("sha256 {}", s.chars().take(12).collect::<String>()));
             return Err(Error::IncompatibleConfig {
                 map: self.path.clone(),
                 field: "appearance keypoint network".into(),
@@ -226,7 +227,7 @@ fn read_codebook(dir: &Path, entry: &manifest::FileEntry, appearance_dim: usize)
     let st = safetensors::SafeTensors::deserialize(&bytes).map_err(|e| Error::corrupt(&p, e.to_string()))?;
     let t = st.tensor("centres").map_err(|_| Error::corrupt(&p, "no centres tensor"))?;
     let shape = t.shape().to_vec();
-    if t.dtype() != safetensors::tensor::Dtype::F32 || shape.len() != 2 || shape[0] * shape[1] != appearance_dim || shape[0] == 0 {
+    if t.dtype() != safetensors::tensor::Dtype::F32 || shape.len() != 2 || shape[0] * shape[1] != appearance_dim || shape[0] == 0 || shape[1] == 0 {
         return Err(Error::corrupt(&p, format!("centres are {:?} {shape:?}; the map's appearance vectors have {appearance_dim} values", t.dtype())));
     }
     let centres: Vec<f32> = bytemuck::pod_collect_to_vec(t.data());

@@ -51,12 +51,9 @@ impl Layout {
     }
 }
 
-fn view<'a>(dtype: Dtype, shape: Vec<usize>, bytes: &'a [u8]) -> TensorView<'a> {
-    TensorView::new(dtype, shape, bytes).expect("shape matches data")
-}
-
-/// Serialises a set (its rows must hold `layout.global_len()` global values) to segment bytes.
-pub fn to_bytes(set: &DescriptorSet, layout: &Layout) -> Vec<u8> {
+/// Serialises a set (its rows must hold `layout.global_len()` global values) to segment bytes;
+/// fails naming the tensor whose data does not fill its shape (a set whose columns disagree).
+pub fn to_bytes(set: &DescriptorSet, layout: &Layout) -> std::result::Result<Vec<u8>, String> {
     let (n, t, dim) = (set.len(), set.n_trees(), layout.dim);
     let sizes: Vec<u32> = set.sizes.iter().flatten().copied().collect();
     let mut id_bytes = Vec::new();
@@ -73,24 +70,28 @@ pub fn to_bytes(set: &DescriptorSet, layout: &Layout) -> Vec<u8> {
         None => (bytemuck::cast_slice(&set.globals), bytemuck::cast_slice(&set.tree_appearance), bytemuck::cast_slice(&set.image_appearance)),
         Some((g, ta, ia)) => (bytemuck::cast_slice(g), bytemuck::cast_slice(ta), bytemuck::cast_slice(ia)),
     };
-    let tensors = vec![
-        ("global", view(fdt, vec![n, layout.gh, layout.gw], g)),
-        ("image_size", view(Dtype::U32, vec![n, 2], bytemuck::cast_slice(&sizes))),
-        ("forest_offsets", view(Dtype::U32, vec![n + 1], bytemuck::cast_slice(&set.forest_offsets))),
-        ("tree_class", view(Dtype::U8, vec![t], &set.tree_classes)),
-        ("tree_area", view(Dtype::F32, vec![t], bytemuck::cast_slice(&set.tree_areas))),
-        ("tree_centroid", view(Dtype::F32, vec![t, 2], bytemuck::cast_slice(&set.tree_centroids))),
-        ("tree_neighbours", view(Dtype::I32, vec![t, layout.slots], bytemuck::cast_slice(&set.tree_neighbours))),
-        ("tree_appearance", view(fdt, vec![t, dim], ta)),
-        ("tree_has_appearance", view(Dtype::U8, vec![t], &set.tree_has_appearance)),
-        ("tree_descriptors", view(Dtype::U32, vec![t], bytemuck::cast_slice(&set.tree_descriptors))),
-        ("image_appearance", view(fdt, vec![n, dim], ia)),
-        ("image_hog", view(Dtype::F32, vec![n, layout.hog], bytemuck::cast_slice(&set.image_hog))),
-        ("id_bytes", view(Dtype::U8, vec![id_bytes.len()], &id_bytes)),
-        ("id_offsets", view(Dtype::U32, vec![n + 1], bytemuck::cast_slice(&id_offsets))),
+    let parts: [(&str, Dtype, Vec<usize>, &[u8]); 14] = [
+        ("global", fdt, vec![n, layout.gh, layout.gw], g),
+        ("image_size", Dtype::U32, vec![n, 2], bytemuck::cast_slice(&sizes)),
+        ("forest_offsets", Dtype::U32, vec![n + 1], bytemuck::cast_slice(&set.forest_offsets)),
+        ("tree_class", Dtype::U8, vec![t], &set.tree_classes),
+        ("tree_area", Dtype::F32, vec![t], bytemuck::cast_slice(&set.tree_areas)),
+        ("tree_centroid", Dtype::F32, vec![t, 2], bytemuck::cast_slice(&set.tree_centroids)),
+        ("tree_neighbours", Dtype::I32, vec![t, layout.slots], bytemuck::cast_slice(&set.tree_neighbours)),
+        ("tree_appearance", fdt, vec![t, dim], ta),
+        ("tree_has_appearance", Dtype::U8, vec![t], &set.tree_has_appearance),
+        ("tree_descriptors", Dtype::U32, vec![t], bytemuck::cast_slice(&set.tree_descriptors)),
+        ("image_appearance", fdt, vec![n, dim], ia),
+        ("image_hog", Dtype::F32, vec![n, layout.hog], bytemuck::cast_slice(&set.image_hog)),
+        ("id_bytes", Dtype::U8, vec![id_bytes.len()], &id_bytes),
+        ("id_offsets", Dtype::U32, vec![n + 1], bytemuck::cast_slice(&id_offsets)),
     ];
+    let tensors = parts
+        .into_iter()
+        .map(|(name, dtype, shape, bytes)| TensorView::new(dtype, shape, bytes).map(|v| (name, v)).map_err(|e| format!("tensor {name:?}: {e}")))
+        .collect::<std::result::Result<Vec<_>, String>>()?;
     let meta = std::collections::HashMap::from([("format".to_string(), "semlook-map-segment 3".to_string())]);
-    safetensors::serialize(tensors, Some(meta)).expect("tensors serialise")
+    safetensors::serialize(tensors, Some(meta)).map_err(|e| format!("segment does not serialise: {e}"))
 }
 
 /// Absolute byte ranges of the tensors in the file.

@@ -84,8 +84,9 @@ impl MapWriter {
             (Some((cb, _)), d) if cb.k * cb.dim != d => return Err(Error::invalid(what(), "codebook size differs from the appearance vectors")),
             (None, d) if d != 0 => return Err(Error::invalid(what(), "appearance vectors without a codebook")),
             (Some((cb, _)), _) => {
-                let centres = safetensors::tensor::TensorView::new(safetensors::tensor::Dtype::F32, vec![cb.k, cb.dim], bytemuck::cast_slice(&cb.centres)).expect("shape matches");
-                let bytes = safetensors::serialize([("centres", centres)], None).expect("serialises");
+                let bad = |e: safetensors::SafeTensorError| Error::invalid(what(), format!("codebook of {} x {} with {} values: {e}", cb.k, cb.dim, cb.centres.len()));
+                let centres = safetensors::tensor::TensorView::new(safetensors::tensor::Dtype::F32, vec![cb.k, cb.dim], bytemuck::cast_slice(&cb.centres)).map_err(bad)?;
+                let bytes = safetensors::serialize([("centres", centres)], None).map_err(bad)?;
                 let entry = FileEntry { file: CODEBOOK.into(), bytes: bytes.len() as u64, sha256: sha256_hex(&bytes) };
                 Some((bytes, entry))
             }
@@ -201,7 +202,7 @@ impl MapWriter {
         }
         for e in self.manifest.segments.iter().filter(|e| self.seen.contains(&e.file)) {
             if let Ok(seg) = Mapped::open(&self.dir, e, self.layout) {
-                                for j in 0..seg.len() {
+                for j in 0..seg.len() {
                     if e.is_live(j) && candidates.contains(seg.id(j)) {
                         found.insert(seg.id(j).to_string());
                     }
@@ -257,7 +258,7 @@ impl MapWriter {
             }
         }
         for i in 0..set.len() {
-            self.pending.append_range(set, i, i + 1);
+            self.pending.extend_from(set, i, i + 1);
             self.known.insert(id_hash(&set.ids[i]));
             self.flush_if_full()?;
         }
@@ -277,7 +278,7 @@ impl MapWriter {
         if self.pending.is_empty() {
             return Ok(());
         }
-        let bytes = segment::to_bytes(&self.pending, &self.layout);
+        let bytes = segment::to_bytes(&self.pending, &self.layout).map_err(|r| Error::invalid(format!("map {}", self.dir.display()), r))?;
         let sha = sha256_hex(&bytes);
         let entry = SegmentEntry { file: format!("segment-{}.safetensors", &sha[..16]), images: self.pending.len(), trees: self.pending.n_trees(), bytes: bytes.len() as u64, sha256: sha, removed: vec![] };
         let ids: Vec<String> = self.pending.ids.clone();

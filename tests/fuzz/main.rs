@@ -1,7 +1,8 @@
 //! Fuzzing, on stable Rust, of every parser that reads user files: label-map PNGs (grey and
 //! palette), RGB images, dataset manifests, ground truth (CSV, VPR-Bench `.npy`), pose lists,
 //! config TOML, the pickle machine, `.pt` weights (as XFeat loads and runs them), ONNX keypoint
-//! and segmenter models with wrong outputs, and keypoint decoding.
+//! and segmenter models with wrong outputs, keypoint decoding, and the map store's files
+//! (manifest, segments, codebook; [`store`]).
 //!
 //! Each target mutates valid seeds ([`mutate`]: flips, random and boundary values, truncations,
 //! extensions, duplicated or deleted ranges, splices; PNG CRCs recomputed) or builds its input
@@ -16,8 +17,8 @@
 //! (the time is shared by the targets; `SEMLOOK_FUZZ_SEED` picks the seed, else the clock;
 //! `SEMLOOK_FUZZ_TARGETS=a,b` runs only those).
 //!
-//! Adding a parser: write a constructor returning a [`Target`] and list it in [`TARGETS`] (the
-//! map manifest and segment readers belong there, with seeds from a small map).
+//! Adding a parser: write a constructor returning a [`Target`], list it in [`TARGETS`] and give it
+//! a quick test.
 
 #[path = "../common/mod.rs"]
 mod common;
@@ -25,6 +26,7 @@ mod cap;
 mod models;
 mod mutate;
 mod parsers;
+mod store;
 
 use semlook::util::SplitMix64;
 use std::panic::{catch_unwind, AssertUnwindSafe};
@@ -93,6 +95,11 @@ pub const TARGETS: &[(&str, Make)] = &[
     ("keypoint_decoding", models::keypoint_decoding),
     ("onnx_keypoints", models::onnx_keypoints),
     ("onnx_segmenter", models::onnx_segmenter),
+    ("map_manifest", store::map_manifest),
+    ("map_manifest_values", store::map_manifest_values),
+    ("map_segment", store::map_segment),
+    ("map_segment_rehashed", store::map_segment_rehashed),
+    ("map_codebook", store::map_codebook),
 ];
 
 /// Counts of one run of a target.
@@ -206,7 +213,12 @@ quick_tests!(
     pt_shapes,
     keypoint_decoding,
     onnx_keypoints,
-    onnx_segmenter
+    onnx_segmenter,
+    map_manifest,
+    map_manifest_values,
+    map_segment,
+    map_segment_rehashed,
+    map_codebook
 );
 
 /// Every target listed in [`TARGETS`] has a quick test above (a new one must be added to both).

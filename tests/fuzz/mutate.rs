@@ -149,7 +149,7 @@ pub fn json_mutate(e: &mut Entropy, v: &mut serde_json::Value) {
             0 => json!(e.u32() as i64 - (1 << 31)),
             1 => json!(*e.pick(&[-1i64, 0, 1, 2, 3, 7, 255, 65536, i64::MAX, i64::MIN])),
             2 => json!(*e.pick(&[0.5f64, -3.25, 1e300, -1e-300, 7.0])),
-            3 => json!(*e.pick(&["", "day", "night", "imgs", "imgs/db", "imgs/q", "../", "/", "synthia", "folders", "explicit", "palette", "void", "road"])),
+            3 => json!(*e.pick(&["", "day", "night", "imgs", "imgs/db", "imgs/q", "../", "/", "synthia", "folders", "explicit", "palette", "void", "road", "\u{e9}t\u{e9}-\u{1f6a6}-\u{5730}\u{56fe}"])),
             4 => json!(e.chance(2)),
             5 => Value::Null,
             6 => json!([]),

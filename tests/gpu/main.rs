@@ -207,7 +207,7 @@ pub fn random_forest_set(n: usize, dim: usize, seed: u64) -> DescriptorSet {
                 app[t * dim..(t + 1) * dim].iter_mut().zip(&v).for_each(|(a, b)| *a = b / norm);
             }
         }
-        f.set_appearance(dim, app, counts, 1);
+        f.set_appearance(dim, app, counts, 1).unwrap();
         let img = semlook::encode::EncodedImage { id: format!("f{i}"), width: 10, height: 10, global: vec![0.5; p.len()], global_stats: vec![0.0; p.stats_len()], forest: f, appearance: vec![], hog: vec![] };
         set.push(&img).unwrap();
     }
@@ -419,6 +419,33 @@ fn vlad_kernels_match_the_cpu_twin() {
             assert!(worst <= 1e-5, "case {i} frame {f}: VLAD differs by {worst}");
         }
     }
+}
+
+/// A library caller's inconsistent batch gets a typed error (these were an assert and reads past
+/// the descriptors): label maps of two sizes in one encoding batch; VLAD runs that are empty, do
+/// not start at 0 or run past the descriptors, a partial descriptor, a codebook of the wrong size.
+#[test]
+fn inconsistent_batches_are_refused_with_typed_errors() {
+    let Some(ctx) = gpu() else { return };
+    let table = semlook::classes::ClassTable::cityscapes();
+    let a = semlook::input::LabelMap::new(8, 6, vec![0; 48], &table).unwrap();
+    let b = semlook::input::LabelMap::new(6, 8, vec![0; 48], &table).unwrap();
+    let mut enc = semlook::gpu::encode::GlobalEncoderGpu::new(ctx.clone());
+    let err = enc.encode(&[&a, &b], &table.used_mask(), &semlook::config::Config::default().global).unwrap_err();
+    assert!(err.to_string().contains("one size per batch"), "{err}");
+    let (cb, frames) = random_vlad_frames(4, 8, 3);
+    let (descs, offsets) = frames.iter().find(|f| !f.0.is_empty()).map(|f| (&f.0, &f.1)).unwrap();
+    let mut past = offsets.clone();
+    *past.last_mut().unwrap() += 1;
+    let norm = semlook::appearance::vlad::VladNorm { intra: true, power: false };
+    let mut vg = semlook::gpu::vlad::VladGpu::new(ctx);
+    for (what, d, o) in [("no runs", &descs[..], &[][..]), ("runs from 1", descs, &[1, 2][..]), ("runs past the end", descs, &past[..]), ("a partial descriptor", &descs[..descs.len().saturating_sub(1)], offsets)] {
+        let err = vg.run(&cb, norm, &[(d, o)]).unwrap_err();
+        assert!(err.to_string().contains("VLAD aggregation"), "{what}: {err}");
+    }
+    let short = semlook::appearance::vlad::Codebook { centres: cb.centres[1..].to_vec(), ..cb.clone() };
+    assert!(vg.run(&short, norm, &[(descs, offsets)]).is_err(), "a codebook of the wrong size");
+    assert_eq!(vg.run(&cb, norm, &[(descs, offsets)]).unwrap().len(), 1);
 }
 
 /// Every encoding kernel on a real street frame (Cityscapes, segmented by ESPNet, 2048x1024):

@@ -48,7 +48,7 @@ fn the_map_is_uploaded_once_across_batches() {
     assert_same_lists(&l3, &coarse_topk_twin(&other, &q2, &p, k, 4096), 1e-5, "other map");
     // a map grown by one reference is another map
     let mut grown = refs.clone();
-    grown.append(&other.slice(0, 1));
+    grown.append(&other.slice(0, 1)).unwrap();
     stages.coarse(&grown, &q2, &p, k, 4096).unwrap();
     assert!(ctx.bytes_uploaded() - b3 >= bytes_of(&grown), "a grown map is uploaded again");
 }
@@ -237,8 +237,8 @@ fn ties_go_to_the_lower_index_on_every_path() {
     let p = SsimParams::new(&cfg.global);
     let base = random_descriptors(25, &cfg, 101);
     let mut refs = base.clone();
-    refs.append(&base);
-    refs.append(&base);
+    refs.append(&base).unwrap();
+    refs.append(&base).unwrap();
     let q = random_descriptors(6, &cfg, 102);
     let k = 12;
     let gpu = GpuStages::new(ctx).coarse(&refs, &q, &p, k, 4096).unwrap();
