@@ -50,7 +50,7 @@ fn shards_give_exactly_the_lists_of_the_whole_map() {
     // every image twice (ids a*, b*), 3 images per segment: identical references 9 apart, so
     // ties cross segment and shard boundaries
     let mut set = common::encode(&cfg, &maps, "a");
-    set.append(&common::encode(&cfg, &maps, "b"));
+    set.append(&common::encode(&cfg, &maps, "b")).unwrap();
     Map::create_with(&path, &cfg.encoding(), &set, None, StoreOptions { segment_images: 3, ..Default::default() }).unwrap();
     edit::remove(&path, &["a1".into(), "b7".into()]).unwrap_or_else(|e| panic!("{e}"));
     let queries = common::encode(&cfg, &maps[2..7], "q");

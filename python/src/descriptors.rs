@@ -187,7 +187,7 @@ impl PyDescriptors {
             if i >= d.len() {
                 return Err(invalid("take", format!("index {i} of a batch of {}", d.len())));
             }
-            out.append_range(d, i, i + 1);
+            out.append_range(d, i, i + 1).map_err(|r| invalid("take", r))?;
         }
         Ok(PyDescriptors::new(out))
     }
@@ -197,11 +197,7 @@ impl PyDescriptors {
         let first = parts.first().ok_or_else(|| invalid("concat", "no batches given"))?;
         let mut out = first.inner.empty_like();
         for p in &parts {
-            let d = &p.inner;
-            if (d.global_len, d.stats_len, d.neighbour_slots, d.appearance_dim, d.hog_dim) != (out.global_len, out.stats_len, out.neighbour_slots, out.appearance_dim, out.hog_dim) {
-                return Err(invalid("concat", "batches of different layouts (encoded with different configs)"));
-            }
-            out.append(d);
+            out.append(&p.inner).map_err(|r| invalid("concat", format!("batches of different layouts (encoded with different configs): {r}")))?;
         }
         Ok(PyDescriptors::new(out))
     }
