@@ -24,7 +24,7 @@ fn sharded(dir: &Path, n_shards: usize, queries: &DescriptorSet, setting: Settin
         .collect();
     let views: Vec<&[Vec<(f32, u32)>]> = parts.iter().map(Vec::as_slice).collect();
     let lists = merge_lists(&views, list_len(setting, cfg)).unwrap();
-    let fine = (setting.uses_coarse() && setting.uses_fine()).then(|| {
+    let fine = setting.reranks().then(|| {
         pairs_of(&lists)
             .into_iter()
             .map(|(q, r)| {

@@ -50,6 +50,7 @@ from ._native import (  # noqa: E402
     merge_candidates,
     plan_shards,
     rank,
+    reranks,
     settings,
 )
 
@@ -57,7 +58,7 @@ SETTINGS = tuple(settings())
 
 __all__ = [
     "Config", "Descriptors", "Encoder", "Map", "Matches", "Shard", "evaluate", "list_len",
-    "merge_candidates", "plan_shards", "rank", "settings", "SETTINGS", "__version__",
+    "merge_candidates", "plan_shards", "rank", "reranks", "settings", "SETTINGS", "__version__",
     "SemlookError", "CorruptMapError", "DatasetError", "DuplicateImageIdError", "GpuError",
     "IncompatibleConfigError", "InputFileError", "InvalidConfigError", "InvalidImageError",
     "InvalidInputError", "MapVersionError", "ModelError",

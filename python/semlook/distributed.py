@@ -87,7 +87,7 @@ class ShardedMap:
         if cpus_per_shard is None:
             cpus_per_shard = max(0.01, ray.cluster_resources().get("CPU", 1) / shards)
         threads = threads_per_shard or max(1, math.floor(cpus_per_shard))
-        cfg = config if config is not None else semlook.Config.for_map(semlook.Map.open(self.map_dir))
+        cfg = config if config is not None else semlook.Config.for_map_dir(self.map_dir)
         self.config = cfg.with_top_k(k) if k is not None else cfg
         toml = self.config.to_toml()
         models = os.environ.get("SEMLOOK_MODELS")
@@ -113,13 +113,14 @@ class ShardedMap:
         parts = ray.get([a.candidates.remote(qref, setting) for a in self.actors])
         length = semlook.list_len(setting, self.config)
         scores, refs, counts = semlook.merge_candidates(parts, length)
-        rows = [(q, j) for q in range(len(counts)) for j in range(counts[q])]
-        flat_q = np.array([q for q, _ in rows], dtype=np.uint32)
-        flat_r = np.array([refs[q, j] for q, j in rows], dtype=np.int64)
-        owner = np.searchsorted(self.starts, flat_r, side="right") - 1 if len(rows) else np.zeros(0, dtype=np.int64)
-        two_stages = setting in ("global-forest", "semlook")
-        fine = np.full(len(rows), np.nan, dtype=np.float32)
-        ids = [""] * len(rows)
+        # every candidate, row by row: the order `rank` takes fine scores and ids in
+        real = np.arange(refs.shape[1]) < counts[:, None]
+        flat_q = np.nonzero(real)[0].astype(np.uint32)
+        flat_r = refs[real]
+        owner = np.searchsorted(self.starts, flat_r, side="right") - 1
+        two_stages = semlook.reranks(setting)
+        fine = np.full(len(flat_r), np.nan, dtype=np.float32)
+        ids = [""] * len(flat_r)
         calls = []
         for s, actor in enumerate(self.actors):
             sel = np.nonzero(owner == s)[0]

@@ -5,6 +5,7 @@ use crate::errors::invalid;
 use numpy::ndarray::{ArrayViewD, IxDyn};
 use numpy::{Element, PyArrayDyn};
 use pyo3::prelude::*;
+use pyo3::types::IntoPyDict;
 use rayon::ThreadPool;
 use semlook::matching::Setting;
 use std::collections::HashMap;
@@ -21,8 +22,6 @@ pub fn view<'py, T: Element>(owner: Bound<'py, PyAny>, data: &[T], shape: &[usiz
     arr.call_method("setflags", (), Some(&[("write", false)].into_py_dict(arr.py())?))?;
     Ok(arr)
 }
-
-use pyo3::types::IntoPyDict;
 
 /// A rayon pool of `threads` threads (kept for the process), or `None` for the global pool.
 pub fn pool(threads: Option<usize>) -> PyResult<Option<Arc<ThreadPool>>> {

@@ -46,7 +46,7 @@ fn columns(d: &DescriptorSet) -> Vec<(&'static str, Vec<usize>)> {
 
 fn column_view<'py>(owner: Bound<'py, PyAny>, d: &DescriptorSet, name: &str, shape: &[usize]) -> PyResult<Bound<'py, PyAny>> {
     Ok(match name {
-        "sizes" => view(owner, bytemuck_u32(&d.sizes), shape)?.into_any(),
+        "sizes" => view(owner, d.sizes.as_flattened(), shape)?.into_any(),
         "globals" => view(owner, &d.globals, shape)?.into_any(),
         "global_stats" => view(owner, &d.global_stats, shape)?.into_any(),
         "forest_offsets" => view(owner, &d.forest_offsets, shape)?.into_any(),
@@ -61,10 +61,6 @@ fn column_view<'py>(owner: Bound<'py, PyAny>, d: &DescriptorSet, name: &str, sha
         "image_hog" => view(owner, &d.image_hog, shape)?.into_any(),
         _ => return Err(invalid("descriptor column", format!("no column {name:?}"))),
     })
-}
-
-fn bytemuck_u32(sizes: &[[u32; 2]]) -> &[u32] {
-    sizes.as_flattened()
 }
 
 /// A column from a dict of arrays, copied, its shape checked.

@@ -8,7 +8,7 @@ use crate::map::PyMap;
 use numpy::{PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use semlook::config::Config;
-use semlook::encode::{collect_encoded, Encoder};
+use semlook::encode::Encoder;
 use semlook::input::{self, FrameSource, LabelFormat};
 use std::path::PathBuf;
 
@@ -40,6 +40,12 @@ impl PyConfig {
     #[staticmethod]
     fn for_map(map: &PyMap) -> Self {
         PyConfig { inner: map.inner.query_config() }
+    }
+    /// `for_map` from the map directory's manifest alone (no segment file is read: a driver need
+    /// not hold them).
+    #[staticmethod]
+    fn for_map_dir(map_dir: PathBuf) -> PyResult<Self> {
+        Ok(PyConfig { inner: semlook::map::manifest::query_config(&semlook::map::manifest::read_existing(&map_dir).py_err()?) })
     }
     fn to_toml(&self) -> PyResult<String> {
         self.inner.to_toml().py_err()
@@ -126,16 +132,8 @@ impl PyEncoder {
         let frames = frames(ids, images, labels)?;
         let fmt = self::label_format(label_format)?;
         let enc = &self.inner;
-        let set = detached(py, pool(threads)?, || -> semlook::Result<_> {
-            let (images, _, _) = collect_encoded(enc.encode_all(&frames, fmt, &|| {}), skip_invalid)?;
-            let mut set = enc.descriptor_set();
-            for img in &images {
-                set.push(img).map_err(|r| semlook::Error::invalid(format!("image {:?}", img.id), r))?;
-            }
-            Ok(set)
-        })
-        .py_err()?;
-        Ok(PyDescriptors::new(set))
+        let encoded = detached(py, pool(threads)?, || semlook::batch::encode_frames(&mut semlook::engine::Engine::cpu(), enc, &frames, fmt, "frames", skip_invalid, true)).py_err()?;
+        Ok(PyDescriptors::new(encoded.set))
     }
     /// Encodes one frame from memory: `image` uint8 [H, W, 3] (RGB) and/or `labels` [H, W] of
     /// label ids (any integer type; translated by the config's class table like a grey PNG).

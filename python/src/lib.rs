@@ -28,6 +28,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(shard::rank, m)?)?;
     m.add_function(wrap_pyfunction!(shard::list_len, m)?)?;
     m.add_function(wrap_pyfunction!(shard::settings, m)?)?;
+    m.add_function(wrap_pyfunction!(shard::reranks, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
 }

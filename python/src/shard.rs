@@ -117,11 +117,11 @@ impl PyShard {
 }
 
 /// Cuts the map in `map_dir` into `shards` contiguous segment ranges of about equal images: a
-/// list of {segments: {start, end}, global_start, len, generation}.
+/// list of {segments: {start, end}, global_start, len, generation}. Reads the manifest only.
 #[pyfunction]
 pub fn plan_shards<'py>(py: Python<'py>, map_dir: PathBuf, shards: usize) -> PyResult<Bound<'py, PyAny>> {
-    let m = py.detach(|| Map::open(&map_dir)).py_err()?;
-    to_py_object(py, &shard::plan(&m.manifest, shards).py_err()?)
+    let m = semlook::map::manifest::read_existing(&map_dir).py_err()?;
+    to_py_object(py, &shard::plan(&m, shards).py_err()?)
 }
 
 /// The global candidate lists from per-shard ones (each as `Shard.candidates` returns them):
@@ -161,6 +161,12 @@ pub fn rank(setting: &str, scores: PyReadonlyArray2<'_, f32>, references: PyRead
 #[pyo3(signature = (setting, config=None))]
 pub fn list_len(setting: &str, config: Option<PyRef<'_, PyConfig>>) -> PyResult<usize> {
     Ok(matching::list_len(self::setting(setting)?, &config.map_or_else(Config::default, |c| c.inner.clone())))
+}
+
+/// Whether `setting` re-ranks coarse candidates by the fine stage (then `rank` takes fine scores).
+#[pyfunction]
+pub fn reranks(setting: &str) -> PyResult<bool> {
+    Ok(self::setting(setting)?.reranks())
 }
 
 /// Names of the matching settings.

@@ -4,7 +4,7 @@
 //! map's write lock.
 
 use super::files::{self, write_atomic, WriteLock};
-use super::manifest::{self, Manifest, SegmentEntry};
+use super::manifest::{self, SegmentEntry};
 use super::segment::{self, Mapped};
 use super::{layout_of, writer::StoreOptions};
 use crate::classes::ClassTable;
@@ -18,16 +18,12 @@ use std::path::Path;
 /// Unknown ids named in a refused removal (the rest are counted).
 const SHOW_UNKNOWN: usize = 5;
 
-fn read_map(dir: &Path) -> Result<Manifest> {
-    manifest::read(dir)?.ok_or_else(|| Error::io(dir.join(manifest::MANIFEST), std::io::ErrorKind::NotFound.into()))
-}
-
 /// Removes the images `ids` (tombstones: their rows are marked in the manifest and left out of
 /// every query; `compact` drops them from the files). Every id must be in the map, or nothing is
 /// changed. Returns the number removed.
 pub fn remove(dir: &Path, ids: &[String]) -> Result<usize> {
     let _lock = WriteLock::take(dir)?;
-    let mut m = read_map(dir)?;
+    let mut m = manifest::read_existing(dir)?;
     let layout = layout_of(&m, ClassTable::from_config(&m.config.classes)?.len());
     let wanted: HashSet<&str> = ids.iter().map(|s| s.as_str()).collect();
     let mut found: HashSet<String> = HashSet::new();
@@ -78,7 +74,7 @@ pub struct CompactReport {
 /// write lock throughout (writers wait, see [`files::LOCK_WAIT`]).
 pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
     let _lock = WriteLock::take(dir)?;
-    let old = read_map(dir)?;
+    let old = manifest::read_existing(dir)?;
     let layout = layout_of(&old, ClassTable::from_config(&old.config.classes)?.len());
     let small = |e: &SegmentEntry| e.live() * 2 < opts.segment_images && (e.bytes as usize) * 2 < opts.segment_bytes;
     let mut out: Vec<SegmentEntry> = Vec::new();
@@ -178,7 +174,7 @@ impl VerifyReport {
 /// Checks every file of the map in full (in parallel): the codebook, and each segment's header,
 /// size, SHA-256 and values. Reports every damaged file, not just the first.
 pub fn verify(dir: &Path) -> Result<VerifyReport> {
-    let m = read_map(dir)?;
+    let m = manifest::read_existing(dir)?;
     let layout = layout_of(&m, ClassTable::from_config(&m.config.classes)?.len());
     let mut files: Vec<FileCheck> = m
         .segments

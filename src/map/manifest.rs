@@ -157,6 +157,17 @@ fn check(m: &Manifest) -> std::result::Result<(), String> {
     Ok(())
 }
 
+/// [`read`] for a directory that must hold a map: no manifest is a not-found error naming it.
+pub fn read_existing(dir: &Path) -> Result<Manifest> {
+    read(dir)?.ok_or_else(|| Error::io(dir.join(MANIFEST), std::io::ErrorKind::NotFound.into()))
+}
+
+/// The configuration queries of a map are encoded and matched with when none is given: the map's
+/// encoding (appearance network included) and default matching parameters.
+pub fn query_config(m: &Manifest) -> crate::config::Config {
+    crate::config::Config::default().with_encoding(&m.config)
+}
+
 /// Writes the manifest atomically (the caller holds the write lock).
 pub fn write(dir: &Path, m: &Manifest) -> Result<()> {
     let bytes = m.to_json().map_err(|e| Error::invalid(format!("map {}", dir.display()), format!("the manifest does not serialise: {e}")))?;

@@ -71,7 +71,7 @@ impl Map {
     pub fn open(dir: &Path) -> Result<Map> {
         let mut last_generation = None;
         for _ in 0..OPEN_ATTEMPTS {
-            let m = manifest::read(dir)?.ok_or_else(|| Error::io(dir.join(manifest::MANIFEST), std::io::ErrorKind::NotFound.into()))?;
+            let m = manifest::read_existing(dir)?;
             let generation = m.generation;
             match Map::open_generation(dir, m) {
                 Err(Error::Io { source, .. }) if source.kind() == std::io::ErrorKind::NotFound && last_generation != Some(generation) => {
@@ -106,7 +106,7 @@ impl Map {
     /// The configuration queries of this map are encoded and matched with when none is given:
     /// the map's encoding (appearance network included) and default matching parameters.
     pub fn query_config(&self) -> crate::config::Config {
-        crate::config::Config::default().with_encoding(&self.manifest.config)
+        manifest::query_config(&self.manifest)
     }
 
     /// The VLAD codebook of the map's appearance vectors.

@@ -57,7 +57,7 @@ impl Map {
     /// fails if the map has been changed since (add, remove or compact commit a new one): the
     /// caller plans again.
     pub fn open_range(dir: &Path, segments: Range<usize>, generation: Option<u64>) -> Result<(Map, ShardSpec)> {
-        let mut m = manifest::read(dir)?.ok_or_else(|| Error::io(dir.join(manifest::MANIFEST), std::io::ErrorKind::NotFound.into()))?;
+        let mut m = manifest::read_existing(dir)?;
         let path = dir.join(manifest::MANIFEST);
         if let Some(g) = generation.filter(|&g| g != m.generation) {
             return Err(Error::invalid(path.display().to_string(), format!("the map is at generation {}, the shard was planned at {g}: plan again", m.generation)));

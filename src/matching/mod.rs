@@ -62,6 +62,10 @@ impl Setting {
     pub fn uses_fine(self) -> bool {
         !self.is_baseline() && self != Setting::Global
     }
+    /// Both stages: the fine stage re-ranks the coarse stage's candidates.
+    pub fn reranks(self) -> bool {
+        self.uses_coarse() && self.uses_fine()
+    }
     pub fn uses_appearance(self) -> bool {
         matches!(self, Setting::Local | Setting::Semlook)
     }
@@ -186,7 +190,7 @@ pub fn try_match_batch(refs: &dyn RefSource, queries: &DescriptorSet, setting: S
 /// gives its candidates, [`ssim_topk::merge_lists`] keeps the global K, the owners score the pairs.
 pub fn match_with(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<QueryMatch>, MatchTimes)> {
     let (lists, mut times) = candidates(stages, refs, queries, setting, cfg)?;
-    let fine = match setting.uses_coarse() && setting.uses_fine() {
+    let fine = match setting.reranks() {
         true => {
             let t = Instant::now();
             let f = fine_scores(stages, refs, queries, setting, cfg, &pairs_of(&lists))?;
@@ -258,7 +262,7 @@ pub fn fine_scores(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &Desc
 /// x SSIM), best first, ties keeping the coarse order (stable sort).
 pub fn rank(setting: Setting, lists: &[Vec<(f32, u32)>], fine: Option<&[f32]>, fusion: ScoreFusion) -> Result<Vec<QueryMatch>> {
     let total: usize = lists.iter().map(Vec::len).sum();
-    let two_stages = setting.uses_coarse() && setting.uses_fine();
+    let two_stages = setting.reranks();
     match (two_stages, fine) {
         (true, Some(f)) if f.len() == total => {}
         (false, None) => {}
