@@ -87,3 +87,45 @@ fn a_shard_planned_before_a_change_is_refused() {
     let (part, spec) = Map::open_range(&path, 1..3, None).unwrap();
     assert_eq!((spec.global_start, part.len()), (1, 4));
 }
+
+#[test]
+fn a_driver_needs_only_the_manifest_and_the_codebook() {
+    let dir = tempfile::tempdir().unwrap();
+    let (path, driver) = (dir.path().join("m"), dir.path().join("driver"));
+    let cfg = Config::without_appearance();
+    let mut set = common::encode(&cfg, &common::label_maps(6, 80, 60), "r");
+    // appearance vectors of 2 x 3 values, as the codebook below makes
+    let unit = |n: usize| (0..n).flat_map(|i| (0..6).map(move |j| f32::from(u8::from(j == i % 6)))).collect::<Vec<f32>>();
+    set.appearance_dim = 6;
+    set.tree_appearance = unit(set.n_trees());
+    set.tree_has_appearance = vec![1; set.n_trees()];
+    set.image_appearance = unit(set.len());
+    let codebook = semlook::appearance::vlad::Codebook { k: 2, dim: 3, centres: vec![0.5, -1.0, 2.0, 0.25, 0.0, -3.5] };
+    let whole = Map::create_with(&path, &cfg.encoding(), &set, Some((&codebook, "net-sha")), StoreOptions { segment_images: 2, ..Default::default() }).unwrap();
+    // the driver's copy of the map directory: every file but the segments
+    std::fs::create_dir(&driver).unwrap();
+    for e in std::fs::read_dir(&path).unwrap().flatten() {
+        let name = e.file_name().into_string().unwrap();
+        if !name.starts_with("segment-") {
+            std::fs::copy(e.path(), driver.join(&name)).unwrap();
+        }
+    }
+    assert!(Map::open(&driver).is_err(), "the segments are missing: a full open must fail");
+    let head = Map::open_header(&driver).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!((head.len(), head.segments().len()), (0, 0));
+    let cb = head.codebook().expect("the codebook is read");
+    assert_eq!((cb.k, cb.dim, &cb.centres), (codebook.k, codebook.dim, &codebook.centres));
+    assert_eq!(head.query_config().to_toml().unwrap(), whole.query_config().to_toml().unwrap());
+    assert!(head.check_model(Some("net-sha")).is_ok() && head.check_model(None).is_err());
+    let mut other = cfg.encoding();
+    other.global.width += 1;
+    assert!(head.check_compatible(&cfg.encoding()).is_ok() && head.check_compatible(&other).is_err());
+    // a damaged codebook is refused as by a full open, naming the file
+    let cb_file = std::fs::read_dir(&driver).unwrap().flatten().map(|e| e.path()).find(|p| p.file_name().unwrap().to_string_lossy().starts_with("codebook")).expect("a codebook file");
+    let mut bytes = std::fs::read(&cb_file).unwrap();
+    let last = bytes.len() - 1;
+    bytes[last] ^= 1;
+    std::fs::write(&cb_file, bytes).unwrap();
+    let err = Map::open_header(&driver).unwrap_err().to_string();
+    assert!(err.contains(&*cb_file.file_name().unwrap().to_string_lossy()), "{err}");
+}

@@ -170,7 +170,6 @@ def main(argv=None):
     import ray
 
     ray.init(address=a.address, include_dashboard=False, log_to_driver=False)
-    m = semlook.Map.open(a.map)
     folder = a.labels or a.images
     if folder is None:
         sys.exit("give --images and/or --labels")
@@ -178,7 +177,8 @@ def main(argv=None):
     find = lambda d, s: next(os.path.join(d, f) for f in os.listdir(d) if os.path.splitext(f)[0] == s)  # noqa: E731
     images = [find(a.images, s) for s in stems] if a.images else None
     labels = [find(a.labels, s) for s in stems] if a.labels else None
-    queries = semlook.Encoder.for_map(m).encode_files(stems, images=images, labels=labels)
+    # the manifest and codebook suffice here: the segment files need only be on the shards' nodes
+    queries = semlook.Encoder.for_map_dir(a.map).encode_files(stems, images=images, labels=labels)
     sm = ShardedMap(a.map, a.shards, k=a.k, cpus_per_shard=a.cpus_per_shard)
     text = json.dumps(sm.query(queries, a.setting).to_list(), indent=1)
     if a.json:

@@ -10,6 +10,7 @@ use pyo3::prelude::*;
 use semlook::config::Config;
 use semlook::encode::Encoder;
 use semlook::input::{self, FrameSource, LabelFormat};
+use semlook::map::Map;
 use std::path::PathBuf;
 
 /// A semlook configuration (the TOML of `semlook --config`; missing keys take the defaults).
@@ -109,6 +110,18 @@ impl PyEncoder {
         let cfg = config.map_or_else(|| map.inner.query_config(), |c| c.inner.clone());
         let m = map.inner.clone();
         Ok(PyEncoder { inner: py.detach(|| Encoder::for_map(&cfg, &m)).py_err()? })
+    }
+    /// `for_map` from the map directory's manifest and codebook alone: no segment file is
+    /// opened, so a driver need not hold them (they live on the shards' nodes).
+    #[staticmethod]
+    #[pyo3(signature = (map_dir, config=None))]
+    fn for_map_dir(py: Python<'_>, map_dir: PathBuf, config: Option<PyRef<'_, PyConfig>>) -> PyResult<Self> {
+        let config = config.map(|c| c.inner.clone());
+        let enc = py.detach(|| {
+            let head = Map::open_header(&map_dir)?;
+            Encoder::for_map(&config.unwrap_or_else(|| head.query_config()), &head)
+        });
+        Ok(PyEncoder { inner: enc.py_err()? })
     }
     /// Values per appearance vector (0 without appearance).
     #[getter]

@@ -1,6 +1,7 @@
 """The Python API: descriptors in and out of numpy, maps built, grown, edited and queried,
 zero-copy segment views, and errors as exceptions carrying the engine's message."""
 
+import os
 import pickle
 import shutil
 import subprocess
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 
 import semlook
-from conftest import CLI, encode_places, place
+from conftest import CLI, encode_places, place, write_png
 
 
 def test_descriptor_arrays_round_trip_and_pickle(encoder):
@@ -109,3 +110,27 @@ def test_evaluate_reports_every_setting_asked(tmp_path):
     r = semlook.evaluate(dataset=str(ds), settings=["global", "semlook"], config=semlook.Config.without_appearance())
     assert [s["setting"] for s in r["results"]] == ["global", "semlook"] * (len(r["results"]) // 2)
     assert r["references"] == 8
+
+
+def test_an_encoder_from_the_manifest_alone_equals_the_maps(tmp_path, small_map, queries):
+    """`Encoder.for_map_dir` reads the manifest (and codebook) only: a driver without the
+    segment files encodes queries exactly as `Encoder.for_map` on the whole map."""
+    driver = tmp_path / "driver"
+    driver.mkdir()
+    for f in os.listdir(small_map.path):
+        if not f.startswith("segment-"):
+            shutil.copy(os.path.join(small_map.path, f), driver / f)
+    with pytest.raises(semlook.SemlookError):
+        semlook.Map.open(str(driver))
+    ids = [f"p{s}" for s in range(4)]
+    files = []
+    for s, i in zip(range(4), ids):
+        files.append(str(tmp_path / f"{i}.png"))
+        write_png(files[-1], place(s, shift=1))
+    a = semlook.Encoder.for_map_dir(str(driver)).encode_files(ids, labels=files)
+    b = semlook.Encoder.for_map(small_map).encode_files(ids, labels=files)
+    for name, x in a.to_arrays().items():
+        assert np.array_equal(x, b.to_arrays()[name]), name
+    wider = semlook.Config("[global]\nwidth = 33\n[appearance]\nmodel = \"none\"\n")
+    with pytest.raises(semlook.IncompatibleConfigError):
+        semlook.Encoder.for_map_dir(str(driver), wider)

@@ -1,11 +1,15 @@
 """A local Ray cluster (2 CPUs) serving a map split into 4 shards gives exactly the top-K lists
 and scores of one process, in every setting and score fusion, with ties across shards."""
 
+import json
 import os
+import subprocess
+import sys
 
 import pytest
 
 import semlook
+from conftest import place, write_png
 
 ray = pytest.importorskip("ray")
 from semlook.distributed import ShardedMap  # noqa: E402
@@ -44,3 +48,21 @@ def test_a_changed_map_is_refused_by_its_shards(cluster, small_map):
     seg = plan[1]["segments"]
     with pytest.raises(semlook.InvalidInputError, match="plan again"):
         semlook.Shard(str(small_map.path), seg["start"], seg["end"], plan[1]["generation"])
+
+
+def test_the_command_line_driver_joins_a_cluster_and_equals_one_process(cluster, small_map, tmp_path):
+    """`python -m semlook.distributed --address ADDR` joins the running cluster, encodes the
+    query files with the map's encoder and prints the single process's results."""
+    qs = tmp_path / "q"
+    qs.mkdir()
+    qids = [f"q{s}" for s in range(3, 9)]
+    for s, q in zip(range(3, 9), qids):
+        write_png(qs / f"{q}.png", place(s, shift=2))
+    out = tmp_path / "out.json"
+    address = ray.get_runtime_context().gcs_address
+    env = dict(os.environ, RAY_USAGE_STATS_ENABLED="0")
+    run = subprocess.run([sys.executable, "-m", "semlook.distributed", "--address", address, "--map", str(small_map.path), "--shards", "3", "--labels", str(qs), "--setting", "semlook", "-k", "5", "--json", str(out)], capture_output=True, text=True, env=env, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    queries = semlook.Encoder.for_map(small_map).encode_files(qids, labels=[str(qs / f"{q}.png") for q in qids])
+    single = small_map.query(queries, "semlook", k=5)
+    assert json.loads(out.read_text()) == single.to_list()

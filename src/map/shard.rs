@@ -1,6 +1,7 @@
 //! A map split into shards of contiguous segments, for matching spread over several processes or
 //! machines (the Python package's Ray driver): [`plan`] cuts a manifest into balanced ranges,
-//! [`Map::open_range`] opens one range alone (only its segment files are read). A shard's
+//! [`Map::open_range`] opens one range alone (only its segment files are read), [`Map::open_header`]
+//! what a driver that holds no segment file needs to encode queries. A shard's
 //! reference `i` is the map's reference `global_start + i`, so per-shard candidate lists merge
 //! into exactly the lists of one process ([`crate::matching::ssim_topk::merge_lists`]).
 
@@ -71,6 +72,16 @@ impl Map {
         let map = Map::open_generation(dir, m)?;
         let spec = ShardSpec { segments, global_start, len: map.len(), generation };
         Ok((map, spec))
+    }
+
+    /// The map in `dir` without any of its segments: its manifest (config, keypoint network
+    /// record) and its codebook, checked, as a map that serves no image. What a driver needs to
+    /// encode queries (`Encoder::for_map`) when the segment files live on the shards' nodes; no
+    /// segment file is opened, so none needs to be there.
+    pub fn open_header(dir: &Path) -> Result<Map> {
+        let mut m = manifest::read_existing(dir)?;
+        m.segments.clear();
+        Map::open_generation(dir, m)
     }
 }
 
