@@ -12,7 +12,7 @@ use crate::gpu::{coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineM
 use crate::input::{FrameSource, LabelFormat, LabelMap};
 use crate::local::tree_similarity::TreeSimParams;
 use crate::descriptors::DescriptorSet;
-use crate::matching::{match_with, source::{GlobalSource, RefSource}, CpuStages, MatchTimes, QueryMatch, Setting, Stages};
+use crate::matching::{candidates, fine_scores, CandidateLists, match_with, source::{GlobalSource, RefSource}, CpuStages, MatchTimes, QueryMatch, Setting, Stages};
 use crate::util::ms_since;
 use rayon::prelude::*;
 use std::sync::Arc;
@@ -110,11 +110,13 @@ pub struct Engine {
     gpu: Option<GpuStages>,
     /// `auto`: a GPU failure during work switches to the CPU (with a warning) instead of failing.
     fall_back: bool,
+    /// Calls (match, candidates, fine scores, encode) completed on the GPU stages.
+    gpu_calls: u64,
 }
 
 impl Engine {
     pub fn cpu() -> Engine {
-        Engine { gpu: None, fall_back: false }
+        Engine { gpu: None, fall_back: false, gpu_calls: 0 }
     }
 
     /// An engine for `backend`. For `Auto`, the second value is the reason it fell back to the CPU.
@@ -156,7 +158,7 @@ impl Engine {
     /// # Ok(()) }
     /// ```
     pub fn with_context(ctx: Arc<GpuContext>) -> Engine {
-        Engine { gpu: Some(GpuStages::new(ctx)), fall_back: false }
+        Engine { gpu: Some(GpuStages::new(ctx)), fall_back: false, gpu_calls: 0 }
     }
 
     /// Whether a GPU failure during work switches to the CPU path (what `auto` does) instead of
@@ -184,6 +186,12 @@ impl Engine {
         self.gpu.is_some()
     }
 
+    /// Calls (match, candidates, fine scores, encode) completed on the GPU so far; a call the
+    /// `auto` fallback finished on the CPU does not count.
+    pub fn gpu_calls(&self) -> u64 {
+        self.gpu_calls
+    }
+
     /// The GPU executors, when this engine runs on a GPU.
     pub fn gpu_stages(&mut self) -> Option<&mut GpuStages> {
         self.gpu.as_mut()
@@ -197,15 +205,33 @@ impl Engine {
         }
     }
 
-    /// Matches a batch of queries (see [`crate::matching::match_with`]).
-    pub fn match_batch(&mut self, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<QueryMatch>, MatchTimes)> {
+    /// Runs `work` on the GPU stages when there are any (with `auto`, again on the CPU if the
+    /// GPU fails), else on the CPU stages.
+    fn on_stages<T>(&mut self, mut work: impl FnMut(&mut dyn Stages) -> Result<T>) -> Result<T> {
         if let Some(g) = &mut self.gpu {
-            let r = match_with(g, refs, queries, setting, cfg);
+            let r = work(g);
             if let Ok(v) = self.recover(r)? {
+                self.gpu_calls += 1;
                 return Ok(v);
             }
         }
-        match_with(&mut CpuStages, refs, queries, setting, cfg)
+        work(&mut CpuStages)
+    }
+
+    /// Matches a batch of queries (see [`crate::matching::match_with`]).
+    pub fn match_batch(&mut self, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<QueryMatch>, MatchTimes)> {
+        self.on_stages(|st| match_with(st, refs, queries, setting, cfg))
+    }
+
+    /// The candidate lists of a batch alone (see [`crate::matching::candidates`]): what one shard
+    /// of a map runs.
+    pub fn candidates(&mut self, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(CandidateLists, MatchTimes)> {
+        self.on_stages(|st| candidates(st, refs, queries, setting, cfg))
+    }
+
+    /// Fine scores of (query, reference) pairs (see [`crate::matching::fine_scores`]).
+    pub fn fine_scores(&mut self, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config, pairs: &[(u32, u32)]) -> Result<Vec<f32>> {
+        self.on_stages(|st| fine_scores(st, refs, queries, setting, cfg, pairs))
     }
 
     /// Encodes frames, in input order; `tick` is called per frame. Per-frame input errors are
@@ -217,6 +243,7 @@ impl Engine {
         if let Some(g) = &mut self.gpu {
             let r = Self::encode_all_gpu(g, encoder, sources, format, tick);
             if let Ok(v) = self.recover(r)? {
+                self.gpu_calls += 1;
                 return Ok(v);
             }
         }

@@ -11,6 +11,10 @@ exactly the results of one process.
     matches = m.query(semlook.Encoder.for_map(m).encode_files(qids, labels=qpaths))
     matches.references, matches.scores, matches.ids(0)
 
+``Engine("gpu")`` (or "auto") runs encoding and matching on a GPU through wgpu: pass
+``engine=`` to ``Encoder.encode_files``, ``Map.query`` and ``evaluate``; keep one per process
+(the map stays resident on the device between calls).
+
 Processes: heavy calls release the GIL and run on rayon threads. Do not fork a process that has
 used semlook (``multiprocessing``'s default on Linux): use the 'spawn' start method (Ray does).
 
@@ -32,6 +36,7 @@ from ._native import (  # noqa: E402
     Descriptors,
     DuplicateImageIdError,
     Encoder,
+    Engine,
     GpuError,
     IncompatibleConfigError,
     InputFileError,
@@ -57,7 +62,7 @@ from ._native import (  # noqa: E402
 SETTINGS = tuple(settings())
 
 __all__ = [
-    "Config", "Descriptors", "Encoder", "Map", "Matches", "Shard", "evaluate", "list_len",
+    "Config", "Descriptors", "Encoder", "Engine", "Map", "Matches", "Shard", "evaluate", "list_len",
     "merge_candidates", "plan_shards", "rank", "reranks", "settings", "SETTINGS", "__version__",
     "SemlookError", "CorruptMapError", "DatasetError", "DuplicateImageIdError", "GpuError",
     "IncompatibleConfigError", "InputFileError", "InvalidConfigError", "InvalidImageError",

@@ -36,14 +36,14 @@ def _actor_class():
     class ShardActor:
         """One shard of a map, opened alone; methods run one at a time."""
 
-        def __init__(self, map_dir, seg_start, seg_end, generation, config_toml, k, threads, models):
+        def __init__(self, map_dir, seg_start, seg_end, generation, config_toml, k, threads, models, backend):
             if models:
                 os.environ.setdefault("SEMLOOK_MODELS", models)
-            self.shard = semlook.Shard(map_dir, seg_start, seg_end, generation, config_toml, k, threads)
+            self.shard = semlook.Shard(map_dir, seg_start, seg_end, generation, config_toml, k, threads, backend)
             self.busy = 0.0
 
         def info(self):
-            return self.shard.info()
+            return dict(self.shard.info(), backend=self.shard.backend, gpu_calls=self.shard.gpu_calls)
 
         def candidates(self, queries, setting):
             t = time.perf_counter()
@@ -73,12 +73,15 @@ class ShardedMap:
 
     ``cpus_per_shard`` is what each actor reserves from Ray (fractions allowed; default: the
     cluster's CPUs divided among the shards), ``threads_per_shard`` the rayon threads it runs
-    (default: max(1, floor(cpus_per_shard))). ``node_ids`` pins shard i to node ``node_ids[i]``
+    (default: max(1, floor(cpus_per_shard))). ``backend`` is each shard's ``Engine`` backend
+    ("cpu", "gpu", "auto"; on a GPU the shard's part of the map stays resident on the device),
+    ``gpus_per_shard`` what each actor reserves from Ray's GPUs (default: 1 with backend "gpu",
+    else 0). ``node_ids`` pins shard i to node ``node_ids[i]``
     (each node then needs only the manifest, the codebook and its own segment files); without
     it every node must see the whole map directory at the same path (a shared file system).
     """
 
-    def __init__(self, map_dir, shards, *, config=None, k=None, cpus_per_shard=None, threads_per_shard=None, node_ids=None):
+    def __init__(self, map_dir, shards, *, config=None, k=None, cpus_per_shard=None, threads_per_shard=None, node_ids=None, backend="cpu", gpus_per_shard=None):
         import ray
 
         self.map_dir = os.path.abspath(map_dir)
@@ -95,14 +98,17 @@ class ShardedMap:
         self.actors = []
         for i, p in enumerate(self.plan):
             opts = {"num_cpus": cpus_per_shard}
+            gpus = gpus_per_shard if gpus_per_shard is not None else (1 if backend == "gpu" else 0)
+            if gpus:
+                opts["num_gpus"] = gpus
             if node_ids is not None:
                 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
                 opts["scheduling_strategy"] = NodeAffinitySchedulingStrategy(node_ids[i], soft=False)
             seg = p["segments"]
-            self.actors.append(Actor.options(**opts).remote(self.map_dir, seg["start"], seg["end"], p["generation"], toml, None, threads, models))
+            self.actors.append(Actor.options(**opts).remote(self.map_dir, seg["start"], seg["end"], p["generation"], toml, None, threads, models, backend))
         # wait until every shard is open (and fail here if one cannot open)
-        ray.get([a.info.remote() for a in self.actors])
+        self.shard_info = ray.get([a.info.remote() for a in self.actors])
 
     def query(self, queries, setting="semlook", fusion=None):
         """The ranked references of every query: a ``Matches`` equal to ``Map.query`` on the
@@ -140,6 +146,12 @@ class ShardedMap:
         fusion = fusion or self.config.score_fusion
         return semlook.rank(setting, scores, refs, counts, fine if two_stages else None, queries.ids, ids, fusion)
 
+    def info(self):
+        """Per shard: its plan entry, its engine ("backend") and the calls it ran on a GPU."""
+        import ray
+
+        return ray.get([a.info.remote() for a in self.actors])
+
     def busy_seconds(self):
         """Per actor, seconds spent in engine calls since the last call of this method."""
         import ray
@@ -165,6 +177,8 @@ def main(argv=None):
     ap.add_argument("--setting", default="semlook", choices=semlook.SETTINGS)
     ap.add_argument("-k", type=int, default=None)
     ap.add_argument("--cpus-per-shard", type=float, default=None)
+    ap.add_argument("--backend", default="cpu", choices=["cpu", "gpu", "auto"], help="each shard's engine")
+    ap.add_argument("--gpus-per-shard", type=float, default=None, help="Ray GPUs per shard (default: 1 with --backend gpu)")
     ap.add_argument("--json", help="write the results here (default: stdout)")
     a = ap.parse_args(argv)
     import ray
@@ -179,7 +193,7 @@ def main(argv=None):
     labels = [find(a.labels, s) for s in stems] if a.labels else None
     # the manifest and codebook suffice here: the segment files need only be on the shards' nodes
     queries = semlook.Encoder.for_map_dir(a.map).encode_files(stems, images=images, labels=labels)
-    sm = ShardedMap(a.map, a.shards, k=a.k, cpus_per_shard=a.cpus_per_shard)
+    sm = ShardedMap(a.map, a.shards, k=a.k, cpus_per_shard=a.cpus_per_shard, backend=a.backend, gpus_per_shard=a.gpus_per_shard)
     text = json.dumps(sm.query(queries, a.setting).to_list(), indent=1)
     if a.json:
         with open(a.json, "w") as f:

@@ -3,6 +3,7 @@
 
 use crate::arrays::{detached, pool};
 use crate::descriptors::PyDescriptors;
+use crate::engine::{with, PyEngine};
 use crate::errors::{invalid, OrPy};
 use crate::map::PyMap;
 use numpy::{PyReadonlyArrayDyn, PyUntypedArrayMethods};
@@ -139,13 +140,15 @@ impl PyEncoder {
     }
     /// Encodes frames from files: `images` (RGB; needed with appearance or a segmenter) and/or
     /// `labels` (label maps), one per id, in parallel. With `skip_invalid`, frames that fail are
-    /// left out (else the first failure raises, naming the file).
-    #[pyo3(signature = (ids, images=None, labels=None, label_format="auto", skip_invalid=false, threads=None))]
-    fn encode_files(&self, py: Python<'_>, ids: Vec<String>, images: Option<Vec<PathBuf>>, labels: Option<Vec<PathBuf>>, label_format: &str, skip_invalid: bool, threads: Option<usize>) -> PyResult<PyDescriptors> {
+    /// left out (else the first failure raises, naming the file). With `engine` on a GPU, the
+    /// global descriptors and VLAD run there (as `semlook --backend gpu`).
+    #[pyo3(signature = (ids, images=None, labels=None, label_format="auto", skip_invalid=false, threads=None, engine=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn encode_files(&self, py: Python<'_>, ids: Vec<String>, images: Option<Vec<PathBuf>>, labels: Option<Vec<PathBuf>>, label_format: &str, skip_invalid: bool, threads: Option<usize>, engine: Option<PyRef<'_, PyEngine>>) -> PyResult<PyDescriptors> {
         let frames = frames(ids, images, labels)?;
         let fmt = self::label_format(label_format)?;
-        let enc = &self.inner;
-        let encoded = detached(py, pool(threads)?, || semlook::batch::encode_frames(&mut semlook::engine::Engine::cpu(), enc, &frames, fmt, "frames", skip_invalid, true)).py_err()?;
+        let (enc, engine) = (&self.inner, engine.map(|e| e.shared()));
+        let encoded = detached(py, pool(threads)?, || with(engine.as_ref(), |e| semlook::batch::encode_frames(e, enc, &frames, fmt, "frames", skip_invalid, true)))?;
         Ok(PyDescriptors::new(encoded.set))
     }
     /// Encodes one frame from memory: `image` uint8 [H, W, 3] (RGB) and/or `labels` [H, W] of

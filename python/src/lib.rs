@@ -6,6 +6,7 @@
 mod arrays;
 mod descriptors;
 mod encoder;
+mod engine;
 mod errors;
 mod map;
 mod matches;
@@ -18,6 +19,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     errors::register(m)?;
     m.add_class::<encoder::PyConfig>()?;
     m.add_class::<encoder::PyEncoder>()?;
+    m.add_class::<engine::PyEngine>()?;
     m.add_class::<descriptors::PyDescriptors>()?;
     m.add_class::<map::PyMap>()?;
     m.add_class::<matches::PyMatches>()?;

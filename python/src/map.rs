@@ -10,7 +10,7 @@ use pyo3::prelude::*;
 use semlook::config::Config;
 use semlook::map::{edit, Map, MapWriter, StoreOptions};
 use semlook::matching::source::RefSource;
-use semlook::matching::{match_with, CpuStages};
+use crate::engine::{with, PyEngine};
 use semlook::values::{ValueType, Values};
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -151,13 +151,15 @@ impl PyMap {
     }
     /// Matches `queries` (from `Encoder.for_map(map)`) against the whole map on the CPU with
     /// `setting`; `k` candidates per query (default: the config's top_k), `config` as `semlook
-    /// query --config` (default: `Config.for_map(map)`), `threads` for a pool of its own.
-    #[pyo3(signature = (queries, setting="semlook", k=None, config=None, threads=None))]
-    fn query(&self, py: Python<'_>, queries: &PyDescriptors, setting: &str, k: Option<usize>, config: Option<PyRef<'_, PyConfig>>, threads: Option<usize>) -> PyResult<PyMatches> {
+    /// query --config` (default: `Config.for_map(map)`), `threads` for a pool of its own. With
+    /// `engine` (an `Engine`), on its backend: on a GPU the map stays resident between calls.
+    #[pyo3(signature = (queries, setting="semlook", k=None, config=None, threads=None, engine=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn query(&self, py: Python<'_>, queries: &PyDescriptors, setting: &str, k: Option<usize>, config: Option<PyRef<'_, PyConfig>>, threads: Option<usize>, engine: Option<PyRef<'_, PyEngine>>) -> PyResult<PyMatches> {
         let s = self::setting(setting)?;
         let cfg = query_config(&self.inner, config.map(|c| c.inner.clone()), k)?;
-        let (map, set) = (self.inner.clone(), queries.inner.clone());
-        let (matches, _) = detached(py, pool(threads)?, || match_with(&mut CpuStages, map.as_ref(), &set, s, &cfg)).py_err()?;
+        let (map, set, engine) = (self.inner.clone(), queries.inner.clone(), engine.map(|e| e.shared()));
+        let (matches, _) = detached(py, pool(threads)?, || with(engine.as_ref(), |e| e.match_batch(map.as_ref(), &set, s, &cfg)))?;
         Ok(PyMatches::new(s, &set.ids, matches, |r| map.id(r as usize).to_string()))
     }
 }
@@ -186,9 +188,9 @@ pub fn query_config(map: &Map, config: Option<Config>, k: Option<usize>) -> PyRe
 /// folders with a `ground_truth` file) as `semlook eval` does; the report as a dict (the JSON of
 /// `semlook eval --json`). With `map`, the references are read from it instead of encoded.
 #[pyfunction]
-#[pyo3(signature = (dataset=None, references=None, queries=None, ground_truth=None, settings=vec!["semlook".to_string()], config=None, map=None, gt_distance=None, threads=None))]
+#[pyo3(signature = (dataset=None, references=None, queries=None, ground_truth=None, settings=vec!["semlook".to_string()], config=None, map=None, gt_distance=None, threads=None, engine=None))]
 #[allow(clippy::too_many_arguments)]
-pub fn evaluate<'py>(py: Python<'py>, dataset: Option<PathBuf>, references: Option<PathBuf>, queries: Option<PathBuf>, ground_truth: Option<PathBuf>, settings: Vec<String>, config: Option<PyRef<'_, PyConfig>>, map: Option<&PyMap>, gt_distance: Option<f64>, threads: Option<usize>) -> PyResult<Bound<'py, PyAny>> {
+pub fn evaluate<'py>(py: Python<'py>, dataset: Option<PathBuf>, references: Option<PathBuf>, queries: Option<PathBuf>, ground_truth: Option<PathBuf>, settings: Vec<String>, config: Option<PyRef<'_, PyConfig>>, map: Option<&PyMap>, gt_distance: Option<f64>, threads: Option<usize>, engine: Option<PyRef<'_, PyEngine>>) -> PyResult<Bound<'py, PyAny>> {
     use semlook::dataset::{Dataset, DatasetOptions};
     let settings = settings.iter().map(|s| setting(s)).collect::<PyResult<Vec<_>>>()?;
     let map = map.map(|m| m.inner.clone());
@@ -198,11 +200,13 @@ pub fn evaluate<'py>(py: Python<'py>, dataset: Option<PathBuf>, references: Opti
         (None, None) => Config::default(),
     };
     let opts = DatasetOptions { max_distance: gt_distance, ..Default::default() };
-    let report = detached(py, pool(threads)?, || -> semlook::Result<_> {
-        let ds = Dataset::open_any(dataset.as_deref(), references.as_deref(), queries.as_deref(), ground_truth.as_deref(), &opts)?;
-        let eo = semlook::eval::EvalOptions { settings, map: map.as_deref(), skip_invalid: false, quiet: true };
-        semlook::eval::evaluate(&ds, &cfg, &eo, &mut semlook::engine::Engine::cpu())
-    })
-    .py_err()?;
+    let engine = engine.map(|e| e.shared());
+    let report = detached(py, pool(threads)?, || {
+        with(engine.as_ref(), |e| {
+            let ds = Dataset::open_any(dataset.as_deref(), references.as_deref(), queries.as_deref(), ground_truth.as_deref(), &opts)?;
+            let eo = semlook::eval::EvalOptions { settings, map: map.as_deref(), skip_invalid: false, quiet: true };
+            semlook::eval::evaluate(&ds, &cfg, &eo, e)
+        })
+    })?;
     to_py_object(py, &report)
 }

@@ -16,9 +16,11 @@ use rayon::ThreadPool;
 use semlook::config::Config;
 use semlook::map::{shard, Map};
 use semlook::matching::ssim_topk::merge_lists;
-use semlook::matching::{self, source::RefSource, CpuStages};
+use crate::engine::{with, PyEngine};
+use semlook::engine::Engine;
+use semlook::matching::{self, source::RefSource};
 use std::path::PathBuf;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 type Lists = Vec<Vec<(f32, u32)>>;
 type ListArrays<'py> = (Bound<'py, PyArray2<f32>>, Bound<'py, PyArray2<i64>>, Bound<'py, PyArray1<i32>>);
@@ -50,13 +52,15 @@ fn from_arrays(scores: &PyReadonlyArray2<'_, f32>, refs: &PyReadonlyArray2<'_, i
 }
 
 /// One shard of a map: the segments `seg_start..seg_end` opened alone (memory-mapped). Methods
-/// run on a pool of `threads` threads of its own (rayon ignores Ray's CPU limits).
+/// run on a pool of `threads` threads of its own (rayon ignores Ray's CPU limits), on `backend`
+/// ("cpu", "gpu" or "auto", as `Engine`; on a GPU the shard's part of the map stays resident).
 #[pyclass(frozen, module = "semlook._native", name = "Shard")]
 pub struct PyShard {
     map: Arc<Map>,
     spec: shard::ShardSpec,
     cfg: Config,
     pool: Option<Arc<ThreadPool>>,
+    engine: Arc<Mutex<Engine>>,
 }
 
 #[pymethods]
@@ -64,19 +68,30 @@ impl PyShard {
     /// Opens the shard; with `generation`, fails if the map changed since it was planned.
     /// `config_toml` as `Config(toml)` (default: the map's), `k` candidates per query.
     #[new]
-    #[pyo3(signature = (map_dir, seg_start, seg_end, generation=None, config_toml=None, k=None, threads=None))]
+    #[pyo3(signature = (map_dir, seg_start, seg_end, generation=None, config_toml=None, k=None, threads=None, backend="cpu"))]
     #[allow(clippy::too_many_arguments)]
-    fn new(py: Python<'_>, map_dir: PathBuf, seg_start: usize, seg_end: usize, generation: Option<u64>, config_toml: Option<&str>, k: Option<usize>, threads: Option<usize>) -> PyResult<Self> {
+    fn new(py: Python<'_>, map_dir: PathBuf, seg_start: usize, seg_end: usize, generation: Option<u64>, config_toml: Option<&str>, k: Option<usize>, threads: Option<usize>, backend: &str) -> PyResult<Self> {
         let (map, spec) = py.detach(|| Map::open_range(&map_dir, seg_start..seg_end, generation)).py_err()?;
         let config = config_toml.map(|t| Config::from_toml(t, "config_toml")).transpose().py_err()?;
         let cfg = query_config(&map, config, k)?;
-        Ok(PyShard { map: Arc::new(map), spec, cfg, pool: pool(threads)? })
+        let engine = PyEngine::new(py, backend)?.shared();
+        Ok(PyShard { map: Arc::new(map), spec, cfg, pool: pool(threads)?, engine })
+    }
+    /// The shard's engine: "cpu (N threads)" or "gpu: adapter (...)".
+    #[getter]
+    fn backend(&self) -> String {
+        self.engine.lock().map_or_else(|_| "poisoned".into(), |e| e.describe())
+    }
+    /// Calls this shard completed on the GPU (see `Engine.gpu_calls`).
+    #[getter]
+    fn gpu_calls(&self) -> u64 {
+        self.engine.lock().map_or(0, |e| e.gpu_calls())
     }
     /// Each query's candidates in the whole map's index space (see `list_len`).
     fn candidates<'py>(&self, py: Python<'py>, queries: &PyDescriptors, setting: &str) -> PyResult<ListArrays<'py>> {
         let s = self::setting(setting)?;
         let (map, set, cfg, start) = (self.map.clone(), queries.inner.clone(), &self.cfg, self.spec.global_start as u32);
-        let (lists, _) = detached(py, self.pool.clone(), || matching::candidates(&mut CpuStages, map.as_ref(), &set, s, cfg)).py_err()?;
+        let (lists, _) = detached(py, self.pool.clone(), || with(Some(&self.engine), |e| e.candidates(map.as_ref(), &set, s, cfg)))?;
         let lists: Lists = lists.into_iter().map(|l| l.into_iter().map(|(sc, r)| (sc, r + start)).collect()).collect();
         Ok(to_arrays(py, &lists, matching::list_len(s, cfg)))
     }
@@ -97,7 +112,7 @@ impl PyShard {
             })
             .collect::<PyResult<Vec<_>>>()?;
         let (map, set, cfg) = (self.map.clone(), queries.inner.clone(), &self.cfg);
-        let f = detached(py, self.pool.clone(), || matching::fine_scores(&mut CpuStages, map.as_ref(), &set, s, cfg, &pairs)).py_err()?;
+        let f = detached(py, self.pool.clone(), || with(Some(&self.engine), |e| e.fine_scores(map.as_ref(), &set, s, cfg, &pairs)))?;
         Ok(f.into_pyarray(py))
     }
     /// Ids of whole-map references owned here.

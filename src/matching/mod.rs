@@ -211,10 +211,13 @@ pub fn list_len(setting: Setting, cfg: &Config) -> usize {
     }
 }
 
+/// Per query, (score, reference) best first.
+pub type CandidateLists = Vec<Vec<(f32, u32)>>;
+
 /// Each query's candidates, best first, as (score, index in `refs`): the coarse K-list for the
 /// settings with a coarse stage, else the final list of the fine stage or baseline ([`list_len`]
 /// long). Fails if a segment of a stored map was damaged or the setting cannot run here.
-pub fn candidates(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<Vec<(f32, u32)>>, MatchTimes)> {
+pub fn candidates(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(CandidateLists, MatchTimes)> {
     let mut times = MatchTimes::default();
     if refs.is_empty() {
         return Ok((vec![vec![]; queries.len()], times));
