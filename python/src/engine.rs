@@ -11,7 +11,8 @@ use std::sync::{Arc, Mutex};
 
 /// Where heavy work runs: `backend` "cpu", "gpu" (any adapter, software ones such as lavapipe
 /// included; raises `GpuError` if there is none) or "auto" (a hardware GPU when there is one,
-/// else the CPU; `fallback_reason` says why). Calls through one engine run one at a time.
+/// else the CPU; `fallback_reason` says why). Calls through one engine run one at a time (the
+/// engine is locked without the GIL held, so a thread waiting for it does not stall the others).
 #[pyclass(frozen, module = "semlook._native", name = "Engine")]
 pub struct PyEngine {
     inner: Arc<Mutex<Engine>>,
@@ -35,8 +36,8 @@ impl PyEngine {
     }
     /// Whether work runs on a GPU (false after "auto" found none).
     #[getter]
-    fn is_gpu(&self) -> bool {
-        self.inner.lock().is_ok_and(|e| e.is_gpu())
+    fn is_gpu(&self, py: Python<'_>) -> bool {
+        py.detach(|| self.inner.lock().is_ok_and(|e| e.is_gpu()))
     }
     /// "cpu (N threads)" or "gpu: adapter (backend, device type)", as when it was made.
     #[getter]
@@ -45,14 +46,14 @@ impl PyEngine {
     }
     /// Calls (query, shard candidates or fine scores, encode) completed on the GPU so far.
     #[getter]
-    fn gpu_calls(&self) -> u64 {
-        self.inner.lock().map_or(0, |e| e.gpu_calls())
+    fn gpu_calls(&self, py: Python<'_>) -> u64 {
+        py.detach(|| self.inner.lock().map_or(0, |e| e.gpu_calls()))
     }
     /// Bytes of the last map kept on the device: (coarse descriptors and statistics, fine-stage
     /// forests); (0, 0) on the CPU or when the map was streamed.
     #[getter]
-    fn device_map_bytes(&self) -> (u64, u64) {
-        self.inner.lock().ok().and_then(|mut e| e.gpu_stages().map(|g| g.map_bytes())).unwrap_or((0, 0))
+    fn device_map_bytes(&self, py: Python<'_>) -> (u64, u64) {
+        py.detach(|| self.inner.lock().ok().and_then(|mut e| e.gpu_stages().map(|g| g.map_bytes())).unwrap_or((0, 0)))
     }
     /// With "auto" and no hardware GPU: why the CPU is used; else None.
     #[getter]

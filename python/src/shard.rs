@@ -79,13 +79,13 @@ impl PyShard {
     }
     /// The shard's engine: "cpu (N threads)" or "gpu: adapter (...)".
     #[getter]
-    fn backend(&self) -> String {
-        self.engine.lock().map_or_else(|_| "poisoned".into(), |e| e.describe())
+    fn backend(&self, py: Python<'_>) -> String {
+        py.detach(|| self.engine.lock().map_or_else(|_| "poisoned".into(), |e| e.describe()))
     }
     /// Calls this shard completed on the GPU (see `Engine.gpu_calls`).
     #[getter]
-    fn gpu_calls(&self) -> u64 {
-        self.engine.lock().map_or(0, |e| e.gpu_calls())
+    fn gpu_calls(&self, py: Python<'_>) -> u64 {
+        py.detach(|| self.engine.lock().map_or(0, |e| e.gpu_calls()))
     }
     /// Each query's candidates in the whole map's index space (see `list_len`).
     fn candidates<'py>(&self, py: Python<'py>, queries: &PyDescriptors, setting: &str) -> PyResult<ListArrays<'py>> {
