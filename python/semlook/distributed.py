@@ -43,7 +43,8 @@ def _actor_class():
             self.busy = 0.0
 
         def info(self):
-            return dict(self.shard.info(), backend=self.shard.backend, gpu_calls=self.shard.gpu_calls)
+            node = ray.get_runtime_context().get_node_id()
+            return dict(self.shard.info(), backend=self.shard.backend, gpu_calls=self.shard.gpu_calls, node_id=node)
 
         def candidates(self, queries, setting):
             t = time.perf_counter()
@@ -147,7 +148,8 @@ class ShardedMap:
         return semlook.rank(setting, scores, refs, counts, fine if two_stages else None, queries.ids, ids, fusion)
 
     def info(self):
-        """Per shard: its plan entry, its engine ("backend") and the calls it ran on a GPU."""
+        """Per shard: its plan entry, its engine ("backend"), the calls it ran on a GPU and the
+        Ray node it runs on ("node_id")."""
         import ray
 
         return ray.get([a.info.remote() for a in self.actors])
