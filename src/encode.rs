@@ -251,17 +251,18 @@ impl Encoder {
 
     /// Loads a frame at the working size: its label map (from file, or segmented from the
     /// image), and the RGB image when appearance is on; the HOG baseline from the full image.
+    ///
+    /// HOG gets a full-size decode of its own: the encoding's pixels come from the same (often
+    /// scaled JPEG) decode whether or not HOG is computed too, so a setting's results do not
+    /// depend on the other settings of an evaluation run.
     pub fn load(&self, src: &FrameSource, format: LabelFormat) -> Result<Loaded> {
         let mut times = StageTimes::default();
         let t = Instant::now();
         let segment = src.labels.is_none() && self.segmenter.is_some();
-        let needs_rgb = self.appearance.is_some() || segment || self.hog;
+        let needs_rgb = self.appearance.is_some() || segment;
         let long = self.cfg.input.working_long_side;
         let seg = &self.cfg.segmentation;
         let needed = |full: (u32, u32)| -> (u32, u32) {
-            if self.hog {
-                return full; // VPR-Bench's HOG resizes the full image
-            }
             let (w, h) = input::working_size(full.0, full.1, long);
             match segment {
                 // the segmenter resizes to its input; 10 % short of it costs nothing visible
@@ -269,10 +270,19 @@ impl Encoder {
                 false => (w, h),
             }
         };
-        let (rgb, decoded_size) = match (&src.image, needs_rgb) {
+        let (rgb, hog_rgb, decoded_size) = match (&src.image, needs_rgb || self.hog) {
             (Some(p), true) => {
-                let (img, full) = input::load_rgb_at_least(p, needed)?;
-                (Some(img), Some(full))
+                let bytes = std::fs::read(p).map_err(|e| Error::io(p, e))?;
+                let (hog_bytes, rgb_bytes) = match (self.hog, needs_rgb) {
+                    (true, true) => (Some(bytes.clone()), Some(bytes)),
+                    (true, false) => (Some(bytes), None),
+                    (false, _) => (None, Some(bytes)),
+                };
+                // VPR-Bench's HOG resizes the full image
+                let hog_rgb = hog_bytes.map(|b| input::decode_rgb_at_least(b, p, |full| full)).transpose()?;
+                let rgb = rgb_bytes.map(|b| input::decode_rgb_at_least(b, p, needed)).transpose()?;
+                let full = rgb.as_ref().or(hog_rgb.as_ref()).map(|r| r.1);
+                (rgb.map(|r| r.0), hog_rgb.map(|r| r.0), full)
             }
             (None, true) => {
                 return Err(Error::invalid(
@@ -280,7 +290,7 @@ impl Encoder {
                     "appearance, segmentation and HOG need the RGB image (pass --images), or turn appearance off (--no-appearance)",
                 ))
             }
-            _ => (None, None),
+            _ => (None, None, None),
         };
         times.decode_ms = ms_since(t);
         let full_labels = match (&src.labels, &self.segmenter, &rgb) {
@@ -289,7 +299,7 @@ impl Encoder {
             (Some(path), _, Some(_)) => Some(input::load_label_map(path, &self.table, format)?),
             _ => Some(input::load_frame_labels(src, &self.table, format)?),
         };
-        self.load_decoded(&src.id, src.image.as_deref(), src.labels.as_deref(), rgb, decoded_size, full_labels, times)
+        self.load_decoded(&src.id, src.image.as_deref(), src.labels.as_deref(), rgb, hog_rgb, decoded_size, full_labels, times)
     }
 
     /// [`Encoder::load`] for frames already in memory: the RGB image (needed by appearance,
@@ -305,14 +315,14 @@ impl Encoder {
         }
         let size = rgb.as_ref().map(|i| i.dimensions());
         let rgb = rgb.filter(|_| needs_rgb);
-        self.load_decoded(id, None, None, rgb, size, labels, StageTimes::default())
+        self.load_decoded(id, None, None, rgb, None, size, labels, StageTimes::default())
     }
 
     /// The part of loading after decoding: sizes checked, labels at the working size (segmented
-    /// when not given), HOG from the full image, RGB at the working size. The paths only name
-    /// the inputs in errors.
+    /// when not given), HOG from the full image (`hog_rgb`, else `rgb`), RGB at the working size.
+    /// The paths only name the inputs in errors.
     #[allow(clippy::too_many_arguments)]
-    fn load_decoded(&self, id: &str, image: Option<&std::path::Path>, label_path: Option<&std::path::Path>, rgb: Option<RgbImage>, decoded_size: Option<(u32, u32)>, full_labels: Option<LabelMap>, mut times: StageTimes) -> Result<Loaded> {
+    fn load_decoded(&self, id: &str, image: Option<&std::path::Path>, label_path: Option<&std::path::Path>, rgb: Option<RgbImage>, hog_rgb: Option<RgbImage>, decoded_size: Option<(u32, u32)>, full_labels: Option<LabelMap>, mut times: StageTimes) -> Result<Loaded> {
         let source_size = match (decoded_size, &full_labels) {
             (Some(size), _) => size,
             (None, Some(l)) => (l.width(), l.height()),
@@ -339,7 +349,7 @@ impl Encoder {
             }
             _ => return Err(Error::invalid(format!("frame {id:?}"), "no label map")),
         };
-        let hog = match (&rgb, self.hog) {
+        let hog = match (hog_rgb.as_ref().or(rgb.as_ref()), self.hog) {
             (Some(img), true) => {
                 let t = Instant::now();
                 let h = crate::baseline::vprbench_hog(img);

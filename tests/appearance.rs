@@ -207,3 +207,37 @@ fn appearance_in_maps_and_evaluation() {
     let scores = |s: semlook::matching::Setting| report.results.iter().filter(|r| r.setting == s).flat_map(|r| r.outcomes.iter().map(|o| o.score.unwrap())).collect::<Vec<f32>>();
     assert_ne!(scores(semlook::matching::Setting::Forest), scores(semlook::matching::Setting::Local));
 }
+
+/// Computing HOG too leaves the encoding of a real JPEG frame unchanged, bit for bit (labels from
+/// the segmenter, global descriptor, forest, appearance). HOG decodes the full image on its own;
+/// when it shared the decode, every stage saw the full decode instead of the scaled JPEG decode,
+/// and `eval --all-settings` (which computes HOG) reported other `semlook` figures than `eval
+/// --setting semlook` on the same frames (Nordland R@1 0.733 against 0.767).
+#[test]
+fn hog_leaves_the_encoding_of_a_real_frame_unchanged() {
+    use semlook::input::{FrameSource, LabelFormat};
+    let Some(dir) = shared("data/real-vpr/nordland-spring-winter/query") else { return };
+    let mut enc = match semlook::encode::Encoder::new(&semlook::config::Config::default()) {
+        Ok(e) => e,
+        Err(e) => return common::skip_unless_required("REQUIRE_MODELS", format!("XFeat weights (setup.sh): {e}")),
+    };
+    let src = FrameSource { id: "q020".into(), image: Some(dir.join("020.jpg")), labels: None };
+    if let Err(e) = enc.train_codebook(std::slice::from_ref(&src), &|| {}) {
+        return common::skip_unless_required("REQUIRE_MODELS", format!("segmenter / ONNX Runtime (setup.sh): {e}"));
+    }
+    let with_hog = enc.clone().with_hog(true);
+    let mut scratch = Default::default();
+    let a = enc.encode_source(&src, LabelFormat::default(), &mut scratch).unwrap().0;
+    let b = with_hog.encode_source(&src, LabelFormat::default(), &mut scratch).unwrap().0;
+    assert!(a.hog.is_empty() && !b.hog.is_empty());
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    // compared without printing the vectors (thousands of values)
+    assert!(bits(&a.global) == bits(&b.global), "global descriptor differs");
+    assert!((&a.forest.classes, &a.forest.neighbours) == (&b.forest.classes, &b.forest.neighbours), "trees differ");
+    assert!(bits(&a.forest.areas) == bits(&b.forest.areas), "tree areas differ");
+    assert!(bits(&a.forest.appearance) == bits(&b.forest.appearance), "tree appearance differs");
+    assert!(bits(&a.appearance) == bits(&b.appearance), "image appearance differs");
+    // and HOG is still VPR-Bench's: from the full-size decode
+    let (full, _) = semlook::input::load_rgb_at_least(&dir.join("020.jpg"), |size| size).unwrap();
+    assert!(bits(&b.hog) == bits(&semlook::baseline::vprbench_hog(&full)), "HOG is not from the full-size decode");
+}
