@@ -34,6 +34,8 @@ pub enum Backend {
 /// The GPU executors of an engine; pipelines live in the context, buffers in the executors.
 pub struct GpuStages {
     pub ctx: Arc<GpuContext>,
+    /// Stage calls and encode batches run here (what `Engine::gpu_calls` counts from).
+    work: u64,
     encoder: GlobalEncoderGpu,
     coarse: Option<(SsimParams, CoarseMatcherGpu)>,
     fine: FineMatcherGpu,
@@ -42,7 +44,7 @@ pub struct GpuStages {
 
 impl GpuStages {
     pub fn new(ctx: Arc<GpuContext>) -> Self {
-        GpuStages { encoder: GlobalEncoderGpu::new(ctx.clone()), fine: FineMatcherGpu::new(ctx.clone()), vlad: VladGpu::new(ctx.clone()), coarse: None, ctx }
+        GpuStages { encoder: GlobalEncoderGpu::new(ctx.clone()), fine: FineMatcherGpu::new(ctx.clone()), vlad: VladGpu::new(ctx.clone()), coarse: None, ctx, work: 0 }
     }
 
     /// Forgets the maps kept on the device (call after editing a map's vectors in place: the
@@ -95,12 +97,15 @@ impl Stages for GpuStages {
     /// On the device the map stays resident and passes are sized by the device's limits, so
     /// `tile` (the CPU path's scratch bound) does not apply.
     fn coarse(&mut self, refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimParams, k: usize, _tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+        self.work += 1;
         Ok(self.coarse_for(p)?.topk(queries, refs, k)?)
     }
     fn fine_pairs(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<f32>> {
+        self.work += 1;
         Ok(self.fine.score_pairs(p, queries, refs, pairs)?)
     }
     fn fine_topk(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, k: usize, _tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+        self.work += 1;
         Ok(self.fine.topk_all(p, queries, refs, k)?)
     }
 }
@@ -110,13 +115,15 @@ pub struct Engine {
     gpu: Option<GpuStages>,
     /// `auto`: a GPU failure during work switches to the CPU (with a warning) instead of failing.
     fall_back: bool,
-    /// Calls (match, candidates, fine scores, encode) completed on the GPU stages.
+    /// Calls (match, candidates, fine scores, encode) completed with work on the GPU stages.
     gpu_calls: u64,
+    /// Why `auto` switched to the CPU during work, once it has.
+    fell_back: Option<String>,
 }
 
 impl Engine {
     pub fn cpu() -> Engine {
-        Engine { gpu: None, fall_back: false, gpu_calls: 0 }
+        Engine { gpu: None, fall_back: false, gpu_calls: 0, fell_back: None }
     }
 
     /// An engine for `backend`. For `Auto`, the second value is the reason it fell back to the CPU.
@@ -158,7 +165,7 @@ impl Engine {
     /// # Ok(()) }
     /// ```
     pub fn with_context(ctx: Arc<GpuContext>) -> Engine {
-        Engine { gpu: Some(GpuStages::new(ctx)), fall_back: false, gpu_calls: 0 }
+        Engine { gpu: Some(GpuStages::new(ctx)), fall_back: false, gpu_calls: 0, fell_back: None }
     }
 
     /// Whether a GPU failure during work switches to the CPU path (what `auto` does) instead of
@@ -173,7 +180,9 @@ impl Engine {
     fn recover<T>(&mut self, r: Result<T>) -> Result<std::result::Result<T, ()>> {
         match r {
             Err(crate::error::Error::Gpu(e)) if self.fall_back => {
-                log::warn!("GPU failed ({e}); continuing on the CPU path");
+                let why = format!("GPU failed ({e}); continuing on the CPU path");
+                log::warn!("{why}");
+                self.fell_back = Some(why);
                 self.gpu = None;
                 Ok(Err(()))
             }
@@ -186,10 +195,16 @@ impl Engine {
         self.gpu.is_some()
     }
 
-    /// Calls (match, candidates, fine scores, encode) completed on the GPU so far; a call the
-    /// `auto` fallback finished on the CPU does not count.
+    /// Calls (match, candidates, fine scores, encode) completed so far in which the GPU stages
+    /// did work: not the baselines (`hog`, `appearance`, always on the CPU), not a call the
+    /// `auto` fallback finished on the CPU.
     pub fn gpu_calls(&self) -> u64 {
         self.gpu_calls
+    }
+
+    /// Why `auto` switched to the CPU during work (after a GPU failure), once it has.
+    pub fn fell_back(&self) -> Option<&str> {
+        self.fell_back.as_deref()
     }
 
     /// The GPU executors, when this engine runs on a GPU.
@@ -209,9 +224,11 @@ impl Engine {
     /// GPU fails), else on the CPU stages.
     fn on_stages<T>(&mut self, mut work: impl FnMut(&mut dyn Stages) -> Result<T>) -> Result<T> {
         if let Some(g) = &mut self.gpu {
+            let before = g.work;
             let r = work(g);
+            let did = g.work > before;
             if let Ok(v) = self.recover(r)? {
-                self.gpu_calls += 1;
+                self.gpu_calls += u64::from(did);
                 return Ok(v);
             }
         }
@@ -241,9 +258,11 @@ impl Engine {
     /// the whole batch runs on the GPU.
     pub fn encode_all(&mut self, encoder: &Encoder, sources: &[FrameSource], format: LabelFormat, tick: &(dyn Fn() + Sync)) -> Result<Vec<Result<(EncodedImage, StageTimes)>>> {
         if let Some(g) = &mut self.gpu {
+            let before = g.work;
             let r = Self::encode_all_gpu(g, encoder, sources, format, tick);
+            let did = g.work > before;
             if let Ok(v) = self.recover(r)? {
-                self.gpu_calls += 1;
+                self.gpu_calls += u64::from(did);
                 return Ok(v);
             }
         }
@@ -279,6 +298,7 @@ impl Engine {
             let batch: Vec<&Loaded> = loaded[i..j].iter().flatten().collect();
             let maps: Vec<&LabelMap> = batch.iter().map(|l| &l.labels).collect();
             let t = Instant::now();
+            g.work += 1;
             let globals = g.encoder.encode(&maps, encoder.used_mask(), &encoder.config().global)?;
             let per = ms_since(t) / batch.len() as f64;
             let pending: Vec<Result<Pending>> = globals

@@ -39,7 +39,11 @@ def _actor_class():
         def __init__(self, map_dir, seg_start, seg_end, generation, config_toml, k, threads, models, backend):
             if models:
                 os.environ.setdefault("SEMLOOK_MODELS", models)
-            self.shard = semlook.Shard(map_dir, seg_start, seg_end, generation, config_toml, k, threads, backend)
+            # the GPU Ray reserved for this actor (its CUDA index, which Vulkan usually lists in
+            # the same order on NVIDIA; not guaranteed by either), else the first adapter
+            gpus = ray.get_gpu_ids() if backend != "cpu" else []
+            adapter = int(gpus[0]) if gpus else None
+            self.shard = semlook.Shard(map_dir, seg_start, seg_end, generation, config_toml, k, threads, backend, adapter)
             self.busy = 0.0
 
         def info(self):
@@ -77,7 +81,8 @@ class ShardedMap:
     (default: max(1, floor(cpus_per_shard))). ``backend`` is each shard's ``Engine`` backend
     ("cpu", "gpu", "auto"; on a GPU the shard's part of the map stays resident on the device),
     ``gpus_per_shard`` what each actor reserves from Ray's GPUs (default: 1 with backend "gpu",
-    else 0). ``node_ids`` pins shard i to node ``node_ids[i]``
+    else 0; with "auto" reserve them yourself where nodes have GPUs, or Ray may place several
+    shards on one GPU); a shard opens the GPU Ray gave it (``ray.get_gpu_ids()``). ``node_ids`` pins shard i to node ``node_ids[i]``
     (each node then needs only the manifest, the codebook and its own segment files); without
     it every node must see the whole map directory at the same path (a shared file system).
     """

@@ -3,7 +3,7 @@
 
 use crate::arrays::{detached, pool};
 use crate::descriptors::PyDescriptors;
-use crate::engine::{with, PyEngine};
+use crate::engine::{run, PyEngine};
 use crate::errors::{invalid, OrPy};
 use crate::map::PyMap;
 use numpy::{PyReadonlyArrayDyn, PyUntypedArrayMethods};
@@ -148,7 +148,7 @@ impl PyEncoder {
         let frames = frames(ids, images, labels)?;
         let fmt = self::label_format(label_format)?;
         let (enc, engine) = (&self.inner, engine.map(|e| e.shared()));
-        let encoded = detached(py, pool(threads)?, || with(engine.as_ref(), |e| semlook::batch::encode_frames(e, enc, &frames, fmt, "frames", skip_invalid, true)))?;
+        let encoded = run(py, pool(threads)?, engine.as_ref(), |e| semlook::batch::encode_frames(e, enc, &frames, fmt, "frames", skip_invalid, true))?;
         Ok(PyDescriptors::new(encoded.set))
     }
     /// Encodes one frame from memory: `image` uint8 [H, W, 3] (RGB) and/or `labels` [H, W] of

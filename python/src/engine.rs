@@ -5,46 +5,54 @@
 
 use crate::errors::{invalid, OrPy};
 use pyo3::prelude::*;
+use rayon::ThreadPool;
 use semlook::engine::{Backend, Engine};
 use semlook::gpu::GpuOptions;
 use std::sync::{Arc, Mutex};
 
 /// Where heavy work runs: `backend` "cpu", "gpu" (any adapter, software ones such as lavapipe
 /// included; raises `GpuError` if there is none) or "auto" (a hardware GPU when there is one,
-/// else the CPU; `fallback_reason` says why). Calls through one engine run one at a time (the
-/// engine is locked without the GIL held, so a thread waiting for it does not stall the others).
+/// else the CPU; `fallback_reason` says why). `adapter` picks the n-th GPU in order of preference
+/// (discrete first) on a machine with several. Calls through one engine run one at a time.
 #[pyclass(frozen, module = "semlook._native", name = "Engine")]
 pub struct PyEngine {
     inner: Arc<Mutex<Engine>>,
-    described: String,
     fallback: Option<String>,
 }
 
 #[pymethods]
 impl PyEngine {
     #[new]
-    #[pyo3(signature = (backend="auto"))]
-    pub fn new(py: Python<'_>, backend: &str) -> PyResult<Self> {
+    #[pyo3(signature = (backend="auto", adapter=None))]
+    pub fn new(py: Python<'_>, backend: &str, adapter: Option<usize>) -> PyResult<Self> {
         let b = match backend {
             "cpu" => Backend::Cpu,
             "gpu" => Backend::Gpu,
             "auto" => Backend::Auto,
             other => return Err(invalid("backend", format!("{other:?} is not one of cpu, gpu, auto"))),
         };
-        let (engine, fallback) = py.detach(|| Engine::new(b, &GpuOptions::default())).py_err()?;
-        Ok(PyEngine { described: engine.describe(), inner: Arc::new(Mutex::new(engine)), fallback })
+        let opts = GpuOptions { adapter, ..Default::default() };
+        let (engine, fallback) = py.detach(|| Engine::new(b, &opts)).py_err()?;
+        Ok(PyEngine { inner: Arc::new(Mutex::new(engine)), fallback })
     }
-    /// Whether work runs on a GPU (false after "auto" found none).
+    /// Whether work runs on a GPU (false after "auto" found none, or fell back after a failure).
     #[getter]
     fn is_gpu(&self, py: Python<'_>) -> bool {
         py.detach(|| self.inner.lock().is_ok_and(|e| e.is_gpu()))
     }
-    /// "cpu (N threads)" or "gpu: adapter (backend, device type)", as when it was made.
+    /// "cpu (N threads of the global pool)" or "gpu: adapter (backend, device type)", now.
     #[getter]
-    fn describe(&self) -> &str {
-        &self.described
+    fn describe(&self, py: Python<'_>) -> String {
+        py.detach(|| self.inner.lock().map_or_else(|_| "poisoned by a panic in an earlier call".into(), |e| e.describe()))
     }
-    /// Calls (query, shard candidates or fine scores, encode) completed on the GPU so far.
+    /// Why the CPU is used with "auto": no hardware GPU when made, or a GPU failure during
+    /// work; else None.
+    #[getter]
+    fn fallback_reason(&self, py: Python<'_>) -> Option<String> {
+        self.fallback.clone().or_else(|| py.detach(|| self.inner.lock().ok().and_then(|e| e.fell_back().map(str::to_string))))
+    }
+    /// Calls (query, shard candidates or fine scores, encode) in which the GPU did work so far
+    /// (the `hog` and `appearance` baselines always run on the CPU).
     #[getter]
     fn gpu_calls(&self, py: Python<'_>) -> u64 {
         py.detach(|| self.inner.lock().map_or(0, |e| e.gpu_calls()))
@@ -55,31 +63,39 @@ impl PyEngine {
     fn device_map_bytes(&self, py: Python<'_>) -> (u64, u64) {
         py.detach(|| self.inner.lock().ok().and_then(|mut e| e.gpu_stages().map(|g| g.map_bytes())).unwrap_or((0, 0)))
     }
-    /// With "auto" and no hardware GPU: why the CPU is used; else None.
-    #[getter]
-    fn fallback_reason(&self) -> Option<&str> {
-        self.fallback.as_deref()
-    }
-    fn __repr__(&self) -> String {
-        format!("Engine({})", self.described)
+    fn __repr__(&self, py: Python<'_>) -> String {
+        format!("Engine({})", self.describe(py))
     }
 }
 
 impl PyEngine {
-    /// The engine, shared with the caller's closure (lock it without the GIL: see [`with`]).
     pub fn shared(&self) -> Arc<Mutex<Engine>> {
         self.inner.clone()
     }
 }
 
-/// Runs `work` with the engine locked; call inside `detached` so a thread waiting for the engine
-/// does not hold the GIL. `None`: a CPU engine of the call's own.
-pub fn with<T>(engine: Option<&Arc<Mutex<Engine>>>, work: impl FnOnce(&mut Engine) -> semlook::Result<T>) -> PyResult<T> {
-    match engine {
-        Some(e) => {
-            let mut guard = e.lock().map_err(|_| invalid("engine", "poisoned by a panic in an earlier call"))?;
-            work(&mut guard).py_err()
+/// Runs `work` without the GIL, on `pool` (or the global pool), with `engine` (`None`: a CPU
+/// engine of the call's own). The engine is locked on the calling thread before entering the
+/// pool, never on a pool worker: a worker blocked on the lock could be the one another call's
+/// parallel work waits for (two Python threads sharing an engine and a `threads=` pool).
+pub fn run<T: Send>(py: Python<'_>, pool: Option<Arc<ThreadPool>>, engine: Option<&Arc<Mutex<Engine>>>, work: impl FnOnce(&mut Engine) -> semlook::Result<T> + Send) -> PyResult<T> {
+    py.detach(|| -> semlook::Result<T> {
+        let mut own;
+        let mut guard;
+        let e: &mut Engine = match engine {
+            Some(m) => {
+                guard = m.lock().map_err(|_| semlook::Error::invalid("engine", "poisoned by a panic in an earlier call"))?;
+                &mut guard
+            }
+            None => {
+                own = Engine::cpu();
+                &mut own
+            }
+        };
+        match pool {
+            Some(p) => p.install(|| work(e)),
+            None => work(e),
         }
-        None => work(&mut Engine::cpu()).py_err(),
-    }
+    })
+    .py_err()
 }

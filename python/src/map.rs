@@ -1,7 +1,7 @@
 //! `Map`: a stored map (memory-mapped segments), its edits, queries against it, zero-copy numpy
 //! views of its segments, and `evaluate`.
 
-use crate::arrays::{detached, pool, setting, view};
+use crate::arrays::{pool, setting, view};
 use crate::descriptors::PyDescriptors;
 use crate::encoder::{PyConfig, PyEncoder};
 use crate::errors::{invalid, OrPy};
@@ -10,7 +10,7 @@ use pyo3::prelude::*;
 use semlook::config::Config;
 use semlook::map::{edit, Map, MapWriter, StoreOptions};
 use semlook::matching::source::RefSource;
-use crate::engine::{with, PyEngine};
+use crate::engine::{run, PyEngine};
 use semlook::values::{ValueType, Values};
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -159,7 +159,7 @@ impl PyMap {
         let s = self::setting(setting)?;
         let cfg = query_config(&self.inner, config.map(|c| c.inner.clone()), k)?;
         let (map, set, engine) = (self.inner.clone(), queries.inner.clone(), engine.map(|e| e.shared()));
-        let (matches, _) = detached(py, pool(threads)?, || with(engine.as_ref(), |e| e.match_batch(map.as_ref(), &set, s, &cfg)))?;
+        let (matches, _) = run(py, pool(threads)?, engine.as_ref(), |e| e.match_batch(map.as_ref(), &set, s, &cfg))?;
         Ok(PyMatches::new(s, &set.ids, matches, |r| map.id(r as usize).to_string()))
     }
 }
@@ -201,12 +201,10 @@ pub fn evaluate<'py>(py: Python<'py>, dataset: Option<PathBuf>, references: Opti
     };
     let opts = DatasetOptions { max_distance: gt_distance, ..Default::default() };
     let engine = engine.map(|e| e.shared());
-    let report = detached(py, pool(threads)?, || {
-        with(engine.as_ref(), |e| {
-            let ds = Dataset::open_any(dataset.as_deref(), references.as_deref(), queries.as_deref(), ground_truth.as_deref(), &opts)?;
-            let eo = semlook::eval::EvalOptions { settings, map: map.as_deref(), skip_invalid: false, quiet: true };
-            semlook::eval::evaluate(&ds, &cfg, &eo, e)
-        })
+    let report = run(py, pool(threads)?, engine.as_ref(), |e| {
+        let ds = Dataset::open_any(dataset.as_deref(), references.as_deref(), queries.as_deref(), ground_truth.as_deref(), &opts)?;
+        let eo = semlook::eval::EvalOptions { settings, map: map.as_deref(), skip_invalid: false, quiet: true };
+        semlook::eval::evaluate(&ds, &cfg, &eo, e)
     })?;
     to_py_object(py, &report)
 }

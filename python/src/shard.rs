@@ -3,7 +3,7 @@
 //! `merge_candidates` and `rank` are what the driver runs. Candidate lists travel as padded
 //! arrays: scores float32 [Q, L], references int64 [Q, L] (-1 padding), counts int32 [Q].
 
-use crate::arrays::{detached, fusion, pool, setting};
+use crate::arrays::{fusion, pool, setting};
 use crate::descriptors::PyDescriptors;
 use crate::encoder::PyConfig;
 use crate::errors::{invalid, OrPy};
@@ -16,7 +16,7 @@ use rayon::ThreadPool;
 use semlook::config::Config;
 use semlook::map::{shard, Map};
 use semlook::matching::ssim_topk::merge_lists;
-use crate::engine::{with, PyEngine};
+use crate::engine::{run, PyEngine};
 use semlook::engine::Engine;
 use semlook::matching::{self, source::RefSource};
 use std::path::PathBuf;
@@ -53,7 +53,8 @@ fn from_arrays(scores: &PyReadonlyArray2<'_, f32>, refs: &PyReadonlyArray2<'_, i
 
 /// One shard of a map: the segments `seg_start..seg_end` opened alone (memory-mapped). Methods
 /// run on a pool of `threads` threads of its own (rayon ignores Ray's CPU limits), on `backend`
-/// ("cpu", "gpu" or "auto", as `Engine`; on a GPU the shard's part of the map stays resident).
+/// ("cpu", "gpu" or "auto", as `Engine`, on GPU `adapter`; on a GPU the shard's part of the map
+/// stays resident).
 #[pyclass(frozen, module = "semlook._native", name = "Shard")]
 pub struct PyShard {
     map: Arc<Map>,
@@ -68,19 +69,19 @@ impl PyShard {
     /// Opens the shard; with `generation`, fails if the map changed since it was planned.
     /// `config_toml` as `Config(toml)` (default: the map's), `k` candidates per query.
     #[new]
-    #[pyo3(signature = (map_dir, seg_start, seg_end, generation=None, config_toml=None, k=None, threads=None, backend="cpu"))]
+    #[pyo3(signature = (map_dir, seg_start, seg_end, generation=None, config_toml=None, k=None, threads=None, backend="cpu", adapter=None))]
     #[allow(clippy::too_many_arguments)]
-    fn new(py: Python<'_>, map_dir: PathBuf, seg_start: usize, seg_end: usize, generation: Option<u64>, config_toml: Option<&str>, k: Option<usize>, threads: Option<usize>, backend: &str) -> PyResult<Self> {
+    fn new(py: Python<'_>, map_dir: PathBuf, seg_start: usize, seg_end: usize, generation: Option<u64>, config_toml: Option<&str>, k: Option<usize>, threads: Option<usize>, backend: &str, adapter: Option<usize>) -> PyResult<Self> {
         let (map, spec) = py.detach(|| Map::open_range(&map_dir, seg_start..seg_end, generation)).py_err()?;
         let config = config_toml.map(|t| Config::from_toml(t, "config_toml")).transpose().py_err()?;
         let cfg = query_config(&map, config, k)?;
-        let engine = PyEngine::new(py, backend)?.shared();
+        let engine = PyEngine::new(py, backend, adapter)?.shared();
         Ok(PyShard { map: Arc::new(map), spec, cfg, pool: pool(threads)?, engine })
     }
-    /// The shard's engine: "cpu (N threads)" or "gpu: adapter (...)".
+    /// The shard's engine: "cpu (N threads of its pool)" or "gpu: adapter (...)".
     #[getter]
-    fn backend(&self, py: Python<'_>) -> String {
-        py.detach(|| self.engine.lock().map_or_else(|_| "poisoned".into(), |e| e.describe()))
+    fn backend(&self, py: Python<'_>) -> PyResult<String> {
+        run(py, self.pool.clone(), Some(&self.engine), |e| Ok(e.describe()))
     }
     /// Calls this shard completed on the GPU (see `Engine.gpu_calls`).
     #[getter]
@@ -91,7 +92,7 @@ impl PyShard {
     fn candidates<'py>(&self, py: Python<'py>, queries: &PyDescriptors, setting: &str) -> PyResult<ListArrays<'py>> {
         let s = self::setting(setting)?;
         let (map, set, cfg, start) = (self.map.clone(), queries.inner.clone(), &self.cfg, self.spec.global_start as u32);
-        let (lists, _) = detached(py, self.pool.clone(), || with(Some(&self.engine), |e| e.candidates(map.as_ref(), &set, s, cfg)))?;
+        let (lists, _) = run(py, self.pool.clone(), Some(&self.engine), |e| e.candidates(map.as_ref(), &set, s, cfg))?;
         let lists: Lists = lists.into_iter().map(|l| l.into_iter().map(|(sc, r)| (sc, r + start)).collect()).collect();
         Ok(to_arrays(py, &lists, matching::list_len(s, cfg)))
     }
@@ -112,7 +113,7 @@ impl PyShard {
             })
             .collect::<PyResult<Vec<_>>>()?;
         let (map, set, cfg) = (self.map.clone(), queries.inner.clone(), &self.cfg);
-        let f = detached(py, self.pool.clone(), || with(Some(&self.engine), |e| e.fine_scores(map.as_ref(), &set, s, cfg, &pairs)))?;
+        let f = run(py, self.pool.clone(), Some(&self.engine), |e| e.fine_scores(map.as_ref(), &set, s, cfg, &pairs))?;
         Ok(f.into_pyarray(py))
     }
     /// Ids of whole-map references owned here.

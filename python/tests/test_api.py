@@ -5,6 +5,7 @@ import os
 import pickle
 import shutil
 import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -134,3 +135,38 @@ def test_an_encoder_from_the_manifest_alone_equals_the_maps(tmp_path, small_map,
     wider = semlook.Config("[global]\nwidth = 33\n[appearance]\nmodel = \"none\"\n")
     with pytest.raises(semlook.IncompatibleConfigError):
         semlook.Encoder.for_map_dir(str(driver), wider)
+
+
+SHARED_ENGINE_SCRIPT = """
+import pickle, sys, threading
+import semlook
+m = semlook.Map.open(sys.argv[1])
+queries = pickle.load(open(sys.argv[2], "rb"))
+engine = semlook.Engine("cpu")
+want = m.query(queries, "semlook", threads=2)
+out = []
+def work():
+    for _ in range(8):
+        out.append(m.query(queries, "semlook", threads=2, engine=engine))
+ts = [threading.Thread(target=work) for _ in range(3)]
+for t in ts:
+    t.start()
+for t in ts:
+    t.join()
+assert len(out) == 24 and all(r.equals(want) for r in out)
+print("ok")
+"""
+
+
+def test_threads_sharing_one_engine_and_a_pool_all_finish(tmp_path, small_map, queries):
+    """Three Python threads calling through one `Engine` with the same `threads=` pool all finish
+    with the sequential result. Run in a subprocess with a time limit, since the failure is a hang:
+    when the engine was locked on a pool worker, a worker blocked on the lock could be the one
+    another call's parallel work waited for (this script then hung in 3 of 3 runs)."""
+    qfile = tmp_path / "queries.pkl"
+    qfile.write_bytes(pickle.dumps(queries))
+    try:
+        run = subprocess.run([sys.executable, "-c", SHARED_ENGINE_SCRIPT, str(small_map.path), str(qfile)], capture_output=True, text=True, timeout=180)
+    except subprocess.TimeoutExpired:
+        pytest.fail("calls through a shared engine and pool did not finish in 180 s (deadlock)")
+    assert run.returncode == 0 and run.stdout.strip() == "ok", run.stderr[-2000:]

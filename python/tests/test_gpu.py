@@ -37,6 +37,12 @@ def assert_same_lists(g, c, what):
             assert g.references[i, j] == c.references[i, j] or tied, (what, i, j)
 
 
+def test_an_adapter_out_of_range_is_named(gpu):
+    assert semlook.Engine("gpu", adapter=0).describe == gpu.describe
+    with pytest.raises(semlook.GpuError, match="adapter 99 asked for"):
+        semlook.Engine("gpu", adapter=99)
+
+
 def test_engine_backends_and_errors():
     cpu = semlook.Engine("cpu")
     assert not cpu.is_gpu and cpu.describe.startswith("cpu") and cpu.fallback_reason is None
@@ -93,10 +99,12 @@ def test_shards_on_the_gpu_equal_one_cpu_process(gpu, small_map, queries):
         # no GPU is registered with this Ray cluster: the actors reserve none and open the adapter
         sm = ShardedMap(str(small_map.path), 2, config=cfg, cpus_per_shard=1, backend="gpu", gpus_per_shard=0)
         assert all(i["backend"].startswith("gpu:") for i in sm.shard_info)
-        for setting in ["global", "semlook"]:
-            assert_same_lists(sm.query(queries, setting), small_map.query(queries, setting, config=cfg), setting)
-        # candidates twice (global, semlook) and fine scores once (semlook) per shard with work
-        assert sum(i["gpu_calls"] for i in sm.info()) >= 4
+        calls = lambda: sum(i["gpu_calls"] for i in sm.info())  # noqa: E731
+        assert_same_lists(sm.query(queries, "global"), small_map.query(queries, "global", config=cfg), "global")
+        assert calls() == 2, "each shard's candidates on its GPU"
+        assert_same_lists(sm.query(queries, "semlook"), small_map.query(queries, "semlook", config=cfg), "semlook")
+        # candidates on both shards, and fine scores on each shard that owns a candidate
+        assert calls() >= 2 + 2 + 1, "fine scores did not run on a shard's GPU"
         sm.close()
     finally:
         ray.shutdown()

@@ -57,11 +57,15 @@ pub struct GpuOptions {
     pub subgroups: bool,
     /// Time the kernels with timestamp queries where the adapter has them.
     pub timestamps: bool,
+    /// Take the n-th adapter in order of preference (discrete GPUs first, then integrated,
+    /// virtual, other, software; wgpu's enumeration order within a kind) instead of the first:
+    /// one process per GPU on a machine with several. `None`: the first.
+    pub adapter: Option<usize>,
 }
 
 impl Default for GpuOptions {
     fn default() -> Self {
-        GpuOptions { allow_software: true, max_binding_size: None, backends: wgpu::Backends::PRIMARY, resident_budget: None, max_workgroups: None, subgroups: true, timestamps: true }
+        GpuOptions { allow_software: true, max_binding_size: None, backends: wgpu::Backends::PRIMARY, resident_budget: None, max_workgroups: None, subgroups: true, timestamps: true, adapter: None }
     }
 }
 
@@ -109,17 +113,17 @@ impl GpuContext {
             wgpu::DeviceType::Other => 3,
             wgpu::DeviceType::Cpu => 4,
         };
-        let adapter = adapters
-            .into_iter()
-            .filter(|a| opts.allow_software || a.get_info().device_type != wgpu::DeviceType::Cpu)
-            .min_by_key(|a| rank(a.get_info().device_type))
-            .ok_or_else(|| {
-                GpuError::NoAdapter(if seen.is_empty() {
-                    " (no Vulkan, Metal or DX12 driver answered; on Debian: apt-get install mesa-vulkan-drivers libvulkan1)".into()
-                } else {
-                    format!(" among: {} (software adapters not allowed)", seen.join(", "))
-                })
-            })?;
+        let mut usable: Vec<wgpu::Adapter> = adapters.into_iter().filter(|a| opts.allow_software || a.get_info().device_type != wgpu::DeviceType::Cpu).collect();
+        // stable: wgpu's order within a kind
+        usable.sort_by_key(|a| rank(a.get_info().device_type));
+        let n = usable.len();
+        let adapter = usable.into_iter().nth(opts.adapter.unwrap_or(0)).ok_or_else(|| {
+            GpuError::NoAdapter(match (seen.is_empty(), opts.adapter) {
+                (true, _) => " (no Vulkan, Metal or DX12 driver answered; on Debian: apt-get install mesa-vulkan-drivers libvulkan1)".into(),
+                (false, Some(i)) if n > 0 => format!(": adapter {i} asked for, {n} usable among: {}", seen.join(", ")),
+                (false, _) => format!(" among: {} (software adapters not allowed)", seen.join(", ")),
+            })
+        })?;
         let info = adapter.get_info();
         let limits = adapter.limits();
         let wanted = wgpu::Features::SUBGROUP | wgpu::Features::TIMESTAMP_QUERY;
