@@ -220,19 +220,26 @@ impl Engine {
         }
     }
 
+    /// Runs `work` on the GPU stages when there are any, counting it in `gpu_calls` if the GPU
+    /// did work. `None`: no GPU, or `auto` recovered from a GPU failure (the caller then runs the
+    /// CPU path).
+    fn on_gpu<T>(&mut self, work: impl FnOnce(&mut GpuStages) -> Result<T>) -> Result<Option<T>> {
+        let Some(g) = &mut self.gpu else { return Ok(None) };
+        let before = g.work;
+        let r = work(g);
+        let did = g.work > before;
+        let v = self.recover(r)?.ok();
+        self.gpu_calls += u64::from(did && v.is_some());
+        Ok(v)
+    }
+
     /// Runs `work` on the GPU stages when there are any (with `auto`, again on the CPU if the
     /// GPU fails), else on the CPU stages.
     fn on_stages<T>(&mut self, mut work: impl FnMut(&mut dyn Stages) -> Result<T>) -> Result<T> {
-        if let Some(g) = &mut self.gpu {
-            let before = g.work;
-            let r = work(g);
-            let did = g.work > before;
-            if let Ok(v) = self.recover(r)? {
-                self.gpu_calls += u64::from(did);
-                return Ok(v);
-            }
+        match self.on_gpu(|g| work(g))? {
+            Some(v) => Ok(v),
+            None => work(&mut CpuStages),
         }
-        work(&mut CpuStages)
     }
 
     /// Matches a batch of queries (see [`crate::matching::match_with`]).
@@ -257,16 +264,10 @@ impl Engine {
     /// GPU, objects, forests and the keypoint network run on the CPU, and the per-object VLAD of
     /// the whole batch runs on the GPU.
     pub fn encode_all(&mut self, encoder: &Encoder, sources: &[FrameSource], format: LabelFormat, tick: &(dyn Fn() + Sync)) -> Result<Vec<Result<(EncodedImage, StageTimes)>>> {
-        if let Some(g) = &mut self.gpu {
-            let before = g.work;
-            let r = Self::encode_all_gpu(g, encoder, sources, format, tick);
-            let did = g.work > before;
-            if let Ok(v) = self.recover(r)? {
-                self.gpu_calls += u64::from(did);
-                return Ok(v);
-            }
+        match self.on_gpu(|g| Self::encode_all_gpu(g, encoder, sources, format, tick))? {
+            Some(v) => Ok(v),
+            None => Ok(encoder.encode_all(sources, format, tick)),
         }
-        Ok(encoder.encode_all(sources, format, tick))
     }
 
     fn encode_all_gpu(g: &mut GpuStages, encoder: &Encoder, sources: &[FrameSource], format: LabelFormat, tick: &(dyn Fn() + Sync)) -> Result<Vec<Result<(EncodedImage, StageTimes)>>> {

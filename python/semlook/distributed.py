@@ -194,10 +194,14 @@ def main(argv=None):
     folder = a.labels or a.images
     if folder is None:
         sys.exit("give --images and/or --labels")
-    stems = sorted(os.path.splitext(f)[0] for f in os.listdir(folder))
-    find = lambda d, s: next(os.path.join(d, f) for f in os.listdir(d) if os.path.splitext(f)[0] == s)  # noqa: E731
-    images = [find(a.images, s) for s in stems] if a.images else None
-    labels = [find(a.labels, s) for s in stems] if a.labels else None
+    # each folder listed once: file stem -> path
+    index = {d: {os.path.splitext(f)[0]: os.path.join(d, f) for f in os.listdir(d)} for d in (a.images, a.labels) if d}
+    stems = sorted(index[folder])
+    for d, files in index.items():
+        if missing := [s for s in stems if s not in files]:
+            sys.exit(f"{d}: no file for {missing[:5]} ({len(missing)} stems of {folder} missing)")
+    images = [index[a.images][s] for s in stems] if a.images else None
+    labels = [index[a.labels][s] for s in stems] if a.labels else None
     # the manifest and codebook suffice here: the segment files need only be on the shards' nodes
     queries = semlook.Encoder.for_map_dir(a.map).encode_files(stems, images=images, labels=labels)
     sm = ShardedMap(a.map, a.shards, k=a.k, cpus_per_shard=a.cpus_per_shard, backend=a.backend, gpus_per_shard=a.gpus_per_shard)

@@ -24,15 +24,8 @@ pub struct PyEngine {
 impl PyEngine {
     #[new]
     #[pyo3(signature = (backend="auto", adapter=None))]
-    pub fn new(py: Python<'_>, backend: &str, adapter: Option<usize>) -> PyResult<Self> {
-        let b = match backend {
-            "cpu" => Backend::Cpu,
-            "gpu" => Backend::Gpu,
-            "auto" => Backend::Auto,
-            other => return Err(invalid("backend", format!("{other:?} is not one of cpu, gpu, auto"))),
-        };
-        let opts = GpuOptions { adapter, ..Default::default() };
-        let (engine, fallback) = py.detach(|| Engine::new(b, &opts)).py_err()?;
+    fn new(py: Python<'_>, backend: &str, adapter: Option<usize>) -> PyResult<Self> {
+        let (engine, fallback) = engine_for(py, backend, adapter)?;
         Ok(PyEngine { inner: Arc::new(Mutex::new(engine)), fallback })
     }
     /// Whether work runs on a GPU (false after "auto" found none, or fell back after a failure).
@@ -72,6 +65,19 @@ impl PyEngine {
     pub fn shared(&self) -> Arc<Mutex<Engine>> {
         self.inner.clone()
     }
+}
+
+/// An engine for `backend` ("cpu", "gpu", "auto") on GPU `adapter`, and with "auto" the reason
+/// it runs on the CPU.
+pub fn engine_for(py: Python<'_>, backend: &str, adapter: Option<usize>) -> PyResult<(Engine, Option<String>)> {
+    let b = match backend {
+        "cpu" => Backend::Cpu,
+        "gpu" => Backend::Gpu,
+        "auto" => Backend::Auto,
+        other => return Err(invalid("backend", format!("{other:?} is not one of cpu, gpu, auto"))),
+    };
+    let opts = GpuOptions { adapter, ..Default::default() };
+    py.detach(|| Engine::new(b, &opts)).py_err()
 }
 
 /// Runs `work` without the GIL, on `pool` (or the global pool), with `engine` (`None`: a CPU

@@ -16,7 +16,7 @@ use rayon::ThreadPool;
 use semlook::config::Config;
 use semlook::map::{shard, Map};
 use semlook::matching::ssim_topk::merge_lists;
-use crate::engine::{run, PyEngine};
+use crate::engine::{engine_for, run};
 use semlook::engine::Engine;
 use semlook::matching::{self, source::RefSource};
 use std::path::PathBuf;
@@ -75,7 +75,7 @@ impl PyShard {
         let (map, spec) = py.detach(|| Map::open_range(&map_dir, seg_start..seg_end, generation)).py_err()?;
         let config = config_toml.map(|t| Config::from_toml(t, "config_toml")).transpose().py_err()?;
         let cfg = query_config(&map, config, k)?;
-        let engine = PyEngine::new(py, backend, adapter)?.shared();
+        let engine = Arc::new(Mutex::new(engine_for(py, backend, adapter)?.0));
         Ok(PyShard { map: Arc::new(map), spec, cfg, pool: pool(threads)?, engine })
     }
     /// The shard's engine: "cpu (N threads of its pool)" or "gpu: adapter (...)".
