@@ -238,7 +238,7 @@ pub fn run(cfg: &Config, opts: &StoreBenchOptions, tick: &mut dyn FnMut(&StoreBe
         reset_peak();
         let sampler = AnonSampler::start();
         let t = Instant::now();
-        let mut w = MapWriter::create(&dir, &cfg.encoding(), 0, 0, None, StoreOptions { values: opts.values, ..Default::default() }, false)?;
+        let mut w = MapWriter::create(&dir, &cfg.encoding(), Default::default(), None, StoreOptions { values: opts.values, ..Default::default() }, false)?;
         for i in 0..n {
             let mut img = pool[i.wrapping_mul(7919) % POOL].clone();
             img.id = format!("r{i:07}");

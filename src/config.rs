@@ -19,10 +19,12 @@ pub struct Config {
     pub global: GlobalConfig,
     pub local: LocalConfig,
     pub appearance: AppearanceConfig,
+    pub keypoints: KeypointsConfig,
     pub segmentation: SegmentationConfig,
     pub models: ModelPaths,
     pub similarity: SimilarityConfig,
     pub matching: MatchingConfig,
+    pub verification: VerificationConfig,
     pub eval: EvalConfig,
 }
 
@@ -35,6 +37,7 @@ pub struct EncodingConfig {
     pub global: GlobalConfig,
     pub local: LocalConfig,
     pub appearance: AppearanceConfig,
+    pub keypoints: KeypointsConfig,
     pub segmentation: SegmentationConfig,
 }
 
@@ -254,6 +257,28 @@ impl Default for AppearanceConfig {
     }
 }
 
+/// The verification keypoints every image stores (beyond the paper; `verify`): the keypoint
+/// network's detections (SuperPoint-style decoding of its heads), best first.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct KeypointsConfig {
+    /// Keypoints stored per image; 0 stores none (no geometric verification). [R] 512: 69 bytes
+    /// each with XFeat (35 kB per image); see sweeps/ for accuracy against 256 and 1024.
+    pub stored: usize,
+    /// Non-maximum suppression radius in pixels. [X] XFeat's detector: a 5x5 window (radius 2).
+    pub nms_radius: usize,
+    /// Keypoints scoring (probability x reliability) at or below this are dropped. [X] XFeat: 0.05.
+    pub score_threshold: f64,
+    /// Keypoints this close to the border are dropped. [X] XFeat: none.
+    pub border: usize,
+}
+
+impl Default for KeypointsConfig {
+    fn default() -> Self {
+        KeypointsConfig { stored: 512, nms_radius: 2, score_threshold: 0.05, border: 0 }
+    }
+}
+
 /// How a segmentation network's input is prepared and its output read (used when a frame has
 /// no label map and `models.segmenter_onnx` is set). Defaults fit ESPNet's Cityscapes export.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -426,11 +451,30 @@ pub struct MatchingConfig {
     pub tile: usize,
     /// Final score: "fine" (image similarity) or "fine_times_global" (times the SSIM). [R] fine.
     pub score: ScoreFusion,
+    /// The fused coarse stage (`fused`, `verified`) ranks by cos(whole-image appearance) +
+    /// w_global x SSIM(global descriptors). [R] 0.25 (see sweeps/).
+    pub w_global: f64,
+    /// The coarse stage of the paper's two-stage settings (`global-forest`, `semlook`): "global",
+    /// the semantic-edge descriptor alone (the paper's reading), or "fused" with the whole-image
+    /// appearance, as `fused` ranks. [R] fused (sweep 05: with the edge descriptor alone the right
+    /// place survived to the fine stage for 27 % of the landmark queries at K = 20, and
+    /// coarse-to-fine lost places that the fine stage alone finds).
+    pub coarse: CoarseStage,
+}
+
+/// Which scores the coarse stage of the paper's two-stage settings ranks by.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CoarseStage {
+    /// SSIM of the semantic-edge global descriptors (spec §2.7).
+    Global,
+    /// cos(whole-image appearance) + w_global x SSIM.
+    Fused,
 }
 
 impl Default for MatchingConfig {
     fn default() -> Self {
-        MatchingConfig { top_k: 20, tile: 4096, score: ScoreFusion::Fine }
+        MatchingConfig { top_k: 20, tile: 4096, score: ScoreFusion::Fine, w_global: 0.25, coarse: CoarseStage::Fused }
     }
 }
 
@@ -439,6 +483,59 @@ impl Default for MatchingConfig {
 pub enum ScoreFusion {
     Fine,
     FineTimesGlobal,
+}
+
+/// Which RANSAC inliers count towards a verified score.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SemanticCheck {
+    /// Every inlier.
+    Off,
+    /// Only inliers whose keypoints lie on the same semantic class in both images.
+    SameClass,
+}
+
+/// Geometric verification of candidates (the `verified` setting; beyond the paper, `verify`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct VerificationConfig {
+    /// Keypoints match when each is the other's nearest neighbour and their cosine reaches this.
+    /// [X] XFeat's matcher: 0.82.
+    pub min_cosine: f64,
+    /// RANSAC inlier threshold on the homography's transfer error, in fractions of the image's
+    /// long side. [R] 0.00625 (4 px at the 640 px working size).
+    pub threshold: f64,
+    /// RANSAC iterations at most, and the confidence that stops earlier. [R] 1000, 0.999.
+    pub max_iterations: u32,
+    pub confidence: f64,
+    /// Seed of RANSAC's sampling (the same for every pair: results do not depend on the batch).
+    pub seed: u64,
+    /// Least-squares refits on the inliers of each new best model (LO-RANSAC). [R] on.
+    pub refine: bool,
+    /// Which inliers count. [R] off.
+    pub semantic: SemanticCheck,
+    /// The verified score: w_inliers ln(1 + inliers) + w_coarse coarse + w_fine fine, with the
+    /// fused coarse score and the tree-set similarity of the pair. [R] 1, 2, 2.
+    pub w_inliers: f64,
+    pub w_coarse: f64,
+    pub w_fine: f64,
+}
+
+impl Default for VerificationConfig {
+    fn default() -> Self {
+        VerificationConfig {
+            min_cosine: 0.82,
+            threshold: 0.00625,
+            max_iterations: 1000,
+            confidence: 0.999,
+            seed: 1,
+            refine: true,
+            semantic: SemanticCheck::Off,
+            w_inliers: 1.0,
+            w_coarse: 2.0,
+            w_fine: 2.0,
+        }
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -487,6 +584,7 @@ impl Config {
             global: self.global.clone(),
             local: self.local.clone(),
             appearance: self.appearance.clone(),
+            keypoints: self.keypoints.clone(),
             segmentation: self.segmentation.clone(),
         }
     }
@@ -513,6 +611,7 @@ impl Config {
         self.global = enc.global.clone();
         self.local = enc.local.clone();
         self.appearance = enc.appearance.clone();
+        self.keypoints = enc.keypoints.clone();
         self.segmentation = enc.segmentation.clone();
         self
     }
@@ -583,6 +682,23 @@ impl Config {
         v.real("similarity.position_sigma", s.position_sigma, 1e-4, 10.0)?;
         v.real("similarity.neutral_appearance", s.neutral_appearance, 0.0, 1.0)?;
         v.int("matching.top_k", self.matching.top_k, 1, 1024)?;
+        v.real("matching.w_global", self.matching.w_global, 0.0, 1e3)?;
+        let k = &self.keypoints;
+        v.int("keypoints.stored", k.stored, 0, 8192)?;
+        v.int("keypoints.nms_radius", k.nms_radius, 0, 64)?;
+        v.real("keypoints.score_threshold", k.score_threshold, 0.0, 1.0)?;
+        v.int("keypoints.border", k.border, 0, 4096)?;
+        let vf = &self.verification;
+        v.real("verification.min_cosine", vf.min_cosine, -1.0, 1.0)?;
+        v.real("verification.threshold", vf.threshold, 1e-6, 1.0)?;
+        v.int("verification.max_iterations", vf.max_iterations as usize, 1, 1_000_000)?;
+        v.real("verification.confidence", vf.confidence, 0.0, 1.0 - 1e-12)?;
+        if vf.seed > i64::MAX as u64 {
+            return Err(v.err(format!("verification.seed = {} must be at most {}", vf.seed, i64::MAX)));
+        }
+        for (name, w) in [("verification.w_inliers", vf.w_inliers), ("verification.w_coarse", vf.w_coarse), ("verification.w_fine", vf.w_fine)] {
+            v.real(name, w, 0.0, 1e3)?;
+        }
         v.int("matching.tile", self.matching.tile, 1, 65536)?;
         v.int("eval.recall_at (entries)", self.eval.recall_at.len(), 0, 16)?;
         for (k, &n) in self.eval.recall_at.iter().enumerate() {

@@ -3,7 +3,7 @@
 //! "edge (coarse)" = global descriptor, "forest" = objects and trees, "appearance" = keypoint
 //! network and per-object VLAD.
 
-use crate::appearance::{self, keypoints::Keypoints, vlad::{Codebook, VladNorm}, AppearanceModel};
+use crate::appearance::{self, keypoints::Keypoints, vlad::{Codebook, VladNorm}, AppearanceModel, Features};
 use crate::classes::ClassTable;
 use crate::config::{Config, EncodingConfig};
 use crate::error::{Error, Result};
@@ -161,7 +161,7 @@ impl Encoder {
     /// An encoder for `cfg`: loads the keypoint network (and segmenter) the config names.
     pub fn new(cfg: &Config) -> Result<Encoder> {
         let table = ClassTable::from_config(&cfg.classes)?;
-        let appearance = AppearanceModel::load(&cfg.appearance, &cfg.models)?.map(Arc::new);
+        let appearance = AppearanceModel::load(&cfg.appearance, &cfg.models)?.map(|m| Arc::new(m.with_detection(&cfg.keypoints)));
         // the configured segmenter, else the default one when it is installed
         let seg_path = match &cfg.models.segmenter_onnx {
             Some(p) => Some(crate::onnx::find_model(crate::segmentation::DEFAULT_SEGMENTER, Some(p), "segmenter")?),
@@ -246,7 +246,16 @@ impl Encoder {
     /// An empty descriptor set laid out for this encoder's images.
     pub fn descriptor_set(&self) -> crate::descriptors::DescriptorSet {
         let hog = if self.hog { crate::baseline::HOG_DIM } else { 0 };
-        crate::descriptors::DescriptorSet::new(&self.ssim, self.cfg.local.neighbours, self.appearance_dim(), hog)
+        crate::descriptors::DescriptorSet::new(&self.ssim, self.cfg.local.neighbours, self.appearance_dim(), hog).with_keypoint_dim(self.keypoint_dim())
+    }
+
+    /// Values per stored verification keypoint descriptor: the network's descriptor width when
+    /// keypoints are stored, else 0.
+    pub fn keypoint_dim(&self) -> usize {
+        match (&self.appearance, &self.codebook) {
+            (Some(a), Some(c)) if a.detects() => c.dim,
+            _ => 0,
+        }
     }
 
     /// Loads a frame at the working size: its label map (from file, or segmented from the
@@ -382,7 +391,7 @@ impl Encoder {
     }
 
     /// [`Encoder::encode_loaded`] with the keypoint network's output given.
-    pub fn encode_loaded_with(&self, id: &str, loaded: &Loaded, keypoints: Option<&Keypoints>, scratch: &mut GlobalScratch) -> Result<(EncodedImage, StageTimes)> {
+    pub fn encode_loaded_with(&self, id: &str, loaded: &Loaded, keypoints: Option<&Features>, scratch: &mut GlobalScratch) -> Result<(EncodedImage, StageTimes)> {
         let t = Instant::now();
         let mut global = vec![0.0; self.ssim.len()];
         let mut stats = vec![0.0; self.ssim.stats_len()];
@@ -405,7 +414,7 @@ impl Encoder {
 
     /// [`Encoder::encode_rest`] with the keypoint network's output given (cached by a caller that
     /// encodes the same frames with several configurations, such as `tune`).
-    pub fn encode_rest_with(&self, id: &str, loaded: &Loaded, global: Vec<f32>, stats: Option<Vec<f32>>, global_ms: f64, keypoints: Option<&Keypoints>) -> Result<Pending> {
+    pub fn encode_rest_with(&self, id: &str, loaded: &Loaded, global: Vec<f32>, stats: Option<Vec<f32>>, global_ms: f64, keypoints: Option<&Features>) -> Result<Pending> {
         let t = Instant::now();
         let global_stats = stats.unwrap_or_else(|| {
             let mut s = vec![0.0; self.ssim.stats_len()];
@@ -418,24 +427,29 @@ impl Encoder {
         let forest = local::build_forest(&objects, &self.cfg.local);
         let forest_ms = ms_since(t);
         let mut times = StageTimes { global_ms, forest_ms, ..loaded.times };
+        let mut verification = crate::descriptors::keypoints::ImageKeypoints::default();
         let vlad = match (&self.appearance, &loaded.rgb) {
             (Some(model), Some(rgb)) => {
                 let codebook = self.codebook.as_ref().ok_or_else(|| Error::invalid("encoder", "appearance is on but no VLAD codebook is set (train one, or open a map that has one)"))?;
                 let t = Instant::now();
                 let computed;
-                let k = match keypoints {
-                    Some(k) => k,
+                let f = match keypoints {
+                    Some(f) => f,
                     None => {
-                        let (k, network_ms) = model.keypoints_timed(rgb)?;
-                        times.network_ms = network_ms;
-                        computed = k;
+                        computed = model.features(rgb)?;
+                        times.network_ms = computed.network_ms;
                         &computed
                     }
                 };
+                let k = &f.sampled;
                 if k.dim != codebook.dim {
                     return Err(Error::Model { path: model.path.clone(), reason: format!("descriptors have {} values, the codebook {}", k.dim, codebook.dim) });
                 }
-                let (mut descriptors, mut offsets) = appearance::group_by_object(&k, &objects);
+                if let Some(d) = &f.detected {
+                    let long = loaded.labels.width().max(loaded.labels.height());
+                    verification = crate::appearance::verification_keypoints(d, self.cfg.keypoints.stored, &loaded.labels, long);
+                }
+                let (mut descriptors, mut offsets) = appearance::group_by_object(k, &objects);
                 // the last run: every descriptor of the image
                 descriptors.extend_from_slice(&k.descriptors);
                 offsets.push(offsets.last().copied().unwrap_or(0) + k.len() as u32);
@@ -447,7 +461,7 @@ impl Encoder {
         };
         let (width, height) = loaded.source_size;
         let hog = loaded.hog.clone().unwrap_or_default();
-        let image = EncodedImage { id: id.to_string(), width, height, global, global_stats, forest, appearance: vec![], hog };
+        let image = EncodedImage { id: id.to_string(), width, height, global, global_stats, forest, appearance: vec![], hog, keypoints: verification };
         Ok(Pending { image, times, vlad })
     }
 

@@ -8,12 +8,13 @@ use crate::config::Config;
 use crate::encode::{EncodedImage, Encoder, Loaded, Pending, StageTimes};
 use crate::error::Result;
 use crate::global::ssim::SsimParams;
-use crate::gpu::{coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, vlad::VladGpu, GpuContext, GpuOptions};
+use crate::gpu::{coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, verify::MnnGpu, vlad::VladGpu, GpuContext, GpuOptions};
 use crate::input::{FrameSource, LabelFormat, LabelMap};
 use crate::local::tree_similarity::TreeSimParams;
 use crate::descriptors::DescriptorSet;
 use crate::matching::{candidates, fine_scores, CandidateLists, match_with, source::{GlobalSource, RefSource}, CpuStages, MatchTimes, QueryMatch, Setting, Stages};
 use crate::util::ms_since;
+use crate::verify::{Verified, VerifyParams};
 use rayon::prelude::*;
 use std::sync::Arc;
 use std::time::Instant;
@@ -40,11 +41,12 @@ pub struct GpuStages {
     coarse: Option<(SsimParams, CoarseMatcherGpu)>,
     fine: FineMatcherGpu,
     vlad: VladGpu,
+    mnn: MnnGpu,
 }
 
 impl GpuStages {
     pub fn new(ctx: Arc<GpuContext>) -> Self {
-        GpuStages { encoder: GlobalEncoderGpu::new(ctx.clone()), fine: FineMatcherGpu::new(ctx.clone()), vlad: VladGpu::new(ctx.clone()), coarse: None, ctx, work: 0 }
+        GpuStages { encoder: GlobalEncoderGpu::new(ctx.clone()), fine: FineMatcherGpu::new(ctx.clone()), vlad: VladGpu::new(ctx.clone()), mnn: MnnGpu::new(ctx.clone()), coarse: None, ctx, work: 0 }
     }
 
     /// Forgets the maps kept on the device (call after editing a map's vectors in place: the
@@ -107,6 +109,16 @@ impl Stages for GpuStages {
     fn fine_topk(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, k: usize, _tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
         self.work += 1;
         Ok(self.fine.topk_all(p, queries, refs, k)?)
+    }
+    /// On the CPU (the whole-image appearance vectors are not on the device).
+    fn fused_coarse(&mut self, refs: &dyn RefSource, queries: &DescriptorSet, p: &SsimParams, w_global: f32, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+        CpuStages.fused_coarse(refs, queries, p, w_global, k, tile)
+    }
+    /// Mutual nearest neighbours on the GPU (`mnn_match`), RANSAC on the CPU.
+    fn verify_pairs(&mut self, p: &VerifyParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<Verified>> {
+        self.work += 1;
+        let best = self.mnn.best_columns(queries, refs, pairs)?;
+        Ok(pairs.par_iter().zip(best.par_iter()).map(|(&(q, r), b)| crate::verify::verify_from_best(p, queries.keypoints(q as usize), refs.keypoints(r as usize), b)).collect())
     }
 }
 

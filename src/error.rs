@@ -37,7 +37,7 @@ pub enum Error {
     InvalidConfig { source_name: String, reason: String },
     #[error("map {path}: corrupt: {reason}")]
     CorruptMap { path: PathBuf, reason: String },
-    #[error("map {path}: format version {found} is not supported (this build reads version {supported})")]
+    #[error("map {path}: format version {found} is not supported (this build reads version {supported}){}", version_hint(*found, *supported))]
     MapVersion { path: PathBuf, found: u32, supported: u32 },
     #[error("map {map}: built with {field} = {map_value}, but the query config has {given_value}; re-encode or use the map's config")]
     IncompatibleConfig { map: PathBuf, field: String, map_value: String, given_value: String },
@@ -53,6 +53,15 @@ pub enum Error {
     Gpu(#[from] crate::gpu::GpuError),
     #[error("model {path}: {reason}")]
     Model { path: PathBuf, reason: String },
+}
+
+/// What a map of format `found` lacks, and how to get a readable one.
+fn version_hint(found: u32, supported: u32) -> String {
+    match (found, supported) {
+        (3, 4) => ": it holds no verification keypoints, which only the images can give; build the map again from its images (its descriptors cannot be migrated)".into(),
+        (f, s) if f > s => ": it was written by a newer semlook".into(),
+        _ => ": build the map again from its images".into(),
+    }
 }
 
 /// Short constructors for the common variants.

@@ -67,6 +67,7 @@ pub mod progress;
 pub mod segmentation;
 pub mod util;
 pub mod values;
+pub mod verify;
 pub mod viz;
 
 pub use error::{Error, Result};

@@ -17,7 +17,7 @@
 //! from the cache (objects, forests, codebook, VLAD, global descriptor). Configurations that differ
 //! only in matching settings share one encoding.
 
-use crate::appearance::keypoints::Keypoints;
+use crate::appearance::{keypoints::Keypoints, Features};
 use crate::config::{Config, EncodingConfig};
 use crate::dataset::Dataset;
 use crate::encode::{Encoder, Loaded};
@@ -122,14 +122,14 @@ fn frame_key(cfg: &Config) -> String {
     let d = crate::config::AppearanceConfig::default();
     (a.vlad_centres, a.intra_norm, a.power_norm, a.min_descriptors) = (d.vlad_centres, d.intra_norm, d.power_norm, d.min_descriptors);
     (a.codebook_images, a.codebook_samples_per_image, a.codebook_iterations, a.codebook_seed) = (d.codebook_images, d.codebook_samples_per_image, d.codebook_iterations, d.codebook_seed);
-    serde_json::json!([cfg.input, cfg.classes, cfg.segmentation, cfg.models, a]).to_string()
+    serde_json::json!([cfg.input, cfg.classes, cfg.segmentation, cfg.models, a, cfg.keypoints]).to_string()
 }
 
 /// One decoded frame and its keypoint network output.
 struct Cached {
     id: String,
     loaded: Loaded,
-    keypoints: Option<Keypoints>,
+    keypoints: Option<Features>,
 }
 
 /// A dataset's frames, decoded once: references, then each query traversal with its ground truth.
@@ -146,7 +146,7 @@ fn cache_dataset(ds: &Dataset, encoder: &Encoder, tick: &(dyn Fn() + Sync)) -> R
             .map(|f| {
                 let loaded = encoder.load(&f.source, ds.label_format)?;
                 let keypoints = match (encoder.appearance_model(), &loaded.rgb) {
-                    (Some(m), Some(rgb)) => Some(m.keypoints(rgb)?),
+                    (Some(m), Some(rgb)) => Some(m.features(rgb)?),
                     _ => None,
                 };
                 tick();
@@ -220,7 +220,7 @@ pub fn run(datasets: &[Dataset], sweep: &Sweep, settings: &[Setting], engine: &m
                     let mut encoder = Encoder::new(cfg)?.with_hog(wants_hog);
                     if encoder.appearance_model().is_some() {
                         let picks = encoder.codebook_picks(cd.refs.len());
-                        let kps: Vec<&Keypoints> = picks.iter().filter_map(|&p| cd.refs[p].keypoints.as_ref()).collect();
+                        let kps: Vec<&Keypoints> = picks.iter().filter_map(|&p| cd.refs[p].keypoints.as_ref().map(|f| &f.sampled)).collect();
                         encoder.train_codebook_from(&kps)?;
                     }
                     let refs = encode_cached(&encoder, &cd.refs)?;

@@ -49,7 +49,7 @@ fn build_add_info_query_and_eval_without_appearance() {
     // comment lines name what ran, then the table
     let comments: Vec<&str> = csv.lines().filter(|l| l.starts_with('#')).collect();
     assert!(comments.iter().any(|l| l.starts_with("# keypoints: none")) && comments.iter().any(|l| l.starts_with("# config sha256: ")), "{csv}");
-    assert!(comments.iter().any(|l| l.starts_with("# backend: ")) && comments.iter().any(|l| l == &"# setting: semlook"), "{csv}");
+    assert!(comments.iter().any(|l| l.starts_with("# backend: ")) && comments.iter().any(|l| l == &"# setting: verified"), "{csv}");
     let lines: Vec<&str> = csv.lines().filter(|l| !l.starts_with('#')).collect();
     assert_eq!(lines[0], "query,best_reference,score,coarse,fine,top_k");
     assert_eq!(lines.len(), 7);

@@ -33,7 +33,7 @@ fn sharded(dir: &Path, n_shards: usize, queries: &DescriptorSet, setting: Settin
             })
             .collect::<Vec<f32>>()
     });
-    rank(setting, &lists, fine.as_deref(), cfg.matching.score).unwrap()
+    rank(setting, &lists, fine.as_deref(), cfg).unwrap()
 }
 
 fn bits(m: &[QueryMatch]) -> Vec<Vec<(u32, u32, Option<u32>, Option<u32>)>> {

@@ -154,9 +154,10 @@ pub fn merge_candidates<'py>(py: Python<'py>, parts: Vec<(PyReadonlyArray2<'py, 
 /// of every candidate in row order (settings with both stages; else None), `ids` the id of
 /// every candidate in the same order, `queries` the query ids.
 #[pyfunction]
-#[pyo3(signature = (setting, scores, references, counts, fine, queries, ids, fusion="fine"))]
+#[pyo3(signature = (setting, scores, references, counts, fine, queries, ids, fusion="fine", config=None))]
 #[allow(clippy::too_many_arguments)]
-pub fn rank(setting: &str, scores: PyReadonlyArray2<'_, f32>, references: PyReadonlyArray2<'_, i64>, counts: PyReadonlyArray1<'_, i32>, fine: Option<PyReadonlyArray1<'_, f32>>, queries: Vec<String>, ids: Vec<String>, fusion: &str) -> PyResult<PyMatches> {
+#[allow(clippy::too_many_arguments)]
+pub fn rank(setting: &str, scores: PyReadonlyArray2<'_, f32>, references: PyReadonlyArray2<'_, i64>, counts: PyReadonlyArray1<'_, i32>, fine: Option<PyReadonlyArray1<'_, f32>>, queries: Vec<String>, ids: Vec<String>, fusion: &str, config: Option<PyRef<'_, PyConfig>>) -> PyResult<PyMatches> {
     let s = self::setting(setting)?;
     let lists = from_arrays(&scores, &references, &counts)?;
     if queries.len() != lists.len() {
@@ -167,7 +168,9 @@ pub fn rank(setting: &str, scores: PyReadonlyArray2<'_, f32>, references: PyRead
         return Err(invalid("rank", format!("{} ids for {} candidates", ids.len(), pairs.len())));
     }
     let fine: Option<Vec<f32>> = fine.map(|f| f.as_array().to_vec());
-    let ranked = matching::rank(s, &lists, fine.as_deref(), self::fusion(fusion)?).py_err()?;
+    let mut cfg = config.map_or_else(Config::default, |c| c.inner.clone());
+    cfg.matching.score = self::fusion(fusion)?;
+    let ranked = matching::rank(s, &lists, fine.as_deref(), &cfg).py_err()?;
     let id_of: std::collections::HashMap<u32, String> = pairs.iter().map(|&(_, r)| r).zip(ids).collect();
     Ok(PyMatches::new(s, &queries, ranked, |r| id_of.get(&r).cloned().unwrap_or_default()))
 }

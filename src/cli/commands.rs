@@ -235,7 +235,7 @@ fn query_outputs(refs: &dyn RefSource, queries: &DescriptorSet, matches: &[Query
             "best_reference": best.map(|b| refs.id(b.reference as usize).to_string()),
             "score": best.map(|b| b.score),
             "top_k": m.ranked.iter().map(|c| serde_json::json!({
-                "reference": refs.id(c.reference as usize), "score": c.score, "coarse": c.coarse, "fine": c.fine
+                "reference": refs.id(c.reference as usize), "score": c.score, "coarse": c.coarse, "fine": c.fine, "inliers": c.inliers
             })).collect::<Vec<_>>(),
         }));
     }
@@ -304,7 +304,7 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
         }
     }
     if let (Some(n), Some(dir)) = (a.explain, &a.out) {
-        let setting = if settings.contains(&Setting::Semlook) { Setting::Semlook } else { settings[0] };
+        let setting = if settings.contains(&Setting::RECOMMENDED) { Setting::RECOMMENDED } else { settings[0] };
         // frames are loaded again with the configuration that encoded them
         let encoder = match &map {
             Some(m) => Encoder::for_map(&cfg, m)?,
@@ -345,10 +345,10 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     let map = Map::open(&map_dir)?;
     let cfg = map_config(&map, None, &a.models)?;
     let hardest = scfg.queries.last().ok_or_else(|| Error::invalid("demo", "no query condition"))?.name();
-    info(quiet, format!("[3/4] querying the map with the {hardest} traversal (setting semlook)"));
+    info(quiet, format!("[3/4] querying the map with the {hardest} traversal (setting {})", Setting::RECOMMENDED));
     let qsrc = SourceArgs { traversal: Some(hardest.to_string()), ..src };
-    let (queries, matches, run) = run_query(engine, &map, &cfg, &qsrc, Setting::Semlook, quiet)?;
-    let (csv, json) = query_outputs(&map, &queries, &matches, &run, Setting::Semlook)?;
+    let (queries, matches, run) = run_query(engine, &map, &cfg, &qsrc, Setting::RECOMMENDED, quiet)?;
+    let (csv, json) = query_outputs(&map, &queries, &matches, &run, Setting::RECOMMENDED)?;
     let results = dir.join("results");
     std::fs::create_dir_all(&results).map_err(|e| Error::io(&results, e))?;
     write_file(&results.join(format!("query-{hardest}.csv")), &csv)?;

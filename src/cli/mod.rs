@@ -390,7 +390,8 @@ pub struct QueryArgs {
     pub map: PathBuf,
     #[command(flatten)]
     pub source: SourceArgs,
-    #[arg(long, value_enum, default_value_t = Setting::Semlook)]
+    /// Which stages rank the map (default: the recommended pipeline, `verified`).
+    #[arg(long, value_enum, default_value_t = Setting::RECOMMENDED)]
     pub setting: Setting,
     /// Config for matching (its encoding sections must equal the map's).
     #[arg(long)]

@@ -3,6 +3,7 @@
 //! reads references through, and the value checks of a stored image ([`validate`]). It imports
 //! none of those stages, so none of them imports another in a circle.
 
+pub mod keypoints;
 mod set;
 pub mod source;
 pub mod validate;

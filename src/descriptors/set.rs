@@ -6,6 +6,7 @@
 use crate::global::ssim::SsimParams;
 use crate::local::{Forest, ForestRef};
 use crate::values::Values;
+use crate::descriptors::keypoints::{ImageKeypoints, KeypointsRef};
 
 /// Everything stored for one image.
 #[derive(Debug, Clone, PartialEq)]
@@ -24,6 +25,8 @@ pub struct EncodedImage {
     pub appearance: Vec<f32>,
     /// VPR-Bench HOG (the `hog` baseline); empty unless the encoder computes it.
     pub hog: Vec<f32>,
+    /// The verification keypoints (empty when the encoder stores none).
+    pub keypoints: ImageKeypoints,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -52,6 +55,16 @@ pub struct DescriptorSet {
     /// Per image, the VPR-Bench HOG descriptor (`hog_dim` values; 0 when not computed).
     pub hog_dim: usize,
     pub image_hog: Vec<f32>,
+    /// Values per verification keypoint descriptor (0: the set holds no keypoints).
+    pub keypoint_dim: usize,
+    /// `keypoint_offsets[i]..[i + 1]` are image i's keypoints.
+    pub keypoint_offsets: Vec<u32>,
+    /// `keypoint_dim` int8 values per keypoint.
+    pub keypoint_descriptors: Vec<i8>,
+    /// (x, y) per keypoint, fractions of the long side x `verify::keypoints::COORD_SCALE`.
+    pub keypoint_xy: Vec<u16>,
+    /// The semantic class under each keypoint.
+    pub keypoint_classes: Vec<u8>,
 }
 
 impl DescriptorSet {
@@ -76,7 +89,18 @@ impl DescriptorSet {
             image_appearance: vec![],
             hog_dim,
             image_hog: vec![],
+            keypoint_dim: 0,
+            keypoint_offsets: vec![0],
+            keypoint_descriptors: vec![],
+            keypoint_xy: vec![],
+            keypoint_classes: vec![],
         }
+    }
+
+    /// The same empty set holding verification keypoints of `dim` values each.
+    pub fn with_keypoint_dim(mut self, dim: usize) -> Self {
+        self.keypoint_dim = dim;
+        self
     }
 
     /// An empty set that keeps no SSIM statistics (`stats_len` 0): the buffer of a map segment
@@ -94,6 +118,10 @@ impl DescriptorSet {
     pub fn n_trees(&self) -> usize {
         self.tree_classes.len()
     }
+    /// Verification keypoints of all images.
+    pub fn n_keypoints(&self) -> usize {
+        self.keypoint_classes.len()
+    }
 
     /// Appends one image. Its global size, neighbour slots and appearance dimension must match
     /// the set's (an image without appearance gets zero vectors flagged absent; without HOG,
@@ -110,6 +138,10 @@ impl DescriptorSet {
         }
         if !img.hog.is_empty() && img.hog.len() != self.hog_dim {
             return Err(format!("image {:?} has a HOG descriptor of {} values, the set {}", img.id, img.hog.len(), self.hog_dim));
+        }
+        let k = &img.keypoints;
+        if !k.is_empty() && (k.dim != self.keypoint_dim || k.descriptors.len() != k.len() * k.dim || k.xy.len() != 2 * k.len()) {
+            return Err(format!("image {:?} has {} keypoints of dimension {} ({} values), the set takes dimension {}", img.id, k.len(), k.dim, k.descriptors.len(), self.keypoint_dim));
         }
         self.ids.push(img.id.clone());
         self.sizes.push([img.width, img.height]);
@@ -140,6 +172,10 @@ impl DescriptorSet {
         fill(&mut self.image_appearance, &img.appearance, self.appearance_dim);
         fill(&mut self.image_hog, &img.hog, self.hog_dim);
         self.forest_offsets.push(self.tree_classes.len() as u32);
+        self.keypoint_descriptors.extend_from_slice(&k.descriptors);
+        self.keypoint_xy.extend_from_slice(&k.xy);
+        self.keypoint_classes.extend_from_slice(&k.classes);
+        self.keypoint_offsets.push(self.keypoint_classes.len() as u32);
         Ok(())
     }
 
@@ -151,10 +187,10 @@ impl DescriptorSet {
     /// Appends images `start..end` of `other` (a set without statistics takes none); fails,
     /// leaving the set unchanged, when the layouts differ or the range is not in `other`.
     pub fn append_range(&mut self, other: &DescriptorSet, start: usize, end: usize) -> Result<(), String> {
-        let sizes = |s: &DescriptorSet| (s.global_len, s.neighbour_slots, s.appearance_dim, s.hog_dim);
+        let sizes = |s: &DescriptorSet| (s.global_len, s.neighbour_slots, s.appearance_dim, s.hog_dim, s.keypoint_dim);
         if sizes(self) != sizes(other) || (self.stats_len != 0 && self.stats_len != other.stats_len) {
             return Err(format!(
-                "images with (global values, neighbour slots, appearance dim, HOG dim, statistics) {:?} / {} do not join a set of {:?} / {}",
+                "images with (global values, neighbour slots, appearance dim, HOG dim, keypoint dim, statistics) {:?} / {} do not join a set of {:?} / {}",
                 sizes(other),
                 other.stats_len,
                 sizes(self),
@@ -188,6 +224,12 @@ impl DescriptorSet {
         self.tree_descriptors.extend_from_slice(&other.tree_descriptors[a..b]);
         self.image_appearance.extend_from_slice(&other.image_appearance[start * d..end * d]);
         self.image_hog.extend_from_slice(&other.image_hog[start * h..end * h]);
+        let (ka, kb, kd) = (other.keypoint_offsets[start] as usize, other.keypoint_offsets[end] as usize, self.keypoint_dim);
+        let kbase = self.n_keypoints() as u32;
+        self.keypoint_offsets.extend(other.keypoint_offsets[start + 1..=end].iter().map(|o| o - ka as u32 + kbase));
+        self.keypoint_descriptors.extend_from_slice(&other.keypoint_descriptors[kd * ka..kd * kb]);
+        self.keypoint_xy.extend_from_slice(&other.keypoint_xy[2 * ka..2 * kb]);
+        self.keypoint_classes.extend_from_slice(&other.keypoint_classes[ka..kb]);
     }
 
     /// Images `start..end` as a set of their own. Panics, as slice indexing does, when the range
@@ -200,7 +242,7 @@ impl DescriptorSet {
 
     /// An empty set of the same layout.
     pub fn empty_like(&self) -> DescriptorSet {
-        DescriptorSet { global_len: self.global_len, stats_len: self.stats_len, ..DescriptorSet::new(&bytemuck::Zeroable::zeroed(), self.neighbour_slots, self.appearance_dim, self.hog_dim) }
+        DescriptorSet { global_len: self.global_len, stats_len: self.stats_len, ..DescriptorSet::new(&bytemuck::Zeroable::zeroed(), self.neighbour_slots, self.appearance_dim, self.hog_dim) }.with_keypoint_dim(self.keypoint_dim)
     }
 
     pub fn global(&self, i: usize) -> &[f32] {
@@ -216,6 +258,12 @@ impl DescriptorSet {
     /// The HOG descriptor of image i (empty when the set holds none).
     pub fn image_hog(&self, i: usize) -> &[f32] {
         &self.image_hog[i * self.hog_dim..(i + 1) * self.hog_dim]
+    }
+    /// The verification keypoints of image i.
+    pub fn keypoints(&self, i: usize) -> KeypointsRef<'_> {
+        let (a, b) = (self.keypoint_offsets[i] as usize, self.keypoint_offsets[i + 1] as usize);
+        let d = self.keypoint_dim;
+        KeypointsRef { descriptors: &self.keypoint_descriptors[d * a..d * b], xy: &self.keypoint_xy[2 * a..2 * b], classes: &self.keypoint_classes[a..b], dim: d }
     }
     pub fn forest(&self, i: usize) -> ForestRef<'_> {
         let (a, b) = (self.forest_offsets[i] as usize, self.forest_offsets[i + 1] as usize);
@@ -242,8 +290,13 @@ impl DescriptorSet {
             return Err(format!("forest_offsets: {} offsets for {n} images, from 0 and ascending", o.len()));
         }
         let t = o[n] as usize;
+        let ko = &self.keypoint_offsets;
+        if ko.len() != n + 1 || ko[0] != 0 || ko.windows(2).any(|w| w[0] > w[1]) {
+            return Err(format!("keypoint_offsets: {} offsets for {n} images, from 0 and ascending", ko.len()));
+        }
+        let p = ko[n] as usize;
         let (s, d) = (self.neighbour_slots, self.appearance_dim);
-        let columns: [(&str, usize, usize); 13] = [
+        let columns: [(&str, usize, usize); 16] = [
             ("sizes", self.sizes.len(), n),
             ("globals", self.globals.len(), n * self.global_len),
             ("global_stats", self.global_stats.len(), n * self.stats_len),
@@ -256,6 +309,9 @@ impl DescriptorSet {
             ("tree_descriptors", self.tree_descriptors.len(), t),
             ("image_appearance", self.image_appearance.len(), d * n),
             ("image_hog", self.image_hog.len(), self.hog_dim * n),
+            ("keypoint_descriptors", self.keypoint_descriptors.len(), self.keypoint_dim * p),
+            ("keypoint_xy", self.keypoint_xy.len(), 2 * p),
+            ("keypoint_classes", self.keypoint_classes.len(), p),
             ("global_len", self.global_len.min(1), 1),
         ];
         match columns.iter().find(|(_, got, want)| got != want) {
@@ -267,7 +323,8 @@ impl DescriptorSet {
     /// Checks image `i` with [`crate::descriptors::validate::image`].
     pub fn check_image(&self, i: usize, n_classes: usize, store: crate::values::ValueType) -> Result<(), String> {
         let g = Values::F32(self.global(i));
-        crate::descriptors::validate::image(&self.ids[i], self.sizes[i], g, self.forest(i), Values::F32(self.image_appearance(i)), self.image_hog(i), n_classes, store)
+        crate::descriptors::validate::image(&self.ids[i], self.sizes[i], g, self.forest(i), Values::F32(self.image_appearance(i)), self.image_hog(i), n_classes, store)?;
+        crate::descriptors::validate::keypoints(self.keypoints(i), n_classes)
     }
 }
 
@@ -279,7 +336,7 @@ mod tests {
         let mut s = DescriptorSet::for_storage(global_len, 1, 0, hog_dim);
         for i in 0..n {
             let forest = crate::local::Forest { neighbour_slots: 1, ..Default::default() };
-            let img = EncodedImage { id: format!("i{i}"), width: 1, height: 1, global: vec![0.5; global_len], global_stats: vec![], forest, appearance: vec![], hog: vec![1.0; hog_dim] };
+            let img = EncodedImage { id: format!("i{i}"), width: 1, height: 1, global: vec![0.5; global_len], global_stats: vec![], forest, appearance: vec![], hog: vec![1.0; hog_dim], keypoints: Default::default() };
             s.push(&img).unwrap();
         }
         s

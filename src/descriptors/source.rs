@@ -5,6 +5,7 @@
 use super::DescriptorSet;
 use crate::local::ForestRef;
 use crate::values::Values;
+use crate::descriptors::keypoints::KeypointsRef;
 
 /// Reusable storage for tiles that a source must assemble (copy or generate).
 #[derive(Debug, Default)]
@@ -118,6 +119,10 @@ pub trait RefSource: GlobalSource {
     /// Values of each reference's HOG descriptor (0: the source holds none).
     fn hog_dim(&self) -> usize;
     fn image_hog(&self, i: usize) -> &[f32];
+    /// Values per verification keypoint descriptor (0: the source stores no keypoints).
+    fn keypoint_dim(&self) -> usize;
+    /// The verification keypoints of reference i.
+    fn keypoints(&self, i: usize) -> KeypointsRef<'_>;
 }
 
 impl RefSource for DescriptorSet {
@@ -141,5 +146,11 @@ impl RefSource for DescriptorSet {
     }
     fn image_hog(&self, i: usize) -> &[f32] {
         DescriptorSet::image_hog(self, i)
+    }
+    fn keypoint_dim(&self) -> usize {
+        self.keypoint_dim
+    }
+    fn keypoints(&self, i: usize) -> KeypointsRef<'_> {
+        DescriptorSet::keypoints(self, i)
     }
 }

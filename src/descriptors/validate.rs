@@ -68,3 +68,24 @@ pub fn image(id_: &str, size: [u32; 2], global: Values, forest: ForestRef, appea
     }
     Ok(())
 }
+
+/// Checks an image's verification keypoints: as many positions, classes and descriptor values as
+/// keypoints, classes in the table (or void), and descriptors no int8 rounding of a unit vector
+/// exceeds (every value above -128, the vector's norm at most 1.01 x the scale).
+pub fn keypoints(k: crate::descriptors::keypoints::KeypointsRef, n_classes: usize) -> Result<(), String> {
+    let n = k.len();
+    if k.xy.len() != 2 * n || k.descriptors.len() != n * k.dim {
+        return Err("keypoint arrays have different lengths".into());
+    }
+    if let Some(c) = k.classes.iter().find(|&&c| c != crate::classes::VOID && c as usize >= n_classes) {
+        return Err(format!("a keypoint has class {c}, outside the class table of {n_classes}"));
+    }
+    let limit = (1.01 * crate::descriptors::keypoints::DESCRIPTOR_SCALE).powi(2);
+    for (i, d) in k.descriptors.chunks(k.dim.max(1)).enumerate() {
+        let n2: f32 = d.iter().map(|&v| (v as f32).powi(2)).sum();
+        if d.contains(&i8::MIN) || n2 > limit {
+            return Err(format!("keypoint {i}'s descriptor is not a quantised unit vector (squared norm {n2})"));
+        }
+    }
+    Ok(())
+}

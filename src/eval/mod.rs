@@ -45,6 +45,9 @@ pub struct SettingReport {
     pub pr: PrMetrics,
     /// (N, Recall@N).
     pub recall_at: Vec<(usize, f64)>,
+    /// For settings with a coarse stage: its K and the share of queries (with ground truth) whose
+    /// list of K candidates holds a valid reference, i.e. what survives to the fine stage.
+    pub coarse_recall: Option<(usize, f64)>,
     /// Matching time per query per reference frame, as VPR-Bench reports it.
     pub matching_ms_per_ref: f64,
     /// Every query's top-1 and score, for the precision-recall curve and --explain.
@@ -240,6 +243,7 @@ fn report(
         queries_without_ground_truth: queries.len() - scores.len(),
         pr: pr_metrics(&scores, &correct),
         recall_at: cfg.eval.recall_at.iter().map(|&n| (n, recall_at_n(&ranked, &gts, n))).collect(),
+        coarse_recall: setting.uses_coarse().then(|| (cfg.matching.top_k, recall_at_n(&ranked, &gts, cfg.matching.top_k))),
         matching_ms_per_ref: matching_ms / pairs,
         outcomes,
     }
@@ -255,7 +259,7 @@ impl EvalReport {
         for n in &recall_cols {
             s += &format!(" {:>6}", format!("R@{n}"));
         }
-        s += &format!(" {:>10}\n", "ms/ref");
+        s += &format!(" {:>9} {:>10}\n", "coarse@K", "ms/ref");
         for r in &self.results {
             s += &format!(
                 "{:<12} {:<14} {:>6.3} {:>7.3} {:>7.3}",
@@ -264,7 +268,8 @@ impl EvalReport {
             for (_, v) in &r.recall_at {
                 s += &format!(" {:>6.3}", v);
             }
-            s += &format!(" {:>10.4}\n", r.matching_ms_per_ref);
+            let coarse = r.coarse_recall.map_or("-".to_string(), |(k, v)| format!("{v:.3}@{k}"));
+            s += &format!(" {:>9} {:>10.4}\n", coarse, r.matching_ms_per_ref);
         }
         for (st, why) in &self.skipped {
             s += &format!("{:<12} {:<14} skipped: {why}\n", "", st.name());

@@ -58,6 +58,7 @@ pub(crate) struct Kernels {
     pub tree_similarity: Kernel,
     pub vlad_assign: Kernel,
     pub vlad_accumulate: Kernel,
+    pub mnn_match: Kernel,
 }
 
 fn module(device: &wgpu::Device, name: &str, subgroups: bool) -> Result<wgpu::ShaderModule, GpuError> {
@@ -117,6 +118,7 @@ impl Kernels {
         let m = |name| module(device, name, subgroups);
         let (edges, edt, pool, ssim, block, topk, tree, vlad) =
             (m("semantic_edges.wgsl")?, m("edt.wgsl")?, m("global_pool.wgsl")?, m("ssim_topk.wgsl")?, m("ssim_block.wgsl")?, m("topk_select.wgsl")?, m("tree_similarity.wgsl")?, m("vlad_accumulate.wgsl")?);
+        let mnn = m("mnn_match.wgsl")?;
         let edt_slots: &[(u32, Slot)] = &[(0, Uniform), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite), (5, ReadWrite)];
         let topk_slots: &[(u32, Slot)] = &[(0, UniformAt(PASS)), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite)];
         Ok(Kernels {
@@ -138,6 +140,7 @@ impl Kernels {
             )?,
             vlad_assign: kernel(device, &vlad, "vlad_accumulate.wgsl", "vlad_assign", &[&[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite)]])?,
             vlad_accumulate: kernel(device, &vlad, "vlad_accumulate.wgsl", "vlad_accumulate", &[&[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite), (4, Read), (5, ReadWrite)]])?,
+            mnn_match: kernel(device, &mnn, "mnn_match.wgsl", "mnn_match", &[&[(0, Uniform), (1, Read), (2, Read), (3, Read), (4, ReadWrite), (5, ReadWrite)]])?,
         })
     }
 }

@@ -11,6 +11,7 @@
 //! | `topk_select.wgsl` | `topk_partial`, `topk_merge_lists` | `matching::topk_select::{topk_partial, topk_merge_lists}` |
 //! | `tree_similarity.wgsl` | `tree_similarity` | `local::tree_similarity::tree_similarity` |
 //! | `vlad_accumulate.wgsl` | `vlad_assign`, `vlad_accumulate` | `appearance::vlad_accumulate::{vlad_assign, vlad_accumulate}` |
+//! | `mnn_match.wgsl` | `mnn_match` | `verify::mnn_match::mnn_match` |
 //!
 //! Residency is explicit: executors own their device buffers and reuse them between batches;
 //! the map (coarse: descriptors and statistics; fine: packed forests) is uploaded once and kept
@@ -30,6 +31,7 @@ pub mod reference;
 mod resident;
 mod timer;
 mod topk;
+pub mod verify;
 pub mod vlad;
 pub mod wgsl;
 

@@ -11,7 +11,7 @@
 pub const DEFINES: [&str; 1] = ["SUBGROUPS"];
 
 /// WGSL sources, by file name.
-pub const SHADERS: [(&str, &str); 8] = [
+pub const SHADERS: [(&str, &str); 9] = [
     ("semantic_edges.wgsl", include_str!("../../shaders/semantic_edges.wgsl")),
     ("edt.wgsl", include_str!("../../shaders/edt.wgsl")),
     ("global_pool.wgsl", include_str!("../../shaders/global_pool.wgsl")),
@@ -20,6 +20,7 @@ pub const SHADERS: [(&str, &str); 8] = [
     ("topk_select.wgsl", include_str!("../../shaders/topk_select.wgsl")),
     ("tree_similarity.wgsl", include_str!("../../shaders/tree_similarity.wgsl")),
     ("vlad_accumulate.wgsl", include_str!("../../shaders/vlad_accumulate.wgsl")),
+    ("mnn_match.wgsl", include_str!("../../shaders/mnn_match.wgsl")),
 ];
 
 /// The names `src` branches on (in `DEFINES` order).

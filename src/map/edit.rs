@@ -78,15 +78,13 @@ pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
     let layout = layout_of(&old, ClassTable::from_config(&old.config.classes)?.len());
     let small = |e: &SegmentEntry| e.live() * 2 < opts.segment_images && (e.bytes as usize) * 2 < opts.segment_bytes;
     let mut out: Vec<SegmentEntry> = Vec::new();
-    let mut buf = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog);
+    let mut buf = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog).with_keypoint_dim(layout.kdim);
     let mut run: Vec<&SegmentEntry> = Vec::new();
     let flush = |buf: &mut DescriptorSet, out: &mut Vec<SegmentEntry>| -> Result<()> {
         if buf.is_empty() {
             return Ok(());
         }
-        let bytes = segment::to_bytes(buf, &layout).map_err(|r| Error::invalid(format!("map {}", dir.display()), r))?;
-        let sha = crate::util::sha256_hex(&bytes);
-        let entry = SegmentEntry { file: format!("segment-{}.safetensors", &sha[..16]), images: buf.len(), trees: buf.n_trees(), bytes: bytes.len() as u64, sha256: sha, removed: vec![] };
+        let (bytes, entry) = segment::encode(buf, &layout).map_err(|r| Error::invalid(format!("map {}", dir.display()), r))?;
         write_atomic(dir, &entry.file, &bytes)?;
         out.push(entry);
         *buf = buf.empty_like();

@@ -9,9 +9,10 @@ use serde::{Deserialize, Serialize};
 use std::path::Path;
 
 pub const FORMAT: &str = "semlook-map";
-/// Version 3: memory-mapped segments with ids as tensors and no SSIM statistics, f16 option,
-/// generations, tombstones, content-named segment files.
-pub const VERSION: u32 = 3;
+/// Version 4: version 3 (memory-mapped segments with ids as tensors and no SSIM statistics, f16
+/// option, generations, tombstones, content-named segment files) with the verification keypoints
+/// of every image.
+pub const VERSION: u32 = 4;
 pub const MANIFEST: &str = "manifest.json";
 pub const CODEBOOK: &str = "codebook.safetensors";
 /// Largest manifest read: a million-image map has a few hundred segment entries (about 100 kB),
@@ -33,6 +34,8 @@ pub struct SegmentEntry {
     /// Images stored in the file (removed ones included).
     pub images: usize,
     pub trees: usize,
+    /// Verification keypoints stored in the file.
+    pub keypoints: usize,
     pub bytes: u64,
     pub sha256: String,
     /// Rows of removed images (tombstones), ascending; `map compact` drops them from the file.
@@ -66,6 +69,8 @@ pub struct Manifest {
     pub appearance_dim: usize,
     /// Values of each image's HOG baseline descriptor (0: the map holds none).
     pub hog_dim: usize,
+    /// Values per verification keypoint descriptor (0: the map stores no keypoints).
+    pub keypoint_dim: usize,
     /// How global descriptors and appearance vectors are stored.
     pub values: ValueType,
     pub segments: Vec<SegmentEntry>,
@@ -141,7 +146,7 @@ fn check(m: &Manifest) -> std::result::Result<(), String> {
             return Err(format!("segment {} is listed twice", s.file));
         }
         // forest and id offsets are u32
-        if s.images > u32::MAX as usize - 1 || s.trees > u32::MAX as usize {
+        if s.images > u32::MAX as usize - 1 || s.trees > u32::MAX as usize || s.keypoints > u32::MAX as usize {
             return Err(format!("segment {}: {} images and {} trees are more than a segment file can index", s.file, s.images, s.trees));
         }
         if s.images == 0 || s.removed.len() > s.images || !s.removed.windows(2).all(|w| w[0] < w[1]) || s.removed.last().is_some_and(|&r| r as usize >= s.images) {

@@ -31,7 +31,7 @@ pub mod writer;
 
 pub use crate::descriptors::DescriptorSet;
 pub use manifest::{Manifest, SegmentEntry, FORMAT, VERSION};
-pub use writer::{MapWriter, StoreOptions};
+pub use writer::{Dims, MapWriter, StoreOptions};
 
 use crate::appearance::vlad::Codebook;
 use crate::classes::ClassTable;
@@ -41,6 +41,7 @@ use crate::error::{Error, Result};
 use crate::global::ssim::{ssim_stats, SsimParams, SsimScratch};
 use crate::local::ForestRef;
 use crate::values::Values;
+use crate::descriptors::keypoints::KeypointsRef;
 use rayon::prelude::*;
 use segment::{Layout, Mapped};
 use std::path::{Path, PathBuf};
@@ -162,7 +163,7 @@ impl Map {
     pub fn to_descriptor_set(&self) -> Result<DescriptorSet> {
         self.check_all()?;
         let l = self.layout();
-        let mut set = DescriptorSet::for_storage(l.global_len(), l.slots, l.dim, l.hog);
+        let mut set = DescriptorSet::for_storage(l.global_len(), l.slots, l.dim, l.hog).with_keypoint_dim(l.kdim);
         for (s, seg) in self.segments.iter().enumerate() {
             for j in self.live_rows(s) {
                 seg.append_row(j, &mut set);
@@ -208,7 +209,7 @@ impl Map {
 /// The segment layout a manifest describes.
 pub(crate) fn layout_of(m: &Manifest, n_classes: usize) -> Layout {
     let g = &m.config.global;
-    Layout { gw: g.width, gh: g.height, slots: m.neighbour_slots, dim: m.appearance_dim, hog: m.hog_dim, values: m.values, n_classes }
+    Layout { gw: g.width, gh: g.height, slots: m.neighbour_slots, dim: m.appearance_dim, hog: m.hog_dim, kdim: m.keypoint_dim, values: m.values, n_classes }
 }
 
 /// SSIM statistics of every descriptor in `globals` into `stats` (in parallel).
@@ -318,5 +319,12 @@ impl RefSource for Map {
     fn image_hog(&self, i: usize) -> &[f32] {
         let (s, j) = self.locate(i);
         self.sound(s).map_or(&[], |seg| seg.image_hog(j))
+    }
+    fn keypoint_dim(&self) -> usize {
+        self.manifest.keypoint_dim
+    }
+    fn keypoints(&self, i: usize) -> KeypointsRef<'_> {
+        let (s, j) = self.locate(i);
+        self.sound(s).map_or(KeypointsRef::EMPTY, |seg| seg.keypoints(j))
     }
 }

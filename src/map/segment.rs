@@ -5,8 +5,10 @@
 //! `image_size` [n, 2] u32, `forest_offsets` [n + 1] u32, `tree_class` [t] u8, `tree_area` [t] f32,
 //! `tree_centroid` [t, 2] f32, `tree_neighbours` [t, slots] i32, `tree_appearance` [t, dim] f,
 //! `tree_has_appearance` [t] u8, `tree_descriptors` [t] u32, `image_appearance` [n, dim] f,
-//! `image_hog` [n, hog] f32, and the ids as UTF-8 bytes `id_bytes` [b] u8 with `id_offsets`
-//! [n + 1] u32. SSIM statistics are not stored: readers recompute them per tile.
+//! `image_hog` [n, hog] f32, the ids as UTF-8 bytes `id_bytes` [b] u8 with `id_offsets`
+//! [n + 1] u32, and the verification keypoints (p of them): `keypoint_offsets` [n + 1] u32,
+//! `keypoint_descriptors` [p, kdim] i8, `keypoint_xy` [p, 2] u16, `keypoint_class` [p] u8. SSIM
+//! statistics are not stored: readers recompute them per tile.
 //!
 //! Opening checks the header: every tensor's dtype, shape, and alignment (safetensors writers sort
 //! tensors by element size and pad the header to 8 bytes, so each tensor starts at a multiple of
@@ -17,6 +19,7 @@ use super::manifest::SegmentEntry;
 use crate::descriptors::{validate, DescriptorSet};
 use crate::error::{Error, Result};
 use crate::local::ForestRef;
+use crate::descriptors::keypoints::KeypointsRef;
 use crate::values::{to_f16_bits, ValueType, Values};
 use memmap2::Mmap;
 use safetensors::tensor::{Dtype, TensorView};
@@ -32,6 +35,8 @@ pub struct Layout {
     pub slots: usize,
     pub dim: usize,
     pub hog: usize,
+    /// Values per verification keypoint descriptor (0: none stored).
+    pub kdim: usize,
     pub values: ValueType,
     pub n_classes: usize,
 }
@@ -48,6 +53,10 @@ impl Layout {
     /// Bytes of one tree.
     pub fn tree_bytes(&self) -> usize {
         1 + 4 + 8 + 4 * self.slots + self.dim * self.values.bytes() + 1 + 4
+    }
+    /// Bytes of one verification keypoint.
+    pub fn keypoint_bytes(&self) -> usize {
+        self.kdim + 4 + 1
     }
 }
 
@@ -70,7 +79,8 @@ pub fn to_bytes(set: &DescriptorSet, layout: &Layout) -> std::result::Result<Vec
         None => (bytemuck::cast_slice(&set.globals), bytemuck::cast_slice(&set.tree_appearance), bytemuck::cast_slice(&set.image_appearance)),
         Some((g, ta, ia)) => (bytemuck::cast_slice(g), bytemuck::cast_slice(ta), bytemuck::cast_slice(ia)),
     };
-    let parts: [(&str, Dtype, Vec<usize>, &[u8]); 14] = [
+    let p = set.n_keypoints();
+    let parts: [(&str, Dtype, Vec<usize>, &[u8]); 18] = [
         ("global", fdt, vec![n, layout.gh, layout.gw], g),
         ("image_size", Dtype::U32, vec![n, 2], bytemuck::cast_slice(&sizes)),
         ("forest_offsets", Dtype::U32, vec![n + 1], bytemuck::cast_slice(&set.forest_offsets)),
@@ -85,13 +95,25 @@ pub fn to_bytes(set: &DescriptorSet, layout: &Layout) -> std::result::Result<Vec
         ("image_hog", Dtype::F32, vec![n, layout.hog], bytemuck::cast_slice(&set.image_hog)),
         ("id_bytes", Dtype::U8, vec![id_bytes.len()], &id_bytes),
         ("id_offsets", Dtype::U32, vec![n + 1], bytemuck::cast_slice(&id_offsets)),
+        ("keypoint_offsets", Dtype::U32, vec![n + 1], bytemuck::cast_slice(&set.keypoint_offsets)),
+        ("keypoint_descriptors", Dtype::I8, vec![p, layout.kdim], bytemuck::cast_slice(&set.keypoint_descriptors)),
+        ("keypoint_xy", Dtype::U16, vec![p, 2], bytemuck::cast_slice(&set.keypoint_xy)),
+        ("keypoint_class", Dtype::U8, vec![p], &set.keypoint_classes),
     ];
     let tensors = parts
         .into_iter()
         .map(|(name, dtype, shape, bytes)| TensorView::new(dtype, shape, bytes).map(|v| (name, v)).map_err(|e| format!("tensor {name:?}: {e}")))
         .collect::<std::result::Result<Vec<_>, String>>()?;
-    let meta = std::collections::HashMap::from([("format".to_string(), "semlook-map-segment 3".to_string())]);
+    let meta = std::collections::HashMap::from([("format".to_string(), "semlook-map-segment 4".to_string())]);
     safetensors::serialize(tensors, Some(meta)).map_err(|e| format!("segment does not serialise: {e}"))
+}
+
+/// A set as a segment file: its bytes and its manifest entry (named by the start of its SHA-256).
+pub fn encode(set: &DescriptorSet, layout: &Layout) -> std::result::Result<(Vec<u8>, SegmentEntry), String> {
+    let bytes = to_bytes(set, layout)?;
+    let sha = crate::util::sha256_hex(&bytes);
+    let entry = SegmentEntry { file: format!("segment-{}.safetensors", &sha[..16]), images: set.len(), trees: set.n_trees(), keypoints: set.n_keypoints(), bytes: bytes.len() as u64, sha256: sha, removed: vec![] };
+    Ok((bytes, entry))
 }
 
 /// Absolute byte ranges of the tensors in the file.
@@ -111,6 +133,10 @@ struct Ranges {
     image_hog: Range<usize>,
     id_bytes: Range<usize>,
     id_offsets: Range<usize>,
+    keypoint_offsets: Range<usize>,
+    keypoint_descriptors: Range<usize>,
+    keypoint_xy: Range<usize>,
+    keypoint_class: Range<usize>,
 }
 
 /// A memory-mapped segment file.
@@ -122,6 +148,8 @@ pub struct Mapped {
     mmap: Mmap,
     n: usize,
     t: usize,
+    /// Verification keypoints in the file.
+    p: usize,
     r: Ranges,
     verified: OnceLock<std::result::Result<(), String>>,
 }
@@ -139,7 +167,7 @@ impl Mapped {
         // contents always go to new files), so the mapped bytes do not change under the map.
         let mmap = unsafe { Mmap::map(&file) }.map_err(|e| Error::io(&path, e))?;
         let r = ranges(&mmap, entry, &layout).map_err(|reason| Error::corrupt(&path, reason))?;
-        Ok(Mapped { path, entry: entry.clone(), layout, mmap, n: entry.images, t: entry.trees, r, verified: OnceLock::new() })
+        Ok(Mapped { path, entry: entry.clone(), layout, mmap, n: entry.images, t: entry.trees, p: entry.keypoints, r, verified: OnceLock::new() })
     }
 
     pub fn len(&self) -> usize {
@@ -150,6 +178,9 @@ impl Mapped {
     }
     pub fn n_trees(&self) -> usize {
         self.t
+    }
+    pub fn n_keypoints(&self) -> usize {
+        self.p
     }
     /// The whole file, as mapped.
     pub fn bytes(&self) -> &[u8] {
@@ -206,6 +237,17 @@ impl Mapped {
             dim: d,
         }
     }
+    /// The verification keypoints of row `j` (none where the offsets table is broken).
+    pub fn keypoints(&self, j: usize) -> KeypointsRef<'_> {
+        let (a, b) = Self::span(self.u32s(&self.r.keypoint_offsets), j, self.p);
+        let d = self.layout.kdim;
+        KeypointsRef {
+            descriptors: &bytemuck::cast_slice::<u8, i8>(self.raw(&self.r.keypoint_descriptors))[d * a..d * b],
+            xy: &bytemuck::cast_slice::<u8, u16>(self.raw(&self.r.keypoint_xy))[2 * a..2 * b],
+            classes: &self.raw(&self.r.keypoint_class)[a..b],
+            dim: d,
+        }
+    }
     /// The id of row `j` (empty where the id table is broken).
     pub fn id(&self, j: usize) -> &str {
         let bytes = self.raw(&self.r.id_bytes);
@@ -238,6 +280,9 @@ impl Mapped {
         if !table_ok(self.u32s(&self.r.id_offsets), self.r.id_bytes.len()) {
             return Err("id offsets do not run over the id bytes".into());
         }
+        if !table_ok(self.u32s(&self.r.keypoint_offsets), self.p) {
+            return Err("keypoint offsets do not run from 0 to the keypoint count".into());
+        }
         let mut ids = std::collections::HashSet::with_capacity(self.n);
         for j in 0..self.n {
             let raw = &self.raw(&self.r.id_bytes)[{
@@ -250,6 +295,7 @@ impl Mapped {
             }
             let g = self.globals(j, j + 1);
             validate::image(id, self.size(j), g, self.forest(j), self.image_appearance(j), self.image_hog(j), self.layout.n_classes, self.layout.values)
+                .and_then(|()| validate::keypoints(self.keypoints(j), self.layout.n_classes))
                 .map_err(|r| format!("image {id:?}: {r}"))?;
         }
         Ok(())
@@ -281,6 +327,11 @@ impl Mapped {
         self.image_appearance(j).extend_into(&mut set.image_appearance);
         set.image_hog.extend_from_slice(self.image_hog(j));
         set.forest_offsets.push(set.tree_classes.len() as u32);
+        let k = self.keypoints(j);
+        set.keypoint_descriptors.extend_from_slice(k.descriptors);
+        set.keypoint_xy.extend_from_slice(k.xy);
+        set.keypoint_classes.extend_from_slice(k.classes);
+        set.keypoint_offsets.push(set.keypoint_classes.len() as u32);
     }
 }
 
@@ -321,5 +372,9 @@ fn ranges(bytes: &[u8], entry: &SegmentEntry, l: &Layout) -> std::result::Result
         image_hog: get("image_hog", Dtype::F32, &[Some(n), Some(l.hog)])?,
         id_bytes: get("id_bytes", Dtype::U8, &[None])?,
         id_offsets: get("id_offsets", Dtype::U32, &[Some(n + 1)])?,
+        keypoint_offsets: get("keypoint_offsets", Dtype::U32, &[Some(n + 1)])?,
+        keypoint_descriptors: get("keypoint_descriptors", Dtype::I8, &[Some(entry.keypoints), Some(l.kdim)])?,
+        keypoint_xy: get("keypoint_xy", Dtype::U16, &[Some(entry.keypoints), Some(2)])?,
+        keypoint_class: get("keypoint_class", Dtype::U8, &[Some(entry.keypoints)])?,
     })
 }

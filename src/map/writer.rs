@@ -48,6 +48,15 @@ impl Default for StoreOptions {
     }
 }
 
+/// Values per image of the map's vector columns: its trees' and image's appearance, its HOG
+/// descriptor and its verification keypoints' descriptors (0: none of that column).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Dims {
+    pub appearance: usize,
+    pub hog: usize,
+    pub keypoints: usize,
+}
+
 /// Hash of an id for the set of known ids (8 bytes per image instead of the id itself; a hit is
 /// confirmed against the stored ids before it counts).
 fn id_hash(id: &str) -> u64 {
@@ -77,7 +86,8 @@ impl MapWriter {
     /// A writer for a new map in `dir`, which must not exist, or be empty, or (with `resume`) hold
     /// only files an interrupted build left (no manifest). With appearance, `appearance` gives the
     /// VLAD codebook and the keypoint network's SHA-256, both stored with the first commit.
-    pub fn create(dir: &Path, cfg: &EncodingConfig, appearance_dim: usize, hog_dim: usize, appearance: Option<(&Codebook, &str)>, opts: StoreOptions, resume: bool) -> Result<MapWriter> {
+    pub fn create(dir: &Path, cfg: &EncodingConfig, dims: Dims, appearance: Option<(&Codebook, &str)>, opts: StoreOptions, resume: bool) -> Result<MapWriter> {
+        let Dims { appearance: appearance_dim, hog: hog_dim, keypoints: keypoint_dim } = dims;
         let what = || format!("map {}", dir.display());
         MapWriter::check_new_dir(dir, resume)?;
         let codebook = match (appearance, appearance_dim) {
@@ -104,13 +114,14 @@ impl MapWriter {
             neighbour_slots: cfg.local.neighbours,
             appearance_dim,
             hog_dim,
+            keypoint_dim,
             values: opts.values,
             segments: vec![],
             codebook: None,
             appearance_model: appearance.map(|(_, sha)| sha.to_string()),
         };
         let layout = super::layout_of(&manifest, n_classes);
-        let pending = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog);
+        let pending = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog).with_keypoint_dim(layout.kdim);
         Ok(MapWriter { dir: dir.into(), layout, manifest, first: Some(codebook), known: HashSet::new(), seen: HashSet::new(), pending, opts, committed: 0 })
     }
 
@@ -139,7 +150,7 @@ impl MapWriter {
         let manifest = manifest::read(dir)?.ok_or_else(|| Error::invalid(format!("map {}", dir.display()), "no manifest.json: not a map (build it first, or --resume an interrupted build)"))?;
         let n_classes = ClassTable::from_config(&manifest.config.classes)?.len();
         let layout = super::layout_of(&manifest, n_classes);
-        let pending = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog);
+        let pending = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog).with_keypoint_dim(layout.kdim);
         let mut w = MapWriter { dir: dir.into(), layout, first: None, known: HashSet::new(), seen: HashSet::new(), pending, opts: StoreOptions { values: manifest.values, ..opts }, committed: 0, manifest };
         let segments = w.manifest.segments.clone();
         w.learn(&segments, &HashSet::new())?;
@@ -228,6 +239,7 @@ impl MapWriter {
         let f = img.forest.as_ref();
         let app = if img.appearance.is_empty() { Values::F32(&[]) } else { Values::F32(&img.appearance) };
         validate::image(&img.id, [img.width, img.height], Values::F32(&img.global), f, app, &img.hog, self.layout.n_classes, self.opts.values)
+            .and_then(|()| validate::keypoints(img.keypoints.as_ref(), self.layout.n_classes))
             .map_err(|reason| Error::InvalidImage { id: img.id.clone(), reason })?;
         if self.contains(&img.id) {
             return Err(Error::DuplicateImageId { map: self.dir.clone(), id: img.id.clone() });
@@ -241,12 +253,12 @@ impl MapWriter {
     /// set writes nothing.
     pub fn push_set(&mut self, set: &DescriptorSet) -> Result<()> {
         let l = &self.layout;
-        if set.global_len != l.global_len() || set.neighbour_slots != l.slots || set.appearance_dim != l.dim || set.hog_dim != l.hog {
+        if set.global_len != l.global_len() || set.neighbour_slots != l.slots || set.appearance_dim != l.dim || set.hog_dim != l.hog || set.keypoint_dim != l.kdim {
             return Err(Error::invalid(
                 format!("map {}", self.dir.display()),
                 format!(
-                    "new images have {} global values / {} neighbour slots / appearance dim {} / HOG dim {}, the map {} / {} / {} / {}",
-                    set.global_len, set.neighbour_slots, set.appearance_dim, set.hog_dim, l.global_len(), l.slots, l.dim, l.hog
+                    "new images have {} global values / {} neighbour slots / appearance dim {} / HOG dim {} / keypoint dim {}, the map {} / {} / {} / {} / {}",
+                    set.global_len, set.neighbour_slots, set.appearance_dim, set.hog_dim, set.keypoint_dim, l.global_len(), l.slots, l.dim, l.hog, l.kdim
                 ),
             ));
         }
@@ -266,7 +278,7 @@ impl MapWriter {
     }
 
     fn flush_if_full(&mut self) -> Result<()> {
-        let bytes = self.pending.len() * self.layout.image_bytes() + self.pending.n_trees() * self.layout.tree_bytes();
+        let bytes = self.pending.len() * self.layout.image_bytes() + self.pending.n_trees() * self.layout.tree_bytes() + self.pending.n_keypoints() * self.layout.keypoint_bytes();
         if self.pending.len() >= self.segment_images() || bytes >= self.opts.segment_bytes {
             self.flush()?;
         }
@@ -278,9 +290,7 @@ impl MapWriter {
         if self.pending.is_empty() {
             return Ok(());
         }
-        let bytes = segment::to_bytes(&self.pending, &self.layout).map_err(|r| Error::invalid(format!("map {}", self.dir.display()), r))?;
-        let sha = sha256_hex(&bytes);
-        let entry = SegmentEntry { file: format!("segment-{}.safetensors", &sha[..16]), images: self.pending.len(), trees: self.pending.n_trees(), bytes: bytes.len() as u64, sha256: sha, removed: vec![] };
+        let (bytes, entry) = segment::encode(&self.pending, &self.layout).map_err(|r| Error::invalid(format!("map {}", self.dir.display()), r))?;
         let ids: Vec<String> = self.pending.ids.clone();
         self.commit(|m| m.segments.push(entry.clone()), Some((&entry.file, &bytes)), &ids)?;
         self.seen.insert(entry.file);
@@ -351,7 +361,7 @@ impl Map {
                 return Err(Error::DuplicateImageId { map: dir.into(), id: set.ids[i].clone() });
             }
         }
-        let mut w = MapWriter::create(dir, cfg, set.appearance_dim, set.hog_dim, appearance, opts, false)?;
+        let mut w = MapWriter::create(dir, cfg, Dims { appearance: set.appearance_dim, hog: set.hog_dim, keypoints: set.keypoint_dim }, appearance, opts, false)?;
         w.push_set(set)?;
         w.finish()
     }

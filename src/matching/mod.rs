@@ -15,16 +15,18 @@ pub mod ssim_topk;
 pub(crate) mod test_data;
 pub mod topk_select;
 
-use crate::config::{Config, ScoreFusion};
+use crate::config::{CoarseStage, Config, ScoreFusion};
 use crate::error::{Error, Result};
 use crate::global::ssim::SsimParams;
 use crate::local::tree_similarity::{tree_similarity, TreeSimParams, TreeSimScratch};
 use crate::descriptors::DescriptorSet;
 use crate::util::ms_since;
+use crate::verify::{verify_pair, Verified, VerifyParams};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 use source::{GlobalSource, RefSource};
+use crate::values::Values;
 
 /// A matching setting: which stages run and whether appearance takes part.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
@@ -40,15 +42,26 @@ pub enum Setting {
     Forest,
     /// §6.1 (2): SemLook local descriptors (Forest + appearance), against the whole map.
     Local,
-    /// §6.1 (3): global descriptor selects K candidates, Forest re-ranks them.
+    /// §6.1 (3): global descriptor selects K candidates, Forest re-ranks them
+    /// (`matching.coarse`: the edge descriptor alone, or fused with the whole-image appearance).
     GlobalForest,
-    /// §6.1 (4): the full method: global top-K, SemLook local re-ranking.
+    /// §6.1 (4): the full method: global top-K, SemLook local re-ranking (`matching.coarse` as
+    /// for setting 3).
     Semlook,
+    /// Beyond the paper, coarse stage only: rank by cos(whole-image appearance) + w_global x SSIM
+    /// of the global descriptors (`matching.w_global`).
+    Fused,
+    /// Beyond the paper, the recommended pipeline: the fused coarse top-K, re-ranked by SemLook
+    /// local similarity and geometric verification (`verification`).
+    Verified,
 }
 
 impl Setting {
-    /// Every setting: the two baselines, then the coarse stage and the paper's four.
-    pub const ALL: [Setting; 7] = [Setting::Hog, Setting::Appearance, Setting::Global, Setting::Forest, Setting::Local, Setting::GlobalForest, Setting::Semlook];
+    /// Every setting: the two baselines, the coarse stage and the paper's four, then the fused
+    /// coarse stage and the recommended pipeline.
+    pub const ALL: [Setting; 9] = [Setting::Hog, Setting::Appearance, Setting::Global, Setting::Forest, Setting::Local, Setting::GlobalForest, Setting::Semlook, Setting::Fused, Setting::Verified];
+    /// The setting `query`, `eval` and the Python API use when none is named.
+    pub const RECOMMENDED: Setting = Setting::Verified;
     /// The coarse stage and the paper's four settings (no baselines).
     pub const SEMLOOK: [Setting; 5] = [Setting::Global, Setting::Forest, Setting::Local, Setting::GlobalForest, Setting::Semlook];
 
@@ -57,17 +70,31 @@ impl Setting {
         matches!(self, Setting::Hog | Setting::Appearance)
     }
     pub fn uses_coarse(self) -> bool {
-        matches!(self, Setting::Global | Setting::GlobalForest | Setting::Semlook)
+        matches!(self, Setting::Global | Setting::GlobalForest | Setting::Semlook | Setting::Fused | Setting::Verified)
+    }
+    /// Whether the coarse stage fuses the global descriptor with the whole-image appearance:
+    /// always for `fused` and `verified`, for the paper's two-stage settings (3 and 4) when
+    /// `matching.coarse` says so, never for `global` (the edge descriptor alone).
+    pub fn fuses_coarse(self, coarse: CoarseStage) -> bool {
+        match self {
+            Setting::Fused | Setting::Verified => true,
+            Setting::GlobalForest | Setting::Semlook => coarse == CoarseStage::Fused,
+            _ => false,
+        }
     }
     pub fn uses_fine(self) -> bool {
-        !self.is_baseline() && self != Setting::Global
+        !self.is_baseline() && !matches!(self, Setting::Global | Setting::Fused)
+    }
+    /// The fine stage adds geometric verification.
+    pub fn verifies(self) -> bool {
+        self == Setting::Verified
     }
     /// Both stages: the fine stage re-ranks the coarse stage's candidates.
     pub fn reranks(self) -> bool {
         self.uses_coarse() && self.uses_fine()
     }
     pub fn uses_appearance(self) -> bool {
-        matches!(self, Setting::Local | Setting::Semlook)
+        matches!(self, Setting::Local | Setting::Semlook | Setting::Fused | Setting::Verified)
     }
     pub fn name(self) -> &'static str {
         match self {
@@ -78,6 +105,8 @@ impl Setting {
             Setting::Local => "local",
             Setting::GlobalForest => "global-forest",
             Setting::Semlook => "semlook",
+            Setting::Fused => "fused",
+            Setting::Verified => "verified",
         }
     }
     pub fn describe(self) -> &'static str {
@@ -89,6 +118,8 @@ impl Setting {
             Setting::Local => "Forest+appearance, whole map",
             Setting::GlobalForest => "global top-K -> Forest",
             Setting::Semlook => "global top-K -> Forest+appearance",
+            Setting::Fused => "global+appearance top-K only",
+            Setting::Verified => "fused top-K -> local + verification",
         }
     }
 }
@@ -108,6 +139,8 @@ pub struct Candidate {
     pub coarse: Option<f32>,
     /// Tree-set similarity, when the fine stage ran.
     pub fine: Option<f32>,
+    /// Keypoint matches the verification's homography explains, when it ran.
+    pub inliers: Option<u32>,
     /// The score used for ranking and for the precision-recall curve.
     pub score: f32,
 }
@@ -141,6 +174,10 @@ pub trait Stages {
     fn fine_pairs(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<f32>>;
     /// For each query, the `k` best references of the whole map by tree-set similarity.
     fn fine_topk(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>>;
+    /// For each query, the `k` best references by cos(appearance) + `w_global` x SSIM.
+    fn fused_coarse(&mut self, refs: &dyn RefSource, queries: &DescriptorSet, p: &SsimParams, w_global: f32, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>>;
+    /// Geometric verification of each (query, reference) pair.
+    fn verify_pairs(&mut self, p: &VerifyParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<Verified>>;
 }
 
 /// The CPU reference path (rayon over queries or pairs).
@@ -166,6 +203,13 @@ impl Stages for CpuStages {
             });
         }))
     }
+    fn fused_coarse(&mut self, refs: &dyn RefSource, queries: &DescriptorSet, p: &SsimParams, w_global: f32, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+        Ok(fused_topk_cpu(refs, queries, p, w_global, k, tile))
+    }
+    /// Mutual nearest neighbours by the fast path (a matrix product per pair), then RANSAC.
+    fn verify_pairs(&mut self, p: &VerifyParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<Verified>> {
+        Ok(pairs.par_iter().map_init(Vec::new, |scratch, &(q, r)| verify_pair(p, queries.keypoints(q as usize), refs.keypoints(r as usize), scratch)).collect())
+    }
 }
 
 /// Matches every query of `queries` against `refs` with `setting` on the CPU; results in query
@@ -190,16 +234,27 @@ pub fn try_match_batch(refs: &dyn RefSource, queries: &DescriptorSet, setting: S
 /// gives its candidates, [`ssim_topk::merge_lists`] keeps the global K, the owners score the pairs.
 pub fn match_with(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<QueryMatch>, MatchTimes)> {
     let (lists, mut times) = candidates(stages, refs, queries, setting, cfg)?;
-    let fine = match setting.reranks() {
+    let (fine, verified) = match setting.reranks() {
         true => {
             let t = Instant::now();
-            let f = fine_scores(stages, refs, queries, setting, cfg, &pairs_of(&lists))?;
+            let (f, v) = pair_scores(stages, refs, queries, setting, cfg, &pairs_of(&lists))?;
             times.fine_ms = ms_since(t);
-            Some(f)
+            (Some(f), v)
         }
-        false => None,
+        false => (None, None),
     };
-    Ok((rank(setting, &lists, fine.as_deref(), cfg.matching.score)?, times))
+    let mut ranked = rank(setting, &lists, fine.as_deref(), cfg)?;
+    if let Some(v) = verified {
+        // the inliers behind each candidate's score, for reports and --explain
+        let mut it = v.iter();
+        for (m, l) in ranked.iter_mut().zip(&lists) {
+            let inliers: Vec<(u32, u32)> = l.iter().map(|&(_, r)| (r, it.next().map_or(0, |v| v.inliers))).collect();
+            for c in &mut m.ranked {
+                c.inliers = inliers.iter().find(|x| x.0 == c.reference).map(|x| x.1);
+            }
+        }
+    }
+    Ok((ranked, times))
 }
 
 /// Length of the candidate lists of `setting`: K for the settings with a coarse stage, else the
@@ -226,6 +281,8 @@ pub fn candidates(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &Descr
     let len = list_len(setting, cfg);
     let lists = if setting.is_baseline() {
         baseline::topk(refs, queries, setting, len, cfg.matching.tile)?
+    } else if setting.fuses_coarse(cfg.matching.coarse) {
+        fused_topk(stages, refs, queries, cfg, len)?
     } else if setting.uses_coarse() {
         stages.coarse(refs, queries, &SsimParams::new(&cfg.global), len, cfg.matching.tile)?
     } else {
@@ -246,24 +303,74 @@ pub fn pairs_of(lists: &[Vec<(f32, u32)>]) -> Vec<(u32, u32)> {
     lists.iter().enumerate().flat_map(|(q, l)| l.iter().map(move |&(_, r)| (q as u32, r))).collect()
 }
 
-/// Tree-set similarity of each (query, reference index in `refs`) pair under `setting`.
+/// The fine score of each (query, reference index in `refs`) pair under `setting`: the tree-set
+/// similarity, and for `verified` `w_inliers ln(1 + inliers) + w_fine similarity` (the part of
+/// the verified score that depends on the pair alone; [`rank`] adds the coarse part).
 pub fn fine_scores(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config, pairs: &[(u32, u32)]) -> Result<Vec<f32>> {
+    Ok(pair_scores(stages, refs, queries, setting, cfg, pairs)?.0)
+}
+
+/// [`fine_scores`], with the verification of each pair for the settings that verify.
+fn pair_scores(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config, pairs: &[(u32, u32)]) -> Result<(Vec<f32>, Option<Vec<Verified>>)> {
     if let Some(&(q, r)) = pairs.iter().find(|&&(q, r)| q as usize >= queries.len() || r as usize >= refs.len()) {
         return Err(Error::invalid("fine stage", format!("pair ({q}, {r}) outside {} queries x {} references", queries.len(), refs.len())));
     }
     let params = TreeSimParams::new(&cfg.similarity, setting.uses_appearance(), refs.neighbour_slots());
-    let fine = stages.fine_pairs(&params, refs, queries, pairs)?;
+    let mut fine = stages.fine_pairs(&params, refs, queries, pairs)?;
     if fine.len() != pairs.len() {
         return Err(Error::invalid("fine stage", format!("{} scores for {} pairs", fine.len(), pairs.len())));
     }
+    let verified = match setting.verifies() {
+        true => {
+            let v = stages.verify_pairs(&VerifyParams::new(&cfg.verification), refs, queries, pairs)?;
+            if v.len() != pairs.len() {
+                return Err(Error::invalid("verification", format!("{} results for {} pairs", v.len(), pairs.len())));
+            }
+            let w = &cfg.verification;
+            for (f, v) in fine.iter_mut().zip(&v) {
+                *f = (w.w_inliers * (v.inliers as f64).ln_1p() + w.w_fine * *f as f64) as f32;
+            }
+            Some(v)
+        }
+        false => None,
+    };
     refs.check()?;
-    Ok(fine)
+    Ok((fine, verified))
+}
+
+/// The fused coarse stage: for each query, the `k` references of highest
+/// cos(whole-image appearance) + `matching.w_global` x SSIM(global descriptors). Descriptors
+/// without appearance have no cosine term (the ranking is then the global descriptor's).
+fn fused_topk(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &DescriptorSet, cfg: &Config, k: usize) -> Result<CandidateLists> {
+    stages.fused_coarse(refs, queries, &SsimParams::new(&cfg.global), cfg.matching.w_global as f32, k, cfg.matching.tile)
+}
+
+/// The fused coarse stage on the CPU: per tile of references, the SSIM scores of the fast path
+/// plus `w_global` x their appearance cosines, folded into the K-lists.
+pub fn fused_topk_cpu(refs: &dyn RefSource, queries: &DescriptorSet, p: &SsimParams, w_global: f32, k: usize, tile: usize) -> Vec<Vec<(f32, u32)>> {
+    let mut exec = coarse_cpu::CoarseCpu::new(p);
+    exec.prepare(&queries.global_stats, queries.len());
+    let mut buf = source::TileBuf::default();
+    let nq = queries.len();
+    let cosine = baseline::unavailable(refs, queries, Setting::Appearance).is_none();
+    stream_topk(nq, refs.len(), k, tile, ssim_topk::topk_merge_ref_major, |tp, scores| {
+        let (start, end) = (tp.tile_start as usize, (tp.tile_start + tp.tile_len) as usize);
+        let (g, st) = refs.tile(start, end, &mut buf);
+        exec.score_tile(&queries.globals, g, st, scores);
+        scores.par_chunks_mut(nq).enumerate().filter(|_| cosine).for_each(|(j, row)| {
+            let r = refs.image_appearance(start + j);
+            for (q, s) in row.iter_mut().enumerate() {
+                *s = Values::F32(queries.image_appearance(q)).dot(&r) + w_global * *s;
+            }
+        });
+    })
 }
 
 /// The final ranking from candidate lists and, for settings with both stages, the fine score of
 /// every candidate in list order (as [`pairs_of`] lists them): the score is the fine one (or fine
-/// x SSIM), best first, ties keeping the coarse order (stable sort).
-pub fn rank(setting: Setting, lists: &[Vec<(f32, u32)>], fine: Option<&[f32]>, fusion: ScoreFusion) -> Result<Vec<QueryMatch>> {
+/// x SSIM, `matching.score`; for `verified`, fine + `verification.w_coarse` x the fused coarse
+/// score), best first, ties keeping the coarse order (stable sort).
+pub fn rank(setting: Setting, lists: &[Vec<(f32, u32)>], fine: Option<&[f32]>, cfg: &Config) -> Result<Vec<QueryMatch>> {
     let total: usize = lists.iter().map(Vec::len).sum();
     let two_stages = setting.reranks();
     match (two_stages, fine) {
@@ -273,17 +380,19 @@ pub fn rank(setting: Setting, lists: &[Vec<(f32, u32)>], fine: Option<&[f32]>, f
         (false, Some(_)) => return Err(Error::invalid("ranking", format!("setting {setting} takes no fine scores for its candidates"))),
     }
     let mut fine = fine.unwrap_or(&[]).iter();
+    let w_coarse = cfg.verification.w_coarse as f32;
     let candidate = |s: f32, r: u32, f: Option<f32>| match (setting.is_baseline(), setting.uses_coarse(), f) {
-        (true, _, _) => Candidate { reference: r, coarse: None, fine: None, score: s },
-        (_, true, None) => Candidate { reference: r, coarse: Some(s), fine: None, score: s },
+        (true, _, _) => Candidate { reference: r, coarse: None, fine: None, inliers: None, score: s },
+        (_, true, None) => Candidate { reference: r, coarse: Some(s), fine: None, inliers: None, score: s },
         (_, true, Some(f)) => {
-            let score = match fusion {
-                ScoreFusion::Fine => f,
-                ScoreFusion::FineTimesGlobal => f * s,
+            let score = match (setting.verifies(), cfg.matching.score) {
+                (true, _) => f + w_coarse * s,
+                (false, ScoreFusion::Fine) => f,
+                (false, ScoreFusion::FineTimesGlobal) => f * s,
             };
-            Candidate { reference: r, coarse: Some(s), fine: Some(f), score }
+            Candidate { reference: r, coarse: Some(s), fine: Some(f), inliers: None, score }
         }
-        (_, false, _) => Candidate { reference: r, coarse: None, fine: Some(s), score: s },
+        (_, false, _) => Candidate { reference: r, coarse: None, fine: Some(s), inliers: None, score: s },
     };
     Ok(lists
         .iter()

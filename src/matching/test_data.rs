@@ -33,7 +33,7 @@ pub fn set(p: &SsimParams, n: usize, pool: usize, rng: &mut SplitMix64) -> Descr
         let g = pool[rng.below(pool.len())].clone();
         let mut stats = vec![0.0; p.stats_len()];
         ssim_stats(p, &g, &mut stats, &mut scratch);
-        s.push(&EncodedImage { id: format!("d{i}"), width: 1, height: 1, global: g, global_stats: stats, forest: Forest { neighbour_slots: 1, ..Default::default() }, appearance: vec![], hog: vec![] }).unwrap();
+        s.push(&EncodedImage { id: format!("d{i}"), width: 1, height: 1, global: g, global_stats: stats, forest: Forest { neighbour_slots: 1, ..Default::default() }, appearance: vec![], hog: vec![], keypoints: Default::default() }).unwrap();
     }
     s
 }

@@ -114,3 +114,15 @@ pub fn street_scene(w: usize, h: usize) -> LabelMap {
     let f = synth::render_frame(&cfg, &scene, &dynamic, 0, 1, semlook::synth::condition::Condition::Day);
     LabelMap::new(w as u32, h as u32, f.labels, &semlook::classes::ClassTable::cityscapes()).unwrap()
 }
+
+/// `../shared/REL` (the real data and models beside the repository) when it is there; else the
+/// test skips with the reason, or fails under CI (`CI` set) or with REQUIRE_SHARED=1, where the
+/// real-image guards must run.
+pub fn shared_or_required(rel: &str) -> Option<std::path::PathBuf> {
+    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared").join(rel);
+    if p.exists() {
+        return Some(p);
+    }
+    skip_unless_required("REQUIRE_SHARED", format!("{} is absent", p.display()));
+    None
+}

@@ -7,6 +7,7 @@ mod common;
 mod bench;
 mod fine;
 mod resident;
+mod verify;
 
 use semlook::gpu::{GpuContext, GpuOptions, SHADERS};
 use std::sync::Arc;
@@ -145,7 +146,7 @@ pub fn random_descriptors(n: usize, cfg: &Config, seed: u64) -> DescriptorSet {
         let g: Vec<f32> = (0..p.len()).map(|k| { let (x, y) = ((k % p.gw as usize) as f64, (k / p.gw as usize) as f64); (0.5 + 0.5 * (fx * x + ph).sin() * (fy * y).cos()) as f32 }).collect();
         let mut stats = vec![0.0; p.stats_len()];
         semlook::global::ssim::ssim_stats(&p, &g, &mut stats, &mut Default::default());
-        let img = semlook::encode::EncodedImage { id: format!("r{i}"), width: 64, height: 48, global: g, global_stats: stats, forest: Forest { neighbour_slots: 3, ..Default::default() }, appearance: vec![], hog: vec![] };
+        let img = semlook::encode::EncodedImage { id: format!("r{i}"), width: 64, height: 48, global: g, global_stats: stats, forest: Forest { neighbour_slots: 3, ..Default::default() }, appearance: vec![], hog: vec![], keypoints: Default::default() };
         set.push(&img).unwrap();
     }
     set
@@ -208,7 +209,7 @@ pub fn random_forest_set(n: usize, dim: usize, seed: u64) -> DescriptorSet {
             }
         }
         f.set_appearance(dim, app, counts, 1).unwrap();
-        let img = semlook::encode::EncodedImage { id: format!("f{i}"), width: 10, height: 10, global: vec![0.5; p.len()], global_stats: vec![0.0; p.stats_len()], forest: f, appearance: vec![], hog: vec![] };
+        let img = semlook::encode::EncodedImage { id: format!("f{i}"), width: 10, height: 10, global: vec![0.5; p.len()], global_stats: vec![0.0; p.stats_len()], forest: f, appearance: vec![], hog: vec![], keypoints: Default::default() };
         set.push(&img).unwrap();
     }
     set
@@ -275,7 +276,10 @@ fn tiling_under_a_small_binding_limit() {
 #[test]
 fn too_small_limits_are_a_typed_error() {
     let Some(ctx) = gpu_with(&GpuOptions { max_binding_size: Some(4096), ..Default::default() }) else { return };
-    let cfg = Config::without_appearance();
+    // the coarse stage of the edge descriptor alone runs on the device (the fused one reads the
+    // appearance vectors on the CPU)
+    let mut cfg = Config::without_appearance();
+    cfg.matching.coarse = semlook::config::CoarseStage::Global;
     let refs = random_descriptors(3, &cfg, 1);
     let mut stages = semlook::engine::GpuStages::new(ctx);
     let err = stages.coarse(&refs, &refs, &SsimParams::new(&cfg.global), 2, 10).unwrap_err();
@@ -496,7 +500,10 @@ fn kernels_on_a_real_street_frame() {
 #[test]
 fn auto_falls_back_to_the_cpu_when_the_gpu_fails_mid_run() {
     let Some(ctx) = gpu_with(&GpuOptions { max_binding_size: Some(4096), ..Default::default() }) else { return };
-    let cfg = Config::without_appearance();
+    // the coarse stage of the edge descriptor alone runs on the device (the fused one reads the
+    // appearance vectors on the CPU)
+    let mut cfg = Config::without_appearance();
+    cfg.matching.coarse = semlook::config::CoarseStage::Global;
     let refs = common::encode(&cfg, &common::label_maps(5, 64, 48), "r");
     let mut strict = Engine::with_context(ctx.clone());
     assert!(matches!(strict.match_batch(&refs, &refs, Setting::Semlook, &cfg), Err(semlook::Error::Gpu(_))));

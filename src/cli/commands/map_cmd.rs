@@ -68,7 +68,8 @@ fn build_into(engine: &mut Engine, cfg: &Config, frames: &[FrameSource], fmt: La
         // the codebook comes first: it is stored with the first segment
         batch::train_codebook(&mut encoder, frames, quiet)?;
         let hog_dim = if f.hog { semlook::baseline::HOG_DIM } else { 0 };
-        let writer = MapWriter::create(dir, &cfg.encoding(), encoder.appearance_dim(), hog_dim, encoder.appearance_record(), opts, f.resume)?;
+        let dims = semlook::map::Dims { appearance: encoder.appearance_dim(), hog: hog_dim, keypoints: encoder.keypoint_dim() };
+        let writer = MapWriter::create(dir, &cfg.encoding(), dims, encoder.appearance_record(), opts, f.resume)?;
         (encoder, writer)
     };
     let r = batch::encode_into(engine, &encoder, frames, fmt, &mut writer, IntoOptions { skip_invalid: skip, skip_stored: f.resume, quiet })?;

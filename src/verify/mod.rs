@@ -1,0 +1,83 @@
+//! Stage 4c (beyond the paper): geometric verification of the coarse stage's candidates, as
+//! Patch-NetVLAD (Hausler et al., CVPR 2021) and hloc (Sarlin et al., CVPR 2019) re-rank theirs.
+//! Each image stores its best learned keypoints (`descriptors::keypoints`); for a (query, reference) pair
+//! the keypoints are matched by mutual nearest neighbours above a cosine ([`mnn_match`]), and the
+//! matches that one homography explains are counted by RANSAC ([`ransac`]). Optionally only inliers
+//! whose semantic classes agree at both ends count: the labels decide which geometric evidence
+//! is trusted.
+
+pub mod homography;
+pub mod mnn_match;
+pub mod ransac;
+
+use crate::classes::VOID;
+use crate::config::{SemanticCheck, VerificationConfig};
+use crate::descriptors::keypoints::{KeypointsRef, DESCRIPTOR_SCALE};
+use mnn_match::BestColumns;
+use ransac::RansacParams;
+
+/// The verification parameters of a config, in the units the stages use.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct VerifyParams {
+    /// Smallest integer dot product of a match (the cosine x DESCRIPTOR_SCALE^2).
+    pub min_dot: i32,
+    pub ransac: RansacParams,
+    pub semantic: SemanticCheck,
+}
+
+impl VerifyParams {
+    pub fn new(cfg: &VerificationConfig) -> Self {
+        VerifyParams {
+            min_dot: (cfg.min_cosine as f32 * DESCRIPTOR_SCALE * DESCRIPTOR_SCALE).ceil() as i32,
+            ransac: RansacParams { threshold: cfg.threshold, max_iterations: cfg.max_iterations, confidence: cfg.confidence, seed: cfg.seed, refine: cfg.refine },
+            semantic: cfg.semantic,
+        }
+    }
+}
+
+/// What verification found for one pair.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct Verified {
+    /// Mutual nearest-neighbour matches.
+    pub matches: u32,
+    /// Matches the best homography explains (those whose classes agree, with the semantic check).
+    pub inliers: u32,
+}
+
+/// Verifies one pair from the best columns of its keypoints (the MNN kernel's, or the fast
+/// path's output): mutual matches, then RANSAC. A side without keypoints scores 0.
+pub fn verify_from_best(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, best: &BestColumns) -> Verified {
+    let m = mnn_match::mutual(best, p.min_dot);
+    let mut out = Verified { matches: m.len() as u32, inliers: 0 };
+    if m.len() < 4 {
+        return out;
+    }
+    let src: Vec<[f64; 2]> = m.iter().map(|&(i, _)| q.position(i as usize)).collect();
+    let dst: Vec<[f64; 2]> = m.iter().map(|&(_, j)| r.position(j as usize)).collect();
+    if let Some((_, inliers)) = ransac::ransac_homography(&src, &dst, &p.ransac) {
+        out.inliers = m
+            .iter()
+            .zip(&inliers)
+            .filter(|&(&(i, j), &inl)| inl && classes_agree(p.semantic, q.classes[i as usize], r.classes[j as usize]))
+            .count() as u32;
+    }
+    out
+}
+
+/// Whether an inlier between classes `a` and `b` counts under `check`.
+#[inline]
+pub fn classes_agree(check: SemanticCheck, a: u8, b: u8) -> bool {
+    match check {
+        SemanticCheck::Off => true,
+        SemanticCheck::SameClass => a == b && a != VOID,
+    }
+}
+
+/// Verifies one pair on the CPU (fast MNN path).
+pub fn verify_pair(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, scratch: &mut Vec<f32>) -> Verified {
+    if q.is_empty() || r.is_empty() || q.dim != r.dim {
+        return Verified::default();
+    }
+    let best = mnn_match::best_columns(q.descriptors, r.descriptors, q.dim, scratch);
+    verify_from_best(p, q, r, &best)
+}
