@@ -23,6 +23,8 @@ struct TreeSimParams {
     geometric_norm: u32,
     _pad0: u32,
     _pad1: u32,
+    // per class, the key trees pair by (the class or its category), four u8 to a word
+    class_key: array<vec4<u32>, 16>,
 }
 
 // One pass, at a dynamic offset of one parameter buffer.
@@ -97,6 +99,12 @@ var<workgroup> col_used: array<u32, MAX_TREES>;
 var<workgroup> steps_shared: u32;
 var<workgroup> total: f32;
 
+// The pairing key of class c (the twin's `TreeSimParams::key`).
+fn class_key(c: u32) -> u32 {
+    let word = p.class_key[c / 16u][(c / 4u) % 4u];
+    return (word >> (8u * (c % 4u))) & 0xffu;
+}
+
 fn pair_at(pi: u32) -> Pair {
     var q: u32;
     var r: u32;
@@ -160,7 +168,7 @@ fn pair_score(pr: Pair, cos_base: u32, t: u32, u: u32) -> f32 {
         var best_slot = NONE;
         for (var sb = 0u; sb < slots; sb++) {
             let nb = b.nb[sb];
-            if (nb < 0 || used[sb] || q_trees[pr.q_start + u32(na)].class_id != r_trees[pr.r_start + u32(nb)].class_id) {
+            if (nb < 0 || used[sb] || class_key(q_trees[pr.q_start + u32(na)].class_id) != class_key(r_trees[pr.r_start + u32(nb)].class_id)) {
                 continue;
             }
             var v = 1.0;
@@ -221,7 +229,7 @@ fn tree_similarity(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocati
         let t = idx / nr;
         let u = idx % nr;
         var s = NOT_A_PAIR;
-        if (q_trees[pr.q_start + t].class_id == r_trees[pr.r_start + u].class_id) {
+        if (class_key(q_trees[pr.q_start + t].class_id) == class_key(r_trees[pr.r_start + u].class_id)) {
             s = pair_score(pr, cos_base, t, u);
         }
         scratch[sc_base + idx] = s;

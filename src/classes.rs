@@ -39,6 +39,23 @@ pub const CITYSCAPES: [(&str, [u8; 3], bool); 19] = [
     ("bicycle", [119, 11, 32], true),
 ];
 
+/// The category of a built-in class name: Cityscapes' own grouping of its classes
+/// (cityscapesScripts `labels.py`: flat, construction, object, nature, sky, human, vehicle), and
+/// the CamVid classes placed in it. An off-domain segmenter swaps classes within a category far
+/// more often than across (road / sidewalk, building / wall, vegetation / terrain, car / truck).
+pub fn category_of(name: &str) -> Option<&'static str> {
+    Some(match name {
+        "road" | "sidewalk" | "Road" | "Pavement" => "flat",
+        "building" | "wall" | "fence" | "Building" | "Fence" => "construction",
+        "pole" | "traffic light" | "traffic sign" | "Pole" | "SignSymbol" => "object",
+        "vegetation" | "terrain" | "Tree" => "nature",
+        "sky" | "Sky" => "sky",
+        "person" | "rider" | "Pedestrian" | "Bicyclist" => "human",
+        "car" | "truck" | "bus" | "train" | "motorcycle" | "bicycle" | "Car" => "vehicle",
+        _ => return None,
+    })
+}
+
 /// (name, palette colour, dynamic) of the 11 CamVid classes in the SegNet convention (label
 /// values 0..10; 11 is "Unlabelled"), colours from the SegNet tutorial's palette.
 pub const CAMVID: [(&str, [u8; 3], bool); 11] = [
@@ -103,6 +120,8 @@ pub struct ClassTable {
     excluded: Vec<bool>,
     /// file id -> class index, VOID, or UNKNOWN; covers 16-bit ids.
     id_lut: Vec<u8>,
+    /// Category index of each class (see [`category_of`]).
+    categories: Vec<u8>,
     color_lut: HashMap<[u8; 3], u8>,
 }
 
@@ -113,9 +132,9 @@ impl ClassTable {
         let specs: Vec<ClassSpec> = match &cfg.table {
             TableSpec::Builtin(name) if name == "cityscapes" => CITYSCAPES
                 .iter()
-                .map(|(n, c, d)| ClassSpec { name: n.to_string(), color: *c, dynamic: *d })
+                .map(|(n, c, d)| ClassSpec { name: n.to_string(), color: *c, dynamic: *d, category: None })
                 .collect(),
-            TableSpec::Builtin(name) if name == "camvid" => CAMVID.iter().map(|(n, c, d)| ClassSpec { name: n.to_string(), color: *c, dynamic: *d }).collect(),
+            TableSpec::Builtin(name) if name == "camvid" => CAMVID.iter().map(|(n, c, d)| ClassSpec { name: n.to_string(), color: *c, dynamic: *d, category: None }).collect(),
             TableSpec::Builtin(name) => return Err(bad(format!("unknown class table {name:?} (built in: \"cityscapes\", \"camvid\")"))),
             TableSpec::Custom(list) => list.clone(),
         };
@@ -195,7 +214,21 @@ impl ClassTable {
                 }
             }
         }
+        // categories: given, else the known one of the class's name, else the class's own name
+        let category_names: Vec<String> = specs.iter().map(|s| s.category.clone().unwrap_or_else(|| category_of(&s.name).unwrap_or(&s.name).to_string())).collect();
+        let mut distinct: Vec<&String> = Vec::new();
+        let categories = category_names
+            .iter()
+            .map(|c| match distinct.iter().position(|d| *d == c) {
+                Some(i) => i as u8,
+                None => {
+                    distinct.push(c);
+                    (distinct.len() - 1) as u8
+                }
+            })
+            .collect();
         Ok(ClassTable {
+            categories,
             colors: specs.iter().map(|s| s.color).collect(),
             dynamic: specs.iter().map(|s| s.dynamic).collect(),
             names,
@@ -222,6 +255,14 @@ impl ClassTable {
         } else {
             &self.names[class as usize]
         }
+    }
+    /// Per class index, its category index (VOID keeps VOID; other indices map to themselves).
+    pub fn category_key(&self) -> [u8; 256] {
+        let mut key: [u8; 256] = std::array::from_fn(|i| i as u8);
+        for (i, &c) in self.categories.iter().enumerate() {
+            key[i] = c;
+        }
+        key
     }
     pub fn index(&self, name: &str) -> Option<u8> {
         self.names.iter().position(|n| n == name).map(|i| i as u8)

@@ -98,6 +98,10 @@ pub struct ClassSpec {
     pub color: [u8; 3],
     #[serde(default)]
     pub dynamic: bool,
+    /// The class's category (`similarity.class_match`); default: the built-in category of its
+    /// name (`classes::category_of`), else its own name.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub category: Option<String>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -262,8 +266,10 @@ impl Default for AppearanceConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct KeypointsConfig {
-    /// Keypoints stored per image; 0 stores none (no geometric verification). [R] 512: 69 bytes
-    /// each with XFeat (35 kB per image); see sweeps/ for accuracy against 256 and 1024.
+    /// Keypoints stored per image; 0 stores none (no geometric verification). [R] 384: 69 bytes
+    /// each with XFeat (26.5 kB per image). Sweep 05 (`verified`, three dev sets, K = 20): mean
+    /// R@1 0.795 / 0.831 / 0.834 / 0.807 at 256 / 384 / 512 / 768; 512 would not fit a reference
+    /// in 64 kB.
     pub stored: usize,
     /// Non-maximum suppression radius in pixels. [X] XFeat's detector: a 5x5 window (radius 2).
     pub nms_radius: usize,
@@ -275,7 +281,7 @@ pub struct KeypointsConfig {
 
 impl Default for KeypointsConfig {
     fn default() -> Self {
-        KeypointsConfig { stored: 512, nms_radius: 2, score_threshold: 0.05, border: 0 }
+        KeypointsConfig { stored: 384, nms_radius: 2, score_threshold: 0.05, border: 0 }
     }
 }
 
@@ -374,13 +380,28 @@ pub struct SimilarityConfig {
     /// The sum of weighted pair scores is divided by "larger_forest" (the larger total tree
     /// weight, spec §2.8) or "geometric_mean" (sqrt of the product of the totals). [R] larger_forest.
     pub normalise: Normalise,
+    /// Which trees may pair (spec §2.8: only the same class): "class", "category" (the same
+    /// category, e.g. road with sidewalk, building with wall: what an off-domain segmenter swaps),
+    /// or "category_with_appearance" (categories where appearance takes part, classes in the
+    /// label-only Forest settings). [R] category_with_appearance (sweep 06: categories raised
+    /// `local` from 0.641 to 0.678 mean R@1 over the dev sets and lowered `forest` from 0.228 to
+    /// 0.174).
+    pub class_match: ClassMatch,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ClassMatch {
+    Class,
+    Category,
+    CategoryWithAppearance,
 }
 
 impl SimilarityConfig {
     /// The design reference's reconstruction (spec §2.8) before any sweep: S_in in equal thirds,
     /// S = 0.5 S_in + 0.5 S_N, uniform tree weights.
     pub fn spec() -> Self {
-        SimilarityConfig { w_appearance: 1.0 / 3.0, w_neighbours: 0.5, tree_weight: TreeWeight::Uniform, ..Default::default() }
+        SimilarityConfig { w_appearance: 1.0 / 3.0, w_neighbours: 0.5, tree_weight: TreeWeight::Uniform, class_match: ClassMatch::Class, ..Default::default() }
     }
 }
 
@@ -415,6 +436,7 @@ impl Default for SimilarityConfig {
             assignment: Assignment::Greedy,
             tree_weight: TreeWeight::Descriptors,
             normalise: Normalise::LargerForest,
+            class_match: ClassMatch::CategoryWithAppearance,
         }
     }
 }

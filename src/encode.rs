@@ -269,16 +269,7 @@ impl Encoder {
         let t = Instant::now();
         let segment = src.labels.is_none() && self.segmenter.is_some();
         let needs_rgb = self.appearance.is_some() || segment;
-        let long = self.cfg.input.working_long_side;
-        let seg = &self.cfg.segmentation;
-        let needed = |full: (u32, u32)| -> (u32, u32) {
-            let (w, h) = input::working_size(full.0, full.1, long);
-            match segment {
-                // the segmenter resizes to its input; 10 % short of it costs nothing visible
-                true => (w.max((seg.input_width as f64 * 0.9) as u32), h.max((seg.input_height as f64 * 0.9) as u32)),
-                false => (w, h),
-            }
-        };
+        let needed = |full: (u32, u32)| self.decoded_size(full, segment);
         let (rgb, hog_rgb, decoded_size) = match (&src.image, needs_rgb || self.hog) {
             (Some(p), true) => {
                 let bytes = std::fs::read(p).map_err(|e| Error::io(p, e))?;
@@ -309,6 +300,29 @@ impl Encoder {
             _ => Some(input::load_frame_labels(src, &self.table, format)?),
         };
         self.load_decoded(&src.id, src.image.as_deref(), src.labels.as_deref(), rgb, hog_rgb, decoded_size, full_labels, times)
+    }
+
+    /// The smallest size a frame of size `full` is decoded at (JPEGs by a scaled DCT): the
+    /// working size, and the segmenter's input when the frame is segmented.
+    fn decoded_size(&self, full: (u32, u32), segment: bool) -> (u32, u32) {
+        let (w, h) = input::working_size(full.0, full.1, self.cfg.input.working_long_side);
+        let seg = &self.cfg.segmentation;
+        match segment {
+            // the segmenter resizes to its input; 10 % short of it costs nothing visible
+            true => (w.max((seg.input_width as f64 * 0.9) as u32), h.max((seg.input_height as f64 * 0.9) as u32)),
+            false => (w, h),
+        }
+    }
+
+    /// The RGB pixels the keypoint network sees for `src`: decoded as [`Encoder::load`] decodes
+    /// them (so a codebook is trained on the very pixels frames are encoded from), at the working
+    /// size.
+    pub fn working_rgb(&self, src: &FrameSource) -> Result<RgbImage> {
+        let path = src.image.as_ref().ok_or_else(|| Error::invalid(format!("frame {:?}", src.id), "appearance needs the RGB image"))?;
+        let segment = src.labels.is_none() && self.segmenter.is_some();
+        let (rgb, full) = input::load_rgb_at_least(path, |full| self.decoded_size(full, segment))?;
+        let (w, h) = input::working_size(full.0, full.1, self.cfg.input.working_long_side);
+        Ok(input::resize_rgb(&rgb, w, h))
     }
 
     /// [`Encoder::load`] for frames already in memory: the RGB image (needed by appearance,
@@ -475,6 +489,10 @@ impl Encoder {
             if vectors.len() != dim * input.offsets.len().saturating_sub(1) {
                 return Err(bad(format!("{} values for {} runs of dimension {dim}", vectors.len(), input.offsets.len().saturating_sub(1))));
             }
+            // the values a map stores (int8 blocks, one per centre): a stored image reads back the same
+            if let Some(cb) = &self.codebook {
+                if std::env::var_os("NO_ROUND").is_none() { crate::values::round_to_blocks(&mut vectors, cb.dim); }
+            }
             let image = vectors.split_off(vectors.len() - dim);
             let mut counts = appearance::object_counts(&input.offsets);
             counts.pop();
@@ -544,11 +562,7 @@ impl Encoder {
         let keypoints: Vec<Keypoints> = picks
             .par_iter()
             .map(|&i| {
-                let src = &sources[i];
-                let path = src.image.as_ref().ok_or_else(|| Error::invalid(format!("frame {:?}", src.id), "appearance needs the RGB image"))?;
-                let rgb = input::load_rgb(path)?;
-                let (w, h) = input::working_size(rgb.width(), rgb.height(), self.cfg.input.working_long_side);
-                let k = model.keypoints(&input::resize_rgb(&rgb, w, h))?;
+                let k = model.keypoints(&self.working_rgb(&sources[i])?)?;
                 tick();
                 Ok(k)
             })

@@ -122,7 +122,9 @@ fn frame_key(cfg: &Config) -> String {
     let d = crate::config::AppearanceConfig::default();
     (a.vlad_centres, a.intra_norm, a.power_norm, a.min_descriptors) = (d.vlad_centres, d.intra_norm, d.power_norm, d.min_descriptors);
     (a.codebook_images, a.codebook_samples_per_image, a.codebook_iterations, a.codebook_seed) = (d.codebook_images, d.codebook_samples_per_image, d.codebook_iterations, d.codebook_seed);
-    serde_json::json!([cfg.input, cfg.classes, cfg.segmentation, cfg.models, a, cfg.keypoints]).to_string()
+    // detections are cached for the most keypoints any member stores (each takes its best N)
+    let k = crate::config::KeypointsConfig { stored: 0, ..cfg.keypoints.clone() };
+    serde_json::json!([cfg.input, cfg.classes, cfg.segmentation, cfg.models, a, k]).to_string()
 }
 
 /// One decoded frame and its keypoint network output.
@@ -210,7 +212,9 @@ pub fn run(datasets: &[Dataset], sweep: &Sweep, settings: &[Setting], engine: &m
             }
         }
         for (_, members) in &groups {
-            let first = Encoder::new(&configs[members[0]])?.with_hog(wants_hog);
+            let mut widest = configs[members[0]].clone();
+            widest.keypoints.stored = members.iter().map(|&i| configs[i].keypoints.stored).max().unwrap_or(0);
+            let first = Encoder::new(&widest)?.with_hog(wants_hog);
             let cd = cache_dataset(ds, &first, tick)?;
             let mut encoded: HashMap<String, (DescriptorSet, Vec<(String, DescriptorSet, Vec<Vec<u32>>)>)> = HashMap::new();
             for &i in members {

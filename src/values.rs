@@ -40,7 +40,115 @@ pub enum Values<'a> {
     F32(&'a [f32]),
     /// f16 bit patterns.
     F16(&'a [u16]),
+    /// Vectors stored as their non-zero blocks of int8 values (appearance in a map).
+    Blocks(Blocks<'a>),
 }
+
+/// Vectors of `dim` values in blocks of `block` (VLAD: one block per centre), stored as the
+/// blocks that are not all zero: per stored block its index in the vector, a power-of-two scale
+/// (value = q x 2^exponent) and `block` int8 values. Vector v holds stored blocks
+/// `offsets[v]..offsets[v + 1]` (indices into `ids`, `exponents` and `values` / `block`).
+#[derive(Debug, Clone, Copy)]
+pub struct Blocks<'a> {
+    pub dim: usize,
+    pub block: usize,
+    pub offsets: &'a [u32],
+    pub ids: &'a [u8],
+    pub exponents: &'a [i8],
+    pub values: &'a [i8],
+}
+
+impl<'a> Blocks<'a> {
+    pub fn vectors(&self) -> usize {
+        self.offsets.len().saturating_sub(1)
+    }
+    /// Vectors `a..b`.
+    pub fn vectors_range(&self, a: usize, b: usize) -> Blocks<'a> {
+        Blocks { offsets: &self.offsets[a..=b], ..*self }
+    }
+    /// Writes the vectors, zeros where no block is stored, into `dst` (vectors x dim values). A
+    /// stored block whose index or range lies outside is skipped (a damaged segment is refused by
+    /// its checks before it is served; reading it must still not panic).
+    pub fn write_to(&self, dst: &mut [f32]) {
+        dst.fill(0.0);
+        let (d, b) = (self.dim, self.block.max(1));
+        for v in 0..self.vectors() {
+            let (s, e) = (self.offsets[v] as usize, self.offsets[v + 1] as usize);
+            for j in s..e.min(self.ids.len()).min(self.exponents.len()) {
+                let at = v * d + self.ids[j] as usize * b;
+                let (Some(out), Some(q)) = (dst.get_mut(at..at + b), self.values.get(j * b..(j + 1) * b)) else { continue };
+                if at + b > (v + 1) * d {
+                    continue;
+                }
+                let scale = exp2(self.exponents[j]);
+                for (o, &x) in out.iter_mut().zip(q) {
+                    *o = x as f32 * scale;
+                }
+            }
+        }
+    }
+}
+
+/// 2^e as f32 (exact for the exponents int8 block scales use).
+#[inline]
+fn exp2(e: i8) -> f32 {
+    f32::powi(2.0, e as i32)
+}
+
+/// Largest magnitude of a block's int8 values.
+pub const BLOCK_Q: f32 = 127.0;
+
+/// The power-of-two scale exponent of a block whose largest magnitude is `max` (> 0): the smallest
+/// e with max / 2^e <= 127, so the largest value keeps 7 to 8 significant bits.
+fn block_exponent(max: f32) -> i8 {
+    let mut e = (max / BLOCK_Q).log2().ceil() as i32;
+    // guard the float rounding of log2 at exact powers of two
+    while max / (2.0f32).powi(e) > BLOCK_Q {
+        e += 1;
+    }
+    while e > -126 && max / (2.0f32).powi(e - 1) <= BLOCK_Q {
+        e -= 1;
+    }
+    e.clamp(-126, 127) as i8
+}
+
+/// Rounds every block of `v` (blocks of `block` values) to the grid blocks are stored on: q x 2^e
+/// with int8 q. A vector so rounded is stored and read back exactly ([`to_blocks`]).
+pub fn round_to_blocks(v: &mut [f32], block: usize) {
+    for chunk in v.chunks_mut(block.max(1)) {
+        let max = chunk.iter().fold(0.0f32, |m, x| m.max(x.abs()));
+        if !(max > 0.0) || !max.is_finite() {
+            continue;
+        }
+        let scale = exp2(block_exponent(max));
+        for x in chunk.iter_mut() {
+            *x = (*x / scale).round().clamp(-BLOCK_Q, BLOCK_Q) * scale;
+        }
+    }
+}
+
+/// Stored blocks of vectors (`dense`, `dim` values each): offsets, block indices, exponents and
+/// int8 values. Values not on the block grid are rounded to it ([`round_to_blocks`]); vectors
+/// already on it come back exactly. `base` is added to the offsets.
+pub fn to_blocks(dense: &[f32], dim: usize, block: usize, base: u32) -> (Vec<u32>, Vec<u8>, Vec<i8>, Vec<i8>) {
+    let (mut offsets, mut ids, mut exps, mut vals) = (vec![base], vec![], vec![], vec![]);
+    for vector in dense.chunks(dim.max(1)) {
+        for (i, chunk) in vector.chunks(block.max(1)).enumerate() {
+            let max = chunk.iter().fold(0.0f32, |m, x| m.max(x.abs()));
+            if !(max > 0.0) || !max.is_finite() {
+                continue;
+            }
+            let e = block_exponent(max);
+            let scale = exp2(e);
+            ids.push(i as u8);
+            exps.push(e);
+            vals.extend(chunk.iter().map(|x| (x / scale).round().clamp(-BLOCK_Q, BLOCK_Q) as i8));
+        }
+        offsets.push(base + ids.len() as u32);
+    }
+    (offsets, ids, exps, vals)
+}
+
 
 impl<'a> Values<'a> {
     pub const EMPTY: Values<'static> = Values::F32(&[]);
@@ -49,23 +157,29 @@ impl<'a> Values<'a> {
         match self {
             Values::F32(v) => v.len(),
             Values::F16(v) => v.len(),
+            Values::Blocks(b) => b.vectors() * b.dim,
         }
     }
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
-    /// Values `a..b` (panics outside the run, like a slice).
+    /// Values `a..b` (panics outside the run, like a slice; blocks slice by whole vectors, so
+    /// `a` and `b` are multiples of their dimension).
     pub fn slice(&self, a: usize, b: usize) -> Values<'a> {
         match self {
             Values::F32(v) => Values::F32(&v[a..b]),
             Values::F16(v) => Values::F16(&v[a..b]),
+            Values::Blocks(k) => {
+                assert!(k.dim > 0 && a % k.dim == 0 && b % k.dim == 0 && a <= b, "blocks slice by whole vectors");
+                Values::Blocks(k.vectors_range(a / k.dim, b / k.dim))
+            }
         }
     }
     /// The f32 slice itself when the values are stored as f32.
     pub fn as_f32(&self) -> Option<&'a [f32]> {
         match self {
             Values::F32(v) => Some(v),
-            Values::F16(_) => None,
+            _ => None,
         }
     }
     /// Widens the values into `dst` (of the same length).
@@ -73,6 +187,7 @@ impl<'a> Values<'a> {
         match self {
             Values::F32(v) => dst.copy_from_slice(v),
             Values::F16(v) => v.reinterpret_cast::<half::f16>().convert_to_f32_slice(dst),
+            Values::Blocks(b) => b.write_to(dst),
         }
     }
     /// Appends the values, widened, to `out`.
@@ -91,6 +206,7 @@ impl<'a> Values<'a> {
         match self {
             Values::F32(v) => v.iter().copied().enumerate().find(|&(_, x)| pred(x)),
             Values::F16(v) => v.iter().map(|&b| half::f16::from_bits(b).to_f32()).enumerate().find(|&(_, x)| pred(x)),
+            Values::Blocks(_) => self.to_vec().into_iter().enumerate().find(|&(_, x)| pred(x)),
         }
     }
     /// The values as an f32 slice: borrowed when stored as f32, else widened into `buf`.
@@ -100,10 +216,10 @@ impl<'a> Values<'a> {
     {
         match *self {
             Values::F32(v) => v,
-            Values::F16(v) => {
+            _ => {
                 buf.clear();
-                buf.resize(v.len(), 0.0);
-                v.reinterpret_cast::<half::f16>().convert_to_f32_slice(buf);
+                buf.resize(self.len(), 0.0);
+                self.write_to(buf);
                 buf
             }
         }
@@ -114,6 +230,13 @@ impl<'a> Values<'a> {
     pub fn dot(&self, other: &Values) -> f32 {
         if let (Values::F32(a), Values::F32(b)) = (self, other) {
             return a.iter().zip(*b).map(|(x, y)| x * y).sum();
+        }
+        if matches!(self, Values::Blocks(_)) || matches!(other, Values::Blocks(_)) {
+            // widened whole (blocks slice by vectors only), then the f32 dot
+            return WIDE.with_borrow_mut(|(x, y)| {
+                let (a, b) = (self.widened(x), other.widened(y));
+                a.iter().zip(b).map(|(p, q)| p * q).sum()
+            });
         }
         const BLOCK: usize = 256;
         let n = self.len().min(other.len());
@@ -128,6 +251,11 @@ impl<'a> Values<'a> {
         }
         acc
     }
+}
+
+thread_local! {
+    /// Scratch of [`Values::dot`] for block vectors.
+    static WIDE: std::cell::RefCell<(Vec<f32>, Vec<f32>)> = const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
 }
 
 /// f32 values as f16 bit patterns (round to nearest even).

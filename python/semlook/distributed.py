@@ -116,7 +116,7 @@ class ShardedMap:
         # wait until every shard is open (and fail here if one cannot open)
         self.shard_info = ray.get([a.info.remote() for a in self.actors])
 
-    def query(self, queries, setting="semlook", fusion=None):
+    def query(self, queries, setting="verified", fusion=None):
         """The ranked references of every query: a ``Matches`` equal to ``Map.query`` on the
         whole map with the same config."""
         import ray
@@ -150,7 +150,7 @@ class ShardedMap:
             for i, name in zip(sel, got):
                 ids[i] = name
         fusion = fusion or self.config.score_fusion
-        return semlook.rank(setting, scores, refs, counts, fine if two_stages else None, queries.ids, ids, fusion)
+        return semlook.rank(setting, scores, refs, counts, fine if two_stages else None, queries.ids, ids, fusion, self.config)
 
     def info(self):
         """Per shard: its plan entry, its engine ("backend"), the calls it ran on a GPU and the
@@ -181,7 +181,7 @@ def main(argv=None):
     ap.add_argument("--shards", type=int, required=True)
     ap.add_argument("--images", help="folder of query images")
     ap.add_argument("--labels", help="folder of query label maps (same file stems)")
-    ap.add_argument("--setting", default="semlook", choices=semlook.SETTINGS)
+    ap.add_argument("--setting", default="verified", choices=semlook.SETTINGS)
     ap.add_argument("-k", type=int, default=None)
     ap.add_argument("--cpus-per-shard", type=float, default=None)
     ap.add_argument("--backend", default="cpu", choices=["cpu", "gpu", "auto"], help="each shard's engine")

@@ -26,7 +26,7 @@ impl PyDescriptors {
 
 /// Every column as (name, shape) of a set.
 fn columns(d: &DescriptorSet) -> Vec<(&'static str, Vec<usize>)> {
-    let (n, t) = (d.len(), d.n_trees());
+    let (n, t, k) = (d.len(), d.n_trees(), d.n_keypoints());
     vec![
         ("sizes", vec![n, 2]),
         ("globals", vec![n, d.global_len]),
@@ -41,6 +41,10 @@ fn columns(d: &DescriptorSet) -> Vec<(&'static str, Vec<usize>)> {
         ("tree_descriptors", vec![t]),
         ("image_appearance", vec![n, d.appearance_dim]),
         ("image_hog", vec![n, d.hog_dim]),
+        ("keypoint_offsets", vec![n + 1]),
+        ("keypoint_descriptors", vec![k, d.keypoint_dim]),
+        ("keypoint_xy", vec![k, 2]),
+        ("keypoint_classes", vec![k]),
     ]
 }
 
@@ -59,6 +63,10 @@ fn column_view<'py>(owner: Bound<'py, PyAny>, d: &DescriptorSet, name: &str, sha
         "tree_descriptors" => view(owner, &d.tree_descriptors, shape)?.into_any(),
         "image_appearance" => view(owner, &d.image_appearance, shape)?.into_any(),
         "image_hog" => view(owner, &d.image_hog, shape)?.into_any(),
+        "keypoint_offsets" => view(owner, &d.keypoint_offsets, shape)?.into_any(),
+        "keypoint_descriptors" => view(owner, &d.keypoint_descriptors, shape)?.into_any(),
+        "keypoint_xy" => view(owner, &d.keypoint_xy, shape)?.into_any(),
+        "keypoint_classes" => view(owner, &d.keypoint_classes, shape)?.into_any(),
         _ => return Err(invalid("descriptor column", format!("no column {name:?}"))),
     })
 }
@@ -127,7 +135,7 @@ impl PyDescriptors {
         let d = slf.get().inner.clone();
         let out = PyDict::new(py);
         out.set_item("ids", PyList::new(py, &d.ids)?)?;
-        for (k, v) in [("global_len", d.global_len), ("stats_len", d.stats_len), ("neighbour_slots", d.neighbour_slots), ("appearance_dim", d.appearance_dim), ("hog_dim", d.hog_dim)] {
+        for (k, v) in [("global_len", d.global_len), ("stats_len", d.stats_len), ("neighbour_slots", d.neighbour_slots), ("appearance_dim", d.appearance_dim), ("hog_dim", d.hog_dim), ("keypoint_dim", d.keypoint_dim)] {
             out.set_item(k, v)?;
         }
         for (name, shape) in columns(&d) {
@@ -141,9 +149,12 @@ impl PyDescriptors {
     fn from_arrays(d: &Bound<'_, PyDict>) -> PyResult<PyDescriptors> {
         let ids: Vec<String> = d.get_item("ids")?.ok_or_else(|| invalid("descriptor arrays", "no \"ids\""))?.extract()?;
         let (g, sl, s, a, h) = (dim(d, "global_len")?, dim(d, "stats_len")?, dim(d, "neighbour_slots")?, dim(d, "appearance_dim")?, dim(d, "hog_dim")?);
+        let kd = dim(d, "keypoint_dim")?;
         let n = ids.len();
         let offsets: Vec<u32> = take_column(d, "forest_offsets", &[n + 1])?;
         let t = offsets.last().copied().unwrap_or(0) as usize;
+        let kp_offsets: Vec<u32> = take_column(d, "keypoint_offsets", &[n + 1])?;
+        let k = kp_offsets.last().copied().unwrap_or(0) as usize;
         let sizes: Vec<u32> = take_column(d, "sizes", &[n, 2])?;
         let set = DescriptorSet {
             ids,
@@ -165,6 +176,11 @@ impl PyDescriptors {
             image_appearance: take_column(d, "image_appearance", &[n, a])?,
             hog_dim: h,
             image_hog: take_column(d, "image_hog", &[n, h])?,
+            keypoint_dim: kd,
+            keypoint_offsets: kp_offsets,
+            keypoint_descriptors: take_column(d, "keypoint_descriptors", &[k, kd])?,
+            keypoint_xy: take_column(d, "keypoint_xy", &[k, 2])?,
+            keypoint_classes: take_column(d, "keypoint_classes", &[k])?,
         };
         set.check_layout().map_err(|r| invalid("descriptor arrays", r))?;
         if set.global_stats.iter().any(|v| !v.is_finite()) {

@@ -124,10 +124,11 @@ impl PyMap {
         self.segment_index(s)?;
         Ok(self.inner.live_rows(s).collect())
     }
-    /// A read-only numpy view of segment `s`'s stored values, no copy: `name` is "globals"
-    /// ([rows, height, width]) or "image_appearance" ([rows, dim]); float32, or float16 on an f16
-    /// map; removed rows included (see `live_rows`). The view keeps the map's mapping alive. With
-    /// `verify` (default) the segment's SHA-256 and values are checked first.
+    /// Segment `s`'s stored values: `name` "globals" ([rows, height, width]) is a read-only numpy
+    /// view, no copy (float32, or float16 on an f16 map; it keeps the map's mapping alive);
+    /// "image_appearance" ([rows, dim]) is a new float32 array widened from the int8 blocks the
+    /// map stores. Removed rows included (see `live_rows`). With `verify` (default) the segment's
+    /// SHA-256 and values are checked first.
     #[pyo3(signature = (s, name, verify=true))]
     fn segment_view<'py>(slf: Bound<'py, Self>, s: usize, name: &str, verify: bool) -> PyResult<Bound<'py, PyAny>> {
         let map = slf.get().inner.clone();
@@ -147,13 +148,14 @@ impl PyMap {
             Values::F32(v) => view(owner, v, &shape)?.into_any(),
             // SAFETY: half::f16 is a transparent wrapper of its u16 bit pattern
             Values::F16(v) => view(owner, unsafe { std::slice::from_raw_parts(v.as_ptr() as *const half::f16, v.len()) }, &shape)?.into_any(),
+            blocks @ Values::Blocks(_) => numpy::PyArrayMethods::reshape(&numpy::PyArray1::from_vec(owner.py(), blocks.to_vec()), shape)?.into_any(),
         })
     }
     /// Matches `queries` (from `Encoder.for_map(map)`) against the whole map on the CPU with
     /// `setting`; `k` candidates per query (default: the config's top_k), `config` as `semlook
     /// query --config` (default: `Config.for_map(map)`), `threads` for a pool of its own. With
     /// `engine` (an `Engine`), on its backend: on a GPU the map stays resident between calls.
-    #[pyo3(signature = (queries, setting="semlook", k=None, config=None, threads=None, engine=None))]
+    #[pyo3(signature = (queries, setting="verified", k=None, config=None, threads=None, engine=None))]
     #[allow(clippy::too_many_arguments)]
     fn query(&self, py: Python<'_>, queries: &PyDescriptors, setting: &str, k: Option<usize>, config: Option<PyRef<'_, PyConfig>>, threads: Option<usize>, engine: Option<PyRef<'_, PyEngine>>) -> PyResult<PyMatches> {
         let s = self::setting(setting)?;
@@ -188,11 +190,15 @@ pub fn query_config(map: &Map, config: Option<Config>, k: Option<usize>) -> PyRe
 /// folders with a `ground_truth` file) as `semlook eval` does; the report as a dict (the JSON of
 /// `semlook eval --json`). With `map`, the references are read from it instead of encoded.
 #[pyfunction]
-#[pyo3(signature = (dataset=None, references=None, queries=None, ground_truth=None, settings=vec!["semlook".to_string()], config=None, map=None, gt_distance=None, threads=None, engine=None))]
+#[pyo3(signature = (dataset=None, references=None, queries=None, ground_truth=None, settings=None, config=None, map=None, gt_distance=None, threads=None, engine=None))]
 #[allow(clippy::too_many_arguments)]
-pub fn evaluate<'py>(py: Python<'py>, dataset: Option<PathBuf>, references: Option<PathBuf>, queries: Option<PathBuf>, ground_truth: Option<PathBuf>, settings: Vec<String>, config: Option<PyRef<'_, PyConfig>>, map: Option<&PyMap>, gt_distance: Option<f64>, threads: Option<usize>, engine: Option<PyRef<'_, PyEngine>>) -> PyResult<Bound<'py, PyAny>> {
+pub fn evaluate<'py>(py: Python<'py>, dataset: Option<PathBuf>, references: Option<PathBuf>, queries: Option<PathBuf>, ground_truth: Option<PathBuf>, settings: Option<Vec<String>>, config: Option<PyRef<'_, PyConfig>>, map: Option<&PyMap>, gt_distance: Option<f64>, threads: Option<usize>, engine: Option<PyRef<'_, PyEngine>>) -> PyResult<Bound<'py, PyAny>> {
     use semlook::dataset::{Dataset, DatasetOptions};
-    let settings = settings.iter().map(|s| setting(s)).collect::<PyResult<Vec<_>>>()?;
+    // every setting by default, as `semlook eval`
+    let settings = match settings {
+        Some(names) => names.iter().map(|s| setting(s)).collect::<PyResult<Vec<_>>>()?,
+        None => semlook::matching::Setting::ALL.to_vec(),
+    };
     let map = map.map(|m| m.inner.clone());
     let cfg = match (&config, &map) {
         (Some(c), _) => c.inner.clone(),

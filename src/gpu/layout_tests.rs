@@ -61,7 +61,7 @@ fn shared_structs_have_the_shaders_layouts() {
     same_layout(
         "tree_similarity.wgsl",
         "TreeSimParams",
-        rust!(TreeSimParams { w_area, w_position, w_appearance, w_intrinsic, w_neighbours, position_sigma, neutral, gaussian_position, drop_missing, use_appearance, greedy, neighbour_slots, tree_weight, geometric_norm }),
+        rust!(TreeSimParams { w_area, w_position, w_appearance, w_intrinsic, w_neighbours, position_sigma, neutral, gaussian_position, drop_missing, use_appearance, greedy, neighbour_slots, tree_weight, geometric_norm, class_key }),
     );
     same_layout("tree_similarity.wgsl", "FinePass", rust!(FinePass { dim, pairs, max_trees, grid, queries, refs, ref_first, list_first, row, out_first }));
     same_layout("tree_similarity.wgsl", "Tree", rust!(GpuTree { class_id, has_app, area, cx, cy, weight, nb }));

@@ -17,7 +17,7 @@
 
 use super::ForestRef;
 use crate::values::Values;
-use crate::config::{Assignment, MissingAppearance, Normalise, PositionSimilarity, SimilarityConfig, TreeWeight};
+use crate::config::{Assignment, ClassMatch, MissingAppearance, Normalise, PositionSimilarity, SimilarityConfig, TreeWeight};
 
 /// Uniform parameters of the kernel, in the shader's field order.
 #[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
@@ -45,6 +45,9 @@ pub struct TreeSimParams {
     /// 1: divide by the geometric mean of the forests' total weights, 0: by the larger total.
     pub geometric_norm: u32,
     pub _pad: [u32; 2],
+    /// Per class, the key trees pair by (the class itself, or its category), four u8 to a word:
+    /// two trees may pair when their classes' keys are equal.
+    pub class_key: [u32; 64],
 }
 
 impl TreeSimParams {
@@ -75,7 +78,27 @@ impl TreeSimParams {
             },
             geometric_norm: (cfg.normalise == Normalise::GeometricMean) as u32,
             _pad: [0; 2],
+            class_key: pack_key(&std::array::from_fn(|i| i as u8)),
         }
+    }
+
+    /// The parameters with the pairing rule of `cfg.class_match` over `table`'s categories.
+    pub fn with_classes(mut self, cfg: &SimilarityConfig, table: &crate::classes::ClassTable) -> Self {
+        let categories = match cfg.class_match {
+            ClassMatch::Class => false,
+            ClassMatch::Category => true,
+            ClassMatch::CategoryWithAppearance => self.use_appearance != 0,
+        };
+        if categories {
+            self.class_key = pack_key(&table.category_key());
+        }
+        self
+    }
+
+    /// The pairing key of class `c`.
+    #[inline]
+    pub fn key(&self, c: u8) -> u32 {
+        (self.class_key[c as usize / 4] >> (8 * (c as u32 % 4))) & 0xff
     }
 
     /// The weight of a tree of relative area `area` aggregated from `descriptors` descriptors.
@@ -88,6 +111,11 @@ impl TreeSimParams {
             _ => 1.0,
         }
     }
+}
+
+/// 256 u8 keys, four to a little-endian word (as the kernel reads them).
+fn pack_key(key: &[u8; 256]) -> [u32; 64] {
+    std::array::from_fn(|w| (0..4).fold(0u32, |acc, l| acc | (key[4 * w + l] as u32) << (8 * l)))
 }
 
 /// Value of a cosine slot whose pair lacks appearance on either side.
@@ -135,7 +163,7 @@ pub fn tree_similarity(p: &TreeSimParams, q: ForestRef, r: ForestRef, scratch: &
     for t in 0..nq {
         for u in 0..nr {
             scratch.scores[t * nr + u] =
-                if q.classes[t] == r.classes[u] { pair_score(p, &q, &r, &scratch.cosines, t, u) } else { NOT_A_PAIR };
+                if p.key(q.classes[t]) == p.key(r.classes[u]) { pair_score(p, &q, &r, &scratch.cosines, t, u) } else { NOT_A_PAIR };
         }
     }
     // phase 3: assignment, weighted sum, normalisation
@@ -220,7 +248,7 @@ fn pair_score(p: &TreeSimParams, q: &ForestRef, r: &ForestRef, cosines: &[f32], 
         let mut best_slot = usize::MAX;
         for (b_slot, is_used) in used.iter().enumerate().take(slots) {
             let b = r.neighbours[u * slots + b_slot];
-            if b < 0 || *is_used || q.classes[a as usize] != r.classes[b as usize] {
+            if b < 0 || *is_used || p.key(q.classes[a as usize]) != p.key(r.classes[b as usize]) {
                 continue;
             }
             let v = if p.use_appearance != 0 { cos_plus(p, cosines[a as usize * nr + b as usize]) } else { 1.0 };

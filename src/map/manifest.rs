@@ -71,6 +71,9 @@ pub struct Manifest {
     pub hog_dim: usize,
     /// Values per verification keypoint descriptor (0: the map stores no keypoints).
     pub keypoint_dim: usize,
+    /// Values per stored block of the appearance vectors (the keypoint network's descriptor
+    /// width, one block per VLAD centre; 0 without appearance).
+    pub appearance_block: usize,
     /// How global descriptors and appearance vectors are stored.
     pub values: ValueType,
     pub segments: Vec<SegmentEntry>,
@@ -158,6 +161,9 @@ fn check(m: &Manifest) -> std::result::Result<(), String> {
     }
     if m.appearance_dim != 0 && m.codebook.is_none() {
         return Err("appearance vectors but no codebook".into());
+    }
+    if (m.appearance_dim == 0) != (m.appearance_block == 0) || (m.appearance_block > 0 && (m.appearance_dim % m.appearance_block != 0 || m.appearance_dim / m.appearance_block > 256)) {
+        return Err(format!("appearance vectors of {} values do not split into blocks of {} (at most 256)", m.appearance_dim, m.appearance_block));
     }
     Ok(())
 }

@@ -209,7 +209,7 @@ impl Map {
 /// The segment layout a manifest describes.
 pub(crate) fn layout_of(m: &Manifest, n_classes: usize) -> Layout {
     let g = &m.config.global;
-    Layout { gw: g.width, gh: g.height, slots: m.neighbour_slots, dim: m.appearance_dim, hog: m.hog_dim, kdim: m.keypoint_dim, values: m.values, n_classes }
+    Layout { gw: g.width, gh: g.height, slots: m.neighbour_slots, dim: m.appearance_dim, hog: m.hog_dim, kdim: m.keypoint_dim, block: m.appearance_block, values: m.values, n_classes }
 }
 
 /// SSIM statistics of every descriptor in `globals` into `stats` (in parallel).

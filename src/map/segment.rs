@@ -3,8 +3,11 @@
 //!
 //! Tensors (n images, t trees, f = f32 or f16 as the manifest says): `global` [n, gh, gw] f,
 //! `image_size` [n, 2] u32, `forest_offsets` [n + 1] u32, `tree_class` [t] u8, `tree_area` [t] f32,
-//! `tree_centroid` [t, 2] f32, `tree_neighbours` [t, slots] i32, `tree_appearance` [t, dim] f,
-//! `tree_has_appearance` [t] u8, `tree_descriptors` [t] u32, `image_appearance` [n, dim] f,
+//! `tree_centroid` [t, 2] f32, `tree_neighbours` [t, slots] i32, `tree_has_appearance` [t] u8,
+//! `tree_descriptors` [t] u32, the trees' and the images' appearance vectors as their non-zero
+//! blocks of int8 values (`values::Blocks`; VLAD: one block per centre) in `tree_block_offsets`
+//! [t + 1] u32, `tree_block_ids` [bt] u8, `tree_block_exponents` [bt] i8, `tree_block_values`
+//! [bt, block] i8 and `image_block_*` likewise over the n images,
 //! `image_hog` [n, hog] f32, the ids as UTF-8 bytes `id_bytes` [b] u8 with `id_offsets`
 //! [n + 1] u32, and the verification keypoints (p of them): `keypoint_offsets` [n + 1] u32,
 //! `keypoint_descriptors` [p, kdim] i8, `keypoint_xy` [p, 2] u16, `keypoint_class` [p] u8. SSIM
@@ -37,6 +40,9 @@ pub struct Layout {
     pub hog: usize,
     /// Values per verification keypoint descriptor (0: none stored).
     pub kdim: usize,
+    /// Values per stored appearance block (the keypoint network's descriptor width; 0 without
+    /// appearance).
+    pub block: usize,
     pub values: ValueType,
     pub n_classes: usize,
 }
@@ -45,14 +51,20 @@ impl Layout {
     pub fn global_len(&self) -> usize {
         self.gw * self.gh
     }
-    /// Bytes of one image without its trees.
+    /// Bytes of one image without its trees, at most (every appearance block stored).
     pub fn image_bytes(&self) -> usize {
-        let v = self.values.bytes();
-        self.global_len() * v + self.dim * v + self.hog * 4 + 2 * 4 + 2 * 4
+        self.global_len() * self.values.bytes() + self.appearance_bytes() + self.hog * 4 + 2 * 4 + 2 * 4 + 4
     }
-    /// Bytes of one tree.
+    /// Bytes of one tree, at most.
     pub fn tree_bytes(&self) -> usize {
-        1 + 4 + 8 + 4 * self.slots + self.dim * self.values.bytes() + 1 + 4
+        1 + 4 + 8 + 4 * self.slots + self.appearance_bytes() + 1 + 4 + 4
+    }
+    /// Bytes of one appearance vector with every block stored.
+    fn appearance_bytes(&self) -> usize {
+        match self.block {
+            0 => 0,
+            b => self.dim / b * (b + 2),
+        }
     }
     /// Bytes of one verification keypoint.
     pub fn keypoint_bytes(&self) -> usize {
@@ -73,14 +85,19 @@ pub fn to_bytes(set: &DescriptorSet, layout: &Layout) -> std::result::Result<Vec
     }
     let (fdt, narrow) = match layout.values {
         ValueType::F32 => (Dtype::F32, None),
-        ValueType::F16 => (Dtype::F16, Some((to_f16_bits(&set.globals), to_f16_bits(&set.tree_appearance), to_f16_bits(&set.image_appearance)))),
+        ValueType::F16 => (Dtype::F16, Some(to_f16_bits(&set.globals))),
     };
-    let (g, ta, ia): (&[u8], &[u8], &[u8]) = match &narrow {
-        None => (bytemuck::cast_slice(&set.globals), bytemuck::cast_slice(&set.tree_appearance), bytemuck::cast_slice(&set.image_appearance)),
-        Some((g, ta, ia)) => (bytemuck::cast_slice(g), bytemuck::cast_slice(ta), bytemuck::cast_slice(ia)),
+    let g: &[u8] = match &narrow {
+        None => bytemuck::cast_slice(&set.globals),
+        Some(g) => bytemuck::cast_slice(g),
     };
+    let b = layout.block;
+    let (to, ti, te, tv) = crate::values::to_blocks(&set.tree_appearance, dim, b, 0);
+    let (io, ii, ie, iv) = crate::values::to_blocks(&set.image_appearance, dim, b, 0);
+    // without appearance: no vectors, but one offset per tree and image
+    let (to, io) = if dim == 0 { (vec![0u32; t + 1], vec![0u32; n + 1]) } else { (to, io) };
     let p = set.n_keypoints();
-    let parts: [(&str, Dtype, Vec<usize>, &[u8]); 18] = [
+    let parts: [(&str, Dtype, Vec<usize>, &[u8]); 24] = [
         ("global", fdt, vec![n, layout.gh, layout.gw], g),
         ("image_size", Dtype::U32, vec![n, 2], bytemuck::cast_slice(&sizes)),
         ("forest_offsets", Dtype::U32, vec![n + 1], bytemuck::cast_slice(&set.forest_offsets)),
@@ -88,10 +105,16 @@ pub fn to_bytes(set: &DescriptorSet, layout: &Layout) -> std::result::Result<Vec
         ("tree_area", Dtype::F32, vec![t], bytemuck::cast_slice(&set.tree_areas)),
         ("tree_centroid", Dtype::F32, vec![t, 2], bytemuck::cast_slice(&set.tree_centroids)),
         ("tree_neighbours", Dtype::I32, vec![t, layout.slots], bytemuck::cast_slice(&set.tree_neighbours)),
-        ("tree_appearance", fdt, vec![t, dim], ta),
         ("tree_has_appearance", Dtype::U8, vec![t], &set.tree_has_appearance),
         ("tree_descriptors", Dtype::U32, vec![t], bytemuck::cast_slice(&set.tree_descriptors)),
-        ("image_appearance", fdt, vec![n, dim], ia),
+        ("tree_block_offsets", Dtype::U32, vec![t + 1], bytemuck::cast_slice(&to)),
+        ("tree_block_ids", Dtype::U8, vec![ti.len()], &ti),
+        ("tree_block_exponents", Dtype::I8, vec![te.len()], bytemuck::cast_slice(&te)),
+        ("tree_block_values", Dtype::I8, vec![te.len(), b], bytemuck::cast_slice(&tv)),
+        ("image_block_offsets", Dtype::U32, vec![n + 1], bytemuck::cast_slice(&io)),
+        ("image_block_ids", Dtype::U8, vec![ii.len()], &ii),
+        ("image_block_exponents", Dtype::I8, vec![ie.len()], bytemuck::cast_slice(&ie)),
+        ("image_block_values", Dtype::I8, vec![ie.len(), b], bytemuck::cast_slice(&iv)),
         ("image_hog", Dtype::F32, vec![n, layout.hog], bytemuck::cast_slice(&set.image_hog)),
         ("id_bytes", Dtype::U8, vec![id_bytes.len()], &id_bytes),
         ("id_offsets", Dtype::U32, vec![n + 1], bytemuck::cast_slice(&id_offsets)),
@@ -126,10 +149,10 @@ struct Ranges {
     tree_area: Range<usize>,
     tree_centroid: Range<usize>,
     tree_neighbours: Range<usize>,
-    tree_appearance: Range<usize>,
     tree_has_appearance: Range<usize>,
     tree_descriptors: Range<usize>,
-    image_appearance: Range<usize>,
+    tree_blocks: BlockRanges,
+    image_blocks: BlockRanges,
     image_hog: Range<usize>,
     id_bytes: Range<usize>,
     id_offsets: Range<usize>,
@@ -137,6 +160,15 @@ struct Ranges {
     keypoint_descriptors: Range<usize>,
     keypoint_xy: Range<usize>,
     keypoint_class: Range<usize>,
+}
+
+/// The four tensors of a column of appearance blocks.
+#[derive(Debug, Clone, Default)]
+struct BlockRanges {
+    offsets: Range<usize>,
+    ids: Range<usize>,
+    exponents: Range<usize>,
+    values: Range<usize>,
 }
 
 /// A memory-mapped segment file.
@@ -231,7 +263,7 @@ impl Mapped {
             centroids: &self.f32s(&self.r.tree_centroid)[2 * a..2 * b],
             neighbours: &bytemuck::cast_slice::<u8, i32>(self.raw(&self.r.tree_neighbours))[s * a..s * b],
             neighbour_slots: s,
-            appearance: self.vals(&self.r.tree_appearance).slice(d * a, d * b),
+            appearance: self.blocks(&self.r.tree_blocks, a, b),
             has_appearance: &self.raw(&self.r.tree_has_appearance)[a..b],
             descriptors: &self.u32s(&self.r.tree_descriptors)[a..b],
             dim: d,
@@ -255,12 +287,46 @@ impl Mapped {
         std::str::from_utf8(&bytes[a..b]).unwrap_or("")
     }
     pub fn image_appearance(&self, j: usize) -> Values<'_> {
-        let d = self.layout.dim;
-        self.vals(&self.r.image_appearance).slice(j * d, (j + 1) * d)
+        self.blocks(&self.r.image_blocks, j, j + 1)
     }
     /// The whole-image appearance vectors of every row (removed ones included).
     pub fn image_appearances(&self) -> Values<'_> {
-        self.vals(&self.r.image_appearance)
+        self.blocks(&self.r.image_blocks, 0, self.n)
+    }
+    /// Bytes of the file by what they hold: (column, bytes), the safetensors header and padding
+    /// last.
+    pub fn column_bytes(&self) -> Vec<(&'static str, usize)> {
+        let r = &self.r;
+        let len = |rs: &[&Range<usize>]| rs.iter().map(|x| x.len()).sum::<usize>();
+        let blocks = |b: &BlockRanges| len(&[&b.offsets, &b.ids, &b.exponents, &b.values]);
+        let mut out = vec![
+            ("global descriptor", len(&[&r.global])),
+            ("image appearance", blocks(&r.image_blocks)),
+            ("trees", len(&[&r.forest_offsets, &r.tree_class, &r.tree_area, &r.tree_centroid, &r.tree_neighbours, &r.tree_has_appearance, &r.tree_descriptors])),
+            ("tree appearance", blocks(&r.tree_blocks)),
+            ("verification keypoints", len(&[&r.keypoint_offsets, &r.keypoint_descriptors, &r.keypoint_xy, &r.keypoint_class])),
+            ("hog", len(&[&r.image_hog])),
+            ("ids and sizes", len(&[&r.id_bytes, &r.id_offsets, &r.image_size])),
+        ];
+        let counted: usize = out.iter().map(|c| c.1).sum();
+        out.push(("header and padding", self.mmap.len() - counted.min(self.mmap.len())));
+        out
+    }
+    /// Vectors `a..b` of a block column (none without appearance; empty where the offsets table
+    /// is broken).
+    fn blocks(&self, r: &BlockRanges, a: usize, b: usize) -> Values<'_> {
+        let offsets = self.u32s(&r.offsets);
+        if self.layout.dim == 0 || b >= offsets.len() || a > b {
+            return Values::F32(&[]);
+        }
+        Values::Blocks(crate::values::Blocks {
+            dim: self.layout.dim,
+            block: self.layout.block,
+            offsets: &offsets[a..=b],
+            ids: self.raw(&r.ids),
+            exponents: bytemuck::cast_slice(self.raw(&r.exponents)),
+            values: bytemuck::cast_slice(self.raw(&r.values)),
+        })
     }
     pub fn image_hog(&self, j: usize) -> &[f32] {
         let h = self.layout.hog;
@@ -282,6 +348,17 @@ impl Mapped {
         }
         if !table_ok(self.u32s(&self.r.keypoint_offsets), self.p) {
             return Err("keypoint offsets do not run from 0 to the keypoint count".into());
+        }
+        for (what, r, rows) in [("tree", &self.r.tree_blocks, self.t), ("image", &self.r.image_blocks, self.n)] {
+            let count = r.ids.len();
+            let offsets = self.u32s(&r.offsets);
+            if offsets.len() != rows + 1 || !table_ok(offsets, count) || r.exponents.len() != count || (self.layout.block > 0 && r.values.len() != count * self.layout.block) {
+                return Err(format!("{what} appearance block offsets do not run from 0 to the block count"));
+            }
+            let per_vector = self.layout.dim / self.layout.block.max(1);
+            if self.raw(&r.ids).iter().any(|&id| id as usize >= per_vector) || offsets.windows(2).any(|w| w[1] - w[0] > per_vector as u32) {
+                return Err(format!("a {what} appearance block lies outside its vector of {per_vector} blocks"));
+            }
         }
         let mut ids = std::collections::HashSet::with_capacity(self.n);
         for j in 0..self.n {
@@ -357,6 +434,13 @@ fn ranges(bytes: &[u8], entry: &SegmentEntry, l: &Layout) -> std::result::Result
         }
         Ok(start + a..start + b)
     };
+    let block_ranges = |name: &str, rows: usize| -> std::result::Result<BlockRanges, String> {
+        let offsets = get(&format!("{name}_block_offsets"), Dtype::U32, &[Some(rows + 1)])?;
+        let ids = get(&format!("{name}_block_ids"), Dtype::U8, &[None])?;
+        let exponents = get(&format!("{name}_block_exponents"), Dtype::I8, &[None])?;
+        let values = get(&format!("{name}_block_values"), Dtype::I8, &[None, Some(l.block)])?;
+        Ok(BlockRanges { offsets, ids, exponents, values })
+    };
     Ok(Ranges {
         global: get("global", fdt, &[Some(n), Some(l.gh), Some(l.gw)])?,
         image_size: get("image_size", Dtype::U32, &[Some(n), Some(2)])?,
@@ -365,10 +449,10 @@ fn ranges(bytes: &[u8], entry: &SegmentEntry, l: &Layout) -> std::result::Result
         tree_area: get("tree_area", Dtype::F32, &[Some(t)])?,
         tree_centroid: get("tree_centroid", Dtype::F32, &[Some(t), Some(2)])?,
         tree_neighbours: get("tree_neighbours", Dtype::I32, &[Some(t), Some(l.slots)])?,
-        tree_appearance: get("tree_appearance", fdt, &[Some(t), Some(l.dim)])?,
         tree_has_appearance: get("tree_has_appearance", Dtype::U8, &[Some(t)])?,
         tree_descriptors: get("tree_descriptors", Dtype::U32, &[Some(t)])?,
-        image_appearance: get("image_appearance", fdt, &[Some(n), Some(l.dim)])?,
+        tree_blocks: block_ranges("tree", t)?,
+        image_blocks: block_ranges("image", n)?,
         image_hog: get("image_hog", Dtype::F32, &[Some(n), Some(l.hog)])?,
         id_bytes: get("id_bytes", Dtype::U8, &[None])?,
         id_offsets: get("id_offsets", Dtype::U32, &[Some(n + 1)])?,

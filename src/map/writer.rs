@@ -115,6 +115,7 @@ impl MapWriter {
             appearance_dim,
             hog_dim,
             keypoint_dim,
+            appearance_block: appearance.map_or(0, |(cb, _)| cb.dim),
             values: opts.values,
             segments: vec![],
             codebook: None,

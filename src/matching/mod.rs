@@ -286,7 +286,7 @@ pub fn candidates(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &Descr
     } else if setting.uses_coarse() {
         stages.coarse(refs, queries, &SsimParams::new(&cfg.global), len, cfg.matching.tile)?
     } else {
-        let params = TreeSimParams::new(&cfg.similarity, setting.uses_appearance(), refs.neighbour_slots());
+        let params = tree_params(cfg, setting, refs.neighbour_slots())?;
         stages.fine_topk(&params, refs, queries, len, cfg.matching.tile)?
     };
     match setting.uses_coarse() || setting.is_baseline() {
@@ -296,6 +296,13 @@ pub fn candidates(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &Descr
     // a stored map checks each segment on first read; one that failed was read as empty
     refs.check()?;
     Ok((lists, times))
+}
+
+/// The tree-similarity parameters of `setting` under `cfg` (its class table's categories for
+/// `similarity.class_match`).
+pub fn tree_params(cfg: &Config, setting: Setting, neighbour_slots: usize) -> Result<TreeSimParams> {
+    let table = crate::classes::ClassTable::from_config(&cfg.classes)?;
+    Ok(TreeSimParams::new(&cfg.similarity, setting.uses_appearance(), neighbour_slots).with_classes(&cfg.similarity, &table))
 }
 
 /// The (query, reference) pairs of candidate lists, in list order.
@@ -315,7 +322,7 @@ fn pair_scores(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &Descript
     if let Some(&(q, r)) = pairs.iter().find(|&&(q, r)| q as usize >= queries.len() || r as usize >= refs.len()) {
         return Err(Error::invalid("fine stage", format!("pair ({q}, {r}) outside {} queries x {} references", queries.len(), refs.len())));
     }
-    let params = TreeSimParams::new(&cfg.similarity, setting.uses_appearance(), refs.neighbour_slots());
+    let params = tree_params(cfg, setting, refs.neighbour_slots())?;
     let mut fine = stages.fine_pairs(&params, refs, queries, pairs)?;
     if fine.len() != pairs.len() {
         return Err(Error::invalid("fine stage", format!("{} scores for {} pairs", fine.len(), pairs.len())));
@@ -342,6 +349,13 @@ fn pair_scores(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &Descript
 /// cos(whole-image appearance) + `matching.w_global` x SSIM(global descriptors). Descriptors
 /// without appearance have no cosine term (the ranking is then the global descriptor's).
 fn fused_topk(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &DescriptorSet, cfg: &Config, k: usize) -> Result<CandidateLists> {
+    let w = cfg.matching.w_global as f32;
+    if baseline::unavailable(refs, queries, Setting::Appearance).is_some() && w > 0.0 {
+        // no cosine term: the global ranking, each score times w (as the fused scan computes it)
+        let mut lists = stages.coarse(refs, queries, &SsimParams::new(&cfg.global), k, cfg.matching.tile)?;
+        lists.iter_mut().flatten().for_each(|(s, _)| *s *= w);
+        return Ok(lists);
+    }
     stages.fused_coarse(refs, queries, &SsimParams::new(&cfg.global), cfg.matching.w_global as f32, k, cfg.matching.tile)
 }
 
@@ -357,10 +371,11 @@ pub fn fused_topk_cpu(refs: &dyn RefSource, queries: &DescriptorSet, p: &SsimPar
         let (start, end) = (tp.tile_start as usize, (tp.tile_start + tp.tile_len) as usize);
         let (g, st) = refs.tile(start, end, &mut buf);
         exec.score_tile(&queries.globals, g, st, scores);
-        scores.par_chunks_mut(nq).enumerate().filter(|_| cosine).for_each(|(j, row)| {
+        scores.par_chunks_mut(nq).enumerate().for_each(|(j, row)| {
             let r = refs.image_appearance(start + j);
             for (q, s) in row.iter_mut().enumerate() {
-                *s = Values::F32(queries.image_appearance(q)).dot(&r) + w_global * *s;
+                let cos = if cosine { Values::F32(queries.image_appearance(q)).dot(&r) } else { 0.0 };
+                *s = cos + w_global * *s;
             }
         });
     })

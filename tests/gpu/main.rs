@@ -231,10 +231,13 @@ fn tree_similarity_matches_the_cpu_twin() {
         semlook::config::SimilarityConfig { tree_weight: semlook::config::TreeWeight::Descriptors, normalise: semlook::config::Normalise::GeometricMean, ..Default::default() },
         semlook::config::SimilarityConfig { tree_weight: semlook::config::TreeWeight::SqrtArea, assignment: semlook::config::Assignment::BestMatch, ..Default::default() },
         semlook::config::SimilarityConfig { tree_weight: semlook::config::TreeWeight::Area, w_area: 0.0, w_position: 0.0, missing_appearance: semlook::config::MissingAppearance::Drop, ..Default::default() },
+        semlook::config::SimilarityConfig { class_match: semlook::config::ClassMatch::Category, ..Default::default() },
     ];
+    let table = semlook::classes::ClassTable::cityscapes();
     for (v, sim) in variants.iter().enumerate() {
         for appearance in [false, true] {
-            let p = TreeSimParams::new(sim, appearance, 3);
+            // trees pair by class, or (the last variant) by Cityscapes category
+            let p = TreeSimParams::new(sim, appearance, 3).with_classes(sim, &table);
             let gpu = stages.fine_pairs(&p, &refs, &queries, &pairs).unwrap();
             let mut scratch = TreeSimScratch::default();
             for (i, &(q, r)) in pairs.iter().enumerate() {

@@ -114,6 +114,18 @@ fn show(dir: &Path, json: bool) -> Result<()> {
     let m = &map.manifest;
     let bytes: u64 = m.segments.iter().map(|s| s.bytes).sum();
     let removed = m.stored_images() - m.live_images();
+    // bytes per stored image, by column, summed over the segments
+    let mut columns: Vec<(&str, usize)> = Vec::new();
+    for seg in map.segments() {
+        for (name, b) in seg.column_bytes() {
+            match columns.iter_mut().find(|c| c.0 == name) {
+                Some(c) => c.1 += b,
+                None => columns.push((name, b)),
+            }
+        }
+    }
+    let per = |b: usize| b as f64 / m.stored_images().max(1) as f64;
+    let by_column: serde_json::Map<String, serde_json::Value> = columns.iter().map(|&(n, b)| (n.to_string(), serde_json::json!(per(b).round() as u64))).collect();
     if json {
         let v = serde_json::json!({
             "path": dir,
@@ -123,6 +135,7 @@ fn show(dir: &Path, json: bool) -> Result<()> {
             "generation": m.generation,
             "values": m.values,
             "bytes": bytes,
+            "bytes_per_reference": { "total": per(bytes as usize).round() as u64, "by_column": by_column },
             "segments": m.segments,
             "appearance_dim": m.appearance_dim,
             "hog_dim": m.hog_dim,
@@ -140,6 +153,8 @@ fn show(dir: &Path, json: bool) -> Result<()> {
             m.values.name(),
             m.generation
         );
+        let cols: Vec<String> = columns.iter().map(|&(n, b)| format!("{n} {:.0}", per(b))).collect();
+        println!("bytes per stored image: {:.0} ({})", per(bytes as usize), cols.join(", "));
         for s in &m.segments {
             println!("  {}  {} images ({} removed)  {} bytes  sha256 {}", s.file, s.images, s.removed.len(), s.bytes, &s.sha256[..16]);
         }
