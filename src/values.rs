@@ -122,7 +122,8 @@ pub fn round_to_blocks(v: &mut [f32], block: usize) {
         }
         let scale = exp2(block_exponent(max));
         for x in chunk.iter_mut() {
-            *x = (*x / scale).round().clamp(-BLOCK_Q, BLOCK_Q) * scale;
+            // through the integer, as a stored block is read (no negative zero)
+            *x = ((*x / scale).round().clamp(-BLOCK_Q, BLOCK_Q) as i8) as f32 * scale;
         }
     }
 }
@@ -300,5 +301,32 @@ mod tests {
         let mut buf = Vec::new();
         assert_eq!(Values::F16(&lb).widened(&mut buf), &wide[..]);
         assert_eq!(Values::F32(&long).widened(&mut buf).as_ptr(), long.as_ptr(), "f32 values are borrowed");
+    }
+
+    #[test]
+    fn blocks_store_rounded_vectors_exactly_and_skip_zero_blocks() {
+        // 3 vectors of 4 blocks of 5: zero blocks, tiny and large values, negative values near 0
+        let mut v: Vec<f32> = (0..60).map(|i| if (i / 5) % 3 == 1 { 0.0 } else { ((i * 37 % 23) as f32 - 11.0) * 10f32.powi(-(i % 4) as i32) / 7.0 }).collect();
+        v[3] = -1e-9;
+        let original = v.clone();
+        round_to_blocks(&mut v, 5);
+        for (a, b) in v.iter().zip(&original) {
+            let block_max = 11.0f32 / 7.0;
+            assert!((a - b).abs() <= block_max / 127.0, "{a} vs {b}");
+        }
+        let (o, ids, e, q) = to_blocks(&v, 20, 5, 0);
+        assert_eq!(o.len(), 4);
+        assert!(ids.len() < 12, "all-zero blocks are not stored: {ids:?}");
+        let b = Values::Blocks(Blocks { dim: 20, block: 5, offsets: &o, ids: &ids, exponents: &e, values: &q });
+        assert_eq!(b.len(), 60);
+        let back = b.to_vec();
+        assert_eq!(back.iter().map(|x| x.to_bits()).collect::<Vec<_>>(), v.iter().map(|x| x.to_bits()).collect::<Vec<_>>(), "read back bit for bit");
+        assert_eq!(b.slice(20, 40).to_vec(), v[20..40].to_vec());
+        // rounding again changes nothing; the dot equals the f32 one on the widened values
+        let mut again = v.clone();
+        round_to_blocks(&mut again, 5);
+        assert_eq!(again, v);
+        let other: Vec<f32> = (0..20).map(|i| i as f32 / 20.0).collect();
+        assert_eq!(b.slice(40, 60).dot(&Values::F32(&other)).to_bits(), v[40..60].iter().zip(&other).map(|(x, y)| x * y).sum::<f32>().to_bits());
     }
 }

@@ -352,19 +352,26 @@ fn an_f16_map_with_appearance_matches_like_its_widened_set() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("m");
     let cfg = Config::without_appearance();
-    // 300 values: more than one block of the f16 dot product
+    // 300 values: more than one block of the f16 dot product; blocks of 100 (3 "centres")
     let set = with_appearance(common::encode(&cfg, &common::label_maps(8, 80, 60), "r"), 300, 1);
     let queries = with_appearance(common::encode(&cfg, &common::label_maps(8, 80, 60)[2..5], "q"), 300, 2);
     let codebook = semlook::appearance::vlad::Codebook { k: 3, dim: 100, centres: vec![0.0; 300] };
     let map = Map::create_with(&path, &cfg.encoding(), &set, Some((&codebook, "test-network")), StoreOptions { values: ValueType::F16, segment_images: 3, ..Default::default() }).unwrap();
     let wide = map.to_descriptor_set().unwrap();
+    // global descriptors in f16; appearance vectors on the grid of int8 blocks
+    let mut globals = set.globals.clone();
+    semlook::values::round_through_f16(&mut globals);
+    assert_eq!(bits(&wide.globals), bits(&globals));
     let mut rounded = set.tree_appearance.clone();
-    semlook::values::round_through_f16(&mut rounded);
+    semlook::values::round_to_blocks(&mut rounded, 100);
     assert_eq!(bits(&wide.tree_appearance), bits(&rounded));
-    assert_ne!(bits(&wide.tree_appearance), bits(&set.tree_appearance), "f16 should round appearance values");
-    // matching reads f16 straight from the mapped files: the same scores, bit for bit, as the
-    // widened f32 set
-    for setting in [Setting::Local, Setting::Semlook, Setting::Appearance] {
+    assert_ne!(bits(&wide.tree_appearance), bits(&set.tree_appearance), "int8 blocks should round appearance values");
+    // rounded values are stored exactly: a second map of the widened set reads back the same bits
+    let again = Map::create_with(&dir.path().join("again"), &cfg.encoding(), &wide, Some((&codebook, "test-network")), StoreOptions { values: ValueType::F16, ..Default::default() }).unwrap();
+    assert_eq!(bits(&again.to_descriptor_set().unwrap().tree_appearance), bits(&rounded));
+    // matching reads the blocks straight from the mapped files: the same scores, bit for bit, as
+    // the widened f32 set
+    for setting in [Setting::Local, Setting::Semlook, Setting::Appearance, Setting::Fused] {
         let (a, b) = (ranked(&map, &queries, setting, &cfg), ranked(&wide, &queries, setting, &cfg));
         assert!(a.iter().all(|l| !l.is_empty()));
         assert_eq!(a, b, "{setting}");

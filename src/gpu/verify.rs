@@ -26,14 +26,14 @@ struct Buffers {
 
 pub struct MnnGpu {
     ctx: Arc<GpuContext>,
-    params: wgpu::Buffer,
+    /// The parameter buffer, made with the first batch (never on a lost device).
+    params: Option<wgpu::Buffer>,
     buffers: Buffers,
 }
 
 impl MnnGpu {
     pub fn new(ctx: Arc<GpuContext>) -> Self {
-        let params = ctx.uniform("mnn params", &MnnParams { pairs: 0, words: 0, max_keypoints: 0, _pad: 0 });
-        MnnGpu { ctx, params, buffers: Buffers::default() }
+        MnnGpu { ctx, params: None, buffers: Buffers::default() }
     }
 
     /// The best columns of every (query, reference) pair, as [`crate::verify::mnn_match::best_columns`]
@@ -75,6 +75,8 @@ impl MnnGpu {
             ctx.check_binding(what, bytes as u64)?;
         }
         let chunk = PAIRS_PER_DISPATCH.min((ctx.binding_limit() as usize / (2 * max_kp as usize * 4)).max(1));
+        ctx.check_lost()?;
+        let params_buf = self.params.get_or_insert_with(|| ctx.uniform("mnn params", &MnnParams { pairs: 0, words: 0, max_keypoints: 0, _pad: 0 }));
         let b = &mut self.buffers;
         let mut out = Vec::with_capacity(pairs.len());
         ctx.scoped("keypoint matching", || -> Result<(), GpuError> {
@@ -83,12 +85,12 @@ impl MnnGpu {
             for part in table.chunks(chunk) {
                 let n = part.len();
                 let params = MnnParams { pairs: n as u32, words: words as u32, max_keypoints: max_kp, _pad: 0 };
-                ctx.write(&self.params, 0, bytemuck::bytes_of(&params));
+                ctx.write(params_buf, 0, bytemuck::bytes_of(&params));
                 let pb = b.pairs.upload(&ctx, "keypoint pairs", bytemuck::cast_slice(part));
                 let rows = n * 2 * max_kp as usize;
                 let best = b.best.get(&ctx, "best columns", (rows * 4) as u64);
                 let best_dot = b.best_dot.get(&ctx, "best dot products", (rows * 4) as u64);
-                let group = ctx.kernels.mnn_match.bind(&ctx.device, &[&self.params, pb, qb, rb, best, best_dot]);
+                let group = ctx.kernels.mnn_match.bind(&ctx.device, &[params_buf, pb, qb, rb, best, best_dot]);
                 ctx.run("mnn_match", &[(&ctx.kernels.mnn_match.pipeline, &group, [(max_kp as usize).div_ceil(ROWS) as u32, n as u32, 2])])?;
                 let bi: Vec<u32> = ctx.read_back_values(best, rows)?;
                 let bd: Vec<i32> = ctx.read_back_values(best_dot, rows)?;

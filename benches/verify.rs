@@ -1,0 +1,67 @@
+//! Geometric verification on the CPU: one query against its K = 20 candidates (mutual nearest
+//! neighbours by the fast path, then LO-RANSAC), with the keypoints XFeat stores for real frames
+//! (Nordland spring queries against winter references from ../shared, 384 keypoints each, the
+//! default). Target (issue 16): <= 50 ms per query on the 2-core machine. Skips, saying why, without
+//! the frames or the XFeat weights.
+
+use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use semlook::config::Config;
+use semlook::descriptors::{DescriptorSet, EncodedImage};
+use semlook::matching::{CpuStages, Stages};
+use semlook::verify::VerifyParams;
+use std::path::Path;
+
+/// Candidates verified per query (the default top-K).
+const K: usize = 20;
+
+/// A set of `names`' verification keypoints (labels all one class: the class check is off by default).
+fn keypoint_set(cfg: &Config, model: &semlook::appearance::AppearanceModel, dir: &Path, names: &[String]) -> DescriptorSet {
+    let p = semlook::global::ssim::SsimParams::new(&cfg.global);
+    let table = semlook::classes::ClassTable::cityscapes();
+    let mut set = DescriptorSet::new(&p, cfg.local.neighbours, 0, 0).with_keypoint_dim(64);
+    for name in names {
+        let rgb = semlook::input::load_rgb(&dir.join(name)).unwrap();
+        let (w, h) = semlook::input::working_size(rgb.width(), rgb.height(), cfg.input.working_long_side);
+        let rgb = semlook::input::resize_rgb(&rgb, w, h);
+        let detected = model.features(&rgb).unwrap().detected.unwrap();
+        let labels = semlook::input::LabelMap::new(w, h, vec![2; (w * h) as usize], &table).unwrap();
+        let keypoints = semlook::appearance::verification_keypoints(&detected, cfg.keypoints.stored, &labels, w.max(h));
+        let forest = semlook::local::Forest { neighbour_slots: cfg.local.neighbours, ..Default::default() };
+        let img = EncodedImage { id: name.clone(), width: w, height: h, global: vec![0.5; p.len()], global_stats: vec![0.0; p.stats_len()], forest, appearance: vec![], hog: vec![], keypoints };
+        set.push(&img).unwrap();
+    }
+    set
+}
+
+fn bench(c: &mut Criterion) {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/real-vpr/nordland-spring-winter");
+    if !dir.exists() {
+        return eprintln!("verification benchmark skipped: {} is absent", dir.display());
+    }
+    let cfg = Config::default();
+    let model = match semlook::appearance::AppearanceModel::load(&cfg.appearance, &cfg.models) {
+        Ok(Some(m)) => m.with_detection(&cfg.keypoints),
+        other => return eprintln!("verification benchmark skipped: XFeat weights (setup.sh): {:?}", other.err()),
+    };
+    let queries = keypoint_set(&cfg, &model, &dir, &(0..4).map(|i| format!("query/{:03}.jpg", 10 + 10 * i)).collect::<Vec<_>>());
+    let refs = keypoint_set(&cfg, &model, &dir, &(0..K).map(|i| format!("ref/{:03}.jpg", 2 * i + 1)).collect::<Vec<_>>());
+    let vp = VerifyParams::new(&cfg.verification);
+    let mut g = c.benchmark_group("verify");
+    g.throughput(Throughput::Elements(1));
+    let mut q = 0u32;
+    g.bench_function(format!("verify_pairs (CPU: fast MNN + LO-RANSAC)/1_query_x{K}_candidates_{}_keypoints", cfg.keypoints.stored), |b| {
+        b.iter(|| {
+            q = (q + 1) % queries.len() as u32;
+            let pairs: Vec<(u32, u32)> = (0..K as u32).map(|r| (q, r)).collect();
+            CpuStages.verify_pairs(&vp, &refs, &queries, &pairs).unwrap()
+        })
+    });
+    g.finish();
+}
+
+criterion_group! {
+    name = benches;
+    config = Criterion::default().sample_size(20).measurement_time(std::time::Duration::from_secs(5));
+    targets = bench
+}
+criterion_main!(benches);

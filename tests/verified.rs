@@ -1,0 +1,93 @@
+//! The recommended pipeline (`verified`): geometric verification's edge cases, maps of the
+//! previous format, the size of a stored reference and the coarse recall in reports. The real-image
+//! test needs ../shared (skips with the reason on a user's machine, fails under CI).
+
+mod common;
+
+use semlook::config::Config;
+use semlook::descriptors::keypoints::KeypointsRef;
+use semlook::matching::{match_batch, Setting};
+use semlook::verify::{verify_pair, Verified, VerifyParams};
+use std::path::Path;
+use std::process::Command;
+
+fn semlook(args: &[&str]) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_semlook")).args(args).output().expect("binary runs");
+    assert!(out.status.success(), "semlook {args:?} failed:\n{}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8(out.stdout).unwrap()
+}
+
+fn p(path: &Path) -> &str {
+    path.to_str().unwrap()
+}
+
+#[test]
+fn verification_with_no_keypoints_on_either_side_scores_zero() {
+    let vp = VerifyParams::new(&Config::default().verification);
+    let one = KeypointsRef { descriptors: &[100; 64], xy: &[10, 20], classes: &[2], dim: 64 };
+    for (q, r) in [(KeypointsRef::EMPTY, one), (one, KeypointsRef::EMPTY), (KeypointsRef::EMPTY, KeypointsRef::EMPTY)] {
+        assert_eq!(verify_pair(&vp, q, r, &mut vec![]), Verified::default());
+    }
+    // a whole batch of images without keypoints (no appearance): every candidate verified, 0 inliers
+    let cfg = Config::without_appearance();
+    let refs = common::encode(&cfg, &common::label_maps(5, 80, 60), "r");
+    assert_eq!(refs.n_keypoints(), 0);
+    let (m, _) = match_batch(&refs, &refs, Setting::Verified, &cfg);
+    assert!(m.iter().all(|q| !q.ranked.is_empty() && q.ranked.iter().all(|c| c.inliers == Some(0))));
+}
+
+#[test]
+fn a_map_of_the_previous_format_is_refused_saying_what_it_lacks() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = Config::without_appearance();
+    let set = common::encode(&cfg, &common::label_maps(2, 40, 30), "r");
+    let map = dir.path().join("m");
+    semlook::map::Map::create(&map, &cfg.encoding(), &set, None).unwrap();
+    // the same manifest as version 3 wrote it
+    let path = map.join("manifest.json");
+    let text = std::fs::read_to_string(&path).unwrap().replace("\"version\": 4", "\"version\": 3");
+    std::fs::write(&path, text).unwrap();
+    let err = semlook::map::Map::open(&map).unwrap_err().to_string();
+    assert!(err.contains("format version 3") && err.contains("verification keypoints") && err.contains("build the map again"), "{err}");
+}
+
+/// Real frames (Gardens Point, day queries against night references): a map built with the
+/// defaults stores at most 64 kB per reference, keypoints included, and says so by column; an
+/// evaluation reports the coarse stage's recall@K in text and JSON, and the recommended
+/// setting finds the places (a regression guard: 10 of 10 today, at least 9 required).
+#[test]
+fn a_default_map_of_real_frames_fits_64_kb_per_reference_and_reports_coarse_recall() {
+    let Some(set) = common::shared_or_required("data/real-vpr/gardenspoint-day-night-mini") else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let map = dir.path().join("map");
+    semlook(&["map", "build", "--images", p(&set.join("ref")), "--out", p(&map), "--backend", "cpu", "-q"]);
+    let info: serde_json::Value = serde_json::from_str(&semlook(&["map", "info", "--map", p(&map), "--json"])).unwrap();
+    let per = &info["bytes_per_reference"];
+    let total = per["total"].as_u64().unwrap();
+    assert!(total <= 64 * 1024, "{total} bytes per reference: {per}");
+    let cols = per["by_column"].as_object().unwrap();
+    assert!(cols["verification keypoints"].as_u64().unwrap() > 10_000 && cols["tree appearance"].as_u64().unwrap() > 0, "{per}");
+    assert_eq!(cols.values().map(|v| v.as_u64().unwrap()).sum::<u64>().abs_diff(total) <= cols.len() as u64, true, "columns add up: {per}");
+    let (r, q, gt) = (set.join("ref"), set.join("query"), set.join("ground_truth.csv"));
+    let args = |json: bool| {
+        let mut a = vec!["eval", "--references", p(&r), "--queries", p(&q), "--ground-truth", p(&gt), "--backend", "cpu", "-q"];
+        if json {
+            a.push("--json");
+        }
+        a.into_iter().map(String::from).collect::<Vec<_>>()
+    };
+    let run = |json: bool| semlook(&args(json).iter().map(String::as_str).collect::<Vec<_>>());
+    let report: serde_json::Value = serde_json::from_str(&run(true)).unwrap();
+    let results = report["results"].as_array().unwrap();
+    for r in results {
+        let coarse = &r["coarse_recall"];
+        match r["setting"].as_str().unwrap() {
+            "global" | "fused" | "global-forest" | "semlook" | "verified" => assert!(coarse[0] == 20 && coarse[1].as_f64().unwrap() > 0.5, "{r}"),
+            _ => assert!(coarse.is_null(), "{r}"),
+        }
+    }
+    let verified = results.iter().find(|r| r["setting"] == "verified").unwrap();
+    assert!(verified["recall_at"][0][1].as_f64().unwrap() >= 0.9, "{verified}");
+    let text = run(false);
+    assert!(text.contains("coarse@K") && text.lines().any(|l| l.contains("verified") && l.contains("@20")), "{text}");
+}
