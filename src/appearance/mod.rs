@@ -159,7 +159,7 @@ impl AppearanceModel {
             Sampling::Keypoints => keypoints::extract(&out, &self.params).map_err(fail)?,
             Sampling::Dense => keypoints::dense(&out),
         };
-        let mut detected = self.detect.as_ref().map(|p| keypoints::extract(&out, p)).transpose().map_err(fail)?;
+        let mut detected = self.detect.as_ref().map(|p| keypoints::detect(&out, p)).transpose().map_err(fail)?;
         for k in std::iter::once(&mut sampled).chain(detected.as_mut()) {
             for p in &mut k.xy {
                 *p = [(p[0] + 0.5) * sx - 0.5, (p[1] + 0.5) * sy - 0.5];
