@@ -246,7 +246,8 @@ impl Encoder {
     /// An empty descriptor set laid out for this encoder's images.
     pub fn descriptor_set(&self) -> crate::descriptors::DescriptorSet {
         let hog = if self.hog { crate::baseline::HOG_DIM } else { 0 };
-        crate::descriptors::DescriptorSet::new(&self.ssim, self.cfg.local.neighbours, self.appearance_dim(), hog).with_keypoint_dim(self.keypoint_dim())
+        let codebook = self.codebook.as_ref().filter(|_| self.appearance_dim() > 0).and_then(|c| c.sha256().ok());
+        crate::descriptors::DescriptorSet::new(&self.ssim, self.cfg.local.neighbours, self.appearance_dim(), hog).with_keypoint_dim(self.keypoint_dim()).with_codebook(codebook)
     }
 
     /// Values per stored verification keypoint descriptor: the network's descriptor width when
@@ -491,7 +492,7 @@ impl Encoder {
             }
             // the values a map stores (int8 blocks, one per centre): a stored image reads back the same
             if let Some(cb) = &self.codebook {
-                if std::env::var_os("NO_ROUND").is_none() { crate::values::round_to_blocks(&mut vectors, cb.dim); }
+                crate::values::round_to_blocks(&mut vectors, cb.dim);
             }
             let image = vectors.split_off(vectors.len() - dim);
             let mut counts = appearance::object_counts(&input.offsets);

@@ -9,8 +9,14 @@ fn main() {
         // SAFETY: single-threaded here, at the very start of main.
         unsafe { std::env::set_var("XDG_RUNTIME_DIR", std::env::temp_dir()) };
     }
-    if let Err(e) = cli::run() {
-        eprintln!("error: {e}");
-        std::process::exit(1);
+    match cli::run() {
+        Ok(()) => {}
+        // the reader of our output went away: end quietly, as other Unix tools do
+        Err(e) if cli::is_broken_pipe(&e) => {}
+        Err(e) => {
+            use std::io::Write;
+            let _ = writeln!(std::io::stderr(), "error: {e}");
+            std::process::exit(1);
+        }
     }
 }

@@ -117,3 +117,29 @@ fn errors_exit_non_zero_and_name_the_problem() {
     let out = semlook(&["map", "build", "--labels", p(dir.path()), "--out", p(&dir.path().join("m")), "--config", p(&bad)]);
     assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("bad.toml"));
 }
+
+/// A reader that goes away ends the command quietly (no panic, exit 0); a full disk is a typed
+/// error naming standard output (exit 1). Both panicked before (exit 101).
+#[test]
+fn a_closed_pipe_ends_quietly_and_a_full_disk_is_an_error() {
+    use std::process::Stdio;
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    ok(&["synth", "--out", p(&data), "--places", "4", "--size", "160x120", "--query", "fog", "-q"]);
+    let map = dir.path().join("map");
+    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--no-appearance", "-q"]);
+    for args in [vec!["map", "info", "--map", p(&map)], vec!["config"]] {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_semlook")).args(&args).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+        drop(child.stdout.take());
+        let out = child.wait_with_output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success() && !err.contains("panicked"), "{args:?}: {:?} {err}", out.status);
+        if Path::new("/dev/full").exists() {
+            let full = std::fs::OpenOptions::new().write(true).open("/dev/full").unwrap();
+            let out = Command::new(env!("CARGO_BIN_EXE_semlook")).args(&args).stdout(full).output().unwrap();
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert_eq!(out.status.code(), Some(1), "{args:?}: {err}");
+            assert!(err.contains("standard output") && !err.contains("panicked"), "{err}");
+        }
+    }
+}

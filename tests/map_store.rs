@@ -257,9 +257,7 @@ fn misaligned_tensors_are_refused_with_a_typed_error() {
     out.push(0);
     out.extend_from_slice(&bytes[8 + n..]);
     std::fs::write(path.join(&entry.file), &out).unwrap();
-    let mtext = std::fs::read_to_string(path.join("manifest.json")).unwrap();
-    let mtext = mtext.replace(&format!("\"bytes\": {}", entry.bytes), &format!("\"bytes\": {}", out.len())).replace(&entry.sha256, &semlook::util::sha256_hex(&out));
-    std::fs::write(path.join("manifest.json"), mtext).unwrap();
+    common::edit_sealed_manifest(&path, |m| m.replace(&format!("\"bytes\": {}", entry.bytes), &format!("\"bytes\": {}", out.len())).replace(&entry.sha256, &semlook::util::sha256_hex(&out)));
     match Map::open(&path) {
         Err(Error::CorruptMap { reason, .. }) => assert!(reason.contains("not a multiple"), "{reason}"),
         other => panic!("misaligned file: {:?}", other.map(|_| ())),
@@ -283,7 +281,8 @@ fn version_and_config_mismatches_are_named() {
     matching_only.matching.top_k = 3;
     map.check_compatible(&matching_only.encoding()).unwrap();
     // the keypoint network's checksum is any string in the file: shown by characters, not bytes
-    std::fs::write(&manifest, text.replace("\"appearance_model\": null", "\"appearance_model\": \"\u{e9}t\u{e9}-\u{1f6a6}-\u{5730}\u{56fe}\"")).unwrap();
+    std::fs::write(&manifest, &text).unwrap();
+    common::edit_sealed_manifest(&path, |m| m.replace("\"appearance_model\": null", "\"appearance_model\": \"\u{e9}t\u{e9}-\u{1f6a6}-\u{5730}\u{56fe}\""));
     let err = Map::open(&path).unwrap().check_model(None).unwrap_err();
     assert!(err.to_string().contains("sha256 \u{e9}t\u{e9}-\u{1f6a6}-\u{5730}\u{56fe}"), "{err}");
 }
@@ -353,9 +352,10 @@ fn an_f16_map_with_appearance_matches_like_its_widened_set() {
     let path = dir.path().join("m");
     let cfg = Config::without_appearance();
     // 300 values: more than one block of the f16 dot product; blocks of 100 (3 "centres")
-    let set = with_appearance(common::encode(&cfg, &common::label_maps(8, 80, 60), "r"), 300, 1);
+    let mut set = with_appearance(common::encode(&cfg, &common::label_maps(8, 80, 60), "r"), 300, 1);
     let queries = with_appearance(common::encode(&cfg, &common::label_maps(8, 80, 60)[2..5], "q"), 300, 2);
     let codebook = semlook::appearance::vlad::Codebook { k: 3, dim: 100, centres: vec![0.0; 300] };
+    set.codebook = Some(codebook.sha256().unwrap());
     let map = Map::create_with(&path, &cfg.encoding(), &set, Some((&codebook, "test-network")), StoreOptions { values: ValueType::F16, segment_images: 3, ..Default::default() }).unwrap();
     let wide = map.to_descriptor_set().unwrap();
     // global descriptors in f16; appearance vectors on the grid of int8 blocks

@@ -103,6 +103,12 @@ impl PyDescriptors {
     fn n_trees(&self) -> usize {
         self.inner.n_trees()
     }
+    /// SHA-256 of the VLAD codebook the appearance vectors were aggregated with (None without
+    /// appearance); a map accepts only its own.
+    #[getter]
+    fn codebook(&self) -> Option<String> {
+        self.inner.codebook.clone()
+    }
     #[getter]
     fn appearance_dim(&self) -> usize {
         self.inner.appearance_dim
@@ -138,6 +144,7 @@ impl PyDescriptors {
         for (k, v) in [("global_len", d.global_len), ("stats_len", d.stats_len), ("neighbour_slots", d.neighbour_slots), ("appearance_dim", d.appearance_dim), ("hog_dim", d.hog_dim), ("keypoint_dim", d.keypoint_dim)] {
             out.set_item(k, v)?;
         }
+        out.set_item("codebook", d.codebook.clone())?;
         for (name, shape) in columns(&d) {
             out.set_item(name, column_view(slf.clone().into_any(), &d, name, &shape)?)?;
         }
@@ -181,6 +188,10 @@ impl PyDescriptors {
             keypoint_descriptors: take_column(d, "keypoint_descriptors", &[k, kd])?,
             keypoint_xy: take_column(d, "keypoint_xy", &[k, 2])?,
             keypoint_classes: take_column(d, "keypoint_classes", &[k])?,
+            codebook: match d.get_item("codebook")? {
+                Some(c) if !c.is_none() => Some(c.extract().map_err(|e| invalid("descriptor arrays[\"codebook\"]", format!("not a SHA-256 string: {e}")))?),
+                _ => None,
+            },
         };
         set.check_layout().map_err(|r| invalid("descriptor arrays", r))?;
         if set.global_stats.iter().any(|v| !v.is_finite()) {

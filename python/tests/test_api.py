@@ -44,6 +44,22 @@ def test_bad_arrays_raise_typed_errors(encoder):
         encoder.encode("bad", labels=np.full((8, 8), 250, np.uint8))
 
 
+def test_appearance_outside_the_encoders_range_is_refused(encoder):
+    """A tree appearance value of 100 (VLAD vectors are unit length) made the poisoned image
+    top-1 for 29 of 30 queries before it was refused (issue 20)."""
+    arrays = dict(encode_places(encoder, range(2), "x").to_arrays())
+    t, n = len(arrays["tree_classes"]), len(arrays["ids"])
+    unit = lambda rows: np.eye(6, dtype=np.float32)[np.arange(rows) % 6]
+    good = {**arrays, "appearance_dim": 6, "codebook": "0" * 64, "tree_appearance": unit(t), "tree_has_appearance": np.ones(t, np.uint8), "image_appearance": unit(n)}
+    d = semlook.Descriptors.from_arrays(good)
+    assert d.codebook == "0" * 64 and d.to_arrays()["codebook"] == "0" * 64
+    for value in (100.0, 3e38):
+        bad = unit(t)
+        bad[0, 0] = value
+        with pytest.raises(semlook.InvalidInputError, match="appearance"):
+            semlook.Descriptors.from_arrays({**good, "tree_appearance": bad})
+
+
 def test_build_add_remove_compact_and_query(tmp_path, encoder, queries):
     refs = encode_places(encoder, range(12), "r")
     m = semlook.Map.create(str(tmp_path / "m"), refs.take(list(range(8))), encoder, segment_images=3)

@@ -65,6 +65,19 @@ pub struct Codebook {
     pub centres: Vec<f32>,
 }
 
+impl Codebook {
+    /// The codebook as a map stores it: a safetensors file with one f32 tensor `centres` [k, dim].
+    pub fn file_bytes(&self) -> Result<Vec<u8>, String> {
+        let bad = |e: safetensors::SafeTensorError| format!("codebook of {} x {} with {} values: {e}", self.k, self.dim, self.centres.len());
+        let centres = safetensors::tensor::TensorView::new(safetensors::tensor::Dtype::F32, vec![self.k, self.dim], bytemuck::cast_slice(&self.centres)).map_err(bad)?;
+        safetensors::serialize([("centres", centres)], None).map_err(bad)
+    }
+    /// SHA-256 of [`Codebook::file_bytes`]: names the codebook in maps and descriptor sets.
+    pub fn sha256(&self) -> Result<String, String> {
+        Ok(crate::util::sha256_hex(&self.file_bytes()?))
+    }
+}
+
 /// k-means (Lloyd) with k-means++ seeding (Arthur & Vassilvitskii 2007), deterministic from
 /// `seed`. `samples` holds `dim` values per sample; needs at least `k` samples.
 pub fn train_codebook(samples: &[f32], dim: usize, k: usize, iterations: usize, seed: u64) -> Result<Codebook, String> {

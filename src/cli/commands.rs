@@ -44,7 +44,7 @@ pub fn dispatch(cli: Cli) -> Result<()> {
         Command::SegmenterAccuracy(a) => segacc_cmd(&a, quiet),
         Command::BenchEncode(a) => bench_encode_cmd(&a, &mut engine()?, quiet),
         Command::Config => {
-            print!("{}", Config::default().to_toml()?);
+            out!("{}", Config::default().to_toml()?);
             Ok(())
         }
     }
@@ -52,7 +52,9 @@ pub fn dispatch(cli: Cli) -> Result<()> {
 
 fn info(quiet: bool, msg: impl AsRef<str>) {
     if !quiet {
-        eprintln!("{}", msg.as_ref());
+        use std::io::Write;
+        // a closed standard error loses the message, never the command
+        let _ = writeln!(std::io::stderr(), "{}", msg.as_ref());
     }
 }
 
@@ -121,8 +123,8 @@ fn camvid_cmd(camvid: &Path, a: &SynthArgs, engine: &dyn Fn() -> Result<Engine>,
     let seg = evaluate(&ds.without_labels(), &cfg, &opts, &mut engine)?;
     write_file(&a.out.join("eval-real-labels.json"), &to_json(&real)?)?;
     write_file(&a.out.join("eval-segmenter-labels.json"), &to_json(&seg)?)?;
-    print!("{}", semlook::eval::label_source_table(&[("real labels", &real), ("segmenter labels", &seg)]));
-    print!("\nsegmenter run:\n{}", seg.run.describe());
+    out!("{}", semlook::eval::label_source_table(&[("real labels", &real), ("segmenter labels", &seg)]));
+    out!("\nsegmenter run:\n{}", seg.run.describe());
     Ok(())
 }
 
@@ -269,9 +271,9 @@ fn query(engine: &mut Engine, a: &QueryArgs, quiet: bool) -> Result<()> {
         write_file(&out.with_extension("json"), &json)?;
     }
     if a.json {
-        println!("{json}");
+        outln!("{json}");
     } else {
-        print!("{csv}");
+        out!("{csv}");
     }
     Ok(())
 }
@@ -319,9 +321,9 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
 
 fn print_report(report: &EvalReport, json: bool) -> Result<()> {
     if json {
-        println!("{}", to_json(report)?);
+        outln!("{}", to_json(report)?);
     } else {
-        print!("{}", report.to_table());
+        out!("{}", report.to_table());
     }
     Ok(())
 }
@@ -359,7 +361,7 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     write_file(&results.join("eval.json"), &to_json(&report)?)?;
     print_report(&report, a.json)?;
     if !a.json {
-        println!("{}", report.summary_table());
+        outln!("{}", report.summary_table());
     }
     if temporary {
         let _ = std::fs::remove_dir_all(&dir);
@@ -420,13 +422,13 @@ fn bench_encode_cmd(a: &BenchEncodeArgs, engine: &mut Engine, quiet: bool) -> Re
     let seg = semlook::batch::EncodingSummary::new(&seg_ms, seg_wall * sources.len() as f64);
     let size = semlook::input::image_size(&images[0])?;
     if a.json {
-        println!("{}", to_json(&serde_json::json!({ "frames": sources.len(), "image_size": size, "backend": engine.describe(), "segmentation": seg, "everything_else": summary }))?);
+        outln!("{}", to_json(&serde_json::json!({ "frames": sources.len(), "image_size": size, "backend": engine.describe(), "segmentation": seg, "everything_else": summary }))?);
     } else {
         let (m, md) = (summary.mean, summary.median);
-        println!("{} frames of {}x{}; backend {}", sources.len(), size.0, size.1, engine.describe());
-        println!("segmentation ({}): median {:.1} ms per frame, wall clock {:.1} ms per frame (frames in parallel)", encoder.segmenter().map_or("-".into(), |s| s.path().display().to_string()), seg.median.segment_ms, seg.wall_ms_per_frame);
-        println!("everything but segmentation: wall clock {:.1} ms per frame (frames in parallel)", summary.wall_ms_per_frame);
-        println!("  per frame, median (mean): decode+resize {:.1} ({:.1}) | edges+EDT+pool {:.1} ({:.1}) | objects+forest {:.1} ({:.1}) | appearance {:.1} ({:.1}), of which network {:.1} ({:.1}) | sum {:.1} ({:.1})",
+        outln!("{} frames of {}x{}; backend {}", sources.len(), size.0, size.1, engine.describe());
+        outln!("segmentation ({}): median {:.1} ms per frame, wall clock {:.1} ms per frame (frames in parallel)", encoder.segmenter().map_or("-".into(), |s| s.path().display().to_string()), seg.median.segment_ms, seg.wall_ms_per_frame);
+        outln!("everything but segmentation: wall clock {:.1} ms per frame (frames in parallel)", summary.wall_ms_per_frame);
+        outln!("  per frame, median (mean): decode+resize {:.1} ({:.1}) | edges+EDT+pool {:.1} ({:.1}) | objects+forest {:.1} ({:.1}) | appearance {:.1} ({:.1}), of which network {:.1} ({:.1}) | sum {:.1} ({:.1})",
             md.decode_ms, m.decode_ms, md.global_ms, m.global_ms, md.forest_ms, m.forest_ms, md.appearance_ms, m.appearance_ms, md.network_ms, m.network_ms, md.without_segmentation_ms(), m.without_segmentation_ms());
     }
     Ok(())
@@ -455,9 +457,9 @@ fn segacc_cmd(a: &SegAccArgs, quiet: bool) -> Result<()> {
     pb.finish_and_clear();
     let r = confusion.report(&table);
     if a.json {
-        println!("{}", to_json(&r)?);
+        outln!("{}", to_json(&r)?);
     } else {
-        print!("{} images\n{}", images.len(), r.to_table());
+        out!("{} images\n{}", images.len(), r.to_table());
     }
     Ok(())
 }
@@ -499,7 +501,7 @@ fn tune_cmd(a: &TuneArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     if let Some(out) = &a.out {
         write_file(out, &table)?;
     }
-    print!("{table}");
+    out!("{table}");
     Ok(())
 }
 
@@ -528,10 +530,16 @@ fn bench_cmd(a: &BenchArgs, quiet: bool) -> Result<()> {
         info(quiet, format!("backend: {}", e.describe()));
     }
     let mut shown = false;
+    // the first failed write of a row (a closed pipe), returned once the run is over
+    let mut write_err: Option<Error> = None;
     let rows = semlook::bench::run(&pool, &queries, &opts, &mut engines, &cfg, &mut |r| {
         if a.json {
             match serde_json::to_string(r) {
-                Ok(line) => println!("{line}"),
+                Ok(line) => {
+                    if write_err.is_none() {
+                        write_err = super::write_out(format_args!("{line}\n")).err();
+                    }
+                }
                 Err(e) => log::error!("bench row: {e}"),
             }
         } else if !quiet {
@@ -540,8 +548,11 @@ fn bench_cmd(a: &BenchArgs, quiet: bool) -> Result<()> {
             shown = true;
         }
     })?;
+    if let Some(e) = write_err {
+        return Err(e);
+    }
     if !a.json {
-        print!("{}{}", semlook::bench::table(&rows), semlook::bench::legend(&rows));
+        out!("{}{}", semlook::bench::table(&rows), semlook::bench::legend(&rows));
     }
     Ok(())
 }

@@ -65,6 +65,9 @@ pub struct DescriptorSet {
     pub keypoint_xy: Vec<u16>,
     /// The semantic class under each keypoint.
     pub keypoint_classes: Vec<u8>,
+    /// SHA-256 of the VLAD codebook the appearance vectors were aggregated with (`Codebook::sha256`;
+    /// none without appearance): sets of two codebooks never join, nor enter a map of another.
+    pub codebook: Option<String>,
 }
 
 impl DescriptorSet {
@@ -94,7 +97,14 @@ impl DescriptorSet {
             keypoint_descriptors: vec![],
             keypoint_xy: vec![],
             keypoint_classes: vec![],
+            codebook: None,
         }
+    }
+
+    /// The same empty set, its appearance aggregated with the codebook of SHA-256 `codebook`.
+    pub fn with_codebook(mut self, codebook: Option<String>) -> Self {
+        self.codebook = codebook;
+        self
     }
 
     /// The same empty set holding verification keypoints of `dim` values each.
@@ -188,6 +198,9 @@ impl DescriptorSet {
     /// leaving the set unchanged, when the layouts differ or the range is not in `other`.
     pub fn append_range(&mut self, other: &DescriptorSet, start: usize, end: usize) -> Result<(), String> {
         let sizes = |s: &DescriptorSet| (s.global_len, s.neighbour_slots, s.appearance_dim, s.hog_dim, s.keypoint_dim);
+        if self.appearance_dim > 0 && self.codebook != other.codebook {
+            return Err(format!("images aggregated with another VLAD codebook (sha256 {}) do not join a set of sha256 {}", other.codebook.as_deref().unwrap_or("none"), self.codebook.as_deref().unwrap_or("none")));
+        }
         if sizes(self) != sizes(other) || (self.stats_len != 0 && self.stats_len != other.stats_len) {
             return Err(format!(
                 "images with (global values, neighbour slots, appearance dim, HOG dim, keypoint dim, statistics) {:?} / {} do not join a set of {:?} / {}",
@@ -242,7 +255,9 @@ impl DescriptorSet {
 
     /// An empty set of the same layout.
     pub fn empty_like(&self) -> DescriptorSet {
-        DescriptorSet { global_len: self.global_len, stats_len: self.stats_len, ..DescriptorSet::new(&bytemuck::Zeroable::zeroed(), self.neighbour_slots, self.appearance_dim, self.hog_dim) }.with_keypoint_dim(self.keypoint_dim)
+        DescriptorSet { global_len: self.global_len, stats_len: self.stats_len, ..DescriptorSet::new(&bytemuck::Zeroable::zeroed(), self.neighbour_slots, self.appearance_dim, self.hog_dim) }
+            .with_keypoint_dim(self.keypoint_dim)
+            .with_codebook(self.codebook.clone())
     }
 
     pub fn global(&self, i: usize) -> &[f32] {

@@ -11,6 +11,9 @@ pub const MAX_ID_BYTES: usize = 1024;
 
 /// Where a global descriptor value may lie: the encoder's pooled distance transform is in [0, 1].
 const GLOBAL_RANGE: std::ops::RangeInclusive<f32> = 0.0..=1.0;
+/// Longest appearance vector accepted: VLAD vectors are L2-normalised, and rounding to the stored
+/// int8 blocks moves a length by well under 1 %.
+pub const MAX_APPEARANCE_NORM: f32 = 1.02;
 /// Where a tree's area fraction may lie.
 const AREA_RANGE: std::ops::RangeInclusive<f32> = 0.0..=1.0;
 
@@ -62,6 +65,15 @@ pub fn image(id_: &str, size: [u32; 2], global: Values, forest: ForestRef, appea
     let bad = |v: Values| v.position(|x| !x.is_finite() || x.abs() > limit).is_some();
     if bad(f.appearance) || bad(appearance) {
         return Err(format!("an appearance value is NaN, infinite or beyond what {} holds", store.name()));
+    }
+    // VLAD vectors have unit length (or none): longer ones are not the encoder's, and one of
+    // them would outscore every true match
+    let long = |v: Values, dim: usize| -> Option<f32> {
+        let wide = v.to_vec();
+        wide.chunks(dim.max(1)).map(|c| c.iter().map(|x| x * x).sum::<f32>().sqrt()).find(|&n| n > MAX_APPEARANCE_NORM)
+    };
+    if let Some(n) = long(f.appearance, f.dim).or_else(|| long(appearance, appearance.len())) {
+        return Err(format!("an appearance vector has length {n}; the encoder's have length 1 (at most {MAX_APPEARANCE_NORM})"));
     }
     if hog.iter().any(|x| !x.is_finite()) {
         return Err("a HOG value is NaN or infinite".into());

@@ -81,6 +81,11 @@ pub struct Manifest {
     pub codebook: Option<FileEntry>,
     /// SHA-256 of the keypoint network's weights the appearance was computed with.
     pub appearance_model: Option<String>,
+    /// SHA-256 of this manifest's content ([`Manifest::content_sha256`]): an edit by hand or a
+    /// damaged byte anywhere in the file (a removed row, a config value, a model hash) is refused
+    /// at open, never served.
+    #[serde(default)]
+    pub checksum: String,
 }
 
 impl Manifest {
@@ -92,8 +97,16 @@ impl Manifest {
     pub fn stored_images(&self) -> usize {
         self.segments.iter().map(|s| s.images).sum()
     }
+    /// The file's bytes: pretty JSON with the checksum of the content.
     pub fn to_json(&self) -> serde_json::Result<Vec<u8>> {
-        serde_json::to_vec_pretty(self)
+        let m = Manifest { checksum: self.content_sha256()?, ..self.clone() };
+        serde_json::to_vec_pretty(&m)
+    }
+    /// SHA-256 of the manifest's values without its checksum, as compact JSON (fields in their
+    /// declared order, so the same values always give the same bytes).
+    pub fn content_sha256(&self) -> serde_json::Result<String> {
+        let m = Manifest { checksum: String::new(), ..self.clone() };
+        Ok(crate::util::sha256_hex(&serde_json::to_vec(&m)?))
     }
 }
 
@@ -125,6 +138,10 @@ pub fn read(dir: &Path) -> Result<Option<Manifest>> {
         return Err(Error::MapVersion { path: dir.into(), found: version, supported: VERSION });
     }
     let m: Manifest = serde_json::from_value(value).map_err(|e| Error::corrupt(&path, format!("manifest fields: {e}")))?;
+    match m.content_sha256() {
+        Ok(sha) if sha == m.checksum => {}
+        _ => return Err(Error::corrupt(&path, "the manifest's checksum does not match its content (edited by hand, or damaged): restore it, or build the map again")),
+    }
     check(&m).map_err(|r| Error::corrupt(&path, r))?;
     Ok(Some(m))
 }

@@ -163,7 +163,7 @@ impl Map {
     pub fn to_descriptor_set(&self) -> Result<DescriptorSet> {
         self.check_all()?;
         let l = self.layout();
-        let mut set = DescriptorSet::for_storage(l.global_len(), l.slots, l.dim, l.hog).with_keypoint_dim(l.kdim);
+        let mut set = DescriptorSet::for_storage(l.global_len(), l.slots, l.dim, l.hog).with_keypoint_dim(l.kdim).with_codebook(self.manifest.codebook.as_ref().map(|c| c.sha256.clone()));
         for (s, seg) in self.segments.iter().enumerate() {
             for j in self.live_rows(s) {
                 seg.append_row(j, &mut set);

@@ -98,7 +98,7 @@ mod tests {
             .enumerate()
             .map(|(i, &n)| SegmentEntry { file: format!("segment-{i}.safetensors"), images: n.max(1), trees: 0, keypoints: 0, bytes: 0, sha256: "0".repeat(64), removed: if n == 0 { vec![0] } else { vec![] } })
             .collect();
-        Manifest { format: "semlook-map".into(), version: 3, generation: 7, uid: "u".into(), created_by: "test".into(), neighbour_slots: config.local.neighbours, config, appearance_dim: 0, hog_dim: 0, keypoint_dim: 0, appearance_block: 0, values: Default::default(), segments, codebook: None, appearance_model: None }
+        Manifest { format: "semlook-map".into(), version: 3, generation: 7, uid: "u".into(), created_by: "test".into(), neighbour_slots: config.local.neighbours, config, appearance_dim: 0, hog_dim: 0, keypoint_dim: 0, appearance_block: 0, values: Default::default(), segments, codebook: None, appearance_model: None, checksum: String::new() }
     }
 
     #[test]

@@ -94,9 +94,7 @@ impl MapWriter {
             (Some((cb, _)), d) if cb.k * cb.dim != d => return Err(Error::invalid(what(), "codebook size differs from the appearance vectors")),
             (None, d) if d != 0 => return Err(Error::invalid(what(), "appearance vectors without a codebook")),
             (Some((cb, _)), _) => {
-                let bad = |e: safetensors::SafeTensorError| Error::invalid(what(), format!("codebook of {} x {} with {} values: {e}", cb.k, cb.dim, cb.centres.len()));
-                let centres = safetensors::tensor::TensorView::new(safetensors::tensor::Dtype::F32, vec![cb.k, cb.dim], bytemuck::cast_slice(&cb.centres)).map_err(bad)?;
-                let bytes = safetensors::serialize([("centres", centres)], None).map_err(bad)?;
+                let bytes = cb.file_bytes().map_err(|r| Error::invalid(what(), r))?;
                 let entry = FileEntry { file: CODEBOOK.into(), bytes: bytes.len() as u64, sha256: sha256_hex(&bytes) };
                 Some((bytes, entry))
             }
@@ -120,6 +118,7 @@ impl MapWriter {
             segments: vec![],
             codebook: None,
             appearance_model: appearance.map(|(_, sha)| sha.to_string()),
+            checksum: String::new(),
         };
         let layout = super::layout_of(&manifest, n_classes);
         let pending = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog).with_keypoint_dim(layout.kdim);
@@ -262,6 +261,11 @@ impl MapWriter {
                     set.global_len, set.neighbour_slots, set.appearance_dim, set.hog_dim, set.keypoint_dim, l.global_len(), l.slots, l.dim, l.hog, l.kdim
                 ),
             ));
+        }
+        let map_codebook = self.manifest.codebook.as_ref().map(|c| c.sha256.clone()).or_else(|| self.first.as_ref().and_then(|f| f.as_ref().map(|(_, e)| e.sha256.clone())));
+        if set.appearance_dim > 0 && set.codebook != map_codebook {
+            let show = |v: &Option<String>| v.clone().map_or("none".into(), |s| format!("sha256 {s}"));
+            return Err(Error::IncompatibleConfig { map: self.dir.clone(), field: "VLAD codebook of the appearance vectors".into(), map_value: show(&map_codebook), given_value: show(&set.codebook) });
         }
         let mut ids = HashSet::new();
         for i in 0..set.len() {

@@ -126,3 +126,12 @@ pub fn shared_or_required(rel: &str) -> Option<std::path::PathBuf> {
     skip_unless_required("REQUIRE_SHARED", format!("{} is absent", p.display()));
     None
 }
+
+/// Edits the text of map `dir`'s manifest.json with `edit` and seals it again with the checksum of
+/// the new content, as a writer would: for tests of what the checks after the checksum refuse.
+pub fn edit_sealed_manifest(dir: &Path, edit: impl FnOnce(&str) -> String) {
+    let path = dir.join("manifest.json");
+    let text = edit(&std::fs::read_to_string(&path).unwrap());
+    let parsed: semlook::map::manifest::Manifest = serde_json::from_str(&text).unwrap();
+    std::fs::write(&path, parsed.to_json().unwrap()).unwrap();
+}

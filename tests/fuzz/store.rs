@@ -64,8 +64,9 @@ impl Store {
         let cfg = config();
         let maps = crate::common::label_maps(5, 64, 48);
         let plain = crate::common::encode(&cfg, &maps, "a");
-        let rich = with_extras(crate::common::encode(&cfg, &maps[..4], "b"));
+        let mut rich = with_extras(crate::common::encode(&cfg, &maps[..4], "b"));
         let codebook = Codebook { k: 2, dim: 4, centres: (0..8).map(|i| i as f32 / 8.0).collect() };
+        rich.codebook = Some(codebook.sha256().expect("fixture codebook"));
         let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
         Map::create_with(&a, &cfg.encoding(), &plain, None, StoreOptions { segment_images: 2, ..Default::default() }).expect("fixture map");
         edit::remove(&a, &["a1".to_string()]).expect("fixture removal");

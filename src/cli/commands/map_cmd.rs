@@ -141,9 +141,9 @@ fn show(dir: &Path, json: bool) -> Result<()> {
             "hog_dim": m.hog_dim,
             "config": m.config,
         });
-        println!("{}", to_json(&v)?);
+        outln!("{}", to_json(&v)?);
     } else {
-        println!(
+        outln!(
             "map {}: {} images ({removed} removed, not compacted), {} trees, {} segments, {bytes} bytes ({:.0} per stored image), values {}, generation {}",
             dir.display(),
             map.len(),
@@ -154,12 +154,12 @@ fn show(dir: &Path, json: bool) -> Result<()> {
             m.generation
         );
         let cols: Vec<String> = columns.iter().map(|&(n, b)| format!("{n} {:.0}", per(b))).collect();
-        println!("bytes per stored image: {:.0} ({})", per(bytes as usize), cols.join(", "));
+        outln!("bytes per stored image: {:.0} ({})", per(bytes as usize), cols.join(", "));
         for s in &m.segments {
-            println!("  {}  {} images ({} removed)  {} bytes  sha256 {}", s.file, s.images, s.removed.len(), s.bytes, &s.sha256[..16]);
+            outln!("  {}  {} images ({} removed)  {} bytes  sha256 {}", s.file, s.images, s.removed.len(), s.bytes, &s.sha256[..16]);
         }
-        println!("(checksums are checked on first use and by `semlook map verify`)");
-        println!("encoding config:\n{}", toml::to_string_pretty(&m.config).map_err(|e| Error::invalid("map config", e.to_string()))?);
+        outln!("(checksums are checked on first use and by `semlook map verify`)");
+        outln!("encoding config:\n{}", toml::to_string_pretty(&m.config).map_err(|e| Error::invalid("map config", e.to_string()))?);
     }
     Ok(())
 }
@@ -188,9 +188,9 @@ fn remove(dir: &Path, values: &[String], quiet: bool) -> Result<()> {
 fn compact(dir: &Path, json: bool) -> Result<()> {
     let r = edit::compact(dir, StoreOptions::default())?;
     if json {
-        println!("{}", to_json(&r)?);
+        outln!("{}", to_json(&r)?);
     } else {
-        println!(
+        outln!(
             "map {}: {} -> {} segments, {} removed images dropped, {} -> {} bytes, {} stray files deleted",
             dir.display(),
             r.segments_before,
@@ -207,12 +207,12 @@ fn compact(dir: &Path, json: bool) -> Result<()> {
 fn verify(dir: &Path, json: bool) -> Result<()> {
     let r = edit::verify(dir)?;
     if json {
-        println!("{}", to_json(&r)?);
+        outln!("{}", to_json(&r)?);
     } else {
         for f in &r.files {
             match &f.problem {
-                None => println!("ok       {}", f.file),
-                Some(p) => println!("DAMAGED  {}: {p}", f.file),
+                None => outln!("ok       {}", f.file),
+                Some(p) => outln!("DAMAGED  {}: {p}", f.file),
             }
         }
     }
@@ -220,7 +220,7 @@ fn verify(dir: &Path, json: bool) -> Result<()> {
     match damaged.first() {
         None => {
             if !json {
-                println!("map {}: {} files sound, {} images (generation {})", dir.display(), r.files.len(), r.images, r.generation);
+                outln!("map {}: {} files sound, {} images (generation {})", dir.display(), r.files.len(), r.images, r.generation);
             }
             Ok(())
         }
@@ -249,11 +249,11 @@ fn bench(a: &StoreBenchArgs, quiet: bool) -> Result<()> {
         }
     })?;
     if a.json {
-        println!("{}", to_json(&report)?);
+        outln!("{}", to_json(&report)?);
     } else {
-        print!("{}", semlook::bench_store::table(&report.passes));
+        out!("{}", semlook::bench_store::table(&report.passes));
         if !report.stats_comparison.is_empty() {
-            print!("\nSSIM statistics: stored (in memory) vs recomputed per tile\n{}", semlook::bench_store::stats_table(&report.stats_comparison));
+            out!("\nSSIM statistics: stored (in memory) vs recomputed per tile\n{}", semlook::bench_store::stats_table(&report.stats_comparison));
         }
     }
     Ok(())
