@@ -143,3 +143,39 @@ fn a_closed_pipe_ends_quietly_and_a_full_disk_is_an_error() {
         }
     }
 }
+
+/// Ids holding the CSV separator, the `top_k` list's separators and the escape character
+/// (`a,b;c:d%e`) come back intact from `query`'s CSV: every row has six fields and the `top_k`
+/// list splits back into the stored ids. Before, the row had 9 columns and the pairs could not be
+/// split.
+#[test]
+fn query_csv_keeps_odd_ids_round_trippable() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    ok(&["synth", "--out", p(&data), "--places", "3", "--size", "96x72", "-q"]);
+    let src = data.join("overcast/GT/LABELS/Stereo_Left/Omni_F");
+    let labels = dir.path().join("labels");
+    std::fs::create_dir(&labels).unwrap();
+    let odd = "a,b;c:d%e";
+    let mut files: Vec<_> = std::fs::read_dir(&src).unwrap().flatten().map(|e| e.path()).collect();
+    files.sort();
+    for (i, f) in files.iter().enumerate() {
+        let name = if i == 0 { format!("{odd}.png") } else { f.file_name().unwrap().to_string_lossy().into_owned() };
+        std::fs::copy(f, labels.join(name)).unwrap();
+    }
+    let map = dir.path().join("map");
+    let na = "--no-appearance";
+    ok(&["map", "build", "--labels", p(&labels), "--out", p(&map), na, "-q"]);
+    let out = ok(&["query", "--map", p(&map), "--labels", p(&labels), "--setting", "forest", na, "-q"]);
+    let table: String = out.lines().filter(|l| !l.starts_with('#')).map(|l| format!("{l}\n")).collect();
+    let mut reader = csv::Reader::from_reader(table.as_bytes());
+    let rows: Vec<csv::StringRecord> = reader.records().map(|r| r.unwrap()).collect();
+    assert_eq!(rows.len(), files.len());
+    assert!(rows.iter().all(|r| r.len() == 6), "{table}");
+    let row = rows.iter().find(|r| &r[0] == odd).unwrap_or_else(|| panic!("no row of {odd:?} in\n{table}"));
+    assert_eq!(&row[1], odd, "the image's own copy ranks first");
+    let unescape = |s: &str| s.replace("%3B", ";").replace("%3A", ":").replace("%25", "%");
+    let ids: Vec<String> = row[5].split(';').map(|pair| unescape(pair.rsplit_once(':').unwrap().0)).collect();
+    assert_eq!(ids[0], odd, "{}", &row[5]);
+    assert_eq!(ids.len(), files.len());
+}

@@ -213,25 +213,30 @@ fn map_config(map: &Map, config: Option<&Path>, models: &ModelArgs) -> Result<Co
     Ok(cfg)
 }
 
+/// An id inside the `top_k` column's `id:score;...` list, with `%`, `:` and `;` percent-escaped
+/// (`%25`, `%3A`, `%3B`) so the list splits back into the ids it holds.
+pub fn escape_top_k_id(id: &str) -> String {
+    id.replace('%', "%25").replace(':', "%3A").replace(';', "%3B")
+}
+
 /// CSV and JSON renderings of query results. The CSV starts with `#` comment lines naming what
-/// ran; the JSON is `{run, setting, queries: [...]}`.
+/// ran, then a table written by a CSV writer (fields quoted where they hold `,`, `"` or a line
+/// break); in the `top_k` column ids are escaped by [`escape_top_k_id`]. The JSON is
+/// `{run, setting, queries: [...]}`.
 fn query_outputs(refs: &dyn RefSource, queries: &DescriptorSet, matches: &[QueryMatch], run: &RunRecord, setting: Setting) -> Result<(String, String)> {
     let mut csv: String = run.describe().lines().map(|l| format!("# {l}\n")).collect();
-    csv += &format!("# setting: {setting}\nquery,best_reference,score,coarse,fine,top_k\n");
+    csv += &format!("# setting: {setting}\n");
+    let mut table = csv::WriterBuilder::new().from_writer(Vec::new());
+    let row = |t: &mut csv::Writer<Vec<u8>>, fields: &[&str]| t.write_record(fields).map_err(|e| Error::invalid("query results as CSV", e.to_string()));
+    row(&mut table, &["query", "best_reference", "score", "coarse", "fine", "top_k"])?;
     let mut rows = Vec::new();
     let f = |v: Option<f32>| v.map_or(String::new(), |x| format!("{x:.6}"));
     for (q, m) in matches.iter().enumerate() {
         let best = m.best();
-        let topk: Vec<String> = m.ranked.iter().map(|c| format!("{}:{:.6}", refs.id(c.reference as usize), c.score)).collect();
-        csv += &format!(
-            "{},{},{},{},{},{}\n",
-            queries.ids[q],
-            best.map_or("", |b| refs.id(b.reference as usize)),
-            best.map_or(String::new(), |b| format!("{:.6}", b.score)),
-            f(best.and_then(|b| b.coarse)),
-            f(best.and_then(|b| b.fine)),
-            topk.join(";")
-        );
+        let topk: Vec<String> = m.ranked.iter().map(|c| format!("{}:{:.6}", escape_top_k_id(refs.id(c.reference as usize)), c.score)).collect();
+        let score = best.map_or(String::new(), |b| format!("{:.6}", b.score));
+        let (coarse, fine) = (f(best.and_then(|b| b.coarse)), f(best.and_then(|b| b.fine)));
+        row(&mut table, &[&queries.ids[q], best.map_or("", |b| refs.id(b.reference as usize)), &score, &coarse, &fine, &topk.join(";")])?;
         rows.push(serde_json::json!({
             "query": queries.ids[q],
             "best_reference": best.map(|b| refs.id(b.reference as usize).to_string()),
@@ -241,6 +246,8 @@ fn query_outputs(refs: &dyn RefSource, queries: &DescriptorSet, matches: &[Query
             })).collect::<Vec<_>>(),
         }));
     }
+    let table = table.into_inner().map_err(|e| Error::invalid("query results as CSV", e.to_string()))?;
+    csv += &String::from_utf8(table).map_err(|e| Error::invalid("query results as CSV", e.to_string()))?;
     let doc = serde_json::json!({ "run": run, "setting": setting, "queries": rows });
     Ok((csv, to_json(&doc)?))
 }
