@@ -61,3 +61,12 @@ pub fn sha256_file(path: &std::path::Path) -> crate::Result<String> {
     let bytes = std::fs::read(path).map_err(|e| crate::Error::io(path, e))?;
     Ok(sha256_hex(&bytes))
 }
+
+/// Memory this machine can give a new allocation without swapping: `MemAvailable` of
+/// /proc/meminfo, or 4 GiB where that cannot be read (other systems).
+pub fn available_memory_bytes() -> u64 {
+    std::fs::read_to_string("/proc/meminfo")
+        .ok()
+        .and_then(|s| s.lines().find(|l| l.starts_with("MemAvailable:")).and_then(|l| l.split_whitespace().nth(1)).and_then(|kb| kb.parse::<u64>().ok()))
+        .map_or(4 << 30, |kb| kb * 1024)
+}

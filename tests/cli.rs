@@ -179,3 +179,32 @@ fn query_csv_keeps_odd_ids_round_trippable() {
     assert_eq!(ids[0], odd, "{}", &row[5]);
     assert_eq!(ids.len(), files.len());
 }
+
+/// The stderr of a run that must fail (exit 1, no panic).
+fn fails(args: &[&str]) -> String {
+    let out = semlook(args);
+    assert_eq!(out.status.code(), Some(1), "semlook {args:?}: {:?}\n{}", out.status, String::from_utf8_lossy(&out.stderr));
+    String::from_utf8(out.stderr).unwrap()
+}
+
+/// `map build --resume` with a layout option the interrupted build did not have (`--f16` on an f32
+/// build, `--hog`) is refused naming the option; before, `--f16` was accepted and the map stayed
+/// f32. `synth --places 4000000000` is refused before allocating, with the largest size this
+/// machine can take; before, it allocated 22 GB until the OOM killer ended it.
+#[test]
+fn resume_checks_every_layout_option_and_synth_sizes_are_bounded_by_memory() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    ok(&["synth", "--out", p(&data), "--places", "3", "--size", "96x72", "-q"]);
+    let map = dir.path().join("map");
+    let na = "--no-appearance";
+    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), na, "-q"]);
+    for flag in ["--f16", "--hog"] {
+        let err = fails(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--resume", flag, na, "-q"]);
+        assert!(err.contains(flag) && err.contains("same layout"), "{flag}: {err}");
+    }
+    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--resume", na, "-q"]);
+    let err = fails(&["synth", "--out", p(&dir.path().join("huge")), "--places", "4000000000", "-q"]);
+    assert!(err.contains("GiB") && err.contains("at most"), "{err}");
+    assert!(!dir.path().join("huge").exists(), "a refused synth wrote output");
+}

@@ -75,11 +75,34 @@ impl Default for SynthConfig {
     }
 }
 
+/// Bytes the in-memory world takes per metre of route: 1.67 primitives per metre of 144 bytes
+/// each plus boxed facade styles and culling extents, about 260 bytes (measured with
+/// `build_world(7, 5000 m, 0.6)`), rounded up for other seeds and aliasing.
+const WORLD_BYTES_PER_METRE: f64 = 400.0;
+/// The share of the machine's available memory the world may take (frames are rendered and
+/// written one per thread beside it).
+const WORLD_MEMORY_SHARE: f64 = 0.5;
+
 impl SynthConfig {
+    /// Bytes the route's world will hold in memory.
+    pub fn world_bytes(&self) -> f64 {
+        (self.places as f64 * self.spacing_m + 320.0) * WORLD_BYTES_PER_METRE
+    }
+
     pub fn validate(&self) -> Result<()> {
         let bad = |r: String| Err(Error::invalid("synth config", r));
         if self.places == 0 || self.width < 64 || self.height < 48 || self.width > 4096 || self.height > 4096 {
             return bad(format!("need places >= 1 and a size from 64x48 to 4096x4096, got {} places at {}x{}", self.places, self.width, self.height));
+        }
+        let budget = crate::util::available_memory_bytes() as f64 * WORLD_MEMORY_SHARE;
+        if self.world_bytes() > budget {
+            return bad(format!(
+                "{} places would need about {:.1} GiB for the world alone; this machine can give it {:.1} GiB (half of its available memory): ask for at most {} places",
+                self.places,
+                self.world_bytes() / 1073741824.0,
+                budget / 1073741824.0,
+                ((budget / WORLD_BYTES_PER_METRE - 320.0) / self.spacing_m.max(1e-9)).max(0.0) as u64
+            ));
         }
         let nums = [self.spacing_m, self.hfov_deg, self.aliasing, self.persistence, self.gt_distance_m];
         if nums.iter().any(|v| !v.is_finite() || *v < 0.0) || self.spacing_m == 0.0 || self.hfov_deg >= 170.0 {

@@ -56,8 +56,11 @@ fn build_into(engine: &mut Engine, cfg: &Config, frames: &[FrameSource], fmt: La
     let (encoder, mut writer) = if resuming {
         let map = Map::open(dir)?;
         map.check_compatible(&cfg.encoding())?;
-        if (map.manifest.hog_dim > 0) != f.hog {
-            return Err(Error::invalid(format!("map {}", dir.display()), "--hog differs from the interrupted build's"));
+        // every layout option of the interrupted build must be given again as it was
+        let layout = [("--hog", map.manifest.hog_dim > 0, f.hog), ("--f16", map.manifest.values == ValueType::F16, opts.values == ValueType::F16)];
+        if let Some((flag, stored, given)) = layout.into_iter().find(|(_, stored, given)| stored != given) {
+            let say = |on: bool| if on { "given" } else { "not given" };
+            return Err(Error::invalid(format!("map {}", dir.display()), format!("{flag} is {} but the interrupted build had it {}: resume with the same layout options", say(given), say(stored))));
         }
         let encoder = Encoder::for_map(cfg, &map)?.with_hog(f.hog);
         info(quiet, format!("resuming: the map holds {} images (generation {})", map.len(), map.manifest.generation));
