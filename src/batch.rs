@@ -42,13 +42,22 @@ impl EncodingSummary {
 
 /// Trains the encoder's VLAD codebook on reference frames (when appearance is on), with a bar.
 pub fn train_codebook(encoder: &mut Encoder, refs: &[FrameSource], quiet: bool) -> Result<()> {
+    train_codebook_skipping(encoder, refs, false, quiet)
+}
+
+/// [`train_codebook`]; with `skip_invalid`, frames that cannot be read are left out of the
+/// training with a warning naming each.
+pub fn train_codebook_skipping(encoder: &mut Encoder, refs: &[FrameSource], skip_invalid: bool, quiet: bool) -> Result<()> {
     if encoder.appearance_model().is_none() {
         return Ok(());
     }
     let n = encoder.config().appearance.codebook_images.min(refs.len());
     let pb = progress::bar(n, "codebook", quiet);
-    encoder.train_codebook(refs, &|| pb.inc(1))?;
+    let skipped = encoder.train_codebook_skipping(refs, skip_invalid, &|| pb.inc(1))?;
     pb.finish_and_clear();
+    for (i, e) in &skipped {
+        log::warn!("codebook training skips {}: {e}", refs[*i].id);
+    }
     Ok(())
 }
 

@@ -558,17 +558,32 @@ impl Encoder {
     /// Trains the VLAD codebook on descriptors of up to `appearance.codebook_images` frames
     /// spread evenly over `sources` (the map's references), and sets it.
     pub fn train_codebook(&mut self, sources: &[FrameSource], tick: &(dyn Fn() + Sync)) -> Result<()> {
-        let Some(model) = self.appearance.clone() else { return Ok(()) };
+        self.train_codebook_skipping(sources, false, tick).map(|_| ())
+    }
+
+    /// [`Encoder::train_codebook`]; with `skip_invalid`, frames that cannot be read are left out
+    /// and returned (index in `sources`, error) instead of ending the training.
+    pub fn train_codebook_skipping(&mut self, sources: &[FrameSource], skip_invalid: bool, tick: &(dyn Fn() + Sync)) -> Result<Vec<(usize, Error)>> {
+        let Some(model) = self.appearance.clone() else { return Ok(vec![]) };
         let picks = self.codebook_picks(sources.len());
-        let keypoints: Vec<Keypoints> = picks
+        let results: Vec<Result<Keypoints>> = picks
             .par_iter()
             .map(|&i| {
-                let k = model.keypoints(&self.working_rgb(&sources[i])?)?;
+                let k = self.working_rgb(&sources[i]).and_then(|rgb| model.keypoints(&rgb));
                 tick();
-                Ok(k)
+                k
             })
-            .collect::<Result<_>>()?;
-        self.train_codebook_from(&keypoints.iter().collect::<Vec<_>>())
+            .collect();
+        let (mut keypoints, mut skipped) = (Vec::new(), Vec::new());
+        for (&i, r) in picks.iter().zip(results) {
+            match r {
+                Ok(k) => keypoints.push(k),
+                Err(e) if skip_invalid => skipped.push((i, e)),
+                Err(e) => return Err(e),
+            }
+        }
+        self.train_codebook_from(&keypoints.iter().collect::<Vec<_>>())?;
+        Ok(skipped)
     }
 }
 

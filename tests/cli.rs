@@ -208,3 +208,26 @@ fn resume_checks_every_layout_option_and_synth_sizes_are_bounded_by_memory() {
     assert!(err.contains("GiB") && err.contains("at most"), "{err}");
     assert!(!dir.path().join("huge").exists(), "a refused synth wrote output");
 }
+
+/// `map build --skip-invalid` skips an undecodable reference in the codebook training as in the
+/// encoding (before, the training stopped at it and nothing was committed); without the flag the
+/// build fails naming the file.
+#[test]
+fn skip_invalid_also_skips_in_codebook_training() {
+    if let Err(e) = semlook::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, None, "XFeat") {
+        return common::skip_unless_required("REQUIRE_MODELS", format!("XFeat weights (run setup.sh): {e}"));
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    ok(&["synth", "--out", p(&data), "--places", "5", "--size", "128x96", "-q"]);
+    let rgb = data.join("day/RGB/Stereo_Left/Omni_F");
+    let mut files: Vec<_> = std::fs::read_dir(&rgb).unwrap().flatten().map(|e| e.path()).collect();
+    files.sort();
+    std::fs::write(&files[2], b"not an image").unwrap();
+    let map = dir.path().join("map");
+    let err = fails(&["map", "build", "--dataset", p(&data), "--out", p(&map), "-q"]);
+    assert!(err.contains(files[2].file_name().unwrap().to_str().unwrap()), "{err}");
+    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--skip-invalid", "--force", "-q"]);
+    let info: serde_json::Value = serde_json::from_str(&ok(&["map", "info", "--map", p(&map), "--json"])).unwrap();
+    assert_eq!(info["images"], 4);
+}

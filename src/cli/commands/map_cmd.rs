@@ -69,7 +69,7 @@ fn build_into(engine: &mut Engine, cfg: &Config, frames: &[FrameSource], fmt: La
         MapWriter::check_new_dir(dir, f.resume)?;
         let mut encoder = Encoder::new(cfg)?.with_hog(f.hog);
         // the codebook comes first: it is stored with the first segment
-        batch::train_codebook(&mut encoder, frames, quiet)?;
+        batch::train_codebook_skipping(&mut encoder, frames, skip, quiet)?;
         let hog_dim = if f.hog { semlook::baseline::HOG_DIM } else { 0 };
         let dims = semlook::map::Dims { appearance: encoder.appearance_dim(), hog: hog_dim, keypoints: encoder.keypoint_dim() };
         let writer = MapWriter::create(dir, &cfg.encoding(), dims, encoder.appearance_record(), opts, f.resume)?;
