@@ -161,6 +161,9 @@ pub struct VerifyReport {
     pub generation: u64,
     pub images: usize,
     pub files: Vec<FileCheck>,
+    /// Temporary files and staging folders interrupted writers left ([`files::leftovers`]); the
+    /// next writer removes them under the lock.
+    pub leftovers: Vec<String>,
 }
 
 impl VerifyReport {
@@ -189,7 +192,8 @@ pub fn verify(dir: &Path) -> Result<VerifyReport> {
         let problem = super::read_codebook(dir, entry, m.appearance_dim).err().map(|e| e.to_string());
         files.push(FileCheck { file: entry.file.clone(), problem });
     }
-    Ok(VerifyReport { generation: m.generation, images: m.live_images(), files })
+    let leftovers = files::leftovers(dir).iter().map(|p| p.display().to_string()).collect();
+    Ok(VerifyReport { generation: m.generation, images: m.live_images(), files, leftovers })
 }
 
 /// Builds a map with `build` into a new directory beside `out` (same folder, unique name) and,

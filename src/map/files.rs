@@ -43,8 +43,12 @@ pub fn write_atomic(dir: &Path, name: &str, bytes: &[u8]) -> Result<()> {
     let tmp = dir.join(format!(".{name}.tmp"));
     let dst = dir.join(name);
     let mut f = std::fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
-    f.write_all(bytes).map_err(|e| Error::io(&tmp, e))?;
-    f.sync_all().map_err(|e| Error::io(&tmp, e))?;
+    if let Err(e) = f.write_all(bytes).and_then(|()| f.sync_all()) {
+        // a full disk: give the space back now (a crash here leaves it to the next writer)
+        drop(f);
+        let _ = std::fs::remove_file(&tmp);
+        return Err(Error::io(&tmp, e));
+    }
     drop(f);
     if fault_at(name) {
         return Err(Error::io(&tmp, std::io::Error::other("injected fault: stopped before the rename")));
@@ -77,7 +81,17 @@ impl WriteLock {
         let mut said = false;
         loop {
             match fs4::FileExt::try_lock(&file) {
-                Ok(()) => return Ok(WriteLock { file }),
+                Ok(()) => {
+                    // temporaries are written only under this lock: any there now is stale
+                    for stale in leftovers(dir) {
+                        let gone = if stale.is_dir() { std::fs::remove_dir_all(&stale) } else { std::fs::remove_file(&stale) };
+                        match gone {
+                            Ok(()) => log::info!("removed {}, left by an interrupted writer", stale.display()),
+                            Err(e) => log::warn!("cannot remove {}, left by an interrupted writer: {e}", stale.display()),
+                        }
+                    }
+                    return Ok(WriteLock { file });
+                }
                 Err(fs4::TryLockError::WouldBlock) => {}
                 Err(fs4::TryLockError::Error(e)) => return Err(Error::io(&p, e)),
             }
@@ -100,6 +114,37 @@ impl Drop for WriteLock {
     fn drop(&mut self) {
         let _ = fs4::FileExt::unlock(&self.file);
     }
+}
+
+/// What interrupted writers of map `dir` left: temporary files `.NAME.tmp` in it (written only
+/// under the write lock, so stale whenever the lock is free) and the staging folders of
+/// `build --force` beside it (`.DIR.building-PID-...`) whose process no longer runs (Linux; where
+/// that cannot be told, none are listed).
+pub fn leftovers(dir: &Path) -> Vec<PathBuf> {
+    let mut out: Vec<PathBuf> = std::fs::read_dir(dir)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter(|e| e.file_name().to_str().is_some_and(|n| n.starts_with('.') && n.ends_with(".tmp")) && e.file_type().is_ok_and(|t| t.is_file()))
+        .map(|e| e.path())
+        .collect();
+    if let (Some(name), Some(parent)) = (dir.file_name().and_then(|n| n.to_str()), dir.parent()) {
+        let parent = if parent.as_os_str().is_empty() { Path::new(".") } else { parent };
+        let prefix = format!(".{name}.building-");
+        for e in std::fs::read_dir(parent).into_iter().flatten().flatten() {
+            let dead = e.file_name().to_str().and_then(|n| n.strip_prefix(&prefix)).and_then(|rest| rest.split('-').next()?.parse::<u32>().ok()).is_some_and(process_is_gone);
+            if dead && e.file_type().is_ok_and(|t| t.is_dir()) {
+                out.push(e.path());
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+/// Whether process `pid` has ended (Linux: no /proc entry). False where it cannot be told.
+fn process_is_gone(pid: u32) -> bool {
+    cfg!(target_os = "linux") && Path::new("/proc/self").exists() && pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists()
 }
 
 /// A name no other process picks: `prefix`, this process id, the time in nanoseconds and a

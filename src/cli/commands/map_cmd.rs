@@ -218,6 +218,9 @@ fn verify(dir: &Path, json: bool) -> Result<()> {
                 Some(p) => outln!("DAMAGED  {}: {p}", f.file),
             }
         }
+        for l in &r.leftovers {
+            outln!("LEFTOVER {l} (an interrupted writer's; the next add, remove or compact removes it)");
+        }
     }
     let damaged: Vec<&str> = r.damaged().map(|f| f.file.as_str()).collect();
     match damaged.first() {
