@@ -165,3 +165,39 @@ fn invalid_configs_are_refused() {
         assert!(matches!(e, Error::InvalidConfig { .. }) && e.to_string().contains("bad.toml"), "{text}: {e}");
     }
 }
+
+/// A "zlib bomb": a grey label PNG of a few hundred kilobytes declaring 20000 x 20000 pixels (400 MB
+/// decoded, under the image crate's own 512 MiB limit, 2 GB with the copies the translation
+/// makes). It is refused from its header, naming the file and the sizes; before, it was decoded
+/// and widened to 2.4 GB of memory.
+#[test]
+fn a_label_png_whose_decoded_copies_exceed_the_limit_is_refused_before_decoding() {
+    use std::io::Write;
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("bomb.png");
+    let side = 20_000u32;
+    {
+        let file = std::io::BufWriter::new(std::fs::File::create(&path).unwrap());
+        let mut enc = png::Encoder::new(file, side, side);
+        enc.set_color(png::ColorType::Grayscale);
+        enc.set_depth(png::BitDepth::Eight);
+        enc.set_compression(png::Compression::Fast);
+        let mut writer = enc.write_header().unwrap();
+        let mut stream = writer.stream_writer().unwrap();
+        let row = vec![0u8; side as usize];
+        for _ in 0..side {
+            stream.write_all(&row).unwrap();
+        }
+        stream.finish().unwrap();
+    }
+    let size = std::fs::metadata(&path).unwrap().len();
+    assert!(size < 4 << 20, "the bomb is small on disk: {size} bytes");
+    let table = semlook::classes::ClassTable::from_config(&Config::default().classes).unwrap();
+    match semlook::input::load_label_map(&path, &table, semlook::input::LabelFormat::Auto) {
+        Err(e @ Error::ImageDecode { .. }) => {
+            let msg = e.to_string();
+            assert!(msg.contains("bomb.png") && msg.contains("20000x20000") && msg.contains("MiB"), "{msg}");
+        }
+        other => panic!("a zlib bomb was decoded: {:?}", other.map(|m| (m.width(), m.height()))),
+    }
+}

@@ -99,9 +99,15 @@ pub enum LabelFormat {
 /// JPEG path enforces it too): a damaged header cannot make a decoder allocate more.
 pub const MAX_DECODED_BYTES: u64 = 512 << 20;
 
-fn read_image(path: &Path) -> Result<DynamicImage> {
+/// Bytes per pixel that a label map's translation adds to the decoded image: the class per pixel,
+/// and an RGB copy for palette maps.
+const LABEL_COPY_BYTES_PER_PIXEL: u64 = 4;
+/// Bytes per pixel of the RGB copy an RGB image is converted to.
+const RGB_COPY_BYTES_PER_PIXEL: u64 = 3;
+
+fn read_image(path: &Path, copy_bytes_per_pixel: u64) -> Result<DynamicImage> {
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    decode_bytes(bytes, path)
+    decode_bytes(bytes, path, copy_bytes_per_pixel)
 }
 
 /// An RGB image brought to `width` x `height` (area-weighted when shrinking; the same image when
@@ -130,7 +136,7 @@ pub fn decode_rgb_at_least(bytes: Vec<u8>, path: &Path, min: impl Fn((u32, u32))
             return Ok(r);
         }
     }
-    let img = decode_bytes(bytes, path)?.to_rgb8();
+    let img = decode_bytes(bytes, path, RGB_COPY_BYTES_PER_PIXEL)?.to_rgb8();
     let size = img.dimensions();
     Ok((img, size))
 }
@@ -161,17 +167,31 @@ fn decode_jpeg_scaled(bytes: &[u8], path: &Path, min: &dyn Fn((u32, u32)) -> (u3
     Ok(Some((img, full)))
 }
 
-fn decode_bytes(bytes: Vec<u8>, path: &Path) -> Result<DynamicImage> {
+/// Decodes an image whose file bytes, decoded pixels and the `copy_bytes_per_pixel` its caller
+/// converts them into fit [`MAX_DECODED_BYTES`] together, checked from the header before any
+/// pixel is decoded (a small compressed file can declare gigabytes of pixels).
+fn decode_bytes(bytes: Vec<u8>, path: &Path, copy_bytes_per_pixel: u64) -> Result<DynamicImage> {
+    use image::ImageDecoder;
     if bytes.is_empty() {
         return Err(Error::EmptyImage { path: path.into(), width: 0, height: 0 });
     }
-    let mut reader = image::ImageReader::new(std::io::Cursor::new(bytes)).with_guessed_format().map_err(|e| Error::io(path, e))?;
+    let bad = |e: image::ImageError| Error::ImageDecode { path: path.into(), reason: e.to_string() };
+    let file_bytes = bytes.len() as u64;
+    let reader = image::ImageReader::new(std::io::Cursor::new(bytes)).with_guessed_format().map_err(|e| Error::io(path, e))?;
+    let mut decoder = reader.into_decoder().map_err(bad)?;
+    let (w, h) = decoder.dimensions();
+    let pixels = u64::from(w) * u64::from(h);
+    let need = file_bytes.saturating_add(pixels.saturating_mul(decoder.color_type().bytes_per_pixel() as u64 + copy_bytes_per_pixel));
+    if need > MAX_DECODED_BYTES {
+        return Err(Error::ImageDecode {
+            path: path.into(),
+            reason: format!("{w}x{h} pixels would take {} MiB to decode and convert, above the limit of {} MiB", need >> 20, MAX_DECODED_BYTES >> 20),
+        });
+    }
     let mut limits = image::Limits::default();
     limits.max_alloc = Some(MAX_DECODED_BYTES);
-    reader.limits(limits);
-    let img = reader
-        .decode()
-        .map_err(|e| Error::ImageDecode { path: path.into(), reason: e.to_string() })?;
+    decoder.set_limits(limits).map_err(bad)?;
+    let img = DynamicImage::from_decoder(decoder).map_err(bad)?;
     if img.width() == 0 || img.height() == 0 {
         return Err(Error::EmptyImage { path: path.into(), width: img.width(), height: img.height() });
     }
@@ -180,36 +200,36 @@ fn decode_bytes(bytes: Vec<u8>, path: &Path) -> Result<DynamicImage> {
 
 /// Reads an RGB image (png or jpeg); alpha is dropped, grey is expanded.
 pub fn load_rgb(path: &Path) -> Result<RgbImage> {
-    Ok(read_image(path)?.to_rgb8())
+    Ok(read_image(path, RGB_COPY_BYTES_PER_PIXEL)?.to_rgb8())
 }
 
 /// Reads a label map and translates its ids or colours through `table`.
 pub fn load_label_map(path: &Path, table: &ClassTable, format: LabelFormat) -> Result<LabelMap> {
-    let img = read_image(path)?;
+    let img = read_image(path, LABEL_COPY_BYTES_PER_PIXEL)?;
     decode_label_image(&img, path, table, format)
 }
 
 /// [`load_label_map`] on a file's bytes; `path` only names the source in errors.
 pub fn decode_label_bytes(bytes: Vec<u8>, path: &Path, table: &ClassTable, format: LabelFormat) -> Result<LabelMap> {
-    decode_label_image(&decode_bytes(bytes, path)?, path, table, format)
+    decode_label_image(&decode_bytes(bytes, path, LABEL_COPY_BYTES_PER_PIXEL)?, path, table, format)
 }
 
 /// Translates a decoded label image; `path` only names the source in errors.
 pub fn decode_label_image(img: &DynamicImage, path: &Path, table: &ClassTable, format: LabelFormat) -> Result<LabelMap> {
     let (w, h) = (img.width(), img.height());
     let grey = matches!(img, DynamicImage::ImageLuma8(_) | DynamicImage::ImageLuma16(_) | DynamicImage::ImageLumaA8(_) | DynamicImage::ImageLumaA16(_));
-    let mut classes = Vec::with_capacity(w as usize * h as usize);
+    let mut classes = Vec::new();
     let by_ids = format == LabelFormat::FirstChannel || (format == LabelFormat::Auto && grey);
     if by_ids {
-        let ids: Vec<u32> = match img {
-            DynamicImage::ImageLuma8(g) => g.pixels().map(|p| p.0[0] as u32).collect(),
-            DynamicImage::ImageLumaA8(g) => g.pixels().map(|p| p.0[0] as u32).collect(),
-            DynamicImage::ImageRgb8(g) => g.pixels().map(|p| p.0[0] as u32).collect(),
-            DynamicImage::ImageRgba8(g) => g.pixels().map(|p| p.0[0] as u32).collect(),
-            DynamicImage::ImageLuma16(g) => g.pixels().map(|p| p.0[0] as u32).collect(),
-            DynamicImage::ImageLumaA16(g) => g.pixels().map(|p| p.0[0] as u32).collect(),
-            DynamicImage::ImageRgb16(g) => g.pixels().map(|p| p.0[0] as u32).collect(),
-            DynamicImage::ImageRgba16(g) => g.pixels().map(|p| p.0[0] as u32).collect(),
+        let ids: Box<dyn Iterator<Item = u32>> = match img {
+            DynamicImage::ImageLuma8(g) => Box::new(g.pixels().map(|p| p.0[0] as u32)),
+            DynamicImage::ImageLumaA8(g) => Box::new(g.pixels().map(|p| p.0[0] as u32)),
+            DynamicImage::ImageRgb8(g) => Box::new(g.pixels().map(|p| p.0[0] as u32)),
+            DynamicImage::ImageRgba8(g) => Box::new(g.pixels().map(|p| p.0[0] as u32)),
+            DynamicImage::ImageLuma16(g) => Box::new(g.pixels().map(|p| p.0[0] as u32)),
+            DynamicImage::ImageLumaA16(g) => Box::new(g.pixels().map(|p| p.0[0] as u32)),
+            DynamicImage::ImageRgb16(g) => Box::new(g.pixels().map(|p| p.0[0] as u32)),
+            DynamicImage::ImageRgba16(g) => Box::new(g.pixels().map(|p| p.0[0] as u32)),
             _ => {
                 return Err(Error::UnsupportedLabelFormat {
                     path: path.into(),
@@ -217,7 +237,7 @@ pub fn decode_label_image(img: &DynamicImage, path: &Path, table: &ClassTable, f
                 })
             }
         };
-        classes = classes_of_ids(ids.into_iter(), w, path, table)?;
+        classes = classes_of_ids(ids, w, path, table)?;
     } else {
         if grey {
             return Err(Error::UnsupportedLabelFormat {
@@ -226,6 +246,7 @@ pub fn decode_label_image(img: &DynamicImage, path: &Path, table: &ClassTable, f
             });
         }
         let rgb = img.to_rgb8();
+        classes.reserve_exact(w as usize * h as usize);
         let mut last = ([0u8; 3], None::<u8>);
         for (i, p) in rgb.pixels().enumerate() {
             let c = match last {
