@@ -363,6 +363,11 @@ impl Encoder {
             }
         }
         let (ww, wh) = input::working_size(source_size.0, source_size.1, self.cfg.input.working_long_side);
+        if self.appearance.is_some() && (ww < appearance::MIN_NETWORK_SIDE as u32 || wh < appearance::MIN_NETWORK_SIDE as u32) {
+            let what = image.map_or_else(|| format!("frame {id:?}"), |p| p.display().to_string());
+            let m = appearance::MIN_NETWORK_SIDE;
+            return Err(Error::invalid(what, format!("{}x{} (working size {ww}x{wh}) is below the {m}x{m} a keypoint network needs", source_size.0, source_size.1)));
+        }
         let labels = match (full_labels, &self.segmenter, &rgb) {
             (Some(l), _, _) => l.resized_nearest(ww, wh),
             (None, Some(seg), Some(img)) => {

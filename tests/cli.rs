@@ -230,4 +230,11 @@ fn skip_invalid_also_skips_in_codebook_training() {
     ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--skip-invalid", "--force", "-q"]);
     let info: serde_json::Value = serde_json::from_str(&ok(&["map", "info", "--map", p(&map), "--json"])).unwrap();
     assert_eq!(info["images"], 4);
+    // a frame too small for the keypoint network: the error names its file (it said "image: 1x1")
+    let tiny = dir.path().join("tiny");
+    std::fs::create_dir_all(tiny.join("labels")).unwrap();
+    image::RgbImage::new(1, 1).save(tiny.join("dot.png")).unwrap();
+    image::GrayImage::new(1, 1).save(tiny.join("labels/dot.png")).unwrap();
+    let err = fails(&["query", "--map", p(&map), "--images", p(&tiny), "--labels", p(&tiny.join("labels")), "-q"]);
+    assert!(err.contains(p(&tiny.join("dot.png"))) && err.contains("32x32"), "{err}");
 }

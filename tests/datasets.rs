@@ -114,6 +114,10 @@ fn real_vpr_layout_with_a_csv_of_query_reference_rows() {
     std::fs::write(root.join("ground_truth.csv"), "query,reference\nquery/00.png,ref/07.png\n").unwrap();
     let err = Dataset::open(root, &DatasetOptions::default()).unwrap_err().to_string();
     assert!(err.contains("ground_truth.csv") && err.contains("line 2") && err.contains("ref/07.png"), "{err}");
+    // a header and no rows: refused (before, eval printed AUC 0.000 without a word)
+    std::fs::write(root.join("ground_truth.csv"), "query,reference\n").unwrap();
+    let err = Dataset::open(root, &DatasetOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("ground_truth.csv") && err.contains("no query has a valid reference"), "{err}");
     std::fs::write(root.join("ground_truth.csv"), "q,r\nquery/00.png,ref/00.png\n").unwrap();
     let err = Dataset::open(root, &DatasetOptions::default()).unwrap_err().to_string();
     assert!(err.contains("\"query\" column"), "{err}");

@@ -203,13 +203,16 @@ fn identify_outputs(session: &ort::session::Session) -> std::result::Result<(usi
     }
 }
 
+/// The smallest side a keypoint network takes: XFeat's input sides are multiples of 32.
+pub const MIN_NETWORK_SIDE: usize = 32;
+
 /// Grey network input in [0, 1] with sides rounded down to multiples of 32 (bilinear, as
 /// XFeat's preprocessing), and the factors back to image pixels.
 pub fn network_input(rgb: &RgbImage) -> Result<(Chw, f32, f32)> {
     let (w, h) = (rgb.width() as usize, rgb.height() as usize);
-    let (w32, h32) = (w / 32 * 32, h / 32 * 32);
+    let (w32, h32) = (w / MIN_NETWORK_SIDE * MIN_NETWORK_SIDE, h / MIN_NETWORK_SIDE * MIN_NETWORK_SIDE);
     if w32 == 0 || h32 == 0 {
-        return Err(Error::invalid("image", format!("{w}x{h} is below the 32x32 a keypoint network needs")));
+        return Err(Error::invalid("image", format!("{w}x{h} is below the {MIN_NETWORK_SIDE}x{MIN_NETWORK_SIDE} a keypoint network needs")));
     }
     let data = rgb.pixels().map(|p| (p.0[0] as f32 + p.0[1] as f32 + p.0[2] as f32) / (3.0 * 255.0)).collect();
     let grey = Chw { c: 1, h, w, data };

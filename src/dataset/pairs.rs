@@ -126,6 +126,14 @@ fn read_csv(csv: &Path, refs: &Traversal, queries: &Traversal) -> Result<Vec<Vec
     for l in &mut gt {
         l.sort_unstable();
     }
+    some_truth(gt, csv)
+}
+
+/// `gt` unless no query has a valid reference: every metric would be 0 without saying why.
+fn some_truth(gt: Vec<Vec<u32>>, file: &Path) -> Result<Vec<Vec<u32>>> {
+    if !gt.is_empty() && gt.iter().all(Vec::is_empty) {
+        return Err(Error::dataset(file, "no query has a valid reference (no rows after the header?): nothing to evaluate"));
+    }
     Ok(gt)
 }
 
@@ -152,7 +160,7 @@ pub fn parse_npy_ground_truth(bytes: &[u8], file: &Path, n_refs: usize, n_querie
         }
         slot.sort_unstable();
     }
-    Ok(gt)
+    some_truth(gt, file)
 }
 
 /// (east, north, zone number) from a gmberton file name `@east@north@zone@letter@...`.
