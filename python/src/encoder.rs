@@ -154,31 +154,53 @@ impl PyEncoder {
     /// Encodes one frame from memory: `image` uint8 [H, W, 3] (RGB) and/or `labels` [H, W] of
     /// label ids (any integer type; translated by the config's class table like a grey PNG).
     #[pyo3(signature = (id, image=None, labels=None))]
-    fn encode(&self, py: Python<'_>, id: String, image: Option<PyReadonlyArrayDyn<'_, u8>>, labels: Option<&Bound<'_, PyAny>>) -> PyResult<PyDescriptors> {
+    fn encode(&self, py: Python<'_>, id: String, image: Option<&Bound<'_, PyAny>>, labels: Option<&Bound<'_, PyAny>>) -> PyResult<PyDescriptors> {
         let name = PathBuf::from(format!("{id} (labels array)"));
         let rgb = match image {
             Some(a) => {
+                let what = format!("image of {id:?}");
+                let a = as_array(py, a, &what)?;
+                if dtype_of(&a)? != "uint8" {
+                    return Err(invalid(&what, format!("dtype {}, expected uint8 RGB", dtype_of(&a)?)));
+                }
+                let a: PyReadonlyArrayDyn<'_, u8> = a.extract().map_err(|e| invalid(&what, e))?;
                 let s = a.shape();
                 if s.len() != 3 || s[2] != 3 || s[0] == 0 || s[1] == 0 || s[0] > 1 << 15 || s[1] > 1 << 15 {
-                    return Err(invalid(&format!("image of {id:?}"), format!("shape {s:?}, expected [H, W, 3] uint8 (H, W at most 32768)")));
+                    return Err(invalid(&what, format!("shape {s:?}, expected [H, W, 3] uint8 (H, W at most 32768)")));
                 }
                 let (h, w) = (s[0] as u32, s[1] as u32);
                 let pixels: Vec<u8> = a.as_array().iter().copied().collect();
-                Some(image::RgbImage::from_raw(w, h, pixels).ok_or_else(|| invalid(&format!("image of {id:?}"), "size"))?)
+                Some(image::RgbImage::from_raw(w, h, pixels).ok_or_else(|| invalid(&what, "size"))?)
             }
             None => None,
         };
         let labels = match labels {
             Some(l) => {
-                let ids: PyReadonlyArrayDyn<'_, i64> = l
-                    .call_method1("astype", ("int64",))?
-                    .extract()
-                    .map_err(|e| invalid(&format!("labels of {id:?}"), format!("not an integer array: {e}")))?;
-                let s = ids.shape().to_vec();
-                if s.len() != 2 {
-                    return Err(invalid(&format!("labels of {id:?}"), format!("shape {s:?}, expected [H, W]")));
+                let what = format!("labels of {id:?}");
+                let l = as_array(py, l, &what)?;
+                let kind: String = l.getattr("dtype")?.getattr("kind")?.extract()?;
+                if kind != "i" && kind != "u" {
+                    // floats are not truncated into ids, nor strings or objects converted
+                    return Err(invalid(&what, format!("dtype {}, expected an integer array of label ids", dtype_of(&l)?)));
                 }
-                let v: Vec<u32> = ids.as_array().iter().map(|&x| u32::try_from(x).unwrap_or(u32::MAX)).collect();
+                let s: Vec<usize> = l.getattr("shape")?.extract()?;
+                if s.len() != 2 {
+                    return Err(invalid(&what, format!("shape {s:?}, expected [H, W]")));
+                }
+                // uint64 ids above i64::MAX would wrap in int64; every other integer type fits
+                let itemsize: usize = l.getattr("dtype")?.getattr("itemsize")?.extract()?;
+                if kind == "u" && itemsize == 8 && s[0] * s[1] > 0 {
+                    let top: u64 = l.call_method0("max")?.extract()?;
+                    if top > u64::from(u32::MAX) {
+                        return Err(invalid(&what, format!("label id {top} is not a class id (0 to {})", u32::MAX)));
+                    }
+                }
+                let ids: PyReadonlyArrayDyn<'_, i64> = l.call_method1("astype", ("int64",))?.extract().map_err(|e| invalid(&what, e))?;
+                let mut v = Vec::with_capacity(s[0] * s[1]);
+                for (i, &x) in ids.as_array().iter().enumerate() {
+                    let id = u32::try_from(x).map_err(|_| invalid(&what, format!("label id {x} at pixel (x {}, y {}) is not a class id (0 to {})", i % s[1], i / s[1], u32::MAX)))?;
+                    v.push(id);
+                }
                 Some(input::label_map_from_ids(s[1] as u32, s[0] as u32, &v, &name, self.inner.class_table()).py_err()?)
             }
             None => None,
@@ -212,4 +234,16 @@ fn frames(ids: Vec<String>, images: Option<Vec<PathBuf>>, labels: Option<Vec<Pat
     }
     let at = |l: &Option<Vec<PathBuf>>, i: usize| l.as_ref().map(|v| v[i].clone());
     Ok(ids.into_iter().enumerate().map(|(i, id)| FrameSource { id, image: at(&images, i), labels: at(&labels, i) }).collect())
+}
+
+/// `obj` as a numpy array (lists and other array-likes converted), or an `InvalidInputError`
+/// naming `what`.
+fn as_array<'py>(py: Python<'py>, obj: &Bound<'py, PyAny>, what: &str) -> PyResult<Bound<'py, PyAny>> {
+    let a = py.import("numpy")?.call_method1("asarray", (obj,)).map_err(|e| invalid(what, format!("not an array: {e}")))?;
+    Ok(a)
+}
+
+/// The name of an array's dtype.
+fn dtype_of(a: &Bound<'_, PyAny>) -> PyResult<String> {
+    a.getattr("dtype")?.str()?.extract()
 }

@@ -44,6 +44,31 @@ def test_bad_arrays_raise_typed_errors(encoder):
         encoder.encode("bad", labels=np.full((8, 8), 250, np.uint8))
 
 
+def test_label_arrays_are_checked_not_coerced(encoder):
+    """Float labels were truncated into ids, -5 and 2**40 reported as class 4294967295, and
+    lists, strings or object arrays raised AttributeError/TypeError (issue 20)."""
+    good = place(1)
+    base = encoder.encode("a", labels=good)
+    # a list of lists and an int16 array are array-likes of ids: the same descriptors
+    for like in (good.tolist(), good.astype(np.int16), good.astype(np.uint64)):
+        assert np.array_equal(encoder.encode("a", labels=like).globals, base.globals)
+    for bad, named in ((good.astype(np.float32) + 0.5, "float32"), (np.full(good.shape, "x"), "<U1"), (np.array([[object()]]), "object")):
+        with pytest.raises(semlook.InvalidInputError, match="integer array"):
+            encoder.encode("a", labels=bad)
+    for value in (-5, 2**40):
+        bad = good.astype(np.int64)
+        bad[3, 4] = value
+        with pytest.raises(semlook.InvalidInputError, match=str(value)):
+            encoder.encode("a", labels=bad)
+    big = good.astype(np.uint64)
+    big[0, 0] = 2**63 + 1
+    with pytest.raises(semlook.InvalidInputError, match=str(2**63 + 1)):
+        encoder.encode("a", labels=big)
+    with pytest.raises(semlook.InvalidInputError, match="uint8"):
+        encoder.encode("a", image=np.zeros((8, 8, 3), np.float64), labels=good)
+    assert issubclass(semlook.InvalidInputError, semlook.SemlookError)
+
+
 def test_appearance_outside_the_encoders_range_is_refused(encoder):
     """A tree appearance value of 100 (VLAD vectors are unit length) made the poisoned image
     top-1 for 29 of 30 queries before it was refused (issue 20)."""
