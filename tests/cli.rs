@@ -238,3 +238,35 @@ fn skip_invalid_also_skips_in_codebook_training() {
     let err = fails(&["query", "--map", p(&map), "--images", p(&tiny), "--labels", p(&tiny.join("labels")), "-q"]);
     assert!(err.contains(p(&tiny.join("dot.png"))) && err.contains("32x32"), "{err}");
 }
+
+/// Small promises of the map commands: `--segment-images 0` is a usage error (exit 2; it meant 1
+/// without a word), a compaction with nothing to do keeps the generation (it bumped it), and
+/// verify says "corrupt:" once per damaged file (it repeated its prefix).
+#[test]
+fn map_commands_keep_their_small_promises() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    ok(&["synth", "--out", p(&data), "--places", "4", "--size", "96x72", "-q"]);
+    let map = dir.path().join("map");
+    let na = "--no-appearance";
+    let zero = semlook(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--segment-images", "0", na, "-q"]);
+    assert_eq!(zero.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&zero.stderr).contains("at least 1"));
+    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--segment-images", "2", na, "-q"]);
+    let generation = |m: &Path| -> u64 { serde_json::from_str::<serde_json::Value>(&ok(&["map", "info", "--map", p(m), "--json"])).unwrap()["generation"].as_u64().unwrap() };
+    // the first compaction merges the two small segments; the second has nothing to do
+    let before = generation(&map);
+    ok(&["map", "compact", "--map", p(&map)]);
+    let merged = generation(&map);
+    assert_eq!(merged, before + 1);
+    ok(&["map", "compact", "--map", p(&map)]);
+    assert_eq!(generation(&map), merged, "a compaction with nothing to do made a new generation");
+    let seg = std::fs::read_dir(&map).unwrap().flatten().map(|e| e.path()).find(|f| f.file_name().unwrap().to_str().unwrap().starts_with("segment-")).unwrap();
+    let mut bytes = std::fs::read(&seg).unwrap();
+    bytes.truncate(bytes.len() - 10);
+    std::fs::write(&seg, bytes).unwrap();
+    let out = semlook(&["map", "verify", "--map", p(&map)]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(err.matches("corrupt:").count(), 1, "{err}");
+}

@@ -301,7 +301,7 @@ pub struct StoreArgs {
     pub f16: bool,
     /// Most images per segment file (a segment is committed when full; a crash loses at most the
     /// segment in progress). Default 4096, fewer when images are large (64 MiB per segment).
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", value_parser = parse_positive)]
     pub segment_images: Option<usize>,
 }
 
@@ -341,7 +341,7 @@ pub enum MapCommand {
         #[arg(long)]
         resume: bool,
         /// Most images per segment file (see `map build`).
-        #[arg(long, value_name = "N")]
+        #[arg(long, value_name = "N", value_parser = parse_positive)]
         segment_images: Option<usize>,
     },
     /// Show a map's size, layout, config and segments (reads the manifest; checks nothing).
@@ -495,4 +495,13 @@ pub fn run() -> semlook::Result<()> {
     logger::init(cli.quiet);
     semlook::progress::show(!cli.quiet);
     commands::dispatch(cli)
+}
+
+/// A count of at least 1 (`--segment-images 0` was taken as 1 without a word).
+fn parse_positive(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(0) => Err("must be at least 1".into()),
+        Ok(n) => Ok(n),
+        Err(e) => Err(e.to_string()),
+    }
 }

@@ -122,9 +122,12 @@ pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
     }
     rewrite(&mut run, &mut buf, &mut out)?;
     let mut m = old.clone();
-    m.segments = out;
-    m.generation += 1;
-    manifest::write(dir, &m)?;
+    // nothing rewritten: the same generation (readers' caches stay valid)
+    if out != old.segments {
+        m.segments = out;
+        m.generation += 1;
+        manifest::write(dir, &m)?;
+    }
     // delete what the new manifest does not reference: replaced segments and strays
     let keep: HashSet<&str> = m.segments.iter().map(|s| s.file.as_str()).chain(m.codebook.as_ref().map(|c| c.file.as_str())).chain([manifest::MANIFEST, files::LOCK]).collect();
     let replaced: HashSet<&str> = old.segments.iter().map(|s| s.file.as_str()).collect();
@@ -172,6 +175,14 @@ impl VerifyReport {
     }
 }
 
+/// What is wrong with a file, without the "map X: corrupt:" the report adds once.
+fn reason_of(e: Error) -> String {
+    match e {
+        Error::CorruptMap { reason, .. } => reason,
+        other => other.to_string(),
+    }
+}
+
 /// Checks every file of the map in full (in parallel): the codebook, and each segment's header,
 /// size, SHA-256 and values. Reports every damaged file, not just the first.
 pub fn verify(dir: &Path) -> Result<VerifyReport> {
@@ -183,13 +194,13 @@ pub fn verify(dir: &Path) -> Result<VerifyReport> {
         .map(|entry| {
             let problem = match Mapped::open(dir, entry, layout) {
                 Ok(seg) => seg.verify().err(),
-                Err(e) => Some(e.to_string()),
+                Err(e) => Some(reason_of(e)),
             };
             FileCheck { file: entry.file.clone(), problem }
         })
         .collect();
     if let Some(entry) = &m.codebook {
-        let problem = super::read_codebook(dir, entry, m.appearance_dim).err().map(|e| e.to_string());
+        let problem = super::read_codebook(dir, entry, m.appearance_dim).err().map(reason_of);
         files.push(FileCheck { file: entry.file.clone(), problem });
     }
     let leftovers = files::leftovers(dir).iter().map(|p| p.display().to_string()).collect();
