@@ -252,7 +252,12 @@ fn map_commands_keep_their_small_promises() {
     let zero = semlook(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--segment-images", "0", na, "-q"]);
     assert_eq!(zero.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&zero.stderr).contains("at least 1"));
-    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--segment-images", "2", na, "-q"]);
+    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--segment-images", "2", na, "--backend", "cpu", "-q"]);
+    // a command that runs on the CPU only refuses --backend instead of ignoring it
+    for args in [vec!["map", "info", "--map", p(&map)], vec!["inspect", "x.png", "--out", "y"], vec!["config"]] {
+        let err = fails(&[args.clone(), vec!["--backend", "gpu"]].concat());
+        assert!(err.contains("--backend gpu") && err.contains("does not apply"), "{args:?}: {err}");
+    }
     let generation = |m: &Path| -> u64 { serde_json::from_str::<serde_json::Value>(&ok(&["map", "info", "--map", p(m), "--json"])).unwrap()["generation"].as_u64().unwrap() };
     // the first compaction merges the two small segments; the second has nothing to do
     let before = generation(&map);

@@ -5,7 +5,7 @@ mod map_cmd;
 use super::*;
 use semlook::config::Config;
 use semlook::encode::Encoder;
-use semlook::engine::Engine;
+use semlook::engine::{Backend, Engine};
 use semlook::gpu::GpuOptions;
 use semlook::error::{Error, Result};
 use semlook::dataset::{Dataset, DatasetOptions};
@@ -19,10 +19,30 @@ use semlook::synth::{self, SynthConfig};
 use std::path::Path;
 use std::time::Instant;
 
+/// Why `command` takes no `--backend`, or `None` where it runs on the backend given.
+fn ignores_backend(command: &Command) -> Option<&'static str> {
+    use super::MapCommand;
+    match command {
+        Command::Bench(_) => Some("bench times the CPU and, unless --cpu-only, every GPU row itself"),
+        Command::Map(MapCommand::Build { .. } | MapCommand::Add { .. }) => None,
+        Command::Map(MapCommand::Bench(_)) => Some("map bench measures the store on the CPU"),
+        Command::Map(_) => Some("this map command reads and writes files only"),
+        Command::Inspect(_) => Some("inspect runs the CPU stages to draw them"),
+        Command::SegmenterAccuracy(_) => Some("segmenter-accuracy runs the segmenter, which runs on the CPU"),
+        Command::Synth(a) if a.from_camvid.is_none() => Some("synth renders on the CPU"),
+        Command::Config => Some("config prints the defaults"),
+        _ => None,
+    }
+}
+
 pub fn dispatch(cli: Cli) -> Result<()> {
     let quiet = cli.quiet;
+    if let (Some(backend), Some(why)) = (cli.backend, ignores_backend(&cli.command)) {
+        return Err(Error::invalid(format!("--backend {}", format!("{backend:?}").to_lowercase()), format!("does not apply here: {why}")));
+    }
+    let backend = cli.backend.unwrap_or(Backend::Auto);
     let engine = || -> Result<Engine> {
-        let (engine, fallback) = Engine::new(cli.backend, &GpuOptions::default())?;
+        let (engine, fallback) = Engine::new(backend, &GpuOptions::default())?;
         if let Some(why) = fallback {
             info(quiet, format!("backend auto: {why}"));
         }

@@ -39,9 +39,11 @@ pub struct Cli {
     #[arg(long, short, global = true)]
     pub quiet: bool,
     /// Where encoding and matching run: `cpu`, `gpu` (any adapter, software ones included), or
-    /// `auto` (a hardware GPU if there is one, else the CPU).
-    #[arg(long, global = true, value_enum, default_value_t = Backend::Auto)]
-    pub backend: Backend,
+    /// `auto` (a hardware GPU if there is one, else the CPU; the default). Commands that run on
+    /// the CPU only (inspect, segmenter-accuracy, bench, map info/remove/compact/verify/bench,
+    /// synth without --from-camvid, config) refuse it rather than ignore it.
+    #[arg(long, global = true, value_enum)]
+    pub backend: Option<Backend>,
     #[command(subcommand)]
     pub command: Command,
 }
