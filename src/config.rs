@@ -267,9 +267,9 @@ impl Default for AppearanceConfig {
 #[serde(default, deny_unknown_fields)]
 pub struct KeypointsConfig {
     /// Keypoints stored per image; 0 stores none (no geometric verification). [R] 384: 69 bytes
-    /// each with XFeat (26.5 kB per image). Sweep 05 (`verified`, three dev sets, K = 20): mean
-    /// R@1 0.795 / 0.831 / 0.834 / 0.807 at 256 / 384 / 512 / 768; 512 would not fit a reference
-    /// in 64 kB.
+    /// each with XFeat (26.5 kB per image). Sweep 05 (`verified`, three dev sets, K = 30): mean
+    /// R@1 0.809 / 0.852 / 0.842 at 256 / 384 / 512 (an earlier run without XFeat's detector:
+    /// 768 lower still); 512 would not fit a reference in 64 kB.
     pub stored: usize,
     /// Non-maximum suppression radius in pixels. [X] XFeat's detector: a 5x5 window (radius 2).
     pub nms_radius: usize,
@@ -383,9 +383,9 @@ pub struct SimilarityConfig {
     /// Which trees may pair (spec §2.8: only the same class): "class", "category" (the same
     /// category, e.g. road with sidewalk, building with wall: what an off-domain segmenter swaps),
     /// or "category_with_appearance" (categories where appearance takes part, classes in the
-    /// label-only Forest settings). [R] category_with_appearance (sweep 06: categories raised
-    /// `local` from 0.641 to 0.678 mean R@1 over the dev sets and lowered `forest` from 0.228 to
-    /// 0.174).
+    /// label-only Forest settings). [R] category_with_appearance (sweep 06, mean R@1 over the
+    /// three dev sets: categories raised `local` and `semlook` from 0.641 to 0.678 and `verified`
+    /// from 0.848 to 0.852, and lowered `forest` from 0.228 to 0.174, which classes keep).
     pub class_match: ClassMatch,
 }
 
@@ -475,11 +475,11 @@ pub struct MatchingConfig {
     /// Final score: "fine" (image similarity) or "fine_times_global" (times the SSIM). [R] fine.
     pub score: ScoreFusion,
     /// The fused coarse stage (`fused`, `verified`) ranks by cos(whole-image appearance) +
-    /// w_global x SSIM(global descriptors). [R] 0.25 (see sweeps/).
+    /// w_global x SSIM(global descriptors). [R] 0.25 (sweep 08: 0, 0.1, 0.25, 0.5, 1 compared).
     pub w_global: f64,
     /// The coarse stage of the paper's two-stage settings (`global-forest`, `semlook`): "global",
     /// the semantic-edge descriptor alone (the paper's reading), or "fused" with the whole-image
-    /// appearance, as `fused` ranks. [R] fused (sweep 05: with the edge descriptor alone the right
+    /// appearance, as `fused` ranks. [R] fused (sweep 08: with the edge descriptor alone the right
     /// place survived to the fine stage for 27 % of the landmark queries at K = 20, and
     /// coarse-to-fine lost places that the fine stage alone finds).
     pub coarse: CoarseStage,
@@ -526,7 +526,8 @@ pub struct VerificationConfig {
     /// [X] XFeat's matcher: 0.82.
     pub min_cosine: f64,
     /// RANSAC inlier threshold on the homography's transfer error, in fractions of the image's
-    /// long side. [R] 0.00625 (4 px at the 640 px working size).
+    /// long side. [R] 0.00625 (4 px at the 640 px working size; sweep 07: 0.003125 and 0.0125
+    /// lower).
     pub threshold: f64,
     /// RANSAC iterations at most, and the confidence that stops earlier. [R] 1000, 0.999.
     pub max_iterations: u32,
@@ -535,10 +536,12 @@ pub struct VerificationConfig {
     pub seed: u64,
     /// Least-squares refits on the inliers of each new best model (LO-RANSAC). [R] on.
     pub refine: bool,
-    /// Which inliers count. [R] off.
+    /// Which inliers count. [R] off (sweep 07: `same_class` lost 0.044 mean R@1: the segmenter's
+    /// labels disagree across conditions where the geometry agrees).
     pub semantic: SemanticCheck,
     /// The verified score: w_inliers ln(1 + inliers) + w_coarse coarse + w_fine fine, with the
-    /// fused coarse score and the tree-set similarity of the pair. [R] 1, 2, 2.
+    /// fused coarse score and the tree-set similarity of the pair. [R] 1, 2, 2 (sweep 07: the
+    /// best of w_coarse 1/2/4 x w_fine 0/1/2/4).
     pub w_inliers: f64,
     pub w_coarse: f64,
     pub w_fine: f64,

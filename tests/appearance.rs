@@ -8,14 +8,9 @@ use semlook::appearance::{network_input, AppearanceModel};
 use semlook::config::{AppearanceConfig, AppearanceModelKind, ModelPaths, Sampling};
 use std::path::{Path, PathBuf};
 
+/// `../shared/REL`, required under CI (the real-image guards must run there).
 fn shared(rel: &str) -> Option<PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared").join(rel);
-    if p.exists() {
-        Some(p)
-    } else {
-        common::skip(format!("{} is absent", p.display()));
-        None
-    }
+    common::shared_or_required(rel)
 }
 
 /// Keypoint sampling: these tests hold the keypoint heads and their decoding (the default,

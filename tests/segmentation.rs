@@ -101,12 +101,7 @@ fn encoding_from_rgb_alone() {
 /// trees that behave on it.
 #[test]
 fn espnet_segments_real_street_frames_plausibly() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared");
-    let (model, frames) = (root.join("models/espnet_cityscapes.onnx"), root.join("data/street-frames"));
-    if !model.exists() || !frames.exists() {
-        common::skip(format!("{} or {} is absent", model.display(), frames.display()));
-        return;
-    }
+    let (Some(model), Some(frames)) = (common::shared_or_required("models/espnet_cityscapes.onnx"), common::shared_or_required("data/street-frames")) else { return };
     let cfg = Config::default();
     let Some(seg) = load(&model, &cfg.segmentation) else { return };
     let table = ClassTable::cityscapes();

@@ -37,3 +37,10 @@ pub mod wgsl;
 
 pub use context::{GpuContext, GpuError, GpuOptions, RESIDENT_FRACTION};
 pub use wgsl::SHADERS;
+
+/// Creates every kernel's pipeline on `device` (with or without the subgroup variants) and drops
+/// them: the driver checks each bind group layout against its shader's bindings. A test hook;
+/// contexts build their pipelines once, themselves.
+pub fn create_every_pipeline(device: &wgpu::Device, subgroups: bool) -> Result<(), GpuError> {
+    kernels::Kernels::new(device, subgroups).map(|_| ())
+}

@@ -17,7 +17,7 @@ fn bytes_of(set: &DescriptorSet) -> u64 {
 /// Bytes a coarse batch writes besides the map: its queries, its empty lists, one parameter entry
 /// per pass and the SSIM constants' uniform of a new matcher (0 for a matcher made earlier).
 fn batch_bytes(ctx: &GpuContext, q: &DescriptorSet, k: usize, passes: u64) -> u64 {
-    bytes_of(q) + (q.len() * k * 8) as u64 + passes * (48u64).next_multiple_of(ctx.uniform_offset_alignment() as u64)
+    bytes_of(q) + (q.len() * k * 8) as u64 + passes * (std::mem::size_of::<semlook::matching::ssim_block::PassParams>() as u64).next_multiple_of(ctx.uniform_offset_alignment() as u64)
 }
 
 /// Two consecutive batches against the same map: the first uploads the map, the second writes
@@ -138,7 +138,7 @@ fn a_large_batch_runs_on_the_device_without_falling_back() {
 fn subgroup_and_workgroup_reductions_give_the_same_lists() {
     let (Some(a), Some(b)) = (gpu(), gpu_with(&GpuOptions { subgroups: false, ..Default::default() })) else { return };
     if !a.uses_subgroups() {
-        return eprintln!("SKIPPED: {} has no subgroup operations", a.describe());
+        return crate::common::skip(format!("{} has no subgroup operations", a.describe()));
     }
     assert!(!b.uses_subgroups());
     let cfg = small_config();
@@ -264,10 +264,8 @@ fn ties_go_to_the_lower_index_on_every_path() {
 /// the fast path equals the twin bit for bit.
 #[test]
 fn coarse_lists_on_real_camvid_labels_equal_both_cpu_paths() {
-    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/camvid-test/labels");
-    let Ok(entries) = std::fs::read_dir(&dir) else {
-        return eprintln!("SKIPPED: no real scene ({} absent)", dir.display());
-    };
+    let Some(dir) = crate::common::shared_or_required("data/camvid-test/labels") else { return };
+    let entries = std::fs::read_dir(&dir).unwrap();
     let Some(ctx) = gpu() else { return };
     let mut files: Vec<_> = entries.map(|e| e.unwrap().path()).filter(|p| p.extension().is_some_and(|x| x == "png")).collect();
     files.sort();
