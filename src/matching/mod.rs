@@ -116,8 +116,8 @@ impl Setting {
             Setting::Global => "global SSIM only",
             Setting::Forest => "Forest, whole map",
             Setting::Local => "Forest+appearance, whole map",
-            Setting::GlobalForest => "global top-K -> Forest",
-            Setting::Semlook => "global top-K -> Forest+appearance",
+            Setting::GlobalForest => "coarse top-K -> Forest",
+            Setting::Semlook => "coarse top-K -> Forest+appearance",
             Setting::Fused => "global+appearance top-K only",
             Setting::Verified => "fused top-K -> local + verification",
         }
