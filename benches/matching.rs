@@ -39,7 +39,7 @@ fn bench(c: &mut Criterion) {
             let mut stages = semlook::engine::GpuStages::new(std::sync::Arc::new(ctx));
             let refs = common::map_of(&cfg, &images, 1_000);
             g.throughput(Throughput::Elements((1_000 * queries.len()) as u64));
-            g.bench_function(format!("gpu ssim_topk on {name}/1000_refs_x4_queries"), |b| {
+            g.bench_function(format!("gpu ssim_block + topk_select on {name}/1000_refs_x4_queries"), |b| {
                 b.iter(|| semlook::matching::Stages::coarse(&mut stages, &refs, &queries, &p, cfg.matching.top_k, cfg.matching.tile).unwrap())
             });
         }

@@ -68,7 +68,7 @@ fn f16_maps_round_values_and_keep_everything_else() {
     let (a, b) = (size(&Map::open(&f32_dir).unwrap()), size(&map));
     assert!((b as f64) < 0.6 * a as f64, "f16 {b} bytes, f32 {a}");
     let queries = common::encode(&cfg, &common::label_maps(3, 80, 60), "q");
-    let (m, _) = match_batch(&map, &queries, Setting::Semlook, &cfg);
+    let (m, _) = match_batch(&map, &queries, Setting::Semlook, &cfg).unwrap();
     assert_eq!(m.len(), 3);
 }
 
@@ -325,7 +325,7 @@ fn segmented_maps_stream_and_match_like_one_set() {
     assert_eq!(back.forest(7).classes, set.forest(7).classes);
     let queries = common::encode(&cfg, &common::label_maps(4, 80, 60), "q");
     for setting in Setting::SEMLOOK {
-        assert_eq!(match_batch(&back, &queries, setting, &cfg).0, match_batch(&set, &queries, setting, &cfg).0, "{setting}");
+        assert_eq!(match_batch(&back, &queries, setting, &cfg).unwrap().0, match_batch(&set, &queries, setting, &cfg).unwrap().0, "{setting}");
     }
 }
 
@@ -398,7 +398,7 @@ fn device_cache_keys_follow_the_map_and_its_generation() {
 
 /// Ids and scores of every query's ranked list.
 fn ranked(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Vec<Vec<(String, u32)>> {
-    match_batch(refs, queries, setting, cfg).0.iter().map(|m| m.ranked.iter().map(|c| (refs.id(c.reference as usize).to_string(), c.score.to_bits())).collect()).collect()
+    match_batch(refs, queries, setting, cfg).unwrap().0.iter().map(|m| m.ranked.iter().map(|c| (refs.id(c.reference as usize).to_string(), c.score.to_bits())).collect()).collect()
 }
 
 #[test]

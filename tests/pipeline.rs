@@ -44,7 +44,7 @@ fn a_map_queried_with_itself_finds_itself_in_every_setting() {
     let cfg = Config::without_appearance();
     let refs = common::encode(&cfg, &common::label_maps(12, 120, 90), "r");
     for setting in Setting::SEMLOOK {
-        let (m, _) = match_batch(&refs, &refs, setting, &cfg);
+        let (m, _) = match_batch(&refs, &refs, setting, &cfg).unwrap();
         for (q, qm) in m.iter().enumerate() {
             let best = qm.best().unwrap();
             assert_eq!(best.reference as usize, q, "{setting}: query {q}");

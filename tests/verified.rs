@@ -32,7 +32,7 @@ fn verification_with_no_keypoints_on_either_side_scores_zero() {
     let cfg = Config::without_appearance();
     let refs = common::encode(&cfg, &common::label_maps(5, 80, 60), "r");
     assert_eq!(refs.n_keypoints(), 0);
-    let (m, _) = match_batch(&refs, &refs, Setting::Verified, &cfg);
+    let (m, _) = match_batch(&refs, &refs, Setting::Verified, &cfg).unwrap();
     assert!(m.iter().all(|q| !q.ranked.is_empty() && q.ranked.iter().all(|c| c.inliers == Some(0))));
 }
 
@@ -79,15 +79,16 @@ fn a_default_map_of_real_frames_fits_64_kb_per_reference_and_reports_coarse_reca
     let run = |json: bool| semlook(&args(json).iter().map(String::as_str).collect::<Vec<_>>());
     let report: serde_json::Value = serde_json::from_str(&run(true)).unwrap();
     let results = report["results"].as_array().unwrap();
+    let k = semlook::config::Config::default().matching.top_k;
     for r in results {
         let coarse = &r["coarse_recall"];
         match r["setting"].as_str().unwrap() {
-            "global" | "fused" | "global-forest" | "semlook" | "verified" => assert!(coarse[0] == 20 && coarse[1].as_f64().unwrap() > 0.5, "{r}"),
+            "global" | "fused" | "global-forest" | "semlook" | "verified" => assert!(coarse[0] == k && coarse[1].as_f64().unwrap() > 0.5, "{r}"),
             _ => assert!(coarse.is_null(), "{r}"),
         }
     }
     let verified = results.iter().find(|r| r["setting"] == "verified").unwrap();
     assert!(verified["recall_at"][0][1].as_f64().unwrap() >= 0.9, "{verified}");
     let text = run(false);
-    assert!(text.contains("coarse@K") && text.lines().any(|l| l.contains("verified") && l.contains("@20")), "{text}");
+    assert!(text.contains("coarse@K") && text.lines().any(|l| l.contains("verified") && l.contains(&format!("@{k}"))), "{text}");
 }

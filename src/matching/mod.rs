@@ -214,17 +214,8 @@ impl Stages for CpuStages {
 
 /// Matches every query of `queries` against `refs` with `setting` on the CPU; results in query
 /// order. A baseline the descriptors lack (see [`baseline::unavailable`]), or a stored map with a
-/// damaged segment, ranks nothing (a warning is logged); [`try_match_batch`] returns either as an
-/// error instead.
-pub fn match_batch(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> (Vec<QueryMatch>, MatchTimes) {
-    try_match_batch(refs, queries, setting, cfg).unwrap_or_else(|e| {
-        log::warn!("{e}");
-        (vec![QueryMatch { ranked: vec![] }; queries.len()], MatchTimes::default())
-    })
-}
-
-/// [`match_batch`], failing when `setting` cannot run on these descriptors.
-pub fn try_match_batch(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<QueryMatch>, MatchTimes)> {
+/// damaged segment, is an error (one fallible path, as `Engine::match_batch`).
+pub fn match_batch(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<QueryMatch>, MatchTimes)> {
     match_with(&mut CpuStages, refs, queries, setting, cfg)
 }
 

@@ -364,7 +364,10 @@ fn config_run(text: &str) -> Verdict {
         }
     }
     for setting in semlook::matching::Setting::SEMLOOK {
-        let (m, _) = semlook::matching::match_batch(&set, &set, setting, &cfg);
+        let m = match semlook::matching::match_batch(&set, &set, setting, &cfg) {
+            Ok((m, _)) => m,
+            Err(e) => return Verdict::Violation(format!("{setting}: {e}")),
+        };
         if m.len() != 2 || m.iter().any(|q| q.ranked.is_empty()) {
             return Verdict::Violation(format!("{setting}: {} rankings", m.len()));
         }

@@ -346,7 +346,7 @@ fn embedding_in_a_host_device() {
     let refs = common::encode(&cfg, &common::label_maps(8, 80, 60), "r");
     let queries = common::encode(&cfg, &common::label_maps(3, 80, 60), "r");
     let (g, _) = engine.match_batch(&refs, &queries, Setting::Semlook, &cfg).unwrap();
-    let (c, _) = match_batch(&refs, &queries, Setting::Semlook, &cfg);
+    let (c, _) = match_batch(&refs, &queries, Setting::Semlook, &cfg).unwrap();
     for (a, b) in g.iter().zip(&c) {
         assert_eq!(a.best().unwrap().reference, b.best().unwrap().reference);
     }
@@ -506,7 +506,7 @@ fn auto_falls_back_to_the_cpu_when_the_gpu_fails_mid_run() {
     assert!(matches!(strict.match_batch(&refs, &refs, Setting::Semlook, &cfg), Err(semlook::Error::Gpu(_))));
     let mut auto = Engine::with_context(ctx).fall_back_to_cpu(true);
     let (m, _) = auto.match_batch(&refs, &refs, Setting::Semlook, &cfg).unwrap();
-    assert_eq!(m, match_batch(&refs, &refs, Setting::Semlook, &cfg).0);
+    assert_eq!(m, match_batch(&refs, &refs, Setting::Semlook, &cfg).unwrap().0);
     assert!(!auto.is_gpu(), "the engine continues on the CPU");
 }
 
