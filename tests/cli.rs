@@ -275,3 +275,25 @@ fn map_commands_keep_their_small_promises() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(err.matches("corrupt:").count(), 1, "{err}");
 }
+
+/// A file name that is not UTF-8 (`caf\xe9.png`, Latin-1) is read through the OS name: its label map
+/// is found beside it (before, the lossy id was joined back into a path and reported
+/// `caf\u{fffd}.png: No such file or directory` though the file exists).
+#[cfg(unix)]
+#[test]
+fn non_utf8_file_names_are_found() {
+    use std::os::unix::ffi::OsStrExt;
+    let dir = tempfile::tempdir().unwrap();
+    let (images, labels) = (dir.path().join("images"), dir.path().join("labels"));
+    std::fs::create_dir_all(&images).unwrap();
+    std::fs::create_dir_all(&labels).unwrap();
+    let name = std::ffi::OsStr::from_bytes(b"caf\xe9.png");
+    let street = common::street_scene(96, 72);
+    let grey = image::GrayImage::from_fn(96, 72, |x, y| image::Luma([street.get(x, y)]));
+    grey.save_with_format(labels.join(name), image::ImageFormat::Png).unwrap();
+    image::RgbImage::new(96, 72).save_with_format(images.join(name), image::ImageFormat::Png).unwrap();
+    let map = dir.path().join("map");
+    ok(&["map", "build", "--images", p(&images), "--labels", p(&labels), "--out", p(&map), "--no-appearance", "--no-segmenter", "-q"]);
+    let info: serde_json::Value = serde_json::from_str(&ok(&["map", "info", "--map", p(&map), "--json"])).unwrap();
+    assert_eq!(info["images"], 1);
+}

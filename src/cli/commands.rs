@@ -185,7 +185,15 @@ fn frame_sources(s: &SourceArgs, cfg: &mut Config, keep_ids: bool) -> Result<(Ve
     let frames = match (&s.images, &s.labels) {
         (Some(img), labels) => listing(img)?
             .into_iter()
-            .map(|p| FrameSource { id: stem(&p), labels: labels.as_ref().map(|l| l.join(format!("{}.png", stem(&p)))), image: Some(p) })
+            .map(|p| {
+                // the label file from the OS name itself: a non-UTF-8 name is found, not mangled
+                let label_name = |l: &std::path::PathBuf| {
+                    let mut n = p.file_stem().unwrap_or_default().to_os_string();
+                    n.push(".png");
+                    l.join(n)
+                };
+                FrameSource { id: stem(&p), labels: labels.as_ref().map(label_name), image: Some(p.clone()) }
+            })
             .collect(),
         (None, Some(labels)) => listing(labels)?.into_iter().map(|p| FrameSource { id: stem(&p), image: None, labels: Some(p) }).collect(),
         (None, None) => return Err(Error::invalid("arguments", "give --dataset, --images or --labels")),
