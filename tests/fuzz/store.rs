@@ -13,6 +13,7 @@ use semlook::config::Config;
 use semlook::descriptors::DescriptorSet;
 use semlook::global::ssim::{ssim_stats, SsimParams, SsimScratch};
 use semlook::map::{edit, Manifest, Map, MapWriter, StoreOptions};
+use semlook::descriptors::source::RefSource;
 use semlook::matching::{match_with, CpuStages, Setting};
 use semlook::values::ValueType;
 use semlook::Error;
@@ -295,9 +296,44 @@ fn edit_manifest(e: &mut Entropy, v: &mut serde_json::Value, other: &serde_json:
     }
 }
 
+/// Every query's ranked (id, score bits) in every label setting, for `queries` against the map in
+/// `dir`; `None` when the map does not open or a setting fails.
+fn rankings(dir: &Path, queries: &DescriptorSet) -> Option<Vec<Vec<Vec<(String, u32)>>>> {
+    let map = Map::open(dir).ok()?;
+    let cfg = Config::default().with_encoding(&map.manifest.config);
+    Setting::SEMLOOK
+        .iter()
+        .map(|&s| {
+            let (m, _) = match_with(&mut CpuStages, &map, queries, s, &cfg).ok()?;
+            Some(m.iter().map(|q| q.ranked.iter().map(|c| (map.id(c.reference as usize).to_string(), c.score.to_bits())).collect()).collect())
+        })
+        .collect()
+}
+
+/// Fixed queries (the first two live images of map `which`, with SSIM statistics) and the
+/// rankings the unedited map gives them.
+fn baseline(st: &Store, which: usize) -> (DescriptorSet, Vec<Vec<Vec<(String, u32)>>>) {
+    st.restore(&st.manifests[which], None).map_err(|_| ()).expect("fixture restore");
+    let map = Map::open(&st.work).expect("fixture map opens");
+    let mut q = map.to_descriptor_set().expect("fixture reads back").slice(0, 2);
+    let p = SsimParams::new(&Config::default().with_encoding(&map.manifest.config).global);
+    q.stats_len = p.stats_len();
+    let mut scratch = SsimScratch::default();
+    for i in 0..q.len() {
+        let mut stats = vec![0.0; q.stats_len];
+        ssim_stats(&p, q.global(i), &mut stats, &mut scratch);
+        q.global_stats.extend(stats);
+    }
+    let r = rankings(&st.work, &q).expect("fixture rankings");
+    (q, r)
+}
+
 pub fn map_manifest_values() -> Option<Target> {
     let st = Store::new();
     let manifests: Vec<serde_json::Value> = st.manifests.iter().map(|m| serde_json::from_slice(m).expect("fixture manifest")).collect();
+    // what the unedited maps answer: an edit that opens must not change it (issue 20: a flipped
+    // removed row or config value was served with other results)
+    let baselines: Vec<_> = (0..manifests.len()).map(|m| baseline(&st, m)).collect();
     let run = move |b: &[u8]| {
         // a short input repeated: the values past the segment list take choices too (truncated
         // inputs would otherwise leave every later value as it was)
@@ -313,10 +349,19 @@ pub fn map_manifest_values() -> Option<Target> {
         if depth == 2 {
             json_mutate(&mut e, &mut v);
         }
-        match st.restore(v.to_string().as_bytes(), None) {
-            Ok(()) => use_map(&st.work, &|e| names_map_file(e, &st.work), edit),
-            Err(v) => v,
+        if let Err(v) = st.restore(v.to_string().as_bytes(), None) {
+            return v;
         }
+        // refused at open, or the same answers as the unedited map (before any remove/compact)
+        if Map::open(&st.work).is_ok() && edit::verify(&st.work).is_ok_and(|r| r.damaged().count() == 0) {
+            let (queries, expected) = &baselines[which];
+            if let Some(got) = rankings(&st.work, queries) {
+                if got != *expected {
+                    return Verdict::Violation("an edited manifest opened and changed the answers to the same queries".into());
+                }
+            }
+        }
+        use_map(&st.work, &|e| names_map_file(e, &st.work), edit)
     };
     let mut seeds = vec![vec![0u8; 8], vec![1, 0, 0, 0, 0, 0, 0, 0], vec![0, 0, 0, 0, 2, 0, 0, 0], vec![1, 0, 0, 0, 2, 0, 0, 0]];
     seeds.extend(random_seeds(11, 12, 256));
