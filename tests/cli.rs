@@ -2,22 +2,9 @@
 
 mod common;
 
+use common::{cli as semlook, cli_ok as ok, p};
+use std::process::Command;
 use std::path::Path;
-use std::process::{Command, Output};
-
-fn semlook(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_semlook")).args(args).output().expect("binary runs")
-}
-
-fn ok(args: &[&str]) -> String {
-    let out = semlook(args);
-    assert!(out.status.success(), "semlook {args:?} failed:\n{}", String::from_utf8_lossy(&out.stderr));
-    String::from_utf8(out.stdout).unwrap()
-}
-
-fn p(path: &Path) -> &str {
-    path.to_str().unwrap()
-}
 
 #[test]
 fn config_prints_a_loadable_default() {

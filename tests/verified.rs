@@ -8,18 +8,7 @@ use semlook::config::Config;
 use semlook::descriptors::keypoints::KeypointsRef;
 use semlook::matching::{match_batch, Setting};
 use semlook::verify::{verify_pair, Verified, VerifyParams};
-use std::path::Path;
-use std::process::Command;
-
-fn semlook(args: &[&str]) -> String {
-    let out = Command::new(env!("CARGO_BIN_EXE_semlook")).args(args).output().expect("binary runs");
-    assert!(out.status.success(), "semlook {args:?} failed:\n{}", String::from_utf8_lossy(&out.stderr));
-    String::from_utf8(out.stdout).unwrap()
-}
-
-fn p(path: &Path) -> &str {
-    path.to_str().unwrap()
-}
+use common::{cli_ok as semlook, p};
 
 #[test]
 fn verification_with_no_keypoints_on_either_side_scores_zero() {

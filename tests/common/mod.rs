@@ -135,3 +135,20 @@ pub fn edit_sealed_manifest(dir: &Path, edit: impl FnOnce(&str) -> String) {
     let parsed: semlook::map::manifest::Manifest = serde_json::from_str(&text).unwrap();
     std::fs::write(&path, parsed.to_json().unwrap()).unwrap();
 }
+
+/// Runs the `semlook` binary with `args`.
+pub fn cli(args: &[&str]) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_semlook")).args(args).output().expect("binary runs")
+}
+
+/// The stdout of a `semlook` run that must succeed.
+pub fn cli_ok(args: &[&str]) -> String {
+    let out = cli(args);
+    assert!(out.status.success(), "semlook {args:?} failed:\n{}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8(out.stdout).unwrap()
+}
+
+/// A path as the `&str` a command line takes.
+pub fn p(path: &Path) -> &str {
+    path.to_str().unwrap()
+}

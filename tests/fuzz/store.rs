@@ -214,6 +214,19 @@ fn remove_and_compact(dir: &Path, first: &str, n: usize) -> Verdict {
     }
 }
 
+/// Gives `rows` (read back from a map, which stores no SSIM statistics) the statistics an
+/// encoder's query set has.
+fn add_ssim_stats(rows: &mut DescriptorSet, cfg: &Config) {
+    let p = SsimParams::new(&cfg.global);
+    rows.stats_len = p.stats_len();
+    let mut scratch = SsimScratch::default();
+    for i in 0..rows.len() {
+        let mut stats = vec![0.0; rows.stats_len];
+        ssim_stats(&p, rows.global(i), &mut stats, &mut scratch);
+        rows.global_stats.extend(stats);
+    }
+}
+
 /// Queries a map with a damaged segment, with queries of its own (the first live images of its
 /// sound segments): every setting must refuse with the damage named, as `e` names it. `None`
 /// when no sound image is left to query with.
@@ -230,15 +243,7 @@ fn damaged_queries(map: &Map, cfg: &Config, e: &Error) -> Option<Verdict> {
     if rows.is_empty() {
         return None;
     }
-    // with SSIM statistics, as an encoder's query set has them
-    let p = SsimParams::new(&cfg.global);
-    rows.stats_len = p.stats_len();
-    let mut scratch = SsimScratch::default();
-    for i in 0..rows.len() {
-        let mut stats = vec![0.0; rows.stats_len];
-        ssim_stats(&p, rows.global(i), &mut stats, &mut scratch);
-        rows.global_stats.extend(stats);
-    }
+    add_ssim_stats(&mut rows, cfg);
     for setting in Setting::ALL {
         match match_with(&mut CpuStages, map, &rows, setting, cfg) {
             Err(Error::CorruptMap { path, .. }) if e.to_string().contains(&path.display().to_string()) => {}
@@ -316,14 +321,7 @@ fn baseline(st: &Store, which: usize) -> (DescriptorSet, Vec<Vec<Vec<(String, u3
     st.restore(&st.manifests[which], None).map_err(|_| ()).expect("fixture restore");
     let map = Map::open(&st.work).expect("fixture map opens");
     let mut q = map.to_descriptor_set().expect("fixture reads back").slice(0, 2);
-    let p = SsimParams::new(&Config::default().with_encoding(&map.manifest.config).global);
-    q.stats_len = p.stats_len();
-    let mut scratch = SsimScratch::default();
-    for i in 0..q.len() {
-        let mut stats = vec![0.0; q.stats_len];
-        ssim_stats(&p, q.global(i), &mut stats, &mut scratch);
-        q.global_stats.extend(stats);
-    }
+    add_ssim_stats(&mut q, &Config::default().with_encoding(&map.manifest.config));
     let r = rankings(&st.work, &q).expect("fixture rankings");
     (q, r)
 }
