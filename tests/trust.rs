@@ -44,6 +44,57 @@ fn an_edited_manifest_is_refused_not_served() {
     assert_eq!(Map::open(&path).unwrap().len(), 3, "the original manifest opens again");
 }
 
+/// Rewrites the map's manifest with `edit` applied and a checksum that matches (a deliberate
+/// edit, not a damaged byte).
+fn reseal(path: &Path, edit: impl FnOnce(&mut semlook::map::Manifest)) {
+    let mut m = semlook::map::manifest::read_existing(path).unwrap();
+    edit(&mut m);
+    std::fs::write(path.join("manifest.json"), m.to_json().unwrap()).unwrap();
+}
+
+/// A resealed manifest (checksum recomputed) with a config value out of range is refused by open
+/// and by verify alike, naming the manifest and the field; before, verify passed what the query
+/// then refused.
+#[test]
+fn verify_refuses_a_resealed_manifest_with_values_a_query_refuses() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, path) = map_with_a_removal(dir.path());
+    reseal(&path, |m| m.config.global.ssim_window = 0);
+    let open = Map::open(&path).unwrap_err().to_string();
+    let verify = edit::verify(&path).unwrap_err().to_string();
+    for msg in [&open, &verify] {
+        assert!(msg.contains("manifest.json") && msg.contains("ssim_window"), "{msg}");
+    }
+}
+
+/// `map verify` checks the keypoint network as a query does: the installed one must be the one
+/// the map was built with. A map resealed to another network's SHA-256 fails verify naming the
+/// manifest and both hashes in full (the query's message used to show two equal 12-character
+/// prefixes); the matching network passes and is named.
+#[test]
+fn verify_checks_the_installed_keypoint_network() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, path) = map_with_a_removal(dir.path());
+    let models = dir.path().join("models");
+    std::fs::create_dir(&models).unwrap();
+    std::fs::write(models.join(semlook::appearance::XFEAT_WEIGHTS), b"installed weights").unwrap();
+    let installed = semlook::util::sha256_hex(b"installed weights");
+    let other = format!("{}0", &installed[..63]);
+    let run = |sha: &str| {
+        reseal(&path, |m| {
+            m.config.appearance.model = semlook::config::AppearanceModelKind::Xfeat;
+            m.appearance_model = Some(sha.to_string());
+        });
+        std::process::Command::new(env!("CARGO_BIN_EXE_semlook")).args(["map", "verify", "--map", common::p(&path)]).env("SEMLOOK_MODELS", &models).output().unwrap()
+    };
+    let bad = run(&other);
+    let text = String::from_utf8_lossy(&bad.stdout).to_string() + &String::from_utf8_lossy(&bad.stderr);
+    assert!(!bad.status.success() && text.contains("manifest.json") && text.contains(&other) && text.contains(&installed), "{text}");
+    let good = run(&installed);
+    let text = String::from_utf8_lossy(&good.stdout).to_string();
+    assert!(good.status.success() && text.contains("ok       keypoint network") && text.contains(&installed), "{text}\n{}", String::from_utf8_lossy(&good.stderr));
+}
+
 /// `set` with unit appearance vectors of 2 x 3 values (codebook of 2 centres of 3 values) tagged
 /// with `codebook`'s SHA-256.
 fn with_appearance(mut set: semlook::descriptors::DescriptorSet, codebook: &Codebook) -> semlook::descriptors::DescriptorSet {

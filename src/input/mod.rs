@@ -152,6 +152,10 @@ fn decode_jpeg_scaled(bytes: &[u8], path: &Path, min: &dyn Fn((u32, u32)) -> (u3
     if full.0 == 0 || full.1 == 0 {
         return Err(Error::EmptyImage { path: path.into(), width: full.0, height: full.1 });
     }
+    let need = jpeg_decode_bytes(bytes.len(), full, info.pixel_format);
+    if need > MAX_DECODED_BYTES {
+        return Err(too_large(path, full, need));
+    }
     let min = min(full);
     let req = (min.0.clamp(1, full.0) as u16, min.1.clamp(1, full.1) as u16);
     let (w, h) = d.scale(req.0, req.1).map_err(bad)?;
@@ -165,6 +169,31 @@ fn decode_jpeg_scaled(bytes: &[u8], path: &Path, min: &dyn Fn((u32, u32)) -> (u3
     };
     let img = img.ok_or_else(|| Error::ImageDecode { path: path.into(), reason: "decoded JPEG has the wrong number of pixels".into() })?;
     Ok(Some((img, full)))
+}
+
+/// Largest MCU a JPEG may have, in pixels per side (8 x the largest sampling factor, 4).
+const JPEG_MAX_MCU_SIDE: u64 = 32;
+/// Bytes per component sample jpeg-decoder holds while decoding: the 8-bit plane its workers
+/// fill as soon as the first scan starts, and the i16 coefficients of a progressive frame.
+const JPEG_WORK_BYTES_PER_SAMPLE: u64 = 3;
+
+/// What decoding a JPEG of `full` pixels costs at most, counted from its header: the file, the
+/// component planes and coefficients over the MCU-padded frame, and the RGB copy. jpeg-decoder
+/// checks its own limit only after the scans, while its worker threads have already sized the
+/// planes from the header (a 4 GB allocation for a damaged 4 KB file), so this is checked first.
+fn jpeg_decode_bytes(file_bytes: usize, full: (u32, u32), format: jpeg_decoder::PixelFormat) -> u64 {
+    let components = format.pixel_bytes() as u64;
+    let pad = |v: u32| (u64::from(v) + JPEG_MAX_MCU_SIDE - 1) / JPEG_MAX_MCU_SIDE * JPEG_MAX_MCU_SIDE;
+    let padded = pad(full.0) * pad(full.1);
+    let pixels = u64::from(full.0) * u64::from(full.1);
+    (file_bytes as u64).saturating_add(padded * components * JPEG_WORK_BYTES_PER_SAMPLE).saturating_add(pixels * RGB_COPY_BYTES_PER_PIXEL)
+}
+
+fn too_large(path: &Path, (w, h): (u32, u32), need: u64) -> Error {
+    Error::ImageDecode {
+        path: path.into(),
+        reason: format!("{w}x{h} pixels would take {} MiB to decode and convert, above the limit of {} MiB", need >> 20, MAX_DECODED_BYTES >> 20),
+    }
 }
 
 /// Decodes an image whose file bytes, decoded pixels and the `copy_bytes_per_pixel` its caller
@@ -183,10 +212,7 @@ fn decode_bytes(bytes: Vec<u8>, path: &Path, copy_bytes_per_pixel: u64) -> Resul
     let pixels = u64::from(w) * u64::from(h);
     let need = file_bytes.saturating_add(pixels.saturating_mul(decoder.color_type().bytes_per_pixel() as u64 + copy_bytes_per_pixel));
     if need > MAX_DECODED_BYTES {
-        return Err(Error::ImageDecode {
-            path: path.into(),
-            reason: format!("{w}x{h} pixels would take {} MiB to decode and convert, above the limit of {} MiB", need >> 20, MAX_DECODED_BYTES >> 20),
-        });
+        return Err(too_large(path, (w, h), need));
     }
     let mut limits = image::Limits::default();
     limits.max_alloc = Some(MAX_DECODED_BYTES);
@@ -356,6 +382,29 @@ mod tests {
         let q = dir.path().join("f.png");
         img.save(&q).unwrap();
         assert_eq!(load_rgb_at_least(&q, |_| (10, 10)).unwrap().0.dimensions(), (800, 600));
+    }
+
+    /// A damaged header declaring 16000 x 16000 grey pixels in a 1 KB file: refused from the
+    /// header, naming the file and the sizes. Before, jpeg-decoder's worker thread sized a
+    /// 256 MB plane from it while the scan was decoded (4 GB for the file the long fuzz run found)
+    /// and its own limit was checked only afterwards.
+    #[test]
+    fn a_jpeg_whose_header_declares_too_many_pixels_is_refused_before_decoding() {
+        let mut bytes = Vec::new();
+        let grey = GrayImage::from_fn(40, 33, |x, y| Luma([(x * y) as u8]));
+        DynamicImage::ImageLuma8(grey).write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Jpeg).unwrap();
+        let sof = bytes.windows(2).position(|w| w == [0xFF, 0xC0]).expect("a baseline SOF");
+        // SOF0: marker, length (2), precision (1), height (2), width (2)
+        bytes[sof + 5..sof + 7].copy_from_slice(&16_000u16.to_be_bytes());
+        bytes[sof + 7..sof + 9].copy_from_slice(&16_000u16.to_be_bytes());
+        let e = decode_rgb_at_least(bytes, Path::new("damaged.jpg"), |f| f).map(|r| r.1).unwrap_err();
+        let msg = e.to_string();
+        assert!(matches!(e, Error::ImageDecode { .. }) && msg.contains("damaged.jpg") && msg.contains("16000x16000") && msg.contains("MiB"), "{msg}");
+        // a frame well inside the limit still decodes
+        let ok = RgbImage::from_fn(1920, 1080, |x, y| Rgb([x as u8, y as u8, 7]));
+        let mut b = Vec::new();
+        DynamicImage::ImageRgb8(ok).write_to(&mut std::io::Cursor::new(&mut b), image::ImageFormat::Jpeg).unwrap();
+        assert_eq!(decode_rgb_at_least(b, Path::new("ok.jpg"), |f| f).unwrap().1, (1920, 1080));
     }
 
     #[test]

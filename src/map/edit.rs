@@ -167,6 +167,10 @@ pub struct VerifyReport {
     /// Temporary files and staging folders interrupted writers left ([`files::leftovers`]); the
     /// next writer removes them under the lock.
     pub leftovers: Vec<String>,
+    /// SHA-256 of the keypoint network the map's appearance was computed with (queries must use
+    /// the same), and how it is configured.
+    pub appearance_model: Option<String>,
+    pub appearance_kind: crate::config::AppearanceModelKind,
 }
 
 impl VerifyReport {
@@ -204,7 +208,7 @@ pub fn verify(dir: &Path) -> Result<VerifyReport> {
         files.push(FileCheck { file: entry.file.clone(), problem });
     }
     let leftovers = files::leftovers(dir).iter().map(|p| p.display().to_string()).collect();
-    Ok(VerifyReport { generation: m.generation, images: m.live_images(), files, leftovers })
+    Ok(VerifyReport { generation: m.generation, images: m.live_images(), files, leftovers, appearance_model: m.appearance_model.clone(), appearance_kind: m.config.appearance.model })
 }
 
 /// Builds a map with `build` into a new directory beside `out` (same folder, unique name) and,

@@ -143,6 +143,9 @@ pub fn read(dir: &Path) -> Result<Option<Manifest>> {
         _ => return Err(Error::corrupt(&path, "the manifest's checksum does not match its content (edited by hand, or damaged): restore it, or build the map again")),
     }
     check(&m).map_err(|r| Error::corrupt(&path, r))?;
+    // the values a query is encoded and matched with, in the ranges a config file is held to
+    // (a resealed edit such as `ssim_window = 0` is refused here, by open and verify alike)
+    crate::config::Config::default().with_encoding(&m.config).validate(&path.display().to_string())?;
     Ok(Some(m))
 }
 

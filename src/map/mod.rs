@@ -85,9 +85,7 @@ impl Map {
     }
 
     pub(crate) fn open_generation(dir: &Path, manifest: Manifest) -> Result<Map> {
-        let mpath = dir.join(manifest::MANIFEST);
         let cfg = &manifest.config;
-        crate::config::Config::default().with_encoding(cfg).validate(&mpath.display().to_string())?;
         let table = ClassTable::from_config(&cfg.classes)?;
         let codebook = match &manifest.codebook {
             Some(entry) => Some(read_codebook(dir, entry, manifest.appearance_dim)?),
@@ -179,8 +177,8 @@ impl Map {
     /// checksum, or none without appearance) cannot be matched against this map.
     pub fn check_model(&self, model_sha256: Option<&str>) -> Result<()> {
         if self.manifest.appearance_model.as_deref() != model_sha256 {
-            // the first 12 characters (the manifest's value is any string, not necessarily hex)
-            let show = |v: Option<&str>| v.map_or("none".to_string(), |s| format!("sha256 {}", s.chars().take(12).collect::<String>()));
+            // in full: two hashes may share any prefix
+            let show = |v: Option<&str>| v.map_or("none".to_string(), |s| format!("sha256 {s}"));
             return Err(Error::IncompatibleConfig {
                 map: self.path.clone(),
                 field: "appearance keypoint network".into(),

@@ -208,7 +208,11 @@ fn compact(dir: &Path, json: bool) -> Result<()> {
 }
 
 fn verify(dir: &Path, json: bool) -> Result<()> {
-    let r = edit::verify(dir)?;
+    let mut r = edit::verify(dir)?;
+    let model = check_installed_model(&mut r);
+    if let (Some(line), false) = (&model, json) {
+        outln!("{line}");
+    }
     if json {
         outln!("{}", to_json(&r)?);
     } else {
@@ -263,4 +267,31 @@ fn bench(a: &StoreBenchArgs, quiet: bool) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// What a query checks of the keypoint network, checked by verify too: the installed network
+/// (found as a query finds it) is the one the map's appearance was computed with. A mismatch is
+/// reported as a problem of the manifest; the line says what was checked.
+fn check_installed_model(r: &mut edit::VerifyReport) -> Option<String> {
+    use semlook::config::AppearanceModelKind;
+    let want = r.appearance_model.clone()?;
+    match r.appearance_kind {
+        AppearanceModelKind::Xfeat => {}
+        AppearanceModelKind::Onnx => return Some("model    not checked: the map's keypoint network is an ONNX model, which a query names".into()),
+        AppearanceModelKind::None => return None,
+    }
+    let name = semlook::appearance::XFEAT_WEIGHTS;
+    let found = semlook::onnx::env_model(name).map(Ok).unwrap_or_else(|| semlook::onnx::find_model(name, None, "XFeat weights"));
+    let Ok(path) = found else {
+        return Some(format!("model    not checked: no {name} installed (queries need the one with sha256 {want})"));
+    };
+    match semlook::util::sha256_file(&path) {
+        Ok(sha) if sha == want => Some(format!("ok       keypoint network {} (sha256 {sha})", path.display())),
+        Ok(sha) => {
+            let problem = format!("the map's appearance was computed with the keypoint network of sha256 {want}; the installed {} is {sha}, so queries would be refused", path.display());
+            r.files.push(edit::FileCheck { file: "manifest.json".into(), problem: Some(problem) });
+            None
+        }
+        Err(e) => Some(format!("model    not checked: {e}")),
+    }
 }
