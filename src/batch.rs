@@ -51,6 +51,16 @@ pub fn train_codebook_skipping(encoder: &mut Encoder, refs: &[FrameSource], skip
     if encoder.appearance_model().is_none() {
         return Ok(());
     }
+    // frames the store will refuse do not shape the codebook ([`encode_into`] reports them)
+    let mut usable = Vec::with_capacity(refs.len());
+    for f in refs {
+        match id_refusal(f) {
+            None => usable.push(f.clone()),
+            Some(e) if !skip_invalid => return Err(e),
+            Some(_) => {}
+        }
+    }
+    let refs = &usable[..];
     let n = encoder.config().appearance.codebook_images.min(refs.len());
     let pb = progress::bar(n, "codebook", quiet);
     let skipped = encoder.train_codebook_skipping(refs, skip_invalid, &|| pb.inc(1))?;
@@ -59,6 +69,11 @@ pub fn train_codebook_skipping(encoder: &mut Encoder, refs: &[FrameSource], skip
         log::warn!("codebook training skips {}: {e}", refs[*i].id);
     }
     Ok(())
+}
+
+/// The store's refusal of a frame's id (empty, too long, control characters), if it has one.
+fn id_refusal(f: &FrameSource) -> Option<Error> {
+    crate::descriptors::validate::id(&f.id).err().map(|reason| Error::InvalidImage { id: f.id.clone(), reason })
 }
 
 /// A set of frames encoded into a descriptor set.
@@ -129,8 +144,25 @@ pub fn encode_into(engine: &mut Engine, encoder: &Encoder, frames: &[FrameSource
     if let (false, Some(id)) = (opts.skip_stored, frames.iter().find(|f| stored.contains(&f.id))) {
         return Err(Error::DuplicateImageId { map: writer.dir().to_path_buf(), id: id.id.clone() });
     }
-    let todo: Vec<&FrameSource> = frames.iter().filter(|f| !stored.contains(&f.id)).collect();
-    let mut report = IntoReport { already_stored: frames.len() - todo.len(), ..Default::default() };
+    let mut report = IntoReport::default();
+    let mut todo: Vec<&FrameSource> = Vec::with_capacity(frames.len());
+    for f in frames {
+        if stored.contains(&f.id) {
+            report.already_stored += 1;
+            continue;
+        }
+        // an id the store refuses is refused (or skipped) before any frame is encoded
+        match id_refusal(f) {
+            None => todo.push(f),
+            Some(e) => {
+                if !opts.skip_invalid {
+                    return Err(e);
+                }
+                log::warn!("skipped {:?}: {e}", f.id);
+                report.invalid.push((f.id.clone(), e));
+            }
+        }
+    }
     let pb = progress::bar(todo.len(), "images", opts.quiet);
     let (mut times, t0) = (Vec::new(), std::time::Instant::now());
     let before = writer.committed();

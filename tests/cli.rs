@@ -261,6 +261,52 @@ fn map_commands_keep_their_small_promises() {
     assert_eq!(out.status.code(), Some(1));
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(err.matches("corrupt:").count(), 1, "{err}");
+    // a segment replaced by a directory is named as such (it said "file is 4096 bytes")
+    std::fs::remove_file(&seg).unwrap();
+    std::fs::create_dir(&seg).unwrap();
+    let err = fails(&["map", "verify", "--map", p(&map)]);
+    assert!(err.contains("not a regular file") && !err.contains("4096"), "{err}");
+    // a folder with no map gives the OS's message (it said "entity not found")
+    let err = fails(&["map", "info", "--map", p(dir.path())]);
+    assert!(err.contains("manifest.json") && err.contains("No such file or directory") && !err.contains("entity"), "{err}");
+}
+
+/// `--skip-invalid` skips what the store would refuse and what cannot be read, naming each: an id
+/// with a control character, a dangling symlink and a symlink loop (before, the id stopped the
+/// build after committing the frames before it). Without the flag, the id is refused before
+/// anything is encoded or committed.
+#[cfg(unix)]
+#[test]
+fn skip_invalid_skips_bad_ids_dangling_links_and_loops() {
+    use std::os::unix::fs::symlink;
+    let dir = tempfile::tempdir().unwrap();
+    let (images, labels) = (dir.path().join("images"), dir.path().join("labels"));
+    std::fs::create_dir_all(&images).unwrap();
+    std::fs::create_dir_all(&labels).unwrap();
+    let street = common::street_scene(96, 72);
+    let grey = image::GrayImage::from_fn(96, 72, |x, y| image::Luma([street.get(x, y)]));
+    for name in ["a.png", "b.png", "bad\u{1}id.png", "c.png"] {
+        grey.save(labels.join(name)).unwrap();
+        image::RgbImage::new(96, 72).save_with_format(images.join(name), image::ImageFormat::Png).unwrap();
+    }
+    for d in [&images, &labels] {
+        symlink(d.join("nowhere.png"), d.join("dangling.png")).unwrap();
+        symlink(d.join("loop2.png"), d.join("loop1.png")).unwrap();
+        symlink(d.join("loop1.png"), d.join("loop2.png")).unwrap();
+    }
+    let map = dir.path().join("map");
+    let build = |extra: &[&str]| semlook(&[&["map", "build", "--images", p(&images), "--labels", p(&labels), "--out", p(&map), "--no-appearance", "--no-segmenter"][..], extra].concat());
+    let refused = build(&[]);
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success() && err.contains("control character") && !err.contains("committing"), "{err}");
+    let out = build(&["--skip-invalid", "--force"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    for named in ["control character", "dangling", "loop1", "loop2"] {
+        assert!(err.contains(named), "{named} not named: {err}");
+    }
+    let info: serde_json::Value = serde_json::from_str(&ok(&["map", "info", "--map", p(&map), "--json"])).unwrap();
+    assert_eq!(info["images"], 3);
 }
 
 /// A file name that is not UTF-8 (`caf\xe9.png`, Latin-1) is read through the OS name: its label map

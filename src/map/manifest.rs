@@ -15,6 +15,8 @@ pub const FORMAT: &str = "semlook-map";
 pub const VERSION: u32 = 4;
 pub const MANIFEST: &str = "manifest.json";
 pub const CODEBOOK: &str = "codebook.safetensors";
+/// ENOENT on Unix, ERROR_FILE_NOT_FOUND on Windows: the same number.
+const NO_SUCH_FILE: i32 = 2;
 /// Largest manifest read: a million-image map has a few hundred segment entries (about 100 kB),
 /// so anything near this bound is not a manifest.
 const MAX_MANIFEST_BYTES: u64 = 256 << 20;
@@ -190,7 +192,8 @@ fn check(m: &Manifest) -> std::result::Result<(), String> {
 
 /// [`read`] for a directory that must hold a map: no manifest is a not-found error naming it.
 pub fn read_existing(dir: &Path) -> Result<Manifest> {
-    read(dir)?.ok_or_else(|| Error::io(dir.join(MANIFEST), std::io::ErrorKind::NotFound.into()))
+    // the OS's own "No such file or directory" (a bare ErrorKind says "entity not found")
+    read(dir)?.ok_or_else(|| Error::io(dir.join(MANIFEST), std::io::Error::from_raw_os_error(NO_SUCH_FILE)))
 }
 
 /// The configuration queries of a map are encoded and matched with when none is given: the map's

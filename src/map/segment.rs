@@ -191,7 +191,11 @@ impl Mapped {
     pub fn open(dir: &Path, entry: &SegmentEntry, layout: Layout) -> Result<Mapped> {
         let path = dir.join(&entry.file);
         let file = std::fs::File::open(&path).map_err(|e| Error::io(&path, e))?;
-        let len = file.metadata().map_err(|e| Error::io(&path, e))?.len();
+        let meta = file.metadata().map_err(|e| Error::io(&path, e))?;
+        if !meta.is_file() {
+            return Err(Error::corrupt(&path, "is not a regular file (a directory or device in the segment's place)"));
+        }
+        let len = meta.len();
         if len != entry.bytes {
             return Err(Error::corrupt(&path, format!("file is {len} bytes, the manifest says {} (truncated or replaced)", entry.bytes)));
         }
