@@ -205,9 +205,47 @@ fn per_call_us(reps: usize, mut f: impl FnMut(usize)) -> f64 {
     t.elapsed().as_secs_f64() * 1e6 / reps as f64
 }
 
+/// Bytes a stored reference takes beyond its global descriptor (trees, ids, headers): the
+/// benchmark's label-only maps measure about 900 (`map info`); this bounds it from above.
+const STORED_EXTRA_BYTES_PER_REF: u64 = 4096;
+/// Bytes of memory a map reference costs the writer while it builds (its id in the known set).
+const BUILD_BYTES_PER_REF: u64 = 64;
+/// Share of the available memory (and of the free disk space) a benchmark may plan to use.
+const RESOURCE_SHARE: f64 = 0.5;
+
+/// Checks every size against what this machine can give, before anything is rendered, written or
+/// allocated: each map on the free space of `opts.dir`, each query batch (descriptors and their
+/// SSIM statistics) and each build in half the available memory.
+pub fn check_sizes(opts: &StoreBenchOptions, global_len: usize, stats_len: usize) -> Result<()> {
+    let value_bytes = if opts.values == ValueType::F16 { 2 } else { 4 };
+    let per_ref = global_len as u64 * value_bytes + STORED_EXTRA_BYTES_PER_REF;
+    let per_query = (global_len + stats_len) as u64 * 4 + STORED_EXTRA_BYTES_PER_REF;
+    let memory = (crate::util::available_memory_bytes() as f64 * RESOURCE_SHARE) as u64;
+    let probe = opts.dir.ancestors().find(|d| d.exists()).unwrap_or(&opts.dir);
+    let disk = (fs4::available_space(probe).map_err(|e| Error::io(probe, e))? as f64 * RESOURCE_SHARE) as u64;
+    let gib = |b: u64| b as f64 / (1u64 << 30) as f64;
+    for &n in &opts.sizes {
+        let need = (n as u64).saturating_mul(per_ref);
+        if n == 0 || need > disk {
+            return Err(Error::invalid("--sizes", format!("a map of {n} references takes about {:.1} GiB; half the free space of {} is {:.1} GiB: at most {} references", gib(need), probe.display(), gib(disk), disk / per_ref)));
+        }
+        if (n as u64).saturating_mul(BUILD_BYTES_PER_REF) > memory {
+            return Err(Error::invalid("--sizes", format!("building a map of {n} references needs more than half this machine's available memory ({:.1} GiB)", gib(memory))));
+        }
+    }
+    for q in opts.passes.iter().map(|p| p.queries).chain(opts.stats_comparison.iter().copied()) {
+        let need = (q as u64).saturating_mul(per_query);
+        if q == 0 || need > memory {
+            return Err(Error::invalid("--passes", format!("a batch of {q} queries takes about {:.1} GiB; this machine can give it {:.1} GiB (half of its available memory): at most {} queries", gib(need), gib(memory), memory / per_query)));
+        }
+    }
+    Ok(())
+}
+
 /// Runs the benchmark for every size; `tick` gets each row as it is done.
 pub fn run(cfg: &Config, opts: &StoreBenchOptions, tick: &mut dyn FnMut(&StoreBenchRow)) -> Result<StoreBenchReport> {
     let p = SsimParams::new(&cfg.global);
+    check_sizes(opts, p.len(), p.stats_len())?;
     let pool = frames(cfg, POOL, Condition::Day, 0)?;
     let qpool = frames(cfg, QUERY_POOL, Condition::Night, 5)?;
     let enc = Encoder::new(&Config { appearance: AppearanceConfig { model: AppearanceModelKind::None, ..cfg.appearance.clone() }, ..cfg.clone() })?;

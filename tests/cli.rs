@@ -179,7 +179,7 @@ fn fails(args: &[&str]) -> String {
 /// f32. `synth --places 4000000000` is refused before allocating, with the largest size this
 /// machine can take; before, it allocated 22 GB until the OOM killer ended it.
 #[test]
-fn resume_checks_every_layout_option_and_synth_sizes_are_bounded_by_memory() {
+fn resume_checks_every_layout_option_and_size_options_are_bounded() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
     ok(&["synth", "--out", p(&data), "--places", "3", "--size", "96x72", "-q"]);
@@ -194,6 +194,14 @@ fn resume_checks_every_layout_option_and_synth_sizes_are_bounded_by_memory() {
     let err = fails(&["synth", "--out", p(&dir.path().join("huge")), "--places", "4000000000", "-q"]);
     assert!(err.contains("GiB") && err.contains("at most"), "{err}");
     assert!(!dir.path().join("huge").exists(), "a refused synth wrote output");
+    // the store benchmark's sizes are bounded by the free disk space and the memory, checked
+    // before anything is written (before, 4e9 references ran until an allocation failed)
+    let bench_dir = dir.path().join("bench");
+    for (flag, value, says) in [("--sizes", "4000000000", "free space"), ("--passes", "4000000000", "available memory")] {
+        let err = fails(&["map", "bench", flag, value, "--dir", p(&bench_dir), "-q"]);
+        assert!(err.contains(flag) && err.contains(says) && err.contains("at most"), "{flag}: {err}");
+    }
+    assert!(!bench_dir.exists(), "a refused benchmark wrote a map");
 }
 
 /// `map build --skip-invalid` skips an undecodable reference in the codebook training as in the
