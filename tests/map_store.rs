@@ -500,3 +500,28 @@ fn two_writers_committing_in_turn_both_land_and_a_raced_id_is_refused() {
     assert_eq!(ids, expect);
     map.check_all().unwrap();
 }
+
+/// An image removed and added again makes a segment of the same bytes as the one that held it
+/// (files are named by their content). The new one gets a name of its own: before, the manifest
+/// listed one file twice (its rows and tombstones shared), and every open then failed with
+/// "segment ... is listed twice" (found by the soak test, `tests/soak.rs`).
+#[test]
+fn an_image_removed_and_added_again_gets_a_segment_of_its_own() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = Config::without_appearance();
+    let set = common::encode(&cfg, &common::label_maps(2, 64, 48), "r");
+    let path = dir.path().join("m");
+    let mut map = Map::create_with(&path, &cfg.encoding(), &set, None, StoreOptions { segment_images: 1, ..Default::default() }).unwrap();
+    assert_eq!(edit::remove(&path, &["r1".to_string()]).unwrap(), 1);
+    map = Map::open(&path).unwrap();
+    map.add_in_segments(&set.slice(1, 2), 1).unwrap();
+    let reopened = Map::open(&path).expect("the map opens after the image came back");
+    let ids = reopened.to_descriptor_set().unwrap().ids;
+    assert_eq!(ids, ["r0", "r1"]);
+    let files: Vec<&str> = reopened.manifest.segments.iter().map(|s| s.file.as_str()).collect();
+    assert_eq!(files.len(), 3, "{files:?}");
+    assert!(edit::verify(&path).unwrap().damaged().next().is_none());
+    // compaction drops the tombstoned copy and keeps the image once
+    edit::compact(&path, StoreOptions::default()).unwrap();
+    assert_eq!(Map::open(&path).unwrap().to_descriptor_set().unwrap().ids, ["r0", "r1"]);
+}

@@ -84,7 +84,10 @@ pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
         if buf.is_empty() {
             return Ok(());
         }
-        let (bytes, entry) = segment::encode(buf, &layout).map_err(|r| Error::invalid(format!("map {}", dir.display()), r))?;
+        let (bytes, mut entry) = segment::encode(buf, &layout).map_err(|r| Error::invalid(format!("map {}", dir.display()), r))?;
+        // unique among the files kept, written, and replaced (deleted after the commit)
+        let listed: Vec<SegmentEntry> = out.iter().chain(&old.segments).cloned().collect();
+        entry.file = manifest::unique_segment_name(&listed, &entry.file, old.generation + 1);
         write_atomic(dir, &entry.file, &bytes)?;
         out.push(entry);
         *buf = buf.empty_like();

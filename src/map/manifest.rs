@@ -118,6 +118,18 @@ pub fn is_store_file(name: &str) -> bool {
     name == MANIFEST || name == super::files::LOCK || name == CODEBOOK || (name.starts_with("segment-") && name.ends_with(".safetensors")) || (name.starts_with('.') && name.ends_with(".tmp"))
 }
 
+/// A segment file name for `content_name` (named by its content's hash) that no entry of
+/// `segments` holds: the same images removed and added again make the same bytes, and a second
+/// entry of one file would share its rows and tombstones. A taken name gets the generation that
+/// commits it (new to this manifest, so not taken).
+pub fn unique_segment_name(segments: &[SegmentEntry], content_name: &str, generation: u64) -> String {
+    if !segments.iter().any(|s| s.file == content_name) {
+        return content_name.to_string();
+    }
+    let stem = content_name.strip_suffix(".safetensors").unwrap_or(content_name);
+    format!("{stem}-g{generation}.safetensors")
+}
+
 /// Reads and checks `dir/manifest.json`; `Ok(None)` when there is none.
 pub fn read(dir: &Path) -> Result<Option<Manifest>> {
     let path = dir.join(MANIFEST);

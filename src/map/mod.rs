@@ -70,18 +70,7 @@ impl Map {
     /// Opens the map in `dir`: the manifest, the codebook (small, checked in full) and a mapping
     /// of every segment with its header checked. Checksums and values are checked on first use.
     pub fn open(dir: &Path) -> Result<Map> {
-        let mut last_generation = None;
-        for _ in 0..OPEN_ATTEMPTS {
-            let m = manifest::read_existing(dir)?;
-            let generation = m.generation;
-            match Map::open_generation(dir, m) {
-                Err(Error::Io { source, .. }) if source.kind() == std::io::ErrorKind::NotFound && last_generation != Some(generation) => {
-                    last_generation = Some(generation);
-                }
-                other => return other,
-            }
-        }
-        Err(Error::corrupt(dir, format!("segments listed by the manifest kept disappearing over {OPEN_ATTEMPTS} reads (deleted by hand, or compacted without pause)")))
+        with_current_manifest(dir, |m| Map::open_generation(dir, m))
     }
 
     pub(crate) fn open_generation(dir: &Path, manifest: Manifest) -> Result<Map> {
@@ -217,6 +206,24 @@ fn compute_stats(p: &SsimParams, globals: &[f32], stats: &mut [f32]) {
 }
 
 /// Reads and checks the codebook file (small: read and hashed in full at open).
+/// Runs `read` on the current manifest of `dir`, again on the next one when a segment it lists
+/// was deleted meanwhile (a compaction committed between the two reads); a file missing twice
+/// from the same generation is an error.
+pub(crate) fn with_current_manifest<T>(dir: &Path, mut read: impl FnMut(Manifest) -> Result<T>) -> Result<T> {
+    let mut last_generation = None;
+    for _ in 0..OPEN_ATTEMPTS {
+        let m = manifest::read_existing(dir)?;
+        let generation = m.generation;
+        match read(m) {
+            Err(Error::Io { source, .. }) if source.kind() == std::io::ErrorKind::NotFound && last_generation != Some(generation) => {
+                last_generation = Some(generation);
+            }
+            other => return other,
+        }
+    }
+    Err(Error::corrupt(dir, format!("segments listed by the manifest kept disappearing over {OPEN_ATTEMPTS} reads (deleted by hand, or compacted without pause)")))
+}
+
 fn read_codebook(dir: &Path, entry: &manifest::FileEntry, appearance_dim: usize) -> Result<Codebook> {
     let p = dir.join(&entry.file);
     let bytes = std::fs::read(&p).map_err(|e| Error::io(&p, e))?;

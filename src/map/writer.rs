@@ -147,14 +147,19 @@ impl MapWriter {
     /// A writer that appends to the map in `dir` (its storage type applies; `opts.values` is
     /// ignored). Reads the ids of every stored segment (not their checksums).
     pub fn append(dir: &Path, opts: StoreOptions) -> Result<MapWriter> {
-        let manifest = manifest::read(dir)?.ok_or_else(|| Error::invalid(format!("map {}", dir.display()), "no manifest.json: not a map (build it first, or --resume an interrupted build)"))?;
-        let n_classes = ClassTable::from_config(&manifest.config.classes)?.len();
-        let layout = super::layout_of(&manifest, n_classes);
-        let pending = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog).with_keypoint_dim(layout.kdim);
-        let mut w = MapWriter { dir: dir.into(), layout, first: None, known: HashSet::new(), seen: HashSet::new(), pending, opts: StoreOptions { values: manifest.values, ..opts }, committed: 0, manifest };
-        let segments = w.manifest.segments.clone();
-        w.learn(&segments, &HashSet::new())?;
-        Ok(w)
+        if manifest::read(dir)?.is_none() {
+            return Err(Error::invalid(format!("map {}", dir.display()), "no manifest.json: not a map (build it first, or --resume an interrupted build)"));
+        }
+        // read without the lock: a compaction may delete a listed segment meanwhile
+        super::with_current_manifest(dir, |manifest| {
+            let n_classes = ClassTable::from_config(&manifest.config.classes)?.len();
+            let layout = super::layout_of(&manifest, n_classes);
+            let pending = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog).with_keypoint_dim(layout.kdim);
+            let mut w = MapWriter { dir: dir.into(), layout, first: None, known: HashSet::new(), seen: HashSet::new(), pending, opts: StoreOptions { values: manifest.values, ..opts }, committed: 0, manifest };
+            let segments = w.manifest.segments.clone();
+            w.learn(&segments, &HashSet::new())?;
+            Ok(w)
+        })
     }
 
     /// Adds the live ids of `segments` not seen yet to the known ids; fails if one of them is in
@@ -297,15 +302,25 @@ impl MapWriter {
         }
         let (bytes, entry) = segment::encode(&self.pending, &self.layout).map_err(|r| Error::invalid(format!("map {}", self.dir.display()), r))?;
         let ids: Vec<String> = self.pending.ids.clone();
-        self.commit(|m| m.segments.push(entry.clone()), Some((&entry.file, &bytes)), &ids)?;
-        self.seen.insert(entry.file);
+        let file = self.commit(
+            |m, file| {
+                if let Some(file) = file {
+                    m.segments.push(SegmentEntry { file: file.to_string(), ..entry.clone() });
+                }
+            },
+            Some((&entry.file, &bytes)),
+            &ids,
+        )?;
+        self.seen.extend(file);
         self.committed += self.pending.len();
         self.pending = self.pending.empty_like();
         Ok(())
     }
 
-    /// One commit under the lock: `change` applied to the current manifest, `file` written first.
-    fn commit(&mut self, change: impl FnOnce(&mut Manifest), file: Option<(&str, &[u8])>, buffered: &[String]) -> Result<()> {
+    /// One commit under the lock: `file` (content name, bytes) written first under a name no
+    /// listed segment holds, then `change` applied to the current manifest with that name, which
+    /// is returned.
+    fn commit(&mut self, change: impl FnOnce(&mut Manifest, Option<&str>), file: Option<(&str, &[u8])>, buffered: &[String]) -> Result<Option<String>> {
         let _lock = WriteLock::take(&self.dir)?;
         let what = || format!("map {}", self.dir.display());
         let mut m = match (manifest::read(&self.dir)?, &self.first) {
@@ -325,15 +340,16 @@ impl MapWriter {
         let buffered: HashSet<&str> = buffered.iter().map(|s| s.as_str()).collect();
         let others = m.segments.clone();
         self.learn(&others, &buffered)?;
-        if let Some((name, bytes)) = file {
+        let name = file.map(|(content_name, _)| manifest::unique_segment_name(&m.segments, content_name, m.generation + 1));
+        if let (Some(name), Some((_, bytes))) = (&name, file) {
             write_atomic(&self.dir, name, bytes)?;
         }
-        change(&mut m);
+        change(&mut m, name.as_deref());
         m.generation += 1;
         manifest::write(&self.dir, &m)?;
         self.manifest = m;
         self.first = None;
-        Ok(())
+        Ok(name)
     }
 
     /// Commits what is buffered and opens the map. A new map that received no image is committed
@@ -341,7 +357,7 @@ impl MapWriter {
     pub fn finish(mut self) -> Result<Map> {
         self.flush()?;
         if self.first.is_some() {
-            self.commit(|_| {}, None, &[])?;
+            self.commit(|_, _| {}, None, &[])?;
         }
         Map::open(&self.dir)
     }
