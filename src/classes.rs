@@ -5,8 +5,61 @@
 //! SemLook paper's segmenter (refs 31-32 of the paper) outputs. Class indices are `u8`; [`VOID`]
 //! marks pixels that belong to no class (Cityscapes' ignore label 255).
 
-use crate::config::{ClassSpec, ClassesConfig, LabelIds, TableSpec};
 use crate::error::{Error, Result};
+use serde::{Deserialize, Serialize};
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ClassesConfig {
+    /// "cityscapes" (19 train ids) or an inline list of `{ name, color, dynamic }`.
+    pub table: TableSpec,
+    /// How ids in single-channel label PNGs map to classes: "train_id" (id = table index),
+    /// "cityscapes_label_id", "synthia", or a list of `[id, "class name" | "void"]` pairs.
+    pub label_ids: LabelIds,
+    /// File ids that mean "no class" (Cityscapes' ignore label is 255).
+    pub void_ids: Vec<u32>,
+    /// Class names left out of objects and edges, e.g. the dynamic classes
+    /// ["person", "rider", "car", "truck", "bus", "train", "motorcycle", "bicycle"]. [R] default: none.
+    pub exclude: Vec<String>,
+}
+
+impl Default for ClassesConfig {
+    fn default() -> Self {
+        ClassesConfig {
+            table: TableSpec::Builtin("cityscapes".into()),
+            label_ids: LabelIds::Named("train_id".into()),
+            void_ids: vec![255],
+            exclude: vec![],
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum TableSpec {
+    Builtin(String),
+    Custom(Vec<ClassSpec>),
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ClassSpec {
+    pub name: String,
+    pub color: [u8; 3],
+    #[serde(default)]
+    pub dynamic: bool,
+    /// The class's category (`similarity.class_match`); default: the built-in category of its
+    /// name (`classes::category_of`), else its own name.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub category: Option<String>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum LabelIds {
+    Named(String),
+    Custom(Vec<(u32, String)>),
+}
 use std::collections::HashMap;
 
 /// Class index of a pixel that belongs to no class (ignored everywhere).
@@ -309,7 +362,6 @@ fn is_cityscapes(specs: &[ClassSpec]) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::ClassesConfig;
 
     #[test]
     fn cityscapes_ids_colours_and_void() {

@@ -58,58 +58,8 @@ impl Default for InputConfig {
     }
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct ClassesConfig {
-    /// "cityscapes" (19 train ids) or an inline list of `{ name, color, dynamic }`.
-    pub table: TableSpec,
-    /// How ids in single-channel label PNGs map to classes: "train_id" (id = table index),
-    /// "cityscapes_label_id", "synthia", or a list of `[id, "class name" | "void"]` pairs.
-    pub label_ids: LabelIds,
-    /// File ids that mean "no class" (Cityscapes' ignore label is 255).
-    pub void_ids: Vec<u32>,
-    /// Class names left out of objects and edges, e.g. the dynamic classes
-    /// ["person", "rider", "car", "truck", "bus", "train", "motorcycle", "bicycle"]. [R] default: none.
-    pub exclude: Vec<String>,
-}
-
-impl Default for ClassesConfig {
-    fn default() -> Self {
-        ClassesConfig {
-            table: TableSpec::Builtin("cityscapes".into()),
-            label_ids: LabelIds::Named("train_id".into()),
-            void_ids: vec![255],
-            exclude: vec![],
-        }
-    }
-}
-
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(untagged)]
-pub enum TableSpec {
-    Builtin(String),
-    Custom(Vec<ClassSpec>),
-}
-
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ClassSpec {
-    pub name: String,
-    pub color: [u8; 3],
-    #[serde(default)]
-    pub dynamic: bool,
-    /// The class's category (`similarity.class_match`); default: the built-in category of its
-    /// name (`classes::category_of`), else its own name.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub category: Option<String>,
-}
-
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(untagged)]
-pub enum LabelIds {
-    Named(String),
-    Custom(Vec<(u32, String)>),
-}
+/// The `[classes]` section; defined beside the table it builds ([`crate::classes`]).
+pub use crate::classes::{ClassSpec, ClassesConfig, LabelIds, TableSpec};
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]

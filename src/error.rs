@@ -50,7 +50,7 @@ pub enum Error {
     #[error("{what}: {reason}")]
     InvalidInput { what: String, reason: String },
     #[error(transparent)]
-    Gpu(#[from] crate::gpu::GpuError),
+    Gpu(#[from] GpuError),
     #[error("model {path}: {reason}")]
     Model { path: PathBuf, reason: String },
 }
@@ -78,4 +78,24 @@ impl Error {
     pub fn invalid(what: impl Into<String>, reason: impl Into<String>) -> Self {
         Error::InvalidInput { what: what.into(), reason: reason.into() }
     }
+}
+
+/// What went wrong on the GPU path (`crate::gpu`): defined here, below every stage, so that the
+/// error enum imports no stage.
+#[derive(Debug, thiserror::Error)]
+pub enum GpuError {
+    #[error("no GPU adapter found{0}")]
+    NoAdapter(String),
+    #[error("adapter {adapter}: cannot create a device: {reason}")]
+    Device { adapter: String, reason: String },
+    #[error("GPU device lost: {0}")]
+    DeviceLost(String),
+    #[error("GPU out of memory while {0}")]
+    OutOfMemory(String),
+    #[error("adapter {adapter}: {what} needs {needed} but the limit is {available}")]
+    LimitsTooSmall { adapter: String, what: String, needed: u64, available: u64 },
+    #[error("shader {name}: {message}")]
+    Shader { name: String, message: String },
+    #[error("GPU error while {what}: {reason}")]
+    Failed { what: String, reason: String },
 }

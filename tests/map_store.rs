@@ -511,9 +511,9 @@ fn an_image_removed_and_added_again_gets_a_segment_of_its_own() {
     let cfg = Config::without_appearance();
     let set = common::encode(&cfg, &common::label_maps(2, 64, 48), "r");
     let path = dir.path().join("m");
-    let mut map = Map::create_with(&path, &cfg.encoding(), &set, None, StoreOptions { segment_images: 1, ..Default::default() }).unwrap();
+    Map::create_with(&path, &cfg.encoding(), &set, None, StoreOptions { segment_images: 1, ..Default::default() }).unwrap();
     assert_eq!(edit::remove(&path, &["r1".to_string()]).unwrap(), 1);
-    map = Map::open(&path).unwrap();
+    let mut map = Map::open(&path).unwrap();
     map.add_in_segments(&set.slice(1, 2), 1).unwrap();
     let reopened = Map::open(&path).expect("the map opens after the image came back");
     let ids = reopened.to_descriptor_set().unwrap().ids;

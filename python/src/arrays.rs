@@ -1,5 +1,5 @@
-//! Shared helpers: read-only numpy views that keep their owner alive, thread pools per
-//! `threads=` count, and names of settings.
+//! Shared helpers: read-only numpy views that keep their owner alive, JSON values as Python
+//! objects, thread pools per `threads=` count, and names of settings.
 
 use crate::errors::invalid;
 use numpy::ndarray::{ArrayViewD, IxDyn};
@@ -61,4 +61,10 @@ pub fn fusion(name: &str) -> PyResult<semlook::config::ScoreFusion> {
         "fine_times_global" => Ok(ScoreFusion::FineTimesGlobal),
         _ => Err(invalid("score fusion", format!("{name:?} is not fine or fine_times_global"))),
     }
+}
+
+/// A JSON-serialisable value as a Python object (dicts, lists, numbers, strings).
+pub fn to_py_object<'py>(py: Python<'py>, v: &impl serde::Serialize) -> PyResult<Bound<'py, PyAny>> {
+    let text = serde_json::to_string(v).map_err(|e| invalid("result", e))?;
+    py.import("json")?.call_method1("loads", (text,))
 }

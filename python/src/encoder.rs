@@ -5,7 +5,7 @@ use crate::arrays::{detached, pool};
 use crate::descriptors::PyDescriptors;
 use crate::engine::{run, PyEngine};
 use crate::errors::{invalid, OrPy};
-use crate::map::PyMap;
+use crate::store::PyMap;
 use numpy::{PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use semlook::config::Config;

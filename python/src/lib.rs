@@ -11,6 +11,7 @@ mod errors;
 mod map;
 mod matches;
 mod shard;
+mod store;
 
 use pyo3::prelude::*;
 
@@ -21,7 +22,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<encoder::PyEncoder>()?;
     m.add_class::<engine::PyEngine>()?;
     m.add_class::<descriptors::PyDescriptors>()?;
-    m.add_class::<map::PyMap>()?;
+    m.add_class::<store::PyMap>()?;
     m.add_class::<matches::PyMatches>()?;
     m.add_class::<shard::PyShard>()?;
     m.add_function(wrap_pyfunction!(map::evaluate, m)?)?;

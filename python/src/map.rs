@@ -6,6 +6,8 @@ use crate::descriptors::PyDescriptors;
 use crate::encoder::{PyConfig, PyEncoder};
 use crate::errors::{invalid, OrPy};
 use crate::matches::PyMatches;
+use crate::store::{wrap, PyMap};
+use crate::arrays::to_py_object;
 use pyo3::prelude::*;
 use semlook::config::Config;
 use semlook::map::{edit, Map, MapWriter, StoreOptions};
@@ -13,24 +15,6 @@ use semlook::matching::source::RefSource;
 use crate::engine::{run, PyEngine};
 use semlook::values::{ValueType, Values};
 use std::path::PathBuf;
-use std::sync::Arc;
-
-/// A JSON-serialisable value as a Python object (dicts, lists, numbers, strings).
-pub fn to_py_object<'py>(py: Python<'py>, v: &impl serde::Serialize) -> PyResult<Bound<'py, PyAny>> {
-    let text = serde_json::to_string(v).map_err(|e| invalid("result", e))?;
-    py.import("json")?.call_method1("loads", (text,))
-}
-
-/// A map of places, opened from its directory. An open map never changes: `add`, `remove` and
-/// `compact` commit a new generation and return the map reopened.
-#[pyclass(frozen, module = "semlook._native", name = "Map")]
-pub struct PyMap {
-    pub inner: Arc<Map>,
-}
-
-fn wrap(m: Map) -> PyMap {
-    PyMap { inner: Arc::new(m) }
-}
 
 fn store_options(segment_images: Option<usize>, f16: bool) -> PyResult<StoreOptions> {
     let mut o = StoreOptions { values: if f16 { ValueType::F16 } else { ValueType::F32 }, ..Default::default() };

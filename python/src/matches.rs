@@ -95,7 +95,7 @@ impl PyMatches {
                 serde_json::json!({"query": q, "top_k": top})
             })
             .collect();
-        crate::map::to_py_object(py, &rows)
+        crate::arrays::to_py_object(py, &rows)
     }
     /// Whether `other` ranks the same references with the same ids and bit-identical scores.
     fn equals(&self, other: &PyMatches) -> bool {

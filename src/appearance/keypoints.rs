@@ -5,8 +5,7 @@
 //! has one); then non-maximum suppression, a threshold, the best N, and descriptors sampled
 //! bilinearly from the dense map and L2-normalised.
 
-use super::nn::Chw;
-use super::NetOutputs;
+use super::nn::{Chw, NetOutputs};
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct KeypointParams {

@@ -17,22 +17,14 @@ use image::RgbImage;
 use keypoints::{KeypointParams, Keypoints};
 use nn::Chw;
 use std::path::PathBuf;
-use vlad::{Codebook, VladNorm, VladParams};
+use vlad::{Codebook, VladNorm};
+use vlad_accumulate::VladParams;
 use crate::descriptors::keypoints::{ImageKeypoints, COORD_SCALE};
 
 /// File name of the XFeat weights in the setup folder.
 pub const XFEAT_WEIGHTS: &str = "xfeat.pt";
 
-/// What a keypoint network gives at 1/8 resolution.
-#[derive(Debug, Clone)]
-pub struct NetOutputs {
-    /// Dense descriptors [D, h, w].
-    pub descriptors: Chw,
-    /// Keypoint logits [65, h, w], SuperPoint cell layout (64 pixels + dustbin).
-    pub logits: Chw,
-    /// Reliability [1, h, w] in [0, 1], when the network has one (XFeat).
-    pub reliability: Option<Chw>,
-}
+pub use nn::NetOutputs;
 
 enum Network {
     XFeat(xfeat::XFeat),
@@ -270,9 +262,9 @@ pub fn object_vlad(descs: &[f32], offsets: &[u32], codebook: &Codebook, norm: Vl
     let n = offsets.last().copied().unwrap_or(0) as usize;
     let p = VladParams::new(codebook, n, objects, norm);
     let mut assign = vec![0u32; n];
-    vlad::vlad_assign(&p, &codebook.centres, descs, &mut assign);
+    vlad_accumulate::vlad_assign(&p, &codebook.centres, descs, &mut assign);
     let mut out = vec![0.0f32; objects * codebook.k * codebook.dim];
-    vlad::vlad_accumulate(&p, &codebook.centres, descs, &assign, offsets, &mut out);
+    vlad_accumulate::vlad_accumulate(&p, &codebook.centres, descs, &assign, offsets, &mut out);
     out
 }
 

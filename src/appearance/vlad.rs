@@ -5,7 +5,6 @@
 //! after `shaders/vlad_accumulate.wgsl`), re-exported here. The codebook is trained by k-means
 //! with k-means++ seeding.
 
-pub use super::vlad_accumulate::{vlad_accumulate, vlad_assign, VladParams, LANES, MAX_CENTRES};
 use crate::util::SplitMix64;
 
 /// The normalisations of a VLAD vector (spec §2.4).
@@ -147,6 +146,7 @@ pub fn train_codebook(samples: &[f32], dim: usize, k: usize, iterations: usize, 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::appearance::vlad_accumulate::{vlad_accumulate, vlad_assign, VladParams};
     use proptest::prelude::*;
 
     proptest! {

@@ -11,12 +11,14 @@
 //!   optional pose list file, one line per image (Extended CMU Seasons, RobotCar Seasons);
 //! - `explicit`: every frame listed with its files, pose and/or ground-truth list.
 
+mod frames;
 mod npy;
 pub mod pairs;
 mod poses;
 
 use crate::error::{Error, Result};
 use crate::input::{FrameSource, LabelFormat};
+pub use frames::{image_files, Dataset, Frame, GroundTruthRule, Pose, PoseFormat, Traversal};
 use pairs::PairTruth;
 pub use poses::{parse_pose_list, parse_synthia_pose, read_pose_list, read_synthia_pose, write_synthia_pose};
 use serde::{Deserialize, Serialize};
@@ -25,63 +27,6 @@ use std::path::{Path, PathBuf};
 pub const MANIFEST: &str = "semlook-dataset.json";
 /// Default SYNTHIA camera folder.
 pub const SYNTHIA_CAMERA: &str = "Stereo_Left/Omni_F";
-
-/// Camera centre and optical axis (unit vector) in world coordinates.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Pose {
-    pub position: [f64; 3],
-    pub forward: [f64; 3],
-}
-
-#[derive(Debug, Clone, PartialEq)]
-pub struct Frame {
-    pub source: FrameSource,
-    pub pose: Option<Pose>,
-}
-
-#[derive(Debug, Clone, PartialEq)]
-pub struct Traversal {
-    pub name: String,
-    pub frames: Vec<Frame>,
-    /// Per frame, the valid reference indices, when the dataset lists them.
-    pub ground_truth: Option<Vec<Vec<u32>>>,
-}
-
-/// Rule that makes ground truth from poses.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct GroundTruthRule {
-    /// Camera centres closer than this (dataset units, usually metres) match.
-    pub max_distance: f64,
-    /// And optical axes closer than this angle, when given.
-    #[serde(default)]
-    pub max_angle_deg: Option<f64>,
-}
-
-/// A loaded dataset.
-#[derive(Debug, Clone)]
-pub struct Dataset {
-    pub root: PathBuf,
-    pub name: String,
-    pub label_format: LabelFormat,
-    /// The `classes.label_ids` the dataset's label files use, when it says.
-    pub label_ids: Option<crate::config::LabelIds>,
-    pub reference: Traversal,
-    pub queries: Vec<Traversal>,
-    pub rule: Option<GroundTruthRule>,
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum PoseFormat {
-    /// `name qw qx qy qz cx cy cz`: world-to-camera rotation, camera centre.
-    QuatCenter,
-    /// `name qw qx qy qz tx ty tz`: world-to-camera rotation and translation.
-    QuatTranslation,
-    /// `name` and 16 numbers: row-major 4x4 camera-to-world matrix.
-    MatrixCamToWorld,
-    /// `name` and 16 numbers: row-major 4x4 world-to-camera matrix.
-    MatrixWorldToCam,
-}
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(untagged)]
@@ -349,20 +294,6 @@ pub fn synthia_traversals(root: &Path) -> Vec<String> {
         .collect();
     v.sort();
     v
-}
-
-/// The png and jpeg files of a folder, sorted by name.
-pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>> {
-    let rd = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
-    let mut files: Vec<PathBuf> = rd
-        .flatten()
-        .map(|e| e.path())
-        .filter(|p| {
-            matches!(p.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref(), Some("png" | "jpg" | "jpeg"))
-        })
-        .collect();
-    files.sort();
-    Ok(files)
 }
 
 fn stem(p: &Path) -> String {

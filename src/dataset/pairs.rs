@@ -7,7 +7,8 @@
 //!   `queries/`, names `@UTM_east@UTM_north@zone@letter@...@.jpg`): references within a distance
 //!   (default [`UTM_DEFAULT_DISTANCE`]) of a query are correct.
 
-use super::{image_files, npy, Dataset, Frame, GroundTruthRule, Pose, Traversal};
+use super::frames::{image_files, Dataset, Frame, GroundTruthRule, Pose, Traversal};
+use super::npy;
 use crate::error::{Error, Result};
 use crate::input::{FrameSource, LabelFormat};
 use std::collections::HashMap;

@@ -2,7 +2,7 @@
 //! CMU Seasons / RobotCar Seasons (quaternion or matrix per image), all to a camera centre and
 //! optical axis in world coordinates.
 
-use super::{Pose, PoseFormat};
+use super::frames::{Pose, PoseFormat};
 use crate::error::{Error, Result};
 use std::path::Path;
 

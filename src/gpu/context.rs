@@ -17,23 +17,7 @@ use std::sync::{Arc, Mutex};
 /// which the executor streams instead.
 pub const RESIDENT_FRACTION: f64 = 0.5;
 
-#[derive(Debug, thiserror::Error)]
-pub enum GpuError {
-    #[error("no GPU adapter found{0}")]
-    NoAdapter(String),
-    #[error("adapter {adapter}: cannot create a device: {reason}")]
-    Device { adapter: String, reason: String },
-    #[error("GPU device lost: {0}")]
-    DeviceLost(String),
-    #[error("GPU out of memory while {0}")]
-    OutOfMemory(String),
-    #[error("adapter {adapter}: {what} needs {needed} but the limit is {available}")]
-    LimitsTooSmall { adapter: String, what: String, needed: u64, available: u64 },
-    #[error("shader {name}: {message}")]
-    Shader { name: String, message: String },
-    #[error("GPU error while {what}: {reason}")]
-    Failed { what: String, reason: String },
-}
+pub use crate::error::GpuError;
 
 /// How to pick an adapter and how much of it to use.
 #[derive(Debug, Clone)]
@@ -276,7 +260,7 @@ impl GpuContext {
     pub fn take_kernel_seconds(&self) -> Result<Option<f64>, GpuError> {
         let mut t = self.timer.lock().unwrap_or_else(|e| e.into_inner());
         match t.as_mut() {
-            Some(t) => Ok(Some(t.take_seconds(self)?)),
+            Some(t) => Ok(Some(t.take_seconds(&self.device, &self.queue, &|b, n| self.read_back(b, n))?)),
             None => Ok(None),
         }
     }
@@ -285,7 +269,7 @@ impl GpuContext {
     pub(crate) fn begin_pass<'e>(&self, enc: &'e mut wgpu::CommandEncoder, label: &str) -> Result<wgpu::ComputePass<'e>, GpuError> {
         let mut t = self.timer.lock().unwrap_or_else(|e| e.into_inner());
         let writes = match t.as_mut() {
-            Some(t) => Some(t.next_writes(self)?),
+            Some(t) => Some(t.next_writes(&self.device, &self.queue, &|b, n| self.read_back(b, n))?),
             None => None,
         };
         let writes = writes.as_ref().map(|(set, i)| wgpu::ComputePassTimestampWrites { query_set: set, beginning_of_pass_write_index: Some(*i), end_of_pass_write_index: Some(*i + 1) });

@@ -15,7 +15,8 @@
 
 use super::buffers::{PassBuffer, Reused};
 use super::context::{GpuContext, GpuError};
-use super::fine_pack::{forest_key, pack, plan_chunks, FinePass, ForestChunks, Packed, MAX_SLOTS, MAX_TREES};
+use super::abi::{FinePass, MAX_SLOTS, MAX_TREES};
+use super::fine_pack::{forest_key, pack, plan_chunks, ForestChunks, Packed};
 use super::resident::{ChunkPlan, Resident};
 use super::topk::{bytes_per_query, TopK, MAX_PASS_REFS};
 use crate::local::tree_similarity::TreeSimParams;

@@ -2,7 +2,7 @@
 //! bind-group layouts whose order is the shader's (and its CPU twin's) binding order. Shaders
 //! with a `SUBGROUPS` variant are built in the variant the device can run.
 
-use super::context::GpuError;
+use crate::error::GpuError;
 use super::wgsl::{preprocess, SHADERS};
 
 #[derive(Clone, Copy)]
@@ -110,7 +110,7 @@ fn kernel(device: &wgpu::Device, module: &wgpu::ShaderModule, file: &str, entry:
 /// Bytes of the per-pass parameters the coarse kernels bind at dynamic offsets.
 const PASS: u64 = std::mem::size_of::<crate::matching::ssim_block::PassParams>() as u64;
 /// Bytes of the fine stage's per-pass parameters.
-const FINE_PASS: u64 = std::mem::size_of::<super::fine_pack::FinePass>() as u64;
+const FINE_PASS: u64 = std::mem::size_of::<super::abi::FinePass>() as u64;
 
 impl Kernels {
     pub fn new(device: &wgpu::Device, subgroups: bool) -> Result<Kernels, GpuError> {

@@ -44,10 +44,10 @@ fn same_layout(file: &str, name: &str, rust: (usize, Vec<(&str, usize)>)) {
 
 #[test]
 fn shared_structs_have_the_shaders_layouts() {
-    use crate::appearance::vlad::VladParams;
+    use crate::appearance::vlad_accumulate::VladParams;
     use crate::global::{global_pool::PoolParams, ssim::SsimParams};
     use crate::gpu::encode::Dims;
-    use crate::gpu::fine_pack::{FinePass, GpuTree};
+    use crate::gpu::abi::{FinePass, GpuTree};
     use crate::local::tree_similarity::TreeSimParams;
     use crate::matching::{ssim_block::PassParams, ssim_topk::TileParams, topk_select::Entry};
     for file in ["ssim_topk.wgsl", "ssim_block.wgsl"] {
@@ -101,11 +101,11 @@ fn shared_constants_agree() {
         ("topk_select.wgsl", "EMPTY_INDEX", ssim_topk::EMPTY_INDEX as f64),
         ("topk_select.wgsl", "NONE", ssim_topk::EMPTY_INDEX as f64),
         ("tree_similarity.wgsl", "LANES", crate::global::ssim::LANES as f64),
-        ("tree_similarity.wgsl", "MAX_TREES", super::fine_pack::MAX_TREES as f64),
-        ("tree_similarity.wgsl", "MAX_SLOTS", super::fine_pack::MAX_SLOTS as f64),
+        ("tree_similarity.wgsl", "MAX_TREES", super::abi::MAX_TREES as f64),
+        ("tree_similarity.wgsl", "MAX_SLOTS", super::abi::MAX_SLOTS as f64),
         ("tree_similarity.wgsl", "MISSING", crate::local::tree_similarity::MISSING as f64),
         ("tree_similarity.wgsl", "NOT_A_PAIR", crate::local::tree_similarity::NOT_A_PAIR as f64),
-        ("vlad_accumulate.wgsl", "LANES", crate::appearance::vlad::LANES as f64),
+        ("vlad_accumulate.wgsl", "LANES", crate::appearance::vlad_accumulate::LANES as f64),
     ];
     for (file, name, rust) in checks {
         assert_eq!(wgsl_const(file, name), rust, "{file}: {name}");

@@ -18,6 +18,7 @@
 //! while its key stays the same, within the context's budget (`gpu::resident`); queries are
 //! uploaded once per batch; only top-K lists or pair scores come back.
 
+mod abi;
 mod buffers;
 pub mod coarse;
 mod context;

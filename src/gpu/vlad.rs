@@ -5,7 +5,8 @@
 use super::buffers::Reused;
 use super::context::{GpuContext, GpuError};
 use crate::appearance::check_vlad_input;
-use crate::appearance::vlad::{Codebook, VladNorm, VladParams, MAX_CENTRES};
+use crate::appearance::vlad::{Codebook, VladNorm};
+use crate::appearance::vlad_accumulate::{VladParams, MAX_CENTRES};
 use std::sync::Arc;
 
 /// Buffers kept between batches.

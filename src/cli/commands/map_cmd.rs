@@ -1,7 +1,15 @@
 //! The `map` subcommands: build (streamed into segments, `--resume`, `--force`, `--f16`), add,
 //! info, remove, compact, verify, and the store benchmark.
 
-use super::*;
+use super::shared::{apply_models, frame_sources, info, load_config, map_config, to_json};
+use crate::cli::args::{MapCommand, SourceArgs, StoreArgs, StoreBenchArgs};
+use semlook::config::Config;
+use semlook::encode::Encoder;
+use semlook::engine::Engine;
+use semlook::error::{Error, Result};
+use semlook::input::{FrameSource, LabelFormat};
+use semlook::map::Map;
+use std::path::Path;
 use semlook::batch::{self, IntoOptions};
 use semlook::map::{edit, MapWriter, StoreOptions};
 use semlook::values::ValueType;

@@ -1,0 +1,478 @@
+//! The command line's arguments (clap): every command, its options and their help.
+
+use clap::{Args, Parser, Subcommand};
+use semlook::engine::Backend;
+use semlook::input::LabelFormat;
+use semlook::matching::Setting;
+use semlook::synth::condition::Condition;
+use std::path::PathBuf;
+
+#[derive(Parser)]
+#[command(name = "semlook", version, about = "SemLook visual place recognition: build maps of places from label maps, match queries, evaluate.", long_about = None)]
+pub struct Cli {
+    /// No progress bars and no informational messages.
+    #[arg(long, short, global = true)]
+    pub quiet: bool,
+    /// Where encoding and matching run: `cpu`, `gpu` (any adapter, software ones included), or
+    /// `auto` (a hardware GPU if there is one, else the CPU; the default). Commands that run on
+    /// the CPU only (inspect, segmenter-accuracy, bench, map info/remove/compact/verify/bench,
+    /// synth without --from-camvid, config) refuse it rather than ignore it.
+    #[arg(long, global = true, value_enum)]
+    pub backend: Option<Backend>,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand)]
+pub enum Command {
+    /// Render the synthetic street benchmark (SYNTHIA-like layout that `eval` reads as it is).
+    Synth(SynthArgs),
+    /// Generate a small synthetic benchmark, build a map, query it and evaluate all settings.
+    Demo(DemoArgs),
+    /// Build, extend or inspect a map of places.
+    #[command(subcommand)]
+    Map(MapCommand),
+    /// Match query images against a map; prints CSV (or JSON) with the best reference and the top-K.
+    Query(QueryArgs),
+    /// Evaluate on a dataset: AUC, Recall@100%Precision, Precision@100%Recall, Recall@N, timings.
+    Eval(EvalArgs),
+    /// Print the default configuration (TOML); edit it and pass it with --config.
+    Config,
+    /// Sweep configuration values over datasets and tabulate Recall@1 and AUC per setting.
+    Tune(TuneArgs),
+    /// Encoding speed on real images: segmentation, then everything else (decoding at the
+    /// working size, edges, EDT, objects, forest, keypoint network, VLAD), per-stage medians and
+    /// wall clock per frame with frames in parallel.
+    BenchEncode(BenchEncodeArgs),
+    /// Accuracy of the segmenter against real label maps (pixel accuracy, IoU per class, mean IoU).
+    SegmenterAccuracy(SegAccArgs),
+    /// Pictures of every stage for one frame: image, labels, semantic edges, truncated EDT, global
+    /// descriptor, trees with neighbour links, keypoints.
+    Inspect(InspectArgs),
+    /// Large-map batch matching benchmark: coarse matching throughput and peak memory for maps of
+    /// 1k to 1M references and query batches of 100 and 1000, on the CPU and on the GPU.
+    Bench(BenchArgs),
+}
+
+#[derive(Args)]
+pub struct BenchEncodeArgs {
+    /// Folder of images (png/jpg).
+    #[arg(long)]
+    pub images: PathBuf,
+    /// At most this many frames.
+    #[arg(long, default_value_t = 60)]
+    pub frames: usize,
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub models: ModelArgs,
+}
+
+#[derive(Args)]
+pub struct SegAccArgs {
+    /// Folder of images.
+    #[arg(long)]
+    pub images: PathBuf,
+    /// Folder of their real label maps (`<stem>.png`).
+    #[arg(long)]
+    pub labels: PathBuf,
+    /// The labels are CamVid's (11 classes, SegNet ids); a Cityscapes segmenter is mapped to them.
+    #[arg(long)]
+    pub camvid: bool,
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Also write the result as JSON to stdout.
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub models: ModelArgs,
+}
+
+#[derive(Args)]
+pub struct InspectArgs {
+    /// The image (png or jpeg).
+    pub image: PathBuf,
+    /// Its label map (else the segmenter labels it).
+    #[arg(long)]
+    pub labels: Option<PathBuf>,
+    /// Folder for the PNGs (one per stage, and sheet.png with all of them).
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    #[arg(long, value_enum)]
+    pub label_format: Option<LabelFormat>,
+    #[command(flatten)]
+    pub models: ModelArgs,
+}
+
+#[derive(Args)]
+pub struct TuneArgs {
+    /// Dataset directories (any layout `eval --dataset` reads); repeat for several.
+    #[arg(long = "dataset", required_unless_present = "segmented")]
+    pub datasets: Vec<PathBuf>,
+    /// Datasets whose label maps are ignored: every frame segmented (to tune on the segmenter's
+    /// labels where real ones exist); repeat for several.
+    #[arg(long = "segmented")]
+    pub segmented: Vec<PathBuf>,
+    /// The sweep file: `[values]` with a list per dotted config key, optional `[base]`.
+    #[arg(long)]
+    pub sweep: PathBuf,
+    /// Base config (TOML) the sweep starts from (default: built-in defaults).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Settings to score (default: semlook, local, forest, global).
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub settings: Vec<Setting>,
+    /// Also write the table (tab-separated) to this file.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    #[command(flatten)]
+    pub models: ModelArgs,
+}
+
+#[derive(Args)]
+pub struct BenchArgs {
+    /// Map sizes (references); sizes above 10,000 are synthetic maps served from one block of
+    /// real descriptors (see `semlook::bench`).
+    #[arg(long, value_delimiter = ',', default_value = "1000,10000,100000")]
+    pub sizes: Vec<usize>,
+    /// Query batch sizes; every row runs its whole batch.
+    #[arg(long, value_delimiter = ',', default_value = "100,1000")]
+    pub batches: Vec<usize>,
+    /// Rows predicted (by an untimed probe) to take longer than this are not run, and the table
+    /// says so; no row runs part of its batch.
+    #[arg(long, default_value_t = 600.0)]
+    pub max_row_seconds: f64,
+    /// The GPU's FP32 peak in GFLOP/s, for the fraction of peak where the built-in table does not
+    /// know the adapter.
+    #[arg(long)]
+    pub peak_gflops: Option<f64>,
+    /// Leave the GPU out (by default every configuration also runs on the GPU when there is one).
+    #[arg(long)]
+    pub cpu_only: bool,
+    /// Bytes of map the GPU keeps resident, in MiB (default: half the adapter's largest buffer);
+    /// a map beyond it is streamed in every batch.
+    #[arg(long)]
+    pub resident_budget_mib: Option<u64>,
+    /// Largest storage binding the GPU executors use, in MiB (default: the adapter's limit);
+    /// lower it to force map and query chunking.
+    #[arg(long)]
+    pub max_binding_mib: Option<u64>,
+    /// One JSON object per row and line (JSON Lines), as rows finish.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Args, Clone)]
+pub struct SynthArgs {
+    /// Output directory.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Instead of rendering: build the real-label benchmark from a CamVid folder (images/,
+    /// labels/): the frames as references, the same frames under controlled changes as queries.
+    #[arg(long, value_name = "DIR")]
+    pub from_camvid: Option<PathBuf>,
+    /// With --from-camvid: the changes (default: night, fog, blur, shift).
+    #[arg(long = "change", value_enum, requires = "from_camvid")]
+    pub changes: Vec<semlook::synth::camvid::Change>,
+    /// With --from-camvid: keep every N-th frame.
+    #[arg(long, default_value_t = 1, requires = "from_camvid")]
+    pub step: usize,
+    /// With --from-camvid: also evaluate every setting on it, once with the real labels and once
+    /// with the segmenter's, and print the tables.
+    #[arg(long, requires = "from_camvid")]
+    pub evaluate: bool,
+    #[command(flatten)]
+    pub models: ModelArgs,
+    #[arg(long, default_value_t = 7)]
+    pub seed: u64,
+    /// Places along the route (frames per traversal).
+    #[arg(long, default_value_t = 150)]
+    pub places: usize,
+    /// Image size WIDTHxHEIGHT.
+    #[arg(long, default_value = "640x480", value_parser = parse_size)]
+    pub size: (usize, usize),
+    /// Reference condition.
+    #[arg(long, value_enum, default_value_t = Condition::Day)]
+    pub reference: Condition,
+    /// Query conditions (default: overcast, sunset, fog, snow, night).
+    #[arg(long = "query", value_enum)]
+    pub queries: Vec<Condition>,
+    /// Probability that a city block repeats a layout template (perceptual aliasing).
+    #[arg(long, default_value_t = 0.6)]
+    pub aliasing: f64,
+}
+
+#[derive(Args)]
+pub struct DemoArgs {
+    /// Keep the generated dataset, map and results here (default: a temporary directory).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    #[arg(long, default_value_t = 7)]
+    pub seed: u64,
+    #[arg(long, default_value_t = 100)]
+    pub places: usize,
+    #[arg(long, default_value = "480x360", value_parser = parse_size)]
+    pub size: (usize, usize),
+    /// Print the evaluation report as JSON.
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub models: ModelArgs,
+}
+
+/// Models for appearance and segmentation.
+#[derive(Args, Clone, Default)]
+pub struct ModelArgs {
+    /// Use this ONNX keypoint network (SuperPoint output layout) instead of XFeat.
+    #[arg(long, value_name = "MODEL.onnx")]
+    pub keypoints: Option<PathBuf>,
+    /// XFeat weights (default: the ones setup.sh fetched).
+    #[arg(long, value_name = "xfeat.pt")]
+    pub xfeat_weights: Option<PathBuf>,
+    /// Segment RGB images that have no label map with this ONNX network (see [segmentation]).
+    #[arg(long, value_name = "MODEL.onnx")]
+    pub segmenter: Option<PathBuf>,
+    /// Trees without appearance (label maps alone are enough to encode).
+    #[arg(long)]
+    pub no_appearance: bool,
+    /// Never segment: frames without a label map are an error (by default the installed
+    /// segmenter labels them).
+    #[arg(long, conflicts_with = "segmenter")]
+    pub no_segmenter: bool,
+}
+
+#[derive(Args, Clone)]
+pub struct SourceArgs {
+    /// A dataset directory: encode its reference traversal (or --traversal).
+    #[arg(long, conflicts_with = "images")]
+    pub dataset: Option<PathBuf>,
+    /// With --dataset: which traversal to encode (default: the dataset's reference).
+    #[arg(long, requires = "dataset")]
+    pub traversal: Option<String>,
+    /// A folder of RGB images (png/jpg).
+    #[arg(long)]
+    pub images: Option<PathBuf>,
+    /// A folder of label maps named like the images (`<stem>.png`); alone, encodes label maps only.
+    #[arg(long)]
+    pub labels: Option<PathBuf>,
+    /// How label files encode classes.
+    #[arg(long, value_enum)]
+    pub label_format: Option<LabelFormat>,
+    /// Skip (and report) images that fail to load instead of stopping.
+    #[arg(long)]
+    pub skip_invalid: bool,
+    #[command(flatten)]
+    pub models: ModelArgs,
+}
+
+/// How a map stores what it is given.
+#[derive(Args, Clone, Default)]
+pub struct StoreArgs {
+    /// Store global descriptors and appearance vectors as f16 (half the bytes; matching still
+    /// computes in f32). Recorded in the map; `map add` follows the map.
+    #[arg(long)]
+    pub f16: bool,
+    /// Most images per segment file (a segment is committed when full; a crash loses at most the
+    /// segment in progress). Default 4096, fewer when images are large (64 MiB per segment).
+    #[arg(long, value_name = "N", value_parser = parse_positive)]
+    pub segment_images: Option<usize>,
+}
+
+#[derive(Subcommand)]
+pub enum MapCommand {
+    /// Encode images into a new map directory, committing a segment at a time.
+    Build {
+        #[command(flatten)]
+        source: SourceArgs,
+        /// Map directory to create.
+        #[arg(long)]
+        out: PathBuf,
+        /// Encoding config (TOML); default: built-in defaults.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Replace an existing map: the new one is built beside it (same folder, unique name) and
+        /// swapped in once complete; no other path is touched.
+        #[arg(long, conflicts_with = "resume")]
+        force: bool,
+        /// Continue an interrupted build: images the map holds are skipped, the rest are added.
+        #[arg(long)]
+        resume: bool,
+        /// Also store each image's VPR-Bench HOG descriptor (35,721 floats), so that the `hog`
+        /// baseline can be matched and evaluated against this map.
+        #[arg(long)]
+        hog: bool,
+        #[command(flatten)]
+        store: StoreArgs,
+    },
+    /// Append images to a map without re-encoding what it holds.
+    Add {
+        #[command(flatten)]
+        source: SourceArgs,
+        #[arg(long)]
+        map: PathBuf,
+        /// Continue an interrupted add: images the map holds are skipped.
+        #[arg(long)]
+        resume: bool,
+        /// Most images per segment file (see `map build`).
+        #[arg(long, value_name = "N", value_parser = parse_positive)]
+        segment_images: Option<usize>,
+    },
+    /// Show a map's size, layout, config and segments (reads the manifest; checks nothing).
+    Info {
+        #[arg(long)]
+        map: PathBuf,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Remove images from a map (they leave every query at once; `map compact` frees the space).
+    Remove {
+        #[arg(long)]
+        map: PathBuf,
+        /// Image ids, or one file of ids (one per line; empty lines and `#` lines ignored).
+        #[arg(long, num_args = 1.., required = true, value_name = "FILE|ID")]
+        ids: Vec<String>,
+    },
+    /// Rewrite the segments that hold removed images or are small; delete files no manifest needs.
+    Compact {
+        #[arg(long)]
+        map: PathBuf,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Check every file of a map in full (checksums and values); names each damaged file and
+    /// exits with status 1 if there is one.
+    Verify {
+        #[arg(long)]
+        map: PathBuf,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Map-store benchmark: writes a synthetic map of each size through the store, opens it and
+    /// runs a coarse pass of a query batch from it; reports build peak RSS, open time, query-pass
+    /// memory without mapped file pages, and bytes per reference.
+    Bench(StoreBenchArgs),
+}
+
+#[derive(Args)]
+pub struct StoreBenchArgs {
+    /// Map sizes (references).
+    #[arg(long, value_delimiter = ',', default_value = "100000")]
+    pub sizes: Vec<usize>,
+    /// Coarse passes on each map: QUERIES (against every reference) or QUERIES:REFS (against the
+    /// first REFS references, streamed from the stored map like the rest).
+    #[arg(long, value_delimiter = ',', default_value = "1000")]
+    pub passes: Vec<semlook::bench_store::Pass>,
+    /// Store f16 (default f32).
+    #[arg(long)]
+    pub f16: bool,
+    /// Query batch sizes for which a pass with stored SSIM statistics (the map in memory) is
+    /// timed against one recomputing them per tile (maps up to 50,000 references).
+    #[arg(long, value_delimiter = ',')]
+    pub stats_comparison: Vec<usize>,
+    /// Folder for the maps (default: the system temporary folder); each is deleted afterwards
+    /// unless --keep.
+    #[arg(long)]
+    pub dir: Option<PathBuf>,
+    #[arg(long)]
+    pub keep: bool,
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Args)]
+pub struct QueryArgs {
+    #[arg(long)]
+    pub map: PathBuf,
+    #[command(flatten)]
+    pub source: SourceArgs,
+    /// Which stages rank the map (default: the recommended pipeline, `verified`).
+    #[arg(long, value_enum, default_value_t = Setting::RECOMMENDED)]
+    pub setting: Setting,
+    /// Config for matching (its encoding sections must equal the map's).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Print JSON instead of CSV.
+    #[arg(long)]
+    pub json: bool,
+    /// Also write OUT.csv and OUT.json.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+#[derive(Args)]
+pub struct EvalArgs {
+    /// A dataset directory: a semlook-dataset.json manifest, ref/ + query/ + ground_truth.csv,
+    /// ref/ + query/ + ground_truth_new.npy (VPR-Bench), database/ + queries/ with UTM file names,
+    /// or a SYNTHIA-style tree.
+    #[arg(long, required_unless_present = "references", conflicts_with = "references")]
+    pub dataset: Option<PathBuf>,
+    /// A folder of reference images (the map); with --queries and --ground-truth.
+    #[arg(long, requires = "queries_dir")]
+    pub references: Option<PathBuf>,
+    /// A folder of query images.
+    #[arg(long = "queries", value_name = "DIR", requires = "references")]
+    pub queries_dir: Option<PathBuf>,
+    /// Ground truth for --references/--queries: a CSV of query,reference rows (paths relative to
+    /// the CSV's folder) or VPR-Bench's .npy; without it, UTM positions in the file names.
+    #[arg(long, requires = "references")]
+    pub ground_truth: Option<PathBuf>,
+    /// One setting (default: all, baselines included).
+    #[arg(long, value_enum, conflicts_with = "all_settings")]
+    pub setting: Option<Setting>,
+    /// All settings: the baselines `hog` and `appearance`, `global`, and the paper's four (the default).
+    #[arg(long)]
+    pub all_settings: bool,
+    /// Use this map for the references instead of encoding them.
+    #[arg(long)]
+    pub map: Option<PathBuf>,
+    /// Reference traversal (overrides the dataset manifest).
+    #[arg(long)]
+    pub reference: Option<String>,
+    /// Query traversal(s) (overrides the dataset manifest).
+    #[arg(long = "query")]
+    pub queries: Vec<String>,
+    /// Ground truth: references within this distance are correct (overrides the manifest).
+    #[arg(long)]
+    pub gt_distance: Option<f64>,
+    /// Ground truth: and optical axes within this angle (degrees).
+    #[arg(long)]
+    pub gt_angle: Option<f64>,
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    #[arg(long)]
+    pub json: bool,
+    #[arg(long)]
+    pub skip_invalid: bool,
+    /// Write sheets (query | top-1 | a valid reference, with labels and scores) for the N worst
+    /// queries of the `semlook` setting (or the only setting) into --out.
+    #[arg(long, value_name = "N", requires = "out")]
+    pub explain: Option<usize>,
+    /// Folder for --explain sheets.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Draw the precision-recall curve of every setting (PNG and SVG per query set) into DIR.
+    #[arg(long, value_name = "DIR")]
+    pub plots: Option<PathBuf>,
+    #[command(flatten)]
+    pub models: ModelArgs,
+}
+
+fn parse_size(s: &str) -> Result<(usize, usize), String> {
+    let (w, h) = s.split_once('x').ok_or("expected WIDTHxHEIGHT, e.g. 640x480")?;
+    let p = |v: &str| v.trim().parse::<usize>().map_err(|_| format!("{v:?} is not a whole number"));
+    Ok((p(w)?, p(h)?))
+}
+
+
+/// A count of at least 1 (`--segment-images 0` was taken as 1 without a word).
+fn parse_positive(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(0) => Err("must be at least 1".into()),
+        Ok(n) => Ok(n),
+        Err(e) => Err(e.to_string()),
+    }
+}

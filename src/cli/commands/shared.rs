@@ -1,0 +1,108 @@
+//! What the commands share: messages, config and model flags, the frames a source names, JSON.
+
+use crate::cli::args::{ModelArgs, SourceArgs};
+use semlook::config::Config;
+use semlook::dataset::{Dataset, DatasetOptions};
+use semlook::error::{Error, Result};
+use semlook::input::{FrameSource, LabelFormat};
+use semlook::map::Map;
+use std::path::Path;
+
+pub fn info(quiet: bool, msg: impl AsRef<str>) {
+    if !quiet {
+        use std::io::Write;
+        // a closed standard error loses the message, never the command
+        let _ = writeln!(std::io::stderr(), "{}", msg.as_ref());
+    }
+}
+
+pub fn load_config(path: Option<&Path>) -> Result<Config> {
+    match path {
+        Some(p) => Config::load(p),
+        None => Ok(Config::default()),
+    }
+}
+
+/// Pretty JSON of a report.
+pub fn to_json<T: serde::Serialize + ?Sized>(v: &T) -> Result<String> {
+    serde_json::to_string_pretty(v).map_err(|e| Error::invalid("JSON output", e.to_string()))
+}
+
+/// Applies the model flags to a config.
+pub fn apply_models(mut cfg: Config, m: &ModelArgs) -> Config {
+    use semlook::config::AppearanceModelKind;
+    if let Some(k) = &m.keypoints {
+        cfg.appearance.model = AppearanceModelKind::Onnx;
+        cfg.models.keypoint_onnx = Some(k.clone());
+    }
+    // option, then $SEMLOOK_MODELS, then the config key, then the data folders (in the library)
+    if let Some(w) = m.xfeat_weights.clone().or_else(|| semlook::onnx::env_model(semlook::appearance::XFEAT_WEIGHTS)) {
+        cfg.models.xfeat_weights = Some(w);
+    }
+    if let Some(s) = &m.segmenter {
+        cfg.models.segmenter_onnx = Some(s.clone());
+    }
+    if m.no_appearance {
+        cfg.appearance.model = AppearanceModelKind::None;
+    }
+    if m.no_segmenter {
+        cfg.models.default_segmenter = false;
+    }
+    cfg
+}
+
+/// Frames named by the source arguments, with the label format to read them with. Where the
+/// frames come from a dataset whose labels use other ids, `cfg`'s label ids follow the dataset
+/// unless `keep_ids` (the user gave a config).
+pub fn frame_sources(s: &SourceArgs, cfg: &mut Config, keep_ids: bool) -> Result<(Vec<FrameSource>, LabelFormat)> {
+    if let Some(dir) = &s.dataset {
+        let ds = Dataset::open(dir, &DatasetOptions::default())?;
+        if let (Some(ids), false) = (&ds.label_ids, keep_ids) {
+            cfg.classes.label_ids = ids.clone();
+        }
+        let trav = match &s.traversal {
+            None => &ds.reference,
+            Some(name) if *name == ds.reference.name => &ds.reference,
+            Some(name) => ds
+                .queries
+                .iter()
+                .find(|q| q.name == *name)
+                .ok_or_else(|| Error::dataset(dir, format!("no traversal named {name:?}")))?,
+        };
+        let frames = trav.frames.iter().map(|f| f.source.clone()).collect();
+        return Ok((frames, s.label_format.unwrap_or(ds.label_format)));
+    }
+    let listing = semlook::dataset::image_files;
+    let stem = |p: &Path| p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    let frames = match (&s.images, &s.labels) {
+        (Some(img), labels) => listing(img)?
+            .into_iter()
+            .map(|p| {
+                // the label file from the OS name itself: a non-UTF-8 name is found, not mangled
+                let label_name = |l: &std::path::PathBuf| {
+                    let mut n = p.file_stem().unwrap_or_default().to_os_string();
+                    n.push(".png");
+                    l.join(n)
+                };
+                FrameSource { id: stem(&p), labels: labels.as_ref().map(label_name), image: Some(p.clone()) }
+            })
+            .collect(),
+        (None, Some(labels)) => listing(labels)?.into_iter().map(|p| FrameSource { id: stem(&p), image: None, labels: Some(p) }).collect(),
+        (None, None) => return Err(Error::invalid("arguments", "give --dataset, --images or --labels")),
+    };
+    Ok((frames, s.label_format.unwrap_or_default()))
+}
+
+/// The config for queries of a map: the map's encoding, `config`'s matching (or the defaults),
+/// model paths from the flags.
+pub fn map_config(map: &Map, config: Option<&Path>, models: &ModelArgs) -> Result<Config> {
+    let base = match config {
+        Some(p) => Config::load(p)?,
+        None => map.query_config(),
+    };
+    let mut cfg = apply_models(base, models);
+    if config.is_none() && models.keypoints.is_none() && !models.no_appearance {
+        cfg.appearance.model = map.manifest.config.appearance.model;
+    }
+    Ok(cfg)
+}
