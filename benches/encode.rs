@@ -46,15 +46,25 @@ fn bench(c: &mut Criterion) {
             // the network as encoding runs it (dense descriptors for VLAD and the keypoint heads
             // for the stored verification keypoints), and without the heads (appearance alone)
             let kp = Config::default().keypoints;
-            let with_heads = semlook::appearance::AppearanceModel::load(&Default::default(), &Default::default()).unwrap().unwrap().with_detection(&kp);
+            let with_heads =
+                semlook::appearance::AppearanceModel::load(&Default::default(), &Default::default()).unwrap().unwrap().with_detection(&kp);
             g.bench_function("appearance: XFeat network with the keypoint heads (native)", |b| b.iter(|| with_heads.run(&grey).unwrap()));
             g.bench_function("appearance: XFeat network, dense descriptors only (native)", |b| b.iter(|| model.run(&grey).unwrap()));
             // decoding needs the heads' outputs
             let out = with_heads.run(&grey).unwrap();
             let params = semlook::appearance::keypoints::KeypointParams { nms_radius: 4, threshold: 0.005, max_keypoints: 1024, border: 4 };
-            g.bench_function("appearance: keypoint decoding (keypoints::extract, keypoint sampling)", |b| b.iter(|| semlook::appearance::keypoints::extract(&out, &params).unwrap()));
-            let detect = semlook::appearance::keypoints::KeypointParams { nms_radius: kp.nms_radius, threshold: kp.score_threshold as f32, max_keypoints: kp.stored, border: kp.border };
-            g.bench_function("appearance: verification keypoints (keypoints::detect)", |b| b.iter(|| semlook::appearance::keypoints::detect(&out, &detect).unwrap()));
+            g.bench_function("appearance: keypoint decoding (keypoints::extract, keypoint sampling)", |b| {
+                b.iter(|| semlook::appearance::keypoints::extract(&out, &params).unwrap())
+            });
+            let detect = semlook::appearance::keypoints::KeypointParams {
+                nms_radius: kp.nms_radius,
+                threshold: kp.score_threshold as f32,
+                max_keypoints: kp.stored,
+                border: kp.border,
+            };
+            g.bench_function("appearance: verification keypoints (keypoints::detect)", |b| {
+                b.iter(|| semlook::appearance::keypoints::detect(&out, &detect).unwrap())
+            });
             let k = model.keypoints(&rgb).unwrap();
             let objects = semlook::objects::extract_objects(&maps[1], &table, &cfg.objects);
             let cb = semlook::appearance::vlad::train_codebook(&semlook::appearance::sample_descriptors(&k, 512), k.dim, 16, 10, 1).unwrap();

@@ -24,14 +24,20 @@ fn bench(c: &mut Criterion) {
         let refs = common::map_of(&cfg, &images, n);
         // a batch of 4 queries per iteration so both cores work; throughput counts comparisons
         g.throughput(Throughput::Elements((n * queries.len()) as u64));
-        g.bench_function(format!("coarse_topk (fast path)/{n}_refs_x4_queries"), |b| b.iter(|| coarse_topk(&refs, &queries, &p, cfg.matching.top_k, cfg.matching.tile)));
-        g.bench_function(format!("coarse_topk_twin (shader twin)/{n}_refs_x4_queries"), |b| b.iter(|| coarse_topk_twin(&refs, &queries, &p, cfg.matching.top_k, cfg.matching.tile)));
+        g.bench_function(format!("coarse_topk (fast path)/{n}_refs_x4_queries"), |b| {
+            b.iter(|| coarse_topk(&refs, &queries, &p, cfg.matching.top_k, cfg.matching.tile))
+        });
+        g.bench_function(format!("coarse_topk_twin (shader twin)/{n}_refs_x4_queries"), |b| {
+            b.iter(|| coarse_topk_twin(&refs, &queries, &p, cfg.matching.top_k, cfg.matching.tile))
+        });
     }
     // a batch as the engine sees it: 64 queries (one query pass of the fast path) x 10k references
     let refs = common::map_of(&cfg, &images, 10_000);
     let batch = common::map_of(&cfg, &common::encode_all(&cfg, &common::street_labels(8, 640, 480, Condition::Night)), 64);
     g.throughput(Throughput::Elements((10_000 * batch.len()) as u64));
-    g.bench_function("coarse_topk (fast path)/10000_refs_x64_queries", |b| b.iter(|| coarse_topk(&refs, &batch, &p, cfg.matching.top_k, cfg.matching.tile)));
+    g.bench_function("coarse_topk (fast path)/10000_refs_x64_queries", |b| {
+        b.iter(|| coarse_topk(&refs, &batch, &p, cfg.matching.top_k, cfg.matching.tile))
+    });
     // the same on the GPU path, when there is an adapter (lavapipe counts: it says so in the name)
     match semlook::gpu::GpuContext::new(&Default::default()) {
         Ok(ctx) => {

@@ -27,7 +27,17 @@ fn keypoint_set(cfg: &Config, model: &semlook::appearance::AppearanceModel, dir:
         let labels = semlook::input::LabelMap::new(w, h, vec![2; (w * h) as usize], &table).unwrap();
         let keypoints = semlook::appearance::verification_keypoints(&detected, cfg.keypoints.stored, &labels, w.max(h));
         let forest = semlook::local::Forest { neighbour_slots: cfg.local.neighbours, ..Default::default() };
-        let img = EncodedImage { id: name.clone(), width: w, height: h, global: vec![0.5; p.len()], global_stats: vec![0.0; p.stats_len()], forest, appearance: vec![], hog: vec![], keypoints };
+        let img = EncodedImage {
+            id: name.clone(),
+            width: w,
+            height: h,
+            global: vec![0.5; p.len()],
+            global_stats: vec![0.0; p.stats_len()],
+            forest,
+            appearance: vec![],
+            hog: vec![],
+            keypoints,
+        };
         set.push(&img).unwrap();
     }
     set

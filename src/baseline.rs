@@ -156,10 +156,12 @@ mod tests {
 
     #[test]
     fn hog_is_unit_length_and_sees_orientation() {
-        let stripes = |vertical: bool| RgbImage::from_fn(64, 48, |x, y| {
-            let v = if ((if vertical { x } else { y }) / 4) % 2 == 0 { 30 } else { 220 };
-            image::Rgb([v, v, v])
-        });
+        let stripes = |vertical: bool| {
+            RgbImage::from_fn(64, 48, |x, y| {
+                let v = if ((if vertical { x } else { y }) / 4) % 2 == 0 { 30 } else { 220 };
+                image::Rgb([v, v, v])
+            })
+        };
         let (a, b) = (vprbench_hog(&stripes(true)), vprbench_hog(&stripes(false)));
         assert_eq!(a.len(), HOG_DIM);
         assert!((a.iter().map(|v| v * v).sum::<f32>() - 1.0).abs() < 1e-4);

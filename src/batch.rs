@@ -94,7 +94,15 @@ impl EncodedFrames {
 }
 
 /// Encodes a list of frames into a descriptor set, with a progress bar.
-pub fn encode_frames(engine: &mut Engine, encoder: &Encoder, frames: &[FrameSource], format: LabelFormat, what: &str, skip_invalid: bool, quiet: bool) -> Result<EncodedFrames> {
+pub fn encode_frames(
+    engine: &mut Engine,
+    encoder: &Encoder,
+    frames: &[FrameSource],
+    format: LabelFormat,
+    what: &str,
+    skip_invalid: bool,
+    quiet: bool,
+) -> Result<EncodedFrames> {
     let pb = progress::bar(frames.len(), what, quiet);
     let t = std::time::Instant::now();
     let results = engine.encode_all(encoder, frames, format, &|| pb.inc(1))?;
@@ -135,7 +143,14 @@ pub struct IntoReport {
 /// whenever its buffer is full; memory is one chunk plus one segment, whatever the number of
 /// frames. On an error the images already encoded are committed first, so `--resume` continues
 /// after them. The caller finishes the writer.
-pub fn encode_into(engine: &mut Engine, encoder: &Encoder, frames: &[FrameSource], format: LabelFormat, writer: &mut MapWriter, opts: IntoOptions) -> Result<IntoReport> {
+pub fn encode_into(
+    engine: &mut Engine,
+    encoder: &Encoder,
+    frames: &[FrameSource],
+    format: LabelFormat,
+    writer: &mut MapWriter,
+    opts: IntoOptions,
+) -> Result<IntoReport> {
     let mut ids = HashSet::new();
     if let Some(dup) = frames.iter().find(|f| !ids.insert(f.id.as_str())) {
         return Err(Error::invalid(format!("frame {:?}", dup.id), "two input frames have this id"));

@@ -32,10 +32,10 @@
 pub mod peak;
 
 use crate::config::Config;
+use crate::descriptors::DescriptorSet;
 use crate::engine::Engine;
 use crate::error::Result;
 use crate::global::ssim::SsimParams;
-use crate::descriptors::DescriptorSet;
 use crate::matching::source::{GlobalSource, TileBuf};
 use crate::matching::{CpuStages, Stages};
 use serde::Serialize;
@@ -234,7 +234,14 @@ fn loadavg() -> f64 {
 
 /// Runs every (map size, batch, engine) configuration; the first CPU engine is the reference of
 /// the GPU/CPU ratio. `tick` reports each finished row.
-pub fn run(pool: &DescriptorSet, queries: &DescriptorSet, opts: &BenchOptions, engines: &mut [Engine], cfg: &Config, tick: &mut dyn FnMut(&BenchRow)) -> Result<Vec<BenchRow>> {
+pub fn run(
+    pool: &DescriptorSet,
+    queries: &DescriptorSet,
+    opts: &BenchOptions,
+    engines: &mut [Engine],
+    cfg: &Config,
+    tick: &mut dyn FnMut(&BenchRow),
+) -> Result<Vec<BenchRow>> {
     opts.validate()?;
     let p = SsimParams::new(&cfg.global);
     let (k, tile) = (cfg.matching.top_k, cfg.matching.tile);
@@ -242,7 +249,8 @@ pub fn run(pool: &DescriptorSet, queries: &DescriptorSet, opts: &BenchOptions, e
     let devices: Vec<peak::Device> = engines.iter_mut().map(|e| peak::Device::of(e, &p, opts.gpu_peak_gflops)).collect();
     let mut rows = Vec::new();
     for &n in &opts.sizes {
-        let (resident, synthetic) = if n <= opts.resident_limit { (Some(resident_map(pool, n)), None) } else { (None, Some(SyntheticMap::new(pool, n, tile))) };
+        let (resident, synthetic) =
+            if n <= opts.resident_limit { (Some(resident_map(pool, n)), None) } else { (None, Some(SyntheticMap::new(pool, n, tile))) };
         let source: &dyn GlobalSource = match (&resident, &synthetic) {
             (Some(r), _) => r,
             (None, Some(s)) => s,
@@ -304,7 +312,11 @@ pub fn run(pool: &DescriptorSet, queries: &DescriptorSet, opts: &BenchOptions, e
                     note: dev.note.clone(),
                 };
                 if let Some((resident, secs)) = uploads[e] {
-                    let how = if resident { format!("map resident (uploaded untimed, {secs:.2} s)") } else { "map streamed in every batch (beyond the resident budget)".into() };
+                    let how = if resident {
+                        format!("map resident (uploaded untimed, {secs:.2} s)")
+                    } else {
+                        "map streamed in every batch (beyond the resident budget)".into()
+                    };
                     row.note = if row.note.is_empty() { how } else { format!("{}; {how}", row.note) };
                 }
                 if predicted > opts.max_row_seconds {
@@ -400,7 +412,10 @@ pub fn table(rows: &[BenchRow]) -> String {
 pub fn legend(rows: &[BenchRow]) -> String {
     let mut s = String::new();
     if let Some(r) = rows.first() {
-        s += &format!("flops per comparison: {:.0} (the direct algorithm: products, window sums, 19 per window formula; see bench::flops_per_comparison)\n", r.flops_per_comparison);
+        s += &format!(
+            "flops per comparison: {:.0} (the direct algorithm: products, window sums, 19 per window formula; see bench::flops_per_comparison)\n",
+            r.flops_per_comparison
+        );
     }
     s += "GB/s: map descriptors and stats read per second, the map counted once per batch; cores: process CPU time / wall time\n";
     s += "(below the worker threads when other processes competed); load: 1-minute load average before the row\n";
@@ -429,7 +444,10 @@ pub fn street_descriptors(cfg: &Config, n: usize, cond: crate::synth::condition:
     let scfg = SynthConfig { places: n, width: 320, height: 240, ..Default::default() };
     let scene = synth::Scene::new(&scfg);
     let dynamic = synth::dynamic_objects(&scene.world, scfg.seed, traversal, scfg.persistence);
-    let enc = crate::encode::Encoder::new(&Config { appearance: crate::config::AppearanceConfig { model: crate::config::AppearanceModelKind::None, ..cfg.appearance.clone() }, ..cfg.clone() })?;
+    let enc = crate::encode::Encoder::new(&Config {
+        appearance: crate::config::AppearanceConfig { model: crate::config::AppearanceModelKind::None, ..cfg.appearance.clone() },
+        ..cfg.clone()
+    })?;
     let table = enc.class_table().clone();
     use rayon::prelude::*;
     let images: Vec<_> = (0..n)

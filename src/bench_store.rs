@@ -227,10 +227,22 @@ pub fn check_sizes(opts: &StoreBenchOptions, global_len: usize, stats_len: usize
     for &n in &opts.sizes {
         let need = (n as u64).saturating_mul(per_ref);
         if n == 0 || need > disk {
-            return Err(Error::invalid("--sizes", format!("a map of {n} references takes about {:.1} GiB; half the free space of {} is {:.1} GiB: at most {} references", gib(need), probe.display(), gib(disk), disk / per_ref)));
+            return Err(Error::invalid(
+                "--sizes",
+                format!(
+                    "a map of {n} references takes about {:.1} GiB; half the free space of {} is {:.1} GiB: at most {} references",
+                    gib(need),
+                    probe.display(),
+                    gib(disk),
+                    disk / per_ref
+                ),
+            ));
         }
         if (n as u64).saturating_mul(BUILD_BYTES_PER_REF) > memory {
-            return Err(Error::invalid("--sizes", format!("building a map of {n} references needs more than half this machine's available memory ({:.1} GiB)", gib(memory))));
+            return Err(Error::invalid(
+                "--sizes",
+                format!("building a map of {n} references needs more than half this machine's available memory ({:.1} GiB)", gib(memory)),
+            ));
         }
     }
     for q in opts.passes.iter().map(|p| p.queries).chain(opts.stats_comparison.iter().copied()) {
@@ -276,7 +288,8 @@ pub fn run(cfg: &Config, opts: &StoreBenchOptions, tick: &mut dyn FnMut(&StoreBe
         reset_peak();
         let sampler = AnonSampler::start();
         let t = Instant::now();
-        let mut w = MapWriter::create(&dir, &cfg.encoding(), Default::default(), None, StoreOptions { values: opts.values, ..Default::default() }, false)?;
+        let mut w =
+            MapWriter::create(&dir, &cfg.encoding(), Default::default(), None, StoreOptions { values: opts.values, ..Default::default() }, false)?;
         for i in 0..n {
             let mut img = pool[i.wrapping_mul(7919) % POOL].clone();
             img.id = format!("r{i:07}");
@@ -345,7 +358,13 @@ pub fn run(cfg: &Config, opts: &StoreBenchOptions, tick: &mut dyn FnMut(&StoreBe
                     Ok(t.elapsed().as_secs_f64())
                 };
                 let (stored, recomputed) = (time(&set)?, time(&map)?);
-                stats_rows.push(StatsRow { map_size: n, queries: q, stored_stats_s: stored, recomputed_stats_s: recomputed, overhead: recomputed / stored - 1.0 });
+                stats_rows.push(StatsRow {
+                    map_size: n,
+                    queries: q,
+                    stored_stats_s: stored,
+                    recomputed_stats_s: recomputed,
+                    overhead: recomputed / stored - 1.0,
+                });
             }
         }
         drop(map);
@@ -369,7 +388,20 @@ pub fn stats_table(rows: &[StatsRow]) -> String {
 pub fn table(rows: &[StoreBenchRow]) -> String {
     let mut s = format!(
         "{:>9} {:>4} {:>8} {:>8} {:>10} {:>10} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9} {:>10} {:>10}\n",
-        "refs", "type", "B/ref", "build s", "build MiB", "build anon", "open ms", "check s", "queries", "scored", "query s", "comp/s", "pass anon", "pass total"
+        "refs",
+        "type",
+        "B/ref",
+        "build s",
+        "build MiB",
+        "build anon",
+        "open ms",
+        "check s",
+        "queries",
+        "scored",
+        "query s",
+        "comp/s",
+        "pass anon",
+        "pass total"
     );
     for r in rows {
         s += &format!(

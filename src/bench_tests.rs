@@ -14,7 +14,18 @@ fn pool(n: usize, seed: u64) -> DescriptorSet {
         let g: Vec<f32> = (0..p.len()).map(|_| rng.next_f64() as f32).collect();
         let mut st = vec![0.0; p.stats_len()];
         ssim_stats(&p, &g, &mut st, &mut SsimScratch::default());
-        set.push(&EncodedImage { id: format!("p{i}"), width: 1, height: 1, global: g, global_stats: st, forest: Forest { neighbour_slots: 1, ..Default::default() }, appearance: vec![], hog: vec![], keypoints: Default::default() }).unwrap();
+        set.push(&EncodedImage {
+            id: format!("p{i}"),
+            width: 1,
+            height: 1,
+            global: g,
+            global_stats: st,
+            forest: Forest { neighbour_slots: 1, ..Default::default() },
+            appearance: vec![],
+            hog: vec![],
+            keypoints: Default::default(),
+        })
+        .unwrap();
     }
     set
 }

@@ -134,8 +134,26 @@ pub const CAMVID_VOID_ID: u32 = 11;
 /// person->Pedestrian, rider+motorcycle+bicycle->Bicyclist, car+truck+bus+train->Car (the mapping
 /// `../shared/models/README.md` evaluates the segmenters with).
 pub const CITYSCAPES_TO_CAMVID: [&str; 20] = [
-    "Road", "Pavement", "Building", "Building", "Fence", "Pole", "SignSymbol", "SignSymbol", "Tree", "Tree", "Sky", "Pedestrian", "Bicyclist", "Car", "Car", "Car", "Car",
-    "Bicyclist", "Bicyclist", "void",
+    "Road",
+    "Pavement",
+    "Building",
+    "Building",
+    "Fence",
+    "Pole",
+    "SignSymbol",
+    "SignSymbol",
+    "Tree",
+    "Tree",
+    "Sky",
+    "Pedestrian",
+    "Bicyclist",
+    "Car",
+    "Car",
+    "Car",
+    "Car",
+    "Bicyclist",
+    "Bicyclist",
+    "void",
 ];
 
 /// Colours of Cityscapes' void categories in `*_color.png` files (unlabeled, dynamic, ground,
@@ -154,10 +172,8 @@ const CITYSCAPES_VOID_COLORS: [[u8; 3]; 10] = [
 ];
 
 /// Cityscapes full label ids 0..33 to train ids (255 = ignore), from cityscapesScripts' labels.py.
-const CITYSCAPES_LABEL_TO_TRAIN: [u8; 34] = [
-    255, 255, 255, 255, 255, 255, 255, 0, 1, 255, 255, 2, 3, 4, 255, 255, 255, 5, 255, 6, 7, 8, 9,
-    10, 11, 12, 13, 14, 15, 255, 255, 16, 17, 18,
-];
+const CITYSCAPES_LABEL_TO_TRAIN: [u8; 34] =
+    [255, 255, 255, 255, 255, 255, 255, 0, 1, 255, 255, 2, 3, 4, 255, 255, 255, 5, 255, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 255, 255, 16, 17, 18];
 
 /// SYNTHIA class ids 0..15 (void, sky, building, road, sidewalk, fence, vegetation, pole, car,
 /// traffic sign, pedestrian, bicycle, lanemarking, reserved, reserved, traffic light) to
@@ -183,11 +199,12 @@ impl ClassTable {
     pub fn from_config(cfg: &ClassesConfig) -> Result<Self> {
         let bad = |reason: String| Error::InvalidConfig { source_name: "[classes]".into(), reason };
         let specs: Vec<ClassSpec> = match &cfg.table {
-            TableSpec::Builtin(name) if name == "cityscapes" => CITYSCAPES
-                .iter()
-                .map(|(n, c, d)| ClassSpec { name: n.to_string(), color: *c, dynamic: *d, category: None })
-                .collect(),
-            TableSpec::Builtin(name) if name == "camvid" => CAMVID.iter().map(|(n, c, d)| ClassSpec { name: n.to_string(), color: *c, dynamic: *d, category: None }).collect(),
+            TableSpec::Builtin(name) if name == "cityscapes" => {
+                CITYSCAPES.iter().map(|(n, c, d)| ClassSpec { name: n.to_string(), color: *c, dynamic: *d, category: None }).collect()
+            }
+            TableSpec::Builtin(name) if name == "camvid" => {
+                CAMVID.iter().map(|(n, c, d)| ClassSpec { name: n.to_string(), color: *c, dynamic: *d, category: None }).collect()
+            }
             TableSpec::Builtin(name) => return Err(bad(format!("unknown class table {name:?} (built in: \"cityscapes\", \"camvid\")"))),
             TableSpec::Custom(list) => list.clone(),
         };
@@ -199,11 +216,7 @@ impl ClassTable {
             if name == "void" {
                 return Ok(VOID);
             }
-            names
-                .iter()
-                .position(|n| n == name)
-                .map(|i| i as u8)
-                .ok_or_else(|| bad(format!("class {name:?} is not in the class table")))
+            names.iter().position(|n| n == name).map(|i| i as u8).ok_or_else(|| bad(format!("class {name:?} is not in the class table")))
         };
         let mut excluded = vec![false; names.len()];
         for name in &cfg.exclude {
@@ -243,9 +256,7 @@ impl ClassTable {
             }
             LabelIds::Custom(pairs) => {
                 for (id, name) in pairs {
-                    let slot = id_lut
-                        .get_mut(*id as usize)
-                        .ok_or_else(|| bad(format!("label id {id} is above 65535")))?;
+                    let slot = id_lut.get_mut(*id as usize).ok_or_else(|| bad(format!("label id {id} is above 65535")))?;
                     *slot = index_of(name)?;
                 }
             }
@@ -268,7 +279,8 @@ impl ClassTable {
             }
         }
         // categories: given, else the known one of the class's name, else the class's own name
-        let category_names: Vec<String> = specs.iter().map(|s| s.category.clone().unwrap_or_else(|| category_of(&s.name).unwrap_or(&s.name).to_string())).collect();
+        let category_names: Vec<String> =
+            specs.iter().map(|s| s.category.clone().unwrap_or_else(|| category_of(&s.name).unwrap_or(&s.name).to_string())).collect();
         let mut distinct: Vec<&String> = Vec::new();
         let categories = category_names
             .iter()
@@ -377,7 +389,12 @@ mod tests {
 
     #[test]
     fn camvid_table_and_ids() {
-        let cfg = ClassesConfig { table: TableSpec::Builtin("camvid".into()), label_ids: LabelIds::Named("camvid".into()), void_ids: vec![], exclude: vec![] };
+        let cfg = ClassesConfig {
+            table: TableSpec::Builtin("camvid".into()),
+            label_ids: LabelIds::Named("camvid".into()),
+            void_ids: vec![],
+            exclude: vec![],
+        };
         let t = ClassTable::from_config(&cfg).unwrap();
         assert_eq!((t.len(), t.name(3), t.class_of_id(8), t.class_of_id(11), t.class_of_id(12)), (11, "Road", Some(8), Some(VOID), None));
         assert!(t.is_dynamic(8) && !t.is_dynamic(5));

@@ -105,15 +105,7 @@ pub struct GlobalConfig {
 
 impl Default for GlobalConfig {
     fn default() -> Self {
-        GlobalConfig {
-            truncation: 0.1,
-            width: 64,
-            height: 48,
-            ssim_window: 7,
-            ssim_k1: 0.01,
-            ssim_k2: 0.03,
-            ssim_sample_covariance: true,
-        }
+        GlobalConfig { truncation: 0.1, width: 64, height: 48, ssim_window: 7, ssim_k1: 0.01, ssim_k2: 0.03, ssim_sample_covariance: true }
     }
 }
 
@@ -261,7 +253,16 @@ impl Default for SegmentationConfig {
     fn default() -> Self {
         let mut class_map: Vec<String> = crate::classes::CITYSCAPES.iter().map(|c| c.0.to_string()).collect();
         class_map.push("void".into());
-        SegmentationConfig { input_width: 1024, input_height: 512, scale: 1.0, mean: [0.0; 3], std: [1.0; 3], bgr: false, class_map, brighten_dark: 0.35 }
+        SegmentationConfig {
+            input_width: 1024,
+            input_height: 512,
+            scale: 1.0,
+            mean: [0.0; 3],
+            std: [1.0; 3],
+            bgr: false,
+            class_map,
+            brighten_dark: 0.35,
+        }
     }
 }
 
@@ -351,7 +352,13 @@ impl SimilarityConfig {
     /// The design reference's reconstruction (spec §2.8) before any sweep: S_in in equal thirds,
     /// S = 0.5 S_in + 0.5 S_N, uniform tree weights.
     pub fn spec() -> Self {
-        SimilarityConfig { w_appearance: 1.0 / 3.0, w_neighbours: 0.5, tree_weight: TreeWeight::Uniform, class_match: ClassMatch::Class, ..Default::default() }
+        SimilarityConfig {
+            w_appearance: 1.0 / 3.0,
+            w_neighbours: 0.5,
+            tree_weight: TreeWeight::Uniform,
+            class_match: ClassMatch::Class,
+            ..Default::default()
+        }
     }
 }
 
@@ -530,8 +537,7 @@ impl Default for EvalConfig {
 impl Config {
     /// Parses and validates a TOML config; `source_name` names it in errors.
     pub fn from_toml(text: &str, source_name: &str) -> Result<Config> {
-        let cfg: Config = toml::from_str(text)
-            .map_err(|e| Error::InvalidConfig { source_name: source_name.into(), reason: e.to_string() })?;
+        let cfg: Config = toml::from_str(text).map_err(|e| Error::InvalidConfig { source_name: source_name.into(), reason: e.to_string() })?;
         cfg.validate(source_name)?;
         Ok(cfg)
     }
@@ -568,8 +574,13 @@ impl Config {
     /// The defaults for CamVid's 11 classes: label files hold CamVid ids (11 = void), and a
     /// Cityscapes segmenter's channels map to CamVid classes (`classes::CITYSCAPES_TO_CAMVID`).
     pub fn camvid() -> Config {
-        let mut c = Config::default();
-        c.classes = ClassesConfig { table: TableSpec::Builtin("camvid".into()), label_ids: LabelIds::Named("camvid".into()), void_ids: vec![], exclude: vec![] };
+        let classes = ClassesConfig {
+            table: TableSpec::Builtin("camvid".into()),
+            label_ids: LabelIds::Named("camvid".into()),
+            void_ids: vec![],
+            exclude: vec![],
+        };
+        let mut c = Config { classes, ..Config::default() };
         c.segmentation.class_map = crate::classes::CITYSCAPES_TO_CAMVID.iter().map(|s| s.to_string()).collect();
         c
     }

@@ -3,7 +3,12 @@
 //! "edge (coarse)" = global descriptor, "forest" = objects and trees, "appearance" = keypoint
 //! network and per-object VLAD.
 
-use crate::appearance::{self, keypoints::Keypoints, vlad::{Codebook, VladNorm}, AppearanceModel, Features};
+use crate::appearance::{
+    self,
+    keypoints::Keypoints,
+    vlad::{Codebook, VladNorm},
+    AppearanceModel, Features,
+};
 use crate::classes::ClassTable;
 use crate::config::{Config, EncodingConfig};
 use crate::error::{Error, Result};
@@ -151,7 +156,9 @@ impl std::fmt::Debug for LazySegmenter {
 impl LazySegmenter {
     fn get(&self) -> Result<&crate::segmentation::Segmenter> {
         self.loaded
-            .get_or_init(|| crate::segmentation::Segmenter::load(&self.path, &self.cfg, &self.table, self.onnxruntime.as_deref()).map_err(|e| e.to_string()))
+            .get_or_init(|| {
+                crate::segmentation::Segmenter::load(&self.path, &self.cfg, &self.table, self.onnxruntime.as_deref()).map_err(|e| e.to_string())
+            })
             .as_ref()
             .map_err(|reason| Error::Model { path: self.path.clone(), reason: reason.clone() })
     }
@@ -169,9 +176,24 @@ impl Encoder {
             None => None,
         };
         let segmenter = seg_path.map(|path| {
-            Arc::new(LazySegmenter { path, cfg: cfg.segmentation.clone(), table: table.clone(), onnxruntime: cfg.models.onnxruntime.clone(), loaded: Default::default() })
+            Arc::new(LazySegmenter {
+                path,
+                cfg: cfg.segmentation.clone(),
+                table: table.clone(),
+                onnxruntime: cfg.models.onnxruntime.clone(),
+                loaded: Default::default(),
+            })
         });
-        Ok(Encoder { used: table.used_mask(), ssim: SsimParams::new(&cfg.global), table, cfg: cfg.encoding(), appearance, codebook: None, segmenter, hog: false })
+        Ok(Encoder {
+            used: table.used_mask(),
+            ssim: SsimParams::new(&cfg.global),
+            table,
+            cfg: cfg.encoding(),
+            appearance,
+            codebook: None,
+            segmenter,
+            hog: false,
+        })
     }
     /// Whether the encoder also computes the HOG baseline (VPR-Bench's, [`crate::baseline`]).
     pub fn with_hog(mut self, hog: bool) -> Encoder {
@@ -247,7 +269,9 @@ impl Encoder {
     pub fn descriptor_set(&self) -> crate::descriptors::DescriptorSet {
         let hog = if self.hog { crate::baseline::HOG_DIM } else { 0 };
         let codebook = self.codebook.as_ref().filter(|_| self.appearance_dim() > 0).and_then(|c| c.sha256().ok());
-        crate::descriptors::DescriptorSet::new(&self.ssim, self.cfg.local.neighbours, self.appearance_dim(), hog).with_keypoint_dim(self.keypoint_dim()).with_codebook(codebook)
+        crate::descriptors::DescriptorSet::new(&self.ssim, self.cfg.local.neighbours, self.appearance_dim(), hog)
+            .with_keypoint_dim(self.keypoint_dim())
+            .with_codebook(codebook)
     }
 
     /// Values per stored verification keypoint descriptor: the network's descriptor width when
@@ -346,7 +370,17 @@ impl Encoder {
     /// when not given), HOG from the full image (`hog_rgb`, else `rgb`), RGB at the working size.
     /// The paths only name the inputs in errors.
     #[allow(clippy::too_many_arguments)]
-    fn load_decoded(&self, id: &str, image: Option<&std::path::Path>, label_path: Option<&std::path::Path>, rgb: Option<RgbImage>, hog_rgb: Option<RgbImage>, decoded_size: Option<(u32, u32)>, full_labels: Option<LabelMap>, mut times: StageTimes) -> Result<Loaded> {
+    fn load_decoded(
+        &self,
+        id: &str,
+        image: Option<&std::path::Path>,
+        label_path: Option<&std::path::Path>,
+        rgb: Option<RgbImage>,
+        hog_rgb: Option<RgbImage>,
+        decoded_size: Option<(u32, u32)>,
+        full_labels: Option<LabelMap>,
+        mut times: StageTimes,
+    ) -> Result<Loaded> {
         let source_size = match (decoded_size, &full_labels) {
             (Some(size), _) => size,
             (None, Some(l)) => (l.width(), l.height()),
@@ -366,7 +400,10 @@ impl Encoder {
         if self.appearance.is_some() && (ww < appearance::MIN_NETWORK_SIDE as u32 || wh < appearance::MIN_NETWORK_SIDE as u32) {
             let what = image.map_or_else(|| format!("frame {id:?}"), |p| p.display().to_string());
             let m = appearance::MIN_NETWORK_SIDE;
-            return Err(Error::invalid(what, format!("{}x{} (working size {ww}x{wh}) is below the {m}x{m} a keypoint network needs", source_size.0, source_size.1)));
+            return Err(Error::invalid(
+                what,
+                format!("{}x{} (working size {ww}x{wh}) is below the {m}x{m} a keypoint network needs", source_size.0, source_size.1),
+            ));
         }
         let labels = match (full_labels, &self.segmenter, &rgb) {
             (Some(l), _, _) => l.resized_nearest(ww, wh),
@@ -401,7 +438,8 @@ impl Encoder {
         if self.appearance.is_some() {
             return Err(Error::invalid(format!("frame {id:?}"), "appearance is on, so the RGB image is needed: use encode_loaded"));
         }
-        let loaded = Loaded { labels: labels.clone(), rgb: None, source_size: (labels.width(), labels.height()), hog: None, times: StageTimes::default() };
+        let loaded =
+            Loaded { labels: labels.clone(), rgb: None, source_size: (labels.width(), labels.height()), hog: None, times: StageTimes::default() };
         self.encode_loaded(id, &loaded, scratch)
     }
 
@@ -411,7 +449,13 @@ impl Encoder {
     }
 
     /// [`Encoder::encode_loaded`] with the keypoint network's output given.
-    pub fn encode_loaded_with(&self, id: &str, loaded: &Loaded, keypoints: Option<&Features>, scratch: &mut GlobalScratch) -> Result<(EncodedImage, StageTimes)> {
+    pub fn encode_loaded_with(
+        &self,
+        id: &str,
+        loaded: &Loaded,
+        keypoints: Option<&Features>,
+        scratch: &mut GlobalScratch,
+    ) -> Result<(EncodedImage, StageTimes)> {
         let t = Instant::now();
         let mut global = vec![0.0; self.ssim.len()];
         let mut stats = vec![0.0; self.ssim.stats_len()];
@@ -434,7 +478,15 @@ impl Encoder {
 
     /// [`Encoder::encode_rest`] with the keypoint network's output given (cached by a caller that
     /// encodes the same frames with several configurations, such as `tune`).
-    pub fn encode_rest_with(&self, id: &str, loaded: &Loaded, global: Vec<f32>, stats: Option<Vec<f32>>, global_ms: f64, keypoints: Option<&Features>) -> Result<Pending> {
+    pub fn encode_rest_with(
+        &self,
+        id: &str,
+        loaded: &Loaded,
+        global: Vec<f32>,
+        stats: Option<Vec<f32>>,
+        global_ms: f64,
+        keypoints: Option<&Features>,
+    ) -> Result<Pending> {
         let t = Instant::now();
         let global_stats = stats.unwrap_or_else(|| {
             let mut s = vec![0.0; self.ssim.stats_len()];
@@ -450,7 +502,9 @@ impl Encoder {
         let mut verification = crate::descriptors::keypoints::ImageKeypoints::default();
         let vlad = match (&self.appearance, &loaded.rgb) {
             (Some(model), Some(rgb)) => {
-                let codebook = self.codebook.as_ref().ok_or_else(|| Error::invalid("encoder", "appearance is on but no VLAD codebook is set (train one, or open a map that has one)"))?;
+                let codebook = self.codebook.as_ref().ok_or_else(|| {
+                    Error::invalid("encoder", "appearance is on but no VLAD codebook is set (train one, or open a map that has one)")
+                })?;
                 let t = Instant::now();
                 let computed;
                 let f = match keypoints {
@@ -463,7 +517,10 @@ impl Encoder {
                 };
                 let k = &f.sampled;
                 if k.dim != codebook.dim {
-                    return Err(Error::Model { path: model.path.clone(), reason: format!("descriptors have {} values, the codebook {}", k.dim, codebook.dim) });
+                    return Err(Error::Model {
+                        path: model.path.clone(),
+                        reason: format!("descriptors have {} values, the codebook {}", k.dim, codebook.dim),
+                    });
                 }
                 if let Some(d) = &f.detected {
                     let long = loaded.labels.width().max(loaded.labels.height());
@@ -481,7 +538,8 @@ impl Encoder {
         };
         let (width, height) = loaded.source_size;
         let hog = loaded.hog.clone().unwrap_or_default();
-        let image = EncodedImage { id: id.to_string(), width, height, global, global_stats, forest, appearance: vec![], hog, keypoints: verification };
+        let image =
+            EncodedImage { id: id.to_string(), width, height, global, global_stats, forest, appearance: vec![], hog, keypoints: verification };
         Ok(Pending { image, times, vlad })
     }
 
@@ -594,7 +652,10 @@ impl Encoder {
 
 /// Splits encoding results into successes and errors; with `skip_invalid` false, the first error
 /// (in input order) is returned instead.
-pub fn collect_encoded(results: Vec<Result<(EncodedImage, StageTimes)>>, skip_invalid: bool) -> Result<(Vec<EncodedImage>, Vec<StageTimes>, Vec<(usize, Error)>)> {
+pub fn collect_encoded(
+    results: Vec<Result<(EncodedImage, StageTimes)>>,
+    skip_invalid: bool,
+) -> Result<(Vec<EncodedImage>, Vec<StageTimes>, Vec<(usize, Error)>)> {
     let mut images = Vec::with_capacity(results.len());
     let mut total = Vec::with_capacity(results.len());
     let mut skipped = Vec::new();

@@ -5,14 +5,18 @@
 //! never picks it; `gpu` accepts it, which is what the equivalence tests run on).
 
 use crate::config::Config;
+use crate::descriptors::DescriptorSet;
 use crate::encode::{EncodedImage, Encoder, Loaded, Pending, StageTimes};
 use crate::error::Result;
 use crate::global::ssim::SsimParams;
 use crate::gpu::{coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, verify::MnnGpu, vlad::VladGpu, GpuContext, GpuOptions};
 use crate::input::{FrameSource, LabelFormat, LabelMap};
 use crate::local::tree_similarity::TreeSimParams;
-use crate::descriptors::DescriptorSet;
-use crate::matching::{candidates, fine_scores, CandidateLists, match_with, source::{GlobalSource, RefSource}, CpuStages, MatchTimes, QueryMatch, Setting, Stages};
+use crate::matching::{
+    candidates, fine_scores, match_with,
+    source::{GlobalSource, RefSource},
+    CandidateLists, CpuStages, MatchTimes, QueryMatch, Setting, Stages,
+};
 use crate::util::ms_since;
 use crate::verify::{Verified, VerifyParams};
 use rayon::prelude::*;
@@ -46,7 +50,15 @@ pub struct GpuStages {
 
 impl GpuStages {
     pub fn new(ctx: Arc<GpuContext>) -> Self {
-        GpuStages { encoder: GlobalEncoderGpu::new(ctx.clone()), fine: FineMatcherGpu::new(ctx.clone()), vlad: VladGpu::new(ctx.clone()), mnn: MnnGpu::new(ctx.clone()), coarse: None, ctx, work: 0 }
+        GpuStages {
+            encoder: GlobalEncoderGpu::new(ctx.clone()),
+            fine: FineMatcherGpu::new(ctx.clone()),
+            vlad: VladGpu::new(ctx.clone()),
+            mnn: MnnGpu::new(ctx.clone()),
+            coarse: None,
+            ctx,
+            work: 0,
+        }
     }
 
     /// Forgets the maps kept on the device (call after editing a map's vectors in place: the
@@ -106,19 +118,38 @@ impl Stages for GpuStages {
         self.work += 1;
         Ok(self.fine.score_pairs(p, queries, refs, pairs)?)
     }
-    fn fine_topk(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, k: usize, _tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+    fn fine_topk(
+        &mut self,
+        p: &TreeSimParams,
+        refs: &dyn RefSource,
+        queries: &DescriptorSet,
+        k: usize,
+        _tile: usize,
+    ) -> Result<Vec<Vec<(f32, u32)>>> {
         self.work += 1;
         Ok(self.fine.topk_all(p, queries, refs, k)?)
     }
     /// On the CPU (the whole-image appearance vectors are not on the device).
-    fn fused_coarse(&mut self, refs: &dyn RefSource, queries: &DescriptorSet, p: &SsimParams, w_global: f32, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+    fn fused_coarse(
+        &mut self,
+        refs: &dyn RefSource,
+        queries: &DescriptorSet,
+        p: &SsimParams,
+        w_global: f32,
+        k: usize,
+        tile: usize,
+    ) -> Result<Vec<Vec<(f32, u32)>>> {
         CpuStages.fused_coarse(refs, queries, p, w_global, k, tile)
     }
     /// Mutual nearest neighbours on the GPU (`mnn_match`), RANSAC on the CPU.
     fn verify_pairs(&mut self, p: &VerifyParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<Verified>> {
         self.work += 1;
         let best = self.mnn.best_columns(queries, refs, pairs)?;
-        Ok(pairs.par_iter().zip(best.par_iter()).map(|(&(q, r), b)| crate::verify::verify_from_best(p, queries.keypoints(q as usize), refs.keypoints(r as usize), b)).collect())
+        Ok(pairs
+            .par_iter()
+            .zip(best.par_iter())
+            .map(|(&(q, r), b)| crate::verify::verify_from_best(p, queries.keypoints(q as usize), refs.keypoints(r as usize), b))
+            .collect())
     }
 }
 
@@ -255,18 +286,37 @@ impl Engine {
     }
 
     /// Matches a batch of queries (see [`crate::matching::match_with`]).
-    pub fn match_batch(&mut self, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<QueryMatch>, MatchTimes)> {
+    pub fn match_batch(
+        &mut self,
+        refs: &dyn RefSource,
+        queries: &DescriptorSet,
+        setting: Setting,
+        cfg: &Config,
+    ) -> Result<(Vec<QueryMatch>, MatchTimes)> {
         self.on_stages(|st| match_with(st, refs, queries, setting, cfg))
     }
 
     /// The candidate lists of a batch alone (see [`crate::matching::candidates`]): what one shard
     /// of a map runs.
-    pub fn candidates(&mut self, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(CandidateLists, MatchTimes)> {
+    pub fn candidates(
+        &mut self,
+        refs: &dyn RefSource,
+        queries: &DescriptorSet,
+        setting: Setting,
+        cfg: &Config,
+    ) -> Result<(CandidateLists, MatchTimes)> {
         self.on_stages(|st| candidates(st, refs, queries, setting, cfg))
     }
 
     /// Fine scores of (query, reference) pairs (see [`crate::matching::fine_scores`]).
-    pub fn fine_scores(&mut self, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config, pairs: &[(u32, u32)]) -> Result<Vec<f32>> {
+    pub fn fine_scores(
+        &mut self,
+        refs: &dyn RefSource,
+        queries: &DescriptorSet,
+        setting: Setting,
+        cfg: &Config,
+        pairs: &[(u32, u32)],
+    ) -> Result<Vec<f32>> {
         self.on_stages(|st| fine_scores(st, refs, queries, setting, cfg, pairs))
     }
 
@@ -275,14 +325,26 @@ impl Engine {
     /// parallel on the CPU; for each batch of one size the global descriptors are computed on the
     /// GPU, objects, forests and the keypoint network run on the CPU, and the per-object VLAD of
     /// the whole batch runs on the GPU.
-    pub fn encode_all(&mut self, encoder: &Encoder, sources: &[FrameSource], format: LabelFormat, tick: &(dyn Fn() + Sync)) -> Result<Vec<Result<(EncodedImage, StageTimes)>>> {
+    pub fn encode_all(
+        &mut self,
+        encoder: &Encoder,
+        sources: &[FrameSource],
+        format: LabelFormat,
+        tick: &(dyn Fn() + Sync),
+    ) -> Result<Vec<Result<(EncodedImage, StageTimes)>>> {
         match self.on_gpu(|g| Self::encode_all_gpu(g, encoder, sources, format, tick))? {
             Some(v) => Ok(v),
             None => Ok(encoder.encode_all(sources, format, tick)),
         }
     }
 
-    fn encode_all_gpu(g: &mut GpuStages, encoder: &Encoder, sources: &[FrameSource], format: LabelFormat, tick: &(dyn Fn() + Sync)) -> Result<Vec<Result<(EncodedImage, StageTimes)>>> {
+    fn encode_all_gpu(
+        g: &mut GpuStages,
+        encoder: &Encoder,
+        sources: &[FrameSource],
+        format: LabelFormat,
+        tick: &(dyn Fn() + Sync),
+    ) -> Result<Vec<Result<(EncodedImage, StageTimes)>>> {
         let mut out: Vec<Option<Result<(EncodedImage, StageTimes)>>> = (0..sources.len()).map(|_| None).collect();
         let mut loaded: Vec<Option<Loaded>> = Vec::with_capacity(sources.len());
         for (i, r) in sources.par_iter().map(|s| encoder.load(s, format)).collect::<Vec<_>>().into_iter().enumerate() {
@@ -321,7 +383,12 @@ impl Engine {
                 .map(|(k, (glob, l))| encoder.encode_rest(&sources[i + k].id, l, glob, None, per))
                 .collect();
             // VLAD of every frame of the batch in one GPU pass
-            let inputs: Vec<(&[f32], &[u32])> = pending.iter().filter_map(|p| p.as_ref().ok()).filter_map(|p| p.vlad.as_ref()).map(|v| (v.descriptors.as_slice(), v.offsets.as_slice())).collect();
+            let inputs: Vec<(&[f32], &[u32])> = pending
+                .iter()
+                .filter_map(|p| p.as_ref().ok())
+                .filter_map(|p| p.vlad.as_ref())
+                .map(|v| (v.descriptors.as_slice(), v.offsets.as_slice()))
+                .collect();
             let t = Instant::now();
             let mut vlads = match (encoder.codebook(), inputs.is_empty()) {
                 (Some(cb), false) => g.vlad.run(cb, encoder.vlad_norm(), &inputs)?.into_iter(),

@@ -19,12 +19,7 @@ pub enum Error {
     #[error("{path}: image is empty ({width}x{height})")]
     EmptyImage { path: PathBuf, width: u32, height: u32 },
     #[error("{labels}: label map is {label_size:?} (w, h) but image {image} is {image_size:?}")]
-    SizeMismatch {
-        image: PathBuf,
-        labels: PathBuf,
-        image_size: (u32, u32),
-        label_size: (u32, u32),
-    },
+    SizeMismatch { image: PathBuf, labels: PathBuf, image_size: (u32, u32), label_size: (u32, u32) },
     #[error("{path}: pixel ({x}, {y}) has class id {id}, which the class table does not know (and is not void)")]
     UnknownClassId { path: PathBuf, id: u32, x: u32, y: u32 },
     #[error("{path}: pixel ({x}, {y}) has colour {rgb:?}, which is not in the class palette")]

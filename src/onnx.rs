@@ -4,8 +4,8 @@
 use crate::error::{Error, Result};
 use ort::logging::LogLevel;
 use ort::session::Session;
-use std::sync::Arc;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::sync::OnceLock;
 
 /// Version of the library `setup.sh` installs (ort's `api-31` needs ONNX Runtime >= 1.31).
@@ -57,7 +57,11 @@ pub fn env_model(name: &str) -> Option<PathBuf> {
 /// [`model_dirs`] that has it. The error lists every place it looked.
 pub fn find_model(name: &str, configured: Option<&Path>, what: &str) -> Result<PathBuf> {
     if let Some(p) = configured {
-        return if p.is_file() { Ok(p.to_path_buf()) } else { Err(Error::Model { path: p.to_path_buf(), reason: format!("{what}: file not found") }) };
+        return if p.is_file() {
+            Ok(p.to_path_buf())
+        } else {
+            Err(Error::Model { path: p.to_path_buf(), reason: format!("{what}: file not found") })
+        };
     }
     let dirs = model_dirs();
     if let Some(found) = dirs.iter().map(|d| d.join(name)).find(|p| p.is_file()) {
@@ -142,7 +146,12 @@ pub struct SessionPool {
 
 impl SessionPool {
     pub fn new(model: &Path, library: Option<&Path>) -> Result<SessionPool> {
-        Ok(SessionPool { shared: std::sync::Mutex::new(session(model, library)?), model: model.into(), library: library.map(Path::to_path_buf), workers: Default::default() })
+        Ok(SessionPool {
+            shared: std::sync::Mutex::new(session(model, library)?),
+            model: model.into(),
+            library: library.map(Path::to_path_buf),
+            workers: Default::default(),
+        })
     }
     /// The session opened first (for reading the model's inputs and outputs).
     pub fn with_shared<R>(&self, f: impl FnOnce(&mut Session) -> R) -> R {

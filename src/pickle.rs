@@ -30,7 +30,13 @@ pub enum Node {
     Global(String),
     /// A call of `func` (a global) with `args`, with the state BUILD gave it and the items
     /// SETITEM(S)/APPEND(S) added to the resulting object.
-    Call { func: String, args: Vec<Id>, state: Option<Id>, items: Vec<(Id, Id)>, appended: Vec<Id> },
+    Call {
+        func: String,
+        args: Vec<Id>,
+        state: Option<Id>,
+        items: Vec<(Id, Id)>,
+        appended: Vec<Id>,
+    },
     /// A persistent id (PyTorch's storage references).
     Persistent(Id),
 }
@@ -211,7 +217,9 @@ impl<'a> Machine<'a> {
                     // STACK_GLOBAL
                     let name = self.pop("STACK_GLOBAL")?;
                     let module = self.pop("STACK_GLOBAL")?;
-                    let (Node::Str(m), Node::Str(n)) = (&self.nodes[module], &self.nodes[name]) else { return Err("STACK_GLOBAL of non-strings".into()) };
+                    let (Node::Str(m), Node::Str(n)) = (&self.nodes[module], &self.nodes[name]) else {
+                        return Err("STACK_GLOBAL of non-strings".into());
+                    };
                     let g = format!("{m}.{n}");
                     self.spend(g.len())?;
                     self.push(Node::Global(g));
@@ -387,10 +395,9 @@ impl<'a> Machine<'a> {
                 b'b' => {
                     let state = self.pop("BUILD")?;
                     let target = self.top("BUILD")?;
-                    match &mut self.nodes[target] {
-                        Node::Call { state: s, .. } => *s = Some(state),
-                        // BUILD on a plain value: state is ignored (Python would set attributes)
-                        _ => {}
+                    // BUILD on a plain value: state is ignored (Python would set attributes)
+                    if let Node::Call { state: s, .. } = &mut self.nodes[target] {
+                        *s = Some(state);
                     }
                 }
                 b'Q' => {
@@ -421,7 +428,8 @@ mod tests {
 
     /// `pickle.dumps([1, -2, 300, 2**40, "x", (None, True)], protocol=2)`, then `protocol=4`.
     const LIST_P2: &[u8] = b"\x80\x02]q\x00(K\x01J\xfe\xff\xff\xffM,\x01\x8a\x06\x00\x00\x00\x00\x00\x01X\x01\x00\x00\x00xq\x01N\x88\x86q\x02e.";
-    const LIST_P4: &[u8] = b"\x80\x04\x95\x1f\x00\x00\x00\x00\x00\x00\x00]\x94(K\x01J\xfe\xff\xff\xffM,\x01\x8a\x06\x00\x00\x00\x00\x00\x01\x8c\x01x\x94N\x88\x86\x94e.";
+    const LIST_P4: &[u8] =
+        b"\x80\x04\x95\x1f\x00\x00\x00\x00\x00\x00\x00]\x94(K\x01J\xfe\xff\xff\xffM,\x01\x8a\x06\x00\x00\x00\x00\x00\x01\x8c\x01x\x94N\x88\x86\x94e.";
 
     #[test]
     fn reads_lists_ints_strings_and_tuples_in_protocols_2_and_4() {

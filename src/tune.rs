@@ -74,11 +74,16 @@ impl Sweep {
     pub fn combinations(&self) -> Vec<Vec<(String, toml::Value)>> {
         let mut out: Vec<Vec<(String, toml::Value)>> = vec![vec![]];
         for (key, vals) in &self.axes {
-            out = out.into_iter().flat_map(|c| vals.iter().map(move |v| {
-                let mut c = c.clone();
-                c.push((key.clone(), v.clone()));
-                c
-            })).collect();
+            out = out
+                .into_iter()
+                .flat_map(|c| {
+                    vals.iter().map(move |v| {
+                        let mut c = c.clone();
+                        c.push((key.clone(), v.clone()));
+                        c
+                    })
+                })
+                .collect();
         }
         out
     }
@@ -109,7 +114,11 @@ fn set_dotted(t: &mut toml::Table, key: &str, v: toml::Value) -> std::result::Re
     let last = parts.pop().filter(|l| !l.is_empty()).ok_or_else(|| format!("empty key {key:?}"))?;
     let mut cur = t;
     for p in parts {
-        cur = cur.entry(p.to_string()).or_insert_with(|| toml::Value::Table(Default::default())).as_table_mut().ok_or_else(|| format!("{key:?}: {p:?} is not a section"))?;
+        cur = cur
+            .entry(p.to_string())
+            .or_insert_with(|| toml::Value::Table(Default::default()))
+            .as_table_mut()
+            .ok_or_else(|| format!("{key:?}: {p:?} is not a section"))?;
     }
     cur.insert(last.to_string(), v);
     Ok(())
@@ -121,7 +130,8 @@ fn frame_key(cfg: &Config) -> String {
     let mut a = cfg.appearance.clone();
     let d = crate::config::AppearanceConfig::default();
     (a.vlad_centres, a.intra_norm, a.power_norm, a.min_descriptors) = (d.vlad_centres, d.intra_norm, d.power_norm, d.min_descriptors);
-    (a.codebook_images, a.codebook_samples_per_image, a.codebook_iterations, a.codebook_seed) = (d.codebook_images, d.codebook_samples_per_image, d.codebook_iterations, d.codebook_seed);
+    (a.codebook_images, a.codebook_samples_per_image, a.codebook_iterations, a.codebook_seed) =
+        (d.codebook_images, d.codebook_samples_per_image, d.codebook_iterations, d.codebook_seed);
     // detections are cached for the most keypoints any member stores (each takes its best N)
     let k = crate::config::KeypointsConfig { stored: 0, ..cfg.keypoints.clone() };
     serde_json::json!([cfg.input, cfg.classes, cfg.segmentation, cfg.models, a, k]).to_string()
@@ -195,11 +205,19 @@ impl TuneRow {
 
 /// Runs every combination of `sweep` on `datasets` in `settings` (each dataset's class settings
 /// follow it: [`Dataset::adapt_config`]). `progress` hears about each finished dataset and row.
-pub fn run(datasets: &[Dataset], sweep: &Sweep, settings: &[Setting], engine: &mut Engine, tick: &(dyn Fn() + Sync), progress: &mut dyn FnMut(&str, &TuneRow)) -> Result<Vec<TuneRow>> {
+pub fn run(
+    datasets: &[Dataset],
+    sweep: &Sweep,
+    settings: &[Setting],
+    engine: &mut Engine,
+    tick: &(dyn Fn() + Sync),
+    progress: &mut dyn FnMut(&str, &TuneRow),
+) -> Result<Vec<TuneRow>> {
     let combos = sweep.combinations();
     let base: Vec<Config> = combos.iter().map(|c| sweep.config(c, "sweep")).collect::<Result<_>>()?;
     let wants_hog = settings.contains(&Setting::Hog);
-    let mut rows: Vec<TuneRow> = combos.iter().map(|c| TuneRow { values: c.iter().map(|(k, v)| (k.clone(), v.to_string())).collect(), results: vec![] }).collect();
+    let mut rows: Vec<TuneRow> =
+        combos.iter().map(|c| TuneRow { values: c.iter().map(|(k, v)| (k.clone(), v.to_string())).collect(), results: vec![] }).collect();
     for ds in datasets {
         let configs: Vec<Config> = base.iter().map(|c| ds.adapt_config(c.clone())).collect();
         // groups of configurations that share decoded frames, in first-appearance order

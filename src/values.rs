@@ -150,7 +150,6 @@ pub fn to_blocks(dense: &[f32], dim: usize, block: usize, base: u32) -> (Vec<u32
     (offsets, ids, exps, vals)
 }
 
-
 impl<'a> Values<'a> {
     pub const EMPTY: Values<'static> = Values::F32(&[]);
 
@@ -306,7 +305,8 @@ mod tests {
     #[test]
     fn blocks_store_rounded_vectors_exactly_and_skip_zero_blocks() {
         // 3 vectors of 4 blocks of 5: zero blocks, tiny and large values, negative values near 0
-        let mut v: Vec<f32> = (0..60).map(|i| if (i / 5) % 3 == 1 { 0.0 } else { ((i * 37 % 23) as f32 - 11.0) * 10f32.powi(-(i % 4) as i32) / 7.0 }).collect();
+        let mut v: Vec<f32> =
+            (0..60).map(|i| if (i / 5) % 3 == 1 { 0.0 } else { ((i * 37 % 23) as f32 - 11.0) * 10f32.powi(-(i % 4)) / 7.0 }).collect();
         v[3] = -1e-9;
         let original = v.clone();
         round_to_blocks(&mut v, 5);

@@ -72,13 +72,13 @@ fn native_xfeat_matches_the_onnx_oracle_on_real_images() {
             let kr = max_rel_diff(&a.logits.data, &b.logits.data);
             let (pa, pb) = (semlook::appearance::keypoints::score_map(&a).unwrap().0, semlook::appearance::keypoints::score_map(&b).unwrap().0);
             let p = pa.iter().zip(&pb).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
-            eprintln!("{name} at {w}x{h}: max |diff| descriptors {d:.1e}, reliability {r:.1e}, keypoint scores {p:.1e}, logits {k:.1e} (relative {kr:.1e})");
+            eprintln!(
+                "{name} at {w}x{h}: max |diff| descriptors {d:.1e}, reliability {r:.1e}, keypoint scores {p:.1e}, logits {k:.1e} (relative {kr:.1e})"
+            );
             assert!(d <= 1e-4 && r <= 1e-4 && p <= 1e-4 && kr <= 1e-4, "{name} {w}x{h}: {d} {r} {p} {kr}");
         }
     }
 }
-
-
 
 fn street_rgb(name: &str, w: u32, h: u32) -> Option<image::RgbImage> {
     let frames = shared("data/street-frames")?;
@@ -116,7 +116,9 @@ fn keypoint_decoding_properties_on_a_real_frame() {
 /// `--keypoints xfeat.onnx` (the generic ONNX path) finds the native model's keypoints.
 #[test]
 fn onnx_keypoint_path_agrees_with_native() {
-    let (Some(model_path), Some(rgb)) = (shared("models/xfeat.onnx"), street_rgb("frankfurt_000000_000576_leftImg8bit.png", 512, 256)) else { return };
+    let (Some(model_path), Some(rgb)) = (shared("models/xfeat.onnx"), street_rgb("frankfurt_000000_000576_leftImg8bit.png", 512, 256)) else {
+        return;
+    };
     let (Some(a), Some(b)) = (native(), onnx(&model_path)) else { return };
     let (ka, kb) = (a.keypoints(&rgb).unwrap(), b.keypoints(&rgb).unwrap());
     assert_eq!(ka.dim, kb.dim);
@@ -198,8 +200,21 @@ fn appearance_in_maps_and_evaluation() {
     std::fs::write(&cbf, &bytes).unwrap();
     assert!(matches!(semlook::map::Map::open(&path), Err(semlook::Error::CorruptMap { .. })));
     // evaluation with appearance: the settings that use it rank differently from those that do not
-    let report = semlook::eval::evaluate(&ds, &cfg, &semlook::eval::EvalOptions { settings: vec![semlook::matching::Setting::Forest, semlook::matching::Setting::Local], map: None, skip_invalid: false, quiet: true }, &mut engine).unwrap();
-    let scores = |s: semlook::matching::Setting| report.results.iter().filter(|r| r.setting == s).flat_map(|r| r.outcomes.iter().map(|o| o.score.unwrap())).collect::<Vec<f32>>();
+    let report = semlook::eval::evaluate(
+        &ds,
+        &cfg,
+        &semlook::eval::EvalOptions {
+            settings: vec![semlook::matching::Setting::Forest, semlook::matching::Setting::Local],
+            map: None,
+            skip_invalid: false,
+            quiet: true,
+        },
+        &mut engine,
+    )
+    .unwrap();
+    let scores = |s: semlook::matching::Setting| {
+        report.results.iter().filter(|r| r.setting == s).flat_map(|r| r.outcomes.iter().map(|o| o.score.unwrap())).collect::<Vec<f32>>()
+    };
     assert_ne!(scores(semlook::matching::Setting::Forest), scores(semlook::matching::Setting::Local));
 }
 

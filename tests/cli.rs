@@ -3,8 +3,8 @@
 mod common;
 
 use common::{cli as semlook, cli_ok as ok, p};
-use std::process::Command;
 use std::path::Path;
+use std::process::Command;
 
 #[test]
 fn config_prints_a_loadable_default() {
@@ -40,7 +40,8 @@ fn build_add_info_query_and_eval_without_appearance() {
     let lines: Vec<&str> = csv.lines().filter(|l| !l.starts_with('#')).collect();
     assert_eq!(lines[0], "query,best_reference,score,coarse,fine,top_k");
     assert_eq!(lines.len(), 7);
-    let json: serde_json::Value = serde_json::from_str(&ok(&["query", "--map", p(&map), "--labels", p(&labels), "--json", "--setting", "forest", na, "-q"])).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_str(&ok(&["query", "--map", p(&map), "--labels", p(&labels), "--json", "--setting", "forest", na, "-q"])).unwrap();
     assert_eq!(json["queries"].as_array().unwrap().len(), 6);
     assert_eq!(json["setting"], "forest");
     assert!(json["run"]["keypoints"].is_null() && json["run"]["config_sha256"].as_str().unwrap().len() == 64);
@@ -80,13 +81,15 @@ fn appearance_through_the_cli() {
     assert!(map.join("codebook.safetensors").exists());
     let labels = data.join("night/GT/LABELS/Stereo_Left/Omni_F");
     let images = data.join("night/RGB/Stereo_Left/Omni_F");
-    let json: serde_json::Value = serde_json::from_str(&ok(&["query", "--map", p(&map), "--images", p(&images), "--labels", p(&labels), "--json", "-q"])).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_str(&ok(&["query", "--map", p(&map), "--images", p(&images), "--labels", p(&labels), "--json", "-q"])).unwrap();
     assert_eq!(json["queries"].as_array().unwrap().len(), 5);
     assert_eq!(json["run"]["keypoints"]["sha256"].as_str().unwrap().len(), 64);
     let refused = semlook(&["query", "--map", p(&map), "--labels", p(&labels), "--no-appearance", "-q"]);
     assert!(!refused.status.success());
     assert!(String::from_utf8_lossy(&refused.stderr).contains("appearance"));
-    let report: serde_json::Value = serde_json::from_str(&ok(&["eval", "--dataset", p(&data), "--map", p(&map), "--setting", "semlook", "--json", "-q"])).unwrap();
+    let report: serde_json::Value =
+        serde_json::from_str(&ok(&["eval", "--dataset", p(&data), "--map", p(&map), "--setting", "semlook", "--json", "-q"])).unwrap();
     assert_eq!(report["results"][0]["outcomes"].as_array().unwrap().len(), 5);
     assert!(report["query_encoding"]["mean"]["network_ms"].as_f64().unwrap() > 0.0);
     assert!(report["run"]["keypoints"]["path"].as_str().unwrap().ends_with("xfeat.pt"));
@@ -253,7 +256,9 @@ fn map_commands_keep_their_small_promises() {
         let err = fails(&[args.clone(), vec!["--backend", "gpu"]].concat());
         assert!(err.contains("--backend gpu") && err.contains("does not apply"), "{args:?}: {err}");
     }
-    let generation = |m: &Path| -> u64 { serde_json::from_str::<serde_json::Value>(&ok(&["map", "info", "--map", p(m), "--json"])).unwrap()["generation"].as_u64().unwrap() };
+    let generation = |m: &Path| -> u64 {
+        serde_json::from_str::<serde_json::Value>(&ok(&["map", "info", "--map", p(m), "--json"])).unwrap()["generation"].as_u64().unwrap()
+    };
     // the first compaction merges the two small segments; the second has nothing to do
     let before = generation(&map);
     ok(&["map", "compact", "--map", p(&map)]);
@@ -261,7 +266,12 @@ fn map_commands_keep_their_small_promises() {
     assert_eq!(merged, before + 1);
     ok(&["map", "compact", "--map", p(&map)]);
     assert_eq!(generation(&map), merged, "a compaction with nothing to do made a new generation");
-    let seg = std::fs::read_dir(&map).unwrap().flatten().map(|e| e.path()).find(|f| f.file_name().unwrap().to_str().unwrap().starts_with("segment-")).unwrap();
+    let seg = std::fs::read_dir(&map)
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .find(|f| f.file_name().unwrap().to_str().unwrap().starts_with("segment-"))
+        .unwrap();
     let mut bytes = std::fs::read(&seg).unwrap();
     bytes.truncate(bytes.len() - 10);
     std::fs::write(&seg, bytes).unwrap();
@@ -303,7 +313,12 @@ fn skip_invalid_skips_bad_ids_dangling_links_and_loops() {
         symlink(d.join("loop1.png"), d.join("loop2.png")).unwrap();
     }
     let map = dir.path().join("map");
-    let build = |extra: &[&str]| semlook(&[&["map", "build", "--images", p(&images), "--labels", p(&labels), "--out", p(&map), "--no-appearance", "--no-segmenter"][..], extra].concat());
+    let build = |extra: &[&str]| {
+        semlook(
+            &[&["map", "build", "--images", p(&images), "--labels", p(&labels), "--out", p(&map), "--no-appearance", "--no-segmenter"][..], extra]
+                .concat(),
+        )
+    };
     let refused = build(&[]);
     let err = String::from_utf8_lossy(&refused.stderr);
     assert!(!refused.status.success() && err.contains("control character") && !err.contains("committing"), "{err}");

@@ -27,16 +27,8 @@ fn folders_layout_like_extended_cmu_seasons() {
             label(&root.join("labels/slice6").join(sub).join(format!("{n}.png")), 2 + k as u8);
         }
     }
-    std::fs::write(
-        root.join("slice6/gt-db.txt"),
-        "img_00001_c0_100us.jpg 1 0 0 0 0 0 0\nimg_00002_c0_200us.jpg 1 0 0 0 0 0 10\n",
-    )
-    .unwrap();
-    std::fs::write(
-        root.join("slice6/gt-q.txt"),
-        "img_00101_c0_900us.jpg 1 0 0 0 0.5 0 1\nimg_00102_c0_950us.jpg 0 0 1 0 0 0 9\n",
-    )
-    .unwrap();
+    std::fs::write(root.join("slice6/gt-db.txt"), "img_00001_c0_100us.jpg 1 0 0 0 0 0 0\nimg_00002_c0_200us.jpg 1 0 0 0 0 0 10\n").unwrap();
+    std::fs::write(root.join("slice6/gt-q.txt"), "img_00101_c0_900us.jpg 1 0 0 0 0.5 0 1\nimg_00102_c0_950us.jpg 0 0 1 0 0 0 9\n").unwrap();
     let manifest = r#"{ "format": "semlook-dataset", "version": 1, "layout": "folders",
       "reference": { "name": "database", "images": "slice6/database", "labels": "labels/slice6/database",
                      "poses": "slice6/gt-db.txt", "pose_format": "quat_center" },
@@ -55,7 +47,13 @@ fn folders_layout_like_extended_cmu_seasons() {
     assert_eq!(loose.ground_truth(&loose.queries[0]).unwrap(), vec![vec![0], vec![1]]);
     // the pipeline runs on it
     let cfg = semlook::config::Config::without_appearance();
-    let rep = semlook::eval::evaluate(&ds, &cfg, &semlook::eval::EvalOptions { settings: vec![semlook::matching::Setting::Semlook], map: None, skip_invalid: false, quiet: true }, &mut semlook::engine::Engine::cpu()).unwrap();
+    let rep = semlook::eval::evaluate(
+        &ds,
+        &cfg,
+        &semlook::eval::EvalOptions { settings: vec![semlook::matching::Setting::Semlook], map: None, skip_invalid: false, quiet: true },
+        &mut semlook::engine::Engine::cpu(),
+    )
+    .unwrap();
     assert_eq!(rep.results[0].queries_without_ground_truth, 1);
 }
 
@@ -101,7 +99,8 @@ fn real_vpr_layout_with_a_csv_of_query_reference_rows() {
     frames(&root.join("ref"), &["00.png", "01.png", "02.png"]);
     frames(&root.join("query"), &["00.png", "01.png", "02.png"]);
     // several rows per query, paths relative to the CSV's folder, one query without a row
-    std::fs::write(root.join("ground_truth.csv"), "query,reference\nquery/00.png,ref/00.png\nquery/00.png,ref/01.png\nquery/01.png,./ref/02.png\n").unwrap();
+    std::fs::write(root.join("ground_truth.csv"), "query,reference\nquery/00.png,ref/00.png\nquery/00.png,ref/01.png\nquery/01.png,./ref/02.png\n")
+        .unwrap();
     let ds = Dataset::open(root, &DatasetOptions::default()).unwrap();
     assert_eq!((ds.reference.name.as_str(), ds.queries[0].name.as_str()), ("ref", "query"));
     assert_eq!(ds.reference.frames[1].source.id, "ref/01.png");

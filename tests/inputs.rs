@@ -102,10 +102,8 @@ fn a_batch_with_a_bad_file_writes_nothing() {
     grey(&good, 64, 48, 0);
     let bad = dir.path().join("bad.png");
     grey(&bad, 64, 48, 99);
-    let sources = vec![
-        FrameSource { id: "good".into(), image: None, labels: Some(good) },
-        FrameSource { id: "bad".into(), image: None, labels: Some(bad) },
-    ];
+    let sources =
+        vec![FrameSource { id: "good".into(), image: None, labels: Some(good) }, FrameSource { id: "bad".into(), image: None, labels: Some(bad) }];
     let enc = Encoder::new(&cfg).unwrap();
     let results = enc.encode_all(&sources, LabelFormat::Auto, &|| {});
     let err = semlook::encode::collect_encoded(results, false).unwrap_err();

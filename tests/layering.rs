@@ -310,7 +310,11 @@ fn no_stage_imports_another_in_a_circle() {
     let g = import_graph();
     for stage in STAGES {
         let r = reachable(&g, stage);
-        assert!(!r.contains(stage), "{stage} imports itself through a circle: it reaches {:?}", r.iter().filter(|m| reachable(&g, m).contains(stage)).collect::<Vec<_>>());
+        assert!(
+            !r.contains(stage),
+            "{stage} imports itself through a circle: it reaches {:?}",
+            r.iter().filter(|m| reachable(&g, m).contains(stage)).collect::<Vec<_>>()
+        );
     }
 }
 

@@ -116,7 +116,8 @@ fn sigkill_at_random_moments_never_breaks_a_map_and_resume_completes_it() {
     let base = dir.path().join("base");
     ok(&["map", "build", "--labels", p(&b_dir), "--out", p(&base), "--no-appearance", "-q"]);
     let args = |build: bool, m: &Path| -> Vec<String> {
-        let v: Vec<&str> = if build { vec!["map", "build", "--labels", p(&a_dir), "--out", p(m)] } else { vec!["map", "add", "--labels", p(&a_dir), "--map", p(m)] };
+        let v: Vec<&str> =
+            if build { vec!["map", "build", "--labels", p(&a_dir), "--out", p(m)] } else { vec!["map", "add", "--labels", p(&a_dir), "--map", p(m)] };
         v.into_iter().chain(["--no-appearance", "--segment-images", "2", "-q"]).map(String::from).collect()
     };
     // how long an uninterrupted build takes: the first kills are spread over it
@@ -176,7 +177,13 @@ fn two_processes_adding_at_once_both_land() {
     all.extend(labels(&c_dir, "c", 12, 30));
     let m = dir.path().join("m");
     ok(&["map", "build", "--labels", p(&b_dir), "--out", p(&m), "--no-appearance", "-q"]);
-    let add = |d: &PathBuf| bin().args(["map", "add", "--labels", p(d), "--map", p(&m), "--no-appearance", "--segment-images", "1", "-q"]).stderr(Stdio::piped()).spawn().unwrap();
+    let add = |d: &PathBuf| {
+        bin()
+            .args(["map", "add", "--labels", p(d), "--map", p(&m), "--no-appearance", "--segment-images", "1", "-q"])
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
     let (x, y) = (add(&a_dir), add(&c_dir));
     for child in [x, y] {
         let out = child.wait_with_output().unwrap();
@@ -186,7 +193,13 @@ fn two_processes_adding_at_once_both_land() {
     assert_eq!(ids.len(), 28);
     let map = Map::open(&m).unwrap();
     assert_eq!(map.manifest.generation, 1 + 24);
-    let order: String = map.manifest.segments.iter().skip(1).map(|s| map.segments().iter().find(|g| g.entry.file == s.file).unwrap().id(0).chars().next().unwrap()).collect();
+    let order: String = map
+        .manifest
+        .segments
+        .iter()
+        .skip(1)
+        .map(|s| map.segments().iter().find(|g| g.entry.file == s.file).unwrap().id(0).chars().next().unwrap())
+        .collect();
     eprintln!("commit order of the two writers: {order}");
 }
 

@@ -257,7 +257,10 @@ fn misaligned_tensors_are_refused_with_a_typed_error() {
     out.push(0);
     out.extend_from_slice(&bytes[8 + n..]);
     std::fs::write(path.join(&entry.file), &out).unwrap();
-    common::edit_sealed_manifest(&path, |m| m.replace(&format!("\"bytes\": {}", entry.bytes), &format!("\"bytes\": {}", out.len())).replace(&entry.sha256, &semlook::util::sha256_hex(&out)));
+    common::edit_sealed_manifest(&path, |m| {
+        m.replace(&format!("\"bytes\": {}", entry.bytes), &format!("\"bytes\": {}", out.len()))
+            .replace(&entry.sha256, &semlook::util::sha256_hex(&out))
+    });
     match Map::open(&path) {
         Err(Error::CorruptMap { reason, .. }) => assert!(reason.contains("not a multiple"), "{reason}"),
         other => panic!("misaligned file: {:?}", other.map(|_| ())),
@@ -282,7 +285,9 @@ fn version_and_config_mismatches_are_named() {
     map.check_compatible(&matching_only.encoding()).unwrap();
     // the keypoint network's checksum is any string in the file: shown by characters, not bytes
     std::fs::write(&manifest, &text).unwrap();
-    common::edit_sealed_manifest(&path, |m| m.replace("\"appearance_model\": null", "\"appearance_model\": \"\u{e9}t\u{e9}-\u{1f6a6}-\u{5730}\u{56fe}\""));
+    common::edit_sealed_manifest(&path, |m| {
+        m.replace("\"appearance_model\": null", "\"appearance_model\": \"\u{e9}t\u{e9}-\u{1f6a6}-\u{5730}\u{56fe}\"")
+    });
     let err = Map::open(&path).unwrap().check_model(None).unwrap_err();
     assert!(err.to_string().contains("sha256 \u{e9}t\u{e9}-\u{1f6a6}-\u{5730}\u{56fe}"), "{err}");
 }
@@ -356,7 +361,14 @@ fn an_f16_map_with_appearance_matches_like_its_widened_set() {
     let queries = with_appearance(common::encode(&cfg, &common::label_maps(8, 80, 60)[2..5], "q"), 300, 2);
     let codebook = semlook::appearance::vlad::Codebook { k: 3, dim: 100, centres: vec![0.0; 300] };
     set.codebook = Some(codebook.sha256().unwrap());
-    let map = Map::create_with(&path, &cfg.encoding(), &set, Some((&codebook, "test-network")), StoreOptions { values: ValueType::F16, segment_images: 3, ..Default::default() }).unwrap();
+    let map = Map::create_with(
+        &path,
+        &cfg.encoding(),
+        &set,
+        Some((&codebook, "test-network")),
+        StoreOptions { values: ValueType::F16, segment_images: 3, ..Default::default() },
+    )
+    .unwrap();
     let wide = map.to_descriptor_set().unwrap();
     // global descriptors in f16; appearance vectors on the grid of int8 blocks
     let mut globals = set.globals.clone();
@@ -367,7 +379,14 @@ fn an_f16_map_with_appearance_matches_like_its_widened_set() {
     assert_eq!(bits(&wide.tree_appearance), bits(&rounded));
     assert_ne!(bits(&wide.tree_appearance), bits(&set.tree_appearance), "int8 blocks should round appearance values");
     // rounded values are stored exactly: a second map of the widened set reads back the same bits
-    let again = Map::create_with(&dir.path().join("again"), &cfg.encoding(), &wide, Some((&codebook, "test-network")), StoreOptions { values: ValueType::F16, ..Default::default() }).unwrap();
+    let again = Map::create_with(
+        &dir.path().join("again"),
+        &cfg.encoding(),
+        &wide,
+        Some((&codebook, "test-network")),
+        StoreOptions { values: ValueType::F16, ..Default::default() },
+    )
+    .unwrap();
     assert_eq!(bits(&again.to_descriptor_set().unwrap().tree_appearance), bits(&rounded));
     // matching reads the blocks straight from the mapped files: the same scores, bit for bit, as
     // the widened f32 set
@@ -398,7 +417,12 @@ fn device_cache_keys_follow_the_map_and_its_generation() {
 
 /// Ids and scores of every query's ranked list.
 fn ranked(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Vec<Vec<(String, u32)>> {
-    match_batch(refs, queries, setting, cfg).unwrap().0.iter().map(|m| m.ranked.iter().map(|c| (refs.id(c.reference as usize).to_string(), c.score.to_bits())).collect()).collect()
+    match_batch(refs, queries, setting, cfg)
+        .unwrap()
+        .0
+        .iter()
+        .map(|m| m.ranked.iter().map(|c| (refs.id(c.reference as usize).to_string(), c.score.to_bits())).collect())
+        .collect()
 }
 
 #[test]
@@ -496,7 +520,8 @@ fn two_writers_committing_in_turn_both_land_and_a_raced_id_is_refused() {
     let map = w2.finish().unwrap();
     assert_eq!((map.len(), map.manifest.generation), (6 + 11, 1 + 11));
     let ids: Vec<String> = (0..map.len()).map(|i| map.id(i).to_string()).collect();
-    let expect: Vec<String> = (0..6).map(|i| format!("ref{i}")).chain((0..5).flat_map(|k| [format!("a{k}"), format!("b{k}")])).chain(["same".to_string()]).collect();
+    let expect: Vec<String> =
+        (0..6).map(|i| format!("ref{i}")).chain((0..5).flat_map(|k| [format!("a{k}"), format!("b{k}")])).chain(["same".to_string()]).collect();
     assert_eq!(ids, expect);
     map.check_all().unwrap();
 }

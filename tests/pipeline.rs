@@ -113,7 +113,13 @@ fn evaluation_on_a_tiny_benchmark_reports_every_setting() {
     common::tiny_synth(dir.path(), places, 5);
     let ds = Dataset::open(dir.path(), &DatasetOptions::default()).unwrap();
     let cfg = Config::without_appearance();
-    let report = evaluate(&ds, &cfg, &EvalOptions { settings: Setting::ALL.to_vec(), map: None, skip_invalid: false, quiet: true }, &mut semlook::engine::Engine::cpu()).unwrap();
+    let report = evaluate(
+        &ds,
+        &cfg,
+        &EvalOptions { settings: Setting::ALL.to_vec(), map: None, skip_invalid: false, quiet: true },
+        &mut semlook::engine::Engine::cpu(),
+    )
+    .unwrap();
     // without appearance the `appearance` baseline cannot run, and the report says so
     assert_eq!(report.skipped.iter().map(|s| s.0).collect::<Vec<_>>(), vec![Setting::Appearance]);
     assert_eq!(report.results.len(), 2 * (Setting::ALL.len() - 1));
@@ -121,10 +127,15 @@ fn evaluation_on_a_tiny_benchmark_reports_every_setting() {
     for r in &report.results {
         assert_eq!(r.queries, places);
         // the metrics are those of the report's own outcomes
-        let scored: Vec<(f64, bool)> = r.outcomes.iter().filter(|o| o.valid_references > 0).map(|o| (o.score.map_or(f64::NEG_INFINITY, f64::from), o.correct)).collect();
+        let scored: Vec<(f64, bool)> =
+            r.outcomes.iter().filter(|o| o.valid_references > 0).map(|o| (o.score.map_or(f64::NEG_INFINITY, f64::from), o.correct)).collect();
         let (auc, r100p, p100r) = pr_by_definition(&scored);
         let what = format!("{} {}", r.query_set, r.setting);
-        assert!((r.pr.auc - auc).abs() < 1e-12 && r.pr.recall_at_100_precision == r100p && r.pr.precision_at_100_recall == p100r, "{what}: {:?} vs {auc} {r100p} {p100r}", r.pr);
+        assert!(
+            (r.pr.auc - auc).abs() < 1e-12 && r.pr.recall_at_100_precision == r100p && r.pr.precision_at_100_recall == p100r,
+            "{what}: {:?} vs {auc} {r100p} {p100r}",
+            r.pr
+        );
         // Recall@N never decreases with N, and Recall@1 is the share of correct top-1s
         assert!(r.recall_at.windows(2).all(|w| w[0].1 <= w[1].1), "{what}");
         let correct = scored.iter().filter(|o| o.1).count() as f64 / scored.len() as f64;

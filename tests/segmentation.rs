@@ -101,7 +101,10 @@ fn encoding_from_rgb_alone() {
 /// trees that behave on it.
 #[test]
 fn espnet_segments_real_street_frames_plausibly() {
-    let (Some(model), Some(frames)) = (common::shared_or_required("models/espnet_cityscapes.onnx"), common::shared_or_required("data/street-frames")) else { return };
+    let (Some(model), Some(frames)) = (common::shared_or_required("models/espnet_cityscapes.onnx"), common::shared_or_required("data/street-frames"))
+    else {
+        return;
+    };
     let cfg = Config::default();
     let Some(seg) = load(&model, &cfg.segmentation) else { return };
     let table = ClassTable::cityscapes();

@@ -14,7 +14,8 @@ use std::path::Path;
 /// The sharding protocol of the Python driver, in one process.
 fn sharded(dir: &Path, n_shards: usize, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Vec<QueryMatch> {
     let m = Map::open(dir).unwrap().manifest;
-    let shards: Vec<(Map, shard::ShardSpec)> = shard::plan(&m, n_shards).unwrap().iter().map(|s| Map::open_range(dir, s.segments.clone(), Some(s.generation)).unwrap()).collect();
+    let shards: Vec<(Map, shard::ShardSpec)> =
+        shard::plan(&m, n_shards).unwrap().iter().map(|s| Map::open_range(dir, s.segments.clone(), Some(s.generation)).unwrap()).collect();
     let parts: Vec<Vec<Vec<(f32, u32)>>> = shards
         .iter()
         .map(|(map, spec)| {
@@ -37,7 +38,9 @@ fn sharded(dir: &Path, n_shards: usize, queries: &DescriptorSet, setting: Settin
 }
 
 fn bits(m: &[QueryMatch]) -> Vec<Vec<(u32, u32, Option<u32>, Option<u32>)>> {
-    m.iter().map(|q| q.ranked.iter().map(|c| (c.reference, c.score.to_bits(), c.coarse.map(f32::to_bits), c.fine.map(f32::to_bits))).collect()).collect()
+    m.iter()
+        .map(|q| q.ranked.iter().map(|c| (c.reference, c.score.to_bits(), c.coarse.map(f32::to_bits), c.fine.map(f32::to_bits))).collect())
+        .collect()
 }
 
 #[test]
@@ -102,7 +105,9 @@ fn a_driver_needs_only_the_manifest_and_the_codebook() {
     set.image_appearance = unit(set.len());
     let codebook = semlook::appearance::vlad::Codebook { k: 2, dim: 3, centres: vec![0.5, -1.0, 2.0, 0.25, 0.0, -3.5] };
     set.codebook = Some(codebook.sha256().unwrap());
-    let whole = Map::create_with(&path, &cfg.encoding(), &set, Some((&codebook, "net-sha")), StoreOptions { segment_images: 2, ..Default::default() }).unwrap();
+    let whole =
+        Map::create_with(&path, &cfg.encoding(), &set, Some((&codebook, "net-sha")), StoreOptions { segment_images: 2, ..Default::default() })
+            .unwrap();
     // the driver's copy of the map directory: every file but the segments
     std::fs::create_dir(&driver).unwrap();
     for e in std::fs::read_dir(&path).unwrap().flatten() {
@@ -122,7 +127,12 @@ fn a_driver_needs_only_the_manifest_and_the_codebook() {
     other.global.width += 1;
     assert!(head.check_compatible(&cfg.encoding()).is_ok() && head.check_compatible(&other).is_err());
     // a damaged codebook is refused as by a full open, naming the file
-    let cb_file = std::fs::read_dir(&driver).unwrap().flatten().map(|e| e.path()).find(|p| p.file_name().unwrap().to_string_lossy().starts_with("codebook")).expect("a codebook file");
+    let cb_file = std::fs::read_dir(&driver)
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .find(|p| p.file_name().unwrap().to_string_lossy().starts_with("codebook"))
+        .expect("a codebook file");
     let mut bytes = std::fs::read(&cb_file).unwrap();
     let last = bytes.len() - 1;
     bytes[last] ^= 1;

@@ -77,8 +77,17 @@ fn frames_dir(pool: &Path, at: &Path, ids: &[String]) -> PathBuf {
 }
 
 #[allow(clippy::too_many_arguments)]
-fn worker(w: usize, seed: u64, pool: PathBuf, map: PathBuf, scratch: PathBuf, mine: Vec<String>, deadline: Instant, tally: Arc<Mutex<Tally>>) -> BTreeMap<String, Held> {
-    let mut rng = SplitMix64::new(seed ^ (w as u64 + 1) * 0x9E37_79B9);
+fn worker(
+    w: usize,
+    seed: u64,
+    pool: PathBuf,
+    map: PathBuf,
+    scratch: PathBuf,
+    mine: Vec<String>,
+    deadline: Instant,
+    tally: Arc<Mutex<Tally>>,
+) -> BTreeMap<String, Held> {
+    let mut rng = SplitMix64::new(seed ^ ((w as u64 + 1) * 0x9E37_79B9));
     let stored = stored_ids(&map);
     let mut held: BTreeMap<String, Held> = mine.iter().map(|id| (id.clone(), if stored.contains(id) { Held::Yes } else { Held::No })).collect();
     let mut n = 0u64;
@@ -102,7 +111,20 @@ fn worker(w: usize, seed: u64, pool: PathBuf, map: PathBuf, scratch: PathBuf, mi
                 }
                 let d = frames_dir(&pool, &at, &ids);
                 let mut c = semlook();
-                c.args(["map", "add", "--map", p(&map), "--images", p(&d.join("images")), "--labels", p(&d.join("labels")), "--no-segmenter", "--backend", "cpu", "-q"]);
+                c.args([
+                    "map",
+                    "add",
+                    "--map",
+                    p(&map),
+                    "--images",
+                    p(&d.join("images")),
+                    "--labels",
+                    p(&d.join("labels")),
+                    "--no-segmenter",
+                    "--backend",
+                    "cpu",
+                    "-q",
+                ]);
                 ("add", ids, c)
             }
             4..=5 => {
@@ -124,7 +146,21 @@ fn worker(w: usize, seed: u64, pool: PathBuf, map: PathBuf, scratch: PathBuf, mi
                 let id = &mine[rng.below(mine.len())];
                 let d = frames_dir(&pool, &at, std::slice::from_ref(id));
                 let mut c = semlook();
-                c.args(["query", "--map", p(&map), "--images", p(&d.join("images")), "--labels", p(&d.join("labels")), "--setting", "local", "--no-segmenter", "--backend", "cpu", "-q"]);
+                c.args([
+                    "query",
+                    "--map",
+                    p(&map),
+                    "--images",
+                    p(&d.join("images")),
+                    "--labels",
+                    p(&d.join("labels")),
+                    "--setting",
+                    "local",
+                    "--no-segmenter",
+                    "--backend",
+                    "cpu",
+                    "-q",
+                ]);
                 ("query", vec![], c)
             }
         };
@@ -189,13 +225,16 @@ fn three_processes_with_random_kills_lose_nothing_committed() {
             std::fs::copy(e.path(), pool.join(sub).join(e.file_name())).unwrap();
         }
     }
-    let mut ids: Vec<String> = std::fs::read_dir(pool.join("images")).unwrap().flatten().map(|e| e.path().file_stem().unwrap().to_str().unwrap().to_string()).collect();
+    let mut ids: Vec<String> =
+        std::fs::read_dir(pool.join("images")).unwrap().flatten().map(|e| e.path().file_stem().unwrap().to_str().unwrap().to_string()).collect();
     ids.sort();
     assert_eq!(ids.len(), FRAMES);
     let label_only = ["--no-appearance", "--no-segmenter", "--backend", "cpu", "-q"];
     // the reference: every frame in a map of its own, built once without interference
     let truth = dir.path().join("truth");
-    common::cli_ok(&[&["map", "build", "--images", p(&pool.join("images")), "--labels", p(&pool.join("labels")), "--out", p(&truth)][..], &label_only].concat());
+    common::cli_ok(
+        &[&["map", "build", "--images", p(&pool.join("images")), "--labels", p(&pool.join("labels")), "--out", p(&truth)][..], &label_only].concat(),
+    );
     let full_bytes = bytes_under(&truth);
     // the map under test starts with every worker's first two frames
     let scratch = dir.path().join("scratch");
@@ -203,7 +242,14 @@ fn three_processes_with_random_kills_lose_nothing_committed() {
     let first: Vec<String> = (0..WORKERS).flat_map(|w| ids.iter().skip(w).step_by(WORKERS).take(2).cloned()).collect();
     let start = frames_dir(&pool, &scratch.join("start"), &first);
     let map = dir.path().join("map");
-    common::cli_ok(&[&["map", "build", "--images", p(&start.join("images")), "--labels", p(&start.join("labels")), "--out", p(&map), "--segment-images", "4"][..], &label_only].concat());
+    common::cli_ok(
+        &[
+            &["map", "build", "--images", p(&start.join("images")), "--labels", p(&start.join("labels")), "--out", p(&map), "--segment-images", "4"]
+                [..],
+            &label_only,
+        ]
+        .concat(),
+    );
 
     let deadline = Instant::now() + Duration::from_secs_f64(secs);
     let tally = Arc::new(Mutex::new(Tally::default()));
@@ -236,7 +282,12 @@ fn three_processes_with_random_kills_lose_nothing_committed() {
     let verify: serde_json::Value = serde_json::from_str(&common::cli_ok(&["map", "verify", "--map", p(&map), "--json"])).unwrap();
     assert_eq!(verify["leftovers"].as_array().map(Vec::len), Some(0), "leftover temporaries: {verify}");
     let t = tally.lock().unwrap();
-    eprintln!("{} commands ({} killed) in {secs} s by {WORKERS} workers; peak folder size {} bytes (a map of every frame: {full_bytes})", t.commands, t.killed, peak.load(Ordering::Relaxed));
+    eprintln!(
+        "{} commands ({} killed) in {secs} s by {WORKERS} workers; peak folder size {} bytes (a map of every frame: {full_bytes})",
+        t.commands,
+        t.killed,
+        peak.load(Ordering::Relaxed)
+    );
     assert!(t.failures.is_empty(), "{} commands failed without being killed:\n{}", t.failures.len(), t.failures.join("\n"));
     assert!(t.killed > 0 && t.commands > t.killed, "the soak ran too short to kill anything");
 

@@ -3,8 +3,8 @@
 
 mod common;
 
-use semlook::config::Config;
 use semlook::appearance::vlad::Codebook;
+use semlook::config::Config;
 use semlook::map::{edit, Map};
 use std::path::Path;
 
@@ -85,14 +85,22 @@ fn verify_checks_the_installed_keypoint_network() {
             m.config.appearance.model = semlook::config::AppearanceModelKind::Xfeat;
             m.appearance_model = Some(sha.to_string());
         });
-        std::process::Command::new(env!("CARGO_BIN_EXE_semlook")).args(["map", "verify", "--map", common::p(&path)]).env("SEMLOOK_MODELS", &models).output().unwrap()
+        std::process::Command::new(env!("CARGO_BIN_EXE_semlook"))
+            .args(["map", "verify", "--map", common::p(&path)])
+            .env("SEMLOOK_MODELS", &models)
+            .output()
+            .unwrap()
     };
     let bad = run(&other);
     let text = String::from_utf8_lossy(&bad.stdout).to_string() + &String::from_utf8_lossy(&bad.stderr);
     assert!(!bad.status.success() && text.contains("manifest.json") && text.contains(&other) && text.contains(&installed), "{text}");
     let good = run(&installed);
     let text = String::from_utf8_lossy(&good.stdout).to_string();
-    assert!(good.status.success() && text.contains("ok       keypoint network") && text.contains(&installed), "{text}\n{}", String::from_utf8_lossy(&good.stderr));
+    assert!(
+        good.status.success() && text.contains("ok       keypoint network") && text.contains(&installed),
+        "{text}\n{}",
+        String::from_utf8_lossy(&good.stderr)
+    );
 }
 
 /// `set` with unit appearance vectors of 2 x 3 values (codebook of 2 centres of 3 values) tagged
@@ -150,7 +158,11 @@ fn a_poisoned_appearance_vector_is_refused() {
     let mut map = Map::create(&dir.path().join("m"), &cfg.encoding(), &set, Some((&cb, "net"))).unwrap();
     for (column, value) in [("tree", 100.0f32), ("tree", 3e38), ("image", 1.5)] {
         let mut bad = with_appearance(common::encode(&cfg, &common::label_maps(2, 64, 48), "p"), &cb);
-        if column == "tree" { bad.tree_appearance[0] = value } else { bad.image_appearance[1] = value }
+        if column == "tree" {
+            bad.tree_appearance[0] = value
+        } else {
+            bad.image_appearance[1] = value
+        }
         match map.add(&bad) {
             Err(semlook::Error::InvalidImage { id, reason }) => assert!(id == "p0" && reason.contains("appearance"), "{id}: {reason}"),
             other => panic!("{column} appearance {value}: {other:?}"),

@@ -74,7 +74,8 @@ fn column_view<'py>(owner: Bound<'py, PyAny>, d: &DescriptorSet, name: &str, sha
 /// A column from a dict of arrays, copied, its shape checked.
 fn take_column<T: Element + Copy>(d: &Bound<'_, PyDict>, name: &str, shape: &[usize]) -> PyResult<Vec<T>> {
     let a = d.get_item(name)?.ok_or_else(|| invalid("descriptor arrays", format!("no {name:?}")))?;
-    let a: PyReadonlyArrayDyn<T> = a.extract().map_err(|e| invalid(&format!("descriptor arrays[{name:?}]"), format!("wrong dtype or not an array: {e}")))?;
+    let a: PyReadonlyArrayDyn<T> =
+        a.extract().map_err(|e| invalid(&format!("descriptor arrays[{name:?}]"), format!("wrong dtype or not an array: {e}")))?;
     if a.shape() != shape {
         return Err(invalid(&format!("descriptor arrays[{name:?}]"), format!("shape {:?}, the layout needs {shape:?}", a.shape())));
     }
@@ -82,7 +83,10 @@ fn take_column<T: Element + Copy>(d: &Bound<'_, PyDict>, name: &str, shape: &[us
 }
 
 fn dim(d: &Bound<'_, PyDict>, name: &str) -> PyResult<usize> {
-    d.get_item(name)?.ok_or_else(|| invalid("descriptor arrays", format!("no {name:?}")))?.extract().map_err(|e| invalid(&format!("descriptor arrays[{name:?}]"), e))
+    d.get_item(name)?
+        .ok_or_else(|| invalid("descriptor arrays", format!("no {name:?}")))?
+        .extract()
+        .map_err(|e| invalid(&format!("descriptor arrays[{name:?}]"), e))
 }
 
 #[pymethods]
@@ -116,7 +120,11 @@ impl PyDescriptors {
     /// A read-only view of one column (see `columns()`), no copy.
     fn column<'py>(slf: Bound<'py, Self>, name: &str) -> PyResult<Bound<'py, PyAny>> {
         let d = slf.get().inner.clone();
-        let shape = columns(&d).into_iter().find(|(n, _)| *n == name).map(|(_, s)| s).ok_or_else(|| invalid("descriptor column", format!("no column {name:?}")))?;
+        let shape = columns(&d)
+            .into_iter()
+            .find(|(n, _)| *n == name)
+            .map(|(_, s)| s)
+            .ok_or_else(|| invalid("descriptor column", format!("no column {name:?}")))?;
         column_view(slf.into_any(), &d, name, &shape)
     }
     /// Names of the columns, in the order `to_arrays` lists them.
@@ -141,7 +149,14 @@ impl PyDescriptors {
         let d = slf.get().inner.clone();
         let out = PyDict::new(py);
         out.set_item("ids", PyList::new(py, &d.ids)?)?;
-        for (k, v) in [("global_len", d.global_len), ("stats_len", d.stats_len), ("neighbour_slots", d.neighbour_slots), ("appearance_dim", d.appearance_dim), ("hog_dim", d.hog_dim), ("keypoint_dim", d.keypoint_dim)] {
+        for (k, v) in [
+            ("global_len", d.global_len),
+            ("stats_len", d.stats_len),
+            ("neighbour_slots", d.neighbour_slots),
+            ("appearance_dim", d.appearance_dim),
+            ("hog_dim", d.hog_dim),
+            ("keypoint_dim", d.keypoint_dim),
+        ] {
             out.set_item(k, v)?;
         }
         out.set_item("codebook", d.codebook.clone())?;
@@ -155,7 +170,8 @@ impl PyDescriptors {
     #[staticmethod]
     fn from_arrays(d: &Bound<'_, PyDict>) -> PyResult<PyDescriptors> {
         let ids: Vec<String> = d.get_item("ids")?.ok_or_else(|| invalid("descriptor arrays", "no \"ids\""))?.extract()?;
-        let (g, sl, s, a, h) = (dim(d, "global_len")?, dim(d, "stats_len")?, dim(d, "neighbour_slots")?, dim(d, "appearance_dim")?, dim(d, "hog_dim")?);
+        let (g, sl, s, a, h) =
+            (dim(d, "global_len")?, dim(d, "stats_len")?, dim(d, "neighbour_slots")?, dim(d, "appearance_dim")?, dim(d, "hog_dim")?);
         let kd = dim(d, "keypoint_dim")?;
         let n = ids.len();
         let offsets: Vec<u32> = take_column(d, "forest_offsets", &[n + 1])?;
@@ -189,7 +205,9 @@ impl PyDescriptors {
             keypoint_xy: take_column(d, "keypoint_xy", &[k, 2])?,
             keypoint_classes: take_column(d, "keypoint_classes", &[k])?,
             codebook: match d.get_item("codebook")? {
-                Some(c) if !c.is_none() => Some(c.extract().map_err(|e| invalid("descriptor arrays[\"codebook\"]", format!("not a SHA-256 string: {e}")))?),
+                Some(c) if !c.is_none() => {
+                    Some(c.extract().map_err(|e| invalid("descriptor arrays[\"codebook\"]", format!("not a SHA-256 string: {e}")))?)
+                }
                 _ => None,
             },
         };

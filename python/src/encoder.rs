@@ -132,7 +132,14 @@ impl PyEncoder {
     /// A copy of this encoder with a VLAD codebook trained on these frames (files, as in
     /// `encode_files`); without appearance, the same encoder.
     #[pyo3(signature = (ids, images, labels=None, threads=None))]
-    fn train_codebook(&self, py: Python<'_>, ids: Vec<String>, images: Vec<PathBuf>, labels: Option<Vec<PathBuf>>, threads: Option<usize>) -> PyResult<Self> {
+    fn train_codebook(
+        &self,
+        py: Python<'_>,
+        ids: Vec<String>,
+        images: Vec<PathBuf>,
+        labels: Option<Vec<PathBuf>>,
+        threads: Option<usize>,
+    ) -> PyResult<Self> {
         let frames = frames(ids, Some(images), labels)?;
         let mut enc = self.inner.clone();
         detached(py, pool(threads)?, || semlook::batch::train_codebook(&mut enc, &frames, true)).py_err()?;
@@ -144,11 +151,22 @@ impl PyEncoder {
     /// global descriptors and VLAD run there (as `semlook --backend gpu`).
     #[pyo3(signature = (ids, images=None, labels=None, label_format="auto", skip_invalid=false, threads=None, engine=None))]
     #[allow(clippy::too_many_arguments)]
-    fn encode_files(&self, py: Python<'_>, ids: Vec<String>, images: Option<Vec<PathBuf>>, labels: Option<Vec<PathBuf>>, label_format: &str, skip_invalid: bool, threads: Option<usize>, engine: Option<PyRef<'_, PyEngine>>) -> PyResult<PyDescriptors> {
+    fn encode_files(
+        &self,
+        py: Python<'_>,
+        ids: Vec<String>,
+        images: Option<Vec<PathBuf>>,
+        labels: Option<Vec<PathBuf>>,
+        label_format: &str,
+        skip_invalid: bool,
+        threads: Option<usize>,
+        engine: Option<PyRef<'_, PyEngine>>,
+    ) -> PyResult<PyDescriptors> {
         let frames = frames(ids, images, labels)?;
         let fmt = self::label_format(label_format)?;
         let (enc, engine) = (&self.inner, engine.map(|e| e.shared()));
-        let encoded = run(py, pool(threads)?, engine.as_ref(), |e| semlook::batch::encode_frames(e, enc, &frames, fmt, "frames", skip_invalid, true))?;
+        let encoded =
+            run(py, pool(threads)?, engine.as_ref(), |e| semlook::batch::encode_frames(e, enc, &frames, fmt, "frames", skip_invalid, true))?;
         Ok(PyDescriptors::new(encoded.set))
     }
     /// Encodes one frame from memory: `image` uint8 [H, W, 3] (RGB) and/or `labels` [H, W] of
@@ -198,7 +216,9 @@ impl PyEncoder {
                 let ids: PyReadonlyArrayDyn<'_, i64> = l.call_method1("astype", ("int64",))?.extract().map_err(|e| invalid(&what, e))?;
                 let mut v = Vec::with_capacity(s[0] * s[1]);
                 for (i, &x) in ids.as_array().iter().enumerate() {
-                    let id = u32::try_from(x).map_err(|_| invalid(&what, format!("label id {x} at pixel (x {}, y {}) is not a class id (0 to {})", i % s[1], i / s[1], u32::MAX)))?;
+                    let id = u32::try_from(x).map_err(|_| {
+                        invalid(&what, format!("label id {x} at pixel (x {}, y {}) is not a class id (0 to {})", i % s[1], i / s[1], u32::MAX))
+                    })?;
                     v.push(id);
                 }
                 Some(input::label_map_from_ids(s[1] as u32, s[0] as u32, &v, &name, self.inner.class_table()).py_err()?)

@@ -84,7 +84,12 @@ pub fn engine_for(py: Python<'_>, backend: &str, adapter: Option<usize>) -> PyRe
 /// engine of the call's own). The engine is locked on the calling thread before entering the
 /// pool, never on a pool worker: a worker blocked on the lock could be the one another call's
 /// parallel work waits for (two Python threads sharing an engine and a `threads=` pool).
-pub fn run<T: Send>(py: Python<'_>, pool: Option<Arc<ThreadPool>>, engine: Option<&Arc<Mutex<Engine>>>, work: impl FnOnce(&mut Engine) -> semlook::Result<T> + Send) -> PyResult<T> {
+pub fn run<T: Send>(
+    py: Python<'_>,
+    pool: Option<Arc<ThreadPool>>,
+    engine: Option<&Arc<Mutex<Engine>>>,
+    work: impl FnOnce(&mut Engine) -> semlook::Result<T> + Send,
+) -> PyResult<T> {
     py.detach(|| -> semlook::Result<T> {
         let mut own;
         let mut guard;

@@ -41,15 +41,20 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
 pub fn to_py(e: Error) -> PyErr {
     let msg = e.to_string();
     let (err, path, field, id): (PyErr, Option<String>, Option<String>, Option<String>) = match &e {
-        Error::Io { path, .. } | Error::ImageDecode { path, .. } | Error::EmptyImage { path, .. } | Error::UnknownClassId { path, .. } | Error::UnknownClassColor { path, .. } | Error::UnsupportedLabelFormat { path, .. } => {
-            (InputFileError::new_err(msg), Some(path.display().to_string()), None, None)
-        }
+        Error::Io { path, .. }
+        | Error::ImageDecode { path, .. }
+        | Error::EmptyImage { path, .. }
+        | Error::UnknownClassId { path, .. }
+        | Error::UnknownClassColor { path, .. }
+        | Error::UnsupportedLabelFormat { path, .. } => (InputFileError::new_err(msg), Some(path.display().to_string()), None, None),
         Error::SizeMismatch { labels, .. } => (InputFileError::new_err(msg), Some(labels.display().to_string()), None, None),
         Error::NoLabels { image } => (InputFileError::new_err(msg), Some(image.display().to_string()), None, None),
         Error::InvalidConfig { source_name, .. } => (InvalidConfigError::new_err(msg), Some(source_name.clone()), None, None),
         Error::CorruptMap { path, .. } => (CorruptMapError::new_err(msg), Some(path.display().to_string()), None, None),
         Error::MapVersion { path, .. } => (MapVersionError::new_err(msg), Some(path.display().to_string()), None, None),
-        Error::IncompatibleConfig { map, field, .. } => (IncompatibleConfigError::new_err(msg), Some(map.display().to_string()), Some(field.clone()), None),
+        Error::IncompatibleConfig { map, field, .. } => {
+            (IncompatibleConfigError::new_err(msg), Some(map.display().to_string()), Some(field.clone()), None)
+        }
         Error::DuplicateImageId { map, id } => (DuplicateImageIdError::new_err(msg), Some(map.display().to_string()), None, Some(id.clone())),
         Error::InvalidImage { id, .. } => (InvalidImageError::new_err(msg), None, None, Some(id.clone())),
         Error::Dataset { path, .. } => (DatasetError::new_err(msg), Some(path.display().to_string()), None, None),

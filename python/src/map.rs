@@ -1,18 +1,18 @@
 //! `Map`: a stored map (memory-mapped segments), its edits, queries against it, zero-copy numpy
 //! views of its segments, and `evaluate`.
 
+use crate::arrays::to_py_object;
 use crate::arrays::{pool, setting, view};
 use crate::descriptors::PyDescriptors;
 use crate::encoder::{PyConfig, PyEncoder};
+use crate::engine::{run, PyEngine};
 use crate::errors::{invalid, OrPy};
 use crate::matches::PyMatches;
 use crate::store::{wrap, PyMap};
-use crate::arrays::to_py_object;
 use pyo3::prelude::*;
 use semlook::config::Config;
 use semlook::map::{edit, Map, MapWriter, StoreOptions};
 use semlook::matching::source::RefSource;
-use crate::engine::{run, PyEngine};
 use semlook::values::{ValueType, Values};
 use std::path::PathBuf;
 
@@ -40,7 +40,14 @@ impl PyMap {
     /// most images per segment file; `f16`: store global and appearance values as float16.
     #[staticmethod]
     #[pyo3(signature = (path, descriptors, encoder, segment_images=None, f16=false))]
-    fn create(py: Python<'_>, path: PathBuf, descriptors: &PyDescriptors, encoder: &PyEncoder, segment_images: Option<usize>, f16: bool) -> PyResult<Self> {
+    fn create(
+        py: Python<'_>,
+        path: PathBuf,
+        descriptors: &PyDescriptors,
+        encoder: &PyEncoder,
+        segment_images: Option<usize>,
+        f16: bool,
+    ) -> PyResult<Self> {
         let (set, enc, opts) = (descriptors.inner.clone(), encoder.inner(), store_options(segment_images, f16)?);
         Ok(wrap(py.detach(|| Map::create_with(&path, enc.config(), &set, enc.appearance_record(), opts)).py_err()?))
     }
@@ -81,7 +88,13 @@ impl PyMap {
         self.inner.len()
     }
     fn __repr__(&self) -> String {
-        format!("Map({:?}, {} images, {} segments, generation {})", self.inner.path, self.inner.len(), self.inner.segments().len(), self.inner.manifest.generation)
+        format!(
+            "Map({:?}, {} images, {} segments, generation {})",
+            self.inner.path,
+            self.inner.len(),
+            self.inner.segments().len(),
+            self.inner.manifest.generation
+        )
     }
     #[getter]
     fn path(&self) -> PathBuf {
@@ -141,7 +154,16 @@ impl PyMap {
     /// `engine` (an `Engine`), on its backend: on a GPU the map stays resident between calls.
     #[pyo3(signature = (queries, setting="verified", k=None, config=None, threads=None, engine=None))]
     #[allow(clippy::too_many_arguments)]
-    fn query(&self, py: Python<'_>, queries: &PyDescriptors, setting: &str, k: Option<usize>, config: Option<PyRef<'_, PyConfig>>, threads: Option<usize>, engine: Option<PyRef<'_, PyEngine>>) -> PyResult<PyMatches> {
+    fn query(
+        &self,
+        py: Python<'_>,
+        queries: &PyDescriptors,
+        setting: &str,
+        k: Option<usize>,
+        config: Option<PyRef<'_, PyConfig>>,
+        threads: Option<usize>,
+        engine: Option<PyRef<'_, PyEngine>>,
+    ) -> PyResult<PyMatches> {
         let s = self::setting(setting)?;
         let cfg = query_config(&self.inner, config.map(|c| c.inner.clone()), k)?;
         let (map, set, engine) = (self.inner.clone(), queries.inner.clone(), engine.map(|e| e.shared()));
@@ -176,7 +198,19 @@ pub fn query_config(map: &Map, config: Option<Config>, k: Option<usize>) -> PyRe
 #[pyfunction]
 #[pyo3(signature = (dataset=None, references=None, queries=None, ground_truth=None, settings=None, config=None, map=None, gt_distance=None, threads=None, engine=None))]
 #[allow(clippy::too_many_arguments)]
-pub fn evaluate<'py>(py: Python<'py>, dataset: Option<PathBuf>, references: Option<PathBuf>, queries: Option<PathBuf>, ground_truth: Option<PathBuf>, settings: Option<Vec<String>>, config: Option<PyRef<'_, PyConfig>>, map: Option<&PyMap>, gt_distance: Option<f64>, threads: Option<usize>, engine: Option<PyRef<'_, PyEngine>>) -> PyResult<Bound<'py, PyAny>> {
+pub fn evaluate<'py>(
+    py: Python<'py>,
+    dataset: Option<PathBuf>,
+    references: Option<PathBuf>,
+    queries: Option<PathBuf>,
+    ground_truth: Option<PathBuf>,
+    settings: Option<Vec<String>>,
+    config: Option<PyRef<'_, PyConfig>>,
+    map: Option<&PyMap>,
+    gt_distance: Option<f64>,
+    threads: Option<usize>,
+    engine: Option<PyRef<'_, PyEngine>>,
+) -> PyResult<Bound<'py, PyAny>> {
     use semlook::dataset::{Dataset, DatasetOptions};
     // every setting by default, as `semlook eval`
     let settings = match settings {

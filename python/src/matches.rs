@@ -91,7 +91,12 @@ impl PyMatches {
             .zip(&self.ids)
             .zip(&self.queries)
             .map(|((m, ids), q)| {
-                let top: Vec<serde_json::Value> = m.ranked.iter().zip(ids).map(|(c, id)| serde_json::json!({"reference": id, "index": c.reference, "score": c.score, "coarse": c.coarse, "fine": c.fine})).collect();
+                let top: Vec<serde_json::Value> = m
+                    .ranked
+                    .iter()
+                    .zip(ids)
+                    .map(|(c, id)| serde_json::json!({"reference": id, "index": c.reference, "score": c.score, "coarse": c.coarse, "fine": c.fine}))
+                    .collect();
                 serde_json::json!({"query": q, "top_k": top})
             })
             .collect();
@@ -100,7 +105,10 @@ impl PyMatches {
     /// Whether `other` ranks the same references with the same ids and bit-identical scores.
     fn equals(&self, other: &PyMatches) -> bool {
         let bits = |m: &PyMatches| -> Vec<Vec<(u32, u32, Option<u32>, Option<u32>)>> {
-            m.ranked.iter().map(|q| q.ranked.iter().map(|c| (c.reference, c.score.to_bits(), c.coarse.map(f32::to_bits), c.fine.map(f32::to_bits))).collect()).collect()
+            m.ranked
+                .iter()
+                .map(|q| q.ranked.iter().map(|c| (c.reference, c.score.to_bits(), c.coarse.map(f32::to_bits), c.fine.map(f32::to_bits))).collect())
+                .collect()
         };
         self.setting == other.setting && self.queries == other.queries && self.ids == other.ids && bits(self) == bits(other)
     }

@@ -3,11 +3,12 @@
 //! `merge_candidates` and `rank` are what the driver runs. Candidate lists travel as padded
 //! arrays: scores float32 [Q, L], references int64 [Q, L] (-1 padding), counts int32 [Q].
 
+use crate::arrays::to_py_object;
 use crate::arrays::{fusion, pool, setting};
 use crate::descriptors::PyDescriptors;
 use crate::encoder::PyConfig;
+use crate::engine::{engine_for, run};
 use crate::errors::{invalid, OrPy};
-use crate::arrays::to_py_object;
 use crate::map::query_config;
 use crate::matches::PyMatches;
 use numpy::ndarray::Array2;
@@ -15,10 +16,9 @@ use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2,
 use pyo3::prelude::*;
 use rayon::ThreadPool;
 use semlook::config::Config;
+use semlook::engine::Engine;
 use semlook::map::{shard, Map};
 use semlook::matching::ssim_topk::merge_lists;
-use crate::engine::{engine_for, run};
-use semlook::engine::Engine;
 use semlook::matching::{self, source::RefSource};
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
@@ -46,8 +46,17 @@ fn from_arrays(scores: &PyReadonlyArray2<'_, f32>, refs: &PyReadonlyArray2<'_, i
     }
     (0..c.len())
         .map(|q| {
-            let n = usize::try_from(c[q]).ok().filter(|&n| n <= s.shape()[1]).ok_or_else(|| invalid("candidate arrays", format!("count {} of query {q}", c[q])))?;
-            (0..n).map(|j| u32::try_from(r[(q, j)]).map(|i| (s[(q, j)], i)).map_err(|_| invalid("candidate arrays", format!("reference {} of query {q}", r[(q, j)])))).collect()
+            let n = usize::try_from(c[q])
+                .ok()
+                .filter(|&n| n <= s.shape()[1])
+                .ok_or_else(|| invalid("candidate arrays", format!("count {} of query {q}", c[q])))?;
+            (0..n)
+                .map(|j| {
+                    u32::try_from(r[(q, j)])
+                        .map(|i| (s[(q, j)], i))
+                        .map_err(|_| invalid("candidate arrays", format!("reference {} of query {q}", r[(q, j)])))
+                })
+                .collect()
         })
         .collect()
 }
@@ -72,7 +81,18 @@ impl PyShard {
     #[new]
     #[pyo3(signature = (map_dir, seg_start, seg_end, generation=None, config_toml=None, k=None, threads=None, backend="cpu", adapter=None))]
     #[allow(clippy::too_many_arguments)]
-    fn new(py: Python<'_>, map_dir: PathBuf, seg_start: usize, seg_end: usize, generation: Option<u64>, config_toml: Option<&str>, k: Option<usize>, threads: Option<usize>, backend: &str, adapter: Option<usize>) -> PyResult<Self> {
+    fn new(
+        py: Python<'_>,
+        map_dir: PathBuf,
+        seg_start: usize,
+        seg_end: usize,
+        generation: Option<u64>,
+        config_toml: Option<&str>,
+        k: Option<usize>,
+        threads: Option<usize>,
+        backend: &str,
+        adapter: Option<usize>,
+    ) -> PyResult<Self> {
         let (map, spec) = py.detach(|| Map::open_range(&map_dir, seg_start..seg_end, generation)).py_err()?;
         let config = config_toml.map(|t| Config::from_toml(t, "config_toml")).transpose().py_err()?;
         let cfg = query_config(&map, config, k)?;
@@ -98,7 +118,14 @@ impl PyShard {
         Ok(to_arrays(py, &lists, matching::list_len(s, cfg)))
     }
     /// Fine scores of pairs (query index `q[i]`, whole-map reference `r[i]`), all owned here.
-    fn fine<'py>(&self, py: Python<'py>, queries: &PyDescriptors, setting: &str, q: PyReadonlyArray1<'_, u32>, r: PyReadonlyArray1<'_, i64>) -> PyResult<Bound<'py, PyArray1<f32>>> {
+    fn fine<'py>(
+        &self,
+        py: Python<'py>,
+        queries: &PyDescriptors,
+        setting: &str,
+        q: PyReadonlyArray1<'_, u32>,
+        r: PyReadonlyArray1<'_, i64>,
+    ) -> PyResult<Bound<'py, PyArray1<f32>>> {
         let s = self::setting(setting)?;
         if q.len() != r.len() {
             return Err(invalid("pairs", format!("{} queries and {} references", q.len(), r.len())));
@@ -144,7 +171,11 @@ pub fn plan_shards<'py>(py: Python<'py>, map_dir: PathBuf, shards: usize) -> PyR
 /// The global candidate lists from per-shard ones (each as `Shard.candidates` returns them):
 /// exactly the lists one process computes over the whole map, ties to the lower index.
 #[pyfunction]
-pub fn merge_candidates<'py>(py: Python<'py>, parts: Vec<(PyReadonlyArray2<'py, f32>, PyReadonlyArray2<'py, i64>, PyReadonlyArray1<'py, i32>)>, k: usize) -> PyResult<ListArrays<'py>> {
+pub fn merge_candidates<'py>(
+    py: Python<'py>,
+    parts: Vec<(PyReadonlyArray2<'py, f32>, PyReadonlyArray2<'py, i64>, PyReadonlyArray1<'py, i32>)>,
+    k: usize,
+) -> PyResult<ListArrays<'py>> {
     let lists = parts.iter().map(|(s, r, c)| from_arrays(s, r, c)).collect::<PyResult<Vec<_>>>()?;
     let views: Vec<&[Vec<(f32, u32)>]> = lists.iter().map(Vec::as_slice).collect();
     let merged = merge_lists(&views, k).map_err(|r| invalid("merge_candidates", r))?;
@@ -157,8 +188,17 @@ pub fn merge_candidates<'py>(py: Python<'py>, parts: Vec<(PyReadonlyArray2<'py, 
 #[pyfunction]
 #[pyo3(signature = (setting, scores, references, counts, fine, queries, ids, fusion="fine", config=None))]
 #[allow(clippy::too_many_arguments)]
-#[allow(clippy::too_many_arguments)]
-pub fn rank(setting: &str, scores: PyReadonlyArray2<'_, f32>, references: PyReadonlyArray2<'_, i64>, counts: PyReadonlyArray1<'_, i32>, fine: Option<PyReadonlyArray1<'_, f32>>, queries: Vec<String>, ids: Vec<String>, fusion: &str, config: Option<PyRef<'_, PyConfig>>) -> PyResult<PyMatches> {
+pub fn rank(
+    setting: &str,
+    scores: PyReadonlyArray2<'_, f32>,
+    references: PyReadonlyArray2<'_, i64>,
+    counts: PyReadonlyArray1<'_, i32>,
+    fine: Option<PyReadonlyArray1<'_, f32>>,
+    queries: Vec<String>,
+    ids: Vec<String>,
+    fusion: &str,
+    config: Option<PyRef<'_, PyConfig>>,
+) -> PyResult<PyMatches> {
     let s = self::setting(setting)?;
     let lists = from_arrays(&scores, &references, &counts)?;
     if queries.len() != lists.len() {

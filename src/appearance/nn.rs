@@ -24,7 +24,7 @@ impl Chw {
         &self.data[c * self.h * self.w..(c + 1) * self.h * self.w]
     }
     /// Element-wise sum of two tensors of one shape.
-    pub fn add(mut self, o: &Chw) -> Result<Chw, String> {
+    pub fn plus(mut self, o: &Chw) -> Result<Chw, String> {
         if (self.c, self.h, self.w) != (o.c, o.h, o.w) || self.data.len() != o.data.len() {
             return Err(format!("cannot add a {}x{}x{} tensor to a {}x{}x{} one", o.c, o.h, o.w, self.c, self.h, self.w));
         }
@@ -93,7 +93,10 @@ pub fn conv2d(x: &Chw, weight: &[f32], bias: Option<&[f32]>, cout: usize, k: usi
     let (cin, h, w) = (x.c, x.h, x.w);
     let want = cout.checked_mul(cin).and_then(|v| v.checked_mul(k)).and_then(|v| v.checked_mul(k));
     if want != Some(weight.len()) || k == 0 || stride == 0 || !x.is_consistent() {
-        return Err(format!("convolution weights of {} values do not fit {cout} outputs, {cin} inputs and a {k}x{k} kernel (stride {stride})", weight.len()));
+        return Err(format!(
+            "convolution weights of {} values do not fit {cout} outputs, {cin} inputs and a {k}x{k} kernel (stride {stride})",
+            weight.len()
+        ));
     }
     if bias.is_some_and(|b| b.len() != cout) {
         return Err(format!("convolution bias of {} values for {cout} outputs", bias.map_or(0, <[f32]>::len)));

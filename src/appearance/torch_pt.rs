@@ -85,13 +85,17 @@ pub fn read_state_dict(path: &Path) -> Result<HashMap<String, Tensor>, String> {
             continue;
         }
         let as_sizes = |v: &[i64]| v.iter().map(|&d| usize::try_from(d).ok()).collect::<Option<Vec<usize>>>();
-        let (Ok(numel), Ok(offset), Some(shape), Some(stride)) = (u64::try_from(numel), usize::try_from(offset), as_sizes(&shape), as_sizes(&stride)) else {
+        let (Ok(numel), Ok(offset), Some(shape), Some(stride)) = (u64::try_from(numel), usize::try_from(offset), as_sizes(&shape), as_sizes(&stride))
+        else {
             return Err(format!("{name}: negative size, offset, shape or stride"));
         };
         if shape.len() != stride.len() {
             return Err(format!("{name}: shape {shape:?} and stride {stride:?} of different lengths"));
         }
-        let want = numel.checked_mul(4).filter(|&b| b <= MAX_STORAGE_BYTES).ok_or_else(|| format!("{name}: storage of {numel} floats is larger than {MAX_STORAGE_BYTES} bytes"))?;
+        let want = numel
+            .checked_mul(4)
+            .filter(|&b| b <= MAX_STORAGE_BYTES)
+            .ok_or_else(|| format!("{name}: storage of {numel} floats is larger than {MAX_STORAGE_BYTES} bytes"))?;
         let count = shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d)).filter(|&c| c as u64 <= numel);
         let count = count.ok_or_else(|| format!("{name}: shape {shape:?} holds more values than its storage ({numel})"))?;
         let mut raw = Vec::new();

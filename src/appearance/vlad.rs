@@ -68,7 +68,9 @@ impl Codebook {
     /// The codebook as a map stores it: a safetensors file with one f32 tensor `centres` [k, dim].
     pub fn file_bytes(&self) -> Result<Vec<u8>, String> {
         let bad = |e: safetensors::SafeTensorError| format!("codebook of {} x {} with {} values: {e}", self.k, self.dim, self.centres.len());
-        let centres = safetensors::tensor::TensorView::new(safetensors::tensor::Dtype::F32, vec![self.k, self.dim], bytemuck::cast_slice(&self.centres)).map_err(bad)?;
+        let centres =
+            safetensors::tensor::TensorView::new(safetensors::tensor::Dtype::F32, vec![self.k, self.dim], bytemuck::cast_slice(&self.centres))
+                .map_err(bad)?;
         safetensors::serialize([("centres", centres)], None).map_err(bad)
     }
     /// SHA-256 of [`Codebook::file_bytes`]: names the codebook in maps and descriptor sets.
@@ -112,7 +114,9 @@ pub fn train_codebook(samples: &[f32], dim: usize, k: usize, iterations: usize, 
     for _ in 0..iterations {
         let mut changed = false;
         for (i, a) in assign.iter_mut().enumerate() {
-            let best = (0..k).min_by(|&p, &q| dist2(x(i), &centres[p * dim..(p + 1) * dim]).total_cmp(&dist2(x(i), &centres[q * dim..(q + 1) * dim]))).unwrap_or(0); // k >= 1
+            let best = (0..k)
+                .min_by(|&p, &q| dist2(x(i), &centres[p * dim..(p + 1) * dim]).total_cmp(&dist2(x(i), &centres[q * dim..(q + 1) * dim])))
+                .unwrap_or(0); // k >= 1
             changed |= *a != best;
             *a = best;
         }
@@ -127,7 +131,9 @@ pub fn train_codebook(samples: &[f32], dim: usize, k: usize, iterations: usize, 
         for j in 0..k {
             if counts[j] == 0 {
                 // an empty cluster takes the sample farthest from its centre
-                let far = (0..n).max_by(|&p, &q| dist2(x(p), &centres[assign[p] * dim..][..dim]).total_cmp(&dist2(x(q), &centres[assign[q] * dim..][..dim]))).unwrap_or(0); // n >= k >= 1
+                let far = (0..n)
+                    .max_by(|&p, &q| dist2(x(p), &centres[assign[p] * dim..][..dim]).total_cmp(&dist2(x(q), &centres[assign[q] * dim..][..dim])))
+                    .unwrap_or(0); // n >= k >= 1
                 centres[j * dim..(j + 1) * dim].copy_from_slice(x(far));
                 changed = true;
             } else {

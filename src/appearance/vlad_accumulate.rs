@@ -113,4 +113,3 @@ pub fn vlad_accumulate(p: &VladParams, centres: &[f32], descriptors: &[f32], ass
         }
     }
 }
-

@@ -111,7 +111,12 @@ fn chain(name: &str, layers: &[Basic], cin: usize) -> Result<usize, String> {
 
 fn fits(name: &str, conv: &Conv, cin: usize, cout: Option<usize>) -> Result<usize, String> {
     if conv.cin != cin || cout.is_some_and(|c| c != conv.cout) {
-        return Err(format!("{name} maps {} to {} channels; the network needs {cin} to {}", conv.cin, conv.cout, cout.map_or("any".into(), |c| c.to_string())));
+        return Err(format!(
+            "{name} maps {} to {} channels; the network needs {cin} to {}",
+            conv.cin,
+            conv.cout,
+            cout.map_or("any".into(), |c| c.to_string())
+        ));
     }
     Ok(conv.cout)
 }
@@ -171,12 +176,12 @@ impl XFeat {
         instance_norm(&mut x);
         let x1 = seq(&self.block1, x.clone())?;
         let skip = self.skip1.run(&avg_pool(&x, 4)?)?;
-        let x2 = seq(&self.block2, x1.add(&skip)?)?;
+        let x2 = seq(&self.block2, x1.plus(&skip)?)?;
         let x3 = seq(&self.block3, x2)?;
         let x4 = seq(&self.block4, x3.clone())?;
         let x5 = seq(&self.block5, x4.clone())?;
         let (h, w) = (x3.h, x3.w);
-        let fused = x3.add(&resize_bilinear(&x4, h, w)?)?.add(&resize_bilinear(&x5, h, w)?)?;
+        let fused = x3.plus(&resize_bilinear(&x4, h, w)?)?.plus(&resize_bilinear(&x5, h, w)?)?;
         let feats = self.fusion_out.run(&seq(&self.fusion, fused)?)?;
         if !heads {
             return Ok(NetOutputs { logits: Chw::zeros(0, feats.h, feats.w), descriptors: feats, reliability: None });

@@ -42,7 +42,13 @@ impl Device {
             Some(g) => {
                 let (adapter, name) = (g.ctx.describe(), g.ctx.info.name.clone());
                 if g.ctx.is_software() {
-                    return Device { backend: "gpu".into(), adapter, peak_gflops: None, peak_source: None, note: "correctness only (software adapter)".into() };
+                    return Device {
+                        backend: "gpu".into(),
+                        adapter,
+                        peak_gflops: None,
+                        peak_source: None,
+                        note: "correctness only (software adapter)".into(),
+                    };
                 }
                 let (peak, source) = match (gpu_peak, GPU_PEAKS.iter().find(|(n, _)| name.contains(n))) {
                     (Some(v), _) => (Some(v), Some(format!("{v:.0} GFLOP/s (--peak-gflops)"))),
@@ -54,7 +60,13 @@ impl Device {
             None => {
                 let peak = cpu_peak_gflops();
                 let adapter = format!("{} ({} threads, SIMD {})", cpu_model(), rayon::current_num_threads(), CoarseCpu::new(p).describe_simd());
-                Device { backend: "cpu".into(), adapter, peak_gflops: Some(peak), peak_source: Some(format!("{peak:.0} GFLOP/s measured (one thread's FMA loop x {} threads)", rayon::current_num_threads())), note: String::new() }
+                Device {
+                    backend: "cpu".into(),
+                    adapter,
+                    peak_gflops: Some(peak),
+                    peak_source: Some(format!("{peak:.0} GFLOP/s measured (one thread's FMA loop x {} threads)", rayon::current_num_threads())),
+                    note: String::new(),
+                }
             }
         }
     }

@@ -467,7 +467,6 @@ fn parse_size(s: &str) -> Result<(usize, usize), String> {
     Ok((p(w)?, p(h)?))
 }
 
-
 /// A count of at least 1 (`--segment-images 0` was taken as 1 without a word).
 fn parse_positive(s: &str) -> Result<usize, String> {
     match s.parse::<usize>() {

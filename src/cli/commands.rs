@@ -6,19 +6,19 @@ mod shared;
 use shared::{apply_models, frame_sources, info, load_config, map_config, to_json};
 
 use super::args::*;
+use semlook::batch::encode_frames;
 use semlook::config::Config;
+use semlook::dataset::{Dataset, DatasetOptions};
 use semlook::encode::Encoder;
 use semlook::engine::{Backend, Engine};
-use semlook::gpu::GpuOptions;
 use semlook::error::{Error, Result};
-use semlook::dataset::{Dataset, DatasetOptions};
-use semlook::batch::encode_frames;
 use semlook::eval::{evaluate, EvalOptions, EvalReport, RunRecord};
+use semlook::gpu::GpuOptions;
 use semlook::input::{FrameSource, LabelFormat};
-use semlook::synth::condition::Condition;
 use semlook::map::{DescriptorSet, Map};
 use semlook::matching::{source::RefSource, QueryMatch, Setting};
 use semlook::progress;
+use semlook::synth::condition::Condition;
 use semlook::synth::{self, SynthConfig};
 use std::path::Path;
 use std::time::Instant;
@@ -74,7 +74,15 @@ pub fn dispatch(cli: Cli) -> Result<()> {
 }
 
 fn synth_config(a: &SynthArgs) -> SynthConfig {
-    let mut c = SynthConfig { seed: a.seed, places: a.places, width: a.size.0, height: a.size.1, reference: a.reference, aliasing: a.aliasing, ..Default::default() };
+    let mut c = SynthConfig {
+        seed: a.seed,
+        places: a.places,
+        width: a.size.0,
+        height: a.size.1,
+        reference: a.reference,
+        aliasing: a.aliasing,
+        ..Default::default()
+    };
     if !a.queries.is_empty() {
         c.queries = a.queries.clone();
     }
@@ -119,7 +127,15 @@ fn synth_cmd(a: &SynthArgs, quiet: bool) -> Result<()> {
     Ok(())
 }
 
-fn encode_sources(engine: &mut Engine, encoder: &Encoder, frames: &[FrameSource], fmt: LabelFormat, what: &str, skip: bool, quiet: bool) -> Result<DescriptorSet> {
+fn encode_sources(
+    engine: &mut Engine,
+    encoder: &Encoder,
+    frames: &[FrameSource],
+    fmt: LabelFormat,
+    what: &str,
+    skip: bool,
+    quiet: bool,
+) -> Result<DescriptorSet> {
     if frames.is_empty() {
         return Err(Error::invalid(what, "no images found"));
     }
@@ -155,11 +171,18 @@ pub fn escape_top_k_id(id: &str) -> String {
 /// ran, then a table written by a CSV writer (fields quoted where they hold `,`, `"` or a line
 /// break); in the `top_k` column ids are escaped by [`escape_top_k_id`]. The JSON is
 /// `{run, setting, queries: [...]}`.
-fn query_outputs(refs: &dyn RefSource, queries: &DescriptorSet, matches: &[QueryMatch], run: &RunRecord, setting: Setting) -> Result<(String, String)> {
+fn query_outputs(
+    refs: &dyn RefSource,
+    queries: &DescriptorSet,
+    matches: &[QueryMatch],
+    run: &RunRecord,
+    setting: Setting,
+) -> Result<(String, String)> {
     let mut csv: String = run.describe().lines().map(|l| format!("# {l}\n")).collect();
     csv += &format!("# setting: {setting}\n");
     let mut table = csv::WriterBuilder::new().from_writer(Vec::new());
-    let row = |t: &mut csv::Writer<Vec<u8>>, fields: &[&str]| t.write_record(fields).map_err(|e| Error::invalid("query results as CSV", e.to_string()));
+    let row =
+        |t: &mut csv::Writer<Vec<u8>>, fields: &[&str]| t.write_record(fields).map_err(|e| Error::invalid("query results as CSV", e.to_string()));
     row(&mut table, &["query", "best_reference", "score", "coarse", "fine", "top_k"])?;
     let mut rows = Vec::new();
     let f = |v: Option<f32>| v.map_or(String::new(), |x| format!("{x:.6}"));
@@ -184,14 +207,24 @@ fn query_outputs(refs: &dyn RefSource, queries: &DescriptorSet, matches: &[Query
     Ok((csv, to_json(&doc)?))
 }
 
-fn run_query(engine: &mut Engine, map: &Map, cfg: &Config, s: &SourceArgs, setting: Setting, quiet: bool) -> Result<(DescriptorSet, Vec<QueryMatch>, RunRecord)> {
+fn run_query(
+    engine: &mut Engine,
+    map: &Map,
+    cfg: &Config,
+    s: &SourceArgs,
+    setting: Setting,
+    quiet: bool,
+) -> Result<(DescriptorSet, Vec<QueryMatch>, RunRecord)> {
     let encoder = Encoder::for_map(cfg, map)?.with_hog(setting == Setting::Hog);
     let mut cfg_for_sources = cfg.clone();
     let (frames, fmt) = frame_sources(s, &mut cfg_for_sources, true)?;
     let queries = encode_sources(engine, &encoder, &frames, fmt, "queries", s.skip_invalid, quiet)?;
     let t = Instant::now();
     let (matches, _) = engine.match_batch(map, &queries, setting, cfg)?;
-    info(quiet, format!("matched {} queries against {} references ({setting}) in {:.1} ms", queries.len(), map.len(), t.elapsed().as_secs_f64() * 1e3));
+    info(
+        quiet,
+        format!("matched {} queries against {} references ({setting}) in {:.1} ms", queries.len(), map.len(), t.elapsed().as_secs_f64() * 1e3),
+    );
     Ok((queries, matches, RunRecord::new(&encoder, cfg, engine)?))
 }
 
@@ -274,14 +307,45 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
         None => (std::env::temp_dir().join(format!("semlook-demo-{}", std::process::id())), true),
     };
     let data = dir.join("dataset");
-    let sargs = SynthArgs { out: data.clone(), seed: a.seed, places: a.places, size: a.size, reference: Condition::Day, queries: vec![], aliasing: 0.6, from_camvid: None, changes: vec![], step: 1, evaluate: false, models: a.models.clone() };
+    let sargs = SynthArgs {
+        out: data.clone(),
+        seed: a.seed,
+        places: a.places,
+        size: a.size,
+        reference: Condition::Day,
+        queries: vec![],
+        aliasing: 0.6,
+        from_camvid: None,
+        changes: vec![],
+        step: 1,
+        evaluate: false,
+        models: a.models.clone(),
+    };
     let scfg = synth_config(&sargs);
-    info(quiet, format!("[1/4] rendering the synthetic benchmark: {} places x {} traversals at {}x{} (seed {})", scfg.places, 1 + scfg.queries.len(), scfg.width, scfg.height, scfg.seed));
+    info(
+        quiet,
+        format!(
+            "[1/4] rendering the synthetic benchmark: {} places x {} traversals at {}x{} (seed {})",
+            scfg.places,
+            1 + scfg.queries.len(),
+            scfg.width,
+            scfg.height,
+            scfg.seed
+        ),
+    );
     synth_cmd(&sargs, quiet)?;
     let map_dir = dir.join("map");
     let _ = std::fs::remove_dir_all(&map_dir);
     info(quiet, "[2/4] building the map from the reference traversal");
-    let src = SourceArgs { dataset: Some(data.clone()), traversal: None, images: None, labels: None, label_format: None, skip_invalid: false, models: a.models.clone() };
+    let src = SourceArgs {
+        dataset: Some(data.clone()),
+        traversal: None,
+        images: None,
+        labels: None,
+        label_format: None,
+        skip_invalid: false,
+        models: a.models.clone(),
+    };
     map_cmd::build(engine, &src, &map_dir, None, &map_cmd::BuildFlags { hog: true, ..Default::default() }, quiet)?;
     let map = Map::open(&map_dir)?;
     let cfg = map_config(&map, None, &a.models)?;
@@ -320,7 +384,8 @@ fn bench_encode_cmd(a: &BenchEncodeArgs, engine: &mut Engine, quiet: bool) -> Re
     if images.is_empty() {
         return Err(Error::invalid(a.images.display().to_string(), "no images"));
     }
-    let sources: Vec<FrameSource> = images.iter().map(|p| FrameSource { id: p.display().to_string(), image: Some(p.clone()), labels: None }).collect();
+    let sources: Vec<FrameSource> =
+        images.iter().map(|p| FrameSource { id: p.display().to_string(), image: Some(p.clone()), labels: None }).collect();
     let mut encoder = Encoder::new(&cfg)?;
     semlook::batch::train_codebook(&mut encoder, &sources, quiet)?;
     // phase 1: segmentation alone, frames in parallel, label maps at the image size
@@ -361,11 +426,21 @@ fn bench_encode_cmd(a: &BenchEncodeArgs, engine: &mut Engine, quiet: bool) -> Re
     let seg = semlook::batch::EncodingSummary::new(&seg_ms, seg_wall * sources.len() as f64);
     let size = semlook::input::image_size(&images[0])?;
     if a.json {
-        outln!("{}", to_json(&serde_json::json!({ "frames": sources.len(), "image_size": size, "backend": engine.describe(), "segmentation": seg, "everything_else": summary }))?);
+        outln!(
+            "{}",
+            to_json(
+                &serde_json::json!({ "frames": sources.len(), "image_size": size, "backend": engine.describe(), "segmentation": seg, "everything_else": summary })
+            )?
+        );
     } else {
         let (m, md) = (summary.mean, summary.median);
         outln!("{} frames of {}x{}; backend {}", sources.len(), size.0, size.1, engine.describe());
-        outln!("segmentation ({}): median {:.1} ms per frame, wall clock {:.1} ms per frame (frames in parallel)", encoder.segmenter().map_or("-".into(), |s| s.path().display().to_string()), seg.median.segment_ms, seg.wall_ms_per_frame);
+        outln!(
+            "segmentation ({}): median {:.1} ms per frame, wall clock {:.1} ms per frame (frames in parallel)",
+            encoder.segmenter().map_or("-".into(), |s| s.path().display().to_string()),
+            seg.median.segment_ms,
+            seg.wall_ms_per_frame
+        );
         outln!("everything but segmentation: wall clock {:.1} ms per frame (frames in parallel)", summary.wall_ms_per_frame);
         outln!("  per frame, median (mean): decode+resize {:.1} ({:.1}) | edges+EDT+pool {:.1} ({:.1}) | objects+forest {:.1} ({:.1}) | appearance {:.1} ({:.1}), of which network {:.1} ({:.1}) | sum {:.1} ({:.1})",
             md.decode_ms, m.decode_ms, md.global_ms, m.global_ms, md.forest_ms, m.forest_ms, md.appearance_ms, m.appearance_ms, md.network_ms, m.network_ms, md.without_segmentation_ms(), m.without_segmentation_ms());
@@ -459,7 +534,11 @@ fn bench_cmd(a: &BenchArgs, quiet: bool) -> Result<()> {
     let queries = semlook::bench::street_descriptors(&cfg, 32, Condition::Night, 5)?;
     let mut engines = vec![Engine::cpu()];
     if !a.cpu_only {
-        let gopts = GpuOptions { resident_budget: a.resident_budget_mib.map(|m| m << 20), max_binding_size: a.max_binding_mib.map(|m| m << 20), ..Default::default() };
+        let gopts = GpuOptions {
+            resident_budget: a.resident_budget_mib.map(|m| m << 20),
+            max_binding_size: a.max_binding_mib.map(|m| m << 20),
+            ..Default::default()
+        };
         match Engine::new(semlook::engine::Backend::Gpu, &gopts) {
             Ok((e, _)) => engines.push(e),
             Err(e) => info(quiet, format!("no GPU run: {e}")),

@@ -101,7 +101,13 @@ impl Dataset {
     /// The dataset a caller names: a dataset directory (see [`Dataset::open`]), or a reference and
     /// a query folder with a ground-truth file (else UTM names within `opts.max_distance`, default
     /// [`pairs::UTM_DEFAULT_DISTANCE`] metres; see [`pairs::from_folders`]).
-    pub fn open_any(dir: Option<&Path>, references: Option<&Path>, queries: Option<&Path>, ground_truth: Option<&Path>, opts: &DatasetOptions) -> Result<Dataset> {
+    pub fn open_any(
+        dir: Option<&Path>,
+        references: Option<&Path>,
+        queries: Option<&Path>,
+        ground_truth: Option<&Path>,
+        opts: &DatasetOptions,
+    ) -> Result<Dataset> {
         match (dir, references, queries) {
             (Some(dir), _, _) => Dataset::open(dir, opts),
             (None, Some(refs), Some(queries)) => {
@@ -121,8 +127,7 @@ impl Dataset {
         let mpath = root.join(MANIFEST);
         let manifest = if mpath.exists() {
             let text = std::fs::read(&mpath).map_err(|e| Error::io(&mpath, e))?;
-            let m: DatasetManifest =
-                serde_json::from_slice(&text).map_err(|e| Error::dataset(&mpath, format!("manifest: {e}")))?;
+            let m: DatasetManifest = serde_json::from_slice(&text).map_err(|e| Error::dataset(&mpath, format!("manifest: {e}")))?;
             if m.format != "semlook-dataset" || m.version != 1 {
                 return Err(Error::dataset(&mpath, "not a semlook-dataset version 1 manifest"));
             }
@@ -131,9 +136,10 @@ impl Dataset {
             return Ok(ds);
         } else {
             let found = synthia_traversals(root);
-            let reference = opts.reference.clone().ok_or_else(|| {
-                Error::dataset(root, format!("no {MANIFEST}; pass --reference (traversals found: {})", found.join(", ")))
-            })?;
+            let reference = opts
+                .reference
+                .clone()
+                .ok_or_else(|| Error::dataset(root, format!("no {MANIFEST}; pass --reference (traversals found: {})", found.join(", "))))?;
             DatasetManifest {
                 format: "semlook-dataset".into(),
                 version: 1,
@@ -174,7 +180,10 @@ impl Dataset {
         };
         let Some((refs, queries, truth)) = found else { return Ok(None) };
         if opts.reference.is_some() || !opts.queries.is_empty() || opts.max_angle_deg.is_some() {
-            return Err(Error::dataset(root, "--reference, --query and --gt-angle do not apply to a folder-pair dataset (ref/query or database/queries)"));
+            return Err(Error::dataset(
+                root,
+                "--reference, --query and --gt-angle do not apply to a folder-pair dataset (ref/query or database/queries)",
+            ));
         }
         if opts.max_distance.is_some() && !matches!(truth, PairTruth::Utm(_)) {
             return Err(Error::dataset(root, "--gt-distance applies only to datasets with positions (UTM file names)"));
@@ -261,9 +270,8 @@ impl Dataset {
         if let Some(a) = rule.max_angle_deg.filter(|a| !(0.0..=180.0).contains(a)) {
             return Err(Error::dataset(&self.root, format!("ground-truth angle {a} is not a number of degrees in [0, 180]")));
         }
-        let pose = |f: &Frame| {
-            f.pose.ok_or_else(|| Error::dataset(&self.root, format!("frame {:?} has no pose for pose-based ground truth", f.source.id)))
-        };
+        let pose =
+            |f: &Frame| f.pose.ok_or_else(|| Error::dataset(&self.root, format!("frame {:?} has no pose for pose-based ground truth", f.source.id)));
         let refs: Vec<Pose> = self.reference.frames.iter().map(pose).collect::<Result<_>>()?;
         q.frames.iter().map(|f| Ok(pose_matches(&pose(f)?, &refs, &rule))).collect()
     }
@@ -311,10 +319,7 @@ fn load_traversal(root: &Path, layout: &str, camera: &str, spec: &TraversalSpec)
                 let labels = base.join("GT/LABELS").join(camera).join(format!("{s}.png"));
                 let pose_file = base.join("CameraParams").join(camera).join(format!("{s}.txt"));
                 let pose = if pose_file.exists() { Some(read_synthia_pose(&pose_file)?) } else { None };
-                frames.push(Frame {
-                    source: FrameSource { id: format!("{name}/{s}"), image: Some(img), labels: Some(labels) },
-                    pose,
-                });
+                frames.push(Frame { source: FrameSource { id: format!("{name}/{s}"), image: Some(img), labels: Some(labels) }, pose });
             }
             Ok(Traversal { name: name.clone(), frames, ground_truth: None })
         }
@@ -329,9 +334,11 @@ fn load_traversal(root: &Path, layout: &str, camera: &str, spec: &TraversalSpec)
                 let s = stem(&img);
                 let fname = img.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
                 let pose = match &pose_map {
-                    Some(m) => Some(*m.get(&fname).or_else(|| m.get(&s)).ok_or_else(|| {
-                        Error::dataset(root, format!("pose list has no line for image {fname:?}"))
-                    })?),
+                    Some(m) => Some(
+                        *m.get(&fname)
+                            .or_else(|| m.get(&s))
+                            .ok_or_else(|| Error::dataset(root, format!("pose list has no line for image {fname:?}")))?,
+                    ),
                     None => None,
                 };
                 frames.push(Frame {
@@ -364,4 +371,3 @@ fn load_traversal(root: &Path, layout: &str, camera: &str, spec: &TraversalSpec)
         (layout, spec) => Err(Error::dataset(root, format!("traversal {spec:?} does not fit layout {layout:?}"))),
     }
 }
-

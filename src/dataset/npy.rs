@@ -50,10 +50,16 @@ pub fn read_ground_truth(bytes: &[u8]) -> Result<Vec<(u64, Vec<u64>)>, String> {
             let q = index(&p, q).ok_or_else(|| format!("row {i}: the query index is not a non-negative integer"))?;
             let refs = match ints_or_seq(&p, r)? {
                 Some(Items::Ints(v)) => v,
-                Some(Items::Objects(v)) => v.iter().map(|&x| index(&p, x)).collect::<Option<_>>().ok_or_else(|| format!("row {i}: a reference index is not a non-negative integer"))?,
+                Some(Items::Objects(v)) => v
+                    .iter()
+                    .map(|&x| index(&p, x))
+                    .collect::<Option<_>>()
+                    .ok_or_else(|| format!("row {i}: a reference index is not a non-negative integer"))?,
                 None => vec![index(&p, r).ok_or_else(|| format!("row {i}: references are neither a list nor an integer"))?],
             };
-            budget = budget.checked_sub(refs.len()).ok_or_else(|| format!("row {i}: more reference indices than a file of {} bytes can hold", bytes.len()))?;
+            budget = budget
+                .checked_sub(refs.len())
+                .ok_or_else(|| format!("row {i}: more reference indices than a file of {} bytes can hold", bytes.len()))?;
             Ok((q, refs))
         })
         .collect()
@@ -111,7 +117,13 @@ fn array(p: &Pickle, id: Id) -> Result<Option<(Vec<usize>, Items)>, String> {
     }
     let st = p.seq(*state).ok_or("array state is not a tuple")?;
     let [_, shape, dtype, fortran, data] = st else { return Err(format!("array state has {} fields, expected 5", st.len())) };
-    let shape = p.seq(*shape).ok_or("array shape is not a tuple")?.iter().map(|&d| p.int(d).and_then(|d| usize::try_from(d).ok())).collect::<Option<Vec<_>>>().ok_or("array shape holds a negative or non-integer size")?;
+    let shape = p
+        .seq(*shape)
+        .ok_or("array shape is not a tuple")?
+        .iter()
+        .map(|&d| p.int(d).and_then(|d| usize::try_from(d).ok()))
+        .collect::<Option<Vec<_>>>()
+        .ok_or("array shape holds a negative or non-integer size")?;
     if p.int(*fortran) == Some(1) {
         return Err("Fortran-ordered arrays are not supported".into());
     }

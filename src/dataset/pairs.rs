@@ -110,15 +110,24 @@ fn read_csv(csv: &Path, refs: &Traversal, queries: &Traversal) -> Result<Vec<Vec
     let (ref_index, query_index) = (index(refs), index(queries));
     let mut reader = csv::ReaderBuilder::new().trim(csv::Trim::All).from_path(csv).map_err(|e| Error::dataset(csv, e.to_string()))?;
     let headers = reader.headers().map_err(|e| Error::dataset(csv, e.to_string()))?.clone();
-    let col = |name: &str| headers.iter().position(|h| h.eq_ignore_ascii_case(name)).ok_or_else(|| Error::dataset(csv, format!("no {name:?} column (the header must name query and reference)")));
+    let col = |name: &str| {
+        headers
+            .iter()
+            .position(|h| h.eq_ignore_ascii_case(name))
+            .ok_or_else(|| Error::dataset(csv, format!("no {name:?} column (the header must name query and reference)")))
+    };
     let (qc, rc) = (col("query")?, col("reference")?);
     let mut gt = vec![Vec::new(); queries.frames.len()];
     for (line, row) in reader.records().enumerate() {
         let line = line + 2;
         let row = row.map_err(|e| Error::dataset(csv, format!("line {line}: {e}")))?;
         let (q, r) = (row.get(qc).unwrap_or(""), row.get(rc).unwrap_or(""));
-        let qi = query_index.get(&key(&dir.join(q))).ok_or_else(|| Error::dataset(csv, format!("line {line}: query {q:?} is not an image of {}", queries.name)))?;
-        let ri = ref_index.get(&key(&dir.join(r))).ok_or_else(|| Error::dataset(csv, format!("line {line}: reference {r:?} is not an image of {}", refs.name)))?;
+        let qi = query_index
+            .get(&key(&dir.join(q)))
+            .ok_or_else(|| Error::dataset(csv, format!("line {line}: query {q:?} is not an image of {}", queries.name)))?;
+        let ri = ref_index
+            .get(&key(&dir.join(r)))
+            .ok_or_else(|| Error::dataset(csv, format!("line {line}: reference {r:?} is not an image of {}", refs.name)))?;
         let list = &mut gt[*qi as usize];
         if !list.contains(ri) {
             list.push(*ri);
@@ -150,7 +159,10 @@ pub fn parse_npy_ground_truth(bytes: &[u8], file: &Path, n_refs: usize, n_querie
     let rows = npy::read_ground_truth(bytes).map_err(|r| Error::dataset(file, r))?;
     let mut gt = vec![Vec::new(); n_queries];
     for (q, refs) in rows {
-        let slot = usize::try_from(q).ok().and_then(|q| gt.get_mut(q)).ok_or_else(|| Error::dataset(file, format!("query index {q}, there are {n_queries} query images")))?;
+        let slot = usize::try_from(q)
+            .ok()
+            .and_then(|q| gt.get_mut(q))
+            .ok_or_else(|| Error::dataset(file, format!("query index {q}, there are {n_queries} query images")))?;
         for r in refs {
             if r >= n_refs as u64 {
                 return Err(Error::dataset(file, format!("query {q}: reference index {r}, there are {n_refs} reference images")));

@@ -9,10 +9,7 @@ use std::path::Path;
 fn parse_numbers(text: &str, path: &Path, line: usize) -> Result<Vec<f64>> {
     text.split_whitespace()
         .map(|t| {
-            t.parse::<f64>()
-                .ok()
-                .filter(|v| v.is_finite())
-                .ok_or_else(|| Error::dataset(path, format!("line {line}: {t:?} is not a finite number")))
+            t.parse::<f64>().ok().filter(|v| v.is_finite()).ok_or_else(|| Error::dataset(path, format!("line {line}: {t:?} is not a finite number")))
         })
         .collect()
 }
@@ -99,11 +96,8 @@ pub fn parse_pose_list(text: &str, path: &Path, format: PoseFormat) -> Result<st
                 let r = quat_to_matrix(v[0], v[1], v[2], v[3]);
                 let t = [v[4], v[5], v[6]];
                 // rows of a world-to-camera rotation are the camera axes in world coordinates
-                let position = if format == PoseFormat::QuatCenter {
-                    t
-                } else {
-                    std::array::from_fn(|j| -(0..3).map(|k| r[k][j] * t[k]).sum::<f64>())
-                };
+                let position =
+                    if format == PoseFormat::QuatCenter { t } else { std::array::from_fn(|j| -(0..3).map(|k| r[k][j] * t[k]).sum::<f64>()) };
                 Pose { position, forward: normalise(r[2]) }
             }
             PoseFormat::MatrixCamToWorld => Pose { position: [v[3], v[7], v[11]], forward: normalise([v[2], v[6], v[10]]) },

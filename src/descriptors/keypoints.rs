@@ -6,7 +6,6 @@
 //! coordinates (fractions of the image's long side at the working size, times `COORD_SCALE`) and
 //! one class byte (`classes::VOID` where the label map has none): 64 + 4 + 1 = 69 bytes with XFeat.
 
-
 /// int8 value = round(DESCRIPTOR_SCALE x component) of the unit-length descriptor. The largest
 /// component of XFeat's descriptors over 40,960 keypoints of the Gardens Point frames was 0.58
 /// (x 200 = 117 < 127, so nothing clips); rounding moves a vector's norm by 0.14 % (std), so the

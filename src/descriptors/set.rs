@@ -3,10 +3,10 @@
 //! Forests are concatenated, with `forest_offsets[i]..[i + 1]` the trees of image i; neighbour
 //! indices stay local to their forest.
 
+use crate::descriptors::keypoints::{ImageKeypoints, KeypointsRef};
 use crate::global::ssim::SsimParams;
 use crate::local::{Forest, ForestRef};
 use crate::values::Values;
-use crate::descriptors::keypoints::{ImageKeypoints, KeypointsRef};
 
 /// Everything stored for one image.
 #[derive(Debug, Clone, PartialEq)]
@@ -151,7 +151,14 @@ impl DescriptorSet {
         }
         let k = &img.keypoints;
         if !k.is_empty() && (k.dim != self.keypoint_dim || k.descriptors.len() != k.len() * k.dim || k.xy.len() != 2 * k.len()) {
-            return Err(format!("image {:?} has {} keypoints of dimension {} ({} values), the set takes dimension {}", img.id, k.len(), k.dim, k.descriptors.len(), self.keypoint_dim));
+            return Err(format!(
+                "image {:?} has {} keypoints of dimension {} ({} values), the set takes dimension {}",
+                img.id,
+                k.len(),
+                k.dim,
+                k.descriptors.len(),
+                self.keypoint_dim
+            ));
         }
         self.ids.push(img.id.clone());
         self.sizes.push([img.width, img.height]);
@@ -199,7 +206,11 @@ impl DescriptorSet {
     pub fn append_range(&mut self, other: &DescriptorSet, start: usize, end: usize) -> Result<(), String> {
         let sizes = |s: &DescriptorSet| (s.global_len, s.neighbour_slots, s.appearance_dim, s.hog_dim, s.keypoint_dim);
         if self.appearance_dim > 0 && self.codebook != other.codebook {
-            return Err(format!("images aggregated with another VLAD codebook (sha256 {}) do not join a set of sha256 {}", other.codebook.as_deref().unwrap_or("none"), self.codebook.as_deref().unwrap_or("none")));
+            return Err(format!(
+                "images aggregated with another VLAD codebook (sha256 {}) do not join a set of sha256 {}",
+                other.codebook.as_deref().unwrap_or("none"),
+                self.codebook.as_deref().unwrap_or("none")
+            ));
         }
         if sizes(self) != sizes(other) || (self.stats_len != 0 && self.stats_len != other.stats_len) {
             return Err(format!(
@@ -255,9 +266,13 @@ impl DescriptorSet {
 
     /// An empty set of the same layout.
     pub fn empty_like(&self) -> DescriptorSet {
-        DescriptorSet { global_len: self.global_len, stats_len: self.stats_len, ..DescriptorSet::new(&bytemuck::Zeroable::zeroed(), self.neighbour_slots, self.appearance_dim, self.hog_dim) }
-            .with_keypoint_dim(self.keypoint_dim)
-            .with_codebook(self.codebook.clone())
+        DescriptorSet {
+            global_len: self.global_len,
+            stats_len: self.stats_len,
+            ..DescriptorSet::new(&bytemuck::Zeroable::zeroed(), self.neighbour_slots, self.appearance_dim, self.hog_dim)
+        }
+        .with_keypoint_dim(self.keypoint_dim)
+        .with_codebook(self.codebook.clone())
     }
 
     pub fn global(&self, i: usize) -> &[f32] {
@@ -278,7 +293,12 @@ impl DescriptorSet {
     pub fn keypoints(&self, i: usize) -> KeypointsRef<'_> {
         let (a, b) = (self.keypoint_offsets[i] as usize, self.keypoint_offsets[i + 1] as usize);
         let d = self.keypoint_dim;
-        KeypointsRef { descriptors: &self.keypoint_descriptors[d * a..d * b], xy: &self.keypoint_xy[2 * a..2 * b], classes: &self.keypoint_classes[a..b], dim: d }
+        KeypointsRef {
+            descriptors: &self.keypoint_descriptors[d * a..d * b],
+            xy: &self.keypoint_xy[2 * a..2 * b],
+            classes: &self.keypoint_classes[a..b],
+            dim: d,
+        }
     }
     pub fn forest(&self, i: usize) -> ForestRef<'_> {
         let (a, b) = (self.forest_offsets[i] as usize, self.forest_offsets[i + 1] as usize);
@@ -338,7 +358,16 @@ impl DescriptorSet {
     /// Checks image `i` with [`crate::descriptors::validate::image`].
     pub fn check_image(&self, i: usize, n_classes: usize, store: crate::values::ValueType) -> Result<(), String> {
         let g = Values::F32(self.global(i));
-        crate::descriptors::validate::image(&self.ids[i], self.sizes[i], g, self.forest(i), Values::F32(self.image_appearance(i)), self.image_hog(i), n_classes, store)?;
+        crate::descriptors::validate::image(
+            &self.ids[i],
+            self.sizes[i],
+            g,
+            self.forest(i),
+            Values::F32(self.image_appearance(i)),
+            self.image_hog(i),
+            n_classes,
+            store,
+        )?;
         crate::descriptors::validate::keypoints(self.keypoints(i), n_classes)
     }
 }
@@ -351,7 +380,17 @@ mod tests {
         let mut s = DescriptorSet::for_storage(global_len, 1, 0, hog_dim);
         for i in 0..n {
             let forest = crate::local::Forest { neighbour_slots: 1, ..Default::default() };
-            let img = EncodedImage { id: format!("i{i}"), width: 1, height: 1, global: vec![0.5; global_len], global_stats: vec![], forest, appearance: vec![], hog: vec![1.0; hog_dim], keypoints: Default::default() };
+            let img = EncodedImage {
+                id: format!("i{i}"),
+                width: 1,
+                height: 1,
+                global: vec![0.5; global_len],
+                global_stats: vec![],
+                forest,
+                appearance: vec![],
+                hog: vec![1.0; hog_dim],
+                keypoints: Default::default(),
+            };
             s.push(&img).unwrap();
         }
         s

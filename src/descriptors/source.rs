@@ -3,9 +3,9 @@
 //! benchmarks). Tiles are the unit of streaming: no stage ever needs the whole map at once.
 
 use super::DescriptorSet;
+use crate::descriptors::keypoints::KeypointsRef;
 use crate::local::ForestRef;
 use crate::values::Values;
-use crate::descriptors::keypoints::KeypointsRef;
 
 /// Reusable storage for tiles that a source must assemble (copy or generate).
 #[derive(Debug, Default)]

@@ -33,7 +33,16 @@ pub fn id(id: &str) -> Result<(), String> {
 /// `n_classes`, areas in [0, 1], finite centroids, neighbour indices inside the forest, finite
 /// appearance and HOG values, and, for f16 storage, appearance values that f16 can hold.
 #[allow(clippy::too_many_arguments)]
-pub fn image(id_: &str, size: [u32; 2], global: Values, forest: ForestRef, appearance: Values, hog: &[f32], n_classes: usize, store: ValueType) -> Result<(), String> {
+pub fn image(
+    id_: &str,
+    size: [u32; 2],
+    global: Values,
+    forest: ForestRef,
+    appearance: Values,
+    hog: &[f32],
+    n_classes: usize,
+    store: ValueType,
+) -> Result<(), String> {
     id(id_)?;
     if size[0] == 0 || size[1] == 0 {
         return Err(format!("image size {}x{} is empty", size[0], size[1]));
@@ -43,7 +52,12 @@ pub fn image(id_: &str, size: [u32; 2], global: Values, forest: ForestRef, appea
     }
     let t = forest.len();
     let f = &forest;
-    if f.areas.len() != t || f.centroids.len() != 2 * t || f.neighbours.len() != t * f.neighbour_slots || f.has_appearance.len() != t || f.appearance.len() != t * f.dim {
+    if f.areas.len() != t
+        || f.centroids.len() != 2 * t
+        || f.neighbours.len() != t * f.neighbour_slots
+        || f.has_appearance.len() != t
+        || f.appearance.len() != t * f.dim
+    {
         return Err("tree arrays have different lengths".into());
     }
     if let Some(c) = f.classes.iter().find(|&&c| c as usize >= n_classes) {

@@ -37,8 +37,7 @@ pub fn precision_recall_curve(scores: &[f64], correct: &[bool]) -> (Vec<f64>, Ve
     }
     let total_tp = tp;
     let mut precision: Vec<f64> = tps.iter().zip(&fps).map(|(t, f)| t / (t + f)).rev().collect();
-    let mut recall: Vec<f64> =
-        tps.iter().map(|t| if total_tp > 0.0 { t / total_tp } else { 1.0 }).rev().collect();
+    let mut recall: Vec<f64> = tps.iter().map(|t| if total_tp > 0.0 { t / total_tp } else { 1.0 }).rev().collect();
     precision.push(1.0);
     recall.push(0.0);
     (precision, recall)

@@ -3,19 +3,18 @@
 //! per-stage timings in the paper's Table 2 units (ms per frame for encoding, ms per reference
 //! frame for matching).
 
-
 pub mod metrics;
 pub mod segmenter;
 
 use crate::batch::{encode_frames, train_codebook, EncodingSummary};
 use crate::config::Config;
+use crate::dataset::Dataset;
 use crate::encode::Encoder;
 use crate::engine::Engine;
 use crate::error::{Error, Result};
 use crate::map::{DescriptorSet, Map};
 use crate::matching::source::RefSource;
 use crate::matching::Setting;
-use crate::dataset::Dataset;
 use metrics::{pr_metrics, recall_at_n, PrMetrics};
 use serde::Serialize;
 use std::collections::HashMap;
@@ -158,7 +157,12 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
             log::warn!("skipped query {}: {e}", sources[*i].id);
         }
         let dropped: std::collections::HashSet<usize> = enc.skipped.iter().map(|(i, _)| *i).collect();
-        let gt: Vec<Vec<u32>> = gt_ds.iter().enumerate().filter(|(i, _)| !dropped.contains(i)).map(|(_, g)| g.iter().map(|&i| ref_to_map[i as usize]).collect()).collect();
+        let gt: Vec<Vec<u32>> = gt_ds
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| !dropped.contains(i))
+            .map(|(_, g)| g.iter().map(|&i| ref_to_map[i as usize]).collect())
+            .collect();
         q_times.extend_from_slice(&enc.times);
         q_wall += enc.wall_ms;
         match_query_set(engine, refs, &qt.name, &enc.set, &gt, &opts.settings, cfg, &mut results, &mut skipped)?;
@@ -263,7 +267,11 @@ impl EvalReport {
         for r in &self.results {
             s += &format!(
                 "{:<12} {:<14} {:>6.3} {:>7.3} {:>7.3}",
-                r.query_set, r.setting.name(), r.pr.auc, r.pr.recall_at_100_precision, r.pr.precision_at_100_recall
+                r.query_set,
+                r.setting.name(),
+                r.pr.auc,
+                r.pr.recall_at_100_precision,
+                r.pr.precision_at_100_recall
             );
             for (_, v) in &r.recall_at {
                 s += &format!(" {:>6.3}", v);
@@ -361,7 +369,9 @@ pub fn label_source_table(reports: &[(&str, &EvalReport)]) -> String {
         }
     }
     let mut out = String::new();
-    for (metric, get) in [("R@1", (|r: &SettingReport| r.recall_at.first().map_or(0.0, |x| x.1)) as fn(&SettingReport) -> f64), ("AUC", |r: &SettingReport| r.pr.auc)] {
+    for (metric, get) in
+        [("R@1", (|r: &SettingReport| r.recall_at.first().map_or(0.0, |x| x.1)) as fn(&SettingReport) -> f64), ("AUC", |r: &SettingReport| r.pr.auc)]
+    {
         out += &format!("\n{metric}: rows settings, columns query set / label source\n{:<14}", "setting");
         for set in &sets {
             for (name, _) in reports {

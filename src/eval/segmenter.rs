@@ -67,7 +67,12 @@ pub struct SegmenterAccuracy {
 
 impl SegmenterAccuracy {
     pub fn to_table(&self) -> String {
-        let mut s = format!("pixel accuracy {:.1} %, mean IoU {:.1} % ({} labelled pixels)\n", 100.0 * self.pixel_accuracy, 100.0 * self.mean_iou, self.pixels);
+        let mut s = format!(
+            "pixel accuracy {:.1} %, mean IoU {:.1} % ({} labelled pixels)\n",
+            100.0 * self.pixel_accuracy,
+            100.0 * self.mean_iou,
+            self.pixels
+        );
         for (name, v) in &self.iou {
             s += &format!("  {name:<14} IoU {:.1} %\n", 100.0 * v);
         }

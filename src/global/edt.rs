@@ -96,8 +96,7 @@ pub fn edt_row(g: &[i32], s: &mut [i32], t: &mut [i32], d2: &mut [u32], width: u
 /// Brute-force reference: for every pixel, the minimum squared distance to any edge pixel
 /// (u32::MAX where the image has no edge). O(pixels x edges); for tests only.
 pub fn edt_brute_force(edges: &[u32], width: usize, height: usize) -> Vec<u32> {
-    let pts: Vec<(i64, i64)> =
-        (0..width * height).filter(|&i| edges[i] != 0).map(|i| ((i % width) as i64, (i / width) as i64)).collect();
+    let pts: Vec<(i64, i64)> = (0..width * height).filter(|&i| edges[i] != 0).map(|i| ((i % width) as i64, (i / width) as i64)).collect();
     (0..width * height)
         .map(|i| {
             let (x, y) = ((i % width) as i64, (i / width) as i64);

@@ -29,9 +29,7 @@ pub fn semantic_edge_at(labels: &[u32], used: &[u32; 256], width: usize, height:
         let n = labels[j];
         n != c && used[n as usize] != 0
     };
-    let edge = (x > 0 && differs(i - 1))
-        || (x + 1 < width && differs(i + 1))
-        || (y > 0 && differs(i - width))
-        || (y + 1 < height && differs(i + width));
+    let edge =
+        (x > 0 && differs(i - 1)) || (x + 1 < width && differs(i + 1)) || (y > 0 && differs(i - width)) || (y + 1 < height && differs(i + width));
     edge as u32
 }

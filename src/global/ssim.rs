@@ -43,6 +43,9 @@ impl SsimParams {
     pub fn len(&self) -> usize {
         (self.gw * self.gh) as usize
     }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
     pub fn windows(&self) -> usize {
         (self.nw * self.nh) as usize
     }

@@ -95,7 +95,11 @@ pub struct FastScratch {
 
 impl FastScratch {
     pub fn new(l: &FastLayout) -> Self {
-        FastScratch { prod: vec![0.0; (l.stride + l.win - 1).max(l.gw).next_multiple_of(W)], ring: vec![0.0; l.win * l.stride], vals: vec![0.0; l.n.next_multiple_of(RL) + W] }
+        FastScratch {
+            prod: vec![0.0; (l.stride + l.win - 1).max(l.gw).next_multiple_of(W)],
+            ring: vec![0.0; l.win * l.stride],
+            vals: vec![0.0; l.n.next_multiple_of(RL) + W],
+        }
     }
 }
 
@@ -130,7 +134,13 @@ struct Consts<V> {
 pub fn ssim_pair_fast<S: Simd>(simd: S, p: &SsimParams, l: &FastLayout, x: &[f32], tx: &[f32], y: &[f32], ty: &[f32], s: &mut FastScratch) -> f32 {
     let (gw, stw, win) = (l.gw, l.stride, l.win);
     let chunks = stw / S::F32_LANES;
-    let k = Consts { inv: simd.splat_f32s(1.0 / (win * win) as f32), cn: simd.splat_f32s(p.cov_norm), c1: simd.splat_f32s(p.c1), c2: simd.splat_f32s(p.c2), two: simd.splat_f32s(2.0) };
+    let k = Consts {
+        inv: simd.splat_f32s(1.0 / (win * win) as f32),
+        cn: simd.splat_f32s(p.cov_norm),
+        c1: simd.splat_f32s(p.c1),
+        c2: simd.splat_f32s(p.c2),
+        two: simd.splat_f32s(2.0),
+    };
     let FastScratch { prod, ring, vals } = s;
     let (mut slot, mut first) = (0, 0);
     for (r, (xr, yr)) in x.chunks_exact(gw).zip(y.chunks_exact(gw)).take(l.gh).enumerate() {
@@ -218,7 +228,18 @@ fn horizontal<S: Simd, const N: usize>(simd: S, prod: &[f32], dst: &mut [f32], j
 /// overwritten with zeros before the reduction).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn windows<S: Simd, const N: usize>(simd: S, k: &Consts<S::f32s>, l: &FastLayout, tx: &[f32], ty: &[f32], ring: &[f32], first: usize, vals: &mut [f32], wr: usize, j: usize) {
+fn windows<S: Simd, const N: usize>(
+    simd: S,
+    k: &Consts<S::f32s>,
+    l: &FastLayout,
+    tx: &[f32],
+    ty: &[f32],
+    ring: &[f32],
+    first: usize,
+    vals: &mut [f32],
+    wr: usize,
+    j: usize,
+) {
     let (lanes, stw, win, plane) = (S::F32_LANES, l.stride, l.win, l.nh * l.stride);
     let c0 = j * lanes;
     let row = |slot: usize| &ring[slot * stw + c0..slot * stw + c0 + N * lanes];
@@ -244,7 +265,10 @@ fn windows<S: Simd, const N: usize>(simd: S, k: &Consts<S::f32s>, l: &FastLayout
         // ssim::ssim_window, operation for operation
         let cov = simd.mul_f32s(simd.sub_f32s(simd.mul_f32s(sum, k.inv), simd.mul_f32s(mx, my)), k.cn);
         let num = simd.mul_f32s(simd.add_f32s(simd.mul_f32s(simd.mul_f32s(k.two, mx), my), k.c1), simd.add_f32s(simd.mul_f32s(k.two, cov), k.c2));
-        let den = simd.mul_f32s(simd.add_f32s(simd.add_f32s(simd.mul_f32s(mx, mx), simd.mul_f32s(my, my)), k.c1), simd.add_f32s(simd.add_f32s(ld::<S>(vx, e), ld::<S>(vy, e)), k.c2));
+        let den = simd.mul_f32s(
+            simd.add_f32s(simd.add_f32s(simd.mul_f32s(mx, mx), simd.mul_f32s(my, my)), k.c1),
+            simd.add_f32s(simd.add_f32s(ld::<S>(vx, e), ld::<S>(vy, e)), k.c2),
+        );
         st::<S>(out, e, simd.div_f32s(num, den));
     }
 }

@@ -43,7 +43,11 @@ pub(crate) struct PassBuffer<T> {
 
 impl<T: bytemuck::Pod> PassBuffer<T> {
     pub fn new(ctx: &GpuContext) -> Self {
-        PassBuffer { buf: None, stride: (std::mem::size_of::<T>() as u64).next_multiple_of(ctx.uniform_offset_alignment() as u64), _t: std::marker::PhantomData }
+        PassBuffer {
+            buf: None,
+            stride: (std::mem::size_of::<T>() as u64).next_multiple_of(ctx.uniform_offset_alignment() as u64),
+            _t: std::marker::PhantomData,
+        }
     }
 
     /// Writes `entries` (one write; the buffer regrows when a batch has more passes).
@@ -96,7 +100,6 @@ impl GpuContext {
         buf
     }
 
-
     /// Copies `bytes` bytes of `src` back to the host (waits for the queue).
     pub(crate) fn read_back(&self, src: &wgpu::Buffer, bytes: u64) -> Result<Vec<u8>, GpuError> {
         let bytes = bytes.next_multiple_of(4).max(4);
@@ -113,16 +116,11 @@ impl GpuContext {
         staging.map_async(wgpu::MapMode::Read, .., move |r| {
             let _ = tx.send(r);
         });
-        self.device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::DeviceLost(format!("waiting for the queue: {e}")))?;
+        self.device.poll(wgpu::PollType::wait_indefinitely()).map_err(|e| GpuError::DeviceLost(format!("waiting for the queue: {e}")))?;
         rx.recv()
             .map_err(|_| GpuError::Failed { what: "reading back".into(), reason: "map callback dropped".into() })?
             .map_err(|e| GpuError::Failed { what: "reading back".into(), reason: e.to_string() })?;
-        let data = staging
-            .get_mapped_range(..)
-            .map_err(|e| GpuError::Failed { what: "reading back".into(), reason: e.to_string() })?
-            .to_vec();
+        let data = staging.get_mapped_range(..).map_err(|e| GpuError::Failed { what: "reading back".into(), reason: e.to_string() })?.to_vec();
         staging.unmap();
         self.check_lost()?;
         Ok(data)

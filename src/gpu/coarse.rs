@@ -19,8 +19,8 @@ use super::buffers::{PassBuffer, Reused};
 use super::context::{GpuContext, GpuError};
 use super::resident::{ChunkData, ChunkPlan, Resident};
 use super::topk::{bytes_per_query, TopK, MAX_PASS_REFS};
-use crate::global::ssim::SsimParams;
 use crate::descriptors::DescriptorSet;
+use crate::global::ssim::SsimParams;
 use crate::matching::source::{GlobalSource, SourceKey, TileBuf};
 use crate::matching::ssim_block::{block_shape, PassParams};
 use crate::matching::topk_select::SEG;
@@ -65,7 +65,18 @@ impl CoarseMatcherGpu {
         })?;
         let params = ctx.uniform("ssim params", &p);
         let passes = PassBuffer::new(&ctx);
-        Ok(CoarseMatcherGpu { ctx, p, shape, params, map: Resident::default(), queries: Reused::default(), query_stats: Reused::default(), scores: Reused::default(), passes, topk: TopK::default() })
+        Ok(CoarseMatcherGpu {
+            ctx,
+            p,
+            shape,
+            params,
+            map: Resident::default(),
+            queries: Reused::default(),
+            query_stats: Reused::default(),
+            scores: Reused::default(),
+            passes,
+            topk: TopK::default(),
+        })
     }
 
     /// References per map chunk: as many as one binding holds (descriptors and stats alike).
@@ -92,7 +103,8 @@ impl CoarseMatcherGpu {
     /// limit; a typed error if the device cannot take one query or one reference.
     pub fn plan(&self, k: usize) -> Result<(usize, usize), GpuError> {
         let (lim, groups) = (self.ctx.binding_limit(), self.ctx.max_workgroups() as u64);
-        let too_small = |what: &str, needed: u64| GpuError::LimitsTooSmall { adapter: self.ctx.describe(), what: what.into(), needed, available: lim };
+        let too_small =
+            |what: &str, needed: u64| GpuError::LimitsTooSmall { adapter: self.ctx.describe(), what: what.into(), needed, available: lim };
         let per_ref = (self.p.len().max(self.p.stats_len()) * 4) as u64;
         if per_ref > lim {
             return Err(too_small("one reference's descriptor or SSIM statistics in one binding", per_ref));
@@ -157,7 +169,15 @@ impl CoarseMatcherGpu {
     }
 
     /// Queries `qs` against the whole map.
-    fn query_chunk(&mut self, queries: &DescriptorSet, qs: std::ops::Range<usize>, k: usize, pass_refs: usize, data: &MapChunks, bind: &dyn Fn(&[&wgpu::Buffer]) -> wgpu::BindGroup) -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
+    fn query_chunk(
+        &mut self,
+        queries: &DescriptorSet,
+        qs: std::ops::Range<usize>,
+        k: usize,
+        pass_refs: usize,
+        data: &MapChunks,
+        bind: &dyn Fn(&[&wgpu::Buffer]) -> wgpu::BindGroup,
+    ) -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
         let ctx = self.ctx.clone();
         let nq = qs.len();
         let (rb, qb) = self.shape;
@@ -167,7 +187,18 @@ impl CoarseMatcherGpu {
         for (c, plan) in self.map.plans().iter().enumerate() {
             for start in (0..plan.len).step_by(pass_refs) {
                 let refs = pass_refs.min(plan.len - start);
-                let ps = PassParams { queries: nq as u32, refs: refs as u32, ref_first: start as u32, ref_index: (plan.first + start) as u32, rb, qb, k: k as u32, segs: refs.div_ceil(SEG) as u32, parity, ..Default::default() };
+                let ps = PassParams {
+                    queries: nq as u32,
+                    refs: refs as u32,
+                    ref_first: start as u32,
+                    ref_index: (plan.first + start) as u32,
+                    rb,
+                    qb,
+                    k: k as u32,
+                    segs: refs.div_ceil(SEG) as u32,
+                    parity,
+                    ..Default::default()
+                };
                 passes.push((c, ps));
                 parity ^= 1;
             }

@@ -49,7 +49,16 @@ pub struct GpuOptions {
 
 impl Default for GpuOptions {
     fn default() -> Self {
-        GpuOptions { allow_software: true, max_binding_size: None, backends: wgpu::Backends::PRIMARY, resident_budget: None, max_workgroups: None, subgroups: true, timestamps: true, adapter: None }
+        GpuOptions {
+            allow_software: true,
+            max_binding_size: None,
+            backends: wgpu::Backends::PRIMARY,
+            resident_budget: None,
+            max_workgroups: None,
+            subgroups: true,
+            timestamps: true,
+            adapter: None,
+        }
     }
 }
 
@@ -97,7 +106,8 @@ impl GpuContext {
             wgpu::DeviceType::Other => 3,
             wgpu::DeviceType::Cpu => 4,
         };
-        let mut usable: Vec<wgpu::Adapter> = adapters.into_iter().filter(|a| opts.allow_software || a.get_info().device_type != wgpu::DeviceType::Cpu).collect();
+        let mut usable: Vec<wgpu::Adapter> =
+            adapters.into_iter().filter(|a| opts.allow_software || a.get_info().device_type != wgpu::DeviceType::Cpu).collect();
         // stable: wgpu's order within a kind
         usable.sort_by_key(|a| rank(a.get_info().device_type));
         let n = usable.len();
@@ -153,7 +163,13 @@ impl GpuContext {
         }
     }
 
-    fn finish(device: wgpu::Device, queue: wgpu::Queue, info: wgpu::AdapterInfo, opts: &GpuOptions, lost: Arc<Mutex<Option<String>>>) -> Result<GpuContext, GpuError> {
+    fn finish(
+        device: wgpu::Device,
+        queue: wgpu::Queue,
+        info: wgpu::AdapterInfo,
+        opts: &GpuOptions,
+        lost: Arc<Mutex<Option<String>>>,
+    ) -> Result<GpuContext, GpuError> {
         let limits = device.limits();
         let binding_limit = (limits.max_storage_buffer_binding_size).min(limits.max_buffer_size).min(opts.max_binding_size.unwrap_or(u64::MAX));
         let needs = [
@@ -272,7 +288,11 @@ impl GpuContext {
             Some(t) => Some(t.next_writes(&self.device, &self.queue, &|b, n| self.read_back(b, n))?),
             None => None,
         };
-        let writes = writes.as_ref().map(|(set, i)| wgpu::ComputePassTimestampWrites { query_set: set, beginning_of_pass_write_index: Some(*i), end_of_pass_write_index: Some(*i + 1) });
+        let writes = writes.as_ref().map(|(set, i)| wgpu::ComputePassTimestampWrites {
+            query_set: set,
+            beginning_of_pass_write_index: Some(*i),
+            end_of_pass_write_index: Some(*i + 1),
+        });
         Ok(enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: writes }))
     }
 

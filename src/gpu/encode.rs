@@ -53,7 +53,10 @@ impl GlobalEncoderGpu {
         let Some(first) = maps.first() else { return Ok(vec![]) };
         let (w, h) = (first.width(), first.height());
         if let Some(m) = maps.iter().find(|m| (m.width(), m.height()) != (w, h)) {
-            return Err(GpuError::Failed { what: "encoding".into(), reason: format!("label maps of {w}x{h} and {}x{} in one batch (one size per batch)", m.width(), m.height()) });
+            return Err(GpuError::Failed {
+                what: "encoding".into(),
+                reason: format!("label maps of {w}x{h} and {}x{} in one batch (one size per batch)", m.width(), m.height()),
+            });
         }
         if w as usize > edt::MAX_SIDE || h as usize > edt::MAX_SIDE {
             return Err(GpuError::Failed { what: "encoding".into(), reason: format!("{w}x{h} exceeds the EDT side limit") });

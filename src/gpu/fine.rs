@@ -13,14 +13,14 @@
 //! A pass is a run of pairs within one map chunk, bounded by the scratch binding (each pair owns
 //! 2 x max_trees^2 floats); its grid has `row` workgroups per row.
 
+use super::abi::{FinePass, MAX_SLOTS, MAX_TREES};
 use super::buffers::{PassBuffer, Reused};
 use super::context::{GpuContext, GpuError};
-use super::abi::{FinePass, MAX_SLOTS, MAX_TREES};
 use super::fine_pack::{forest_key, pack, plan_chunks, ForestChunks, Packed};
 use super::resident::{ChunkPlan, Resident};
 use super::topk::{bytes_per_query, TopK, MAX_PASS_REFS};
-use crate::local::tree_similarity::TreeSimParams;
 use crate::descriptors::DescriptorSet;
+use crate::local::tree_similarity::TreeSimParams;
 use crate::matching::source::{RefSource, SourceKey};
 use crate::matching::ssim_block::PassParams;
 use crate::matching::topk_select::SEG;
@@ -53,7 +53,19 @@ struct Work {
 impl FineMatcherGpu {
     pub fn new(ctx: Arc<GpuContext>) -> Self {
         let (passes, topk_passes) = (PassBuffer::new(&ctx), PassBuffer::new(&ctx));
-        FineMatcherGpu { ctx, map: Resident::default(), planned: None, lookup: Reused::default(), q_trees: Reused::default(), q_app: Reused::default(), scratch: Reused::default(), out: Reused::default(), passes, topk_passes, topk: TopK::default() }
+        FineMatcherGpu {
+            ctx,
+            map: Resident::default(),
+            planned: None,
+            lookup: Reused::default(),
+            q_trees: Reused::default(),
+            q_app: Reused::default(),
+            scratch: Reused::default(),
+            out: Reused::default(),
+            passes,
+            topk_passes,
+            topk: TopK::default(),
+        }
     }
 
     /// Bytes of the last map's packed forests on the device (or streamed through it).
@@ -76,7 +88,10 @@ impl FineMatcherGpu {
     fn prepare(&mut self, p: &TreeSimParams, queries: &DescriptorSet, refs: &dyn RefSource) -> Result<usize, GpuError> {
         let ctx = self.ctx.clone();
         if queries.neighbour_slots > MAX_SLOTS || queries.appearance_dim != refs.appearance_dim() {
-            return Err(GpuError::Failed { what: "fine matching".into(), reason: format!("neighbour slots above {MAX_SLOTS} or appearance sizes differ") });
+            return Err(GpuError::Failed {
+                what: "fine matching".into(),
+                reason: format!("neighbour slots above {MAX_SLOTS} or appearance sizes differ"),
+            });
         }
         let key = forest_key(refs, p);
         let planned = match self.planned.take() {
@@ -90,7 +105,12 @@ impl FineMatcherGpu {
         let qmax = (0..queries.len()).map(|i| queries.forest(i).len()).max().unwrap_or(0);
         let max_trees = qmax.max(*map_max).max(1);
         if max_trees > MAX_TREES {
-            return Err(GpuError::LimitsTooSmall { adapter: ctx.describe(), what: "trees per forest".into(), needed: max_trees as u64, available: MAX_TREES as u64 });
+            return Err(GpuError::LimitsTooSmall {
+                adapter: ctx.describe(),
+                what: "trees per forest".into(),
+                needed: max_trees as u64,
+                available: MAX_TREES as u64,
+            });
         }
         ctx.check_binding("one pair's similarity matrices", Self::per_pair(max_trees))?;
         let data = ForestChunks { refs, params: *p };
@@ -113,7 +133,12 @@ impl FineMatcherGpu {
             let (t, l) = (queries.forest(q).len(), 1 + extra(q));
             let bytes = |trees: usize, look: usize| super::fine_pack::packed_bytes(look, trees, dim).into_iter().max().unwrap_or(0);
             if bytes(t, l) > lim {
-                return Err(GpuError::LimitsTooSmall { adapter: self.ctx.describe(), what: format!("query {q}'s forest and pairs in one binding"), needed: bytes(t, l), available: lim });
+                return Err(GpuError::LimitsTooSmall {
+                    adapter: self.ctx.describe(),
+                    what: format!("query {q}'s forest and pairs in one binding"),
+                    needed: bytes(t, l),
+                    available: lim,
+                });
             }
             if q - start == cap || bytes(trees + t, look + l) > lim {
                 out.push(start..q);
@@ -134,7 +159,13 @@ impl FineMatcherGpu {
     }
 
     /// Scores of `pairs` (query index, reference index), in order.
-    pub fn score_pairs(&mut self, p: &TreeSimParams, queries: &DescriptorSet, refs: &dyn RefSource, pairs: &[(u32, u32)]) -> Result<Vec<f32>, GpuError> {
+    pub fn score_pairs(
+        &mut self,
+        p: &TreeSimParams,
+        queries: &DescriptorSet,
+        refs: &dyn RefSource,
+        pairs: &[(u32, u32)],
+    ) -> Result<Vec<f32>, GpuError> {
         if pairs.is_empty() {
             return Ok(Vec::new());
         }
@@ -149,10 +180,14 @@ impl FineMatcherGpu {
         let mut scores = vec![0.0f32; pairs.len()];
         for qs in self.query_chunks(queries, usize::MAX, &|q| by_query[q].len())? {
             // the chunk's pairs grouped by map chunk, remembering where each came from
-            let mut listed: Vec<(usize, [u32; 2], usize)> = qs.clone().flat_map(|q| by_query[q].iter().map(move |&(r, i)| (q, r, i))).map(|(q, r, i)| {
-                let c = chunk_of(r);
-                (c, [(q - qs.start) as u32, (r - plans[c].first) as u32], i)
-            }).collect();
+            let mut listed: Vec<(usize, [u32; 2], usize)> = qs
+                .clone()
+                .flat_map(|q| by_query[q].iter().map(move |&(r, i)| (q, r, i)))
+                .map(|(q, r, i)| {
+                    let c = chunk_of(r);
+                    (c, [(q - qs.start) as u32, (r - plans[c].first) as u32], i)
+                })
+                .collect();
             listed.sort_by_key(|e| e.0);
             let mut passes = Vec::new();
             let mut at = 0;
@@ -187,14 +222,27 @@ impl FineMatcherGpu {
         let mut lists = Vec::with_capacity(queries.len());
         for qs in self.query_chunks(queries, cap, &|_| 0)? {
             let nq = qs.len();
-            let run = (per_pass / nq).min(MAX_PASS_REFS).min(g * SEG).min((lim / (4 * nq as u64)) as usize).min((lim / (nq as u64 * part)) as usize * SEG).max(1);
+            let run = (per_pass / nq)
+                .min(MAX_PASS_REFS)
+                .min(g * SEG)
+                .min((lim / (4 * nq as u64)) as usize)
+                .min((lim / (nq as u64 * part)) as usize * SEG)
+                .max(1);
             let mut passes = Vec::new();
             let mut parity = 0;
             for (c, plan) in plans.iter().enumerate() {
                 for start in (0..plan.len).step_by(run) {
                     let refs_n = run.min(plan.len - start);
                     let fp = FinePass { grid: 1, pairs: (nq * refs_n) as u32, refs: refs_n as u32, ref_first: start as u32, ..Default::default() };
-                    let ps = PassParams { queries: nq as u32, refs: refs_n as u32, ref_index: (plan.first + start) as u32, k: k as u32, segs: refs_n.div_ceil(SEG) as u32, parity, ..Default::default() };
+                    let ps = PassParams {
+                        queries: nq as u32,
+                        refs: refs_n as u32,
+                        ref_index: (plan.first + start) as u32,
+                        k: k as u32,
+                        segs: refs_n.div_ceil(SEG) as u32,
+                        parity,
+                        ..Default::default()
+                    };
                     passes.push((c, fp, ps));
                     parity ^= 1;
                 }
@@ -208,13 +256,22 @@ impl FineMatcherGpu {
 
     /// Runs one query chunk's passes; returns `out` read back (listed pairs), or nothing when
     /// `topk` is given (the scores went through the top-K kernels).
-    fn run(&mut self, p: &TreeSimParams, queries: &DescriptorSet, refs: &dyn RefSource, max_trees: usize, w: &Work, topk: Option<usize>) -> Result<Vec<f32>, GpuError> {
+    fn run(
+        &mut self,
+        p: &TreeSimParams,
+        queries: &DescriptorSet,
+        refs: &dyn RefSource,
+        max_trees: usize,
+        w: &Work,
+        topk: Option<usize>,
+    ) -> Result<Vec<f32>, GpuError> {
         let ctx = self.ctx.clone();
         let dim = refs.appearance_dim();
         let q: Packed = pack(w.queries.clone().map(|i| queries.forest(i)), dim, p);
         let row = ctx.max_workgroups();
         let nq = w.queries.len() as u32;
-        let fps: Vec<FinePass> = w.passes.iter().map(|(_, fp, _)| FinePass { dim: dim as u32, max_trees: max_trees as u32, queries: nq, row, ..*fp }).collect();
+        let fps: Vec<FinePass> =
+            w.passes.iter().map(|(_, fp, _)| FinePass { dim: dim as u32, max_trees: max_trees as u32, queries: nq, row, ..*fp }).collect();
         let data = ForestChunks { refs, params: *p };
         let bind = |b: &[&wgpu::Buffer]| ctx.kernels.tree_similarity.bind_group(&ctx.device, 1, b);
         ctx.scoped("fine matching", || -> Result<Vec<f32>, GpuError> {

@@ -60,7 +60,12 @@ pub(crate) fn plan_chunks(ctx: &GpuContext, refs: &dyn RefSource, limit: u64) ->
         max_trees = max_trees.max(t);
         let fits = |n: usize, tr: usize| packed_bytes(n, tr, dim).iter().all(|&b| b <= limit);
         if !fits(1, t) {
-            return Err(GpuError::LimitsTooSmall { adapter: ctx.describe(), what: format!("the forest of reference {i} in one binding"), needed: packed_bytes(1, t, dim).into_iter().max().unwrap_or(0), available: limit });
+            return Err(GpuError::LimitsTooSmall {
+                adapter: ctx.describe(),
+                what: format!("the forest of reference {i} in one binding"),
+                needed: packed_bytes(1, t, dim).into_iter().max().unwrap_or(0),
+                available: limit,
+            });
         }
         if !fits(i + 1 - first, trees + t) {
             plans.push(ChunkPlan { first, len: i - first, bytes: packed_bytes(i - first, trees, dim).to_vec() });
@@ -101,7 +106,14 @@ pub(crate) fn forest_key(refs: &dyn RefSource, params: &TreeSimParams) -> Source
         let i = if samples == 1 { 0 } else { j * (n - 1) / (samples - 1) };
         let f = refs.forest(i);
         let app = f.appearance.to_vec();
-        let words = f.classes.iter().map(|&c| c as u32).chain(f.areas.iter().chain(f.centroids).chain(&app).map(|v| v.to_bits())).chain(f.neighbours.iter().map(|&v| v as u32)).chain(f.descriptors.iter().copied()).chain(f.has_appearance.iter().map(|&v| v as u32));
+        let words = f
+            .classes
+            .iter()
+            .map(|&c| c as u32)
+            .chain(f.areas.iter().chain(f.centroids).chain(&app).map(|v| v.to_bits()))
+            .chain(f.neighbours.iter().map(|&v| v as u32))
+            .chain(f.descriptors.iter().copied())
+            .chain(f.has_appearance.iter().map(|&v| v as u32));
         for w in words {
             h = (h ^ w as u64).wrapping_mul(0x0000_0100_0000_01b3);
         }

@@ -2,8 +2,8 @@
 //! bind-group layouts whose order is the shader's (and its CPU twin's) binding order. Shaders
 //! with a `SUBGROUPS` variant are built in the variant the device can run.
 
-use crate::error::GpuError;
 use super::wgsl::{preprocess, SHADERS};
+use crate::error::GpuError;
 
 #[derive(Clone, Copy)]
 pub(crate) enum Slot {
@@ -31,7 +31,9 @@ impl Kernel {
             .map(|(&(binding, slot), b)| wgpu::BindGroupEntry {
                 binding,
                 resource: match slot {
-                    Slot::UniformAt(size) => wgpu::BindingResource::Buffer(wgpu::BufferBinding { buffer: b, offset: 0, size: std::num::NonZeroU64::new(size) }),
+                    Slot::UniformAt(size) => {
+                        wgpu::BindingResource::Buffer(wgpu::BufferBinding { buffer: b, offset: 0, size: std::num::NonZeroU64::new(size) })
+                    }
                     _ => b.as_entire_binding(),
                 },
             })
@@ -79,7 +81,12 @@ fn layout_entry(binding: u32, slot: Slot) -> wgpu::BindGroupLayoutEntry {
         Slot::Read => (wgpu::BufferBindingType::Storage { read_only: true }, false, None),
         Slot::ReadWrite => (wgpu::BufferBindingType::Storage { read_only: false }, false, None),
     };
-    wgpu::BindGroupLayoutEntry { binding, visibility: wgpu::ShaderStages::COMPUTE, ty: wgpu::BindingType::Buffer { ty, has_dynamic_offset: dynamic, min_binding_size: min }, count: None }
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer { ty, has_dynamic_offset: dynamic, min_binding_size: min },
+        count: None,
+    }
 }
 
 fn kernel(device: &wgpu::Device, module: &wgpu::ShaderModule, file: &str, entry: &str, groups: &[&[(u32, Slot)]]) -> Result<Kernel, GpuError> {
@@ -116,19 +123,45 @@ impl Kernels {
     pub fn new(device: &wgpu::Device, subgroups: bool) -> Result<Kernels, GpuError> {
         use Slot::*;
         let m = |name| module(device, name, subgroups);
-        let (edges, edt, pool, ssim, block, topk, tree, vlad) =
-            (m("semantic_edges.wgsl")?, m("edt.wgsl")?, m("global_pool.wgsl")?, m("ssim_topk.wgsl")?, m("ssim_block.wgsl")?, m("topk_select.wgsl")?, m("tree_similarity.wgsl")?, m("vlad_accumulate.wgsl")?);
+        let (edges, edt, pool, ssim, block, topk, tree, vlad) = (
+            m("semantic_edges.wgsl")?,
+            m("edt.wgsl")?,
+            m("global_pool.wgsl")?,
+            m("ssim_topk.wgsl")?,
+            m("ssim_block.wgsl")?,
+            m("topk_select.wgsl")?,
+            m("tree_similarity.wgsl")?,
+            m("vlad_accumulate.wgsl")?,
+        );
         let mnn = m("mnn_match.wgsl")?;
         let edt_slots: &[(u32, Slot)] = &[(0, Uniform), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite), (5, ReadWrite)];
         let topk_slots: &[(u32, Slot)] = &[(0, UniformAt(PASS)), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite)];
         Ok(Kernels {
-            semantic_edges: kernel(device, &edges, "semantic_edges.wgsl", "semantic_edges", &[&[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite)]])?,
+            semantic_edges: kernel(
+                device,
+                &edges,
+                "semantic_edges.wgsl",
+                "semantic_edges",
+                &[&[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite)]],
+            )?,
             edt_columns: kernel(device, &edt, "edt.wgsl", "edt_columns", &[edt_slots])?,
             edt_rows: kernel(device, &edt, "edt.wgsl", "edt_rows", &[edt_slots])?,
             global_pool: kernel(device, &pool, "global_pool.wgsl", "global_pool", &[&[(0, Uniform), (1, Read), (2, ReadWrite)]])?,
-            ssim_tile: kernel(device, &ssim, "ssim_topk.wgsl", "ssim_tile", &[&[(0, Uniform), (1, Uniform), (2, Read), (3, Read), (4, Read), (5, Read), (6, ReadWrite)]])?,
+            ssim_tile: kernel(
+                device,
+                &ssim,
+                "ssim_topk.wgsl",
+                "ssim_tile",
+                &[&[(0, Uniform), (1, Uniform), (2, Read), (3, Read), (4, Read), (5, Read), (6, ReadWrite)]],
+            )?,
             topk_merge: kernel(device, &ssim, "ssim_topk.wgsl", "topk_merge", &[&[(1, Uniform), (6, ReadWrite), (7, ReadWrite), (8, ReadWrite)]])?,
-            ssim_block: kernel(device, &block, "ssim_block.wgsl", "ssim_block", &[&[(0, Uniform), (1, UniformAt(PASS)), (2, Read), (3, Read), (4, ReadWrite)], &[(0, Read), (1, Read)]])?,
+            ssim_block: kernel(
+                device,
+                &block,
+                "ssim_block.wgsl",
+                "ssim_block",
+                &[&[(0, Uniform), (1, UniformAt(PASS)), (2, Read), (3, Read), (4, ReadWrite)], &[(0, Read), (1, Read)]],
+            )?,
             topk_partial: kernel(device, &topk, "topk_select.wgsl", "topk_partial", &[topk_slots])?,
             topk_merge_lists: kernel(device, &topk, "topk_select.wgsl", "topk_merge_lists", &[topk_slots])?,
             tree_similarity: kernel(
@@ -136,11 +169,26 @@ impl Kernels {
                 &tree,
                 "tree_similarity.wgsl",
                 "tree_similarity",
-                &[&[(0, Uniform), (1, UniformAt(FINE_PASS)), (2, Read), (3, Read), (4, Read), (5, ReadWrite), (6, ReadWrite)], &[(0, Read), (1, Read), (2, Read)]],
+                &[
+                    &[(0, Uniform), (1, UniformAt(FINE_PASS)), (2, Read), (3, Read), (4, Read), (5, ReadWrite), (6, ReadWrite)],
+                    &[(0, Read), (1, Read), (2, Read)],
+                ],
             )?,
             vlad_assign: kernel(device, &vlad, "vlad_accumulate.wgsl", "vlad_assign", &[&[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite)]])?,
-            vlad_accumulate: kernel(device, &vlad, "vlad_accumulate.wgsl", "vlad_accumulate", &[&[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite), (4, Read), (5, ReadWrite)]])?,
-            mnn_match: kernel(device, &mnn, "mnn_match.wgsl", "mnn_match", &[&[(0, Uniform), (1, Read), (2, Read), (3, Read), (4, ReadWrite), (5, ReadWrite)]])?,
+            vlad_accumulate: kernel(
+                device,
+                &vlad,
+                "vlad_accumulate.wgsl",
+                "vlad_accumulate",
+                &[&[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite), (4, Read), (5, ReadWrite)]],
+            )?,
+            mnn_match: kernel(
+                device,
+                &mnn,
+                "mnn_match.wgsl",
+                "mnn_match",
+                &[&[(0, Uniform), (1, Read), (2, Read), (3, Read), (4, ReadWrite), (5, ReadWrite)]],
+            )?,
         })
     }
 }

@@ -16,7 +16,9 @@ fn module(file: &str) -> naga::Module {
 fn wgsl_struct(m: &naga::Module, file: &str, name: &str) -> (usize, Vec<(String, usize)>) {
     let ty = m.types.iter().find(|(_, t)| t.name.as_deref() == Some(name)).unwrap_or_else(|| panic!("{file}: no struct {name}")).1;
     match &ty.inner {
-        TypeInner::Struct { members, span } => (*span as usize, members.iter().map(|mb| (mb.name.clone().unwrap_or_default(), mb.offset as usize)).collect()),
+        TypeInner::Struct { members, span } => {
+            (*span as usize, members.iter().map(|mb| (mb.name.clone().unwrap_or_default(), mb.offset as usize)).collect())
+        }
         other => panic!("{file}: {name} is {other:?}"),
     }
 }
@@ -46,8 +48,8 @@ fn same_layout(file: &str, name: &str, rust: (usize, Vec<(&str, usize)>)) {
 fn shared_structs_have_the_shaders_layouts() {
     use crate::appearance::vlad_accumulate::VladParams;
     use crate::global::{global_pool::PoolParams, ssim::SsimParams};
-    use crate::gpu::encode::Dims;
     use crate::gpu::abi::{FinePass, GpuTree};
+    use crate::gpu::encode::Dims;
     use crate::local::tree_similarity::TreeSimParams;
     use crate::matching::{ssim_block::PassParams, ssim_topk::TileParams, topk_select::Entry};
     for file in ["ssim_topk.wgsl", "ssim_block.wgsl"] {
@@ -61,9 +63,29 @@ fn shared_structs_have_the_shaders_layouts() {
     same_layout(
         "tree_similarity.wgsl",
         "TreeSimParams",
-        rust!(TreeSimParams { w_area, w_position, w_appearance, w_intrinsic, w_neighbours, position_sigma, neutral, gaussian_position, drop_missing, use_appearance, greedy, neighbour_slots, tree_weight, geometric_norm, class_key }),
+        rust!(TreeSimParams {
+            w_area,
+            w_position,
+            w_appearance,
+            w_intrinsic,
+            w_neighbours,
+            position_sigma,
+            neutral,
+            gaussian_position,
+            drop_missing,
+            use_appearance,
+            greedy,
+            neighbour_slots,
+            tree_weight,
+            geometric_norm,
+            class_key
+        }),
     );
-    same_layout("tree_similarity.wgsl", "FinePass", rust!(FinePass { dim, pairs, max_trees, grid, queries, refs, ref_first, list_first, row, out_first }));
+    same_layout(
+        "tree_similarity.wgsl",
+        "FinePass",
+        rust!(FinePass { dim, pairs, max_trees, grid, queries, refs, ref_first, list_first, row, out_first }),
+    );
     same_layout("tree_similarity.wgsl", "Tree", rust!(GpuTree { class_id, has_app, area, cx, cy, weight, nb }));
     same_layout("vlad_accumulate.wgsl", "VladParams", rust!(VladParams { centres, dim, keypoints, objects, power_norm, intra_norm }));
     same_layout("global_pool.wgsl", "PoolParams", rust!(PoolParams { src_width, src_height, dst_width, dst_height, tau, frames }));
@@ -134,7 +156,13 @@ fn every_kernel_has_a_same_name_twin() {
         let twin = files.iter().find(|p| p.file_stem().is_some_and(|s| s == stem)).unwrap_or_else(|| panic!("{file}: no src/**/{stem}.rs"));
         let text = std::fs::read_to_string(twin).unwrap();
         for ep in &module(file).entry_points {
-            assert!(text.contains(&format!("pub fn {}(", ep.name)), "{file}: entry point {} has no `pub fn {}(` in {}", ep.name, ep.name, twin.display());
+            assert!(
+                text.contains(&format!("pub fn {}(", ep.name)),
+                "{file}: entry point {} has no `pub fn {}(` in {}",
+                ep.name,
+                ep.name,
+                twin.display()
+            );
         }
     }
 }

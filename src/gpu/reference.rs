@@ -16,7 +16,12 @@ pub fn ssim_tile_scores(ctx: &GpuContext, p: &SsimParams, queries: (&[f32], &[f3
     let (nq, nr) = (queries.0.len() / p.len(), refs.0.len() / p.len());
     let rows = (p.gh * p.nw) as usize;
     if rows > MAX_ROW_SUMS || nr > ctx.max_workgroups() as usize || nq > ctx.max_workgroups() as usize {
-        return Err(GpuError::LimitsTooSmall { adapter: ctx.describe(), what: "ssim_tile's row sums or workgroups".into(), needed: rows.max(nr).max(nq) as u64, available: MAX_ROW_SUMS as u64 });
+        return Err(GpuError::LimitsTooSmall {
+            adapter: ctx.describe(),
+            what: "ssim_tile's row sums or workgroups".into(),
+            needed: rows.max(nr).max(nq) as u64,
+            available: MAX_ROW_SUMS as u64,
+        });
     }
     let tp = TileParams { queries: nq as u32, tile_len: nr as u32, tile_start: 0, k: 1 };
     ctx.scoped("scoring a tile with ssim_tile", || -> Result<Vec<f32>, GpuError> {
@@ -45,7 +50,11 @@ pub fn merge_scores(ctx: &GpuContext, tp: &TileParams, scores: &[f32], top_s: &[
             ctx.write(&b, 0, data);
             b
         };
-        let (sb, tsb, tib) = (upload("scores", bytemuck::cast_slice(scores)), upload("top-k scores", bytemuck::cast_slice(&top_s[..n])), upload("top-k indices", bytemuck::cast_slice(&top_i[..n])));
+        let (sb, tsb, tib) = (
+            upload("scores", bytemuck::cast_slice(scores)),
+            upload("top-k scores", bytemuck::cast_slice(&top_s[..n])),
+            upload("top-k indices", bytemuck::cast_slice(&top_i[..n])),
+        );
         let tpb = ctx.uniform("tile params", tp);
         let g = ctx.kernels.topk_merge.bind(&ctx.device, &[&tpb, &sb, &tsb, &tib]);
         ctx.run("topk merge", &[(&ctx.kernels.topk_merge.pipeline, &g, [tp.queries.div_ceil(64), 1, 1])])?;
@@ -69,7 +78,15 @@ pub fn select_topk(ctx: &GpuContext, scores: &[f32], nq: usize, k: usize, pass: 
         .enumerate()
         .map(|(i, &s)| {
             let refs = pass.min(n - s);
-            PassParams { queries: nq as u32, refs: refs as u32, ref_index: s as u32, k: k as u32, segs: refs.div_ceil(SEG) as u32, parity: (i % 2) as u32, ..Default::default() }
+            PassParams {
+                queries: nq as u32,
+                refs: refs as u32,
+                ref_index: s as u32,
+                k: k as u32,
+                segs: refs.div_ceil(SEG) as u32,
+                parity: (i % 2) as u32,
+                ..Default::default()
+            }
         })
         .collect();
     let (mut topk, mut passes, mut block) = (TopK::default(), PassBuffer::new(ctx), Reused::default());

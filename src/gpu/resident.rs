@@ -68,7 +68,14 @@ impl Resident {
     /// uploads every chunk when the map fits the budget and the device allocates it, and
     /// otherwise prepares streaming. `data` gives the chunks' contents; `bind` makes a chunk's
     /// bind group from its buffers. The key must name everything the chunks hold.
-    pub fn prepare(&mut self, ctx: &GpuContext, key: SourceKey, plan: impl FnOnce() -> Vec<ChunkPlan>, data: &dyn ChunkData, bind: &dyn Fn(&[&wgpu::Buffer]) -> wgpu::BindGroup) -> Result<(), GpuError> {
+    pub fn prepare(
+        &mut self,
+        ctx: &GpuContext,
+        key: SourceKey,
+        plan: impl FnOnce() -> Vec<ChunkPlan>,
+        data: &dyn ChunkData,
+        bind: &dyn Fn(&[&wgpu::Buffer]) -> wgpu::BindGroup,
+    ) -> Result<(), GpuError> {
         if self.holds(&key) {
             return Ok(());
         }
@@ -95,7 +102,12 @@ impl Resident {
         Ok(())
     }
 
-    fn upload_all(&self, ctx: &GpuContext, data: &dyn ChunkData, bind: &dyn Fn(&[&wgpu::Buffer]) -> wgpu::BindGroup) -> Result<Vec<(Vec<wgpu::Buffer>, wgpu::BindGroup)>, GpuError> {
+    fn upload_all(
+        &self,
+        ctx: &GpuContext,
+        data: &dyn ChunkData,
+        bind: &dyn Fn(&[&wgpu::Buffer]) -> wgpu::BindGroup,
+    ) -> Result<Vec<(Vec<wgpu::Buffer>, wgpu::BindGroup)>, GpuError> {
         let mut chunks = Vec::with_capacity(self.plans.len());
         for plan in &self.plans {
             let chunk = ctx.scoped("uploading a resident map chunk", || -> Result<_, GpuError> {
@@ -128,7 +140,13 @@ impl Resident {
 
     /// The bind group of chunk `c`, ready for its passes: the resident chunk's, or slot c % 2's
     /// with chunk c written into it.
-    pub fn chunk(&mut self, ctx: &GpuContext, c: usize, data: &dyn ChunkData, bind: &dyn Fn(&[&wgpu::Buffer]) -> wgpu::BindGroup) -> Result<wgpu::BindGroup, GpuError> {
+    pub fn chunk(
+        &mut self,
+        ctx: &GpuContext,
+        c: usize,
+        data: &dyn ChunkData,
+        bind: &dyn Fn(&[&wgpu::Buffer]) -> wgpu::BindGroup,
+    ) -> Result<wgpu::BindGroup, GpuError> {
         if let Some((_, group)) = self.chunks.get(c) {
             return Ok(group.clone());
         }

@@ -23,7 +23,11 @@ pub(crate) struct Timer {
 impl Timer {
     pub fn new(device: &wgpu::Device, queue: &wgpu::Queue) -> Timer {
         Timer {
-            set: device.create_query_set(&wgpu::QuerySetDescriptor { label: Some("kernel timestamps"), ty: wgpu::QueryType::Timestamp, count: QUERIES }),
+            set: device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("kernel timestamps"),
+                ty: wgpu::QueryType::Timestamp,
+                count: QUERIES,
+            }),
             resolve: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("resolved timestamps"),
                 size: QUERIES as u64 * 8,

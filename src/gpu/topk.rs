@@ -28,7 +28,15 @@ pub(crate) fn bytes_per_query(k: usize, pass_refs: usize) -> [u64; 2] {
 impl TopK {
     /// Empties the running lists of `nq` queries and binds them with `params` (the batch's pass
     /// parameters) and `scores`: the bind group of both kernels for this query chunk.
-    pub fn begin(&mut self, ctx: &GpuContext, nq: usize, k: usize, pass_refs: usize, params: &wgpu::Buffer, scores: &wgpu::Buffer) -> wgpu::BindGroup {
+    pub fn begin(
+        &mut self,
+        ctx: &GpuContext,
+        nq: usize,
+        k: usize,
+        pass_refs: usize,
+        params: &wgpu::Buffer,
+        scores: &wgpu::Buffer,
+    ) -> wgpu::BindGroup {
         let [part, top] = bytes_per_query(k, pass_refs);
         let partial = self.partial.get(ctx, "partial top-k lists", nq as u64 * part);
         let top_a = self.top_a.upload(ctx, "running top-k lists", bytemuck::cast_slice(&vec![Entry::EMPTY; nq * k]));

@@ -45,7 +45,11 @@ impl MnnGpu {
             return Ok(vec![BestColumns::default(); pairs.len()]);
         }
         if dim % 4 != 0 || dim / 4 > MAX_WORDS || refs.keypoint_dim() != dim {
-            return Err(fail(format!("descriptors of {dim} values (the references' {}); the kernel takes multiples of 4 up to {}", refs.keypoint_dim(), 4 * MAX_WORDS)));
+            return Err(fail(format!(
+                "descriptors of {dim} values (the references' {}); the kernel takes multiples of 4 up to {}",
+                refs.keypoint_dim(),
+                4 * MAX_WORDS
+            )));
         }
         let words = dim / 4;
         let ctx = self.ctx.clone();
@@ -98,7 +102,11 @@ impl MnnGpu {
                     let (q0, r0) = ((p * 2) * max_kp as usize, (p * 2 + 1) * max_kp as usize);
                     let (nq, nr) = (pair.query_len as usize, pair.ref_len as usize);
                     // a side without keypoints leaves the other's rows at no match (as the CPU path)
-                    out.push(BestColumns { query_best: bi[q0..q0 + nq].to_vec(), query_dot: bd[q0..q0 + nq].to_vec(), ref_best: bi[r0..r0 + nr].to_vec() });
+                    out.push(BestColumns {
+                        query_best: bi[q0..q0 + nq].to_vec(),
+                        query_dot: bd[q0..q0 + nq].to_vec(),
+                        ref_best: bi[r0..r0 + nr].to_vec(),
+                    });
                 }
             }
             Ok(())

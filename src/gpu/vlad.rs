@@ -34,14 +34,20 @@ impl VladGpu {
     pub fn run(&mut self, codebook: &Codebook, norm: VladNorm, frames: &[(&[f32], &[u32])]) -> Result<Vec<Vec<f32>>, GpuError> {
         let ctx = self.ctx.clone();
         if codebook.k > MAX_CENTRES {
-            return Err(GpuError::LimitsTooSmall { adapter: ctx.describe(), what: "VLAD centres".into(), needed: codebook.k as u64, available: MAX_CENTRES as u64 });
+            return Err(GpuError::LimitsTooSmall {
+                adapter: ctx.describe(),
+                what: "VLAD centres".into(),
+                needed: codebook.k as u64,
+                available: MAX_CENTRES as u64,
+            });
         }
         let d = codebook.dim;
         let mut descs: Vec<f32> = Vec::new();
         let mut offsets: Vec<u32> = vec![0];
         let mut object_counts = Vec::with_capacity(frames.len());
         for (f, (fd, fo)) in frames.iter().enumerate() {
-            check_vlad_input(fd, fo, codebook).map_err(|r| GpuError::Failed { what: "VLAD aggregation".into(), reason: format!("frame {f}: {r}") })?;
+            check_vlad_input(fd, fo, codebook)
+                .map_err(|r| GpuError::Failed { what: "VLAD aggregation".into(), reason: format!("frame {f}: {r}") })?;
             let base = (descs.len() / d) as u32;
             offsets.extend(fo[1..].iter().map(|o| o + base));
             descs.extend_from_slice(fd);
@@ -68,7 +74,10 @@ impl VladGpu {
             let o = objects as u32;
             ctx.run(
                 "vlad",
-                &[(&k.vlad_assign.pipeline, &g1, [groups.min(65_535), groups.div_ceil(65_535), 1]), (&k.vlad_accumulate.pipeline, &g2, [o.min(65_535), o.div_ceil(65_535), 1])],
+                &[
+                    (&k.vlad_assign.pipeline, &g1, [groups.min(65_535), groups.div_ceil(65_535), 1]),
+                    (&k.vlad_accumulate.pipeline, &g2, [o.min(65_535), o.div_ceil(65_535), 1]),
+                ],
             )?;
             ctx.read_back_values(out, out_len)
         })??;

@@ -23,16 +23,10 @@ impl LabelMap {
             return Err(Error::invalid("label map", format!("empty size {width}x{height}")));
         }
         if classes.len() != width as usize * height as usize {
-            return Err(Error::invalid(
-                "label map",
-                format!("{} class values for a {width}x{height} map", classes.len()),
-            ));
+            return Err(Error::invalid("label map", format!("{} class values for a {width}x{height} map", classes.len())));
         }
         if let Some(i) = classes.iter().position(|&c| c != VOID && c as usize >= table.len()) {
-            return Err(Error::invalid(
-                "label map",
-                format!("pixel {i} has class index {}, the table has {} classes", classes[i], table.len()),
-            ));
+            return Err(Error::invalid("label map", format!("pixel {i} has class index {}, the table has {} classes", classes[i], table.len())));
         }
         Ok(LabelMap { width, height, classes })
     }
@@ -183,7 +177,7 @@ const JPEG_WORK_BYTES_PER_SAMPLE: u64 = 3;
 /// planes from the header (a 4 GB allocation for a damaged 4 KB file), so this is checked first.
 fn jpeg_decode_bytes(file_bytes: usize, full: (u32, u32), format: jpeg_decoder::PixelFormat) -> u64 {
     let components = format.pixel_bytes() as u64;
-    let pad = |v: u32| (u64::from(v) + JPEG_MAX_MCU_SIDE - 1) / JPEG_MAX_MCU_SIDE * JPEG_MAX_MCU_SIDE;
+    let pad = |v: u32| u64::from(v).div_ceil(JPEG_MAX_MCU_SIDE) * JPEG_MAX_MCU_SIDE;
     let padded = pad(full.0) * pad(full.1);
     let pixels = u64::from(full.0) * u64::from(full.1);
     (file_bytes as u64).saturating_add(padded * components * JPEG_WORK_BYTES_PER_SAMPLE).saturating_add(pixels * RGB_COPY_BYTES_PER_PIXEL)
@@ -243,7 +237,8 @@ pub fn decode_label_bytes(bytes: Vec<u8>, path: &Path, table: &ClassTable, forma
 /// Translates a decoded label image; `path` only names the source in errors.
 pub fn decode_label_image(img: &DynamicImage, path: &Path, table: &ClassTable, format: LabelFormat) -> Result<LabelMap> {
     let (w, h) = (img.width(), img.height());
-    let grey = matches!(img, DynamicImage::ImageLuma8(_) | DynamicImage::ImageLuma16(_) | DynamicImage::ImageLumaA8(_) | DynamicImage::ImageLumaA16(_));
+    let grey =
+        matches!(img, DynamicImage::ImageLuma8(_) | DynamicImage::ImageLuma16(_) | DynamicImage::ImageLumaA8(_) | DynamicImage::ImageLumaA16(_));
     let mut classes = Vec::new();
     let by_ids = format == LabelFormat::FirstChannel || (format == LabelFormat::Auto && grey);
     if by_ids {
@@ -256,20 +251,12 @@ pub fn decode_label_image(img: &DynamicImage, path: &Path, table: &ClassTable, f
             DynamicImage::ImageLumaA16(g) => Box::new(g.pixels().map(|p| p.0[0] as u32)),
             DynamicImage::ImageRgb16(g) => Box::new(g.pixels().map(|p| p.0[0] as u32)),
             DynamicImage::ImageRgba16(g) => Box::new(g.pixels().map(|p| p.0[0] as u32)),
-            _ => {
-                return Err(Error::UnsupportedLabelFormat {
-                    path: path.into(),
-                    reason: format!("{:?} pixels cannot hold class ids", img.color()),
-                })
-            }
+            _ => return Err(Error::UnsupportedLabelFormat { path: path.into(), reason: format!("{:?} pixels cannot hold class ids", img.color()) }),
         };
         classes = classes_of_ids(ids, w, path, table)?;
     } else {
         if grey {
-            return Err(Error::UnsupportedLabelFormat {
-                path: path.into(),
-                reason: "palette format asked for, but the file is grey".into(),
-            });
+            return Err(Error::UnsupportedLabelFormat { path: path.into(), reason: "palette format asked for, but the file is grey".into() });
         }
         let rgb = img.to_rgb8();
         classes.reserve_exact(w as usize * h as usize);
@@ -345,13 +332,8 @@ pub fn load_frame_labels(src: &FrameSource, table: &ClassTable, format: LabelFor
 
 /// Reads only an image's header to get its size.
 pub fn image_size(path: &Path) -> Result<(u32, u32)> {
-    let reader = image::ImageReader::open(path)
-        .map_err(|e| Error::io(path, e))?
-        .with_guessed_format()
-        .map_err(|e| Error::io(path, e))?;
-    let (w, h) = reader
-        .into_dimensions()
-        .map_err(|e| Error::ImageDecode { path: path.into(), reason: e.to_string() })?;
+    let reader = image::ImageReader::open(path).map_err(|e| Error::io(path, e))?.with_guessed_format().map_err(|e| Error::io(path, e))?;
+    let (w, h) = reader.into_dimensions().map_err(|e| Error::ImageDecode { path: path.into(), reason: e.to_string() })?;
     if w == 0 || h == 0 {
         return Err(Error::EmptyImage { path: path.into(), width: w, height: h });
     }

@@ -16,8 +16,8 @@
 //!    or by the geometric mean of the totals.
 
 use super::ForestRef;
-use crate::values::Values;
 use crate::config::{Assignment, ClassMatch, MissingAppearance, Normalise, PositionSimilarity, SimilarityConfig, TreeWeight};
+use crate::values::Values;
 
 /// Uniform parameters of the kernel, in the shader's field order.
 #[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
@@ -220,11 +220,7 @@ fn pair_score(p: &TreeSimParams, q: &ForestRef, r: &ForestRef, cosines: &[f32], 
     let dx = q.centroids[2 * t] - r.centroids[2 * u];
     let dy = q.centroids[2 * t + 1] - r.centroids[2 * u + 1];
     let d = (dx * dx + dy * dy).sqrt();
-    let s_pos = if p.gaussian_position != 0 {
-        (-(d * d) / (2.0 * p.position_sigma * p.position_sigma)).exp()
-    } else {
-        (1.0 - d).max(0.0)
-    };
+    let s_pos = if p.gaussian_position != 0 { (-(d * d) / (2.0 * p.position_sigma * p.position_sigma)).exp() } else { (1.0 - d).max(0.0) };
     let mut num = p.w_area * s_area + p.w_position * s_pos;
     let mut den = p.w_area + p.w_position;
     if p.use_appearance != 0 {
@@ -340,7 +336,10 @@ mod tests {
 
     #[test]
     fn identical_forests_score_one_and_class_gates() {
-        let f = forest(&[(0, 0.3, 0.2, 0.5), (2, 0.2, 0.4, 0.2), (8, 0.1, 0.6, 0.3), (10, 0.2, 0.4, 0.05)], &[[1, 2, 3], [3, 2, 0], [1, 3, 0], [1, 2, 0]]);
+        let f = forest(
+            &[(0, 0.3, 0.2, 0.5), (2, 0.2, 0.4, 0.2), (8, 0.1, 0.6, 0.3), (10, 0.2, 0.4, 0.05)],
+            &[[1, 2, 3], [3, 2, 0], [1, 3, 0], [1, 2, 0]],
+        );
         let p = TreeSimParams::new(&SimilarityConfig::default(), false, 3);
         let mut s = TreeSimScratch::default();
         assert!((tree_similarity(&p, f.as_ref(), f.as_ref(), &mut s) - 1.0).abs() < 1e-6);

@@ -43,7 +43,10 @@ pub fn remove(dir: &Path, ids: &[String]) -> Result<usize> {
         let shown: Vec<String> = unknown.iter().take(SHOW_UNKNOWN).map(|s| format!("{s:?}")).collect();
         let more = unknown.len().saturating_sub(SHOW_UNKNOWN);
         let tail = if more > 0 { format!(" and {more} more") } else { String::new() };
-        return Err(Error::invalid(format!("map {}", dir.display()), format!("not in the map (or removed already), nothing removed: {}{tail}", shown.join(", "))));
+        return Err(Error::invalid(
+            format!("map {}", dir.display()),
+            format!("not in the map (or removed already), nothing removed: {}{tail}", shown.join(", ")),
+        ));
     }
     for (entry, new) in m.segments.iter_mut().zip(marks) {
         entry.removed.extend(new);
@@ -104,7 +107,9 @@ pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
                 for j in 0..seg.len() {
                     if entry.is_live(j) {
                         seg.append_row(j, buf);
-                        if buf.len() >= opts.segment_images || buf.len() * layout.image_bytes() + buf.n_trees() * layout.tree_bytes() >= opts.segment_bytes {
+                        if buf.len() >= opts.segment_images
+                            || buf.len() * layout.image_bytes() + buf.n_trees() * layout.tree_bytes() >= opts.segment_bytes
+                        {
                             flush(buf, out)?;
                         }
                     }
@@ -132,7 +137,13 @@ pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
         manifest::write(dir, &m)?;
     }
     // delete what the new manifest does not reference: replaced segments and strays
-    let keep: HashSet<&str> = m.segments.iter().map(|s| s.file.as_str()).chain(m.codebook.as_ref().map(|c| c.file.as_str())).chain([manifest::MANIFEST, files::LOCK]).collect();
+    let keep: HashSet<&str> = m
+        .segments
+        .iter()
+        .map(|s| s.file.as_str())
+        .chain(m.codebook.as_ref().map(|c| c.file.as_str()))
+        .chain([manifest::MANIFEST, files::LOCK])
+        .collect();
     let replaced: HashSet<&str> = old.segments.iter().map(|s| s.file.as_str()).collect();
     let mut stray = 0;
     for e in std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?.flatten() {
@@ -211,7 +222,14 @@ pub fn verify(dir: &Path) -> Result<VerifyReport> {
         files.push(FileCheck { file: entry.file.clone(), problem });
     }
     let leftovers = files::leftovers(dir).iter().map(|p| p.display().to_string()).collect();
-    Ok(VerifyReport { generation: m.generation, images: m.live_images(), files, leftovers, appearance_model: m.appearance_model.clone(), appearance_kind: m.config.appearance.model })
+    Ok(VerifyReport {
+        generation: m.generation,
+        images: m.live_images(),
+        files,
+        leftovers,
+        appearance_model: m.appearance_model.clone(),
+        appearance_kind: m.config.appearance.model,
+    })
 }
 
 /// Builds a map with `build` into a new directory beside `out` (same folder, unique name) and,
@@ -220,7 +238,8 @@ pub fn verify(dir: &Path) -> Result<VerifyReport> {
 /// failed build leaves `out` as it was.
 pub fn build_replacing<T>(out: &Path, build: impl FnOnce(&Path) -> Result<T>) -> Result<T> {
     if out.exists() {
-        let entries: Vec<String> = std::fs::read_dir(out).map_err(|e| Error::io(out, e))?.flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+        let entries: Vec<String> =
+            std::fs::read_dir(out).map_err(|e| Error::io(out, e))?.flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
         if let Some(other) = entries.iter().find(|n| !manifest::is_store_file(n)) {
             return Err(Error::invalid(format!("map {}", out.display()), format!("--force replaces only a map, and this folder holds {other:?}")));
         }

@@ -132,7 +132,12 @@ pub fn leftovers(dir: &Path) -> Vec<PathBuf> {
         let parent = if parent.as_os_str().is_empty() { Path::new(".") } else { parent };
         let prefix = format!(".{name}.building-");
         for e in std::fs::read_dir(parent).into_iter().flatten().flatten() {
-            let dead = e.file_name().to_str().and_then(|n| n.strip_prefix(&prefix)).and_then(|rest| rest.split('-').next()?.parse::<u32>().ok()).is_some_and(process_is_gone);
+            let dead = e
+                .file_name()
+                .to_str()
+                .and_then(|n| n.strip_prefix(&prefix))
+                .and_then(|rest| rest.split('-').next()?.parse::<u32>().ok())
+                .is_some_and(process_is_gone);
             if dead && e.file_type().is_ok_and(|t| t.is_dir()) {
                 out.push(e.path());
             }

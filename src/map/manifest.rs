@@ -115,7 +115,11 @@ impl Manifest {
 /// Whether `name` is a file name the store itself writes (segments, codebook, temporary files,
 /// lock, manifest): what a directory may hold for `--resume` or `--force` to treat it as a map.
 pub fn is_store_file(name: &str) -> bool {
-    name == MANIFEST || name == super::files::LOCK || name == CODEBOOK || (name.starts_with("segment-") && name.ends_with(".safetensors")) || (name.starts_with('.') && name.ends_with(".tmp"))
+    name == MANIFEST
+        || name == super::files::LOCK
+        || name == CODEBOOK
+        || (name.starts_with("segment-") && name.ends_with(".safetensors"))
+        || (name.starts_with('.') && name.ends_with(".tmp"))
 }
 
 /// A segment file name for `content_name` (named by its content's hash) that no entry of
@@ -154,7 +158,12 @@ pub fn read(dir: &Path) -> Result<Option<Manifest>> {
     let m: Manifest = serde_json::from_value(value).map_err(|e| Error::corrupt(&path, format!("manifest fields: {e}")))?;
     match m.content_sha256() {
         Ok(sha) if sha == m.checksum => {}
-        _ => return Err(Error::corrupt(&path, "the manifest's checksum does not match its content (edited by hand, or damaged): restore it, or build the map again")),
+        _ => {
+            return Err(Error::corrupt(
+                &path,
+                "the manifest's checksum does not match its content (edited by hand, or damaged): restore it, or build the map again",
+            ))
+        }
     }
     check(&m).map_err(|r| Error::corrupt(&path, r))?;
     // the values a query is encoded and matched with, in the ranges a config file is held to
@@ -186,7 +195,11 @@ fn check(m: &Manifest) -> std::result::Result<(), String> {
         if s.images > u32::MAX as usize - 1 || s.trees > u32::MAX as usize || s.keypoints > u32::MAX as usize {
             return Err(format!("segment {}: {} images and {} trees are more than a segment file can index", s.file, s.images, s.trees));
         }
-        if s.images == 0 || s.removed.len() > s.images || !s.removed.windows(2).all(|w| w[0] < w[1]) || s.removed.last().is_some_and(|&r| r as usize >= s.images) {
+        if s.images == 0
+            || s.removed.len() > s.images
+            || !s.removed.windows(2).all(|w| w[0] < w[1])
+            || s.removed.last().is_some_and(|&r| r as usize >= s.images)
+        {
             return Err(format!("segment {}: image count or removed rows are inconsistent", s.file));
         }
         if s.sha256.len() != 64 || !s.sha256.bytes().all(|b| b.is_ascii_hexdigit()) {
@@ -196,7 +209,9 @@ fn check(m: &Manifest) -> std::result::Result<(), String> {
     if m.appearance_dim != 0 && m.codebook.is_none() {
         return Err("appearance vectors but no codebook".into());
     }
-    if (m.appearance_dim == 0) != (m.appearance_block == 0) || (m.appearance_block > 0 && (m.appearance_dim % m.appearance_block != 0 || m.appearance_dim / m.appearance_block > 256)) {
+    if (m.appearance_dim == 0) != (m.appearance_block == 0)
+        || (m.appearance_block > 0 && (m.appearance_dim % m.appearance_block != 0 || m.appearance_dim / m.appearance_block > 256))
+    {
         return Err(format!("appearance vectors of {} values do not split into blocks of {} (at most 256)", m.appearance_dim, m.appearance_block));
     }
     Ok(())

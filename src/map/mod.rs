@@ -36,12 +36,12 @@ pub use writer::{Dims, MapWriter, StoreOptions};
 use crate::appearance::vlad::Codebook;
 use crate::classes::ClassTable;
 use crate::config::{first_difference, EncodingConfig};
+use crate::descriptors::keypoints::KeypointsRef;
 use crate::descriptors::source::{GlobalSource, RefSource, TileBuf};
 use crate::error::{Error, Result};
 use crate::global::ssim::{ssim_stats, SsimParams, SsimScratch};
 use crate::local::ForestRef;
 use crate::values::Values;
-use crate::descriptors::keypoints::KeypointsRef;
 use rayon::prelude::*;
 use segment::{Layout, Mapped};
 use std::path::{Path, PathBuf};
@@ -81,7 +81,15 @@ impl Map {
             None => None,
         };
         let layout = layout_of(&manifest, table.len());
-        let mut map = Map { path: dir.into(), segments: vec![], starts: vec![0], live: vec![], codebook, ssim: SsimParams::new(&cfg.global), manifest: manifest.clone() };
+        let mut map = Map {
+            path: dir.into(),
+            segments: vec![],
+            starts: vec![0],
+            live: vec![],
+            codebook,
+            ssim: SsimParams::new(&cfg.global),
+            manifest: manifest.clone(),
+        };
         for entry in &manifest.segments {
             map.segments.push(Mapped::open(dir, entry, layout)?);
             let live = (!entry.removed.is_empty()).then(|| (0..entry.images).filter(|&j| entry.is_live(j)).map(|j| j as u32).collect());
@@ -150,7 +158,9 @@ impl Map {
     pub fn to_descriptor_set(&self) -> Result<DescriptorSet> {
         self.check_all()?;
         let l = self.layout();
-        let mut set = DescriptorSet::for_storage(l.global_len(), l.slots, l.dim, l.hog).with_keypoint_dim(l.kdim).with_codebook(self.manifest.codebook.as_ref().map(|c| c.sha256.clone()));
+        let mut set = DescriptorSet::for_storage(l.global_len(), l.slots, l.dim, l.hog)
+            .with_keypoint_dim(l.kdim)
+            .with_codebook(self.manifest.codebook.as_ref().map(|c| c.sha256.clone()));
         for (s, seg) in self.segments.iter().enumerate() {
             for j in self.live_rows(s) {
                 seg.append_row(j, &mut set);
@@ -196,7 +206,17 @@ impl Map {
 /// The segment layout a manifest describes.
 pub(crate) fn layout_of(m: &Manifest, n_classes: usize) -> Layout {
     let g = &m.config.global;
-    Layout { gw: g.width, gh: g.height, slots: m.neighbour_slots, dim: m.appearance_dim, hog: m.hog_dim, kdim: m.keypoint_dim, block: m.appearance_block, values: m.values, n_classes }
+    Layout {
+        gw: g.width,
+        gh: g.height,
+        slots: m.neighbour_slots,
+        dim: m.appearance_dim,
+        hog: m.hog_dim,
+        kdim: m.keypoint_dim,
+        block: m.appearance_block,
+        values: m.values,
+        n_classes,
+    }
 }
 
 /// SSIM statistics of every descriptor in `globals` into `stats` (in parallel).
@@ -221,7 +241,10 @@ pub(crate) fn with_current_manifest<T>(dir: &Path, mut read: impl FnMut(Manifest
             other => return other,
         }
     }
-    Err(Error::corrupt(dir, format!("segments listed by the manifest kept disappearing over {OPEN_ATTEMPTS} reads (deleted by hand, or compacted without pause)")))
+    Err(Error::corrupt(
+        dir,
+        format!("segments listed by the manifest kept disappearing over {OPEN_ATTEMPTS} reads (deleted by hand, or compacted without pause)"),
+    ))
 }
 
 fn read_codebook(dir: &Path, entry: &manifest::FileEntry, appearance_dim: usize) -> Result<Codebook> {
@@ -304,7 +327,17 @@ impl RefSource for Map {
             Some(seg) => seg.forest(j),
             None => {
                 let l = self.layout();
-                ForestRef { classes: &[], areas: &[], centroids: &[], neighbours: &[], neighbour_slots: l.slots, appearance: Values::EMPTY, has_appearance: &[], descriptors: &[], dim: l.dim }
+                ForestRef {
+                    classes: &[],
+                    areas: &[],
+                    centroids: &[],
+                    neighbours: &[],
+                    neighbour_slots: l.slots,
+                    appearance: Values::EMPTY,
+                    has_appearance: &[],
+                    descriptors: &[],
+                    dim: l.dim,
+                }
             }
         }
     }

@@ -19,10 +19,10 @@
 //! SHA-256 and the values are checked on first use ([`Mapped::ensure`]).
 
 use super::manifest::SegmentEntry;
+use crate::descriptors::keypoints::KeypointsRef;
 use crate::descriptors::{validate, DescriptorSet};
 use crate::error::{Error, Result};
 use crate::local::ForestRef;
-use crate::descriptors::keypoints::KeypointsRef;
 use crate::values::{to_f16_bits, ValueType, Values};
 use memmap2::Mmap;
 use safetensors::tensor::{Dtype, TensorView};
@@ -135,7 +135,15 @@ pub fn to_bytes(set: &DescriptorSet, layout: &Layout) -> std::result::Result<Vec
 pub fn encode(set: &DescriptorSet, layout: &Layout) -> std::result::Result<(Vec<u8>, SegmentEntry), String> {
     let bytes = to_bytes(set, layout)?;
     let sha = crate::util::sha256_hex(&bytes);
-    let entry = SegmentEntry { file: format!("segment-{}.safetensors", &sha[..16]), images: set.len(), trees: set.n_trees(), keypoints: set.n_keypoints(), bytes: bytes.len() as u64, sha256: sha, removed: vec![] };
+    let entry = SegmentEntry {
+        file: format!("segment-{}.safetensors", &sha[..16]),
+        images: set.len(),
+        trees: set.n_trees(),
+        keypoints: set.n_keypoints(),
+        bytes: bytes.len() as u64,
+        sha256: sha,
+        removed: vec![],
+    };
     Ok((bytes, entry))
 }
 
@@ -306,7 +314,18 @@ impl Mapped {
         let mut out = vec![
             ("global descriptor", len(&[&r.global])),
             ("image appearance", blocks(&r.image_blocks)),
-            ("trees", len(&[&r.forest_offsets, &r.tree_class, &r.tree_area, &r.tree_centroid, &r.tree_neighbours, &r.tree_has_appearance, &r.tree_descriptors])),
+            (
+                "trees",
+                len(&[
+                    &r.forest_offsets,
+                    &r.tree_class,
+                    &r.tree_area,
+                    &r.tree_centroid,
+                    &r.tree_neighbours,
+                    &r.tree_has_appearance,
+                    &r.tree_descriptors,
+                ]),
+            ),
             ("tree appearance", blocks(&r.tree_blocks)),
             ("verification keypoints", len(&[&r.keypoint_offsets, &r.keypoint_descriptors, &r.keypoint_xy, &r.keypoint_class])),
             ("hog", len(&[&r.image_hog])),
@@ -343,7 +362,9 @@ impl Mapped {
         if crate::util::sha256_hex(&self.mmap) != self.entry.sha256 {
             return Err("SHA-256 differs from the manifest (file altered or damaged)".into());
         }
-        let table_ok = |offsets: &[u32], end: usize| offsets.first() == Some(&0) && offsets.windows(2).all(|w| w[0] <= w[1]) && offsets.last().map(|&l| l as usize) == Some(end);
+        let table_ok = |offsets: &[u32], end: usize| {
+            offsets.first() == Some(&0) && offsets.windows(2).all(|w| w[0] <= w[1]) && offsets.last().map(|&l| l as usize) == Some(end)
+        };
         if !table_ok(self.u32s(&self.r.forest_offsets), self.t) {
             return Err("forest offsets do not run from 0 to the tree count".into());
         }
@@ -356,7 +377,11 @@ impl Mapped {
         for (what, r, rows) in [("tree", &self.r.tree_blocks, self.t), ("image", &self.r.image_blocks, self.n)] {
             let count = r.ids.len();
             let offsets = self.u32s(&r.offsets);
-            if offsets.len() != rows + 1 || !table_ok(offsets, count) || r.exponents.len() != count || (self.layout.block > 0 && r.values.len() != count * self.layout.block) {
+            if offsets.len() != rows + 1
+                || !table_ok(offsets, count)
+                || r.exponents.len() != count
+                || (self.layout.block > 0 && r.values.len() != count * self.layout.block)
+            {
                 return Err(format!("{what} appearance block offsets do not run from 0 to the block count"));
             }
             let per_vector = self.layout.dim / self.layout.block.max(1);
@@ -375,9 +400,18 @@ impl Mapped {
                 return Err(format!("image id {id:?} is stored twice"));
             }
             let g = self.globals(j, j + 1);
-            validate::image(id, self.size(j), g, self.forest(j), self.image_appearance(j), self.image_hog(j), self.layout.n_classes, self.layout.values)
-                .and_then(|()| validate::keypoints(self.keypoints(j), self.layout.n_classes))
-                .map_err(|r| format!("image {id:?}: {r}"))?;
+            validate::image(
+                id,
+                self.size(j),
+                g,
+                self.forest(j),
+                self.image_appearance(j),
+                self.image_hog(j),
+                self.layout.n_classes,
+                self.layout.values,
+            )
+            .and_then(|()| validate::keypoints(self.keypoints(j), self.layout.n_classes))
+            .map_err(|r| format!("image {id:?}: {r}"))?;
         }
         Ok(())
     }
@@ -434,7 +468,10 @@ fn ranges(bytes: &[u8], entry: &SegmentEntry, l: &Layout) -> std::result::Result
         let (a, b) = info.data_offsets;
         let size = dtype.bitsize() / 8;
         if (start + a) % size != 0 {
-            return Err(format!("tensor {name:?} starts at byte {}, not a multiple of its {size}-byte elements (written by another tool?)", start + a));
+            return Err(format!(
+                "tensor {name:?} starts at byte {}, not a multiple of its {size}-byte elements (written by another tool?)",
+                start + a
+            ));
         }
         Ok(start + a..start + b)
     };

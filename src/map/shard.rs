@@ -26,7 +26,10 @@ pub struct ShardSpec {
 pub fn plan(m: &Manifest, shards: usize) -> Result<Vec<ShardSpec>> {
     let n = m.segments.len();
     if shards == 0 || shards > n {
-        return Err(Error::invalid("shards", format!("{shards} shards asked for a map of {n} segments (1 to {n} possible; `map build --segment-images` makes more)")));
+        return Err(Error::invalid(
+            "shards",
+            format!("{shards} shards asked for a map of {n} segments (1 to {n} possible; `map build --segment-images` makes more)"),
+        ));
     }
     let live: Vec<usize> = m.segments.iter().map(|s| s.live()).collect();
     let total: usize = live.iter().sum();
@@ -61,7 +64,10 @@ impl Map {
         let mut m = manifest::read_existing(dir)?;
         let path = dir.join(manifest::MANIFEST);
         if let Some(g) = generation.filter(|&g| g != m.generation) {
-            return Err(Error::invalid(path.display().to_string(), format!("the map is at generation {}, the shard was planned at {g}: plan again", m.generation)));
+            return Err(Error::invalid(
+                path.display().to_string(),
+                format!("the map is at generation {}, the shard was planned at {g}: plan again", m.generation),
+            ));
         }
         if segments.start >= segments.end || segments.end > m.segments.len() {
             return Err(Error::invalid(path.display().to_string(), format!("segments {segments:?} asked for, the map has {}", m.segments.len())));
@@ -96,9 +102,34 @@ mod tests {
         let segments = live
             .iter()
             .enumerate()
-            .map(|(i, &n)| SegmentEntry { file: format!("segment-{i}.safetensors"), images: n.max(1), trees: 0, keypoints: 0, bytes: 0, sha256: "0".repeat(64), removed: if n == 0 { vec![0] } else { vec![] } })
+            .map(|(i, &n)| SegmentEntry {
+                file: format!("segment-{i}.safetensors"),
+                images: n.max(1),
+                trees: 0,
+                keypoints: 0,
+                bytes: 0,
+                sha256: "0".repeat(64),
+                removed: if n == 0 { vec![0] } else { vec![] },
+            })
             .collect();
-        Manifest { format: "semlook-map".into(), version: 3, generation: 7, uid: "u".into(), created_by: "test".into(), neighbour_slots: config.local.neighbours, config, appearance_dim: 0, hog_dim: 0, keypoint_dim: 0, appearance_block: 0, values: Default::default(), segments, codebook: None, appearance_model: None, checksum: String::new() }
+        Manifest {
+            format: "semlook-map".into(),
+            version: 3,
+            generation: 7,
+            uid: "u".into(),
+            created_by: "test".into(),
+            neighbour_slots: config.local.neighbours,
+            config,
+            appearance_dim: 0,
+            hog_dim: 0,
+            keypoint_dim: 0,
+            appearance_block: 0,
+            values: Default::default(),
+            segments,
+            codebook: None,
+            appearance_model: None,
+            checksum: String::new(),
+        }
     }
 
     #[test]

@@ -86,7 +86,14 @@ impl MapWriter {
     /// A writer for a new map in `dir`, which must not exist, or be empty, or (with `resume`) hold
     /// only files an interrupted build left (no manifest). With appearance, `appearance` gives the
     /// VLAD codebook and the keypoint network's SHA-256, both stored with the first commit.
-    pub fn create(dir: &Path, cfg: &EncodingConfig, dims: Dims, appearance: Option<(&Codebook, &str)>, opts: StoreOptions, resume: bool) -> Result<MapWriter> {
+    pub fn create(
+        dir: &Path,
+        cfg: &EncodingConfig,
+        dims: Dims,
+        appearance: Option<(&Codebook, &str)>,
+        opts: StoreOptions,
+        resume: bool,
+    ) -> Result<MapWriter> {
         let Dims { appearance: appearance_dim, hog: hog_dim, keypoints: keypoint_dim } = dims;
         let what = || format!("map {}", dir.display());
         MapWriter::check_new_dir(dir, resume)?;
@@ -122,7 +129,17 @@ impl MapWriter {
         };
         let layout = super::layout_of(&manifest, n_classes);
         let pending = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog).with_keypoint_dim(layout.kdim);
-        Ok(MapWriter { dir: dir.into(), layout, manifest, first: Some(codebook), known: HashSet::new(), seen: HashSet::new(), pending, opts, committed: 0 })
+        Ok(MapWriter {
+            dir: dir.into(),
+            layout,
+            manifest,
+            first: Some(codebook),
+            known: HashSet::new(),
+            seen: HashSet::new(),
+            pending,
+            opts,
+            committed: 0,
+        })
     }
 
     /// Fails unless a new map may be created in `dir`: it does not exist, or is empty, or (with
@@ -133,7 +150,8 @@ impl MapWriter {
             return Err(Error::invalid(what(), "a map already exists there (use map add, --resume to continue its build, or --force to replace it)"));
         }
         if dir.exists() {
-            let entries: Vec<String> = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?.flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+            let entries: Vec<String> =
+                std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?.flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
             if let Some(other) = entries.iter().find(|n| !manifest::is_store_file(n)) {
                 return Err(Error::invalid(what(), format!("directory exists and holds {other:?}, which is not a map file")));
             }
@@ -148,14 +166,27 @@ impl MapWriter {
     /// ignored). Reads the ids of every stored segment (not their checksums).
     pub fn append(dir: &Path, opts: StoreOptions) -> Result<MapWriter> {
         if manifest::read(dir)?.is_none() {
-            return Err(Error::invalid(format!("map {}", dir.display()), "no manifest.json: not a map (build it first, or --resume an interrupted build)"));
+            return Err(Error::invalid(
+                format!("map {}", dir.display()),
+                "no manifest.json: not a map (build it first, or --resume an interrupted build)",
+            ));
         }
         // read without the lock: a compaction may delete a listed segment meanwhile
         super::with_current_manifest(dir, |manifest| {
             let n_classes = ClassTable::from_config(&manifest.config.classes)?.len();
             let layout = super::layout_of(&manifest, n_classes);
             let pending = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog).with_keypoint_dim(layout.kdim);
-            let mut w = MapWriter { dir: dir.into(), layout, first: None, known: HashSet::new(), seen: HashSet::new(), pending, opts: StoreOptions { values: manifest.values, ..opts }, committed: 0, manifest };
+            let mut w = MapWriter {
+                dir: dir.into(),
+                layout,
+                first: None,
+                known: HashSet::new(),
+                seen: HashSet::new(),
+                pending,
+                opts: StoreOptions { values: manifest.values, ..opts },
+                committed: 0,
+                manifest,
+            };
             let segments = w.manifest.segments.clone();
             w.learn(&segments, &HashSet::new())?;
             Ok(w)
@@ -258,7 +289,12 @@ impl MapWriter {
     /// set writes nothing.
     pub fn push_set(&mut self, set: &DescriptorSet) -> Result<()> {
         let l = &self.layout;
-        if set.global_len != l.global_len() || set.neighbour_slots != l.slots || set.appearance_dim != l.dim || set.hog_dim != l.hog || set.keypoint_dim != l.kdim {
+        if set.global_len != l.global_len()
+            || set.neighbour_slots != l.slots
+            || set.appearance_dim != l.dim
+            || set.hog_dim != l.hog
+            || set.keypoint_dim != l.kdim
+        {
             return Err(Error::invalid(
                 format!("map {}", self.dir.display()),
                 format!(
@@ -267,10 +303,20 @@ impl MapWriter {
                 ),
             ));
         }
-        let map_codebook = self.manifest.codebook.as_ref().map(|c| c.sha256.clone()).or_else(|| self.first.as_ref().and_then(|f| f.as_ref().map(|(_, e)| e.sha256.clone())));
+        let map_codebook = self
+            .manifest
+            .codebook
+            .as_ref()
+            .map(|c| c.sha256.clone())
+            .or_else(|| self.first.as_ref().and_then(|f| f.as_ref().map(|(_, e)| e.sha256.clone())));
         if set.appearance_dim > 0 && set.codebook != map_codebook {
             let show = |v: &Option<String>| v.clone().map_or("none".into(), |s| format!("sha256 {s}"));
-            return Err(Error::IncompatibleConfig { map: self.dir.clone(), field: "VLAD codebook of the appearance vectors".into(), map_value: show(&map_codebook), given_value: show(&set.codebook) });
+            return Err(Error::IncompatibleConfig {
+                map: self.dir.clone(),
+                field: "VLAD codebook of the appearance vectors".into(),
+                map_value: show(&map_codebook),
+                given_value: show(&set.codebook),
+            });
         }
         let mut ids = HashSet::new();
         for i in 0..set.len() {
@@ -288,7 +334,9 @@ impl MapWriter {
     }
 
     fn flush_if_full(&mut self) -> Result<()> {
-        let bytes = self.pending.len() * self.layout.image_bytes() + self.pending.n_trees() * self.layout.tree_bytes() + self.pending.n_keypoints() * self.layout.keypoint_bytes();
+        let bytes = self.pending.len() * self.layout.image_bytes()
+            + self.pending.n_trees() * self.layout.tree_bytes()
+            + self.pending.n_keypoints() * self.layout.keypoint_bytes();
         if self.pending.len() >= self.segment_images() || bytes >= self.opts.segment_bytes {
             self.flush()?;
         }
@@ -320,7 +368,12 @@ impl MapWriter {
     /// One commit under the lock: `file` (content name, bytes) written first under a name no
     /// listed segment holds, then `change` applied to the current manifest with that name, which
     /// is returned.
-    fn commit(&mut self, change: impl FnOnce(&mut Manifest, Option<&str>), file: Option<(&str, &[u8])>, buffered: &[String]) -> Result<Option<String>> {
+    fn commit(
+        &mut self,
+        change: impl FnOnce(&mut Manifest, Option<&str>),
+        file: Option<(&str, &[u8])>,
+        buffered: &[String],
+    ) -> Result<Option<String>> {
         let _lock = WriteLock::take(&self.dir)?;
         let what = || format!("map {}", self.dir.display());
         let mut m = match (manifest::read(&self.dir)?, &self.first) {
@@ -334,7 +387,9 @@ impl MapWriter {
             }
             (Some(_), Some(_)) => return Err(Error::invalid(what(), "another process created a map there while this build ran")),
             (None, None) => return Err(Error::invalid(what(), "the map's manifest is gone (removed or replaced while writing)")),
-            (Some(m), None) if m.uid != self.manifest.uid => return Err(Error::invalid(what(), "the map was replaced (build --force) while this writer ran")),
+            (Some(m), None) if m.uid != self.manifest.uid => {
+                return Err(Error::invalid(what(), "the map was replaced (build --force) while this writer ran"))
+            }
             (Some(m), None) => m,
         };
         let buffered: HashSet<&str> = buffered.iter().map(|s| s.as_str()).collect();
@@ -373,7 +428,13 @@ impl Map {
     }
 
     /// [`Map::create`] with storage options.
-    pub fn create_with(dir: &Path, cfg: &EncodingConfig, set: &DescriptorSet, appearance: Option<(&Codebook, &str)>, opts: StoreOptions) -> Result<Map> {
+    pub fn create_with(
+        dir: &Path,
+        cfg: &EncodingConfig,
+        set: &DescriptorSet,
+        appearance: Option<(&Codebook, &str)>,
+        opts: StoreOptions,
+    ) -> Result<Map> {
         let n_classes = ClassTable::from_config(&cfg.classes)?.len();
         let mut ids = HashSet::new();
         for i in 0..set.len() {
@@ -382,7 +443,14 @@ impl Map {
                 return Err(Error::DuplicateImageId { map: dir.into(), id: set.ids[i].clone() });
             }
         }
-        let mut w = MapWriter::create(dir, cfg, Dims { appearance: set.appearance_dim, hog: set.hog_dim, keypoints: set.keypoint_dim }, appearance, opts, false)?;
+        let mut w = MapWriter::create(
+            dir,
+            cfg,
+            Dims { appearance: set.appearance_dim, hog: set.hog_dim, keypoints: set.keypoint_dim },
+            appearance,
+            opts,
+            false,
+        )?;
         w.push_set(set)?;
         w.finish()
     }

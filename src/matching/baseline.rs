@@ -5,8 +5,8 @@
 
 use super::source::RefSource;
 use super::{stream_topk, Setting};
-use crate::error::{Error, Result};
 use crate::descriptors::DescriptorSet;
+use crate::error::{Error, Result};
 use crate::values::Values;
 use rayon::prelude::*;
 
@@ -28,7 +28,9 @@ pub fn unavailable(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setti
         Setting::Hog if refs.hog_dim() == 0 || queries.hog_dim == 0 => {
             Some("no HOG descriptors (encode the references with HOG: `map build --hog`, or evaluate without --map)".into())
         }
-        Setting::Appearance if refs.appearance_dim() == 0 || queries.appearance_dim == 0 => Some("no appearance (the keypoint network is off)".into()),
+        Setting::Appearance if refs.appearance_dim() == 0 || queries.appearance_dim == 0 => {
+            Some("no appearance (the keypoint network is off)".into())
+        }
         _ => None,
     }
 }

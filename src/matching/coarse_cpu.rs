@@ -108,7 +108,11 @@ impl CoarseCpu {
         }
         self.nq = nq;
         while self.workers.len() < rayon::current_num_threads() {
-            self.workers.push(Mutex::new(Worker { ref_terms: vec![0.0; REFS_PER_BLOCK * tl], pair: FastScratch::new(&l), twin: SsimScratch::default() }));
+            self.workers.push(Mutex::new(Worker {
+                ref_terms: vec![0.0; REFS_PER_BLOCK * tl],
+                pair: FastScratch::new(&l),
+                twin: SsimScratch::default(),
+            }));
         }
     }
 
@@ -126,7 +130,15 @@ impl CoarseCpu {
                 let slot = rayon::current_thread_index().unwrap_or(0) % self.workers.len();
                 let mut w = self.workers[slot].lock().unwrap_or_else(PoisonError::into_inner);
                 let rs = b * REFS_PER_BLOCK..(b * REFS_PER_BLOCK + REFS_PER_BLOCK).min(t);
-                let block = Block { x: self, queries, qs: qs.clone(), refs: &refs[rs.start * len..rs.end * len], ref_stats: &ref_stats[rs.start * self.p.stats_len()..rs.end * self.p.stats_len()], w: &mut w, out };
+                let block = Block {
+                    x: self,
+                    queries,
+                    qs: qs.clone(),
+                    refs: &refs[rs.start * len..rs.end * len],
+                    ref_stats: &ref_stats[rs.start * self.p.stats_len()..rs.end * self.p.stats_len()],
+                    w: &mut w,
+                    out,
+                };
                 match self.simd {
                     Simd::Twin => block.twin(),
                     _ => self.arch.dispatch(block),
@@ -177,7 +189,8 @@ impl pulp::WithSimd for Block<'_> {
         for q in self.qs {
             let (x, tx) = (&self.queries[q * len..(q + 1) * len], &query_terms[q * tl..(q + 1) * tl]);
             for r in 0..nr {
-                self.out[r * nq + q] = ssim_pair_fast(simd, p, l, x, tx, &self.refs[r * len..(r + 1) * len], &w.ref_terms[r * tl..(r + 1) * tl], &mut w.pair);
+                self.out[r * nq + q] =
+                    ssim_pair_fast(simd, p, l, x, tx, &self.refs[r * len..(r + 1) * len], &w.ref_terms[r * tl..(r + 1) * tl], &mut w.pair);
             }
         }
     }

@@ -1,10 +1,10 @@
 //! The fast coarse path against the twin: the same score bits for every pair, the same K-lists.
 
 use super::*;
-use crate::global::ssim::SsimScratch;
 use crate::descriptors::DescriptorSet;
-use crate::matching::test_data::{params, set, shape};
+use crate::global::ssim::SsimScratch;
 use crate::matching::ssim_topk::{ssim_tile, TileParams};
+use crate::matching::test_data::{params, set, shape};
 use crate::matching::{coarse_topk, coarse_topk_twin};
 use crate::util::SplitMix64;
 use proptest::prelude::*;

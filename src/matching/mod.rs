@@ -16,17 +16,17 @@ pub(crate) mod test_data;
 pub mod topk_select;
 
 use crate::config::{CoarseStage, Config, ScoreFusion};
+use crate::descriptors::DescriptorSet;
 use crate::error::{Error, Result};
 use crate::global::ssim::SsimParams;
 use crate::local::tree_similarity::{tree_similarity, TreeSimParams, TreeSimScratch};
-use crate::descriptors::DescriptorSet;
 use crate::util::ms_since;
+use crate::values::Values;
 use crate::verify::{verify_pair, Verified, VerifyParams};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use std::time::Instant;
 use source::{GlobalSource, RefSource};
-use crate::values::Values;
+use std::time::Instant;
 
 /// A matching setting: which stages run and whether appearance takes part.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
@@ -59,7 +59,17 @@ pub enum Setting {
 impl Setting {
     /// Every setting: the two baselines, the coarse stage and the paper's four, then the fused
     /// coarse stage and the recommended pipeline.
-    pub const ALL: [Setting; 9] = [Setting::Hog, Setting::Appearance, Setting::Global, Setting::Forest, Setting::Local, Setting::GlobalForest, Setting::Semlook, Setting::Fused, Setting::Verified];
+    pub const ALL: [Setting; 9] = [
+        Setting::Hog,
+        Setting::Appearance,
+        Setting::Global,
+        Setting::Forest,
+        Setting::Local,
+        Setting::GlobalForest,
+        Setting::Semlook,
+        Setting::Fused,
+        Setting::Verified,
+    ];
     /// The setting `query`, `eval` and the Python API use when none is named.
     pub const RECOMMENDED: Setting = Setting::Verified;
     /// The coarse stage and the paper's four settings (no baselines).
@@ -175,7 +185,15 @@ pub trait Stages {
     /// For each query, the `k` best references of the whole map by tree-set similarity.
     fn fine_topk(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>>;
     /// For each query, the `k` best references by cos(appearance) + `w_global` x SSIM.
-    fn fused_coarse(&mut self, refs: &dyn RefSource, queries: &DescriptorSet, p: &SsimParams, w_global: f32, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>>;
+    fn fused_coarse(
+        &mut self,
+        refs: &dyn RefSource,
+        queries: &DescriptorSet,
+        p: &SsimParams,
+        w_global: f32,
+        k: usize,
+        tile: usize,
+    ) -> Result<Vec<Vec<(f32, u32)>>>;
     /// Geometric verification of each (query, reference) pair.
     fn verify_pairs(&mut self, p: &VerifyParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<Verified>>;
 }
@@ -203,12 +221,23 @@ impl Stages for CpuStages {
             });
         }))
     }
-    fn fused_coarse(&mut self, refs: &dyn RefSource, queries: &DescriptorSet, p: &SsimParams, w_global: f32, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+    fn fused_coarse(
+        &mut self,
+        refs: &dyn RefSource,
+        queries: &DescriptorSet,
+        p: &SsimParams,
+        w_global: f32,
+        k: usize,
+        tile: usize,
+    ) -> Result<Vec<Vec<(f32, u32)>>> {
         Ok(fused_topk_cpu(refs, queries, p, w_global, k, tile))
     }
     /// Mutual nearest neighbours by the fast path (a matrix product per pair), then RANSAC.
     fn verify_pairs(&mut self, p: &VerifyParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<Verified>> {
-        Ok(pairs.par_iter().map_init(Vec::new, |scratch, &(q, r)| verify_pair(p, queries.keypoints(q as usize), refs.keypoints(r as usize), scratch)).collect())
+        Ok(pairs
+            .par_iter()
+            .map_init(Vec::new, |scratch, &(q, r)| verify_pair(p, queries.keypoints(q as usize), refs.keypoints(r as usize), scratch))
+            .collect())
     }
 }
 
@@ -223,7 +252,13 @@ pub fn match_batch(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setti
 /// top-K over the whole map for settings without a coarse stage), best first. The same three
 /// steps ([`candidates`], [`fine_scores`], [`rank`]) serve a map split into shards: each shard
 /// gives its candidates, [`ssim_topk::merge_lists`] keeps the global K, the owners score the pairs.
-pub fn match_with(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(Vec<QueryMatch>, MatchTimes)> {
+pub fn match_with(
+    stages: &mut dyn Stages,
+    refs: &dyn RefSource,
+    queries: &DescriptorSet,
+    setting: Setting,
+    cfg: &Config,
+) -> Result<(Vec<QueryMatch>, MatchTimes)> {
     let (lists, mut times) = candidates(stages, refs, queries, setting, cfg)?;
     let (fine, verified) = match setting.reranks() {
         true => {
@@ -263,7 +298,13 @@ pub type CandidateLists = Vec<Vec<(f32, u32)>>;
 /// Each query's candidates, best first, as (score, index in `refs`): the coarse K-list for the
 /// settings with a coarse stage, else the final list of the fine stage or baseline ([`list_len`]
 /// long). Fails if a segment of a stored map was damaged or the setting cannot run here.
-pub fn candidates(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config) -> Result<(CandidateLists, MatchTimes)> {
+pub fn candidates(
+    stages: &mut dyn Stages,
+    refs: &dyn RefSource,
+    queries: &DescriptorSet,
+    setting: Setting,
+    cfg: &Config,
+) -> Result<(CandidateLists, MatchTimes)> {
     let mut times = MatchTimes::default();
     if refs.is_empty() {
         return Ok((vec![vec![]; queries.len()], times));
@@ -304,12 +345,26 @@ pub fn pairs_of(lists: &[Vec<(f32, u32)>]) -> Vec<(u32, u32)> {
 /// The fine score of each (query, reference index in `refs`) pair under `setting`: the tree-set
 /// similarity, and for `verified` `w_inliers ln(1 + inliers) + w_fine similarity` (the part of
 /// the verified score that depends on the pair alone; [`rank`] adds the coarse part).
-pub fn fine_scores(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config, pairs: &[(u32, u32)]) -> Result<Vec<f32>> {
+pub fn fine_scores(
+    stages: &mut dyn Stages,
+    refs: &dyn RefSource,
+    queries: &DescriptorSet,
+    setting: Setting,
+    cfg: &Config,
+    pairs: &[(u32, u32)],
+) -> Result<Vec<f32>> {
     Ok(pair_scores(stages, refs, queries, setting, cfg, pairs)?.0)
 }
 
 /// [`fine_scores`], with the verification of each pair for the settings that verify.
-fn pair_scores(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config, pairs: &[(u32, u32)]) -> Result<(Vec<f32>, Option<Vec<Verified>>)> {
+fn pair_scores(
+    stages: &mut dyn Stages,
+    refs: &dyn RefSource,
+    queries: &DescriptorSet,
+    setting: Setting,
+    cfg: &Config,
+    pairs: &[(u32, u32)],
+) -> Result<(Vec<f32>, Option<Vec<Verified>>)> {
     if let Some(&(q, r)) = pairs.iter().find(|&&(q, r)| q as usize >= queries.len() || r as usize >= refs.len()) {
         return Err(Error::invalid("fine stage", format!("pair ({q}, {r}) outside {} queries x {} references", queries.len(), refs.len())));
     }
@@ -382,7 +437,9 @@ pub fn rank(setting: Setting, lists: &[Vec<(f32, u32)>], fine: Option<&[f32]>, c
     match (two_stages, fine) {
         (true, Some(f)) if f.len() == total => {}
         (false, None) => {}
-        (true, got) => return Err(Error::invalid("ranking", format!("setting {setting} needs {total} fine scores, got {}", got.map_or(0, <[f32]>::len)))),
+        (true, got) => {
+            return Err(Error::invalid("ranking", format!("setting {setting} needs {total} fine scores, got {}", got.map_or(0, <[f32]>::len))))
+        }
         (false, Some(_)) => return Err(Error::invalid("ranking", format!("setting {setting} takes no fine scores for its candidates"))),
     }
     let mut fine = fine.unwrap_or(&[]).iter();
@@ -441,7 +498,14 @@ type Merge = fn(&ssim_topk::TileParams, &[f32], &mut [f32], &mut [u32]);
 
 /// The CPU streaming top-K over a map of `n` references: per tile of at most `tile` references,
 /// `score` fills the queries x tile scores, which `merge` folds into each query's K-list.
-pub(crate) fn stream_topk(nq: usize, n: usize, k: usize, tile: usize, merge: Merge, mut score: impl FnMut(&ssim_topk::TileParams, &mut [f32])) -> Vec<Vec<(f32, u32)>> {
+pub(crate) fn stream_topk(
+    nq: usize,
+    n: usize,
+    k: usize,
+    tile: usize,
+    merge: Merge,
+    mut score: impl FnMut(&ssim_topk::TileParams, &mut [f32]),
+) -> Vec<Vec<(f32, u32)>> {
     let tile = tile.max(1).min(n.max(1));
     let mut scores = vec![0.0f32; nq * tile];
     let mut top_s = vec![ssim_topk::EMPTY_SCORE; nq * k];

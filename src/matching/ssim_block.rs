@@ -78,7 +78,17 @@ pub fn ssim_block(p: &SsimParams, ps: &PassParams, queries: &[f32], query_stats:
 }
 
 #[allow(clippy::too_many_arguments)]
-fn block(p: &SsimParams, ps: &PassParams, wg: [usize; 2], w: &mut Workgroup, queries: &[f32], query_stats: &[f32], scores: &mut [f32], refs: &[f32], ref_stats: &[f32]) {
+fn block(
+    p: &SsimParams,
+    ps: &PassParams,
+    wg: [usize; 2],
+    w: &mut Workgroup,
+    queries: &[f32],
+    query_stats: &[f32],
+    scores: &mut [f32],
+    refs: &[f32],
+    ref_stats: &[f32],
+) {
     let (rb, np) = (ps.rb as usize, (ps.rb * ps.qb) as usize);
     let (q0, r0) = (wg[0] * ps.qb as usize, wg[1] * rb);
     let (gw, gh, win, nw, nh) = (p.gw as usize, p.gh as usize, p.win as usize, p.nw as usize, p.nh as usize);
@@ -117,7 +127,8 @@ fn block(p: &SsimParams, ps: &PassParams, wg: [usize; 2], w: &mut Workgroup, que
                 }
                 let wi = wr * nw + c;
                 let (sq, sr) = (q * 2 * n, (first + r) * 2 * n);
-                w.acc[pair * LANES + wi % LANES] += ssim_window(p, v * inv, query_stats[sq + wi], ref_stats[sr + wi], query_stats[sq + n + wi], ref_stats[sr + n + wi]);
+                w.acc[pair * LANES + wi % LANES] +=
+                    ssim_window(p, v * inv, query_stats[sq + wi], ref_stats[sr + wi], query_stats[sq + n + wi], ref_stats[sr + n + wi]);
             }
         }
     }

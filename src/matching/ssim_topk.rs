@@ -36,7 +36,14 @@ pub fn ssim_tile(p: &SsimParams, tp: &TileParams, queries: &[f32], query_stats: 
         for (j, slot) in out.iter_mut().enumerate() {
             let pair = chunk * PAIRS_PER_TASK + j;
             let (q, r) = (pair / t, pair % t);
-            *slot = ssim_pair(p, &queries[q * len..(q + 1) * len], &query_stats[q * slen..(q + 1) * slen], &refs[r * len..(r + 1) * len], &ref_stats[r * slen..(r + 1) * slen], scratch);
+            *slot = ssim_pair(
+                p,
+                &queries[q * len..(q + 1) * len],
+                &query_stats[q * slen..(q + 1) * slen],
+                &refs[r * len..(r + 1) * len],
+                &ref_stats[r * slen..(r + 1) * slen],
+                scratch,
+            );
         }
     });
 }

@@ -2,10 +2,10 @@
 //! score alike (smooth fields, noise, flat windows and exact ties, constants).
 
 use crate::config::GlobalConfig;
+use crate::descriptors::DescriptorSet;
 use crate::descriptors::EncodedImage;
 use crate::global::ssim::{ssim_stats, SsimParams, SsimScratch};
 use crate::local::Forest;
-use crate::descriptors::DescriptorSet;
 use crate::util::SplitMix64;
 use proptest::prelude::*;
 
@@ -33,23 +33,41 @@ pub fn set(p: &SsimParams, n: usize, pool: usize, rng: &mut SplitMix64) -> Descr
         let g = pool[rng.below(pool.len())].clone();
         let mut stats = vec![0.0; p.stats_len()];
         ssim_stats(p, &g, &mut stats, &mut scratch);
-        s.push(&EncodedImage { id: format!("d{i}"), width: 1, height: 1, global: g, global_stats: stats, forest: Forest { neighbour_slots: 1, ..Default::default() }, appearance: vec![], hog: vec![], keypoints: Default::default() }).unwrap();
+        s.push(&EncodedImage {
+            id: format!("d{i}"),
+            width: 1,
+            height: 1,
+            global: g,
+            global_stats: stats,
+            forest: Forest { neighbour_slots: 1, ..Default::default() },
+            appearance: vec![],
+            hog: vec![],
+            keypoints: Default::default(),
+        })
+        .unwrap();
     }
     s
 }
 
 pub fn params(w: usize, h: usize, win: usize, sample: bool, k: (f64, f64)) -> SsimParams {
-    SsimParams::new(&GlobalConfig { width: w, height: h, ssim_window: win, ssim_sample_covariance: sample, ssim_k1: k.0, ssim_k2: k.1, ..Default::default() })
+    SsimParams::new(&GlobalConfig {
+        width: w,
+        height: h,
+        ssim_window: win,
+        ssim_sample_covariance: sample,
+        ssim_k1: k.0,
+        ssim_k2: k.1,
+        ..Default::default()
+    })
 }
-
 
 /// Descriptor sizes from one window to 40 x 30 past it, odd windows 3..=11, both covariance
 /// normalisations, the default constants, zero constants (NaN windows) and large ones.
 pub fn shape() -> impl Strategy<Value = SsimParams> {
-    (3usize..12, 0usize..40, 0usize..30, any::<bool>(), prop::sample::select(vec![(0.01, 0.03), (0.0, 0.0), (0.1, 0.2)]))
-        .prop_map(|(win, dw, dh, sample, k)| {
+    (3usize..12, 0usize..40, 0usize..30, any::<bool>(), prop::sample::select(vec![(0.01, 0.03), (0.0, 0.0), (0.1, 0.2)])).prop_map(
+        |(win, dw, dh, sample, k)| {
             let win = win | 1; // odd, 3..=11
             params(win + dw, win + dh, win, sample, k)
-        })
+        },
+    )
 }
-

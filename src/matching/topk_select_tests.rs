@@ -31,7 +31,15 @@ fn select_topk(scores: &[f32], nq: usize, n: usize, k: usize, pass: usize) -> Ve
         let refs = pass.min(n - start);
         let segs = refs.div_ceil(SEG);
         let block: Vec<f32> = (0..nq * refs).map(|i| scores[(i / refs) * n + start + i % refs]).collect();
-        let ps = PassParams { queries: nq as u32, refs: refs as u32, ref_index: start as u32, k: k as u32, segs: segs as u32, parity, ..Default::default() };
+        let ps = PassParams {
+            queries: nq as u32,
+            refs: refs as u32,
+            ref_index: start as u32,
+            k: k as u32,
+            segs: segs as u32,
+            parity,
+            ..Default::default()
+        };
         let mut partial = vec![Entry { score: 7.0, index: 7 }; nq * segs * k];
         topk_partial(&ps, &block, &mut partial);
         topk_merge_lists(&ps, &partial, &mut a, &mut b);

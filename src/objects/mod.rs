@@ -64,11 +64,7 @@ pub fn extract_objects(labels: &LabelMap, table: &ClassTable, cfg: &ObjectsConfi
     for (new, &old) in keep.iter().enumerate() {
         remap[old] = new as u32;
     }
-    let object_of_pixel = comps
-        .component_of_pixel
-        .iter()
-        .map(|&c| if c == NO_OBJECT { NO_OBJECT } else { remap[c as usize] })
-        .collect();
+    let object_of_pixel = comps.component_of_pixel.iter().map(|&c| if c == NO_OBJECT { NO_OBJECT } else { remap[c as usize] }).collect();
     let objects = keep.iter().map(|&i| stats[i].clone()).collect();
     ObjectMap { width: w, height: h, objects, object_of_pixel }
 }
@@ -142,8 +138,7 @@ mod tests {
         assert_eq!(summary, vec![(2, 4), (0, 13), (13, 4), (2, 1)]);
         assert_eq!(objs.objects[0].centroid, [0.5, 0.5]);
         assert_eq!(objs.objects[2].bbox, [4, 0, 6, 2]);
-        let mut classes = crate::config::ClassesConfig::default();
-        classes.exclude = vec!["car".into()];
+        let classes = crate::config::ClassesConfig { exclude: vec!["car".into()], ..Default::default() };
         let table = ClassTable::from_config(&classes).unwrap();
         let objs = extract_objects(&m, &table, &cfg);
         assert!(objs.objects.iter().all(|o| o.class != 13));

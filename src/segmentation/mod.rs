@@ -58,16 +58,31 @@ impl Segmenter {
         let class_of_channel = cfg
             .class_map
             .iter()
-            .map(|n| if n == "void" { Ok(VOID) } else { table.index(n).ok_or_else(|| Error::InvalidConfig { source_name: "[segmentation]".into(), reason: format!("class_map names {n:?}, which is not in the class table") }) })
+            .map(|n| {
+                if n == "void" {
+                    Ok(VOID)
+                } else {
+                    table.index(n).ok_or_else(|| Error::InvalidConfig {
+                        source_name: "[segmentation]".into(),
+                        reason: format!("class_map names {n:?}, which is not in the class table"),
+                    })
+                }
+            })
             .collect::<Result<Vec<u8>>>()?;
         let sessions = crate::onnx::SessionPool::new(path, onnxruntime)?;
         let (outputs, inputs) = sessions.with_shared(|s| (s.outputs().len(), s.inputs().len()));
         if outputs == 0 || inputs == 0 {
-            return Err(Error::Model { path: path.into(), reason: format!("{inputs} inputs and {outputs} outputs; a segmenter has an image input and a logits output") });
+            return Err(Error::Model {
+                path: path.into(),
+                reason: format!("{inputs} inputs and {outputs} outputs; a segmenter has an image input and a logits output"),
+            });
         }
         let channels = sessions.with_shared(|s| crate::onnx::output_shape(s, 0)).get(1).copied().unwrap_or(-1);
         if channels > 0 && channels as usize != class_of_channel.len() {
-            return Err(Error::Model { path: path.into(), reason: format!("{channels} output channels, but segmentation.class_map names {}", class_of_channel.len()) });
+            return Err(Error::Model {
+                path: path.into(),
+                reason: format!("{channels} output channels, but segmentation.class_map names {}", class_of_channel.len()),
+            });
         }
         let dynamic_batch = sessions.with_shared(|s| match s.inputs().first().map(|i| i.dtype()) {
             Some(ort::value::ValueType::Tensor { shape, .. }) => shape.first().is_some_and(|&d| d < 0),
@@ -113,7 +128,9 @@ impl Segmenter {
         }
         if !self.dynamic_batch && images.len() > 1 {
             let one = |(i, s): (&&RgbImage, &(u32, u32))| -> Result<LabelMap> {
-                self.segment_batch_to(std::slice::from_ref(i), std::slice::from_ref(s))?.pop().ok_or_else(|| Error::Model { path: self.path.clone(), reason: "no output".into() })
+                self.segment_batch_to(std::slice::from_ref(i), std::slice::from_ref(s))?
+                    .pop()
+                    .ok_or_else(|| Error::Model { path: self.path.clone(), reason: "no output".into() })
             };
             return images.iter().zip(sizes).map(one).collect();
         }

@@ -107,7 +107,12 @@ pub fn generate(camvid: &Path, out: &Path, changes: &[Change], step: usize, tick
         let rgb = crate::input::load_rgb(img_path)?;
         let labels = image::open(&label_path).map_err(|e| Error::ImageDecode { path: label_path.clone(), reason: e.to_string() })?.to_luma8();
         if labels.dimensions() != rgb.dimensions() {
-            return Err(Error::SizeMismatch { image: img_path.clone(), labels: label_path, image_size: rgb.dimensions(), label_size: labels.dimensions() });
+            return Err(Error::SizeMismatch {
+                image: img_path.clone(),
+                labels: label_path,
+                image_size: rgb.dimensions(),
+                label_size: labels.dimensions(),
+            });
         }
         let write = |t: &str, rgb: &RgbImage, lab: &GrayImage| -> Result<()> {
             let ip = out.join(t).join("images").join(format!("{name}.jpg"));
@@ -155,7 +160,8 @@ pub fn generate(camvid: &Path, out: &Path, changes: &[Change], step: usize, tick
         ground_truth: None,
     };
     let mpath = out.join(MANIFEST);
-    std::fs::write(&mpath, serde_json::to_vec_pretty(&manifest).map_err(|e| Error::invalid("dataset manifest", e.to_string()))?).map_err(|e| Error::io(&mpath, e))?;
+    std::fs::write(&mpath, serde_json::to_vec_pretty(&manifest).map_err(|e| Error::invalid("dataset manifest", e.to_string()))?)
+        .map_err(|e| Error::io(&mpath, e))?;
     Ok(images.len())
 }
 

@@ -164,7 +164,13 @@ fn confuse(class: u8, c: Condition, h: f32) -> u8 {
         (Condition::Snow, TERRAIN) => SIDEWALK,
         (Condition::Snow, VEGETATION) => TERRAIN,
         (Condition::Night, SKY) => BUILDING,
-        (Condition::Night, BUILDING) => if h < 0.5 { SKY } else { VEGETATION },
+        (Condition::Night, BUILDING) => {
+            if h < 0.5 {
+                SKY
+            } else {
+                VEGETATION
+            }
+        }
         (Condition::Night, VEGETATION) => BUILDING,
         (Condition::Night, SIDEWALK) => ROAD,
         (Condition::Fog, VEGETATION) => BUILDING,

@@ -14,15 +14,15 @@ mod noise;
 pub mod render;
 pub mod world;
 
-use crate::error::{Error, Result};
 use crate::dataset::{write_synthia_pose, DatasetManifest, GroundTruthRule, Pose, TraversalSpec, MANIFEST, SYNTHIA_CAMERA};
+use crate::error::{Error, Result};
 use crate::util::SplitMix64;
 use condition::Condition;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
-use world::{Prim, Shape, World};
 pub use world::dynamic_objects;
+use world::{Prim, Shape, World};
 
 /// Camera offsets from the place positions, drawn uniformly in +-value.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -197,8 +197,20 @@ pub fn generate(cfg: &SynthConfig, out: &Path, tick: &(dyn Fn() + Sync)) -> Resu
         (0..cfg.places).into_par_iter().try_for_each(|i| -> Result<()> {
             let f = render_frame(cfg, &scene, &dynamic, t as u64, i, *cond);
             let name = format!("{i:06}");
-            write_png(&base.join("RGB").join(SYNTHIA_CAMERA).join(format!("{name}.png")), &f.rgb, cfg.width, cfg.height, image::ExtendedColorType::Rgb8)?;
-            write_png(&base.join("GT/LABELS").join(SYNTHIA_CAMERA).join(format!("{name}.png")), &f.labels, cfg.width, cfg.height, image::ExtendedColorType::L8)?;
+            write_png(
+                &base.join("RGB").join(SYNTHIA_CAMERA).join(format!("{name}.png")),
+                &f.rgb,
+                cfg.width,
+                cfg.height,
+                image::ExtendedColorType::Rgb8,
+            )?;
+            write_png(
+                &base.join("GT/LABELS").join(SYNTHIA_CAMERA).join(format!("{name}.png")),
+                &f.labels,
+                cfg.width,
+                cfg.height,
+                image::ExtendedColorType::L8,
+            )?;
             let pose_path = base.join("CameraParams").join(SYNTHIA_CAMERA).join(format!("{name}.txt"));
             std::fs::write(&pose_path, write_synthia_pose(&f.pose)).map_err(|e| Error::io(&pose_path, e))?;
             tick();
@@ -218,8 +230,10 @@ pub fn generate(cfg: &SynthConfig, out: &Path, tick: &(dyn Fn() + Sync)) -> Resu
         ground_truth: Some(GroundTruthRule { max_distance: cfg.gt_distance_m, max_angle_deg: None }),
     };
     let mpath = out.join(MANIFEST);
-    std::fs::write(&mpath, serde_json::to_vec_pretty(&manifest).map_err(|e| Error::invalid("dataset manifest", e.to_string()))?).map_err(|e| Error::io(&mpath, e))?;
+    std::fs::write(&mpath, serde_json::to_vec_pretty(&manifest).map_err(|e| Error::invalid("dataset manifest", e.to_string()))?)
+        .map_err(|e| Error::io(&mpath, e))?;
     let spath = out.join("synth.json");
-    std::fs::write(&spath, serde_json::to_vec_pretty(cfg).map_err(|e| Error::invalid("synth config", e.to_string()))?).map_err(|e| Error::io(&spath, e))?;
+    std::fs::write(&spath, serde_json::to_vec_pretty(cfg).map_err(|e| Error::invalid("synth config", e.to_string()))?)
+        .map_err(|e| Error::io(&spath, e))?;
     Ok(())
 }

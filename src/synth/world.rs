@@ -217,14 +217,15 @@ fn quad(c: [[f64; 3]; 4], class: u8, material: Material) -> Prim {
 }
 
 /// An axis-aligned box as its vertical faces (roofs are never seen from street level).
+#[allow(clippy::too_many_arguments)]
 fn box_faces(x0: f64, x1: f64, z0: f64, z1: f64, y0: f64, y1: f64, class: u8, front: Material, side: Material, thin: bool) -> Vec<Prim> {
     let mk = |c, m: Material| Prim { shape: Shape::Quad(c), class, material: m, thin };
     vec![
         mk([[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0]], side.clone()), // faces -z
         mk([[x1, y0, z1], [x0, y0, z1], [x0, y1, z1], [x1, y1, z1]], side.clone()), // faces +z
         mk([[x0, y0, z1], [x0, y0, z0], [x0, y1, z0], [x0, y1, z1]], front.clone()), // faces -x
-        mk([[x1, y0, z0], [x1, y0, z1], [x1, y1, z1], [x1, y1, z0]], front), // faces +x
-        mk([[x0, y1, z0], [x1, y1, z0], [x1, y1, z1], [x0, y1, z1]], side), // top (low boxes: cars, walls)
+        mk([[x1, y0, z0], [x1, y0, z1], [x1, y1, z1], [x1, y1, z0]], front),        // faces +x
+        mk([[x0, y1, z0], [x1, y1, z0], [x1, y1, z1], [x0, y1, z1]], side),         // top (low boxes: cars, walls)
     ]
 }
 
@@ -279,11 +280,7 @@ pub fn build_world(seed: u64, length: f64, aliasing: f64) -> World {
     let mut z = z_min;
     let mut style_id = 0u64;
     while z < z_max {
-        let block = if rng.chance(aliasing) {
-            perturb(&templates[rng.below(n_templates)], &mut rng, 0.08)
-        } else {
-            random_block(&mut rng)
-        };
+        let block = if rng.chance(aliasing) { perturb(&templates[rng.below(n_templates)], &mut rng, 0.08) } else { random_block(&mut rng) };
         for (side, lots) in block.lots.iter().enumerate() {
             let sgn = if side == 0 { -1.0 } else { 1.0 };
             for lot in lots {
@@ -295,7 +292,18 @@ pub fn build_world(seed: u64, length: f64, aliasing: f64) -> World {
                         let xf = SIDEWALK_OUTER + setback;
                         let (x0, x1) = if side == 0 { (-xf - depth, -xf) } else { (xf, xf + depth) };
                         let side_mat = Material::Plain { color: style.wall.map(|c| c * 0.8), grain: 0.15 };
-                        prims.extend(box_faces(x0, x1, z0 + 0.2, z1 - 0.2, 0.0, *height, BUILDING, Material::Facade(Box::new(style)), side_mat, false));
+                        prims.extend(box_faces(
+                            x0,
+                            x1,
+                            z0 + 0.2,
+                            z1 - 0.2,
+                            0.0,
+                            *height,
+                            BUILDING,
+                            Material::Facade(Box::new(style)),
+                            side_mat,
+                            false,
+                        ));
                         GroundKind::Paved
                     }
                     LotKind::Park { trees } => {
@@ -306,7 +314,11 @@ pub fn build_world(seed: u64, length: f64, aliasing: f64) -> World {
                             let h = rng.range(0.9, 1.4);
                             let x = sgn * (SIDEWALK_OUTER + 0.2);
                             // facing the road: towards +x on the left side, -x on the right
-                            let c = if side == 0 { [[x, 0.0, z0], [x, 0.0, z1], [x, h, z1], [x, h, z0]] } else { [[x, 0.0, z1], [x, 0.0, z0], [x, h, z0], [x, h, z1]] };
+                            let c = if side == 0 {
+                                [[x, 0.0, z0], [x, 0.0, z1], [x, h, z1], [x, h, z0]]
+                            } else {
+                                [[x, 0.0, z1], [x, 0.0, z0], [x, h, z0], [x, h, z1]]
+                            };
                             prims.push(quad(c, FENCE, Material::Fence { color: hsv(rng.next_f64(), 0.2, rng.range(0.2, 0.7)) }));
                         }
                         GroundKind::Terrain
@@ -384,7 +396,10 @@ pub fn dynamic_objects(world: &World, seed: u64, traversal: u64, persistence: f6
             prims.push(Prim {
                 shape: Shape::Billboard { base: [x, 0.0, z], width: 0.55, height: h },
                 class: PERSON,
-                material: Material::Person { top: hsv(own.next_f64(), 0.6, own.range(0.2, 0.9)), bottom: hsv(own.next_f64(), 0.3, own.range(0.1, 0.5)) },
+                material: Material::Person {
+                    top: hsv(own.next_f64(), 0.6, own.range(0.2, 0.9)),
+                    bottom: hsv(own.next_f64(), 0.3, own.range(0.1, 0.5)),
+                },
                 thin: false,
             });
         }

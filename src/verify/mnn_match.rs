@@ -122,7 +122,22 @@ pub fn best_columns(q: &[i8], r: &[i8], dim: usize, scratch: &mut Vec<f32>) -> B
     scratch.resize(nq * nr, 0.0);
     // S = Q (nq x dim) * R^T (dim x nr)
     unsafe {
-        matrixmultiply::sgemm(nq, dim, nr, 1.0, qf.as_ptr(), dim as isize, 1, rf.as_ptr(), 1, dim as isize, 0.0, scratch.as_mut_ptr(), nr as isize, 1);
+        matrixmultiply::sgemm(
+            nq,
+            dim,
+            nr,
+            1.0,
+            qf.as_ptr(),
+            dim as isize,
+            1,
+            rf.as_ptr(),
+            1,
+            dim as isize,
+            0.0,
+            scratch.as_mut_ptr(),
+            nr as isize,
+            1,
+        );
     }
     let mut col_best = vec![f32::NEG_INFINITY; nr];
     for i in 0..nq {

@@ -29,7 +29,13 @@ impl VerifyParams {
     pub fn new(cfg: &VerificationConfig) -> Self {
         VerifyParams {
             min_dot: (cfg.min_cosine as f32 * DESCRIPTOR_SCALE * DESCRIPTOR_SCALE).ceil() as i32,
-            ransac: RansacParams { threshold: cfg.threshold, max_iterations: cfg.max_iterations, confidence: cfg.confidence, seed: cfg.seed, refine: cfg.refine },
+            ransac: RansacParams {
+                threshold: cfg.threshold,
+                max_iterations: cfg.max_iterations,
+                confidence: cfg.confidence,
+                seed: cfg.seed,
+                refine: cfg.refine,
+            },
             semantic: cfg.semantic,
         }
     }
@@ -55,11 +61,9 @@ pub fn verify_from_best(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, best
     let src: Vec<[f64; 2]> = m.iter().map(|&(i, _)| q.position(i as usize)).collect();
     let dst: Vec<[f64; 2]> = m.iter().map(|&(_, j)| r.position(j as usize)).collect();
     if let Some((_, inliers)) = ransac::ransac_homography(&src, &dst, &p.ransac) {
-        out.inliers = m
-            .iter()
-            .zip(&inliers)
-            .filter(|&(&(i, j), &inl)| inl && classes_agree(p.semantic, q.classes[i as usize], r.classes[j as usize]))
-            .count() as u32;
+        out.inliers =
+            m.iter().zip(&inliers).filter(|&(&(i, j), &inl)| inl && classes_agree(p.semantic, q.classes[i as usize], r.classes[j as usize])).count()
+                as u32;
     }
     out
 }

@@ -56,7 +56,8 @@ pub fn ransac_homography(src: &[[f64; 2]], dst: &[[f64; 2]], p: &RansacParams) -
         let (mut h, mut c) = (h, c);
         if p.refine {
             for _ in 0..REFINE_ROUNDS {
-                let (is, ds): (Vec<[f64; 2]>, Vec<[f64; 2]>) = (0..n).filter(|&i| transfer_error2(&h, src[i], dst[i]) < t2).map(|i| (src[i], dst[i])).unzip();
+                let (is, ds): (Vec<[f64; 2]>, Vec<[f64; 2]>) =
+                    (0..n).filter(|&i| transfer_error2(&h, src[i], dst[i]) < t2).map(|i| (src[i], dst[i])).unzip();
                 match fit(&is, &ds) {
                     Some(g) if count(&g) > c => {
                         c = count(&g);

@@ -179,7 +179,10 @@ pub fn inspect(encoder: &Encoder, src: &FrameSource, format: LabelFormat) -> Res
         ("labels".to_string(), labels_image(labels, table)),
         ("semantic edges".to_string(), mask_image(scratch.edges(), w, h)),
         (format!("EDT truncated at {tau:.0} px"), distance_image(scratch.d2(), w, h, tau)),
-        (format!("global descriptor {}x{}", cfg.global.width, cfg.global.height), descriptor_image(&desc, cfg.global.width as u32, cfg.global.height as u32, scale)),
+        (
+            format!("global descriptor {}x{}", cfg.global.width, cfg.global.height),
+            descriptor_image(&desc, cfg.global.width as u32, cfg.global.height as u32, scale),
+        ),
         (format!("{} trees and neighbour links", forest.len()), objects_image(&base, &objects, &forest, labels, table)),
     ];
     if let (Some(model), Some(rgb)) = (encoder.appearance_model(), &loaded.rgb) {
@@ -200,7 +203,11 @@ pub fn sheet(panels: &[Panel], columns: usize, cell_width: u32) -> RgbImage {
     let title_h = font::LINE * 2 + 4;
     let rows: Vec<&[(String, RgbImage)]> = scaled.chunks(columns).collect();
     let row_h: Vec<u32> = rows.iter().map(|r| r.iter().map(|p| p.1.height()).max().unwrap_or(0) + title_h).collect();
-    let mut out = RgbImage::from_pixel(cell_width * columns as u32 + 4 * (columns as u32 + 1), row_h.iter().sum::<u32>() + 4 * (rows.len() as u32 + 1), Rgb([32, 32, 32]));
+    let mut out = RgbImage::from_pixel(
+        cell_width * columns as u32 + 4 * (columns as u32 + 1),
+        row_h.iter().sum::<u32>() + 4 * (rows.len() as u32 + 1),
+        Rgb([32, 32, 32]),
+    );
     let mut y = 4;
     for (r, row) in rows.iter().enumerate() {
         for (c, (title, img)) in row.iter().enumerate() {
@@ -218,7 +225,8 @@ pub fn write_panels(panels: &[Panel], dir: &Path) -> Result<Vec<std::path::PathB
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
     let mut written = Vec::new();
     for (i, (title, img)) in panels.iter().enumerate() {
-        let slug: String = title.split(' ').take(2).collect::<Vec<_>>().join("-").chars().filter(|c| c.is_ascii_alphanumeric() || *c == '-').collect();
+        let slug: String =
+            title.split(' ').take(2).collect::<Vec<_>>().join("-").chars().filter(|c| c.is_ascii_alphanumeric() || *c == '-').collect();
         let p = dir.join(format!("{i}-{slug}.png"));
         save(img, &p)?;
         written.push(p);
@@ -265,7 +273,14 @@ pub fn frame_column(encoder: &Encoder, src: &FrameSource, format: LabelFormat, c
 /// For the `n` worst queries of `setting` in `report` (wrong top-1s, most confident first, then
 /// the least confident correct ones), a sheet per query: query | top-1 | a valid reference, each
 /// with its image and labels and the scores. Frames are found by id in `ds`.
-pub fn explain(report: &crate::eval::EvalReport, setting: crate::matching::Setting, ds: &crate::dataset::Dataset, encoder: &Encoder, n: usize, dir: &Path) -> Result<Vec<std::path::PathBuf>> {
+pub fn explain(
+    report: &crate::eval::EvalReport,
+    setting: crate::matching::Setting,
+    ds: &crate::dataset::Dataset,
+    encoder: &Encoder,
+    n: usize,
+    dir: &Path,
+) -> Result<Vec<std::path::PathBuf>> {
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
     let frames: std::collections::HashMap<&str, &FrameSource> =
         std::iter::once(&ds.reference).chain(&ds.queries).flat_map(|t| t.frames.iter().map(|f| (f.source.id.as_str(), &f.source))).collect();
@@ -277,18 +292,33 @@ pub fn explain(report: &crate::eval::EvalReport, setting: crate::matching::Setti
         .collect();
     let key = |o: &crate::eval::QueryOutcome| {
         let s = o.score.unwrap_or(f32::NEG_INFINITY) as f64;
-        if o.correct { (1, s) } else { (0, -s) }
+        if o.correct {
+            (1, s)
+        } else {
+            (0, -s)
+        }
     };
     worst.sort_by(|a, b| key(a.1).partial_cmp(&key(b.1)).unwrap_or(std::cmp::Ordering::Equal));
     let mut written = Vec::new();
     for (i, (set, o)) in worst.iter().take(n).enumerate() {
-        let find = |id: &str| frames.get(id).copied().ok_or_else(|| Error::dataset(&ds.root, format!("frame {id:?} of the report is not in the dataset")));
-        let mut cols = vec![frame_column(encoder, find(&o.query)?, ds.label_format, &[format!("query {}", o.query), format!("set {set}, {setting}")])?];
+        let find =
+            |id: &str| frames.get(id).copied().ok_or_else(|| Error::dataset(&ds.root, format!("frame {id:?} of the report is not in the dataset")));
+        let mut cols =
+            vec![frame_column(encoder, find(&o.query)?, ds.label_format, &[format!("query {}", o.query), format!("set {set}, {setting}")])?];
         if let Some(top) = &o.top1 {
             let verdict = if o.correct { "correct" } else { "wrong" };
-            cols.push(frame_column(encoder, find(top)?, ds.label_format, &[format!("top-1 {top} ({verdict})"), format!("score {:.3}", o.score.unwrap_or(f32::NAN))])?);
+            cols.push(frame_column(
+                encoder,
+                find(top)?,
+                ds.label_format,
+                &[format!("top-1 {top} ({verdict})"), format!("score {:.3}", o.score.unwrap_or(f32::NAN))],
+            )?);
         }
-        let valid = o.best_valid.as_ref().map(|(id, rank)| (id.clone(), format!("rank {}", rank + 1))).or_else(|| o.a_valid_reference.clone().map(|id| (id, "not in the ranked list".into())));
+        let valid = o
+            .best_valid
+            .as_ref()
+            .map(|(id, rank)| (id.clone(), format!("rank {}", rank + 1)))
+            .or_else(|| o.a_valid_reference.clone().map(|id| (id, "not in the ranked list".into())));
         if let Some((id, rank)) = valid {
             cols.push(frame_column(encoder, find(&id)?, ds.label_format, &[format!("valid {id}"), rank])?);
         }

@@ -49,12 +49,8 @@ pub fn write_pr_plots(report: &EvalReport, dir: &Path) -> Result<Vec<PathBuf>> {
     }
     let mut written = Vec::new();
     for set in sets {
-        let series: Vec<(String, Vec<(f64, f64)>)> = report
-            .results
-            .iter()
-            .filter(|r| r.query_set == set)
-            .map(|r| (format!("{} (AUC {:.3})", r.setting.name(), r.pr.auc), curve(r)))
-            .collect();
+        let series: Vec<(String, Vec<(f64, f64)>)> =
+            report.results.iter().filter(|r| r.query_set == set).map(|r| (format!("{} (AUC {:.3})", r.setting.name(), r.pr.auc), curve(r))).collect();
         let slug: String = set.chars().map(|c| if c.is_ascii_alphanumeric() { c } else { '-' }).collect();
         let title = format!("{}: {set}", report.dataset);
         let svg = dir.join(format!("pr-{slug}.svg"));
@@ -85,7 +81,13 @@ fn svg_chart(path: &Path, title: &str, series: &[(String, Vec<(f64, f64)>)]) -> 
             .label(name)
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
     }
-    chart.configure_series_labels().position(SeriesLabelPosition::LowerLeft).background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(|e| err(path, e))?;
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::LowerLeft)
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| err(path, e))?;
     root.present().map_err(|e| err(path, e))
 }
 
@@ -105,7 +107,14 @@ fn png_chart(path: &Path, title: &str, series: &[(String, Vec<(f64, f64)>)]) -> 
             .y_label_area_size(50)
             .build_cartesian_2d(0f64..1.0f64, 0f64..1.02f64)
             .map_err(|e| err(path, e))?;
-        chart.configure_mesh().x_labels(0).y_labels(0).light_line_style(BLACK.mix(0.08)).bold_line_style(BLACK.mix(0.2)).draw().map_err(|e| err(path, e))?;
+        chart
+            .configure_mesh()
+            .x_labels(0)
+            .y_labels(0)
+            .light_line_style(BLACK.mix(0.08))
+            .bold_line_style(BLACK.mix(0.2))
+            .draw()
+            .map_err(|e| err(path, e))?;
         for (i, (_, pts)) in series.iter().enumerate() {
             chart.draw_series(LineSeries::new(pts.iter().copied(), COLOURS[i % COLOURS.len()].stroke_width(2))).map_err(|e| err(path, e))?;
         }
@@ -119,11 +128,13 @@ fn png_chart(path: &Path, title: &str, series: &[(String, Vec<(f64, f64)>)]) -> 
     }
     let mut img = image::RgbImage::from_raw(w, h, buf).ok_or_else(|| err(path, "plot buffer size"))?;
     let black = image::Rgb([0, 0, 0]);
-    let text = |img: &mut image::RgbImage, x: i64, y: i64, s: &str, c: image::Rgb<u8>| font::render(s, x, y, 2, |px, py| {
-        if px >= 0 && py >= 0 && (px as u32) < w && (py as u32) < h {
-            img.put_pixel(px as u32, py as u32, c);
-        }
-    });
+    let text = |img: &mut image::RgbImage, x: i64, y: i64, s: &str, c: image::Rgb<u8>| {
+        font::render(s, x, y, 2, |px, py| {
+            if px >= 0 && py >= 0 && (px as u32) < w && (py as u32) < h {
+                img.put_pixel(px as u32, py as u32, c);
+            }
+        })
+    };
     text(&mut img, 16, 12, title, black);
     for ((x, y), s, on_x) in &ticks {
         if *on_x {

@@ -20,9 +20,9 @@
 //! Adding a parser: write a constructor returning a [`Target`], list it in [`TARGETS`] and give it
 //! a quick test.
 
+mod cap;
 #[path = "../common/mod.rs"]
 mod common;
-mod cap;
 mod models;
 mod mutate;
 mod parsers;
@@ -165,7 +165,10 @@ fn drive(t: &Target, seed: u64, stop: impl Fn(usize) -> bool) -> Stats {
                 None
             }
             Ok(Verdict::Violation(m)) => Some(m),
-            Err(p) => Some(format!("panic: {}", p.downcast_ref::<String>().map(String::as_str).or_else(|| p.downcast_ref::<&str>().copied()).unwrap_or("?"))),
+            Err(p) => Some(format!(
+                "panic: {}",
+                p.downcast_ref::<String>().map(String::as_str).or_else(|| p.downcast_ref::<&str>().copied()).unwrap_or("?")
+            )),
         };
         let problem = problem.or_else(|| (took > SLOW).then(|| format!("took {took:?}")));
         if let Some(m) = problem {
@@ -178,7 +181,14 @@ fn drive(t: &Target, seed: u64, stop: impl Fn(usize) -> bool) -> Stats {
 }
 
 fn report(name: &str, st: &Stats) -> String {
-    format!("{name:<20} {:>9} inputs {:>9} accepted {:>9} refused {:>3} failures  slowest {:>8.1} ms", st.inputs, st.accepted, st.refused, st.failures.len(), st.slowest.as_secs_f64() * 1e3)
+    format!(
+        "{name:<20} {:>9} inputs {:>9} accepted {:>9} refused {:>3} failures  slowest {:>8.1} ms",
+        st.inputs,
+        st.accepted,
+        st.refused,
+        st.failures.len(),
+        st.slowest.as_secs_f64() * 1e3
+    )
 }
 
 /// The short pass of one target, as part of `cargo test`.
@@ -237,9 +247,10 @@ fn every_target_has_a_quick_test() {
 #[ignore]
 fn long_run() {
     let secs: f64 = std::env::var("SEMLOOK_FUZZ_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(60.0);
-    let seed: u64 = std::env::var("SEMLOOK_FUZZ_SEED").ok().and_then(|s| s.parse().ok()).unwrap_or_else(|| {
-        std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(1, |d| d.as_nanos() as u64)
-    });
+    let seed: u64 = std::env::var("SEMLOOK_FUZZ_SEED")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(1, |d| d.as_nanos() as u64));
     let only = std::env::var("SEMLOOK_FUZZ_TARGETS").unwrap_or_default();
     let chosen = |name: &str| only.is_empty() || only.split(',').any(|n| n.trim() == name);
     let targets: Vec<Target> = TARGETS.iter().filter(|(name, _)| chosen(name)).filter_map(|(_, make)| make()).collect();

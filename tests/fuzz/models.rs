@@ -334,7 +334,9 @@ fn ints_attr(name: &str, v: &[i64]) -> Pb {
 fn tensor(name: &str, elem: i64, dims: &[i64], e: &mut Entropy) -> Pb {
     let n: i64 = dims.iter().product();
     let t = dims.iter().fold(Pb::default(), |t, &d| t.int(1, d)).int(2, elem).str(8, name);
-    let raw: Vec<u8> = (0..n.max(0)).flat_map(|_| if elem == FLOAT { (e.byte() as f32 / 32.0 - 4.0).to_le_bytes().to_vec() } else { (e.byte() as i64).to_le_bytes().to_vec() }).collect();
+    let raw: Vec<u8> = (0..n.max(0))
+        .flat_map(|_| if elem == FLOAT { (e.byte() as f32 / 32.0 - 4.0).to_le_bytes().to_vec() } else { (e.byte() as i64).to_le_bytes().to_vec() })
+        .collect();
     t.bytes(9, &raw)
 }
 
@@ -423,7 +425,12 @@ pub fn onnx_segmenter() -> Option<Target> {
         if let Err(e) = std::fs::write(path, model) {
             return Verdict::Violation(format!("fixture: {e}"));
         }
-        let cfg = SegmentationConfig { input_width: 64, input_height: 48, class_map: vec!["road".into(), "vegetation".into(), "sky".into()], ..Default::default() };
+        let cfg = SegmentationConfig {
+            input_width: 64,
+            input_height: 48,
+            class_map: vec!["road".into(), "vegetation".into(), "sky".into()],
+            ..Default::default()
+        };
         let name = path.display().to_string();
         let seg = match semlook::segmentation::Segmenter::load(path, &cfg, &semlook::classes::ClassTable::cityscapes(), None) {
             Ok(s) => s,

@@ -70,7 +70,15 @@ fn indexed_png(w: u32, h: u32) -> Vec<u8> {
 }
 
 fn label_kind(e: &Error) -> bool {
-    matches!(e, Error::ImageDecode { .. } | Error::EmptyImage { .. } | Error::UnknownClassId { .. } | Error::UnknownClassColor { .. } | Error::UnsupportedLabelFormat { .. } | Error::Io { .. })
+    matches!(
+        e,
+        Error::ImageDecode { .. }
+            | Error::EmptyImage { .. }
+            | Error::UnknownClassId { .. }
+            | Error::UnknownClassColor { .. }
+            | Error::UnsupportedLabelFormat { .. }
+            | Error::Io { .. }
+    )
 }
 
 /// Decodes `bytes` as a label map in each of `formats`; an accepted map is encoded too.
@@ -114,7 +122,13 @@ pub fn label_png_grey() -> Option<Target> {
         encode(DynamicImage::ImageLumaA8(alpha), ImageFormat::Png),
     ];
     let formats = [LabelFormat::Auto, LabelFormat::FirstChannel];
-    Some(Target { name: "label_png_grey", seeds, fixup: Some(png_fixup), quick: 400, run: Box::new(move |b| label_run(b, "fuzz/grey.png", &formats)) })
+    Some(Target {
+        name: "label_png_grey",
+        seeds,
+        fixup: Some(png_fixup),
+        quick: 400,
+        run: Box::new(move |b| label_run(b, "fuzz/grey.png", &formats)),
+    })
 }
 
 pub fn label_png_palette() -> Option<Target> {
@@ -124,9 +138,16 @@ pub fn label_png_palette() -> Option<Target> {
         let c = colour(x, y);
         Rgba([c[0], c[1], c[2], 255])
     });
-    let seeds = vec![encode(DynamicImage::ImageRgb8(rgb), ImageFormat::Png), encode(DynamicImage::ImageRgba8(rgba), ImageFormat::Png), indexed_png(16, 12)];
+    let seeds =
+        vec![encode(DynamicImage::ImageRgb8(rgb), ImageFormat::Png), encode(DynamicImage::ImageRgba8(rgba), ImageFormat::Png), indexed_png(16, 12)];
     let formats = [LabelFormat::Auto, LabelFormat::Palette, LabelFormat::FirstChannel];
-    Some(Target { name: "label_png_palette", seeds, fixup: Some(png_fixup), quick: 400, run: Box::new(move |b| label_run(b, "fuzz/palette.png", &formats)) })
+    Some(Target {
+        name: "label_png_palette",
+        seeds,
+        fixup: Some(png_fixup),
+        quick: 400,
+        run: Box::new(move |b| label_run(b, "fuzz/palette.png", &formats)),
+    })
 }
 
 pub fn rgb_image() -> Option<Target> {
@@ -220,7 +241,13 @@ pub fn dataset_manifest() -> Option<Target> {
         }
         open_dataset(&root)
     };
-    Some(Target { name: "dataset_manifest", seeds: seeds.iter().map(|s| s.as_bytes().to_vec()).collect(), fixup: None, quick: 400, run: Box::new(run) })
+    Some(Target {
+        name: "dataset_manifest",
+        seeds: seeds.iter().map(|s| s.as_bytes().to_vec()).collect(),
+        fixup: None,
+        quick: 400,
+        run: Box::new(run),
+    })
 }
 
 /// One manifest per layout, over the files of [`dataset_root`].
@@ -270,7 +297,13 @@ pub fn ground_truth_csv() -> Option<Target> {
         }
         open_dataset(&root)
     };
-    Some(Target { name: "ground_truth_csv", seeds: seeds.iter().map(|s| s.as_bytes().to_vec()).collect(), fixup: None, quick: 400, run: Box::new(run) })
+    Some(Target {
+        name: "ground_truth_csv",
+        seeds: seeds.iter().map(|s| s.as_bytes().to_vec()).collect(),
+        fixup: None,
+        quick: 400,
+        run: Box::new(run),
+    })
 }
 
 pub fn npy_fixtures() -> Vec<Vec<u8>> {
@@ -343,7 +376,8 @@ fn config_run(text: &str) -> Verdict {
         Ok(t) => t,
         Err(e) => return Verdict::Violation(format!("a validated class table fails: {e}")),
     };
-    let classes = (0..96 * 64).map(|i| if i % 37 == 0 { semlook::classes::VOID } else { ((i / 96 / 16 + i % 96 / 24) % table.len()) as u8 }).collect();
+    let classes =
+        (0..96 * 64).map(|i| if i % 37 == 0 { semlook::classes::VOID } else { ((i / 96 / 16 + i % 96 / 24) % table.len()) as u8 }).collect();
     let map = match semlook::input::LabelMap::new(96, 64, classes, &table) {
         Ok(m) => m,
         Err(e) => return Verdict::Violation(format!("label map: {e}")),
@@ -376,7 +410,10 @@ fn config_run(text: &str) -> Verdict {
 }
 
 pub fn config_toml() -> Option<Target> {
-    let mut seeds: Vec<Vec<u8>> = [Config::default(), Config::camvid(), Config::without_appearance()].iter().map(|c| c.to_toml().expect("defaults write").into_bytes()).collect();
+    let mut seeds: Vec<Vec<u8>> = [Config::default(), Config::camvid(), Config::without_appearance()]
+        .iter()
+        .map(|c| c.to_toml().expect("defaults write").into_bytes())
+        .collect();
     seeds.push(b"[matching]\ntop_k = 3\ntile = 2\n[eval]\nrecall_at = [1, 2, 3]\n[global]\nwidth = 16\nheight = 12\nssim_window = 5\n".to_vec());
     seeds.push(b"[classes]\ntable = [{name = \"a\", color = [1, 2, 3]}, {name = \"b\", color = [4, 5, 6], dynamic = true}]\nlabel_ids = [[0, \"a\"], [9, \"b\"], [255, \"void\"]]\nexclude = [\"b\"]\n[segmentation]\nclass_map = [\"a\", \"void\"]\n".to_vec());
     let run = |b: &[u8]| config_run(&String::from_utf8_lossy(b));

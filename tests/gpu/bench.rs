@@ -40,7 +40,19 @@ fn gpu_rows_run_their_batches_and_say_what_they_measured() {
                 assert!(r.note.contains("correctness only") && r.peak_gflops.is_none() && r.fraction_of_peak.is_none(), "{r:?}");
             }
             let json = serde_json::to_value(r).unwrap();
-            for key in ["map_size", "batch", "backend", "adapter", "queries_run", "comparisons_per_s", "peak_rss_mib", "bytes_per_s", "gflops", "fraction_of_peak", "device_bytes_written"] {
+            for key in [
+                "map_size",
+                "batch",
+                "backend",
+                "adapter",
+                "queries_run",
+                "comparisons_per_s",
+                "peak_rss_mib",
+                "bytes_per_s",
+                "gflops",
+                "fraction_of_peak",
+                "device_bytes_written",
+            ] {
                 assert!(json.get(key).is_some(), "{key} missing from {json}");
             }
         }

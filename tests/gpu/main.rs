@@ -2,9 +2,9 @@
 //! On a machine without any adapter the tests print why they skip; under CI (CI set) or with
 //! REQUIRE_GPU=1 a missing adapter is a failure, so CI cannot pass without running them.
 
+mod bench;
 #[path = "../common/mod.rs"]
 mod common;
-mod bench;
 mod fine;
 mod resident;
 mod verify;
@@ -91,7 +91,16 @@ fn random_maps(seed: u64) -> Vec<semlook::input::LabelMap> {
                 vec![2u8; (w * h) as usize]
             } else {
                 let n = 1 + rng.below(5);
-                (0..w * h).map(|_| { let c = rng.below(n + 1) as u8; if c == n as u8 { 255 } else { c } }).collect()
+                (0..w * h)
+                    .map(|_| {
+                        let c = rng.below(n + 1) as u8;
+                        if c == n as u8 {
+                            255
+                        } else {
+                            c
+                        }
+                    })
+                    .collect()
             };
             semlook::input::LabelMap::new(w, h, classes, &t).unwrap()
         })
@@ -144,10 +153,25 @@ pub fn random_descriptors(n: usize, cfg: &Config, seed: u64) -> DescriptorSet {
     for i in 0..n {
         // smooth random fields, like distance maps
         let (fx, fy, ph) = (rng.range(0.05, 0.4), rng.range(0.05, 0.4), rng.range(0.0, 6.0));
-        let g: Vec<f32> = (0..p.len()).map(|k| { let (x, y) = ((k % p.gw as usize) as f64, (k / p.gw as usize) as f64); (0.5 + 0.5 * (fx * x + ph).sin() * (fy * y).cos()) as f32 }).collect();
+        let g: Vec<f32> = (0..p.len())
+            .map(|k| {
+                let (x, y) = ((k % p.gw as usize) as f64, (k / p.gw as usize) as f64);
+                (0.5 + 0.5 * (fx * x + ph).sin() * (fy * y).cos()) as f32
+            })
+            .collect();
         let mut stats = vec![0.0; p.stats_len()];
         semlook::global::ssim::ssim_stats(&p, &g, &mut stats, &mut Default::default());
-        let img = semlook::encode::EncodedImage { id: format!("r{i}"), width: 64, height: 48, global: g, global_stats: stats, forest: Forest { neighbour_slots: 3, ..Default::default() }, appearance: vec![], hog: vec![], keypoints: Default::default() };
+        let img = semlook::encode::EncodedImage {
+            id: format!("r{i}"),
+            width: 64,
+            height: 48,
+            global: g,
+            global_stats: stats,
+            forest: Forest { neighbour_slots: 3, ..Default::default() },
+            appearance: vec![],
+            hog: vec![],
+            keypoints: Default::default(),
+        };
         set.push(&img).unwrap();
     }
     set
@@ -210,7 +234,17 @@ pub fn random_forest_set(n: usize, dim: usize, seed: u64) -> DescriptorSet {
             }
         }
         f.set_appearance(dim, app, counts, 1).unwrap();
-        let img = semlook::encode::EncodedImage { id: format!("f{i}"), width: 10, height: 10, global: vec![0.5; p.len()], global_stats: vec![0.0; p.stats_len()], forest: f, appearance: vec![], hog: vec![], keypoints: Default::default() };
+        let img = semlook::encode::EncodedImage {
+            id: format!("f{i}"),
+            width: 10,
+            height: 10,
+            global: vec![0.5; p.len()],
+            global_stats: vec![0.0; p.stats_len()],
+            forest: f,
+            appearance: vec![],
+            hog: vec![],
+            keypoints: Default::default(),
+        };
         set.push(&img).unwrap();
     }
     set
@@ -227,11 +261,29 @@ fn tree_similarity_matches_the_cpu_twin() {
     let pairs: Vec<(u32, u32)> = (0..6).flat_map(|q| (0..40).map(move |r| (q, r))).collect();
     let variants = [
         semlook::config::SimilarityConfig::default(),
-        semlook::config::SimilarityConfig { position: semlook::config::PositionSimilarity::Gaussian, missing_appearance: semlook::config::MissingAppearance::Drop, ..Default::default() },
+        semlook::config::SimilarityConfig {
+            position: semlook::config::PositionSimilarity::Gaussian,
+            missing_appearance: semlook::config::MissingAppearance::Drop,
+            ..Default::default()
+        },
         semlook::config::SimilarityConfig { assignment: semlook::config::Assignment::BestMatch, ..Default::default() },
-        semlook::config::SimilarityConfig { tree_weight: semlook::config::TreeWeight::Descriptors, normalise: semlook::config::Normalise::GeometricMean, ..Default::default() },
-        semlook::config::SimilarityConfig { tree_weight: semlook::config::TreeWeight::SqrtArea, assignment: semlook::config::Assignment::BestMatch, ..Default::default() },
-        semlook::config::SimilarityConfig { tree_weight: semlook::config::TreeWeight::Area, w_area: 0.0, w_position: 0.0, missing_appearance: semlook::config::MissingAppearance::Drop, ..Default::default() },
+        semlook::config::SimilarityConfig {
+            tree_weight: semlook::config::TreeWeight::Descriptors,
+            normalise: semlook::config::Normalise::GeometricMean,
+            ..Default::default()
+        },
+        semlook::config::SimilarityConfig {
+            tree_weight: semlook::config::TreeWeight::SqrtArea,
+            assignment: semlook::config::Assignment::BestMatch,
+            ..Default::default()
+        },
+        semlook::config::SimilarityConfig {
+            tree_weight: semlook::config::TreeWeight::Area,
+            w_area: 0.0,
+            w_position: 0.0,
+            missing_appearance: semlook::config::MissingAppearance::Drop,
+            ..Default::default()
+        },
         semlook::config::SimilarityConfig { class_match: semlook::config::ClassMatch::Category, ..Default::default() },
     ];
     let table = semlook::classes::ClassTable::cityscapes();
@@ -415,7 +467,9 @@ fn random_vlad_frames(k: usize, d: usize, seed: u64) -> (semlook::appearance::vl
 fn vlad_kernels_match_the_cpu_twin() {
     let Some(ctx) = gpu() else { return };
     let mut vg = semlook::gpu::vlad::VladGpu::new(ctx);
-    for (i, &(k, d, power, intra)) in [(16usize, 64usize, false, true), (5, 37, true, true), (3, 100, false, false), (64, 64, true, false), (1, 1, false, true)].iter().enumerate() {
+    for (i, &(k, d, power, intra)) in
+        [(16usize, 64usize, false, true), (5, 37, true, true), (3, 100, false, false), (64, 64, true, false), (1, 1, false, true)].iter().enumerate()
+    {
         let norm = semlook::appearance::vlad::VladNorm { intra, power };
         let (cb, frames) = random_vlad_frames(k, d, i as u64 + 40);
         let inputs: Vec<(&[f32], &[u32])> = frames.iter().map(|(a, b)| (a.as_slice(), b.as_slice())).collect();
@@ -447,7 +501,12 @@ fn inconsistent_batches_are_refused_with_typed_errors() {
     *past.last_mut().unwrap() += 1;
     let norm = semlook::appearance::vlad::VladNorm { intra: true, power: false };
     let mut vg = semlook::gpu::vlad::VladGpu::new(ctx);
-    for (what, d, o) in [("no runs", &descs[..], &[][..]), ("runs from 1", descs, &[1, 2][..]), ("runs past the end", descs, &past[..]), ("a partial descriptor", &descs[..descs.len().saturating_sub(1)], offsets)] {
+    for (what, d, o) in [
+        ("no runs", &descs[..], &[][..]),
+        ("runs from 1", descs, &[1, 2][..]),
+        ("runs past the end", descs, &past[..]),
+        ("a partial descriptor", &descs[..descs.len().saturating_sub(1)], offsets),
+    ] {
         let err = vg.run(&cb, norm, &[(d, o)]).unwrap_err();
         assert!(err.to_string().contains("VLAD aggregation"), "{what}: {err}");
     }
@@ -460,7 +519,12 @@ fn inconsistent_batches_are_refused_with_typed_errors() {
 /// edges and squared distances exact, pooling within 1e-5, VLAD of its XFeat keypoints within 1e-5.
 #[test]
 fn kernels_on_a_real_street_frame() {
-    let (Some(model), Some(frame)) = (common::shared_or_required("models/espnet_cityscapes.onnx"), common::shared_or_required("data/street-frames/frankfurt_000000_000576_leftImg8bit.png")) else { return };
+    let (Some(model), Some(frame)) = (
+        common::shared_or_required("models/espnet_cityscapes.onnx"),
+        common::shared_or_required("data/street-frames/frankfurt_000000_000576_leftImg8bit.png"),
+    ) else {
+        return;
+    };
     let Some(ctx) = gpu() else { return };
     let cfg = Config::default();
     let table = semlook::classes::ClassTable::cityscapes();

@@ -17,7 +17,9 @@ fn bytes_of(set: &DescriptorSet) -> u64 {
 /// Bytes a coarse batch writes besides the map: its queries, its empty lists, one parameter entry
 /// per pass and the SSIM constants' uniform of a new matcher (0 for a matcher made earlier).
 fn batch_bytes(ctx: &GpuContext, q: &DescriptorSet, k: usize, passes: u64) -> u64 {
-    bytes_of(q) + (q.len() * k * 8) as u64 + passes * (std::mem::size_of::<semlook::matching::ssim_block::PassParams>() as u64).next_multiple_of(ctx.uniform_offset_alignment() as u64)
+    bytes_of(q)
+        + (q.len() * k * 8) as u64
+        + passes * (std::mem::size_of::<semlook::matching::ssim_block::PassParams>() as u64).next_multiple_of(ctx.uniform_offset_alignment() as u64)
 }
 
 /// Two consecutive batches against the same map: the first uploads the map, the second writes
@@ -57,7 +59,9 @@ fn the_map_is_uploaded_once_across_batches() {
 /// batch), and the lists are the same.
 #[test]
 fn a_map_beyond_the_budget_is_streamed() {
-    let Some(ctx) = gpu_with(&GpuOptions { resident_budget: Some(100_000), max_binding_size: Some(256 * 1024), ..Default::default() }) else { return };
+    let Some(ctx) = gpu_with(&GpuOptions { resident_budget: Some(100_000), max_binding_size: Some(256 * 1024), ..Default::default() }) else {
+        return;
+    };
     let cfg = Config::without_appearance();
     let p = SsimParams::new(&cfg.global);
     let (refs, q) = (random_descriptors(30, &cfg, 41), random_descriptors(4, &cfg, 42));
@@ -115,7 +119,13 @@ fn a_large_batch_runs_on_the_device_without_falling_back() {
     let mut engine = Engine::with_context(ctx.clone()).fall_back_to_cpu(true);
     let t = std::time::Instant::now();
     let (gpu, _) = engine.match_batch(&refs, &q, Setting::Global, &cfg).unwrap();
-    eprintln!("{} x {} ({chunks} map chunks, {qchunks} query chunks) on {}: {:.1} s (correctness only)", refs.len(), q.len(), ctx.describe(), t.elapsed().as_secs_f64());
+    eprintln!(
+        "{} x {} ({chunks} map chunks, {qchunks} query chunks) on {}: {:.1} s (correctness only)",
+        refs.len(),
+        q.len(),
+        ctx.describe(),
+        t.elapsed().as_secs_f64()
+    );
     assert!(engine.is_gpu(), "the engine fell back to the CPU");
     assert!(engine.gpu_stages().unwrap().coarse_map_is_resident());
     let cpu = coarse_topk(&refs, &q, &p, cfg.matching.top_k, cfg.matching.tile);
@@ -173,7 +183,8 @@ fn parallel_top_k_on_the_device_keeps_what_the_fold_keeps() {
     let mut rng = semlook::util::SplitMix64::new(91);
     let specials = [f32::NAN, f32::from_bits(0x7f80_0001), f32::from_bits(0xffc0_0000), f32::INFINITY, f32::NEG_INFINITY, EMPTY_SCORE, -0.0, 0.0];
     let (nq, n) = (3, 2500);
-    let scores: Vec<f32> = (0..nq * n).map(|_| if rng.chance(0.3) { specials[rng.below(specials.len())] } else { rng.below(7) as f32 / 6.0 - 0.5 }).collect();
+    let scores: Vec<f32> =
+        (0..nq * n).map(|_| if rng.chance(0.3) { specials[rng.below(specials.len())] } else { rng.below(7) as f32 / 6.0 - 0.5 }).collect();
     for (k, pass) in [(1, 2500), (10, 2100), (37, 700), (5, 1)] {
         let gpu = semlook::gpu::reference::select_topk(&ctx, &scores, nq, k, pass).unwrap();
         let (mut ts, mut ti) = (vec![EMPTY_SCORE; nq * k], vec![EMPTY_INDEX; nq * k]);
@@ -218,7 +229,9 @@ fn limits_too_small_for_one_reference_name_the_resource() {
     let cfg = Config::without_appearance();
     let m = semlook::gpu::coarse::CoarseMatcherGpu::new(ctx, SsimParams::new(&cfg.global)).unwrap();
     match m.plan(10) {
-        Err(semlook::gpu::GpuError::LimitsTooSmall { what, needed, .. }) => assert!(what.contains("one reference") && needed == 19_488, "{what} {needed}"),
+        Err(semlook::gpu::GpuError::LimitsTooSmall { what, needed, .. }) => {
+            assert!(what.contains("one reference") && needed == 19_488, "{what} {needed}")
+        }
         other => panic!("{other:?}"),
     }
 }
@@ -269,14 +282,21 @@ fn coarse_lists_on_real_camvid_labels_equal_both_cpu_paths() {
     let Some(ctx) = gpu() else { return };
     let mut files: Vec<_> = entries.map(|e| e.unwrap().path()).filter(|p| p.extension().is_some_and(|x| x == "png")).collect();
     files.sort();
-    let cfg = Config { appearance: semlook::config::AppearanceConfig { model: semlook::config::AppearanceModelKind::None, ..Default::default() }, ..Config::camvid() };
+    let cfg = Config {
+        appearance: semlook::config::AppearanceConfig { model: semlook::config::AppearanceModelKind::None, ..Default::default() },
+        ..Config::camvid()
+    };
     let enc = semlook::encode::Encoder::new(&cfg).unwrap();
     let (mut refs, mut q) = (enc.descriptor_set(), enc.descriptor_set());
     let mut scratch = Default::default();
     for (i, f) in files.iter().enumerate() {
         let labels = semlook::input::load_label_map(f, enc.class_table(), Default::default()).unwrap();
         let (img, _) = enc.encode_labels(&f.display().to_string(), &labels, &mut scratch).unwrap();
-        if i % 2 == 0 { refs.push(&img).unwrap() } else { q.push(&img).unwrap() }
+        if i % 2 == 0 {
+            refs.push(&img).unwrap()
+        } else {
+            q.push(&img).unwrap()
+        }
     }
     assert!(refs.len() > 100 && q.len() > 100, "{} frames", files.len());
     let p = SsimParams::new(&cfg.global);
@@ -288,7 +308,13 @@ fn coarse_lists_on_real_camvid_labels_equal_both_cpu_paths() {
     assert_same_lists(&gpu, &fast, 1e-5, "CamVid: GPU vs fast CPU path");
     let worst = gpu.iter().zip(&twin).flat_map(|(a, b)| a.iter().zip(b).map(|(x, y)| (x.0 - y.0).abs())).fold(0.0f32, f32::max);
     let same = gpu.iter().zip(&twin).filter(|(a, b)| a.iter().map(|e| e.1).eq(b.iter().map(|e| e.1))).count();
-    eprintln!("CamVid ({} refs x {} queries, k {k}) on {}: {same} of {} lists identical, worst score difference {worst:e}", refs.len(), q.len(), ctx.describe(), q.len());
+    eprintln!(
+        "CamVid ({} refs x {} queries, k {k}) on {}: {same} of {} lists identical, worst score difference {worst:e}",
+        refs.len(),
+        q.len(),
+        ctx.describe(),
+        q.len()
+    );
 }
 
 /// The full size of the issue: 1,000,000 references (default 64 x 48 descriptors, 31.8 GB with

@@ -3,12 +3,12 @@
 //! whole verification (GPU matching, CPU RANSAC) equal to the CPU path on real frames.
 
 use super::{common, gpu};
+use semlook::descriptors::keypoints::ImageKeypoints;
 use semlook::descriptors::{DescriptorSet, EncodedImage};
 use semlook::gpu::verify::MnnGpu;
 use semlook::local::Forest;
 use semlook::matching::{CpuStages, Stages};
 use semlook::util::SplitMix64;
-use semlook::descriptors::keypoints::ImageKeypoints;
 use semlook::verify::mnn_match::{best_columns, mnn_match, pack, MnnPair, MnnParams};
 
 /// A set of images with `counts[i]` random keypoints of dimension `dim` (ties included: some
@@ -28,7 +28,17 @@ fn keypoint_set(counts: &[usize], dim: usize, rng: &mut SplitMix64) -> Descripto
             k.xy.extend([rng.below(65536) as u16, rng.below(65536) as u16]);
             k.classes.push(rng.below(19) as u8);
         }
-        let img = EncodedImage { id: format!("k{i}"), width: 8, height: 8, global: vec![0.5; p.len()], global_stats: vec![0.0; p.stats_len()], forest: Forest { neighbour_slots: 3, ..Default::default() }, appearance: vec![], hog: vec![], keypoints: k };
+        let img = EncodedImage {
+            id: format!("k{i}"),
+            width: 8,
+            height: 8,
+            global: vec![0.5; p.len()],
+            global_stats: vec![0.0; p.stats_len()],
+            forest: Forest { neighbour_slots: 3, ..Default::default() },
+            appearance: vec![],
+            hog: vec![],
+            keypoints: k,
+        };
         set.push(&img).unwrap();
     }
     set
@@ -93,7 +103,17 @@ fn verification_on_the_gpu_equals_the_cpu_on_real_frames() {
         let k = semlook::appearance::verification_keypoints(&det, cfg.keypoints.stored, &labels, 640);
         assert!(k.len() > 100, "{name}: {} keypoints", k.len());
         let p = semlook::global::ssim::SsimParams::new(&cfg.global);
-        let img = EncodedImage { id: name.into(), width: 640, height: 360, global: vec![0.5; p.len()], global_stats: vec![0.0; p.stats_len()], forest: Forest { neighbour_slots: 3, ..Default::default() }, appearance: vec![], hog: vec![], keypoints: k };
+        let img = EncodedImage {
+            id: name.into(),
+            width: 640,
+            height: 360,
+            global: vec![0.5; p.len()],
+            global_stats: vec![0.0; p.stats_len()],
+            forest: Forest { neighbour_slots: 3, ..Default::default() },
+            appearance: vec![],
+            hog: vec![],
+            keypoints: k,
+        };
         set.push(&img).unwrap();
     }
     let pairs = [(0u32, 1u32), (0, 2), (1, 2), (2, 0)];

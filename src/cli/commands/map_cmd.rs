@@ -3,20 +3,22 @@
 
 use super::shared::{apply_models, frame_sources, info, load_config, map_config, to_json};
 use crate::cli::args::{MapCommand, SourceArgs, StoreArgs, StoreBenchArgs};
+use semlook::batch::{self, IntoOptions};
 use semlook::config::Config;
 use semlook::encode::Encoder;
 use semlook::engine::Engine;
 use semlook::error::{Error, Result};
 use semlook::input::{FrameSource, LabelFormat};
 use semlook::map::Map;
-use std::path::Path;
-use semlook::batch::{self, IntoOptions};
 use semlook::map::{edit, MapWriter, StoreOptions};
 use semlook::values::ValueType;
+use std::path::Path;
 
 pub fn run(cmd: MapCommand, engine: &dyn Fn() -> Result<Engine>, quiet: bool) -> Result<()> {
     match cmd {
-        MapCommand::Build { source, out, config, force, resume, hog, store } => build(&mut engine()?, &source, &out, config.as_deref(), &BuildFlags { force, resume, hog, store }, quiet),
+        MapCommand::Build { source, out, config, force, resume, hog, store } => {
+            build(&mut engine()?, &source, &out, config.as_deref(), &BuildFlags { force, resume, hog, store }, quiet)
+        }
         MapCommand::Add { source, map, resume, segment_images } => add(&mut engine()?, &source, &map, resume, segment_images, quiet),
         MapCommand::Info { map, json } => show(&map, json),
         MapCommand::Remove { map, ids } => remove(&map, &ids, quiet),
@@ -53,13 +55,33 @@ pub fn build(engine: &mut Engine, s: &SourceArgs, out: &Path, config: Option<&Pa
     } else {
         build_into(engine, &cfg, &frames, fmt, out, f, opts, s.skip_invalid, quiet)?
     };
-    info(quiet, format!("map {}: {} images, {} trees, {} segments ({})", out.display(), map.len(), map.n_trees(), map.manifest.segments.len(), map.manifest.values.name()));
+    info(
+        quiet,
+        format!(
+            "map {}: {} images, {} trees, {} segments ({})",
+            out.display(),
+            map.len(),
+            map.n_trees(),
+            map.manifest.segments.len(),
+            map.manifest.values.name()
+        ),
+    );
     Ok(())
 }
 
 /// Builds (or, with `--resume` and a manifest there, continues building) the map in `dir`.
 #[allow(clippy::too_many_arguments)]
-fn build_into(engine: &mut Engine, cfg: &Config, frames: &[FrameSource], fmt: LabelFormat, dir: &Path, f: &BuildFlags, opts: StoreOptions, skip: bool, quiet: bool) -> Result<Map> {
+fn build_into(
+    engine: &mut Engine,
+    cfg: &Config,
+    frames: &[FrameSource],
+    fmt: LabelFormat,
+    dir: &Path,
+    f: &BuildFlags,
+    opts: StoreOptions,
+    skip: bool,
+    quiet: bool,
+) -> Result<Map> {
     let resuming = f.resume && dir.join(semlook::map::manifest::MANIFEST).exists();
     let (encoder, mut writer) = if resuming {
         let map = Map::open(dir)?;
@@ -68,7 +90,10 @@ fn build_into(engine: &mut Engine, cfg: &Config, frames: &[FrameSource], fmt: La
         let layout = [("--hog", map.manifest.hog_dim > 0, f.hog), ("--f16", map.manifest.values == ValueType::F16, opts.values == ValueType::F16)];
         if let Some((flag, stored, given)) = layout.into_iter().find(|(_, stored, given)| stored != given) {
             let say = |on: bool| if on { "given" } else { "not given" };
-            return Err(Error::invalid(format!("map {}", dir.display()), format!("{flag} is {} but the interrupted build had it {}: resume with the same layout options", say(given), say(stored))));
+            return Err(Error::invalid(
+                format!("map {}", dir.display()),
+                format!("{flag} is {} but the interrupted build had it {}: resume with the same layout options", say(given), say(stored)),
+            ));
         }
         let encoder = Encoder::for_map(cfg, &map)?.with_hog(f.hog);
         info(quiet, format!("resuming: the map holds {} images (generation {})", map.len(), map.manifest.generation));
@@ -113,10 +138,20 @@ fn add(engine: &mut Engine, s: &SourceArgs, dir: &Path, resume: bool, segment_im
     let encoder = Encoder::for_map(&cfg, &map)?.with_hog(map.manifest.hog_dim > 0);
     drop(map);
     let mut writer = MapWriter::append(dir, store_options(false, segment_images))?;
-    let r = batch::encode_into(engine, &encoder, &frames, fmt, &mut writer, IntoOptions { skip_invalid: s.skip_invalid, skip_stored: resume, quiet })?;
+    let r =
+        batch::encode_into(engine, &encoder, &frames, fmt, &mut writer, IntoOptions { skip_invalid: s.skip_invalid, skip_stored: resume, quiet })?;
     report_encoding(&r, quiet);
     let map = writer.finish()?;
-    info(quiet, format!("map {}: now {} images in {} segments (generation {})", dir.display(), map.len(), map.manifest.segments.len(), map.manifest.generation));
+    info(
+        quiet,
+        format!(
+            "map {}: now {} images in {} segments (generation {})",
+            dir.display(),
+            map.len(),
+            map.manifest.segments.len(),
+            map.manifest.generation
+        ),
+    );
     Ok(())
 }
 
@@ -136,7 +171,8 @@ fn show(dir: &Path, json: bool) -> Result<()> {
         }
     }
     let per = |b: usize| b as f64 / m.stored_images().max(1) as f64;
-    let by_column: serde_json::Map<String, serde_json::Value> = columns.iter().map(|&(n, b)| (n.to_string(), serde_json::json!(per(b).round() as u64))).collect();
+    let by_column: serde_json::Map<String, serde_json::Value> =
+        columns.iter().map(|&(n, b)| (n.to_string(), serde_json::json!(per(b).round() as u64))).collect();
     if json {
         let v = serde_json::json!({
             "path": dir,
@@ -244,7 +280,8 @@ fn verify(dir: &Path, json: bool) -> Result<()> {
         }
         Some(first) => {
             let problem = r.damaged().next().and_then(|f| f.problem.clone()).unwrap_or_default();
-            let others = if damaged.len() > 1 { format!(" (and {} more damaged: {})", damaged.len() - 1, damaged[1..].join(", ")) } else { String::new() };
+            let others =
+                if damaged.len() > 1 { format!(" (and {} more damaged: {})", damaged.len() - 1, damaged[1..].join(", ")) } else { String::new() };
             Err(Error::corrupt(dir.join(first), format!("{problem}{others}")))
         }
     }

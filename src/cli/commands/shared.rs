@@ -63,11 +63,7 @@ pub fn frame_sources(s: &SourceArgs, cfg: &mut Config, keep_ids: bool) -> Result
         let trav = match &s.traversal {
             None => &ds.reference,
             Some(name) if *name == ds.reference.name => &ds.reference,
-            Some(name) => ds
-                .queries
-                .iter()
-                .find(|q| q.name == *name)
-                .ok_or_else(|| Error::dataset(dir, format!("no traversal named {name:?}")))?,
+            Some(name) => ds.queries.iter().find(|q| q.name == *name).ok_or_else(|| Error::dataset(dir, format!("no traversal named {name:?}")))?,
         };
         let frames = trav.frames.iter().map(|f| f.source.clone()).collect();
         return Ok((frames, s.label_format.unwrap_or(ds.label_format)));
