@@ -136,6 +136,9 @@ pub struct Encoder {
     segmenter: Option<Arc<LazySegmenter>>,
     /// Also compute the VPR-Bench HOG baseline descriptor.
     hog: bool,
+    /// Encode frames that have no label map, when there is no segmenter, with a void one
+    /// ([`Encoder::without_labels`]) instead of refusing them.
+    void_labels: bool,
 }
 
 /// A segmenter loaded on first use: encoding label maps never needs ONNX Runtime.
@@ -164,18 +167,22 @@ impl LazySegmenter {
     }
 }
 
+/// The segmenter `cfg` names, else the default one when it is installed; `None`: frames without
+/// label maps cannot be segmented.
+pub fn segmenter_path(cfg: &Config) -> Result<Option<std::path::PathBuf>> {
+    Ok(match &cfg.models.segmenter_onnx {
+        Some(p) => Some(crate::onnx::find_model(crate::segmentation::DEFAULT_SEGMENTER, Some(p), "segmenter")?),
+        None if cfg.models.default_segmenter => crate::onnx::find_model(crate::segmentation::DEFAULT_SEGMENTER, None, "segmenter").ok(),
+        None => None,
+    })
+}
+
 impl Encoder {
     /// An encoder for `cfg`: loads the keypoint network (and segmenter) the config names.
     pub fn new(cfg: &Config) -> Result<Encoder> {
         let table = ClassTable::from_config(&cfg.classes)?;
         let appearance = AppearanceModel::load(&cfg.appearance, &cfg.models)?.map(|m| Arc::new(m.with_detection(&cfg.keypoints)));
-        // the configured segmenter, else the default one when it is installed
-        let seg_path = match &cfg.models.segmenter_onnx {
-            Some(p) => Some(crate::onnx::find_model(crate::segmentation::DEFAULT_SEGMENTER, Some(p), "segmenter")?),
-            None if cfg.models.default_segmenter => crate::onnx::find_model(crate::segmentation::DEFAULT_SEGMENTER, None, "segmenter").ok(),
-            None => None,
-        };
-        let segmenter = seg_path.map(|path| {
+        let segmenter = segmenter_path(cfg)?.map(|path| {
             Arc::new(LazySegmenter {
                 path,
                 cfg: cfg.segmentation.clone(),
@@ -193,6 +200,7 @@ impl Encoder {
             codebook: None,
             segmenter,
             hog: false,
+            void_labels: false,
         })
     }
     /// Whether the encoder also computes the HOG baseline (VPR-Bench's, [`crate::baseline`]).
@@ -202,6 +210,18 @@ impl Encoder {
     }
     pub fn computes_hog(&self) -> bool {
         self.hog
+    }
+    /// With `on`, a frame with neither a label map nor a segmenter to make one is encoded with a
+    /// void label map: no edges, no objects, a global descriptor the same for every frame. Only
+    /// the settings that need no labels ([`crate::matching::Setting::label_free`]) may then be
+    /// matched; the caller skips the others.
+    pub fn without_labels(mut self, on: bool) -> Encoder {
+        self.void_labels = on;
+        self
+    }
+    /// Whether a segmenter makes the label maps of frames that have none.
+    pub fn has_segmenter(&self) -> bool {
+        self.segmenter.is_some()
     }
     /// The segmentation network (loaded now if it was not yet); `image` names the frame in
     /// the error when there is none.
@@ -320,6 +340,7 @@ impl Encoder {
         times.decode_ms = ms_since(t);
         let full_labels = match (&src.labels, &self.segmenter, &rgb) {
             (None, Some(_), Some(_)) => None,
+            (None, None, Some(_)) if self.void_labels => None,
             // the decoded image is compared below; no need to read its header again
             (Some(path), _, Some(_)) => Some(input::load_label_map(path, &self.table, format)?),
             _ => Some(input::load_frame_labels(src, &self.table, format)?),
@@ -413,6 +434,7 @@ impl Encoder {
                 times.segment_ms = ms_since(t);
                 l
             }
+            (None, None, Some(_)) if self.void_labels => LabelMap::void(ww, wh),
             _ => return Err(Error::invalid(format!("frame {id:?}"), "no label map")),
         };
         let hog = match (hog_rgb.as_ref().or(rgb.as_ref()), self.hog) {

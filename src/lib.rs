@@ -60,6 +60,7 @@ pub mod input;
 pub mod local;
 pub mod map;
 pub mod matching;
+pub mod models;
 pub mod objects;
 pub mod onnx;
 pub mod pickle;

@@ -353,3 +353,67 @@ fn non_utf8_file_names_are_found() {
     let info: serde_json::Value = serde_json::from_str(&ok(&["map", "info", "--map", p(&map), "--json"])).unwrap();
     assert_eq!(info["images"], 1);
 }
+
+/// RGB photos with no label maps and no segmenter (a user's machine without the default
+/// segmenter): `eval` runs the settings that need no labels (hog, appearance, verified) and names
+/// each of the others as skipped with its reason; before, the whole command stopped at the first
+/// frame ("no label map given and no segmenter configured"). Asking only for settings that need
+/// labels still fails, naming a frame.
+#[test]
+fn eval_on_photos_without_a_segmenter_runs_the_label_free_settings() {
+    if let Err(e) = semlook::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, None, "XFeat") {
+        return common::skip_unless_required("REQUIRE_MODELS", format!("XFeat weights (run setup.sh): {e}"));
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    ok(&["synth", "--out", p(&data), "--places", "6", "--size", "160x120", "-q"]);
+    let (r, q) = (dir.path().join("ref"), dir.path().join("query"));
+    let mut gt = String::from("query,reference\n");
+    for (from, to) in [("day", &r), ("sunset", &q)] {
+        std::fs::create_dir_all(to).unwrap();
+        for e in std::fs::read_dir(data.join(from).join("RGB/Stereo_Left/Omni_F")).unwrap().flatten() {
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+            if from == "day" {
+                let n = e.file_name().to_string_lossy().into_owned();
+                gt += &format!("query/{n},ref/{n}\n");
+            }
+        }
+    }
+    let truth = dir.path().join("gt.csv");
+    std::fs::write(&truth, gt).unwrap();
+    let eval = |extra: &[&str]| {
+        semlook(&[&["eval", "--references", p(&r), "--queries", p(&q), "--ground-truth", p(&truth), "--no-segmenter", "--json"][..], extra].concat())
+    };
+    let out = eval(&[]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let ran: Vec<&str> = report["results"].as_array().unwrap().iter().map(|r| r["setting"].as_str().unwrap()).collect();
+    assert_eq!(ran, ["hog", "appearance", "verified"], "{report}");
+    let skipped: Vec<&str> = report["skipped"].as_array().unwrap().iter().map(|s| s[0].as_str().unwrap()).collect();
+    assert_eq!(skipped, ["global", "forest", "local", "global-forest", "semlook", "fused"], "{report}");
+    assert!(report["skipped"].as_array().unwrap().iter().all(|s| !s[1].as_str().unwrap().is_empty()));
+    let only_labelled = eval(&["--setting", "global"]);
+    let err = String::from_utf8_lossy(&only_labelled.stderr);
+    assert!(!only_labelled.status.success() && err.contains("no label map") && err.contains(".png"), "{err}");
+}
+
+/// `semlook models` lists every model file with where it was found (in the engine's search order,
+/// `$SEMLOOK_MODELS` first), its SHA-256 and whether it is the file setup.sh installs; a missing
+/// one names where it comes from.
+#[test]
+fn models_lists_what_is_installed_and_where_the_rest_comes_from() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join(semlook::appearance::XFEAT_WEIGHTS), b"not the weights").unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_semlook")).args(["models", "--json"]).env("SEMLOOK_MODELS", dir.path()).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let all: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let names: Vec<&str> = all.as_array().unwrap().iter().map(|m| m["name"].as_str().unwrap()).collect();
+    assert_eq!(names, ["xfeat.pt", semlook::onnx::ORT_LIBRARY, "espnetv2_cityscapes.onnx", "espnetv2_s_2.0_city_1024x512.pth"]);
+    let xfeat = &all[0];
+    assert_eq!(xfeat["path"].as_str().unwrap(), p(&dir.path().join("xfeat.pt")));
+    assert_eq!(xfeat["sha256"].as_str().unwrap(), semlook::util::sha256_hex(b"not the weights"));
+    assert_eq!(xfeat["pinned"], false);
+    for m in all.as_array().unwrap() {
+        assert!(m["path"].is_string() || m["source"].as_str().is_some_and(|s| !s.is_empty()), "{m}");
+    }
+}

@@ -38,6 +38,12 @@ pub enum Command {
     Eval(EvalArgs),
     /// Print the default configuration (TOML); edit it and pass it with --config.
     Config,
+    /// The model files: which are installed, where, their SHA-256 (and whether it is the file
+    /// `setup.sh` installs), and where each missing one comes from.
+    Models {
+        #[arg(long)]
+        json: bool,
+    },
     /// Sweep configuration values over datasets and tabulate Recall@1 and AUC per setting.
     Tune(TuneArgs),
     /// Encoding speed on real images: segmentation, then everything else (decoding at the

@@ -34,6 +34,7 @@ fn ignores_backend(command: &Command) -> Option<&'static str> {
         Command::SegmenterAccuracy(_) => Some("segmenter-accuracy runs the segmenter, which runs on the CPU"),
         Command::Synth(a) if a.from_camvid.is_none() => Some("synth renders on the CPU"),
         Command::Config => Some("config prints the defaults"),
+        Command::Models { .. } => Some("models lists files"),
         _ => None,
     }
 }
@@ -70,6 +71,7 @@ pub fn dispatch(cli: Cli) -> Result<()> {
             out!("{}", Config::default().to_toml()?);
             Ok(())
         }
+        Command::Models { json } => models_cmd(json),
     }
 }
 
@@ -572,5 +574,25 @@ fn bench_cmd(a: &BenchArgs, quiet: bool) -> Result<()> {
     if !a.json {
         out!("{}{}", semlook::bench::table(&rows), semlook::bench::legend(&rows));
     }
+    Ok(())
+}
+
+fn models_cmd(json: bool) -> Result<()> {
+    let all = semlook::models::installed();
+    if json {
+        outln!("{}", to_json(&all)?);
+        return Ok(());
+    }
+    for m in &all {
+        match (&m.path, &m.sha256) {
+            (Some(p), Some(sha)) => {
+                let note = if m.pinned == Some(true) { "" } else { " (not the file setup.sh installs: another build, untested)" };
+                outln!("ok       {}  {}  {} bytes  sha256 {sha}{note}", m.name, p.display(), m.bytes.unwrap_or(0));
+            }
+            _ => outln!("{}  {}  ({}): from {}", if m.optional { "absent  " } else { "MISSING " }, m.name, m.role, m.source),
+        }
+    }
+    let dirs: Vec<String> = semlook::onnx::model_dirs().iter().map(|d| d.display().to_string()).collect();
+    outln!("(looked in, in order: {})", dirs.join(", "));
     Ok(())
 }

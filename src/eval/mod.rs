@@ -122,16 +122,43 @@ pub struct EvalOptions<'a> {
 
 pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Engine) -> Result<EvalReport> {
     let ref_sources: Vec<_> = ds.reference.frames.iter().map(|f| f.source.clone()).collect();
+    // RGB frames with no label map and no segmenter to make one: the settings that need no
+    // labels run, each of the others is skipped with its reason (the whole command used to stop)
+    let unlabelled =
+        |frames: &[crate::dataset::Frame]| !frames.is_empty() && frames.iter().all(|f| f.source.labels.is_none() && f.source.image.is_some());
+    let without_labels = crate::encode::segmenter_path(cfg)?.is_none()
+        && ds.queries.iter().all(|q| unlabelled(&q.frames))
+        && (opts.map.is_some() || unlabelled(&ds.reference.frames));
+    let mut skipped = Vec::new();
+    let mut settings = opts.settings.clone();
+    if without_labels {
+        settings.retain(|s| match s.label_free() {
+            None => true,
+            Some(why) => {
+                skipped.push((*s, why.to_string()));
+                false
+            }
+        });
+        if settings.is_empty() {
+            let frame = ds.queries.iter().flat_map(|q| &q.frames).chain(&ds.reference.frames).find_map(|f| f.source.image.clone());
+            return Err(Error::NoLabels { image: frame.unwrap_or_else(|| ds.root.clone()) });
+        }
+        log::warn!(
+            "no label maps and no segmenter: running {} only (settings that need no labels; `semlook models` says what is installed)",
+            settings.iter().map(|s| s.name()).collect::<Vec<_>>().join(", ")
+        );
+    }
+    let opts = &EvalOptions { settings, map: opts.map, skip_invalid: opts.skip_invalid, quiet: opts.quiet };
     let wants_hog = opts.settings.contains(&Setting::Hog);
     let owned;
     let mut encoder;
     let (refs, ref_enc): (&dyn RefSource, EncodingSummary) = match opts.map {
         Some(m) => {
-            encoder = Encoder::for_map(cfg, m)?.with_hog(wants_hog && m.manifest.hog_dim > 0);
+            encoder = Encoder::for_map(cfg, m)?.with_hog(wants_hog && m.manifest.hog_dim > 0).without_labels(without_labels);
             (m, EncodingSummary::default())
         }
         None => {
-            encoder = Encoder::new(cfg)?.with_hog(wants_hog);
+            encoder = Encoder::new(cfg)?.with_hog(wants_hog).without_labels(without_labels);
             train_codebook(&mut encoder, &ref_sources, opts.quiet)?;
             let enc = encode_frames(engine, &encoder, &ref_sources, ds.label_format, "references", false, opts.quiet)?;
             let summary = enc.summary();
@@ -146,7 +173,6 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
         .map(|s| index.get(s.id.as_str()).copied().ok_or_else(|| Error::dataset(&ds.root, format!("reference {:?} is not in the map", s.id))))
         .collect::<Result<_>>()?;
     let mut results = Vec::new();
-    let mut skipped = Vec::new();
     let mut q_times = Vec::new();
     let mut q_wall = 0.0;
     for qt in &ds.queries {

@@ -65,6 +65,14 @@ impl LabelMap {
     }
 }
 
+impl LabelMap {
+    /// A map with no class anywhere: what a frame without labels is encoded with when no
+    /// segmenter is installed (only the label-free settings use such descriptors).
+    pub fn void(width: u32, height: u32) -> LabelMap {
+        LabelMap { width, height, classes: vec![VOID; width as usize * height as usize] }
+    }
+}
+
 /// The size an image of `width` x `height` is worked at for a long side of `long_side` (0: its
 /// own size): scaled down keeping the aspect ratio, never enlarged, at least 1 x 1.
 pub fn working_size(width: u32, height: u32, long_side: usize) -> (u32, u32) {

@@ -76,6 +76,17 @@ impl Setting {
     pub const SEMLOOK: [Setting; 5] = [Setting::Global, Setting::Forest, Setting::Local, Setting::GlobalForest, Setting::Semlook];
 
     /// A baseline, not a SemLook setting: one whole-image vector per image, cosine similarity.
+    /// `None` where the setting runs on frames without labels (encoded with void label maps,
+    /// [`crate::encode::Encoder::without_labels`]); else why it cannot.
+    pub fn label_free(self) -> Option<&'static str> {
+        match self {
+            // verified: the coarse stage's SSIM term is the same for every pair, so it ranks by
+            // the appearance cosine; verification checks geometry (its semantic check is off)
+            Setting::Hog | Setting::Appearance | Setting::Verified => None,
+            Setting::Fused => Some("without labels its SSIM term is the same for every pair: it is the appearance baseline"),
+            _ => Some("needs semantic labels: give label maps, or install the default segmenter (`semlook models`)"),
+        }
+    }
     pub fn is_baseline(self) -> bool {
         matches!(self, Setting::Hog | Setting::Appearance)
     }

