@@ -46,6 +46,7 @@ from ._native import (  # noqa: E402
     Map,
     MapVersionError,
     Matches,
+    MissingFileError,
     ModelError,
     SemlookError,
     Shard,
@@ -66,5 +67,5 @@ __all__ = [
     "merge_candidates", "plan_shards", "rank", "reranks", "settings", "SETTINGS", "__version__",
     "SemlookError", "CorruptMapError", "DatasetError", "DuplicateImageIdError", "GpuError",
     "IncompatibleConfigError", "InputFileError", "InvalidConfigError", "InvalidImageError",
-    "InvalidInputError", "MapVersionError", "ModelError",
+    "InvalidInputError", "MapVersionError", "MissingFileError", "ModelError",
 ]

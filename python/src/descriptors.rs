@@ -168,43 +168,48 @@ impl PyDescriptors {
     /// A batch from `to_arrays`-style arrays (copied); every length and every value is checked
     /// (NaN, ranges, forest offsets), so bad arrays raise instead of reaching the engine.
     #[staticmethod]
-    fn from_arrays(d: &Bound<'_, PyDict>) -> PyResult<PyDescriptors> {
-        let ids: Vec<String> = d.get_item("ids")?.ok_or_else(|| invalid("descriptor arrays", "no \"ids\""))?.extract()?;
-        let (g, sl, s, a, h) =
-            (dim(d, "global_len")?, dim(d, "stats_len")?, dim(d, "neighbour_slots")?, dim(d, "appearance_dim")?, dim(d, "hog_dim")?);
-        let kd = dim(d, "keypoint_dim")?;
+    fn from_arrays(arrays: &Bound<'_, PyDict>) -> PyResult<PyDescriptors> {
+        let ids: Vec<String> = arrays.get_item("ids")?.ok_or_else(|| invalid("descriptor arrays", "no \"ids\""))?.extract()?;
+        let (g, sl, s, a, h) = (
+            dim(arrays, "global_len")?,
+            dim(arrays, "stats_len")?,
+            dim(arrays, "neighbour_slots")?,
+            dim(arrays, "appearance_dim")?,
+            dim(arrays, "hog_dim")?,
+        );
+        let kd = dim(arrays, "keypoint_dim")?;
         let n = ids.len();
-        let offsets: Vec<u32> = take_column(d, "forest_offsets", &[n + 1])?;
+        let offsets: Vec<u32> = take_column(arrays, "forest_offsets", &[n + 1])?;
         let t = offsets.last().copied().unwrap_or(0) as usize;
-        let kp_offsets: Vec<u32> = take_column(d, "keypoint_offsets", &[n + 1])?;
+        let kp_offsets: Vec<u32> = take_column(arrays, "keypoint_offsets", &[n + 1])?;
         let k = kp_offsets.last().copied().unwrap_or(0) as usize;
-        let sizes: Vec<u32> = take_column(d, "sizes", &[n, 2])?;
+        let sizes: Vec<u32> = take_column(arrays, "sizes", &[n, 2])?;
         let set = DescriptorSet {
             ids,
             sizes: sizes.chunks(2).map(|c| [c[0], c[1]]).collect(),
             global_len: g,
             stats_len: sl,
-            globals: take_column(d, "globals", &[n, g])?,
-            global_stats: take_column(d, "global_stats", &[n, sl])?,
+            globals: take_column(arrays, "globals", &[n, g])?,
+            global_stats: take_column(arrays, "global_stats", &[n, sl])?,
             forest_offsets: offsets,
-            tree_classes: take_column(d, "tree_classes", &[t])?,
-            tree_areas: take_column(d, "tree_areas", &[t])?,
-            tree_centroids: take_column(d, "tree_centroids", &[t, 2])?,
+            tree_classes: take_column(arrays, "tree_classes", &[t])?,
+            tree_areas: take_column(arrays, "tree_areas", &[t])?,
+            tree_centroids: take_column(arrays, "tree_centroids", &[t, 2])?,
             neighbour_slots: s,
-            tree_neighbours: take_column(d, "tree_neighbours", &[t, s])?,
+            tree_neighbours: take_column(arrays, "tree_neighbours", &[t, s])?,
             appearance_dim: a,
-            tree_appearance: take_column(d, "tree_appearance", &[t, a])?,
-            tree_has_appearance: take_column(d, "tree_has_appearance", &[t])?,
-            tree_descriptors: take_column(d, "tree_descriptors", &[t])?,
-            image_appearance: take_column(d, "image_appearance", &[n, a])?,
+            tree_appearance: take_column(arrays, "tree_appearance", &[t, a])?,
+            tree_has_appearance: take_column(arrays, "tree_has_appearance", &[t])?,
+            tree_descriptors: take_column(arrays, "tree_descriptors", &[t])?,
+            image_appearance: take_column(arrays, "image_appearance", &[n, a])?,
             hog_dim: h,
-            image_hog: take_column(d, "image_hog", &[n, h])?,
+            image_hog: take_column(arrays, "image_hog", &[n, h])?,
             keypoint_dim: kd,
             keypoint_offsets: kp_offsets,
-            keypoint_descriptors: take_column(d, "keypoint_descriptors", &[k, kd])?,
-            keypoint_xy: take_column(d, "keypoint_xy", &[k, 2])?,
-            keypoint_classes: take_column(d, "keypoint_classes", &[k])?,
-            codebook: match d.get_item("codebook")? {
+            keypoint_descriptors: take_column(arrays, "keypoint_descriptors", &[k, kd])?,
+            keypoint_xy: take_column(arrays, "keypoint_xy", &[k, 2])?,
+            keypoint_classes: take_column(arrays, "keypoint_classes", &[k])?,
+            codebook: match arrays.get_item("codebook")? {
                 Some(c) if !c.is_none() => {
                     Some(c.extract().map_err(|e| invalid("descriptor arrays[\"codebook\"]", format!("not a SHA-256 string: {e}")))?)
                 }

@@ -1,76 +1,109 @@
-//! Exceptions: `SemlookError` and one subclass per kind of engine error; the message is the
-//! engine's own (it names the file, field or image), and `path`/`field`/`id` are attributes
-//! where the error has them.
+//! Exceptions: `SemlookError` and one subclass per kind of engine error, each also deriving from
+//! the builtin a Python caller expects (`ValueError` for bad values and arrays, `OSError` for
+//! files, `FileNotFoundError` for a missing one, `RuntimeError` for the GPU), so `except
+//! ValueError` works. The message is the engine's own (it names the file, field or image), and
+//! `path`/`field`/`id` are attributes where the error has them.
 
-use pyo3::create_exception;
-use pyo3::exceptions::PyException;
 use pyo3::prelude::*;
+use pyo3::sync::PyOnceLock;
+use pyo3::types::{PyDict, PyTuple, PyType};
 use semlook::Error;
 
-create_exception!(_native, SemlookError, PyException, "Any error of the semlook engine.");
-create_exception!(_native, InputFileError, SemlookError, "An image or label file that cannot be read or decoded, or whose content is not usable.");
-create_exception!(_native, InvalidConfigError, SemlookError, "A configuration value out of range or unreadable; the message names the field.");
-create_exception!(_native, CorruptMapError, SemlookError, "A map file that fails its checks; the message names the file.");
-create_exception!(_native, MapVersionError, SemlookError, "A map written by an unsupported format version.");
-create_exception!(_native, IncompatibleConfigError, SemlookError, "Queries encoded differently from the map.");
-create_exception!(_native, DuplicateImageIdError, SemlookError, "An image id the map already stores.");
-create_exception!(_native, InvalidImageError, SemlookError, "Descriptors refused before anything was written (NaN, out-of-range values).");
-create_exception!(_native, DatasetError, SemlookError, "A dataset folder, manifest or ground-truth file that cannot be used.");
-create_exception!(_native, InvalidInputError, SemlookError, "An argument the engine cannot use (wrong shape, unknown setting, ...).");
-create_exception!(_native, ModelError, SemlookError, "A model file that is missing or of the wrong kind.");
-create_exception!(_native, GpuError, SemlookError, "A failure of the GPU backend.");
+/// Each class: name, its semlook parent (`None`: `SemlookError` itself), the builtin it also
+/// derives from, and its doc.
+const CLASSES: [(&str, Option<&str>, &str, &str); 13] = [
+    ("SemlookError", None, "Exception", "Any error of the semlook engine."),
+    ("InputFileError", Some("SemlookError"), "OSError", "An image or label file that cannot be read or decoded, or whose content is not usable."),
+    ("MissingFileError", Some("InputFileError"), "FileNotFoundError", "A file or folder that does not exist."),
+    ("InvalidConfigError", Some("SemlookError"), "ValueError", "A configuration value out of range or unreadable; the message names the field."),
+    ("CorruptMapError", Some("SemlookError"), "OSError", "A map file that fails its checks; the message names the file."),
+    ("MapVersionError", Some("SemlookError"), "OSError", "A map written by an unsupported format version."),
+    ("IncompatibleConfigError", Some("SemlookError"), "ValueError", "Queries encoded differently from the map."),
+    ("DuplicateImageIdError", Some("SemlookError"), "ValueError", "An image id the map already stores."),
+    ("InvalidImageError", Some("SemlookError"), "ValueError", "Descriptors refused before anything was written (NaN, out-of-range values)."),
+    ("DatasetError", Some("SemlookError"), "ValueError", "A dataset folder, manifest or ground-truth file that cannot be used."),
+    ("InvalidInputError", Some("SemlookError"), "ValueError", "An argument the engine cannot use (wrong shape, unknown setting, ...)."),
+    ("ModelError", Some("SemlookError"), "OSError", "A model file that is missing or of the wrong kind."),
+    ("GpuError", Some("SemlookError"), "RuntimeError", "A failure of the GPU backend."),
+];
+
+static TYPES: PyOnceLock<Vec<Py<PyType>>> = PyOnceLock::new();
+
+/// The classes of [`CLASSES`], made once per interpreter with `type(name, bases, namespace)`.
+fn types(py: Python<'_>) -> PyResult<&Vec<Py<PyType>>> {
+    TYPES.get_or_try_init(py, || {
+        let builtins = py.import("builtins")?;
+        let make = builtins.getattr("type")?;
+        let mut made: Vec<Py<PyType>> = Vec::new();
+        for (name, parent, builtin, doc) in CLASSES {
+            let mut bases = vec![];
+            if let Some(parent) = parent {
+                let k = CLASSES.iter().position(|c| c.0 == parent).expect("parents come first");
+                bases.push(made[k].bind(py).clone().into_any());
+            }
+            bases.push(builtins.getattr(builtin)?);
+            let ns = PyDict::new(py);
+            ns.set_item("__doc__", doc)?;
+            ns.set_item("__module__", "semlook._native")?;
+            let t = make.call1((name, PyTuple::new(py, bases)?, ns))?;
+            made.push(t.cast_into::<PyType>()?.unbind());
+        }
+        Ok(made)
+    })
+}
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
-    let py = m.py();
-    m.add("SemlookError", py.get_type::<SemlookError>())?;
-    m.add("InputFileError", py.get_type::<InputFileError>())?;
-    m.add("InvalidConfigError", py.get_type::<InvalidConfigError>())?;
-    m.add("CorruptMapError", py.get_type::<CorruptMapError>())?;
-    m.add("MapVersionError", py.get_type::<MapVersionError>())?;
-    m.add("IncompatibleConfigError", py.get_type::<IncompatibleConfigError>())?;
-    m.add("DuplicateImageIdError", py.get_type::<DuplicateImageIdError>())?;
-    m.add("InvalidImageError", py.get_type::<InvalidImageError>())?;
-    m.add("DatasetError", py.get_type::<DatasetError>())?;
-    m.add("InvalidInputError", py.get_type::<InvalidInputError>())?;
-    m.add("ModelError", py.get_type::<ModelError>())?;
-    m.add("GpuError", py.get_type::<GpuError>())?;
+    for (t, (name, ..)) in types(m.py())?.iter().zip(CLASSES) {
+        m.add(name, t.bind(m.py()))?;
+    }
     Ok(())
+}
+
+/// The class named `name` of [`CLASSES`].
+fn class(py: Python<'_>, name: &str) -> PyResult<Py<PyType>> {
+    let k = CLASSES.iter().position(|c| c.0 == name).expect("a listed class");
+    Ok(types(py)?[k].clone_ref(py))
 }
 
 /// The Python exception of an engine error.
 pub fn to_py(e: Error) -> PyErr {
     let msg = e.to_string();
-    let (err, path, field, id): (PyErr, Option<String>, Option<String>, Option<String>) = match &e {
+    let shown = |p: &std::path::Path| Some(p.display().to_string());
+    let (name, path, field, id): (&str, Option<String>, Option<String>, Option<String>) = match &e {
+        Error::Io { path, source } if source.kind() == std::io::ErrorKind::NotFound => ("MissingFileError", shown(path), None, None),
         Error::Io { path, .. }
         | Error::ImageDecode { path, .. }
         | Error::EmptyImage { path, .. }
         | Error::UnknownClassId { path, .. }
         | Error::UnknownClassColor { path, .. }
-        | Error::UnsupportedLabelFormat { path, .. } => (InputFileError::new_err(msg), Some(path.display().to_string()), None, None),
-        Error::SizeMismatch { labels, .. } => (InputFileError::new_err(msg), Some(labels.display().to_string()), None, None),
-        Error::NoLabels { image } => (InputFileError::new_err(msg), Some(image.display().to_string()), None, None),
-        Error::InvalidConfig { source_name, .. } => (InvalidConfigError::new_err(msg), Some(source_name.clone()), None, None),
-        Error::CorruptMap { path, .. } => (CorruptMapError::new_err(msg), Some(path.display().to_string()), None, None),
-        Error::MapVersion { path, .. } => (MapVersionError::new_err(msg), Some(path.display().to_string()), None, None),
-        Error::IncompatibleConfig { map, field, .. } => {
-            (IncompatibleConfigError::new_err(msg), Some(map.display().to_string()), Some(field.clone()), None)
-        }
-        Error::DuplicateImageId { map, id } => (DuplicateImageIdError::new_err(msg), Some(map.display().to_string()), None, Some(id.clone())),
-        Error::InvalidImage { id, .. } => (InvalidImageError::new_err(msg), None, None, Some(id.clone())),
-        Error::Dataset { path, .. } => (DatasetError::new_err(msg), Some(path.display().to_string()), None, None),
-        Error::InvalidInput { what, .. } => (InvalidInputError::new_err(msg), None, Some(what.clone()), None),
-        Error::Model { path, .. } => (ModelError::new_err(msg), Some(path.display().to_string()), None, None),
-        Error::Gpu(_) => (GpuError::new_err(msg), None, None, None),
+        | Error::UnsupportedLabelFormat { path, .. } => ("InputFileError", shown(path), None, None),
+        Error::SizeMismatch { labels, .. } => ("InputFileError", shown(labels), None, None),
+        Error::NoLabels { image } => ("InputFileError", shown(image), None, None),
+        Error::InvalidConfig { source_name, .. } => ("InvalidConfigError", Some(source_name.clone()), None, None),
+        Error::CorruptMap { path, .. } => ("CorruptMapError", shown(path), None, None),
+        Error::MapVersion { path, .. } => ("MapVersionError", shown(path), None, None),
+        Error::IncompatibleConfig { map, field, .. } => ("IncompatibleConfigError", shown(map), Some(field.clone()), None),
+        Error::DuplicateImageId { map, id } => ("DuplicateImageIdError", shown(map), None, Some(id.clone())),
+        Error::InvalidImage { id, .. } => ("InvalidImageError", None, None, Some(id.clone())),
+        Error::Dataset { path, .. } => ("DatasetError", shown(path), None, None),
+        Error::InvalidInput { what, .. } => ("InvalidInputError", None, Some(what.clone()), None),
+        Error::Model { path, .. } => ("ModelError", shown(path), None, None),
+        Error::Gpu(_) => ("GpuError", None, None, None),
         #[allow(unreachable_patterns)]
-        _ => (SemlookError::new_err(msg), None, None, None),
+        _ => ("SemlookError", None, None, None),
     };
     Python::attach(|py| {
+        let err = match class(py, name) {
+            Ok(t) => PyErr::from_type(t.into_bound(py), msg),
+            Err(e) => return e,
+        };
+        // `path`, not OSError's `filename`: with that set, str() shows errno and file, not the message
         let v = err.value(py);
-        for (name, value) in [("path", path), ("field", field), ("id", id)] {
-            let _ = v.setattr(name, value);
+        for (attr, value) in [("path", path), ("field", field), ("id", id)] {
+            let _ = v.setattr(attr, value);
         }
-    });
-    err
+        err
+    })
 }
 
 /// An argument error in the bindings themselves.

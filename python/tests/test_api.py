@@ -44,6 +44,29 @@ def test_bad_arrays_raise_typed_errors(encoder):
         encoder.encode("bad", labels=np.full((8, 8), 250, np.uint8))
 
 
+def test_engine_errors_are_also_the_builtin_a_caller_expects(tmp_path, encoder):
+    """Each engine error also derives from the matching builtin, so plain Python handlers catch
+    it (before, only SemlookError and its subclasses did): ValueError for bad values and arrays,
+    FileNotFoundError for a missing file, OSError for one that cannot be read."""
+    arrays = dict(encode_places(encoder, range(2), "x").to_arrays())
+    g = np.array(arrays["globals"])
+    g[0, 0] = np.nan
+    with pytest.raises(ValueError, match="x0") as bad:
+        semlook.Descriptors.from_arrays({**arrays, "globals": g})
+    assert isinstance(bad.value, semlook.InvalidInputError) and isinstance(bad.value, semlook.SemlookError)
+    with pytest.raises(FileNotFoundError) as missing:
+        semlook.Map.open(str(tmp_path / "no-map"))
+    assert isinstance(missing.value, semlook.MissingFileError) and "no-map" in str(missing.value)
+    assert missing.value.path.endswith("manifest.json")
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(b"not a png")
+    with pytest.raises(OSError, match="broken.png") as unreadable:
+        encoder.encode_files(["b"], labels=[str(broken)])
+    assert isinstance(unreadable.value, semlook.InputFileError)
+    with pytest.raises(ValueError):
+        semlook.Config("[matching]\ntile = 0\n")
+
+
 def test_label_arrays_are_checked_not_coerced(encoder):
     """Float labels were truncated into ids, -5 and 2**40 reported as class 4294967295, and
     lists, strings or object arrays raised AttributeError/TypeError (issue 20)."""
@@ -211,3 +234,11 @@ def test_threads_sharing_one_engine_and_a_pool_all_finish(tmp_path, small_map, q
     except subprocess.TimeoutExpired:
         pytest.fail("calls through a shared engine and pool did not finish in 180 s (deadlock)")
     assert run.returncode == 0 and run.stdout.strip() == "ok", run.stderr[-2000:]
+
+
+def test_the_stubs_match_the_extension():
+    """mypy's stubtest holds `_native.pyi` to the compiled module: every class, function,
+    parameter name and default (it found 42 differences, e.g. constructors typed as __init__)."""
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    r = subprocess.run([sys.executable, "-m", "mypy.stubtest", "semlook._native"], cwd=here, capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr

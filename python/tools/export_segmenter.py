@@ -291,6 +291,79 @@ class EESPNetEncoder(nn.Module):
 
 
 # --------------------------------------------------------------------------------------------------------------
+# Shape-generic adaptive average pooling
+# --------------------------------------------------------------------------------------------------------------
+def _window_bounds(n_in, n_out):
+    """Adaptive-pooling windows along one axis, as PyTorch defines them: output i averages input
+    [floor(i * n_in / n_out), ceil((i + 1) * n_in / n_out)). Integer tensor arithmetic on (symbolic) sizes."""
+    i = torch.arange(n_out, dtype=torch.int64)
+    start = (i * n_in) // n_out
+    end = ((i + 1) * n_in + n_out - 1) // n_out
+    return start, end
+
+
+def _pool_axis_taps(x, dim: int, n_out, taps: int):
+    """Adaptive average pooling along `dim` as a sum of `taps` gathers: tap k reads input start_i + k (clamped
+    into range) and counts only where k < window length; the sum is divided by the length. Exact whenever
+    every window is at most `taps` long."""
+    n_in = x.shape[dim]
+    start, end = _window_bounds(n_in, n_out)
+    length = end - start
+    view = [1, 1, 1, 1]
+    view[dim] = -1
+    last = torch.zeros_like(start) + (n_in - 1)
+    acc = x.index_select(dim, start)
+    for k in range(1, taps):
+        tap = x.index_select(dim, torch.minimum(start + k, last))
+        acc = acc + tap * (length > k).to(x.dtype).reshape(view)
+    return acc / length.to(x.dtype).reshape(view)
+
+
+def _pool_matrix(n_in, n_out, dtype):
+    """[n_out, n_in] averaging matrix of the adaptive-pooling windows (row i: 1/len on its window)."""
+    start, end = _window_bounds(n_in, n_out)
+    j = torch.arange(n_in, dtype=torch.int64).unsqueeze(0)
+    inside = (j >= start.unsqueeze(1)) & (j < end.unsqueeze(1))
+    return inside.to(dtype) / (end - start).to(dtype).unsqueeze(1)
+
+
+def adaptive_avg_pool(x, out_h, out_w, max_ratio: int):
+    """F.adaptive_avg_pool2d(x, (out_h, out_w)) written with ops that stay shape-generic in ONNX.
+
+    `max_ratio` is a static bound on in_size / out_size. A window spans fewer than ratio + 2 inputs, so with
+    ratio <= 2 three gather taps per axis cover every window (separable: rows, then columns); wider ratios use
+    averaging matrices (out = P_h @ x @ P_w^T). torch.export keeps out_h, out_w and the input sizes symbolic,
+    so the window bounds are computed in the graph at run time."""
+    if max_ratio <= 2:
+        y = _pool_axis_taps(x, 2, out_h, max_ratio + 1)
+        return _pool_axis_taps(y, 3, out_w, max_ratio + 1)
+    p_h = _pool_matrix(x.shape[2], out_h, x.dtype)
+    p_w = _pool_matrix(x.shape[3], out_w, x.dtype)
+    return torch.matmul(torch.matmul(p_h, x), p_w.transpose(0, 1))
+
+
+def _check_pooling() -> None:
+    """The pooling helpers against F.adaptive_avg_pool2d on the size pairs the decoder meets."""
+    g = torch.Generator().manual_seed(0)
+    for n in list(range(3, 70)) + [120, 128, 240, 256, 320, 512]:
+        x = torch.rand(1, 2, n, n + 7, generator=g)
+        for num, den in PYR_SCALES:
+            if num > den and den > 1:  # up-branch: pool ceil(s n) back to n
+                up_h, up_w = ceil_scaled(n, num, den), ceil_scaled(n + 7, num, den)
+                xx = torch.rand(1, 2, up_h, up_w, generator=g)
+                got = adaptive_avg_pool(xx, n, n + 7, max_ratio=-(-num // den))
+                want = F.adaptive_avg_pool2d(xx, (n, n + 7))
+            elif num < den:
+                oh = max(ceil_scaled(n, num, den), PYR_MIN_SIZE)
+                ow = max(ceil_scaled(n + 7, num, den), PYR_MIN_SIZE)
+                got = adaptive_avg_pool(x, oh, ow, max_ratio=den // num)
+                want = F.adaptive_avg_pool2d(x, (oh, ow))
+            else:
+                continue
+            assert got.shape == want.shape and torch.allclose(got, want, atol=1e-6), (n, num, den)
+
+
+# --------------------------------------------------------------------------------------------------------------
 # Decoder (authors' nn_layers/efficient_pyramid_pool.py, nn_layers/efficient_pt.py)
 # --------------------------------------------------------------------------------------------------------------
 class EfficientPyrPool(nn.Module):
@@ -304,9 +377,9 @@ class EfficientPyrPool(nn.Module):
       s > 1: bilinear resize up (align_corners=True) -> conv -> adaptive average pool back to h x w;
       s < 1: adaptive average pool down -> conv -> bilinear resize back (align_corners=True);
       s = 1: conv only.
-    The adaptive pools have input-size-dependent windows [floor(i*in/out), ceil((i+1)*in/out)); the output sizes
-    are computed here with integer SymInt arithmetic so torch.export keeps them symbolic and lowers the pooling to
-    shape-generic ONNX ops. For the up-scales the >= 5 clamp only changes anything when h or w < 3 (input
+    The adaptive pools have input-size-dependent windows [floor(i*in/out), ceil((i+1)*in/out)); the sizes are
+    integer SymInt arithmetic and the pooling is `adaptive_avg_pool`, so the ONNX graph computes the windows at
+    run time (2.0: exact 2x2 average pool; 1.5 and 0.5: three gather taps per axis; 0.1: averaging matrices). For the up-scales the >= 5 clamp only changes anything when h or w < 3 (input
     side < 48), which this exporter does not support; it is applied to the down-scales."""
 
     def __init__(self, cin: int, proj: int, cout: int, last_layer_br: bool = True):
@@ -337,11 +410,15 @@ class EfficientPyrPool(nn.Module):
                 continue
             hs, ws = ceil_scaled(h, num, den), ceil_scaled(w, num, den)
             if num > den:
-                y = F.interpolate(x, size=(hs, ws), mode="bilinear", align_corners=True)
-                y = F.adaptive_avg_pool2d(stage(y), (h, w))
+                y = stage(F.interpolate(x, size=(hs, ws), mode="bilinear", align_corners=True))
+                if den == 1:  # integer up-scale: the windows are exactly num x num
+                    y = F.avg_pool2d(y, kernel_size=num, stride=num)
+                else:         # 1.5: ceil(1.5 h) / h <= 2
+                    y = adaptive_avg_pool(y, h, w, max_ratio=-(-num // den))
             else:
                 hs, ws = torch.sym_max(hs, PYR_MIN_SIZE), torch.sym_max(ws, PYR_MIN_SIZE)
-                y = stage(F.adaptive_avg_pool2d(x, (hs, ws)))
+                # h / max(ceil(h num / den), 5) <= den / num
+                y = stage(adaptive_avg_pool(x, hs, ws, max_ratio=den // num))
                 y = F.interpolate(y, size=(h, w), mode="bilinear", align_corners=True)
             branches.append(y)
         out = self.merge_layer(torch.cat(branches, 1))
@@ -570,6 +647,7 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(args.threads)
     _check_ceil_formula()
+    _check_pooling()
     model = load_model(args.checkpoint)
 
     t0 = time.perf_counter()
