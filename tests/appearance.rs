@@ -221,7 +221,7 @@ fn appearance_in_maps_and_evaluation() {
 /// Computing HOG too leaves the encoding of a real JPEG frame unchanged, bit for bit (labels from
 /// the segmenter, global descriptor, forest, appearance). HOG decodes the full image on its own;
 /// when it shared the decode, every stage saw the full decode instead of the scaled JPEG decode,
-/// and `eval --all-settings` (which computes HOG) reported other `semlook` figures than `eval
+/// and `eval` of every setting (which computes HOG) reported other `semlook` figures than `eval
 /// --setting semlook` on the same frames (Nordland R@1 0.733 against 0.767).
 #[test]
 fn hog_leaves_the_encoding_of_a_real_frame_unchanged() {

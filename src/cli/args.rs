@@ -426,12 +426,9 @@ pub struct EvalArgs {
     /// the CSV's folder) or VPR-Bench's .npy; without it, UTM positions in the file names.
     #[arg(long, requires = "references")]
     pub ground_truth: Option<PathBuf>,
-    /// One setting (default: all, baselines included).
-    #[arg(long, value_enum, conflicts_with = "all_settings")]
+    /// One setting (default: all nine, baselines included).
+    #[arg(long, value_enum)]
     pub setting: Option<Setting>,
-    /// All settings: the baselines `hog` and `appearance`, `global`, and the paper's four (the default).
-    #[arg(long)]
-    pub all_settings: bool,
     /// Use this map for the references instead of encoding them.
     #[arg(long)]
     pub map: Option<PathBuf>,
