@@ -284,6 +284,12 @@ fn map_commands_keep_their_small_promises() {
     std::fs::create_dir(&seg).unwrap();
     let err = fails(&["map", "verify", "--map", p(&map)]);
     assert!(err.contains("not a regular file") && !err.contains("4096"), "{err}");
+    // synth --from-camvid refuses the rendering options it would ignore (it ignored them silently)
+    for flag in [["--places", "5"], ["--size", "64x48"], ["--seed", "3"], ["--aliasing", "0.1"]] {
+        let out = semlook(&[&["synth", "--from-camvid", "camvid", "--out", "x"][..], &flag].concat());
+        assert_eq!(out.status.code(), Some(2), "{flag:?}");
+        assert!(String::from_utf8_lossy(&out.stderr).contains("cannot be used with"), "{flag:?}");
+    }
     // a folder with no map gives the OS's message (it said "entity not found")
     let err = fails(&["map", "info", "--map", p(dir.path())]);
     assert!(err.contains("manifest.json") && err.contains("No such file or directory") && !err.contains("entity"), "{err}");

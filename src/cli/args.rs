@@ -193,22 +193,24 @@ pub struct SynthArgs {
     pub evaluate: bool,
     #[command(flatten)]
     pub models: ModelArgs,
-    #[arg(long, default_value_t = 7)]
+    /// Seed of the rendered world (not with --from-camvid).
+    #[arg(long, default_value_t = 7, conflicts_with = "from_camvid")]
     pub seed: u64,
-    /// Places along the route (frames per traversal).
-    #[arg(long, default_value_t = 150)]
+    /// Places along the route (frames per traversal; not with --from-camvid).
+    #[arg(long, default_value_t = 150, conflicts_with = "from_camvid")]
     pub places: usize,
-    /// Image size WIDTHxHEIGHT.
-    #[arg(long, default_value = "640x480", value_parser = parse_size)]
+    /// Image size WIDTHxHEIGHT (not with --from-camvid).
+    #[arg(long, default_value = "640x480", value_parser = parse_size, conflicts_with = "from_camvid")]
     pub size: (usize, usize),
-    /// Reference condition.
-    #[arg(long, value_enum, default_value_t = Condition::Day)]
+    /// Lighting condition of the reference traversal (not with --from-camvid).
+    #[arg(long, value_enum, default_value_t = Condition::Day, conflicts_with = "from_camvid")]
     pub reference: Condition,
-    /// Query conditions (default: overcast, sunset, fog, snow, night).
-    #[arg(long = "query", value_enum)]
+    /// Query conditions (default: overcast, sunset, fog, snow, night; not with --from-camvid).
+    #[arg(long = "query", value_enum, conflicts_with = "from_camvid")]
     pub queries: Vec<Condition>,
-    /// Probability that a city block repeats a layout template (perceptual aliasing).
-    #[arg(long, default_value_t = 0.6)]
+    /// Probability that a city block repeats a layout template (perceptual aliasing; not with
+    /// --from-camvid).
+    #[arg(long, default_value_t = 0.6, conflicts_with = "from_camvid")]
     pub aliasing: f64,
 }
 
