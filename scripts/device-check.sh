@@ -1,0 +1,103 @@
+#!/usr/bin/env bash
+# One device check, ready for the day a GPU is lent (issue 19 part 4): builds, runs the GPU equivalence
+# suite with REQUIRE_GPU=1, then the benchmark rows, and writes one JSON with the adapter and every row's
+# figures (throughput, fraction of the device's peak where the built-in table knows it).
+#
+#   bash scripts/device-check.sh [--budget SECONDS] [--out FILE] [--bin PATH] [--smoke]
+#
+# --budget (default 480): the rows are planned against it; the largest coarse rows are dropped first
+#   when the time left (measured as the script goes) cannot hold them.
+# --out (default target/device-check.json). --bin: an already-built semlook (skips the build).
+# --smoke: the reduced form CI runs on lavapipe so the script cannot rot: no build or test suite (the
+#   caller is the test suite), a 1,000-reference coarse row and a 4-frame encoding row at 320x240.
+# Rows: coarse top-K (`semlook bench`, 100k and 1M references x 1,000 queries, CPU and GPU), encoding
+# (`semlook bench-encode` on 1920x1080 synthetic frames, GPU backend, the installed segmenter on ONNX
+# Runtime's CPU provider), and the fine stage (criterion `benches/matching.rs`, group `fine`, K = 20).
+# Carry the model folder to the device (`.semlook`, about 40 MB) for the encoding row.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+budget=480 out=target/device-check.json bin="" smoke=0
+while [ $# -gt 0 ]; do
+    case "$1" in
+        --budget) budget=$2; shift 2 ;;
+        --out) out=$2; shift 2 ;;
+        --bin) bin=$2; shift 2 ;;
+        --smoke) smoke=1; shift ;;
+        *) echo "device-check: unknown argument $1" >&2; exit 2 ;;
+    esac
+done
+start=$(date +%s)
+left() { echo $(( budget - ($(date +%s) - start) )); }
+say() { echo "[device-check] $*" >&2; }
+work=$(mktemp -d)
+trap 'rm -rf "$work"' EXIT
+rows="$work/rows.jsonl"
+: > "$rows"
+note() { # kind, name, reason: a row that did not run, with why
+    python3 -c 'import json,sys; print(json.dumps({"row": sys.argv[1], "name": sys.argv[2], "status": "not run", "reason": sys.argv[3]}))' "$1" "$2" "$3" >> "$rows"
+}
+
+if [ -z "$bin" ]; then
+    say "building (cargo build --release)"
+    cargo build --release >&2
+    bin=target/release/semlook
+fi
+if [ $smoke = 0 ]; then
+    say "GPU equivalence suite (REQUIRE_GPU=1: no adapter is a failure)"
+    REQUIRE_GPU=1 cargo test --release --test gpu >&2
+fi
+
+# coarse rows, smallest first; a row runs only if the time left holds its predicted time
+if [ $smoke = 1 ]; then sizes="1000"; batch=10; else sizes="100000 1000000"; batch=1000; fi
+for n in $sizes; do
+    t=$(left)
+    if [ "$t" -lt 30 ]; then note coarse "coarse $n x $batch" "budget: ${t} s left"; continue; fi
+    say "coarse $n references x $batch queries (at most $(( t / 3 )) s per row)"
+    "$bin" bench --sizes "$n" --batches "$batch" --max-row-seconds $(( t / 3 )) --json -q \
+        | python3 -c 'import json,sys
+for line in sys.stdin:
+    r = json.loads(line); r["row"] = "coarse"; print(json.dumps(r))' >> "$rows"
+done
+
+# encoding rows: synthetic frames with label maps at the benchmark size
+if [ $smoke = 1 ]; then size=320x240 frames=4; else size=1920x1080 frames=60; fi
+if [ "$(left)" -gt 20 ]; then
+    say "encoding $frames frames at $size on the GPU backend"
+    "$bin" synth --out "$work/frames" --places "$frames" --size "$size" --query night -q
+    "$bin" bench-encode --images "$work/frames/day/RGB/Stereo_Left/Omni_F" --frames "$frames" --backend gpu --json -q \
+        | python3 -c 'import json,sys; r = json.load(sys.stdin); print(json.dumps({"row": "encode", "size": sys.argv[1], "result": r}))' "$size" >> "$rows" \
+        || note encode "encode $size" "bench-encode failed (see the log above)"
+else
+    note encode "encode $size" "budget"
+fi
+
+# the fine stage, through criterion (full run only: its build is minutes)
+if [ $smoke = 1 ]; then
+    note fine "fine K=20" "smoke: criterion rows run in the full check only"
+elif [ "$(left)" -gt 90 ]; then
+    say "fine stage (criterion, group fine)"
+    cargo bench --bench matching -- fine --warm-up-time 1 --measurement-time 3 >&2
+    python3 - "$rows" <<'PY'
+import glob, json, os, sys
+for est in glob.glob("target/criterion/fine/*/new/estimates.json"):
+    name = os.path.basename(os.path.dirname(os.path.dirname(est)))
+    with open(est) as f:
+        e = json.load(f)
+    with open(sys.argv[1], "a") as out:
+        out.write(json.dumps({"row": "fine", "name": name, "median_s": e["median"]["point_estimate"] * 1e-9}) + "\n")
+PY
+else
+    note fine "fine K=20" "budget"
+fi
+
+python3 - "$rows" "$out" "$smoke" "$budget" "$(( $(date +%s) - start ))" <<'PY'
+import json, sys
+rows_path, out, smoke, budget, took = sys.argv[1:]
+rows = [json.loads(l) for l in open(rows_path) if l.strip()]
+adapters = sorted({r["adapter"] for r in rows if r.get("row") == "coarse" and r.get("backend") == "gpu"})
+report = {"smoke": smoke == "1", "budget_s": int(budget), "took_s": int(took), "gpu_adapters": adapters, "rows": rows}
+with open(out, "w") as f:
+    json.dump(report, f, indent=1)
+print(f"[device-check] {len(rows)} rows, GPU adapters {adapters or 'none'}, {took} s -> {out}", file=sys.stderr)
+PY
