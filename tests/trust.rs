@@ -47,9 +47,11 @@ fn an_edited_manifest_is_refused_not_served() {
 /// Rewrites the map's manifest with `edit` applied and a checksum that matches (a deliberate
 /// edit, not a damaged byte).
 fn reseal(path: &Path, edit: impl FnOnce(&mut semlook::map::Manifest)) {
-    let mut m = semlook::map::manifest::read_existing(path).unwrap();
-    edit(&mut m);
-    std::fs::write(path.join("manifest.json"), m.to_json().unwrap()).unwrap();
+    common::edit_sealed_manifest(path, |text| {
+        let mut m: semlook::map::Manifest = serde_json::from_str(text).unwrap();
+        edit(&mut m);
+        serde_json::to_string(&m).unwrap()
+    });
 }
 
 /// A resealed manifest (checksum recomputed) with a config value out of range is refused by open

@@ -16,10 +16,11 @@ The exported graph:
   output `logits` float32 [1, 20, H, W]; argmax = Cityscapes train id 0..18, channel 19 = background.
                   The decoder ends at H/2 x W/2; the graph upsamples bilinearly (align_corners=True) to H x W.
 H and W are dynamic, multiples of 16 (at least 48, see EfficientPyrPool). The pyramid-pooling blocks use
-adaptive average pooling whose windows depend on the input size; they are exported through torch.export
-(symbolic H, W), which writes them with shape-generic ops (window bounds computed in the graph), so one graph
-serves every size. After writing the file the script runs it with onnxruntime at several sizes against the
-PyTorch model to prove that.
+adaptive average pooling whose windows depend on the input size; `adaptive_avg_pool` writes it with ops whose
+window bounds are computed from the (symbolic) sizes, and torch.export (strict, H = 16 h16, W = 16 w16) keeps
+the sizes symbolic, so one graph serves every size. After writing the file the script runs it with onnxruntime
+at several sizes against the PyTorch model to prove that. The export is byte-deterministic for a given
+torch/onnxscript/onnx version (node metadata is dropped, serialisation is deterministic).
 
 With --check REFERENCE.onnx --frames DIR it also runs both graphs on the frames in DIR (resized to 1024x512,
 640x480 and 512x256) and prints the max |logit difference| and the argmax agreement per size; it exits 1 if the
@@ -67,7 +68,7 @@ OPSET = 18
 
 DOC_STRING = (
     "ESPNetv2 s=2.0 Cityscapes semantic segmentation (Mehta et al., CVPR 2019), weights "
-    "espnetv2_s_2.0_city_1024x512.pth from github.com/sacmehta/EdgeNets (MIT licence, Copyright (c) 2019 "
+    "espnetv2_s_2.0_city_1024x512.pth from github.com/sacmehta/EdgeNets (MIT licence, Copyright (c) 2021 "
     "Sachin Mehta), converted by semlook python/tools/export_segmenter.py. Input rgb float32 [1,3,H,W] RGB "
     "0..255 (/255 and ImageNet mean/std inside the graph), H,W multiples of 16; output logits float32 "
     "[1,20,H,W], argmax = Cityscapes train id (19 = background)."
@@ -92,7 +93,7 @@ def _check_ceil_formula() -> None:
 # --------------------------------------------------------------------------------------------------------------
 # Building blocks. Two naming families exist in the checkpoint: the encoder uses `conv/bn/act` attributes
 # (EdgeNets `nn_layers/espnet_utils.py`), the decoder uses a Sequential named `cbr` or `br`
-# (EdgeNets `nn_layers/cnn_utils.py`). Convolutions carry no bias; BatchNorm has eps 1e-5.
+# (EdgeNets `nn_layers/cnn_utils.py`). Convolutions carry no bias (except the classifier 1x1); BatchNorm eps is 1e-5.
 # --------------------------------------------------------------------------------------------------------------
 class ConvBNAct(nn.Module):
     """Conv (same padding) -> BatchNorm -> PReLU, attribute names conv/bn/act (authors' espnet_utils.CBR)."""
@@ -379,8 +380,9 @@ class EfficientPyrPool(nn.Module):
       s = 1: conv only.
     The adaptive pools have input-size-dependent windows [floor(i*in/out), ceil((i+1)*in/out)); the sizes are
     integer SymInt arithmetic and the pooling is `adaptive_avg_pool`, so the ONNX graph computes the windows at
-    run time (2.0: exact 2x2 average pool; 1.5 and 0.5: three gather taps per axis; 0.1: averaging matrices). For the up-scales the >= 5 clamp only changes anything when h or w < 3 (input
-    side < 48), which this exporter does not support; it is applied to the down-scales."""
+    run time (2.0: exact 2x2 average pool; 1.5 and 0.5: three gather taps per axis; 0.1: averaging matrices).
+    For the up-scales the >= 5 clamp only changes anything when h or w < 3 (input side < 48), which this
+    exporter does not support; it is applied to the down-scales."""
 
     def __init__(self, cin: int, proj: int, cout: int, last_layer_br: bool = True):
         super().__init__()
@@ -524,17 +526,23 @@ def load_model(checkpoint: Path) -> Segmenter:
 def export_onnx(model: Segmenter, out: Path) -> None:
     import onnx
 
-    H = torch.export.Dim("H", min=48, max=8192)
-    W = torch.export.Dim("W", min=48, max=8192)
+    # H = 16 h16, W = 16 w16: the decoder adds maps of H/8 and 2 (H/16), so only multiples of 16 are valid.
+    h16 = torch.export.Dim("h16", min=3, max=512)
+    w16 = torch.export.Dim("w16", min=3, max=512)
+    H, W = 16 * h16, 16 * w16
     example = torch.zeros(1, 3, 512, 1024)
     with torch.no_grad():
+        # strict=True (the TorchDynamo front end) reads each block's sizes from the tensor the code reads them
+        # from (the pyramid block's projection conv output) instead of re-deriving them from the input shape.
+        # That is the structure of the reference graph: the BatchNorm behind that conv stays unfused (its
+        # output also feeds Shape), and the logits match the reference bit for bit. The non-strict front end
+        # gives an equally valid graph whose logits differ by ~1e-5 (float rounding of the extra BN fold).
+        exported = torch.export.export(model, (example,), dynamic_shapes={"rgb": {2: H, 3: W}}, strict=True)
         program = torch.onnx.export(
-            model,
-            (example,),
+            exported,
             dynamo=True,
             input_names=["rgb"],
             output_names=["logits"],
-            dynamic_shapes={"rgb": {2: H, 3: W}},
             opset_version=OPSET,
             external_data=False,
             optimize=True,
@@ -542,12 +550,45 @@ def export_onnx(model: Segmenter, out: Path) -> None:
         )
     proto = program.model_proto
     proto.doc_string = DOC_STRING
+    rename_symbolic_dims(proto)
     # Node metadata (stack traces, scopes) would tie the bytes to this file's path; keep the graph clean.
     for node in proto.graph.node:
         del node.metadata_props[:]
     onnx.checker.check_model(proto, full_check=True)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_bytes(proto.SerializeToString(deterministic=True))
+
+
+def rename_symbolic_dims(proto) -> None:
+    """Name the dynamic input/output dims H and W (torch.export calls them 16*sNN) and the symbols inside the
+    intermediate shapes h16 and w16."""
+    import re
+
+    dims = proto.graph.input[0].type.tensor_type.shape.dim
+    symbols = {}
+    for dim, full, short in ((dims[2], "H", "h16"), (dims[3], "W", "w16")):
+        match = re.fullmatch(r"16\*(\w+)", dim.dim_param)
+        if not match:
+            raise RuntimeError(f"unexpected dynamic dim {dim.dim_param!r}")
+        symbols[match.group(1)] = short
+    pattern = re.compile(r"\b(" + "|".join(map(re.escape, symbols)) + r")\b")
+
+    def rename(value):
+        for dim in value.type.tensor_type.shape.dim:
+            if dim.dim_param:
+                param = pattern.sub(lambda m: symbols[m.group(1)], dim.dim_param)
+                dim.dim_param = {"16*h16": "H", "16*w16": "W"}.get(param, param)
+
+    for value in list(proto.graph.input) + list(proto.graph.output) + list(proto.graph.value_info):
+        rename(value)
+    # torch.export records the size ranges as a printed dict whose order follows Python's string hashing
+    # (PYTHONHASHSEED), which would make the bytes vary between runs; write it renamed and sorted.
+    for prop in proto.graph.metadata_props:
+        if prop.key.endswith(".range_constraints"):
+            ranges = re.findall(r"([^{},:]+): (VR\[[^\]]*\])", prop.value)
+            named = {pattern.sub(lambda m: symbols[m.group(1)], k.strip()): v for k, v in ranges}
+            named = {{"16*h16": "H", "16*w16": "W"}.get(k, k): v for k, v in named.items()}
+            prop.value = "{" + ", ".join(f"{k}: {named[k]}" for k in sorted(named)) + "}"
 
 
 def make_session(path: Path, threads: int):

@@ -1,0 +1,50 @@
+//! Our exporter of the default segmenter (issue 17 part 1): `python/tools/export_segmenter.py`
+//! converts the authors' ESPNetv2 checkpoint (`../shared/models/espnetv2_s_2.0_city_1024x512.pth`, the
+//! file a user's set-up downloads from EdgeNets) to ONNX, byte for byte the file README names
+//! (`semlook::models::SEGMENTER_SHA256`), and its logits equal those of the reference export
+//! (`../shared/models/espnetv2_cityscapes.onnx`) within 1e-3 with the same argmax on real CamVid
+//! frames at 1024x512, 640x480 and 512x256 (the exporter's `--check`; all 233 frames were checked
+//! once: bit-identical). Needs the exporter's venv (`setup.sh` makes `.venv-export` when it converts).
+
+mod common;
+
+use std::path::{Path, PathBuf};
+
+fn export_python() -> Option<PathBuf> {
+    let venv = std::env::var_os("SEMLOOK_EXPORT_VENV").map(PathBuf::from).unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv-export"));
+    let python = venv.join("bin/python");
+    if python.exists() {
+        return Some(python);
+    }
+    common::skip_unless_required("REQUIRE_MODELS", format!("no exporter venv at {} (setup.sh makes it)", venv.display()));
+    None
+}
+
+#[test]
+fn the_exporter_converts_the_checkpoint_into_the_reference_segmenter() {
+    let (Some(ckpt), Some(reference), Some(frames)) = (
+        common::shared_or_required("models/espnetv2_s_2.0_city_1024x512.pth"),
+        common::shared_or_required("models/espnetv2_cityscapes.onnx"),
+        common::shared_or_required("data/camvid-test/images"),
+    ) else {
+        return;
+    };
+    let Some(python) = export_python() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("espnetv2_cityscapes.onnx");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("python/tools/export_segmenter.py");
+    let run = std::process::Command::new(python)
+        .arg(&script)
+        .args([&ckpt, &out])
+        .arg("--check")
+        .arg(&reference)
+        .arg("--frames")
+        .arg(&frames)
+        .args(["--max-frames", "3"])
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&run.stdout).to_string() + &String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success() && log.contains("OK"), "the exporter failed or its check did not pass:\n{log}");
+    let sha = semlook::util::sha256_file(&out).unwrap();
+    assert_eq!(sha, semlook::models::SEGMENTER_SHA256, "the export is not the file README names:\n{log}");
+}
