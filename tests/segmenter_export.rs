@@ -11,7 +11,8 @@ mod common;
 use std::path::{Path, PathBuf};
 
 fn export_python() -> Option<PathBuf> {
-    let venv = std::env::var_os("SEMLOOK_EXPORT_VENV").map(PathBuf::from).unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv-export"));
+    let venv =
+        std::env::var_os("SEMLOOK_EXPORT_VENV").map(PathBuf::from).unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv-export"));
     let python = venv.join("bin/python");
     if python.exists() {
         return Some(python);
