@@ -76,6 +76,14 @@ fn frames_dir(pool: &Path, at: &Path, ids: &[String]) -> PathBuf {
     at.to_path_buf()
 }
 
+/// `semlook COMMAND --map MAP` on the frames linked into `dir` (label-only, CPU), with `extra`.
+fn on_frames(command: &[&str], map: &Path, dir: &Path, extra: &[&str]) -> Command {
+    let mut c = semlook();
+    c.args(command).args(["--map", p(map), "--images", p(&dir.join("images")), "--labels", p(&dir.join("labels"))]);
+    c.args(extra).args(["--no-segmenter", "--backend", "cpu", "-q"]);
+    c
+}
+
 #[allow(clippy::too_many_arguments)]
 fn worker(
     w: usize,
@@ -110,22 +118,7 @@ fn worker(
                     continue;
                 }
                 let d = frames_dir(&pool, &at, &ids);
-                let mut c = semlook();
-                c.args([
-                    "map",
-                    "add",
-                    "--map",
-                    p(&map),
-                    "--images",
-                    p(&d.join("images")),
-                    "--labels",
-                    p(&d.join("labels")),
-                    "--no-segmenter",
-                    "--backend",
-                    "cpu",
-                    "-q",
-                ]);
-                ("add", ids, c)
+                ("add", ids, on_frames(&["map", "add"], &map, &d, &[]))
             }
             4..=5 => {
                 let most = 1 + rng.below(3);
@@ -145,23 +138,7 @@ fn worker(
             _ => {
                 let id = &mine[rng.below(mine.len())];
                 let d = frames_dir(&pool, &at, std::slice::from_ref(id));
-                let mut c = semlook();
-                c.args([
-                    "query",
-                    "--map",
-                    p(&map),
-                    "--images",
-                    p(&d.join("images")),
-                    "--labels",
-                    p(&d.join("labels")),
-                    "--setting",
-                    "local",
-                    "--no-segmenter",
-                    "--backend",
-                    "cpu",
-                    "-q",
-                ]);
-                ("query", vec![], c)
+                ("query", vec![], on_frames(&["query"], &map, &d, &["--setting", "local"]))
             }
         };
         let kill_at = rng.chance(KILL_SHARE).then(|| Duration::from_millis(rng.below(KILL_WITHIN_MS as usize) as u64));
