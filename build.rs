@@ -12,6 +12,15 @@ fn main() {
     println!("cargo:rerun-if-changed=shaders");
     println!("cargo:rerun-if-changed=src/gpu/wgsl.rs");
     let mut failures = Vec::new();
+    for (name, src) in wgsl::INCLUDES {
+        let path = format!("shaders/{name}");
+        let ok = naga::front::wgsl::parse_str(src).map_err(|e| e.emit_to_string_with_path(src, &path)).and_then(|m| {
+            Validator::new(ValidationFlags::all(), Capabilities::empty()).validate(&m).map(|_| ()).map_err(|e| e.emit_to_string_with_path(src, &path))
+        });
+        if let Err(e) = ok {
+            failures.push(format!("{path}:\n{e}"));
+        }
+    }
     for (name, src) in wgsl::SHADERS {
         let path = format!("shaders/{name}");
         for on in wgsl::variants(src) {

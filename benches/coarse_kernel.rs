@@ -9,8 +9,9 @@
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use semlook::config::Config;
-use semlook::global::ssim::{ssim_pair, SsimParams, SsimScratch};
 use semlook::global::ssim_fast::{ssim_pair_fast, terms_from_descriptor, terms_from_stats, FastLayout, FastScratch};
+use semlook::kernels::abi::SsimParams;
+use semlook::kernels::ssim::{ssim_pair, SsimScratch};
 use semlook::synth::condition::Condition;
 
 mod common;

@@ -4,7 +4,8 @@
 use criterion::{criterion_group, criterion_main, Criterion};
 use semlook::config::Config;
 use semlook::encode::Encoder;
-use semlook::global::{encode_global, ssim::SsimParams, GlobalScratch};
+use semlook::global::{encode_global, GlobalScratch};
+use semlook::kernels::abi::SsimParams;
 use semlook::synth::condition::Condition;
 
 mod common;

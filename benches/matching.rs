@@ -7,8 +7,9 @@
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use semlook::config::Config;
-use semlook::global::ssim::SsimParams;
-use semlook::local::tree_similarity::{tree_similarity, TreeSimParams, TreeSimScratch};
+use semlook::kernels::abi::SsimParams;
+use semlook::kernels::abi::TreeSimParams;
+use semlook::kernels::tree_similarity::{tree_similarity, TreeSimScratch};
 use semlook::matching::{coarse_topk, coarse_topk_twin};
 use semlook::synth::condition::Condition;
 

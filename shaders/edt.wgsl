@@ -1,13 +1,8 @@
 // Exact Euclidean distance transform, Meijster, Roerdink & Hesselink (ISMM 2000).
-// CPU twin: src/global/edt.rs (`edt_columns`, `edt_rows`). 32-bit integer arithmetic only, so the
+// CPU twin: src/kernels/edt.rs (`edt_columns`, `edt_rows`). 32-bit integer arithmetic only, so the
 // squared distances equal the CPU's bit for bit.
 
-struct Dims {
-    width: u32,
-    height: u32,
-    frames: u32,
-    _pad: u32,
-}
+//#include abi.wgsl
 
 @group(0) @binding(0) var<uniform> dims: Dims;
 @group(0) @binding(1) var<storage, read> edges: array<u32>;

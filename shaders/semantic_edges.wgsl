@@ -1,13 +1,8 @@
-// Semantic edge extraction. CPU twin: src/global/semantic_edges.rs (`semantic_edges`).
+// Semantic edge extraction. CPU twin: src/kernels/semantic_edges.rs (`semantic_edges`).
 // A pixel is an edge pixel when its class is used and a 4-neighbour has a different used class.
 // One invocation per pixel; frames of a batch along z.
 
-struct Dims {
-    width: u32,
-    height: u32,
-    frames: u32,
-    _pad: u32,
-}
+//#include abi.wgsl
 
 @group(0) @binding(0) var<uniform> dims: Dims;
 @group(0) @binding(1) var<storage, read> labels: array<u32>;

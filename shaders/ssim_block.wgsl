@@ -1,5 +1,5 @@
-// Block-tiled batched SSIM: the coarse stage's scores. CPU twin: src/matching/ssim_block.rs
-// (`ssim_block`), whose scores equal `global::ssim::ssim_pair`'s bit for bit.
+// Block-tiled batched SSIM: the coarse stage's scores. CPU twin: src/kernels/ssim_block.rs
+// (`ssim_block`), whose scores equal `kernels::ssim::ssim_pair`'s bit for bit.
 //
 // Algorithm: one workgroup scores a block of `rb` references x `qb` queries (the block shape is
 // chosen on the host so that the workgroup arrays below hold it). The image is streamed row by
@@ -18,39 +18,7 @@
 // Each reference is read once per block of `qb` queries; the dispatch puts query blocks on x, so
 // consecutive workgroups share their references through the cache.
 
-struct SsimParams {
-    gw: u32,
-    gh: u32,
-    win: u32,
-    nw: u32,
-    nh: u32,
-    c1: f32,
-    c2: f32,
-    cov_norm: f32,
-}
-
-// One pass: some queries of the batch against a run of references of one resident map chunk.
-// Shared with topk_select.wgsl; the host writes one per pass into one buffer (dynamic offsets).
-struct PassParams {
-    // queries in this pass (the bound query buffer's first `queries` entries)
-    queries: u32,
-    // references in this pass: the row length of `scores`
-    refs: u32,
-    // first reference of the pass in the bound map chunk
-    ref_first: u32,
-    // map index of that reference
-    ref_index: u32,
-    // block shape: references and queries per workgroup
-    rb: u32,
-    qb: u32,
-    // top-K list length, segments of this pass, which running-list buffer holds the input
-    k: u32,
-    segs: u32,
-    parity: u32,
-    _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
-}
+//#include abi.wgsl
 
 @group(0) @binding(0) var<uniform> p: SsimParams;
 @group(0) @binding(1) var<uniform> ps: PassParams;

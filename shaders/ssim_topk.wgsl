@@ -1,6 +1,6 @@
 // Batched SSIM of a query batch against one tile of the map, and streaming top-K.
-// CPU twin: src/matching/ssim_topk.rs (`ssim_tile`, `topk_merge`), which uses
-// src/global/ssim.rs (`ssim_pair`) for one pair.
+// CPU twin: src/kernels/ssim_topk.rs (`ssim_tile`, `topk_merge`), which uses
+// src/kernels/ssim.rs (`ssim_pair`) for one pair.
 //
 // ssim_tile: one workgroup per (reference in tile, query) pair. Lanes compute the horizontal
 // window sums of x*y into workgroup memory, then the vertical sums and the per-window SSIM of
@@ -9,16 +9,7 @@
 // (ties go to the lower reference index; NaN scores are skipped). Only the K-lists are ever
 // read back.
 
-struct SsimParams {
-    gw: u32,
-    gh: u32,
-    win: u32,
-    nw: u32,
-    nh: u32,
-    c1: f32,
-    c2: f32,
-    cov_norm: f32,
-}
+//#include abi.wgsl
 
 struct TileParams {
     queries: u32,

@@ -1,5 +1,5 @@
 // Parallel top-K over a pass's scores (queries x refs, query-major), in two steps.
-// CPU twin: src/matching/topk_select.rs (`topk_partial`, `topk_merge_lists`).
+// CPU twin: src/kernels/topk_select.rs (`topk_partial`, `topk_merge_lists`).
 //
 // Order: a candidate ranks before another if its score is higher, or equal with a lower reference
 // index (the streaming top-K's rule: ties go to the lower index). NaN scores, and scores not above
@@ -12,20 +12,7 @@
 // topk_merge_lists: one invocation per query merges its running list with the pass's partial
 //   lists (all sorted in that order) into the other running-list buffer (ping-pong by `parity`).
 
-struct PassParams {
-    queries: u32,
-    refs: u32,
-    ref_first: u32,
-    ref_index: u32,
-    rb: u32,
-    qb: u32,
-    k: u32,
-    segs: u32,
-    parity: u32,
-    _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
-}
+//#include abi.wgsl
 
 // One list entry: a score and the map index of its reference (EMPTY_INDEX: an empty slot).
 struct Entry {
@@ -46,8 +33,6 @@ const LANES: u32 = 64u;
 const SEG: u32 = 1024u;
 // lists one merge takes: the running list and up to MAX_LISTS - 1 segments
 const MAX_LISTS: u32 = 64u;
-const EMPTY_SCORE: f32 = -3.0e38;
-const EMPTY_INDEX: u32 = 0xffffffffu;
 const NONE: u32 = 0xffffffffu;
 
 var<workgroup> seg_scores: array<f32, SEG>;

@@ -1,4 +1,4 @@
-// Batched forest-to-forest similarity. CPU twin: src/local/tree_similarity.rs
+// Batched forest-to-forest similarity. CPU twin: src/kernels/tree_similarity.rs
 // (`tree_similarity`: phase 1 cosines, phase 2 pair scores, phase 3 greedy assignment).
 // One workgroup per (query forest, reference forest) pair; per-pair matrices live in `scratch`.
 // The references' forests are resident on the device, one bind group (group 1) per map chunk;

@@ -35,7 +35,7 @@ use crate::config::Config;
 use crate::descriptors::DescriptorSet;
 use crate::engine::Engine;
 use crate::error::Result;
-use crate::global::ssim::SsimParams;
+use crate::kernels::abi::SsimParams;
 use crate::matching::source::{GlobalSource, TileBuf};
 use crate::matching::{CpuStages, Stages};
 use serde::Serialize;

@@ -2,7 +2,7 @@
 
 use super::*;
 use crate::descriptors::EncodedImage;
-use crate::global::ssim::{ssim_stats, SsimScratch};
+use crate::kernels::ssim::{ssim_stats, SsimScratch};
 use crate::local::Forest;
 
 /// `n` random descriptors at the default size (stats computed).

@@ -12,8 +12,9 @@ use crate::appearance::{
 use crate::classes::ClassTable;
 use crate::config::{Config, EncodingConfig};
 use crate::error::{Error, Result};
-use crate::global::{self, ssim::SsimParams, GlobalScratch};
+use crate::global::{self, GlobalScratch};
 use crate::input::{self, FrameSource, LabelFormat, LabelMap};
+use crate::kernels::{self, abi::SsimParams};
 use crate::local;
 use crate::objects;
 use crate::util::ms_since;
@@ -512,7 +513,7 @@ impl Encoder {
         let t = Instant::now();
         let global_stats = stats.unwrap_or_else(|| {
             let mut s = vec![0.0; self.ssim.stats_len()];
-            global::ssim::ssim_stats(&self.ssim, &global, &mut s, &mut Default::default());
+            kernels::ssim::ssim_stats(&self.ssim, &global, &mut s, &mut Default::default());
             s
         });
         let global_ms = global_ms + ms_since(t);

@@ -8,10 +8,10 @@ use crate::config::Config;
 use crate::descriptors::DescriptorSet;
 use crate::encode::{EncodedImage, Encoder, Loaded, Pending, StageTimes};
 use crate::error::Result;
-use crate::global::ssim::SsimParams;
 use crate::gpu::{coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, verify::MnnGpu, vlad::VladGpu, GpuContext, GpuOptions};
 use crate::input::{FrameSource, LabelFormat, LabelMap};
-use crate::local::tree_similarity::TreeSimParams;
+use crate::kernels::abi::SsimParams;
+use crate::kernels::abi::TreeSimParams;
 use crate::matching::{
     candidates, fine_scores, match_with,
     source::{GlobalSource, RefSource},

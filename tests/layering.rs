@@ -130,13 +130,28 @@ fn named_after(text: &str, prefix: &str) -> BTreeSet<String> {
     out
 }
 
-/// Text of a file, comments and `#[cfg(test)]` code (to the end of the file) left out.
+/// Text of a file, comments and `#[cfg(test)]` items left out (a `mod x;` line, or an item to
+/// its closing brace; the rest of the file is kept).
 fn source(path: &Path) -> String {
-    let text = strip_comments(&std::fs::read_to_string(path).unwrap());
-    match text.find("#[cfg(test)]") {
-        Some(k) => text[..k].to_string(),
-        None => text,
+    let mut text = strip_comments(&std::fs::read_to_string(path).unwrap());
+    while let Some(k) = text.find("#[cfg(test)]") {
+        let rest = &text[k..];
+        let end = match (rest.find(';'), rest.find('{')) {
+            (Some(semi), Some(open)) if semi < open => semi + 1,
+            (_, Some(open)) => {
+                let mut depth = 0;
+                let close = rest[open..].char_indices().find(|&(_, c)| {
+                    depth += (c == '{') as i32 - (c == '}') as i32;
+                    depth == 0
+                });
+                open + close.map_or(rest.len() - open, |(i, _)| i + 1)
+            }
+            (Some(semi), None) => semi + 1,
+            (None, None) => rest.len(),
+        };
+        text.replace_range(k..k + end, "");
     }
+    text
 }
 
 /// Every `.rs` file under `dir`, concatenated.
@@ -303,6 +318,18 @@ fn descriptors_import_no_stage() {
     for stage in STAGES.iter().filter(|s| **s != "descriptors").chain(&["eval", "batch", "engine", "gpu", "cli"]) {
         assert!(!below.contains(*stage), "descriptors (the shared bottom layer) reaches {stage}: {:?}", g["descriptors"]);
     }
+}
+
+/// The CPU twins sit under every stage: they may read the configuration and value views, no stage
+/// (so a stage, the GPU executors and the tests all take the same twins).
+#[test]
+fn the_kernels_import_no_stage() {
+    let g = import_graph();
+    let below = reachable(&g, "kernels");
+    let allowed = ["config", "classes", "error", "util", "values"];
+    let extra: Vec<&String> = below.iter().filter(|m| !allowed.contains(&m.as_str())).collect();
+    assert!(extra.is_empty(), "kernels reaches {extra:?} (allowed: {allowed:?})");
+    assert!(g["gpu"].contains("kernels") && g["matching"].contains("kernels"), "the graph lacks the kernels' users");
 }
 
 #[test]

@@ -5,7 +5,7 @@ mod common;
 use semlook::config::Config;
 use semlook::dataset::{Dataset, DatasetOptions};
 use semlook::eval::{evaluate, EvalOptions};
-use semlook::global::ssim::SsimParams;
+use semlook::kernels::abi::SsimParams;
 use semlook::matching::{coarse_topk, match_batch, Setting};
 
 #[test]

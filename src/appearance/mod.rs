@@ -7,19 +7,19 @@ pub mod keypoints;
 pub mod nn;
 pub mod torch_pt;
 pub mod vlad;
-pub mod vlad_accumulate;
 pub mod xfeat;
 
 use crate::config::{AppearanceConfig, AppearanceModelKind, KeypointsConfig, ModelPaths, Sampling};
 use crate::descriptors::keypoints::{ImageKeypoints, COORD_SCALE};
 use crate::error::{Error, Result};
+use crate::kernels::abi::VladParams;
+use crate::kernels::vlad_accumulate;
 use crate::objects::{ObjectMap, NO_OBJECT};
 use image::RgbImage;
 use keypoints::{KeypointParams, Keypoints};
 use nn::Chw;
 use std::path::PathBuf;
 use vlad::{Codebook, VladNorm};
-use vlad_accumulate::VladParams;
 
 /// File name of the XFeat weights in the setup folder.
 pub const XFEAT_WEIGHTS: &str = "xfeat.pt";
@@ -295,7 +295,7 @@ pub fn check_vlad_input(descs: &[f32], offsets: &[u32], codebook: &Codebook) -> 
 pub fn object_vlad(descs: &[f32], offsets: &[u32], codebook: &Codebook, norm: VladNorm) -> Vec<f32> {
     let objects = offsets.len().saturating_sub(1);
     let n = offsets.last().copied().unwrap_or(0) as usize;
-    let p = VladParams::new(codebook, n, objects, norm);
+    let p = VladParams::new(codebook.k, codebook.dim, n, objects, norm.power, norm.intra);
     let mut assign = vec![0u32; n];
     vlad_accumulate::vlad_assign(&p, &codebook.centres, descs, &mut assign);
     let mut out = vec![0.0f32; objects * codebook.k * codebook.dim];

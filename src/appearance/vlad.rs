@@ -152,7 +152,8 @@ pub fn train_codebook(samples: &[f32], dim: usize, k: usize, iterations: usize, 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::appearance::vlad_accumulate::{vlad_accumulate, vlad_assign, VladParams};
+    use crate::kernels::abi::VladParams;
+    use crate::kernels::vlad_accumulate::{vlad_accumulate, vlad_assign};
     use proptest::prelude::*;
 
     proptest! {

@@ -7,7 +7,7 @@
 //!   Software adapters (lavapipe, llvmpipe) have none: their rows are correctness only.
 
 use crate::engine::Engine;
-use crate::global::ssim::SsimParams;
+use crate::kernels::abi::SsimParams;
 use crate::matching::coarse_cpu::CoarseCpu;
 use std::time::Instant;
 

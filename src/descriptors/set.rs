@@ -4,8 +4,9 @@
 //! indices stay local to their forest.
 
 use crate::descriptors::keypoints::{ImageKeypoints, KeypointsRef};
-use crate::global::ssim::SsimParams;
-use crate::local::{Forest, ForestRef};
+use crate::kernels::abi::SsimParams;
+use crate::kernels::tree_similarity::ForestRef;
+use crate::local::Forest;
 use crate::values::Values;
 
 /// Everything stored for one image.

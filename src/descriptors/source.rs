@@ -4,7 +4,7 @@
 
 use super::DescriptorSet;
 use crate::descriptors::keypoints::KeypointsRef;
-use crate::local::ForestRef;
+use crate::kernels::tree_similarity::ForestRef;
 use crate::values::Values;
 
 /// Reusable storage for tiles that a source must assemble (copy or generate).

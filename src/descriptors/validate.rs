@@ -2,7 +2,7 @@
 //! checks again when it first reads a segment. Each check says what is wrong; the caller names the
 //! image or the file.
 
-use crate::local::ForestRef;
+use crate::kernels::tree_similarity::ForestRef;
 use crate::values::{ValueType, Values, F16_MAX};
 
 /// Longest image id, in bytes: ids are file stems or dataset keys, and a bound keeps a damaged or

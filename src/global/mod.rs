@@ -4,17 +4,14 @@
 //! τ = `truncation` x diagonal -> area resize to `width` x `height`, values in [0, 1]; plus the
 //! SSIM window statistics of that small map, so that matching pays only for the cross term.
 
-pub mod edt;
-pub mod global_pool;
-pub mod semantic_edges;
-pub mod ssim;
 pub mod ssim_fast;
 
 use crate::config::GlobalConfig;
 use crate::error::{Error, Result};
 use crate::input::LabelMap;
-use global_pool::PoolParams;
-use ssim::{SsimParams, SsimScratch};
+use crate::kernels::abi::{PoolParams, SsimParams};
+use crate::kernels::ssim::SsimScratch;
+use crate::kernels::{edt, global_pool, semantic_edges, ssim};
 
 /// Scratch buffers of the global encoder, reused across images (one per worker thread).
 #[derive(Debug, Default)]

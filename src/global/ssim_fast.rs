@@ -1,5 +1,5 @@
 //! SSIM of one descriptor pair from precomputed per-descriptor terms: the kernel of the fast CPU
-//! coarse path (`matching::coarse_cpu`), equal bit for bit to [`ssim_pair`](super::ssim::ssim_pair).
+//! coarse path (`matching::coarse_cpu`), equal bit for bit to [`ssim_pair`](crate::kernels::ssim::ssim_pair).
 //!
 //! Algorithm: the twin's arithmetic in the twin's order (product map, direct `win`-tap
 //! horizontal window sums, direct vertical sums, the SSIM window formula, the shader's 64-lane
@@ -24,7 +24,8 @@
 //! windows of near-zero variance, so no tolerance like 1e-5 holds for every input; the direct
 //! sums were kept for exact equality.
 
-use super::ssim::{ssim_stats, SsimParams, SsimScratch, LANES};
+use crate::kernels::abi::SsimParams;
+use crate::kernels::ssim::{ssim_stats, SsimScratch, LANES};
 use pulp::Simd;
 
 /// Row padding in f32 lanes: a multiple of every vector width the kernel is built for (8 for

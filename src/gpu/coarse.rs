@@ -20,10 +20,11 @@ use super::context::{GpuContext, GpuError};
 use super::resident::{ChunkData, ChunkPlan, Resident};
 use super::topk::{bytes_per_query, TopK, MAX_PASS_REFS};
 use crate::descriptors::DescriptorSet;
-use crate::global::ssim::SsimParams;
+use crate::kernels::abi::PassParams;
+use crate::kernels::abi::SsimParams;
+use crate::kernels::ssim_block::block_shape;
+use crate::kernels::topk_select::SEG;
 use crate::matching::source::{GlobalSource, SourceKey, TileBuf};
-use crate::matching::ssim_block::{block_shape, PassParams};
-use crate::matching::topk_select::SEG;
 use std::sync::Arc;
 
 pub struct CoarseMatcherGpu {
@@ -61,7 +62,7 @@ impl CoarseMatcherGpu {
             adapter: ctx.describe(),
             what: "the SSIM block kernel's workgroup arrays (descriptor width, and window x valid windows per row)".into(),
             needed: (p.gw.max(p.win * p.nw)) as u64,
-            available: crate::matching::ssim_block::PROD_CAP.min(crate::matching::ssim_block::RING_CAP) as u64,
+            available: crate::kernels::ssim_block::PROD_CAP.min(crate::kernels::ssim_block::RING_CAP) as u64,
         })?;
         let params = ctx.uniform("ssim params", &p);
         let passes = PassBuffer::new(&ctx);

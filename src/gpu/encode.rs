@@ -4,19 +4,12 @@
 
 use super::context::{GpuContext, GpuError};
 use crate::config::GlobalConfig;
-use crate::global::{edt, global_pool::PoolParams, pool_params};
+use crate::global::pool_params;
 use crate::input::LabelMap;
+use crate::kernels::abi::Dims;
+use crate::kernels::abi::PoolParams;
+use crate::kernels::edt;
 use std::sync::Arc;
-
-/// The `Dims` uniform of `semantic_edges.wgsl` and `edt.wgsl`.
-#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-#[repr(C)]
-pub(crate) struct Dims {
-    pub width: u32,
-    pub height: u32,
-    pub frames: u32,
-    pub _pad: u32,
-}
 
 struct Buffers {
     pixels: u64,

@@ -13,17 +13,17 @@
 //! A pass is a run of pairs within one map chunk, bounded by the scratch binding (each pair owns
 //! 2 x max_trees^2 floats); its grid has `row` workgroups per row.
 
-use super::abi::{FinePass, MAX_SLOTS, MAX_TREES};
 use super::buffers::{PassBuffer, Reused};
 use super::context::{GpuContext, GpuError};
 use super::fine_pack::{forest_key, pack, plan_chunks, ForestChunks, Packed};
 use super::resident::{ChunkPlan, Resident};
 use super::topk::{bytes_per_query, TopK, MAX_PASS_REFS};
 use crate::descriptors::DescriptorSet;
-use crate::local::tree_similarity::TreeSimParams;
+use crate::kernels::abi::PassParams;
+use crate::kernels::abi::TreeSimParams;
+use crate::kernels::abi::{FinePass, MAX_SLOTS, MAX_TREES};
+use crate::kernels::topk_select::SEG;
 use crate::matching::source::{RefSource, SourceKey};
-use crate::matching::ssim_block::PassParams;
-use crate::matching::topk_select::SEG;
 use std::sync::Arc;
 
 pub struct FineMatcherGpu {

@@ -1,11 +1,11 @@
 //! Forests in the layout of `shaders/tree_similarity.wgsl`: tree records, appearance vectors and
 //! each forest's (first tree, tree count); the map's forests chunked for residency.
 
-use super::abi::{GpuTree, MAX_SLOTS};
 use super::context::{GpuContext, GpuError};
 use super::resident::{ChunkData, ChunkPlan};
-use crate::local::tree_similarity::TreeSimParams;
-use crate::local::ForestRef;
+use crate::kernels::abi::TreeSimParams;
+use crate::kernels::abi::{GpuTree, MAX_SLOTS};
+use crate::kernels::tree_similarity::ForestRef;
 use crate::matching::source::{RefSource, SourceKey};
 
 /// Forests packed for the shader.

@@ -115,9 +115,9 @@ fn kernel(device: &wgpu::Device, module: &wgpu::ShaderModule, file: &str, entry:
 }
 
 /// Bytes of the per-pass parameters the coarse kernels bind at dynamic offsets.
-const PASS: u64 = std::mem::size_of::<crate::matching::ssim_block::PassParams>() as u64;
+const PASS: u64 = std::mem::size_of::<crate::kernels::abi::PassParams>() as u64;
 /// Bytes of the fine stage's per-pass parameters.
-const FINE_PASS: u64 = std::mem::size_of::<super::abi::FinePass>() as u64;
+const FINE_PASS: u64 = std::mem::size_of::<crate::kernels::abi::FinePass>() as u64;
 
 impl Kernels {
     pub fn new(device: &wgpu::Device, subgroups: bool) -> Result<Kernels, GpuError> {

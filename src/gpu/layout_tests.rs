@@ -3,12 +3,12 @@
 //! entry point's same-name CPU twin. Nothing here is hand-mirrored: a field added, moved or
 //! retyped on one side only fails these tests.
 
-use super::wgsl::{preprocess, SHADERS};
+use super::wgsl::{preprocess, INCLUDES, SHADERS};
 use naga::{Expression, Literal, TypeInner};
 use std::mem::{offset_of, size_of};
 
 fn module(file: &str) -> naga::Module {
-    let src = SHADERS.iter().find(|s| s.0 == file).unwrap_or_else(|| panic!("no shader {file}")).1;
+    let src = SHADERS.iter().chain(&INCLUDES).find(|s| s.0 == file).unwrap_or_else(|| panic!("no shader {file}")).1;
     naga::front::wgsl::parse_str(&preprocess(src, &[]).unwrap()).unwrap_or_else(|e| panic!("{file}: {e}"))
 }
 
@@ -46,19 +46,10 @@ fn same_layout(file: &str, name: &str, rust: (usize, Vec<(&str, usize)>)) {
 
 #[test]
 fn shared_structs_have_the_shaders_layouts() {
-    use crate::appearance::vlad_accumulate::VladParams;
-    use crate::global::{global_pool::PoolParams, ssim::SsimParams};
-    use crate::gpu::abi::{FinePass, GpuTree};
-    use crate::gpu::encode::Dims;
-    use crate::local::tree_similarity::TreeSimParams;
-    use crate::matching::{ssim_block::PassParams, ssim_topk::TileParams, topk_select::Entry};
-    for file in ["ssim_topk.wgsl", "ssim_block.wgsl"] {
-        same_layout(file, "SsimParams", rust!(SsimParams { gw, gh, win, nw, nh, c1, c2, cov_norm }));
-    }
+    use crate::kernels::abi::*;
+    same_layout("abi.wgsl", "SsimParams", rust!(SsimParams { gw, gh, win, nw, nh, c1, c2, cov_norm }));
     same_layout("ssim_topk.wgsl", "TileParams", rust!(TileParams { queries, tile_len, tile_start, k }));
-    for file in ["ssim_block.wgsl", "topk_select.wgsl"] {
-        same_layout(file, "PassParams", rust!(PassParams { queries, refs, ref_first, ref_index, rb, qb, k, segs, parity }));
-    }
+    same_layout("abi.wgsl", "PassParams", rust!(PassParams { queries, refs, ref_first, ref_index, rb, qb, k, segs, parity }));
     same_layout("topk_select.wgsl", "Entry", rust!(Entry { score, index }));
     same_layout(
         "tree_similarity.wgsl",
@@ -89,9 +80,7 @@ fn shared_structs_have_the_shaders_layouts() {
     same_layout("tree_similarity.wgsl", "Tree", rust!(GpuTree { class_id, has_app, area, cx, cy, weight, nb }));
     same_layout("vlad_accumulate.wgsl", "VladParams", rust!(VladParams { centres, dim, keypoints, objects, power_norm, intra_norm }));
     same_layout("global_pool.wgsl", "PoolParams", rust!(PoolParams { src_width, src_height, dst_width, dst_height, tau, frames }));
-    for file in ["semantic_edges.wgsl", "edt.wgsl"] {
-        same_layout(file, "Dims", rust!(Dims { width, height, frames }));
-    }
+    same_layout("abi.wgsl", "Dims", rust!(Dims { width, height, frames }));
 }
 
 /// The value of the WGSL constant `name` of `file`, as f64.
@@ -108,53 +97,41 @@ fn wgsl_const(file: &str, name: &str) -> f64 {
 
 #[test]
 fn shared_constants_agree() {
-    use crate::matching::{ssim_block as b, ssim_topk, topk_select as t};
+    use crate::kernels::{abi, ssim_block as b, topk_select as t};
     let checks: [(&str, &str, f64); 18] = [
-        ("ssim_topk.wgsl", "LANES", crate::global::ssim::LANES as f64),
+        ("ssim_topk.wgsl", "LANES", crate::kernels::ssim::LANES as f64),
         ("ssim_topk.wgsl", "MAX_ROW_SUMS", super::reference::MAX_ROW_SUMS as f64),
-        ("ssim_block.wgsl", "LANES", crate::global::ssim::LANES as f64),
+        ("ssim_block.wgsl", "LANES", crate::kernels::ssim::LANES as f64),
         ("ssim_block.wgsl", "PAIR_CAP", b::PAIR_CAP as f64),
         ("ssim_block.wgsl", "PROD_CAP", b::PROD_CAP as f64),
         ("ssim_block.wgsl", "RING_CAP", b::RING_CAP as f64),
         ("topk_select.wgsl", "LANES", t::LANES as f64),
         ("topk_select.wgsl", "SEG", t::SEG as f64),
         ("topk_select.wgsl", "MAX_LISTS", t::MAX_LISTS as f64),
-        ("topk_select.wgsl", "EMPTY_SCORE", ssim_topk::EMPTY_SCORE as f64),
-        ("topk_select.wgsl", "EMPTY_INDEX", ssim_topk::EMPTY_INDEX as f64),
-        ("topk_select.wgsl", "NONE", ssim_topk::EMPTY_INDEX as f64),
-        ("tree_similarity.wgsl", "LANES", crate::global::ssim::LANES as f64),
-        ("tree_similarity.wgsl", "MAX_TREES", super::abi::MAX_TREES as f64),
-        ("tree_similarity.wgsl", "MAX_SLOTS", super::abi::MAX_SLOTS as f64),
-        ("tree_similarity.wgsl", "MISSING", crate::local::tree_similarity::MISSING as f64),
-        ("tree_similarity.wgsl", "NOT_A_PAIR", crate::local::tree_similarity::NOT_A_PAIR as f64),
-        ("vlad_accumulate.wgsl", "LANES", crate::appearance::vlad_accumulate::LANES as f64),
+        ("abi.wgsl", "EMPTY_SCORE", abi::EMPTY_SCORE as f64),
+        ("abi.wgsl", "EMPTY_INDEX", abi::EMPTY_INDEX as f64),
+        ("topk_select.wgsl", "NONE", abi::EMPTY_INDEX as f64),
+        ("tree_similarity.wgsl", "LANES", crate::kernels::ssim::LANES as f64),
+        ("tree_similarity.wgsl", "MAX_TREES", crate::kernels::abi::MAX_TREES as f64),
+        ("tree_similarity.wgsl", "MAX_SLOTS", crate::kernels::abi::MAX_SLOTS as f64),
+        ("tree_similarity.wgsl", "MISSING", crate::kernels::tree_similarity::MISSING as f64),
+        ("tree_similarity.wgsl", "NOT_A_PAIR", crate::kernels::tree_similarity::NOT_A_PAIR as f64),
+        ("vlad_accumulate.wgsl", "LANES", crate::kernels::vlad_accumulate::LANES as f64),
     ];
     for (file, name, rust) in checks {
         assert_eq!(wgsl_const(file, name), rust, "{file}: {name}");
     }
 }
 
-/// Every entry point of every shader has a CPU twin of the same name in a file named after the
-/// shader (`shaders/x.wgsl` -> `src/**/x.rs`, `pub fn entry(`).
+/// Every entry point of every shader has a CPU twin of the same name in the file of the same name
+/// under `src/kernels/` (`shaders/x.wgsl` -> `src/kernels/x.rs`, `pub fn entry(`), and every
+/// file there but the ABI and the test data is a shader's twin.
 #[test]
 fn every_kernel_has_a_same_name_twin() {
-    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
-    let mut files = Vec::new();
-    let mut stack = vec![root];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap().flatten() {
-            let p = e.path();
-            if p.is_dir() {
-                stack.push(p);
-            } else {
-                files.push(p);
-            }
-        }
-    }
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src/kernels");
     for (file, _) in SHADERS {
-        let stem = file.trim_end_matches(".wgsl");
-        let twin = files.iter().find(|p| p.file_stem().is_some_and(|s| s == stem)).unwrap_or_else(|| panic!("{file}: no src/**/{stem}.rs"));
-        let text = std::fs::read_to_string(twin).unwrap();
+        let twin = dir.join(file.replace(".wgsl", ".rs"));
+        let text = std::fs::read_to_string(&twin).unwrap_or_else(|e| panic!("{file}: no twin {}: {e}", twin.display()));
         for ep in &module(file).entry_points {
             assert!(
                 text.contains(&format!("pub fn {}(", ep.name)),
@@ -164,5 +141,12 @@ fn every_kernel_has_a_same_name_twin() {
                 twin.display()
             );
         }
+    }
+    for e in std::fs::read_dir(&dir).unwrap().flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let Some(stem) = name.strip_suffix(".rs") else { continue };
+        let shader = format!("{}.wgsl", stem.trim_end_matches("_tests"));
+        let known = SHADERS.iter().chain(&INCLUDES).any(|s| s.0 == shader) || ["mod", "test_data", "ssim"].contains(&stem);
+        assert!(known, "src/kernels/{name} mirrors no shader");
     }
 }

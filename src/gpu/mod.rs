@@ -3,22 +3,21 @@
 //!
 //! | shader | entry points | CPU twin |
 //! |---|---|---|
-//! | `semantic_edges.wgsl` | `semantic_edges` | `global::semantic_edges::semantic_edges` |
-//! | `edt.wgsl` | `edt_columns`, `edt_rows` | `global::edt::{edt_columns, edt_rows}` |
-//! | `global_pool.wgsl` | `global_pool` | `global::global_pool::global_pool` |
-//! | `ssim_topk.wgsl` | `ssim_tile`, `topk_merge` | `matching::ssim_topk::{ssim_tile, topk_merge}` |
-//! | `ssim_block.wgsl` | `ssim_block` | `matching::ssim_block::ssim_block` |
-//! | `topk_select.wgsl` | `topk_partial`, `topk_merge_lists` | `matching::topk_select::{topk_partial, topk_merge_lists}` |
-//! | `tree_similarity.wgsl` | `tree_similarity` | `local::tree_similarity::tree_similarity` |
-//! | `vlad_accumulate.wgsl` | `vlad_assign`, `vlad_accumulate` | `appearance::vlad_accumulate::{vlad_assign, vlad_accumulate}` |
-//! | `mnn_match.wgsl` | `mnn_match` | `verify::mnn_match::mnn_match` |
+//! | `semantic_edges.wgsl` | `semantic_edges` | `kernels::semantic_edges::semantic_edges` |
+//! | `edt.wgsl` | `edt_columns`, `edt_rows` | `kernels::edt::{edt_columns, edt_rows}` |
+//! | `global_pool.wgsl` | `global_pool` | `kernels::global_pool::global_pool` |
+//! | `ssim_topk.wgsl` | `ssim_tile`, `topk_merge` | `kernels::ssim_topk::{ssim_tile, topk_merge}` |
+//! | `ssim_block.wgsl` | `ssim_block` | `kernels::ssim_block::ssim_block` |
+//! | `topk_select.wgsl` | `topk_partial`, `topk_merge_lists` | `kernels::topk_select::{topk_partial, topk_merge_lists}` |
+//! | `tree_similarity.wgsl` | `tree_similarity` | `kernels::tree_similarity::tree_similarity` |
+//! | `vlad_accumulate.wgsl` | `vlad_assign`, `vlad_accumulate` | `kernels::vlad_accumulate::{vlad_assign, vlad_accumulate}` |
+//! | `mnn_match.wgsl` | `mnn_match` | `kernels::mnn_match::mnn_match` |
 //!
 //! Residency is explicit: executors own their device buffers and reuse them between batches;
 //! the map (coarse: descriptors and statistics; fine: packed forests) is uploaded once and kept
 //! while its key stays the same, within the context's budget (`gpu::resident`); queries are
 //! uploaded once per batch; only top-K lists or pair scores come back.
 
-mod abi;
 mod buffers;
 pub mod coarse;
 mod context;

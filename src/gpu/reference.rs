@@ -4,8 +4,8 @@
 //! scores no SSIM produces (NaN). The coarse executor does not use them.
 
 use super::context::{GpuContext, GpuError};
-use crate::global::ssim::SsimParams;
-use crate::matching::ssim_topk::TileParams;
+use crate::kernels::abi::SsimParams;
+use crate::kernels::abi::TileParams;
 
 /// Largest global height x valid windows per row that `ssim_tile`'s workgroup array holds: the
 /// shader's `MAX_ROW_SUMS` (15 KiB of the 16 KiB every adapter has).
@@ -68,8 +68,8 @@ pub fn merge_scores(ctx: &GpuContext, tp: &TileParams, scores: &[f32], top_s: &[
 pub fn select_topk(ctx: &GpuContext, scores: &[f32], nq: usize, k: usize, pass: usize) -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
     use super::buffers::{PassBuffer, Reused};
     use super::topk::{TopK, MAX_PASS_REFS};
-    use crate::matching::ssim_block::PassParams;
-    use crate::matching::topk_select::SEG;
+    use crate::kernels::abi::PassParams;
+    use crate::kernels::topk_select::SEG;
     let n = scores.len() / nq.max(1);
     let pass = pass.clamp(1, MAX_PASS_REFS);
     let starts: Vec<usize> = (0..n).step_by(pass).collect();

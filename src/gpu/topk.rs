@@ -5,8 +5,9 @@
 
 use super::buffers::Reused;
 use super::context::{GpuContext, GpuError};
-use crate::matching::ssim_block::PassParams;
-use crate::matching::topk_select::{Entry, MAX_LISTS, SEG};
+use crate::kernels::abi::Entry;
+use crate::kernels::abi::PassParams;
+use crate::kernels::topk_select::{MAX_LISTS, SEG};
 
 /// References one pass may cover: the merge takes the running list and `MAX_LISTS - 1` segments.
 pub(crate) const MAX_PASS_REFS: usize = (MAX_LISTS - 1) * SEG;

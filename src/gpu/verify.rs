@@ -8,7 +8,9 @@ use super::buffers::Reused;
 use super::context::{GpuContext, GpuError};
 use crate::descriptors::source::RefSource;
 use crate::descriptors::DescriptorSet;
-use crate::verify::mnn_match::{pack, BestColumns, MnnPair, MnnParams, MAX_WORDS, ROWS};
+use crate::kernels::abi::{MnnPair, MnnParams};
+use crate::kernels::mnn_match::{pack, MAX_WORDS, ROWS};
+use crate::verify::best_columns::BestColumns;
 use std::collections::HashMap;
 use std::sync::Arc;
 
@@ -36,7 +38,7 @@ impl MnnGpu {
         MnnGpu { ctx, params: None, buffers: Buffers::default() }
     }
 
-    /// The best columns of every (query, reference) pair, as [`crate::verify::mnn_match::best_columns`]
+    /// The best columns of every (query, reference) pair, as [`crate::kernels::mnn_match::best_columns`]
     /// gives them on the CPU (bit for bit: the arithmetic is integer).
     pub fn best_columns(&mut self, queries: &DescriptorSet, refs: &dyn RefSource, pairs: &[(u32, u32)]) -> Result<Vec<BestColumns>, GpuError> {
         let dim = queries.keypoint_dim;

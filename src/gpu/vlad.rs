@@ -6,7 +6,8 @@ use super::buffers::Reused;
 use super::context::{GpuContext, GpuError};
 use crate::appearance::check_vlad_input;
 use crate::appearance::vlad::{Codebook, VladNorm};
-use crate::appearance::vlad_accumulate::{VladParams, MAX_CENTRES};
+use crate::kernels::abi::VladParams;
+use crate::kernels::vlad_accumulate::MAX_CENTRES;
 use std::sync::Arc;
 
 /// Buffers kept between batches.
@@ -61,7 +62,7 @@ impl VladGpu {
         let k = &ctx.kernels;
         let b = &mut self.buffers;
         let vectors: Vec<f32> = ctx.scoped("VLAD aggregation", || -> Result<Vec<f32>, GpuError> {
-            let p = VladParams::new(codebook, n, objects, norm);
+            let p = VladParams::new(codebook.k, codebook.dim, n, objects, norm.power, norm.intra);
             let params = ctx.uniform("vlad params", &p);
             let centres = b.centres.upload(&ctx, "centres", bytemuck::cast_slice(&codebook.centres));
             let desc_buf = b.descriptors.upload(&ctx, "descriptors", bytemuck::cast_slice(&descs));

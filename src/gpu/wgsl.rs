@@ -6,6 +6,10 @@
 //! `//#else` and `//#endif` (no nesting). Lines a variant leaves out become empty lines, so naga's
 //! line numbers are the file's. The only name in use is `SUBGROUPS`: reductions through subgroup
 //! operations where the adapter has them, through workgroup memory where it does not.
+//!
+//! `//#include FILE` appends one of [`INCLUDES`] (structs and constants several shaders share,
+//! the WGSL side of `kernels::abi`) after the shader's last line: WGSL declarations may come in
+//! any order, and the shader's own lines keep their numbers. Includes hold no directives.
 
 /// The names a shader's variants are chosen by.
 pub const DEFINES: [&str; 1] = ["SUBGROUPS"];
@@ -23,6 +27,9 @@ pub const SHADERS: [(&str, &str); 9] = [
     ("mnn_match.wgsl", include_str!("../../shaders/mnn_match.wgsl")),
 ];
 
+/// Files shaders include, by file name; validated on their own by the build script too.
+pub const INCLUDES: [(&str, &str); 1] = [("abi.wgsl", include_str!("../../shaders/abi.wgsl"))];
+
 /// The names `src` branches on (in `DEFINES` order).
 pub fn defines_used(src: &str) -> Vec<&'static str> {
     DEFINES.iter().copied().filter(|d| src.lines().any(|l| l.trim() == format!("//#if {d}"))).collect()
@@ -35,8 +42,18 @@ pub fn preprocess(src: &str, on: &[&str]) -> Result<String, String> {
     // None: outside a block; Some(keep): inside one, keeping its lines or not
     let mut state: Option<bool> = None;
     let mut seen_else = false;
+    let mut included: Vec<&str> = Vec::new();
     for (n, line) in src.lines().enumerate() {
         let t = line.trim();
+        if let Some(name) = t.strip_prefix("//#include ") {
+            let name = name.trim();
+            if state.is_some() || included.contains(&name) || !INCLUDES.iter().any(|i| i.0 == name) {
+                return Err(format!("line {}: cannot include {name:?} here (known: {:?}, once each, outside //#if)", n + 1, INCLUDES.map(|i| i.0)));
+            }
+            included.push(name);
+            out.push('\n');
+            continue;
+        }
         let keep = match (t.strip_prefix("//#if "), t, state) {
             (Some(name), _, None) => {
                 if !DEFINES.contains(&name.trim()) {
@@ -64,10 +81,14 @@ pub fn preprocess(src: &str, on: &[&str]) -> Result<String, String> {
         }
         out.push('\n');
     }
-    match state {
-        Some(_) => Err("//#if without //#endif".into()),
-        None => Ok(out),
+    if state.is_some() {
+        return Err("//#if without //#endif".into());
     }
+    for name in included {
+        let text = INCLUDES.iter().find(|i| i.0 == name).map_or("", |i| i.1);
+        out.push_str(&format!("// ---- shaders/{name} ----\n{text}"));
+    }
+    Ok(out)
 }
 
 /// Every variant of `src`: one per subset of the names it uses, with those names set.

@@ -6,9 +6,8 @@
 //! neighbour trees in the same image. Neighbours are not copied: their class and appearance are
 //! read through the index (spec §2.6 storage note).
 
-pub mod tree_similarity;
-
 use crate::config::LocalConfig;
+use crate::kernels::tree_similarity::ForestRef;
 use crate::objects::ObjectMap;
 use crate::values::Values;
 
@@ -30,21 +29,6 @@ pub struct Forest {
     pub has_appearance: Vec<u8>,
     /// Appearance descriptors (keypoints or dense cells) inside each tree's object.
     pub descriptors: Vec<u32>,
-    pub dim: usize,
-}
-
-/// A borrowed forest: a slice of a map's concatenated arrays or of one [`Forest`]. Appearance
-/// vectors may be stored f16 (a map built with `--f16`); they are widened where they are scored.
-#[derive(Debug, Clone, Copy)]
-pub struct ForestRef<'a> {
-    pub classes: &'a [u8],
-    pub areas: &'a [f32],
-    pub centroids: &'a [f32],
-    pub neighbours: &'a [i32],
-    pub neighbour_slots: usize,
-    pub appearance: Values<'a>,
-    pub has_appearance: &'a [u8],
-    pub descriptors: &'a [u32],
     pub dim: usize,
 }
 
@@ -155,6 +139,9 @@ pub fn build_forest(objects: &ObjectMap, cfg: &LocalConfig) -> Forest {
     }
     forest
 }
+
+#[cfg(test)]
+mod tree_similarity_tests;
 
 #[cfg(test)]
 mod tests {

@@ -22,7 +22,7 @@ use super::manifest::SegmentEntry;
 use crate::descriptors::keypoints::KeypointsRef;
 use crate::descriptors::{validate, DescriptorSet};
 use crate::error::{Error, Result};
-use crate::local::ForestRef;
+use crate::kernels::tree_similarity::ForestRef;
 use crate::values::{to_f16_bits, ValueType, Values};
 use memmap2::Mmap;
 use safetensors::tensor::{Dtype, TensorView};

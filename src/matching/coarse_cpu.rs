@@ -20,8 +20,10 @@
 //! Scores are written reference-major (`scores[r * queries + q]`) so that each block owns one
 //! contiguous slice; `ssim_topk::topk_merge_ref_major` folds them into the K-lists.
 
-use crate::global::ssim::{ssim_pair, SsimParams, SsimScratch};
 use crate::global::ssim_fast::{ssim_pair_fast, terms_from_stats, FastLayout, FastScratch};
+use crate::kernels::abi::{self, SsimParams};
+use crate::kernels::ssim::{ssim_pair, SsimScratch};
+use crate::kernels::ssim_topk;
 use rayon::prelude::*;
 use std::sync::{Mutex, PoisonError};
 
@@ -194,6 +196,34 @@ impl pulp::WithSimd for Block<'_> {
             }
         }
     }
+}
+
+/// A function folding one tile's scores into the K-lists (`topk_merge` or its reference-major form).
+type Merge = fn(&abi::TileParams, &[f32], &mut [f32], &mut [u32]);
+
+/// The CPU streaming top-K over a map of `n` references: per tile of at most `tile` references,
+/// `score` fills the queries x tile scores, which `merge` folds into each query's K-list.
+pub(crate) fn stream_topk(
+    nq: usize,
+    n: usize,
+    k: usize,
+    tile: usize,
+    merge: Merge,
+    mut score: impl FnMut(&abi::TileParams, &mut [f32]),
+) -> Vec<Vec<(f32, u32)>> {
+    let tile = tile.max(1).min(n.max(1));
+    let mut scores = vec![0.0f32; nq * tile];
+    let mut top_s = vec![abi::EMPTY_SCORE; nq * k];
+    let mut top_i = vec![abi::EMPTY_INDEX; nq * k];
+    let mut start = 0;
+    while start < n {
+        let end = (start + tile).min(n);
+        let tp = abi::TileParams { queries: nq as u32, tile_len: (end - start) as u32, tile_start: start as u32, k: k as u32 };
+        score(&tp, &mut scores[..nq * (end - start)]);
+        merge(&tp, &scores[..nq * (end - start)], &mut top_s, &mut top_i);
+        start = end;
+    }
+    ssim_topk::topk_lists(k, &top_s, &top_i)
 }
 
 #[cfg(test)]

@@ -2,12 +2,34 @@
 
 use super::*;
 use crate::descriptors::DescriptorSet;
-use crate::global::ssim::SsimScratch;
-use crate::matching::ssim_topk::{ssim_tile, TileParams};
-use crate::matching::test_data::{params, set, shape};
+use crate::kernels::abi::TileParams;
+use crate::kernels::ssim::SsimScratch;
+use crate::kernels::ssim_topk::ssim_tile;
+use crate::kernels::test_data::{params, shape};
 use crate::matching::{coarse_topk, coarse_topk_twin};
 use crate::util::SplitMix64;
 use proptest::prelude::*;
+
+/// [`crate::kernels::test_data::set`] as a descriptor set (the sources the coarse stage reads).
+fn set(p: &SsimParams, n: usize, pool: usize, rng: &mut SplitMix64) -> DescriptorSet {
+    let g = crate::kernels::test_data::set(p, n, pool, rng);
+    let mut s = DescriptorSet::new(p, 1, 0, 0);
+    for i in 0..n {
+        s.push(&crate::descriptors::EncodedImage {
+            id: format!("d{i}"),
+            width: 1,
+            height: 1,
+            global: g.globals[i * p.len()..(i + 1) * p.len()].to_vec(),
+            global_stats: g.global_stats[i * p.stats_len()..(i + 1) * p.stats_len()].to_vec(),
+            forest: crate::local::Forest { neighbour_slots: 1, ..Default::default() },
+            appearance: vec![],
+            hog: vec![],
+            keypoints: Default::default(),
+        })
+        .unwrap();
+    }
+    s
+}
 
 /// Fast scores of every pair (query-major), with the given instruction set.
 fn fast_scores(p: &SsimParams, simd: Simd, q: &DescriptorSet, r: &DescriptorSet) -> Vec<f32> {

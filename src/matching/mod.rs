@@ -8,148 +8,26 @@
 
 pub mod baseline;
 pub mod coarse_cpu;
+pub mod setting;
 pub mod source;
-pub mod ssim_block;
-pub mod ssim_topk;
-#[cfg(test)]
-pub(crate) mod test_data;
-pub mod topk_select;
 
-use crate::config::{CoarseStage, Config, ScoreFusion};
+pub use setting::Setting;
+
+use crate::config::{Config, ScoreFusion};
 use crate::descriptors::DescriptorSet;
 use crate::error::{Error, Result};
-use crate::global::ssim::SsimParams;
-use crate::local::tree_similarity::{tree_similarity, TreeSimParams, TreeSimScratch};
+use crate::kernels::abi::SsimParams;
+use crate::kernels::abi::TreeSimParams;
+use crate::kernels::ssim_topk;
+use crate::kernels::tree_similarity::{tree_similarity, TreeSimScratch};
 use crate::util::ms_since;
 use crate::values::Values;
 use crate::verify::{verify_pair, Verified, VerifyParams};
+use coarse_cpu::stream_topk;
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 use source::{GlobalSource, RefSource};
 use std::time::Instant;
-
-/// A matching setting: which stages run and whether appearance takes part.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "kebab-case")]
-pub enum Setting {
-    /// Baseline: VPR-Bench's HOG (grey 512 x 512, cosine), the floor any VPR method must beat.
-    Hog,
-    /// Baseline: the VLAD of all the image's appearance descriptors with the map's codebook (cosine).
-    Appearance,
-    /// Coarse stage only: rank by SSIM of the global descriptors ("Edge (Coarse)").
-    Global,
-    /// §6.1 (1): Forest descriptors only, against the whole map, no appearance.
-    Forest,
-    /// §6.1 (2): SemLook local descriptors (Forest + appearance), against the whole map.
-    Local,
-    /// §6.1 (3): global descriptor selects K candidates, Forest re-ranks them
-    /// (`matching.coarse`: the edge descriptor alone, or fused with the whole-image appearance).
-    GlobalForest,
-    /// §6.1 (4): the full method: global top-K, SemLook local re-ranking (`matching.coarse` as
-    /// for setting 3).
-    Semlook,
-    /// Beyond the paper, coarse stage only: rank by cos(whole-image appearance) + w_global x SSIM
-    /// of the global descriptors (`matching.w_global`).
-    Fused,
-    /// Beyond the paper, the recommended pipeline: the fused coarse top-K, re-ranked by SemLook
-    /// local similarity and geometric verification (`verification`).
-    Verified,
-}
-
-impl Setting {
-    /// Every setting: the two baselines, the coarse stage and the paper's four, then the fused
-    /// coarse stage and the recommended pipeline.
-    pub const ALL: [Setting; 9] = [
-        Setting::Hog,
-        Setting::Appearance,
-        Setting::Global,
-        Setting::Forest,
-        Setting::Local,
-        Setting::GlobalForest,
-        Setting::Semlook,
-        Setting::Fused,
-        Setting::Verified,
-    ];
-    /// The setting `query`, `eval` and the Python API use when none is named.
-    pub const RECOMMENDED: Setting = Setting::Verified;
-    /// The coarse stage and the paper's four settings (no baselines).
-    pub const SEMLOOK: [Setting; 5] = [Setting::Global, Setting::Forest, Setting::Local, Setting::GlobalForest, Setting::Semlook];
-
-    /// A baseline, not a SemLook setting: one whole-image vector per image, cosine similarity.
-    /// `None` where the setting runs on frames without labels (encoded with void label maps,
-    /// [`crate::encode::Encoder::without_labels`]); else why it cannot.
-    pub fn label_free(self) -> Option<&'static str> {
-        match self {
-            // verified: the coarse stage's SSIM term is the same for every pair, so it ranks by
-            // the appearance cosine; verification checks geometry (its semantic check is off)
-            Setting::Hog | Setting::Appearance | Setting::Verified => None,
-            Setting::Fused => Some("without labels its SSIM term is the same for every pair: it is the appearance baseline"),
-            _ => Some("needs semantic labels: give label maps, or install the default segmenter (`semlook models`)"),
-        }
-    }
-    pub fn is_baseline(self) -> bool {
-        matches!(self, Setting::Hog | Setting::Appearance)
-    }
-    pub fn uses_coarse(self) -> bool {
-        matches!(self, Setting::Global | Setting::GlobalForest | Setting::Semlook | Setting::Fused | Setting::Verified)
-    }
-    /// Whether the coarse stage fuses the global descriptor with the whole-image appearance:
-    /// always for `fused` and `verified`, for the paper's two-stage settings (3 and 4) when
-    /// `matching.coarse` says so, never for `global` (the edge descriptor alone).
-    pub fn fuses_coarse(self, coarse: CoarseStage) -> bool {
-        match self {
-            Setting::Fused | Setting::Verified => true,
-            Setting::GlobalForest | Setting::Semlook => coarse == CoarseStage::Fused,
-            _ => false,
-        }
-    }
-    pub fn uses_fine(self) -> bool {
-        !self.is_baseline() && !matches!(self, Setting::Global | Setting::Fused)
-    }
-    /// The fine stage adds geometric verification.
-    pub fn verifies(self) -> bool {
-        self == Setting::Verified
-    }
-    /// Both stages: the fine stage re-ranks the coarse stage's candidates.
-    pub fn reranks(self) -> bool {
-        self.uses_coarse() && self.uses_fine()
-    }
-    pub fn uses_appearance(self) -> bool {
-        matches!(self, Setting::Local | Setting::Semlook | Setting::Fused | Setting::Verified)
-    }
-    pub fn name(self) -> &'static str {
-        match self {
-            Setting::Hog => "hog",
-            Setting::Appearance => "appearance",
-            Setting::Global => "global",
-            Setting::Forest => "forest",
-            Setting::Local => "local",
-            Setting::GlobalForest => "global-forest",
-            Setting::Semlook => "semlook",
-            Setting::Fused => "fused",
-            Setting::Verified => "verified",
-        }
-    }
-    pub fn describe(self) -> &'static str {
-        match self {
-            Setting::Hog => "baseline: VPR-Bench HOG",
-            Setting::Appearance => "baseline: whole-image VLAD",
-            Setting::Global => "global SSIM only",
-            Setting::Forest => "Forest, whole map",
-            Setting::Local => "Forest+appearance, whole map",
-            Setting::GlobalForest => "coarse top-K -> Forest",
-            Setting::Semlook => "coarse top-K -> Forest+appearance",
-            Setting::Fused => "global+appearance top-K only",
-            Setting::Verified => "fused top-K -> local + verification",
-        }
-    }
-}
-
-impl std::fmt::Display for Setting {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
-}
 
 /// One ranked reference for a query.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -502,32 +380,4 @@ pub fn coarse_topk_twin(refs: &dyn GlobalSource, queries: &DescriptorSet, p: &Ss
         let (g, st) = refs.tile(start, end, &mut buf);
         ssim_topk::ssim_tile(p, tp, &queries.globals, &queries.global_stats, g, st, scores);
     })
-}
-
-/// A function folding one tile's scores into the K-lists (`topk_merge` or its reference-major form).
-type Merge = fn(&ssim_topk::TileParams, &[f32], &mut [f32], &mut [u32]);
-
-/// The CPU streaming top-K over a map of `n` references: per tile of at most `tile` references,
-/// `score` fills the queries x tile scores, which `merge` folds into each query's K-list.
-pub(crate) fn stream_topk(
-    nq: usize,
-    n: usize,
-    k: usize,
-    tile: usize,
-    merge: Merge,
-    mut score: impl FnMut(&ssim_topk::TileParams, &mut [f32]),
-) -> Vec<Vec<(f32, u32)>> {
-    let tile = tile.max(1).min(n.max(1));
-    let mut scores = vec![0.0f32; nq * tile];
-    let mut top_s = vec![ssim_topk::EMPTY_SCORE; nq * k];
-    let mut top_i = vec![ssim_topk::EMPTY_INDEX; nq * k];
-    let mut start = 0;
-    while start < n {
-        let end = (start + tile).min(n);
-        let tp = ssim_topk::TileParams { queries: nq as u32, tile_len: (end - start) as u32, tile_start: start as u32, k: k as u32 };
-        score(&tp, &mut scores[..nq * (end - start)]);
-        merge(&tp, &scores[..nq * (end - start)], &mut top_s, &mut top_i);
-        start = end;
-    }
-    ssim_topk::topk_lists(k, &top_s, &top_i)
 }

@@ -6,14 +6,14 @@
 //! whose semantic classes agree at both ends count: the labels decide which geometric evidence
 //! is trusted.
 
+pub mod best_columns;
 pub mod homography;
-pub mod mnn_match;
 pub mod ransac;
 
 use crate::classes::VOID;
 use crate::config::{SemanticCheck, VerificationConfig};
 use crate::descriptors::keypoints::{KeypointsRef, DESCRIPTOR_SCALE};
-use mnn_match::BestColumns;
+use best_columns::BestColumns;
 use ransac::RansacParams;
 
 /// The verification parameters of a config, in the units the stages use.
@@ -53,7 +53,7 @@ pub struct Verified {
 /// Verifies one pair from the best columns of its keypoints (the MNN kernel's, or the fast
 /// path's output): mutual matches, then RANSAC. A side without keypoints scores 0.
 pub fn verify_from_best(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, best: &BestColumns) -> Verified {
-    let m = mnn_match::mutual(best, p.min_dot);
+    let m = best_columns::mutual(best, p.min_dot);
     let mut out = Verified { matches: m.len() as u32, inliers: 0 };
     if m.len() < 4 {
         return out;
@@ -82,6 +82,6 @@ pub fn verify_pair(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, scratch: 
     if q.is_empty() || r.is_empty() || q.dim != r.dim {
         return Verified::default();
     }
-    let best = mnn_match::best_columns(q.descriptors, r.descriptors, q.dim, scratch);
+    let best = best_columns::best_columns(q.descriptors, r.descriptors, q.dim, scratch);
     verify_from_best(p, q, r, &best)
 }

@@ -4,7 +4,7 @@
 use super::{assert_same_lists, gpu, gpu_with, random_forest_set};
 use semlook::engine::GpuStages;
 use semlook::gpu::GpuOptions;
-use semlook::local::tree_similarity::TreeSimParams;
+use semlook::kernels::abi::TreeSimParams;
 use semlook::matching::{CpuStages, Stages};
 
 /// The same batch twice against the same map: the second writes exactly the map's packed

@@ -55,7 +55,7 @@ fn global_encoding_matches_the_cpu_twins() {
     let out = enc.encode(&refs, &table.used_mask(), &cfg.global).unwrap();
     let d2 = enc.last_d2(3 * 97 * 61).unwrap();
     let mut scratch = semlook::global::GlobalScratch::default();
-    let p = semlook::global::ssim::SsimParams::new(&cfg.global);
+    let p = semlook::kernels::abi::SsimParams::new(&cfg.global);
     for (i, m) in maps.iter().enumerate() {
         let (mut d, mut s) = (vec![0.0; p.len()], vec![0.0; p.stats_len()]);
         semlook::global::encode_global(m, &table.used_mask(), &cfg.global, &mut scratch, &mut d, &mut s).unwrap();
@@ -71,8 +71,9 @@ fn scratch_d2(s: &semlook::global::GlobalScratch) -> &[u32] {
 
 use semlook::config::Config;
 use semlook::engine::{Backend, Engine};
-use semlook::global::ssim::SsimParams;
-use semlook::local::tree_similarity::{tree_similarity, TreeSimParams, TreeSimScratch};
+use semlook::kernels::abi::SsimParams;
+use semlook::kernels::abi::TreeSimParams;
+use semlook::kernels::tree_similarity::{tree_similarity, TreeSimScratch};
 use semlook::local::Forest;
 use semlook::map::DescriptorSet;
 use semlook::matching::{coarse_topk_twin, match_batch, Setting, Stages};
@@ -160,7 +161,7 @@ pub fn random_descriptors(n: usize, cfg: &Config, seed: u64) -> DescriptorSet {
             })
             .collect();
         let mut stats = vec![0.0; p.stats_len()];
-        semlook::global::ssim::ssim_stats(&p, &g, &mut stats, &mut Default::default());
+        semlook::kernels::ssim::ssim_stats(&p, &g, &mut stats, &mut Default::default());
         let img = semlook::encode::EncodedImage {
             id: format!("r{i}"),
             width: 64,
@@ -580,7 +581,9 @@ fn auto_falls_back_to_the_cpu_when_the_gpu_fails_mid_run() {
 #[test]
 fn topk_merge_skips_nan_like_its_twin() {
     let Some(ctx) = gpu() else { return };
-    use semlook::matching::ssim_topk::{topk_merge, TileParams, EMPTY_INDEX, EMPTY_SCORE};
+    use semlook::kernels::abi::TileParams;
+    use semlook::kernels::abi::{EMPTY_INDEX, EMPTY_SCORE};
+    use semlook::kernels::ssim_topk::topk_merge;
     let (nan, snan, neg_nan) = (f32::NAN, f32::from_bits(0x7f80_0001), f32::from_bits(0xffc0_0000));
     let rows: [[f32; 6]; 5] = [
         [nan, 0.5, 0.2, 0.9, 0.1, 0.3],

@@ -4,8 +4,8 @@
 use super::{assert_same_lists, gpu, gpu_with, random_descriptors};
 use semlook::config::{Config, GlobalConfig};
 use semlook::engine::{Engine, GpuStages};
-use semlook::global::ssim::SsimParams;
 use semlook::gpu::{GpuContext, GpuOptions};
+use semlook::kernels::abi::SsimParams;
 use semlook::map::DescriptorSet;
 use semlook::matching::{coarse_topk, coarse_topk_twin, Setting, Stages};
 use std::sync::Arc;
@@ -19,7 +19,7 @@ fn bytes_of(set: &DescriptorSet) -> u64 {
 fn batch_bytes(ctx: &GpuContext, q: &DescriptorSet, k: usize, passes: u64) -> u64 {
     bytes_of(q)
         + (q.len() * k * 8) as u64
-        + passes * (std::mem::size_of::<semlook::matching::ssim_block::PassParams>() as u64).next_multiple_of(ctx.uniform_offset_alignment() as u64)
+        + passes * (std::mem::size_of::<semlook::kernels::abi::PassParams>() as u64).next_multiple_of(ctx.uniform_offset_alignment() as u64)
 }
 
 /// Two consecutive batches against the same map: the first uploads the map, the second writes
@@ -179,7 +179,9 @@ fn kernels_are_timed_where_the_adapter_has_timestamps() {
 #[test]
 fn parallel_top_k_on_the_device_keeps_what_the_fold_keeps() {
     let Some(ctx) = gpu() else { return };
-    use semlook::matching::ssim_topk::{topk_lists, topk_merge, TileParams, EMPTY_INDEX, EMPTY_SCORE};
+    use semlook::kernels::abi::TileParams;
+    use semlook::kernels::abi::{EMPTY_INDEX, EMPTY_SCORE};
+    use semlook::kernels::ssim_topk::{topk_lists, topk_merge};
     let mut rng = semlook::util::SplitMix64::new(91);
     let specials = [f32::NAN, f32::from_bits(0x7f80_0001), f32::from_bits(0xffc0_0000), f32::INFINITY, f32::NEG_INFINITY, EMPTY_SCORE, -0.0, 0.0];
     let (nq, n) = (3, 2500);

@@ -3,24 +3,10 @@
 //! scores into each query's running top-K list. Over all tiles this is a streaming top-K: memory
 //! is O(queries x (K + tile)), never queries x map.
 
-use crate::global::ssim::{ssim_pair, SsimParams, SsimScratch};
+use super::abi::{TileParams, EMPTY_INDEX, EMPTY_SCORE};
+use crate::kernels::abi::SsimParams;
+use crate::kernels::ssim::{ssim_pair, SsimScratch};
 use rayon::prelude::*;
-
-/// Score of an empty top-K slot (below any SSIM, which lies in [-1, 1]).
-pub const EMPTY_SCORE: f32 = -3.0e38;
-/// Index of an empty top-K slot.
-pub const EMPTY_INDEX: u32 = u32::MAX;
-
-/// Uniform parameters of a tile, in the shader's field order.
-#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-#[repr(C)]
-pub struct TileParams {
-    pub queries: u32,
-    pub tile_len: u32,
-    /// Map index of the tile's first reference.
-    pub tile_start: u32,
-    pub k: u32,
-}
 
 /// Pairs per parallel task of the CPU twin: enough work to amortise scheduling, small enough
 /// to keep both cores busy when a batch holds a single query.

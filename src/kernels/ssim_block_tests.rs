@@ -2,9 +2,10 @@
 //! block shape; and the reason the kernel keeps direct window sums.
 
 use super::*;
-use crate::global::ssim::{ssim_pair, ssim_stats, SsimScratch};
-use crate::matching::ssim_topk::{ssim_tile, TileParams};
-use crate::matching::test_data::{params, set, shape};
+use crate::kernels::abi::TileParams;
+use crate::kernels::ssim::{ssim_pair, ssim_stats, SsimScratch};
+use crate::kernels::ssim_topk::ssim_tile;
+use crate::kernels::test_data::{params, set, shape};
 use crate::util::SplitMix64;
 use proptest::prelude::*;
 

@@ -1,11 +1,9 @@
-//! Descriptor sets for the coarse stage's property tests: every kind of input the kernels must
-//! score alike (smooth fields, noise, flat windows and exact ties, constants).
+//! Global descriptors for the coarse kernels' property tests: every kind of input the kernels
+//! must score alike (smooth fields, noise, flat windows and exact ties, constants).
 
 use crate::config::GlobalConfig;
-use crate::descriptors::DescriptorSet;
-use crate::descriptors::EncodedImage;
-use crate::global::ssim::{ssim_stats, SsimParams, SsimScratch};
-use crate::local::Forest;
+use crate::kernels::abi::SsimParams;
+use crate::kernels::ssim::{ssim_stats, SsimScratch};
 use crate::util::SplitMix64;
 use proptest::prelude::*;
 
@@ -24,29 +22,23 @@ pub fn descriptor(p: &SsimParams, rng: &mut SplitMix64) -> Vec<f32> {
     }
 }
 
-/// A set of `n` descriptors drawn (with repeats, so some references tie exactly) from a pool of `pool`.
-pub fn set(p: &SsimParams, n: usize, pool: usize, rng: &mut SplitMix64) -> DescriptorSet {
+/// `n` global descriptors and their SSIM statistics, concatenated as the kernels read them.
+pub struct Globals {
+    pub globals: Vec<f32>,
+    pub global_stats: Vec<f32>,
+}
+
+/// `n` descriptors drawn (with repeats, so some references tie exactly) from a pool of `pool`.
+pub fn set(p: &SsimParams, n: usize, pool: usize, rng: &mut SplitMix64) -> Globals {
     let pool: Vec<Vec<f32>> = (0..pool.max(1)).map(|_| descriptor(p, rng)).collect();
-    let mut s = DescriptorSet::new(p, 1, 0, 0);
+    let mut out = Globals { globals: Vec::with_capacity(n * p.len()), global_stats: vec![0.0; n * p.stats_len()] };
     let mut scratch = SsimScratch::default();
     for i in 0..n {
-        let g = pool[rng.below(pool.len())].clone();
-        let mut stats = vec![0.0; p.stats_len()];
-        ssim_stats(p, &g, &mut stats, &mut scratch);
-        s.push(&EncodedImage {
-            id: format!("d{i}"),
-            width: 1,
-            height: 1,
-            global: g,
-            global_stats: stats,
-            forest: Forest { neighbour_slots: 1, ..Default::default() },
-            appearance: vec![],
-            hog: vec![],
-            keypoints: Default::default(),
-        })
-        .unwrap();
+        let g = &pool[rng.below(pool.len())];
+        ssim_stats(p, g, &mut out.global_stats[i * p.stats_len()..(i + 1) * p.stats_len()], &mut scratch);
+        out.globals.extend_from_slice(g);
     }
-    s
+    out
 }
 
 pub fn params(w: usize, h: usize, win: usize, sample: bool, k: (f64, f64)) -> SsimParams {

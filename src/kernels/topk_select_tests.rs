@@ -1,7 +1,8 @@
 //! Partial lists and merges keep what the streaming fold keeps, bit for bit.
 
 use super::*;
-use crate::matching::ssim_topk::{topk_lists, topk_merge, TileParams};
+use crate::kernels::abi::TileParams;
+use crate::kernels::ssim_topk::{topk_lists, topk_merge};
 use crate::util::SplitMix64;
 use proptest::prelude::*;
 

@@ -2,39 +2,11 @@
 //! `vlad_accumulate`), with the same bindings, loop shape and reductions; `appearance::vlad`
 //! holds the codebook and re-exports these.
 
-use super::vlad::{Codebook, VladNorm};
-
+use super::abi::VladParams;
 /// Lanes of the shader's per-object workgroup; reductions over dimensions use the same strides.
 pub const LANES: usize = 64;
 /// Most centres the shader's per-lane state holds.
 pub const MAX_CENTRES: usize = 64;
-
-/// Uniform parameters, in the shader's field order.
-#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-#[repr(C)]
-pub struct VladParams {
-    pub centres: u32,
-    pub dim: u32,
-    pub keypoints: u32,
-    pub objects: u32,
-    pub power_norm: u32,
-    pub intra_norm: u32,
-    pub _pad: [u32; 2],
-}
-
-impl VladParams {
-    pub fn new(codebook: &Codebook, keypoints: usize, objects: usize, norm: VladNorm) -> Self {
-        VladParams {
-            centres: codebook.k as u32,
-            dim: codebook.dim as u32,
-            keypoints: keypoints as u32,
-            objects: objects as u32,
-            power_norm: norm.power as u32,
-            intra_norm: norm.intra as u32,
-            _pad: [0; 2],
-        }
-    }
-}
 
 /// Bindings: `p`, `centres` (k x dim), `descriptors` (n x dim), `assignment` (out, n).
 /// One invocation per keypoint: the nearest centre (ties to the lower index).

@@ -4,8 +4,9 @@
 //! [`ssim_topk::topk_merge`](super::ssim_topk::topk_merge) keeps: the K best, ties to the lower
 //! reference index, NaN skipped (tested below).
 
-use super::ssim_block::PassParams;
-use super::ssim_topk::{EMPTY_INDEX, EMPTY_SCORE};
+use super::abi::Entry;
+use crate::kernels::abi::PassParams;
+use crate::kernels::abi::{EMPTY_INDEX, EMPTY_SCORE};
 
 /// References per segment, one workgroup's share of a pass: the shader's `SEG`. Large enough that
 /// a pass of a few thousand references has few partial lists to merge; the workgroup holds the
@@ -17,18 +18,6 @@ pub const SEG: usize = 1024;
 pub const MAX_LISTS: usize = 64;
 /// Lanes of a `topk_partial` workgroup.
 pub const LANES: usize = 64;
-
-/// One list entry, in the shader's layout: a score and the map index of its reference.
-#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-#[repr(C)]
-pub struct Entry {
-    pub score: f32,
-    pub index: u32,
-}
-
-impl Entry {
-    pub const EMPTY: Entry = Entry { score: EMPTY_SCORE, index: EMPTY_INDEX };
-}
 
 fn is_candidate(s: f32) -> bool {
     !s.is_nan() && s > EMPTY_SCORE

@@ -5,55 +5,7 @@
 //! descriptor carries its own window means and variances ("stats", computed once at encoding), so
 //! a pair costs only the cross term: a product map, a separable box sum, and the SSIM formula.
 
-use crate::config::GlobalConfig;
-
-/// Sizes and constants shared by the SSIM kernel and its twin, in the shader's uniform order.
-#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-#[repr(C)]
-pub struct SsimParams {
-    /// Descriptor width and height.
-    pub gw: u32,
-    pub gh: u32,
-    /// Window side.
-    pub win: u32,
-    /// Valid window positions per row and per column.
-    pub nw: u32,
-    pub nh: u32,
-    pub c1: f32,
-    pub c2: f32,
-    /// N / (N - 1) for sample statistics, else 1.
-    pub cov_norm: f32,
-}
-
-impl SsimParams {
-    pub fn new(cfg: &GlobalConfig) -> Self {
-        let win = cfg.ssim_window as u32;
-        let n = (win * win) as f32;
-        SsimParams {
-            gw: cfg.width as u32,
-            gh: cfg.height as u32,
-            win,
-            nw: (cfg.width - cfg.ssim_window + 1) as u32,
-            nh: (cfg.height - cfg.ssim_window + 1) as u32,
-            c1: (cfg.ssim_k1 * cfg.ssim_k1) as f32,
-            c2: (cfg.ssim_k2 * cfg.ssim_k2) as f32,
-            cov_norm: if cfg.ssim_sample_covariance { n / (n - 1.0) } else { 1.0 },
-        }
-    }
-    pub fn len(&self) -> usize {
-        (self.gw * self.gh) as usize
-    }
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-    pub fn windows(&self) -> usize {
-        (self.nw * self.nh) as usize
-    }
-    /// Length of a stats record: window means then window variances.
-    pub fn stats_len(&self) -> usize {
-        2 * self.windows()
-    }
-}
+use super::abi::SsimParams;
 
 /// Window sums of `values` (gw x gh) into `out` (nw x nh), separably: rows into `rows`, then columns.
 fn box_sums(p: &SsimParams, values: &[f32], rows: &mut [f32], out: &mut [f32]) {

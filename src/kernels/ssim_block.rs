@@ -2,10 +2,12 @@
 //! against a run of references, one "workgroup" per block of `rb` references x `qb` queries, the
 //! image streamed row by row through the shader's three workgroup arrays (products of a row, a
 //! ring of `win` rows of horizontal window sums, 64 lane slots per pair). Every score equals
-//! [`ssim_pair`](crate::global::ssim::ssim_pair)'s bit for bit: the same operations in the same
+//! [`ssim_pair`](crate::kernels::ssim::ssim_pair)'s bit for bit: the same operations in the same
 //! order (tested below).
 
-use crate::global::ssim::{ssim_window, SsimParams, LANES};
+use super::abi::PassParams;
+use crate::kernels::abi::SsimParams;
+use crate::kernels::ssim::{ssim_window, LANES};
 
 /// Most pairs (rb x qb) a workgroup scores: the shader's `PAIR_CAP`.
 pub const PAIR_CAP: usize = 8;
@@ -14,34 +16,6 @@ pub const PROD_CAP: usize = 512;
 /// Floats of the shader's ring of horizontal sums (rb x qb x win x nw): `RING_CAP`. With the
 /// products and the lane slots, 14 KiB: within the 16 KiB of workgroup memory every adapter has.
 pub const RING_CAP: usize = 2560;
-
-/// One pass of the coarse stage on the device, in the field order of the shaders' `PassParams`
-/// (`ssim_block.wgsl`, `topk_select.wgsl`): some queries against a run of references of one map
-/// chunk, then the top-K of that run merged into the running lists.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, bytemuck::Pod, bytemuck::Zeroable)]
-#[repr(C)]
-pub struct PassParams {
-    /// Queries in this pass (the bound query buffer's first `queries`).
-    pub queries: u32,
-    /// References in this pass: the row length of the scores.
-    pub refs: u32,
-    /// First reference of the pass in the bound map chunk.
-    pub ref_first: u32,
-    /// Map index of that reference (what the top-K lists report).
-    pub ref_index: u32,
-    /// Block shape: references and queries per workgroup.
-    pub rb: u32,
-    pub qb: u32,
-    /// Top-K list length.
-    pub k: u32,
-    /// Segments of `topk_select::SEG` references in this pass.
-    pub segs: u32,
-    /// Which running-list buffer holds the merge's input (0: the first).
-    pub parity: u32,
-    pub _pad0: u32,
-    pub _pad1: u32,
-    pub _pad2: u32,
-}
 
 /// The block shape for descriptors of `p`: the most pairs the shader's arrays hold, as many
 /// queries as references or more (a reference is read once per `qb` queries); `None` if not

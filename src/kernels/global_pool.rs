@@ -4,21 +4,7 @@
 //! the source rectangle it covers, with fractional edge pixels weighted by their overlap: the
 //! behaviour of OpenCV's INTER_AREA (spec §2.2) for any scale factor.
 
-/// Uniform parameters of the kernel, in the shader's field order.
-#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-#[repr(C)]
-pub struct PoolParams {
-    pub src_width: u32,
-    pub src_height: u32,
-    pub dst_width: u32,
-    pub dst_height: u32,
-    /// Truncation distance τ in pixels.
-    pub tau: f32,
-    /// Frames in a GPU batch (the twin handles one frame).
-    pub frames: u32,
-    pub _pad: [u32; 2],
-}
-
+use super::abi::PoolParams;
 /// Bindings: `params`, `d2` (squared distances), `out` (dst_width x dst_height).
 /// One invocation per output cell.
 pub fn global_pool(p: &PoolParams, d2: &[u32], out: &mut [f32]) {

@@ -1,0 +1,49 @@
+// Structs and constants several shaders share: the WGSL side of `src/kernels/abi.rs` (the Rust
+// structs are checked against these by `gpu::layout_tests`). A shader takes them with
+// `//#include abi.wgsl`; they are appended after its last line.
+
+// Sizes of the SSIM kernels' descriptors and their constants (`ssim_block`, `ssim_topk`).
+struct SsimParams {
+    gw: u32,
+    gh: u32,
+    win: u32,
+    nw: u32,
+    nh: u32,
+    c1: f32,
+    c2: f32,
+    cov_norm: f32,
+}
+
+// One pass of the device's coarse stage (`ssim_block`, `topk_select`).
+struct PassParams {
+    // queries in this pass (the bound query buffer's first `queries` entries)
+    queries: u32,
+    // references in this pass: the row length of `scores`
+    refs: u32,
+    // first reference of the pass in the bound map chunk
+    ref_first: u32,
+    // map index of that reference
+    ref_index: u32,
+    // block shape: references and queries per workgroup
+    rb: u32,
+    qb: u32,
+    // top-K list length, segments of this pass, which running-list buffer holds the input
+    k: u32,
+    segs: u32,
+    parity: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
+}
+
+// Frame sizes of the encoding kernels (`semantic_edges`, `edt`).
+struct Dims {
+    width: u32,
+    height: u32,
+    frames: u32,
+    _pad: u32,
+}
+
+// An empty top-K slot: a score below any SSIM and an index no reference has.
+const EMPTY_SCORE: f32 = -3.0e38;
+const EMPTY_INDEX: u32 = 0xffffffffu;

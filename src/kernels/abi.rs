@@ -1,0 +1,323 @@
+//! The host side of the shaders' structs and limits (`#[repr(C)]`, bytemuck), checked field by
+//! field against naga's reflection of the WGSL (`gpu::layout_tests`): the CPU twins
+//! ([`crate::kernels`]) and the GPU executors ([`crate::gpu`]) both import them from here.
+
+use crate::config::{Assignment, ClassMatch, GlobalConfig, MissingAppearance, Normalise, PositionSimilarity, SimilarityConfig, TreeWeight};
+
+/// Score of an empty top-K slot (below any SSIM, which lies in [-1, 1]).
+pub const EMPTY_SCORE: f32 = -3.0e38;
+/// Index of an empty top-K slot.
+pub const EMPTY_INDEX: u32 = u32::MAX;
+/// Most neighbour slots the shader's tree record holds: its `MAX_SLOTS`.
+pub const MAX_SLOTS: usize = 8;
+/// Most trees per forest the shader's per-workgroup flags hold: its `MAX_TREES`.
+pub const MAX_TREES: usize = 256;
+
+/// The shader's `Tree`.
+#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub(crate) struct GpuTree {
+    pub class_id: u32,
+    pub has_app: u32,
+    pub area: f32,
+    pub cx: f32,
+    pub cy: f32,
+    pub weight: f32,
+    pub nb: [i32; MAX_SLOTS],
+}
+
+/// The shader's `FinePass`: one pass at a dynamic offset of the batch's parameter buffer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub(crate) struct FinePass {
+    pub dim: u32,
+    pub pairs: u32,
+    pub max_trees: u32,
+    pub grid: u32,
+    pub queries: u32,
+    pub refs: u32,
+    pub ref_first: u32,
+    pub list_first: u32,
+    /// Workgroups per row of the dispatch grid (pair = x + y * row).
+    pub row: u32,
+    /// Where this pass's scores start in `out`.
+    pub out_first: u32,
+    pub _pad0: u32,
+    pub _pad1: u32,
+}
+
+/// Uniform parameters of the kernel, in the shader's field order.
+#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct PoolParams {
+    pub src_width: u32,
+    pub src_height: u32,
+    pub dst_width: u32,
+    pub dst_height: u32,
+    /// Truncation distance τ in pixels.
+    pub tau: f32,
+    /// Frames in a GPU batch (the twin handles one frame).
+    pub frames: u32,
+    pub _pad: [u32; 2],
+}
+
+/// Uniform parameters of `mnn_match`, in the shader's field order.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct MnnParams {
+    /// Pairs in the batch.
+    pub pairs: u32,
+    /// u32 words per descriptor (dimension / 4).
+    pub words: u32,
+    /// Most keypoints of any image (rows of the per-pair output).
+    pub max_keypoints: u32,
+    pub _pad: u32,
+}
+
+/// One (query, reference) pair: the ranges of their keypoints in the packed descriptor arrays
+/// (in keypoints), in the shader's field order.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct MnnPair {
+    pub query_start: u32,
+    pub query_len: u32,
+    pub ref_start: u32,
+    pub ref_len: u32,
+}
+
+/// Sizes and constants shared by the SSIM kernel and its twin, in the shader's uniform order.
+#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct SsimParams {
+    /// Descriptor width and height.
+    pub gw: u32,
+    pub gh: u32,
+    /// Window side.
+    pub win: u32,
+    /// Valid window positions per row and per column.
+    pub nw: u32,
+    pub nh: u32,
+    pub c1: f32,
+    pub c2: f32,
+    /// N / (N - 1) for sample statistics, else 1.
+    pub cov_norm: f32,
+}
+
+impl SsimParams {
+    pub fn new(cfg: &GlobalConfig) -> Self {
+        let win = cfg.ssim_window as u32;
+        let n = (win * win) as f32;
+        SsimParams {
+            gw: cfg.width as u32,
+            gh: cfg.height as u32,
+            win,
+            nw: (cfg.width - cfg.ssim_window + 1) as u32,
+            nh: (cfg.height - cfg.ssim_window + 1) as u32,
+            c1: (cfg.ssim_k1 * cfg.ssim_k1) as f32,
+            c2: (cfg.ssim_k2 * cfg.ssim_k2) as f32,
+            cov_norm: if cfg.ssim_sample_covariance { n / (n - 1.0) } else { 1.0 },
+        }
+    }
+    pub fn len(&self) -> usize {
+        (self.gw * self.gh) as usize
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    pub fn windows(&self) -> usize {
+        (self.nw * self.nh) as usize
+    }
+    /// Length of a stats record: window means then window variances.
+    pub fn stats_len(&self) -> usize {
+        2 * self.windows()
+    }
+}
+
+/// One pass of the coarse stage on the device, in the field order of the shaders' `PassParams`
+/// (`ssim_block.wgsl`, `topk_select.wgsl`): some queries against a run of references of one map
+/// chunk, then the top-K of that run merged into the running lists.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct PassParams {
+    /// Queries in this pass (the bound query buffer's first `queries`).
+    pub queries: u32,
+    /// References in this pass: the row length of the scores.
+    pub refs: u32,
+    /// First reference of the pass in the bound map chunk.
+    pub ref_first: u32,
+    /// Map index of that reference (what the top-K lists report).
+    pub ref_index: u32,
+    /// Block shape: references and queries per workgroup.
+    pub rb: u32,
+    pub qb: u32,
+    /// Top-K list length.
+    pub k: u32,
+    /// Segments of `topk_select::SEG` references in this pass.
+    pub segs: u32,
+    /// Which running-list buffer holds the merge's input (0: the first).
+    pub parity: u32,
+    pub _pad0: u32,
+    pub _pad1: u32,
+    pub _pad2: u32,
+}
+
+/// Uniform parameters of a tile, in the shader's field order.
+#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct TileParams {
+    pub queries: u32,
+    pub tile_len: u32,
+    /// Map index of the tile's first reference.
+    pub tile_start: u32,
+    pub k: u32,
+}
+
+/// One list entry, in the shader's layout: a score and the map index of its reference.
+#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct Entry {
+    pub score: f32,
+    pub index: u32,
+}
+
+impl Entry {
+    pub const EMPTY: Entry = Entry { score: EMPTY_SCORE, index: EMPTY_INDEX };
+}
+
+/// Uniform parameters of the kernel, in the shader's field order.
+#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct TreeSimParams {
+    pub w_area: f32,
+    pub w_position: f32,
+    pub w_appearance: f32,
+    pub w_intrinsic: f32,
+    pub w_neighbours: f32,
+    pub position_sigma: f32,
+    pub neutral: f32,
+    /// 1: Gaussian position similarity, 0: linear.
+    pub gaussian_position: u32,
+    /// 1: drop a missing appearance term and renormalise, 0: score it `neutral`.
+    pub drop_missing: u32,
+    /// 1: appearance takes part (SemLook local), 0: Forest only.
+    pub use_appearance: u32,
+    /// 1: greedy one-to-one, 0: best match per query tree.
+    pub greedy: u32,
+    /// Neighbour slots per tree (the S_N denominator).
+    pub neighbour_slots: u32,
+    /// Tree weight: 0 uniform, 1 area, 2 sqrt(area), 3 descriptor count + 1.
+    pub tree_weight: u32,
+    /// 1: divide by the geometric mean of the forests' total weights, 0: by the larger total.
+    pub geometric_norm: u32,
+    pub _pad: [u32; 2],
+    /// Per class, the key trees pair by (the class itself, or its category), four u8 to a word:
+    /// two trees may pair when their classes' keys are equal.
+    pub class_key: [u32; 64],
+}
+
+impl TreeSimParams {
+    /// Parameters of `cfg`; the intrinsic and neighbour weights are normalised to sum to 1, so
+    /// identical forests score 1 whatever the weights.
+    pub fn new(cfg: &SimilarityConfig, use_appearance: bool, neighbour_slots: usize) -> Self {
+        let wsum = (cfg.w_intrinsic + cfg.w_neighbours).max(f64::MIN_POSITIVE);
+        TreeSimParams {
+            w_area: cfg.w_area as f32,
+            w_position: cfg.w_position as f32,
+            w_appearance: cfg.w_appearance as f32,
+            w_intrinsic: (cfg.w_intrinsic / wsum) as f32,
+            w_neighbours: (cfg.w_neighbours / wsum) as f32,
+            position_sigma: cfg.position_sigma as f32,
+            neutral: cfg.neutral_appearance as f32,
+            gaussian_position: (cfg.position == PositionSimilarity::Gaussian) as u32,
+            drop_missing: (cfg.missing_appearance == MissingAppearance::Drop) as u32,
+            use_appearance: use_appearance as u32,
+            greedy: (cfg.assignment == Assignment::Greedy) as u32,
+            neighbour_slots: neighbour_slots as u32,
+            // settings without appearance never see descriptor counts: they weigh by area instead
+            tree_weight: match cfg.tree_weight {
+                TreeWeight::Uniform => 0,
+                TreeWeight::Area => 1,
+                TreeWeight::SqrtArea => 2,
+                TreeWeight::Descriptors if use_appearance => 3,
+                TreeWeight::Descriptors => 1,
+            },
+            geometric_norm: (cfg.normalise == Normalise::GeometricMean) as u32,
+            _pad: [0; 2],
+            class_key: pack_key(&std::array::from_fn(|i| i as u8)),
+        }
+    }
+
+    /// The parameters with the pairing rule of `cfg.class_match` over `table`'s categories.
+    pub fn with_classes(mut self, cfg: &SimilarityConfig, table: &crate::classes::ClassTable) -> Self {
+        let categories = match cfg.class_match {
+            ClassMatch::Class => false,
+            ClassMatch::Category => true,
+            ClassMatch::CategoryWithAppearance => self.use_appearance != 0,
+        };
+        if categories {
+            self.class_key = pack_key(&table.category_key());
+        }
+        self
+    }
+
+    /// The pairing key of class `c`.
+    #[inline]
+    pub fn key(&self, c: u8) -> u32 {
+        (self.class_key[c as usize / 4] >> (8 * (c as u32 % 4))) & 0xff
+    }
+
+    /// The weight of a tree of relative area `area` aggregated from `descriptors` descriptors.
+    #[inline]
+    pub fn tree_weight(&self, area: f32, descriptors: u32) -> f32 {
+        match self.tree_weight {
+            1 => area,
+            2 => area.max(0.0).sqrt(),
+            3 => descriptors as f32 + 1.0,
+            _ => 1.0,
+        }
+    }
+}
+
+/// Uniform parameters, in the shader's field order.
+#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct VladParams {
+    pub centres: u32,
+    pub dim: u32,
+    pub keypoints: u32,
+    pub objects: u32,
+    pub power_norm: u32,
+    pub intra_norm: u32,
+    pub _pad: [u32; 2],
+}
+
+impl VladParams {
+    /// `centres` x `dim` codebook, `keypoints` descriptors over `objects` objects; signed square
+    /// root (`power`) and per-centre normalisation (`intra`) of the VLAD vectors.
+    pub fn new(centres: usize, dim: usize, keypoints: usize, objects: usize, power: bool, intra: bool) -> Self {
+        VladParams {
+            centres: centres as u32,
+            dim: dim as u32,
+            keypoints: keypoints as u32,
+            objects: objects as u32,
+            power_norm: power as u32,
+            intra_norm: intra as u32,
+            _pad: [0; 2],
+        }
+    }
+}
+
+/// The `Dims` uniform of `semantic_edges.wgsl` and `edt.wgsl`.
+#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub(crate) struct Dims {
+    pub width: u32,
+    pub height: u32,
+    pub frames: u32,
+    pub _pad: u32,
+}
+
+/// 256 u8 keys, four to a little-endian word (as the kernel reads them).
+fn pack_key(key: &[u8; 256]) -> [u32; 64] {
+    std::array::from_fn(|w| (0..4).fold(0u32, |acc, l| acc | (key[4 * w + l] as u32) << (8 * l)))
+}
