@@ -64,7 +64,7 @@ done
 if [ $smoke = 1 ]; then size=320x240 frames=4; else size=1920x1080 frames=60; fi
 if [ "$(left)" -gt 20 ]; then
     say "encoding $frames frames at $size on the GPU backend"
-    "$bin" synth --out "$work/frames" --places "$frames" --size "$size" --query night -q
+    "$bin" synth --out "$work/frames" --places "$frames" --size "$size" --query-condition night -q
     "$bin" bench-encode --images "$work/frames/day/RGB/Stereo_Left/Omni_F" --frames "$frames" --backend gpu --json -q \
         | python3 -c 'import json,sys; r = json.load(sys.stdin); print(json.dumps({"row": "encode", "size": sys.argv[1], "result": r}))' "$size" >> "$rows" \
         || note encode "encode $size" "bench-encode failed (see the log above)"

@@ -206,7 +206,7 @@ pub fn encode_into(
             log::error!("{fe}");
         }
         let done = writer.committed() - before;
-        log::error!("stopped after committing {done} images; fix the input and run again with --resume to continue");
+        log::error!("stopped after committing {done} images; fix the input and resume to add the rest");
         return Err(e);
     }
     writer.flush()?;

@@ -63,16 +63,16 @@ impl BenchOptions {
     pub fn validate(&self) -> Result<()> {
         let bad = |what: &str, why: String| Err(crate::error::Error::invalid(what, why));
         if self.sizes.is_empty() || self.sizes.iter().any(|&n| !(1..=100_000_000).contains(&n)) {
-            return bad("--sizes", format!("{:?}: map sizes must be in 1..=100000000", self.sizes));
+            return bad("bench sizes", format!("{:?}: map sizes must be in 1..=100000000", self.sizes));
         }
         if self.batches.is_empty() || self.batches.iter().any(|&b| !(1..=100_000).contains(&b)) {
-            return bad("--batches", format!("{:?}: batch sizes must be in 1..=100000", self.batches));
+            return bad("bench batches", format!("{:?}: batch sizes must be in 1..=100000", self.batches));
         }
         if !(self.max_row_seconds.is_finite() && self.max_row_seconds >= 0.0) {
-            return bad("--max-row-seconds", format!("{} must be a number of seconds, 0 or more", self.max_row_seconds));
+            return bad("bench row limit", format!("{} must be a number of seconds, 0 or more", self.max_row_seconds));
         }
         if let Some(p) = self.gpu_peak_gflops.filter(|p| !(p.is_finite() && *p > 0.0)) {
-            return bad("--peak-gflops", format!("{p} must be a positive number"));
+            return bad("bench peak", format!("{p} must be a positive number"));
         }
         Ok(())
     }
@@ -320,7 +320,7 @@ pub fn run(
                     row.note = if row.note.is_empty() { how } else { format!("{}; {how}", row.note) };
                 }
                 if predicted > opts.max_row_seconds {
-                    row.note = format!("not run: predicted {predicted:.0} s > --max-row-seconds {:.0}; {}", opts.max_row_seconds, row.note);
+                    row.note = format!("not run: predicted {predicted:.0} s > the row limit of {:.0} s; {}", opts.max_row_seconds, row.note);
                 } else {
                     if let Some(s) = &synthetic {
                         s.take_copied();
@@ -430,7 +430,7 @@ pub fn legend(rows: &[BenchRow]) -> String {
             let peak = match (&r.peak_source, r.note.contains("correctness only")) {
                 (Some(p), _) => p.clone(),
                 (None, true) => "none: a software adapter, correctness only".into(),
-                (None, false) => "unknown (give --peak-gflops)".into(),
+                (None, false) => "unknown (give the peak GFLOP/s)".into(),
             };
             s += &format!("{}: {}; peak {}\n", r.backend, r.adapter, peak);
         }

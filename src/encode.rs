@@ -331,9 +331,10 @@ impl Encoder {
                 (rgb.map(|r| r.0), hog_rgb.map(|r| r.0), full)
             }
             (None, true) => {
-                return Err(Error::invalid(
+                return Err(Error::refused(
                     format!("frame {:?}", src.id),
-                    "appearance, segmentation and HOG need the RGB image (pass --images), or turn appearance off (--no-appearance)",
+                    "appearance, segmentation and HOG need the RGB image",
+                    crate::error::Remedy::GiveImagesOrNoAppearance,
                 ))
             }
             _ => (None, None, None),

@@ -26,7 +26,7 @@ pub enum Error {
     UnknownClassColor { path: PathBuf, rgb: [u8; 3], x: u32, y: u32 },
     #[error("{path}: unsupported label map: {reason}")]
     UnsupportedLabelFormat { path: PathBuf, reason: String },
-    #[error("{image}: no label map given and no segmenter configured: pass --labels DIR (or --segmenter MODEL)")]
+    #[error("{image}: no label map given and no segmenter configured: give label maps, or a segmenter model")]
     NoLabels { image: PathBuf },
     #[error("config {source_name}: {reason}")]
     InvalidConfig { source_name: String, reason: String },
@@ -48,6 +48,32 @@ pub enum Error {
     Gpu(#[from] GpuError),
     #[error("model {path}: {reason}")]
     Model { path: PathBuf, reason: String },
+    /// A request refused for a reason the caller can act on ([`Remedy`]).
+    #[error("{what}: {reason}")]
+    Refused { what: String, reason: String, remedy: Remedy },
+}
+
+/// What a caller can do about a refused request, in no front end's words: messages speak of the
+/// API (a map, a build, label maps); each front end words the remedy in its own terms (the
+/// command line names its flags, `cli::hint`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Remedy {
+    /// Append to the map, continue its interrupted build, or replace it.
+    AddResumeOrReplace,
+    /// Continue the interrupted build, or replace what is there.
+    ResumeOrReplace,
+    /// Build the map first, or continue its interrupted build.
+    BuildOrResume,
+    /// Give label maps, or a segmenter model.
+    GiveLabels,
+    /// Give the RGB images, or encode without appearance.
+    GiveImagesOrNoAppearance,
+    /// Name the ONNX keypoint model.
+    GiveKeypointModel,
+    /// Build the map with smaller segments (more of them).
+    SmallerSegments,
+    /// Name the dataset's reference traversal.
+    NameReferenceTraversal,
 }
 
 /// What a map of format `found` lacks, and how to get a readable one.
@@ -72,6 +98,17 @@ impl Error {
     }
     pub fn invalid(what: impl Into<String>, reason: impl Into<String>) -> Self {
         Error::InvalidInput { what: what.into(), reason: reason.into() }
+    }
+    pub fn refused(what: impl Into<String>, reason: impl Into<String>, remedy: Remedy) -> Self {
+        Error::Refused { what: what.into(), reason: reason.into(), remedy }
+    }
+    /// What the caller can do about this error, where the engine knows.
+    pub fn remedy(&self) -> Option<Remedy> {
+        match self {
+            Error::Refused { remedy, .. } => Some(*remedy),
+            Error::NoLabels { .. } => Some(Remedy::GiveLabels),
+            _ => None,
+        }
     }
 }
 

@@ -16,6 +16,9 @@ fn main() {
         Err(e) => {
             use std::io::Write;
             let _ = writeln!(std::io::stderr(), "error: {e}");
+            if let Some(hint) = cli::hint::hint(&e) {
+                let _ = writeln!(std::io::stderr(), "hint: {hint}");
+            }
             std::process::exit(1);
         }
     }

@@ -17,13 +17,19 @@ fn config_prints_a_loadable_default() {
 fn build_add_info_query_and_eval_without_appearance() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
-    ok(&["synth", "--out", p(&data), "--places", "6", "--size", "160x120", "--query", "overcast", "--query", "fog", "-q"]);
+    ok(&["synth", "--out", p(&data), "--places", "6", "--size", "160x120", "--query-condition", "overcast", "--query-condition", "fog", "-q"]);
     let map = dir.path().join("map");
     let na = "--no-appearance";
-    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), na, "-q"]);
-    // building again into the same directory is refused; --force replaces it
-    assert!(!semlook(&["map", "build", "--dataset", p(&data), "--out", p(&map), na, "-q"]).status.success());
-    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--force", na, "-q"]);
+    ok(&["map", "build", "--dataset", p(&data), "--map", p(&map), na, "-q"]);
+    // building again into the same directory is refused, the engine's message in API words and
+    // the command line's hint naming the flags; --force replaces it
+    let again = semlook(&["map", "build", "--dataset", p(&data), "--map", p(&map), na, "-q"]);
+    assert!(!again.status.success());
+    let err = String::from_utf8_lossy(&again.stderr);
+    let (message, hint) = (err.lines().find(|l| l.starts_with("error:")).unwrap_or(""), err.lines().find(|l| l.starts_with("hint:")).unwrap_or(""));
+    assert!(message.contains("a map already exists") && !message.contains("--"), "{err}");
+    assert!(hint.contains("map add") && hint.contains("--resume") && hint.contains("--force"), "{err}");
+    ok(&["map", "build", "--dataset", p(&data), "--map", p(&map), "--force", na, "-q"]);
     ok(&["map", "add", "--dataset", p(&data), "--traversal", "fog", "--map", p(&map), na, "-q"]);
     let info: serde_json::Value = serde_json::from_str(&ok(&["map", "info", "--map", p(&map), "--json"])).unwrap();
     assert_eq!(info["images"], 12);
@@ -73,9 +79,9 @@ fn appearance_through_the_cli() {
     }
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
-    ok(&["synth", "--out", p(&data), "--places", "5", "--size", "160x128", "--query", "night", "-q"]);
+    ok(&["synth", "--out", p(&data), "--places", "5", "--size", "160x128", "--query-condition", "night", "-q"]);
     let map = dir.path().join("map");
-    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "-q"]);
+    ok(&["map", "build", "--dataset", p(&data), "--map", p(&map), "-q"]);
     let info: serde_json::Value = serde_json::from_str(&ok(&["map", "info", "--map", p(&map), "--json"])).unwrap();
     assert_eq!(info["appearance_dim"], 64 * 64);
     assert!(map.join("codebook.safetensors").exists());
@@ -104,7 +110,7 @@ fn errors_exit_non_zero_and_name_the_problem() {
     assert!(err.contains("nowhere") && err.contains("manifest.json"), "{err}");
     let bad = dir.path().join("bad.toml");
     std::fs::write(&bad, "[matching]\ntop_k = -3\n").unwrap();
-    let out = semlook(&["map", "build", "--labels", p(dir.path()), "--out", p(&dir.path().join("m")), "--config", p(&bad)]);
+    let out = semlook(&["map", "build", "--labels", p(dir.path()), "--map", p(&dir.path().join("m")), "--config", p(&bad)]);
     assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("bad.toml"));
 }
 
@@ -115,9 +121,9 @@ fn a_closed_pipe_ends_quietly_and_a_full_disk_is_an_error() {
     use std::process::Stdio;
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
-    ok(&["synth", "--out", p(&data), "--places", "4", "--size", "160x120", "--query", "fog", "-q"]);
+    ok(&["synth", "--out", p(&data), "--places", "4", "--size", "160x120", "--query-condition", "fog", "-q"]);
     let map = dir.path().join("map");
-    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--no-appearance", "-q"]);
+    ok(&["map", "build", "--dataset", p(&data), "--map", p(&map), "--no-appearance", "-q"]);
     for args in [vec!["map", "info", "--map", p(&map)], vec!["config"]] {
         let mut child = Command::new(env!("CARGO_BIN_EXE_semlook")).args(&args).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
         drop(child.stdout.take());
@@ -155,7 +161,7 @@ fn query_csv_keeps_odd_ids_round_trippable() {
     }
     let map = dir.path().join("map");
     let na = "--no-appearance";
-    ok(&["map", "build", "--labels", p(&labels), "--out", p(&map), na, "-q"]);
+    ok(&["map", "build", "--labels", p(&labels), "--map", p(&map), na, "-q"]);
     let out = ok(&["query", "--map", p(&map), "--labels", p(&labels), "--setting", "forest", na, "-q"]);
     let table: String = out.lines().filter(|l| !l.starts_with('#')).map(|l| format!("{l}\n")).collect();
     let mut reader = csv::Reader::from_reader(table.as_bytes());
@@ -188,12 +194,12 @@ fn resume_checks_every_layout_option_and_size_options_are_bounded() {
     ok(&["synth", "--out", p(&data), "--places", "3", "--size", "96x72", "-q"]);
     let map = dir.path().join("map");
     let na = "--no-appearance";
-    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), na, "-q"]);
+    ok(&["map", "build", "--dataset", p(&data), "--map", p(&map), na, "-q"]);
     for flag in ["--f16", "--hog"] {
-        let err = fails(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--resume", flag, na, "-q"]);
+        let err = fails(&["map", "build", "--dataset", p(&data), "--map", p(&map), "--resume", flag, na, "-q"]);
         assert!(err.contains(flag) && err.contains("same layout"), "{flag}: {err}");
     }
-    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--resume", na, "-q"]);
+    ok(&["map", "build", "--dataset", p(&data), "--map", p(&map), "--resume", na, "-q"]);
     let err = fails(&["synth", "--out", p(&dir.path().join("huge")), "--places", "4000000000", "-q"]);
     assert!(err.contains("GiB") && err.contains("at most"), "{err}");
     assert!(!dir.path().join("huge").exists(), "a refused synth wrote output");
@@ -202,7 +208,7 @@ fn resume_checks_every_layout_option_and_size_options_are_bounded() {
     let bench_dir = dir.path().join("bench");
     for (flag, value, says) in [("--sizes", "4000000000", "free space"), ("--passes", "4000000000", "available memory")] {
         let err = fails(&["map", "bench", flag, value, "--dir", p(&bench_dir), "-q"]);
-        assert!(err.contains(flag) && err.contains(says) && err.contains("at most"), "{flag}: {err}");
+        assert!(err.contains(&flag.replace("--", "map bench ")) && err.contains(says) && err.contains("at most"), "{flag}: {err}");
     }
     assert!(!bench_dir.exists(), "a refused benchmark wrote a map");
 }
@@ -223,9 +229,9 @@ fn skip_invalid_also_skips_in_codebook_training() {
     files.sort();
     std::fs::write(&files[2], b"not an image").unwrap();
     let map = dir.path().join("map");
-    let err = fails(&["map", "build", "--dataset", p(&data), "--out", p(&map), "-q"]);
+    let err = fails(&["map", "build", "--dataset", p(&data), "--map", p(&map), "-q"]);
     assert!(err.contains(files[2].file_name().unwrap().to_str().unwrap()), "{err}");
-    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--skip-invalid", "--force", "-q"]);
+    ok(&["map", "build", "--dataset", p(&data), "--map", p(&map), "--skip-invalid", "--force", "-q"]);
     let info: serde_json::Value = serde_json::from_str(&ok(&["map", "info", "--map", p(&map), "--json"])).unwrap();
     assert_eq!(info["images"], 4);
     // a frame too small for the keypoint network: the error names its file (it said "image: 1x1")
@@ -247,10 +253,10 @@ fn map_commands_keep_their_small_promises() {
     ok(&["synth", "--out", p(&data), "--places", "4", "--size", "96x72", "-q"]);
     let map = dir.path().join("map");
     let na = "--no-appearance";
-    let zero = semlook(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--segment-images", "0", na, "-q"]);
+    let zero = semlook(&["map", "build", "--dataset", p(&data), "--map", p(&map), "--segment-images", "0", na, "-q"]);
     assert_eq!(zero.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&zero.stderr).contains("at least 1"));
-    ok(&["map", "build", "--dataset", p(&data), "--out", p(&map), "--segment-images", "2", na, "--backend", "cpu", "-q"]);
+    ok(&["map", "build", "--dataset", p(&data), "--map", p(&map), "--segment-images", "2", na, "--backend", "cpu", "-q"]);
     // a command that runs on the CPU only refuses --backend instead of ignoring it
     for args in [vec!["map", "info", "--map", p(&map)], vec!["inspect", "x.png", "--out", "y"], vec!["config"]] {
         let err = fails(&[args.clone(), vec!["--backend", "gpu"]].concat());
@@ -321,7 +327,7 @@ fn skip_invalid_skips_bad_ids_dangling_links_and_loops() {
     let map = dir.path().join("map");
     let build = |extra: &[&str]| {
         semlook(
-            &[&["map", "build", "--images", p(&images), "--labels", p(&labels), "--out", p(&map), "--no-appearance", "--no-segmenter"][..], extra]
+            &[&["map", "build", "--images", p(&images), "--labels", p(&labels), "--map", p(&map), "--no-appearance", "--no-segmenter"][..], extra]
                 .concat(),
         )
     };
@@ -355,7 +361,7 @@ fn non_utf8_file_names_are_found() {
     grey.save_with_format(labels.join(name), image::ImageFormat::Png).unwrap();
     image::RgbImage::new(96, 72).save_with_format(images.join(name), image::ImageFormat::Png).unwrap();
     let map = dir.path().join("map");
-    ok(&["map", "build", "--images", p(&images), "--labels", p(&labels), "--out", p(&map), "--no-appearance", "--no-segmenter", "-q"]);
+    ok(&["map", "build", "--images", p(&images), "--labels", p(&labels), "--map", p(&map), "--no-appearance", "--no-segmenter", "-q"]);
     let info: serde_json::Value = serde_json::from_str(&ok(&["map", "info", "--map", p(&map), "--json"])).unwrap();
     assert_eq!(info["images"], 1);
 }

@@ -165,7 +165,7 @@ fn gmberton_layout_takes_positives_from_utm_names() {
     let tight = Dataset::open(dir.path(), &DatasetOptions { max_distance: Some(5.0), ..Default::default() }).unwrap();
     assert_eq!(tight.ground_truth(&tight.queries[0]).unwrap(), vec![Vec::<u32>::new(), vec![]]);
     let err = Dataset::open(dir.path(), &DatasetOptions { max_angle_deg: Some(30.0), ..Default::default() }).unwrap_err().to_string();
-    assert!(err.contains("--gt-angle"), "{err}");
+    assert!(err.contains("ground-truth angle"), "{err}");
     // a file without a position is named
     label(&root.join("queries/plain.png"), 2);
     let err = Dataset::open(dir.path(), &DatasetOptions::default()).unwrap_err().to_string();

@@ -356,3 +356,50 @@ fn building_a_map_never_passes_through_evaluation() {
     let cli = strip_comments(&cli);
     assert!(!cli.contains("eval::"), "map commands call into eval");
 }
+
+/// The engine's messages speak of the API, not of the command line's flags (a Python caller has
+/// none): no string literal of the library names a `--flag`; the command line adds its flags
+/// through `cli::hint`.
+#[test]
+fn library_messages_name_no_command_line_flag() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut found = vec![];
+    let mut stack = vec![root.clone()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap().flatten() {
+            let p = e.path();
+            let rel = p.strip_prefix(&root).unwrap().to_string_lossy().into_owned();
+            if p.is_dir() {
+                if rel != "cli" {
+                    stack.push(p);
+                }
+                continue;
+            }
+            if rel == "main.rs" || !rel.ends_with(".rs") {
+                continue;
+            }
+            let text = source(&p);
+            // string literals: text between unescaped quotes
+            let mut in_str = false;
+            let mut lit = String::new();
+            let mut prev = ' ';
+            for c in text.chars() {
+                if c == '"' && prev != '\\' {
+                    if in_str
+                        && lit
+                            .split(|c: char| c.is_whitespace() || "(`'".contains(c))
+                            .any(|w| w.starts_with("--") && w[2..].starts_with(|c: char| c.is_ascii_lowercase()))
+                    {
+                        found.push(format!("src/{rel}: {lit:?}"));
+                    }
+                    in_str = !in_str;
+                    lit.clear();
+                } else if in_str {
+                    lit.push(c);
+                }
+                prev = if prev == '\\' && c == '\\' { ' ' } else { c };
+            }
+        }
+    }
+    assert!(found.is_empty(), "library messages that name command-line flags:\n{}", found.join("\n"));
+}

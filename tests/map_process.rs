@@ -114,10 +114,10 @@ fn sigkill_at_random_moments_never_breaks_a_map_and_resume_completes_it() {
     let b = labels(&b_dir, "b", 6, 20);
     let all: HashMap<String, EncodedImage> = a.iter().chain(&b).map(|(k, v)| (k.clone(), v.clone())).collect();
     let base = dir.path().join("base");
-    ok(&["map", "build", "--labels", p(&b_dir), "--out", p(&base), "--no-appearance", "-q"]);
+    ok(&["map", "build", "--labels", p(&b_dir), "--map", p(&base), "--no-appearance", "-q"]);
     let args = |build: bool, m: &Path| -> Vec<String> {
         let v: Vec<&str> =
-            if build { vec!["map", "build", "--labels", p(&a_dir), "--out", p(m)] } else { vec!["map", "add", "--labels", p(&a_dir), "--map", p(m)] };
+            if build { vec!["map", "build", "--labels", p(&a_dir), "--map", p(m)] } else { vec!["map", "add", "--labels", p(&a_dir), "--map", p(m)] };
         v.into_iter().chain(["--no-appearance", "--segment-images", "2", "-q"]).map(String::from).collect()
     };
     // how long an uninterrupted build takes: the first kills are spread over it
@@ -176,7 +176,7 @@ fn two_processes_adding_at_once_both_land() {
     all.extend(labels(&b_dir, "b", 4, 20));
     all.extend(labels(&c_dir, "c", 12, 30));
     let m = dir.path().join("m");
-    ok(&["map", "build", "--labels", p(&b_dir), "--out", p(&m), "--no-appearance", "-q"]);
+    ok(&["map", "build", "--labels", p(&b_dir), "--map", p(&m), "--no-appearance", "-q"]);
     let add = |d: &PathBuf| {
         bin()
             .args(["map", "add", "--labels", p(d), "--map", p(&m), "--no-appearance", "--segment-images", "1", "-q"])
@@ -209,7 +209,7 @@ fn verify_names_the_damaged_segment() {
     let l = dir.path().join("l");
     labels(&l, "x", 9, 0);
     let m = dir.path().join("m");
-    ok(&["map", "build", "--labels", p(&l), "--out", p(&m), "--no-appearance", "--segment-images", "3", "-q"]);
+    ok(&["map", "build", "--labels", p(&l), "--map", p(&m), "--no-appearance", "--segment-images", "3", "-q"]);
     assert!(ok(&["map", "verify", "--map", p(&m)]).contains("3 files sound"));
     let files: Vec<String> = Map::open(&m).unwrap().manifest.segments.iter().map(|s| s.file.clone()).collect();
     for f in &files {
@@ -236,13 +236,13 @@ fn force_replaces_the_map_and_touches_no_other_path() {
     labels(&l2, "two", 5, 10);
     let maps = dir.path().join("maps");
     let out = maps.join("v1.2");
-    ok(&["map", "build", "--labels", p(&l1), "--out", p(&out), "--no-appearance", "-q"]);
+    ok(&["map", "build", "--labels", p(&l1), "--map", p(&out), "--no-appearance", "-q"]);
     // neighbours an older implementation deleted or clobbered
     for sib in ["v1.old", "v1.building", "v1", "v1.2.old"] {
         std::fs::create_dir_all(maps.join(sib)).unwrap();
         std::fs::write(maps.join(sib).join("mine.txt"), sib).unwrap();
     }
-    ok(&["map", "build", "--labels", p(&l2), "--out", p(&out), "--no-appearance", "--force", "--f16", "-q"]);
+    ok(&["map", "build", "--labels", p(&l2), "--map", p(&out), "--no-appearance", "--force", "--f16", "-q"]);
     let info: serde_json::Value = serde_json::from_str(&ok(&["map", "info", "--map", p(&out), "--json"])).unwrap();
     assert_eq!((info["images"].as_u64(), info["values"].as_str()), (Some(5), Some("f16")));
     let mut names: Vec<String> = std::fs::read_dir(&maps).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
@@ -252,7 +252,7 @@ fn force_replaces_the_map_and_touches_no_other_path() {
         assert_eq!(std::fs::read_to_string(maps.join(sib).join("mine.txt")).unwrap(), sib);
     }
     // a folder that is not a map is never replaced
-    let refused = semlook(&["map", "build", "--labels", p(&l2), "--out", p(&maps.join("v1")), "--no-appearance", "--force", "-q"]);
+    let refused = semlook(&["map", "build", "--labels", p(&l2), "--map", p(&maps.join("v1")), "--no-appearance", "--force", "-q"]);
     assert!(!refused.status.success());
     assert!(String::from_utf8_lossy(&refused.stderr).contains("mine.txt"));
     assert!(maps.join("v1").join("mine.txt").exists());
@@ -264,7 +264,7 @@ fn remove_and_compact_from_the_command_line() {
     let l = dir.path().join("l");
     labels(&l, "x", 8, 0);
     let m = dir.path().join("m");
-    ok(&["map", "build", "--labels", p(&l), "--out", p(&m), "--no-appearance", "--segment-images", "3", "-q"]);
+    ok(&["map", "build", "--labels", p(&l), "--map", p(&m), "--no-appearance", "--segment-images", "3", "-q"]);
     ok(&["map", "remove", "--map", p(&m), "--ids", "x001", "x002", "-q"]);
     let list = dir.path().join("ids.txt");
     std::fs::write(&list, "# gone\nx006\n\n").unwrap();

@@ -210,7 +210,7 @@ fn three_processes_with_random_kills_lose_nothing_committed() {
     // the reference: every frame in a map of its own, built once without interference
     let truth = dir.path().join("truth");
     common::cli_ok(
-        &[&["map", "build", "--images", p(&pool.join("images")), "--labels", p(&pool.join("labels")), "--out", p(&truth)][..], &label_only].concat(),
+        &[&["map", "build", "--images", p(&pool.join("images")), "--labels", p(&pool.join("labels")), "--map", p(&truth)][..], &label_only].concat(),
     );
     let full_bytes = bytes_under(&truth);
     // the map under test starts with every worker's first two frames
@@ -221,7 +221,7 @@ fn three_processes_with_random_kills_lose_nothing_committed() {
     let map = dir.path().join("map");
     common::cli_ok(
         &[
-            &["map", "build", "--images", p(&start.join("images")), "--labels", p(&start.join("labels")), "--out", p(&map), "--segment-images", "4"]
+            &["map", "build", "--images", p(&start.join("images")), "--labels", p(&start.join("labels")), "--map", p(&map), "--segment-images", "4"]
                 [..],
             &label_only,
         ]

@@ -49,7 +49,7 @@ fn a_default_map_of_real_frames_fits_64_kb_per_reference_and_reports_coarse_reca
     let Some(set) = common::shared_or_required("data/real-vpr/gardenspoint-day-night-mini") else { return };
     let dir = tempfile::tempdir().unwrap();
     let map = dir.path().join("map");
-    semlook(&["map", "build", "--images", p(&set.join("ref")), "--out", p(&map), "--backend", "cpu", "-q"]);
+    semlook(&["map", "build", "--images", p(&set.join("ref")), "--map", p(&map), "--backend", "cpu", "-q"]);
     let info: serde_json::Value = serde_json::from_str(&semlook(&["map", "info", "--map", p(&map), "--json"])).unwrap();
     let per = &info["bytes_per_reference"];
     let total = per["total"].as_u64().unwrap();

@@ -86,7 +86,7 @@ pub fn to_py(e: Error) -> PyErr {
         Error::DuplicateImageId { map, id } => ("DuplicateImageIdError", shown(map), None, Some(id.clone())),
         Error::InvalidImage { id, .. } => ("InvalidImageError", None, None, Some(id.clone())),
         Error::Dataset { path, .. } => ("DatasetError", shown(path), None, None),
-        Error::InvalidInput { what, .. } => ("InvalidInputError", None, Some(what.clone()), None),
+        Error::InvalidInput { what, .. } | Error::Refused { what, .. } => ("InvalidInputError", None, Some(what.clone()), None),
         Error::Model { path, .. } => ("ModelError", shown(path), None, None),
         Error::Gpu(_) => ("GpuError", None, None, None),
         #[allow(unreachable_patterns)]

@@ -79,9 +79,12 @@ impl AppearanceModel {
                 }))
             }
             AppearanceModelKind::Onnx => {
-                let path = paths.keypoint_onnx.clone().ok_or_else(|| Error::InvalidConfig {
-                    source_name: "[models]".into(),
-                    reason: "appearance.model = \"onnx\" needs models.keypoint_onnx (or --keypoints MODEL)".into(),
+                let path = paths.keypoint_onnx.clone().ok_or_else(|| {
+                    Error::refused(
+                        "config [models]",
+                        "appearance.model = \"onnx\" needs models.keypoint_onnx",
+                        crate::error::Remedy::GiveKeypointModel,
+                    )
                 })?;
                 let sessions = crate::onnx::SessionPool::new(&path, paths.onnxruntime.as_deref())?;
                 let (logits, reliability, descriptors) =

@@ -51,7 +51,7 @@ impl Device {
                     };
                 }
                 let (peak, source) = match (gpu_peak, GPU_PEAKS.iter().find(|(n, _)| name.contains(n))) {
-                    (Some(v), _) => (Some(v), Some(format!("{v:.0} GFLOP/s (--peak-gflops)"))),
+                    (Some(v), _) => (Some(v), Some(format!("{v:.0} GFLOP/s (given)"))),
                     (None, Some((n, v))) => (Some(*v), Some(format!("{v:.0} GFLOP/s ({n} FP32 data sheet)"))),
                     (None, None) => (None, None),
                 };

@@ -68,7 +68,8 @@ pub struct BenchEncodeArgs {
     /// At most this many frames.
     #[arg(long, default_value_t = 60)]
     pub frames: usize,
-    #[arg(long)]
+    /// Configuration file (TOML; `semlook config` prints the defaults); default: built-in defaults.
+    #[arg(long, value_name = "FILE.toml")]
     pub config: Option<PathBuf>,
     #[arg(long)]
     pub json: bool,
@@ -87,7 +88,8 @@ pub struct SegAccArgs {
     /// The labels are CamVid's (11 classes, SegNet ids); a Cityscapes segmenter is mapped to them.
     #[arg(long)]
     pub camvid: bool,
-    #[arg(long)]
+    /// Configuration file (TOML; `semlook config` prints the defaults); default: built-in defaults.
+    #[arg(long, value_name = "FILE.toml")]
     pub config: Option<PathBuf>,
     /// Also write the result as JSON to stdout.
     #[arg(long)]
@@ -106,7 +108,8 @@ pub struct InspectArgs {
     /// Folder for the PNGs (one per stage, and sheet.png with all of them).
     #[arg(long)]
     pub out: PathBuf,
-    #[arg(long)]
+    /// Configuration file (TOML; `semlook config` prints the defaults); default: built-in defaults.
+    #[arg(long, value_name = "FILE.toml")]
     pub config: Option<PathBuf>,
     #[arg(long, value_enum)]
     pub label_format: Option<LabelFormat>,
@@ -126,15 +129,15 @@ pub struct TuneArgs {
     /// The sweep file: `[values]` with a list per dotted config key, optional `[base]`.
     #[arg(long)]
     pub sweep: PathBuf,
-    /// Base config (TOML) the sweep starts from (default: built-in defaults).
-    #[arg(long)]
+    /// Configuration file (TOML) the sweep starts from; default: built-in defaults.
+    #[arg(long, value_name = "FILE.toml")]
     pub config: Option<PathBuf>,
-    /// Settings to score (default: semlook, local, forest, global).
-    #[arg(long, value_enum, value_delimiter = ',')]
+    /// Settings to score, repeated or comma-separated (default: semlook, local, forest, global).
+    #[arg(long = "setting", value_enum, value_delimiter = ',')]
     pub settings: Vec<Setting>,
     /// Also write the table (tab-separated) to this file.
-    #[arg(long)]
-    pub out: Option<PathBuf>,
+    #[arg(long, value_name = "FILE.tsv")]
+    pub table: Option<PathBuf>,
     #[command(flatten)]
     pub models: ModelArgs,
 }
@@ -203,10 +206,11 @@ pub struct SynthArgs {
     #[arg(long, default_value = "640x480", value_parser = parse_size, conflicts_with = "from_camvid")]
     pub size: (usize, usize),
     /// Lighting condition of the reference traversal (not with --from-camvid).
-    #[arg(long, value_enum, default_value_t = Condition::Day, conflicts_with = "from_camvid")]
+    #[arg(long = "reference-condition", value_enum, default_value_t = Condition::Day, conflicts_with = "from_camvid")]
     pub reference: Condition,
-    /// Query conditions (default: overcast, sunset, fog, snow, night; not with --from-camvid).
-    #[arg(long = "query", value_enum, conflicts_with = "from_camvid")]
+    /// Conditions of the query traversals, repeated (default: overcast, sunset, fog, snow, night;
+    /// not with --from-camvid).
+    #[arg(long = "query-condition", value_enum, conflicts_with = "from_camvid")]
     pub queries: Vec<Condition>,
     /// Probability that a city block repeats a layout template (perceptual aliasing; not with
     /// --from-camvid).
@@ -298,9 +302,9 @@ pub enum MapCommand {
         source: SourceArgs,
         /// Map directory to create.
         #[arg(long)]
-        out: PathBuf,
-        /// Encoding config (TOML); default: built-in defaults.
-        #[arg(long)]
+        map: PathBuf,
+        /// Configuration file (TOML; `semlook config` prints the defaults); default: built-in defaults.
+        #[arg(long, value_name = "FILE.toml")]
         config: Option<PathBuf>,
         /// Replace an existing map: the new one is built beside it (same folder, unique name) and
         /// swapped in once complete; no other path is touched.
@@ -401,13 +405,14 @@ pub struct QueryArgs {
     #[arg(long, value_enum, default_value_t = Setting::RECOMMENDED)]
     pub setting: Setting,
     /// Config for matching (its encoding sections must equal the map's).
-    #[arg(long)]
+    /// Configuration file (TOML; `semlook config` prints the defaults); default: built-in defaults.
+    #[arg(long, value_name = "FILE.toml")]
     pub config: Option<PathBuf>,
     /// Print JSON instead of CSV.
     #[arg(long)]
     pub json: bool,
-    /// Also write OUT.csv and OUT.json.
-    #[arg(long)]
+    /// Also write DIR/matches.csv and DIR/matches.json (the folder is created).
+    #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
 }
 
@@ -428,17 +433,17 @@ pub struct EvalArgs {
     /// the CSV's folder) or VPR-Bench's .npy; without it, UTM positions in the file names.
     #[arg(long, requires = "references")]
     pub ground_truth: Option<PathBuf>,
-    /// One setting (default: all nine, baselines included).
-    #[arg(long, value_enum)]
-    pub setting: Option<Setting>,
+    /// Settings to evaluate, repeated or comma-separated (default: all nine, baselines included).
+    #[arg(long = "setting", value_enum, value_delimiter = ',')]
+    pub settings: Vec<Setting>,
     /// Use this map for the references instead of encoding them.
     #[arg(long)]
     pub map: Option<PathBuf>,
-    /// Reference traversal (overrides the dataset manifest).
-    #[arg(long)]
+    /// With --dataset: the reference traversal (overrides the dataset manifest).
+    #[arg(long = "reference-traversal", value_name = "NAME", requires = "dataset")]
     pub reference: Option<String>,
-    /// Query traversal(s) (overrides the dataset manifest).
-    #[arg(long = "query")]
+    /// With --dataset: a query traversal, repeated for several (overrides the dataset manifest).
+    #[arg(long = "query-traversal", value_name = "NAME", requires = "dataset")]
     pub queries: Vec<String>,
     /// Ground truth: references within this distance are correct (overrides the manifest).
     #[arg(long)]
@@ -446,14 +451,15 @@ pub struct EvalArgs {
     /// Ground truth: and optical axes within this angle (degrees).
     #[arg(long)]
     pub gt_angle: Option<f64>,
-    #[arg(long)]
+    /// Configuration file (TOML; `semlook config` prints the defaults); default: built-in defaults.
+    #[arg(long, value_name = "FILE.toml")]
     pub config: Option<PathBuf>,
     #[arg(long)]
     pub json: bool,
     #[arg(long)]
     pub skip_invalid: bool,
     /// Write sheets (query | top-1 | a valid reference, with labels and scores) for the N worst
-    /// queries of the `semlook` setting (or the only setting) into --out.
+    /// queries of the recommended setting (`verified`; else the first setting asked for) into --out.
     #[arg(long, value_name = "N", requires = "out")]
     pub explain: Option<usize>,
     /// Folder for --explain sheets.

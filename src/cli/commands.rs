@@ -240,9 +240,10 @@ fn query(engine: &mut Engine, a: &QueryArgs, quiet: bool) -> Result<()> {
     let cfg = map_config(&map, a.config.as_deref(), &a.source.models)?;
     let (queries, matches, run) = run_query(engine, &map, &cfg, &a.source, a.setting, quiet)?;
     let (csv, json) = query_outputs(&map, &queries, &matches, &run, a.setting)?;
-    if let Some(out) = &a.out {
-        write_file(&out.with_extension("csv"), &csv)?;
-        write_file(&out.with_extension("json"), &json)?;
+    if let Some(dir) = &a.out {
+        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+        write_file(&dir.join("matches.csv"), &csv)?;
+        write_file(&dir.join("matches.json"), &json)?;
     }
     if a.json {
         outln!("{json}");
@@ -268,10 +269,7 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
     if a.config.is_none() && map.is_none() {
         cfg = ds.adapt_config(cfg);
     }
-    let settings = match a.setting {
-        Some(s) => vec![s],
-        None => Setting::ALL.to_vec(),
-    };
+    let settings = if a.settings.is_empty() { Setting::ALL.to_vec() } else { dedup(&a.settings) };
     let report = evaluate(&ds, &cfg, &EvalOptions { settings: settings.clone(), map: map.as_ref(), skip_invalid: a.skip_invalid, quiet }, engine)?;
     print_report(&report, a.json)?;
     if let Some(dir) = &a.plots {
@@ -291,6 +289,17 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// `settings` in the order given, each once.
+fn dedup(settings: &[Setting]) -> Vec<Setting> {
+    let mut out: Vec<Setting> = Vec::new();
+    for s in settings {
+        if !out.contains(s) {
+            out.push(*s);
+        }
+    }
+    out
 }
 
 fn print_report(report: &EvalReport, json: bool) -> Result<()> {
@@ -514,8 +523,8 @@ fn tune_cmd(a: &TuneArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     })?;
     pb.finish_and_clear();
     let table = semlook::tune::table(&rows);
-    if let Some(out) = &a.out {
-        write_file(out, &table)?;
+    if let Some(file) = &a.table {
+        write_file(file, &table)?;
     }
     out!("{table}");
     Ok(())

@@ -4,6 +4,7 @@
 mod output;
 mod args;
 mod commands;
+pub mod hint;
 mod logger;
 
 pub use output::is_broken_pipe;

@@ -136,10 +136,13 @@ impl Dataset {
             return Ok(ds);
         } else {
             let found = synthia_traversals(root);
-            let reference = opts
-                .reference
-                .clone()
-                .ok_or_else(|| Error::dataset(root, format!("no {MANIFEST}; pass --reference (traversals found: {})", found.join(", "))))?;
+            let reference = opts.reference.clone().ok_or_else(|| {
+                Error::refused(
+                    format!("dataset {}", root.display()),
+                    format!("no {MANIFEST}: which traversal is the reference? (traversals found: {})", found.join(", ")),
+                    crate::error::Remedy::NameReferenceTraversal,
+                )
+            })?;
             DatasetManifest {
                 format: "semlook-dataset".into(),
                 version: 1,
@@ -182,11 +185,11 @@ impl Dataset {
         if opts.reference.is_some() || !opts.queries.is_empty() || opts.max_angle_deg.is_some() {
             return Err(Error::dataset(
                 root,
-                "--reference, --query and --gt-angle do not apply to a folder-pair dataset (ref/query or database/queries)",
+                "reference and query traversals and a ground-truth angle do not apply to a folder-pair dataset (ref/query or database/queries)",
             ));
         }
         if opts.max_distance.is_some() && !matches!(truth, PairTruth::Utm(_)) {
-            return Err(Error::dataset(root, "--gt-distance applies only to datasets with positions (UTM file names)"));
+            return Err(Error::dataset(root, "a ground-truth distance applies only to datasets with positions (UTM file names)"));
         }
         pairs::from_folders(&refs, &queries, &truth).map(Some)
     }

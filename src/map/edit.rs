@@ -241,7 +241,7 @@ pub fn build_replacing<T>(out: &Path, build: impl FnOnce(&Path) -> Result<T>) ->
         let entries: Vec<String> =
             std::fs::read_dir(out).map_err(|e| Error::io(out, e))?.flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
         if let Some(other) = entries.iter().find(|n| !manifest::is_store_file(n)) {
-            return Err(Error::invalid(format!("map {}", out.display()), format!("--force replaces only a map, and this folder holds {other:?}")));
+            return Err(Error::invalid(format!("map {}", out.display()), format!("a rebuild replaces only a map, and this folder holds {other:?}")));
         }
     }
     let staging = files::sibling(out, "building")?;

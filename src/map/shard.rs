@@ -26,9 +26,10 @@ pub struct ShardSpec {
 pub fn plan(m: &Manifest, shards: usize) -> Result<Vec<ShardSpec>> {
     let n = m.segments.len();
     if shards == 0 || shards > n {
-        return Err(Error::invalid(
+        return Err(Error::refused(
             "shards",
-            format!("{shards} shards asked for a map of {n} segments (1 to {n} possible; `map build --segment-images` makes more)"),
+            format!("{shards} shards asked for a map of {n} segments (1 to {n} possible)"),
+            crate::error::Remedy::SmallerSegments,
         ));
     }
     let live: Vec<usize> = m.segments.iter().map(|s| s.live()).collect();

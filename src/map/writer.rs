@@ -16,7 +16,7 @@ use crate::appearance::vlad::Codebook;
 use crate::classes::ClassTable;
 use crate::config::EncodingConfig;
 use crate::descriptors::{validate, DescriptorSet, EncodedImage};
-use crate::error::{Error, Result};
+use crate::error::{Error, Remedy, Result};
 use crate::util::sha256_hex;
 use crate::values::{ValueType, Values};
 use std::collections::HashSet;
@@ -147,7 +147,7 @@ impl MapWriter {
     pub fn check_new_dir(dir: &Path, resume: bool) -> Result<()> {
         let what = || format!("map {}", dir.display());
         if manifest::read(dir)?.is_some() {
-            return Err(Error::invalid(what(), "a map already exists there (use map add, --resume to continue its build, or --force to replace it)"));
+            return Err(Error::refused(what(), "a map already exists there", Remedy::AddResumeOrReplace));
         }
         if dir.exists() {
             let entries: Vec<String> =
@@ -156,7 +156,7 @@ impl MapWriter {
                 return Err(Error::invalid(what(), format!("directory exists and holds {other:?}, which is not a map file")));
             }
             if !entries.is_empty() && !resume {
-                return Err(Error::invalid(what(), "directory exists and is not empty (an interrupted build? use --resume, or --force)"));
+                return Err(Error::refused(what(), "directory exists and is not empty (an interrupted build?)", Remedy::ResumeOrReplace));
             }
         }
         Ok(())
@@ -166,10 +166,7 @@ impl MapWriter {
     /// ignored). Reads the ids of every stored segment (not their checksums).
     pub fn append(dir: &Path, opts: StoreOptions) -> Result<MapWriter> {
         if manifest::read(dir)?.is_none() {
-            return Err(Error::invalid(
-                format!("map {}", dir.display()),
-                "no manifest.json: not a map (build it first, or --resume an interrupted build)",
-            ));
+            return Err(Error::refused(format!("map {}", dir.display()), "no manifest.json: not a map", Remedy::BuildOrResume));
         }
         // read without the lock: a compaction may delete a listed segment meanwhile
         super::with_current_manifest(dir, |manifest| {
@@ -388,7 +385,7 @@ impl MapWriter {
             (Some(_), Some(_)) => return Err(Error::invalid(what(), "another process created a map there while this build ran")),
             (None, None) => return Err(Error::invalid(what(), "the map's manifest is gone (removed or replaced while writing)")),
             (Some(m), None) if m.uid != self.manifest.uid => {
-                return Err(Error::invalid(what(), "the map was replaced (build --force) while this writer ran"))
+                return Err(Error::invalid(what(), "the map was replaced (rebuilt) while this writer ran"))
             }
             (Some(m), None) => m,
         };

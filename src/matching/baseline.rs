@@ -27,7 +27,7 @@ fn vectors(setting: Setting) -> (QueryVector, RefVector) {
 pub fn unavailable(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting) -> Option<String> {
     match setting {
         Setting::Hog if refs.hog_dim() == 0 || queries.hog_dim == 0 => {
-            Some("no HOG descriptors (encode the references with HOG: `map build --hog`, or evaluate without --map)".into())
+            Some("no HOG descriptors (store them when building the map, or evaluate without a stored map)".into())
         }
         Setting::Appearance if refs.appearance_dim() == 0 || queries.appearance_dim == 0 => {
             Some("no appearance (the keypoint network is off)".into())

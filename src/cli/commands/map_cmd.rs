@@ -16,7 +16,7 @@ use std::path::Path;
 
 pub fn run(cmd: MapCommand, engine: &dyn Fn() -> Result<Engine>, quiet: bool) -> Result<()> {
     match cmd {
-        MapCommand::Build { source, out, config, force, resume, hog, store } => {
+        MapCommand::Build { source, map: out, config, force, resume, hog, store } => {
             build(&mut engine()?, &source, &out, config.as_deref(), &BuildFlags { force, resume, hog, store }, quiet)
         }
         MapCommand::Add { source, map, resume, segment_images } => add(&mut engine()?, &source, &map, resume, segment_images, quiet),
