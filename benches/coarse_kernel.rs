@@ -12,7 +12,7 @@ use semlook::config::Config;
 use semlook::global::ssim_fast::{ssim_pair_fast, terms_from_descriptor, terms_from_stats, FastLayout, FastScratch};
 use semlook::kernels::abi::SsimParams;
 use semlook::kernels::ssim::{ssim_pair, SsimScratch};
-use semlook::synth::condition::Condition;
+use semlook::tools::synth::condition::Condition;
 
 mod common;
 

@@ -5,7 +5,7 @@ use semlook::config::Config;
 use semlook::encode::{EncodedImage, Encoder};
 use semlook::input::LabelMap;
 use semlook::map::DescriptorSet;
-use semlook::synth::{self, condition::Condition, SynthConfig};
+use semlook::tools::synth::{self, condition::Condition, SynthConfig};
 
 /// `n` label maps of consecutive places at `w` x `h` (degraded as under `cond`).
 pub fn street_labels(n: usize, w: usize, h: usize, cond: Condition) -> Vec<LabelMap> {

@@ -11,7 +11,7 @@ use semlook::kernels::abi::SsimParams;
 use semlook::kernels::abi::TreeSimParams;
 use semlook::kernels::tree_similarity::{tree_similarity, TreeSimScratch};
 use semlook::matching::{coarse_topk, coarse_topk_twin};
-use semlook::synth::condition::Condition;
+use semlook::tools::synth::condition::Condition;
 
 mod common;
 

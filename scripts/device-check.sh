@@ -10,8 +10,8 @@
 # --out (default target/device-check.json). --bin: an already-built semlook (skips the build).
 # --smoke: the reduced form CI runs on lavapipe so the script cannot rot: no build or test suite (the
 #   caller is the test suite), a 1,000-reference coarse row and a 4-frame encoding row at 320x240.
-# Rows: coarse top-K (`semlook bench`, 100k and 1M references x 1,000 queries, CPU and GPU), encoding
-# (`semlook bench-encode` on 1920x1080 synthetic frames, GPU backend, the installed segmenter on ONNX
+# Rows: coarse top-K (`semlook dev bench`, 100k and 1M references x 1,000 queries, CPU and GPU), encoding
+# (`semlook dev bench-encode` on 1920x1080 synthetic frames, GPU backend, the installed segmenter on ONNX
 # Runtime's CPU provider), and the fine stage (criterion `benches/matching.rs`, group `fine`, K = 20).
 # Carry the model folder to the device (`.semlook`, about 40 MB) for the encoding row.
 set -euo pipefail
@@ -54,7 +54,7 @@ for n in $sizes; do
     t=$(left)
     if [ "$t" -lt 30 ]; then note coarse "coarse $n x $batch" "budget: ${t} s left"; continue; fi
     say "coarse $n references x $batch queries (at most $(( t / 3 )) s per row)"
-    "$bin" bench --sizes "$n" --batches "$batch" --max-row-seconds $(( t / 3 )) --json -q \
+    "$bin" dev bench --sizes "$n" --batches "$batch" --max-row-seconds $(( t / 3 )) --json -q \
         | python3 -c 'import json,sys
 for line in sys.stdin:
     r = json.loads(line); r["row"] = "coarse"; print(json.dumps(r))' >> "$rows"
@@ -65,9 +65,9 @@ if [ $smoke = 1 ]; then size=320x240 frames=4; else size=1920x1080 frames=60; fi
 if [ "$(left)" -gt 20 ]; then
     say "encoding $frames frames at $size on the GPU backend"
     "$bin" synth --out "$work/frames" --places "$frames" --size "$size" --query-condition night -q
-    "$bin" bench-encode --images "$work/frames/day/RGB/Stereo_Left/Omni_F" --frames "$frames" --backend gpu --json -q \
+    "$bin" dev bench-encode --images "$work/frames/day/RGB/Stereo_Left/Omni_F" --frames "$frames" --backend gpu --json -q \
         | python3 -c 'import json,sys; r = json.load(sys.stdin); print(json.dumps({"row": "encode", "size": sys.argv[1], "result": r}))' "$size" >> "$rows" \
-        || note encode "encode $size" "bench-encode failed (see the log above)"
+        || note encode "encode $size" "dev bench-encode failed (see the log above)"
 else
     note encode "encode $size" "budget"
 fi

@@ -8,7 +8,8 @@
 //! The modules follow the data through the pipeline:
 //! [`input`] (images, label maps) -> [`objects`] (semantic regions) -> [`global`] and [`local`]
 //! (descriptors; [`encode`] runs both) -> [`map`] (the stored map) -> [`matching`] (coarse top-K,
-//! fine re-ranking) -> [`eval`] (VPR-Bench metrics). [`synth`] renders a procedural benchmark.
+//! fine re-ranking) -> [`eval`] (VPR-Bench metrics). Beside the engine, behind the `tools` feature:
+//! [`tools`] (the synthetic benchmark, pictures, benchmarks, sweeps).
 //! [`descriptors`] (descriptor sets, the source traits matching reads, value checks) is the layer
 //! encoding, the map store, matching and appearance share; [`batch`] encodes many frames (into a
 //! set, or streamed into a map).
@@ -44,8 +45,7 @@
 pub mod appearance;
 pub mod baseline;
 pub mod batch;
-pub mod bench;
-pub mod bench_store;
+
 pub mod classes;
 pub mod config;
 pub mod dataset;
@@ -67,11 +67,10 @@ pub mod onnx;
 pub mod pickle;
 pub mod progress;
 pub mod segmentation;
+#[cfg(feature = "tools")]
+pub mod tools;
 pub mod util;
 pub mod values;
 pub mod verify;
-pub mod viz;
 
 pub use error::{Error, Result};
-pub mod synth;
-pub mod tune;

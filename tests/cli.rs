@@ -207,7 +207,7 @@ fn resume_checks_every_layout_option_and_size_options_are_bounded() {
     // before anything is written (before, 4e9 references ran until an allocation failed)
     let bench_dir = dir.path().join("bench");
     for (flag, value, says) in [("--sizes", "4000000000", "free space"), ("--passes", "4000000000", "available memory")] {
-        let err = fails(&["map", "bench", flag, value, "--dir", p(&bench_dir), "-q"]);
+        let err = fails(&["dev", "map-bench", flag, value, "--dir", p(&bench_dir), "-q"]);
         assert!(err.contains(&flag.replace("--", "map bench ")) && err.contains(says) && err.contains("at most"), "{flag}: {err}");
     }
     assert!(!bench_dir.exists(), "a refused benchmark wrote a map");
@@ -258,7 +258,7 @@ fn map_commands_keep_their_small_promises() {
     assert!(String::from_utf8_lossy(&zero.stderr).contains("at least 1"));
     ok(&["map", "build", "--dataset", p(&data), "--map", p(&map), "--segment-images", "2", na, "--backend", "cpu", "-q"]);
     // a command that runs on the CPU only refuses --backend instead of ignoring it
-    for args in [vec!["map", "info", "--map", p(&map)], vec!["inspect", "x.png", "--out", "y"], vec!["config"]] {
+    for args in [vec!["map", "info", "--map", p(&map)], vec!["inspect", "x.png", "--out", "y"], vec!["config"], vec!["dev", "map-bench"]] {
         let err = fails(&[args.clone(), vec!["--backend", "gpu"]].concat());
         assert!(err.contains("--backend gpu") && err.contains("does not apply"), "{args:?}: {err}");
     }

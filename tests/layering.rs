@@ -332,6 +332,17 @@ fn the_kernels_import_no_stage() {
     assert!(g["gpu"].contains("kernels") && g["matching"].contains("kernels"), "the graph lacks the kernels' users");
 }
 
+/// The tools sit beside the engine (behind the `tools` feature): no module of the engine reaches
+/// them, so the library builds without them.
+#[test]
+fn the_engine_never_imports_the_tools() {
+    let g = import_graph();
+    assert!(g.contains_key("tools") && g["tools"].contains("eval"), "the graph lacks the tools: {:?}", g.get("tools"));
+    for m in g.keys().filter(|m| !["tools", "cli"].contains(&m.as_str())) {
+        assert!(!reachable(&g, m).contains("tools"), "{m} reaches the tools");
+    }
+}
+
 #[test]
 fn no_stage_imports_another_in_a_circle() {
     let g = import_graph();

@@ -286,7 +286,7 @@ fn remove_and_compact_from_the_command_line() {
 #[test]
 fn map_bench_writes_opens_and_queries_a_stored_map() {
     let dir = tempfile::tempdir().unwrap();
-    let out = ok(&["map", "bench", "--sizes", "5000", "--passes", "3,4:1000", "--json", "--dir", p(dir.path()), "-q"]);
+    let out = ok(&["dev", "map-bench", "--sizes", "5000", "--passes", "3,4:1000", "--json", "--dir", p(dir.path()), "-q"]);
     let r: serde_json::Value = serde_json::from_str(&out).unwrap();
     let passes = r["passes"].as_array().unwrap();
     assert_eq!(passes.len(), 2, "{out}");

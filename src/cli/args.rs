@@ -4,7 +4,7 @@ use clap::{Args, Parser, Subcommand};
 use semlook::engine::Backend;
 use semlook::input::LabelFormat;
 use semlook::matching::Setting;
-use semlook::synth::condition::Condition;
+use semlook::tools::synth::condition::Condition;
 use std::path::PathBuf;
 
 #[derive(Parser)]
@@ -15,8 +15,8 @@ pub struct Cli {
     pub quiet: bool,
     /// Where encoding and matching run: `cpu`, `gpu` (any adapter, software ones included), or
     /// `auto` (a hardware GPU if there is one, else the CPU; the default). Commands that run on
-    /// the CPU only (inspect, segmenter-accuracy, bench, map info/remove/compact/verify/bench,
-    /// synth without --from-camvid, config) refuse it rather than ignore it.
+    /// the CPU only (inspect, map info/remove/compact/verify, synth without --from-camvid, config,
+    /// models, dev bench/map-bench/segmenter-accuracy) refuse it rather than ignore it.
     #[arg(long, global = true, value_enum)]
     pub backend: Option<Backend>,
     #[command(subcommand)]
@@ -44,20 +44,32 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Sweep configuration values over datasets and tabulate Recall@1 and AUC per setting.
-    Tune(TuneArgs),
+    /// Pictures of every stage for one frame: image, labels, semantic edges, truncated EDT, global
+    /// descriptor, trees with neighbour links, keypoints.
+    Inspect(InspectArgs),
+    /// Developer tools: benchmarks, configuration sweeps, segmenter accuracy.
+    #[command(subcommand)]
+    Dev(DevCommand),
+}
+
+/// The developer commands (`semlook dev ...`).
+#[derive(Subcommand)]
+pub enum DevCommand {
+    /// Large-map batch matching benchmark: coarse matching throughput and peak memory for maps of
+    /// 1k to 1M references and query batches of 100 and 1000, on the CPU and on the GPU.
+    Bench(BenchArgs),
     /// Encoding speed on real images: segmentation, then everything else (decoding at the
     /// working size, edges, EDT, objects, forest, keypoint network, VLAD), per-stage medians and
     /// wall clock per frame with frames in parallel.
     BenchEncode(BenchEncodeArgs),
+    /// Map-store benchmark: writes a synthetic map of each size through the store, opens it and
+    /// runs a coarse pass of a query batch from it; reports build peak RSS, open time, query-pass
+    /// memory without mapped file pages, and bytes per reference.
+    MapBench(StoreBenchArgs),
+    /// Sweep configuration values over datasets and tabulate Recall@1 and AUC per setting.
+    Tune(TuneArgs),
     /// Accuracy of the segmenter against real label maps (pixel accuracy, IoU per class, mean IoU).
     SegmenterAccuracy(SegAccArgs),
-    /// Pictures of every stage for one frame: image, labels, semantic edges, truncated EDT, global
-    /// descriptor, trees with neighbour links, keypoints.
-    Inspect(InspectArgs),
-    /// Large-map batch matching benchmark: coarse matching throughput and peak memory for maps of
-    /// 1k to 1M references and query batches of 100 and 1000, on the CPU and on the GPU.
-    Bench(BenchArgs),
 }
 
 #[derive(Args)]
@@ -145,7 +157,7 @@ pub struct TuneArgs {
 #[derive(Args)]
 pub struct BenchArgs {
     /// Map sizes (references); sizes above 10,000 are synthetic maps served from one block of
-    /// real descriptors (see `semlook::bench`).
+    /// real descriptors (see `semlook::tools::bench`).
     #[arg(long, value_delimiter = ',', default_value = "1000,10000,100000")]
     pub sizes: Vec<usize>,
     /// Query batch sizes; every row runs its whole batch.
@@ -186,7 +198,7 @@ pub struct SynthArgs {
     pub from_camvid: Option<PathBuf>,
     /// With --from-camvid: the changes (default: night, fog, blur, shift).
     #[arg(long = "change", value_enum, requires = "from_camvid")]
-    pub changes: Vec<semlook::synth::camvid::Change>,
+    pub changes: Vec<semlook::tools::synth::camvid::Change>,
     /// With --from-camvid: keep every N-th frame.
     #[arg(long, default_value_t = 1, requires = "from_camvid")]
     pub step: usize,
@@ -363,10 +375,6 @@ pub enum MapCommand {
         #[arg(long)]
         json: bool,
     },
-    /// Map-store benchmark: writes a synthetic map of each size through the store, opens it and
-    /// runs a coarse pass of a query batch from it; reports build peak RSS, open time, query-pass
-    /// memory without mapped file pages, and bytes per reference.
-    Bench(StoreBenchArgs),
 }
 
 #[derive(Args)]
@@ -377,7 +385,7 @@ pub struct StoreBenchArgs {
     /// Coarse passes on each map: QUERIES (against every reference) or QUERIES:REFS (against the
     /// first REFS references, streamed from the stored map like the rest).
     #[arg(long, value_delimiter = ',', default_value = "1000")]
-    pub passes: Vec<semlook::bench_store::Pass>,
+    pub passes: Vec<semlook::tools::bench_store::Pass>,
     /// Store f16 (default f32).
     #[arg(long)]
     pub f16: bool,

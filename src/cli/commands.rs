@@ -18,20 +18,20 @@ use semlook::input::{FrameSource, LabelFormat};
 use semlook::map::{DescriptorSet, Map};
 use semlook::matching::{source::RefSource, QueryMatch, Setting};
 use semlook::progress;
-use semlook::synth::condition::Condition;
-use semlook::synth::{self, SynthConfig};
+use semlook::tools::synth::condition::Condition;
+use semlook::tools::synth::{self, SynthConfig};
 use std::path::Path;
 use std::time::Instant;
 
 /// Why `command` takes no `--backend`, or `None` where it runs on the backend given.
 fn ignores_backend(command: &Command) -> Option<&'static str> {
     match command {
-        Command::Bench(_) => Some("bench times the CPU and, unless --cpu-only, every GPU row itself"),
+        Command::Dev(DevCommand::Bench(_)) => Some("dev bench times the CPU and, unless --cpu-only, every GPU row itself"),
         Command::Map(MapCommand::Build { .. } | MapCommand::Add { .. }) => None,
-        Command::Map(MapCommand::Bench(_)) => Some("map bench measures the store on the CPU"),
+        Command::Dev(DevCommand::MapBench(_)) => Some("dev map-bench measures the store on the CPU"),
         Command::Map(_) => Some("this map command reads and writes files only"),
         Command::Inspect(_) => Some("inspect runs the CPU stages to draw them"),
-        Command::SegmenterAccuracy(_) => Some("segmenter-accuracy runs the segmenter, which runs on the CPU"),
+        Command::Dev(DevCommand::SegmenterAccuracy(_)) => Some("dev segmenter-accuracy runs the segmenter, which runs on the CPU"),
         Command::Synth(a) if a.from_camvid.is_none() => Some("synth renders on the CPU"),
         Command::Config => Some("config prints the defaults"),
         Command::Models { .. } => Some("models lists files"),
@@ -62,11 +62,12 @@ pub fn dispatch(cli: Cli) -> Result<()> {
         Command::Map(m) => map_cmd::run(m, &engine, quiet),
         Command::Query(a) => query(&mut engine()?, &a, quiet),
         Command::Eval(a) => eval_cmd(&mut engine()?, &a, quiet),
-        Command::Bench(a) => bench_cmd(&a, quiet),
-        Command::Tune(a) => tune_cmd(&a, &mut engine()?, quiet),
         Command::Inspect(a) => inspect_cmd(&a, quiet),
-        Command::SegmenterAccuracy(a) => segacc_cmd(&a, quiet),
-        Command::BenchEncode(a) => bench_encode_cmd(&a, &mut engine()?, quiet),
+        Command::Dev(DevCommand::Bench(a)) => bench_cmd(&a, quiet),
+        Command::Dev(DevCommand::BenchEncode(a)) => bench_encode_cmd(&a, &mut engine()?, quiet),
+        Command::Dev(DevCommand::MapBench(a)) => map_cmd::bench(&a, quiet),
+        Command::Dev(DevCommand::Tune(a)) => tune_cmd(&a, &mut engine()?, quiet),
+        Command::Dev(DevCommand::SegmenterAccuracy(a)) => segacc_cmd(&a, quiet),
         Command::Config => {
             out!("{}", Config::default().to_toml()?);
             Ok(())
@@ -93,7 +94,7 @@ fn synth_config(a: &SynthArgs) -> SynthConfig {
 
 /// `synth --from-camvid`: the real-label benchmark, and with --evaluate its two evaluations.
 fn camvid_cmd(camvid: &Path, a: &SynthArgs, engine: &dyn Fn() -> Result<Engine>, quiet: bool) -> Result<()> {
-    use semlook::synth::camvid::{self, Change};
+    use semlook::tools::synth::camvid::{self, Change};
     let changes = if a.changes.is_empty() { Change::ALL.to_vec() } else { a.changes.clone() };
     let t = Instant::now();
     let pb = progress::bar(0, "frames", quiet);
@@ -273,7 +274,7 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
     let report = evaluate(&ds, &cfg, &EvalOptions { settings: settings.clone(), map: map.as_ref(), skip_invalid: a.skip_invalid, quiet }, engine)?;
     print_report(&report, a.json)?;
     if let Some(dir) = &a.plots {
-        for f in semlook::viz::plots::write_pr_plots(&report, dir)? {
+        for f in semlook::tools::viz::plots::write_pr_plots(&report, dir)? {
             info(quiet, format!("wrote {}", f.display()));
         }
     }
@@ -284,7 +285,7 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
             Some(m) => Encoder::for_map(&cfg, m)?,
             None => Encoder::new(&cfg)?,
         };
-        for f in semlook::viz::explain(&report, setting, &ds, &encoder, n, dir)? {
+        for f in semlook::tools::viz::explain(&report, setting, &ds, &encoder, n, dir)? {
             info(quiet, format!("wrote {}", f.display()));
         }
     }
@@ -494,8 +495,8 @@ fn inspect_cmd(a: &InspectArgs, quiet: bool) -> Result<()> {
     let encoder = Encoder::new(&cfg)?;
     let id = a.image.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
     let src = FrameSource { id, image: Some(a.image.clone()), labels: a.labels.clone() };
-    let panels = semlook::viz::inspect(&encoder, &src, a.label_format.unwrap_or_default())?;
-    let files = semlook::viz::write_panels(&panels, &a.out)?;
+    let panels = semlook::tools::viz::inspect(&encoder, &src, a.label_format.unwrap_or_default())?;
+    let files = semlook::tools::viz::write_panels(&panels, &a.out)?;
     for f in &files {
         info(quiet, format!("wrote {}", f.display()));
     }
@@ -505,7 +506,7 @@ fn inspect_cmd(a: &InspectArgs, quiet: bool) -> Result<()> {
 fn tune_cmd(a: &TuneArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     let base = apply_models(load_config(a.config.as_deref())?, &a.models);
     let text = std::fs::read_to_string(&a.sweep).map_err(|e| Error::io(&a.sweep, e))?;
-    let sweep = semlook::tune::Sweep::parse(&text, &a.sweep.display().to_string(), &base)?;
+    let sweep = semlook::tools::tune::Sweep::parse(&text, &a.sweep.display().to_string(), &base)?;
     let mut datasets: Vec<Dataset> = a.datasets.iter().map(|d| Dataset::open(d, &DatasetOptions::default())).collect::<Result<_>>()?;
     for d in &a.segmented {
         let mut ds = Dataset::open(d, &DatasetOptions::default())?.without_labels();
@@ -516,13 +517,13 @@ fn tune_cmd(a: &TuneArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     let n = sweep.combinations().len();
     info(quiet, format!("{n} configurations x {} datasets", datasets.len()));
     let pb = progress::bar(0, "frames", quiet);
-    let rows = semlook::tune::run(&datasets, &sweep, &settings, engine, &|| pb.inc(1), &mut |ds, row| {
+    let rows = semlook::tools::tune::run(&datasets, &sweep, &settings, engine, &|| pb.inc(1), &mut |ds, row| {
         let vals: Vec<String> = row.values.iter().map(|(k, v)| format!("{k}={v}")).collect();
         let r: Vec<String> = row.results.iter().filter(|r| r.0 == ds).map(|r| format!("{} {:.3}", r.1, r.2)).collect();
         pb.suspend(|| info(quiet, format!("{ds}: {} -> R@1 {}", vals.join(" "), r.join(", "))));
     })?;
     pb.finish_and_clear();
-    let table = semlook::tune::table(&rows);
+    let table = semlook::tools::tune::table(&rows);
     if let Some(file) = &a.table {
         write_file(file, &table)?;
     }
@@ -532,17 +533,17 @@ fn tune_cmd(a: &TuneArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
 
 fn bench_cmd(a: &BenchArgs, quiet: bool) -> Result<()> {
     let cfg = Config::default();
-    let opts = semlook::bench::BenchOptions {
+    let opts = semlook::tools::bench::BenchOptions {
         sizes: a.sizes.clone(),
         batches: a.batches.clone(),
         max_row_seconds: a.max_row_seconds,
-        resident_limit: semlook::bench::RESIDENT_LIMIT,
+        resident_limit: semlook::tools::bench::RESIDENT_LIMIT,
         gpu_peak_gflops: a.peak_gflops,
     };
     opts.validate()?;
     info(quiet, "rendering and encoding the descriptor pools (64 map frames, 32 query frames)");
-    let pool = semlook::bench::street_descriptors(&cfg, 64, Condition::Day, 0)?;
-    let queries = semlook::bench::street_descriptors(&cfg, 32, Condition::Night, 5)?;
+    let pool = semlook::tools::bench::street_descriptors(&cfg, 64, Condition::Day, 0)?;
+    let queries = semlook::tools::bench::street_descriptors(&cfg, 32, Condition::Night, 5)?;
     let mut engines = vec![Engine::cpu()];
     if !a.cpu_only {
         let gopts = GpuOptions {
@@ -561,7 +562,7 @@ fn bench_cmd(a: &BenchArgs, quiet: bool) -> Result<()> {
     let mut shown = false;
     // the first failed write of a row (a closed pipe), returned once the run is over
     let mut write_err: Option<Error> = None;
-    let rows = semlook::bench::run(&pool, &queries, &opts, &mut engines, &cfg, &mut |r| {
+    let rows = semlook::tools::bench::run(&pool, &queries, &opts, &mut engines, &cfg, &mut |r| {
         if a.json {
             match serde_json::to_string(r) {
                 Ok(line) => {
@@ -572,7 +573,7 @@ fn bench_cmd(a: &BenchArgs, quiet: bool) -> Result<()> {
                 Err(e) => log::error!("bench row: {e}"),
             }
         } else if !quiet {
-            let t = semlook::bench::table(std::slice::from_ref(r));
+            let t = semlook::tools::bench::table(std::slice::from_ref(r));
             eprint!("{}", if shown { t.lines().nth(1).unwrap_or("").to_string() + "\n" } else { t });
             shown = true;
         }
@@ -581,7 +582,7 @@ fn bench_cmd(a: &BenchArgs, quiet: bool) -> Result<()> {
         return Err(e);
     }
     if !a.json {
-        out!("{}{}", semlook::bench::table(&rows), semlook::bench::legend(&rows));
+        out!("{}{}", semlook::tools::bench::table(&rows), semlook::tools::bench::legend(&rows));
     }
     Ok(())
 }

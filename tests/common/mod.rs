@@ -5,7 +5,7 @@ use semlook::config::Config;
 use semlook::encode::Encoder;
 use semlook::input::LabelMap;
 use semlook::map::DescriptorSet;
-use semlook::synth::{self, SynthConfig};
+use semlook::tools::synth::{self, SynthConfig};
 use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
@@ -43,7 +43,7 @@ pub fn tiny_synth(dir: &Path, places: usize, seed: u64) -> SynthConfig {
         places,
         width: 160,
         height: 120,
-        queries: vec![semlook::synth::condition::Condition::Overcast, semlook::synth::condition::Condition::Night],
+        queries: vec![semlook::tools::synth::condition::Condition::Overcast, semlook::tools::synth::condition::Condition::Night],
         ..Default::default()
     };
     synth::generate(&cfg, dir, &|| {}).unwrap();
@@ -111,7 +111,7 @@ pub fn street_scene(w: usize, h: usize) -> LabelMap {
     let cfg = SynthConfig { places: 3, width: w, height: h, ..Default::default() };
     let scene = synth::Scene::new(&cfg);
     let dynamic = synth::dynamic_objects(&scene.world, cfg.seed, 0, cfg.persistence);
-    let f = synth::render_frame(&cfg, &scene, &dynamic, 0, 1, semlook::synth::condition::Condition::Day);
+    let f = synth::render_frame(&cfg, &scene, &dynamic, 0, 1, semlook::tools::synth::condition::Condition::Day);
     LabelMap::new(w as u32, h as u32, f.labels, &semlook::classes::ClassTable::cityscapes()).unwrap()
 }
 

@@ -204,9 +204,9 @@ fn block_kernel_equals_the_pair_kernel_on_street_scenes() {
     let Some(ctx) = gpu() else { return };
     let cfg = Config::without_appearance();
     let p = SsimParams::new(&cfg.global);
-    use semlook::synth::condition::Condition;
-    let refs = semlook::bench::street_descriptors(&cfg, 12, Condition::Day, 0).unwrap();
-    let q = semlook::bench::street_descriptors(&cfg, 5, Condition::Night, 5).unwrap();
+    use semlook::tools::synth::condition::Condition;
+    let refs = semlook::tools::bench::street_descriptors(&cfg, 12, Condition::Day, 0).unwrap();
+    let q = semlook::tools::bench::street_descriptors(&cfg, 5, Condition::Night, 5).unwrap();
     let lists = GpuStages::new(ctx.clone()).coarse(&refs, &q, &p, refs.len(), 4096).unwrap();
     let pair = semlook::gpu::reference::ssim_tile_scores(&ctx, &p, (&q.globals, &q.global_stats), (&refs.globals, &refs.global_stats)).unwrap();
     let twin = coarse_topk_twin(&refs, &q, &p, refs.len(), 4096);
@@ -324,18 +324,18 @@ fn coarse_lists_on_real_camvid_labels_equal_both_cpu_paths() {
 /// executor returns an error, it has none); 8 queries' lists checked against the fast CPU path.
 /// For a real device (on lavapipe it would take days):
 /// `cargo test --release --test gpu -- --ignored --nocapture full_size`
-/// (the timed figure: `semlook bench --sizes 1000000 --batches 1000 --json`).
+/// (the timed figure: `semlook dev bench --sizes 1000000 --batches 1000 --json`).
 #[test]
 #[ignore = "full size for a real GPU: cargo test --release --test gpu -- --ignored --nocapture full_size"]
 fn full_size_one_million_references_by_1000_queries() {
     let Some(ctx) = gpu_with(&GpuOptions { allow_software: false, ..Default::default() }) else { return };
     let cfg = Config::without_appearance();
     let p = SsimParams::new(&cfg.global);
-    use semlook::synth::condition::Condition;
-    let pool = semlook::bench::street_descriptors(&cfg, 64, Condition::Day, 0).unwrap();
-    let qpool = semlook::bench::street_descriptors(&cfg, 32, Condition::Night, 5).unwrap();
-    let map = semlook::bench::SyntheticMap::new(&pool, 1_000_000, 4096);
-    let q = semlook::bench::resident_map(&qpool, 1000);
+    use semlook::tools::synth::condition::Condition;
+    let pool = semlook::tools::bench::street_descriptors(&cfg, 64, Condition::Day, 0).unwrap();
+    let qpool = semlook::tools::bench::street_descriptors(&cfg, 32, Condition::Night, 5).unwrap();
+    let map = semlook::tools::bench::SyntheticMap::new(&pool, 1_000_000, 4096);
+    let q = semlook::tools::bench::resident_map(&qpool, 1000);
     let mut stages = GpuStages::new(ctx.clone());
     let t = std::time::Instant::now();
     let resident = stages.upload_coarse_map(&map, &p).unwrap();

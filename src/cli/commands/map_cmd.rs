@@ -24,7 +24,6 @@ pub fn run(cmd: MapCommand, engine: &dyn Fn() -> Result<Engine>, quiet: bool) ->
         MapCommand::Remove { map, ids } => remove(&map, &ids, quiet),
         MapCommand::Compact { map, json } => compact(&map, json),
         MapCommand::Verify { map, json } => verify(&map, json),
-        MapCommand::Bench(a) => bench(&a, quiet),
     }
 }
 
@@ -287,9 +286,9 @@ fn verify(dir: &Path, json: bool) -> Result<()> {
     }
 }
 
-fn bench(a: &StoreBenchArgs, quiet: bool) -> Result<()> {
+pub fn bench(a: &StoreBenchArgs, quiet: bool) -> Result<()> {
     let cfg = Config::default();
-    let opts = semlook::bench_store::StoreBenchOptions {
+    let opts = semlook::tools::bench_store::StoreBenchOptions {
         sizes: a.sizes.clone(),
         passes: a.passes.clone(),
         values: if a.f16 { ValueType::F16 } else { ValueType::F32 },
@@ -298,17 +297,20 @@ fn bench(a: &StoreBenchArgs, quiet: bool) -> Result<()> {
         stats_comparison: a.stats_comparison.clone(),
     };
     info(quiet, "rendering and encoding the descriptor pools (64 map frames, 32 query frames)");
-    let report = semlook::bench_store::run(&cfg, &opts, &mut |r| {
+    let report = semlook::tools::bench_store::run(&cfg, &opts, &mut |r| {
         if !quiet && !a.json {
-            eprint!("{}", semlook::bench_store::table(std::slice::from_ref(r)));
+            eprint!("{}", semlook::tools::bench_store::table(std::slice::from_ref(r)));
         }
     })?;
     if a.json {
         outln!("{}", to_json(&report)?);
     } else {
-        out!("{}", semlook::bench_store::table(&report.passes));
+        out!("{}", semlook::tools::bench_store::table(&report.passes));
         if !report.stats_comparison.is_empty() {
-            out!("\nSSIM statistics: stored (in memory) vs recomputed per tile\n{}", semlook::bench_store::stats_table(&report.stats_comparison));
+            out!(
+                "\nSSIM statistics: stored (in memory) vs recomputed per tile\n{}",
+                semlook::tools::bench_store::stats_table(&report.stats_comparison)
+            );
         }
     }
     Ok(())

@@ -1,4 +1,4 @@
-//! Map-store benchmark (`semlook map bench`): for each size, writes a map of that many references
+//! Map-store benchmark (`semlook dev map-bench`): for each size, writes a map of that many references
 //! through the real store ([`MapWriter`], segment by segment, as `map build` does; descriptors
 //! cycle through a pool of rendered street frames, without appearance, ids unique), opens it,
 //! checks every segment once (the first-use check), and runs the coarse stage for a query batch
@@ -15,7 +15,7 @@ use crate::kernels::abi::SsimParams;
 use crate::kernels::ssim::{ssim_pair, ssim_stats, SsimScratch};
 use crate::map::{Map, MapWriter, StoreOptions};
 use crate::matching::{CpuStages, Stages};
-use crate::synth::{self, condition::Condition, SynthConfig};
+use crate::tools::synth::{self, condition::Condition, SynthConfig};
 use crate::values::ValueType;
 use serde::Serialize;
 use std::path::PathBuf;

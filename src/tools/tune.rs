@@ -1,4 +1,4 @@
-//! `semlook tune`: sweeps configuration values over one or more datasets and tabulates Recall@1
+//! `semlook dev tune`: sweeps configuration values over one or more datasets and tabulates Recall@1
 //! and AUC per setting, so that every default can name the sweep it came from.
 //!
 //! A sweep file (TOML) lists, per dotted config key, the values to try; every combination runs:

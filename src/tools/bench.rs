@@ -1,4 +1,4 @@
-//! Large-map batch matching benchmark (`semlook bench`): the coarse stage (SSIM top-K) of query
+//! Large-map batch matching benchmark (`semlook dev bench`): the coarse stage (SSIM top-K) of query
 //! batches against maps of 1k to 1M references, on every available backend.
 //!
 //! What a row measures: one call of `Stages::coarse` (query preparation, the scores of every
@@ -439,8 +439,8 @@ pub fn legend(rows: &[BenchRow]) -> String {
 }
 
 /// Descriptors of `n` rendered street frames of traversal `traversal` under `cond`, for pools.
-pub fn street_descriptors(cfg: &Config, n: usize, cond: crate::synth::condition::Condition, traversal: u64) -> Result<DescriptorSet> {
-    use crate::synth::{self, SynthConfig};
+pub fn street_descriptors(cfg: &Config, n: usize, cond: crate::tools::synth::condition::Condition, traversal: u64) -> Result<DescriptorSet> {
+    use crate::tools::synth::{self, SynthConfig};
     let scfg = SynthConfig { places: n, width: 320, height: 240, ..Default::default() };
     let scene = synth::Scene::new(&scfg);
     let dynamic = synth::dynamic_objects(&scene.world, scfg.seed, traversal, scfg.persistence);
