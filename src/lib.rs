@@ -57,6 +57,7 @@ pub mod eval;
 pub mod global;
 pub mod gpu;
 pub mod input;
+pub mod kernels;
 pub mod local;
 pub mod map;
 pub mod matching;

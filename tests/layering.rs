@@ -329,3 +329,13 @@ fn building_a_map_never_passes_through_evaluation() {
     let cli = strip_comments(&cli);
     assert!(!cli.contains("eval::"), "map commands call into eval");
 }
+
+#[test]
+fn the_kernel_twins_import_neither_the_gpu_nor_a_stage() {
+    let g = import_graph();
+    assert!(g.contains_key("kernels"), "the graph lacks kernels: {:?}", g.keys().collect::<Vec<_>>());
+    let below = reachable(&g, "kernels");
+    for m in STAGES.iter().chain(&["gpu", "engine", "eval", "batch", "cli"]) {
+        assert!(!below.contains(*m), "kernels (the CPU twins) reach {m}: {:?}", g["kernels"]);
+    }
+}

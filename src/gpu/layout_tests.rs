@@ -92,6 +92,14 @@ fn shared_structs_have_the_shaders_layouts() {
     for file in ["semantic_edges.wgsl", "edt.wgsl"] {
         same_layout(file, "Dims", rust!(Dims { width, height, frames }));
     }
+    use crate::kernels::xfeat::{ConvParams, MapParams, NormParams};
+    same_layout(
+        "xfeat.wgsl",
+        "ConvParams",
+        rust!(ConvParams { cin, cout, h, w, ho, wo, k, stride, pad, chunk, rows, cols, pitch, weight_at, sub_at, mul_at, act, has_add }),
+    );
+    same_layout("xfeat.wgsl", "MapParams", rust!(MapParams { c, h, w, ho, wo, k, row, n, h1, w1, h2, w2, sy1, sx1, sy2, sx2, inv }));
+    same_layout("xfeat.wgsl", "NormParams", rust!(NormParams { n, chunks, row, chunk_row }));
 }
 
 /// The value of the WGSL constant `name` of `file`, as f64.
@@ -108,8 +116,9 @@ fn wgsl_const(file: &str, name: &str) -> f64 {
 
 #[test]
 fn shared_constants_agree() {
+    use crate::kernels::xfeat as xf;
     use crate::matching::{ssim_block as b, ssim_topk, topk_select as t};
-    let checks: [(&str, &str, f64); 18] = [
+    let checks: [(&str, &str, f64); 28] = [
         ("ssim_topk.wgsl", "LANES", crate::global::ssim::LANES as f64),
         ("ssim_topk.wgsl", "MAX_ROW_SUMS", super::reference::MAX_ROW_SUMS as f64),
         ("ssim_block.wgsl", "LANES", crate::global::ssim::LANES as f64),
@@ -128,6 +137,16 @@ fn shared_constants_agree() {
         ("tree_similarity.wgsl", "MISSING", crate::local::tree_similarity::MISSING as f64),
         ("tree_similarity.wgsl", "NOT_A_PAIR", crate::local::tree_similarity::NOT_A_PAIR as f64),
         ("vlad_accumulate.wgsl", "LANES", crate::appearance::vlad_accumulate::LANES as f64),
+        ("xfeat.wgsl", "LANES", xf::LANES as f64),
+        ("xfeat.wgsl", "CHUNK", xf::CHUNK as f64),
+        ("xfeat.wgsl", "TILE_W", xf::TILE_W as f64),
+        ("xfeat.wgsl", "TILE_H", xf::TILE_H as f64),
+        ("xfeat.wgsl", "CO_GROUP", xf::CO_GROUP as f64),
+        ("xfeat.wgsl", "IN_CAP", xf::IN_CAP as f64),
+        ("xfeat.wgsl", "W_CAP", xf::W_CAP as f64),
+        ("xfeat.wgsl", "THREADS", xf::THREADS as f64),
+        ("xfeat.wgsl", "ACT_RELU", xf::ACT_RELU as f64),
+        ("xfeat.wgsl", "ACT_SIGMOID", xf::ACT_SIGMOID as f64),
     ];
     for (file, name, rust) in checks {
         assert_eq!(wgsl_const(file, name), rust, "{file}: {name}");
@@ -135,7 +154,8 @@ fn shared_constants_agree() {
 }
 
 /// Every entry point of every shader has a CPU twin of the same name in a file named after the
-/// shader (`shaders/x.wgsl` -> `src/**/x.rs`, `pub fn entry(`).
+/// shader (`shaders/x.wgsl` -> `src/kernels/x.rs` where there is one, else `src/**/x.rs`,
+/// `pub fn entry(`).
 #[test]
 fn every_kernel_has_a_same_name_twin() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
@@ -153,7 +173,9 @@ fn every_kernel_has_a_same_name_twin() {
     }
     for (file, _) in SHADERS {
         let stem = file.trim_end_matches(".wgsl");
-        let twin = files.iter().find(|p| p.file_stem().is_some_and(|s| s == stem)).unwrap_or_else(|| panic!("{file}: no src/**/{stem}.rs"));
+        let named: Vec<&std::path::PathBuf> = files.iter().filter(|p| p.file_stem().is_some_and(|s| s == stem)).collect();
+        let in_kernels = named.iter().find(|p| p.parent().is_some_and(|d| d.ends_with("src/kernels")));
+        let twin = in_kernels.or(named.first()).unwrap_or_else(|| panic!("{file}: no src/**/{stem}.rs"));
         let text = std::fs::read_to_string(twin).unwrap();
         for ep in &module(file).entry_points {
             assert!(
