@@ -114,6 +114,14 @@ impl AppearanceModel {
         self.detect.is_some()
     }
 
+    /// The native XFeat network, when the model is it (what the GPU executor runs).
+    pub fn xfeat(&self) -> Option<&xfeat::XFeat> {
+        match &self.net {
+            Network::XFeat(x) => Some(x),
+            Network::Onnx { .. } => None,
+        }
+    }
+
     /// Runs the network on a grey image [1, H, W] in [0, 1] (H, W multiples of 32); with dense
     /// sampling and no detection the native XFeat skips its keypoint heads.
     pub fn run(&self, grey: &Chw) -> Result<NetOutputs> {

@@ -8,6 +8,7 @@ mod common;
 mod fine;
 mod resident;
 mod verify;
+mod xfeat;
 
 use semlook::gpu::{GpuContext, GpuOptions};
 use std::sync::Arc;
