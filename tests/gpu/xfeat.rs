@@ -378,3 +378,52 @@ fn frames_beyond_the_device_limits_are_typed_errors() {
     assert!(matches!(x.forward_with(&Chw::zeros(1, 100, 64), false), Err(GpuError::Failed { .. })), "not a multiple of 32");
 }
 
+/// The hook: a GPU engine encodes real frames with the network on the device and gives what the
+/// CPU engine gives: the same verification keypoints, and appearance vectors (stored rounded to
+/// int8 blocks) equal but for at most 0.1 % of values one rounding step apart.
+#[test]
+fn the_gpu_engine_runs_xfeat_on_the_device_when_encoding() {
+    let Some(dir) = common::shared_or_required("data/real-vpr/nordland-spring-winter") else { return };
+    if native().is_none() {
+        return;
+    }
+    let Some(ctx) = gpu() else { return };
+    use semlook::input::{FrameSource, LabelFormat};
+    let cfg = semlook::config::Config::default();
+    let frame = |id: &str| FrameSource { id: id.into(), image: Some(dir.join(format!("query/{id}.jpg"))), labels: None };
+    let frames = [frame("001"), frame("002")];
+    let mut enc = match semlook::encode::Encoder::new(&cfg) {
+        Ok(e) => e,
+        Err(e) => return common::skip_unless_required("REQUIRE_MODELS", format!("an encoder with appearance: {e}")),
+    };
+    if enc.train_codebook(&frames, &|| {}).is_err() {
+        return common::skip_unless_required("REQUIRE_MODELS", "labels for the Nordland frames (the segmenter)");
+    }
+    let mut gpu_engine = semlook::engine::Engine::with_context(ctx);
+    let g = gpu_engine.encode_all(&enc, &frames, LabelFormat::Auto, &|| {}).unwrap();
+    let c = semlook::engine::Engine::cpu().encode_all(&enc, &frames, LabelFormat::Auto, &|| {}).unwrap();
+    assert_eq!(gpu_engine.gpu_stages().unwrap().network_frames(), 2, "the network ran on the device");
+    for (a, b) in g.iter().zip(&c) {
+        let (a, b) = (&a.as_ref().unwrap().0, &b.as_ref().unwrap().0);
+        assert_eq!(a.keypoints.xy, b.keypoints.xy, "{}: verification keypoints", a.id);
+        assert!(!a.appearance.is_empty() && !a.forest.appearance.is_empty());
+        // stored vectors are rounded to int8 blocks (values::round_to_blocks): a 1e-5 difference
+        // may move a value by one step of its block (under max |block| / 63.5)
+        let (mut steps, mut values) = (0, 0);
+        for (x, y) in a.appearance.chunks(64).chain(a.forest.appearance.chunks(64)).zip(b.appearance.chunks(64).chain(b.forest.appearance.chunks(64)))
+        {
+            let step = y.iter().fold(0.0f32, |m, v| m.max(v.abs())) / 63.5;
+            for (p, q) in x.iter().zip(y) {
+                assert!((p - q).abs() <= step * 1.001, "{}: {p} and {q} are more than one block step ({step}) apart", a.id);
+                steps += (p != q) as usize;
+                values += 1;
+            }
+        }
+        eprintln!(
+            "{}: {steps} of {values} appearance values one block step apart, the rest equal; {} verification keypoints at the same positions",
+            a.id,
+            a.keypoints.xy.len() / 2
+        );
+        assert!(steps * 1000 <= values, "{}: {steps} of {values} values differ", a.id);
+    }
+}
