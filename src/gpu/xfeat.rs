@@ -176,6 +176,8 @@ type Shape = (usize, usize, usize);
 /// Every pass of the forward pass at one frame size, and the buffers' sizes (values).
 #[derive(Debug, Clone)]
 struct Plan {
+    /// Workgroups per dispatch dimension the plan keeps within.
+    max_wg: u32,
     sizes: [usize; BUFS],
     passes: Vec<Pass>,
     desc: Shape,
@@ -197,7 +199,7 @@ impl Plan {
 
     /// Appends a convolution of `input` (of shape `x`) into `out`, adding `add` after the
     /// epilogue when given; returns the output's shape.
-    fn conv(&mut self, l: &Packed, x: Shape, input: Buf, out: Buf, add: Option<(Buf, Shape)>, head: bool, max_wg: u32) -> Result<Shape, PlanError> {
+    fn conv(&mut self, l: &Packed, x: Shape, input: Buf, out: Buf, add: Option<(Buf, Shape)>, head: bool) -> Result<Shape, PlanError> {
         if l.cin != x.0 {
             return Err(PlanError::Invalid(format!("a layer of {} input channels receives {}", l.cin, x.0)));
         }
@@ -214,8 +216,8 @@ impl Plan {
             }
         }
         let grid = p.grid();
-        if let Some(&d) = grid.iter().find(|&&d| d > max_wg) {
-            return Err(PlanError::Limit("conv2d workgroups per dimension".into(), d as u64, max_wg as u64));
+        if let Some(&d) = grid.iter().find(|&&d| d > self.max_wg) {
+            return Err(PlanError::Limit("conv2d workgroups per dimension".into(), d as u64, self.max_wg as u64));
         }
         self.size(out, p.output_len());
         self.passes.push(Pass {
@@ -230,22 +232,22 @@ impl Plan {
 
     /// A chain of layers from `input`, each into the other of the scratch buffers A and B, the
     /// last into `end` when given; returns the output's shape and buffer.
-    fn chain(&mut self, ls: &[Packed], mut x: Shape, mut input: Buf, end: Option<Buf>, head: bool, max_wg: u32) -> Result<(Shape, Buf), PlanError> {
+    fn chain(&mut self, ls: &[Packed], mut x: Shape, mut input: Buf, end: Option<Buf>, head: bool) -> Result<(Shape, Buf), PlanError> {
         for (i, l) in ls.iter().enumerate() {
             let out = match end {
                 Some(e) if i + 1 == ls.len() => e,
                 _ if input == Buf::A => Buf::B,
                 _ => Buf::A,
             };
-            x = self.conv(l, x, input, out, None, head, max_wg)?;
+            x = self.conv(l, x, input, out, None, head)?;
             input = out;
         }
         Ok((x, input))
     }
 
-    fn elementwise(&mut self, entry: Entry, p: Params, bufs: Vec<Buf>, grid: [u32; 3], head: bool, max_wg: u32) -> Result<(), PlanError> {
-        if grid[1] > max_wg {
-            return Err(PlanError::Limit(format!("{entry:?} workgroups per dimension"), grid[1] as u64, max_wg as u64));
+    fn elementwise(&mut self, entry: Entry, p: Params, bufs: Vec<Buf>, grid: [u32; 3], head: bool) -> Result<(), PlanError> {
+        if grid[1] > self.max_wg {
+            return Err(PlanError::Limit(format!("{entry:?} workgroups per dimension"), grid[1] as u64, self.max_wg as u64));
         }
         self.passes.push(Pass { entry, params: p, bufs, grid, head });
         Ok(())
@@ -255,7 +257,7 @@ impl Plan {
     /// dimension.
     fn new(net: &PackedNet, h: usize, w: usize, max_wg: u32) -> Result<Plan, PlanError> {
         let mw = max_wg as usize;
-        let mut p = Plan { sizes: [0; BUFS], passes: vec![], desc: (0, 0, 0), heat: (0, 0, 0), logits: (0, 0, 0) };
+        let mut p = Plan { max_wg, sizes: [0; BUFS], passes: vec![], desc: (0, 0, 0), heat: (0, 0, 0), logits: (0, 0, 0) };
         let n = h * w;
         let np = NormParams::new(n, mw);
         p.size(Buf::Grey, n);
@@ -263,46 +265,46 @@ impl Plan {
         p.size(Buf::Partials, 3 * np.chunks as usize);
         p.size(Buf::Stats, 4);
         p.size(Buf::Unused, 4);
-        p.elementwise(Entry::Partials, Params::Norm(np), vec![Buf::Grey, Buf::Partials], np.partials_grid(), false, max_wg)?;
-        p.elementwise(Entry::Stats, Params::Norm(np), vec![Buf::Partials, Buf::Stats], [1, 1, 1], false, max_wg)?;
-        p.elementwise(Entry::Apply, Params::Norm(np), vec![Buf::Grey, Buf::Stats, Buf::X], np.apply_grid(), false, max_wg)?;
+        p.elementwise(Entry::Partials, Params::Norm(np), vec![Buf::Grey, Buf::Partials], np.partials_grid(), false)?;
+        p.elementwise(Entry::Stats, Params::Norm(np), vec![Buf::Partials, Buf::Stats], [1, 1, 1], false)?;
+        p.elementwise(Entry::Apply, Params::Norm(np), vec![Buf::Grey, Buf::Stats, Buf::X], np.apply_grid(), false)?;
         // skip1 on the 4x4 average pool
         let pool = MapParams::avg_pool(1, h, w, 4, mw);
         p.size(Buf::Pool, pool.n as usize);
-        p.elementwise(Entry::AvgPool, Params::Map(pool), vec![Buf::X, Buf::Pool], pool.grid(), false, max_wg)?;
-        let skip = p.conv(&net.skip1, (1, pool.ho as usize, pool.wo as usize), Buf::Pool, Buf::Skip, None, false, max_wg)?;
+        p.elementwise(Entry::AvgPool, Params::Map(pool), vec![Buf::X, Buf::Pool], pool.grid(), false)?;
+        let skip = p.conv(&net.skip1, (1, pool.ho as usize, pool.wo as usize), Buf::Pool, Buf::Skip, None, false)?;
         // block1, its last layer adding the skip
         let [b1, b2, b3, b4, b5] = &net.blocks;
         if [b1, b3, b4, b5].iter().any(|b| b.is_empty()) {
             return Err(PlanError::Invalid("blocks 1, 3, 4 and 5 need a layer each".into()));
         }
         let (last, first) = b1.split_last().expect("checked above");
-        let (x, at) = p.chain(first, (1, h, w), Buf::X, None, false, max_wg)?;
+        let (x, at) = p.chain(first, (1, h, w), Buf::X, None, false)?;
         let out1 = if at == Buf::A { Buf::B } else { Buf::A };
-        let x1 = p.conv(last, x, at, out1, Some((Buf::Skip, skip)), false, max_wg)?;
+        let x1 = p.conv(last, x, at, out1, Some((Buf::Skip, skip)), false)?;
         // block2; block3 ends in x3, block4 in x4, block5 in x5
-        let (x2, at2) = p.chain(b2, x1, out1, None, false, max_wg)?;
-        let (x3, _) = p.chain(b3, x2, at2, Some(Buf::X3), false, max_wg)?;
-        let (x4, _) = p.chain(b4, x3, Buf::X3, Some(Buf::X4), false, max_wg)?;
-        let (x5, _) = p.chain(b5, x4, Buf::X4, Some(Buf::X5), false, max_wg)?;
+        let (x2, at2) = p.chain(b2, x1, out1, None, false)?;
+        let (x3, _) = p.chain(b3, x2, at2, Some(Buf::X3), false)?;
+        let (x4, _) = p.chain(b4, x3, Buf::X3, Some(Buf::X4), false)?;
+        let (x5, _) = p.chain(b5, x4, Buf::X4, Some(Buf::X5), false)?;
         if x4.0 != x3.0 || x5.0 != x3.0 {
             return Err(PlanError::Invalid(format!("blocks 3, 4 and 5 end in {}, {} and {} channels", x3.0, x4.0, x5.0)));
         }
         // x3 + x4 and x5 resized to x3, then the fusion block
         let fuse = MapParams::bilinear_add(x3.0, x3.1, x3.2, (x4.1, x4.2), (x5.1, x5.2), mw);
         p.size(Buf::A, fuse.n as usize);
-        p.elementwise(Entry::BilinearAdd, Params::Map(fuse), vec![Buf::X3, Buf::X4, Buf::X5, Buf::A], fuse.grid(), false, max_wg)?;
-        let (xf, atf) = p.chain(&net.fusion, x3, Buf::A, None, false, max_wg)?;
-        p.desc = p.conv(&net.fusion_out, xf, atf, Buf::Desc, None, false, max_wg)?;
+        p.elementwise(Entry::BilinearAdd, Params::Map(fuse), vec![Buf::X3, Buf::X4, Buf::X5, Buf::A], fuse.grid(), false)?;
+        let (xf, atf) = p.chain(&net.fusion, x3, Buf::A, None, false)?;
+        p.desc = p.conv(&net.fusion_out, xf, atf, Buf::Desc, None, false)?;
         // the heads
-        let (xh, ath) = p.chain(&net.heatmap, p.desc, Buf::Desc, None, true, max_wg)?;
-        p.heat = p.conv(&net.heatmap_out, xh, ath, Buf::Heat, None, true, max_wg)?;
+        let (xh, ath) = p.chain(&net.heatmap, p.desc, Buf::Desc, None, true)?;
+        p.heat = p.conv(&net.heatmap_out, xh, ath, Buf::Heat, None, true)?;
         let s2d = MapParams::space_to_depth8(h, w, mw);
         p.size(Buf::A, s2d.n as usize);
-        p.elementwise(Entry::SpaceToDepth, Params::Map(s2d), vec![Buf::X, Buf::A], s2d.grid(), true, max_wg)?;
+        p.elementwise(Entry::SpaceToDepth, Params::Map(s2d), vec![Buf::X, Buf::A], s2d.grid(), true)?;
         let xs = (64, s2d.ho as usize, s2d.wo as usize);
-        let (xk, atk) = p.chain(&net.keypoint, xs, Buf::A, None, true, max_wg)?;
-        p.logits = p.conv(&net.keypoint_out, xk, atk, Buf::Logits, None, true, max_wg)?;
+        let (xk, atk) = p.chain(&net.keypoint, xs, Buf::A, None, true)?;
+        p.logits = p.conv(&net.keypoint_out, xk, atk, Buf::Logits, None, true)?;
         if p.heat.0 != 1 || p.logits.0 != 65 || (p.heat.1, p.heat.2) != (p.desc.1, p.desc.2) || (p.logits.1, p.logits.2) != (p.desc.1, p.desc.2) {
             return Err(PlanError::Invalid(format!("heads of {:?} and {:?} beside descriptors of {:?}", p.heat, p.logits, p.desc)));
         }
