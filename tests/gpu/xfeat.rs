@@ -1,17 +1,20 @@
 //! The XFeat network on the device (`shaders/xfeat.wgsl`, executor `gpu::xfeat`) held to its CPU
 //! twins (`kernels::xfeat`), and the CPU path's fast ops (`appearance::nn`) held to the same
-//! twins. Tolerances (measured on lavapipe; see docs/gpu.md):
+//! twins. Tolerances, and the largest differences seen on lavapipe (2-core development machine):
 //!
-//! - kernel vs twin, random inputs: convolutions within 1e-5 relative to max(1, |twin|) (f32
-//!   sums in the same order; the device may fuse a multiply and an add), the instance-norm
-//!   statistics within 1e-6 relative, the element-wise kernels within 1e-6 absolute;
-//! - fast path vs twin: convolutions (im2col + sgemm, another summation order) within 1e-4
-//!   relative to max(1, |twin|); instance norm (f64 on the fast path) within 1e-5; pooling,
-//!   space-to-depth and resize + add exactly;
-//! - the whole network, device vs the native forward pass on real frames at the encoder's
-//!   working size: descriptor cosine per cell mean > 0.99999 and min > 0.9999, reliability within
-//!   1e-4, logits within 1e-3 relative to max(1, |logit|), and >= 99 % of the detector's 384
-//!   keypoints at identical positions.
+//! - kernel vs twin, random inputs of awkward sizes: `conv2d` within 1e-5 relative to
+//!   max(1, |twin|) (seen: 0, and 1.2e-7 with the sigmoid; the twin sums in the shader's order,
+//!   a GPU may fuse a multiply and an add), instance-norm statistics within 1e-6 relative (seen:
+//!   0), the element-wise kernels within 1e-6 (seen: 0; `bilinear_add` 4.8e-7), space-to-depth
+//!   exactly;
+//! - fast path (`appearance::nn`) vs twin: convolutions (im2col + sgemm, another summation order)
+//!   within 1e-4 relative to max(1, |twin|) (seen: 8.7e-6), instance norm (f64 on the fast path)
+//!   within 1e-5 (seen: 2.4e-7); pooling, space-to-depth and resize + add exactly;
+//! - the whole network on the device vs the native forward pass on real frames at the encoder's
+//!   working size: per-cell descriptor cosine 1 - cos under 1e-7 on average and 1e-6 at worst
+//!   (seen: 4.3e-13, 8.9e-12), descriptors within 2e-4 (seen: 2.1e-5), reliability within 1e-4
+//!   (seen: 1.2e-6), logits within 1e-3 relative to max(1, |logit|) (seen: 2.7e-5), and >= 99 %
+//!   of the detector's keypoints at identical positions (seen: 384 of 384 on every frame).
 
 use super::{common, gpu, gpu_with};
 use semlook::appearance::nn::{self, Chw, NetOutputs};
@@ -117,11 +120,17 @@ fn xfeat_kernels_match_their_twins_on_random_inputs() {
         assert!(max_rel(&dev, &partials) <= 1e-6, "instance_norm_partials {h}x{w}: {}", max_rel(&dev, &partials));
         let mut stats = vec![0.0; 4];
         twin::instance_norm_stats(&np, &partials, &mut stats);
-        let dev = run_kernel(&ctx, "instance_norm_stats", bytemuck::bytes_of(&np), [1, 1, 1], &[&partials], 4).unwrap();
-        assert!(max_rel(&dev[..2], &stats[..2]) <= 1e-6, "instance_norm_stats {h}x{w}: {dev:?} vs {stats:?}");
+        let dev_stats = run_kernel(&ctx, "instance_norm_stats", bytemuck::bytes_of(&np), [1, 1, 1], &[&partials], 4).unwrap();
+        assert!(max_rel(&dev_stats[..2], &stats[..2]) <= 1e-6, "instance_norm_stats {h}x{w}: {dev_stats:?} vs {stats:?}");
         let mut normed = vec![0.0; n];
         twin::instance_norm_apply(&np, &grey, &stats, &mut normed);
         let dev = run_kernel(&ctx, "instance_norm_apply", bytemuck::bytes_of(&np), np.apply_grid(), &[&grey, &stats], n).unwrap();
+        eprintln!(
+            "instance norm {h}x{w}: device vs twin: mean {:.1e}, 1/std {:.1e} (relative), normalised values {:.1e}",
+            (dev_stats[0] - stats[0]).abs() / stats[0].abs(),
+            (dev_stats[1] - stats[1]).abs() / stats[1],
+            max_abs(&dev, &normed)
+        );
         assert!(max_abs(&dev, &normed) <= 1e-6, "instance_norm_apply {h}x{w}: {}", max_abs(&dev, &normed));
     }
     // the element-wise kernels, in grids 3 workgroups wide (several rows)
@@ -130,6 +139,7 @@ fn xfeat_kernels_match_their_twins_on_random_inputs() {
     let mut t = vec![0.0; mp.n as usize];
     twin::avg_pool(&mp, &x, &mut t);
     let dev = run_kernel(&ctx, "avg_pool", bytemuck::bytes_of(&mp), mp.grid(), &[&x], mp.n as usize).unwrap();
+    eprintln!("avg_pool: device vs twin {:.1e}", max_abs(&dev, &t));
     assert!(max_abs(&dev, &t) <= 1e-6, "avg_pool: {}", max_abs(&dev, &t));
     let x = randn(&mut rng, 40 * 72);
     let mp = MapParams::space_to_depth8(40, 72, 3);
@@ -142,6 +152,7 @@ fn xfeat_kernels_match_their_twins_on_random_inputs() {
     let mut t = vec![0.0; mp.n as usize];
     twin::bilinear_add(&mp, &a, &b, &c, &mut t);
     let dev = run_kernel(&ctx, "bilinear_add", bytemuck::bytes_of(&mp), mp.grid(), &[&a, &b, &c], mp.n as usize).unwrap();
+    eprintln!("bilinear_add: device vs twin {:.1e}", max_abs(&dev, &t));
     assert!(max_abs(&dev, &t) <= 1e-6, "bilinear_add: {}", max_abs(&dev, &t));
 }
 
@@ -268,12 +279,15 @@ fn compare(what: &str, dev: &NetOutputs, reference: &NetOutputs) {
         (semlook::appearance::keypoints::detect(dev, &detector()).unwrap(), semlook::appearance::keypoints::detect(reference, &detector()).unwrap());
     let same = same_positions(&kd, &kr);
     eprintln!(
-        "{what}: cosine mean {mean:.8} min {min:.8}, descriptors max |diff| {desc:.2e}, reliability {rel:.2e}, logits {logits:.2e} (relative), keypoints {} / {} at identical positions ({:.2} %)",
+        "{what}: 1 - cosine: mean {:.1e}, worst {:.1e}; descriptors max |diff| {desc:.2e}, reliability {rel:.2e}, logits {logits:.2e} (relative), keypoints {} / {} at identical positions ({:.2} %)",
+        1.0 - mean,
+        1.0 - min,
         (same * kd.len() as f64).round(),
         kd.len(),
         100.0 * same
     );
-    assert!(mean > 0.99999 && min > 0.9999, "{what}: descriptor cosines mean {mean}, min {min}");
+    assert!(1.0 - mean <= 1e-7 && 1.0 - min <= 1e-6, "{what}: descriptor cosines mean {mean}, min {min}");
+    assert!(desc <= 2e-4, "{what}: descriptors differ by {desc}");
     assert!(rel <= 1e-4, "{what}: reliability differs by {rel}");
     assert!(logits <= 1e-3, "{what}: logits differ by {logits} (relative)");
     assert!(kd.len() == kr.len() && same >= 0.99, "{what}: {} and {} keypoints, {:.2} % at identical positions", kd.len(), kr.len(), 100.0 * same);
