@@ -103,10 +103,12 @@ impl ConvParams {
         [(self.wo as usize).div_ceil(TILE_W) as u32, (self.ho as usize).div_ceil(TILE_H) as u32, self.groups() as u32]
     }
 
-    /// Values of the input, the output, and the packed weights (see [`pack_conv`]).
+    /// Values of the input (cin x h x w).
     pub fn input_len(&self) -> usize {
         (self.cin * self.h * self.w) as usize
     }
+
+    /// Values of the output (cout x ho x wo).
     pub fn output_len(&self) -> usize {
         (self.cout * self.ho * self.wo) as usize
     }
