@@ -8,7 +8,10 @@ use crate::config::Config;
 use crate::descriptors::DescriptorSet;
 use crate::encode::{EncodedImage, Encoder, Loaded, Pending, StageTimes};
 use crate::error::Result;
-use crate::gpu::{coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, verify::MnnGpu, vlad::VladGpu, GpuContext, GpuOptions};
+use crate::gpu::{
+    coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, verify::MnnGpu, vlad::VladGpu, xfeat::NetworkSlot, GpuContext,
+    GpuOptions,
+};
 use crate::input::{FrameSource, LabelFormat, LabelMap};
 use crate::kernels::abi::SsimParams;
 use crate::kernels::abi::TreeSimParams;
@@ -46,6 +49,8 @@ pub struct GpuStages {
     fine: FineMatcherGpu,
     vlad: VladGpu,
     mnn: MnnGpu,
+    /// The keypoint network (native XFeat) on the device.
+    network: NetworkSlot,
 }
 
 impl GpuStages {
@@ -55,6 +60,7 @@ impl GpuStages {
             fine: FineMatcherGpu::new(ctx.clone()),
             vlad: VladGpu::new(ctx.clone()),
             mnn: MnnGpu::new(ctx.clone()),
+            network: NetworkSlot::default(),
             coarse: None,
             ctx,
             work: 0,
@@ -91,6 +97,11 @@ impl GpuStages {
     /// if it is beyond the budget and will be streamed with every batch.
     pub fn upload_coarse_map(&mut self, refs: &dyn GlobalSource, p: &SsimParams) -> Result<bool> {
         Ok(self.coarse_for(p)?.upload_map(refs)?)
+    }
+
+    /// Frames whose keypoint network ran on the device (native XFeat) in the current executor.
+    pub fn network_frames(&self) -> u64 {
+        self.network.frames()
     }
 
     /// Kernel time since the last call, from timestamp queries (`None` without them).
@@ -323,8 +334,8 @@ impl Engine {
     /// Encodes frames, in input order; `tick` is called per frame. Per-frame input errors are
     /// returned per frame; a GPU failure fails the whole call. On the GPU, frames are decoded in
     /// parallel on the CPU; for each batch of one size the global descriptors are computed on the
-    /// GPU, objects, forests and the keypoint network run on the CPU, and the per-object VLAD of
-    /// the whole batch runs on the GPU.
+    /// GPU, then the keypoint network (on the GPU when it is the native XFeat, else on the CPU),
+    /// objects and forests on the CPU, and the per-object VLAD of the whole batch on the GPU.
     pub fn encode_all(
         &mut self,
         encoder: &Encoder,
@@ -376,11 +387,14 @@ impl Engine {
             g.work += 1;
             let globals = g.encoder.encode(&maps, encoder.used_mask(), &encoder.config().global)?;
             let per = ms_since(t) / batch.len() as f64;
+            // the keypoint network on the device (native XFeat; None: the CPU path runs it)
+            let rgbs: Vec<Option<&image::RgbImage>> = batch.iter().map(|l| l.rgb.as_ref()).collect();
+            let features = g.network.features(&g.ctx, encoder.appearance_model(), &rgbs)?;
             let pending: Vec<Result<Pending>> = globals
                 .into_par_iter()
                 .zip(batch.par_iter())
                 .enumerate()
-                .map(|(k, (glob, l))| encoder.encode_rest(&sources[i + k].id, l, glob, None, per))
+                .map(|(k, (glob, l))| encoder.encode_rest_with(&sources[i + k].id, l, glob, None, per, features[k].as_ref()))
                 .collect();
             // VLAD of every frame of the batch in one GPU pass
             let inputs: Vec<(&[f32], &[u32])> = pending

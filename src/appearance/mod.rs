@@ -117,13 +117,25 @@ impl AppearanceModel {
         self.detect.is_some()
     }
 
+    /// The native XFeat network, when the model is it (what the GPU executor runs).
+    pub fn xfeat(&self) -> Option<&xfeat::XFeat> {
+        match &self.net {
+            Network::XFeat(x) => Some(x),
+            Network::Onnx { .. } => None,
+        }
+    }
+
+    /// Whether a run needs the keypoint heads: keypoint sampling, or detection (with dense
+    /// sampling and no detection the native XFeat skips them).
+    pub fn needs_heads(&self) -> bool {
+        self.sampling == Sampling::Keypoints || self.detect.is_some()
+    }
+
     /// Runs the network on a grey image [1, H, W] in [0, 1] (H, W multiples of 32); with dense
     /// sampling and no detection the native XFeat skips its keypoint heads.
     pub fn run(&self, grey: &Chw) -> Result<NetOutputs> {
         match &self.net {
-            Network::XFeat(x) => x
-                .forward_with(grey, self.sampling == Sampling::Keypoints || self.detect.is_some())
-                .map_err(|reason| Error::Model { path: self.path.clone(), reason }),
+            Network::XFeat(x) => x.forward_with(grey, self.needs_heads()).map_err(|reason| Error::Model { path: self.path.clone(), reason }),
             Network::Onnx { sessions, logits, reliability, descriptors } => {
                 let fail = |reason: String| Error::Model { path: self.path.clone(), reason };
                 sessions.run(|s| {
@@ -179,13 +191,18 @@ impl AppearanceModel {
         let (grey, sx, sy) = network_input(rgb)?;
         let t = std::time::Instant::now();
         let out = self.run(&grey)?;
-        let network_ms = crate::util::ms_since(t);
+        self.decode(&out, sx, sy, crate::util::ms_since(t))
+    }
+
+    /// [`AppearanceModel::features`] from the network's outputs on [`network_input`]'s grey
+    /// image (run elsewhere: on the GPU), `sx`, `sy` its factors back to image pixels.
+    pub fn decode(&self, out: &NetOutputs, sx: f32, sy: f32, network_ms: f64) -> Result<Features> {
         let fail = |reason: String| Error::Model { path: self.path.clone(), reason };
         let mut sampled = match self.sampling {
-            Sampling::Keypoints => keypoints::extract(&out, &self.params).map_err(fail)?,
-            Sampling::Dense => keypoints::dense(&out),
+            Sampling::Keypoints => keypoints::extract(out, &self.params).map_err(fail)?,
+            Sampling::Dense => keypoints::dense(out),
         };
-        let mut detected = self.detect.as_ref().map(|p| keypoints::detect(&out, p)).transpose().map_err(fail)?;
+        let mut detected = self.detect.as_ref().map(|p| keypoints::detect(out, p)).transpose().map_err(fail)?;
         for k in std::iter::once(&mut sampled).chain(detected.as_mut()) {
             for p in &mut k.xy {
                 *p = [(p[0] + 0.5) * sx - 0.5, (p[1] + 0.5) * sy - 0.5];

@@ -6,6 +6,7 @@
 
 use super::nn::{avg_pool, batchnorm_relu, conv2d, instance_norm, resize_bilinear, space_to_depth8, Chw, NetOutputs};
 use super::torch_pt::{read_state_dict, Tensor};
+use crate::kernels::xfeat::Epilogue;
 use std::collections::HashMap;
 use std::path::Path;
 
@@ -41,6 +42,39 @@ impl Conv {
     fn run(&self, x: &Chw) -> Result<Chw, String> {
         conv2d(x, &self.weight, Some(&self.bias), self.cout, self.k, 1, self.k / 2)
     }
+}
+
+/// One convolution (zero padding k / 2) and what follows it.
+#[derive(Debug, Clone, Copy)]
+pub struct Layer<'a> {
+    /// [cout, cin, k, k].
+    pub weight: &'a [f32],
+    pub cin: usize,
+    pub cout: usize,
+    pub k: usize,
+    pub stride: usize,
+    pub epilogue: Epilogue<'a>,
+}
+
+/// XFeat's layers as [`XFeat::forward_with`] runs them: instance norm of the input; `block1`
+/// on it, plus `skip1` on its 4x4 average pool; `block2`, `block3` (x3), `block4` (x4),
+/// `block5` (x5); `fusion` on x3 + x4 and x5 resized to x3, then `fusion_out`: the descriptors;
+/// `heatmap` then `heatmap_out` on them (the reliability); `keypoint` then `keypoint_out` on
+/// the 8x8 space-to-depth of the normalised input (the logits).
+#[derive(Debug, Clone)]
+pub struct Graph<'a> {
+    pub skip1: Layer<'a>,
+    pub block1: Vec<Layer<'a>>,
+    pub block2: Vec<Layer<'a>>,
+    pub block3: Vec<Layer<'a>>,
+    pub block4: Vec<Layer<'a>>,
+    pub block5: Vec<Layer<'a>>,
+    pub fusion: Vec<Layer<'a>>,
+    pub fusion_out: Layer<'a>,
+    pub heatmap: Vec<Layer<'a>>,
+    pub heatmap_out: Layer<'a>,
+    pub keypoint: Vec<Layer<'a>>,
+    pub keypoint_out: Layer<'a>,
 }
 
 pub struct XFeat {
@@ -157,6 +191,47 @@ impl XFeat {
         fits("heatmap_head.2", &self.heatmap_out, chain("heatmap_head", &self.heatmap, dim)?, Some(1))?;
         fits("keypoint_head.3", &self.keypoint_out, chain("keypoint_head", &self.keypoint, 64)?, Some(65))?;
         Ok(())
+    }
+
+    /// Every convolution of the network with the operations that follow it, in the graph's
+    /// blocks (what the GPU executor packs and uploads).
+    pub fn graph(&self) -> Graph<'_> {
+        fn basic(l: &[Basic]) -> Vec<Layer<'_>> {
+            l.iter()
+                .map(|b| Layer {
+                    weight: &b.weight,
+                    cin: b.cin,
+                    cout: b.cout,
+                    k: b.k,
+                    stride: b.stride,
+                    epilogue: Epilogue::BatchNormRelu { mean: &b.mean, var: &b.var },
+                })
+                .collect()
+        }
+        fn conv(c: &Conv, sigmoid: bool) -> Layer<'_> {
+            Layer {
+                weight: &c.weight,
+                cin: c.cin,
+                cout: c.cout,
+                k: c.k,
+                stride: 1,
+                epilogue: if sigmoid { Epilogue::BiasSigmoid(&c.bias) } else { Epilogue::Bias(&c.bias) },
+            }
+        }
+        Graph {
+            skip1: conv(&self.skip1, false),
+            block1: basic(&self.block1),
+            block2: basic(&self.block2),
+            block3: basic(&self.block3),
+            block4: basic(&self.block4),
+            block5: basic(&self.block5),
+            fusion: basic(&self.fusion),
+            fusion_out: conv(&self.fusion_out, false),
+            heatmap: basic(&self.heatmap),
+            heatmap_out: conv(&self.heatmap_out, true),
+            keypoint: basic(&self.keypoint),
+            keypoint_out: conv(&self.keypoint_out, false),
+        }
     }
 
     /// Runs the network on a grey image [1, H, W] (values in [0, 1]; H and W multiples of 32).

@@ -61,6 +61,14 @@ pub(crate) struct Kernels {
     pub vlad_assign: Kernel,
     pub vlad_accumulate: Kernel,
     pub mnn_match: Kernel,
+    /// `xfeat.wgsl`: the XFeat network.
+    pub instance_norm_partials: Kernel,
+    pub instance_norm_stats: Kernel,
+    pub instance_norm_apply: Kernel,
+    pub avg_pool: Kernel,
+    pub space_to_depth8: Kernel,
+    pub bilinear_add: Kernel,
+    pub conv2d: Kernel,
 }
 
 fn module(device: &wgpu::Device, name: &str, subgroups: bool) -> Result<wgpu::ShaderModule, GpuError> {
@@ -118,6 +126,10 @@ fn kernel(device: &wgpu::Device, module: &wgpu::ShaderModule, file: &str, entry:
 const PASS: u64 = std::mem::size_of::<crate::kernels::abi::PassParams>() as u64;
 /// Bytes of the fine stage's per-pass parameters.
 const FINE_PASS: u64 = std::mem::size_of::<crate::kernels::abi::FinePass>() as u64;
+/// Bytes of the XFeat kernels' uniforms (each bound at a dynamic offset of one buffer).
+pub(crate) const XF_CONV: u64 = std::mem::size_of::<crate::kernels::abi::ConvParams>() as u64;
+pub(crate) const XF_MAP: u64 = std::mem::size_of::<crate::kernels::abi::MapParams>() as u64;
+pub(crate) const XF_NORM: u64 = std::mem::size_of::<crate::kernels::abi::NormParams>() as u64;
 
 impl Kernels {
     pub fn new(device: &wgpu::Device, subgroups: bool) -> Result<Kernels, GpuError> {
@@ -134,6 +146,9 @@ impl Kernels {
             m("vlad_accumulate.wgsl")?,
         );
         let mnn = m("mnn_match.wgsl")?;
+        let xf = m("xfeat.wgsl")?;
+        let xk = |entry: &str, slots: &[(u32, Slot)]| kernel(device, &xf, "xfeat.wgsl", entry, &[slots]);
+        let map1: &[(u32, Slot)] = &[(5, UniformAt(XF_MAP)), (6, Read), (9, ReadWrite)];
         let edt_slots: &[(u32, Slot)] = &[(0, Uniform), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite), (5, ReadWrite)];
         let topk_slots: &[(u32, Slot)] = &[(0, UniformAt(PASS)), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite)];
         Ok(Kernels {
@@ -189,6 +204,13 @@ impl Kernels {
                 "mnn_match",
                 &[&[(0, Uniform), (1, Read), (2, Read), (3, Read), (4, ReadWrite), (5, ReadWrite)]],
             )?,
+            instance_norm_partials: xk("instance_norm_partials", &[(10, UniformAt(XF_NORM)), (11, Read), (12, ReadWrite)])?,
+            instance_norm_stats: xk("instance_norm_stats", &[(10, UniformAt(XF_NORM)), (13, Read), (14, ReadWrite)])?,
+            instance_norm_apply: xk("instance_norm_apply", &[(10, UniformAt(XF_NORM)), (11, Read), (15, Read), (16, ReadWrite)])?,
+            avg_pool: xk("avg_pool", map1)?,
+            space_to_depth8: xk("space_to_depth8", map1)?,
+            bilinear_add: xk("bilinear_add", &[(5, UniformAt(XF_MAP)), (6, Read), (7, Read), (8, Read), (9, ReadWrite)])?,
+            conv2d: xk("conv2d", &[(0, UniformAt(XF_CONV)), (1, Read), (2, Read), (3, Read), (4, ReadWrite)])?,
         })
     }
 }

@@ -81,6 +81,14 @@ fn shared_structs_have_the_shaders_layouts() {
     same_layout("vlad_accumulate.wgsl", "VladParams", rust!(VladParams { centres, dim, keypoints, objects, power_norm, intra_norm }));
     same_layout("global_pool.wgsl", "PoolParams", rust!(PoolParams { src_width, src_height, dst_width, dst_height, tau, frames }));
     same_layout("abi.wgsl", "Dims", rust!(Dims { width, height, frames }));
+    use crate::kernels::abi::{ConvParams, MapParams, NormParams};
+    same_layout(
+        "xfeat.wgsl",
+        "ConvParams",
+        rust!(ConvParams { cin, cout, h, w, ho, wo, k, stride, pad, chunk, rows, cols, pitch, weight_at, sub_at, mul_at, act, has_add }),
+    );
+    same_layout("xfeat.wgsl", "MapParams", rust!(MapParams { c, h, w, ho, wo, k, row, n, h1, w1, h2, w2, sy1, sx1, sy2, sx2, inv }));
+    same_layout("xfeat.wgsl", "NormParams", rust!(NormParams { n, chunks, row, chunk_row }));
 }
 
 /// The value of the WGSL constant `name` of `file`, as f64.
@@ -97,8 +105,9 @@ fn wgsl_const(file: &str, name: &str) -> f64 {
 
 #[test]
 fn shared_constants_agree() {
+    use crate::kernels::xfeat as xf;
     use crate::kernels::{abi, ssim_block as b, topk_select as t};
-    let checks: [(&str, &str, f64); 18] = [
+    let checks: [(&str, &str, f64); 28] = [
         ("ssim_topk.wgsl", "LANES", crate::kernels::ssim::LANES as f64),
         ("ssim_topk.wgsl", "MAX_ROW_SUMS", super::reference::MAX_ROW_SUMS as f64),
         ("ssim_block.wgsl", "LANES", crate::kernels::ssim::LANES as f64),
@@ -117,6 +126,16 @@ fn shared_constants_agree() {
         ("tree_similarity.wgsl", "MISSING", crate::kernels::tree_similarity::MISSING as f64),
         ("tree_similarity.wgsl", "NOT_A_PAIR", crate::kernels::tree_similarity::NOT_A_PAIR as f64),
         ("vlad_accumulate.wgsl", "LANES", crate::kernels::vlad_accumulate::LANES as f64),
+        ("xfeat.wgsl", "LANES", xf::LANES as f64),
+        ("xfeat.wgsl", "CHUNK", xf::CHUNK as f64),
+        ("xfeat.wgsl", "TILE_W", xf::TILE_W as f64),
+        ("xfeat.wgsl", "TILE_H", xf::TILE_H as f64),
+        ("xfeat.wgsl", "CO_GROUP", xf::CO_GROUP as f64),
+        ("xfeat.wgsl", "IN_CAP", xf::IN_CAP as f64),
+        ("xfeat.wgsl", "W_CAP", xf::W_CAP as f64),
+        ("xfeat.wgsl", "THREADS", xf::THREADS as f64),
+        ("xfeat.wgsl", "ACT_RELU", xf::ACT_RELU as f64),
+        ("xfeat.wgsl", "ACT_SIGMOID", xf::ACT_SIGMOID as f64),
     ];
     for (file, name, rust) in checks {
         assert_eq!(wgsl_const(file, name), rust, "{file}: {name}");

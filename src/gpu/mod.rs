@@ -12,6 +12,7 @@
 //! | `tree_similarity.wgsl` | `tree_similarity` | `kernels::tree_similarity::tree_similarity` |
 //! | `vlad_accumulate.wgsl` | `vlad_assign`, `vlad_accumulate` | `kernels::vlad_accumulate::{vlad_assign, vlad_accumulate}` |
 //! | `mnn_match.wgsl` | `mnn_match` | `kernels::mnn_match::mnn_match` |
+//! | `xfeat.wgsl` | `instance_norm_partials`, `instance_norm_stats`, `instance_norm_apply`, `avg_pool`, `space_to_depth8`, `bilinear_add`, `conv2d` | `kernels::xfeat::*` (same names) |
 //!
 //! Residency is explicit: executors own their device buffers and reuse them between batches;
 //! the map (coarse: descriptors and statistics; fine: packed forests) is uploaded once and kept
@@ -34,6 +35,7 @@ mod topk;
 pub mod verify;
 pub mod vlad;
 pub mod wgsl;
+pub mod xfeat;
 
 pub use context::{GpuContext, GpuError, GpuOptions, RESIDENT_FRACTION};
 pub use wgsl::SHADERS;

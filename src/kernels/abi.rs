@@ -321,3 +321,73 @@ pub(crate) struct Dims {
 fn pack_key(key: &[u8; 256]) -> [u32; 64] {
     std::array::from_fn(|w| (0..4).fold(0u32, |acc, l| acc | (key[4 * w + l] as u32) << (8 * l)))
 }
+
+/// `conv2d`'s uniform, in the shader's field order.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct ConvParams {
+    pub cin: u32,
+    pub cout: u32,
+    pub h: u32,
+    pub w: u32,
+    pub ho: u32,
+    pub wo: u32,
+    pub k: u32,
+    pub stride: u32,
+    pub pad: u32,
+    /// Input channels per pass through workgroup memory.
+    pub chunk: u32,
+    /// Input tile rows ((TILE_H - 1) x stride + k), columns ((TILE_W - 1) x stride + k) and row
+    /// pitch (columns rounded up to 8 mod 32).
+    pub rows: u32,
+    pub cols: u32,
+    pub pitch: u32,
+    /// Where the layer's packed weights, epilogue subtrahends and factors start in `weights`.
+    pub weight_at: u32,
+    pub sub_at: u32,
+    pub mul_at: u32,
+    pub act: u32,
+    pub has_add: u32,
+    pub _pad: [u32; 2],
+}
+
+/// The uniform of the element-wise kernels (`avg_pool`, `space_to_depth8`, `bilinear_add`), in
+/// the shader's field order. Invocation i = (x + y * row) * LANES + lane handles output value i
+/// (of n).
+#[derive(Debug, Clone, Copy, PartialEq, Default, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct MapParams {
+    pub c: u32,
+    pub h: u32,
+    pub w: u32,
+    pub ho: u32,
+    pub wo: u32,
+    pub k: u32,
+    pub row: u32,
+    pub n: u32,
+    /// `bilinear_add`: the sizes of its second and third input, and the scales (source length /
+    /// output length, as PyTorch computes them in f32) of their axes.
+    pub h1: u32,
+    pub w1: u32,
+    pub h2: u32,
+    pub w2: u32,
+    pub sy1: f32,
+    pub sx1: f32,
+    pub sy2: f32,
+    pub sx2: f32,
+    /// `avg_pool`: 1 / (k * k).
+    pub inv: f32,
+    pub _pad: [u32; 3],
+}
+
+/// The uniform of the instance-norm kernels, in the shader's field order.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct NormParams {
+    pub n: u32,
+    /// Chunks of CHUNK values (`instance_norm_partials`' workgroups).
+    pub chunks: u32,
+    /// Workgroups per grid row of `instance_norm_apply` and of `instance_norm_partials`.
+    pub row: u32,
+    pub chunk_row: u32,
+}

@@ -25,3 +25,4 @@ pub(crate) mod test_data;
 pub mod topk_select;
 pub mod tree_similarity;
 pub mod vlad_accumulate;
+pub mod xfeat;

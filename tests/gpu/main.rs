@@ -8,6 +8,7 @@ mod common;
 mod fine;
 mod resident;
 mod verify;
+mod xfeat;
 
 use semlook::gpu::{GpuContext, GpuOptions};
 use std::sync::Arc;
@@ -343,8 +344,9 @@ fn too_small_limits_are_a_typed_error() {
     assert!(matches!(err, semlook::Error::Gpu(semlook::gpu::GpuError::LimitsTooSmall { .. })), "{err}");
 }
 
-/// End to end: every setting gives the same metrics, top-1 references and scores (1e-5) on the
-/// GPU as on the CPU, on the synthetic benchmark, with XFeat appearance (VLAD through the GPU
+/// End to end: every setting gives the same metrics, top-1 references and scores (1e-4: the XFeat
+/// network runs on the device, its descriptors within 2e-5 of the CPU's) on the GPU as on the
+/// CPU, on the synthetic benchmark, with XFeat appearance (the network and VLAD through the GPU
 /// kernels) when the weights are there.
 #[test]
 fn end_to_end_matching_equals_the_cpu_path() {
@@ -369,7 +371,15 @@ fn end_to_end_matching_equals_the_cpu_path() {
         assert_eq!(a.recall_at, b.recall_at);
         for (x, y) in a.outcomes.iter().zip(&b.outcomes) {
             assert_eq!(x.top1, y.top1, "{} {} {}", a.query_set, a.setting, x.query);
-            assert!((x.score.unwrap() - y.score.unwrap()).abs() <= 1e-5);
+            assert!(
+                (x.score.unwrap() - y.score.unwrap()).abs() <= 1e-4,
+                "{} {} {}: scores {:?} and {:?}",
+                a.query_set,
+                a.setting,
+                x.query,
+                x.score,
+                y.score
+            );
         }
     }
     assert!(g.run.backend.starts_with("gpu:") && c.run.backend.starts_with("cpu"));
