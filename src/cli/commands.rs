@@ -394,6 +394,7 @@ fn bench_encode_cmd(a: &BenchEncodeArgs, engine: &mut Engine, quiet: bool) -> Re
     let tmp = std::env::temp_dir().join(format!("semlook-bench-encode-{}", std::process::id()));
     std::fs::create_dir_all(&tmp).map_err(|e| Error::io(&tmp, e))?;
     let t = Instant::now();
+    let pb = progress::bar(sources.len(), "segmenting", quiet);
     let seg_times: Vec<Result<(f64, std::path::PathBuf)>> = {
         use rayon::prelude::*;
         sources
@@ -409,10 +410,12 @@ fn bench_encode_cmd(a: &BenchEncodeArgs, engine: &mut Engine, quiet: bool) -> Re
                 let out = tmp.join(format!("{i:06}.png"));
                 let ids = image::GrayImage::from_fn(labels.width(), labels.height(), |x, y| image::Luma([labels.get(x, y)]));
                 ids.save(&out).map_err(|e| Error::invalid(out.display().to_string(), e.to_string()))?;
+                pb.inc(1);
                 Ok((ms, out))
             })
             .collect()
     };
+    pb.finish_and_clear();
     let seg_wall = t.elapsed().as_secs_f64() * 1e3 / sources.len() as f64;
     let mut labelled = Vec::new();
     let mut seg_ms = Vec::new();
