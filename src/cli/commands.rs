@@ -1,6 +1,7 @@
 //! The commands behind the CLI.
 
 mod map_cmd;
+mod pairs;
 mod shared;
 
 use shared::{apply_models, frame_sources, info, load_config, map_config, to_json};
@@ -209,18 +210,22 @@ fn query_outputs(
     Ok((csv, to_json(&doc)?))
 }
 
+/// The query frames a source names, read with the config's label ids.
+fn query_frames(s: &SourceArgs, cfg: &Config) -> Result<(Vec<FrameSource>, LabelFormat)> {
+    frame_sources(s, &mut cfg.clone(), true)
+}
+
 fn run_query(
     engine: &mut Engine,
     map: &Map,
     cfg: &Config,
+    (frames, fmt): (&[FrameSource], LabelFormat),
     s: &SourceArgs,
     setting: Setting,
     quiet: bool,
 ) -> Result<(DescriptorSet, Vec<QueryMatch>, RunRecord)> {
     let encoder = Encoder::for_map(cfg, map)?.with_hog(setting == Setting::Hog);
-    let mut cfg_for_sources = cfg.clone();
-    let (frames, fmt) = frame_sources(s, &mut cfg_for_sources, true)?;
-    let queries = encode_sources(engine, &encoder, &frames, fmt, "queries", s.skip_invalid, quiet)?;
+    let queries = encode_sources(engine, &encoder, frames, fmt, "queries", s.skip_invalid, quiet)?;
     let t = Instant::now();
     let (matches, _) = engine.match_batch(map, &queries, setting, cfg)?;
     info(
@@ -238,11 +243,18 @@ fn query(engine: &mut Engine, a: &QueryArgs, quiet: bool) -> Result<()> {
     let map = Map::open(&a.map)?;
     // without --config, the map's encoding and default matching parameters
     let cfg = map_config(&map, a.config.as_deref(), &a.source.models)?;
-    let (queries, matches, run) = run_query(engine, &map, &cfg, &a.source, a.setting, quiet)?;
+    let (frames, fmt) = query_frames(&a.source, &cfg)?;
+    // hloc's names are found before the minutes of encoding, so that a bad name stops at once
+    let names = a.pairs.pairs.as_ref().map(|_| pairs::PairNames::find(&a.pairs, &map, &frames, cfg.matching.top_k)).transpose()?;
+    let (queries, matches, run) = run_query(engine, &map, &cfg, (&frames, fmt), &a.source, a.setting, quiet)?;
     let (csv, json) = query_outputs(&map, &queries, &matches, &run, a.setting)?;
     if let Some(out) = &a.out {
         write_file(&out.with_extension("csv"), &csv)?;
         write_file(&out.with_extension("json"), &json)?;
+    }
+    if let (Some(names), Some(path)) = (&names, &a.pairs.pairs) {
+        let n = names.write(path, &queries, &matches)?;
+        info(quiet, format!("wrote {n} retrieval pairs (hloc) to {}", path.display()));
     }
     if a.json {
         outln!("{json}");
@@ -354,7 +366,8 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     let hardest = scfg.queries.last().ok_or_else(|| Error::invalid("demo", "no query condition"))?.name();
     info(quiet, format!("[3/4] querying the map with the {hardest} traversal (setting {})", Setting::RECOMMENDED));
     let qsrc = SourceArgs { traversal: Some(hardest.to_string()), ..src };
-    let (queries, matches, run) = run_query(engine, &map, &cfg, &qsrc, Setting::RECOMMENDED, quiet)?;
+    let (frames, fmt) = query_frames(&qsrc, &cfg)?;
+    let (queries, matches, run) = run_query(engine, &map, &cfg, (&frames, fmt), &qsrc, Setting::RECOMMENDED, quiet)?;
     let (csv, json) = query_outputs(&map, &queries, &matches, &run, Setting::RECOMMENDED)?;
     let results = dir.join("results");
     std::fs::create_dir_all(&results).map_err(|e| Error::io(&results, e))?;
