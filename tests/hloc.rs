@@ -5,7 +5,6 @@ mod common;
 
 use common::{cli, cli_ok as ok, p};
 use semlook::hloc::{common_root, image_name, reference_names};
-use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 /// hloc's `parse_retrieval`: `q r` lines split on whitespace, references per query in order.
@@ -120,14 +119,12 @@ fn reference_names_refuse_what_they_cannot_tell_apart() {
     let names = reference_names(&["z", "a/x.jpg", "b/x.png"], &[a.clone(), b.clone()], &root).unwrap();
     assert_eq!(names, ["b/z.png", "a/x.jpg", "b/x.png"]);
     let err = |ids: &[&str], folders: &[PathBuf]| reference_names(ids, folders, &root).unwrap_err().to_string();
-    assert!(err(&["y"], &[a.clone()]).contains("more than one image file"));
+    assert!(err(&["y"], std::slice::from_ref(&a)).contains("more than one image file"));
     assert!(err(&["x"], &[a.clone(), b.clone()]).contains("more than one image file"));
-    assert!(err(&["t1/z", "t2/z"], &[b.clone()]).contains("also map image \"t1/z\""));
-    assert!(err(&["w"], &[a.clone()]).contains("no image file w.*"));
+    assert!(err(&["t1/z", "t2/z"], std::slice::from_ref(&b)).contains("also map image \"t1/z\""));
+    assert!(err(&["w"], std::slice::from_ref(&a)).contains("no image file w.*"));
     // names: relative, `/`-separated, `..` applied; outside the root refused
     assert_eq!(image_name(&root, &root.join("a/../b/z.png")).unwrap(), "b/z.png");
     assert!(image_name(&a, &b.join("z.png")).unwrap_err().to_string().contains("--pairs-root"));
     assert_eq!(common_root(&[a.clone(), b.join("."), a.join("deeper")]).unwrap(), semlook::hloc::absolute(&root).unwrap());
-    let by_id: HashMap<&str, String> = [("x", "a/x.jpg")].into_iter().map(|(k, v)| (k, v.to_string())).collect();
-    assert_eq!(reference_names(&["x"], &[a], &root).unwrap()[0], by_id["x"]);
 }

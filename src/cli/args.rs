@@ -485,6 +485,10 @@ pub struct EvalArgs {
     /// Draw the precision-recall curve of every setting (PNG and SVG per query set) into DIR.
     #[arg(long, value_name = "DIR")]
     pub plots: Option<PathBuf>,
+    /// Write DIR/index.html, one self-contained page: the metrics table, precision-recall and
+    /// recall@N charts, the worst queries' sheets (the N of --explain, else 6) and what ran.
+    #[arg(long, value_name = "DIR")]
+    pub report: Option<PathBuf>,
     #[command(flatten)]
     pub models: ModelArgs,
 }

@@ -291,18 +291,44 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
             info(quiet, format!("wrote {}", f.display()));
         }
     }
+    if a.explain.is_none() && a.report.is_none() {
+        return Ok(());
+    }
+    let setting = if settings.contains(&Setting::RECOMMENDED) { Setting::RECOMMENDED } else { settings[0] };
+    // frames are loaded again with the configuration that encoded them
+    let encoder = match &map {
+        Some(m) => Encoder::for_map(&cfg, m)?,
+        None => Encoder::new(&cfg)?,
+    };
     if let (Some(n), Some(dir)) = (a.explain, &a.out) {
-        let setting = if settings.contains(&Setting::RECOMMENDED) { Setting::RECOMMENDED } else { settings[0] };
-        // frames are loaded again with the configuration that encoded them
-        let encoder = match &map {
-            Some(m) => Encoder::for_map(&cfg, m)?,
-            None => Encoder::new(&cfg)?,
-        };
         for f in semlook::viz::explain(&report, setting, &ds, &encoder, n, dir)? {
             info(quiet, format!("wrote {}", f.display()));
         }
     }
+    if let Some(dir) = &a.report {
+        use semlook::viz::report::{ReportInputs, WorstQuery};
+        let worst = semlook::viz::worst_queries(&report, setting)
+            .into_iter()
+            .take(a.explain.unwrap_or(REPORT_WORST))
+            .map(|w| {
+                // a frame that cannot be drawn costs its sheet, not the page
+                let sheet = semlook::viz::worst_sheet(w, setting, &ds, &encoder, 320).map_err(|e| e.to_string());
+                WorstQuery { query_set: w.0, outcome: w.1, sheet }
+            })
+            .collect();
+        let inputs = ReportInputs { setting, worst, command: command_line() };
+        info(quiet, format!("wrote {}", semlook::viz::report::write(&report, &inputs, dir)?.display()));
+    }
     Ok(())
+}
+
+/// Worst queries shown by `eval --report` without `--explain N`.
+const REPORT_WORST: usize = 6;
+
+/// The command as typed (arguments with spaces quoted), for the report's record of what ran.
+fn command_line() -> String {
+    let args = std::env::args().skip(1).map(|a| if a.contains(char::is_whitespace) || a.is_empty() { format!("{a:?}") } else { a });
+    std::iter::once("semlook".to_string()).chain(args).collect::<Vec<_>>().join(" ")
 }
 
 fn print_report(report: &EvalReport, json: bool) -> Result<()> {
