@@ -46,8 +46,11 @@ pub fn bar(len: usize, message: &str, quiet: bool) -> Progress {
         pb.set_draw_target(ProgressDrawTarget::hidden());
     }
     // a fixed, valid template; should indicatif refuse it, the bar keeps its default style
-    if let Ok(style) = ProgressStyle::with_template("{msg:>14} [{bar:30}] {pos}/{len} {per_sec} eta {eta} ({elapsed})") {
-        pb.set_style(style.progress_chars("=> "));
+    if let Ok(style) = ProgressStyle::with_template("{msg:>14} [{bar:30}] {pos}/{len} {rate} eta {eta} ({elapsed})") {
+        let rate = |s: &indicatif::ProgressState, w: &mut dyn std::fmt::Write| {
+            let _ = w.write_str(&rate(s.pos(), s.elapsed()));
+        };
+        pb.set_style(style.with_key("rate", rate).progress_chars("=> "));
     }
     pb.set_message(message.to_string());
     let lines = (visible && !terminal).then(|| Lines {
@@ -119,12 +122,7 @@ pub fn due(len: u64, printed: u64, done: u64, since: Duration, finished: bool) -
 /// count and the rate).
 pub fn line(message: &str, done: u64, len: u64, elapsed: Duration) -> String {
     let secs = elapsed.as_secs_f64();
-    let rate = if secs > 0.0 { done as f64 / secs } else { 0.0 };
-    let rate = match rate {
-        r if r >= 10.0 => format!("{r:.0}/s"),
-        r if r >= 1.0 => format!("{r:.1}/s"),
-        r => format!("{r:.2}/s"),
-    };
+    let rate = rate(done, elapsed);
     if len == 0 {
         return format!("{message}: {done}, {rate}");
     }
@@ -137,6 +135,16 @@ pub fn line(message: &str, done: u64, len: u64, elapsed: Duration) -> String {
         "eta -".to_string()
     };
     format!("{message}: {done}/{len} ({pct:.0} %), {rate}, {tail}")
+}
+
+/// Steps per second, to two significant digits or the unit (`0.25/s`, `3.1/s`, `412/s`).
+fn rate(done: u64, elapsed: Duration) -> String {
+    let secs = elapsed.as_secs_f64();
+    match if secs > 0.0 { done as f64 / secs } else { 0.0 } {
+        r if r >= 10.0 => format!("{r:.0}/s"),
+        r if r >= 1.0 => format!("{r:.1}/s"),
+        r => format!("{r:.2}/s"),
+    }
 }
 
 /// `45s`, `2m03s`, `1h02m`.
