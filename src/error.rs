@@ -74,6 +74,8 @@ pub enum Remedy {
     SmallerSegments,
     /// Name the dataset's reference traversal.
     NameReferenceTraversal,
+    /// Name the folder image names are relative to (hloc's image root).
+    NameImageRoot,
 }
 
 /// What a map of format `found` lacks, and how to get a readable one.

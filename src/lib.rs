@@ -56,6 +56,7 @@ pub mod error;
 pub mod eval;
 pub mod global;
 pub mod gpu;
+pub mod hloc;
 pub mod input;
 pub mod kernels;
 pub mod local;

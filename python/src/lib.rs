@@ -8,6 +8,7 @@ mod descriptors;
 mod encoder;
 mod engine;
 mod errors;
+mod hloc;
 mod map;
 mod matches;
 mod shard;
@@ -26,6 +27,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<matches::PyMatches>()?;
     m.add_class::<shard::PyShard>()?;
     m.add_function(wrap_pyfunction!(map::evaluate, m)?)?;
+    m.add_function(wrap_pyfunction!(hloc::hloc_names, m)?)?;
     m.add_function(wrap_pyfunction!(shard::plan_shards, m)?)?;
     m.add_function(wrap_pyfunction!(shard::merge_candidates, m)?)?;
     m.add_function(wrap_pyfunction!(shard::rank, m)?)?;

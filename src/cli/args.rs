@@ -422,6 +422,29 @@ pub struct QueryArgs {
     /// Also write DIR/matches.csv and DIR/matches.json (the folder is created).
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
+    #[command(flatten)]
+    pub pairs: PairsArgs,
+}
+
+/// hloc's retrieval pairs from a query.
+#[derive(Args)]
+pub struct PairsArgs {
+    /// Also write hloc's retrieval pairs file (`query_name reference_name` per line, each
+    /// query's top K), names relative to --pairs-root as hloc names images.
+    #[arg(long, value_name = "FILE", requires = "references")]
+    pub pairs: Option<PathBuf>,
+    /// With --pairs: the folder(s) of the map's reference images (a map stores ids, not file
+    /// names); every map image must be found there once.
+    #[arg(long = "references", value_name = "DIR", requires = "pairs")]
+    pub references: Vec<PathBuf>,
+    /// With --pairs: the folder names are relative to (hloc's image_dir); default: the deepest
+    /// folder holding the query and reference folders.
+    #[arg(long, value_name = "DIR", requires = "pairs")]
+    pub pairs_root: Option<PathBuf>,
+    /// With --pairs: pairs per query (default: the config's matching.top_k; fewer where the
+    /// setting's list is shorter).
+    #[arg(long, value_name = "K", requires = "pairs", value_parser = parse_positive)]
+    pub pairs_k: Option<usize>,
 }
 
 #[derive(Args)]
@@ -476,6 +499,10 @@ pub struct EvalArgs {
     /// Draw the precision-recall curve of every setting (PNG and SVG per query set) into DIR.
     #[arg(long, value_name = "DIR")]
     pub plots: Option<PathBuf>,
+    /// Write DIR/index.html, one self-contained page: the metrics table, precision-recall and
+    /// recall@N charts, the worst queries' sheets (the N of --explain, else 6) and what ran.
+    #[arg(long, value_name = "DIR")]
+    pub report: Option<PathBuf>,
     #[command(flatten)]
     pub models: ModelArgs,
 }

@@ -1,6 +1,7 @@
 //! The commands behind the CLI.
 
 mod map_cmd;
+mod pairs;
 mod shared;
 
 use shared::{apply_models, frame_sources, info, load_config, map_config, to_json};
@@ -210,18 +211,22 @@ fn query_outputs(
     Ok((csv, to_json(&doc)?))
 }
 
+/// The query frames a source names, read with the config's label ids.
+fn query_frames(s: &SourceArgs, cfg: &Config) -> Result<(Vec<FrameSource>, LabelFormat)> {
+    frame_sources(s, &mut cfg.clone(), true)
+}
+
 fn run_query(
     engine: &mut Engine,
     map: &Map,
     cfg: &Config,
+    (frames, fmt): (&[FrameSource], LabelFormat),
     s: &SourceArgs,
     setting: Setting,
     quiet: bool,
 ) -> Result<(DescriptorSet, Vec<QueryMatch>, RunRecord)> {
     let encoder = Encoder::for_map(cfg, map)?.with_hog(setting == Setting::Hog);
-    let mut cfg_for_sources = cfg.clone();
-    let (frames, fmt) = frame_sources(s, &mut cfg_for_sources, true)?;
-    let queries = encode_sources(engine, &encoder, &frames, fmt, "queries", s.skip_invalid, quiet)?;
+    let queries = encode_sources(engine, &encoder, frames, fmt, "queries", s.skip_invalid, quiet)?;
     let t = Instant::now();
     let (matches, _) = engine.match_batch(map, &queries, setting, cfg)?;
     info(
@@ -239,12 +244,19 @@ fn query(engine: &mut Engine, a: &QueryArgs, quiet: bool) -> Result<()> {
     let map = Map::open(&a.map)?;
     // without --config, the map's encoding and default matching parameters
     let cfg = map_config(&map, a.config.as_deref(), &a.source.models)?;
-    let (queries, matches, run) = run_query(engine, &map, &cfg, &a.source, a.setting, quiet)?;
+    let (frames, fmt) = query_frames(&a.source, &cfg)?;
+    // hloc's names are found before the minutes of encoding, so that a bad name stops at once
+    let names = a.pairs.pairs.as_ref().map(|_| pairs::PairNames::find(&a.pairs, &map, &frames, cfg.matching.top_k)).transpose()?;
+    let (queries, matches, run) = run_query(engine, &map, &cfg, (&frames, fmt), &a.source, a.setting, quiet)?;
     let (csv, json) = query_outputs(&map, &queries, &matches, &run, a.setting)?;
     if let Some(dir) = &a.out {
         std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
         write_file(&dir.join("matches.csv"), &csv)?;
         write_file(&dir.join("matches.json"), &json)?;
+    }
+    if let (Some(names), Some(path)) = (&names, &a.pairs.pairs) {
+        let n = names.write(path, &queries, &matches)?;
+        info(quiet, format!("wrote {n} retrieval pairs (hloc) to {}", path.display()));
     }
     if a.json {
         outln!("{json}");
@@ -278,16 +290,33 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
             info(quiet, format!("wrote {}", f.display()));
         }
     }
+    if a.explain.is_none() && a.report.is_none() {
+        return Ok(());
+    }
+    let setting = if settings.contains(&Setting::RECOMMENDED) { Setting::RECOMMENDED } else { settings[0] };
+    // frames are loaded again with the configuration that encoded them
+    let encoder = match &map {
+        Some(m) => Encoder::for_map(&cfg, m)?,
+        None => Encoder::new(&cfg)?,
+    };
     if let (Some(n), Some(dir)) = (a.explain, &a.out) {
-        let setting = if settings.contains(&Setting::RECOMMENDED) { Setting::RECOMMENDED } else { settings[0] };
-        // frames are loaded again with the configuration that encoded them
-        let encoder = match &map {
-            Some(m) => Encoder::for_map(&cfg, m)?,
-            None => Encoder::new(&cfg)?,
-        };
         for f in semlook::tools::viz::explain(&report, setting, &ds, &encoder, n, dir)? {
             info(quiet, format!("wrote {}", f.display()));
         }
+    }
+    if let Some(dir) = &a.report {
+        use semlook::tools::viz::report::{ReportInputs, WorstQuery};
+        let worst = semlook::tools::viz::worst_queries(&report, setting)
+            .into_iter()
+            .take(a.explain.unwrap_or(REPORT_WORST))
+            .map(|w| {
+                // a frame that cannot be drawn costs its sheet, not the page
+                let sheet = semlook::tools::viz::worst_sheet(w, setting, &ds, &encoder, 320).map_err(|e| e.to_string());
+                WorstQuery { query_set: w.0, outcome: w.1, sheet }
+            })
+            .collect();
+        let inputs = ReportInputs { setting, worst, command: command_line() };
+        info(quiet, format!("wrote {}", semlook::tools::viz::report::write(&report, &inputs, dir)?.display()));
     }
     Ok(())
 }
@@ -301,6 +330,15 @@ fn dedup(settings: &[Setting]) -> Vec<Setting> {
         }
     }
     out
+}
+
+/// Worst queries shown by `eval --report` without `--explain N`.
+const REPORT_WORST: usize = 6;
+
+/// The command as typed (arguments with spaces quoted), for the report's record of what ran.
+fn command_line() -> String {
+    let args = std::env::args().skip(1).map(|a| if a.contains(char::is_whitespace) || a.is_empty() { format!("{a:?}") } else { a });
+    std::iter::once("semlook".to_string()).chain(args).collect::<Vec<_>>().join(" ")
 }
 
 fn print_report(report: &EvalReport, json: bool) -> Result<()> {
@@ -364,7 +402,8 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     let hardest = scfg.queries.last().ok_or_else(|| Error::invalid("demo", "no query condition"))?.name();
     info(quiet, format!("[3/4] querying the map with the {hardest} traversal (setting {})", Setting::RECOMMENDED));
     let qsrc = SourceArgs { traversal: Some(hardest.to_string()), ..src };
-    let (queries, matches, run) = run_query(engine, &map, &cfg, &qsrc, Setting::RECOMMENDED, quiet)?;
+    let (frames, fmt) = query_frames(&qsrc, &cfg)?;
+    let (queries, matches, run) = run_query(engine, &map, &cfg, (&frames, fmt), &qsrc, Setting::RECOMMENDED, quiet)?;
     let (csv, json) = query_outputs(&map, &queries, &matches, &run, Setting::RECOMMENDED)?;
     let results = dir.join("results");
     std::fs::create_dir_all(&results).map_err(|e| Error::io(&results, e))?;
@@ -404,6 +443,7 @@ fn bench_encode_cmd(a: &BenchEncodeArgs, engine: &mut Engine, quiet: bool) -> Re
     let tmp = std::env::temp_dir().join(format!("semlook-bench-encode-{}", std::process::id()));
     std::fs::create_dir_all(&tmp).map_err(|e| Error::io(&tmp, e))?;
     let t = Instant::now();
+    let pb = progress::bar(sources.len(), "segmenting", quiet);
     let seg_times: Vec<Result<(f64, std::path::PathBuf)>> = {
         use rayon::prelude::*;
         sources
@@ -419,10 +459,12 @@ fn bench_encode_cmd(a: &BenchEncodeArgs, engine: &mut Engine, quiet: bool) -> Re
                 let out = tmp.join(format!("{i:06}.png"));
                 let ids = image::GrayImage::from_fn(labels.width(), labels.height(), |x, y| image::Luma([labels.get(x, y)]));
                 ids.save(&out).map_err(|e| Error::invalid(out.display().to_string(), e.to_string()))?;
+                pb.inc(1);
                 Ok((ms, out))
             })
             .collect()
     };
+    pb.finish_and_clear();
     let seg_wall = t.elapsed().as_secs_f64() * 1e3 / sources.len() as f64;
     let mut labelled = Vec::new();
     let mut seg_ms = Vec::new();

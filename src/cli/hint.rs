@@ -18,5 +18,6 @@ pub fn hint(e: &Error) -> Option<&'static str> {
         Remedy::GiveKeypointModel => "pass --keypoints MODEL.onnx, or set models.keypoint_onnx in --config",
         Remedy::SmallerSegments => "build the map with a smaller `--segment-images N` (more segments)",
         Remedy::NameReferenceTraversal => "pass --reference-traversal NAME",
+        Remedy::NameImageRoot => "pass --pairs-root DIR, a folder that holds the query and reference images",
     })
 }

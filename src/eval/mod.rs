@@ -191,7 +191,12 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
             .collect();
         q_times.extend_from_slice(&enc.times);
         q_wall += enc.wall_ms;
-        match_query_set(engine, refs, &qt.name, &enc.set, &gt, &opts.settings, cfg, &mut results, &mut skipped)?;
+        let pb = crate::progress::bar(opts.settings.len(), &format!("matching {}", qt.name), opts.quiet);
+        for setting in &opts.settings {
+            match_query_set(engine, refs, &qt.name, &enc.set, &gt, std::slice::from_ref(setting), cfg, &mut results, &mut skipped)?;
+            pb.inc(1);
+        }
+        pb.finish_and_clear();
     }
     Ok(EvalReport {
         dataset: ds.name.clone(),

@@ -1,9 +1,11 @@
 //! Pictures of what the engine sees: `inspect` (every stage of one frame), `explain` (the worst
-//! queries of an evaluation: query | top-1 | a valid reference) and precision-recall plots.
+//! queries of an evaluation: query | top-1 | a valid reference), precision-recall and recall@N
+//! charts, and the HTML report of an evaluation ([`report`]).
 //! Text on raster pictures uses a built-in bitmap font ([`font`]); the SVG plots carry real text.
 
 pub mod font;
 pub mod plots;
+pub mod report;
 
 use crate::appearance::keypoints::Keypoints;
 use crate::classes::ClassTable;
@@ -270,20 +272,9 @@ pub fn frame_column(encoder: &Encoder, src: &FrameSource, format: LabelFormat, c
     Ok((src.id.clone(), col))
 }
 
-/// For the `n` worst queries of `setting` in `report` (wrong top-1s, most confident first, then
-/// the least confident correct ones), a sheet per query: query | top-1 | a valid reference, each
-/// with its image and labels and the scores. Frames are found by id in `ds`.
-pub fn explain(
-    report: &crate::eval::EvalReport,
-    setting: crate::matching::Setting,
-    ds: &crate::dataset::Dataset,
-    encoder: &Encoder,
-    n: usize,
-    dir: &Path,
-) -> Result<Vec<std::path::PathBuf>> {
-    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-    let frames: std::collections::HashMap<&str, &FrameSource> =
-        std::iter::once(&ds.reference).chain(&ds.queries).flat_map(|t| t.frames.iter().map(|f| (f.source.id.as_str(), &f.source))).collect();
+/// The worst queries of an evaluation, worst first: wrong top-1s, most confident first, then
+/// the least confident correct ones (queries without ground truth left out).
+pub fn worst_queries(report: &crate::eval::EvalReport, setting: crate::matching::Setting) -> Vec<(&str, &crate::eval::QueryOutcome)> {
     let mut worst: Vec<(&str, &crate::eval::QueryOutcome)> = report
         .results
         .iter()
@@ -299,31 +290,58 @@ pub fn explain(
         }
     };
     worst.sort_by(|a, b| key(a.1).partial_cmp(&key(b.1)).unwrap_or(std::cmp::Ordering::Equal));
+    worst
+}
+
+/// A sheet of one of the worst queries: query | top-1 | a valid reference, each column's image
+/// and labels under its caption, `cell_width` pixels wide.
+pub fn worst_sheet(
+    (set, o): (&str, &crate::eval::QueryOutcome),
+    setting: crate::matching::Setting,
+    ds: &crate::dataset::Dataset,
+    encoder: &Encoder,
+    cell_width: u32,
+) -> Result<RgbImage> {
+    let find = |id: &str| {
+        std::iter::once(&ds.reference)
+            .chain(&ds.queries)
+            .flat_map(|t| &t.frames)
+            .find(|f| f.source.id == id)
+            .map(|f| &f.source)
+            .ok_or_else(|| Error::dataset(&ds.root, format!("frame {id:?} of the report is not in the dataset")))
+    };
+    let mut cols = vec![frame_column(encoder, find(&o.query)?, ds.label_format, &[format!("query {}", o.query), format!("set {set}, {setting}")])?];
+    if let Some(top) = &o.top1 {
+        let verdict = if o.correct { "correct" } else { "wrong" };
+        let caption = [format!("top-1 {top} ({verdict})"), format!("score {:.3}", o.score.unwrap_or(f32::NAN))];
+        cols.push(frame_column(encoder, find(top)?, ds.label_format, &caption)?);
+    }
+    let valid = o
+        .best_valid
+        .as_ref()
+        .map(|(id, rank)| (id.clone(), format!("rank {}", rank + 1)))
+        .or_else(|| o.a_valid_reference.clone().map(|id| (id, "not in the ranked list".into())));
+    if let Some((id, rank)) = valid {
+        cols.push(frame_column(encoder, find(&id)?, ds.label_format, &[format!("valid {id}"), rank])?);
+    }
+    Ok(sheet(&cols, 3, cell_width))
+}
+
+/// For the `n` worst queries of `setting` in `report` ([`worst_queries`]), a sheet per query
+/// ([`worst_sheet`]) written to `dir` as `explain-NN.png`. Frames are found by id in `ds`.
+pub fn explain(
+    report: &crate::eval::EvalReport,
+    setting: crate::matching::Setting,
+    ds: &crate::dataset::Dataset,
+    encoder: &Encoder,
+    n: usize,
+    dir: &Path,
+) -> Result<Vec<std::path::PathBuf>> {
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
     let mut written = Vec::new();
-    for (i, (set, o)) in worst.iter().take(n).enumerate() {
-        let find =
-            |id: &str| frames.get(id).copied().ok_or_else(|| Error::dataset(&ds.root, format!("frame {id:?} of the report is not in the dataset")));
-        let mut cols =
-            vec![frame_column(encoder, find(&o.query)?, ds.label_format, &[format!("query {}", o.query), format!("set {set}, {setting}")])?];
-        if let Some(top) = &o.top1 {
-            let verdict = if o.correct { "correct" } else { "wrong" };
-            cols.push(frame_column(
-                encoder,
-                find(top)?,
-                ds.label_format,
-                &[format!("top-1 {top} ({verdict})"), format!("score {:.3}", o.score.unwrap_or(f32::NAN))],
-            )?);
-        }
-        let valid = o
-            .best_valid
-            .as_ref()
-            .map(|(id, rank)| (id.clone(), format!("rank {}", rank + 1)))
-            .or_else(|| o.a_valid_reference.clone().map(|id| (id, "not in the ranked list".into())));
-        if let Some((id, rank)) = valid {
-            cols.push(frame_column(encoder, find(&id)?, ds.label_format, &[format!("valid {id}"), rank])?);
-        }
+    for (i, w) in worst_queries(report, setting).into_iter().take(n).enumerate() {
         let p = dir.join(format!("explain-{:02}.png", i + 1));
-        save(&sheet(&cols, 3, 480), &p)?;
+        save(&worst_sheet(w, setting, ds, encoder, 480)?, &p)?;
         written.push(p);
     }
     Ok(written)

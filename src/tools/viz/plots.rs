@@ -38,57 +38,119 @@ fn err(path: &Path, e: impl std::fmt::Display) -> Error {
     Error::invalid(path.display().to_string(), e.to_string())
 }
 
-/// Writes `pr-<query set>.svg` and `.png` for every query set of `report` into `dir`.
-pub fn write_pr_plots(report: &EvalReport, dir: &Path) -> Result<Vec<PathBuf>> {
-    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+/// The query sets of `report`, in report order.
+pub fn query_sets(report: &EvalReport) -> Vec<&str> {
     let mut sets: Vec<&str> = Vec::new();
     for r in &report.results {
         if !sets.contains(&r.query_set.as_str()) {
             sets.push(&r.query_set);
         }
     }
+    sets
+}
+
+/// Every setting's precision-recall curve on query set `set`, labelled with its AUC.
+fn pr_series(report: &EvalReport, set: &str) -> Vec<(String, Vec<(f64, f64)>)> {
+    report.results.iter().filter(|r| r.query_set == set).map(|r| (format!("{} (AUC {:.3})", r.setting.name(), r.pr.auc), curve(r))).collect()
+}
+
+/// The precision-recall chart of query set `set`, as SVG text.
+pub fn pr_svg(report: &EvalReport, set: &str) -> Result<String> {
+    let axes = Axes { x: (0.0, 1.0), x_desc: "recall", y_desc: "precision", x_labels: 6, x_label: &|x| format!("{x:.1}"), points: false };
+    svg_chart(&format!("{}: {set}", report.dataset), &pr_series(report, set), &axes)
+}
+
+/// Recall@N of every setting on query set `set` (the N of `eval.recall_at`, evenly spaced), as
+/// SVG text.
+pub fn recall_svg(report: &EvalReport, set: &str) -> Result<String> {
+    let rows: Vec<&SettingReport> = report.results.iter().filter(|r| r.query_set == set).collect();
+    let ns: Vec<usize> = rows.first().map(|r| r.recall_at.iter().map(|x| x.0).collect()).unwrap_or_default();
+    let series: Vec<(String, Vec<(f64, f64)>)> = rows
+        .iter()
+        .map(|r| {
+            let r1 = r.recall_at.first().map_or(0.0, |x| x.1);
+            (
+                format!("{} (R@{} {r1:.3})", r.setting.name(), ns.first().unwrap_or(&1)),
+                r.recall_at.iter().enumerate().map(|(i, x)| (i as f64, x.1)).collect(),
+            )
+        })
+        .collect();
+    let label = |x: &f64| match ns.get(x.round() as usize) {
+        Some(n) if (x - x.round()).abs() < 1e-6 => format!("N = {n}"),
+        _ => String::new(),
+    };
+    let axes =
+        Axes { x: (-0.2, ns.len().max(1) as f64 - 0.8), x_desc: "N", y_desc: "recall@N", x_labels: ns.len().max(1), x_label: &label, points: true };
+    svg_chart(&format!("{}: {set}, recall@N", report.dataset), &series, &axes)
+}
+
+/// Writes `pr-<query set>.svg` and `.png` for every query set of `report` into `dir`.
+pub fn write_pr_plots(report: &EvalReport, dir: &Path) -> Result<Vec<PathBuf>> {
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
     let mut written = Vec::new();
-    for set in sets {
-        let series: Vec<(String, Vec<(f64, f64)>)> =
-            report.results.iter().filter(|r| r.query_set == set).map(|r| (format!("{} (AUC {:.3})", r.setting.name(), r.pr.auc), curve(r))).collect();
+    for set in query_sets(report) {
         let slug: String = set.chars().map(|c| if c.is_ascii_alphanumeric() { c } else { '-' }).collect();
-        let title = format!("{}: {set}", report.dataset);
         let svg = dir.join(format!("pr-{slug}.svg"));
-        svg_chart(&svg, &title, &series)?;
+        std::fs::write(&svg, pr_svg(report, set)?).map_err(|e| Error::io(&svg, e))?;
         let png = dir.join(format!("pr-{slug}.png"));
-        png_chart(&png, &title, &series)?;
+        png_chart(&png, &format!("{}: {set}", report.dataset), &pr_series(report, set))?;
         written.extend([svg, png]);
     }
     Ok(written)
 }
 
-fn svg_chart(path: &Path, title: &str, series: &[(String, Vec<(f64, f64)>)]) -> Result<()> {
-    let root = SVGBackend::new(path, SIZE).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| err(path, e))?;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 20))
-        .margin(16)
-        .x_label_area_size(40)
-        .y_label_area_size(50)
-        .build_cartesian_2d(0f64..1.0f64, 0f64..1.02f64)
-        .map_err(|e| err(path, e))?;
-    chart.configure_mesh().x_desc("recall").y_desc("precision").draw().map_err(|e| err(path, e))?;
-    for (i, (name, pts)) in series.iter().enumerate() {
-        let c = COLOURS[i % COLOURS.len()];
+/// The x axis of a chart (y is always 0..1), and whether points get markers.
+struct Axes<'a> {
+    x: (f64, f64),
+    x_desc: &'a str,
+    y_desc: &'a str,
+    x_labels: usize,
+    x_label: &'a dyn Fn(&f64) -> String,
+    points: bool,
+}
+
+fn svg_chart(title: &str, series: &[(String, Vec<(f64, f64)>)], axes: &Axes) -> Result<String> {
+    let e = |e: &dyn std::fmt::Display| Error::invalid(format!("chart {title:?}"), e.to_string());
+    let mut text = String::new();
+    {
+        let root = SVGBackend::with_string(&mut text, SIZE).into_drawing_area();
+        root.fill(&WHITE).map_err(|x| e(&x))?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(title, ("sans-serif", 20))
+            .margin(16)
+            .x_label_area_size(40)
+            .y_label_area_size(50)
+            .build_cartesian_2d(axes.x.0..axes.x.1, 0f64..1.02f64)
+            .map_err(|x| e(&x))?;
         chart
-            .draw_series(LineSeries::new(pts.iter().copied(), c.stroke_width(2)))
-            .map_err(|e| err(path, e))?
-            .label(name)
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+            .configure_mesh()
+            .x_desc(axes.x_desc)
+            .y_desc(axes.y_desc)
+            .x_labels(axes.x_labels)
+            .x_label_formatter(axes.x_label)
+            .draw()
+            .map_err(|x| e(&x))?;
+        for (i, (name, pts)) in series.iter().enumerate() {
+            let c = COLOURS[i % COLOURS.len()];
+            chart
+                .draw_series(LineSeries::new(pts.iter().copied(), c.stroke_width(2)))
+                .map_err(|x| e(&x))?
+                .label(name)
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+            if axes.points {
+                chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, c.filled()))).map_err(|x| e(&x))?;
+            }
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::LowerLeft)
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|x| e(&x))?;
+        root.present().map_err(|x| e(&x))?;
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::LowerLeft)
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| err(path, e))?;
-    root.present().map_err(|e| err(path, e))
+    Ok(text)
 }
 
 fn png_chart(path: &Path, title: &str, series: &[(String, Vec<(f64, f64)>)]) -> Result<()> {
