@@ -6,7 +6,8 @@
 
 use crate::config::Config;
 use crate::descriptors::DescriptorSet;
-use crate::encode::{EncodedImage, Encoder, Loaded, Pending, StageTimes};
+use crate::encode::phases::Pending;
+use crate::encode::{EncodedImage, Encoder, Loaded, StageTimes};
 use crate::error::Result;
 use crate::gpu::{
     coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, verify::MnnGpu, vlad::VladGpu, xfeat::NetworkSlot, GpuContext,
@@ -358,7 +359,7 @@ impl Engine {
     ) -> Result<Vec<Result<(EncodedImage, StageTimes)>>> {
         let mut out: Vec<Option<Result<(EncodedImage, StageTimes)>>> = (0..sources.len()).map(|_| None).collect();
         let mut loaded: Vec<Option<Loaded>> = Vec::with_capacity(sources.len());
-        for (i, r) in sources.par_iter().map(|s| encoder.load(s, format)).collect::<Vec<_>>().into_iter().enumerate() {
+        for (i, r) in sources.par_iter().map(|s| encoder.frames().load(s, format)).collect::<Vec<_>>().into_iter().enumerate() {
             match r {
                 Ok(l) => loaded.push(Some(l)),
                 Err(e) => {
@@ -385,7 +386,7 @@ impl Engine {
             let maps: Vec<&LabelMap> = batch.iter().map(|l| &l.labels).collect();
             let t = Instant::now();
             g.work += 1;
-            let globals = g.encoder.encode(&maps, encoder.used_mask(), &encoder.config().global)?;
+            let globals = g.encoder.encode(&maps, encoder.global().used_mask(), &encoder.config().global)?;
             let per = ms_since(t) / batch.len() as f64;
             // the keypoint network on the device (native XFeat; None: the CPU path runs it)
             let rgbs: Vec<Option<&image::RgbImage>> = batch.iter().map(|l| l.rgb.as_ref()).collect();
@@ -394,7 +395,7 @@ impl Engine {
                 .into_par_iter()
                 .zip(batch.par_iter())
                 .enumerate()
-                .map(|(k, (glob, l))| encoder.encode_rest_with(&sources[i + k].id, l, glob, None, per, features[k].as_ref()))
+                .map(|(k, (glob, l))| encoder.encode_rest(&sources[i + k].id, l, glob, None, per, features[k].as_ref()))
                 .collect();
             // VLAD of every frame of the batch in one GPU pass
             let inputs: Vec<(&[f32], &[u32])> = pending
@@ -405,7 +406,7 @@ impl Engine {
                 .collect();
             let t = Instant::now();
             let mut vlads = match (encoder.codebook(), inputs.is_empty()) {
-                (Some(cb), false) => g.vlad.run(cb, encoder.vlad_norm(), &inputs)?.into_iter(),
+                (Some(cb), false) => g.vlad.run(cb, encoder.appearance().map_or(Default::default(), |a| a.vlad_norm()), &inputs)?.into_iter(),
                 _ => Vec::new().into_iter(),
             };
             let vlad_ms = ms_since(t) / batch.len() as f64;

@@ -228,7 +228,7 @@ impl PyEncoder {
         let enc = &self.inner;
         let set = py
             .detach(|| -> semlook::Result<_> {
-                let loaded = enc.load_arrays(&id, rgb, labels)?;
+                let loaded = enc.frames().load_arrays(&id, rgb, labels)?;
                 let (img, _) = enc.encode_loaded(&id, &loaded, &mut Default::default())?;
                 let mut set = enc.descriptor_set();
                 set.push(&img).map_err(|r| semlook::Error::invalid(format!("image {id:?}"), r))?;

@@ -452,7 +452,7 @@ fn bench_encode_cmd(a: &BenchEncodeArgs, engine: &mut Engine, quiet: bool) -> Re
             .map(|(i, s)| {
                 let path = s.image.clone().unwrap_or_default();
                 let rgb = semlook::input::load_rgb(&path)?;
-                let seg = encoder.segmenter_for(&path)?;
+                let seg = encoder.frames().segmenter_for(&path)?;
                 let t = Instant::now();
                 let labels = seg.segment(&rgb, &path)?;
                 let ms = t.elapsed().as_secs_f64() * 1e3;
@@ -491,7 +491,7 @@ fn bench_encode_cmd(a: &BenchEncodeArgs, engine: &mut Engine, quiet: bool) -> Re
         outln!("{} frames of {}x{}; backend {}", sources.len(), size.0, size.1, engine.describe());
         outln!(
             "segmentation ({}): median {:.1} ms per frame, wall clock {:.1} ms per frame (frames in parallel)",
-            encoder.segmenter().map_or("-".into(), |s| s.path().display().to_string()),
+            encoder.frames().segmenter().map_or("-".into(), |s| s.path().display().to_string()),
             seg.median.segment_ms,
             seg.wall_ms_per_frame
         );
@@ -517,7 +517,7 @@ fn segacc_cmd(a: &SegAccArgs, quiet: bool) -> Result<()> {
         let stem = img.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
         let real = semlook::input::load_label_map(&a.labels.join(format!("{stem}.png")), &table, LabelFormat::Auto)?;
         let rgb = semlook::input::load_rgb(img)?;
-        let seg = encoder.segmenter_for(img)?;
+        let seg = encoder.frames().segmenter_for(img)?;
         let predicted = seg.segment(&rgb, img)?;
         confusion.add(&real, &predicted)?;
         pb.inc(1);

@@ -77,7 +77,7 @@ impl RunRecord {
     pub fn new(encoder: &Encoder, cfg: &Config, engine: &Engine) -> Result<Self> {
         Ok(RunRecord {
             keypoints: encoder.appearance_model().map(|m| ModelRecord { path: m.path.display().to_string(), sha256: m.sha256.clone() }),
-            segmenter: encoder.segmenter().map(|s| ModelRecord { path: s.path().display().to_string(), sha256: s.sha256().to_string() }),
+            segmenter: encoder.frames().segmenter().map(|s| ModelRecord { path: s.path().display().to_string(), sha256: s.sha256().to_string() }),
             config_sha256: cfg.sha256()?,
             backend: engine.describe(),
         })

@@ -458,7 +458,7 @@ pub fn street_descriptors(cfg: &Config, n: usize, cond: crate::tools::synth::con
             Ok(enc.encode_labels(&format!("{}{i}", cond.name()), &m, scratch)?.0)
         })
         .collect::<Result<_>>()?;
-    let mut set = DescriptorSet::new(&enc.ssim_params(), cfg.local.neighbours, 0, 0);
+    let mut set = DescriptorSet::new(&enc.global().ssim_params(), cfg.local.neighbours, 0, 0);
     for img in &images {
         set.push(img).map_err(|r| crate::Error::invalid("bench pool", r))?;
     }

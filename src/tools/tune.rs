@@ -156,7 +156,7 @@ fn cache_dataset(ds: &Dataset, encoder: &Encoder, tick: &(dyn Fn() + Sync)) -> R
         frames
             .par_iter()
             .map(|f| {
-                let loaded = encoder.load(&f.source, ds.label_format)?;
+                let loaded = encoder.frames().load(&f.source, ds.label_format)?;
                 let keypoints = match (encoder.appearance_model(), &loaded.rgb) {
                     (Some(m), Some(rgb)) => Some(m.features(rgb)?),
                     _ => None,
@@ -240,10 +240,10 @@ pub fn run(
                 let enc_key = serde_json::to_string::<EncodingConfig>(&cfg.encoding()).map_err(|e| Error::invalid("sweep", e.to_string()))?;
                 if !encoded.contains_key(&enc_key) {
                     let mut encoder = Encoder::new(cfg)?.with_hog(wants_hog);
-                    if encoder.appearance_model().is_some() {
-                        let picks = encoder.codebook_picks(cd.refs.len());
+                    if let Some(a) = encoder.appearance_mut() {
+                        let picks = a.codebook_picks(cd.refs.len());
                         let kps: Vec<&Keypoints> = picks.iter().filter_map(|&p| cd.refs[p].keypoints.as_ref().map(|f| &f.sampled)).collect();
-                        encoder.train_codebook_from(&kps)?;
+                        a.train_codebook_from(&kps)?;
                     }
                     let refs = encode_cached(&encoder, &cd.refs)?;
                     let mut qs = Vec::new();

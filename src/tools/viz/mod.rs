@@ -156,15 +156,15 @@ pub fn keypoints_image(base: &RgbImage, k: &Keypoints, objects: &ObjectMap, labe
 /// Every stage of one frame, as titled panels: image, labels, semantic edges, truncated EDT,
 /// global descriptor, objects with trees and neighbour links, keypoints.
 pub fn inspect(encoder: &Encoder, src: &FrameSource, format: LabelFormat) -> Result<Vec<Panel>> {
-    let loaded = encoder.load(src, format)?;
+    let loaded = encoder.frames().load(src, format)?;
     let cfg = encoder.config();
     let table = encoder.class_table();
     let labels = &loaded.labels;
     let (w, h) = (labels.width(), labels.height());
-    let p = encoder.ssim_params();
+    let p = encoder.global().ssim_params();
     let (mut desc, mut stats) = (vec![0.0; p.len()], vec![0.0; p.stats_len()]);
     let mut scratch = crate::global::GlobalScratch::default();
-    crate::global::encode_global(labels, encoder.used_mask(), &cfg.global, &mut scratch, &mut desc, &mut stats)?;
+    crate::global::encode_global(labels, encoder.global().used_mask(), &cfg.global, &mut scratch, &mut desc, &mut stats)?;
     let tau = crate::global::pool_params(&cfg.global, w, h).tau;
     let objects = crate::objects::extract_objects(labels, table, &cfg.objects);
     let forest = crate::local::build_forest(&objects, &cfg.local);
@@ -253,7 +253,7 @@ pub fn grey_to_rgb(g: &GrayImage) -> RgbImage {
 
 /// One column of an explain sheet: a frame's image and labels under a caption.
 pub fn frame_column(encoder: &Encoder, src: &FrameSource, format: LabelFormat, caption: &[String]) -> Result<Panel> {
-    let loaded = encoder.load(src, format)?;
+    let loaded = encoder.frames().load(src, format)?;
     let table = encoder.class_table();
     let (w, h) = (loaded.labels.width(), loaded.labels.height());
     let base = match (&loaded.rgb, &src.image) {

@@ -1,0 +1,272 @@
+//! Encoding: one frame (label map, and RGB pixels when appearance is on) to its global
+//! descriptor and its forest, timing each stage as the paper's Table 2 splits them:
+//! "edge (coarse)" = global descriptor, "forest" = objects and trees, "appearance" = keypoint
+//! network and per-object VLAD.
+//!
+//! An [`Encoder`] is three parts: what loads a frame ([`FrameLoader`]), what computes the global
+//! descriptor (the encoder's own [`GlobalStage`]) and what computes appearance
+//! ([`AppearanceEncoder`]). [`Encoder::encode_source`] runs them all on the CPU; the engine's GPU
+//! path runs the same steps split into phases (`phases`, crate-private).
+
+mod appearance;
+mod load;
+pub(crate) mod phases;
+mod times;
+
+pub use appearance::{AppearanceEncoder, VladInput};
+pub use load::{segmenter_path, FrameLoader, Loaded};
+pub use times::StageTimes;
+
+use crate::appearance::{keypoints::Keypoints, vlad::Codebook, AppearanceModel, Features};
+use crate::classes::ClassTable;
+use crate::config::{Config, EncodingConfig, GlobalConfig};
+use crate::error::{Error, Result};
+use crate::global::{self, GlobalScratch};
+use crate::input::{FrameSource, LabelFormat, LabelMap};
+use crate::kernels::abi::SsimParams;
+use crate::util::ms_since;
+use rayon::prelude::*;
+use std::time::Instant;
+
+pub use crate::descriptors::EncodedImage;
+
+/// What computes the global descriptor: semantic edges of the used classes, their distance
+/// transform, the pooled descriptor and its SSIM window statistics.
+#[derive(Debug, Clone)]
+pub struct GlobalStage {
+    cfg: GlobalConfig,
+    used: [bool; 256],
+    ssim: SsimParams,
+}
+
+impl GlobalStage {
+    pub fn config(&self) -> &GlobalConfig {
+        &self.cfg
+    }
+    /// The classes that make edges (see `ClassTable::used_mask`).
+    pub fn used_mask(&self) -> &[bool; 256] {
+        &self.used
+    }
+    pub fn ssim_params(&self) -> SsimParams {
+        self.ssim
+    }
+    /// The descriptor of `labels` and its SSIM statistics.
+    pub fn encode(&self, labels: &LabelMap, scratch: &mut GlobalScratch) -> Result<(Vec<f32>, Vec<f32>)> {
+        let mut global = vec![0.0; self.ssim.len()];
+        let mut stats = vec![0.0; self.ssim.stats_len()];
+        global::encode_global(labels, &self.used, &self.cfg, scratch, &mut global, &mut stats)?;
+        Ok((global, stats))
+    }
+}
+
+/// Encodes frames with one configuration. Cheap to share between threads.
+#[derive(Debug, Clone)]
+pub struct Encoder {
+    cfg: EncodingConfig,
+    table: ClassTable,
+    frames: FrameLoader,
+    global: GlobalStage,
+    appearance: Option<AppearanceEncoder>,
+}
+
+impl Encoder {
+    /// An encoder for `cfg`: loads the keypoint network (and finds the segmenter) the config names.
+    pub fn new(cfg: &Config) -> Result<Encoder> {
+        let table = ClassTable::from_config(&cfg.classes)?;
+        let appearance = AppearanceModel::load(&cfg.appearance, &cfg.models)?.map(|m| AppearanceEncoder::new(m, &cfg.appearance, &cfg.keypoints));
+        let global = GlobalStage { cfg: cfg.global.clone(), used: table.used_mask(), ssim: SsimParams::new(&cfg.global) };
+        Ok(Encoder { frames: FrameLoader::new(cfg, &table, appearance.is_some())?, global, table, cfg: cfg.encoding(), appearance })
+    }
+    /// Whether the encoder also computes the HOG baseline (VPR-Bench's, [`crate::baseline`]).
+    pub fn with_hog(mut self, hog: bool) -> Encoder {
+        self.frames.hog = hog;
+        self
+    }
+    /// With `on`, a frame with neither a label map nor a segmenter to make one is encoded with a
+    /// void label map: no edges, no objects, a global descriptor the same for every frame. Only
+    /// the settings that need no labels ([`crate::matching::Setting::label_free`]) may then be
+    /// matched; the caller skips the others.
+    pub fn without_labels(mut self, on: bool) -> Encoder {
+        self.frames.void_labels = on;
+        self
+    }
+    /// An encoder for queries of `map`: `cfg`'s encoding must equal the map's, its keypoint
+    /// network must be the one the map was built with, and the map's codebook is used.
+    pub fn for_map(cfg: &Config, map: &crate::map::Map) -> Result<Encoder> {
+        map.check_compatible(&cfg.encoding())?;
+        let mut enc = Encoder::new(cfg)?;
+        map.check_model(enc.appearance_model().map(|a| a.sha256.as_str()))?;
+        if let Some(cb) = map.codebook() {
+            enc.set_codebook(cb.clone());
+        }
+        Ok(enc)
+    }
+
+    /// What loads frames.
+    pub fn frames(&self) -> &FrameLoader {
+        &self.frames
+    }
+    /// What computes the global descriptor.
+    pub fn global(&self) -> &GlobalStage {
+        &self.global
+    }
+    /// What computes appearance (none with appearance off).
+    pub fn appearance(&self) -> Option<&AppearanceEncoder> {
+        self.appearance.as_ref()
+    }
+    /// What computes appearance, to set or train its codebook.
+    pub fn appearance_mut(&mut self) -> Option<&mut AppearanceEncoder> {
+        self.appearance.as_mut()
+    }
+    pub fn appearance_model(&self) -> Option<&AppearanceModel> {
+        self.appearance.as_ref().map(|a| a.model())
+    }
+    pub fn codebook(&self) -> Option<&Codebook> {
+        self.appearance.as_ref().and_then(|a| a.codebook())
+    }
+    /// Sets the VLAD codebook (ignored with appearance off).
+    pub fn set_codebook(&mut self, codebook: Codebook) {
+        if let Some(a) = &mut self.appearance {
+            a.set_codebook(codebook);
+        }
+    }
+    pub fn computes_hog(&self) -> bool {
+        self.frames.hog
+    }
+    /// The SHA-256 of the keypoint network and the codebook, for a new map.
+    pub fn appearance_record(&self) -> Option<(&Codebook, &str)> {
+        let a = self.appearance.as_ref()?;
+        Some((a.codebook()?, a.model().sha256.as_str()))
+    }
+    pub fn config(&self) -> &EncodingConfig {
+        &self.cfg
+    }
+    pub fn class_table(&self) -> &ClassTable {
+        &self.table
+    }
+    /// Length of the trees' appearance vectors: Kv x D with appearance, else 0.
+    pub fn appearance_dim(&self) -> usize {
+        self.appearance.as_ref().map_or(0, |a| a.dim())
+    }
+    /// Values per stored verification keypoint descriptor (0 when none are stored).
+    pub fn keypoint_dim(&self) -> usize {
+        self.appearance.as_ref().map_or(0, |a| a.keypoint_dim())
+    }
+    /// An empty descriptor set laid out for this encoder's images.
+    pub fn descriptor_set(&self) -> crate::descriptors::DescriptorSet {
+        let hog = if self.frames.hog { crate::baseline::HOG_DIM } else { 0 };
+        let codebook = self.codebook().filter(|_| self.appearance_dim() > 0).and_then(|c| c.sha256().ok());
+        crate::descriptors::DescriptorSet::new(&self.global.ssim, self.cfg.local.neighbours, self.appearance_dim(), hog)
+            .with_keypoint_dim(self.keypoint_dim())
+            .with_codebook(codebook)
+    }
+
+    /// Encodes a label map alone (no appearance: only for encoders with appearance off).
+    pub fn encode_labels(&self, id: &str, labels: &LabelMap, scratch: &mut GlobalScratch) -> Result<(EncodedImage, StageTimes)> {
+        if self.appearance.is_some() {
+            return Err(Error::invalid(format!("frame {id:?}"), "appearance is on, so the RGB image is needed: use encode_loaded"));
+        }
+        let loaded =
+            Loaded { labels: labels.clone(), rgb: None, source_size: (labels.width(), labels.height()), hog: None, times: StageTimes::default() };
+        self.encode_loaded(id, &loaded, scratch)
+    }
+
+    /// Encodes a loaded frame on the CPU: every stage.
+    pub fn encode_loaded(&self, id: &str, loaded: &Loaded, scratch: &mut GlobalScratch) -> Result<(EncodedImage, StageTimes)> {
+        self.encode_loaded_with(id, loaded, None, scratch)
+    }
+
+    /// [`Encoder::encode_loaded`] with the keypoint network's output given (cached by a caller
+    /// that encodes the same frames with several configurations, such as `tune`).
+    pub(crate) fn encode_loaded_with(
+        &self,
+        id: &str,
+        loaded: &Loaded,
+        keypoints: Option<&Features>,
+        scratch: &mut GlobalScratch,
+    ) -> Result<(EncodedImage, StageTimes)> {
+        let t = Instant::now();
+        let (global, stats) = self.global.encode(&loaded.labels, scratch)?;
+        let pending = self.encode_rest(id, loaded, global, Some(stats), ms_since(t), keypoints)?;
+        let t = Instant::now();
+        let vlad = match (&self.appearance, &pending.vlad) {
+            (Some(a), Some(v)) => Some(a.vlad(v)?),
+            _ => None,
+        };
+        self.finish(pending, vlad, ms_since(t))
+    }
+
+    /// Loads and encodes one frame on the CPU.
+    pub fn encode_source(&self, src: &FrameSource, format: LabelFormat, scratch: &mut GlobalScratch) -> Result<(EncodedImage, StageTimes)> {
+        let loaded = self.frames.load(src, format)?;
+        self.encode_loaded(&src.id, &loaded, scratch)
+    }
+
+    /// Encodes many frames in parallel, in order; `tick` is called once per finished frame.
+    pub fn encode_all(&self, sources: &[FrameSource], format: LabelFormat, tick: &(dyn Fn() + Sync)) -> Vec<Result<(EncodedImage, StageTimes)>> {
+        sources
+            .par_iter()
+            .map_init(GlobalScratch::default, |scratch, src| {
+                let r = self.encode_source(src, format, scratch);
+                tick();
+                r
+            })
+            .collect()
+    }
+
+    /// Trains the VLAD codebook on descriptors of up to `appearance.codebook_images` frames
+    /// spread evenly over `sources` (the map's references), and sets it.
+    pub fn train_codebook(&mut self, sources: &[FrameSource], tick: &(dyn Fn() + Sync)) -> Result<()> {
+        self.train_codebook_skipping(sources, false, tick).map(|_| ())
+    }
+
+    /// [`Encoder::train_codebook`]; with `skip_invalid`, frames that cannot be read are left out
+    /// and returned (index in `sources`, error) instead of ending the training.
+    pub fn train_codebook_skipping(&mut self, sources: &[FrameSource], skip_invalid: bool, tick: &(dyn Fn() + Sync)) -> Result<Vec<(usize, Error)>> {
+        let Some(appearance) = &self.appearance else { return Ok(vec![]) };
+        let picks = appearance.codebook_picks(sources.len());
+        let (frames, model) = (&self.frames, appearance.model());
+        let results: Vec<Result<Keypoints>> = picks
+            .par_iter()
+            .map(|&i| {
+                let k = frames.working_rgb(&sources[i]).and_then(|rgb| model.keypoints(&rgb));
+                tick();
+                k
+            })
+            .collect();
+        let (mut keypoints, mut skipped) = (Vec::new(), Vec::new());
+        for (&i, r) in picks.iter().zip(results) {
+            match r {
+                Ok(k) => keypoints.push(k),
+                Err(e) if skip_invalid => skipped.push((i, e)),
+                Err(e) => return Err(e),
+            }
+        }
+        if let Some(a) = &mut self.appearance {
+            a.train_codebook_from(&keypoints.iter().collect::<Vec<_>>())?;
+        }
+        Ok(skipped)
+    }
+}
+
+/// Splits encoding results into successes and errors; with `skip_invalid` false, the first error
+/// (in input order) is returned instead.
+pub fn collect_encoded(
+    results: Vec<Result<(EncodedImage, StageTimes)>>,
+    skip_invalid: bool,
+) -> Result<(Vec<EncodedImage>, Vec<StageTimes>, Vec<(usize, Error)>)> {
+    let mut images = Vec::with_capacity(results.len());
+    let mut total = Vec::with_capacity(results.len());
+    let mut skipped = Vec::new();
+    for (i, r) in results.into_iter().enumerate() {
+        match r {
+            Ok((img, t)) => {
+                images.push(img);
+                total.push(t);
+            }
+            Err(e) if skip_invalid => skipped.push((i, e)),
+            Err(e) => return Err(e),
+        }
+    }
+    Ok((images, total, skipped))
+}
