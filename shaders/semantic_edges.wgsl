@@ -1,6 +1,7 @@
 // Semantic edge extraction. CPU twin: src/kernels/semantic_edges.rs (`semantic_edges`).
 // A pixel is an edge pixel when its class is used and a 4-neighbour has a different used class.
-// One invocation per pixel; frames of a batch along z.
+// One invocation per pixel; frames of a batch along z. Class ids are bytes, four to a word
+// (pixel i in byte i % 4 of word i / 4): one byte per pixel crosses to the device.
 
 //#include abi.wgsl
 
@@ -9,8 +10,12 @@
 @group(0) @binding(2) var<storage, read> used: array<u32, 256>;
 @group(0) @binding(3) var<storage, read_write> edges: array<u32>;
 
+fn label_at(i: u32) -> u32 {
+    return (labels[i >> 2u] >> ((i & 3u) * 8u)) & 0xffu;
+}
+
 fn differs(c: u32, j: u32) -> bool {
-    let n = labels[j];
+    let n = label_at(j);
     return n != c && used[n] != 0u;
 }
 
@@ -23,7 +28,7 @@ fn semantic_edges(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let w = dims.width;
     let i = gid.z * w * dims.height + y * w + x;
-    let c = labels[i];
+    let c = label_at(i);
     var edge = 0u;
     if (used[c] != 0u) {
         if ((x > 0u && differs(c, i - 1u)) || (x + 1u < w && differs(c, i + 1u))

@@ -27,6 +27,11 @@ use rayon::prelude::*;
 use std::sync::Arc;
 use std::time::Instant;
 
+/// Frames the GPU path decodes at once: a few device batches' worth (the batches take up to 32
+/// frames of one size), so both cores decode while memory stays bounded whatever the number of
+/// frames (tested: `tests/gpu/stream.rs`).
+pub const STREAM_FRAMES: usize = 64;
+
 /// Where the heavy work runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
@@ -52,6 +57,8 @@ pub struct GpuStages {
     mnn: MnnGpu,
     /// The keypoint network (native XFeat) on the device.
     network: NetworkSlot,
+    /// Most frames held decoded at once by an encoding call so far.
+    decoded_peak: usize,
 }
 
 impl GpuStages {
@@ -62,6 +69,7 @@ impl GpuStages {
             vlad: VladGpu::new(ctx.clone()),
             mnn: MnnGpu::new(ctx.clone()),
             network: NetworkSlot::default(),
+            decoded_peak: 0,
             coarse: None,
             ctx,
             work: 0,
@@ -91,6 +99,11 @@ impl GpuStages {
     /// forests).
     pub fn map_bytes(&self) -> (u64, u64) {
         (self.coarse.as_ref().map_or(0, |c| c.1.map_bytes()), self.fine.map_bytes())
+    }
+
+    /// Most frames an encoding call has held decoded at once (at most [`STREAM_FRAMES`]).
+    pub fn decoded_peak(&self) -> usize {
+        self.decoded_peak
     }
 
     /// Uploads `refs` as the coarse stage's map for SSIM parameters `p` ahead of a batch (the
@@ -334,9 +347,11 @@ impl Engine {
 
     /// Encodes frames, in input order; `tick` is called per frame. Per-frame input errors are
     /// returned per frame; a GPU failure fails the whole call. On the GPU, frames are decoded in
-    /// parallel on the CPU; for each batch of one size the global descriptors are computed on the
-    /// GPU, then the keypoint network (on the GPU when it is the native XFeat, else on the CPU),
-    /// objects and forests on the CPU, and the per-object VLAD of the whole batch on the GPU.
+    /// parallel on the CPU, [`STREAM_FRAMES`] at a time (memory does not grow with the number of
+    /// frames); for each batch of one size the global descriptors and their SSIM statistics are
+    /// computed on the device, then the keypoint network (on the device when it is the native
+    /// XFeat, else on the CPU), objects and forests on the CPU, and the per-object VLAD of the
+    /// whole batch on the device.
     pub fn encode_all(
         &mut self,
         encoder: &Encoder,
@@ -357,36 +372,54 @@ impl Engine {
         format: LabelFormat,
         tick: &(dyn Fn() + Sync),
     ) -> Result<Vec<Result<(EncodedImage, StageTimes)>>> {
+        let mut out = Vec::with_capacity(sources.len());
+        for chunk in sources.chunks(STREAM_FRAMES) {
+            let loaded: Vec<Result<Loaded>> = chunk.par_iter().map(|s| encoder.frames().load(s, format)).collect();
+            g.decoded_peak = g.decoded_peak.max(loaded.len());
+            out.extend(Self::encode_loaded_gpu(g, encoder, chunk, loaded, tick)?);
+        }
+        Ok(out)
+    }
+
+    /// Encodes decoded frames (`loaded[i]` of `sources[i]`) on the device, in batches of frames
+    /// of one size.
+    fn encode_loaded_gpu(
+        g: &mut GpuStages,
+        encoder: &Encoder,
+        sources: &[FrameSource],
+        loaded: Vec<Result<Loaded>>,
+        tick: &(dyn Fn() + Sync),
+    ) -> Result<Vec<Result<(EncodedImage, StageTimes)>>> {
         let mut out: Vec<Option<Result<(EncodedImage, StageTimes)>>> = (0..sources.len()).map(|_| None).collect();
-        let mut loaded: Vec<Option<Loaded>> = Vec::with_capacity(sources.len());
-        for (i, r) in sources.par_iter().map(|s| encoder.frames().load(s, format)).collect::<Vec<_>>().into_iter().enumerate() {
+        let mut frames: Vec<Option<Loaded>> = Vec::with_capacity(loaded.len());
+        for (i, r) in loaded.into_iter().enumerate() {
             match r {
-                Ok(l) => loaded.push(Some(l)),
+                Ok(l) => frames.push(Some(l)),
                 Err(e) => {
                     out[i] = Some(Err(e));
-                    loaded.push(None);
+                    frames.push(None);
                     tick();
                 }
             }
         }
         let mut i = 0;
-        while i < loaded.len() {
-            let Some(first) = &loaded[i] else {
+        while i < frames.len() {
+            let Some(first) = &frames[i] else {
                 i += 1;
                 continue;
             };
             let size = (first.labels.width(), first.labels.height());
             let cap = g.encoder.max_batch(size.0, size.1).clamp(1, 32);
             let mut j = i;
-            while j < loaded.len() && j - i < cap && loaded[j].as_ref().is_some_and(|l| (l.labels.width(), l.labels.height()) == size) {
+            while j < frames.len() && j - i < cap && frames[j].as_ref().is_some_and(|l| (l.labels.width(), l.labels.height()) == size) {
                 j += 1;
             }
             // every entry of i..j is loaded (the loop above stopped at the first that is not)
-            let batch: Vec<&Loaded> = loaded[i..j].iter().flatten().collect();
+            let batch: Vec<&Loaded> = frames[i..j].iter().flatten().collect();
             let maps: Vec<&LabelMap> = batch.iter().map(|l| &l.labels).collect();
             let t = Instant::now();
             g.work += 1;
-            let globals = g.encoder.encode(&maps, encoder.global().used_mask(), &encoder.config().global)?;
+            let globals = g.encoder.encode(&maps, encoder.global().used_mask(), encoder.global().config())?;
             let per = ms_since(t) / batch.len() as f64;
             // the keypoint network on the device (native XFeat; None: the CPU path runs it)
             let rgbs: Vec<Option<&image::RgbImage>> = batch.iter().map(|l| l.rgb.as_ref()).collect();
@@ -395,7 +428,7 @@ impl Engine {
                 .into_par_iter()
                 .zip(batch.par_iter())
                 .enumerate()
-                .map(|(k, (glob, l))| encoder.encode_rest(&sources[i + k].id, l, glob, None, per, features[k].as_ref()))
+                .map(|(k, ((glob, stats), l))| encoder.encode_rest(&sources[i + k].id, l, glob, Some(stats), per, features[k].as_ref()))
                 .collect();
             // VLAD of every frame of the batch in one GPU pass
             let inputs: Vec<(&[f32], &[u32])> = pending
@@ -405,8 +438,11 @@ impl Engine {
                 .map(|v| (v.descriptors.as_slice(), v.offsets.as_slice()))
                 .collect();
             let t = Instant::now();
-            let mut vlads = match (encoder.codebook(), inputs.is_empty()) {
-                (Some(cb), false) => g.vlad.run(cb, encoder.appearance().map_or(Default::default(), |a| a.vlad_norm()), &inputs)?.into_iter(),
+            let mut vlads = match (encoder.appearance(), inputs.is_empty()) {
+                (Some(a), false) => match a.codebook() {
+                    Some(cb) => g.vlad.run(cb, a.vlad_norm(), &inputs)?.into_iter(),
+                    None => Vec::new().into_iter(),
+                },
                 _ => Vec::new().into_iter(),
             };
             let vlad_ms = ms_since(t) / batch.len() as f64;

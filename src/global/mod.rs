@@ -66,8 +66,7 @@ pub fn encode_global(
     }
     let n = w * h;
     let used32: [u32; 256] = std::array::from_fn(|c| used[c] as u32);
-    scratch.labels.clear();
-    scratch.labels.extend(labels.classes().iter().map(|&c| c as u32));
+    semantic_edges::pack_labels(labels.classes(), &mut scratch.labels);
     scratch.edges.resize(n, 0);
     scratch.g.resize(n, 0);
     scratch.s.resize(n, 0);

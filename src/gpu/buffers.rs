@@ -61,6 +61,7 @@ impl<T: bytemuck::Pod> PassBuffer<T> {
             dst[..std::mem::size_of::<T>()].copy_from_slice(bytemuck::bytes_of(e));
         }
         let b = self.buf.get_or_insert_with(|| {
+            ctx.count_buffer();
             ctx.device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("pass parameters"),
                 size: need,
@@ -81,6 +82,7 @@ impl<T: bytemuck::Pod> PassBuffer<T> {
 impl GpuContext {
     /// A storage buffer of `size` bytes (at least 4), copyable both ways.
     pub(crate) fn storage(&self, label: &str, size: u64) -> wgpu::Buffer {
+        self.count_buffer();
         self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
             size: size.max(4).next_multiple_of(4),
@@ -90,6 +92,7 @@ impl GpuContext {
     }
 
     pub(crate) fn uniform<T: bytemuck::Pod>(&self, label: &str, value: &T) -> wgpu::Buffer {
+        self.count_buffer();
         let buf = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
             size: (std::mem::size_of::<T>() as u64).next_multiple_of(16),
@@ -100,30 +103,67 @@ impl GpuContext {
         buf
     }
 
+    /// A uniform buffer of `size` bytes (rounded up to 16), written by the caller.
+    pub(crate) fn uniform_buffer(&self, label: &str, size: u64) -> wgpu::Buffer {
+        self.count_buffer();
+        self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: size.next_multiple_of(16),
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        })
+    }
+
     /// Copies `bytes` bytes of `src` back to the host (waits for the queue).
     pub(crate) fn read_back(&self, src: &wgpu::Buffer, bytes: u64) -> Result<Vec<u8>, GpuError> {
-        let bytes = bytes.next_multiple_of(4).max(4);
-        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("readback"),
-            size: bytes,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
+        Ok(self.read_back_many(&[(src, bytes)])?.swap_remove(0))
+    }
+
+    /// Copies the first bytes of each buffer back to the host in one submission and one wait,
+    /// through the context's staging buffer (kept between read-backs, regrown when one needs
+    /// more); each result is its byte count rounded up to 4.
+    pub(crate) fn read_back_many(&self, parts: &[(&wgpu::Buffer, u64)]) -> Result<Vec<Vec<u8>>, GpuError> {
+        let sizes: Vec<u64> = parts.iter().map(|p| p.1.next_multiple_of(4).max(4)).collect();
+        let total: u64 = sizes.iter().sum();
+        let mut kept = self.staging.lock().unwrap_or_else(|e| e.into_inner());
+        if kept.as_ref().is_some_and(|b| b.size() < total) {
+            *kept = None;
+        }
+        let staging = kept.get_or_insert_with(|| {
+            self.count_buffer();
+            self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("readback"),
+                size: total,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
         });
+        self.read_back_bytes.fetch_add(total, std::sync::atomic::Ordering::Relaxed);
         let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
-        enc.copy_buffer_to_buffer(src, 0, &staging, 0, bytes);
+        let mut at = 0;
+        for ((src, _), &n) in parts.iter().zip(&sizes) {
+            enc.copy_buffer_to_buffer(src, 0, staging, at, n);
+            at += n;
+        }
         self.queue.submit([enc.finish()]);
         let (tx, rx) = std::sync::mpsc::channel();
-        staging.map_async(wgpu::MapMode::Read, .., move |r| {
+        staging.map_async(wgpu::MapMode::Read, ..total, move |r| {
             let _ = tx.send(r);
         });
         self.device.poll(wgpu::PollType::wait_indefinitely()).map_err(|e| GpuError::DeviceLost(format!("waiting for the queue: {e}")))?;
         rx.recv()
             .map_err(|_| GpuError::Failed { what: "reading back".into(), reason: "map callback dropped".into() })?
             .map_err(|e| GpuError::Failed { what: "reading back".into(), reason: e.to_string() })?;
-        let data = staging.get_mapped_range(..).map_err(|e| GpuError::Failed { what: "reading back".into(), reason: e.to_string() })?.to_vec();
+        let data = staging.get_mapped_range(..total).map_err(|e| GpuError::Failed { what: "reading back".into(), reason: e.to_string() })?.to_vec();
         staging.unmap();
         self.check_lost()?;
-        Ok(data)
+        let mut out = Vec::with_capacity(parts.len());
+        let mut at = 0;
+        for n in sizes {
+            out.push(data[at as usize..(at + n) as usize].to_vec());
+            at += n;
+        }
+        Ok(out)
     }
 
     /// Reads back the first `n` 32-bit values (f32 or u32) of `src`.

@@ -74,10 +74,36 @@ pub struct GpuContext {
     /// Bytes of the budget that resident sets hold now.
     resident: AtomicU64,
     uploaded: AtomicU64,
+    pub(super) read_back_bytes: AtomicU64,
+    buffers: AtomicU64,
+    /// The read-back staging buffer, kept between read-backs (regrown when one needs more).
+    pub(super) staging: Mutex<Option<wgpu::Buffer>>,
     subgroups: bool,
     timer: Mutex<Option<Timer>>,
     lost: Arc<Mutex<Option<String>>>,
     pub(crate) kernels: Kernels,
+}
+
+/// Counts of a context's traffic and allocations ([`GpuContext::counters`]); differences between
+/// two readings give what a call did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct GpuCounters {
+    pub bytes_uploaded: u64,
+    pub bytes_read_back: u64,
+    pub buffers_created: u64,
+    pub bind_groups_created: u64,
+}
+
+impl std::ops::Sub for GpuCounters {
+    type Output = GpuCounters;
+    fn sub(self, o: GpuCounters) -> GpuCounters {
+        GpuCounters {
+            bytes_uploaded: self.bytes_uploaded - o.bytes_uploaded,
+            bytes_read_back: self.bytes_read_back - o.bytes_read_back,
+            buffers_created: self.buffers_created - o.buffers_created,
+            bind_groups_created: self.bind_groups_created - o.bind_groups_created,
+        }
+    }
 }
 
 impl std::fmt::Debug for GpuContext {
@@ -200,6 +226,9 @@ impl GpuContext {
             budget,
             resident: AtomicU64::new(0),
             uploaded: AtomicU64::new(0),
+            read_back_bytes: AtomicU64::new(0),
+            buffers: AtomicU64::new(0),
+            staging: Mutex::new(None),
             subgroups,
             timer: Mutex::new(timer),
             lost,
@@ -261,6 +290,22 @@ impl GpuContext {
     /// the executors do goes through [`GpuContext::write`].
     pub fn bytes_uploaded(&self) -> u64 {
         self.uploaded.load(Ordering::Relaxed)
+    }
+
+    /// What the executors have done on this context so far: bytes written and read back, buffers
+    /// and bind groups created. Tests hold executors to them (a repeated batch creates nothing).
+    pub fn counters(&self) -> GpuCounters {
+        GpuCounters {
+            bytes_uploaded: self.uploaded.load(Ordering::Relaxed),
+            bytes_read_back: self.read_back_bytes.load(Ordering::Relaxed),
+            buffers_created: self.buffers.load(Ordering::Relaxed),
+            bind_groups_created: self.kernels.bind_groups_created(),
+        }
+    }
+
+    /// Counts a buffer an executor created on the device itself.
+    pub(crate) fn count_buffer(&self) {
+        self.buffers.fetch_add(1, Ordering::Relaxed);
     }
 
     /// Writes `data` into `buffer` at `offset` through the queue, counting the bytes.

@@ -1,38 +1,60 @@
-//! GPU executor for the global descriptor: semantic edges, exact EDT and pooling for a batch of
-//! label maps of one size, in one submission. Buffers are kept between batches and regrown only
-//! when a larger batch arrives. Uploads the label maps, reads back only the pooled descriptors.
+//! GPU executor for the global descriptor and its SSIM statistics: semantic edges, exact EDT,
+//! pooling and the window statistics for a batch of label maps of one size, in one submission.
+//!
+//! Kept between batches (kornia-rs-style): the buffers (regrown only when a batch needs more),
+//! the uniforms (rewritten only when a batch's sizes change), the bind groups, and the flags of
+//! the classes that make edges (uploaded when they change). A batch uploads its label maps, one
+//! byte per pixel, and reads back its descriptors and statistics in one read-back.
 
 use super::context::{GpuContext, GpuError};
 use crate::config::GlobalConfig;
 use crate::global::pool_params;
 use crate::input::LabelMap;
-use crate::kernels::abi::Dims;
-use crate::kernels::abi::PoolParams;
+use crate::kernels::abi::{Dims, PoolParams, SsimParams};
 use crate::kernels::edt;
 use std::sync::Arc;
 
 struct Buffers {
     pixels: u64,
     cells: u64,
+    windows: u64,
     labels: wgpu::Buffer,
     used: wgpu::Buffer,
     edges: wgpu::Buffer,
-    g: wgpu::Buffer,
-    s: wgpu::Buffer,
-    t: wgpu::Buffer,
     d2: wgpu::Buffer,
     out: wgpu::Buffer,
+    stats: wgpu::Buffer,
+    /// The EDT's and the statistics' intermediates, only bound (kept with their bind groups).
+    _scratch: [wgpu::Buffer; 4],
+    dims: wgpu::Buffer,
+    pool: wgpu::Buffer,
+    ssim: wgpu::Buffer,
+    /// Bind groups of semantic_edges, edt_columns, edt_rows, global_pool, stats_row_sums and
+    /// stats_windows, made once with the buffers.
+    groups: [wgpu::BindGroup; 6],
+}
+
+/// What the uniforms and the class flags on the device hold now.
+#[derive(Clone, Copy, PartialEq)]
+struct Written {
+    dims: Dims,
+    pool: PoolParams,
+    ssim: SsimParams,
+    used: [bool; 256],
 }
 
 /// Reusable executor for global-descriptor encoding on the GPU.
 pub struct GlobalEncoderGpu {
     ctx: Arc<GpuContext>,
     buffers: Option<Buffers>,
+    written: Option<Written>,
+    /// The batch's class ids, one byte per pixel (kept, so a batch allocates nothing).
+    packed: Vec<u8>,
 }
 
 impl GlobalEncoderGpu {
     pub fn new(ctx: Arc<GpuContext>) -> Self {
-        GlobalEncoderGpu { ctx, buffers: None }
+        GlobalEncoderGpu { ctx, buffers: None, written: None, packed: Vec::new() }
     }
 
     /// Frames of `width` x `height` that fit one batch under the binding limit.
@@ -40,9 +62,10 @@ impl GlobalEncoderGpu {
         ((self.ctx.binding_limit() / (width as u64 * height as u64 * 4)) as usize).clamp(0, 256)
     }
 
-    /// Pooled global descriptors (`cfg.height` x `cfg.width` each) of label maps that share one size.
-    /// `used` flags the classes that make edges.
-    pub fn encode(&mut self, maps: &[&LabelMap], used: &[bool; 256], cfg: &GlobalConfig) -> Result<Vec<Vec<f32>>, GpuError> {
+    /// Pooled global descriptors (`cfg.height` x `cfg.width` each) of label maps that share one
+    /// size, each with its SSIM window statistics ([means | variances]). `used` flags the classes
+    /// that make edges.
+    pub fn encode(&mut self, maps: &[&LabelMap], used: &[bool; 256], cfg: &GlobalConfig) -> Result<Vec<(Vec<f32>, Vec<f32>)>, GpuError> {
         let Some(first) = maps.first() else { return Ok(vec![]) };
         let (w, h) = (first.width(), first.height());
         if let Some(m) = maps.iter().find(|m| (m.width(), m.height()) != (w, h)) {
@@ -54,58 +77,96 @@ impl GlobalEncoderGpu {
         if w as usize > edt::MAX_SIDE || h as usize > edt::MAX_SIDE {
             return Err(GpuError::Failed { what: "encoding".into(), reason: format!("{w}x{h} exceeds the EDT side limit") });
         }
+        let ssim = SsimParams::new(cfg);
         let frames = maps.len() as u64;
         let pixels = frames * w as u64 * h as u64;
-        let cells = frames * (cfg.width * cfg.height) as u64;
+        let per_frame = (cfg.width * cfg.height) as u64;
+        let (cells, windows) = (frames * per_frame, frames * ssim.windows() as u64);
         self.ctx.check_binding("one batch of label maps", pixels * 4)?;
         let ctx = self.ctx.clone();
-        let k = &ctx.kernels;
-        ctx.scoped("encoding global descriptors", || -> Result<Vec<Vec<f32>>, GpuError> {
-            if self.buffers.as_ref().is_some_and(|b| b.pixels < pixels || b.cells < cells) {
+        let now = Written {
+            dims: Dims { width: w, height: h, frames: frames as u32, _pad: 0 },
+            pool: PoolParams { frames: frames as u32, ..pool_params(cfg, w, h) },
+            ssim,
+            used: *used,
+        };
+        ctx.scoped("encoding global descriptors", || -> Result<Vec<(Vec<f32>, Vec<f32>)>, GpuError> {
+            if self.buffers.as_ref().is_some_and(|b| b.pixels < pixels || b.cells < cells || b.windows < windows) {
                 self.buffers = None;
             }
-            let b = self.buffers.get_or_insert_with(|| {
-                let mk = |l: &str, n: u64| ctx.storage(l, n * 4);
-                Buffers {
-                    pixels,
-                    cells,
-                    labels: mk("labels", pixels),
-                    used: mk("used classes", 256),
-                    edges: mk("edges", pixels),
-                    g: mk("edt g", pixels),
-                    s: mk("edt s", pixels),
-                    t: mk("edt t", pixels),
-                    d2: mk("edt d2", pixels),
-                    out: mk("global descriptors", cells),
-                }
-            });
-            let mut labels = Vec::with_capacity(pixels as usize);
-            for m in maps {
-                labels.extend(m.classes().iter().map(|&c| c as u32));
+            if self.buffers.is_none() {
+                self.buffers = Some(Self::allocate(&ctx, pixels, cells, windows, ssim.gh as u64 * ssim.nw as u64 * frames));
+                self.written = None;
             }
-            ctx.write(&b.labels, 0, bytemuck::cast_slice(&labels));
-            let used32: Vec<u32> = used.iter().map(|&u| u as u32).collect();
-            ctx.write(&b.used, 0, bytemuck::cast_slice(&used32));
-            let dims = ctx.uniform("dims", &Dims { width: w, height: h, frames: frames as u32, _pad: 0 });
-            let pool = ctx.uniform("pool params", &PoolParams { frames: frames as u32, ..pool_params(cfg, w, h) });
-            let dev = &ctx.device;
-            let g_edges = k.semantic_edges.bind(dev, &[&dims, &b.labels, &b.used, &b.edges]);
-            let g_edt = k.edt_columns.bind(dev, &[&dims, &b.edges, &b.g, &b.s, &b.t, &b.d2]);
-            let g_rows = k.edt_rows.bind(dev, &[&dims, &b.edges, &b.g, &b.s, &b.t, &b.d2]);
-            let g_pool = k.global_pool.bind(dev, &[&pool, &b.d2, &b.out]);
-            let per_frame = (cfg.width * cfg.height) as u32;
+            let b = self.buffers.as_ref().expect("allocated above");
+            let old = self.written.replace(now);
+            let changed = |f: fn(&Written) -> &[u8]| old.as_ref().is_none_or(|o| f(o) != f(&now));
+            if changed(|w| bytemuck::bytes_of(&w.dims)) {
+                ctx.write(&b.dims, 0, bytemuck::bytes_of(&now.dims));
+            }
+            if changed(|w| bytemuck::bytes_of(&w.pool)) {
+                ctx.write(&b.pool, 0, bytemuck::bytes_of(&now.pool));
+            }
+            if changed(|w| bytemuck::bytes_of(&w.ssim)) {
+                ctx.write(&b.ssim, 0, bytemuck::bytes_of(&now.ssim));
+            }
+            if old.is_none_or(|o| o.used != now.used) {
+                let used32: Vec<u32> = used.iter().map(|&u| u as u32).collect();
+                ctx.write(&b.used, 0, bytemuck::cast_slice(&used32));
+            }
+            self.packed.clear();
+            for m in maps {
+                self.packed.extend_from_slice(m.classes());
+            }
+            self.packed.resize(self.packed.len().next_multiple_of(4), 0);
+            ctx.write(&b.labels, 0, &self.packed);
+            let k = &ctx.kernels;
+            let (f, rows_x) = (frames as u32, ssim.gh * ssim.nw);
             ctx.run(
                 "global encoding",
                 &[
-                    (&k.semantic_edges.pipeline, &g_edges, [w.div_ceil(16), h.div_ceil(16), frames as u32]),
-                    (&k.edt_columns.pipeline, &g_edt, [w.div_ceil(64), frames as u32, 1]),
-                    (&k.edt_rows.pipeline, &g_rows, [h.div_ceil(64), frames as u32, 1]),
-                    (&k.global_pool.pipeline, &g_pool, [per_frame.div_ceil(64), frames as u32, 1]),
+                    (&k.semantic_edges.pipeline, &b.groups[0], [w.div_ceil(16), h.div_ceil(16), f]),
+                    (&k.edt_columns.pipeline, &b.groups[1], [w.div_ceil(64), f, 1]),
+                    (&k.edt_rows.pipeline, &b.groups[2], [h.div_ceil(64), f, 1]),
+                    (&k.global_pool.pipeline, &b.groups[3], [(per_frame as u32).div_ceil(64), f, 1]),
+                    (&k.stats_row_sums.pipeline, &b.groups[4], [rows_x.div_ceil(64), f, 1]),
+                    (&k.stats_windows.pipeline, &b.groups[5], [(ssim.windows() as u32).div_ceil(64), f, 1]),
                 ],
             )?;
-            let all: Vec<f32> = ctx.read_back_values(&b.out, cells as usize)?;
-            Ok(all.chunks(per_frame as usize).map(|c| c.to_vec()).collect())
+            let stats_len = ssim.stats_len();
+            let back = ctx.read_back_many(&[(&b.out, cells * 4), (&b.stats, windows * 2 * 4)])?;
+            let (desc, stats): (&[f32], &[f32]) = (bytemuck::cast_slice(&back[0]), bytemuck::cast_slice(&back[1]));
+            Ok((0..frames as usize)
+                .map(|i| {
+                    let d = &desc[i * per_frame as usize..(i + 1) * per_frame as usize];
+                    (d.to_vec(), stats[i * stats_len..(i + 1) * stats_len].to_vec())
+                })
+                .collect())
         })?
+    }
+
+    /// Buffers and bind groups for batches of up to `pixels` label pixels, `cells` descriptor
+    /// cells, `windows` SSIM windows and `row_sums` row sums.
+    fn allocate(ctx: &GpuContext, pixels: u64, cells: u64, windows: u64, row_sums: u64) -> Buffers {
+        let mk = |l: &str, n: u64| ctx.storage(l, n * 4);
+        let labels = ctx.storage("labels (one byte per pixel)", pixels.next_multiple_of(4));
+        let (used, edges, g, s, t, d2) =
+            (mk("used classes", 256), mk("edges", pixels), mk("edt g", pixels), mk("edt s", pixels), mk("edt t", pixels), mk("edt d2", pixels));
+        let (out, rows, stats) = (mk("global descriptors", cells), mk("ssim row sums", 2 * row_sums), mk("ssim stats", 2 * windows));
+        let uniform = |l: &str, bytes: usize| ctx.uniform_buffer(l, bytes as u64);
+        let dims = uniform("dims", std::mem::size_of::<Dims>());
+        let pool = uniform("pool params", std::mem::size_of::<PoolParams>());
+        let ssim = uniform("ssim params", std::mem::size_of::<SsimParams>());
+        let (k, dev) = (&ctx.kernels, &ctx.device);
+        let groups = [
+            k.semantic_edges.bind(dev, &[&dims, &labels, &used, &edges]),
+            k.edt_columns.bind(dev, &[&dims, &edges, &g, &s, &t, &d2]),
+            k.edt_rows.bind(dev, &[&dims, &edges, &g, &s, &t, &d2]),
+            k.global_pool.bind(dev, &[&pool, &d2, &out]),
+            k.stats_row_sums.bind(dev, &[&ssim, &dims, &out, &rows, &stats]),
+            k.stats_windows.bind(dev, &[&ssim, &dims, &out, &rows, &stats]),
+        ];
+        Buffers { pixels, cells, windows, labels, used, edges, d2, out, stats, _scratch: [g, s, t, rows], dims, pool, ssim, groups }
     }
 
     /// Debug/test access: squared distances of the last batch (frames x pixels).

@@ -4,6 +4,8 @@
 
 use super::wgsl::{preprocess, SHADERS};
 use crate::error::GpuError;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 
 #[derive(Clone, Copy)]
 pub(crate) enum Slot {
@@ -18,6 +20,8 @@ pub(crate) enum Slot {
 pub(crate) struct Kernel {
     pub pipeline: wgpu::ComputePipeline,
     layouts: Vec<(wgpu::BindGroupLayout, Vec<(u32, Slot)>)>,
+    /// Bind groups made, shared by every kernel of the context ([`Kernels::bind_groups_created`]).
+    made: Arc<AtomicU64>,
 }
 
 impl Kernel {
@@ -38,6 +42,7 @@ impl Kernel {
                 },
             })
             .collect();
+        self.made.fetch_add(1, Ordering::Relaxed);
         device.create_bind_group(&wgpu::BindGroupDescriptor { label: None, layout, entries: &entries })
     }
 
@@ -48,6 +53,7 @@ impl Kernel {
 }
 
 pub(crate) struct Kernels {
+    made: Arc<AtomicU64>,
     pub semantic_edges: Kernel,
     pub edt_columns: Kernel,
     pub edt_rows: Kernel,
@@ -55,6 +61,9 @@ pub(crate) struct Kernels {
     pub ssim_tile: Kernel,
     pub topk_merge: Kernel,
     pub ssim_block: Kernel,
+    /// `ssim_stats.wgsl`: the SSIM window statistics of encoded descriptors.
+    pub stats_row_sums: Kernel,
+    pub stats_windows: Kernel,
     pub topk_partial: Kernel,
     pub topk_merge_lists: Kernel,
     pub tree_similarity: Kernel,
@@ -97,7 +106,14 @@ fn layout_entry(binding: u32, slot: Slot) -> wgpu::BindGroupLayoutEntry {
     }
 }
 
-fn kernel(device: &wgpu::Device, module: &wgpu::ShaderModule, file: &str, entry: &str, groups: &[&[(u32, Slot)]]) -> Result<Kernel, GpuError> {
+fn kernel_counted(
+    device: &wgpu::Device,
+    module: &wgpu::ShaderModule,
+    file: &str,
+    entry: &str,
+    groups: &[&[(u32, Slot)]],
+    made: &Arc<AtomicU64>,
+) -> Result<Kernel, GpuError> {
     let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
     let layouts: Vec<(wgpu::BindGroupLayout, Vec<(u32, Slot)>)> = groups
         .iter()
@@ -119,7 +135,7 @@ fn kernel(device: &wgpu::Device, module: &wgpu::ShaderModule, file: &str, entry:
     if let Some(e) = pollster::block_on(scope.pop()) {
         return Err(GpuError::Shader { name: format!("{file}:{entry}"), message: e.to_string() });
     }
-    Ok(Kernel { pipeline, layouts })
+    Ok(Kernel { pipeline, layouts, made: made.clone() })
 }
 
 /// Bytes of the per-pass parameters the coarse kernels bind at dynamic offsets.
@@ -132,8 +148,17 @@ pub(crate) const XF_MAP: u64 = std::mem::size_of::<crate::kernels::abi::MapParam
 pub(crate) const XF_NORM: u64 = std::mem::size_of::<crate::kernels::abi::NormParams>() as u64;
 
 impl Kernels {
+    /// Bind groups made from any of these kernels so far.
+    pub fn bind_groups_created(&self) -> u64 {
+        self.made.load(Ordering::Relaxed)
+    }
+
     pub fn new(device: &wgpu::Device, subgroups: bool) -> Result<Kernels, GpuError> {
         use Slot::*;
+        let made = Arc::new(AtomicU64::new(0));
+        let kernel = |device: &wgpu::Device, module: &wgpu::ShaderModule, file: &str, entry: &str, groups: &[&[(u32, Slot)]]| {
+            kernel_counted(device, module, file, entry, groups, &made)
+        };
         let m = |name| module(device, name, subgroups);
         let (edges, edt, pool, ssim, block, topk, tree, vlad) = (
             m("semantic_edges.wgsl")?,
@@ -146,12 +171,15 @@ impl Kernels {
             m("vlad_accumulate.wgsl")?,
         );
         let mnn = m("mnn_match.wgsl")?;
+        let stats = m("ssim_stats.wgsl")?;
+        let stats_slots: &[(u32, Slot)] = &[(0, Uniform), (1, Uniform), (2, Read), (3, ReadWrite), (4, ReadWrite)];
         let xf = m("xfeat.wgsl")?;
         let xk = |entry: &str, slots: &[(u32, Slot)]| kernel(device, &xf, "xfeat.wgsl", entry, &[slots]);
         let map1: &[(u32, Slot)] = &[(5, UniformAt(XF_MAP)), (6, Read), (9, ReadWrite)];
         let edt_slots: &[(u32, Slot)] = &[(0, Uniform), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite), (5, ReadWrite)];
         let topk_slots: &[(u32, Slot)] = &[(0, UniformAt(PASS)), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite)];
         Ok(Kernels {
+            made: made.clone(),
             semantic_edges: kernel(
                 device,
                 &edges,
@@ -177,6 +205,8 @@ impl Kernels {
                 "ssim_block",
                 &[&[(0, Uniform), (1, UniformAt(PASS)), (2, Read), (3, Read), (4, ReadWrite)], &[(0, Read), (1, Read)]],
             )?,
+            stats_row_sums: kernel(device, &stats, "ssim_stats.wgsl", "stats_row_sums", &[stats_slots])?,
+            stats_windows: kernel(device, &stats, "ssim_stats.wgsl", "stats_windows", &[stats_slots])?,
             topk_partial: kernel(device, &topk, "topk_select.wgsl", "topk_partial", &[topk_slots])?,
             topk_merge_lists: kernel(device, &topk, "topk_select.wgsl", "topk_merge_lists", &[topk_slots])?,
             tree_similarity: kernel(

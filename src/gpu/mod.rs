@@ -37,7 +37,7 @@ pub mod vlad;
 pub mod wgsl;
 pub mod xfeat;
 
-pub use context::{GpuContext, GpuError, GpuOptions, RESIDENT_FRACTION};
+pub use context::{GpuContext, GpuCounters, GpuError, GpuOptions, RESIDENT_FRACTION};
 pub use wgsl::SHADERS;
 
 /// Creates every kernel's pipeline on `device` (with or without the subgroup variants) and drops

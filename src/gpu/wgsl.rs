@@ -15,12 +15,13 @@
 pub const DEFINES: [&str; 1] = ["SUBGROUPS"];
 
 /// WGSL sources, by file name.
-pub const SHADERS: [(&str, &str); 10] = [
+pub const SHADERS: [(&str, &str); 11] = [
     ("semantic_edges.wgsl", include_str!("../../shaders/semantic_edges.wgsl")),
     ("edt.wgsl", include_str!("../../shaders/edt.wgsl")),
     ("global_pool.wgsl", include_str!("../../shaders/global_pool.wgsl")),
     ("ssim_topk.wgsl", include_str!("../../shaders/ssim_topk.wgsl")),
     ("ssim_block.wgsl", include_str!("../../shaders/ssim_block.wgsl")),
+    ("ssim_stats.wgsl", include_str!("../../shaders/ssim_stats.wgsl")),
     ("topk_select.wgsl", include_str!("../../shaders/topk_select.wgsl")),
     ("tree_similarity.wgsl", include_str!("../../shaders/tree_similarity.wgsl")),
     ("vlad_accumulate.wgsl", include_str!("../../shaders/vlad_accumulate.wgsl")),

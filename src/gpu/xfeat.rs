@@ -475,6 +475,7 @@ impl XFeatGpu {
                     }
                 })
                 .collect();
+            ctx.count_buffer();
             let pbuf = ctx.device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("xfeat pass parameters"),
                 size: params.len() as u64,
@@ -482,6 +483,7 @@ impl XFeatGpu {
                 mapped_at_creation: false,
             });
             ctx.write(&pbuf, 0, &params);
+            ctx.count_buffer();
             let staging = ctx.device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("xfeat read-back"),
                 size: out_bytes,
@@ -606,6 +608,7 @@ pub fn run_kernel(ctx: &GpuContext, entry: &str, params: &[u8], grid: [u32; 3], 
     ctx.scoped(&format!("running {entry}"), || -> Result<Vec<f32>, GpuError> {
         let mut p = params.to_vec();
         p.resize(twin_uniform_max().next_multiple_of(16), 0);
+        ctx.count_buffer();
         let pbuf = ctx.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("kernel parameters"),
             size: p.len() as u64,

@@ -19,6 +19,7 @@ pub mod mnn_match;
 pub mod semantic_edges;
 pub mod ssim;
 pub mod ssim_block;
+pub mod ssim_stats;
 pub mod ssim_topk;
 #[cfg(test)]
 pub(crate) mod test_data;

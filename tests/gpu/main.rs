@@ -61,9 +61,24 @@ fn global_encoding_matches_the_cpu_twins() {
         let (mut d, mut s) = (vec![0.0; p.len()], vec![0.0; p.stats_len()]);
         semlook::global::encode_global(m, &table.used_mask(), &cfg.global, &mut scratch, &mut d, &mut s).unwrap();
         assert_eq!(&d2[i * 97 * 61..(i + 1) * 97 * 61], scratch_d2(&scratch), "frame {i}: squared distances differ");
-        let worst = d.iter().zip(&out[i]).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+        let worst = d.iter().zip(&out[i].0).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
         assert!(worst <= 1e-5, "frame {i}: pooled values differ by {worst}");
+        stats_match_the_twins(&p, &out[i], &format!("frame {i}"));
     }
+}
+
+/// The device's SSIM statistics of an encoded descriptor against the twins (`stats_row_sums`,
+/// `stats_windows`) run on the very descriptor the device pooled: within 1e-6 (the same sums in
+/// the same order; a device may fuse a multiply-add).
+pub fn stats_match_the_twins(p: &SsimParams, (desc, stats): &(Vec<f32>, Vec<f32>), what: &str) {
+    use semlook::kernels::ssim_stats::{stats_row_sums, stats_windows};
+    let mut rows = vec![0.0; 2 * p.gh as usize * p.nw as usize];
+    let mut want = vec![0.0; p.stats_len()];
+    stats_row_sums(p, 1, desc, &mut rows);
+    stats_windows(p, 1, &rows, &mut want);
+    assert_eq!(stats.len(), want.len(), "{what}: stats length");
+    let worst = stats.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    assert!(worst <= 1e-6, "{what}: SSIM statistics differ from the twins' by {worst}");
 }
 
 fn scratch_d2(s: &semlook::global::GlobalScratch) -> &[u32] {
@@ -143,8 +158,9 @@ fn edges_and_edt_are_exact_and_pooling_within_1e_5() {
         } else {
             assert!(gd2.iter().all(|&v| v >= inf2), "map {i}: no edges but finite distances");
         }
-        let worst = pooled.iter().zip(&out[0]).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+        let worst = pooled.iter().zip(&out[0].0).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
         assert!(worst <= 1e-5, "map {i}: pooled values differ by {worst}");
+        stats_match_the_twins(&SsimParams::new(&c.global), &out[0], &format!("map {i}"));
     }
 }
 
@@ -552,7 +568,8 @@ fn kernels_on_a_real_street_frame() {
     assert!(edges.iter().filter(|&&e| e == 1).count() > 10_000, "a real frame has many semantic edges");
     assert_eq!(enc.last_edges(px).unwrap(), edges);
     assert_eq!(enc.last_d2(px).unwrap(), d2);
-    assert!(pooled.iter().zip(&out[0]).all(|(a, b)| (a - b).abs() <= 1e-5));
+    assert!(pooled.iter().zip(&out[0].0).all(|(a, b)| (a - b).abs() <= 1e-5));
+    stats_match_the_twins(&SsimParams::new(&cfg.global), &out[0], "the real street frame");
     let Ok(Some(xfeat)) = semlook::appearance::AppearanceModel::load(&cfg.appearance, &cfg.models) else {
         return common::skip_unless_required("REQUIRE_MODELS", "no XFeat weights (run setup.sh): the VLAD part of the test");
     };
