@@ -33,16 +33,34 @@ use std::time::Instant;
 pub const STREAM_FRAMES: usize = 64;
 
 /// Where the heavy work runs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum Backend {
     /// The CPU reference path (all cores, through rayon).
-    #[default]
     Cpu,
     /// The WGSL kernels on a GPU adapter (a software one too); fails if there is none.
     Gpu,
     /// A hardware GPU if there is one, else the CPU (with a warning).
     Auto,
+}
+
+impl Backend {
+    pub const ALL: [Backend; 3] = [Backend::Cpu, Backend::Gpu, Backend::Auto];
+    /// The backend of every front end (command line, Python) when none is named.
+    pub const DEFAULT: Backend = Backend::Auto;
+    pub fn name(self) -> &'static str {
+        match self {
+            Backend::Cpu => "cpu",
+            Backend::Gpu => "gpu",
+            Backend::Auto => "auto",
+        }
+    }
+}
+
+impl Default for Backend {
+    fn default() -> Backend {
+        Backend::DEFAULT
+    }
 }
 
 /// The GPU executors of an engine; pipelines live in the context, buffers in the executors.
@@ -456,5 +474,21 @@ impl Engine {
             i = j;
         }
         Ok(out.into_iter().map(|o| o.expect("every frame handled")).collect())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Backend;
+
+    /// The names the Python bindings parse (`Backend::name`) are the command line's and the JSON's.
+    #[test]
+    fn backend_names_are_the_command_lines() {
+        assert_eq!(<Backend as clap::ValueEnum>::value_variants(), &Backend::ALL);
+        for b in Backend::ALL {
+            assert_eq!(clap::ValueEnum::to_possible_value(&b).map(|v| v.get_name().to_string()), Some(b.name().to_string()));
+            assert_eq!(serde_json::to_string(&b).ok(), Some(format!("\"{}\"", b.name())));
+        }
+        assert_eq!(Backend::default(), Backend::DEFAULT);
     }
 }

@@ -39,7 +39,10 @@ def build_map(path, n, jitter, per_segment=2048):
             h = ((i * np.uint64(2654435761) + j * np.uint64(40503)) % np.uint64(1000)).astype(np.float32) / 1000.0
             a["globals"] = np.clip(a["globals"] + jitter * (h - 0.5), 0.0, 1.0).astype(np.float32)
         d = semlook.Descriptors.from_arrays(a)
-        m = semlook.Map.create(path, d, enc, segment_images=per_segment) if m is None else m.add(d, segment_images=per_segment)
+        if m is None:
+            m = semlook.Map.create(path, d, enc, segment_images=per_segment)
+        else:
+            m.add(d, segment_images=per_segment)
     return m, enc
 
 

@@ -8,12 +8,15 @@ exactly the results of one process.
     enc = semlook.Encoder(semlook.Config.without_appearance())
     refs = enc.encode_files(ids, labels=label_paths)
     m = semlook.Map.create("my-map", refs, enc)
+    m.add(more)                                   # add, remove, compact: in place
     matches = m.query(semlook.Encoder.for_map(m).encode_files(qids, labels=qpaths))
-    matches.references, matches.scores, matches.ids(0)
+    matches = m.query([label_array, ...])         # or arrays, encoded with the map's encoder
+    matches.references, matches.scores, matches.ids[0]
 
 ``Engine("gpu")`` (or "auto") runs encoding and matching on a GPU through wgpu: pass
 ``engine=`` to ``Encoder.encode_files``, ``Map.query`` and ``evaluate``; keep one per process
-(the map stays resident on the device between calls).
+(the map stays resident on the device between calls). Without ``engine=`` they run on
+``default_engine()``, an ``Engine(DEFAULT_BACKEND)``: "auto", as on the command line.
 
 Processes: heavy calls release the GIL and run on rayon threads. Do not fork a process that has
 used semlook (``multiprocessing``'s default on Linux): use the 'spawn' start method (Ray does).
@@ -30,6 +33,8 @@ if "SEMLOOK_MODELS" not in _os.environ and _repo_models.is_dir():
     _os.environ["SEMLOOK_MODELS"] = str(_repo_models)
 
 from ._native import (  # noqa: E402
+    DEFAULT_BACKEND,
+    EVAL_SETTINGS,
     Config,
     CorruptMapError,
     DatasetError,
@@ -51,6 +56,7 @@ from ._native import (  # noqa: E402
     SemlookError,
     Shard,
     __version__,
+    default_engine,
     evaluate,
     list_len,
     merge_candidates,
@@ -64,6 +70,7 @@ SETTINGS = tuple(settings())
 
 __all__ = [
     "Config", "Descriptors", "Encoder", "Engine", "Map", "Matches", "Shard", "evaluate", "list_len",
+    "DEFAULT_BACKEND", "EVAL_SETTINGS", "default_engine",
     "merge_candidates", "plan_shards", "rank", "reranks", "settings", "SETTINGS", "__version__",
     "SemlookError", "CorruptMapError", "DatasetError", "DuplicateImageIdError", "GpuError",
     "IncompatibleConfigError", "InputFileError", "InvalidConfigError", "InvalidImageError",

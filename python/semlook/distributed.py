@@ -59,12 +59,12 @@ def _actor_class():
         def fine(self, queries, setting, q, r):
             t = time.perf_counter()
             scores = self.shard.fine(queries, setting, q, r)
-            ids = self.shard.ids(r.tolist())
+            ids = self.shard.reference_ids(r.tolist())
             self.busy += time.perf_counter() - t
             return scores, ids
 
-        def ids(self, r):
-            return self.shard.ids(r.tolist())
+        def reference_ids(self, r):
+            return self.shard.reference_ids(r.tolist())
 
         def take_busy_seconds(self):
             b, self.busy = self.busy, 0.0
@@ -79,7 +79,8 @@ class ShardedMap:
     ``cpus_per_shard`` is what each actor reserves from Ray (fractions allowed; default: the
     cluster's CPUs divided among the shards), ``threads_per_shard`` the rayon threads it runs
     (default: max(1, floor(cpus_per_shard))). ``backend`` is each shard's ``Engine`` backend
-    ("cpu", "gpu", "auto"; on a GPU the shard's part of the map stays resident on the device),
+    ("cpu", "gpu", "auto"; default ``semlook.DEFAULT_BACKEND``, as on the command line; on a GPU
+    the shard's part of the map stays resident on the device),
     ``gpus_per_shard`` what each actor reserves from Ray's GPUs (default: 1 with backend "gpu",
     else 0; with "auto" reserve them yourself where nodes have GPUs, or Ray may place several
     shards on one GPU); a shard opens the GPU Ray gave it (``ray.get_gpu_ids()``). ``node_ids`` pins shard i to node ``node_ids[i]``
@@ -87,9 +88,10 @@ class ShardedMap:
     it every node must see the whole map directory at the same path (a shared file system).
     """
 
-    def __init__(self, map_dir, shards, *, config=None, k=None, cpus_per_shard=None, threads_per_shard=None, node_ids=None, backend="cpu", gpus_per_shard=None):
+    def __init__(self, map_dir, shards, *, config=None, k=None, cpus_per_shard=None, threads_per_shard=None, node_ids=None, backend=None, gpus_per_shard=None):
         import ray
 
+        backend = backend or semlook.DEFAULT_BACKEND
         self.map_dir = os.path.abspath(map_dir)
         self.plan = semlook.plan_shards(self.map_dir, shards)
         self.starts = np.array([p["global_start"] for p in self.plan], dtype=np.int64)
@@ -141,7 +143,7 @@ class ShardedMap:
             if two_stages:
                 calls.append((sel, actor.fine.remote(qref, setting, flat_q[sel], flat_r[sel])))
             else:
-                calls.append((sel, actor.ids.remote(flat_r[sel])))
+                calls.append((sel, actor.reference_ids.remote(flat_r[sel])))
         for sel, ref in calls:
             got = ray.get(ref)
             if two_stages:
@@ -184,7 +186,7 @@ def main(argv=None):
     ap.add_argument("--setting", default="verified", choices=semlook.SETTINGS)
     ap.add_argument("-k", type=int, default=None)
     ap.add_argument("--cpus-per-shard", type=float, default=None)
-    ap.add_argument("--backend", default="cpu", choices=["cpu", "gpu", "auto"], help="each shard's engine")
+    ap.add_argument("--backend", default=semlook.DEFAULT_BACKEND, choices=["cpu", "gpu", "auto"], help=f"each shard's engine (default: {semlook.DEFAULT_BACKEND}, as semlook's)")
     ap.add_argument("--gpus-per-shard", type=float, default=None, help="Ray GPUs per shard (default: 1 with --backend gpu)")
     ap.add_argument("--json", help="write the results here (default: stdout)")
     a = ap.parse_args(argv)

@@ -59,7 +59,7 @@ def export_global_features(
 
     if kind not in KINDS:
         raise InvalidInputError(f"kind: {kind!r} is not one of {', '.join(KINDS)}")
-    ids = source.ids if isinstance(source, Descriptors) else source.ids()
+    ids = source.ids
     dim = source.appearance_dim if isinstance(source, Descriptors) else source.manifest()["appearance_dim"]
     if kind == "appearance" and dim == 0:
         raise InvalidInputError("kind: 'appearance', but these descriptors have no appearance vectors (encoded without a keypoint network)")

@@ -3,7 +3,7 @@
 
 use crate::arrays::{detached, pool};
 use crate::descriptors::PyDescriptors;
-use crate::engine::{run, PyEngine};
+use crate::engine::{resolve, run, PyEngine};
 use crate::errors::{invalid, OrPy};
 use crate::store::PyMap;
 use numpy::{PyReadonlyArrayDyn, PyUntypedArrayMethods};
@@ -41,7 +41,7 @@ impl PyConfig {
     /// What `semlook query` uses on this map without --config: the map's encoding, default matching.
     #[staticmethod]
     fn for_map(map: &PyMap) -> Self {
-        PyConfig { inner: map.inner.query_config() }
+        PyConfig { inner: map.map().query_config() }
     }
     /// `for_map` from the map directory's manifest alone (no segment file is read: a driver need
     /// not hold them).
@@ -108,8 +108,8 @@ impl PyEncoder {
     #[staticmethod]
     #[pyo3(signature = (map, config=None))]
     fn for_map(py: Python<'_>, map: &PyMap, config: Option<PyRef<'_, PyConfig>>) -> PyResult<Self> {
-        let cfg = config.map_or_else(|| map.inner.query_config(), |c| c.inner.clone());
-        let m = map.inner.clone();
+        let m = map.map();
+        let cfg = config.map_or_else(|| m.query_config(), |c| c.inner.clone());
         Ok(PyEncoder { inner: py.detach(|| Encoder::for_map(&cfg, &m)).py_err()? })
     }
     /// `for_map` from the map directory's manifest and codebook alone: no segment file is
@@ -164,7 +164,7 @@ impl PyEncoder {
     ) -> PyResult<PyDescriptors> {
         let frames = frames(ids, images, labels)?;
         let fmt = self::label_format(label_format)?;
-        let (enc, engine) = (&self.inner, engine.map(|e| e.shared()));
+        let (enc, engine) = (&self.inner, resolve(py, engine)?);
         let encoded =
             run(py, pool(threads)?, engine.as_ref(), |e| semlook::batch::encode_frames(e, enc, &frames, fmt, "frames", skip_invalid, true))?;
         Ok(PyDescriptors::new(encoded.set))
@@ -173,58 +173,8 @@ impl PyEncoder {
     /// label ids (any integer type; translated by the config's class table like a grey PNG).
     #[pyo3(signature = (id, image=None, labels=None))]
     fn encode(&self, py: Python<'_>, id: String, image: Option<&Bound<'_, PyAny>>, labels: Option<&Bound<'_, PyAny>>) -> PyResult<PyDescriptors> {
-        let name = PathBuf::from(format!("{id} (labels array)"));
-        let rgb = match image {
-            Some(a) => {
-                let what = format!("image of {id:?}");
-                let a = as_array(py, a, &what)?;
-                if dtype_of(&a)? != "uint8" {
-                    return Err(invalid(&what, format!("dtype {}, expected uint8 RGB", dtype_of(&a)?)));
-                }
-                let a: PyReadonlyArrayDyn<'_, u8> = a.extract().map_err(|e| invalid(&what, e))?;
-                let s = a.shape();
-                if s.len() != 3 || s[2] != 3 || s[0] == 0 || s[1] == 0 || s[0] > 1 << 15 || s[1] > 1 << 15 {
-                    return Err(invalid(&what, format!("shape {s:?}, expected [H, W, 3] uint8 (H, W at most 32768)")));
-                }
-                let (h, w) = (s[0] as u32, s[1] as u32);
-                let pixels: Vec<u8> = a.as_array().iter().copied().collect();
-                Some(image::RgbImage::from_raw(w, h, pixels).ok_or_else(|| invalid(&what, "size"))?)
-            }
-            None => None,
-        };
-        let labels = match labels {
-            Some(l) => {
-                let what = format!("labels of {id:?}");
-                let l = as_array(py, l, &what)?;
-                let kind: String = l.getattr("dtype")?.getattr("kind")?.extract()?;
-                if kind != "i" && kind != "u" {
-                    // floats are not truncated into ids, nor strings or objects converted
-                    return Err(invalid(&what, format!("dtype {}, expected an integer array of label ids", dtype_of(&l)?)));
-                }
-                let s: Vec<usize> = l.getattr("shape")?.extract()?;
-                if s.len() != 2 {
-                    return Err(invalid(&what, format!("shape {s:?}, expected [H, W]")));
-                }
-                // uint64 ids above i64::MAX would wrap in int64; every other integer type fits
-                let itemsize: usize = l.getattr("dtype")?.getattr("itemsize")?.extract()?;
-                if kind == "u" && itemsize == 8 && s[0] * s[1] > 0 {
-                    let top: u64 = l.call_method0("max")?.extract()?;
-                    if top > u64::from(u32::MAX) {
-                        return Err(invalid(&what, format!("label id {top} is not a class id (0 to {})", u32::MAX)));
-                    }
-                }
-                let ids: PyReadonlyArrayDyn<'_, i64> = l.call_method1("astype", ("int64",))?.extract().map_err(|e| invalid(&what, e))?;
-                let mut v = Vec::with_capacity(s[0] * s[1]);
-                for (i, &x) in ids.as_array().iter().enumerate() {
-                    let id = u32::try_from(x).map_err(|_| {
-                        invalid(&what, format!("label id {x} at pixel (x {}, y {}) is not a class id (0 to {})", i % s[1], i / s[1], u32::MAX))
-                    })?;
-                    v.push(id);
-                }
-                Some(input::label_map_from_ids(s[1] as u32, s[0] as u32, &v, &name, self.inner.class_table()).py_err()?)
-            }
-            None => None,
-        };
+        let rgb = image.map(|a| rgb_from_array(py, a, &format!("image of {id:?}"))).transpose()?;
+        let labels = labels.map(|l| labels_from_array(py, l, &format!("labels of {id:?}"), &self.inner)).transpose()?;
         let enc = &self.inner;
         let set = py
             .detach(|| -> semlook::Result<_> {
@@ -266,4 +216,62 @@ fn as_array<'py>(py: Python<'py>, obj: &Bound<'py, PyAny>, what: &str) -> PyResu
 /// The name of an array's dtype.
 fn dtype_of(a: &Bound<'_, PyAny>) -> PyResult<String> {
     a.getattr("dtype")?.str()?.extract()
+}
+
+/// An RGB image from a uint8 array [H, W, 3] (H, W at most 32768); errors name `what`.
+pub fn rgb_from_array(py: Python<'_>, obj: &Bound<'_, PyAny>, what: &str) -> PyResult<image::RgbImage> {
+    let a = as_array(py, obj, what)?;
+    if dtype_of(&a)? != "uint8" {
+        return Err(invalid(what, format!("dtype {}, expected uint8 RGB", dtype_of(&a)?)));
+    }
+    let a: PyReadonlyArrayDyn<'_, u8> = a.extract().map_err(|e| invalid(what, e))?;
+    let s = a.shape();
+    if s.len() != 3 || s[2] != 3 || s[0] == 0 || s[1] == 0 || s[0] > 1 << 15 || s[1] > 1 << 15 {
+        return Err(invalid(what, format!("shape {s:?}, expected [H, W, 3] uint8 (H, W at most 32768)")));
+    }
+    let (h, w) = (s[0] as u32, s[1] as u32);
+    let pixels: Vec<u8> = a.as_array().iter().copied().collect();
+    image::RgbImage::from_raw(w, h, pixels).ok_or_else(|| invalid(what, "size"))
+}
+
+/// A label map from an integer array [H, W] of label ids, translated by `enc`'s class table like
+/// a grey PNG; errors name `what`.
+pub fn labels_from_array(py: Python<'_>, obj: &Bound<'_, PyAny>, what: &str, enc: &Encoder) -> PyResult<input::LabelMap> {
+    let l = as_array(py, obj, what)?;
+    let kind: String = l.getattr("dtype")?.getattr("kind")?.extract()?;
+    if kind != "i" && kind != "u" {
+        // floats are not truncated into ids, nor strings or objects converted
+        return Err(invalid(what, format!("dtype {}, expected an integer array of label ids", dtype_of(&l)?)));
+    }
+    let s: Vec<usize> = l.getattr("shape")?.extract()?;
+    if s.len() != 2 {
+        return Err(invalid(what, format!("shape {s:?}, expected [H, W]")));
+    }
+    // uint64 ids above i64::MAX would wrap in int64; every other integer type fits
+    let itemsize: usize = l.getattr("dtype")?.getattr("itemsize")?.extract()?;
+    if kind == "u" && itemsize == 8 && s[0] * s[1] > 0 {
+        let top: u64 = l.call_method0("max")?.extract()?;
+        if top > u64::from(u32::MAX) {
+            return Err(invalid(what, format!("label id {top} is not a class id (0 to {})", u32::MAX)));
+        }
+    }
+    let ids: PyReadonlyArrayDyn<'_, i64> = l.call_method1("astype", ("int64",))?.extract().map_err(|e| invalid(what, e))?;
+    let mut v = Vec::with_capacity(s[0] * s[1]);
+    for (i, &x) in ids.as_array().iter().enumerate() {
+        let id = u32::try_from(x)
+            .map_err(|_| invalid(what, format!("label id {x} at pixel (x {}, y {}) is not a class id (0 to {})", i % s[1], i / s[1], u32::MAX)))?;
+        v.push(id);
+    }
+    // an id the class table lacks is a bad value here, not a bad file
+    input::label_map_from_ids(s[1] as u32, s[0] as u32, &v, std::path::Path::new(what), enc.class_table()).map_err(|e| match e {
+        semlook::Error::UnknownClassId { id, x, y, .. } => {
+            invalid(what, format!("pixel (x {x}, y {y}) has class id {id}, which the class table does not know (and is not void)"))
+        }
+        e => crate::errors::to_py(e),
+    })
+}
+
+/// The shape of `obj` as a numpy array.
+pub fn shape_of(py: Python<'_>, obj: &Bound<'_, PyAny>, what: &str) -> PyResult<Vec<usize>> {
+    as_array(py, obj, what)?.getattr("shape")?.extract()
 }

@@ -5,6 +5,7 @@
 
 use crate::errors::{invalid, OrPy};
 use pyo3::prelude::*;
+use pyo3::sync::PyOnceLock;
 use rayon::ThreadPool;
 use semlook::engine::{Backend, Engine};
 use semlook::gpu::GpuOptions;
@@ -12,7 +13,8 @@ use std::sync::{Arc, Mutex};
 
 /// Where heavy work runs: `backend` "cpu", "gpu" (any adapter, software ones such as lavapipe
 /// included; raises `GpuError` if there is none) or "auto" (a hardware GPU when there is one,
-/// else the CPU; `fallback_reason` says why). `adapter` picks the n-th GPU in order of preference
+/// else the CPU; `fallback_reason` says why); None: `DEFAULT_BACKEND`, the command line's default
+/// ("auto"). `adapter` picks the n-th GPU in order of preference
 /// (discrete first) on a machine with several. Calls through one engine run one at a time.
 #[pyclass(frozen, module = "semlook._native", name = "Engine")]
 pub struct PyEngine {
@@ -23,8 +25,8 @@ pub struct PyEngine {
 #[pymethods]
 impl PyEngine {
     #[new]
-    #[pyo3(signature = (backend="auto", adapter=None))]
-    fn new(py: Python<'_>, backend: &str, adapter: Option<usize>) -> PyResult<Self> {
+    #[pyo3(signature = (backend=None, adapter=None))]
+    fn new(py: Python<'_>, backend: Option<&str>, adapter: Option<usize>) -> PyResult<Self> {
         let (engine, fallback) = engine_for(py, backend, adapter)?;
         Ok(PyEngine { inner: Arc::new(Mutex::new(engine)), fallback })
     }
@@ -67,21 +69,53 @@ impl PyEngine {
     }
 }
 
-/// An engine for `backend` ("cpu", "gpu", "auto") on GPU `adapter`, and with "auto" the reason
-/// it runs on the CPU.
-pub fn engine_for(py: Python<'_>, backend: &str, adapter: Option<usize>) -> PyResult<(Engine, Option<String>)> {
+/// An engine for `backend` ("cpu", "gpu", "auto"; None: `Backend::DEFAULT`) on GPU `adapter`,
+/// and with "auto" the reason it runs on the CPU.
+pub fn engine_for(py: Python<'_>, backend: Option<&str>, adapter: Option<usize>) -> PyResult<(Engine, Option<String>)> {
     let b = match backend {
-        "cpu" => Backend::Cpu,
-        "gpu" => Backend::Gpu,
-        "auto" => Backend::Auto,
-        other => return Err(invalid("backend", format!("{other:?} is not one of cpu, gpu, auto"))),
+        None => Backend::DEFAULT,
+        Some(name) => Backend::ALL.into_iter().find(|b| b.name() == name).ok_or_else(|| {
+            let names: Vec<&str> = Backend::ALL.iter().map(|b| b.name()).collect();
+            invalid("backend", format!("{name:?} is not one of {}", names.join(", ")))
+        })?,
     };
     let opts = GpuOptions { adapter, ..Default::default() };
     py.detach(|| Engine::new(b, &opts)).py_err()
 }
 
+/// The engine of calls given no `engine=`: `Engine(DEFAULT_BACKEND)`, made on first use, and
+/// whether it was a GPU one then.
+static DEFAULT_ENGINE: PyOnceLock<(Py<PyEngine>, bool)> = PyOnceLock::new();
+
+fn default_engine_of(py: Python<'_>) -> PyResult<&(Py<PyEngine>, bool)> {
+    DEFAULT_ENGINE.get_or_try_init(py, || {
+        let e = PyEngine::new(py, None, None)?;
+        let gpu = e.is_gpu(py);
+        Ok((Py::new(py, e)?, gpu))
+    })
+}
+
+/// The engine calls run on when given no `engine=`: `Engine(DEFAULT_BACKEND)`, made on first
+/// use and kept for the process (on a GPU, the last map stays resident between calls).
+#[pyfunction]
+pub fn default_engine(py: Python<'_>) -> PyResult<Py<PyEngine>> {
+    Ok(default_engine_of(py)?.0.clone_ref(py))
+}
+
+/// The engine a call runs on: `engine`, else the default one. `None` where that is the CPU:
+/// each call then runs on a CPU engine of its own, so calls from several threads run at once.
+pub fn resolve(py: Python<'_>, engine: Option<PyRef<'_, PyEngine>>) -> PyResult<Option<Arc<Mutex<Engine>>>> {
+    match engine {
+        Some(e) => Ok(Some(e.shared())),
+        None => match default_engine_of(py)? {
+            (e, true) => Ok(Some(e.get().shared())),
+            (_, false) => Ok(None),
+        },
+    }
+}
+
 /// Runs `work` without the GIL, on `pool` (or the global pool), with `engine` (`None`: a CPU
-/// engine of the call's own). The engine is locked on the calling thread before entering the
+/// engine of the call's own; see `resolve`). The engine is locked on the calling thread before entering the
 /// pool, never on a pool worker: a worker blocked on the lock could be the one another call's
 /// parallel work waits for (two Python threads sharing an engine and a `threads=` pool).
 pub fn run<T: Send>(

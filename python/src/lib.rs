@@ -27,6 +27,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<matches::PyMatches>()?;
     m.add_class::<shard::PyShard>()?;
     m.add_function(wrap_pyfunction!(map::evaluate, m)?)?;
+    m.add_function(wrap_pyfunction!(engine::default_engine, m)?)?;
     m.add_function(wrap_pyfunction!(hloc::hloc_names, m)?)?;
     m.add_function(wrap_pyfunction!(shard::plan_shards, m)?)?;
     m.add_function(wrap_pyfunction!(shard::merge_candidates, m)?)?;
@@ -35,5 +36,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(shard::settings, m)?)?;
     m.add_function(wrap_pyfunction!(shard::reranks, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    // the defaults of the command line, from the engine (what `Engine()` and `evaluate` take)
+    m.add("DEFAULT_BACKEND", semlook::engine::Backend::DEFAULT.name())?;
+    m.add("EVAL_SETTINGS", pyo3::types::PyTuple::new(m.py(), semlook::eval::DEFAULT_SETTINGS.map(|s| s.name()))?)?;
     Ok(())
 }

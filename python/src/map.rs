@@ -4,17 +4,26 @@
 use crate::arrays::to_py_object;
 use crate::arrays::{pool, setting, view};
 use crate::descriptors::PyDescriptors;
+use crate::encoder::{labels_from_array, rgb_from_array, shape_of};
 use crate::encoder::{PyConfig, PyEncoder};
-use crate::engine::{run, PyEngine};
+use crate::engine::{resolve, run, PyEngine};
 use crate::errors::{invalid, OrPy};
 use crate::matches::PyMatches;
-use crate::store::{wrap, PyMap};
+use crate::store::{wrap, MapGeneration, PyMap};
+use image::RgbImage;
+use numpy::{PyUntypedArray, PyUntypedArrayMethods};
 use pyo3::prelude::*;
+use rayon::prelude::*;
 use semlook::config::Config;
+use semlook::descriptors::DescriptorSet;
+use semlook::encode::Encoder;
+use semlook::input::LabelMap;
 use semlook::map::{edit, Map, MapWriter, StoreOptions};
 use semlook::matching::source::RefSource;
+use semlook::matching::Setting;
 use semlook::values::{ValueType, Values};
 use std::path::PathBuf;
+use std::sync::Arc;
 
 fn store_options(segment_images: Option<usize>, f16: bool) -> PyResult<StoreOptions> {
     let mut o = StoreOptions { values: if f16 { ValueType::F16 } else { ValueType::F32 }, ..Default::default() };
@@ -52,74 +61,76 @@ impl PyMap {
         Ok(wrap(py.detach(|| Map::create_with(&path, enc.config(), &set, enc.appearance_record(), opts)).py_err()?))
     }
     /// Adds `descriptors` (encoded by `Encoder.for_map(map)`) as new segments; every image and id
-    /// is checked before anything is written. Returns the map reopened.
+    /// is checked before anything is written. This map then serves the new generation.
     #[pyo3(signature = (descriptors, segment_images=None))]
-    fn add(&self, py: Python<'_>, descriptors: &PyDescriptors, segment_images: Option<usize>) -> PyResult<Self> {
-        let (set, dir, opts) = (descriptors.inner.clone(), self.inner.path.clone(), store_options(segment_images, false)?);
-        Ok(wrap(
-            py.detach(|| {
+    fn add(&self, py: Python<'_>, descriptors: &PyDescriptors, segment_images: Option<usize>) -> PyResult<()> {
+        let (set, dir, opts) = (descriptors.inner.clone(), self.map().path.clone(), store_options(segment_images, false)?);
+        let m = py
+            .detach(|| {
                 let mut w = MapWriter::append(&dir, opts)?;
                 w.push_set(&set)?;
                 w.finish()
             })
-            .py_err()?,
-        ))
+            .py_err()?;
+        self.replace(m);
+        Ok(())
     }
     /// Marks the images `ids` removed (queries never return them; `compact` drops them from the
-    /// files). Returns the map reopened.
-    fn remove(&self, py: Python<'_>, ids: Vec<String>) -> PyResult<Self> {
-        let dir = self.inner.path.clone();
-        Ok(wrap(py.detach(|| edit::remove(&dir, &ids).and_then(|_| Map::open(&dir))).py_err()?))
+    /// files). This map then serves the new generation.
+    fn remove(&self, py: Python<'_>, ids: Vec<String>) -> PyResult<()> {
+        let dir = self.map().path.clone();
+        self.replace(py.detach(|| edit::remove(&dir, &ids).and_then(|_| Map::open(&dir))).py_err()?);
+        Ok(())
     }
-    /// Rewrites segments without their removed images, merging small ones; returns (map, report).
-    fn compact<'py>(&self, py: Python<'py>) -> PyResult<(Self, Bound<'py, PyAny>)> {
-        let dir = self.inner.path.clone();
+    /// Rewrites segments without their removed images, merging small ones; this map then serves
+    /// the new generation. Returns the report (a dict).
+    fn compact<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let dir = self.map().path.clone();
         let (m, report) = py.detach(|| edit::compact(&dir, StoreOptions::default()).and_then(|r| Ok((Map::open(&dir)?, r)))).py_err()?;
-        Ok((wrap(m), to_py_object(py, &report)?))
+        self.replace(m);
+        to_py_object(py, &report)
     }
     /// Checks every file (SHA-256, values); a dict naming each damaged file (raises only when the
     /// manifest itself is unreadable).
     fn verify<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        let dir = self.inner.path.clone();
+        let dir = self.map().path.clone();
         let report = py.detach(|| edit::verify(&dir)).py_err()?;
         to_py_object(py, &report)
     }
     fn __len__(&self) -> usize {
-        self.inner.len()
+        self.map().len()
     }
     fn __repr__(&self) -> String {
-        format!(
-            "Map({:?}, {} images, {} segments, generation {})",
-            self.inner.path,
-            self.inner.len(),
-            self.inner.segments().len(),
-            self.inner.manifest.generation
-        )
+        let m = self.map();
+        format!("Map({:?}, {} images, {} segments, generation {})", m.path, m.len(), m.segments().len(), m.manifest.generation)
     }
     #[getter]
     fn path(&self) -> PathBuf {
-        self.inner.path.clone()
+        self.map().path.clone()
     }
     #[getter]
     fn generation(&self) -> u64 {
-        self.inner.manifest.generation
+        self.map().manifest.generation
     }
     #[getter]
     fn n_segments(&self) -> usize {
-        self.inner.segments().len()
+        self.map().segments().len()
     }
     /// The ids of the map's images, in reference order (removed images left out).
+    #[getter]
     fn ids(&self) -> Vec<String> {
-        (0..self.inner.len()).map(|i| self.inner.id(i).to_string()).collect()
+        let m = self.map();
+        (0..m.len()).map(|i| m.id(i).to_string()).collect()
     }
     /// The manifest as a dict.
     fn manifest<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        to_py_object(py, &self.inner.manifest)
+        to_py_object(py, &self.map().manifest)
     }
     /// Rows of segment `s` that are not removed (reference order within the segment).
     fn live_rows(&self, s: usize) -> PyResult<Vec<usize>> {
-        self.segment_index(s)?;
-        Ok(self.inner.live_rows(s).collect())
+        let m = self.map();
+        segment_index(&m, s)?;
+        Ok(m.live_rows(s).collect())
     }
     /// Segment `s`'s stored values: `name` "globals" ([rows, height, width]) is a read-only numpy
     /// view, no copy (float32, or float16 on an f16 map; it keeps the map's mapping alive);
@@ -128,8 +139,8 @@ impl PyMap {
     /// SHA-256 and values are checked first.
     #[pyo3(signature = (s, name, verify=true))]
     fn segment_view<'py>(slf: Bound<'py, Self>, s: usize, name: &str, verify: bool) -> PyResult<Bound<'py, PyAny>> {
-        let map = slf.get().inner.clone();
-        slf.get().segment_index(s)?;
+        let map = slf.get().map();
+        segment_index(&map, s)?;
         let seg = &map.segments()[s];
         if verify {
             seg.ensure().map_err(|r| crate::errors::to_py(semlook::Error::corrupt(&seg.path, r)))?;
@@ -140,7 +151,8 @@ impl PyMap {
             "image_appearance" => (seg.image_appearances(), vec![seg.len(), map.manifest.appearance_dim]),
             _ => return Err(invalid("segment_view", format!("{name:?} is not globals or image_appearance"))),
         };
-        let owner = slf.into_any();
+        // the views keep this generation open, whatever this object serves later
+        let owner = Bound::new(slf.py(), MapGeneration { _map: map.clone() })?.into_any();
         Ok(match values {
             Values::F32(v) => view(owner, v, &shape)?.into_any(),
             // SAFETY: half::f16 is a transparent wrapper of its u16 bit pattern
@@ -148,36 +160,166 @@ impl PyMap {
             blocks @ Values::Blocks(_) => numpy::PyArrayMethods::reshape(&numpy::PyArray1::from_vec(owner.py(), blocks.to_vec()), shape)?.into_any(),
         })
     }
-    /// Matches `queries` (from `Encoder.for_map(map)`) against the whole map on the CPU with
-    /// `setting`; `k` candidates per query (default: the config's top_k), `config` as `semlook
-    /// query --config` (default: `Config.for_map(map)`), `threads` for a pool of its own. With
-    /// `engine` (an `Engine`), on its backend: on a GPU the map stays resident between calls.
-    #[pyo3(signature = (queries, setting="verified", k=None, config=None, threads=None, engine=None))]
+    /// Matches query frames against the whole map with `setting`. `queries`: `Descriptors` (from
+    /// `Encoder.for_map(map)`), or frames as arrays, all label maps (integer [H, W] of label ids)
+    /// or all RGB images (uint8 [H, W, 3]); or, instead, `images` and/or `labels`, one per frame
+    /// (both for frames that have both). Frames are encoded with `Encoder.for_map(map, config)` as
+    /// its `encode` does (on the CPU), named by `ids` (default q0, q1, ...). `k` candidates per
+    /// query (default: the config's top_k), `config` as `semlook query --config` (default:
+    /// `Config.for_map(map)`), `threads` for a pool of its own, `engine` the `Engine` matching
+    /// runs on (default: `default_engine()`).
+    #[pyo3(signature = (queries=None, setting="verified", k=None, config=None, threads=None, engine=None, *, images=None, labels=None, ids=None))]
     #[allow(clippy::too_many_arguments)]
     fn query(
         &self,
         py: Python<'_>,
-        queries: &PyDescriptors,
+        queries: Option<&Bound<'_, PyAny>>,
         setting: &str,
         k: Option<usize>,
         config: Option<PyRef<'_, PyConfig>>,
         threads: Option<usize>,
         engine: Option<PyRef<'_, PyEngine>>,
+        images: Option<&Bound<'_, PyAny>>,
+        labels: Option<&Bound<'_, PyAny>>,
+        ids: Option<Vec<String>>,
     ) -> PyResult<PyMatches> {
+        let map = self.map();
         let s = self::setting(setting)?;
-        let cfg = query_config(&self.inner, config.map(|c| c.inner.clone()), k)?;
-        let (map, set, engine) = (self.inner.clone(), queries.inner.clone(), engine.map(|e| e.shared()));
-        let (matches, _) = run(py, pool(threads)?, engine.as_ref(), |e| e.match_batch(map.as_ref(), &set, s, &cfg))?;
+        let cfg = query_config(&map, config.map(|c| c.inner.clone()), k)?;
+        let input = match queries.map(|q| q.cast::<PyDescriptors>()) {
+            Some(Ok(d)) => match (images, labels, ids) {
+                (None, None, None) => Input::Encoded(d.get().inner.clone()),
+                (Some(_), ..) | (_, Some(_), _) => return Err(invalid("queries", "Descriptors, and images= or labels= too: give one of them")),
+                (.., Some(_)) => return Err(invalid("ids", "given with Descriptors, which carry their ids")),
+            },
+            _ => {
+                let enc = py.detach(|| self.encoder(&map, &cfg)).py_err()?.with_hog(s == Setting::Hog);
+                let frames = raw_frames(py, &enc, queries, images, labels, ids)?;
+                Input::Frames(Box::new(enc), frames)
+            }
+        };
+        let engine = resolve(py, engine)?;
+        let (set, matches) = run(py, pool(threads)?, engine.as_ref(), |e| {
+            let set = match input {
+                Input::Encoded(set) => set,
+                Input::Frames(enc, frames) => Arc::new(encode_frames(&enc, frames)?),
+            };
+            let (matches, _) = e.match_batch(map.as_ref(), &set, s, &cfg)?;
+            Ok((set, matches))
+        })?;
         Ok(PyMatches::new(s, &set.ids, matches, |r| map.id(r as usize).to_string()))
     }
 }
 
-impl PyMap {
-    fn segment_index(&self, s: usize) -> PyResult<()> {
-        match s < self.inner.segments().len() {
-            true => Ok(()),
-            false => Err(invalid("segment", format!("{s} of a map of {} segments", self.inner.segments().len()))),
+/// What `Map.query` matches: descriptors, or frames to encode first.
+enum Input {
+    Encoded(Arc<DescriptorSet>),
+    Frames(Box<Encoder>, Vec<Frame>),
+}
+
+/// A query frame from arrays: id, RGB image, label map.
+type Frame = (String, Option<RgbImage>, Option<LabelMap>);
+
+/// The frames of `Map.query`'s arrays: `queries` (all label maps or all images), or `images`
+/// and/or `labels`; named by `ids` (default q0, q1, ...).
+fn raw_frames(
+    py: Python<'_>,
+    enc: &Encoder,
+    queries: Option<&Bound<'_, PyAny>>,
+    images: Option<&Bound<'_, PyAny>>,
+    labels: Option<&Bound<'_, PyAny>>,
+    ids: Option<Vec<String>>,
+) -> PyResult<Vec<Frame>> {
+    let (mut rgb, mut lab) = (Vec::new(), Vec::new());
+    match (queries, images, labels) {
+        (Some(_), Some(_), _) | (Some(_), _, Some(_)) => {
+            return Err(invalid("queries", "frames given both as queries and as images= or labels=: give one of them"))
         }
+        (None, None, None) => return Err(invalid("queries", "nothing to match: give Descriptors, arrays of frames, or images= and/or labels=")),
+        (Some(q), None, None) => {
+            // (index, is an image) of the first frame: the others must be of its kind
+            let mut first: Option<(usize, bool)> = None;
+            for (i, a) in frames_of(q, "queries")?.iter().enumerate() {
+                let what = format!("queries[{i}]");
+                let shape = shape_of(py, a, &what)?;
+                let image = match shape.len() {
+                    2 => false,
+                    3 if shape[2] == 3 => true,
+                    _ => return Err(invalid(&what, format!("shape {shape:?}: expected a label map [H, W] or an RGB image [H, W, 3]"))),
+                };
+                if let Some((j, _)) = first.filter(|&(_, f)| f != image) {
+                    let (this, that) = if image { ("an image", "a label map") } else { ("a label map", "an image") };
+                    return Err(invalid(&what, format!("{this}, but queries[{j}] is {that}: give frames of one kind, or images= and labels=")));
+                }
+                first.get_or_insert((i, image));
+                match image {
+                    true => rgb.push(Some(rgb_from_array(py, a, &what)?)),
+                    false => lab.push(Some(labels_from_array(py, a, &what, enc)?)),
+                }
+            }
+        }
+        (None, im, lb) => {
+            let im = im.map(|x| frames_of(x, "images")).transpose()?;
+            let lb = lb.map(|x| frames_of(x, "labels")).transpose()?;
+            if let (Some(i), Some(l)) = (&im, &lb) {
+                if i.len() != l.len() {
+                    return Err(invalid("labels", format!("{} label maps for {} images", l.len(), i.len())));
+                }
+            }
+            for (i, a) in im.iter().flatten().enumerate() {
+                rgb.push(Some(rgb_from_array(py, a, &format!("images[{i}]"))?));
+            }
+            for (i, a) in lb.iter().flatten().enumerate() {
+                lab.push(Some(labels_from_array(py, a, &format!("labels[{i}]"), enc)?));
+            }
+        }
+    }
+    let n = rgb.len().max(lab.len());
+    let ids = match ids {
+        Some(v) if v.len() != n => return Err(invalid("ids", format!("{} ids for {n} frames", v.len()))),
+        Some(v) => v,
+        None => (0..n).map(|i| format!("q{i}")).collect(),
+    };
+    let (mut rgb, mut lab) = (rgb.into_iter(), lab.into_iter());
+    Ok(ids.into_iter().map(|id| (id, rgb.next().flatten(), lab.next().flatten())).collect())
+}
+
+/// The items of a sequence of frames named `what` (a list, or an array stacking frames).
+fn frames_of<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<Vec<Bound<'py, PyAny>>> {
+    if obj.is_instance_of::<pyo3::types::PyString>() || obj.is_instance_of::<pyo3::types::PyBytes>() {
+        return Err(invalid(what, "a string, not a sequence of arrays (files: Encoder.encode_files)"));
+    }
+    if let Ok(a) = obj.cast::<PyUntypedArray>() {
+        let shape = a.shape();
+        // one frame is not a sequence of them: its rows would be taken as frames
+        if shape.len() < 3 || (shape.len() == 3 && shape[2] == 3) {
+            return Err(invalid(what, format!("one array of shape {shape:?}: give a sequence of frames (a list, or an array stacking them)")));
+        }
+    }
+    obj.try_iter().map_err(|_| invalid(what, "not a sequence of arrays"))?.collect()
+}
+
+/// Encodes frames in parallel (on the current pool), in order; the first failure is the error.
+fn encode_frames(enc: &Encoder, frames: Vec<Frame>) -> semlook::Result<DescriptorSet> {
+    let encoded: Vec<semlook::Result<_>> = frames
+        .into_par_iter()
+        .map_init(Default::default, |scratch, (id, rgb, labels)| {
+            let loaded = enc.load_arrays(&id, rgb, labels)?;
+            Ok(enc.encode_loaded(&id, &loaded, scratch)?.0)
+        })
+        .collect();
+    let mut set = enc.descriptor_set();
+    for img in encoded {
+        let img = img?;
+        set.push(&img).map_err(|r| semlook::Error::invalid(format!("image {:?}", img.id), r))?;
+    }
+    Ok(set)
+}
+
+fn segment_index(map: &Map, s: usize) -> PyResult<()> {
+    match s < map.segments().len() {
+        true => Ok(()),
+        false => Err(invalid("segment", format!("{s} of a map of {} segments", map.segments().len()))),
     }
 }
 
@@ -212,21 +354,23 @@ pub fn evaluate<'py>(
     engine: Option<PyRef<'_, PyEngine>>,
 ) -> PyResult<Bound<'py, PyAny>> {
     use semlook::dataset::{Dataset, DatasetOptions};
-    // every setting by default, as `semlook eval`
+    // as `semlook eval`: the default settings, and without a config or map the defaults
+    // adapted to the dataset's label files
     let settings = match settings {
         Some(names) => names.iter().map(|s| setting(s)).collect::<PyResult<Vec<_>>>()?,
-        None => semlook::matching::Setting::ALL.to_vec(),
+        None => semlook::eval::DEFAULT_SETTINGS.to_vec(),
     };
-    let map = map.map(|m| m.inner.clone());
-    let cfg = match (&config, &map) {
-        (Some(c), _) => c.inner.clone(),
-        (None, Some(m)) => m.query_config(),
-        (None, None) => Config::default(),
-    };
+    let map = map.map(|m| m.map());
     let opts = DatasetOptions { max_distance: gt_distance, ..Default::default() };
-    let engine = engine.map(|e| e.shared());
+    let engine = resolve(py, engine)?;
+    let config = config.map(|c| c.inner.clone());
     let report = run(py, pool(threads)?, engine.as_ref(), |e| {
         let ds = Dataset::open_any(dataset.as_deref(), references.as_deref(), queries.as_deref(), ground_truth.as_deref(), &opts)?;
+        let cfg = match (config, &map) {
+            (Some(c), _) => c,
+            (None, Some(m)) => m.query_config(),
+            (None, None) => ds.adapt_config(Config::default()),
+        };
         let eo = semlook::eval::EvalOptions { settings, map: map.as_deref(), skip_invalid: false, quiet: true };
         semlook::eval::evaluate(&ds, &cfg, &eo, e)
     })?;

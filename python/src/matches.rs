@@ -78,9 +78,11 @@ impl PyMatches {
     fn counts<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<i32>> {
         self.ranked.iter().map(|q| q.ranked.len() as i32).collect::<Vec<_>>().into_pyarray(py)
     }
-    /// Ids of the ranked references of query `q`.
-    fn ids(&self, q: usize) -> PyResult<Vec<String>> {
-        self.ids.get(q).cloned().ok_or_else(|| crate::errors::invalid("query", format!("{q} of {} queries", self.ids.len())))
+    /// Per query, the ids of its ranked references (`references` as ids; `ids[q][0]` is query
+    /// q's best match).
+    #[getter]
+    fn ids(&self) -> Vec<Vec<String>> {
+        self.ids.clone()
     }
     /// Per query a dict {query, top_k: [{reference, score, coarse, fine}]}: the shape of
     /// `semlook query --json`'s "queries".

@@ -63,8 +63,8 @@ fn from_arrays(scores: &PyReadonlyArray2<'_, f32>, refs: &PyReadonlyArray2<'_, i
 
 /// One shard of a map: the segments `seg_start..seg_end` opened alone (memory-mapped). Methods
 /// run on a pool of `threads` threads of its own (rayon ignores Ray's CPU limits), on `backend`
-/// ("cpu", "gpu" or "auto", as `Engine`, on GPU `adapter`; on a GPU the shard's part of the map
-/// stays resident).
+/// ("cpu", "gpu" or "auto"; None: `DEFAULT_BACKEND`; as `Engine`, on GPU `adapter`; on a GPU the
+/// shard's part of the map stays resident).
 #[pyclass(frozen, module = "semlook._native", name = "Shard")]
 pub struct PyShard {
     map: Arc<Map>,
@@ -79,7 +79,7 @@ impl PyShard {
     /// Opens the shard; with `generation`, fails if the map changed since it was planned.
     /// `config_toml` as `Config(toml)` (default: the map's), `k` candidates per query.
     #[new]
-    #[pyo3(signature = (map_dir, seg_start, seg_end, generation=None, config_toml=None, k=None, threads=None, backend="cpu", adapter=None))]
+    #[pyo3(signature = (map_dir, seg_start, seg_end, generation=None, config_toml=None, k=None, threads=None, backend=None, adapter=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -90,7 +90,7 @@ impl PyShard {
         config_toml: Option<&str>,
         k: Option<usize>,
         threads: Option<usize>,
-        backend: &str,
+        backend: Option<&str>,
         adapter: Option<usize>,
     ) -> PyResult<Self> {
         let (map, spec) = py.detach(|| Map::open_range(&map_dir, seg_start..seg_end, generation)).py_err()?;
@@ -144,13 +144,13 @@ impl PyShard {
         let f = run(py, self.pool.clone(), Some(&self.engine), |e| e.fine_scores(map.as_ref(), &set, s, cfg, &pairs))?;
         Ok(f.into_pyarray(py))
     }
-    /// Ids of whole-map references owned here.
-    fn ids(&self, r: Vec<i64>) -> PyResult<Vec<String>> {
+    /// Ids of whole-map references `r`, all owned here.
+    fn reference_ids(&self, r: Vec<i64>) -> PyResult<Vec<String>> {
         let start = self.spec.global_start as i64;
         r.iter()
             .map(|&i| match (i - start) as usize {
                 j if i >= start && j < self.map.len() => Ok(self.map.id(j).to_string()),
-                _ => Err(invalid("ids", format!("reference {i} is not in this shard"))),
+                _ => Err(invalid("reference_ids", format!("reference {i} is not in this shard"))),
             })
             .collect()
     }

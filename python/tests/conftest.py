@@ -3,6 +3,7 @@ written without extra packages, maps in segments small enough to shard."""
 
 import os
 import struct
+import subprocess
 import zlib
 from pathlib import Path
 
@@ -41,6 +42,22 @@ def write_png(path, a):
 
 
 @pytest.fixture(scope="session")
+def cpu():
+    """The CPU path, for comparisons that are bit for bit (the default engine may be a GPU)."""
+    return semlook.Engine("cpu")
+
+
+@pytest.fixture(scope="session")
+def synth_dataset(tmp_path_factory):
+    """`semlook synth`'s benchmark, 8 places at 160x120."""
+    if not CLI.exists():
+        pytest.skip(f"{CLI} not built (cargo build --release)")
+    ds = tmp_path_factory.mktemp("synth") / "bench"
+    subprocess.run([str(CLI), "synth", "--out", str(ds), "--places", "8", "--size", "160x120"], check=True, capture_output=True)
+    return ds
+
+
+@pytest.fixture(scope="session")
 def encoder():
     return semlook.Encoder(semlook.Config.without_appearance())
 
@@ -55,7 +72,8 @@ def small_map(tmp_path, encoder):
     segments and shards), 3 images per segment (8 segments), two images removed."""
     refs = semlook.Descriptors.concat([encode_places(encoder, range(12), "a"), encode_places(encoder, range(12), "b")])
     m = semlook.Map.create(str(tmp_path / "map"), refs, encoder, segment_images=3)
-    return m.remove(["a3", "b10"])
+    m.remove(["a3", "b10"])
+    return m
 
 
 @pytest.fixture

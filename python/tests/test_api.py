@@ -40,7 +40,8 @@ def test_bad_arrays_raise_typed_errors(encoder):
         semlook.Descriptors.from_arrays({**arrays, "tree_areas": np.zeros(1, np.float32)})
     with pytest.raises(semlook.InvalidInputError, match="shape"):
         encoder.encode("bad", labels=np.zeros((4, 4, 2), np.uint8))
-    with pytest.raises(semlook.InputFileError, match="pixel"):
+    # an unknown class id in an array is a bad value (it was an InputFileError, an OSError)
+    with pytest.raises(semlook.InvalidInputError, match="labels of \"bad\": pixel"):
         encoder.encode("bad", labels=np.full((8, 8), 250, np.uint8))
 
 
@@ -109,25 +110,109 @@ def test_appearance_outside_the_encoders_range_is_refused(encoder):
 
 
 def test_build_add_remove_compact_and_query(tmp_path, encoder, queries):
+    """`add`, `remove` and `compact` change the map in place: the same object then serves the new
+    generation (its ids, length and queries). Before, they returned the map reopened and left the
+    object on the old generation (`m.add(x)` without `m =` lost the images)."""
     refs = encode_places(encoder, range(12), "r")
     m = semlook.Map.create(str(tmp_path / "m"), refs.take(list(range(8))), encoder, segment_images=3)
     assert (len(m), m.n_segments, m.generation) == (8, 3, 3)
-    m = m.add(refs.take(list(range(8, 12))), segment_images=3)
-    assert len(m) == 12 and m.ids() == refs.ids
+    before = m.query(queries, "semlook", k=5)
+    assert "r9" not in before.ids[8]
+    assert m.add(refs.take(list(range(8, 12))), segment_images=3) is None
+    assert len(m) == 12 and m.ids == refs.ids and m.generation == 5
     with pytest.raises(semlook.DuplicateImageIdError) as e:
         m.add(refs.take([0]))
-    assert e.value.id == "r0" and len(semlook.Map.open(str(tmp_path / "m"))) == 12
+    assert e.value.id == "r0" and len(semlook.Map.open(str(tmp_path / "m"))) == 12 and len(m) == 12
     res = m.query(queries, "semlook", k=5)
     assert res.references.shape == (10, 5) and res.scores.dtype == np.float32
-    # query q_s is place s seen 3 pixels to the side: its place ranks first
-    assert [res.ids(i)[0] for i in range(10)] == [f"r{s}" for s in range(1, 11)]
-    m = m.remove(["r4"])
+    # query q_s is place s seen 3 pixels to the side: its place ranks first (r9, r10 only now)
+    assert [res.ids[i][0] for i in range(10)] == [f"r{s}" for s in range(1, 11)]
+    assert m.remove(["r4"]) is None
     res = m.query(queries, "semlook", k=5)
-    assert all("r4" not in res.ids(i) for i in range(10)) and len(m) == 11
-    m, report = m.compact()
-    assert report["dropped"] == 1 and len(m) == 11
+    assert all("r4" not in ids for ids in res.ids) and len(m) == 11 and "r4" not in m.ids
+    view = m.segment_view(1, "globals")
+    report = m.compact()
+    assert report["dropped"] == 1 and len(m) == 11 and m.ids == [i for i in refs.ids if i != "r4"]
+    assert m.query(queries, "semlook", k=5).equals(res)
+    # a view keeps the generation it was taken from (compact deleted that segment's file)
+    assert np.array_equal(view.reshape(3, -1), refs.globals[3:6])
     assert m.verify()["files"] and all(f["problem"] is None for f in m.verify()["files"])
     assert set(m.manifest()) >= {"generation", "segments", "config"}
+
+
+def test_ids_are_read_only_properties_everywhere():
+    """One convention: every `ids` of the API is a read-only property (Map.ids and Matches.ids
+    were methods, Shard.ids a lookup, now `reference_ids`)."""
+    import inspect
+
+    found = []
+    for name in dir(semlook):
+        cls = getattr(semlook, name)
+        if isinstance(cls, type) and "ids" in dir(cls):
+            attr = inspect.getattr_static(cls, "ids")
+            assert inspect.isdatadescriptor(attr) and not callable(attr), f"{name}.ids is not a property"
+            found.append(name)
+    assert found == ["Descriptors", "Map", "Matches"]
+
+
+def test_query_with_label_arrays_equals_encoding_them_first(small_map, queries):
+    """`Map.query` encodes arrays with the map's encoder (`Encoder.for_map`): label maps given
+    directly rank exactly as the descriptors encoded from them."""
+    enc = semlook.Encoder.for_map(small_map)
+    frames = [place(s, shift=3) for s in range(1, 11)]
+    ids = [f"q{s}" for s in range(1, 11)]
+    encoded = semlook.Descriptors.concat([enc.encode(i, labels=f) for i, f in zip(ids, frames)])
+    for setting in ["global", "semlook"]:
+        want = small_map.query(encoded, setting, k=5)
+        assert small_map.query(frames, setting, k=5, ids=ids).equals(want), setting
+        assert small_map.query(labels=frames, setting=setting, k=5, ids=ids).equals(want), setting
+        assert small_map.query(np.stack(frames), setting, k=5, ids=ids).equals(want), setting
+    # ids default to q0, q1, ...; the same rankings as the fixture's queries (the same frames)
+    got = small_map.query(frames, "semlook", k=5)
+    assert got.queries == [f"q{i}" for i in range(10)]
+    assert got.ids == small_map.query(queries, "semlook", k=5).ids
+
+
+def test_query_with_images_equals_encoding_them_first(tmp_path, encoder):
+    """RGB frames (with their label maps, or alone through the segmenter) are encoded as
+    `Encoder.for_map(map).encode` encodes them."""
+    m = semlook.Map.create(str(tmp_path / "m"), encode_places(encoder, range(6), "r"), encoder)
+    enc = semlook.Encoder.for_map(m)
+    rng = np.random.default_rng(3)
+    rgbs = [rng.integers(0, 255, (72, 96, 3), dtype=np.uint8) for _ in range(3)]
+    labels = [place(s, shift=2) for s in range(3)]
+    both = semlook.Descriptors.concat([enc.encode(f"q{i}", image=r, labels=l) for i, (r, l) in enumerate(zip(rgbs, labels))])
+    assert m.query(images=rgbs, labels=labels, setting="global").equals(m.query(both, "global"))
+    try:
+        alone = semlook.Descriptors.concat([enc.encode(f"q{i}", image=r) for i, r in enumerate(rgbs)])
+    except semlook.SemlookError as e:
+        pytest.skip(f"no segmenter installed ({e})")
+    assert m.query(rgbs, "global").equals(m.query(alone, "global"))
+    assert m.query(images=rgbs, setting="global").equals(m.query(alone, "global"))
+
+
+def test_query_refuses_mixed_or_malformed_frames_naming_the_argument(small_map, queries):
+    lab, rgb = place(1), np.zeros((72, 96, 3), np.uint8)
+    refused = [
+        (dict(queries=[lab, rgb]), "queries\\[1\\].*label map"),
+        (dict(queries=[lab, np.zeros((4, 4, 2), np.uint8)]), "queries\\[1\\].*shape"),
+        (dict(queries=[lab.astype(np.float32)]), "queries\\[0\\].*integer"),
+        (dict(queries=[lab, np.full((8, 8), 250, np.uint8)]), "queries\\[1\\]: pixel .* class id 250"),
+        (dict(queries=lab), "queries.*sequence of frames"),
+        (dict(queries=rgb), "queries.*sequence of frames"),
+        (dict(queries="frame.png"), "queries.*string"),
+        (dict(queries=[lab], labels=[lab]), "queries.*both"),
+        (dict(queries=queries, labels=[lab]), "queries"),
+        (dict(queries=queries, ids=["a"]), "ids"),
+        (dict(images=[rgb, rgb], labels=[lab]), "labels.*1 label maps for 2 images"),
+        (dict(images=[lab]), "images\\[0\\].*shape"),
+        (dict(labels=[lab, lab], ids=["a"]), "ids.*1 ids for 2 frames"),
+        ({}, "queries.*nothing to match"),
+    ]
+    for kwargs, message in refused:
+        with pytest.raises(ValueError, match=message) as e:
+            small_map.query(**kwargs)
+        assert isinstance(e.value, semlook.InvalidInputError), kwargs
 
 
 def test_segment_views_are_zero_copy_read_only_and_outlive_the_map(tmp_path, encoder):
@@ -167,12 +252,8 @@ def test_incompatible_config_is_refused(tmp_path, encoder, queries):
         m.query(queries, setting="nope")
 
 
-def test_evaluate_reports_every_setting_asked(tmp_path):
-    if not CLI.exists():
-        pytest.skip(f"{CLI} not built (cargo build --release)")
-    ds = tmp_path / "bench"
-    subprocess.run([str(CLI), "synth", "--out", str(ds), "--places", "8", "--size", "160x120"], check=True, capture_output=True)
-    r = semlook.evaluate(dataset=str(ds), settings=["global", "semlook"], config=semlook.Config.without_appearance())
+def test_evaluate_reports_every_setting_asked(synth_dataset):
+    r = semlook.evaluate(dataset=str(synth_dataset), settings=["global", "semlook"], config=semlook.Config.without_appearance())
     assert [s["setting"] for s in r["results"]] == ["global", "semlook"] * (len(r["results"]) // 2)
     assert r["references"] == 8
 
@@ -207,7 +288,7 @@ import semlook
 m = semlook.Map.open(sys.argv[1])
 queries = pickle.load(open(sys.argv[2], "rb"))
 engine = semlook.Engine("cpu")
-want = m.query(queries, "semlook", threads=2)
+want = m.query(queries, "semlook", threads=2, engine=semlook.Engine("cpu"))
 out = []
 def work():
     for _ in range(8):

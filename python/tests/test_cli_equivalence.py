@@ -1,4 +1,5 @@
-"""Python results equal `semlook query` on the same map and frames (ids and f32 scores)."""
+"""Python results equal `semlook query` on the same map and frames (ids and f32 scores), and
+Python's defaults are the command line's (backend, evaluated settings)."""
 
 import json
 import subprocess
@@ -10,7 +11,7 @@ import semlook
 from conftest import CLI, place, write_png
 
 
-def test_map_query_equals_the_cli(tmp_path, encoder):
+def test_map_query_equals_the_cli(tmp_path, encoder, cpu):
     if not CLI.exists():
         pytest.skip(f"{CLI} not built (cargo build --release)")
     refs, qs = tmp_path / "refs", tmp_path / "queries"
@@ -28,8 +29,39 @@ def test_map_query_equals_the_cli(tmp_path, encoder):
     for setting in ["semlook", "global", "forest"]:
         out = subprocess.run([str(CLI), "query", "--map", str(tmp_path / "m"), "--labels", str(qs), "--setting", setting, "--json", "--backend", "cpu"], check=True, capture_output=True, text=True)
         cli = {row["query"]: row["top_k"] for row in json.loads(out.stdout)["queries"]}
-        py = m.query(queries, setting)
+        py = m.query(queries, setting, engine=cpu)
         for i, q in enumerate(py.queries):
-            assert [t["reference"] for t in cli[q]] == py.ids(i), (setting, q)
+            assert [t["reference"] for t in cli[q]] == py.ids[i], (setting, q)
             n = py.counts[i]
             assert np.array_equal(np.array([t["score"] for t in cli[q]], np.float32), py.scores[i, :n]), (setting, q)
+
+
+@pytest.fixture(scope="module")
+def cli_eval(synth_dataset):
+    """`semlook eval --json` on the synthetic benchmark with no --backend and no --setting."""
+    out = subprocess.run([str(CLI), "eval", "--dataset", str(synth_dataset), "--no-appearance", "--json"], check=True, capture_output=True, text=True)
+    return json.loads(out.stdout), out.stderr
+
+
+def test_the_default_backend_is_the_command_lines(cli_eval, small_map):
+    """Without `engine=` (and `Engine()`, `Shard(...)`) Python runs on the backend the command line
+    runs on without --backend: the CLI's "backend" lines are the default engine's (before, Python
+    ran on the CPU, so its engine said nothing where the CLI said "backend auto: no hardware GPU")."""
+    lines = [line for line in cli_eval[1].splitlines() if line.startswith("backend")]
+    default = semlook.default_engine()
+    want = ([f"backend auto: {default.fallback_reason}"] if default.fallback_reason else []) + [f"backend: {default.describe}"]
+    assert lines == want
+    assert semlook.DEFAULT_BACKEND == "auto" and semlook.Engine().describe == default.describe
+    assert semlook.Shard(str(small_map.path), 0, 1).backend == default.describe
+
+
+def test_evaluate_runs_the_settings_the_command_line_runs(cli_eval, synth_dataset):
+    """`evaluate` without `settings` runs what `semlook eval` runs without --setting: all nine
+    (`EVAL_SETTINGS`, from the engine), in the same order, skipping the same ones."""
+    assert semlook.EVAL_SETTINGS == tuple(semlook.settings()) and len(semlook.EVAL_SETTINGS) == 9
+    cli, _ = cli_eval
+    py = semlook.evaluate(dataset=str(synth_dataset), config=semlook.Config.without_appearance(), engine=semlook.Engine("cpu"))
+    ran = lambda r: [(x["query_set"], x["setting"]) for x in r["results"]]  # noqa: E731
+    assert ran(py) == ran(cli) and py["skipped"] == cli["skipped"]
+    asked = [s for s in dict.fromkeys(x["setting"] for x in cli["results"])] + [s for s, _ in cli["skipped"]]
+    assert sorted(asked, key=semlook.EVAL_SETTINGS.index) == list(semlook.EVAL_SETTINGS)

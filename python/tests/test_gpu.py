@@ -53,12 +53,12 @@ def test_engine_backends_and_errors():
         semlook.Engine("tpu")
 
 
-def test_map_query_on_the_gpu_equals_the_cpu(gpu, small_map, queries):
+def test_map_query_on_the_gpu_equals_the_cpu(gpu, small_map, queries, cpu):
     assert gpu.is_gpu and gpu.describe.startswith("gpu:")
     cfg = semlook.Config("[appearance]\nmodel = \"none\"\n").with_top_k(6)
     # every setting this map supports (it holds no HOG and no appearance vectors)
     for setting in ["global", "forest", "local", "global-forest", "semlook"]:
-        c = small_map.query(queries, setting, config=cfg)
+        c = small_map.query(queries, setting, config=cfg, engine=cpu)
         calls = gpu.gpu_calls
         g = small_map.query(queries, setting, config=cfg, engine=gpu)
         assert gpu.gpu_calls == calls + 1, "the query did not run on the GPU"
@@ -68,13 +68,13 @@ def test_map_query_on_the_gpu_equals_the_cpu(gpu, small_map, queries):
         assert small_map.query(queries, setting, config=cfg, engine=gpu).equals(g), setting
 
 
-def test_encoding_on_the_gpu_equals_the_cpu(gpu, tmp_path, encoder):
+def test_encoding_on_the_gpu_equals_the_cpu(gpu, tmp_path, encoder, cpu):
     ids = [f"p{s}" for s in range(5)]
     files = []
     for s, i in zip(range(5), ids):
         files.append(str(tmp_path / f"{i}.png"))
         write_png(files[-1], place(s, h=61 + s % 2, w=97))
-    c = encoder.encode_files(ids, labels=files).to_arrays()
+    c = encoder.encode_files(ids, labels=files, engine=cpu).to_arrays()
     calls = gpu.gpu_calls
     g = encoder.encode_files(ids, labels=files, engine=gpu).to_arrays()
     assert gpu.gpu_calls == calls + 1, "encoding did not run on the GPU"
@@ -88,7 +88,7 @@ def test_encoding_on_the_gpu_equals_the_cpu(gpu, tmp_path, encoder):
             assert np.array_equal(c[name], g[name]), name
 
 
-def test_shards_on_the_gpu_equal_one_cpu_process(gpu, small_map, queries):
+def test_shards_on_the_gpu_equal_one_cpu_process(gpu, small_map, queries, cpu):
     ray = pytest.importorskip("ray")
     from semlook.distributed import ShardedMap
 
@@ -100,9 +100,9 @@ def test_shards_on_the_gpu_equal_one_cpu_process(gpu, small_map, queries):
         sm = ShardedMap(str(small_map.path), 2, config=cfg, cpus_per_shard=1, backend="gpu", gpus_per_shard=0)
         assert all(i["backend"].startswith("gpu:") for i in sm.shard_info)
         calls = lambda: sum(i["gpu_calls"] for i in sm.info())  # noqa: E731
-        assert_same_lists(sm.query(queries, "global"), small_map.query(queries, "global", config=cfg), "global")
+        assert_same_lists(sm.query(queries, "global"), small_map.query(queries, "global", config=cfg, engine=cpu), "global")
         assert calls() == 2, "each shard's candidates on its GPU"
-        assert_same_lists(sm.query(queries, "semlook"), small_map.query(queries, "semlook", config=cfg), "semlook")
+        assert_same_lists(sm.query(queries, "semlook"), small_map.query(queries, "semlook", config=cfg, engine=cpu), "semlook")
         # candidates on both shards, and fine scores on each shard that owns a candidate
         assert calls() >= 2 + 2 + 1, "fine scores did not run on a shard's GPU"
         sm.close()

@@ -83,10 +83,11 @@ def test_pairs_parse_as_hloc_reads_them_and_name_files_under_the_root(tmp_path, 
 def test_global_features_read_back_with_h5py(tmp_path, built):
     data, m = built
     # a removed image is left out (the map serves its live images only)
-    m = semlook.Map.open(str(m)).remove(["000001"])
+    m = semlook.Map.open(str(m))
+    m.remove(["000001"])
     h5 = tmp_path / "global-feats-semlook.h5"
     n = semlook.hloc.export_global_features(m, h5, images=[data / "day" / OMNI], root=data)
-    names = [f"day/{OMNI}/{i}.png" for i in m.ids()]
+    names = [f"day/{OMNI}/{i}.png" for i in m.ids]
     assert n == 5 and sorted(list_h5_names(h5)) == sorted(names) and f"day/{OMNI}/000001.png" not in names
     want = np.concatenate([m.segment_view(s, "globals")[m.live_rows(s)] for s in range(m.n_segments)]).reshape(5, -1)
     got = get_descriptors(names, h5)
@@ -121,7 +122,7 @@ def test_appearance_vectors_and_the_command_line(tmp_path):
                          check=True, capture_output=True, text=True).stdout
     assert "wrote 4 appearance descriptors" in out
     m = semlook.Map.open(str(tmp_path / "map"))
-    got = get_descriptors([f"{i}.png" for i in m.ids()], h5)
+    got = get_descriptors([f"{i}.png" for i in m.ids], h5)
     assert got.shape == (4, m.manifest()["appearance_dim"])
     assert np.allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-3)
     assert np.array_equal(got, m.segment_view(0, "image_appearance")[m.live_rows(0)])

@@ -26,13 +26,13 @@ def two_nodes():
     cluster.shutdown()
 
 
-def test_shards_pinned_to_nodes_run_there_and_equal_one_process(two_nodes, small_map, queries):
+def test_shards_pinned_to_nodes_run_there_and_equal_one_process(two_nodes, small_map, queries, cpu):
     assert len(two_nodes) == 2
     cfg = semlook.Config("[appearance]\nmodel = \"none\"\n").with_top_k(6)
     for order in [two_nodes, two_nodes[::-1]]:
         pins = [order[0], order[1], order[0], order[1]]
-        sm = ShardedMap(str(small_map.path), 4, config=cfg, cpus_per_shard=0.5, node_ids=pins)
+        sm = ShardedMap(str(small_map.path), 4, config=cfg, cpus_per_shard=0.5, node_ids=pins, backend="cpu")
         assert [i["node_id"] for i in sm.info()] == pins
         for setting in ["global", "semlook"]:
-            assert sm.query(queries, setting).equals(small_map.query(queries, setting, config=cfg)), setting
+            assert sm.query(queries, setting).equals(small_map.query(queries, setting, config=cfg, engine=cpu)), setting
         sm.close()

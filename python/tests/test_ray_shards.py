@@ -23,16 +23,16 @@ def cluster():
     ray.shutdown()
 
 
-def test_four_shards_on_two_workers_equal_one_process(cluster, small_map, queries):
+def test_four_shards_on_two_workers_equal_one_process(cluster, small_map, queries, cpu):
     path = str(small_map.path)
     assert small_map.n_segments == 8 and len(small_map) == 22
     plan = semlook.plan_shards(path, 4)
     assert sum(p["len"] for p in plan) == 22 and all(p["len"] > 0 for p in plan)
     for fusion_toml in ["", '[matching]\nscore = "fine_times_global"\n']:
         cfg = semlook.Config(fusion_toml + "[appearance]\nmodel = \"none\"\n").with_top_k(6)
-        sm = ShardedMap(path, 4, config=cfg, cpus_per_shard=0.5)
+        sm = ShardedMap(path, 4, config=cfg, cpus_per_shard=0.5, backend="cpu")
         for setting in ["global", "forest", "global-forest", "semlook"]:
-            single = small_map.query(queries, setting, config=cfg)
+            single = small_map.query(queries, setting, config=cfg, engine=cpu)
             sharded = sm.query(queries, setting)
             assert sharded.equals(single), (setting, fusion_toml)
             # the fixture stores every place twice: the best two of each query are a tie
@@ -50,7 +50,7 @@ def test_a_changed_map_is_refused_by_its_shards(cluster, small_map):
         semlook.Shard(str(small_map.path), seg["start"], seg["end"], plan[1]["generation"])
 
 
-def test_the_command_line_driver_joins_a_cluster_and_equals_one_process(cluster, small_map, tmp_path):
+def test_the_command_line_driver_joins_a_cluster_and_equals_one_process(cluster, small_map, tmp_path, cpu):
     """`python -m semlook.distributed --address ADDR` joins the running cluster, encodes the
     query files with the map's encoder and prints the single process's results."""
     qs = tmp_path / "q"
@@ -61,8 +61,8 @@ def test_the_command_line_driver_joins_a_cluster_and_equals_one_process(cluster,
     out = tmp_path / "out.json"
     address = ray.get_runtime_context().gcs_address
     env = dict(os.environ, RAY_USAGE_STATS_ENABLED="0")
-    run = subprocess.run([sys.executable, "-m", "semlook.distributed", "--address", address, "--map", str(small_map.path), "--shards", "3", "--labels", str(qs), "--setting", "semlook", "-k", "5", "--json", str(out)], capture_output=True, text=True, env=env, timeout=300)
+    run = subprocess.run([sys.executable, "-m", "semlook.distributed", "--address", address, "--map", str(small_map.path), "--shards", "3", "--labels", str(qs), "--setting", "semlook", "-k", "5", "--backend", "cpu", "--json", str(out)], capture_output=True, text=True, env=env, timeout=300)
     assert run.returncode == 0, run.stderr[-3000:]
     queries = semlook.Encoder.for_map(small_map).encode_files(qids, labels=[str(qs / f"{q}.png") for q in qids])
-    single = small_map.query(queries, "semlook", k=5)
+    single = small_map.query(queries, "semlook", k=5, engine=cpu)
     assert json.loads(out.read_text()) == single.to_list()

@@ -13,7 +13,7 @@ use semlook::dataset::{Dataset, DatasetOptions};
 use semlook::encode::Encoder;
 use semlook::engine::{Backend, Engine};
 use semlook::error::{Error, Result};
-use semlook::eval::{evaluate, EvalOptions, EvalReport, RunRecord};
+use semlook::eval::{evaluate, EvalOptions, EvalReport, RunRecord, DEFAULT_SETTINGS};
 use semlook::gpu::GpuOptions;
 use semlook::input::{FrameSource, LabelFormat};
 use semlook::map::{DescriptorSet, Map};
@@ -45,7 +45,7 @@ pub fn dispatch(cli: Cli) -> Result<()> {
     if let (Some(backend), Some(why)) = (cli.backend, ignores_backend(&cli.command)) {
         return Err(Error::invalid(format!("--backend {}", format!("{backend:?}").to_lowercase()), format!("does not apply here: {why}")));
     }
-    let backend = cli.backend.unwrap_or(Backend::Auto);
+    let backend = cli.backend.unwrap_or(Backend::DEFAULT);
     let engine = || -> Result<Engine> {
         let (engine, fallback) = Engine::new(backend, &GpuOptions::default())?;
         if let Some(why) = fallback {
@@ -282,7 +282,7 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
     if a.config.is_none() && map.is_none() {
         cfg = ds.adapt_config(cfg);
     }
-    let settings = if a.settings.is_empty() { Setting::ALL.to_vec() } else { dedup(&a.settings) };
+    let settings = if a.settings.is_empty() { DEFAULT_SETTINGS.to_vec() } else { dedup(&a.settings) };
     let report = evaluate(&ds, &cfg, &EvalOptions { settings: settings.clone(), map: map.as_ref(), skip_invalid: a.skip_invalid, quiet }, engine)?;
     print_report(&report, a.json)?;
     if let Some(dir) = &a.plots {

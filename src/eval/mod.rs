@@ -111,6 +111,9 @@ pub struct EvalReport {
     pub skipped: Vec<(Setting, String)>,
 }
 
+/// The settings an evaluation runs when none are named (every front end): all nine.
+pub const DEFAULT_SETTINGS: [Setting; 9] = Setting::ALL;
+
 /// Options of one evaluation run.
 pub struct EvalOptions<'a> {
     pub settings: Vec<Setting>,
