@@ -304,7 +304,7 @@ fn encode_frames(enc: &Encoder, frames: Vec<Frame>) -> semlook::Result<Descripto
     let encoded: Vec<semlook::Result<_>> = frames
         .into_par_iter()
         .map_init(Default::default, |scratch, (id, rgb, labels)| {
-            let loaded = enc.load_arrays(&id, rgb, labels)?;
+            let loaded = enc.frames().load_arrays(&id, rgb, labels)?;
             Ok(enc.encode_loaded(&id, &loaded, scratch)?.0)
         })
         .collect();
