@@ -31,7 +31,8 @@ struct PassParams {
     k: u32,
     segs: u32,
     parity: u32,
-    _pad0: u32,
+    // 1 on a query chunk's first pass: the running lists are not read (they hold nothing yet)
+    fresh: u32,
     _pad1: u32,
     _pad2: u32,
 }

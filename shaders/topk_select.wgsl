@@ -164,7 +164,8 @@ fn topk_merge_lists(@builtin(global_invocation_id) gid: vec3<u32>) {
     for (var t = 0u; t < ps.k; t++) {
         var best = NONE;
         var e = Entry(EMPTY_SCORE, EMPTY_INDEX);
-        for (var l = 0u; l < lists; l++) {
+        // a chunk's first pass has no running list to read
+        for (var l = select(0u, 1u, ps.fresh != 0u); l < lists; l++) {
             if (heads[l] < ps.k) {
                 let c = list_entry(q, l, heads[l]);
                 if (c.index != EMPTY_INDEX && (best == NONE || before(c.score, c.index, e.score, e.index))) {

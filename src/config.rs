@@ -2,9 +2,10 @@
 //! Choices the paper does not state ([R] in the spec) are all here, so that a user can change them
 //! in a TOML file. `semlook config` prints this struct's defaults.
 //!
-//! Sections split in two groups: the *encoding* sections (`classes`, `objects`, `global`, `local`)
-//! change what is stored in a map, so a map records them and refuses queries encoded differently;
-//! the *matching* sections (`similarity`, `matching`, `eval`) may change at query time.
+//! Sections split in two groups: the *encoding* sections ([`EncodingConfig`]: `input`, `classes`,
+//! `objects`, `global`, `local`, `appearance`, `keypoints`, `segmentation`) change what is stored
+//! in a map, so a map records them and refuses queries encoded differently; the *matching*
+//! sections (`similarity`, `matching`, `verification`, `eval`) may change at query time.
 
 use crate::error::{Error, Result};
 use serde::{Deserialize, Serialize};

@@ -14,7 +14,7 @@
 //! encoding, the map store, matching and appearance share; [`batch`] encodes many frames (into a
 //! set, or streamed into a map).
 //!
-//! The README's example (compiled here):
+//! The example of `docs/library.md` (compiled here):
 //!
 //! ```no_run
 //! # fn main() -> semlook::Result<()> {

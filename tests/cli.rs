@@ -208,7 +208,7 @@ fn resume_checks_every_layout_option_and_size_options_are_bounded() {
     let bench_dir = dir.path().join("bench");
     for (flag, value, says) in [("--sizes", "4000000000", "free space"), ("--passes", "4000000000", "available memory")] {
         let err = fails(&["dev", "map-bench", flag, value, "--dir", p(&bench_dir), "-q"]);
-        assert!(err.contains(&flag.replace("--", "map bench ")) && err.contains(says) && err.contains("at most"), "{flag}: {err}");
+        assert!(err.contains(&flag.replace("--", "dev map-bench ")) && err.contains(says) && err.contains("at most"), "{flag}: {err}");
     }
     assert!(!bench_dir.exists(), "a refused benchmark wrote a map");
 }

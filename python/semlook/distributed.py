@@ -8,7 +8,7 @@ fine score, and ranks (``rank``). Only Rust orders results.
 
 What travels per query batch: the query descriptors once to every node (Ray stores one copy per
 node), each actor's candidate lists back (Q x L x 12 bytes), then the candidate pairs to their
-owners and their fine scores and ids back (Q x K x ~30 bytes). See README "Python and Ray".
+owners and their fine scores and ids back (Q x K x ~30 bytes). See docs/library.md, "Python and Ray".
 
     ray.init()                                  # or ray.init(address="auto") on a cluster
     sm = ShardedMap("/maps/city", shards=4)

@@ -1,9 +1,9 @@
 //! VLAD per object (Jégou, Douze, Schmid & Pérez, CVPR 2010; spec §2.4): each keypoint inside an
 //! object is assigned to its nearest codebook centre, residuals are summed per centre, each
 //! centre's sum is L2-normalised (intra-normalisation), optionally power-normalised, and the
-//! concatenation is L2-normalised. The kernels' CPU twins are in `vlad_accumulate.rs` (named
-//! after `shaders/vlad_accumulate.wgsl`), re-exported here. The codebook is trained by k-means
-//! with k-means++ seeding.
+//! concatenation is L2-normalised. Here: that definition (`vlad_reference`, in f64) and the
+//! codebook, trained by k-means with k-means++ seeding; the kernels' CPU twins are in
+//! `kernels::vlad_accumulate` (named after `shaders/vlad_accumulate.wgsl`).
 
 use crate::util::SplitMix64;
 

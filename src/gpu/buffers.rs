@@ -7,21 +7,33 @@ use super::context::{GpuContext, GpuError};
 
 /// A storage buffer kept by an executor between batches, regrown only when a batch needs more.
 #[derive(Default)]
-pub(crate) struct Reused(Option<wgpu::Buffer>);
+pub(crate) struct Reused {
+    buf: Option<wgpu::Buffer>,
+    /// Buffers made so far: a bind group made with generation g is stale once this moves on.
+    generation: u64,
+}
 
 impl Reused {
     /// The buffer, at least `bytes` long (contents unspecified).
     pub fn get(&mut self, ctx: &GpuContext, label: &str, bytes: u64) -> &wgpu::Buffer {
         let need = bytes.max(4).next_multiple_of(4);
-        if self.0.as_ref().is_some_and(|b| b.size() < need) {
-            self.0 = None;
+        if self.buf.as_ref().is_some_and(|b| b.size() < need) {
+            self.buf = None;
         }
-        self.0.get_or_insert_with(|| ctx.storage(label, need))
+        if self.buf.is_none() {
+            self.generation += 1;
+        }
+        self.buf.get_or_insert_with(|| ctx.storage(label, need))
     }
 
     /// The buffer as it is now, if any.
     pub fn current(&self) -> Option<&wgpu::Buffer> {
-        self.0.as_ref()
+        self.buf.as_ref()
+    }
+
+    /// Which buffer [`Reused::get`] returned last (changes whenever it made a new one).
+    pub fn generation(&self) -> u64 {
+        self.generation
     }
 
     /// The buffer holding `data` (written through the queue).

@@ -198,6 +198,7 @@ impl CoarseMatcherGpu {
                     k: k as u32,
                     segs: refs.div_ceil(SEG) as u32,
                     parity,
+                    fresh: passes.is_empty() as u32,
                     ..Default::default()
                 };
                 passes.push((c, ps));

@@ -241,6 +241,7 @@ impl FineMatcherGpu {
                         k: k as u32,
                         segs: refs_n.div_ceil(SEG) as u32,
                         parity,
+                        fresh: passes.is_empty() as u32,
                         ..Default::default()
                     };
                     passes.push((c, fp, ps));

@@ -49,7 +49,7 @@ fn shared_structs_have_the_shaders_layouts() {
     use crate::kernels::abi::*;
     same_layout("abi.wgsl", "SsimParams", rust!(SsimParams { gw, gh, win, nw, nh, c1, c2, cov_norm }));
     same_layout("ssim_topk.wgsl", "TileParams", rust!(TileParams { queries, tile_len, tile_start, k }));
-    same_layout("abi.wgsl", "PassParams", rust!(PassParams { queries, refs, ref_first, ref_index, rb, qb, k, segs, parity }));
+    same_layout("abi.wgsl", "PassParams", rust!(PassParams { queries, refs, ref_first, ref_index, rb, qb, k, segs, parity, fresh }));
     same_layout("topk_select.wgsl", "Entry", rust!(Entry { score, index }));
     same_layout(
         "tree_similarity.wgsl",

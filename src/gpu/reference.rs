@@ -85,6 +85,7 @@ pub fn select_topk(ctx: &GpuContext, scores: &[f32], nq: usize, k: usize, pass: 
                 k: k as u32,
                 segs: refs.div_ceil(SEG) as u32,
                 parity: (i % 2) as u32,
+                fresh: (i == 0) as u32,
                 ..Default::default()
             }
         })

@@ -27,8 +27,9 @@ pub(crate) fn bytes_per_query(k: usize, pass_refs: usize) -> [u64; 2] {
 }
 
 impl TopK {
-    /// Empties the running lists of `nq` queries and binds them with `params` (the batch's pass
-    /// parameters) and `scores`: the bind group of both kernels for this query chunk.
+    /// Binds the running lists of `nq` queries with `params` (the batch's pass parameters) and
+    /// `scores`: the bind group of both kernels for this query chunk. Nothing is written: the
+    /// chunk's first pass is `fresh` and does not read the lists.
     pub fn begin(
         &mut self,
         ctx: &GpuContext,
@@ -40,7 +41,7 @@ impl TopK {
     ) -> wgpu::BindGroup {
         let [part, top] = bytes_per_query(k, pass_refs);
         let partial = self.partial.get(ctx, "partial top-k lists", nq as u64 * part);
-        let top_a = self.top_a.upload(ctx, "running top-k lists", bytemuck::cast_slice(&vec![Entry::EMPTY; nq * k]));
+        let top_a = self.top_a.get(ctx, "running top-k lists", nq as u64 * top);
         let top_b = self.top_b.get(ctx, "running top-k lists", nq as u64 * top);
         ctx.kernels.topk_partial.bind(&ctx.device, &[params, scores, partial, top_a, top_b])
     }

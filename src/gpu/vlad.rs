@@ -20,18 +20,31 @@ struct Buffers {
     out: Reused,
 }
 
+/// The uniform, the centres on the device and the bind groups, kept between batches: the
+/// centres are uploaded when the codebook changes, the parameters when a batch's sizes do, and
+/// the bind groups are made again only when a buffer was regrown.
+struct Kept {
+    params: wgpu::Buffer,
+    written: Option<VladParams>,
+    centres: Vec<f32>,
+    /// (bind groups of vlad_assign and vlad_accumulate, the buffers' generations they bind)
+    groups: Option<([wgpu::BindGroup; 2], [u64; 5])>,
+}
+
 pub struct VladGpu {
     ctx: Arc<GpuContext>,
     buffers: Buffers,
+    kept: Option<Kept>,
 }
 
 impl VladGpu {
     pub fn new(ctx: Arc<GpuContext>) -> Self {
-        VladGpu { ctx, buffers: Buffers::default() }
+        VladGpu { ctx, buffers: Buffers::default(), kept: None }
     }
 
     /// VLAD vectors of every run of every frame: `frames` holds (descriptors sorted by run,
-    /// run offsets) per frame; returns the vectors per frame.
+    /// run offsets) per frame; returns the vectors per frame. A batch uploads its descriptors
+    /// and run offsets (and the codebook when it changed) and reads back its vectors.
     pub fn run(&mut self, codebook: &Codebook, norm: VladNorm, frames: &[(&[f32], &[u32])]) -> Result<Vec<Vec<f32>>, GpuError> {
         let ctx = self.ctx.clone();
         if codebook.k > MAX_CENTRES {
@@ -61,26 +74,50 @@ impl VladGpu {
         }
         let k = &ctx.kernels;
         let b = &mut self.buffers;
+        let kept = self.kept.get_or_insert_with(|| Kept {
+            params: ctx.uniform_buffer("vlad params", std::mem::size_of::<VladParams>() as u64),
+            written: None,
+            centres: Vec::new(),
+            groups: None,
+        });
         let vectors: Vec<f32> = ctx.scoped("VLAD aggregation", || -> Result<Vec<f32>, GpuError> {
             let p = VladParams::new(codebook.k, codebook.dim, n, objects, norm.power, norm.intra);
-            let params = ctx.uniform("vlad params", &p);
-            let centres = b.centres.upload(&ctx, "centres", bytemuck::cast_slice(&codebook.centres));
-            let desc_buf = b.descriptors.upload(&ctx, "descriptors", bytemuck::cast_slice(&descs));
-            let assign = b.assignment.get(&ctx, "assignment", (n * 4) as u64);
-            let off = b.offsets.upload(&ctx, "object offsets", bytemuck::cast_slice(&offsets));
-            let out = b.out.get(&ctx, "vlad vectors", (out_len * 4) as u64);
-            let g1 = k.vlad_assign.bind(&ctx.device, &[&params, centres, desc_buf, assign]);
-            let g2 = k.vlad_accumulate.bind(&ctx.device, &[&params, centres, desc_buf, assign, off, out]);
+            if kept.written != Some(p) {
+                ctx.write(&kept.params, 0, bytemuck::bytes_of(&p));
+                kept.written = Some(p);
+            }
+            let fresh_centres = b.centres.current().is_none() || kept.centres != codebook.centres;
+            let centres_len = (codebook.centres.len() * 4) as u64;
+            b.centres.get(&ctx, "centres", centres_len);
+            if fresh_centres {
+                ctx.write(b.centres.current().expect("made above"), 0, bytemuck::cast_slice(&codebook.centres));
+                kept.centres.clone_from(&codebook.centres);
+            }
+            b.descriptors.upload(&ctx, "descriptors", bytemuck::cast_slice(&descs));
+            b.assignment.get(&ctx, "assignment", (n * 4) as u64);
+            b.offsets.upload(&ctx, "object offsets", bytemuck::cast_slice(&offsets));
+            b.out.get(&ctx, "vlad vectors", (out_len * 4) as u64);
+            let gens = [b.centres.generation(), b.descriptors.generation(), b.assignment.generation(), b.offsets.generation(), b.out.generation()];
+            if kept.groups.as_ref().is_none_or(|g| g.1 != gens) {
+                fn cur(r: &Reused) -> &wgpu::Buffer {
+                    r.current().expect("made above")
+                }
+                let (centres, desc, assign, off, out) = (cur(&b.centres), cur(&b.descriptors), cur(&b.assignment), cur(&b.offsets), cur(&b.out));
+                let g1 = k.vlad_assign.bind(&ctx.device, &[&kept.params, centres, desc, assign]);
+                let g2 = k.vlad_accumulate.bind(&ctx.device, &[&kept.params, centres, desc, assign, off, out]);
+                kept.groups = Some(([g1, g2], gens));
+            }
+            let [g1, g2] = &kept.groups.as_ref().expect("made above").0;
             let groups = (n as u32).div_ceil(64);
             let o = objects as u32;
             ctx.run(
                 "vlad",
                 &[
-                    (&k.vlad_assign.pipeline, &g1, [groups.min(65_535), groups.div_ceil(65_535), 1]),
-                    (&k.vlad_accumulate.pipeline, &g2, [o.min(65_535), o.div_ceil(65_535), 1]),
+                    (&k.vlad_assign.pipeline, g1, [groups.min(65_535), groups.div_ceil(65_535), 1]),
+                    (&k.vlad_accumulate.pipeline, g2, [o.min(65_535), o.div_ceil(65_535), 1]),
                 ],
             )?;
-            ctx.read_back_values(out, out_len)
+            ctx.read_back_values(b.out.current().expect("made above"), out_len)
         })??;
         let mut res = Vec::with_capacity(frames.len());
         let (mut at, per) = (0usize, codebook.k * d);

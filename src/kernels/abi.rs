@@ -156,7 +156,9 @@ pub struct PassParams {
     pub segs: u32,
     /// Which running-list buffer holds the merge's input (0: the first).
     pub parity: u32,
-    pub _pad0: u32,
+    /// 1 on a query chunk's first pass: the running lists hold nothing yet and are not read (so
+    /// no empty lists are written to the device first).
+    pub fresh: u32,
     pub _pad1: u32,
     pub _pad2: u32,
 }

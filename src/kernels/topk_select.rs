@@ -78,9 +78,11 @@ pub fn topk_merge_lists(ps: &PassParams, partial: &[Entry], top_a: &mut [Entry],
     for q in 0..ps.queries as usize {
         let list = |l: usize, h: usize| if l == 0 { input[q * k + h] } else { partial[(q * segs + l - 1) * k + h] };
         let mut heads = [0usize; MAX_LISTS];
+        // a chunk's first pass has no running list to read
+        let first = (ps.fresh != 0) as usize;
         for t in 0..k {
             let mut best: Option<(usize, Entry)> = None;
-            for (l, &h) in heads.iter().enumerate().take(segs + 1) {
+            for (l, &h) in heads.iter().enumerate().take(segs + 1).skip(first) {
                 if h < k {
                     let c = list(l, h);
                     if c.index != EMPTY_INDEX && before(Some((c.score, c.index)), best.map(|b| (b.1.score, b.1.index))) {

@@ -86,3 +86,19 @@ fn short_segments_are_padded_with_empty_entries() {
     let e = Entry::EMPTY;
     assert_eq!(partial, vec![Entry { score: 0.5, index: 10 }, Entry { score: 0.5, index: 12 }, e, e, e, e, e, e]);
 }
+
+/// A chunk's first pass (`fresh`) merges its segment lists alone: whatever the running-list
+/// buffer holds (never written for the chunk) is not read; later passes read it.
+#[test]
+fn a_fresh_pass_does_not_read_the_running_lists() {
+    let ps = PassParams { queries: 1, refs: 2, k: 2, segs: 1, fresh: 1, ..Default::default() };
+    let partial = vec![Entry { score: 0.3, index: 7 }, Entry { score: 0.1, index: 8 }];
+    // stale entries better than any candidate, as a buffer from another batch could hold
+    let stale = vec![Entry { score: 0.9, index: 1 }, Entry { score: 0.8, index: 2 }];
+    let (mut top_a, mut top_b) = (stale.clone(), vec![Entry::EMPTY; 2]);
+    topk_merge_lists(&ps, &partial, &mut top_a, &mut top_b);
+    assert_eq!(top_b, partial, "a fresh pass kept entries of the running lists");
+    let (mut top_a, mut top_b) = (stale.clone(), vec![Entry::EMPTY; 2]);
+    topk_merge_lists(&PassParams { fresh: 0, ..ps }, &partial, &mut top_a, &mut top_b);
+    assert_eq!(top_b, stale, "a later pass must merge the running lists");
+}

@@ -1,6 +1,6 @@
 //! The VLAD kernels' CPU twins (of `shaders/vlad_accumulate.wgsl`: `vlad_assign`,
 //! `vlad_accumulate`), with the same bindings, loop shape and reductions; `appearance::vlad`
-//! holds the codebook and re-exports these.
+//! holds the codebook and the f64 definition (`vlad_reference`).
 
 use super::abi::VladParams;
 /// Lanes of the shader's per-object workgroup; reductions over dimensions use the same strides.

@@ -1,5 +1,6 @@
-//! Stage 4: matching queries against a map (spec §2.7-2.9) in the four ablation settings of the
-//! paper (§4.3, spec §6.1), plus the coarse stage alone.
+//! Stage 4: matching queries against a map (spec §2.7-2.9) in nine settings ([`Setting::ALL`]): two
+//! baselines, the paper's coarse stage and four ablation settings (§4.3, spec §6.1), `fused` and
+//! `verified`.
 //!
 //! - coarse: SSIM of the query's global descriptor against every reference, streamed tile by tile
 //!   into a top-K list (memory O(K) per query, never queries x map);

@@ -229,7 +229,7 @@ pub fn check_sizes(opts: &StoreBenchOptions, global_len: usize, stats_len: usize
         let need = (n as u64).saturating_mul(per_ref);
         if n == 0 || need > disk {
             return Err(Error::invalid(
-                "map bench sizes",
+                "dev map-bench sizes",
                 format!(
                     "a map of {n} references takes about {:.1} GiB; half the free space of {} is {:.1} GiB: at most {} references",
                     gib(need),
@@ -241,7 +241,7 @@ pub fn check_sizes(opts: &StoreBenchOptions, global_len: usize, stats_len: usize
         }
         if (n as u64).saturating_mul(BUILD_BYTES_PER_REF) > memory {
             return Err(Error::invalid(
-                "map bench sizes",
+                "dev map-bench sizes",
                 format!("building a map of {n} references needs more than half this machine's available memory ({:.1} GiB)", gib(memory)),
             ));
         }
@@ -249,7 +249,7 @@ pub fn check_sizes(opts: &StoreBenchOptions, global_len: usize, stats_len: usize
     for q in opts.passes.iter().map(|p| p.queries).chain(opts.stats_comparison.iter().copied()) {
         let need = (q as u64).saturating_mul(per_query);
         if q == 0 || need > memory {
-            return Err(Error::invalid("map bench passes", format!("a batch of {q} queries takes about {:.1} GiB; this machine can give it {:.1} GiB (half of its available memory): at most {} queries", gib(need), gib(memory), memory / per_query)));
+            return Err(Error::invalid("dev map-bench passes", format!("a batch of {q} queries takes about {:.1} GiB; this machine can give it {:.1} GiB (half of its available memory): at most {} queries", gib(need), gib(memory), memory / per_query)));
         }
     }
     Ok(())

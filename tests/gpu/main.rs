@@ -7,6 +7,7 @@ mod bench;
 mod common;
 mod fine;
 mod resident;
+mod stream;
 mod verify;
 mod xfeat;
 
