@@ -2,7 +2,7 @@
 //! behind `semlook models` and `setup.sh`'s checks. Files are looked up as the engine finds them
 //! ([`crate::onnx::model_dirs`], `$SEMLOOK_MODELS` first).
 
-use crate::onnx::{model_dirs, ORT_LIBRARY};
+use crate::onnx::ORT_LIBRARY;
 use serde::Serialize;
 use std::path::PathBuf;
 
@@ -94,11 +94,14 @@ pub struct Installed {
 /// Every catalogue entry, found (with its size and SHA-256) or not; a file that cannot be read
 /// is reported missing with the reason in `source`.
 pub fn installed() -> Vec<Installed> {
-    let dirs = model_dirs();
     CATALOG
         .iter()
         .map(|m| {
-            let path = dirs.iter().map(|d| d.join(m.name)).find(|p| p.is_file());
+            // where the engine would take it from (ONNX Runtime also honours $ORT_DYLIB_PATH)
+            let path = match m.name {
+                crate::onnx::ORT_LIBRARY => Some(crate::onnx::library_path(None)).filter(|p| p.is_file()),
+                name => crate::onnx::find_model(name, None, m.role).ok(),
+            };
             let sha = path.as_deref().map(crate::util::sha256_file);
             let (path, sha, source) = match sha {
                 Some(Ok(s)) => (path, Some(s), m.source.to_string()),

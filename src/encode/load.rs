@@ -114,6 +114,11 @@ impl FrameLoader {
         })
     }
 
+    /// Whether a segmenter makes the label maps of frames that have none.
+    pub fn can_segment(&self) -> bool {
+        self.segmenter.is_some()
+    }
+
     /// The segmentation network (loaded now if it was not yet); `image` names the frame in
     /// the error when there is none.
     pub fn segmenter_for(&self, image: &Path) -> Result<&Segmenter> {

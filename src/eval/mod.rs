@@ -129,9 +129,12 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
     // labels run, each of the others is skipped with its reason (the whole command used to stop)
     let unlabelled =
         |frames: &[crate::dataset::Frame]| !frames.is_empty() && frames.iter().all(|f| f.source.labels.is_none() && f.source.image.is_some());
-    let without_labels = crate::encode::segmenter_path(cfg)?.is_none()
-        && ds.queries.iter().all(|q| unlabelled(&q.frames))
-        && (opts.map.is_some() || unlabelled(&ds.reference.frames));
+    let base = match opts.map {
+        Some(m) => Encoder::for_map(cfg, m)?,
+        None => Encoder::new(cfg)?,
+    };
+    let without_labels =
+        !base.frames().can_segment() && ds.queries.iter().all(|q| unlabelled(&q.frames)) && (opts.map.is_some() || unlabelled(&ds.reference.frames));
     let mut skipped = Vec::new();
     let mut settings = opts.settings.clone();
     if without_labels {
@@ -154,14 +157,10 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
     let opts = &EvalOptions { settings, map: opts.map, skip_invalid: opts.skip_invalid, quiet: opts.quiet };
     let wants_hog = opts.settings.contains(&Setting::Hog);
     let owned;
-    let mut encoder;
+    let mut encoder = base.with_hog(wants_hog && opts.map.is_none_or(|m| m.manifest.hog_dim > 0)).without_labels(without_labels);
     let (refs, ref_enc): (&dyn RefSource, EncodingSummary) = match opts.map {
-        Some(m) => {
-            encoder = Encoder::for_map(cfg, m)?.with_hog(wants_hog && m.manifest.hog_dim > 0).without_labels(without_labels);
-            (m, EncodingSummary::default())
-        }
+        Some(m) => (m, EncodingSummary::default()),
         None => {
-            encoder = Encoder::new(cfg)?.with_hog(wants_hog).without_labels(without_labels);
             train_codebook(&mut encoder, &ref_sources, opts.quiet)?;
             let enc = encode_frames(engine, &encoder, &ref_sources, ds.label_format, "references", false, opts.quiet)?;
             let summary = enc.summary();

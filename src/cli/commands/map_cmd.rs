@@ -328,7 +328,8 @@ fn check_installed_model(r: &mut edit::VerifyReport) -> Option<String> {
         AppearanceModelKind::None => return None,
     }
     let name = semlook::appearance::XFEAT_WEIGHTS;
-    let found = semlook::onnx::env_model(name).map(Ok).unwrap_or_else(|| semlook::onnx::find_model(name, None, "XFeat weights"));
+    // the folders start with $SEMLOOK_MODELS, as a query's search does
+    let found = semlook::onnx::find_model(name, None, "XFeat weights");
     let Ok(path) = found else {
         return Some(format!("model    not checked: no {name} installed (queries need the one with sha256 {want})"));
     };
