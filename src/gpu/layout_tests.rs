@@ -169,3 +169,33 @@ fn every_kernel_has_a_same_name_twin() {
         assert!(known, "src/kernels/{name} mirrors no shader");
     }
 }
+
+/// The workgroup memory the context requires of an adapter (`context::WORKGROUP_STORAGE`) is
+/// what the hungriest entry point uses, in every preprocessing variant: the workgroup variables
+/// it reaches, each rounded up to 16 bytes as WebGPU counts them.
+#[test]
+fn the_context_requires_the_workgroup_memory_the_kernels_use() {
+    let mut most = (0u64, String::new());
+    for (file, src) in SHADERS {
+        for defs in [&[][..], &["SUBGROUPS"][..]] {
+            let m = naga::front::wgsl::parse_str(&preprocess(src, defs).unwrap()).unwrap_or_else(|e| panic!("{file}: {e}"));
+            let info = naga::valid::Validator::new(naga::valid::ValidationFlags::all(), naga::valid::Capabilities::all())
+                .validate(&m)
+                .unwrap_or_else(|e| panic!("{file}: {e:?}"));
+            for (i, ep) in m.entry_points.iter().enumerate() {
+                let uses = info.get_entry_point(i);
+                let bytes: u64 = m
+                    .global_variables
+                    .iter()
+                    .filter(|(h, g)| g.space == naga::AddressSpace::WorkGroup && !uses[*h].is_empty())
+                    .map(|(_, g)| (m.types[g.ty].inner.size(m.to_ctx()) as u64).next_multiple_of(16))
+                    .sum();
+                if bytes > most.0 {
+                    most = (bytes, format!("{file}: {}", ep.name));
+                }
+            }
+        }
+    }
+    assert_eq!(most.0, super::context::WORKGROUP_STORAGE, "the most workgroup memory is {} bytes, in {}", most.0, most.1);
+    assert!(most.0 <= 16_384, "{}: beyond WebGPU's guaranteed 16 KiB", most.1);
+}
