@@ -62,9 +62,10 @@ impl Default for GpuOptions {
     }
 }
 
-/// Workgroup memory the hungriest kernel uses (`mnn_match`'s tile: WebGPU's guaranteed 16 KiB),
-/// each variable rounded up to 16 bytes as WebGPU counts it (`gpu::layout_tests` holds it to
-/// naga's reflection): an adapter with less cannot run the kernels.
+/// Workgroup memory the hungriest kernel uses (`mnn_match`'s tile: WebGPU's guaranteed 16 KiB;
+/// `tree_similarity_small` takes 16,272 bytes), each variable rounded up to 16 bytes as WebGPU
+/// counts it (`gpu::layout_tests` holds it to naga's reflection): an adapter with less cannot run
+/// the kernels.
 pub(crate) const WORKGROUP_STORAGE: u64 = 16_384;
 
 /// A device and queue with the engine's pipelines, ready for the executors.

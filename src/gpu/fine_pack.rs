@@ -50,14 +50,25 @@ pub(crate) fn packed_bytes(forests: usize, trees: usize, dim: usize) -> [u64; 3]
     [(forests * 8) as u64, (trees * std::mem::size_of::<GpuTree>()) as u64, (trees * dim * 4) as u64]
 }
 
-/// Chunks of the map's forests, each buffer within `limit` bytes, and the map's largest forest.
-/// A typed error names a forest too large for one binding.
-pub(crate) fn plan_chunks(ctx: &GpuContext, refs: &dyn RefSource, limit: u64) -> Result<(Vec<ChunkPlan>, usize), GpuError> {
+/// The chunks of a map's forests and what the dispatcher needs of every reference: its tree count.
+pub(crate) struct ChunkedForests {
+    pub plans: Vec<ChunkPlan>,
+    /// The map's largest forest.
+    pub max_trees: usize,
+    /// Trees per reference (saturating at `u16::MAX`), read once per map key: which pairs
+    /// `tree_similarity_small` takes is decided from these, never from the forests per batch.
+    pub sizes: std::sync::Arc<[u16]>,
+}
+
+/// Chunks of the map's forests, each buffer within `limit` bytes, with every reference's tree
+/// count. A typed error names a forest too large for one binding.
+pub(crate) fn plan_chunks(ctx: &GpuContext, refs: &dyn RefSource, limit: u64) -> Result<ChunkedForests, GpuError> {
     let dim = refs.appearance_dim();
-    let (mut plans, mut max_trees) = (Vec::new(), 0);
+    let (mut plans, mut max_trees, mut sizes) = (Vec::new(), 0, Vec::with_capacity(refs.len()));
     let (mut first, mut trees) = (0, 0);
     for i in 0..refs.len() {
         let t = refs.forest(i).len();
+        sizes.push(t.min(u16::MAX as usize) as u16);
         max_trees = max_trees.max(t);
         let fits = |n: usize, tr: usize| packed_bytes(n, tr, dim).iter().all(|&b| b <= limit);
         if !fits(1, t) {
@@ -77,7 +88,7 @@ pub(crate) fn plan_chunks(ctx: &GpuContext, refs: &dyn RefSource, limit: u64) ->
     if refs.len() > first {
         plans.push(ChunkPlan { first, len: refs.len() - first, bytes: packed_bytes(refs.len() - first, trees, dim).to_vec() });
     }
-    Ok((plans, max_trees))
+    Ok(ChunkedForests { plans, max_trees, sizes: sizes.into() })
 }
 
 /// The map's forests, packed chunk by chunk with the tree weights of `params`.

@@ -75,7 +75,7 @@ fn shared_structs_have_the_shaders_layouts() {
     same_layout(
         "tree_similarity.wgsl",
         "FinePass",
-        rust!(FinePass { dim, pairs, max_trees, grid, queries, refs, ref_first, list_first, row, out_first }),
+        rust!(FinePass { dim, pairs, max_trees, grid, queries, refs, ref_first, list_first, row, out_first, pair_first, skip_small }),
     );
     same_layout("tree_similarity.wgsl", "Tree", rust!(GpuTree { class_id, has_app, area, cx, cy, weight, nb }));
     same_layout("vlad_accumulate.wgsl", "VladParams", rust!(VladParams { centres, dim, keypoints, objects, power_norm, intra_norm }));
@@ -107,7 +107,7 @@ fn wgsl_const(file: &str, name: &str) -> f64 {
 fn shared_constants_agree() {
     use crate::kernels::xfeat as xf;
     use crate::kernels::{abi, ssim_block as b, topk_select as t};
-    let checks: [(&str, &str, f64); 28] = [
+    let checks: [(&str, &str, f64); 31] = [
         ("ssim_topk.wgsl", "LANES", crate::kernels::ssim::LANES as f64),
         ("ssim_topk.wgsl", "MAX_ROW_SUMS", super::reference::MAX_ROW_SUMS as f64),
         ("ssim_block.wgsl", "LANES", crate::kernels::ssim::LANES as f64),
@@ -120,7 +120,10 @@ fn shared_constants_agree() {
         ("abi.wgsl", "EMPTY_SCORE", abi::EMPTY_SCORE as f64),
         ("abi.wgsl", "EMPTY_INDEX", abi::EMPTY_INDEX as f64),
         ("topk_select.wgsl", "NONE", abi::EMPTY_INDEX as f64),
-        ("tree_similarity.wgsl", "LANES", crate::kernels::ssim::LANES as f64),
+        ("tree_similarity.wgsl", "LANES", crate::kernels::tree_similarity::LANES as f64),
+        ("tree_similarity.wgsl", "PAIRS_PER_GROUP", crate::kernels::tree_similarity::PAIRS_PER_GROUP as f64),
+        ("tree_similarity.wgsl", "SMALL_CELLS", crate::kernels::tree_similarity::SMALL_CELLS as f64),
+        ("tree_similarity.wgsl", "SMALL_TREES", crate::kernels::tree_similarity::SMALL_TREES as f64),
         ("tree_similarity.wgsl", "MAX_TREES", crate::kernels::abi::MAX_TREES as f64),
         ("tree_similarity.wgsl", "MAX_SLOTS", crate::kernels::abi::MAX_SLOTS as f64),
         ("tree_similarity.wgsl", "MISSING", crate::kernels::tree_similarity::MISSING as f64),
