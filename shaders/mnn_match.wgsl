@@ -36,8 +36,8 @@ const TILE: u32 = 64u;
 const MAX_WORDS: u32 = 64u;
 const NO_MATCH: u32 = 0xffffffffu;
 
+// 16 KiB, WebGPU's guaranteed workgroup storage, and nothing else
 var<workgroup> tile: array<u32, 4096>; // TILE * MAX_WORDS
-var<workgroup> columns: u32;
 
 // Dot product of the four signed bytes of two words (extractBits sign-extends signed values).
 fn dot4(x: u32, y: u32) -> i32 {
@@ -54,12 +54,10 @@ fn mnn_match(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_ind
     var row_start = pair.query_start;
     var row_len = pair.query_len;
     var col_start = pair.ref_start;
-    var col_len = pair.ref_len;
     if (dir == 1u) {
         row_start = pair.ref_start;
         row_len = pair.ref_len;
         col_start = pair.query_start;
-        col_len = pair.query_len;
     }
     let w = p.words;
     let i = wg.x * ROWS + lane;
@@ -75,11 +73,9 @@ fn mnn_match(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_ind
             }
         }
     }
-    // the column count, uniform across the workgroup (every lane loops and meets the barriers)
-    if (lane == 0u) {
-        columns = col_len;
-    }
-    let n = workgroupUniformLoad(&columns);
+    // the column count, uniform across the workgroup (every lane loops and meets the barriers):
+    // read from a read-only binding at the workgroup's pair, as a `let`
+    let n = select(pair.ref_len, pair.query_len, dir == 1u);
     var bd = bitcast<i32>(0x80000000u);
     var bj = NO_MATCH;
     for (var t0 = 0u; t0 < n; t0 += TILE) {

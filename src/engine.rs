@@ -113,6 +113,11 @@ impl GpuStages {
         self.fine.map_is_resident()
     }
 
+    /// What the fine stage's dispatches did so far (pairs and workgroups of each kernel).
+    pub fn fine_counters(&self) -> crate::gpu::fine::FineCounters {
+        self.fine.counters()
+    }
+
     /// Bytes of the last maps on the device: (coarse descriptors and statistics, fine packed
     /// forests).
     pub fn map_bytes(&self) -> (u64, u64) {

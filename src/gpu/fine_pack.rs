@@ -7,6 +7,7 @@ use crate::kernels::abi::TreeSimParams;
 use crate::kernels::abi::{GpuTree, MAX_SLOTS};
 use crate::kernels::tree_similarity::ForestRef;
 use crate::matching::source::{RefSource, SourceKey};
+use crate::values::Values;
 
 /// Forests packed for the shader.
 #[derive(Default)]
@@ -49,14 +50,25 @@ pub(crate) fn packed_bytes(forests: usize, trees: usize, dim: usize) -> [u64; 3]
     [(forests * 8) as u64, (trees * std::mem::size_of::<GpuTree>()) as u64, (trees * dim * 4) as u64]
 }
 
-/// Chunks of the map's forests, each buffer within `limit` bytes, and the map's largest forest.
-/// A typed error names a forest too large for one binding.
-pub(crate) fn plan_chunks(ctx: &GpuContext, refs: &dyn RefSource, limit: u64) -> Result<(Vec<ChunkPlan>, usize), GpuError> {
+/// The chunks of a map's forests and what the dispatcher needs of every reference: its tree count.
+pub(crate) struct ChunkedForests {
+    pub plans: Vec<ChunkPlan>,
+    /// The map's largest forest.
+    pub max_trees: usize,
+    /// Trees per reference (saturating at `u16::MAX`), read once per map key: which pairs
+    /// `tree_similarity_small` takes is decided from these, never from the forests per batch.
+    pub sizes: std::sync::Arc<[u16]>,
+}
+
+/// Chunks of the map's forests, each buffer within `limit` bytes, with every reference's tree
+/// count. A typed error names a forest too large for one binding.
+pub(crate) fn plan_chunks(ctx: &GpuContext, refs: &dyn RefSource, limit: u64) -> Result<ChunkedForests, GpuError> {
     let dim = refs.appearance_dim();
-    let (mut plans, mut max_trees) = (Vec::new(), 0);
+    let (mut plans, mut max_trees, mut sizes) = (Vec::new(), 0, Vec::with_capacity(refs.len()));
     let (mut first, mut trees) = (0, 0);
     for i in 0..refs.len() {
         let t = refs.forest(i).len();
+        sizes.push(t.min(u16::MAX as usize) as u16);
         max_trees = max_trees.max(t);
         let fits = |n: usize, tr: usize| packed_bytes(n, tr, dim).iter().all(|&b| b <= limit);
         if !fits(1, t) {
@@ -76,7 +88,7 @@ pub(crate) fn plan_chunks(ctx: &GpuContext, refs: &dyn RefSource, limit: u64) ->
     if refs.len() > first {
         plans.push(ChunkPlan { first, len: refs.len() - first, bytes: packed_bytes(refs.len() - first, trees, dim).to_vec() });
     }
-    Ok((plans, max_trees))
+    Ok(ChunkedForests { plans, max_trees, sizes: sizes.into() })
 }
 
 /// The map's forests, packed chunk by chunk with the tree weights of `params`.
@@ -95,29 +107,201 @@ impl ChunkData for ForestChunks<'_> {
     }
 }
 
-/// The key of a map's packed forests: the map's key, with the hash of sampled forests (classes,
-/// areas, centroids, neighbours, descriptor counts, appearance) and the tree-weight rule folded in.
+/// Forests sampled into the key of a source without a generation (evenly spaced, first and last
+/// included), as [`SourceKey::of`] samples descriptors.
+pub(crate) const FOREST_SAMPLES: usize = crate::matching::source::FINGERPRINT_SAMPLES;
+/// Appearance values sampled per sampled forest (evenly spaced over its vectors).
+const APPEARANCE_SAMPLES: usize = 16;
+
+/// The key of a map's packed forests, with the tree-weight rule (the packed weights) folded in.
+///
+/// - A source with a generation (a stored map: its random identity and the generation it was
+///   opened at, which any add, remove or compaction changes) is keyed by that alone, with its
+///   length and sizes: no forest is read, nothing hashed.
+/// - A source without one (an in-memory [`crate::descriptors::DescriptorSet`]) falls back to a
+///   cheap sampled key: its length, where its first forest lies in memory, and a hash of
+///   [`FOREST_SAMPLES`] forests' tree records (classes, areas, centroids, neighbours, descriptor
+///   counts, appearance flags: tens of words a forest) with [`APPEARANCE_SAMPLES`] raw appearance
+///   values each (never the whole vectors: at 4,096 values a tree those were megabytes a batch).
+///   An edit in place of values not sampled keeps the key: call `forget_map` after one.
 pub(crate) fn forest_key(refs: &dyn RefSource, params: &TreeSimParams) -> SourceKey {
-    let mut key = SourceKey::of(refs);
     let n = refs.len();
-    let samples = crate::matching::source::FINGERPRINT_SAMPLES.min(n);
-    let mut h = key.fingerprint ^ (params.tree_weight as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    let sizes = (refs.appearance_dim(), refs.neighbour_slots());
+    let rule = (params.tree_weight as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    if let Some(generation) = refs.generation() {
+        return SourceKey { len: n, generation: Some(generation), sizes, address: 0, fingerprint: rule };
+    }
+    let address = if n > 0 { refs.forest(0).classes.as_ptr() as usize } else { 0 };
+    let mut h = 0xcbf2_9ce4_8422_2325 ^ rule;
+    let mut mix = |w: u32| h = (h ^ w as u64).wrapping_mul(0x0000_0100_0000_01b3);
+    let samples = FOREST_SAMPLES.min(n);
     for j in 0..samples {
         let i = if samples == 1 { 0 } else { j * (n - 1) / (samples - 1) };
         let f = refs.forest(i);
-        let app = f.appearance.to_vec();
-        let words = f
-            .classes
-            .iter()
-            .map(|&c| c as u32)
-            .chain(f.areas.iter().chain(f.centroids).chain(&app).map(|v| v.to_bits()))
-            .chain(f.neighbours.iter().map(|&v| v as u32))
-            .chain(f.descriptors.iter().copied())
-            .chain(f.has_appearance.iter().map(|&v| v as u32));
-        for w in words {
-            h = (h ^ w as u64).wrapping_mul(0x0000_0100_0000_01b3);
+        mix(i as u32);
+        f.classes.iter().for_each(|&c| mix(c as u32));
+        f.areas.iter().chain(f.centroids).for_each(|v| mix(v.to_bits()));
+        f.neighbours.iter().for_each(|&v| mix(v as u32));
+        f.descriptors.iter().for_each(|&v| mix(v));
+        f.has_appearance.iter().for_each(|&v| mix(v as u32));
+        sample_values(&f.appearance, APPEARANCE_SAMPLES, &mut mix);
+    }
+    SourceKey { len: n, generation: None, sizes, address, fingerprint: h }
+}
+
+/// Feeds `count` evenly spaced stored values of `v` (their raw bits; for blocks, the stored block
+/// ids, exponents and values) to `mix`, without widening the run.
+fn sample_values(v: &Values, count: usize, mix: &mut impl FnMut(u32)) {
+    fn spaced<T: Copy>(s: &[T], count: usize, mut f: impl FnMut(T)) {
+        let k = count.min(s.len());
+        for j in 0..k {
+            f(s[if k == 1 { 0 } else { j * (s.len() - 1) / (k - 1) }]);
         }
     }
-    key.fingerprint = h;
-    key
+    mix(v.len() as u32);
+    match v {
+        Values::F32(s) => spaced(s, count, |x| mix(x.to_bits())),
+        Values::F16(s) => spaced(s, count, |x| mix(x as u32)),
+        Values::Blocks(b) => {
+            spaced(b.offsets, count, &mut *mix);
+            spaced(b.ids, count, |x| mix(x as u32));
+            spaced(b.exponents, count, |x| mix(x as u32));
+            spaced(b.values, count, |x| mix(x as u32));
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::descriptors::keypoints::KeypointsRef;
+    use crate::descriptors::source::{GlobalSource, TileBuf};
+    use crate::descriptors::DescriptorSet;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+
+    /// A set served with or without a generation, counting its forest reads.
+    struct Counted<'a> {
+        set: &'a DescriptorSet,
+        generation: Option<u64>,
+        reads: AtomicUsize,
+    }
+
+    impl GlobalSource for Counted<'_> {
+        fn len(&self) -> usize {
+            self.set.len()
+        }
+        fn tile<'a>(&'a self, start: usize, end: usize, buf: &'a mut TileBuf) -> (&'a [f32], &'a [f32]) {
+            self.set.tile(start, end, buf)
+        }
+        fn generation(&self) -> Option<u64> {
+            self.generation
+        }
+    }
+
+    impl RefSource for Counted<'_> {
+        fn id(&self, i: usize) -> &str {
+            self.set.id(i)
+        }
+        fn forest(&self, i: usize) -> ForestRef<'_> {
+            self.reads.fetch_add(1, Ordering::Relaxed);
+            self.set.forest(i)
+        }
+        fn neighbour_slots(&self) -> usize {
+            self.set.neighbour_slots
+        }
+        fn appearance_dim(&self) -> usize {
+            self.set.appearance_dim
+        }
+        fn image_appearance(&self, i: usize) -> Values<'_> {
+            RefSource::image_appearance(self.set, i)
+        }
+        fn hog_dim(&self) -> usize {
+            0
+        }
+        fn image_hog(&self, _: usize) -> &[f32] {
+            &[]
+        }
+        fn keypoint_dim(&self) -> usize {
+            0
+        }
+        fn keypoints(&self, i: usize) -> KeypointsRef<'_> {
+            self.set.keypoints(i)
+        }
+    }
+
+    /// `n` images of 20 trees each with `dim` appearance values per tree.
+    fn set(n: usize, dim: usize) -> DescriptorSet {
+        let p = crate::kernels::abi::SsimParams::new(&Default::default());
+        let mut set = DescriptorSet::new(&p, 3, dim, 0);
+        for i in 0..n {
+            let trees = 20;
+            let f = crate::local::Forest {
+                classes: (0..trees).map(|t| (t % 7) as u8).collect(),
+                areas: (0..trees).map(|t| 0.01 * (1 + t + i) as f32).collect(),
+                centroids: vec![0.5; 2 * trees],
+                neighbours: vec![-1; 3 * trees],
+                neighbour_slots: 3,
+                appearance: (0..trees * dim).map(|k| ((k + i) % 13) as f32 / 13.0).collect(),
+                has_appearance: vec![1; trees],
+                descriptors: vec![3; trees],
+                dim,
+            };
+            let img = crate::encode::EncodedImage {
+                id: format!("i{i}"),
+                width: 10,
+                height: 10,
+                global: vec![0.5; p.len()],
+                global_stats: vec![0.0; p.stats_len()],
+                forest: f,
+                appearance: vec![0.0; dim],
+                hog: vec![],
+                keypoints: Default::default(),
+            };
+            set.push(&img).unwrap();
+        }
+        set
+    }
+
+    /// A source with a generation (a stored map's identity and generation) is keyed by it alone:
+    /// no forest is read for the key; another generation or tree-weight rule is another key.
+    #[test]
+    fn a_source_with_a_generation_is_keyed_without_reading_a_forest() {
+        let s = set(100, 64);
+        let p = TreeSimParams::new(&Default::default(), true, 3);
+        let src = Counted { set: &s, generation: Some(7), reads: AtomicUsize::new(0) };
+        let key = forest_key(&src, &p);
+        assert_eq!(src.reads.load(Ordering::Relaxed), 0, "forests read for a generation's key");
+        assert_eq!((key.generation, key.len), (Some(7), 100));
+        assert_eq!(key, forest_key(&src, &p));
+        let next = Counted { set: &s, generation: Some(8), reads: AtomicUsize::new(0) };
+        assert_ne!(key, forest_key(&next, &p), "a new generation (add, remove, compact) is a new key");
+        let sqrt = TreeSimParams { tree_weight: 2, ..p };
+        assert_ne!(key, forest_key(&src, &sqrt), "other packed weights are another map");
+    }
+
+    /// Without a generation, the key reads at most FOREST_SAMPLES forests and never their whole
+    /// appearance: it is the same with 16 or 4,096 values a tree except for the sampled values.
+    #[test]
+    fn a_source_without_one_gets_a_cheap_sampled_key() {
+        let p = TreeSimParams::new(&Default::default(), true, 3);
+        let mut s = set(200, 4096);
+        let key_of = |s: &DescriptorSet| {
+            let src = Counted { set: s, generation: None, reads: AtomicUsize::new(0) };
+            let key = forest_key(&src, &p);
+            assert!(src.reads.load(Ordering::Relaxed) <= FOREST_SAMPLES + 1, "{} forests read", src.reads.load(Ordering::Relaxed));
+            key
+        };
+        let key = key_of(&s);
+        assert_eq!(key, key_of(&s), "the same set, the same key");
+        assert_ne!(key, key_of(&s.clone()), "a copy lies elsewhere");
+        let mut words = 0;
+        sample_values(&s.forest(0).appearance, APPEARANCE_SAMPLES, &mut |_| words += 1);
+        assert_eq!(words, 1 + APPEARANCE_SAMPLES, "appearance words hashed for 20 trees of 4,096 values");
+        // an edit in place of a sampled forest's record or sampled appearance is another key
+        s.tree_areas[0] += 1.0;
+        let area = key_of(&s);
+        assert_ne!(key, area);
+        s.tree_appearance[0] += 1.0;
+        assert_ne!(area, key_of(&s));
+    }
 }

@@ -25,6 +25,26 @@ pub(crate) struct Kernel {
 }
 
 impl Kernel {
+    /// A pipeline of entry point `entry` of `module` with this kernel's bind group layouts (a
+    /// bind group made for one serves the other).
+    fn sibling(&self, device: &wgpu::Device, module: &wgpu::ShaderModule, file: &str, entry: &str) -> Result<Kernel, GpuError> {
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let refs: Vec<Option<&wgpu::BindGroupLayout>> = self.layouts.iter().map(|l| Some(&l.0)).collect();
+        let pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor { label: Some(entry), bind_group_layouts: &refs, immediate_size: 0 });
+        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(entry),
+            layout: Some(&pl),
+            module,
+            entry_point: Some(entry),
+            compilation_options: Default::default(),
+            cache: None,
+        });
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Shader { name: format!("{file}:{entry}"), message: e.to_string() });
+        }
+        Ok(Kernel { pipeline, layouts: self.layouts.clone() })
+    }
+
     /// A bind group of group `group` with `buffers` bound to its bindings, in order.
     pub fn bind_group(&self, device: &wgpu::Device, group: usize, buffers: &[&wgpu::Buffer]) -> wgpu::BindGroup {
         let (layout, slots) = &self.layouts[group];
@@ -67,6 +87,9 @@ pub(crate) struct Kernels {
     pub topk_partial: Kernel,
     pub topk_merge_lists: Kernel,
     pub tree_similarity: Kernel,
+    /// Several pairs of small forests per workgroup; the bind group layouts of `tree_similarity`
+    /// (one bind group serves both).
+    pub tree_similarity_small: Kernel,
     pub vlad_assign: Kernel,
     pub vlad_accumulate: Kernel,
     pub mnn_match: Kernel,
@@ -178,6 +201,16 @@ impl Kernels {
         let map1: &[(u32, Slot)] = &[(5, UniformAt(XF_MAP)), (6, Read), (9, ReadWrite)];
         let edt_slots: &[(u32, Slot)] = &[(0, Uniform), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite), (5, ReadWrite)];
         let topk_slots: &[(u32, Slot)] = &[(0, UniformAt(PASS)), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite)];
+        let tree_sim = kernel(
+            device,
+            &tree,
+            "tree_similarity.wgsl",
+            "tree_similarity",
+            &[
+                &[(0, Uniform), (1, UniformAt(FINE_PASS)), (2, Read), (3, Read), (4, Read), (5, ReadWrite), (6, ReadWrite)],
+                &[(0, Read), (1, Read), (2, Read)],
+            ],
+        )?;
         Ok(Kernels {
             made: made.clone(),
             semantic_edges: kernel(
@@ -209,16 +242,8 @@ impl Kernels {
             stats_windows: kernel(device, &stats, "ssim_stats.wgsl", "stats_windows", &[stats_slots])?,
             topk_partial: kernel(device, &topk, "topk_select.wgsl", "topk_partial", &[topk_slots])?,
             topk_merge_lists: kernel(device, &topk, "topk_select.wgsl", "topk_merge_lists", &[topk_slots])?,
-            tree_similarity: kernel(
-                device,
-                &tree,
-                "tree_similarity.wgsl",
-                "tree_similarity",
-                &[
-                    &[(0, Uniform), (1, UniformAt(FINE_PASS)), (2, Read), (3, Read), (4, Read), (5, ReadWrite), (6, ReadWrite)],
-                    &[(0, Read), (1, Read), (2, Read)],
-                ],
-            )?,
+            tree_similarity_small: tree_sim.sibling(device, &tree, "tree_similarity.wgsl", "tree_similarity_small")?,
+            tree_similarity: tree_sim,
             vlad_assign: kernel(device, &vlad, "vlad_accumulate.wgsl", "vlad_assign", &[&[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite)]])?,
             vlad_accumulate: kernel(
                 device,

@@ -75,7 +75,7 @@ fn shared_structs_have_the_shaders_layouts() {
     same_layout(
         "tree_similarity.wgsl",
         "FinePass",
-        rust!(FinePass { dim, pairs, max_trees, grid, queries, refs, ref_first, list_first, row, out_first }),
+        rust!(FinePass { dim, pairs, max_trees, grid, queries, refs, ref_first, list_first, row, out_first, pair_first, skip_small }),
     );
     same_layout("tree_similarity.wgsl", "Tree", rust!(GpuTree { class_id, has_app, area, cx, cy, weight, nb }));
     same_layout("vlad_accumulate.wgsl", "VladParams", rust!(VladParams { centres, dim, keypoints, objects, power_norm, intra_norm }));
@@ -107,7 +107,7 @@ fn wgsl_const(file: &str, name: &str) -> f64 {
 fn shared_constants_agree() {
     use crate::kernels::xfeat as xf;
     use crate::kernels::{abi, ssim_block as b, topk_select as t};
-    let checks: [(&str, &str, f64); 28] = [
+    let checks: [(&str, &str, f64); 31] = [
         ("ssim_topk.wgsl", "LANES", crate::kernels::ssim::LANES as f64),
         ("ssim_topk.wgsl", "MAX_ROW_SUMS", super::reference::MAX_ROW_SUMS as f64),
         ("ssim_block.wgsl", "LANES", crate::kernels::ssim::LANES as f64),
@@ -120,7 +120,10 @@ fn shared_constants_agree() {
         ("abi.wgsl", "EMPTY_SCORE", abi::EMPTY_SCORE as f64),
         ("abi.wgsl", "EMPTY_INDEX", abi::EMPTY_INDEX as f64),
         ("topk_select.wgsl", "NONE", abi::EMPTY_INDEX as f64),
-        ("tree_similarity.wgsl", "LANES", crate::kernels::ssim::LANES as f64),
+        ("tree_similarity.wgsl", "LANES", crate::kernels::tree_similarity::LANES as f64),
+        ("tree_similarity.wgsl", "PAIRS_PER_GROUP", crate::kernels::tree_similarity::PAIRS_PER_GROUP as f64),
+        ("tree_similarity.wgsl", "SMALL_CELLS", crate::kernels::tree_similarity::SMALL_CELLS as f64),
+        ("tree_similarity.wgsl", "SMALL_TREES", crate::kernels::tree_similarity::SMALL_TREES as f64),
         ("tree_similarity.wgsl", "MAX_TREES", crate::kernels::abi::MAX_TREES as f64),
         ("tree_similarity.wgsl", "MAX_SLOTS", crate::kernels::abi::MAX_SLOTS as f64),
         ("tree_similarity.wgsl", "MISSING", crate::kernels::tree_similarity::MISSING as f64),
@@ -168,4 +171,34 @@ fn every_kernel_has_a_same_name_twin() {
         let known = SHADERS.iter().chain(&INCLUDES).any(|s| s.0 == shader) || ["mod", "test_data", "ssim"].contains(&stem);
         assert!(known, "src/kernels/{name} mirrors no shader");
     }
+}
+
+/// The workgroup memory the context requires of an adapter (`context::WORKGROUP_STORAGE`) is
+/// what the hungriest entry point uses, in every preprocessing variant: the workgroup variables
+/// it reaches, each rounded up to 16 bytes as WebGPU counts them.
+#[test]
+fn the_context_requires_the_workgroup_memory_the_kernels_use() {
+    let mut most = (0u64, String::new());
+    for (file, src) in SHADERS {
+        for defs in [&[][..], &["SUBGROUPS"][..]] {
+            let m = naga::front::wgsl::parse_str(&preprocess(src, defs).unwrap()).unwrap_or_else(|e| panic!("{file}: {e}"));
+            let info = naga::valid::Validator::new(naga::valid::ValidationFlags::all(), naga::valid::Capabilities::all())
+                .validate(&m)
+                .unwrap_or_else(|e| panic!("{file}: {e:?}"));
+            for (i, ep) in m.entry_points.iter().enumerate() {
+                let uses = info.get_entry_point(i);
+                let bytes: u64 = m
+                    .global_variables
+                    .iter()
+                    .filter(|(h, g)| g.space == naga::AddressSpace::WorkGroup && !uses[*h].is_empty())
+                    .map(|(_, g)| (m.types[g.ty].inner.size(m.to_ctx()) as u64).next_multiple_of(16))
+                    .sum();
+                if bytes > most.0 {
+                    most = (bytes, format!("{file}: {}", ep.name));
+                }
+            }
+        }
+    }
+    assert_eq!(most.0, super::context::WORKGROUP_STORAGE, "the most workgroup memory is {} bytes, in {}", most.0, most.1);
+    assert!(most.0 <= 16_384, "{}: beyond WebGPU's guaranteed 16 KiB", most.1);
 }

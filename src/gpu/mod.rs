@@ -9,7 +9,7 @@
 //! | `ssim_topk.wgsl` | `ssim_tile`, `topk_merge` | `kernels::ssim_topk::{ssim_tile, topk_merge}` |
 //! | `ssim_block.wgsl` | `ssim_block` | `kernels::ssim_block::ssim_block` |
 //! | `topk_select.wgsl` | `topk_partial`, `topk_merge_lists` | `kernels::topk_select::{topk_partial, topk_merge_lists}` |
-//! | `tree_similarity.wgsl` | `tree_similarity` | `kernels::tree_similarity::tree_similarity` |
+//! | `tree_similarity.wgsl` | `tree_similarity`, `tree_similarity_small` | `kernels::tree_similarity::{tree_similarity, tree_similarity_small}` |
 //! | `vlad_accumulate.wgsl` | `vlad_assign`, `vlad_accumulate` | `kernels::vlad_accumulate::{vlad_assign, vlad_accumulate}` |
 //! | `mnn_match.wgsl` | `mnn_match` | `kernels::mnn_match::mnn_match` |
 //! | `xfeat.wgsl` | `instance_norm_partials`, `instance_norm_stats`, `instance_norm_apply`, `avg_pool`, `space_to_depth8`, `bilinear_add`, `conv2d` | `kernels::xfeat::*` (same names) |

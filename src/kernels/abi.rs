@@ -33,17 +33,21 @@ pub(crate) struct FinePass {
     pub dim: u32,
     pub pairs: u32,
     pub max_trees: u32,
+    /// 1: every query against a run of references (grid pair g = `pair_first` + j); 0: pairs
+    /// listed in the lookup; 2: listed, each scored where its grid pair's score goes.
     pub grid: u32,
     pub queries: u32,
     pub refs: u32,
     pub ref_first: u32,
     pub list_first: u32,
-    /// Workgroups per row of the dispatch grid (pair = x + y * row).
+    /// Workgroups per row of the dispatch grid (workgroup = x + y * row).
     pub row: u32,
     /// Where this pass's scores start in `out`.
     pub out_first: u32,
-    pub _pad0: u32,
-    pub _pad1: u32,
+    /// Grid passes: the grid pair of the dispatch's first pair.
+    pub pair_first: u32,
+    /// 1: `tree_similarity` skips the pairs `tree_similarity_small` scores.
+    pub skip_small: u32,
 }
 
 /// Uniform parameters of the kernel, in the shader's field order.

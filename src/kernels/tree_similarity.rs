@@ -14,6 +14,13 @@
 //!    (1, the area, its square root, or the descriptor count + 1); the sum is divided by the larger
 //!    total tree weight of the two forests (spec §2.8: the larger forest size, for unit weights)
 //!    or by the geometric mean of the totals.
+//!
+//! Two entry points share these phases: [`tree_similarity`] is one pair (the shader's
+//! `tree_similarity`: one workgroup per pair, its matrices in global scratch), and
+//! [`tree_similarity_small`] scores several pairs of small forests per workgroup, their trees and
+//! matrices in workgroup memory, the assignment parallel over the pairs and their cells. Both give
+//! the same scores bit for bit on the CPU (tested); a pair too large for one round of the second
+//! ([`fits_small`]) is left to the first.
 
 use super::abi::TreeSimParams;
 use crate::values::Values;
@@ -50,6 +57,14 @@ pub struct TreeSimScratch {
     wr: Vec<f32>,
     row_used: Vec<bool>,
     col_used: Vec<bool>,
+    /// [`tree_similarity_small`]: a round's slots, widened appearance per slot, the pool's
+    /// cosines and scores, its row and column flags, the lanes' candidates.
+    slots: Vec<Slot>,
+    wide: Vec<(Vec<f32>, Vec<f32>)>,
+    pool_cos: Vec<f32>,
+    pool_score: Vec<f32>,
+    flags: Vec<bool>,
+    lanes: Vec<(f32, u32)>,
 }
 
 /// Image similarity of forests `q` and `r`.
@@ -235,4 +250,231 @@ pub fn greedy_assignment_reference(scores: &[f32], nq: usize, nr: usize) -> f32 
         }
     }
     total
+}
+
+/// Invocations of a `tree_similarity_small` workgroup: the shader's `LANES`.
+pub const LANES: usize = 64;
+/// Pairs one `tree_similarity_small` workgroup takes (consecutive pairs of the dispatch), and the
+/// most it scores in one round: the shader's `PAIRS_PER_GROUP`.
+pub const PAIRS_PER_GROUP: usize = 8;
+/// Cells (query tree x reference tree) of a round's pairs together: the length of each of the
+/// workgroup's two matrices (cosines, pair scores), the shader's `SMALL_CELLS`.
+pub const SMALL_CELLS: usize = 1536;
+/// Trees of a round's forests together (a query forest shared by consecutive pairs counted once):
+/// the shader's `SMALL_TREES`.
+pub const SMALL_TREES: usize = 128;
+
+/// Whether a pair of forests of `nq` and `nr` trees fits one round of [`tree_similarity_small`]
+/// alone; a pair that does not is scored by [`tree_similarity`] (one workgroup per pair).
+pub const fn fits_small(nq: usize, nr: usize) -> bool {
+    nq * nr <= SMALL_CELLS && nq + nr <= SMALL_TREES
+}
+
+/// One pair of a round: where its matrices, flags and trees lie in the workgroup's pools.
+#[derive(Debug, Clone, Copy, Default)]
+struct Slot {
+    /// Index of the pair in the dispatch (its output).
+    j: usize,
+    q: usize,
+    r: usize,
+    nq: usize,
+    nr: usize,
+    /// First cell in the pools of cosines and scores, first row flag (column flags follow).
+    cell: usize,
+    flag: usize,
+    /// First query tree in the tree pool (the reference's follow the round's trees so far).
+    qt: usize,
+}
+
+/// How [`tree_similarity_small`] shared its workgroups: rounds, pairs scored, pairs left to
+/// [`tree_similarity`], and the rounds that held several pairs.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SmallRounds {
+    pub workgroups: usize,
+    pub rounds: usize,
+    pub pairs: usize,
+    pub skipped: usize,
+    pub shared_rounds: usize,
+    pub most_pairs_in_a_round: usize,
+}
+
+/// Bindings: `queries` and `refs` (the forests), `pairs` (query, reference) of the dispatch and
+/// `out` (one score per pair; a pair that does not [`fits_small`] is left as it is). Workgroup w
+/// takes pairs `w * PAIRS_PER_GROUP..` (at most [`PAIRS_PER_GROUP`]) and scores them in rounds:
+/// lane 0 fills a round with the next pairs while their cells, trees and flags fit the pools
+/// (a query forest shared with the previous pair is loaded once); the lanes then load the round's
+/// trees, compute the cosines and pair scores of all its cells together, and run the assignment
+/// with `LANES / next_power_of_two(pairs)` lanes per pair: each greedy step, every lane takes the
+/// best free cell of its stride of its pair, a tree reduction per pair finds the pair's best
+/// (ties to the lower cell), and the pair's first lane accepts it; for best-match, the lanes of a
+/// pair take its rows. The first lane of each pair sums its accepted scores, then the tree
+/// weights, in order, and writes the score: the arithmetic of [`tree_similarity`], operation for
+/// operation.
+pub fn tree_similarity_small(
+    p: &TreeSimParams,
+    queries: &[ForestRef],
+    refs: &[ForestRef],
+    pairs: &[[u32; 2]],
+    out: &mut [f32],
+    scratch: &mut TreeSimScratch,
+) -> SmallRounds {
+    let mut stats = SmallRounds::default();
+    let TreeSimScratch { slots, wide, pool_cos, pool_score, flags, lanes, wq, wr, .. } = scratch;
+    pool_cos.resize(SMALL_CELLS, 0.0);
+    pool_score.resize(SMALL_CELLS, 0.0);
+    flags.resize(SMALL_CELLS, false);
+    lanes.resize(LANES, (NOT_A_PAIR, u32::MAX));
+    wide.resize(PAIRS_PER_GROUP, Default::default());
+    for wg in 0..pairs.len().div_ceil(PAIRS_PER_GROUP) {
+        stats.workgroups += 1;
+        let end = ((wg + 1) * PAIRS_PER_GROUP).min(pairs.len());
+        let mut cursor = wg * PAIRS_PER_GROUP;
+        loop {
+            // lane 0: the round's pairs
+            slots.clear();
+            let (mut cells, mut trees, mut nflags, mut steps) = (0, 0, 0, 0);
+            while cursor < end && slots.len() < PAIRS_PER_GROUP {
+                let [q, r] = pairs[cursor].map(|v| v as usize);
+                let (nq, nr) = (queries[q].len(), refs[r].len());
+                if !fits_small(nq, nr) {
+                    stats.skipped += 1;
+                    cursor += 1;
+                    continue;
+                }
+                let shared = slots.last().filter(|s| s.q == q).map(|s| s.qt);
+                let new_trees = if shared.is_some() { nr } else { nq + nr };
+                if cells + nq * nr > SMALL_CELLS || trees + new_trees > SMALL_TREES || nflags + nq + nr > SMALL_CELLS {
+                    break;
+                }
+                slots.push(Slot { j: cursor, q, r, nq, nr, cell: cells, flag: nflags, qt: shared.unwrap_or(trees) });
+                (cells, trees, nflags) = (cells + nq * nr, trees + new_trees, nflags + nq + nr);
+                steps = steps.max(nq.min(nr));
+                cursor += 1;
+            }
+            let n = slots.len();
+            if n == 0 {
+                break;
+            }
+            stats.rounds += 1;
+            stats.pairs += n;
+            stats.shared_rounds += (n > 1) as usize;
+            stats.most_pairs_in_a_round = stats.most_pairs_in_a_round.max(n);
+            let steps = if p.greedy != 0 { steps } else { 0 };
+            // the round's trees into the pool (here: each pair's appearance, widened)
+            for (s, w) in slots.iter().zip(wide.iter_mut()) {
+                w.0.clear();
+                queries[s.q].appearance.extend_into(&mut w.0);
+                w.1.clear();
+                refs[s.r].appearance.extend_into(&mut w.1);
+            }
+            let slot_of = |idx: usize| {
+                let mut s = 0;
+                while s + 1 < n && slots[s + 1].cell <= idx {
+                    s += 1;
+                }
+                s
+            };
+            // phase 1: appearance cosines of every cell of the round
+            if p.use_appearance != 0 {
+                for lane in 0..LANES {
+                    for idx in (lane..cells).step_by(LANES) {
+                        let si = slot_of(idx);
+                        let s = slots[si];
+                        let (t, u) = ((idx - s.cell) / s.nr, (idx - s.cell) % s.nr);
+                        let (qf, rf) = (&queries[s.q], &refs[s.r]);
+                        let (dq, dr) = (qf.dim, rf.dim);
+                        pool_cos[idx] = match (dq > 0 && qf.has_appearance[t] != 0, dr > 0 && rf.has_appearance[u] != 0) {
+                            (true, true) => Values::F32(&wide[si].0[t * dq..(t + 1) * dq]).dot(&Values::F32(&wide[si].1[u * dr..(u + 1) * dr])),
+                            _ => MISSING,
+                        };
+                    }
+                }
+            }
+            // phase 2: pair scores of every cell
+            for lane in 0..LANES {
+                for idx in (lane..cells).step_by(LANES) {
+                    let s = slots[slot_of(idx)];
+                    let (t, u) = ((idx - s.cell) / s.nr, (idx - s.cell) % s.nr);
+                    let (qf, rf) = (&queries[s.q], &refs[s.r]);
+                    pool_score[idx] = if p.key(qf.classes[t]) == p.key(rf.classes[u]) {
+                        pair_score(p, qf, rf, &pool_cos[s.cell..s.cell + s.nq * s.nr], t, u)
+                    } else {
+                        NOT_A_PAIR
+                    };
+                }
+            }
+            flags[..nflags].fill(false);
+            // phase 3: lanes per pair, a power of two
+            let per = LANES / n.next_power_of_two();
+            let mut totals = [0.0f32; PAIRS_PER_GROUP];
+            for _ in 0..steps {
+                for (lane, l) in lanes.iter_mut().enumerate() {
+                    *l = (NOT_A_PAIR, u32::MAX);
+                    let Some(s) = slots.get(lane / per) else { continue };
+                    for idx in (lane % per..s.nq * s.nr).step_by(per) {
+                        let v = pool_score[s.cell + idx];
+                        if !flags[s.flag + idx / s.nr] && !flags[s.flag + s.nq + idx % s.nr] && v > l.0 {
+                            *l = (v, idx as u32);
+                        }
+                    }
+                }
+                let mut h = per / 2;
+                while h > 0 {
+                    for lane in 0..LANES {
+                        if lane % per < h {
+                            let (o, m) = (lanes[lane + h], lanes[lane]);
+                            if o.0 > m.0 || (o.0 == m.0 && o.1 < m.1) {
+                                lanes[lane] = o;
+                            }
+                        }
+                    }
+                    h /= 2;
+                }
+                for (si, s) in slots.iter().enumerate() {
+                    let (v, idx) = lanes[si * per];
+                    if idx != u32::MAX {
+                        let (t, u) = (idx as usize / s.nr, idx as usize % s.nr);
+                        flags[s.flag + t] = true;
+                        flags[s.flag + s.nq + u] = true;
+                        let (qf, rf) = (&queries[s.q], &refs[s.r]);
+                        totals[si] += v * (p.tree_weight(qf.areas[t], qf.descriptors[t]) * p.tree_weight(rf.areas[u], rf.descriptors[u])).sqrt();
+                    }
+                }
+            }
+            for (si, s) in slots.iter().enumerate() {
+                let (qf, rf) = (&queries[s.q], &refs[s.r]);
+                wq.clear();
+                wq.extend((0..s.nq).map(|t| p.tree_weight(qf.areas[t], qf.descriptors[t])));
+                wr.clear();
+                wr.extend((0..s.nr).map(|u| p.tree_weight(rf.areas[u], rf.descriptors[u])));
+                if p.greedy == 0 {
+                    // best match: the pair's lanes take its rows, the first lane sums them in order
+                    let mut contrib = [-1.0f32; SMALL_TREES];
+                    for lane in 0..per {
+                        for t in (lane..s.nq).step_by(per) {
+                            let mut best = (0.0f32, usize::MAX);
+                            for u in 0..s.nr {
+                                let v = pool_score[s.cell + t * s.nr + u];
+                                if v > best.0 {
+                                    best = (v, u);
+                                }
+                            }
+                            if best.1 != usize::MAX {
+                                contrib[t] = best.0 * (wq[t] * wr[best.1]).sqrt();
+                            }
+                        }
+                    }
+                    for &c in &contrib[..s.nq] {
+                        if c >= 0.0 {
+                            totals[si] += c;
+                        }
+                    }
+                }
+                let (sq, sr) = (wq.iter().sum::<f32>(), wr.iter().sum::<f32>());
+                let norm = if p.geometric_norm != 0 { (sq * sr).sqrt() } else { sq.max(sr) };
+                out[s.j] = if s.nq > 0 && s.nr > 0 && norm > 0.0 { totals[si] / norm } else { 0.0 };
+            }
+        }
+    }
+    stats
 }

@@ -5,6 +5,7 @@ use super::Forest;
 use crate::config::{MissingAppearance, SimilarityConfig};
 use crate::kernels::abi::TreeSimParams;
 use crate::kernels::tree_similarity::*;
+use crate::values::Values;
 use proptest::prelude::*;
 
 fn forest(trees: &[(u8, f32, f32, f32)], nb: &[[i32; 3]]) -> Forest {
@@ -74,5 +75,115 @@ proptest! {
         let (mut r, mut c) = (vec![], vec![]);
         let fast = greedy_assignment(&scores, nq, nr, &vec![1.0; nq], &vec![1.0; nr], &mut r, &mut c);
         prop_assert_eq!(fast, greedy_assignment_reference(&scores, nq, nr));
+    }
+}
+
+/// A random forest of `n` trees over `classes` classes with `dim` appearance values (a fifth of
+/// the trees without); `uniform`: every tree the same (every same-class cell ties).
+fn random_forest(n: usize, dim: usize, classes: usize, uniform: bool, rng: &mut crate::util::SplitMix64) -> Forest {
+    let mut f = Forest { neighbour_slots: 3, ..Default::default() };
+    let first = (rng.below(classes) as u8, rng.range(0.001, 0.3) as f32, rng.next_f64() as f32, rng.next_f64() as f32);
+    let mut app = vec![0.0f32; n * dim];
+    let mut counts = vec![0u32; n];
+    let v0: Vec<f32> = (0..dim).map(|_| rng.normal() as f32).collect();
+    for t in 0..n {
+        let (c, a, x, y) =
+            if uniform { first } else { (rng.below(classes) as u8, rng.range(0.001, 0.3) as f32, rng.next_f64() as f32, rng.next_f64() as f32) };
+        f.classes.push(c);
+        f.areas.push(a);
+        f.centroids.extend([x, y]);
+        for _ in 0..3 {
+            f.neighbours.push(if n > 1 && rng.chance(0.8) { ((t + 1 + rng.below(n - 1)) % n) as i32 } else { -1 });
+        }
+        if dim > 0 && rng.chance(0.8) {
+            counts[t] = 1 + rng.below(40) as u32;
+            let v: Vec<f32> = if uniform { v0.clone() } else { (0..dim).map(|_| rng.normal() as f32).collect() };
+            let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+            app[t * dim..(t + 1) * dim].iter_mut().zip(&v).for_each(|(o, x)| *o = x / norm);
+        }
+    }
+    f.set_appearance(dim, app, counts, 1).unwrap();
+    f
+}
+
+/// The similarity options the GPU tests cover (tests/gpu/main.rs), each with and without
+/// appearance, the last pairing trees by Cityscapes category.
+fn every_option() -> Vec<TreeSimParams> {
+    use crate::config::*;
+    let variants = [
+        SimilarityConfig::default(),
+        SimilarityConfig { position: PositionSimilarity::Gaussian, missing_appearance: MissingAppearance::Drop, ..Default::default() },
+        SimilarityConfig { assignment: Assignment::BestMatch, ..Default::default() },
+        SimilarityConfig { tree_weight: TreeWeight::Descriptors, normalise: Normalise::GeometricMean, ..Default::default() },
+        SimilarityConfig { tree_weight: TreeWeight::SqrtArea, assignment: Assignment::BestMatch, ..Default::default() },
+        SimilarityConfig {
+            tree_weight: TreeWeight::Area,
+            w_area: 0.0,
+            w_position: 0.0,
+            missing_appearance: MissingAppearance::Drop,
+            ..Default::default()
+        },
+        SimilarityConfig { class_match: ClassMatch::Category, ..Default::default() },
+    ];
+    let table = crate::classes::ClassTable::cityscapes();
+    variants.iter().flat_map(|sim| [false, true].map(|app| TreeSimParams::new(sim, app, 3).with_classes(sim, &table))).collect()
+}
+
+/// `tree_similarity_small` (several pairs a workgroup, the assignment parallel over pairs and
+/// cells) gives `tree_similarity`'s score bit for bit for every pair that fits a round, and
+/// leaves the others alone: forests of 0, 1, a few, tens of trees, up to and over the round's
+/// pools, random and uniform (every cell tied: the tie rule decides), f32 and f16 appearance,
+/// every similarity option, pairs in grid order (consecutive pairs share a query) and shuffled.
+#[test]
+fn the_small_kernels_twin_equals_the_pair_twin_bit_for_bit() {
+    let mut rng = crate::util::SplitMix64::new(19);
+    let sizes = [0usize, 1, 2, 3, 5, 8, 12, 17, 24, 31, 40, 48, 64, 65, 100, 127, 128];
+    let dim = 8;
+    let forests: Vec<Forest> =
+        sizes.iter().enumerate().map(|(i, &n)| random_forest(n, dim, if i % 3 == 0 { 2 } else { 5 }, i % 4 == 1, &mut rng)).collect();
+    // the f16 copies of the appearance (as a map built with f16 stores it)
+    let halves: Vec<Vec<u16>> = forests.iter().map(|f| f.appearance.iter().map(|&v| half::f16::from_f32(v).to_bits()).collect()).collect();
+    let as_ref = |i: usize, f16: bool| ForestRef {
+        appearance: if f16 { Values::F16(&halves[i]) } else { Values::F32(&forests[i].appearance) },
+        ..forests[i].as_ref()
+    };
+    // queries: every size; references: every size twice (f32 and f16), and the queries themselves
+    let queries: Vec<ForestRef> = (0..forests.len()).map(|i| as_ref(i, false)).collect();
+    let refs: Vec<ForestRef> = (0..forests.len()).flat_map(|i| [as_ref(i, false), as_ref(i, true)]).collect();
+    let grid: Vec<[u32; 2]> = (0..queries.len() as u32).flat_map(|q| (0..refs.len() as u32).map(move |r| [q, r])).collect();
+    let mut shuffled = grid.clone();
+    for i in (1..shuffled.len()).rev() {
+        shuffled.swap(i, rng.below(i + 1));
+    }
+    let mut scratch = TreeSimScratch::default();
+    for (v, p) in every_option().iter().enumerate() {
+        for (order, pairs) in [("grid", &grid), ("shuffled", &shuffled)] {
+            let mut out = vec![f32::NAN; pairs.len()];
+            let rounds = tree_similarity_small(p, &queries, &refs, pairs, &mut out, &mut scratch);
+            let mut skipped = 0;
+            for (j, &[q, r]) in pairs.iter().enumerate() {
+                let (qf, rf) = (queries[q as usize], refs[r as usize]);
+                if fits_small(qf.len(), rf.len()) {
+                    let want = tree_similarity(p, qf, rf, &mut scratch);
+                    assert_eq!(
+                        out[j].to_bits(),
+                        want.to_bits(),
+                        "option {v}, {order}: pair {q}-{r} ({} x {} trees): {} vs {want}",
+                        qf.len(),
+                        rf.len(),
+                        out[j]
+                    );
+                } else {
+                    assert!(out[j].is_nan(), "option {v}: pair {q}-{r} ({} x {} trees) is not the small kernel's", qf.len(), rf.len());
+                    skipped += 1;
+                }
+            }
+            assert_eq!(rounds.skipped, skipped);
+            assert_eq!(rounds.pairs + skipped, pairs.len());
+            // small forests side by side: rounds of several pairs, in grid order of all eight
+            assert!(rounds.shared_rounds > 0, "{order}: {rounds:?}");
+            assert!(order != "grid" || rounds.most_pairs_in_a_round == PAIRS_PER_GROUP, "{rounds:?}");
+            assert_eq!(rounds.workgroups, pairs.len().div_ceil(PAIRS_PER_GROUP));
+        }
     }
 }
