@@ -362,7 +362,7 @@ impl FineMatcherGpu {
                         k: k as u32,
                         segs: refs_n.div_ceil(SEG) as u32,
                         parity,
-                        fresh: passes.is_empty() as u32,
+                        fresh: dispatches.iter().all(|d| d.topk.is_none()) as u32,
                         ..Default::default()
                     };
                     dispatches.last_mut().expect("a dispatch per pass").topk = Some(ps);

@@ -42,7 +42,7 @@ impl Kernel {
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Shader { name: format!("{file}:{entry}"), message: e.to_string() });
         }
-        Ok(Kernel { pipeline, layouts: self.layouts.clone() })
+        Ok(Kernel { pipeline, layouts: self.layouts.clone(), made: self.made.clone() })
     }
 
     /// A bind group of group `group` with `buffers` bound to its bindings, in order.
