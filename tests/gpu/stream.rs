@@ -198,3 +198,56 @@ fn real_camvid_frames_encode_and_match_alike_on_both_paths() {
         }
     }
 }
+
+/// Real CamVid photos without their labels: the segmenter labels them and XFeat describes them,
+/// on the device for the GPU engine. Forests (from the segmenter's labels) are equal, global
+/// descriptors within 1e-5, appearance vectors (stored as int8 blocks) equal but for single
+/// rounding steps, the verification keypoints at the same positions, and the recommended
+/// setting's rankings identical.
+#[test]
+fn real_camvid_photos_segmented_and_described_alike_on_both_paths() {
+    let Some(dir) = common::shared_or_required("data/camvid-test/images") else { return };
+    let Some(ctx) = gpu() else { return };
+    let mut files: Vec<_> =
+        std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path()).filter(|p| p.extension().is_some_and(|x| x == "png")).collect();
+    files.sort();
+    let frames: Vec<FrameSource> = files
+        .iter()
+        .step_by(29)
+        .take(8)
+        .map(|f| FrameSource { id: f.file_stem().unwrap().to_string_lossy().into(), image: Some(f.clone()), labels: None })
+        .collect();
+    let cfg = Config::default();
+    let mut enc = match Encoder::new(&cfg) {
+        Ok(e) => e,
+        Err(e) => return common::skip_unless_required("REQUIRE_MODELS", format!("an encoder with appearance: {e}")),
+    };
+    if let Err(e) = enc.train_codebook(&frames, &|| {}) {
+        return common::skip_unless_required("REQUIRE_MODELS", format!("the codebook (segmenter and XFeat): {e}"));
+    }
+    let mut gpu_engine = Engine::with_context(ctx);
+    let (g, c) = (encode(&mut gpu_engine, &enc, &frames), encode(&mut Engine::cpu(), &enc, &frames));
+    assert_eq!(gpu_engine.gpu_stages().unwrap().network_frames(), frames.len() as u64, "the network ran on the device");
+    for (a, b) in g.iter().zip(&c) {
+        assert_eq!(a.forest.classes, b.forest.classes, "{}: the objects of the segmenter's labels", a.id);
+        assert_eq!(a.keypoints.xy, b.keypoints.xy, "{}: verification keypoints", a.id);
+        let worst = a.global.iter().zip(&b.global).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max);
+        assert!(worst <= 1e-5, "{}: global descriptors differ by {worst}", a.id);
+        for (x, y) in a.appearance.chunks(64).zip(b.appearance.chunks(64)) {
+            let step = y.iter().fold(0.0f32, |m, v| m.max(v.abs())) / 63.5;
+            assert!(x.iter().zip(y).all(|(p, q)| (p - q).abs() <= step * 1.001), "{}: appearance beyond one int8 step", a.id);
+        }
+    }
+    let set = |imgs: &[EncodedImage], even: bool| {
+        let mut s = enc.descriptor_set();
+        imgs.iter().enumerate().filter(|(i, _)| (i % 2 == 0) == even).for_each(|(_, e)| s.push(e).unwrap());
+        s
+    };
+    let (refs, queries) = (set(&c, true), set(&g, false));
+    let (on_gpu, _) = gpu_engine.match_batch(&refs, &queries, Setting::RECOMMENDED, &cfg).unwrap();
+    let (on_cpu, _) = Engine::cpu().match_batch(&refs, &queries, Setting::RECOMMENDED, &cfg).unwrap();
+    for (q, (a, b)) in on_gpu.iter().zip(&on_cpu).enumerate() {
+        let ids = |m: &semlook::matching::QueryMatch| m.ranked.iter().map(|c| c.reference).collect::<Vec<_>>();
+        assert_eq!(ids(a), ids(b), "verified: query {q}'s ranking");
+    }
+}
