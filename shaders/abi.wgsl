@@ -37,12 +37,13 @@ struct PassParams {
     _pad2: u32,
 }
 
-// Frame sizes of the encoding kernels (`semantic_edges`, `edt`).
+// Frame sizes of the encoding kernels (`semantic_edges`, `edt`, `ssim_stats`): `frames` frames from
+// frame `first` of the bound buffers (only `ssim_stats` runs from a `first` other than 0).
 struct Dims {
     width: u32,
     height: u32,
     frames: u32,
-    _pad: u32,
+    first: u32,
 }
 
 // An empty top-K slot: a score below any SSIM and an index no reference has.

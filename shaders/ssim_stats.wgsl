@@ -3,10 +3,12 @@
 // (`stats_row_sums`, `stats_windows`), whose values equal `kernels::ssim::ssim_stats`'s bit for
 // bit: the same separable window sums, in the same order.
 //
-// stats_row_sums: one invocation per (row, window column) of frame gid.y: the sums of x and x*x
-//   over the row's `win` values from that column, into `rows` ([x sums | x*x sums] per frame).
-// stats_windows: one invocation per window of frame gid.y: the sums of `win` row sums down the
-//   column, then the window's mean and (sample) variance into `stats` ([means | variances]).
+// stats_row_sums: one invocation per (row, window column) of frame dims.first + gid.y: the sums of
+//   x and x*x over the row's `win` values from that column, into `rows` ([x sums | x*x sums] per
+//   frame of the run, from 0).
+// stats_windows: one invocation per window of frame dims.first + gid.y: the sums of `win` row sums
+//   down the column, then the window's mean and (sample) variance into `stats` ([means |
+//   variances] per frame).
 
 //#include abi.wgsl
 
@@ -24,7 +26,7 @@ fn stats_row_sums(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let r = gid.x / p.nw;
     let c = gid.x % p.nw;
-    let src = gid.y * p.gw * p.gh + r * p.gw + c;
+    let src = (dims.first + gid.y) * p.gw * p.gh + r * p.gw + c;
     var s = 0.0;
     var s2 = 0.0;
     for (var k = 0u; k < p.win; k++) {
@@ -53,6 +55,7 @@ fn stats_windows(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let inv = 1.0 / f32(p.win * p.win);
     let m = s * inv;
-    stats[2u * gid.y * n + gid.x] = m;
-    stats[2u * gid.y * n + n + gid.x] = (s2 * inv - m * m) * p.cov_norm;
+    let f = dims.first + gid.y;
+    stats[2u * f * n + gid.x] = m;
+    stats[2u * f * n + n + gid.x] = (s2 * inv - m * m) * p.cov_norm;
 }

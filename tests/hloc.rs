@@ -125,6 +125,9 @@ fn reference_names_refuse_what_they_cannot_tell_apart() {
     assert!(err(&["w"], std::slice::from_ref(&a)).contains("no image file w.*"));
     // names: relative, `/`-separated, `..` applied; outside the root refused
     assert_eq!(image_name(&root, &root.join("a/../b/z.png")).unwrap(), "b/z.png");
-    assert!(image_name(&a, &b.join("z.png")).unwrap_err().to_string().contains("--pairs-root"));
+    // the engine names the remedy; the command line words it as --pairs-root (cli::hint)
+    let outside = image_name(&a, &b.join("z.png")).unwrap_err();
+    assert!(outside.to_string().contains("is not inside the image root"), "{outside}");
+    assert_eq!(outside.remedy(), Some(semlook::error::Remedy::NameImageRoot));
     assert_eq!(common_root(&[a.clone(), b.join("."), a.join("deeper")]).unwrap(), semlook::hloc::absolute(&root).unwrap());
 }

@@ -22,6 +22,16 @@ pub trait GlobalSource: Sync {
     }
     /// Descriptors and stats of references `start..end`, borrowed from the source or built in `buf`.
     fn tile<'a>(&'a self, start: usize, end: usize, buf: &'a mut TileBuf) -> (&'a [f32], &'a [f32]);
+    /// Whether the source holds its references' SSIM statistics; a source that computes them for
+    /// every tile (a stored map) says no, and a device computes them there instead
+    /// ([`GlobalSource::globals_tile`] then the `ssim_stats` kernels).
+    fn stores_stats(&self) -> bool {
+        true
+    }
+    /// The descriptors of references `start..end` alone (no statistics computed).
+    fn globals_tile<'a>(&'a self, start: usize, end: usize, buf: &'a mut TileBuf) -> &'a [f32] {
+        self.tile(start, end, buf).0
+    }
     /// Whether everything read so far was sound. A stored map checks each segment's checksum and
     /// values the first time it is read; a segment that fails is served as empty (zeros, no
     /// trees) and reported here, naming its file. Matching calls this after reading.

@@ -18,6 +18,7 @@
 use super::buffers::{PassBuffer, Reused};
 use super::context::{GpuContext, GpuError};
 use super::resident::{ChunkData, ChunkPlan, Resident};
+use super::stats::StatsOnDevice;
 use super::topk::{bytes_per_query, TopK, MAX_PASS_REFS};
 use crate::descriptors::DescriptorSet;
 use crate::kernels::abi::PassParams;
@@ -33,6 +34,8 @@ pub struct CoarseMatcherGpu {
     /// References and queries per workgroup.
     shape: (u32, u32),
     params: wgpu::Buffer,
+    /// Computes the statistics of a map that does not store them, as its chunks are uploaded.
+    stats: Arc<StatsOnDevice>,
     map: Resident,
     queries: Reused,
     query_stats: Reused,
@@ -41,15 +44,25 @@ pub struct CoarseMatcherGpu {
     topk: TopK,
 }
 
-/// A map's references written chunk by chunk (descriptors, then stats).
-struct MapChunks<'a>(&'a dyn GlobalSource);
+/// A map's references written chunk by chunk: descriptors, then statistics (those the source
+/// holds, or computed on the device from the descriptors for a source that does not store them).
+struct MapChunks<'a> {
+    refs: &'a dyn GlobalSource,
+    stats: &'a StatsOnDevice,
+}
 
 impl ChunkData for MapChunks<'_> {
     fn write(&self, ctx: &GpuContext, plan: &ChunkPlan, buffers: &[&wgpu::Buffer]) -> Result<(), GpuError> {
         let mut buf = TileBuf::default();
-        let (g, s) = self.0.tile(plan.first, plan.first + plan.len, &mut buf);
-        ctx.write(buffers[0], 0, bytemuck::cast_slice(g));
-        ctx.write(buffers[1], 0, bytemuck::cast_slice(s));
+        let (start, end) = (plan.first, plan.first + plan.len);
+        if self.refs.stores_stats() {
+            let (g, s) = self.refs.tile(start, end, &mut buf);
+            ctx.write(buffers[0], 0, bytemuck::cast_slice(g));
+            ctx.write(buffers[1], 0, bytemuck::cast_slice(s));
+        } else {
+            ctx.write(buffers[0], 0, bytemuck::cast_slice(self.refs.globals_tile(start, end, &mut buf)));
+            self.stats.compute(ctx, buffers[0], buffers[1], plan.len)?;
+        }
         Ok(())
     }
 }
@@ -65,12 +78,14 @@ impl CoarseMatcherGpu {
             available: crate::kernels::ssim_block::PROD_CAP.min(crate::kernels::ssim_block::RING_CAP) as u64,
         })?;
         let params = ctx.uniform("ssim params", &p);
+        let stats = Arc::new(StatsOnDevice::new(&ctx, p));
         let passes = PassBuffer::new(&ctx);
         Ok(CoarseMatcherGpu {
             ctx,
             p,
             shape,
             params,
+            stats,
             map: Resident::default(),
             queries: Reused::default(),
             query_stats: Reused::default(),
@@ -146,7 +161,7 @@ impl CoarseMatcherGpu {
         };
         let ctx = self.ctx.clone();
         let bind = |b: &[&wgpu::Buffer]| ctx.kernels.ssim_block.bind_group(&ctx.device, 1, b);
-        self.map.prepare(&ctx, SourceKey::of(refs), plans, &MapChunks(refs), &bind)?;
+        self.map.prepare(&ctx, SourceKey::of(refs), plans, &MapChunks { refs, stats: &self.stats }, &bind)?;
         Ok(self.map_is_resident())
     }
 
@@ -159,7 +174,8 @@ impl CoarseMatcherGpu {
         let (qc, pass_refs) = self.plan(k)?;
         self.upload_map(refs)?;
         let ctx = self.ctx.clone();
-        let data = MapChunks(refs);
+        let stats = self.stats.clone();
+        let data = MapChunks { refs, stats: &stats };
         let bind = |b: &[&wgpu::Buffer]| ctx.kernels.ssim_block.bind_group(&ctx.device, 1, b);
         let mut lists = Vec::with_capacity(nq);
         for q0 in (0..nq).step_by(qc) {

@@ -85,7 +85,7 @@ impl GlobalEncoderGpu {
         self.ctx.check_binding("one batch of label maps", pixels * 4)?;
         let ctx = self.ctx.clone();
         let now = Written {
-            dims: Dims { width: w, height: h, frames: frames as u32, _pad: 0 },
+            dims: Dims { width: w, height: h, frames: frames as u32, first: 0 },
             pool: PoolParams { frames: frames as u32, ..pool_params(cfg, w, h) },
             ssim,
             used: *used,

@@ -80,7 +80,7 @@ fn shared_structs_have_the_shaders_layouts() {
     same_layout("tree_similarity.wgsl", "Tree", rust!(GpuTree { class_id, has_app, area, cx, cy, weight, nb }));
     same_layout("vlad_accumulate.wgsl", "VladParams", rust!(VladParams { centres, dim, keypoints, objects, power_norm, intra_norm }));
     same_layout("global_pool.wgsl", "PoolParams", rust!(PoolParams { src_width, src_height, dst_width, dst_height, tau, frames }));
-    same_layout("abi.wgsl", "Dims", rust!(Dims { width, height, frames }));
+    same_layout("abi.wgsl", "Dims", rust!(Dims { width, height, frames, first }));
     use crate::kernels::abi::{ConvParams, MapParams, NormParams};
     same_layout(
         "xfeat.wgsl",

@@ -30,6 +30,7 @@ mod kernels;
 mod layout_tests;
 pub mod reference;
 mod resident;
+mod stats;
 mod timer;
 mod topk;
 pub mod verify;

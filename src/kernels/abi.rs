@@ -313,14 +313,16 @@ impl VladParams {
     }
 }
 
-/// The `Dims` uniform of `semantic_edges.wgsl` and `edt.wgsl`.
-#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+/// The `Dims` uniform of `semantic_edges.wgsl`, `edt.wgsl` and `ssim_stats.wgsl`: frames of
+/// `width` x `height` pixels, `frames` of them from frame `first` of the bound buffers (the
+/// statistics of a stored map's chunk are computed a run of frames at a time).
+#[derive(Debug, Clone, Copy, PartialEq, Default, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
-pub(crate) struct Dims {
+pub struct Dims {
     pub width: u32,
     pub height: u32,
     pub frames: u32,
-    pub _pad: u32,
+    pub first: u32,
 }
 
 /// 256 u8 keys, four to a little-endian word (as the kernel reads them).

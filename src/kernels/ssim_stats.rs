@@ -3,18 +3,18 @@
 //! [`super::ssim::ssim_stats`]'s (the CPU path's) bit for bit: the same separable sums, in the
 //! same order (tested below).
 
-use super::abi::SsimParams;
+use super::abi::{Dims, SsimParams};
 
-/// Row sums of x and x*x over every window column of every row of `frames` descriptors
-/// (`desc`: gw x gh each) into `rows` ([x sums | x*x sums] of gh x nw per frame). One
-/// invocation per (row, window column) and frame.
-pub fn stats_row_sums(p: &SsimParams, frames: usize, desc: &[f32], rows: &mut [f32]) {
+/// Row sums of x and x*x over every window column of every row of `dims.frames` descriptors from
+/// descriptor `dims.first` of `desc` (gw x gh each) into `rows` ([x sums | x*x sums] of gh x nw
+/// per frame of the run). One invocation per (row, window column) and frame.
+pub fn stats_row_sums(p: &SsimParams, dims: &Dims, desc: &[f32], rows: &mut [f32]) {
     let (gw, gh, nw, win) = (p.gw as usize, p.gh as usize, p.nw as usize, p.win as usize);
     let n = gh * nw;
-    for f in 0..frames {
+    for f in 0..dims.frames as usize {
         for i in 0..n {
             let (r, c) = (i / nw, i % nw);
-            let src = f * gw * gh + r * gw + c;
+            let src = (dims.first as usize + f) * gw * gh + r * gw + c;
             let (mut s, mut s2) = (0.0f32, 0.0f32);
             for k in 0..win {
                 let v = desc[src + k];
@@ -27,13 +27,14 @@ pub fn stats_row_sums(p: &SsimParams, frames: usize, desc: &[f32], rows: &mut [f
     }
 }
 
-/// Window means and (sample) variances of `frames` descriptors from their row sums into
-/// `stats` ([means | variances] per frame). One invocation per window and frame.
-pub fn stats_windows(p: &SsimParams, frames: usize, rows: &[f32], stats: &mut [f32]) {
+/// Window means and (sample) variances of the run's descriptors from their row sums into `stats`
+/// ([means | variances] per descriptor, from descriptor `dims.first`). One invocation per window
+/// and frame.
+pub fn stats_windows(p: &SsimParams, dims: &Dims, rows: &[f32], stats: &mut [f32]) {
     let (gh, nw, win) = (p.gh as usize, p.nw as usize, p.win as usize);
     let (n, rn) = (p.windows(), gh * nw);
     let inv = 1.0 / (p.win * p.win) as f32;
-    for f in 0..frames {
+    for f in 0..dims.frames as usize {
         for i in 0..n {
             let (r, c) = (i / nw, i % nw);
             let (mut s, mut s2) = (0.0f32, 0.0f32);
@@ -42,8 +43,9 @@ pub fn stats_windows(p: &SsimParams, frames: usize, rows: &[f32], stats: &mut [f
                 s2 += rows[(2 * f + 1) * rn + (r + k) * nw + c];
             }
             let m = s * inv;
-            stats[2 * f * n + i] = m;
-            stats[2 * f * n + n + i] = (s2 * inv - m * m) * p.cov_norm;
+            let at = 2 * (dims.first as usize + f) * n;
+            stats[at + i] = m;
+            stats[at + n + i] = (s2 * inv - m * m) * p.cov_norm;
         }
     }
 }
@@ -64,10 +66,14 @@ mod tests {
         #[test]
         fn the_batch_twins_equal_the_cpu_stats_bit_for_bit(p in shape(), frames in 1usize..5, seed in any::<u64>()) {
             let g = set(&p, frames, frames, &mut SplitMix64::new(seed));
-            let mut rows = vec![0.0; 2 * frames * p.gh as usize * p.nw as usize];
             let mut stats = vec![0.0; frames * p.stats_len()];
-            stats_row_sums(&p, frames, &g.globals, &mut rows);
-            stats_windows(&p, frames, &rows, &mut stats);
+            // in runs of up to two frames, as a stored map's chunk is computed
+            for first in (0..frames).step_by(2) {
+                let dims = Dims { frames: 2.min(frames - first) as u32, first: first as u32, ..Default::default() };
+                let mut rows = vec![0.0; 2 * 2 * p.gh as usize * p.nw as usize];
+                stats_row_sums(&p, &dims, &g.globals, &mut rows);
+                stats_windows(&p, &dims, &rows, &mut stats);
+            }
             for f in 0..frames {
                 let mut want = vec![0.0; p.stats_len()];
                 ssim_stats(&p, &g.globals[f * p.len()..(f + 1) * p.len()], &mut want, &mut SsimScratch::default());

@@ -221,6 +221,34 @@ pub(crate) fn layout_of(m: &Manifest, n_classes: usize) -> Layout {
 }
 
 /// SSIM statistics of every descriptor in `globals` into `stats` (in parallel).
+impl Map {
+    /// The descriptors of references `start..end`: borrowed from the segment when they lie in one
+    /// sound segment with nothing removed, else copied into `globals` (zeros for a damaged segment,
+    /// which `check` reports).
+    fn read_globals<'a>(&'a self, start: usize, end: usize, globals: &'a mut Vec<f32>) -> &'a [f32] {
+        let (glen, n) = (self.ssim.len(), end - start);
+        let (s0, j0) = self.locate(start);
+        let s1 = self.locate(end - 1).0;
+        let sound = (s0..=s1).all(|s| self.sound(s).is_some());
+        let borrowed = match sound && s0 == s1 && self.live[s0].is_none() {
+            true => self.segments[s0].globals(j0, j0 + n).as_f32(),
+            false => None,
+        };
+        match borrowed {
+            Some(g) => g,
+            None => {
+                globals.clear();
+                globals.resize(n * glen, 0.0);
+                if sound {
+                    let rows: Vec<(usize, usize)> = (start..end).map(|i| self.locate(i)).collect();
+                    globals.par_chunks_mut(glen).zip(rows.par_iter()).for_each(|(dst, &(s, j))| self.segments[s].globals(j, j + 1).write_to(dst));
+                }
+                globals
+            }
+        }
+    }
+}
+
 fn compute_stats(p: &SsimParams, globals: &[f32], stats: &mut [f32]) {
     let (glen, slen) = (p.len(), p.stats_len());
     stats.par_chunks_mut(slen).zip(globals.par_chunks(glen)).for_each_init(SsimScratch::default, |sc, (out, x)| ssim_stats(p, x, out, sc));
@@ -275,30 +303,17 @@ impl GlobalSource for Map {
     /// removed images, else gathered (and widened from f16) into `buf`; SSIM statistics computed
     /// into `buf`. A segment that fails its first-use check gives zeros (see [`GlobalSource::check`]).
     fn tile<'a>(&'a self, start: usize, end: usize, buf: &'a mut TileBuf) -> (&'a [f32], &'a [f32]) {
-        let (glen, slen, n) = (self.ssim.len(), self.ssim.stats_len(), end - start);
         let TileBuf { globals, stats } = buf;
-        let (s0, j0) = self.locate(start);
-        let s1 = self.locate(end - 1).0;
-        let sound = (s0..=s1).all(|s| self.sound(s).is_some());
-        let borrowed = match sound && s0 == s1 && self.live[s0].is_none() {
-            true => self.segments[s0].globals(j0, j0 + n).as_f32(),
-            false => None,
-        };
-        let g: &'a [f32] = match borrowed {
-            Some(g) => g,
-            None => {
-                globals.clear();
-                globals.resize(n * glen, 0.0);
-                if sound {
-                    let rows: Vec<(usize, usize)> = (start..end).map(|i| self.locate(i)).collect();
-                    globals.par_chunks_mut(glen).zip(rows.par_iter()).for_each(|(dst, &(s, j))| self.segments[s].globals(j, j + 1).write_to(dst));
-                }
-                globals
-            }
-        };
-        stats.resize(n * slen, 0.0);
+        let g = self.read_globals(start, end, globals);
+        stats.resize((end - start) * self.ssim.stats_len(), 0.0);
         compute_stats(&self.ssim, g, stats);
         (g, stats)
+    }
+    fn stores_stats(&self) -> bool {
+        false
+    }
+    fn globals_tile<'a>(&'a self, start: usize, end: usize, buf: &'a mut TileBuf) -> &'a [f32] {
+        self.read_globals(start, end, &mut buf.globals)
     }
     /// The map's identity (random at creation) with the generation it was opened at: an open map
     /// never changes, and any commit (add, remove, compact, a rebuild) makes a new generation or

@@ -75,8 +75,9 @@ pub fn stats_match_the_twins(p: &SsimParams, (desc, stats): &(Vec<f32>, Vec<f32>
     use semlook::kernels::ssim_stats::{stats_row_sums, stats_windows};
     let mut rows = vec![0.0; 2 * p.gh as usize * p.nw as usize];
     let mut want = vec![0.0; p.stats_len()];
-    stats_row_sums(p, 1, desc, &mut rows);
-    stats_windows(p, 1, &rows, &mut want);
+    let dims = semlook::kernels::abi::Dims { frames: 1, ..Default::default() };
+    stats_row_sums(p, &dims, desc, &mut rows);
+    stats_windows(p, &dims, &rows, &mut want);
     assert_eq!(stats.len(), want.len(), "{what}: stats length");
     let worst = stats.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
     assert!(worst <= 1e-6, "{what}: SSIM statistics differ from the twins' by {worst}");

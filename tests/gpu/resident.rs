@@ -348,3 +348,30 @@ fn full_size_one_million_references_by_1000_queries() {
     let cpu = coarse_topk(&map, &few, &p, cfg.matching.top_k, cfg.matching.tile);
     assert_same_lists(&lists[..8], &cpu, 1e-5, "1M x 1000, first 8 queries");
 }
+
+/// A stored map does not store its references' SSIM statistics (format 4): the device computes
+/// them from the descriptors as the chunks are uploaded (`gpu::stats`, `ssim_stats.wgsl`), so
+/// the first batch sends the descriptors alone (less than descriptors and statistics together),
+/// in runs of 256 references (300 here: two runs); the lists equal the CPU path's on the map.
+#[test]
+fn a_stored_map_sends_its_descriptors_alone() {
+    let Some(ctx) = gpu() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = Config::without_appearance();
+    let p = SsimParams::new(&cfg.global);
+    let set = random_descriptors(300, &cfg, 41);
+    let path = dir.path().join("m");
+    semlook::map::Map::create(&path, &cfg.encoding(), &set, None).unwrap();
+    let map = semlook::map::Map::open(&path).unwrap();
+    assert!(!semlook::matching::source::GlobalSource::stores_stats(&map));
+    let q = random_descriptors(4, &cfg, 42);
+    let mut stages = GpuStages::new(ctx.clone());
+    let b0 = ctx.bytes_uploaded();
+    let lists = stages.coarse(&map, &q, &p, 7, 4096).unwrap();
+    let sent = ctx.bytes_uploaded() - b0;
+    let descriptors = (map.len() * p.len() * 4) as u64;
+    let with_stats = (map.len() * (p.len() + p.stats_len()) * 4) as u64;
+    assert!(sent >= descriptors && sent < descriptors + batch_bytes(&ctx, &q, 1) + 1024, "sent {sent} bytes; the descriptors are {descriptors}");
+    assert!(sent < with_stats, "the statistics crossed too ({sent} bytes)");
+    assert_same_lists(&lists, &coarse_topk_twin(&map, &q, &p, 7, 4096), 1e-5, "stored map, statistics from the device");
+}
