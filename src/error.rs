@@ -76,6 +76,8 @@ pub enum Remedy {
     NameReferenceTraversal,
     /// Name the folder image names are relative to (hloc's image root).
     NameImageRoot,
+    /// Build the map again with label maps or a segmenter (it was built without labels).
+    RebuildWithLabels,
 }
 
 /// What a map of format `found` lacks, and how to get a readable one.

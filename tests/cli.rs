@@ -3,7 +3,7 @@
 mod common;
 
 use common::{cli as semlook, cli_ok as ok, p};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::Command;
 
 #[test]
@@ -377,22 +377,7 @@ fn eval_on_photos_without_a_segmenter_runs_the_label_free_settings() {
         return common::skip_unless_required("REQUIRE_MODELS", format!("XFeat weights (run setup.sh): {e}"));
     }
     let dir = tempfile::tempdir().unwrap();
-    let data = dir.path().join("data");
-    ok(&["synth", "--out", p(&data), "--places", "6", "--size", "160x120", "-q"]);
-    let (r, q) = (dir.path().join("ref"), dir.path().join("query"));
-    let mut gt = String::from("query,reference\n");
-    for (from, to) in [("day", &r), ("sunset", &q)] {
-        std::fs::create_dir_all(to).unwrap();
-        for e in std::fs::read_dir(data.join(from).join("RGB/Stereo_Left/Omni_F")).unwrap().flatten() {
-            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
-            if from == "day" {
-                let n = e.file_name().to_string_lossy().into_owned();
-                gt += &format!("query/{n},ref/{n}\n");
-            }
-        }
-    }
-    let truth = dir.path().join("gt.csv");
-    std::fs::write(&truth, gt).unwrap();
+    let (r, q, truth) = photo_sets(dir.path());
     let eval = |extra: &[&str]| {
         semlook(&[&["eval", "--references", p(&r), "--queries", p(&q), "--ground-truth", p(&truth), "--no-segmenter", "--json"][..], extra].concat())
     };
@@ -407,6 +392,61 @@ fn eval_on_photos_without_a_segmenter_runs_the_label_free_settings() {
     let only_labelled = eval(&["--setting", "global"]);
     let err = String::from_utf8_lossy(&only_labelled.stderr);
     assert!(!only_labelled.status.success() && err.contains("no label map") && err.contains(".png"), "{err}");
+}
+
+/// Six synthetic places as two folders of RGB photos alone (`ref/`, `query/`, day and sunset)
+/// and their ground truth, in `dir`.
+fn photo_sets(dir: &Path) -> (PathBuf, PathBuf, PathBuf) {
+    let data = dir.join("data");
+    ok(&["synth", "--out", p(&data), "--places", "6", "--size", "160x120", "-q"]);
+    let (r, q) = (dir.join("ref"), dir.join("query"));
+    let mut gt = String::from("query,reference\n");
+    for (from, to) in [("day", &r), ("sunset", &q)] {
+        std::fs::create_dir_all(to).unwrap();
+        for e in std::fs::read_dir(data.join(from).join("RGB/Stereo_Left/Omni_F")).unwrap().flatten() {
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+            if from == "day" {
+                let n = e.file_name().to_string_lossy().into_owned();
+                gt += &format!("query/{n},ref/{n}\n");
+            }
+        }
+    }
+    let truth = dir.join("gt.csv");
+    std::fs::write(&truth, gt).unwrap();
+    (r, q, truth)
+}
+
+/// `map build` on photos with no label maps and no segmenter builds a map marked as holding no
+/// labels (before, it stopped at the first frame): `query` with a setting that needs no labels
+/// answers every query; one that needs labels is refused with the reason and a hint before any
+/// query is encoded. A labelled map's manifest does not carry the mark (its checksum is what it
+/// was before the mark existed).
+#[test]
+fn a_map_of_photos_without_a_segmenter_serves_the_label_free_settings() {
+    if let Err(e) = semlook::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, None, "XFeat") {
+        return common::skip_unless_required("REQUIRE_MODELS", format!("XFeat weights (run setup.sh): {e}"));
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let (r, q, _) = photo_sets(dir.path());
+    let map = dir.path().join("map");
+    ok(&["map", "build", "--images", p(&r), "--map", p(&map), "--no-segmenter", "-q"]);
+    let info: serde_json::Value = serde_json::from_str(&ok(&["map", "info", "--map", p(&map), "--json"])).unwrap();
+    assert_eq!((info["images"].as_u64(), info["labels"].as_bool()), (Some(6), Some(false)), "{info}");
+    let out = dir.path().join("out");
+    ok(&["query", "--map", p(&map), "--images", p(&q), "--no-segmenter", "--setting", "verified", "--out", p(&out), "-q"]);
+    let rows = std::fs::read_to_string(out.join("matches.csv")).unwrap();
+    assert_eq!(rows.lines().filter(|l| !l.starts_with('#') && !l.starts_with("query")).count(), 6, "{rows}");
+    let refused = semlook(&["query", "--map", p(&map), "--images", p(&q), "--no-segmenter", "--setting", "forest"]);
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success() && err.contains("without semantic labels") && err.contains("hint:"), "{err}");
+    assert!(!err.contains("encoded"), "refused only after encoding the queries: {err}");
+    // a labelled map (label maps alone) keeps the manifest it had before the mark existed
+    let labelled = dir.path().join("labelled");
+    ok(&["synth", "--out", p(&labelled), "--places", "3", "--size", "96x72", "-q"]);
+    let lmap = dir.path().join("lmap");
+    ok(&["map", "build", "--dataset", p(&labelled), "--map", p(&lmap), "--no-appearance", "-q"]);
+    let manifest = std::fs::read_to_string(lmap.join("manifest.json")).unwrap();
+    assert!(!manifest.contains("without_labels"), "{manifest}");
 }
 
 /// `semlook models` lists every model file with where it was found (in the engine's search order,

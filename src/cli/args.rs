@@ -263,8 +263,10 @@ pub struct ModelArgs {
     /// Trees without appearance (label maps alone are enough to encode).
     #[arg(long)]
     pub no_appearance: bool,
-    /// Never segment: frames without a label map are an error (by default the installed
-    /// segmenter labels them).
+    /// Never segment (by default the installed segmenter labels frames without a label map).
+    /// Photos none of which has a label map are then encoded without labels, for the settings
+    /// that need none (hog, appearance, verified; `eval` skips the others, a map built so refuses
+    /// them); a label map missing among others is an error.
     #[arg(long, conflicts_with = "segmenter")]
     pub no_segmenter: bool,
 }

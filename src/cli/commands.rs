@@ -225,6 +225,7 @@ fn run_query(
     setting: Setting,
     quiet: bool,
 ) -> Result<(DescriptorSet, Vec<QueryMatch>, RunRecord)> {
+    semlook::matching::check_labels(map, setting)?;
     let encoder = Encoder::for_map(cfg, map)?.with_hog(setting == Setting::Hog);
     let queries = encode_sources(engine, &encoder, frames, fmt, "queries", s.skip_invalid, quiet)?;
     let t = Instant::now();

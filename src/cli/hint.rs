@@ -19,5 +19,8 @@ pub fn hint(e: &Error) -> Option<&'static str> {
         Remedy::SmallerSegments => "build the map with a smaller `--segment-images N` (more segments)",
         Remedy::NameReferenceTraversal => "pass --reference-traversal NAME",
         Remedy::NameImageRoot => "pass --pairs-root DIR, a folder that holds the query and reference images",
+        Remedy::RebuildWithLabels => {
+            "`--setting hog`, `appearance` or `verified` run on this map; for the others build it again (`map build --force`) with --labels DIR or a segmenter (`semlook models`)"
+        }
     })
 }

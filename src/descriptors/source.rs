@@ -133,6 +133,12 @@ pub trait RefSource: GlobalSource {
     fn keypoint_dim(&self) -> usize;
     /// The verification keypoints of reference i.
     fn keypoints(&self, i: usize) -> KeypointsRef<'_>;
+    /// Whether the references were encoded with semantic labels. A map built from photos with
+    /// neither label maps nor a segmenter says no: only the settings that need no labels
+    /// ([`crate::matching::Setting::label_free`]) can be matched against it.
+    fn labelled(&self) -> bool {
+        true
+    }
 }
 
 impl RefSource for DescriptorSet {

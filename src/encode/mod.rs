@@ -90,6 +90,21 @@ impl Encoder {
         self.frames.void_labels = on;
         self
     }
+    /// Whether frames without labels are encoded with void label maps ([`Encoder::without_labels`]).
+    pub fn encodes_without_labels(&self) -> bool {
+        self.frames.void_labels
+    }
+    /// Whether `frames` can have no labels here: there is at least one, every one is an RGB
+    /// image without a label map, and no segmenter is installed to make them. Such frames are
+    /// encoded [`Encoder::without_labels`], for the settings that need no labels.
+    pub fn cannot_label<'a>(&self, frames: impl IntoIterator<Item = &'a FrameSource>) -> bool {
+        let mut any = false;
+        let all = frames.into_iter().all(|f| {
+            any = true;
+            f.labels.is_none() && f.image.is_some()
+        });
+        any && all && !self.frames.can_segment()
+    }
     /// An encoder for queries of `map`: `cfg`'s encoding must equal the map's, its keypoint
     /// network must be the one the map was built with, and the map's codebook is used.
     pub fn for_map(cfg: &Config, map: &crate::map::Map) -> Result<Encoder> {
@@ -99,7 +114,8 @@ impl Encoder {
         if let Some(cb) = map.codebook() {
             enc.set_codebook(cb.clone());
         }
-        Ok(enc)
+        // a map built without labels takes its frames without labels too
+        Ok(enc.without_labels(map.manifest.without_labels))
     }
 
     /// What loads frames.

@@ -127,30 +127,45 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
     let ref_sources: Vec<_> = ds.reference.frames.iter().map(|f| f.source.clone()).collect();
     // RGB frames with no label map and no segmenter to make one: the settings that need no
     // labels run, each of the others is skipped with its reason (the whole command used to stop)
-    let unlabelled =
-        |frames: &[crate::dataset::Frame]| !frames.is_empty() && frames.iter().all(|f| f.source.labels.is_none() && f.source.image.is_some());
+    // (or a map built from such frames)
     let base = match opts.map {
         Some(m) => Encoder::for_map(cfg, m)?,
         None => Encoder::new(cfg)?,
     };
+    fn sources(frames: &[crate::dataset::Frame]) -> impl Iterator<Item = &crate::input::FrameSource> {
+        frames.iter().map(|f| &f.source)
+    }
+    let queries_unlabelled = base.cannot_label(ds.queries.iter().flat_map(|q| sources(&q.frames)));
     let without_labels =
-        !base.frames().can_segment() && ds.queries.iter().all(|q| unlabelled(&q.frames)) && (opts.map.is_some() || unlabelled(&ds.reference.frames));
+        opts.map.is_some_and(|m| !m.labelled()) || (queries_unlabelled && (opts.map.is_some() || base.cannot_label(sources(&ds.reference.frames))));
     let mut skipped = Vec::new();
     let mut settings = opts.settings.clone();
+    let unlabelled_map = opts.map.filter(|m| !m.labelled());
     if without_labels {
-        settings.retain(|s| match s.label_free() {
-            None => true,
-            Some(why) => {
-                skipped.push((*s, why.to_string()));
+        settings.retain(|&s| match (s.label_free(), unlabelled_map) {
+            (None, _) => true,
+            (Some(why), None) => {
+                skipped.push((s, why.to_string()));
+                false
+            }
+            (Some(_), Some(m)) => {
+                skipped.push((s, crate::matching::check_labels(m, s).err().map_or_else(String::new, |e| e.to_string())));
                 false
             }
         });
         if settings.is_empty() {
+            if let (Some(m), Some(&(s, _))) = (unlabelled_map, skipped.first()) {
+                crate::matching::check_labels(m, s)?;
+            }
             let frame = ds.queries.iter().flat_map(|q| &q.frames).chain(&ds.reference.frames).find_map(|f| f.source.image.clone());
             return Err(Error::NoLabels { image: frame.unwrap_or_else(|| ds.root.clone()) });
         }
+        let why = match unlabelled_map {
+            Some(_) => "the map was built without semantic labels",
+            None => "no label maps and no segmenter",
+        };
         log::warn!(
-            "no label maps and no segmenter: running {} only (settings that need no labels; `semlook models` says what is installed)",
+            "{why}: running {} only (settings that need no labels; `semlook models` says what is installed)",
             settings.iter().map(|s| s.name()).collect::<Vec<_>>().join(", ")
         );
     }

@@ -83,6 +83,12 @@ pub struct Manifest {
     pub codebook: Option<FileEntry>,
     /// SHA-256 of the keypoint network's weights the appearance was computed with.
     pub appearance_model: Option<String>,
+    /// The images were encoded without semantic labels (photos with neither label maps nor a
+    /// segmenter, void label maps): only the settings that need no labels can be matched
+    /// against the map. Absent (false) in the manifests of labelled maps, so their checksums
+    /// are those of before the field existed.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub without_labels: bool,
     /// SHA-256 of this manifest's content ([`Manifest::content_sha256`]): an edit by hand or a
     /// damaged byte anywhere in the file (a removed row, a config value, a model hash) is refused
     /// at open, never served.

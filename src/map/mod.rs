@@ -381,4 +381,7 @@ impl RefSource for Map {
         let (s, j) = self.locate(i);
         self.sound(s).map_or(KeypointsRef::EMPTY, |seg| seg.keypoints(j))
     }
+    fn labelled(&self) -> bool {
+        !self.manifest.without_labels
+    }
 }

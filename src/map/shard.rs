@@ -129,6 +129,7 @@ mod tests {
             segments,
             codebook: None,
             appearance_model: None,
+            without_labels: false,
             checksum: String::new(),
         }
     }

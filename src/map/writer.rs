@@ -125,6 +125,7 @@ impl MapWriter {
             segments: vec![],
             codebook: None,
             appearance_model: appearance.map(|(_, sha)| sha.to_string()),
+            without_labels: false,
             checksum: String::new(),
         };
         let layout = super::layout_of(&manifest, n_classes);
@@ -140,6 +141,16 @@ impl MapWriter {
             opts,
             committed: 0,
         })
+    }
+
+    /// Marks a new map as encoded without semantic labels ([`Manifest::without_labels`]): its
+    /// frames had neither label maps nor a segmenter. Only before the first commit.
+    pub fn without_labels(mut self) -> Result<MapWriter> {
+        if self.first.is_none() {
+            return Err(Error::invalid(format!("map {}", self.dir.display()), "a stored map's labels cannot be changed"));
+        }
+        self.manifest.without_labels = true;
+        Ok(self)
     }
 
     /// Fails unless a new map may be created in `dir`: it does not exist, or is empty, or (with

@@ -16,7 +16,7 @@ pub use setting::Setting;
 
 use crate::config::{Config, ScoreFusion};
 use crate::descriptors::DescriptorSet;
-use crate::error::{Error, Result};
+use crate::error::{Error, Remedy, Result};
 use crate::kernels::abi::SsimParams;
 use crate::kernels::abi::TreeSimParams;
 use crate::kernels::ssim_topk;
@@ -196,6 +196,7 @@ pub fn candidates(
     cfg: &Config,
 ) -> Result<(CandidateLists, MatchTimes)> {
     let mut times = MatchTimes::default();
+    check_labels(refs, setting)?;
     if refs.is_empty() {
         return Ok((vec![vec![]; queries.len()], times));
     }
@@ -218,6 +219,22 @@ pub fn candidates(
     // a stored map checks each segment on first read; one that failed was read as empty
     refs.check()?;
     Ok((lists, times))
+}
+
+/// Fails if `setting` needs semantic labels and `refs` were encoded without them (a map built
+/// from photos with neither label maps nor a segmenter): cheap, so callers check before encoding.
+pub fn check_labels(refs: &dyn RefSource, setting: Setting) -> Result<()> {
+    match setting.label_free() {
+        Some(_) if !refs.labelled() => Err(Error::refused(
+            format!("setting {setting}"),
+            format!(
+                "the map was built without semantic labels (its photos had neither label maps nor a segmenter), {}",
+                if setting == Setting::Fused { "and without them fused is the appearance baseline" } else { "which this setting needs" }
+            ),
+            Remedy::RebuildWithLabels,
+        )),
+        _ => Ok(()),
+    }
 }
 
 /// The tree-similarity parameters of `setting` under `cfg` (its class table's categories for

@@ -99,12 +99,23 @@ fn build_into(
         (encoder, MapWriter::append(dir, opts)?)
     } else {
         MapWriter::check_new_dir(dir, f.resume)?;
-        let mut encoder = Encoder::new(cfg)?.with_hog(f.hog);
+        let encoder = Encoder::new(cfg)?.with_hog(f.hog);
+        // photos with neither label maps nor a segmenter: a map for the settings that need no
+        // labels, marked so (the others are refused against it), rather than no map at all
+        let without_labels = encoder.cannot_label(frames);
+        let mut encoder = encoder.without_labels(without_labels);
+        if without_labels {
+            log::warn!(
+                "no label maps and no segmenter: the map holds no semantic labels; only {} can be matched against it (`semlook models` says what is installed)",
+                semlook::matching::Setting::ALL.iter().filter(|s| s.label_free().is_none()).map(|s| s.name()).collect::<Vec<_>>().join(", ")
+            );
+        }
         // the codebook comes first: it is stored with the first segment
         batch::train_codebook_skipping(&mut encoder, frames, skip, quiet)?;
         let hog_dim = if f.hog { semlook::baseline::HOG_DIM } else { 0 };
         let dims = semlook::map::Dims { appearance: encoder.appearance_dim(), hog: hog_dim, keypoints: encoder.keypoint_dim() };
         let writer = MapWriter::create(dir, &cfg.encoding(), dims, encoder.appearance_record(), opts, f.resume)?;
+        let writer = if without_labels { writer.without_labels()? } else { writer };
         (encoder, writer)
     };
     let r = batch::encode_into(engine, &encoder, frames, fmt, &mut writer, IntoOptions { skip_invalid: skip, skip_stored: f.resume, quiet })?;
@@ -185,6 +196,7 @@ fn show(dir: &Path, json: bool) -> Result<()> {
             "segments": m.segments,
             "appearance_dim": m.appearance_dim,
             "hog_dim": m.hog_dim,
+            "labels": !m.without_labels,
             "config": m.config,
         });
         outln!("{}", to_json(&v)?);
@@ -201,6 +213,9 @@ fn show(dir: &Path, json: bool) -> Result<()> {
         );
         let cols: Vec<String> = columns.iter().map(|&(n, b)| format!("{n} {:.0}", per(b))).collect();
         outln!("bytes per stored image: {:.0} ({})", per(bytes as usize), cols.join(", "));
+        if m.without_labels {
+            outln!("built without semantic labels: only the settings that need none (hog, appearance, verified) match against it");
+        }
         for s in &m.segments {
             outln!("  {}  {} images ({} removed)  {} bytes  sha256 {}", s.file, s.images, s.removed.len(), s.bytes, &s.sha256[..16]);
         }
