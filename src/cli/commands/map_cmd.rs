@@ -107,7 +107,12 @@ fn build_into(
         if without_labels {
             log::warn!(
                 "no label maps and no segmenter: the map holds no semantic labels; only {} can be matched against it (`semlook models` says what is installed)",
-                semlook::matching::Setting::ALL.iter().filter(|s| s.label_free().is_none()).map(|s| s.name()).collect::<Vec<_>>().join(", ")
+                semlook::matching::Setting::ALL
+                    .iter()
+                    .filter(|&&s| s.label_free().is_none() && (f.hog || s != semlook::matching::Setting::Hog))
+                    .map(|s| s.name())
+                    .collect::<Vec<_>>()
+                    .join(", ")
             );
         }
         // the codebook comes first: it is stored with the first segment
@@ -214,7 +219,8 @@ fn show(dir: &Path, json: bool) -> Result<()> {
         let cols: Vec<String> = columns.iter().map(|&(n, b)| format!("{n} {:.0}", per(b))).collect();
         outln!("bytes per stored image: {:.0} ({})", per(bytes as usize), cols.join(", "));
         if m.without_labels {
-            outln!("built without semantic labels: only the settings that need none (hog, appearance, verified) match against it");
+            let hog = if m.hog_dim > 0 { "hog, " } else { "" };
+            outln!("built without semantic labels: only the settings that need none ({hog}appearance, verified) match against it");
         }
         for s in &m.segments {
             outln!("  {}  {} images ({} removed)  {} bytes  sha256 {}", s.file, s.images, s.removed.len(), s.bytes, &s.sha256[..16]);
