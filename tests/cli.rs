@@ -74,8 +74,8 @@ fn build_add_info_query_and_eval_without_appearance() {
 /// queries with images work, and queries encoded without appearance are refused.
 #[test]
 fn appearance_through_the_cli() {
-    if let Err(e) = semlook::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, None, "XFeat") {
-        return common::skip_unless_required("REQUIRE_MODELS", format!("XFeat weights (run setup.sh): {e}"));
+    if !common::has_xfeat() {
+        return;
     }
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
@@ -218,8 +218,8 @@ fn resume_checks_every_layout_option_and_size_options_are_bounded() {
 /// build fails naming the file.
 #[test]
 fn skip_invalid_also_skips_in_codebook_training() {
-    if let Err(e) = semlook::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, None, "XFeat") {
-        return common::skip_unless_required("REQUIRE_MODELS", format!("XFeat weights (run setup.sh): {e}"));
+    if !common::has_xfeat() {
+        return;
     }
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
@@ -373,8 +373,8 @@ fn non_utf8_file_names_are_found() {
 /// labels still fails, naming a frame.
 #[test]
 fn eval_on_photos_without_a_segmenter_runs_the_label_free_settings() {
-    if let Err(e) = semlook::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, None, "XFeat") {
-        return common::skip_unless_required("REQUIRE_MODELS", format!("XFeat weights (run setup.sh): {e}"));
+    if !common::has_xfeat() {
+        return;
     }
     let dir = tempfile::tempdir().unwrap();
     let (r, q, truth) = photo_sets(dir.path());
@@ -423,8 +423,8 @@ fn photo_sets(dir: &Path) -> (PathBuf, PathBuf, PathBuf) {
 /// was before the mark existed).
 #[test]
 fn a_map_of_photos_without_a_segmenter_serves_the_label_free_settings() {
-    if let Err(e) = semlook::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, None, "XFeat") {
-        return common::skip_unless_required("REQUIRE_MODELS", format!("XFeat weights (run setup.sh): {e}"));
+    if !common::has_xfeat() {
+        return;
     }
     let dir = tempfile::tempdir().unwrap();
     let (r, q, _) = photo_sets(dir.path());

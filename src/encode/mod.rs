@@ -90,10 +90,6 @@ impl Encoder {
         self.frames.void_labels = on;
         self
     }
-    /// Whether frames without labels are encoded with void label maps ([`Encoder::without_labels`]).
-    pub fn encodes_without_labels(&self) -> bool {
-        self.frames.void_labels
-    }
     /// Whether `frames` can have no labels here: there is at least one, every one is an RGB
     /// image without a label map, and no segmenter is installed to make them. Such frames are
     /// encoded [`Encoder::without_labels`], for the settings that need no labels.

@@ -135,22 +135,23 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
     fn sources(frames: &[crate::dataset::Frame]) -> impl Iterator<Item = &crate::input::FrameSource> {
         frames.iter().map(|f| &f.source)
     }
+    let unlabelled_map = opts.map.filter(|m| !m.labelled());
     let queries_unlabelled = base.cannot_label(ds.queries.iter().flat_map(|q| sources(&q.frames)));
-    let without_labels =
-        opts.map.is_some_and(|m| !m.labelled()) || (queries_unlabelled && (opts.map.is_some() || base.cannot_label(sources(&ds.reference.frames))));
+    let without_labels = unlabelled_map.is_some() || (queries_unlabelled && (opts.map.is_some() || base.cannot_label(sources(&ds.reference.frames))));
     let mut skipped = Vec::new();
     let mut settings = opts.settings.clone();
-    let unlabelled_map = opts.map.filter(|m| !m.labelled());
     if without_labels {
-        settings.retain(|&s| match (s.label_free(), unlabelled_map) {
-            (None, _) => true,
-            (Some(why), None) => {
-                skipped.push((s, why.to_string()));
-                false
-            }
-            (Some(_), Some(m)) => {
-                skipped.push((s, crate::matching::check_labels(m, s).err().map_or_else(String::new, |e| e.to_string())));
-                false
+        settings.retain(|&s| {
+            let why = match unlabelled_map {
+                Some(m) => crate::matching::check_labels(m, s).err().map(|e| e.to_string()),
+                None => s.label_free().map(String::from),
+            };
+            match why {
+                None => true,
+                Some(why) => {
+                    skipped.push((s, why));
+                    false
+                }
             }
         });
         if settings.is_empty() {

@@ -36,6 +36,18 @@ pub fn skip_unless_required(var: &str, reason: impl std::fmt::Display) {
     skip(reason);
 }
 
+/// Whether the XFeat weights setup.sh installs are found; if not, the test skips with the reason
+/// (or fails under CI or REQUIRE_MODELS=1) and should return.
+pub fn has_xfeat() -> bool {
+    match semlook::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, None, "XFeat") {
+        Ok(_) => true,
+        Err(e) => {
+            skip_unless_required("REQUIRE_MODELS", format!("XFeat weights (run setup.sh): {e}"));
+            false
+        }
+    }
+}
+
 /// A small synthetic dataset: `places` frames per traversal at 160x120, two query conditions.
 pub fn tiny_synth(dir: &Path, places: usize, seed: u64) -> SynthConfig {
     let cfg = SynthConfig {

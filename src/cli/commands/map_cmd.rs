@@ -107,12 +107,7 @@ fn build_into(
         if without_labels {
             log::warn!(
                 "no label maps and no segmenter: the map holds no semantic labels; only {} can be matched against it (`semlook models` says what is installed)",
-                semlook::matching::Setting::ALL
-                    .iter()
-                    .filter(|&&s| s.label_free().is_none() && (f.hog || s != semlook::matching::Setting::Hog))
-                    .map(|s| s.name())
-                    .collect::<Vec<_>>()
-                    .join(", ")
+                label_free_settings(f.hog)
             );
         }
         // the codebook comes first: it is stored with the first segment
@@ -126,6 +121,13 @@ fn build_into(
     let r = batch::encode_into(engine, &encoder, frames, fmt, &mut writer, IntoOptions { skip_invalid: skip, skip_stored: f.resume, quiet })?;
     report_encoding(&r, quiet);
     writer.finish()
+}
+
+/// The settings a map without labels serves (`hog` only when it stores HOG descriptors).
+fn label_free_settings(hog: bool) -> String {
+    use semlook::matching::Setting;
+    let served = Setting::ALL.iter().filter(|&&s| s.label_free().is_none() && (hog || s != Setting::Hog));
+    served.map(|s| s.name()).collect::<Vec<_>>().join(", ")
 }
 
 fn report_encoding(r: &batch::IntoReport, quiet: bool) {
@@ -219,8 +221,7 @@ fn show(dir: &Path, json: bool) -> Result<()> {
         let cols: Vec<String> = columns.iter().map(|&(n, b)| format!("{n} {:.0}", per(b))).collect();
         outln!("bytes per stored image: {:.0} ({})", per(bytes as usize), cols.join(", "));
         if m.without_labels {
-            let hog = if m.hog_dim > 0 { "hog, " } else { "" };
-            outln!("built without semantic labels: only the settings that need none ({hog}appearance, verified) match against it");
+            outln!("built without semantic labels: only the settings that need none ({}) match against it", label_free_settings(m.hog_dim > 0));
         }
         for s in &m.segments {
             outln!("  {}  {} images ({} removed)  {} bytes  sha256 {}", s.file, s.images, s.removed.len(), s.bytes, &s.sha256[..16]);
