@@ -10,7 +10,9 @@
 #   - the default segmenter (ESPNetv2, Cityscapes; MIT) into the same folder, converted by our exporter
 #     from the authors' checkpoint (downloaded from github.com/sacmehta/EdgeNets, or taken from
 #     ../shared/models), with PyTorch CPU in its own venv (.venv-export/);
-#   - .venv/ with the Python package (maturin develop) and its test dependencies (pytest, ray, h5py).
+#   - .venv/ with the Python package (maturin develop) and its test dependencies (pytest, ray, h5py);
+#   - .venv-ros/ with ROS 2 kilted's rclpy from PyPI wheels and semlook_msgs built for it (the ROS 2
+#     node's interop test talks to a real rclpy peer).
 set -euo pipefail
 cd "$(dirname "$0")"
 
@@ -151,6 +153,23 @@ if python3 -c 'import sys; sys.exit(sys.version_info < (3, 9))' 2>/dev/null; the
 else
     say "python3 >= 3.9 not found: the Python package is not built"
     [ -z "${CI:-}" ] || exit 1
+fi
+# 5. ROS 2 kilted (rclpy, Fast DDS) from PyPI wheels, and the node's messages built for it
+ros_venv="${SEMLOOK_ROS_VENV:-$(pwd)/.venv-ros}"
+if [ ! -x "$ros_venv/bin/python" ] || ! "$ros_venv/bin/python" -c 'import rclpy, sensor_msgs, catkin_pkg' 2>/dev/null; then
+    say "installing ROS 2 kilted (rclpy, Fast DDS) into $ros_venv"
+    { python3 -m venv "$ros_venv" && "$ros_venv/bin/python" -m pip install -q --disable-pip-version-check -r python/tools/requirements-ros.txt >&2; } \
+        || { say "pip install of python/tools/requirements-ros.txt failed: the ROS 2 interop test will skip"; [ -z "${CI:-}" ] || exit 1; }
+fi
+if [ -x "$ros_venv/bin/python" ]; then
+    built="$ros_venv/semlook_msgs/python/semlook_msgs/__init__.py"
+    if [ ! -f "$built" ] || [ -n "$(find ros2/semlook_msgs ros2/scripts/build_msgs_py.sh -newer "$built" 2>/dev/null)" ]; then
+        say "building semlook_msgs for rclpy (ros2/scripts/build_msgs_py.sh)"
+        bash ros2/scripts/build_msgs_py.sh "$ros_venv" "$ros_venv/semlook_msgs" >&2 \
+            || { say "building semlook_msgs failed: the ROS 2 interop test will skip"; [ -z "${CI:-}" ] || exit 1; }
+    else
+        say "ROS 2 kilted and semlook_msgs present"
+    fi
 fi
 if [ $ok = 0 ]; then
     say "model files missing: appearance (XFeat) and ONNX models will not run"

@@ -26,6 +26,8 @@ pub struct Config {
     pub similarity: SimilarityConfig,
     pub matching: MatchingConfig,
     pub verification: VerificationConfig,
+    pub sequence: SequenceConfig,
+    pub stream: StreamConfig,
     pub eval: EvalConfig,
 }
 
@@ -522,6 +524,144 @@ impl Default for VerificationConfig {
     }
 }
 
+/// How the contributions of a frame's scores to a trajectory are normalised (the contrast
+/// enhancement of SeqSLAM's difference matrix, Milford & Wyeth 2012, on a sparse row).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Contrast {
+    /// The score above the frame's lowest candidate score, unscaled.
+    None,
+    /// z-score over the frame's scored references.
+    Frame,
+    /// z-score over the references within `contrast_window` positions along the traversal
+    /// (references the frame did not score count at its lowest score), as SeqSLAM does.
+    Window,
+}
+
+/// Which references each frame scores for sequence matching.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SequenceRows {
+    /// The setting's candidates (its top-K) widened by `widen` positions either side.
+    Candidates,
+    /// Every reference of the map (a dense row: small maps only).
+    Full,
+}
+
+/// Sequence matching over a stream (beyond the paper; `stream`): each frame's candidate scores
+/// go into a ring of the last `length` frames, and constant-velocity trajectories through them
+/// are scored (SeqSLAM, Milford & Wyeth 2012; SeqMatch, Garg & Milford 2021). Causal: the result
+/// at frame t uses frames up to t. A matching section: it may change at query time.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SequenceConfig {
+    /// Frames a trajectory spans (SeqSLAM's ds). [R] 12 (sweep 10: 5 / 8 / 12 / 20 compared over
+    /// the six ordered dev sets; SeqSLAM used 10 to 20).
+    pub length: usize,
+    /// Velocities tried, in reference positions per query frame: `velocity_steps` values evenly
+    /// from `velocity_min` to `velocity_max`. 0 is a stop; negative values drive backwards.
+    /// [R] 0 to 2 in 9 steps (sweep 10; SeqSLAM: 0.8 to 1.2, which misses stops).
+    pub velocity_min: f64,
+    pub velocity_max: f64,
+    pub velocity_steps: usize,
+    /// Which references each frame scores. [R] candidates.
+    pub rows: SequenceRows,
+    /// The candidates of each frame are widened by this many positions either side along their
+    /// traversal, each scored by the setting, so trajectories pass through scored neighbours.
+    /// [R] 1 (sweep 10).
+    pub widen: usize,
+    /// Contrast normalisation of each frame's scores. [R] frame (sweep 10: SeqSLAM's window
+    /// normalisation lost 0.08 to 0.58 R@1 on Nordland, where a route's neighbouring places all
+    /// score high and an isolated alias stands out of its window; none was 0.01 to 0.02 below
+    /// frame on the mean).
+    pub contrast: Contrast,
+    /// Half-width of the contrast window, in positions. [X] SeqSLAM's R_window: 10.
+    pub contrast_window: usize,
+    /// The match is the newest frame's strongest place within this many positions of the best
+    /// trajectory's end (a straight line through frames of a varying speed ends a little off).
+    /// [R] 2 (sweep 10).
+    pub refine: usize,
+    /// The uniqueness of a match is its score over the best score of a place further than this
+    /// many positions along the same traversal (or on another one). [X] SeqSLAM's R_window: 10.
+    pub uniqueness_window: usize,
+    /// A sequence match is accepted when its uniqueness reaches this and its trajectory spans at
+    /// least `min_frames` frames. [R] 1.05, 5 (sweep 10: 1.05 against 1.2 within 0.003).
+    pub min_uniqueness: f64,
+    pub min_frames: usize,
+    /// And the newest frame agrees with it: its evidence at the match is at least this share of
+    /// its strongest evidence anywhere (0: no such condition). [R] 0.8 (sweep 10: at 0 a run of
+    /// a few wrong single-frame matches became a standing trajectory that outvoted the frames
+    /// after it, and the streams' answers lost against single frames on 5 of 36 set x setting
+    /// pairs; at 0.8 on 1, by one Nordland query; the price: `global` on the synthetic stream gains
+    /// +0.09 instead of +0.33).
+    pub agreement: f64,
+}
+
+impl Default for SequenceConfig {
+    fn default() -> Self {
+        SequenceConfig {
+            length: 12,
+            velocity_min: 0.0,
+            velocity_max: 2.0,
+            velocity_steps: 9,
+            rows: SequenceRows::Candidates,
+            widen: 1,
+            contrast: Contrast::Frame,
+            contrast_window: 10,
+            refine: 2,
+            uniqueness_window: 10,
+            min_uniqueness: 1.05,
+            min_frames: 5,
+            agreement: 0.8,
+        }
+    }
+}
+
+/// Streams (`stream::Localizer`, `semlook localize`): loop closure and tracking. A matching
+/// section.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct StreamConfig {
+    /// Loop-closure mode: frames of the stream are matched only against frames at least this
+    /// many frames older, and at least `exclude_seconds` older where frames carry timestamps
+    /// (the recent past always looks like the present). [R] 50 frames (5 s at 10 Hz), 0 s.
+    pub exclude_frames: usize,
+    pub exclude_seconds: f64,
+    /// Loop-closure mode: the frames added are committed to the map (one segment, the store's
+    /// crash-safe commit) every this many frames; at most `exclude_frames`, so that every frame
+    /// that may be matched is stored. [R] 25.
+    pub commit_frames: usize,
+    /// While the last sequence match was accepted, only the references within this many
+    /// positions of where it predicts the frame are searched (0: the whole map every frame);
+    /// after `lost_after` frames without an accepted match, the whole map again. Large maps.
+    /// [R] 0 (off), 5.
+    pub track_radius: usize,
+    pub lost_after: usize,
+    /// Loop-closure mode: an accepted sequence match is a closure when its uniqueness reaches
+    /// `closure_uniqueness` (some other place must score: a match with no competitor is not
+    /// evidence) and its trajectory moves at least `closure_min_velocity` positions per frame
+    /// (a standing trajectory says only that the recent frames all resemble one old place).
+    /// [R] 1.5 and 0.5, from the CamVid loop (the drive, then its shifted copy; tests/stream.rs):
+    /// of the false closures of the first pass 92 % stood or crawled (|v| <= 0.25), the true ones
+    /// of the second moved at 0.5 to 1 with uniqueness 1.49 to 4.5.
+    pub closure_uniqueness: f64,
+    pub closure_min_velocity: f64,
+}
+
+impl Default for StreamConfig {
+    fn default() -> Self {
+        StreamConfig {
+            exclude_frames: 50,
+            exclude_seconds: 0.0,
+            commit_frames: 25,
+            track_radius: 0,
+            lost_after: 5,
+            closure_uniqueness: 1.5,
+            closure_min_velocity: 0.5,
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct EvalConfig {
@@ -688,6 +828,26 @@ impl Config {
             v.real(name, w, 0.0, 1e3)?;
         }
         v.int("matching.tile", self.matching.tile, 1, 65536)?;
+        let sq = &self.sequence;
+        v.int("sequence.length", sq.length, 1, 256)?;
+        v.real("sequence.velocity_min", sq.velocity_min, -16.0, 16.0)?;
+        v.real("sequence.velocity_max", sq.velocity_max, sq.velocity_min, 16.0)?;
+        v.int("sequence.velocity_steps", sq.velocity_steps, 1, 64)?;
+        v.int("sequence.widen", sq.widen, 0, 16)?;
+        v.int("sequence.contrast_window", sq.contrast_window, 1, 1000)?;
+        v.int("sequence.refine", sq.refine, 0, 1000)?;
+        v.int("sequence.uniqueness_window", sq.uniqueness_window, 0, 100_000)?;
+        v.real("sequence.min_uniqueness", sq.min_uniqueness, 0.0, 1e6)?;
+        v.int("sequence.min_frames", sq.min_frames, 1, sq.length)?;
+        v.real("sequence.agreement", sq.agreement, 0.0, 1.0)?;
+        let st = &self.stream;
+        v.int("stream.exclude_frames", st.exclude_frames, 1, 1 << 24)?;
+        v.real("stream.exclude_seconds", st.exclude_seconds, 0.0, 1e7)?;
+        v.int("stream.commit_frames", st.commit_frames, 1, st.exclude_frames)?;
+        v.int("stream.track_radius", st.track_radius, 0, 1 << 20)?;
+        v.int("stream.lost_after", st.lost_after, 1, 1 << 20)?;
+        v.real("stream.closure_uniqueness", st.closure_uniqueness, 1.0, 1e6)?;
+        v.real("stream.closure_min_velocity", st.closure_min_velocity, 0.0, 16.0)?;
         v.int("eval.recall_at (entries)", self.eval.recall_at.len(), 0, 16)?;
         for (k, &n) in self.eval.recall_at.iter().enumerate() {
             v.int(&format!("eval.recall_at[{k}]"), n, 1, 1000)?;

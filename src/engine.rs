@@ -8,7 +8,7 @@ use crate::config::Config;
 use crate::descriptors::DescriptorSet;
 use crate::encode::phases::Pending;
 use crate::encode::{EncodedImage, Encoder, Loaded, StageTimes};
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::gpu::{
     coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, verify::MnnGpu, vlad::VladGpu, xfeat::NetworkSlot, GpuContext,
     GpuOptions,
@@ -368,6 +368,18 @@ impl Engine {
         self.on_stages(|st| fine_scores(st, refs, queries, setting, cfg, pairs))
     }
 
+    /// What `setting` scores each (query, reference) pair (see [`crate::matching::score_pairs`]).
+    pub fn score_pairs(
+        &mut self,
+        refs: &dyn RefSource,
+        queries: &DescriptorSet,
+        setting: Setting,
+        cfg: &Config,
+        pairs: &[(u32, u32)],
+    ) -> Result<Vec<crate::matching::Candidate>> {
+        self.on_stages(|st| crate::matching::score_pairs(st, refs, queries, setting, cfg, pairs))
+    }
+
     /// Encodes frames, in input order; `tick` is called per frame. Per-frame input errors are
     /// returned per frame; a GPU failure fails the whole call. On the GPU, frames are decoded in
     /// parallel on the CPU, [`STREAM_FRAMES`] at a time (memory does not grow with the number of
@@ -386,6 +398,42 @@ impl Engine {
             Some(v) => Ok(v),
             None => Ok(encoder.encode_all(sources, format, tick)),
         }
+    }
+
+    /// Encodes frames already decoded (by [`crate::encode::FrameLoader::load_arrays`] or
+    /// [`crate::encode::FrameLoader::load`]), each with its id, in order: on the device when the
+    /// engine has one (with `auto`, again on the CPU if it fails), else on the CPU.
+    pub fn encode_loaded(&mut self, encoder: &Encoder, frames: Vec<(String, Result<Loaded>)>) -> Result<Vec<Result<(EncodedImage, StageTimes)>>> {
+        // frames that failed to load keep their error; the others are encoded
+        let mut out: Vec<Option<Result<(EncodedImage, StageTimes)>>> = Vec::with_capacity(frames.len());
+        let (mut sources, mut loaded) = (Vec::new(), Vec::new());
+        for (id, l) in frames {
+            match l {
+                Ok(l) => {
+                    out.push(None);
+                    sources.push(FrameSource { id, image: None, labels: None });
+                    loaded.push(l);
+                }
+                Err(e) => out.push(Some(Err(e))),
+            }
+        }
+        let mut done = None;
+        if self.gpu.is_some() {
+            // a copy for the CPU path, should the device fail under `auto`
+            let copy: Vec<Result<Loaded>> = loaded.iter().cloned().map(Ok).collect();
+            done = self.on_gpu(|g| Self::encode_loaded_gpu(g, encoder, &sources, copy, &|| {}))?;
+        }
+        let mut encoded = match done {
+            Some(v) => v.into_iter(),
+            None => {
+                let mut scratch = crate::global::GlobalScratch::default();
+                loaded.iter().zip(&sources).map(|(l, s)| encoder.encode_loaded(&s.id, l, &mut scratch)).collect::<Vec<_>>().into_iter()
+            }
+        };
+        Ok(out
+            .into_iter()
+            .map(|o| o.unwrap_or_else(|| encoded.next().unwrap_or_else(|| Err(Error::invalid("encoding", "a frame went missing")))))
+            .collect())
     }
 
     fn encode_all_gpu(

@@ -68,6 +68,7 @@ pub mod onnx;
 pub mod pickle;
 pub mod progress;
 pub mod segmentation;
+pub mod stream;
 #[cfg(feature = "tools")]
 pub mod tools;
 pub mod util;

@@ -208,6 +208,7 @@ fn appearance_in_maps_and_evaluation() {
             map: None,
             skip_invalid: false,
             quiet: true,
+            sequence: false,
         },
         &mut engine,
     )

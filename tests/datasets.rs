@@ -50,7 +50,13 @@ fn folders_layout_like_extended_cmu_seasons() {
     let rep = semlook::eval::evaluate(
         &ds,
         &cfg,
-        &semlook::eval::EvalOptions { settings: vec![semlook::matching::Setting::Semlook], map: None, skip_invalid: false, quiet: true },
+        &semlook::eval::EvalOptions {
+            settings: vec![semlook::matching::Setting::Semlook],
+            map: None,
+            skip_invalid: false,
+            quiet: true,
+            sequence: false,
+        },
         &mut semlook::engine::Engine::cpu(),
     )
     .unwrap();

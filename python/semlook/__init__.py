@@ -48,6 +48,7 @@ from ._native import (  # noqa: E402
     InvalidConfigError,
     InvalidImageError,
     InvalidInputError,
+    Localizer,
     Map,
     MapVersionError,
     Matches,
@@ -69,7 +70,7 @@ from ._native import (  # noqa: E402
 SETTINGS = tuple(settings())
 
 __all__ = [
-    "Config", "Descriptors", "Encoder", "Engine", "Map", "Matches", "Shard", "evaluate", "list_len",
+    "Config", "Descriptors", "Encoder", "Engine", "Localizer", "Map", "Matches", "Shard", "evaluate", "list_len",
     "DEFAULT_BACKEND", "EVAL_SETTINGS", "default_engine",
     "merge_candidates", "plan_shards", "rank", "reranks", "settings", "SETTINGS", "__version__",
     "SemlookError", "CorruptMapError", "DatasetError", "DuplicateImageIdError", "GpuError",

@@ -28,6 +28,7 @@ __all__ = [
     "InvalidConfigError",
     "InvalidImageError",
     "InvalidInputError",
+    "Localizer",
     "Map",
     "MapVersionError",
     "Matches",
@@ -192,6 +193,21 @@ class Map:
     ) -> Matches: ...
 
 _Lists = tuple[npt.NDArray[np.float32], npt.NDArray[np.int64], npt.NDArray[np.int32]]
+
+@final
+class Localizer:
+    """Frames localized one at a time against a map, with sequence matching over the last frames."""
+    def __new__(cls, path: _Path, setting: str = "verified", sequence: bool = True, loop_closure: bool = False, config: Optional[Config] = None, backend: Optional[str] = None) -> Self: ...
+    def push(self, image: Optional[npt.NDArray[np.uint8]] = None, labels: Optional[npt.NDArray[Any]] = None, *, path: Optional[_Path] = None, labels_path: Optional[_Path] = None, data: Optional[bytes] = None, id: Optional[str] = None, timestamp: Optional[float] = None) -> dict[str, Any]: ...
+    def refresh(self) -> bool: ...
+    def reset(self) -> None: ...
+    def finish(self) -> None: ...
+    @property
+    def counts(self) -> dict[str, int]: ...
+    @property
+    def state_size(self) -> tuple[int, int]: ...
+    @property
+    def generation(self) -> Optional[int]: ...
 
 @final
 class Shard:

@@ -13,6 +13,7 @@ mod map;
 mod matches;
 mod shard;
 mod store;
+mod stream;
 
 use pyo3::prelude::*;
 
@@ -26,6 +27,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<store::PyMap>()?;
     m.add_class::<matches::PyMatches>()?;
     m.add_class::<shard::PyShard>()?;
+    m.add_class::<stream::PyLocalizer>()?;
     m.add_function(wrap_pyfunction!(map::evaluate, m)?)?;
     m.add_function(wrap_pyfunction!(engine::default_engine, m)?)?;
     m.add_function(wrap_pyfunction!(hloc::hloc_names, m)?)?;

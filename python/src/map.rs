@@ -371,7 +371,7 @@ pub fn evaluate<'py>(
             (None, Some(m)) => m.query_config(),
             (None, None) => ds.adapt_config(Config::default()),
         };
-        let eo = semlook::eval::EvalOptions { settings, map: map.as_deref(), skip_invalid: false, quiet: true };
+        let eo = semlook::eval::EvalOptions { settings, map: map.as_deref(), skip_invalid: false, quiet: true, sequence: false };
         semlook::eval::evaluate(&ds, &cfg, &eo, e)
     })?;
     to_py_object(py, &report)

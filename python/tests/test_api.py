@@ -323,3 +323,29 @@ def test_the_stubs_match_the_extension():
     here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     r = subprocess.run([sys.executable, "-m", "mypy.stubtest", "semlook._native"], cwd=here, capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_localizer_streams_frames_with_sequence_matching(tmp_path, encoder):
+    """A stream of shifted views of 30 places in order: each answered as Map.query answers it,
+    the sequence match found and accepted, a time going back refused and counted, the ring
+    bounded."""
+    cfg = semlook.Config.without_appearance()
+    refs = semlook.Descriptors.concat([encoder.encode(f"p{s:02d}", labels=place(s)) for s in range(30)])
+    m = semlook.Map.create(str(tmp_path / "map"), refs, encoder)
+    loc = semlook.Localizer(tmp_path / "map", setting="forest", config=cfg, backend="cpu")
+    queries = [place(s, shift=3) for s in range(30)]
+    single = m.query(queries, "forest", config=cfg, engine=semlook.Engine("cpu"))
+    accepted = 0
+    for t, q in enumerate(queries):
+        r = loc.push(labels=q, timestamp=float(t))
+        assert [c["id"] for c in r["top_k"]] == list(single.ids[t][: len(r["top_k"])])
+        assert r["place"][0] == f"p{t:02d}", (t, r["place"])
+        accepted += bool(r["sequence"] and r["sequence"]["accepted"])
+    assert accepted >= 20, accepted
+    with pytest.raises(semlook.InvalidInputError, match="before the previous frame"):
+        loc.push(labels=queries[0], timestamp=3.0)
+    assert loc.counts["refused"] == 1 and loc.counts["frames"] == 31
+    frames, entries = loc.state_size
+    assert frames == 12 and entries <= 12 * 30 * 3, loc.state_size
+    with pytest.raises(semlook.InvalidInputError):
+        loc.push()

@@ -36,6 +36,9 @@ pub enum Command {
     Query(QueryArgs),
     /// Evaluate on a dataset: AUC, Recall@100%Precision, Precision@100%Recall, Recall@N, timings.
     Eval(EvalArgs),
+    /// Localize a stream of frames against a map as they come, one line per frame (sequence
+    /// matching over the last frames; loop closure on a growing map with --loop-closure).
+    Localize(LocalizeArgs),
     /// Print the default configuration (TOML); edit it and pass it with --config.
     Config,
     /// The model files: which are installed, where, their SHA-256 (and whether it is the file
@@ -66,6 +69,10 @@ pub enum DevCommand {
     /// runs a coarse pass of a query batch from it; reports build peak RSS, open time, query-pass
     /// memory without mapped file pages, and bytes per reference.
     MapBench(StoreBenchArgs),
+    /// Stream benchmark: replays a real sequence through the streaming localizer against stored
+    /// maps of each size (the real references plus distractor places), frames/s and p50/p99
+    /// latency per stage.
+    BenchStream(BenchStreamArgs),
     /// Sweep configuration values over datasets and tabulate Recall@1 and AUC per setting.
     Tune(TuneArgs),
     /// Accuracy of the segmenter against real label maps (pixel accuracy, IoU per class, mean IoU).
@@ -83,6 +90,44 @@ pub struct BenchEncodeArgs {
     /// Configuration file (TOML; `semlook config` prints the defaults); default: built-in defaults.
     #[arg(long, value_name = "FILE.toml")]
     pub config: Option<PathBuf>,
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub models: ModelArgs,
+}
+
+#[derive(Args)]
+pub struct BenchStreamArgs {
+    /// Folder of the reference images the stream was recorded against (the map's real places).
+    #[arg(long)]
+    pub references: PathBuf,
+    /// Folder of the frames replayed, in name order.
+    #[arg(long)]
+    pub stream: PathBuf,
+    /// Folders of other images whose descriptors fill the maps to their sizes (repeatable).
+    #[arg(long = "distractors", value_name = "DIR")]
+    pub distractors: Vec<PathBuf>,
+    /// Map sizes (places).
+    #[arg(long, value_delimiter = ',', default_value = "1000,10000,100000")]
+    pub sizes: Vec<usize>,
+    /// Frames replayed per map (the stream is cycled when shorter).
+    #[arg(long, default_value_t = 200)]
+    pub frames: usize,
+    #[arg(long, value_enum, default_value_t = Setting::RECOMMENDED)]
+    pub setting: Setting,
+    /// Single-frame matching only.
+    #[arg(long)]
+    pub no_sequence: bool,
+    /// Configuration file (TOML; `semlook config` prints the defaults); default: built-in defaults.
+    #[arg(long, value_name = "FILE.toml")]
+    pub config: Option<PathBuf>,
+    /// Folder for the maps (default: the system temporary folder); each is deleted after its row
+    /// unless --keep.
+    #[arg(long)]
+    pub dir: Option<PathBuf>,
+    #[arg(long)]
+    pub keep: bool,
+    /// One JSON object per row and line.
     #[arg(long)]
     pub json: bool,
     #[command(flatten)]
@@ -150,6 +195,10 @@ pub struct TuneArgs {
     /// Also write the table (tab-separated) to this file.
     #[arg(long, value_name = "FILE.tsv")]
     pub table: Option<PathBuf>,
+    /// Also stream each query set in its order through sequence matching (`[sequence]`) and
+    /// tabulate its R@1 and AUC as a column `<setting>+seq`.
+    #[arg(long)]
+    pub sequence: bool,
     #[command(flatten)]
     pub models: ModelArgs,
 }
@@ -196,6 +245,21 @@ pub struct SynthArgs {
     /// labels/): the frames as references, the same frames under controlled changes as queries.
     #[arg(long, value_name = "DIR")]
     pub from_camvid: Option<PathBuf>,
+    /// Instead of rendering: a stream benchmark from a dataset directory (any layout `eval`
+    /// reads, with ground truth): its references as they are, each query traversal driven again
+    /// at a speed swinging between --speed-min and --speed-max with --stops stops (`--seed`).
+    #[arg(long, value_name = "DIR", conflicts_with = "from_camvid")]
+    pub stream_from: Option<PathBuf>,
+    /// With --stream-from: the slowest and fastest speed, in source frames per frame.
+    #[arg(long, default_value_t = 0.6, requires = "stream_from")]
+    pub speed_min: f64,
+    #[arg(long, default_value_t = 1.4, requires = "stream_from")]
+    pub speed_max: f64,
+    /// With --stream-from: stops along the route, and frames each lasts.
+    #[arg(long, default_value_t = 2, requires = "stream_from")]
+    pub stops: usize,
+    #[arg(long, default_value_t = 20, requires = "stream_from")]
+    pub stop_frames: usize,
     /// With --from-camvid: the changes (default: night, fog, blur, shift).
     #[arg(long = "change", value_enum, requires = "from_camvid")]
     pub changes: Vec<semlook::tools::synth::camvid::Change>,
@@ -331,6 +395,10 @@ pub enum MapCommand {
         /// baseline can be matched and evaluated against this map.
         #[arg(long)]
         hog: bool,
+        /// Name of the traversal the images make (a run of frames in order, which sequence
+        /// matching follows); default "0".
+        #[arg(long, value_name = "NAME")]
+        traversal: Option<String>,
         #[command(flatten)]
         store: StoreArgs,
     },
@@ -340,9 +408,14 @@ pub enum MapCommand {
         source: SourceArgs,
         #[arg(long)]
         map: PathBuf,
-        /// Continue an interrupted add: images the map holds are skipped.
+        /// Continue an interrupted add: images the map holds are skipped, and the rest continue
+        /// the map's last traversal.
         #[arg(long)]
         resume: bool,
+        /// The traversal the images join: a new one by default (a new run of frames: sequence
+        /// matching never crosses from one traversal into another); an existing name continues it.
+        #[arg(long, value_name = "NAME")]
+        traversal: Option<String>,
         /// Most images per segment file (see `map build`).
         #[arg(long, value_name = "N", value_parser = parse_positive)]
         segment_images: Option<usize>,
@@ -450,6 +523,52 @@ pub struct PairsArgs {
 }
 
 #[derive(Args)]
+pub struct LocalizeArgs {
+    /// The map (with --loop-closure: created where there is none).
+    #[arg(long)]
+    pub map: PathBuf,
+    /// A folder of frames (png/jpg), in name order (or --timestamps order).
+    #[arg(long, conflicts_with = "stdin", required_unless_present = "stdin")]
+    pub images: Option<PathBuf>,
+    /// Label maps of the frames, `<stem>.png` (else the segmenter labels them).
+    #[arg(long, requires = "images")]
+    pub labels: Option<PathBuf>,
+    /// How label files encode classes.
+    #[arg(long, value_enum, requires = "labels")]
+    pub label_format: Option<LabelFormat>,
+    /// A file of `name time` lines (seconds) for the frames of --images: they are taken in time
+    /// order, and a time going backwards is refused.
+    #[arg(long, value_name = "FILE", requires = "images")]
+    pub timestamps: Option<PathBuf>,
+    /// Read the frames from standard input: JPEG or PNG images one after another (e.g.
+    /// `ffmpeg -i video.mp4 -f image2pipe -c:v mjpeg - | semlook localize --stdin ...`).
+    #[arg(long)]
+    pub stdin: bool,
+    /// Which stages rank the map (default: the recommended pipeline, `verified`).
+    #[arg(long, value_enum, default_value_t = Setting::RECOMMENDED)]
+    pub setting: Setting,
+    /// Single-frame matching only (sequence matching over the last frames is on by default).
+    #[arg(long)]
+    pub no_sequence: bool,
+    /// Loop-closure mode: match each frame against the frames of the map older than the
+    /// excluded recent ones (`[stream]` in the config), then add it to the map; prints the
+    /// closures found.
+    #[arg(long, conflicts_with = "no_sequence")]
+    pub loop_closure: bool,
+    /// Before each frame, move to the map's newest generation if another writer committed one.
+    #[arg(long)]
+    pub follow_map: bool,
+    /// Configuration file (TOML; `semlook config` prints the defaults); default: the map's.
+    #[arg(long, value_name = "FILE.toml")]
+    pub config: Option<PathBuf>,
+    /// One JSON object per frame and line (JSON Lines), then one with the summary.
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub models: ModelArgs,
+}
+
+#[derive(Args)]
 pub struct EvalArgs {
     /// A dataset directory: a semlook-dataset.json manifest, ref/ + query/ + ground_truth.csv,
     /// ref/ + query/ + ground_truth_new.npy (VPR-Bench), database/ + queries/ with UTM file names,
@@ -501,6 +620,10 @@ pub struct EvalArgs {
     /// Draw the precision-recall curve of every setting (PNG and SVG per query set) into DIR.
     #[arg(long, value_name = "DIR")]
     pub plots: Option<PathBuf>,
+    /// Also match each query set as a stream in its order (sequence matching over the last
+    /// frames, `[sequence]` in the config) and report its R@1 beside the single-frame one.
+    #[arg(long)]
+    pub sequence: bool,
     /// Write DIR/index.html, one self-contained page: the metrics table, precision-recall and
     /// recall@N charts, the worst queries' sheets (the N of --explain, else 6) and what ran.
     #[arg(long, value_name = "DIR")]

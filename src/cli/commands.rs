@@ -1,5 +1,6 @@
 //! The commands behind the CLI.
 
+mod localize;
 mod map_cmd;
 mod pairs;
 mod shared;
@@ -33,7 +34,7 @@ fn ignores_backend(command: &Command) -> Option<&'static str> {
         Command::Map(_) => Some("this map command reads and writes files only"),
         Command::Inspect(_) => Some("inspect runs the CPU stages to draw them"),
         Command::Dev(DevCommand::SegmenterAccuracy(_)) => Some("dev segmenter-accuracy runs the segmenter, which runs on the CPU"),
-        Command::Synth(a) if a.from_camvid.is_none() => Some("synth renders on the CPU"),
+        Command::Synth(a) if a.from_camvid.is_none() => Some("synth renders (or writes a stream manifest) on the CPU"),
         Command::Config => Some("config prints the defaults"),
         Command::Models { .. } => Some("models lists files"),
         _ => None,
@@ -55,19 +56,22 @@ pub fn dispatch(cli: Cli) -> Result<()> {
         Ok(engine)
     };
     match cli.command {
-        Command::Synth(a) => match &a.from_camvid {
-            Some(dir) => camvid_cmd(dir, &a, &engine, quiet),
-            None => synth_cmd(&a, quiet),
+        Command::Synth(a) => match (&a.from_camvid, &a.stream_from) {
+            (Some(dir), _) => camvid_cmd(dir, &a, &engine, quiet),
+            (None, Some(dir)) => stream_synth_cmd(dir, &a, quiet),
+            (None, None) => synth_cmd(&a, quiet),
         },
         Command::Demo(a) => demo(&a, &mut engine()?, quiet),
         Command::Map(m) => map_cmd::run(m, &engine, quiet),
         Command::Query(a) => query(&mut engine()?, &a, quiet),
         Command::Eval(a) => eval_cmd(&mut engine()?, &a, quiet),
+        Command::Localize(a) => localize::run(engine()?, &a, quiet),
         Command::Inspect(a) => inspect_cmd(&a, quiet),
         Command::Dev(DevCommand::Bench(a)) => bench_cmd(&a, quiet),
         Command::Dev(DevCommand::BenchEncode(a)) => bench_encode_cmd(&a, &mut engine()?, quiet),
         Command::Dev(DevCommand::MapBench(a)) => map_cmd::bench(&a, quiet),
         Command::Dev(DevCommand::Tune(a)) => tune_cmd(&a, &mut engine()?, quiet),
+        Command::Dev(DevCommand::BenchStream(a)) => bench_stream_cmd(&a, &engine, quiet),
         Command::Dev(DevCommand::SegmenterAccuracy(a)) => segacc_cmd(&a, quiet),
         Command::Config => {
             out!("{}", Config::default().to_toml()?);
@@ -108,7 +112,7 @@ fn camvid_cmd(camvid: &Path, a: &SynthArgs, engine: &dyn Fn() -> Result<Engine>,
     let cfg = apply_models(Config::camvid(), &a.models);
     let ds = Dataset::open(&a.out, &DatasetOptions::default())?;
     let mut engine = engine()?;
-    let opts = EvalOptions { settings: Setting::ALL.to_vec(), map: None, skip_invalid: false, quiet };
+    let opts = EvalOptions { settings: Setting::ALL.to_vec(), map: None, skip_invalid: false, quiet, sequence: false };
     info(quiet, "evaluating with the real labels");
     let real = evaluate(&ds, &cfg, &opts, &mut engine)?;
     info(quiet, "evaluating with the segmenter's labels");
@@ -117,6 +121,16 @@ fn camvid_cmd(camvid: &Path, a: &SynthArgs, engine: &dyn Fn() -> Result<Engine>,
     write_file(&a.out.join("eval-segmenter-labels.json"), &to_json(&seg)?)?;
     out!("{}", semlook::eval::label_source_table(&[("real labels", &real), ("segmenter labels", &seg)]));
     out!("\nsegmenter run:\n{}", seg.run.describe());
+    Ok(())
+}
+
+/// `synth --stream-from`: a dataset's query traversals driven again at varying speed, with stops.
+fn stream_synth_cmd(dir: &Path, a: &SynthArgs, quiet: bool) -> Result<()> {
+    use semlook::tools::synth::stream::{write, StreamProfile};
+    let ds = Dataset::open(dir, &DatasetOptions::default())?;
+    let p = StreamProfile { speed_min: a.speed_min, speed_max: a.speed_max, stops: a.stops, stop_frames: a.stop_frames, seed: a.seed };
+    let n = write(&ds, &a.out, &p)?;
+    info(quiet, format!("wrote {} ({} query frames over {} traversals)", a.out.join(semlook::dataset::MANIFEST).display(), n, ds.queries.len()));
     Ok(())
 }
 
@@ -284,7 +298,12 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
         cfg = ds.adapt_config(cfg);
     }
     let settings = if a.settings.is_empty() { DEFAULT_SETTINGS.to_vec() } else { dedup(&a.settings) };
-    let report = evaluate(&ds, &cfg, &EvalOptions { settings: settings.clone(), map: map.as_ref(), skip_invalid: a.skip_invalid, quiet }, engine)?;
+    let report = evaluate(
+        &ds,
+        &cfg,
+        &EvalOptions { settings: settings.clone(), map: map.as_ref(), skip_invalid: a.skip_invalid, quiet, sequence: a.sequence },
+        engine,
+    )?;
     print_report(&report, a.json)?;
     if let Some(dir) = &a.plots {
         for f in semlook::tools::viz::plots::write_pr_plots(&report, dir)? {
@@ -367,6 +386,11 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
         queries: vec![],
         aliasing: 0.6,
         from_camvid: None,
+        stream_from: None,
+        speed_min: 0.6,
+        speed_max: 1.4,
+        stops: 2,
+        stop_frames: 20,
         changes: vec![],
         step: 1,
         evaluate: false,
@@ -412,7 +436,8 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     write_file(&results.join(format!("query-{hardest}.json")), &json)?;
     info(quiet, "[4/4] evaluating every setting on every query traversal");
     let ds = Dataset::open(&data, &DatasetOptions::default())?;
-    let report = evaluate(&ds, &cfg, &EvalOptions { settings: Setting::ALL.to_vec(), map: Some(&map), skip_invalid: false, quiet }, engine)?;
+    let report =
+        evaluate(&ds, &cfg, &EvalOptions { settings: Setting::ALL.to_vec(), map: Some(&map), skip_invalid: false, quiet, sequence: false }, engine)?;
     write_file(&results.join("eval.json"), &to_json(&report)?)?;
     print_report(&report, a.json)?;
     if !a.json {
@@ -560,7 +585,7 @@ fn tune_cmd(a: &TuneArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     let n = sweep.combinations().len();
     info(quiet, format!("{n} configurations x {} datasets", datasets.len()));
     let pb = progress::bar(0, "frames", quiet);
-    let rows = semlook::tools::tune::run(&datasets, &sweep, &settings, engine, &|| pb.inc(1), &mut |ds, row| {
+    let rows = semlook::tools::tune::run(&datasets, &sweep, &settings, a.sequence, engine, &|| pb.inc(1), &mut |ds, row| {
         let vals: Vec<String> = row.values.iter().map(|(k, v)| format!("{k}={v}")).collect();
         let r: Vec<String> = row.results.iter().filter(|r| r.0 == ds).map(|r| format!("{} {:.3}", r.1, r.2)).collect();
         pb.suspend(|| info(quiet, format!("{ds}: {} -> R@1 {}", vals.join(" "), r.join(", "))));
@@ -571,6 +596,57 @@ fn tune_cmd(a: &TuneArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
         write_file(file, &table)?;
     }
     out!("{table}");
+    Ok(())
+}
+
+fn bench_stream_cmd(a: &BenchStreamArgs, engine: &dyn Fn() -> Result<Engine>, quiet: bool) -> Result<()> {
+    use semlook::tools::bench_stream::{run, table, StreamBenchOptions};
+    let cfg = apply_models(load_config(a.config.as_deref())?, &a.models);
+    let frames = |dir: &Path| -> Result<Vec<FrameSource>> {
+        let files = semlook::dataset::image_files(dir)?;
+        if files.is_empty() {
+            return Err(Error::invalid(dir.display().to_string(), "no images (png, jpg) in this folder"));
+        }
+        Ok(files
+            .into_iter()
+            .map(|p| FrameSource { id: p.file_stem().unwrap_or_default().to_string_lossy().into_owned(), image: Some(p), labels: None })
+            .collect())
+    };
+    let mut distractors = Vec::new();
+    for (k, d) in a.distractors.iter().enumerate() {
+        distractors.extend(frames(d)?.into_iter().map(|mut f| {
+            f.id = format!("{k}/{}", f.id);
+            f
+        }));
+    }
+    let opts = StreamBenchOptions {
+        references: frames(&a.references)?,
+        stream: frames(&a.stream)?,
+        distractors,
+        sizes: a.sizes.clone(),
+        frames: a.frames,
+        setting: a.setting,
+        sequence: !a.no_sequence,
+        dir: a.dir.clone().unwrap_or_else(std::env::temp_dir),
+        keep: a.keep,
+        quiet,
+    };
+    let json = a.json;
+    let rows = run(&cfg, &opts, engine, &mut |r| {
+        if json {
+            let _ = writeln_row(r);
+        } else {
+            info(quiet, format!("{} places: {:.2} frames/s, p50 {:.1} ms, p99 {:.1} ms", r.map_size, r.frames_per_s, r.p50.total_ms, r.p99.total_ms));
+        }
+    })?;
+    if !json {
+        out!("{}", table(&rows));
+    }
+    Ok(())
+}
+
+fn writeln_row(r: &semlook::tools::bench_stream::StreamBenchRow) -> Result<()> {
+    outln!("{}", serde_json::to_string(r).map_err(|e| Error::invalid("JSON output", e.to_string()))?);
     Ok(())
 }
 

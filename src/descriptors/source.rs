@@ -116,6 +116,16 @@ impl GlobalSource for DescriptorSet {
     }
 }
 
+/// Where a reference lies on the routes a map holds: its traversal (a run of frames in order:
+/// one `map build`, or one `map add` of a new run) and its position along it (0, 1, ... in the
+/// order the frames were added, removed images left out). Sequence matching walks positions and
+/// never crosses from one traversal into another.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, serde::Serialize)]
+pub struct Place {
+    pub traversal: u32,
+    pub position: u32,
+}
+
 /// Everything matching reads about references: tiles of global descriptors, and forests and ids
 /// by index. Implemented by a [`DescriptorSet`] and by a stored [`crate::map::Map`]. Indices run
 /// over the references a source serves (a map leaves out removed images), `0..len()`.
@@ -138,6 +148,23 @@ pub trait RefSource: GlobalSource {
     /// ([`crate::matching::Setting::label_free`]) can be matched against it.
     fn labelled(&self) -> bool {
         true
+    }
+    /// Where reference `i` lies on the source's routes. A source that records no traversals (a
+    /// descriptor set) is one traversal in index order.
+    fn place(&self, i: usize) -> Place {
+        Place { traversal: 0, position: i as u32 }
+    }
+    /// The reference at `p`, if the source has one there.
+    fn at(&self, p: Place) -> Option<usize> {
+        (p.traversal == 0 && (p.position as usize) < self.len()).then_some(p.position as usize)
+    }
+    /// References along traversal `t` (0 for a traversal the source does not hold).
+    fn traversal_len(&self, t: u32) -> u32 {
+        if t == 0 {
+            self.len() as u32
+        } else {
+            0
+        }
     }
 }
 
@@ -168,5 +195,91 @@ impl RefSource for DescriptorSet {
     }
     fn keypoints(&self, i: usize) -> KeypointsRef<'_> {
         DescriptorSet::keypoints(self, i)
+    }
+}
+
+/// The references `start..start + len` of another source, as a source of their own (index `i`
+/// here is `start + i` there): what a stream searches while it tracks a place, or in loop-closure
+/// mode where the newest frames are left out. Places are the inner source's.
+pub struct Window<'a> {
+    inner: &'a dyn RefSource,
+    start: usize,
+    len: usize,
+}
+
+impl<'a> Window<'a> {
+    /// The window `range` of `inner` (clipped to it).
+    pub fn new(inner: &'a dyn RefSource, range: std::ops::Range<usize>) -> Window<'a> {
+        let end = range.end.min(inner.len());
+        let start = range.start.min(end);
+        Window { inner, start, len: end - start }
+    }
+    /// Index in the inner source of reference `i` of the window.
+    pub fn inner_index(&self, i: usize) -> usize {
+        self.start + i
+    }
+}
+
+impl GlobalSource for Window<'_> {
+    fn len(&self) -> usize {
+        self.len
+    }
+    fn tile<'b>(&'b self, start: usize, end: usize, buf: &'b mut TileBuf) -> (&'b [f32], &'b [f32]) {
+        self.inner.tile(self.start + start, self.start + end, buf)
+    }
+    fn stores_stats(&self) -> bool {
+        self.inner.stores_stats()
+    }
+    fn globals_tile<'b>(&'b self, start: usize, end: usize, buf: &'b mut TileBuf) -> &'b [f32] {
+        self.inner.globals_tile(self.start + start, self.start + end, buf)
+    }
+    fn check(&self) -> crate::Result<()> {
+        self.inner.check()
+    }
+    fn generation(&self) -> Option<u64> {
+        let g = self.inner.generation()?;
+        Some(fnv(g ^ FNV_OFFSET, &[self.start as u32, (self.start >> 32) as u32, self.len as u32, (self.len >> 32) as u32]))
+    }
+}
+
+impl RefSource for Window<'_> {
+    fn id(&self, i: usize) -> &str {
+        self.inner.id(self.start + i)
+    }
+    fn forest(&self, i: usize) -> ForestRef<'_> {
+        self.inner.forest(self.start + i)
+    }
+    fn neighbour_slots(&self) -> usize {
+        self.inner.neighbour_slots()
+    }
+    fn appearance_dim(&self) -> usize {
+        self.inner.appearance_dim()
+    }
+    fn image_appearance(&self, i: usize) -> Values<'_> {
+        self.inner.image_appearance(self.start + i)
+    }
+    fn hog_dim(&self) -> usize {
+        self.inner.hog_dim()
+    }
+    fn image_hog(&self, i: usize) -> &[f32] {
+        self.inner.image_hog(self.start + i)
+    }
+    fn keypoint_dim(&self) -> usize {
+        self.inner.keypoint_dim()
+    }
+    fn keypoints(&self, i: usize) -> KeypointsRef<'_> {
+        self.inner.keypoints(self.start + i)
+    }
+    fn labelled(&self) -> bool {
+        self.inner.labelled()
+    }
+    fn place(&self, i: usize) -> Place {
+        self.inner.place(self.start + i)
+    }
+    fn at(&self, p: Place) -> Option<usize> {
+        self.inner.at(p).filter(|i| (self.start..self.start + self.len).contains(i)).map(|i| i - self.start)
+    }
+    fn traversal_len(&self, t: u32) -> u32 {
+        self.inner.traversal_len(t)
     }
 }

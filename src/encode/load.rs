@@ -223,6 +223,23 @@ impl FrameLoader {
         self.to_working_size(Decoded { id, image: None, labels_path: None, rgb, hog_rgb: None, size, labels }, StageTimes::default())
     }
 
+    /// [`FrameLoader::load`] for an image file's bytes held in memory (a frame of a stream, a ROS
+    /// `CompressedImage`): decoded no larger than the working size needs (JPEGs by a scaled DCT),
+    /// `name` naming it in errors; `labels`, when given, at the image's full size.
+    pub fn load_bytes(&self, id: &str, name: &Path, bytes: Vec<u8>, labels: Option<LabelMap>) -> Result<Loaded> {
+        let mut times = StageTimes::default();
+        let t = Instant::now();
+        let segment = labels.is_none() && self.segmenter.is_some();
+        // VPR-Bench's HOG resizes the full image
+        let (rgb, full) = match self.hog {
+            true => input::decode_rgb_at_least(bytes, name, |full| full)?,
+            false => input::decode_rgb_at_least(bytes, name, |full| self.decoded_size(full, segment))?,
+        };
+        times.decode_ms = ms_since(t);
+        let frame = Decoded { id, image: Some(name), labels_path: None, rgb: Some(rgb), hog_rgb: None, size: Some(full), labels };
+        self.to_working_size(frame, times)
+    }
+
     /// The part of loading after decoding: sizes checked, labels at the working size (segmented
     /// when not given), HOG from the full image (`hog_rgb`, else `rgb`), RGB at the working size.
     fn to_working_size(&self, f: Decoded, mut times: StageTimes) -> Result<Loaded> {

@@ -51,6 +51,48 @@ pub struct SettingReport {
     pub matching_ms_per_ref: f64,
     /// Every query's top-1 and score, for the precision-recall curve and --explain.
     pub outcomes: Vec<QueryOutcome>,
+    /// Sequence matching over the query set in its order (`eval --sequence`), beside the
+    /// single-frame metrics above.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sequence: Option<SequenceReport>,
+}
+
+/// Sequence matching over an ordered query set: the queries streamed in order through one ring
+/// (`stream::sequence`), each answered from the frames up to it.
+#[derive(Debug, Clone, Serialize)]
+pub struct SequenceReport {
+    /// Share of the queries (with ground truth) whose answer is a valid reference: the
+    /// stream's answer is the sequence match where it is accepted, else the single-frame best
+    /// (what `stream::FrameResult::place` gives).
+    pub recall_at_1: f64,
+    /// Share whose sequence match alone (the best trajectory, accepted or not) is valid.
+    pub trajectory_recall_at_1: f64,
+    /// The precision-recall curve of the sequence matches ranked by their uniqueness.
+    #[serde(flatten)]
+    pub pr: PrMetrics,
+    /// Queries (with ground truth) whose sequence match was accepted, and of those, correct.
+    pub accepted: usize,
+    pub accepted_correct: usize,
+    /// Precision and recall of the accepted flag: correct accepted over accepted, and over the
+    /// queries with ground truth.
+    pub accepted_precision: f64,
+    pub accepted_recall: f64,
+    /// Per query: the sequence match (none where the ring had no evidence), its uniqueness,
+    /// whether it was accepted and whether it is correct.
+    pub outcomes: Vec<SequenceOutcome>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct SequenceOutcome {
+    pub query: String,
+    /// The stream's answer (see [`SequenceReport::recall_at_1`]) and whether it is valid.
+    pub answer: Option<String>,
+    pub answer_correct: bool,
+    /// The best trajectory's place.
+    pub top1: Option<String>,
+    pub uniqueness: Option<f32>,
+    pub accepted: bool,
+    pub correct: bool,
 }
 
 /// A model file that ran: where, and its SHA-256.
@@ -121,6 +163,8 @@ pub struct EvalOptions<'a> {
     pub map: Option<&'a Map>,
     pub skip_invalid: bool,
     pub quiet: bool,
+    /// Also sequence matching over each query set in its order ([`SequenceReport`]).
+    pub sequence: bool,
 }
 
 pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Engine) -> Result<EvalReport> {
@@ -170,7 +214,7 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
             settings.iter().map(|s| s.name()).collect::<Vec<_>>().join(", ")
         );
     }
-    let opts = &EvalOptions { settings, map: opts.map, skip_invalid: opts.skip_invalid, quiet: opts.quiet };
+    let opts = &EvalOptions { settings, map: opts.map, skip_invalid: opts.skip_invalid, quiet: opts.quiet, sequence: opts.sequence };
     let wants_hog = opts.settings.contains(&Setting::Hog);
     let owned;
     let mut encoder = base.with_hog(wants_hog && opts.map.is_none_or(|m| m.manifest.hog_dim > 0)).without_labels(without_labels);
@@ -211,7 +255,7 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
         q_wall += enc.wall_ms;
         let pb = crate::progress::bar(opts.settings.len(), &format!("matching {}", qt.name), opts.quiet);
         for setting in &opts.settings {
-            match_query_set(engine, refs, &qt.name, &enc.set, &gt, std::slice::from_ref(setting), cfg, &mut results, &mut skipped)?;
+            match_query_set(engine, refs, &qt.name, &enc.set, &gt, std::slice::from_ref(setting), cfg, opts.sequence, &mut results, &mut skipped)?;
             pb.inc(1);
         }
         pb.finish_and_clear();
@@ -238,6 +282,7 @@ pub fn match_query_set(
     gt: &[Vec<u32>],
     settings: &[Setting],
     cfg: &Config,
+    sequence: bool,
     results: &mut Vec<SettingReport>,
     skipped: &mut Vec<(Setting, String)>,
 ) -> Result<()> {
@@ -249,9 +294,127 @@ pub fn match_query_set(
             continue;
         }
         let (matches, times) = engine.match_batch(refs, queries, setting, cfg)?;
-        results.push(report(name, setting, refs, queries, &matches, gt, times.coarse_ms + times.fine_ms, cfg));
+        results.push(report_matches(engine, refs, name, queries, &matches, gt, setting, cfg, times.coarse_ms + times.fine_ms, sequence)?);
     }
     Ok(())
+}
+
+/// The report of one setting from its matches (`matching_ms`: what matching took), with the
+/// sequence matching over the query set in its order when `sequence`.
+#[allow(clippy::too_many_arguments)]
+pub fn report_matches(
+    engine: &mut Engine,
+    refs: &dyn RefSource,
+    name: &str,
+    queries: &DescriptorSet,
+    matches: &[crate::matching::QueryMatch],
+    gt: &[Vec<u32>],
+    setting: Setting,
+    cfg: &Config,
+    matching_ms: f64,
+    sequence: bool,
+) -> Result<SettingReport> {
+    let mut r = report(name, setting, refs, queries, matches, gt, matching_ms, cfg);
+    if sequence {
+        r.sequence = Some(sequence_report(engine, refs, queries, matches, gt, setting, cfg)?);
+    }
+    Ok(r)
+}
+
+/// Sequence matching over `queries` in their order, scored with `setting` as a stream would
+/// score them (`stream::scored_rows`, one ring), against the ground truth `gt`.
+pub fn sequence_report(
+    engine: &mut Engine,
+    refs: &dyn RefSource,
+    queries: &DescriptorSet,
+    matches: &[crate::matching::QueryMatch],
+    gt: &[Vec<u32>],
+    setting: Setting,
+    cfg: &Config,
+) -> Result<SequenceReport> {
+    let rows = sequence_rows(engine, refs, queries, matches, setting, cfg)?;
+    Ok(sequence_report_from_rows(refs, queries, matches, gt, cfg, &rows))
+}
+
+/// Each query's scored places for sequence matching (see `stream::scored_rows`): the part of
+/// [`sequence_report`] that depends on the matching and on `sequence.rows` and `widen` only.
+pub fn sequence_rows(
+    engine: &mut Engine,
+    refs: &dyn RefSource,
+    queries: &DescriptorSet,
+    matches: &[crate::matching::QueryMatch],
+    setting: Setting,
+    cfg: &Config,
+) -> Result<Vec<Vec<(crate::descriptors::source::Place, f32)>>> {
+    let full;
+    let lists: Vec<Vec<crate::matching::Candidate>> = match cfg.sequence.rows {
+        crate::config::SequenceRows::Candidates => matches.iter().map(|m| m.ranked.clone()).collect(),
+        crate::config::SequenceRows::Full => {
+            let c = Config { matching: crate::config::MatchingConfig { top_k: refs.len().max(1), ..cfg.matching.clone() }, ..cfg.clone() };
+            full = engine.match_batch(refs, queries, setting, &c)?.0;
+            full.iter().map(|m| m.ranked.clone()).collect()
+        }
+    };
+    let widen = match cfg.sequence.rows {
+        crate::config::SequenceRows::Candidates => cfg.sequence.widen,
+        crate::config::SequenceRows::Full => 0,
+    };
+    crate::stream::scored_rows(engine, refs, queries, &lists, setting, cfg, widen)
+}
+
+/// [`sequence_report`] from the rows of [`sequence_rows`].
+pub fn sequence_report_from_rows(
+    refs: &dyn RefSource,
+    queries: &DescriptorSet,
+    matches: &[crate::matching::QueryMatch],
+    gt: &[Vec<u32>],
+    cfg: &Config,
+    rows: &[Vec<(crate::descriptors::source::Place, f32)>],
+) -> SequenceReport {
+    use crate::stream::sequence::{contributions, SequenceMatcher};
+    let lens = |t: u32| refs.traversal_len(t);
+    let mut ring = SequenceMatcher::new(&cfg.sequence);
+    let (mut outcomes, mut scores, mut correct) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut accepted, mut accepted_correct, mut answered) = (0, 0, 0);
+    for (q, (row, g)) in rows.iter().zip(gt).enumerate() {
+        let m = ring.push(contributions(&cfg.sequence, row, &lens), &lens);
+        let best = m.and_then(|m| refs.at(m.place).map(|i| (i as u32, m)));
+        let ok = best.is_some_and(|(i, _)| g.contains(&i));
+        let acc = best.is_some_and(|(_, m)| m.accepted);
+        let answer = match best {
+            Some((i, m)) if m.accepted => Some(i),
+            _ => matches[q].best().map(|c| c.reference),
+        };
+        let answer_ok = answer.is_some_and(|i| g.contains(&i));
+        outcomes.push(SequenceOutcome {
+            query: queries.ids[q].clone(),
+            answer: answer.map(|i| refs.id(i as usize).to_string()),
+            answer_correct: answer_ok,
+            top1: best.map(|(i, _)| refs.id(i as usize).to_string()),
+            uniqueness: best.map(|(_, m)| m.uniqueness),
+            accepted: acc,
+            correct: ok,
+        });
+        if g.is_empty() {
+            continue;
+        }
+        scores.push(best.map_or(f64::NEG_INFINITY, |(_, m)| m.uniqueness as f64));
+        correct.push(ok);
+        answered += usize::from(answer_ok);
+        accepted += usize::from(acc);
+        accepted_correct += usize::from(acc && ok);
+    }
+    let n = correct.len().max(1) as f64;
+    SequenceReport {
+        recall_at_1: answered as f64 / n,
+        trajectory_recall_at_1: correct.iter().filter(|&&c| c).count() as f64 / n,
+        pr: pr_metrics(&scores, &correct),
+        accepted,
+        accepted_correct,
+        accepted_precision: if accepted > 0 { accepted_correct as f64 / accepted as f64 } else { 0.0 },
+        accepted_recall: accepted_correct as f64 / n,
+        outcomes,
+    }
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -299,6 +462,7 @@ fn report(
         coarse_recall: setting.uses_coarse().then(|| (cfg.matching.top_k, recall_at_n(&ranked, &gts, cfg.matching.top_k))),
         matching_ms_per_ref: matching_ms / pairs,
         outcomes,
+        sequence: None,
     }
 }
 
@@ -327,6 +491,36 @@ impl EvalReport {
             }
             let coarse = r.coarse_recall.map_or("-".to_string(), |(k, v)| format!("{v:.3}@{k}"));
             s += &format!(" {:>9} {:>10.4}\n", coarse, r.matching_ms_per_ref);
+        }
+        if self.results.iter().any(|r| r.sequence.is_some()) {
+            s += &format!(
+                "\nsequence matching (each query set streamed in its order; AUC by uniqueness):\n{:<12} {:<14} {:>6} {:>7} {:>7} {:>6} {:>9} {:>8} {:>8}\n",
+                "query set",
+                "setting",
+                "R@1",
+                "seq R@1",
+                "traj.",
+                "AUC",
+                "accepted",
+                "prec.",
+                "recall"
+            );
+            for r in &self.results {
+                if let Some(q) = &r.sequence {
+                    s += &format!(
+                        "{:<12} {:<14} {:>6.3} {:>7.3} {:>7.3} {:>6.3} {:>9} {:>8.3} {:>8.3}\n",
+                        r.query_set,
+                        r.setting.name(),
+                        r.recall_at.first().map_or(0.0, |x| x.1),
+                        q.recall_at_1,
+                        q.trajectory_recall_at_1,
+                        q.pr.auc,
+                        q.accepted,
+                        q.accepted_precision,
+                        q.accepted_recall
+                    );
+                }
+            }
         }
         for (st, why) in &self.skipped {
             s += &format!("{:<12} {:<14} skipped: {why}\n", "", st.name());

@@ -83,7 +83,7 @@ pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
     let mut out: Vec<SegmentEntry> = Vec::new();
     let mut buf = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog).with_keypoint_dim(layout.kdim);
     let mut run: Vec<&SegmentEntry> = Vec::new();
-    let flush = |buf: &mut DescriptorSet, out: &mut Vec<SegmentEntry>| -> Result<()> {
+    let flush = |buf: &mut DescriptorSet, out: &mut Vec<SegmentEntry>, traversal: u32| -> Result<()> {
         if buf.is_empty() {
             return Ok(());
         }
@@ -91,13 +91,16 @@ pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
         // unique among the files kept, written, and replaced (deleted after the commit)
         let listed: Vec<SegmentEntry> = out.iter().chain(&old.segments).cloned().collect();
         entry.file = manifest::unique_segment_name(&listed, &entry.file, old.generation + 1);
+        entry.traversal = traversal;
         write_atomic(dir, &entry.file, &bytes)?;
         out.push(entry);
         *buf = buf.empty_like();
         Ok(())
     };
-    // a run of segments to rewrite, flushed when a segment to keep follows (order is kept)
+    // a run of segments of one traversal to rewrite, flushed when a segment to keep or another
+    // traversal's follows (order is kept, and no segment mixes traversals)
     let rewrite = |run: &mut Vec<&SegmentEntry>, buf: &mut DescriptorSet, out: &mut Vec<SegmentEntry>| -> Result<()> {
+        let Some(traversal) = run.first().map(|e| e.traversal) else { return Ok(()) };
         if run.len() == 1 && run[0].removed.is_empty() {
             out.push(run[0].clone());
         } else {
@@ -110,17 +113,20 @@ pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
                         if buf.len() >= opts.segment_images
                             || buf.len() * layout.image_bytes() + buf.n_trees() * layout.tree_bytes() >= opts.segment_bytes
                         {
-                            flush(buf, out)?;
+                            flush(buf, out, traversal)?;
                         }
                     }
                 }
             }
-            flush(buf, out)?;
+            flush(buf, out, traversal)?;
         }
         run.clear();
         Ok(())
     };
     for entry in &old.segments {
+        if run.first().is_some_and(|r| r.traversal != entry.traversal) {
+            rewrite(&mut run, &mut buf, &mut out)?;
+        }
         if entry.removed.is_empty() && !small(entry) {
             rewrite(&mut run, &mut buf, &mut out)?;
             out.push(entry.clone());

@@ -43,6 +43,16 @@ pub struct SegmentEntry {
     /// Rows of removed images (tombstones), ascending; `map compact` drops them from the file.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub removed: Vec<u32>,
+    /// The traversal (a run of frames in order, [`Manifest::traversals`]) the file's images
+    /// belong to; its images follow the traversal's earlier files, in row order. Absent (0) in
+    /// the manifests of maps that hold one traversal, so their checksums are those of before the
+    /// field existed.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub traversal: u32,
+}
+
+fn is_zero(v: &u32) -> bool {
+    *v == 0
 }
 
 impl SegmentEntry {
@@ -89,11 +99,25 @@ pub struct Manifest {
     /// are those of before the field existed.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub without_labels: bool,
+    /// Names of the traversals the map holds (each `map build` or `map add` of a new run of
+    /// frames starts one), indexed by [`SegmentEntry::traversal`]. Sequence matching never lets
+    /// a trajectory cross from one traversal into another. Absent (empty) in the manifests of
+    /// maps of one unnamed traversal.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub traversals: Vec<String>,
     /// SHA-256 of this manifest's content ([`Manifest::content_sha256`]): an edit by hand or a
     /// damaged byte anywhere in the file (a removed row, a config value, a model hash) is refused
     /// at open, never served.
     #[serde(default)]
     pub checksum: String,
+}
+
+/// The names of `m`'s traversals, indexed by [`SegmentEntry::traversal`]: its list, or for a map
+/// of one unnamed traversal (no list) `["0"]` when it holds segments.
+pub fn traversal_names(m: &Manifest) -> Vec<String> {
+    let listed = m.traversals.len();
+    let used = m.segments.iter().map(|s| s.traversal as usize + 1).max().unwrap_or(0);
+    (0..listed.max(used)).map(|t| m.traversals.get(t).cloned().unwrap_or_else(|| t.to_string())).collect()
 }
 
 impl Manifest {

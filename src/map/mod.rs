@@ -31,13 +31,13 @@ pub mod writer;
 
 pub use crate::descriptors::DescriptorSet;
 pub use manifest::{Manifest, SegmentEntry, FORMAT, VERSION};
-pub use writer::{Dims, MapWriter, StoreOptions};
+pub use writer::{Dims, MapWriter, StoreOptions, TraversalPlan};
 
 use crate::appearance::vlad::Codebook;
 use crate::classes::ClassTable;
 use crate::config::{first_difference, EncodingConfig};
 use crate::descriptors::keypoints::KeypointsRef;
-use crate::descriptors::source::{GlobalSource, RefSource, TileBuf};
+use crate::descriptors::source::{GlobalSource, Place, RefSource, TileBuf};
 use crate::error::{Error, Result};
 use crate::kernels::abi::SsimParams;
 use crate::kernels::ssim::{ssim_stats, SsimScratch};
@@ -65,6 +65,30 @@ pub struct Map {
     live: Vec<Option<Vec<u32>>>,
     codebook: Option<Codebook>,
     ssim: SsimParams,
+    routes: Routes,
+}
+
+/// The traversals of a map's live images: each segment's first position along its traversal, and
+/// per traversal its segments in order and its length.
+#[derive(Debug, Default)]
+struct Routes {
+    first_position: Vec<u32>,
+    segments: Vec<Vec<usize>>,
+    lens: Vec<u32>,
+}
+
+impl Routes {
+    fn of(m: &Manifest) -> Routes {
+        let n = manifest::traversal_names(m).len();
+        let mut r = Routes { first_position: Vec::with_capacity(m.segments.len()), segments: vec![vec![]; n], lens: vec![0; n] };
+        for (s, e) in m.segments.iter().enumerate() {
+            let t = e.traversal as usize;
+            r.first_position.push(r.lens[t]);
+            r.segments[t].push(s);
+            r.lens[t] += e.live() as u32;
+        }
+        r
+    }
 }
 
 impl Map {
@@ -89,6 +113,7 @@ impl Map {
             live: vec![],
             codebook,
             ssim: SsimParams::new(&cfg.global),
+            routes: Routes::of(&manifest),
             manifest: manifest.clone(),
         };
         for entry in &manifest.segments {
@@ -383,5 +408,19 @@ impl RefSource for Map {
     }
     fn labelled(&self) -> bool {
         !self.manifest.without_labels
+    }
+    fn place(&self, i: usize) -> Place {
+        let s = self.starts.partition_point(|&st| st <= i) - 1;
+        Place { traversal: self.manifest.segments[s].traversal, position: self.routes.first_position[s] + (i - self.starts[s]) as u32 }
+    }
+    fn at(&self, p: Place) -> Option<usize> {
+        let segs = self.routes.segments.get(p.traversal as usize)?;
+        let k = segs.partition_point(|&s| self.routes.first_position[s] <= p.position).checked_sub(1)?;
+        let s = segs[k];
+        let j = (p.position - self.routes.first_position[s]) as usize;
+        (j < self.manifest.segments[s].live()).then(|| self.starts[s] + j)
+    }
+    fn traversal_len(&self, t: u32) -> u32 {
+        self.routes.lens.get(t as usize).copied().unwrap_or(0)
     }
 }

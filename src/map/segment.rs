@@ -143,6 +143,7 @@ pub fn encode(set: &DescriptorSet, layout: &Layout) -> std::result::Result<(Vec<
         bytes: bytes.len() as u64,
         sha256: sha,
         removed: vec![],
+        traversal: 0,
     };
     Ok((bytes, entry))
 }

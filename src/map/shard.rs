@@ -111,6 +111,7 @@ mod tests {
                 bytes: 0,
                 sha256: "0".repeat(64),
                 removed: if n == 0 { vec![0] } else { vec![] },
+                traversal: 0,
             })
             .collect();
         Manifest {
@@ -130,6 +131,7 @@ mod tests {
             codebook: None,
             appearance_model: None,
             without_labels: false,
+            traversals: vec![],
             checksum: String::new(),
         }
     }

@@ -57,6 +57,20 @@ pub struct Dims {
     pub keypoints: usize,
 }
 
+/// Which traversal (a run of frames in order, `Manifest::traversals`) a writer's images join.
+/// Resolved against the manifest under the lock of the writer's first commit, so that two writers
+/// starting at once each get their own.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub enum TraversalPlan {
+    /// A new traversal, named by its number (what `map build` and `map add` start).
+    #[default]
+    New,
+    /// The traversal of this name: continued if the map holds it, else started under the name.
+    Named(String),
+    /// The map's last traversal (an interrupted add resumed; a stream that keeps adding frames).
+    Last,
+}
+
 /// Hash of an id for the set of known ids (8 bytes per image instead of the id itself; a hit is
 /// confirmed against the stored ids before it counts).
 fn id_hash(id: &str) -> u64 {
@@ -80,6 +94,9 @@ pub struct MapWriter {
     pending: DescriptorSet,
     opts: StoreOptions,
     committed: usize,
+    plan: TraversalPlan,
+    /// The traversal this writer's segments join, once its first commit resolved `plan`.
+    traversal: Option<u32>,
 }
 
 impl MapWriter {
@@ -126,6 +143,7 @@ impl MapWriter {
             codebook: None,
             appearance_model: appearance.map(|(_, sha)| sha.to_string()),
             without_labels: false,
+            traversals: vec![],
             checksum: String::new(),
         };
         let layout = super::layout_of(&manifest, n_classes);
@@ -140,7 +158,54 @@ impl MapWriter {
             pending,
             opts,
             committed: 0,
+            plan: TraversalPlan::New,
+            traversal: None,
         })
+    }
+
+    /// Which traversal the images written join (default: a new one). Before the first commit; a
+    /// name must be 1 to 200 characters, none of them a control character.
+    pub fn with_traversal(mut self, plan: TraversalPlan) -> Result<MapWriter> {
+        if let TraversalPlan::Named(n) = &plan {
+            if n.is_empty() || n.chars().count() > 200 || n.chars().any(char::is_control) {
+                return Err(Error::invalid(format!("traversal name {n:?}"), "must be 1 to 200 characters, none of them a control character"));
+            }
+        }
+        if self.traversal.is_some() {
+            return Err(Error::invalid(format!("map {}", self.dir.display()), "the traversal is chosen before the first commit"));
+        }
+        self.plan = plan;
+        Ok(self)
+    }
+
+    /// The traversal the committed images joined (after the first commit).
+    pub fn traversal(&self) -> Option<u32> {
+        self.traversal
+    }
+
+    /// The id of the traversal `self.plan` names in `m`, adding it to `m`'s names when new; the
+    /// same id for every later commit of this writer.
+    fn resolve_traversal(&mut self, m: &mut Manifest) -> u32 {
+        if let Some(t) = self.traversal {
+            return t;
+        }
+        // a map of one unnamed traversal lists no names: its images are traversal "0"
+        let mut names = manifest::traversal_names(m);
+        let t = match &self.plan {
+            TraversalPlan::Last if !names.is_empty() => names.len() - 1,
+            TraversalPlan::Named(n) => names.iter().position(|x| x == n).unwrap_or_else(|| {
+                names.push(n.clone());
+                names.len() - 1
+            }),
+            _ => {
+                let name = (names.len()..).map(|k| k.to_string()).find(|c| !names.contains(c)).unwrap_or_default();
+                names.push(name);
+                names.len() - 1
+            }
+        };
+        m.traversals = if names.len() == 1 && names[0] == "0" { vec![] } else { names };
+        self.traversal = Some(t as u32);
+        t as u32
     }
 
     /// Marks a new map as encoded without semantic labels ([`Manifest::without_labels`]): its
@@ -193,6 +258,8 @@ impl MapWriter {
                 pending,
                 opts: StoreOptions { values: manifest.values, ..opts },
                 committed: 0,
+                plan: TraversalPlan::New,
+                traversal: None,
                 manifest,
             };
             let segments = w.manifest.segments.clone();
@@ -359,9 +426,9 @@ impl MapWriter {
         let (bytes, entry) = segment::encode(&self.pending, &self.layout).map_err(|r| Error::invalid(format!("map {}", self.dir.display()), r))?;
         let ids: Vec<String> = self.pending.ids.clone();
         let file = self.commit(
-            |m, file| {
+            |m, file, traversal| {
                 if let Some(file) = file {
-                    m.segments.push(SegmentEntry { file: file.to_string(), ..entry.clone() });
+                    m.segments.push(SegmentEntry { file: file.to_string(), traversal, ..entry.clone() });
                 }
             },
             Some((&entry.file, &bytes)),
@@ -378,7 +445,7 @@ impl MapWriter {
     /// is returned.
     fn commit(
         &mut self,
-        change: impl FnOnce(&mut Manifest, Option<&str>),
+        change: impl FnOnce(&mut Manifest, Option<&str>, u32),
         file: Option<(&str, &[u8])>,
         buffered: &[String],
     ) -> Result<Option<String>> {
@@ -407,7 +474,8 @@ impl MapWriter {
         if let (Some(name), Some((_, bytes))) = (&name, file) {
             write_atomic(&self.dir, name, bytes)?;
         }
-        change(&mut m, name.as_deref());
+        let traversal = self.resolve_traversal(&mut m);
+        change(&mut m, name.as_deref(), traversal);
         m.generation += 1;
         manifest::write(&self.dir, &m)?;
         self.manifest = m;
@@ -420,7 +488,7 @@ impl MapWriter {
     pub fn finish(mut self) -> Result<Map> {
         self.flush()?;
         if self.first.is_some() {
-            self.commit(|_, _| {}, None, &[])?;
+            self.commit(|_, _, _| {}, None, &[])?;
         }
         Map::open(&self.dir)
     }

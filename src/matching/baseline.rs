@@ -36,6 +36,13 @@ pub fn unavailable(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setti
     }
 }
 
+/// The cosine similarity `setting` gives query `q` and reference `r` (its vectors are unit
+/// length; [`unavailable`] says whether both have them).
+pub fn pair_cosine(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, q: usize, r: usize) -> f32 {
+    let (query_vec, ref_vec) = vectors(setting);
+    Values::F32(query_vec(queries, q)).dot(&ref_vec(refs, r))
+}
+
 /// For each query, the `k` references of highest cosine similarity under `setting`.
 pub fn topk(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
     if let Some(why) = unavailable(refs, queries, setting) {

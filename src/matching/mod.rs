@@ -350,29 +350,109 @@ pub fn rank(setting: Setting, lists: &[Vec<(f32, u32)>], fine: Option<&[f32]>, c
         (false, Some(_)) => return Err(Error::invalid("ranking", format!("setting {setting} takes no fine scores for its candidates"))),
     }
     let mut fine = fine.unwrap_or(&[]).iter();
-    let w_coarse = cfg.verification.w_coarse as f32;
-    let candidate = |s: f32, r: u32, f: Option<f32>| match (setting.is_baseline(), setting.uses_coarse(), f) {
+    Ok(lists
+        .iter()
+        .map(|l| {
+            let mut ranked: Vec<Candidate> =
+                l.iter().map(|&(s, r)| candidate(setting, cfg, s, r, if two_stages { fine.next().copied() } else { None })).collect();
+            // best first; ties keep the coarse order (stable sort)
+            ranked.sort_by(|a, b| b.score.total_cmp(&a.score));
+            QueryMatch { ranked }
+        })
+        .collect())
+}
+
+/// A ranked reference from the score `s` of its candidate list and, for settings with both
+/// stages, its fine score `f`: what [`rank`] and [`score_pairs`] give.
+fn candidate(setting: Setting, cfg: &Config, s: f32, r: u32, f: Option<f32>) -> Candidate {
+    match (setting.is_baseline(), setting.uses_coarse(), f) {
         (true, _, _) => Candidate { reference: r, coarse: None, fine: None, inliers: None, score: s },
         (_, true, None) => Candidate { reference: r, coarse: Some(s), fine: None, inliers: None, score: s },
         (_, true, Some(f)) => {
             let score = match (setting.verifies(), cfg.matching.score) {
-                (true, _) => f + w_coarse * s,
+                (true, _) => f + cfg.verification.w_coarse as f32 * s,
                 (false, ScoreFusion::Fine) => f,
                 (false, ScoreFusion::FineTimesGlobal) => f * s,
             };
             Candidate { reference: r, coarse: Some(s), fine: Some(f), inliers: None, score }
         }
         (_, false, _) => Candidate { reference: r, coarse: None, fine: Some(s), inliers: None, score: s },
+    }
+}
+
+/// What `setting` scores each (query, reference) pair, as if the reference had been one of the
+/// query's candidates: the coarse score its coarse stage gives the pair (or the baseline's
+/// cosine), the fine score and inliers where the setting has them, and the final score [`rank`]
+/// would rank it by. For pairs that were candidates, the same values as [`match_with`] (sequence
+/// matching scores the neighbours of each frame's candidates with it).
+pub fn score_pairs(
+    stages: &mut dyn Stages,
+    refs: &dyn RefSource,
+    queries: &DescriptorSet,
+    setting: Setting,
+    cfg: &Config,
+    pairs: &[(u32, u32)],
+) -> Result<Vec<Candidate>> {
+    check_labels(refs, setting)?;
+    if let Some(&(q, r)) = pairs.iter().find(|&&(q, r)| q as usize >= queries.len() || r as usize >= refs.len()) {
+        return Err(Error::invalid("pair scores", format!("pair ({q}, {r}) outside {} queries x {} references", queries.len(), refs.len())));
+    }
+    if pairs.is_empty() {
+        return Ok(vec![]);
+    }
+    let first: Vec<f32> = if setting.is_baseline() {
+        if let Some(why) = baseline::unavailable(refs, queries, setting) {
+            return Err(Error::invalid(format!("setting {setting}"), why));
+        }
+        pairs.par_iter().map(|&(q, r)| baseline::pair_cosine(refs, queries, setting, q as usize, r as usize)).collect()
+    } else if setting.uses_coarse() {
+        coarse_pair_scores(refs, queries, setting, cfg, pairs)
+    } else {
+        let params = tree_params(cfg, setting, refs.neighbour_slots())?;
+        stages.fine_pairs(&params, refs, queries, pairs)?
     };
-    Ok(lists
+    let (fine, verified) = match setting.reranks() {
+        true => {
+            let (f, v) = pair_scores(stages, refs, queries, setting, cfg, pairs)?;
+            (Some(f), v)
+        }
+        false => (None, None),
+    };
+    refs.check()?;
+    Ok(pairs
         .iter()
-        .map(|l| {
-            let mut ranked: Vec<Candidate> = l.iter().map(|&(s, r)| candidate(s, r, if two_stages { fine.next().copied() } else { None })).collect();
-            // best first; ties keep the coarse order (stable sort)
-            ranked.sort_by(|a, b| b.score.total_cmp(&a.score));
-            QueryMatch { ranked }
+        .enumerate()
+        .map(|(k, &(_, r))| {
+            let mut c = candidate(setting, cfg, first[k], r, fine.as_ref().map(|f| f[k]));
+            c.inliers = verified.as_ref().map(|v| v[k].inliers);
+            c
         })
         .collect())
+}
+
+/// The score the coarse stage of `setting` gives each pair: SSIM of the global descriptors, plus
+/// the appearance cosine where the stage fuses them (as [`fused_topk`] and [`coarse_topk`]).
+fn coarse_pair_scores(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config, pairs: &[(u32, u32)]) -> Vec<f32> {
+    let p = SsimParams::new(&cfg.global);
+    let w = cfg.matching.w_global as f32;
+    let fused = setting.fuses_coarse(cfg.matching.coarse);
+    let cosine = fused && baseline::unavailable(refs, queries, Setting::Appearance).is_none();
+    pairs
+        .par_iter()
+        .map_init(
+            || (source::TileBuf::default(), crate::kernels::ssim::SsimScratch::default()),
+            |(buf, scratch), &(q, r)| {
+                let (q, r) = (q as usize, r as usize);
+                let (g, st) = refs.tile(r, r + 1, buf);
+                let ssim = crate::kernels::ssim::ssim_pair(&p, queries.global(q), queries.stats(q), g, st, scratch);
+                match (fused, cosine) {
+                    (false, _) => ssim,
+                    (true, true) => Values::F32(queries.image_appearance(q)).dot(&refs.image_appearance(r)) + w * ssim,
+                    (true, false) => w * ssim,
+                }
+            },
+        )
+        .collect()
 }
 
 /// Coarse stage on the CPU: for each query, the `k` references of highest SSIM, streamed over

@@ -23,7 +23,7 @@ use crate::dataset::Dataset;
 use crate::encode::{Encoder, Loaded};
 use crate::engine::Engine;
 use crate::error::{Error, Result};
-use crate::eval::{match_query_set, SettingReport};
+use crate::eval::{match_query_set, report_matches, SettingReport};
 use crate::map::DescriptorSet;
 use crate::matching::Setting;
 use rayon::prelude::*;
@@ -191,14 +191,16 @@ fn encode_cached(encoder: &Encoder, frames: &[Cached]) -> Result<DescriptorSet> 
 pub struct TuneRow {
     /// The swept keys and their values in this configuration.
     pub values: Vec<(String, String)>,
-    /// Per dataset, per setting: mean Recall@1 and mean AUC over the dataset's query sets.
-    pub results: Vec<(String, Setting, f64, f64)>,
+    /// Per dataset, per column: mean Recall@1 and mean AUC over the dataset's query sets. A
+    /// column is a setting's name, and with sequence matching also `<setting>+seq` (the
+    /// sequence R@1 and its AUC by uniqueness).
+    pub results: Vec<(String, String, f64, f64)>,
 }
 
 impl TuneRow {
-    /// Mean Recall@1 of `setting` over the datasets.
-    pub fn mean_r1(&self, setting: Setting) -> f64 {
-        let v: Vec<f64> = self.results.iter().filter(|r| r.1 == setting).map(|r| r.2).collect();
+    /// Mean Recall@1 of column `column` over the datasets.
+    pub fn mean_r1(&self, column: &str) -> f64 {
+        let v: Vec<f64> = self.results.iter().filter(|r| r.1 == column).map(|r| r.2).collect();
         v.iter().sum::<f64>() / v.len().max(1) as f64
     }
 }
@@ -209,6 +211,7 @@ pub fn run(
     datasets: &[Dataset],
     sweep: &Sweep,
     settings: &[Setting],
+    sequence: bool,
     engine: &mut Engine,
     tick: &(dyn Fn() + Sync),
     progress: &mut dyn FnMut(&str, &TuneRow),
@@ -235,6 +238,8 @@ pub fn run(
             let first = Encoder::new(&widest)?.with_hog(wants_hog);
             let cd = cache_dataset(ds, &first, tick)?;
             let mut encoded: HashMap<String, (DescriptorSet, Vec<(String, DescriptorSet, Vec<Vec<u32>>)>)> = HashMap::new();
+            let mut matched: HashMap<(String, String, Setting), (Vec<crate::matching::QueryMatch>, f64)> = HashMap::new();
+            let mut scored: HashMap<(String, String, Setting), Vec<Vec<(crate::descriptors::source::Place, f32)>>> = HashMap::new();
             for &i in members {
                 let cfg = &configs[i];
                 let enc_key = serde_json::to_string::<EncodingConfig>(&cfg.encoding()).map_err(|e| Error::invalid("sweep", e.to_string()))?;
@@ -254,8 +259,33 @@ pub fn run(
                 }
                 let (refs, qs) = &encoded[&enc_key];
                 let (mut reports, mut skipped): (Vec<SettingReport>, Vec<(Setting, String)>) = (vec![], vec![]);
+                // configurations that differ in their sequence section alone share their matches
+                let no_seq = Config { sequence: Default::default(), ..cfg.clone() };
+                let match_key = format!("{enc_key}|{}", no_seq.to_toml()?);
                 for (name, set, gt) in qs {
-                    match_query_set(engine, refs, name, set, gt, settings, cfg, &mut reports, &mut skipped)?;
+                    for &st in settings {
+                        if st.is_baseline() && crate::matching::baseline::unavailable(refs, set, st).is_some() {
+                            match_query_set(engine, refs, name, set, gt, &[st], cfg, false, &mut reports, &mut skipped)?;
+                            continue;
+                        }
+                        let key = (match_key.clone(), name.clone(), st);
+                        if !matched.contains_key(&key) {
+                            let (m, t) = engine.match_batch(refs, set, st, cfg)?;
+                            matched.insert(key.clone(), (m, t.coarse_ms + t.fine_ms));
+                        }
+                        let (m, ms) = &matched[&key];
+                        let mut r = report_matches(engine, refs, name, set, m, gt, st, cfg, *ms, false)?;
+                        if sequence {
+                            // the scored rows depend on the matching, `rows` and `widen` alone
+                            let row_key = (format!("{}|{:?}|{}", key.0, cfg.sequence.rows, cfg.sequence.widen), name.clone(), st);
+                            if !scored.contains_key(&row_key) {
+                                let rows = crate::eval::sequence_rows(engine, refs, set, m, st, cfg)?;
+                                scored.insert(row_key.clone(), rows);
+                            }
+                            r.sequence = Some(crate::eval::sequence_report_from_rows(refs, set, m, gt, cfg, &scored[&row_key]));
+                        }
+                        reports.push(r);
+                    }
                 }
                 for &st in settings {
                     let r: Vec<&SettingReport> = reports.iter().filter(|r| r.setting == st).collect();
@@ -265,7 +295,15 @@ pub fn run(
                     let n = r.len() as f64;
                     let r1 = r.iter().map(|x| x.recall_at.first().map_or(0.0, |v| v.1)).sum::<f64>() / n;
                     let auc = r.iter().map(|x| x.pr.auc).sum::<f64>() / n;
-                    rows[i].results.push((cd.name.clone(), st, r1, auc));
+                    rows[i].results.push((cd.name.clone(), st.name().to_string(), r1, auc));
+                    let seq: Vec<&crate::eval::SequenceReport> = r.iter().filter_map(|x| x.sequence.as_ref()).collect();
+                    if !seq.is_empty() {
+                        let m = seq.len() as f64;
+                        let (r1, auc) = (seq.iter().map(|s| s.recall_at_1).sum::<f64>() / m, seq.iter().map(|s| s.pr.auc).sum::<f64>() / m);
+                        rows[i].results.push((cd.name.clone(), format!("{st}+seq"), r1, auc));
+                        let traj = seq.iter().map(|s| s.trajectory_recall_at_1).sum::<f64>() / m;
+                        rows[i].results.push((cd.name.clone(), format!("{st}+traj"), traj, auc));
+                    }
                 }
                 progress(&cd.name, &rows[i]);
             }
@@ -284,10 +322,12 @@ pub fn table(rows: &[TuneRow]) -> String {
     for (d, st, _, _) in &first.results {
         out += &format!("{d}:{st}:R@1\t{d}:{st}:AUC\t");
     }
-    let mut settings: Vec<Setting> = first.results.iter().map(|r| r.1).collect();
-    settings.dedup();
-    settings.sort_by_key(|s| Setting::ALL.iter().position(|x| x == s));
-    settings.dedup();
+    let mut settings: Vec<&str> = Vec::new();
+    for r in &first.results {
+        if !settings.contains(&r.1.as_str()) {
+            settings.push(&r.1);
+        }
+    }
     for st in &settings {
         out += &format!("mean:{st}:R@1\t");
     }
@@ -301,7 +341,7 @@ pub fn table(rows: &[TuneRow]) -> String {
             out += &format!("{r1:.3}\t{auc:.3}\t");
         }
         for st in &settings {
-            out += &format!("{:.3}\t", r.mean_r1(*st));
+            out += &format!("{:.3}\t", r.mean_r1(st));
         }
         out.pop();
         out.push('\n');

@@ -10,16 +10,23 @@ use semlook::engine::Engine;
 use semlook::error::{Error, Result};
 use semlook::input::{FrameSource, LabelFormat};
 use semlook::map::Map;
-use semlook::map::{edit, MapWriter, StoreOptions};
+use semlook::map::{edit, MapWriter, StoreOptions, TraversalPlan};
 use semlook::values::ValueType;
 use std::path::Path;
 
 pub fn run(cmd: MapCommand, engine: &dyn Fn() -> Result<Engine>, quiet: bool) -> Result<()> {
     match cmd {
-        MapCommand::Build { source, map: out, config, force, resume, hog, store } => {
-            build(&mut engine()?, &source, &out, config.as_deref(), &BuildFlags { force, resume, hog, store }, quiet)
+        MapCommand::Build { source, map: out, config, force, resume, hog, traversal, store } => {
+            build(&mut engine()?, &source, &out, config.as_deref(), &BuildFlags { force, resume, hog, traversal, store }, quiet)
         }
-        MapCommand::Add { source, map, resume, segment_images } => add(&mut engine()?, &source, &map, resume, segment_images, quiet),
+        MapCommand::Add { source, map, resume, segment_images, traversal } => {
+            let plan = match (traversal, resume) {
+                (Some(name), _) => TraversalPlan::Named(name),
+                (None, true) => TraversalPlan::Last,
+                (None, false) => TraversalPlan::New,
+            };
+            add(&mut engine()?, &source, &map, resume, segment_images, plan, quiet)
+        }
         MapCommand::Info { map, json } => show(&map, json),
         MapCommand::Remove { map, ids } => remove(&map, &ids, quiet),
         MapCommand::Compact { map, json } => compact(&map, json),
@@ -33,6 +40,7 @@ pub struct BuildFlags {
     pub force: bool,
     pub resume: bool,
     pub hog: bool,
+    pub traversal: Option<String>,
     pub store: StoreArgs,
 }
 
@@ -96,7 +104,8 @@ fn build_into(
         }
         let encoder = Encoder::for_map(cfg, &map)?.with_hog(f.hog);
         info(quiet, format!("resuming: the map holds {} images (generation {})", map.len(), map.manifest.generation));
-        (encoder, MapWriter::append(dir, opts)?)
+        let plan = f.traversal.clone().map_or(TraversalPlan::Last, TraversalPlan::Named);
+        (encoder, MapWriter::append(dir, opts)?.with_traversal(plan)?)
     } else {
         MapWriter::check_new_dir(dir, f.resume)?;
         let encoder = Encoder::new(cfg)?.with_hog(f.hog);
@@ -116,6 +125,10 @@ fn build_into(
         let dims = semlook::map::Dims { appearance: encoder.appearance_dim(), hog: hog_dim, keypoints: encoder.keypoint_dim() };
         let writer = MapWriter::create(dir, &cfg.encoding(), dims, encoder.appearance_record(), opts, f.resume)?;
         let writer = if without_labels { writer.without_labels()? } else { writer };
+        let writer = match &f.traversal {
+            Some(name) => writer.with_traversal(TraversalPlan::Named(name.clone()))?,
+            None => writer,
+        };
         (encoder, writer)
     };
     let r = batch::encode_into(engine, &encoder, frames, fmt, &mut writer, IntoOptions { skip_invalid: skip, skip_stored: f.resume, quiet })?;
@@ -145,7 +158,7 @@ fn report_encoding(r: &batch::IntoReport, quiet: bool) {
     }
 }
 
-fn add(engine: &mut Engine, s: &SourceArgs, dir: &Path, resume: bool, segment_images: Option<usize>, quiet: bool) -> Result<()> {
+fn add(engine: &mut Engine, s: &SourceArgs, dir: &Path, resume: bool, segment_images: Option<usize>, plan: TraversalPlan, quiet: bool) -> Result<()> {
     let map = Map::open(dir)?;
     let mut cfg = map_config(&map, None, &s.models)?;
     let (frames, fmt) = frame_sources(s, &mut cfg, true)?;
@@ -154,7 +167,7 @@ fn add(engine: &mut Engine, s: &SourceArgs, dir: &Path, resume: bool, segment_im
     }
     let encoder = Encoder::for_map(&cfg, &map)?.with_hog(map.manifest.hog_dim > 0);
     drop(map);
-    let mut writer = MapWriter::append(dir, store_options(false, segment_images))?;
+    let mut writer = MapWriter::append(dir, store_options(false, segment_images))?.with_traversal(plan)?;
     let r =
         batch::encode_into(engine, &encoder, &frames, fmt, &mut writer, IntoOptions { skip_invalid: s.skip_invalid, skip_stored: resume, quiet })?;
     report_encoding(&r, quiet);
@@ -204,6 +217,7 @@ fn show(dir: &Path, json: bool) -> Result<()> {
             "appearance_dim": m.appearance_dim,
             "hog_dim": m.hog_dim,
             "labels": !m.without_labels,
+            "traversals": traversals(&map),
             "config": m.config,
         });
         outln!("{}", to_json(&v)?);
@@ -223,13 +237,33 @@ fn show(dir: &Path, json: bool) -> Result<()> {
         if m.without_labels {
             outln!("built without semantic labels: only the settings that need none ({}) match against it", label_free_settings(m.hog_dim > 0));
         }
+        let t: Vec<String> = traversals(&map).iter().map(|t| format!("{} ({} images)", t["name"].as_str().unwrap_or(""), t["images"])).collect();
+        outln!("traversals: {}", t.join(", "));
         for s in &m.segments {
-            outln!("  {}  {} images ({} removed)  {} bytes  sha256 {}", s.file, s.images, s.removed.len(), s.bytes, &s.sha256[..16]);
+            outln!(
+                "  {}  {} images ({} removed)  {} bytes  sha256 {}  traversal {}",
+                s.file,
+                s.images,
+                s.removed.len(),
+                s.bytes,
+                &s.sha256[..16],
+                s.traversal
+            );
         }
         outln!("(checksums are checked on first use and by `semlook map verify`)");
         outln!("encoding config:\n{}", toml::to_string_pretty(&m.config).map_err(|e| Error::invalid("map config", e.to_string()))?);
     }
     Ok(())
+}
+
+/// The map's traversals: name and live images of each.
+fn traversals(map: &Map) -> Vec<serde_json::Value> {
+    use semlook::matching::source::RefSource;
+    semlook::map::manifest::traversal_names(&map.manifest)
+        .into_iter()
+        .enumerate()
+        .map(|(t, name)| serde_json::json!({ "name": name, "images": map.traversal_len(t as u32) }))
+        .collect()
 }
 
 /// Ids from the command line: one value naming an existing file is read as a list of ids.

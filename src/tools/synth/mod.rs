@@ -12,6 +12,7 @@ pub mod camvid;
 pub mod condition;
 mod noise;
 pub mod render;
+pub mod stream;
 pub mod world;
 
 use crate::dataset::{write_synthia_pose, DatasetManifest, GroundTruthRule, Pose, TraversalSpec, MANIFEST, SYNTHIA_CAMERA};

@@ -1,0 +1,129 @@
+//! `semlook localize`: a stream of frames (a folder in name or time order, or images piped to
+//! standard input) localized as the frames come, one line per frame, then a summary. The next
+//! frame is decoded (and segmented) on a second thread while the current one is matched.
+
+use super::shared::{apply_models, info, load_config, map_config};
+use crate::cli::args::LocalizeArgs;
+use semlook::engine::Engine;
+use semlook::error::{Error, Result};
+use semlook::map::Map;
+use semlook::stream::input::{folder_frames, ImageStream};
+use semlook::stream::{replay, FrameResult, Localizer, Pixels, Replayed, StreamFrame, StreamOptions};
+use std::time::Instant;
+
+/// Frames decoded ahead of the one being matched.
+const AHEAD: usize = 2;
+
+pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
+    // the frames a folder holds and their times are checked before any work
+    let listed = match &a.images {
+        Some(dir) => Some(folder_frames(dir, a.labels.as_deref(), a.timestamps.as_deref())?),
+        None => None,
+    };
+    let exists = semlook::map::manifest::read(&a.map)?.is_some();
+    let cfg = match exists {
+        true => map_config(&Map::open(&a.map)?, a.config.as_deref(), &a.models)?,
+        false => apply_models(load_config(a.config.as_deref())?, &a.models),
+    };
+    let opts = StreamOptions { setting: a.setting, sequence: !a.no_sequence, loop_closure: a.loop_closure };
+    let mut loc = Localizer::open(&a.map, Some(cfg), opts, engine)?.with_label_format(a.label_format.unwrap_or_default());
+    info(quiet, format!("backend: {}", loc.engine().describe()));
+    match loc.map() {
+        Some(m) => info(quiet, format!("map {}: {} places, generation {}", a.map.display(), m.len(), m.manifest.generation)),
+        None => info(quiet, format!("map {}: created from the stream (its first frames train the codebook)", a.map.display())),
+    }
+    if !a.json {
+        outln!("frame,id,best,score,sequence,sequence_score,uniqueness,accepted,closure,ms");
+    }
+    let frames: Box<dyn Iterator<Item = Result<StreamFrame>> + Send> = match listed {
+        Some(frames) => Box::new(frames.into_iter().map(Ok)),
+        None => Box::new(ImageStream::new(std::io::stdin(), "standard input").enumerate().map(|(k, bytes)| {
+            bytes.map(|b| StreamFrame { id: format!("frame-{k:06}"), pixels: Pixels::Bytes { bytes: b, labels: None }, timestamp: None })
+        })),
+    };
+    let start = Instant::now();
+    let stats = replay(&mut loc, frames, AHEAD, |loc, r| {
+        if a.follow_map {
+            // between frames: the next one is answered from the newest generation
+            if let Err(e) = loc.refresh() {
+                log::warn!("map {}: kept generation {}: {e}", a.map.display(), loc.map().map_or(0, |m| m.manifest.generation));
+            }
+        }
+        match r {
+            Replayed::Answered(r) => print_frame(&r, a.json),
+            Replayed::Refused(frame, id, e) => {
+                log::warn!("frame {frame} ({id}) skipped: {e}");
+                if a.json {
+                    outln!("{}", serde_json::json!({ "frame": frame, "id": id, "refused": e.to_string() }));
+                }
+                Ok(())
+            }
+        }
+    })?;
+    loc.finish()?;
+    let wall = start.elapsed().as_secs_f64();
+    let counts = loc.counts();
+    let summary = stats.summary();
+    let rate = counts.frames as f64 / wall.max(1e-9);
+    if a.json {
+        outln!("{}", serde_json::json!({ "summary": { "counts": counts, "wall_s": wall, "frames_per_s": rate, "latency": summary } }));
+    } else {
+        outln!(
+            "# {} frames ({} refused), {} accepted sequence matches, {} loop closures; {:.2} frames/s over {:.1} s",
+            counts.frames,
+            counts.refused,
+            counts.accepted,
+            counts.closures,
+            rate,
+            wall
+        );
+        let (p50, p99) = (summary.p50, summary.p99);
+        outln!(
+            "# latency ms p50/p99: total {:.1}/{:.1} | decode {:.1}/{:.1} segment {:.1}/{:.1} encode {:.1}/{:.1} coarse {:.1}/{:.1} fine {:.1}/{:.1} sequence {:.1}/{:.1} store {:.1}/{:.1}",
+            p50.total_ms,
+            p99.total_ms,
+            p50.decode_ms,
+            p99.decode_ms,
+            p50.segment_ms,
+            p99.segment_ms,
+            p50.encode_ms,
+            p99.encode_ms,
+            p50.coarse_ms,
+            p99.coarse_ms,
+            p50.fine_ms,
+            p99.fine_ms,
+            p50.sequence_ms,
+            p99.sequence_ms,
+            p50.store_ms,
+            p99.store_ms
+        );
+    }
+    Ok(())
+}
+
+fn print_frame(r: &FrameResult, json: bool) -> Result<()> {
+    if json {
+        outln!("{}", serde_json::to_string(r).map_err(|e| Error::invalid("JSON output", e.to_string()))?);
+        return Ok(());
+    }
+    let best = r.best();
+    let seq = r.sequence.as_ref();
+    let csv = |s: &str| match s.contains([',', '"', '\n']) {
+        true => format!("\"{}\"", s.replace('"', "\"\"")),
+        false => s.to_string(),
+    };
+    outln!(
+        "{},{},{},{},{},{},{},{},{},{:.1}",
+        r.frame,
+        csv(&r.id),
+        best.map_or(String::new(), |b| csv(&b.id)),
+        best.map_or(String::new(), |b| format!("{:.4}", b.score)),
+        seq.map_or(String::new(), |s| csv(&s.id)),
+        seq.map_or(String::new(), |s| format!("{:.4}", s.matched.score)),
+        seq.map_or(String::new(), |s| format!("{:.3}", s.matched.uniqueness)),
+        seq.is_some_and(|s| s.matched.accepted),
+        r.closure.as_ref().map_or(String::new(), |c| csv(&c.place.id)),
+        r.latency.total_ms
+    );
+    Ok(())
+}

@@ -1,0 +1,900 @@
+//! Streams (beyond the paper): a camera's frames localized one at a time against a resident
+//! map, with sequence matching over the last frames ([`sequence`]) and a loop-closure mode that
+//! queries a growing map and then adds the frame to it.
+//!
+//! A [`Localizer`] holds one generation of a map open (memory-mapped; on the GPU the engine keeps
+//! it resident), the encoder for it, the ring of the last frames' sparse score rows and, in
+//! loop-closure mode, a writer. Each [`Localizer::push`] encodes the frame, ranks the map with the
+//! setting, widens the candidates by their neighbours along the route and scores those too,
+//! updates the ring, and returns the single-frame ranking, the sequence match and the latency of
+//! every stage. What it keeps is bounded: the ring (`sequence.length` rows of at most K x
+//! (2 `widen` + 1) entries), and in loop-closure mode at most `stream.commit_frames` encoded
+//! frames before they are committed, and the stream's recent timestamps. Nothing grows with the
+//! number of queries x the map.
+
+pub mod input;
+pub mod sequence;
+
+use crate::config::{Config, SequenceRows};
+use crate::descriptors::source::{GlobalSource, Place, RefSource, Window};
+use crate::descriptors::EncodedImage;
+use crate::encode::{Encoder, Loaded, StageTimes};
+use crate::engine::Engine;
+use crate::error::{Error, Result};
+use crate::input::{FrameSource, LabelFormat, LabelMap};
+use crate::map::{manifest, Dims, Map, MapWriter, StoreOptions, TraversalPlan};
+use crate::matching::{Candidate, Setting};
+use crate::util::ms_since;
+use image::RgbImage;
+use sequence::{contributions, SequenceMatch, SequenceMatcher};
+use serde::Serialize;
+use std::collections::{HashMap, HashSet, VecDeque};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Where a frame's pixels come from.
+#[derive(Debug, Clone)]
+pub enum Pixels {
+    /// Files: an image and/or a label map (as `map build` reads them).
+    Files(FrameSource),
+    /// An image file's bytes (JPEG or PNG) in memory, optionally with a label map at its size.
+    Bytes { bytes: Vec<u8>, labels: Option<LabelMap> },
+    /// Decoded pixels, optionally with a label map at their size.
+    Rgb { image: RgbImage, labels: Option<LabelMap> },
+    /// A label map alone (maps encoded without appearance).
+    Labels(LabelMap),
+}
+
+/// One frame of a stream.
+#[derive(Debug, Clone)]
+pub struct StreamFrame {
+    /// The frame's id (its file stem, a ROS stamp...); in loop-closure mode the id it is stored
+    /// under, so unique in the map.
+    pub id: String,
+    pub pixels: Pixels,
+    /// Seconds, when the stream has clocks; must not go backwards.
+    pub timestamp: Option<f64>,
+}
+
+/// How a stream is matched.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StreamOptions {
+    pub setting: Setting,
+    /// Sequence matching over the last frames ([`sequence`]; on for streams by default).
+    pub sequence: bool,
+    /// Loop-closure mode: query the map, then add the frame to it (one traversal for the stream,
+    /// committed every `stream.commit_frames`); the newest `stream.exclude_frames` frames (and
+    /// `exclude_seconds`) are never matched. Needs `sequence`: closures are accepted sequence
+    /// matches.
+    pub loop_closure: bool,
+}
+
+impl Default for StreamOptions {
+    fn default() -> Self {
+        StreamOptions { setting: Setting::RECOMMENDED, sequence: true, loop_closure: false }
+    }
+}
+
+/// A reference as a stream reports it.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PlaceMatch {
+    /// Index in the map's generation the frame was answered from.
+    pub index: u32,
+    pub id: String,
+    pub place: Place,
+    pub score: f32,
+    /// Keypoint inliers of the verification, where it ran.
+    pub inliers: Option<u32>,
+}
+
+/// The sequence match of a frame.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SequenceResult {
+    pub index: u32,
+    pub id: String,
+    #[serde(flatten)]
+    pub matched: SequenceMatch,
+}
+
+/// A loop closure: the frame matched a place the stream passed before (loop-closure mode).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LoopClosure {
+    pub frame: String,
+    pub place: PlaceMatch,
+    /// The sequence match's uniqueness and velocity.
+    pub uniqueness: f32,
+    pub velocity: f32,
+}
+
+/// Milliseconds per stage of one frame.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct Latency {
+    /// Reading and decoding the frame, to the working size.
+    pub decode_ms: f64,
+    /// The segmentation network.
+    pub segment_ms: f64,
+    /// The descriptors (edges, forest, appearance: the network and VLAD).
+    pub encode_ms: f64,
+    /// Of `encode_ms`, the keypoint network.
+    pub network_ms: f64,
+    /// The coarse stage over the map (or the searched part of it).
+    pub coarse_ms: f64,
+    /// Re-ranking of the candidates (tree similarity, verification).
+    pub fine_ms: f64,
+    /// Scoring the candidates' neighbours and the trajectory search.
+    pub sequence_ms: f64,
+    /// Loop-closure mode: adding the frame to the map (a commit, when one is due).
+    pub store_ms: f64,
+    /// From the call to the answer.
+    pub total_ms: f64,
+}
+
+impl Latency {
+    /// Each stage's value through `f`, with the same stage of `o`.
+    fn zip(self, o: Latency, f: impl Fn(f64, f64) -> f64) -> Latency {
+        Latency {
+            decode_ms: f(self.decode_ms, o.decode_ms),
+            segment_ms: f(self.segment_ms, o.segment_ms),
+            encode_ms: f(self.encode_ms, o.encode_ms),
+            network_ms: f(self.network_ms, o.network_ms),
+            coarse_ms: f(self.coarse_ms, o.coarse_ms),
+            fine_ms: f(self.fine_ms, o.fine_ms),
+            sequence_ms: f(self.sequence_ms, o.sequence_ms),
+            store_ms: f(self.store_ms, o.store_ms),
+            total_ms: f(self.total_ms, o.total_ms),
+        }
+    }
+}
+
+/// Percentiles of the latencies of the last frames of a stream (at most [`LATENCY_WINDOW`]
+/// kept, so a stream of any length holds the same).
+#[derive(Debug, Clone, Default)]
+pub struct LatencyStats {
+    last: VecDeque<Latency>,
+    frames: u64,
+}
+
+/// Frames whose latencies [`LatencyStats`] keeps.
+pub const LATENCY_WINDOW: usize = 10_000;
+
+/// Per stage, the median and 99th percentile over the frames kept.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct LatencySummary {
+    /// Frames measured in all, and of them kept for the percentiles.
+    pub frames: u64,
+    pub kept: usize,
+    pub p50: Latency,
+    pub p99: Latency,
+    pub mean: Latency,
+}
+
+impl LatencyStats {
+    pub fn push(&mut self, l: &Latency) {
+        if self.last.len() == LATENCY_WINDOW {
+            self.last.pop_front();
+        }
+        self.last.push_back(*l);
+        self.frames += 1;
+    }
+    pub fn summary(&self) -> LatencySummary {
+        let n = self.last.len();
+        if n == 0 {
+            return LatencySummary { frames: self.frames, ..LatencySummary::default() };
+        }
+        // each stage's own percentile (a stage's p99 frame need not be the total's)
+        let pick = |q: f64| {
+            let field = |f: fn(&Latency) -> f64| {
+                let mut v: Vec<f64> = self.last.iter().map(f).collect();
+                v.sort_by(f64::total_cmp);
+                v[((q * (n - 1) as f64).round() as usize).min(n - 1)]
+            };
+            Latency {
+                decode_ms: field(|l| l.decode_ms),
+                segment_ms: field(|l| l.segment_ms),
+                encode_ms: field(|l| l.encode_ms),
+                network_ms: field(|l| l.network_ms),
+                coarse_ms: field(|l| l.coarse_ms),
+                fine_ms: field(|l| l.fine_ms),
+                sequence_ms: field(|l| l.sequence_ms),
+                store_ms: field(|l| l.store_ms),
+                total_ms: field(|l| l.total_ms),
+            }
+        };
+        let sum = self.last.iter().fold(Latency::default(), |a, b| a.zip(*b, |x, y| x + y));
+        LatencySummary { frames: self.frames, kept: n, p50: pick(0.5), p99: pick(0.99), mean: sum.zip(sum, |x, _| x / n as f64) }
+    }
+}
+
+/// What a stream answers after each frame.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FrameResult {
+    /// Frames pushed before this one (refused ones included).
+    pub frame: u64,
+    pub id: String,
+    pub timestamp: Option<f64>,
+    /// The map generation the frame was answered from.
+    pub generation: u64,
+    /// The single-frame ranking, best first (`matching.top_k` long at most).
+    pub top_k: Vec<PlaceMatch>,
+    /// The sequence match, where sequence matching runs and the ring has evidence.
+    pub sequence: Option<SequenceResult>,
+    /// Loop-closure mode: the closure this frame found.
+    pub closure: Option<LoopClosure>,
+    /// The frame's size differs from the previous frame's (it is answered all the same).
+    pub size_changed: bool,
+    /// Only the references near the tracked place were searched (`stream.track_radius`).
+    pub tracking: bool,
+    /// Loop-closure mode: no map yet (the first frames train its codebook).
+    pub warming_up: bool,
+    pub latency: Latency,
+}
+
+impl FrameResult {
+    /// The best single-frame match.
+    pub fn best(&self) -> Option<&PlaceMatch> {
+        self.top_k.first()
+    }
+    /// The stream's answer: the sequence match where it is accepted, else the single-frame best
+    /// (id, score).
+    pub fn place(&self) -> Option<(&str, f32)> {
+        match &self.sequence {
+            Some(s) if s.matched.accepted => Some((s.id.as_str(), s.matched.score)),
+            _ => self.best().map(|b| (b.id.as_str(), b.score)),
+        }
+    }
+}
+
+/// Counters of a stream so far.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct StreamCounts {
+    pub frames: u64,
+    /// Frames refused (undecodable, a timestamp going backwards, ...): counted, skipped.
+    pub refused: u64,
+    pub accepted: u64,
+    pub closures: u64,
+    /// Map generations moved to by [`Localizer::refresh`].
+    pub reloads: u64,
+    /// Loop-closure mode: frames kept to create the map with (answered without a match).
+    pub warm_up: u64,
+}
+
+/// Loop-closure state: the writer of the stream's traversal and what the exclusion needs.
+struct LoopState {
+    writer: Option<MapWriter>,
+    dir: PathBuf,
+    /// Frames of the stream added so far (committed or buffered in the writer).
+    added: u64,
+    /// (position along the stream's traversal, timestamp) of the frames added within
+    /// `stream.exclude_seconds`.
+    recent: VecDeque<(u64, f64)>,
+    /// Before the map exists: the first frames, decoded, to train its codebook on.
+    warm: Vec<(String, Loaded, Option<f64>)>,
+}
+
+/// Tracking: the place the last accepted sequence match predicts for the next frame.
+#[derive(Debug, Clone, Copy, Default)]
+struct Track {
+    at: Option<(Place, f32)>,
+    misses: usize,
+}
+
+/// Localizes a stream of frames against a map, one frame at a time.
+pub struct Localizer {
+    engine: Engine,
+    encoder: Encoder,
+    cfg: Config,
+    opts: StreamOptions,
+    map: Option<Map>,
+    dir: PathBuf,
+    seq: SequenceMatcher,
+    track: Track,
+    lc: Option<LoopState>,
+    counts: StreamCounts,
+    last_timestamp: Option<f64>,
+    last_size: Option<(u32, u32)>,
+    format: LabelFormat,
+}
+
+impl Localizer {
+    /// A localizer over the map in `dir` with `cfg` (its encoding must be the map's; `None`: the
+    /// map's own), running on `engine`. Settings the map cannot serve are refused here.
+    pub fn open(dir: &Path, cfg: Option<Config>, opts: StreamOptions, engine: Engine) -> Result<Localizer> {
+        if opts.loop_closure {
+            return Localizer::loop_closure(dir, cfg, opts, engine);
+        }
+        let map = Map::open(dir)?;
+        let cfg = cfg.unwrap_or_else(|| map.query_config());
+        Localizer::with_map(map, cfg, opts, engine, None)
+    }
+
+    /// Loop-closure mode on the map in `dir`: an existing map gets a new traversal for the
+    /// stream; where there is none, one is created, its codebook trained on the first
+    /// min(`appearance.codebook_images`, `stream.exclude_frames`) frames (answered without a
+    /// match: nothing older exists to match them against).
+    pub fn loop_closure(dir: &Path, cfg: Option<Config>, opts: StreamOptions, engine: Engine) -> Result<Localizer> {
+        let opts = StreamOptions { loop_closure: true, sequence: true, ..opts };
+        let lc = |writer| LoopState { writer, dir: dir.to_path_buf(), added: 0, recent: VecDeque::new(), warm: vec![] };
+        if manifest::read(dir)?.is_some() {
+            let map = Map::open(dir)?;
+            let cfg = cfg.unwrap_or_else(|| map.query_config());
+            let writer = MapWriter::append(dir, StoreOptions::default())?.with_traversal(TraversalPlan::New)?;
+            return Localizer::with_map(map, cfg, opts, engine, Some(lc(Some(writer))));
+        }
+        MapWriter::check_new_dir(dir, false)?;
+        let cfg = cfg.unwrap_or_default();
+        cfg.validate("configuration")?;
+        let encoder = Encoder::new(&cfg)?.with_hog(opts.setting == Setting::Hog);
+        // photos without label maps and no segmenter: encoded without labels (the map says so)
+        let can_segment = encoder.frames().can_segment();
+        let encoder = encoder.without_labels(!can_segment);
+        Ok(Localizer {
+            seq: SequenceMatcher::new(&cfg.sequence),
+            engine,
+            encoder,
+            cfg,
+            opts,
+            map: None,
+            dir: dir.to_path_buf(),
+            track: Track::default(),
+            lc: Some(lc(None)),
+            counts: StreamCounts::default(),
+            last_timestamp: None,
+            last_size: None,
+            format: LabelFormat::default(),
+        })
+    }
+
+    fn with_map(map: Map, cfg: Config, opts: StreamOptions, engine: Engine, lc: Option<LoopState>) -> Result<Localizer> {
+        cfg.validate("configuration")?;
+        crate::matching::check_labels(&map, opts.setting)?;
+        if opts.setting.is_baseline() && opts.setting == Setting::Hog && map.manifest.hog_dim == 0 {
+            return Err(Error::invalid(format!("setting {}", opts.setting), "the map stores no HOG descriptors"));
+        }
+        let encoder = Encoder::for_map(&cfg, &map)?.with_hog(opts.setting == Setting::Hog);
+        Ok(Localizer {
+            seq: SequenceMatcher::new(&cfg.sequence),
+            engine,
+            encoder,
+            cfg,
+            opts,
+            dir: map.path.clone(),
+            map: Some(map),
+            track: Track::default(),
+            lc,
+            counts: StreamCounts::default(),
+            last_timestamp: None,
+            last_size: None,
+            format: LabelFormat::default(),
+        })
+    }
+
+    /// How label files of [`Pixels::Files`] frames encode classes (default: ids).
+    pub fn with_label_format(mut self, format: LabelFormat) -> Localizer {
+        self.format = format;
+        self
+    }
+
+    /// The map generation frames are answered from (`None` while a loop-closure map warms up).
+    pub fn map(&self) -> Option<&Map> {
+        self.map.as_ref()
+    }
+    pub fn config(&self) -> &Config {
+        &self.cfg
+    }
+    /// The encoder frames are encoded with (the map's).
+    pub fn encoder(&self) -> &Encoder {
+        &self.encoder
+    }
+    pub fn options(&self) -> StreamOptions {
+        self.opts
+    }
+    pub fn counts(&self) -> StreamCounts {
+        self.counts
+    }
+    /// The engine frames run on.
+    pub fn engine(&self) -> &Engine {
+        &self.engine
+    }
+    /// What the stream keeps: frames in the ring and their entries.
+    pub fn state_size(&self) -> (usize, usize) {
+        (self.seq.frames(), self.seq.entries())
+    }
+
+    /// Forgets the stream's past (ring and tracking): the next frame starts a new sequence.
+    pub fn reset(&mut self) {
+        self.seq.clear();
+        self.track = Track::default();
+        self.last_timestamp = None;
+        self.last_size = None;
+    }
+
+    /// Moves to the map's newest generation when another writer committed one (an add, a removal,
+    /// a compaction, a rebuild): the frames answered so far keep theirs, the next ones get the
+    /// new one, and the ring follows the places that are still there. Returns whether it moved.
+    /// On an error (a map being replaced, another encoding) the old generation stays in use.
+    pub fn refresh(&mut self) -> Result<bool> {
+        let Some(old) = &self.map else { return Ok(false) };
+        let m = manifest::read_existing(&self.dir)?;
+        if m.generation == old.manifest.generation && m.uid == old.manifest.uid {
+            return Ok(false);
+        }
+        let new = Map::open(&self.dir)?;
+        let encoder = match new.manifest.uid == old.manifest.uid {
+            true => None,
+            false => Some(Encoder::for_map(&self.cfg, &new)?.with_hog(self.opts.setting == Setting::Hog)),
+        };
+        crate::matching::check_labels(&new, self.opts.setting)?;
+        if !follow(&mut self.seq, old, &new) {
+            self.track = Track::default();
+        }
+        if let Some(e) = encoder {
+            self.encoder = e;
+        }
+        self.map = Some(new);
+        self.counts.reloads += 1;
+        Ok(true)
+    }
+
+    /// What decodes frames to the working size (the labels read or made as `map build` does):
+    /// cheap to clone, so another thread can decode the next frame while this one is matched
+    /// ([`load_frame`], then [`Localizer::push_loaded`]).
+    pub fn loader(&self) -> FrameDecoder {
+        FrameDecoder { encoder: self.encoder.clone(), format: self.format }
+    }
+
+    /// Localizes the next frame. A frame that cannot be used (undecodable, of a timestamp before
+    /// the previous one's) is refused with its error, counted, and leaves the stream as it was.
+    pub fn push(&mut self, frame: StreamFrame) -> Result<FrameResult> {
+        let t0 = Instant::now();
+        let StreamFrame { id, pixels, timestamp } = frame;
+        let meta = FrameMeta { id, timestamp };
+        let loaded = match self.check_timestamp(&meta) {
+            Ok(()) => load_frame(&self.encoder, &meta.id, pixels, self.format),
+            Err(e) => Err(e),
+        };
+        self.push_loaded_at(meta, loaded, t0)
+    }
+
+    /// [`Localizer::push`] of a frame decoded by [`Localizer::loader`] (perhaps on another thread).
+    pub fn push_loaded(&mut self, id: String, timestamp: Option<f64>, loaded: Result<Loaded>) -> Result<FrameResult> {
+        self.push_loaded_at(FrameMeta { id, timestamp }, loaded, Instant::now())
+    }
+
+    /// Errors of the frame itself (it cannot be read, decoded or encoded, or its time goes back)
+    /// are counted in [`StreamCounts::refused`]; other errors (the map, the device) are not.
+    fn push_loaded_at(&mut self, meta: FrameMeta, loaded: Result<Loaded>, t0: Instant) -> Result<FrameResult> {
+        let index = self.counts.frames;
+        self.counts.frames += 1;
+        match self.check_timestamp(&meta).and(loaded) {
+            Ok(l) => self.locate_loaded(index, &meta, l, t0),
+            Err(e) => {
+                self.counts.refused += 1;
+                Err(e)
+            }
+        }
+    }
+
+    fn check_timestamp(&self, frame: &FrameMeta) -> Result<()> {
+        match (frame.timestamp, self.last_timestamp) {
+            (Some(t), _) if !t.is_finite() => Err(Error::invalid(format!("frame {:?}", frame.id), format!("timestamp {t} is not a finite number"))),
+            (Some(t), Some(last)) if t < last => Err(Error::invalid(
+                format!("frame {:?}", frame.id),
+                format!("timestamp {t} is before the previous frame's ({last}): refused (frames must come in time order)"),
+            )),
+            _ => Ok(()),
+        }
+    }
+
+    fn locate_loaded(&mut self, index: u64, frame: &FrameMeta, loaded: Loaded, t0: Instant) -> Result<FrameResult> {
+        let size = loaded.source_size;
+        let mut latency = Latency { decode_ms: loaded.times.decode_ms, segment_ms: loaded.times.segment_ms, ..Latency::default() };
+        if self.map.is_none() {
+            return self.warm_up(index, frame, loaded, latency, t0);
+        }
+        let (img, times) = match self.encode_one(&frame.id, loaded) {
+            Ok(v) => v,
+            Err(e) => {
+                if !matches!(e, Error::Gpu(_)) {
+                    self.counts.refused += 1;
+                }
+                return Err(e);
+            }
+        };
+        add_times(&mut latency, &times);
+        let size_changed = self.last_size.is_some_and(|s| s != size);
+        self.last_size = Some(size);
+        if let Some(t) = frame.timestamp {
+            self.last_timestamp = Some(t);
+        }
+        let mut r = self.locate(index, frame, &img, latency, t0)?;
+        r.size_changed = size_changed;
+        if self.lc.is_some() {
+            let t = Instant::now();
+            self.store(&img, frame.timestamp)?;
+            r.latency.store_ms = ms_since(t);
+        }
+        r.latency.total_ms = ms_since(t0);
+        Ok(r)
+    }
+
+    fn encode_one(&mut self, id: &str, loaded: Loaded) -> Result<(EncodedImage, StageTimes)> {
+        let mut out = self.engine.encode_loaded(&self.encoder, vec![(id.to_string(), Ok(loaded))])?;
+        out.pop().unwrap_or_else(|| Err(Error::invalid(format!("frame {id:?}"), "not encoded")))
+    }
+
+    /// The part of the map this frame may be matched against (index range), and whether it is a
+    /// tracking window.
+    fn search_range(&self, map: &Map, timestamp: Option<f64>) -> (std::ops::Range<usize>, bool) {
+        let all = 0..map.len();
+        if let Some(lc) = &self.lc {
+            let Some(t) = lc.writer.as_ref().and_then(MapWriter::traversal) else { return (all, false) };
+            let st = &self.cfg.stream;
+            let mut excluded = (st.exclude_frames as u64).min(lc.added);
+            if let (Some(now), true) = (timestamp, st.exclude_seconds > 0.0) {
+                let within = lc.recent.iter().filter(|(_, ts)| now - ts < st.exclude_seconds).count() as u64;
+                excluded = excluded.max(within);
+            }
+            let cutoff = (lc.added - excluded) as u32;
+            return match map.at(Place { traversal: t, position: cutoff }) {
+                Some(i) => (0..i, false),
+                None => (all, false),
+            };
+        }
+        let st = &self.cfg.stream;
+        match self.track.at {
+            Some((p, v)) if st.track_radius > 0 => {
+                let centre = (p.position as f64 + v as f64).round().max(0.0) as u32;
+                let r = st.track_radius as u32;
+                let lo = centre.saturating_sub(r);
+                let hi = (centre + r).min(map.traversal_len(p.traversal).saturating_sub(1));
+                match (map.at(Place { traversal: p.traversal, position: lo }), map.at(Place { traversal: p.traversal, position: hi })) {
+                    // one contiguous run of the map's indices
+                    (Some(a), Some(b)) if b >= a && b - a == (hi - lo) as usize => (a..b + 1, true),
+                    _ => (all, false),
+                }
+            }
+            _ => (all, false),
+        }
+    }
+
+    fn locate(&mut self, index: u64, frame: &FrameMeta, img: &EncodedImage, mut latency: Latency, t0: Instant) -> Result<FrameResult> {
+        let map = self.map.as_ref().ok_or_else(|| Error::invalid("stream", "no map"))?;
+        let (range, tracking) = self.search_range(map, frame.timestamp);
+        let src = Window::new(map, range);
+        let mut queries = self.encoder.descriptor_set();
+        queries.push(img).map_err(|r| Error::invalid(format!("frame {:?}", frame.id), r))?;
+        let setting = self.opts.setting;
+        let full_rows = self.opts.sequence && self.cfg.sequence.rows == SequenceRows::Full;
+        let cfg_rows;
+        let cfg = match full_rows {
+            true => {
+                cfg_rows = Config {
+                    matching: crate::config::MatchingConfig { top_k: GlobalSource::len(&src).max(1), ..self.cfg.matching.clone() },
+                    ..self.cfg.clone()
+                };
+                &cfg_rows
+            }
+            false => &self.cfg,
+        };
+        let (mut matches, times) = self.engine.match_batch(&src, &queries, setting, cfg)?;
+        latency.coarse_ms = times.coarse_ms;
+        latency.fine_ms = times.fine_ms;
+        let ranked = matches.pop().map(|m| m.ranked).unwrap_or_default();
+        let report = |c: &Candidate| PlaceMatch {
+            index: src.inner_index(c.reference as usize) as u32,
+            id: src.id(c.reference as usize).to_string(),
+            place: src.place(c.reference as usize),
+            score: c.score,
+            inliers: c.inliers,
+        };
+        let top_k: Vec<PlaceMatch> = ranked.iter().take(self.cfg.matching.top_k).map(report).collect();
+        let mut sequence = None;
+        if self.opts.sequence {
+            let t = Instant::now();
+            let widen = if full_rows { 0 } else { self.cfg.sequence.widen };
+            let scored =
+                scored_rows(&mut self.engine, &src, &queries, std::slice::from_ref(&ranked), setting, &self.cfg, widen)?.pop().unwrap_or_default();
+            let lens = |t: u32| map.traversal_len(t);
+            let row = contributions(&self.cfg.sequence, &scored, &lens);
+            let m = self.seq.push(row, &lens);
+            sequence = m.and_then(|m| map.at(m.place).map(|i| SequenceResult { index: i as u32, id: map.id(i).to_string(), matched: m }));
+            latency.sequence_ms = ms_since(t);
+        }
+        // tracking follows accepted matches, and lets go after `lost_after` frames without one
+        match &sequence {
+            Some(s) if s.matched.accepted => {
+                self.track = Track { at: Some((s.matched.place, s.matched.velocity)), misses: 0 };
+                self.counts.accepted += 1;
+            }
+            _ => {
+                self.track.misses += 1;
+                if self.track.misses >= self.cfg.stream.lost_after {
+                    self.track.at = None;
+                }
+            }
+        }
+        let st = &self.cfg.stream;
+        let closes = |m: &SequenceMatch| {
+            m.accepted
+                && m.uniqueness < sequence::UNIQUENESS_CAP
+                && m.uniqueness as f64 >= st.closure_uniqueness
+                && (m.velocity.abs() as f64) >= st.closure_min_velocity
+        };
+        let closure = match (&self.lc, &sequence) {
+            (Some(_), Some(s)) if closes(&s.matched) => {
+                self.counts.closures += 1;
+                let inliers = ranked.iter().find(|c| src.inner_index(c.reference as usize) == s.index as usize).and_then(|c| c.inliers);
+                Some(LoopClosure {
+                    frame: frame.id.clone(),
+                    place: PlaceMatch { index: s.index, id: s.id.clone(), place: s.matched.place, score: s.matched.score, inliers },
+                    uniqueness: s.matched.uniqueness,
+                    velocity: s.matched.velocity,
+                })
+            }
+            _ => None,
+        };
+        latency.total_ms = ms_since(t0);
+        Ok(FrameResult {
+            frame: index,
+            id: frame.id.clone(),
+            timestamp: frame.timestamp,
+            generation: map.manifest.generation,
+            top_k,
+            sequence,
+            closure,
+            size_changed: false,
+            tracking,
+            warming_up: false,
+            latency,
+        })
+    }
+
+    /// Loop-closure mode: adds the frame to the stream's traversal; commits every
+    /// `stream.commit_frames` and moves to the generation of the commit.
+    fn store(&mut self, img: &EncodedImage, timestamp: Option<f64>) -> Result<()> {
+        let (commit, exclude_s) = (self.cfg.stream.commit_frames, self.cfg.stream.exclude_seconds);
+        let Some(lc) = &mut self.lc else { return Ok(()) };
+        let Some(w) = &mut lc.writer else { return Ok(()) };
+        w.push(img)?;
+        if let Some(t) = timestamp {
+            lc.recent.push_back((lc.added, t));
+            while lc.recent.front().is_some_and(|(_, ts)| t - ts >= exclude_s) {
+                lc.recent.pop_front();
+            }
+        }
+        lc.added += 1;
+        if lc.added % commit as u64 == 0 {
+            w.flush()?;
+            self.refresh()?;
+        }
+        Ok(())
+    }
+
+    /// Loop-closure mode before the map exists: keeps the frame; once enough frames are kept,
+    /// trains the codebook on them, creates the map with them and opens it.
+    fn warm_up(&mut self, index: u64, frame: &FrameMeta, loaded: Loaded, latency: Latency, t0: Instant) -> Result<FrameResult> {
+        let size_changed = self.last_size.is_some_and(|s| s != loaded.source_size);
+        self.last_size = Some(loaded.source_size);
+        if let Some(t) = frame.timestamp {
+            self.last_timestamp = Some(t);
+        }
+        let need = self.cfg.appearance.codebook_images.min(self.cfg.stream.exclude_frames).max(1);
+        let lc = self.lc.as_mut().ok_or_else(|| Error::invalid("stream", "no map"))?;
+        lc.warm.push((frame.id.clone(), loaded, frame.timestamp));
+        self.counts.warm_up += 1;
+        if lc.warm.len() >= need || self.encoder.appearance().is_none() {
+            self.create_map()?;
+        }
+        Ok(FrameResult {
+            frame: index,
+            id: frame.id.clone(),
+            timestamp: frame.timestamp,
+            generation: self.map.as_ref().map_or(0, |m| m.manifest.generation),
+            top_k: vec![],
+            sequence: None,
+            closure: None,
+            size_changed,
+            tracking: false,
+            warming_up: true,
+            latency: Latency { total_ms: ms_since(t0), ..latency },
+        })
+    }
+
+    fn create_map(&mut self) -> Result<()> {
+        let Some(lc) = &mut self.lc else { return Ok(()) };
+        let warm = std::mem::take(&mut lc.warm);
+        if let Some(a) = self.encoder.appearance_mut() {
+            let model = a.model();
+            let kps: Vec<crate::appearance::keypoints::Keypoints> =
+                warm.iter().filter_map(|(_, l, _)| l.rgb.as_ref()).map(|rgb| model.keypoints(rgb)).collect::<Result<_>>()?;
+            a.train_codebook_from(&kps.iter().collect::<Vec<_>>())?;
+        }
+        // frames without labels and no segmenter to make them: a map without labels
+        let void = warm.iter().all(|(_, l, _)| l.labels.classes().iter().all(|&c| c == crate::classes::VOID));
+        let dims = Dims { appearance: self.encoder.appearance_dim(), hog: 0, keypoints: self.encoder.keypoint_dim() };
+        let mut w = MapWriter::create(&lc.dir, &self.cfg.encoding(), dims, self.encoder.appearance_record(), StoreOptions::default(), false)?;
+        if void && !self.encoder.frames().can_segment() {
+            w = w.without_labels()?;
+        }
+        let mut w = w.with_traversal(TraversalPlan::New)?;
+        let ids: Vec<(String, Option<f64>)> = warm.iter().map(|(id, _, t)| (id.clone(), *t)).collect();
+        let encoded = self.engine.encode_loaded(&self.encoder, warm.into_iter().map(|(id, l, _)| (id, Ok(l))).collect())?;
+        let mut added = 0u64;
+        for (r, (_, t)) in encoded.into_iter().zip(&ids) {
+            w.push(&r?.0)?;
+            if let Some(t) = t {
+                lc.recent.push_back((added, *t));
+            }
+            added += 1;
+        }
+        w.flush()?;
+        lc.added = added;
+        lc.writer = Some(w);
+        let map = Map::open(&lc.dir)?;
+        crate::matching::check_labels(&map, self.opts.setting)?;
+        self.map = Some(map);
+        Ok(())
+    }
+
+    /// Commits what loop-closure mode buffered (also done when the localizer is dropped,
+    /// errors then only logged).
+    pub fn finish(&mut self) -> Result<()> {
+        if self.map.is_none() && self.lc.as_ref().is_some_and(|l| !l.warm.is_empty()) {
+            self.create_map()?;
+        }
+        if let Some(w) = self.lc.as_mut().and_then(|l| l.writer.as_mut()) {
+            w.flush()?;
+        }
+        Ok(())
+    }
+}
+
+impl Drop for Localizer {
+    fn drop(&mut self) {
+        if let Err(e) = self.finish() {
+            log::error!("stream: the last frames were not committed: {e}");
+        }
+    }
+}
+
+/// What [`replay`] reports of each frame.
+pub enum Replayed {
+    /// The frame was localized.
+    Answered(FrameResult),
+    /// The frame was refused (its own fault: counted, the stream goes on): its number, id, why.
+    Refused(u64, String, Error),
+}
+
+/// Localizes `frames` (each a frame, or an error from the source for one) in order, decoding the
+/// next `ahead` frames on a second thread while the current one is matched; `on` hears about
+/// every frame as it is answered and may stop the replay by returning an error. Errors that are
+/// not a frame's own (the map, the device) end it. Returns the latencies of the frames answered.
+pub fn replay(
+    loc: &mut Localizer,
+    frames: impl Iterator<Item = Result<StreamFrame>> + Send,
+    ahead: usize,
+    mut on: impl FnMut(&mut Localizer, Replayed) -> Result<()>,
+) -> Result<LatencyStats> {
+    let decoder = loc.loader();
+    let (tx, rx) = std::sync::mpsc::sync_channel::<(String, Option<f64>, Result<Loaded>)>(ahead.max(1));
+    let mut stats = LatencyStats::default();
+    std::thread::scope(|s| -> Result<()> {
+        s.spawn(move || {
+            for (k, f) in frames.enumerate() {
+                let item = match f {
+                    Ok(StreamFrame { id, pixels, timestamp }) => {
+                        let l = decoder.load(&id, pixels);
+                        (id, timestamp, l)
+                    }
+                    Err(e) => (format!("frame-{k:06}"), None, Err(e)),
+                };
+                if tx.send(item).is_err() {
+                    return;
+                }
+            }
+        });
+        for (id, ts, loaded) in rx {
+            let (frame, refused) = (loc.counts().frames, loc.counts().refused);
+            match loc.push_loaded(id.clone(), ts, loaded) {
+                Ok(r) => {
+                    stats.push(&r.latency);
+                    on(&mut *loc, Replayed::Answered(r))?;
+                }
+                Err(e) if loc.counts().refused > refused => on(&mut *loc, Replayed::Refused(frame, id, e))?,
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(())
+    })?;
+    Ok(stats)
+}
+
+/// Each query's scored places for sequence matching: its ranked candidates (`lists[q]`, in
+/// `refs`' indices) with their scores, and the references within `widen` positions of them along
+/// their traversals, scored by `setting` (all of a batch in one call).
+pub fn scored_rows(
+    engine: &mut Engine,
+    refs: &dyn RefSource,
+    queries: &crate::descriptors::DescriptorSet,
+    lists: &[Vec<Candidate>],
+    setting: Setting,
+    cfg: &Config,
+    widen: usize,
+) -> Result<Vec<Vec<(Place, f32)>>> {
+    let mut rows: Vec<Vec<(Place, f32)>> = lists.iter().map(|l| l.iter().map(|c| (refs.place(c.reference as usize), c.score)).collect()).collect();
+    let mut pairs: Vec<(u32, u32)> = Vec::new();
+    for (q, list) in lists.iter().enumerate() {
+        let have: HashSet<u32> = list.iter().map(|c| c.reference).collect();
+        let mut extra: Vec<u32> = Vec::new();
+        for c in list {
+            let p = refs.place(c.reference as usize);
+            for d in 1..=widen as u32 {
+                for pos in [p.position.checked_sub(d), p.position.checked_add(d)].into_iter().flatten() {
+                    if let Some(j) = refs.at(Place { traversal: p.traversal, position: pos }).map(|j| j as u32) {
+                        if !have.contains(&j) && !extra.contains(&j) {
+                            extra.push(j);
+                        }
+                    }
+                }
+            }
+        }
+        pairs.extend(extra.into_iter().map(|j| (q as u32, j)));
+    }
+    if !pairs.is_empty() {
+        let scores = engine.score_pairs(refs, queries, setting, cfg, &pairs)?;
+        for (&(q, _), c) in pairs.iter().zip(&scores) {
+            rows[q as usize].push((refs.place(c.reference as usize), c.score));
+        }
+    }
+    Ok(rows)
+}
+
+/// Moves the ring's places from generation `old` to `new`: unchanged where `new` only appended
+/// segments (true), else through the images' ids (false).
+fn follow(seq: &mut SequenceMatcher, old: &Map, new: &Map) -> bool {
+    let (a, b) = (&old.manifest.segments, &new.manifest.segments);
+    if new.manifest.uid == old.manifest.uid && b.len() >= a.len() && a.iter().zip(b).all(|(x, y)| x == y) {
+        return true;
+    }
+    let wanted: HashSet<&str> = seq.places().filter_map(|p| old.at(p)).map(|i| old.id(i)).collect();
+    let found: HashMap<&str, usize> = (0..new.len()).map(|i| (new.id(i), i)).filter(|(id, _)| wanted.contains(*id)).collect();
+    seq.remap(|p| old.at(p).and_then(|i| found.get(old.id(i))).map(|&j| new.place(j)));
+    false
+}
+
+fn add_times(l: &mut Latency, t: &StageTimes) {
+    l.decode_ms = t.decode_ms.max(l.decode_ms);
+    l.segment_ms = t.segment_ms.max(l.segment_ms);
+    l.encode_ms = t.encode_ms();
+    l.network_ms = t.network_ms;
+}
+
+/// A frame's id and time, what matching needs of it besides its pixels.
+struct FrameMeta {
+    id: String,
+    timestamp: Option<f64>,
+}
+
+/// Decodes frames for a [`Localizer`] (see [`Localizer::loader`]).
+#[derive(Clone)]
+pub struct FrameDecoder {
+    encoder: Encoder,
+    format: LabelFormat,
+}
+
+impl FrameDecoder {
+    /// The frame's pixels at the working size, its labels read or made.
+    pub fn load(&self, id: &str, pixels: Pixels) -> Result<Loaded> {
+        load_frame(&self.encoder, id, pixels, self.format)
+    }
+}
+
+fn load_frame(encoder: &Encoder, id: &str, pixels: Pixels, format: LabelFormat) -> Result<Loaded> {
+    let loader = encoder.frames();
+    match pixels {
+        Pixels::Files(src) => loader.load(&src, format),
+        Pixels::Bytes { bytes, labels } => loader.load_bytes(id, Path::new(id), bytes, labels),
+        Pixels::Rgb { image, labels } => loader.load_arrays(id, Some(image), labels),
+        Pixels::Labels(labels) => loader.load_arrays(id, None, Some(labels)),
+    }
+}

@@ -1,0 +1,220 @@
+//! `semlook dev bench-stream`: a real sequence replayed through the streaming localizer against
+//! stored maps of growing size, as a camera would feed it, reporting frames per second and the
+//! median and 99th-percentile latency of every stage.
+//!
+//! Each map holds the real reference traversal the stream was recorded against (encoded from its
+//! images) and, to reach its size, distractor places: the descriptors of other real images (other
+//! routes, other countries) written again under new ids, one traversal of them. The map is
+//! written through the store, as `map build` writes one, opened, and the stream is replayed
+//! through [`crate::stream::replay`] (the next frame decoded, and segmented, on a second thread
+//! while the current one is matched), exactly as `semlook localize` runs it.
+
+use crate::batch::{encode_frames, train_codebook};
+use crate::config::Config;
+use crate::encode::Encoder;
+use crate::engine::Engine;
+use crate::error::{Error, Result};
+use crate::input::FrameSource;
+use crate::map::{Dims, MapWriter, StoreOptions, TraversalPlan};
+use crate::matching::Setting;
+use crate::stream::{replay, Latency, Localizer, Pixels, Replayed, StreamFrame, StreamOptions};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+pub struct StreamBenchOptions {
+    /// The frames of the reference traversal the stream was recorded against.
+    pub references: Vec<FrameSource>,
+    /// The frames replayed, in order (cycled when `frames` asks for more).
+    pub stream: Vec<FrameSource>,
+    /// Frames of other places whose descriptors fill the map to its size.
+    pub distractors: Vec<FrameSource>,
+    pub sizes: Vec<usize>,
+    pub frames: usize,
+    pub setting: Setting,
+    pub sequence: bool,
+    /// Where the maps are written (each removed after its row unless `keep`).
+    pub dir: PathBuf,
+    pub keep: bool,
+    pub quiet: bool,
+}
+
+/// One map size.
+#[derive(Debug, Clone, Serialize)]
+pub struct StreamBenchRow {
+    pub map_size: usize,
+    pub setting: Setting,
+    pub sequence: bool,
+    /// Whether frames without label maps were segmented (else encoded without labels).
+    pub segmented: bool,
+    pub frames: u64,
+    pub refused: u64,
+    /// Frames answered per second of wall clock, end to end (decoding to answer).
+    pub frames_per_s: f64,
+    pub p50: Latency,
+    pub p99: Latency,
+    /// Share of frames answered from a tracking window rather than the whole map.
+    pub tracking: f64,
+    /// Share of frames whose sequence match was accepted.
+    pub accepted: f64,
+    pub map_write_s: f64,
+    pub map_bytes: u64,
+}
+
+/// Runs every size; `engine` makes the engine of each row; `tick` hears about each row.
+pub fn run(
+    cfg: &Config,
+    opts: &StreamBenchOptions,
+    engine: &dyn Fn() -> Result<Engine>,
+    tick: &mut dyn FnMut(&StreamBenchRow),
+) -> Result<Vec<StreamBenchRow>> {
+    if opts.references.is_empty() || opts.stream.is_empty() {
+        return Err(Error::invalid("bench-stream", "needs reference frames and stream frames"));
+    }
+    if let Some(&n) = opts.sizes.iter().find(|&&n| n < opts.references.len()) {
+        return Err(Error::invalid("bench-stream", format!("a map of {n} places cannot hold the {} references", opts.references.len())));
+    }
+    if opts.distractors.is_empty() && opts.sizes.iter().any(|&n| n > opts.references.len()) {
+        return Err(Error::invalid("bench-stream", "maps larger than the references need distractor frames"));
+    }
+    let mut e = engine()?;
+    let mut encoder = Encoder::new(cfg)?;
+    let segmented = encoder.frames().can_segment();
+    let labels_free = encoder.cannot_label(opts.references.iter());
+    encoder = encoder.without_labels(labels_free);
+    train_codebook(&mut encoder, &opts.references, opts.quiet)?;
+    let refs = encode_frames(&mut e, &encoder, &opts.references, Default::default(), "references", false, opts.quiet)?.set;
+    let fill = encode_frames(&mut e, &encoder, &opts.distractors, Default::default(), "distractors", false, opts.quiet)?.set;
+    drop(e);
+    let mut rows = Vec::new();
+    for &size in &opts.sizes {
+        let dir = opts.dir.join(format!("bench-stream-{size}-{}", std::process::id()));
+        let t = Instant::now();
+        write_map(&dir, cfg, &encoder, &refs, &fill, size, labels_free)?;
+        let map_write_s = t.elapsed().as_secs_f64();
+        let map_bytes = dir_bytes(&dir);
+        let sopts = StreamOptions { setting: opts.setting, sequence: opts.sequence, loop_closure: false };
+        let mut loc = Localizer::open(&dir, Some(cfg.clone()), sopts, engine()?)?;
+        let frames: Vec<StreamFrame> = (0..opts.frames)
+            .map(|k| {
+                let f = &opts.stream[k % opts.stream.len()];
+                StreamFrame { id: format!("{}#{k}", f.id), pixels: Pixels::Files(f.clone()), timestamp: None }
+            })
+            .collect();
+        let (mut tracking, mut accepted) = (0u64, 0u64);
+        let t = Instant::now();
+        let stats = replay(&mut loc, frames.into_iter().map(Ok), 2, |_, r| {
+            if let Replayed::Answered(r) = r {
+                tracking += u64::from(r.tracking);
+                accepted += u64::from(r.sequence.as_ref().is_some_and(|s| s.matched.accepted));
+            }
+            Ok(())
+        })?;
+        let wall = t.elapsed().as_secs_f64();
+        let s = stats.summary();
+        let c = loc.counts();
+        drop(loc);
+        let answered = (c.frames - c.refused).max(1) as f64;
+        let row = StreamBenchRow {
+            map_size: size,
+            setting: opts.setting,
+            sequence: opts.sequence,
+            segmented: segmented && !labels_free,
+            frames: c.frames,
+            refused: c.refused,
+            frames_per_s: c.frames as f64 / wall.max(1e-9),
+            p50: s.p50,
+            p99: s.p99,
+            tracking: tracking as f64 / answered,
+            accepted: accepted as f64 / answered,
+            map_write_s,
+            map_bytes,
+        };
+        tick(&row);
+        rows.push(row);
+        if !opts.keep {
+            std::fs::remove_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+        }
+    }
+    Ok(rows)
+}
+
+/// A map of `size` places in `dir`: `refs` (traversal 0), then `fill`'s images again and again
+/// under new ids (one traversal), up to `size`.
+fn write_map(
+    dir: &Path,
+    cfg: &Config,
+    encoder: &Encoder,
+    refs: &crate::descriptors::DescriptorSet,
+    fill: &crate::descriptors::DescriptorSet,
+    size: usize,
+    without_labels: bool,
+) -> Result<()> {
+    let dims = Dims { appearance: encoder.appearance_dim(), hog: 0, keypoints: encoder.keypoint_dim() };
+    let mut w = MapWriter::create(dir, &cfg.encoding(), dims, encoder.appearance_record(), StoreOptions::default(), false)?;
+    if without_labels {
+        w = w.without_labels()?;
+    }
+    w.push_set(refs)?;
+    w.finish()?;
+    if size > refs.len() {
+        let mut w = MapWriter::append(dir, StoreOptions::default())?.with_traversal(TraversalPlan::Named("distractors".into()))?;
+        for k in 0..size - refs.len() {
+            let mut one = fill.slice(k % fill.len(), k % fill.len() + 1);
+            one.ids[0] = format!("distractor-{k:07}");
+            w.push_set(&one)?;
+        }
+        w.finish()?;
+    }
+    Ok(())
+}
+
+fn dir_bytes(dir: &Path) -> u64 {
+    std::fs::read_dir(dir).map(|rd| rd.flatten().filter_map(|e| e.metadata().ok()).map(|m| m.len()).sum()).unwrap_or(0)
+}
+
+/// The rows as a table.
+pub fn table(rows: &[StreamBenchRow]) -> String {
+    let mut s = format!(
+        "{:>9} {:<10} {:>4} {:>4} {:>7} {:>8} {:>8} | {:>11} {:>11} {:>11} {:>11} {:>11} {:>11} {:>11} | {:>6} {:>6}\n",
+        "places",
+        "setting",
+        "seq",
+        "seg",
+        "frames",
+        "frames/s",
+        "MB",
+        "total",
+        "decode",
+        "segment",
+        "encode",
+        "coarse",
+        "fine",
+        "sequence",
+        "track",
+        "accept"
+    );
+    for r in rows {
+        let c = |a: f64, b: f64| format!("{a:.1}/{b:.1}");
+        s += &format!(
+            "{:>9} {:<10} {:>4} {:>4} {:>7} {:>8.2} {:>8.0} | {:>11} {:>11} {:>11} {:>11} {:>11} {:>11} {:>11} | {:>6.2} {:>6.2}\n",
+            r.map_size,
+            r.setting.name(),
+            if r.sequence { "on" } else { "off" },
+            if r.segmented { "yes" } else { "no" },
+            r.frames,
+            r.frames_per_s,
+            r.map_bytes as f64 / 1e6,
+            c(r.p50.total_ms, r.p99.total_ms),
+            c(r.p50.decode_ms, r.p99.decode_ms),
+            c(r.p50.segment_ms, r.p99.segment_ms),
+            c(r.p50.encode_ms, r.p99.encode_ms),
+            c(r.p50.coarse_ms, r.p99.coarse_ms),
+            c(r.p50.fine_ms, r.p99.fine_ms),
+            c(r.p50.sequence_ms, r.p99.sequence_ms),
+            r.tracking,
+            r.accepted
+        );
+    }
+    s + "latency columns: p50/p99 ms per frame; total from the frame's decoding to its answer (decoding runs a frame ahead on a second thread)\n"
+}

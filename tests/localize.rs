@@ -1,0 +1,111 @@
+//! `semlook localize` and `eval --sequence` from the command line: a folder in time order with a
+//! time going back, images piped to standard input with garbage between them, and the sequence
+//! columns of an evaluation.
+
+mod common;
+
+use common::{cli, cli_ok, p};
+use std::io::Write;
+use std::path::Path;
+
+/// The tiny synthetic benchmark's folders: (reference RGB, reference labels, night RGB, night labels).
+fn folders(root: &Path) -> (std::path::PathBuf, std::path::PathBuf, std::path::PathBuf, std::path::PathBuf) {
+    let cam = semlook::dataset::SYNTHIA_CAMERA;
+    let f = |t: &str, k: &str| root.join(t).join(k).join(cam);
+    (f("day", "RGB"), f("day", "GT/LABELS"), f("night", "RGB"), f("night", "GT/LABELS"))
+}
+
+#[test]
+fn a_folder_in_time_order_is_localized_frame_by_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    common::tiny_synth(&data, 24, 3);
+    let (ref_rgb, ref_lab, q_rgb, q_lab) = folders(&data);
+    let map = dir.path().join("map");
+    cli_ok(&["map", "build", "--images", p(&ref_rgb), "--labels", p(&ref_lab), "--no-appearance", "--map", p(&map), "-q"]);
+    // times in the reverse of the name order, but frame 000005's goes back
+    let mut times = String::from("name,time\n");
+    for i in 0..24 {
+        let t = if i == 5 { 1.0 } else { 100.0 + i as f64 };
+        times += &format!("{i:06}.png,{t}\n");
+    }
+    let tfile = dir.path().join("times.csv");
+    std::fs::write(&tfile, times).unwrap();
+    let args = ["--backend", "cpu", "localize", "--map", p(&map), "--images", p(&q_rgb), "--labels", p(&q_lab), "--timestamps", p(&tfile)];
+    let out = cli_ok(&[&args[..], &["--setting", "forest", "--no-appearance", "--json", "-q"]].concat());
+    let lines: Vec<serde_json::Value> = out.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(lines.len(), 25, "one line per frame and the summary:\n{out}");
+    // frame 000005 comes first (its time is the smallest), then the others in order
+    assert_eq!(lines[0]["id"], "000005");
+    assert_eq!(lines[1]["id"], "000000");
+    let answered: Vec<&serde_json::Value> = lines.iter().filter(|l| l.get("top_k").is_some()).collect();
+    assert_eq!(answered.len(), 24);
+    assert!(answered.iter().all(|l| l["top_k"].as_array().is_some_and(|k| !k.is_empty())));
+    assert!(answered.iter().skip(12).any(|l| l["sequence"]["accepted"] == true), "{out}");
+    let summary = &lines[24]["summary"];
+    assert_eq!(summary["counts"]["frames"], 24);
+    assert!(summary["latency"]["p50"]["total_ms"].as_f64().unwrap() > 0.0);
+    // a name the timestamps do not list is refused before any work
+    std::fs::write(&tfile, "000000.png 1\n").unwrap();
+    let bad = cli(&[&args[..], &["--setting", "forest", "--no-appearance", "-q"]].concat());
+    assert!(!bad.status.success());
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(err.contains("times.csv") && err.contains("no time for 000001.png"), "{err}");
+}
+
+#[test]
+fn piped_images_are_localized_and_garbage_costs_one_frame() {
+    if !common::has_xfeat() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    common::tiny_synth(&data, 16, 4);
+    let (ref_rgb, _, q_rgb, _) = folders(&data);
+    let map = dir.path().join("map");
+    // photos alone, no segmenter: a map of appearance without labels, as a camera gives
+    cli_ok(&["--backend", "cpu", "map", "build", "--images", p(&ref_rgb), "--no-segmenter", "--map", p(&map), "-q"]);
+    let mut piped = Vec::new();
+    for i in 0..16 {
+        piped.extend(std::fs::read(q_rgb.join(format!("{i:06}.png"))).unwrap());
+        if i == 7 {
+            piped.extend_from_slice(b"this is not an image");
+        }
+    }
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_semlook"))
+        .args(["--backend", "cpu", "localize", "--map", p(&map), "--stdin", "--no-segmenter", "-q"])
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    child.stdin.take().unwrap().write_all(&piped).unwrap();
+    let out = child.wait_with_output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let text = String::from_utf8(out.stdout).unwrap();
+    let rows: Vec<&str> = text.lines().filter(|l| !l.starts_with('#') && !l.starts_with("frame,")).collect();
+    assert_eq!(rows.len(), 16, "every piped image answered:\n{text}");
+    assert!(rows.iter().all(|r| r.split(',').nth(2).is_some_and(|best| !best.is_empty())), "{text}");
+    assert!(text.contains("# 17 frames (1 refused)"), "{text}");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("neither a JPEG nor a PNG"));
+}
+
+#[test]
+fn eval_reports_sequence_matching_beside_single_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    common::tiny_synth(&data, 20, 5);
+    let out =
+        cli_ok(&["--backend", "cpu", "eval", "--dataset", p(&data), "--setting", "forest,global", "--sequence", "--no-appearance", "--json", "-q"]);
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    for r in v["results"].as_array().unwrap() {
+        let s = &r["sequence"];
+        assert_eq!(s["outcomes"].as_array().unwrap().len(), r["queries"].as_u64().unwrap() as usize, "{r}");
+        let r1 = s["recall_at_1"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&r1) && s["accepted_precision"].as_f64().is_some());
+    }
+    let table = cli_ok(&["--backend", "cpu", "eval", "--dataset", p(&data), "--setting", "forest", "--sequence", "--no-appearance", "-q"]);
+    assert!(table.contains("sequence matching") && table.contains("seq R@1"), "{table}");
+    let without = cli_ok(&["--backend", "cpu", "eval", "--dataset", p(&data), "--setting", "forest", "--no-appearance", "--json", "-q"]);
+    assert!(!without.contains("\"sequence\""), "no sequence section unless asked");
+}
