@@ -1,0 +1,53 @@
+"""Writes tests/golden/*.hex: the CDR bytes rclpy (Fast DDS) serialises the sample messages of
+src/msgs.rs's golden test to. Run once, with the ROS 2 venv and the messages built by
+build_msgs_py.sh:
+
+    PYTHONPATH=OUT/python LD_LIBRARY_PATH=OUT/lib VENV/bin/python ros2/scripts/golden.py ros2/tests/golden
+"""
+
+import sys
+from pathlib import Path
+
+from rclpy.serialization import serialize_message
+from semlook_msgs.msg import LoopClosure, PlaceMatch
+from sensor_msgs.msg import CompressedImage, Image
+from std_msgs.msg import Header
+
+
+def header():
+    h = Header()
+    h.stamp.sec, h.stamp.nanosec, h.frame_id = 1_700_000_123, 456_789, "cam0"
+    return h
+
+
+def samples():
+    m = PlaceMatch()
+    m.header = header()
+    m.frame, m.place_id, m.place_index, m.score = 7, "ref/012", 12, 5.25
+    m.sequence_matched, m.sequence_id, m.sequence_score, m.uniqueness, m.accepted = True, "ref/012", 1.5, 1.75, True
+    m.top_ids, m.top_indices, m.top_scores = ["ref/012", "ref/013", "ref/0"], [12, 13, 0], [5.25, 4.5, -0.125]
+    m.inliers, m.map_generation, m.latency_ms = 33, 3, 87.5
+    c = LoopClosure()
+    c.header = header()
+    c.query_id, c.place_id, c.place_index, c.score, c.uniqueness, c.inliers = "1700000123.000456789", "0", 0, 2.5, 1000.0, -1
+    i = Image()
+    i.header = header()
+    i.height, i.width, i.encoding, i.is_bigendian, i.step, i.data = 2, 3, "rgb8", 0, 9, bytes(range(18))
+    j = CompressedImage()
+    j.header = header()
+    j.format, j.data = "jpeg", bytes([0xFF, 0xD8, 0xFF, 0xD9])
+    return {"PlaceMatch": m, "LoopClosure": c, "Image": i, "CompressedImage": j}
+
+
+def main(out):
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    for name, msg in samples().items():
+        b = serialize_message(msg)
+        lines = [b[k : k + 16].hex(" ") for k in range(0, len(b), 16)]
+        (out / f"{name}.hex").write_text("\n".join(lines) + "\n")
+        print(f"{name}: {len(b)} bytes")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1])

@@ -1,0 +1,467 @@
+//! The node: DDS participant, subscriptions and publishers on one thread (an async executor),
+//! the localizer on another, a bounded queue between them.
+
+use crate::msgs::{CompressedImage, Header, Image, LoopClosure, PlaceMatch};
+use crate::params::Params;
+use futures::{FutureExt, StreamExt};
+use ros2_client::dds::rustdds::DomainParticipantBuilder;
+use ros2_client::parameters::ParameterValue;
+use ros2_client::qos::{Durability, History, WhenFull};
+use ros2_client::{Context, MessageTypeName, Name, NodeName, NodeOptions, QosProfile};
+use semlook::config::Config;
+use semlook::engine::{Backend, Engine};
+use semlook::map::Map;
+use semlook::matching::Setting;
+use semlook::stream::{FrameResult, Latency, LatencyStats, Localizer, Pixels, StreamFrame, StreamOptions};
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
+
+/// Most pixels a raw frame may have (a 8K frame); larger ones are refused.
+const MAX_PIXELS: u64 = 7680 * 4320;
+
+/// Log lines on standard error (`SEMLOOK_LOG=debug` for one line per frame).
+pub fn init_logging() {
+    struct Stderr(log::LevelFilter);
+    impl log::Log for Stderr {
+        fn enabled(&self, m: &log::Metadata) -> bool {
+            // the DDS stack's own warnings (multicast joins on a loopback-only host, readers
+            // without locators during discovery) only with SEMLOOK_LOG=debug
+            m.level() <= self.0 && (m.target().starts_with("semlook") || m.level() <= log::Level::Error || self.0 >= log::LevelFilter::Debug)
+        }
+        fn log(&self, r: &log::Record) {
+            if self.enabled(r.metadata()) {
+                use std::io::Write;
+                let _ = writeln!(std::io::stderr(), "[semlook_node] {}: {}", r.level(), r.args());
+            }
+        }
+        fn flush(&self) {}
+    }
+    let level = match std::env::var("SEMLOOK_LOG").as_deref() {
+        Ok("debug") => log::LevelFilter::Debug,
+        Ok("warn") => log::LevelFilter::Warn,
+        _ => log::LevelFilter::Info,
+    };
+    if log::set_boxed_logger(Box::new(Stderr(level))).is_ok() {
+        log::set_max_level(level);
+    }
+}
+
+/// A frame waiting to be localized.
+struct Incoming {
+    header: Header,
+    pixels: Pixels,
+    received: Instant,
+}
+
+/// The frames between the DDS thread and the localizer: at most `cap`; a frame arriving at a full
+/// queue pushes out the oldest.
+struct Queue {
+    items: Mutex<VecDeque<Incoming>>,
+    ready: Condvar,
+    cap: usize,
+    dropped: AtomicU64,
+}
+
+impl Queue {
+    fn push(&self, f: Incoming) {
+        let mut q = self.items.lock().unwrap_or_else(|e| e.into_inner());
+        if q.len() >= self.cap {
+            q.pop_front();
+            self.dropped.fetch_add(1, Ordering::Relaxed);
+        }
+        q.push_back(f);
+        self.ready.notify_one();
+    }
+    fn pop(&self, wait: Duration) -> Option<Incoming> {
+        let q = self.items.lock().unwrap_or_else(|e| e.into_inner());
+        let (mut q, _) = self.ready.wait_timeout_while(q, wait, |q| q.is_empty()).unwrap_or_else(|e| e.into_inner());
+        q.pop_front()
+    }
+}
+
+/// Counts the node keeps (and logs in its summary).
+#[derive(Default)]
+struct Counts {
+    received: AtomicU64,
+    /// Frames refused before the localizer: unsupported encoding or format, bad sizes.
+    unsupported: AtomicU64,
+    published: AtomicU64,
+}
+
+/// An `Image` as pixels: rgb8, bgr8 and mono8 (rows of `step` bytes); others refused.
+pub fn image_pixels(m: &Image) -> Result<Pixels, String> {
+    let ch = match m.encoding.as_str() {
+        "rgb8" | "bgr8" => 3,
+        "mono8" => 1,
+        other => return Err(format!("encoding {other:?} is not supported (rgb8, bgr8, mono8)")),
+    };
+    let (w, h, step) = (m.width as u64, m.height as u64, m.step as u64);
+    if w == 0 || h == 0 || w * h > MAX_PIXELS {
+        return Err(format!("{w}x{h} pixels (1 to {MAX_PIXELS})"));
+    }
+    if step < w * ch || (m.data.len() as u64) < step * (h - 1) + w * ch {
+        return Err(format!("{} bytes with step {step} for {w}x{h} {} pixels", m.data.len(), m.encoding));
+    }
+    let mut rgb = Vec::with_capacity((w * h * 3) as usize);
+    for y in 0..h as usize {
+        let row = &m.data[y * step as usize..y * step as usize + (w * ch) as usize];
+        match m.encoding.as_str() {
+            "rgb8" => rgb.extend_from_slice(row),
+            "bgr8" => rgb.extend(row.chunks_exact(3).flat_map(|p| [p[2], p[1], p[0]])),
+            _ => rgb.extend(row.iter().flat_map(|&v| [v, v, v])),
+        }
+    }
+    let image = image::RgbImage::from_raw(m.width, m.height, rgb).ok_or("pixel count")?;
+    Ok(Pixels::Rgb { image, labels: None })
+}
+
+/// A `CompressedImage` as bytes to decode: jpeg or png (the format string says which, as
+/// image_transport writes it: "jpeg", "png", or "rgb8; jpeg compressed bgr8").
+pub fn compressed_pixels(m: &CompressedImage) -> Result<Pixels, String> {
+    let f = m.format.to_ascii_lowercase();
+    if !(f.contains("jpeg") || f.contains("jpg") || f.contains("png")) {
+        return Err(format!("format {:?} is not supported (jpeg, png)", m.format));
+    }
+    Ok(Pixels::Bytes { bytes: m.data.clone(), labels: None })
+}
+
+/// The id a frame gets (and is stored under in loop-closure mode): its stamp.
+pub fn frame_id(h: &Header) -> String {
+    format!("{}.{:09}", h.stamp.sec, h.stamp.nanosec)
+}
+
+/// The PlaceMatch of a localized frame.
+pub fn place_match(h: &Header, r: &FrameResult, latency_ms: f32) -> PlaceMatch {
+    let best = r.best();
+    let seq = r.sequence.as_ref();
+    let (place_id, place_index, score) = match (seq, best) {
+        (Some(s), _) if s.matched.accepted => (s.id.clone(), s.index, s.matched.score),
+        (_, Some(b)) => (b.id.clone(), b.index, b.score),
+        _ => (String::new(), 0, 0.0),
+    };
+    PlaceMatch {
+        header: h.clone(),
+        frame: r.frame,
+        place_id,
+        place_index,
+        score,
+        sequence_matched: seq.is_some(),
+        sequence_id: seq.map_or(String::new(), |s| s.id.clone()),
+        sequence_score: seq.map_or(0.0, |s| s.matched.score),
+        uniqueness: seq.map_or(0.0, |s| s.matched.uniqueness),
+        accepted: seq.is_some_and(|s| s.matched.accepted),
+        top_ids: r.top_k.iter().map(|c| c.id.clone()).collect(),
+        top_indices: r.top_k.iter().map(|c| c.index).collect(),
+        top_scores: r.top_k.iter().map(|c| c.score).collect(),
+        inliers: best.and_then(|b| b.inliers).map_or(-1, |i| i.min(i32::MAX as u32) as i32),
+        map_generation: r.generation,
+        latency_ms,
+    }
+}
+
+/// The configuration the node localizes with: the file given, else the map's, with the
+/// parameters that override it.
+fn config(p: &Params) -> Result<Option<Config>, String> {
+    let mut cfg = match (&p.config, semlook::map::manifest::read(&p.map).map_err(|e| e.to_string())?) {
+        (Some(f), _) => Config::load(f).map_err(|e| e.to_string())?,
+        (None, Some(_)) => Map::open(&p.map).map_err(|e| e.to_string())?.query_config(),
+        (None, None) => Config::default(),
+    };
+    if let Some(k) = p.top_k {
+        cfg.matching.top_k = k;
+    }
+    if let Some(n) = p.sequence_length {
+        cfg.sequence.length = n;
+        cfg.sequence.min_frames = cfg.sequence.min_frames.min(n);
+    }
+    cfg.validate("node parameters").map_err(|e| e.to_string())?;
+    Ok(Some(cfg))
+}
+
+/// The DDS context: `ROS_DOMAIN_ID`; only the loopback network where ROS 2 would stay on this
+/// host (`ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`, or the older `ROS_LOCALHOST_ONLY=1`).
+fn context() -> Result<Context, String> {
+    let domain = match std::env::var("ROS_DOMAIN_ID") {
+        Ok(v) if !v.is_empty() => v.parse::<u16>().map_err(|_| format!("ROS_DOMAIN_ID={v:?} is not a domain number"))?,
+        _ => 0,
+    };
+    let local = std::env::var("ROS_AUTOMATIC_DISCOVERY_RANGE").is_ok_and(|v| v.eq_ignore_ascii_case("LOCALHOST"))
+        || std::env::var("ROS_LOCALHOST_ONLY").is_ok_and(|v| v == "1");
+    let mut b = DomainParticipantBuilder::new(domain).same_host_loopback(true);
+    if local {
+        b = b.with_only_networks([std::net::Ipv4Addr::LOCALHOST]);
+    }
+    let dp = b.build().map_err(|e| format!("DDS participant (domain {domain}): {e:?}"))?;
+    log::info!("DDS domain {domain}{}", if local { ", loopback only" } else { "" });
+    Context::from_domain_participant(dp).map_err(|e| format!("ROS 2 context: {e:?}"))
+}
+
+pub fn run(p: Params) -> Result<(), String> {
+    // the localizer first: a bad map or parameter fails before any DDS traffic
+    let setting = Setting::ALL.into_iter().find(|s| s.name() == p.setting).ok_or_else(|| format!("setting {:?} is unknown", p.setting))?;
+    let backend =
+        Backend::ALL.into_iter().find(|b| b.name() == p.backend).ok_or_else(|| format!("backend {:?} is unknown (cpu, gpu, auto)", p.backend))?;
+    let (engine, why) = Engine::new(backend, &Default::default()).map_err(|e| e.to_string())?;
+    if let Some(why) = why {
+        log::info!("backend auto: {why}");
+    }
+    let cfg = config(&p)?;
+    let opts = StreamOptions { setting, sequence: p.sequence, loop_closure: p.loop_closure };
+    let loc = Localizer::open(&p.map, cfg, opts, engine).map_err(|e| e.to_string())?;
+    match loc.map() {
+        Some(m) => log::info!(
+            "map {}: {} places, generation {}; setting {setting}; {}",
+            p.map.display(),
+            m.len(),
+            m.manifest.generation,
+            loc.engine().describe()
+        ),
+        None => log::info!("map {}: made from the stream (loop closure)", p.map.display()),
+    }
+    let ctx = context()?;
+    let mut options = NodeOptions::new().enable_rosout(false).start_parameter_services(true);
+    let values = declared(&p);
+    for (name, value) in &values {
+        options = options.declare_parameter(name, value.clone());
+    }
+    // the node runs with what it was started with: any other value is refused, with the reason
+    let options = options.parameter_validator(Box::new(move |name: &str, v: &ParameterValue| match values.iter().find(|(n, _)| *n == name) {
+        Some((_, now)) if now == v => Ok(()),
+        _ => Err(format!("{name} is read-only: restart the node to change it")),
+    }));
+    let node_name = NodeName::new(&p.namespace, &p.node_name).map_err(|e| format!("node name {:?} in {:?}: {e:?}", p.node_name, p.namespace))?;
+    let mut node = ctx.new_node(node_name, options).map_err(|e| format!("node: {e:?}"))?;
+    let ex = smol::LocalExecutor::new();
+    ex.spawn(node.spinner().map_err(|e| format!("spinner: {e:?}"))?.spin()).detach();
+    let sensor =
+        QosProfile::subscription_default().reliability_best_effort().durability(Durability::Volatile).history(History::KeepLast { depth: 5 });
+    let reliable = QosProfile::publisher_default()
+        .reliability_reliable(WhenFull::DEFAULT)
+        .durability(Durability::Volatile)
+        .history(History::KeepLast { depth: 10 });
+    let topic = |node: &mut ros2_client::Node, name: &str, pkg: &str, ty: &str, qos: &QosProfile| {
+        let n = Name::parse(name).map_err(|e| format!("topic {name:?}: {e:?}"))?;
+        node.create_topic(&n, MessageTypeName::new(pkg, ty), qos).map_err(|e| format!("topic {name:?}: {e:?}"))
+    };
+    let own = |base: &str| format!("{}/{}/{base}", p.namespace.trim_end_matches('/'), p.node_name);
+    let t_img = topic(&mut node, &p.image_topic, "sensor_msgs", "Image", &sensor)?;
+    let t_cmp = topic(&mut node, &p.compressed_topic, "sensor_msgs", "CompressedImage", &sensor)?;
+    let t_match = topic(&mut node, &own("match"), "semlook_msgs", "PlaceMatch", &reliable)?;
+    let t_closure = topic(&mut node, &own("closure"), "semlook_msgs", "LoopClosure", &reliable)?;
+    let sub_img = node.create_subscription::<Image>(&t_img, None).map_err(|e| format!("subscription: {e:?}"))?;
+    let sub_cmp = node.create_subscription::<CompressedImage>(&t_cmp, None).map_err(|e| format!("subscription: {e:?}"))?;
+    let pub_match = node.create_publisher::<PlaceMatch>(&t_match, None).map_err(|e| format!("publisher: {e:?}"))?;
+    let pub_closure = node.create_publisher::<LoopClosure>(&t_closure, None).map_err(|e| format!("publisher: {e:?}"))?;
+    log::info!("subscribed {} and {}; publishing {} and {}", p.image_topic, p.compressed_topic, own("match"), own("closure"));
+
+    let stop = Arc::new(AtomicBool::new(false));
+    {
+        let stop = stop.clone();
+        ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst)).map_err(|e| format!("signal handler: {e}"))?;
+    }
+    let queue = Arc::new(Queue { items: Mutex::new(VecDeque::new()), ready: Condvar::new(), cap: p.queue_size, dropped: AtomicU64::new(0) });
+    let counts = Arc::new(Counts::default());
+    let worker = {
+        let (queue, counts, stop) = (queue.clone(), counts.clone(), stop.clone());
+        let refresh = (p.map_refresh_s > 0.0).then(|| Duration::from_secs_f64(p.map_refresh_s));
+        std::thread::Builder::new()
+            .name("localizer".into())
+            .spawn(move || localize(loc, &queue, &counts, &stop, refresh, &pub_match, &pub_closure))
+            .map_err(|e| format!("localizer thread: {e}"))?
+    };
+    smol::block_on(ex.run(async {
+        let mut imgs = Box::pin(sub_img.async_stream());
+        let mut cmps = Box::pin(sub_cmp.async_stream());
+        while !stop.load(Ordering::SeqCst) {
+            let tick = FutureExt::fuse(smol::Timer::after(Duration::from_millis(100)));
+            futures::pin_mut!(tick);
+            let got = futures::select! {
+                m = imgs.next() => m.map(|r| r.map(|(m, _)| (m.header.clone(), image_pixels(&m)))),
+                m = cmps.next() => m.map(|r| r.map(|(m, _)| (m.header.clone(), compressed_pixels(&m)))),
+                _ = tick => continue,
+            };
+            let received = Instant::now();
+            match got {
+                Some(Ok((header, Ok(pixels)))) => {
+                    counts.received.fetch_add(1, Ordering::Relaxed);
+                    queue.push(Incoming { header, pixels, received });
+                }
+                Some(Ok((header, Err(why)))) => {
+                    counts.received.fetch_add(1, Ordering::Relaxed);
+                    counts.unsupported.fetch_add(1, Ordering::Relaxed);
+                    log::warn!("frame {} refused: {why}", frame_id(&header));
+                }
+                Some(Err(e)) => log::warn!("a sample could not be read: {e:?}"),
+                None => break,
+            }
+        }
+    }));
+    stop.store(true, Ordering::SeqCst);
+    queue.ready.notify_all();
+    let summary = worker.join().map_err(|_| "the localizer thread panicked".to_string())?;
+    let s = serde_json::json!({
+        "summary": {
+            "received": counts.received.load(Ordering::Relaxed),
+            "unsupported": counts.unsupported.load(Ordering::Relaxed),
+            "dropped": queue.dropped.load(Ordering::Relaxed),
+            "published": counts.published.load(Ordering::Relaxed),
+            "localizer": summary.0,
+            "receive_to_publish_ms": { "p50": summary.1.p50.total_ms, "p99": summary.1.p99.total_ms, "mean": summary.1.mean.total_ms, "frames": summary.1.frames },
+            "stage_ms_p50": summary.1.p50,
+        }
+    });
+    log::info!("stopped: {s}");
+    println!("{s}");
+    Ok(())
+}
+
+/// The parameters as the node declares them (what parameter clients read back).
+fn declared(p: &Params) -> Vec<(&'static str, ParameterValue)> {
+    let s = |v: &str| ParameterValue::String(v.to_string());
+    vec![
+        ("map", s(&p.map.display().to_string())),
+        ("setting", s(&p.setting)),
+        ("top_k", ParameterValue::Integer(p.top_k.map_or(0, |k| k as i64))),
+        ("sequence", ParameterValue::Boolean(p.sequence)),
+        ("sequence_length", ParameterValue::Integer(p.sequence_length.map_or(0, |k| k as i64))),
+        ("loop_closure", ParameterValue::Boolean(p.loop_closure)),
+        ("backend", s(&p.backend)),
+        ("config", s(&p.config.as_ref().map_or(String::new(), |c| c.display().to_string()))),
+        ("image_topic", s(&p.image_topic)),
+        ("compressed_topic", s(&p.compressed_topic)),
+        ("queue_size", ParameterValue::Integer(p.queue_size as i64)),
+        ("map_refresh_s", ParameterValue::Double(p.map_refresh_s)),
+    ]
+}
+
+/// The localizer thread: frames from the queue, answers to the publishers, until `stop`.
+/// Returns the localizer's counts and the latencies (total: receive to publish).
+fn localize(
+    mut loc: Localizer,
+    queue: &Queue,
+    counts: &Counts,
+    stop: &AtomicBool,
+    refresh: Option<Duration>,
+    pub_match: &ros2_client::Publisher<PlaceMatch>,
+    pub_closure: &ros2_client::Publisher<LoopClosure>,
+) -> (semlook::stream::StreamCounts, semlook::stream::LatencySummary) {
+    let mut stats = LatencyStats::default();
+    let mut checked = Instant::now();
+    loop {
+        if refresh.is_some_and(|r| checked.elapsed() >= r) {
+            checked = Instant::now();
+            match loc.refresh() {
+                Ok(true) => log::info!("moved to map generation {}", loc.map().map_or(0, |m| m.manifest.generation)),
+                Ok(false) => {}
+                Err(e) => log::warn!("kept map generation {}: {e}", loc.map().map_or(0, |m| m.manifest.generation)),
+            }
+        }
+        let Some(f) = queue.pop(Duration::from_millis(100)) else {
+            if stop.load(Ordering::SeqCst) {
+                break;
+            }
+            continue;
+        };
+        let id = frame_id(&f.header);
+        let frame = StreamFrame { id: id.clone(), pixels: f.pixels, timestamp: Some(f.header.stamp.seconds()) };
+        let refused = loc.counts().refused;
+        match loc.push(frame) {
+            Ok(r) => {
+                if let Some(c) = &r.closure {
+                    let msg = LoopClosure {
+                        header: f.header.clone(),
+                        query_id: c.frame.clone(),
+                        place_id: c.place.id.clone(),
+                        place_index: c.place.index,
+                        score: c.place.score,
+                        uniqueness: c.uniqueness,
+                        inliers: c.place.inliers.map_or(-1, |i| i.min(i32::MAX as u32) as i32),
+                    };
+                    if let Err(e) = pub_closure.publish(msg) {
+                        log::warn!("closure of frame {id} not published: {e:?}");
+                    }
+                }
+                let latency = f.received.elapsed().as_secs_f64() * 1e3;
+                let msg = place_match(&f.header, &r, latency as f32);
+                match pub_match.publish(msg) {
+                    Ok(()) => {
+                        counts.published.fetch_add(1, Ordering::Relaxed);
+                        let total = f.received.elapsed().as_secs_f64() * 1e3;
+                        stats.push(&Latency { total_ms: total, ..r.latency });
+                        log::debug!("frame {id}: {:?} in {total:.1} ms", r.place());
+                    }
+                    Err(e) => log::warn!("match of frame {id} not published: {e:?}"),
+                }
+                let n = counts.published.load(Ordering::Relaxed);
+                if n.is_multiple_of(100) {
+                    let s = stats.summary();
+                    log::info!(
+                        "{n} frames published, {} dropped; receive to publish p50 {:.1} ms, p99 {:.1} ms",
+                        queue.dropped.load(Ordering::Relaxed),
+                        s.p50.total_ms,
+                        s.p99.total_ms
+                    );
+                }
+            }
+            Err(e) if loc.counts().refused > refused => log::warn!("frame {id} refused: {e}"),
+            Err(e) => {
+                log::error!("frame {id}: {e}; stopping");
+                stop.store(true, Ordering::SeqCst);
+                break;
+            }
+        }
+    }
+    if let Err(e) = loc.finish() {
+        log::error!("the last frames were not committed: {e}");
+    }
+    (loc.counts(), stats.summary())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn image(encoding: &str, w: u32, h: u32, step: u32, data: Vec<u8>) -> Image {
+        Image { header: Header::default(), height: h, width: w, encoding: encoding.into(), is_bigendian: 0, step, data }
+    }
+
+    #[test]
+    fn raw_encodings_convert_and_others_are_refused_with_the_reason() {
+        // 2x2 with one byte of padding per row
+        let bgr = image("bgr8", 2, 2, 7, vec![1, 2, 3, 4, 5, 6, 0, 7, 8, 9, 10, 11, 12, 0]);
+        let Pixels::Rgb { image: img, .. } = image_pixels(&bgr).unwrap() else { panic!() };
+        assert_eq!(img.as_raw(), &[3, 2, 1, 6, 5, 4, 9, 8, 7, 12, 11, 10]);
+        let mono = image("mono8", 2, 1, 2, vec![5, 9]);
+        let Pixels::Rgb { image: img, .. } = image_pixels(&mono).unwrap() else { panic!() };
+        assert_eq!(img.as_raw(), &[5, 5, 5, 9, 9, 9]);
+        for (m, says) in [
+            (image("16UC1", 2, 2, 4, vec![0; 8]), "16UC1"),
+            (image("rgb8", 2, 2, 5, vec![0; 12]), "step 5"),
+            (image("rgb8", 2, 2, 6, vec![0; 11]), "11 bytes"),
+            (image("rgb8", 0, 2, 0, vec![]), "0x2"),
+        ] {
+            let e = image_pixels(&m).err().unwrap();
+            assert!(e.contains(says), "{e}");
+        }
+        let c = CompressedImage { header: Header::default(), format: "tiff".into(), data: vec![1] };
+        assert!(compressed_pixels(&c).err().unwrap().contains("tiff"));
+        let c = CompressedImage { format: "rgb8; jpeg compressed bgr8".into(), ..c };
+        assert!(compressed_pixels(&c).is_ok());
+    }
+
+    /// A full queue drops its oldest frame, counts it, and never holds more than its size.
+    #[test]
+    fn a_burst_drops_the_oldest_frames() {
+        let q = Queue { items: Mutex::new(VecDeque::new()), ready: Condvar::new(), cap: 2, dropped: AtomicU64::new(0) };
+        for sec in 0..10 {
+            let header = Header { stamp: crate::msgs::Time { sec, nanosec: 0 }, frame_id: String::new() };
+            q.push(Incoming { header, pixels: Pixels::Bytes { bytes: vec![], labels: None }, received: Instant::now() });
+            assert!(q.items.lock().unwrap().len() <= 2);
+        }
+        assert_eq!(q.dropped.load(Ordering::Relaxed), 8);
+        let left: Vec<i32> = std::iter::from_fn(|| q.pop(Duration::from_millis(1))).map(|f| f.header.stamp.sec).collect();
+        assert_eq!(left, [8, 9]);
+    }
+}

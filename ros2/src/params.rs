@@ -1,0 +1,150 @@
+//! The node's parameters, given as ROS 2 passes them (`--ros-args -p name:=value`, node name and
+//! namespace by `-r __node:=NAME`, `-r __ns:=/NS`), and declared on the node so that parameter
+//! clients see them.
+
+use std::path::PathBuf;
+
+pub const USAGE: &str = "usage: semlook_node --ros-args -p map:=DIR [-p name:=value ...] [-r __node:=NAME] [-r __ns:=/NS]
+
+parameters (defaults in brackets):
+  map              the map directory (in loop-closure mode: created from the stream where there is none)
+  setting          the matching setting [verified]; one of hog, appearance, global, forest, local,
+                   global-forest, semlook, fused, verified
+  top_k            candidates of the coarse stage and ids in each match [the map's, 30]
+  sequence         sequence matching over the last frames [true]
+  sequence_length  frames a sequence spans [the config's]
+  loop_closure     query the map, then add the frame to it; closures on ~/closure [false]
+  backend          cpu, gpu or auto [auto]
+  config           a semlook TOML config (its encoding sections must be the map's) [the map's]
+  image_topic      sensor_msgs/Image frames [/camera/image_raw]
+  compressed_topic sensor_msgs/CompressedImage frames [/camera/image_raw/compressed]
+  queue_size       frames waiting to be localized; beyond it the oldest is dropped [2]
+  map_refresh_s    seconds between checks for a newer map generation; 0: never [1.0]";
+
+/// What the node runs with.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Params {
+    pub map: PathBuf,
+    pub setting: String,
+    pub top_k: Option<usize>,
+    pub sequence: bool,
+    pub sequence_length: Option<usize>,
+    pub loop_closure: bool,
+    pub backend: String,
+    pub config: Option<PathBuf>,
+    pub image_topic: String,
+    pub compressed_topic: String,
+    pub queue_size: usize,
+    pub map_refresh_s: f64,
+    pub node_name: String,
+    pub namespace: String,
+}
+
+impl Params {
+    /// The parameters of a command line; `None` for `--help`. Every error names the argument.
+    pub fn parse(args: &[String]) -> Result<Option<Params>, String> {
+        let mut p = Params {
+            map: PathBuf::new(),
+            setting: "verified".into(),
+            top_k: None,
+            sequence: true,
+            sequence_length: None,
+            loop_closure: false,
+            backend: "auto".into(),
+            config: None,
+            image_topic: "/camera/image_raw".into(),
+            compressed_topic: "/camera/image_raw/compressed".into(),
+            queue_size: 2,
+            map_refresh_s: 1.0,
+            node_name: "semlook".into(),
+            namespace: "/".into(),
+        };
+        let mut map = None;
+        let mut it = args.iter();
+        let mut in_ros_args = false;
+        while let Some(a) = it.next() {
+            match a.as_str() {
+                "-h" | "--help" => return Ok(None),
+                "--ros-args" => in_ros_args = true,
+                "--" => in_ros_args = false,
+                "-p" | "--param" if in_ros_args => {
+                    let kv = it.next().ok_or_else(|| format!("{a} needs name:=value"))?;
+                    let (k, v) = kv.split_once(":=").ok_or_else(|| format!("{a} {kv}: expected name:=value"))?;
+                    let bad = |what: &str| format!("parameter {k}: {v:?} is not {what}");
+                    match k {
+                        "map" => map = Some(PathBuf::from(v)),
+                        "setting" => p.setting = v.into(),
+                        "top_k" => p.top_k = Some(v.parse().ok().filter(|&k| k > 0).ok_or_else(|| bad("a positive integer"))?),
+                        "sequence" => p.sequence = parse_bool(v).ok_or_else(|| bad("true or false"))?,
+                        "sequence_length" => p.sequence_length = Some(v.parse().ok().filter(|&k| k > 0).ok_or_else(|| bad("a positive integer"))?),
+                        "loop_closure" => p.loop_closure = parse_bool(v).ok_or_else(|| bad("true or false"))?,
+                        "backend" => p.backend = v.into(),
+                        "config" => p.config = Some(PathBuf::from(v)),
+                        "image_topic" => p.image_topic = v.into(),
+                        "compressed_topic" => p.compressed_topic = v.into(),
+                        "queue_size" => p.queue_size = v.parse().ok().filter(|&k| k > 0).ok_or_else(|| bad("a positive integer"))?,
+                        "map_refresh_s" => {
+                            p.map_refresh_s = v.parse().ok().filter(|s: &f64| s.is_finite() && *s >= 0.0).ok_or_else(|| bad("a number of seconds"))?
+                        }
+                        other => return Err(format!("unknown parameter {other:?}")),
+                    }
+                }
+                "-r" | "--remap" if in_ros_args => {
+                    let kv = it.next().ok_or_else(|| format!("{a} needs from:=to"))?;
+                    match kv.split_once(":=") {
+                        Some(("__node" | "__name", v)) => p.node_name = v.into(),
+                        Some(("__ns", v)) => p.namespace = if v.starts_with('/') { v.into() } else { format!("/{v}") },
+                        Some((from, _)) => return Err(format!("remapping {from:?} is not supported: set the topic parameters instead")),
+                        None => return Err(format!("{a} {kv}: expected from:=to")),
+                    }
+                }
+                other if in_ros_args => return Err(format!("unsupported ROS argument {other:?}")),
+                other => return Err(format!("unexpected argument {other:?} (parameters go after --ros-args as -p name:=value)")),
+            }
+        }
+        if p.sequence_length.is_some() && !p.sequence {
+            return Err("sequence_length is given but sequence is false".into());
+        }
+        if p.loop_closure && !p.sequence {
+            return Err("loop_closure finds its closures by sequence matching: keep sequence true".into());
+        }
+        p.map = map.ok_or("the map parameter is required (-p map:=DIR)")?;
+        Ok(Some(p))
+    }
+}
+
+fn parse_bool(v: &str) -> Option<bool> {
+    match v.to_ascii_lowercase().as_str() {
+        "true" | "1" | "yes" | "on" => Some(true),
+        "false" | "0" | "no" | "off" => Some(false),
+        _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn args(s: &str) -> Vec<String> {
+        s.split_whitespace().map(String::from).collect()
+    }
+
+    #[test]
+    fn ros_arguments_parse_and_bad_ones_are_named() {
+        let p = Params::parse(&args("--ros-args -p map:=/m -p top_k:=10 -p sequence:=false -r __node:=loc -r __ns:=robot")).unwrap().unwrap();
+        assert_eq!((p.map.to_str(), p.top_k, p.sequence, p.node_name.as_str(), p.namespace.as_str()), (Some("/m"), Some(10), false, "loc", "/robot"));
+        assert_eq!(Params::parse(&args("--help")).unwrap(), None);
+        for (bad, says) in [
+            ("--ros-args -p top_k:=0 -p map:=/m", "top_k"),
+            ("--ros-args -p colour:=red -p map:=/m", "colour"),
+            ("--ros-args -p sequence:=maybe -p map:=/m", "sequence"),
+            ("--ros-args -p setting:=verified", "map parameter is required"),
+            ("--map /m", "unexpected argument"),
+            ("--ros-args -p map:=/m -p loop_closure:=true -p sequence:=false", "loop_closure"),
+            ("--ros-args -p map:=/m -r /camera:=/cam", "remapping"),
+        ] {
+            let e = Params::parse(&args(bad)).unwrap_err();
+            assert!(e.contains(says), "{bad}: {e}");
+        }
+    }
+}

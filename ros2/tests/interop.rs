@@ -1,0 +1,244 @@
+//! The node against a real ROS 2 peer: rclpy (Fast DDS, ROS 2 kilted from PyPI wheels, set up by
+//! setup.sh in `.venv-ros/` with semlook_msgs built for it) publishes real photos to
+//! `semlook_node` (RustDDS) and receives its matches, all on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE
+//! = LOCALHOST, a domain of the test's own). Every frame is answered, and the answers equal
+//! `semlook query` (single frame) and `semlook localize` (sequence) on the same frames. Then the
+//! robustness cases: an unsupported encoding, a corrupt JPEG, the peer vanishing and another
+//! coming, the map growing on disk, and a burst faster than the node serves.
+
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
+}
+
+fn required() -> bool {
+    std::env::var_os("CI").is_some() || std::env::var("REQUIRE_ROS").is_ok_and(|v| v == "1")
+}
+
+/// Skips (printing why, on a SKIPPED line) or, under CI or REQUIRE_ROS=1, fails.
+fn skip(reason: &str) {
+    if required() {
+        panic!("required here (CI or REQUIRE_ROS=1) but missing: {reason}");
+    }
+    eprintln!("SKIPPED (interop): {reason}");
+}
+
+/// The `semlook` command line of this build (built with the workspace's tests).
+fn semlook_bin() -> Option<PathBuf> {
+    let exe = std::env::current_exe().ok()?;
+    let dir = exe.parent()?.parent()?;
+    let bin = dir.join("semlook");
+    bin.exists().then_some(bin)
+}
+
+/// The environment of both DDS sides: this host only, a domain no other test run uses.
+fn ros_env(cmd: &mut Command, domain: u16) {
+    cmd.env("ROS_DOMAIN_ID", domain.to_string()).env("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST").env("ROS_DISTRO", "kilted");
+    if std::env::var_os("SEMLOOK_MODELS").is_none() {
+        cmd.env("SEMLOOK_MODELS", repo().join(".semlook"));
+    }
+}
+
+struct Node {
+    child: Child,
+}
+
+impl Node {
+    /// Stops the node with SIGTERM and returns its stdout (the summary line) and stderr.
+    fn stop(mut self) -> (String, String) {
+        let _ = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status();
+        let t = Instant::now();
+        while t.elapsed() < Duration::from_secs(30) {
+            if let Ok(Some(_)) = self.child.try_wait() {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        let (mut out, mut err) = (String::new(), String::new());
+        self.child.stdout.take().unwrap().read_to_string(&mut out).unwrap();
+        self.child.stderr.take().unwrap().read_to_string(&mut err).unwrap();
+        (out, err)
+    }
+}
+
+impl Drop for Node {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+    }
+}
+
+/// Runs the rclpy peer on `plan`, returns its record.
+fn peer(venv: &Path, plan: &serde_json::Value, dir: &Path, name: &str, domain: u16) -> serde_json::Value {
+    let (plan_path, out_path) = (dir.join(format!("{name}-plan.json")), dir.join(format!("{name}-out.json")));
+    std::fs::write(&plan_path, serde_json::to_vec(plan).unwrap()).unwrap();
+    let msgs = venv.join("semlook_msgs");
+    let mut cmd = Command::new(venv.join("bin/python"));
+    cmd.arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/peer.py")).arg(&plan_path).arg(&out_path);
+    cmd.env("PYTHONPATH", msgs.join("python")).env("LD_LIBRARY_PATH", msgs.join("lib"));
+    ros_env(&mut cmd, domain);
+    let out = cmd.output().unwrap();
+    assert!(out.status.success(), "peer {name} failed:\n{}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_slice(&std::fs::read(&out_path).unwrap()).unwrap()
+}
+
+/// A frame of the plan: `kind` of the photo `file`, at second `sec`.
+fn raw_frame(dir: &Path, file: &Path, kind: &str, sec: i64) -> serde_json::Value {
+    // decoded as semlook decodes the file (jpeg-decoder at full scale), so the pixels are the ones
+    // `semlook query` encodes
+    let (rgb, (w, h)) = semlook::input::load_rgb_at_least(file, |full| full).unwrap();
+    let bytes: Vec<u8> = match kind {
+        "rgb8" => rgb.into_raw(),
+        "bgr8" => rgb.pixels().flat_map(|p| [p[2], p[1], p[0]]).collect(),
+        "16UC1" => vec![0; (w * h * 2) as usize],
+        _ => unreachable!(),
+    };
+    let path = dir.join(format!("{sec}-{kind}.raw"));
+    std::fs::write(&path, bytes).unwrap();
+    serde_json::json!({ "kind": kind, "file": path, "width": w, "height": h, "sec": sec, "nanosec": 0 })
+}
+
+fn compressed_frame(file: &Path, kind: &str, sec: i64) -> serde_json::Value {
+    serde_json::json!({ "kind": kind, "file": file, "sec": sec, "nanosec": 0 })
+}
+
+#[test]
+fn the_node_answers_a_real_ros2_peer() {
+    let venv = repo().join(".venv-ros");
+    if !venv.join("semlook_msgs/python/semlook_msgs/__init__.py").exists() {
+        return skip(&format!("no ROS 2 venv with semlook_msgs at {} (run setup.sh)", venv.display()));
+    }
+    let data = repo().join("../shared/data/real-vpr/gardenspoint-day-night-mini");
+    if !data.exists() {
+        return skip(&format!("{} is absent", data.display()));
+    }
+    let Some(semlook) = semlook_bin() else { return skip("the semlook binary is not built beside this test (cargo test --workspace builds it)") };
+    if semlook::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, Some(&repo().join(".semlook/xfeat.pt")), "XFeat").is_err() {
+        return skip("no XFeat weights in .semlook (run setup.sh)");
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let map = dir.path().join("map");
+    let run = |args: &[&str]| {
+        let mut cmd = Command::new(&semlook);
+        cmd.args(args).arg("-q");
+        ros_env(&mut cmd, 0);
+        let out = cmd.output().unwrap();
+        assert!(out.status.success(), "semlook {args:?}:\n{}", String::from_utf8_lossy(&out.stderr));
+        String::from_utf8(out.stdout).unwrap()
+    };
+    let refs = data.join("ref");
+    let queries = data.join("query");
+    run(&["--backend", "cpu", "map", "build", "--images", refs.to_str().unwrap(), "--map", map.to_str().unwrap()]);
+    // what the command line answers for the same frames
+    let query: serde_json::Value =
+        serde_json::from_str(&run(&["--backend", "cpu", "query", "--map", map.to_str().unwrap(), "--images", queries.to_str().unwrap(), "--json"]))
+            .unwrap();
+    let localize: Vec<serde_json::Value> =
+        run(&["--backend", "cpu", "localize", "--map", map.to_str().unwrap(), "--images", queries.to_str().unwrap(), "--json"])
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .filter(|v: &serde_json::Value| v.get("frame").is_some())
+            .collect();
+    let domain = 100 + (std::process::id() % 100) as u16;
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_semlook_node"));
+    cmd.args(["--ros-args", "-p", &format!("map:={}", map.display()), "-p", "backend:=cpu", "-p", "queue_size:=2", "-p", "map_refresh_s:=0.5"]);
+    ros_env(&mut cmd, domain);
+    let mut node = Node { child: cmd.stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap() };
+    std::thread::sleep(Duration::from_secs(2));
+    if let Ok(Some(status)) = node.child.try_wait() {
+        let (_, err) = node.stop();
+        panic!("the node stopped at once ({status}):\n{err}");
+    }
+
+    // phase 1: the ten photos, alternating CompressedImage (jpeg) and Image (rgb8, bgr8), each
+    // answered before the next; then an unsupported encoding and a corrupt JPEG, not answered
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&queries).unwrap().flatten().map(|e| e.path()).collect();
+    files.sort();
+    let mut frames: Vec<serde_json::Value> = files
+        .iter()
+        .enumerate()
+        .map(|(i, f)| match i % 3 {
+            0 => compressed_frame(f, "jpeg", 100 + i as i64),
+            1 => raw_frame(dir.path(), f, "rgb8", 100 + i as i64),
+            _ => raw_frame(dir.path(), f, "bgr8", 100 + i as i64),
+        })
+        .collect();
+    let mut bad = raw_frame(dir.path(), &files[0], "16UC1", 200);
+    bad["answered"] = false.into();
+    let corrupt = dir.path().join("corrupt.jpg");
+    let mut bytes = std::fs::read(&files[0]).unwrap();
+    bytes.truncate(bytes.len() / 3);
+    std::fs::write(&corrupt, &bytes).unwrap();
+    let mut broken = compressed_frame(&corrupt, "jpeg", 201);
+    broken["answered"] = false.into();
+    frames.push(bad);
+    frames.push(broken);
+    let one =
+        peer(&venv, &serde_json::json!({ "frames": frames, "wait": true, "expect": 10, "timeout": 180, "linger": 2.0 }), dir.path(), "one", domain);
+    let matches = one["matches"].as_array().unwrap();
+    assert_eq!(matches.len(), 10, "every photo answered once, the two bad frames not: {matches:?}");
+    for (i, m) in matches.iter().enumerate() {
+        assert_eq!(m["sec"], 100 + i as i64, "in order, under the frame's own stamp");
+        let q = &query["queries"][i];
+        let want_ids: Vec<&str> = q["top_k"].as_array().unwrap().iter().map(|c| c["reference"].as_str().unwrap()).collect();
+        let got_ids: Vec<&str> = m["top_ids"].as_array().unwrap().iter().map(|v| v.as_str().unwrap()).collect();
+        assert_eq!(got_ids, want_ids, "frame {i}: the single-frame ranking of `semlook query`");
+        for (g, w) in m["top_scores"].as_array().unwrap().iter().zip(q["top_k"].as_array().unwrap()) {
+            let (g, w) = (g.as_f64().unwrap(), w["score"].as_f64().unwrap());
+            assert!((g - w).abs() <= 1e-5 * (1.0 + w.abs()), "frame {i}: score {g} against {w}");
+        }
+        let l = &localize[i];
+        assert_eq!(m["sequence_id"].as_str().unwrap(), l["sequence"]["id"].as_str().unwrap_or(""), "frame {i}: the sequence of `semlook localize`");
+        assert_eq!(m["accepted"], l["sequence"]["accepted"].as_bool().unwrap_or(false), "frame {i}");
+    }
+    // phase 2: the map grows on disk (another writer adds the query photos as places, q00...)
+    let g0 = matches[0]["map_generation"].as_u64().unwrap();
+    let added = dir.path().join("added");
+    std::fs::create_dir(&added).unwrap();
+    for f in &files {
+        std::fs::copy(f, added.join(format!("q{}", f.file_name().unwrap().to_string_lossy()))).unwrap();
+    }
+    run(&["--backend", "cpu", "map", "add", "--images", added.to_str().unwrap(), "--map", map.to_str().unwrap()]);
+    std::thread::sleep(Duration::from_millis(1500));
+    // the first peer has gone; a new one comes
+    let frames: Vec<serde_json::Value> = files[..3].iter().enumerate().map(|(i, f)| compressed_frame(f, "jpeg", 300 + i as i64)).collect();
+    let two = peer(&venv, &serde_json::json!({ "frames": frames, "wait": true, "expect": 3, "timeout": 120 }), dir.path(), "two", domain);
+    let m2 = two["matches"].as_array().unwrap();
+    assert_eq!(m2.len(), 3, "a new peer is answered: {m2:?}");
+    assert!(m2.iter().all(|m| m["map_generation"].as_u64().unwrap() > g0), "the new generation: {m2:?}");
+    // the query photo itself is now a place: it is its own best match
+    assert_eq!(m2[0]["top_ids"][0].as_str().unwrap(), "q00", "{:?}", m2[0]["top_ids"]);
+    // phase 3: a burst of 30 frames, faster than the node localizes
+    let frames: Vec<serde_json::Value> = (0..30).map(|i| compressed_frame(&files[i % files.len()], "jpeg", 400 + i as i64)).collect();
+    let three = peer(
+        &venv,
+        &serde_json::json!({ "frames": frames, "wait": false, "expect": 0, "timeout": 120, "linger": 20.0 }),
+        dir.path(),
+        "three",
+        domain,
+    );
+    let m3 = three["matches"].as_array().unwrap();
+    let (out, err) = node.stop();
+    let summary: serde_json::Value =
+        out.lines().find_map(|l| serde_json::from_str::<serde_json::Value>(l).ok()).unwrap_or_else(|| panic!("no summary:\n{out}\n{err}"));
+    let s = &summary["summary"];
+    assert!(s["dropped"].as_u64().unwrap() > 0, "the burst dropped frames: {s}\n{err}");
+    assert!(!m3.is_empty() && m3.len() < 30, "{} of the burst answered", m3.len());
+    assert_eq!(s["unsupported"].as_u64().unwrap(), 1, "{s}");
+    assert_eq!(s["localizer"]["refused"].as_u64().unwrap(), 1, "the corrupt JPEG: {s}");
+    assert!(err.contains("16UC1") && err.contains("not supported"), "{err}");
+    let published = s["published"].as_u64().unwrap();
+    assert_eq!(published, 13 + m3.len() as u64, "{s}");
+    assert_eq!(
+        s["received"].as_u64().unwrap(),
+        published + s["dropped"].as_u64().unwrap() + 2,
+        "every received frame was published, dropped, or refused: {s}"
+    );
+    assert!(s["receive_to_publish_ms"]["p50"].as_f64().unwrap() > 0.0);
+    eprintln!("node summary: {s}");
+}
