@@ -42,12 +42,18 @@ pub(crate) fn pack<'a>(forests: impl Iterator<Item = ForestRef<'a>>, dim: usize,
             f.appearance.extend_into(&mut p.app);
         }
     }
+    // a storage binding of `array<Tree>` holds at least one record: forests without trees (a map
+    // without labels has none) bind one that no span points to
+    if p.trees.is_empty() {
+        p.trees.push(bytemuck::Zeroable::zeroed());
+    }
     p
 }
 
-/// Bytes of the three buffers of packed forests: spans, trees, appearance.
+/// Bytes of the three buffers of packed forests: spans, trees (at least the one record of
+/// [`pack`]), appearance.
 pub(crate) fn packed_bytes(forests: usize, trees: usize, dim: usize) -> [u64; 3] {
-    [(forests * 8) as u64, (trees * std::mem::size_of::<GpuTree>()) as u64, (trees * dim * 4) as u64]
+    [(forests * 8) as u64, (trees.max(1) * std::mem::size_of::<GpuTree>()) as u64, (trees * dim * 4) as u64]
 }
 
 /// The chunks of a map's forests and what the dispatcher needs of every reference: its tree count.

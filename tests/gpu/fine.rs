@@ -406,3 +406,33 @@ fn a_real_scene_through_several_pairs_per_workgroup() {
         );
     }
 }
+
+/// Forests without a single tree (what a map built without labels holds), on the map's side, the
+/// queries' or both: the device's scores and lists are the CPU path's, for listed pairs, for the
+/// whole map, and through the `verified` pipeline (it crashed on the device: an empty tree array
+/// was bound where the shader needs one record).
+#[test]
+fn forests_without_any_tree_match_on_both_paths() {
+    let Some(ctx) = gpu() else { return };
+    let p = TreeSimParams::new(&Default::default(), true, 3);
+    let (empty_refs, empty_q) = (forests_of_sizes(&[0; 12], 16, 301), forests_of_sizes(&[0; 3], 16, 302));
+    let (refs, q) = (forests_of_sizes(&[3, 0, 7, 1, 0, 12], 16, 303), forests_of_sizes(&[0, 5], 16, 304));
+    let mut stages = GpuStages::new(ctx.clone());
+    for (r, qs, what) in [(&empty_refs, &empty_q, "both empty"), (&empty_refs, &q, "map empty"), (&refs, &empty_q, "queries empty")] {
+        let pairs: Vec<(u32, u32)> = (0..qs.len() as u32).flat_map(|qi| (0..r.len() as u32).map(move |ri| (qi, ri))).collect();
+        let g = stages.fine_pairs(&p, r, qs, &pairs).unwrap();
+        let c = CpuStages.fine_pairs(&p, r, qs, &pairs).unwrap();
+        assert!(g.iter().zip(&c).all(|(a, b)| (a - b).abs() <= 1e-5), "{what}: {g:?} against {c:?}");
+        stages.forget_map();
+        assert_same_lists(&stages.fine_topk(&p, r, qs, 4, 4096).unwrap(), &CpuStages.fine_topk(&p, r, qs, 4, 4096).unwrap(), 1e-5, what);
+        stages.forget_map();
+        let cfg = Config::default();
+        let (gm, _) = semlook::matching::match_with(&mut stages, r, qs, Setting::Verified, &cfg).unwrap();
+        let (cm, _) = semlook::matching::match_with(&mut CpuStages, r, qs, Setting::Verified, &cfg).unwrap();
+        for (a, b) in gm.iter().zip(&cm) {
+            let refs_of = |m: &semlook::matching::QueryMatch| m.ranked.iter().map(|c| c.reference).collect::<Vec<_>>();
+            assert_eq!(refs_of(a), refs_of(b), "{what}: verified rankings");
+        }
+        stages.forget_map();
+    }
+}
