@@ -12,7 +12,10 @@
 #   caller is the test suite), a 1,000-reference coarse row and a 4-frame encoding row at 320x240.
 # Rows: coarse top-K (`semlook dev bench`, 100k and 1M references x 1,000 queries, CPU and GPU), encoding
 # (`semlook dev bench-encode` on 1920x1080 synthetic frames, GPU backend, the installed segmenter on ONNX
-# Runtime's CPU provider), and the fine stage (criterion `benches/matching.rs`, group `fine`, K = 20).
+# Runtime's CPU provider), the stream (`semlook dev bench-stream`: the night traversal of synthetic
+# 1920x1080 frames replayed against maps of 1k and 10k places through the streaming localizer on the
+# GPU backend, the real-time profile configs/stream-realtime.toml; target >= 100 frames/s), and the fine
+# stage (criterion `benches/matching.rs`, group `fine`, K = 20).
 # Carry the model folder to the device (`.semlook`, about 40 MB) for the encoding row.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -70,6 +73,22 @@ if [ "$(left)" -gt 20 ]; then
         || note encode "encode $size" "dev bench-encode failed (see the log above)"
 else
     note encode "encode $size" "budget"
+fi
+
+# the stream row: a night traversal replayed against maps of its day traversal plus distractors
+if [ $smoke = 1 ]; then ssize=320x240 sframes=8 ssizes=100; else ssize=1920x1080 sframes=200 ssizes=1000,10000; fi
+if [ "$(left)" -gt 60 ]; then
+    say "stream: $sframes frames at $ssize against maps of $ssizes places on the GPU backend"
+    "$bin" synth --out "$work/stream" --places "$sframes" --size "$ssize" --query-condition night --query-condition fog -q
+    cam=Stereo_Left/Omni_F
+    "$bin" --backend gpu dev bench-stream --references "$work/stream/day/RGB/$cam" --stream "$work/stream/night/RGB/$cam" \
+        --distractors "$work/stream/fog/RGB/$cam" --sizes "$ssizes" --frames "$sframes" --config configs/stream-realtime.toml --json -q \
+        | python3 -c 'import json,sys
+for line in sys.stdin:
+    r = json.loads(line); print(json.dumps({"row": "stream", "size": sys.argv[1], "result": r}))' "$ssize" >> "$rows" \
+        || note stream "stream $ssize" "dev bench-stream failed (see the log above)"
+else
+    note stream "stream $ssize" "budget"
 fi
 
 # the fine stage, through criterion (full run only: its build is minutes)

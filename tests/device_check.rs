@@ -32,5 +32,13 @@ fn the_device_check_smoke_run_writes_its_json() {
             common::skip_unless_required("REQUIRE_MODELS", format!("the encoding row did not run: {encode}"));
         }
     }
+    let stream = rows.iter().find(|r| r["row"] == "stream").expect("a stream row");
+    match stream["result"]["frames"].as_u64() {
+        Some(n) => assert_eq!(n, 8, "{stream}"),
+        None => {
+            assert!(stream["reason"].as_str().is_some_and(|r| !r.is_empty()), "{stream}");
+            common::skip_unless_required("REQUIRE_MODELS", format!("the stream row did not run: {stream}"));
+        }
+    }
     assert!(rows.iter().any(|r| r["row"] == "fine" && r["status"] == "not run"), "the smoke run names the rows it leaves out: {report}");
 }

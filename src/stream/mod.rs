@@ -271,7 +271,7 @@ struct LoopState {
     warm: Vec<(String, Loaded, Option<f64>)>,
 }
 
-/// Tracking: the place the last accepted sequence match predicts for the next frame.
+/// Tracking: the last accepted sequence match (place, velocity) and the frames since it.
 #[derive(Debug, Clone, Copy, Default)]
 struct Track {
     at: Option<(Place, f32)>,
@@ -543,7 +543,9 @@ impl Localizer {
         let st = &self.cfg.stream;
         match self.track.at {
             Some((p, v)) if st.track_radius > 0 => {
-                let centre = (p.position as f64 + v as f64).round().max(0.0) as u32;
+                // where the last accepted match, moving on at its velocity, is now
+                let ahead = (self.track.misses + 1) as f64;
+                let centre = (p.position as f64 + v as f64 * ahead).round().max(0.0) as u32;
                 let r = st.track_radius as u32;
                 let lo = centre.saturating_sub(r);
                 let hi = (centre + r).min(map.traversal_len(p.traversal).saturating_sub(1));

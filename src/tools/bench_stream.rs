@@ -216,5 +216,5 @@ pub fn table(rows: &[StreamBenchRow]) -> String {
             r.accepted
         );
     }
-    s + "latency columns: p50/p99 ms per frame; total from the frame's decoding to its answer (decoding runs a frame ahead on a second thread)\n"
+    s + "latency columns: p50/p99 ms per frame; total from the localizer taking the decoded frame to its answer (decoding and segmentation run a frame ahead on a second thread: their columns; frames/s is end to end)\n"
 }
