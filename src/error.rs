@@ -78,6 +78,10 @@ pub enum Remedy {
     NameImageRoot,
     /// Build the map again with label maps or a segmenter (it was built without labels).
     RebuildWithLabels,
+    /// Build the map again with the HOG baseline's descriptors stored.
+    RebuildWithHog,
+    /// Skip the images the map holds already (an interrupted add or build goes on).
+    SkipStored,
 }
 
 /// What a map of format `found` lacks, and how to get a readable one.
@@ -111,6 +115,7 @@ impl Error {
         match self {
             Error::Refused { remedy, .. } => Some(*remedy),
             Error::NoLabels { .. } => Some(Remedy::GiveLabels),
+            Error::DuplicateImageId { .. } => Some(Remedy::SkipStored),
             _ => None,
         }
     }

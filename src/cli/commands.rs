@@ -5,7 +5,7 @@ mod map_cmd;
 mod pairs;
 mod shared;
 
-use shared::{apply_models, frame_sources, info, load_config, map_config, to_json};
+use shared::{apply_models, check_output_dir, check_output_file, frame_sources, info, load_config, map_config, to_json};
 
 use super::args::*;
 use semlook::batch::encode_frames;
@@ -256,6 +256,13 @@ fn write_file(path: &Path, text: &str) -> Result<()> {
 }
 
 fn query(engine: &mut Engine, a: &QueryArgs, quiet: bool) -> Result<()> {
+    // every output is checked before the minutes of encoding
+    if let Some(dir) = &a.out {
+        check_output_dir(dir, "--out")?;
+    }
+    if let Some(f) = &a.pairs.pairs {
+        check_output_file(f, "--pairs")?;
+    }
     let map = Map::open(&a.map)?;
     // without --config, the map's encoding and default matching parameters
     let cfg = map_config(&map, a.config.as_deref(), &a.source.models)?;
@@ -288,6 +295,12 @@ fn eval_dataset(a: &EvalArgs) -> Result<Dataset> {
 }
 
 fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
+    // every output is checked before the minutes of encoding and matching
+    for (dir, flag) in [(&a.out, "--out"), (&a.plots, "--plots"), (&a.report, "--report")] {
+        if let Some(d) = dir {
+            check_output_dir(d, flag)?;
+        }
+    }
     let ds = eval_dataset(a)?;
     let map = a.map.as_deref().map(Map::open).transpose()?;
     let mut cfg = match &map {
@@ -314,11 +327,12 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
         return Ok(());
     }
     let setting = if settings.contains(&Setting::RECOMMENDED) { Setting::RECOMMENDED } else { settings[0] };
-    // frames are loaded again with the configuration that encoded them
+    // frames are loaded again as they were encoded (without labels where the run had none)
     let encoder = match &map {
         Some(m) => Encoder::for_map(&cfg, m)?,
         None => Encoder::new(&cfg)?,
-    };
+    }
+    .without_labels(report.without_labels);
     if let (Some(n), Some(dir)) = (a.explain, &a.out) {
         for f in semlook::tools::viz::explain(&report, setting, &ds, &encoder, n, dir)? {
             info(quiet, format!("wrote {}", f.display()));

@@ -10,9 +10,27 @@ mod logger;
 pub use output::is_broken_pipe;
 
 pub fn run() -> semlook::Result<()> {
-    use clap::Parser;
-    let cli = args::Cli::parse();
+    use clap::{CommandFactory, FromArgMatches};
+    let matches = args::Cli::command().get_matches();
+    let cli = args::Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
+    hint::set_command_flags(command_flags(&matches));
     logger::init(cli.quiet);
     semlook::progress::show(!cli.quiet);
     commands::dispatch(cli)
+}
+
+/// The long flags of the (sub)command `m` runs, its parents' included (the global ones).
+fn command_flags(m: &clap::ArgMatches) -> Vec<String> {
+    use clap::CommandFactory;
+    let longs = |c: &clap::Command| c.get_arguments().filter_map(|a| a.get_long()).map(|l| format!("--{l}")).collect::<Vec<_>>();
+    let mut cmd = args::Cli::command();
+    let mut flags = longs(&cmd);
+    let mut m = m;
+    while let Some((name, sub)) = m.subcommand() {
+        let Some(c) = cmd.find_subcommand(name).cloned() else { break };
+        flags.extend(longs(&c));
+        cmd = c;
+        m = sub;
+    }
+    flags
 }

@@ -151,6 +151,10 @@ pub struct EvalReport {
     pub results: Vec<SettingReport>,
     /// Settings asked for that could not run, with the reason (e.g. a map without HOG).
     pub skipped: Vec<(Setting, String)>,
+    /// The frames were encoded without semantic labels (photos with neither label maps nor a
+    /// segmenter, or a map built so): what draws them later must load them so too.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub without_labels: bool,
 }
 
 /// The settings an evaluation runs when none are named (every front end): all nine.
@@ -209,9 +213,11 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
             Some(_) => "the map was built without semantic labels",
             None => "no label maps and no segmenter",
         };
+        // hog runs only where HOG descriptors exist: a stored map without them skips it below
+        let runs = settings.iter().filter(|&&s| s != Setting::Hog || opts.map.is_none_or(|m| m.manifest.hog_dim > 0));
         log::warn!(
             "{why}: running {} only (settings that need no labels; `semlook models` says what is installed)",
-            settings.iter().map(|s| s.name()).collect::<Vec<_>>().join(", ")
+            runs.map(|s| s.name()).collect::<Vec<_>>().join(", ")
         );
     }
     let opts = &EvalOptions { settings, map: opts.map, skip_invalid: opts.skip_invalid, quiet: opts.quiet, sequence: opts.sequence };
@@ -228,12 +234,7 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
             (&owned, summary)
         }
     };
-    // dataset reference index -> map index
-    let index: HashMap<&str, u32> = (0..refs.len()).map(|i| (refs.id(i), i as u32)).collect();
-    let ref_to_map: Vec<u32> = ref_sources
-        .iter()
-        .map(|s| index.get(s.id.as_str()).copied().ok_or_else(|| Error::dataset(&ds.root, format!("reference {:?} is not in the map", s.id))))
-        .collect::<Result<_>>()?;
+    let ref_to_map = reference_indices(refs, &ref_sources, &ds.root)?;
     let mut results = Vec::new();
     let mut q_times = Vec::new();
     let mut q_wall = 0.0;
@@ -268,7 +269,43 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
         query_encoding: EncodingSummary::new(&q_times, q_wall),
         results,
         skipped,
+        without_labels,
     })
+}
+
+/// The index in `refs` of every dataset reference: by its id, else (a map built from a folder of
+/// images names them by file stem, a dataset by path: `00` against `ref/00.jpg`) by the file stem
+/// of its id where exactly one map image has that id.
+pub fn reference_indices(refs: &dyn RefSource, sources: &[crate::input::FrameSource], root: &std::path::Path) -> Result<Vec<u32>> {
+    let index: HashMap<&str, u32> = (0..refs.len()).map(|i| (refs.id(i), i as u32)).collect();
+    let stem = |id: &str| std::path::Path::new(id).file_stem().map(|s| s.to_string_lossy().into_owned());
+    // file stem -> map index, None where two map images share the stem
+    let mut by_stem: HashMap<String, Option<u32>> = HashMap::new();
+    for (&id, &i) in &index {
+        if let Some(s) = stem(id) {
+            by_stem.entry(s).and_modify(|e| *e = None).or_insert(Some(i));
+        }
+    }
+    sources
+        .iter()
+        .map(|s| {
+            if let Some(&i) = index.get(s.id.as_str()) {
+                return Ok(i);
+            }
+            match stem(&s.id).and_then(|st| by_stem.get(&st).copied()) {
+                Some(Some(i)) => Ok(i),
+                Some(None) => Err(Error::dataset(root, format!("reference {:?}: two images of the map have its file stem", s.id))),
+                None => Err(Error::dataset(
+                    root,
+                    format!(
+                        "reference {:?} is not in the map (by id or file stem; the map's images are named like {:?})",
+                        s.id,
+                        (refs.len() > 0).then(|| refs.id(0)).unwrap_or("")
+                    ),
+                )),
+            }
+        })
+        .collect()
 }
 
 /// Matches one encoded query set (ground truth in map indices) in every setting, appending a

@@ -46,6 +46,9 @@ pub fn pair_cosine(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setti
 /// For each query, the `k` references of highest cosine similarity under `setting`.
 pub fn topk(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
     if let Some(why) = unavailable(refs, queries, setting) {
+        if setting == Setting::Hog && refs.hog_dim() == 0 {
+            return Err(Error::refused(format!("setting {setting}"), why, crate::error::Remedy::RebuildWithHog));
+        }
         return Err(Error::invalid(format!("setting {setting}"), why));
     }
     let (query_vec, ref_vec) = vectors(setting);

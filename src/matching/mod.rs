@@ -222,8 +222,12 @@ pub fn candidates(
 }
 
 /// Fails if `setting` needs semantic labels and `refs` were encoded without them (a map built
-/// from photos with neither label maps nor a segmenter): cheap, so callers check before encoding.
+/// from photos with neither label maps nor a segmenter), or is the HOG baseline and `refs` store
+/// no HOG descriptors: cheap, so callers check before encoding.
 pub fn check_labels(refs: &dyn RefSource, setting: Setting) -> Result<()> {
+    if setting == Setting::Hog && refs.hog_dim() == 0 {
+        return Err(Error::refused(format!("setting {setting}"), "the map stores no HOG descriptors", Remedy::RebuildWithHog));
+    }
     match setting.label_free() {
         Some(_) if !refs.labelled() => Err(Error::refused(
             format!("setting {setting}"),

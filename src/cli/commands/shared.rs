@@ -102,3 +102,31 @@ pub fn map_config(map: &Map, config: Option<&Path>, models: &ModelArgs) -> Resul
     }
     Ok(cfg)
 }
+
+/// Fails before any work unless `dir` can be the output folder `flag` names: a folder, or
+/// nothing yet in a folder that exists.
+pub fn check_output_dir(dir: &Path, flag: &str) -> Result<()> {
+    if dir.exists() && !dir.is_dir() {
+        return Err(Error::invalid(format!("{flag} {}", dir.display()), "is a file, not a folder"));
+    }
+    if !dir.exists() {
+        let parent = dir.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+        if !parent.is_dir() {
+            return Err(Error::invalid(format!("{flag} {}", dir.display()), format!("its folder {} does not exist", parent.display())));
+        }
+    }
+    Ok(())
+}
+
+/// Fails before any work unless `file` can be the output file `flag` names: not a folder, in a
+/// folder that exists.
+pub fn check_output_file(file: &Path, flag: &str) -> Result<()> {
+    if file.is_dir() {
+        return Err(Error::invalid(format!("{flag} {}", file.display()), "is a folder, not a file"));
+    }
+    let parent = file.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    if !parent.is_dir() {
+        return Err(Error::invalid(format!("{flag} {}", file.display()), format!("its folder {} does not exist", parent.display())));
+    }
+    Ok(())
+}

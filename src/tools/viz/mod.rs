@@ -251,7 +251,8 @@ pub fn grey_to_rgb(g: &GrayImage) -> RgbImage {
     })
 }
 
-/// One column of an explain sheet: a frame's image and labels under a caption.
+/// One column of an explain sheet: a frame's image and labels under a caption (the image alone
+/// for a frame encoded without labels).
 pub fn frame_column(encoder: &Encoder, src: &FrameSource, format: LabelFormat, caption: &[String]) -> Result<Panel> {
     let loaded = encoder.frames().load(src, format)?;
     let table = encoder.class_table();
@@ -261,14 +262,16 @@ pub fn frame_column(encoder: &Encoder, src: &FrameSource, format: LabelFormat, c
         (None, Some(p)) => crate::input::resize_rgb(&crate::input::load_rgb(p)?, w, h),
         (None, None) => RgbImage::new(w, h),
     };
-    let lab = labels_image(&loaded.labels, table);
+    let labelled = loaded.labels.classes().iter().any(|&c| c != crate::classes::VOID);
     let text_h = (caption.len() as u32) * font::LINE * 2 + 4;
-    let mut col = RgbImage::from_pixel(w, 2 * h + text_h, Rgb([32, 32, 32]));
+    let mut col = RgbImage::from_pixel(w, if labelled { 2 } else { 1 } * h + text_h, Rgb([32, 32, 32]));
     for (i, line) in caption.iter().enumerate() {
         label(&mut col, 2, 2 + (i as u32 * font::LINE * 2) as i64, line, 2, Rgb([255, 255, 255]));
     }
     image::imageops::replace(&mut col, &base, 0, text_h as i64);
-    image::imageops::replace(&mut col, &lab, 0, (text_h + h) as i64);
+    if labelled {
+        image::imageops::replace(&mut col, &labels_image(&loaded.labels, table), 0, (text_h + h) as i64);
+    }
     Ok((src.id.clone(), col))
 }
 
