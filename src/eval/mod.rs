@@ -300,7 +300,7 @@ pub fn reference_indices(refs: &dyn RefSource, sources: &[crate::input::FrameSou
                     format!(
                         "reference {:?} is not in the map (by id or file stem; the map's images are named like {:?})",
                         s.id,
-                        (refs.len() > 0).then(|| refs.id(0)).unwrap_or("")
+                        if refs.len() > 0 { refs.id(0) } else { "" }
                     ),
                 )),
             }
