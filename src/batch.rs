@@ -214,3 +214,50 @@ pub fn encode_into(
     report.summary = EncodingSummary::new(&times, crate::util::ms_since(t0));
     Ok(report)
 }
+
+/// How [`new_map`] lays out a new map.
+#[derive(Debug, Clone, Default)]
+pub struct NewMapOptions {
+    /// Also store each image's HOG baseline descriptor.
+    pub hog: bool,
+    pub store: crate::map::StoreOptions,
+    /// The traversal's name (default "0").
+    pub traversal: Option<String>,
+    /// Leave out (and report) frames that cannot be read while training the codebook.
+    pub skip_invalid: bool,
+    /// With `resume`, `dir` may hold what an interrupted build left (no manifest).
+    pub resume: bool,
+    pub quiet: bool,
+}
+
+/// The encoder and writer of a new map in `dir` for `frames`, as `map build` makes them: photos
+/// with neither label maps nor a segmenter make a map marked without labels (for the settings
+/// that need none) rather than no map; the VLAD codebook is trained on `frames` first (it is
+/// stored with the first segment). Encode into the writer with [`encode_into`], then finish it.
+pub fn new_map(cfg: &crate::config::Config, frames: &[FrameSource], dir: &std::path::Path, opts: &NewMapOptions) -> Result<(Encoder, MapWriter)> {
+    MapWriter::check_new_dir(dir, opts.resume)?;
+    let encoder = Encoder::new(cfg)?.with_hog(opts.hog);
+    let without_labels = encoder.cannot_label(frames);
+    let mut encoder = encoder.without_labels(without_labels);
+    if without_labels {
+        let served: Vec<&str> = crate::matching::Setting::ALL
+            .iter()
+            .filter(|&&s| s.label_free().is_none() && (opts.hog || s != crate::matching::Setting::Hog))
+            .map(|s| s.name())
+            .collect();
+        log::warn!(
+            "no label maps and no segmenter: the map holds no semantic labels; only {} can be matched against it (`semlook models` says what is installed)",
+            served.join(", ")
+        );
+    }
+    train_codebook_skipping(&mut encoder, frames, opts.skip_invalid, opts.quiet)?;
+    let hog_dim = if opts.hog { crate::baseline::HOG_DIM } else { 0 };
+    let dims = crate::map::Dims { appearance: encoder.appearance_dim(), hog: hog_dim, keypoints: encoder.keypoint_dim() };
+    let writer = MapWriter::create(dir, &cfg.encoding(), dims, encoder.appearance_record(), opts.store, opts.resume)?;
+    let writer = if without_labels { writer.without_labels()? } else { writer };
+    let writer = match &opts.traversal {
+        Some(name) => writer.with_traversal(crate::map::TraversalPlan::Named(name.clone()))?,
+        None => writer,
+    };
+    Ok((encoder, writer))
+}

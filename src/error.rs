@@ -38,6 +38,10 @@ pub enum Error {
     IncompatibleConfig { map: PathBuf, field: String, map_value: String, given_value: String },
     #[error("map {map}: image id {id:?} is already stored")]
     DuplicateImageId { map: PathBuf, id: String },
+    /// One id given to two images of one batch (before: "is already stored", of a map that
+    /// held neither).
+    #[error("map {map}: image id {id:?} is given twice (images {first} and {second} of those added); ids must be unique")]
+    RepeatedImageId { map: PathBuf, id: String, first: usize, second: usize },
     #[error("image {id:?} refused, nothing of it written: {reason}")]
     InvalidImage { id: String, reason: String },
     #[error("dataset {path}: {reason}")]

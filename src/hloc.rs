@@ -39,6 +39,16 @@ pub fn common_root(dirs: &[PathBuf]) -> Result<PathBuf> {
     root.ok_or_else(|| Error::invalid("image root", "no folders to find it from"))
 }
 
+/// The image root names are relative to when none is given: the deepest folder holding the
+/// *parents* of every folder of `dirs`, so a name keeps the folder its image is in
+/// (`ref/00.jpg`, `query/00.jpg` under `G` for the folders `G/ref` and `G/query`), and the map's
+/// export (`python -m semlook.hloc --images G/ref`) and `query --pairs` (references `G/ref`,
+/// queries `G/query`) name one image alike without a `--root`.
+pub fn default_root(dirs: &[PathBuf]) -> Result<PathBuf> {
+    let parents: Vec<PathBuf> = dirs.iter().map(|d| absolute(d).map(|a| a.parent().map(Path::to_path_buf).unwrap_or(a))).collect::<Result<_>>()?;
+    common_root(&parents)
+}
+
 /// hloc's name of `file` under `root`: its relative path, `/`-separated. Refused when the file
 /// is not under `root`, or its name is not UTF-8 or holds whitespace (pairs split on it).
 pub fn image_name(root: &Path, file: &Path) -> Result<String> {

@@ -107,7 +107,7 @@ fn errors_exit_non_zero_and_name_the_problem() {
     let out = semlook(&["map", "info", "--map", p(&dir.path().join("nowhere"))]);
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("nowhere") && err.contains("manifest.json"), "{err}");
+    assert!(err.contains("nowhere") && err.contains("No such file or directory"), "{err}");
     let bad = dir.path().join("bad.toml");
     std::fs::write(&bad, "[matching]\ntop_k = -3\n").unwrap();
     let out = semlook(&["map", "build", "--labels", p(dir.path()), "--map", p(&dir.path().join("m")), "--config", p(&bad)]);
@@ -296,9 +296,9 @@ fn map_commands_keep_their_small_promises() {
         assert_eq!(out.status.code(), Some(2), "{flag:?}");
         assert!(String::from_utf8_lossy(&out.stderr).contains("cannot be used with"), "{flag:?}");
     }
-    // a folder with no map gives the OS's message (it said "entity not found")
+    // a folder with no map says so (it said "entity not found", then "manifest.json: No such file")
     let err = fails(&["map", "info", "--map", p(dir.path())]);
-    assert!(err.contains("manifest.json") && err.contains("No such file or directory") && !err.contains("entity"), "{err}");
+    assert!(err.contains("is not a map (no manifest.json in it)") && !err.contains("entity"), "{err}");
 }
 
 /// `--skip-invalid` skips what the store would refuse and what cannot be read, naming each: an id
@@ -467,5 +467,211 @@ fn models_lists_what_is_installed_and_where_the_rest_comes_from() {
     assert_eq!(xfeat["pinned"], false);
     for m in all.as_array().unwrap() {
         assert!(m["path"].is_string() || m["source"].as_str().is_some_and(|s| !s.is_empty()), "{m}");
+    }
+}
+
+/// Folders given as inputs are checked before anything is created: an empty folder and a file
+/// where a folder belongs are named; two files of one stem (`a.jpg`, `a.png`: one id) are refused
+/// naming both, with no map folder left; hidden files (macOS `._a.png`) are skipped with a
+/// warning; a folder without a manifest given as `--map` "is not a map". Before: an empty folder
+/// built an empty map, a file path failed with "Not a directory", the duplicate stem stopped the
+/// build half way, `._a.png` stopped it as an undecodable image, and `--map` of a plain folder
+/// said "manifest.json: No such file or directory".
+#[test]
+fn input_folders_are_checked_before_anything_is_created() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    ok(&["synth", "--out", p(&data), "--places", "3", "--size", "96x72", "-q"]);
+    let labels = data.join("day/GT/LABELS/Stereo_Left/Omni_F");
+    let map = dir.path().join("map");
+    let build = |from: &Path| semlook(&["map", "build", "--labels", p(from), "--map", p(&map), "--no-appearance", "-q"]);
+    let refused = |from: &Path, says: &[&str]| {
+        let out = build(from);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{err}");
+        for s in says {
+            assert!(err.contains(s), "{s:?} not in {err}");
+        }
+        assert!(!map.exists(), "a refused build left {}", map.display());
+    };
+    let empty = dir.path().join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    refused(&empty, &["empty", "no images"]);
+    let one = std::fs::read_dir(&labels).unwrap().flatten().next().unwrap().path();
+    refused(&one, &["is a file, not a folder"]);
+    let dup = dir.path().join("dup");
+    std::fs::create_dir(&dup).unwrap();
+    std::fs::copy(&one, dup.join("a.png")).unwrap();
+    std::fs::write(dup.join("a.jpg"), image_bytes(&one, image::ImageFormat::Jpeg)).unwrap();
+    refused(&dup, &["a.jpg", "a.png", "same name"]);
+    let hidden = dir.path().join("hidden");
+    std::fs::create_dir(&hidden).unwrap();
+    for e in std::fs::read_dir(&labels).unwrap().flatten() {
+        std::fs::copy(e.path(), hidden.join(e.file_name())).unwrap();
+    }
+    std::fs::write(hidden.join("._a.png"), b"\0\x05\x16\x07 resource fork").unwrap();
+    let out = build(&hidden);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(err.contains("hidden"), "no warning of the skipped file: {err}");
+    let info: serde_json::Value = serde_json::from_str(&ok(&["map", "info", "--map", p(&map), "--json"])).unwrap();
+    assert_eq!(info["images"].as_u64(), Some(3), "{info}");
+    let out = semlook(&["map", "info", "--map", p(&empty)]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("is not a map"), "{err}");
+}
+
+/// `path`'s image re-encoded as `format`.
+fn image_bytes(path: &Path, format: image::ImageFormat) -> Vec<u8> {
+    let img = image::open(path).unwrap().to_rgb8();
+    let mut out = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut out, format).unwrap();
+    out.into_inner()
+}
+
+/// Output paths are checked before any work (issue 30 item 7), and `hog` against a map built
+/// without HOG is refused naming `--hog` (item 8). The query frames hold an image that cannot
+/// be decoded, which encoding would stop at: each refusal must name the output path (or HOG),
+/// not the image. Before: `eval --report FILE` (an existing file) and `query --pairs
+/// /missing/p.txt` ran the whole evaluation or query first, and `--setting hog` failed at
+/// matching without naming `--hog`.
+#[test]
+fn outputs_and_settings_are_checked_before_any_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    ok(&["synth", "--out", p(&data), "--places", "3", "--size", "96x72", "--query-condition", "fog", "-q"]);
+    let (rgb, labels) = ("RGB/Stereo_Left/Omni_F", "GT/LABELS/Stereo_Left/Omni_F");
+    for sub in [rgb, labels] {
+        let first = std::fs::read_dir(data.join("fog").join(sub)).unwrap().flatten().map(|e| e.path()).min().unwrap();
+        std::fs::write(first, b"not a png").unwrap();
+    }
+    let map = dir.path().join("map");
+    ok(&["map", "build", "--labels", p(&data.join("day").join(labels)), "--map", p(&map), "--no-appearance", "-q"]);
+    let report = dir.path().join("report.html");
+    std::fs::write(&report, "mine").unwrap();
+    let err = fails(&["eval", "--dataset", p(&data), "--report", p(&report), "--no-appearance", "-q"]);
+    assert!(err.contains("report.html") && !err.contains("not a png") && !err.contains("decode"), "{err}");
+    assert_eq!(std::fs::read_to_string(&report).unwrap(), "mine");
+    let missing = dir.path().join("missing/p.txt");
+    let q = data.join("fog").join(rgb);
+    let err = fails(&["query", "--map", p(&map), "--images", p(&q), "--pairs", p(&missing), "--references", p(&data.join("day").join(rgb)), "-q"]);
+    assert!(err.contains("missing") && !err.contains("decode"), "{err}");
+    let err = fails(&["query", "--map", p(&map), "--labels", p(&data.join("fog").join(labels)), "--setting", "hog", "-q"]);
+    assert!(err.contains("--hog") && !err.contains("decode"), "{err}");
+}
+
+/// `semlook models` as text: one row per file, status, name and where it is (or its role) in
+/// aligned columns, the details below; a missing file says where it comes from, with the
+/// command that installs it. Before: "from converted by setup.sh from ...", columns shifted by
+/// the name's length, and no line saying what to do.
+#[test]
+fn models_text_is_aligned_and_says_what_to_do() {
+    let dir = tempfile::tempdir().unwrap();
+    // a copy outside the repository, so nothing is found beside it: every file missing
+    let exe = dir.path().join("semlook");
+    std::fs::copy(common::bin(), &exe).unwrap();
+    let out = Command::new(&exe)
+        .arg("models")
+        .current_dir(dir.path())
+        .env("SEMLOOK_MODELS", dir.path())
+        .env("HOME", dir.path())
+        .env("XDG_DATA_HOME", dir.path().join("data"))
+        .env("XDG_DATA_DIRS", dir.path().join("none"))
+        .output()
+        .unwrap();
+    let text = String::from_utf8(out.stdout).unwrap();
+    let rows: Vec<&str> = text.lines().filter(|l| ["ok ", "absent ", "MISSING "].iter().any(|s| l.starts_with(s))).collect();
+    assert_eq!(rows.len(), 4, "{text}");
+    let third = |l: &str| l[9..].find("  ").map(|i| 9 + i + l[9 + i..].len() - l[9 + i..].trim_start().len());
+    let cols: std::collections::HashSet<Option<usize>> = rows.iter().map(|l| third(l)).collect();
+    assert_eq!(cols.len(), 1, "columns not aligned:\n{text}");
+    assert!(!text.contains("from converted"), "{text}");
+    assert!(rows.iter().all(|l| !l.starts_with("ok ")), "{text}");
+    assert_eq!(text.matches("comes from: ").count(), 4, "{text}");
+    assert!(text.contains("bash setup.sh") && text.contains("encoded without labels"), "{text}");
+}
+
+/// `eval` with the reference folder as the query folder warns that the metrics say nothing
+/// (every query finds its own image); before, it printed R@1 1.0 without a word.
+#[test]
+fn eval_warns_when_the_queries_are_the_references() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    ok(&["synth", "--out", p(&data), "--places", "3", "--size", "96x72", "-q"]);
+    let labels = data.join("day/RGB/Stereo_Left/Omni_F");
+    let mut gt = String::from("query,reference\n");
+    for e in std::fs::read_dir(&labels).unwrap().flatten() {
+        let n = e.file_name().to_string_lossy().into_owned();
+        gt += &format!("Omni_F/{n},Omni_F/{n}\n");
+    }
+    let truth = labels.parent().unwrap().join("gt.csv");
+    std::fs::write(&truth, gt).unwrap();
+    let out = semlook(&[
+        "eval",
+        "--references",
+        p(&labels),
+        "--queries",
+        p(&labels),
+        "--ground-truth",
+        p(&truth),
+        "--setting",
+        "hog",
+        "--no-appearance",
+        "--json",
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(err.contains("the query folder is the reference folder"), "{err}");
+}
+
+/// One id convention across commands (issue 30 item 2): a map built from a dataset, from a
+/// folder of images, of label maps, or of both, serves `eval --map` whichever way eval names
+/// the references (a dataset's ids, or paths relative to a ground-truth file). Before, a map
+/// built with `--images` (ids: file stems) failed `eval --map --references ... --ground-truth`
+/// with `reference "ref/00.jpg" is not in the map`.
+#[test]
+fn every_way_of_building_serves_every_way_of_evaluating() {
+    if !common::has_xfeat() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    ok(&["synth", "--out", p(&data), "--places", "4", "--size", "96x72", "--query-condition", "fog", "-q"]);
+    let (rgb, lab) = ("RGB/Stereo_Left/Omni_F", "GT/LABELS/Stereo_Left/Omni_F");
+    let (r, l, q) = (data.join("day").join(rgb), data.join("day").join(lab), data.join("fog").join(rgb));
+    let mut gt = String::from("query,reference\n");
+    for e in std::fs::read_dir(&r).unwrap().flatten() {
+        let n = e.file_name().to_string_lossy().into_owned();
+        gt += &format!("fog/{rgb}/{n},day/{rgb}/{n}\n");
+    }
+    let truth = data.join("pairs.csv");
+    std::fs::write(&truth, gt).unwrap();
+    // (how, build flags, eval flags): label maps alone give no appearance, so that map is
+    // evaluated in `global`, its photo queries labelled by the segmenter
+    let segmenter = semlook::onnx::find_model(semlook::segmentation::DEFAULT_SEGMENTER, None, "segmenter").is_ok();
+    let builds: [(&str, Vec<&str>, Vec<&str>); 4] = [
+        ("dataset", vec!["--dataset", p(&data)], vec!["--setting", "appearance", "--no-segmenter"]),
+        ("images", vec!["--images", p(&r), "--no-segmenter"], vec!["--setting", "appearance", "--no-segmenter"]),
+        ("labels", vec!["--labels", p(&l), "--no-appearance"], vec!["--setting", "global", "--no-appearance"]),
+        ("both", vec!["--images", p(&r), "--labels", p(&l)], vec!["--setting", "appearance", "--no-segmenter"]),
+    ];
+    let evals: [(&str, Vec<&str>); 2] =
+        [("dataset", vec!["--dataset", p(&data)]), ("folders", vec!["--references", p(&r), "--queries", p(&q), "--ground-truth", p(&truth)])];
+    for (built, args, setting) in &builds {
+        let map = dir.path().join(format!("map-{built}"));
+        ok(&[&["map", "build", "--map", p(&map), "-q"][..], args].concat());
+        for (named, eargs) in &evals {
+            if *built == "labels" && *named == "folders" && !segmenter {
+                common::skip_unless_required("REQUIRE_MODELS", "the default segmenter (photo queries against a map of label maps)");
+                continue;
+            }
+            let out = semlook(&[&["eval", "--map", p(&map), "--json"][..], setting, eargs].concat());
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert!(out.status.success(), "map built from {built}, eval by {named}: {err}");
+            let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+            assert_eq!(report["references"].as_u64(), Some(4), "map built from {built}, eval by {named}: {report}");
+            let r1 = report["results"][0]["recall_at"][0][1].as_f64().unwrap();
+            assert!(r1 > 0.0, "map built from {built}, eval by {named}: R@1 {r1}");
+        }
     }
 }

@@ -88,6 +88,28 @@ fn add_appends_a_segment_and_keeps_the_rest() {
     assert_eq!(back.id(6), "new0");
 }
 
+/// One id given to two images of a new map or of an add is refused naming both positions, not
+/// as "already stored" (which the map never held; before, create and add both said so); the
+/// map is not created, or left as it was.
+#[test]
+fn an_id_given_twice_names_both_images() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = Config::without_appearance();
+    let mut set = common::encode(&cfg, &common::label_maps(3, 96, 72), "ref");
+    set.ids[2] = "ref0".into();
+    let path = dir.path().join("new");
+    let err = Map::create(&path, &cfg.encoding(), &set, None).unwrap_err();
+    assert!(matches!(err, Error::RepeatedImageId { ref id, first: 0, second: 2, .. } if id == "ref0"), "{err}");
+    assert!(err.to_string().contains("given twice") && !err.to_string().contains("already stored"), "{err}");
+    assert!(!path.join("manifest.json").exists());
+    let (_, mut map) = built(&dir.path().join("m"));
+    let before = common::snapshot(&dir.path().join("m"));
+    set.ids = vec!["new0".into(), "new1".into(), "new0".into()];
+    let err = map.add(&set).unwrap_err();
+    assert!(matches!(err, Error::RepeatedImageId { ref id, first: 0, second: 2, .. } if id == "new0"), "{err}");
+    assert_eq!(common::snapshot(&dir.path().join("m")), before);
+}
+
 #[test]
 fn duplicate_ids_are_refused_before_writing() {
     let dir = tempfile::tempdir().unwrap();

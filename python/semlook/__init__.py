@@ -31,6 +31,13 @@ from pathlib import Path as _Path
 _repo_models = _Path(__file__).resolve().parents[2] / ".semlook"
 if "SEMLOOK_MODELS" not in _os.environ and _repo_models.is_dir():
     _os.environ["SEMLOOK_MODELS"] = str(_repo_models)
+# Mesa's Vulkan loader prints "error: XDG_RUNTIME_DIR is invalid or not set" (twice) when the
+# engine probes adapters on a headless machine; the folder is not used for compute. As the CLI
+# does, point it at the temporary folder when it is unset or not a folder.
+if not _os.path.isdir(_os.environ.get("XDG_RUNTIME_DIR", "")):
+    import tempfile as _tempfile
+
+    _os.environ["XDG_RUNTIME_DIR"] = _tempfile.gettempdir()
 
 from ._native import (  # noqa: E402
     DEFAULT_BACKEND,

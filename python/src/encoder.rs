@@ -23,15 +23,28 @@ pub struct PyConfig {
 
 #[pymethods]
 impl PyConfig {
-    /// The defaults (XFeat appearance on), or the TOML given; values are checked.
+    /// The defaults (XFeat appearance on), or the config given: TOML text, or the path of a
+    /// TOML file (a `pathlib.Path`, or a string naming an existing file); values are checked.
     #[new]
     #[pyo3(signature = (toml=None))]
-    fn new(toml: Option<&str>) -> PyResult<Self> {
-        let inner = match toml {
-            Some(t) => Config::from_toml(t, "Config(toml)").py_err()?,
-            None => Config::default(),
+    fn new(toml: Option<&Bound<'_, PyAny>>) -> PyResult<Self> {
+        let Some(t) = toml else { return Ok(PyConfig { inner: Config::default() }) };
+        let path: Option<PathBuf> = match t.extract::<String>() {
+            // one line without `=` is no TOML a config can be: a file name (missing ones named)
+            Ok(s) if !s.contains('\n') && !s.contains('=') && !s.trim().is_empty() => Some(s.into()),
+            Ok(_) => None,
+            Err(_) => Some(t.extract::<PathBuf>().map_err(|_| invalid("Config", "expected TOML text or the path of a TOML file"))?),
+        };
+        let inner = match path {
+            Some(p) => Config::load(&p).py_err()?,
+            None => Config::from_toml(&t.extract::<String>()?, "Config(toml)").py_err()?,
         };
         Ok(PyConfig { inner })
+    }
+    /// The config of a TOML file.
+    #[staticmethod]
+    fn from_file(path: PathBuf) -> PyResult<Self> {
+        Ok(PyConfig { inner: Config::load(&path).py_err()? })
     }
     /// The defaults with appearance off: label maps alone suffice to encode.
     #[staticmethod]
@@ -87,21 +100,43 @@ fn label_format(name: &str) -> PyResult<LabelFormat> {
 }
 
 /// Encodes frames with one configuration (and, with appearance, its keypoint network and VLAD
-/// codebook). Immutable: `train_codebook` returns a new encoder.
+/// codebook, which `train_codebook` sets in place).
 #[pyclass(frozen, module = "semlook._native", name = "Encoder")]
 pub struct PyEncoder {
-    inner: Encoder,
+    inner: std::sync::RwLock<Encoder>,
+}
+
+/// The config with the segmenter `segmenter` names: None keeps the config's (the installed
+/// default one), False none (frames without label maps are encoded without labels), a path
+/// that ONNX model.
+pub fn with_segmenter(mut cfg: Config, segmenter: Option<&Bound<'_, PyAny>>) -> PyResult<Config> {
+    match segmenter {
+        None => {}
+        Some(s) if s.is_instance_of::<pyo3::types::PyBool>() => {
+            if s.extract::<bool>()? {
+                return Err(invalid("segmenter", "True is the default already: give False (none) or the path of a model"));
+            }
+            cfg.models.default_segmenter = false;
+            cfg.models.segmenter_onnx = None;
+        }
+        Some(s) => {
+            cfg.models.segmenter_onnx = Some(s.extract::<PathBuf>().map_err(|_| invalid("segmenter", "expected False or the path of an ONNX model"))?)
+        }
+    }
+    Ok(cfg)
 }
 
 #[pymethods]
 impl PyEncoder {
     /// An encoder for `config` (default: the defaults, which need the XFeat weights; see
-    /// `SEMLOOK_MODELS`). With appearance, train a codebook before encoding.
+    /// `SEMLOOK_MODELS`), with `segmenter` (None: the installed default one; False: none, photos
+    /// without label maps are then encoded without labels, for the settings that need none; a
+    /// path: that ONNX model). With appearance, train a codebook before encoding.
     #[new]
-    #[pyo3(signature = (config=None))]
-    fn new(py: Python<'_>, config: Option<PyRef<'_, PyConfig>>) -> PyResult<Self> {
-        let cfg = config.map_or_else(Config::default, |c| c.inner.clone());
-        Ok(PyEncoder { inner: py.detach(|| Encoder::new(&cfg)).py_err()? })
+    #[pyo3(signature = (config=None, segmenter=None))]
+    fn new(py: Python<'_>, config: Option<PyRef<'_, PyConfig>>, segmenter: Option<&Bound<'_, PyAny>>) -> PyResult<Self> {
+        let cfg = with_segmenter(config.map_or_else(Config::default, |c| c.inner.clone()), segmenter)?;
+        Ok(Self::wrap(py.detach(|| Encoder::new(&cfg)).py_err()?))
     }
     /// The encoder a map's queries need: its config (or `config`, checked against the map),
     /// keypoint network and codebook.
@@ -110,7 +145,7 @@ impl PyEncoder {
     fn for_map(py: Python<'_>, map: &PyMap, config: Option<PyRef<'_, PyConfig>>) -> PyResult<Self> {
         let m = map.map();
         let cfg = config.map_or_else(|| m.query_config(), |c| c.inner.clone());
-        Ok(PyEncoder { inner: py.detach(|| Encoder::for_map(&cfg, &m)).py_err()? })
+        Ok(Self::wrap(py.detach(|| Encoder::for_map(&cfg, &m)).py_err()?))
     }
     /// `for_map` from the map directory's manifest and codebook alone: no segment file is
     /// opened, so a driver need not hold them (they live on the shards' nodes).
@@ -122,28 +157,34 @@ impl PyEncoder {
             let head = Map::open_header(&map_dir)?;
             Encoder::for_map(&config.unwrap_or_else(|| head.query_config()), &head)
         });
-        Ok(PyEncoder { inner: enc.py_err()? })
+        Ok(Self::wrap(enc.py_err()?))
     }
     /// Values per appearance vector (0 without appearance).
     #[getter]
     fn appearance_dim(&self) -> usize {
-        self.inner.appearance_dim()
+        self.inner().appearance_dim()
     }
-    /// A copy of this encoder with a VLAD codebook trained on these frames (files, as in
-    /// `encode_files`); without appearance, the same encoder.
+    /// Trains this encoder's VLAD codebook on these frames (files, as in `encode_files`) and
+    /// sets it, in place (as `Map.add` changes the map); returns the encoder itself. Without
+    /// appearance, nothing to train.
     #[pyo3(signature = (ids, images, labels=None, threads=None))]
-    fn train_codebook(
-        &self,
-        py: Python<'_>,
+    fn train_codebook<'py>(
+        slf: &Bound<'py, Self>,
+        py: Python<'py>,
         ids: Vec<String>,
         images: Vec<PathBuf>,
         labels: Option<Vec<PathBuf>>,
         threads: Option<usize>,
-    ) -> PyResult<Self> {
+    ) -> PyResult<Bound<'py, Self>> {
         let frames = frames(ids, Some(images), labels)?;
-        let mut enc = self.inner.clone();
-        detached(py, pool(threads)?, || semlook::batch::train_codebook(&mut enc, &frames, true)).py_err()?;
-        Ok(PyEncoder { inner: enc })
+        let enc = slf.get().inner().clone();
+        let enc = enc.clone().without_labels(enc.cannot_label(&frames));
+        let mut trained = enc;
+        detached(py, pool(threads)?, || semlook::batch::train_codebook(&mut trained, &frames, true)).py_err()?;
+        if let Some(cb) = trained.codebook() {
+            slf.get().inner.write().map_err(|_| invalid("encoder", "poisoned"))?.set_codebook(cb.clone());
+        }
+        Ok(slf.clone())
     }
     /// Encodes frames from files: `images` (RGB; needed with appearance or a segmenter) and/or
     /// `labels` (label maps), one per id, in parallel. With `skip_invalid`, frames that fail are
@@ -164,9 +205,12 @@ impl PyEncoder {
     ) -> PyResult<PyDescriptors> {
         let frames = frames(ids, images, labels)?;
         let fmt = self::label_format(label_format)?;
-        let (enc, engine) = (&self.inner, resolve(py, engine)?);
+        // photos without label maps and no segmenter: encoded without labels (as `map build`)
+        let enc = self.inner();
+        let enc = enc.clone().without_labels(enc.cannot_label(&frames));
+        let engine = resolve(py, engine)?;
         let encoded =
-            run(py, pool(threads)?, engine.as_ref(), |e| semlook::batch::encode_frames(e, enc, &frames, fmt, "frames", skip_invalid, true))?;
+            run(py, pool(threads)?, engine.as_ref(), |e| semlook::batch::encode_frames(e, &enc, &frames, fmt, "frames", skip_invalid, true))?;
         Ok(PyDescriptors::new(encoded.set))
     }
     /// Encodes one frame from memory: `image` uint8 [H, W, 3] (RGB) and/or `labels` [H, W] of
@@ -174,8 +218,9 @@ impl PyEncoder {
     #[pyo3(signature = (id, image=None, labels=None))]
     fn encode(&self, py: Python<'_>, id: String, image: Option<&Bound<'_, PyAny>>, labels: Option<&Bound<'_, PyAny>>) -> PyResult<PyDescriptors> {
         let rgb = image.map(|a| rgb_from_array(py, a, &format!("image of {id:?}"))).transpose()?;
-        let labels = labels.map(|l| labels_from_array(py, l, &format!("labels of {id:?}"), &self.inner)).transpose()?;
-        let enc = &self.inner;
+        let enc = self.inner().clone();
+        let labels = labels.map(|l| labels_from_array(py, l, &format!("labels of {id:?}"), &enc)).transpose()?;
+        let enc = enc.clone().without_labels(rgb.is_some() && labels.is_none() && !enc.frames().can_segment());
         let set = py
             .detach(|| -> semlook::Result<_> {
                 let loaded = enc.frames().load_arrays(&id, rgb, labels)?;
@@ -190,8 +235,12 @@ impl PyEncoder {
 }
 
 impl PyEncoder {
-    pub fn inner(&self) -> &Encoder {
-        &self.inner
+    pub fn wrap(e: Encoder) -> Self {
+        PyEncoder { inner: std::sync::RwLock::new(e) }
+    }
+    /// The encoder as it is now (a codebook training writes it; a poisoned lock still reads).
+    pub fn inner(&self) -> std::sync::RwLockReadGuard<'_, Encoder> {
+        self.inner.read().unwrap_or_else(|e| e.into_inner())
     }
 }
 

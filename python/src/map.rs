@@ -57,8 +57,53 @@ impl PyMap {
         segment_images: Option<usize>,
         f16: bool,
     ) -> PyResult<Self> {
-        let (set, enc, opts) = (descriptors.inner.clone(), encoder.inner(), store_options(segment_images, f16)?);
-        Ok(wrap(py.detach(|| Map::create_with(&path, enc.config(), &set, enc.appearance_record(), opts)).py_err()?))
+        let (set, enc, opts) = (descriptors.inner.clone(), encoder.inner().clone(), store_options(segment_images, f16)?);
+        // photos encoded without labels (no label maps, no segmenter): a map marked so, which
+        // serves the settings that need none and refuses the others by name
+        let without_labels = !set.is_empty() && set.n_trees() == 0 && !enc.frames().can_segment();
+        let m = py.detach(|| -> semlook::Result<Map> {
+            let dims = semlook::map::Dims { appearance: set.appearance_dim, hog: set.hog_dim, keypoints: set.keypoint_dim };
+            let mut w = MapWriter::create(&path, enc.config(), dims, enc.appearance_record(), opts, false)?;
+            if without_labels {
+                w = w.without_labels()?;
+            }
+            w.push_set(&set)?;
+            w.finish()
+        });
+        Ok(wrap(m.py_err()?))
+    }
+    /// Builds a map in `path` from image files in one call, as `semlook map build` does: the
+    /// VLAD codebook trained on them, every frame encoded and committed segment by segment.
+    /// `images` and/or `labels`: lists of paths (one per id), or a folder of images (png, jpg:
+    /// ids are the file stems; label maps `<stem>.png` in the `labels` folder). `segmenter` as
+    /// `Encoder`'s (False: photos without label maps make a map without labels, for the
+    /// settings that need none). `ids`: with lists, default the file stems.
+    #[staticmethod]
+    #[pyo3(signature = (path, images=None, labels=None, ids=None, config=None, segmenter=None, segment_images=None, f16=false, engine=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn build(
+        py: Python<'_>,
+        path: PathBuf,
+        images: Option<&Bound<'_, PyAny>>,
+        labels: Option<&Bound<'_, PyAny>>,
+        ids: Option<Vec<String>>,
+        config: Option<PyRef<'_, PyConfig>>,
+        segmenter: Option<&Bound<'_, PyAny>>,
+        segment_images: Option<usize>,
+        f16: bool,
+        engine: Option<PyRef<'_, PyEngine>>,
+    ) -> PyResult<Self> {
+        let cfg = crate::encoder::with_segmenter(config.map_or_else(Config::default, |c| c.inner.clone()), segmenter)?;
+        let frames = build_frames(images, labels, ids, ["images", "labels"])?;
+        let opts = semlook::batch::NewMapOptions { store: store_options(segment_images, f16)?, quiet: true, ..Default::default() };
+        let engine = resolve(py, engine)?;
+        let m = run(py, None, engine.as_ref(), |e| {
+            let (enc, mut w) = semlook::batch::new_map(&cfg, &frames, &path, &opts)?;
+            let into = semlook::batch::IntoOptions { quiet: true, ..Default::default() };
+            semlook::batch::encode_into(e, &enc, &frames, Default::default(), &mut w, into)?;
+            w.finish()
+        })?;
+        Ok(wrap(m))
     }
     /// Adds `descriptors` (encoded by `Encoder.for_map(map)`) as new segments; every image and id
     /// is checked before anything is written. This map then serves the new generation.
@@ -164,7 +209,9 @@ impl PyMap {
     /// `Encoder.for_map(map)`), or frames as arrays, all label maps (integer [H, W] of label ids)
     /// or all RGB images (uint8 [H, W, 3]); or, instead, `images` and/or `labels`, one per frame
     /// (both for frames that have both). Frames are encoded with `Encoder.for_map(map, config)` as
-    /// its `encode` does (on the CPU), named by `ids` (default q0, q1, ...). `k` candidates per
+    /// its `encode` does (on the CPU), named by `ids` (default q0, q1, ...). Files instead of
+    /// arrays: a folder or a list of paths (as `queries`, `images` or `labels`), ids the file
+    /// stems unless `ids` are given, as `Map.build` reads them. `k` candidates per
     /// query (default: the config's top_k), `config` as `semlook query --config` (default:
     /// `Config.for_map(map)`), `threads` for a pool of its own, `engine` the `Engine` matching
     /// runs on (default: `default_engine()`).
@@ -194,8 +241,17 @@ impl PyMap {
             },
             _ => {
                 let enc = py.detach(|| self.encoder(&map, &cfg)).py_err()?.with_hog(s == Setting::Hog);
-                let frames = raw_frames(py, &enc, queries, images, labels, ids)?;
-                Input::Frames(Box::new(enc), frames)
+                // files: a folder or a list of paths (as queries=, images= or labels=)
+                match (queries, images, labels) {
+                    (Some(q), None, None) if are_paths(q) => Input::Files(Box::new(enc), build_frames(Some(q), None, ids, ["queries", "labels"])?),
+                    (None, im, lb) if im.is_some_and(are_paths) || lb.is_some_and(are_paths) => {
+                        Input::Files(Box::new(enc), build_frames(im, lb, ids, ["images", "labels"])?)
+                    }
+                    _ => {
+                        let frames = raw_frames(py, &enc, queries, images, labels, ids)?;
+                        Input::Frames(Box::new(enc), frames)
+                    }
+                }
             }
         };
         let engine = resolve(py, engine)?;
@@ -203,6 +259,13 @@ impl PyMap {
             let set = match input {
                 Input::Encoded(set) => set,
                 Input::Frames(enc, frames) => Arc::new(encode_frames(&enc, frames)?),
+                Input::Files(enc, frames) => {
+                    // photos without label maps and no segmenter: encoded without labels
+                    let label_free = enc.cannot_label(&frames);
+                    let enc = (*enc).without_labels(label_free);
+                    let fmt = semlook::input::LabelFormat::default();
+                    Arc::new(semlook::batch::encode_frames(e, &enc, &frames, fmt, "queries", false, true)?.set)
+                }
             };
             let (matches, _) = e.match_batch(map.as_ref(), &set, s, &cfg)?;
             Ok((set, matches))
@@ -211,10 +274,92 @@ impl PyMap {
     }
 }
 
+/// The frames of `Map.build` and `Map.query`'s files: folders (ids: the file stems), or one
+/// file or a list of paths (with `ids`, default the stems). `names`: the arguments' names in
+/// messages (images, labels).
+fn build_frames(
+    images: Option<&Bound<'_, PyAny>>,
+    labels: Option<&Bound<'_, PyAny>>,
+    ids: Option<Vec<String>>,
+    names: [&str; 2],
+) -> PyResult<Vec<semlook::input::FrameSource>> {
+    use semlook::input::FrameSource;
+    let stem = |p: &std::path::Path| p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    let as_dir = |o: Option<&Bound<'_, PyAny>>| -> Option<PathBuf> { o.and_then(|x| x.extract::<PathBuf>().ok()).filter(|p| p.is_dir()) };
+    let as_list = |o: Option<&Bound<'_, PyAny>>, what: &str| -> PyResult<Option<Vec<PathBuf>>> {
+        match o {
+            None => Ok(None),
+            // one path: a file is one frame; anything else is named
+            Some(x) if !x.is_instance_of::<pyo3::types::PyList>() && !x.is_instance_of::<pyo3::types::PyTuple>() => match x.extract::<PathBuf>() {
+                Ok(p) if p.is_file() => Ok(Some(vec![p])),
+                Ok(p) => Err(invalid(what, format!("{}: no such file or folder", p.display()))),
+                Err(_) => Err(invalid(what, "expected a folder, a file, or a list of paths")),
+            },
+            Some(x) => x.extract::<Vec<PathBuf>>().map(Some).map_err(|_| invalid(what, "expected a folder, a file, or a list of paths")),
+        }
+    };
+    let (dir_images, dir_labels) = (as_dir(images), as_dir(labels));
+    if ids.is_some() && (dir_images.is_some() || dir_labels.is_some()) {
+        return Err(invalid("ids", "given with a folder, whose frames are named by their file stems: give lists of paths to name them"));
+    }
+    let frames: Vec<FrameSource> = match (dir_images, dir_labels) {
+        (Some(dir), lab) => {
+            let files = semlook::dataset::image_files(&dir).py_err()?;
+            if files.is_empty() {
+                return Err(invalid(names[0], format!("{}: no images (png, jpg) in this folder", dir.display())));
+            }
+            files
+                .into_iter()
+                .map(|f| FrameSource { id: stem(&f), labels: lab.as_ref().map(|l| l.join(format!("{}.png", stem(&f)))), image: Some(f) })
+                .collect()
+        }
+        (None, Some(dir)) if images.is_none() => {
+            semlook::dataset::image_files(&dir).py_err()?.into_iter().map(|f| FrameSource { id: stem(&f), image: None, labels: Some(f) }).collect()
+        }
+        _ => {
+            let (im, lb) = (as_list(images, names[0])?, as_list(labels, names[1])?);
+            let n = im.as_ref().or(lb.as_ref()).map_or(0, Vec::len);
+            if n == 0 {
+                return Err(invalid(names[0], "no frames: give images= and/or labels= (folders or lists of paths)"));
+            }
+            if let (Some(a), Some(b)) = (&im, &lb) {
+                if a.len() != b.len() {
+                    return Err(invalid(names[1], format!("{} label maps for {} images", b.len(), a.len())));
+                }
+            }
+            let ids = match ids {
+                Some(v) if v.len() != n => return Err(invalid("ids", format!("{} ids for {n} frames", v.len()))),
+                Some(v) => v,
+                None => (0..n).map(|i| stem(im.as_ref().or(lb.as_ref()).map(|l| l[i].as_path()).unwrap_or(std::path::Path::new("")))).collect(),
+            };
+            ids.into_iter()
+                .enumerate()
+                .map(|(i, id)| FrameSource { id, image: im.as_ref().map(|v| v[i].clone()), labels: lb.as_ref().map(|v| v[i].clone()) })
+                .collect()
+        }
+    };
+    let mut seen = std::collections::HashSet::new();
+    if let Some(f) = frames.iter().find(|f| !seen.insert(f.id.clone())) {
+        return Err(invalid("ids", format!("{:?} names two frames", f.id)));
+    }
+    Ok(frames)
+}
+
 /// What `Map.query` matches: descriptors, or frames to encode first.
 enum Input {
     Encoded(Arc<DescriptorSet>),
     Frames(Box<Encoder>, Vec<Frame>),
+    Files(Box<Encoder>, Vec<semlook::input::FrameSource>),
+}
+
+/// Whether `obj` names files: a path (str, os.PathLike) or a list of them.
+fn are_paths(obj: &Bound<'_, PyAny>) -> bool {
+    let path = |o: &Bound<'_, PyAny>| o.is_instance_of::<pyo3::types::PyString>() || o.hasattr("__fspath__").unwrap_or(false);
+    if path(obj) {
+        return true;
+    }
+    obj.cast::<pyo3::types::PyList>().ok().and_then(|l| l.get_item(0).ok()).is_some_and(|first| path(&first))
+        || obj.cast::<pyo3::types::PyTuple>().ok().and_then(|t| t.get_item(0).ok()).is_some_and(|first| path(&first))
 }
 
 /// A query frame from arrays: id, RGB image, label map.
@@ -346,7 +491,7 @@ pub fn evaluate<'py>(
     references: Option<PathBuf>,
     queries: Option<PathBuf>,
     ground_truth: Option<PathBuf>,
-    settings: Option<Vec<String>>,
+    settings: Option<&Bound<'py, PyAny>>,
     config: Option<PyRef<'_, PyConfig>>,
     map: Option<&PyMap>,
     gt_distance: Option<f64>,
@@ -356,8 +501,13 @@ pub fn evaluate<'py>(
     use semlook::dataset::{Dataset, DatasetOptions};
     // as `semlook eval`: the default settings, and without a config or map the defaults
     // adapted to the dataset's label files
+    // one name ("verified") or a list of them
     let settings = match settings {
-        Some(names) => names.iter().map(|s| setting(s)).collect::<PyResult<Vec<_>>>()?,
+        Some(s) if s.is_instance_of::<pyo3::types::PyString>() => vec![setting(&s.extract::<String>()?)?],
+        Some(s) => {
+            let names: Vec<String> = s.extract().map_err(|_| invalid("settings", "expected a setting name or a list of them (e.g. \"verified\")"))?;
+            names.iter().map(|s| setting(s)).collect::<PyResult<Vec<_>>>()?
+        }
         None => semlook::eval::DEFAULT_SETTINGS.to_vec(),
     };
     let map = map.map(|m| m.map());

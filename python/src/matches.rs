@@ -24,6 +24,16 @@ impl PyMatches {
     fn width(&self) -> usize {
         self.ranked.iter().map(|q| q.ranked.len()).max().unwrap_or(0)
     }
+    /// Query `q` as a dict {query, top_k: [{reference, index, score, coarse, fine}]}.
+    fn row(&self, q: usize) -> serde_json::Value {
+        let top: Vec<serde_json::Value> = self.ranked[q]
+            .ranked
+            .iter()
+            .zip(&self.ids[q])
+            .map(|(c, id)| serde_json::json!({"reference": id, "index": c.reference, "score": c.score, "coarse": c.coarse, "fine": c.fine}))
+            .collect();
+        serde_json::json!({"query": self.queries[q], "top_k": top})
+    }
     fn padded<T: Copy>(&self, pad: T, f: impl Fn(&semlook::matching::Candidate) -> T) -> Array2<T> {
         let w = self.width();
         let mut a = Array2::from_elem((self.ranked.len(), w), pad);
@@ -87,22 +97,25 @@ impl PyMatches {
     /// Per query a dict {query, top_k: [{reference, score, coarse, fine}]}: the shape of
     /// `semlook query --json`'s "queries".
     fn to_list<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        let rows: Vec<serde_json::Value> = self
-            .ranked
-            .iter()
-            .zip(&self.ids)
-            .zip(&self.queries)
-            .map(|((m, ids), q)| {
-                let top: Vec<serde_json::Value> = m
-                    .ranked
-                    .iter()
-                    .zip(ids)
-                    .map(|(c, id)| serde_json::json!({"reference": id, "index": c.reference, "score": c.score, "coarse": c.coarse, "fine": c.fine}))
-                    .collect();
-                serde_json::json!({"query": q, "top_k": top})
-            })
-            .collect();
+        let rows: Vec<serde_json::Value> = (0..self.ranked.len()).map(|q| self.row(q)).collect();
         crate::arrays::to_py_object(py, &rows)
+    }
+    /// Query `q`'s dict (as `to_list()[q]`; negative indices count from the end).
+    fn __getitem__<'py>(&self, py: Python<'py>, q: isize) -> PyResult<Bound<'py, PyAny>> {
+        let n = self.ranked.len() as isize;
+        let i = if q < 0 { q + n } else { q };
+        if !(0..n).contains(&i) {
+            return Err(pyo3::exceptions::PyIndexError::new_err(format!("query {q} of {n}")));
+        }
+        crate::arrays::to_py_object(py, &self.row(i as usize))
+    }
+    /// The queries' dicts in order (as `to_list()`).
+    fn __iter__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, pyo3::types::PyIterator>> {
+        self.to_list(py)?.try_iter()
+    }
+    /// `==` is [`equals`](Self::equals): the same rankings, ids and bit-identical scores.
+    fn __eq__(&self, other: &Bound<'_, PyAny>) -> bool {
+        other.cast::<PyMatches>().is_ok_and(|o| self.equals(o.get()))
     }
     /// Whether `other` ranks the same references with the same ids and bit-identical scores.
     fn equals(&self, other: &PyMatches) -> bool {

@@ -58,7 +58,7 @@ def test_engine_errors_are_also_the_builtin_a_caller_expects(tmp_path, encoder):
     with pytest.raises(FileNotFoundError) as missing:
         semlook.Map.open(str(tmp_path / "no-map"))
     assert isinstance(missing.value, semlook.MissingFileError) and "no-map" in str(missing.value)
-    assert missing.value.path.endswith("manifest.json")
+    assert missing.value.path.endswith("no-map")  # the folder that is not there, not a file in it
     broken = tmp_path / "broken.png"
     broken.write_bytes(b"not a png")
     with pytest.raises(OSError, match="broken.png") as unreadable:
@@ -200,7 +200,7 @@ def test_query_refuses_mixed_or_malformed_frames_naming_the_argument(small_map, 
         (dict(queries=[lab, np.full((8, 8), 250, np.uint8)]), "queries\\[1\\]: pixel .* class id 250"),
         (dict(queries=lab), "queries.*sequence of frames"),
         (dict(queries=rgb), "queries.*sequence of frames"),
-        (dict(queries="frame.png"), "queries.*string"),
+        (dict(queries="frame.png"), "queries.*frame.png: no such file or folder"),
         (dict(queries=[lab], labels=[lab]), "queries.*both"),
         (dict(queries=queries, labels=[lab]), "queries"),
         (dict(queries=queries, ids=["a"]), "ids"),
@@ -349,3 +349,48 @@ def test_localizer_streams_frames_with_sequence_matching(tmp_path, encoder):
     assert frames == 12 and entries <= 12 * 30 * 3, loc.state_size
     with pytest.raises(semlook.InvalidInputError):
         loc.push()
+
+
+def test_what_a_new_python_user_reaches_for(tmp_path, small_map, queries, encoder):
+    """Issue 30's Python stumbles, each seen failing before: `Config` took TOML text only (a path
+    was parsed as TOML); `Matches` was neither indexable nor iterable and `==` was identity;
+    `settings="verified"` raised "Can't extract 'str' to 'Vec'"; a repeated id in `Map.create`
+    said "already stored"; `train_codebook` returned a new encoder and left this one without
+    a codebook; frames came as arrays only (files: a folder or a list of paths now)."""
+    cfg = semlook.Config.without_appearance().with_top_k(7)
+    path = tmp_path / "c.toml"
+    path.write_text(cfg.to_toml())
+    for c in (semlook.Config(str(path)), semlook.Config(path), semlook.Config.from_file(path)):
+        assert c.to_toml() == cfg.to_toml() and c.top_k == 7
+    with pytest.raises(semlook.SemlookError, match="missing.toml"):
+        semlook.Config(str(tmp_path / "missing.toml"))
+    assert semlook.Config("[matching]\ntop_k = 7").top_k == 7
+    a, b = small_map.query(queries, "semlook", k=5), small_map.query(queries, "semlook", k=5)
+    assert a == b and a != small_map.query(queries, "global", k=5) and a != "x"
+    rows = list(a)
+    assert len(rows) == len(a) == 10 and rows[0] == a[0] and rows[-1] == a[-1] == a[9]
+    assert [r["reference"] for r in a[0]["top_k"]] == a.ids[0] and a[0]["query"] == "q1"
+    with pytest.raises(IndexError):
+        a[10]
+    refs = encode_places(encoder, range(3), "r")
+    twice = semlook.Descriptors.concat([refs, refs.take([0])])
+    with pytest.raises(semlook.DuplicateImageIdError, match="given twice"):
+        semlook.Map.create(str(tmp_path / "twice"), twice, encoder)
+    assert not (tmp_path / "twice" / "manifest.json").exists()
+    # label maps as files: a folder (ids the stems) or a list of paths
+    folder = tmp_path / "labels"
+    folder.mkdir()
+    for s in range(4):
+        write_png(folder / f"p{s}.png", place(s))
+    m = semlook.Map.build(tmp_path / "built", labels=folder, config=semlook.Config.without_appearance())
+    assert m.ids == ["p0", "p1", "p2", "p3"]
+    got = m.query(labels=[folder / "p2.png", folder / "p0.png"], setting="global")
+    assert got.queries == ["p2", "p0"] and [r["top_k"][0]["reference"] for r in got] == ["p2", "p0"]
+    assert m.query(labels=folder, setting="global").queries == m.ids
+
+
+def test_evaluate_takes_one_setting_by_name(synth_dataset):
+    r = semlook.evaluate(dataset=str(synth_dataset), settings="global", config=semlook.Config.without_appearance())
+    assert {s["setting"] for s in r["results"]} == {"global"}
+    with pytest.raises(semlook.InvalidInputError, match="setting"):
+        semlook.evaluate(dataset=str(synth_dataset), settings=3)

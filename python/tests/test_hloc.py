@@ -122,7 +122,8 @@ def test_appearance_vectors_and_the_command_line(tmp_path):
                          check=True, capture_output=True, text=True).stdout
     assert "wrote 4 appearance descriptors" in out
     m = semlook.Map.open(str(tmp_path / "map"))
-    got = get_descriptors([f"{i}.png" for i in m.ids], h5)
+    # no --root: names keep their folder (`Omni_F/000000.png`), as `semlook query --pairs` names them
+    got = get_descriptors([f"Omni_F/{i}.png" for i in m.ids], h5)
     assert got.shape == (4, m.manifest()["appearance_dim"])
     assert np.allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-3)
     assert np.array_equal(got, m.segment_view(0, "image_appearance")[m.live_rows(0)])

@@ -44,6 +44,7 @@ pub enum Command {
     /// The model files: which are installed, where, their SHA-256 (and whether it is the file
     /// `setup.sh` installs), and where each missing one comes from.
     Models {
+        /// Print the list as JSON (one object per model file).
         #[arg(long)]
         json: bool,
     },
@@ -90,6 +91,7 @@ pub struct BenchEncodeArgs {
     /// Configuration file (TOML; `semlook config` prints the defaults); default: built-in defaults.
     #[arg(long, value_name = "FILE.toml")]
     pub config: Option<PathBuf>,
+    /// Print the result as JSON.
     #[arg(long)]
     pub json: bool,
     #[command(flatten)]
@@ -113,6 +115,7 @@ pub struct BenchStreamArgs {
     /// Frames replayed per map (the stream is cycled when shorter).
     #[arg(long, default_value_t = 200)]
     pub frames: usize,
+    /// Which stages rank the map per frame.
     #[arg(long, value_enum, default_value_t = Setting::RECOMMENDED)]
     pub setting: Setting,
     /// Single-frame matching only.
@@ -125,6 +128,7 @@ pub struct BenchStreamArgs {
     /// unless --keep.
     #[arg(long)]
     pub dir: Option<PathBuf>,
+    /// Keep the maps in --dir after the run.
     #[arg(long)]
     pub keep: bool,
     /// One JSON object per row and line.
@@ -168,6 +172,7 @@ pub struct InspectArgs {
     /// Configuration file (TOML; `semlook config` prints the defaults); default: built-in defaults.
     #[arg(long, value_name = "FILE.toml")]
     pub config: Option<PathBuf>,
+    /// How label files encode classes (default: auto).
     #[arg(long, value_enum)]
     pub label_format: Option<LabelFormat>,
     #[command(flatten)]
@@ -253,11 +258,13 @@ pub struct SynthArgs {
     /// With --stream-from: the slowest and fastest speed, in source frames per frame.
     #[arg(long, default_value_t = 0.6, requires = "stream_from")]
     pub speed_min: f64,
+    /// With --stream-from: the fastest speed (see --speed-min).
     #[arg(long, default_value_t = 1.4, requires = "stream_from")]
     pub speed_max: f64,
     /// With --stream-from: stops along the route, and frames each lasts.
     #[arg(long, default_value_t = 2, requires = "stream_from")]
     pub stops: usize,
+    /// With --stream-from: frames each stop lasts.
     #[arg(long, default_value_t = 20, requires = "stream_from")]
     pub stop_frames: usize,
     /// With --from-camvid: the changes (default: night, fog, blur, shift).
@@ -299,10 +306,13 @@ pub struct DemoArgs {
     /// Keep the generated dataset, map and results here (default: a temporary directory).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Seed of the generated places and conditions.
     #[arg(long, default_value_t = 7)]
     pub seed: u64,
+    /// Places in the generated dataset.
     #[arg(long, default_value_t = 100)]
     pub places: usize,
+    /// Frame size of the generated dataset, WxH.
     #[arg(long, default_value = "480x360", value_parser = parse_size)]
     pub size: (usize, usize),
     /// Print the evaluation report as JSON.
@@ -336,6 +346,7 @@ pub struct ModelArgs {
 }
 
 #[derive(Args, Clone)]
+#[command(group(clap::ArgGroup::new("source").required(true).multiple(true).args(["dataset", "images", "labels"])))]
 pub struct SourceArgs {
     /// A dataset directory: encode its reference traversal (or --traversal).
     #[arg(long, conflicts_with = "images")]
@@ -406,6 +417,7 @@ pub enum MapCommand {
     Add {
         #[command(flatten)]
         source: SourceArgs,
+        /// The map directory to add to (made by `map build`).
         #[arg(long)]
         map: PathBuf,
         /// Continue an interrupted add: images the map holds are skipped, and the rest continue
@@ -422,13 +434,16 @@ pub enum MapCommand {
     },
     /// Show a map's size, layout, config and segments (reads the manifest; checks nothing).
     Info {
+        /// The map directory.
         #[arg(long)]
         map: PathBuf,
+        /// Print the information as JSON.
         #[arg(long)]
         json: bool,
     },
     /// Remove images from a map (they leave every query at once; `map compact` frees the space).
     Remove {
+        /// The map directory.
         #[arg(long)]
         map: PathBuf,
         /// Image ids, or one file of ids (one per line; empty lines and `#` lines ignored).
@@ -437,16 +452,20 @@ pub enum MapCommand {
     },
     /// Rewrite the segments that hold removed images or are small; delete files no manifest needs.
     Compact {
+        /// The map directory.
         #[arg(long)]
         map: PathBuf,
+        /// Print what was rewritten and freed as JSON.
         #[arg(long)]
         json: bool,
     },
     /// Check every file of a map in full (checksums and values); names each damaged file and
     /// exits with status 1 if there is one.
     Verify {
+        /// The map directory.
         #[arg(long)]
         map: PathBuf,
+        /// Print the check's results as JSON (one entry per file).
         #[arg(long)]
         json: bool,
     },
@@ -472,14 +491,17 @@ pub struct StoreBenchArgs {
     /// unless --keep.
     #[arg(long)]
     pub dir: Option<PathBuf>,
+    /// Keep the maps in --dir after the run.
     #[arg(long)]
     pub keep: bool,
+    /// Print one JSON object per row and line.
     #[arg(long)]
     pub json: bool,
 }
 
 #[derive(Args)]
 pub struct QueryArgs {
+    /// The map directory to query (made by `map build`).
     #[arg(long)]
     pub map: PathBuf,
     #[command(flatten)]
@@ -513,7 +535,8 @@ pub struct PairsArgs {
     #[arg(long = "references", value_name = "DIR", requires = "pairs")]
     pub references: Vec<PathBuf>,
     /// With --pairs: the folder names are relative to (hloc's image_dir); default: the deepest
-    /// folder holding the query and reference folders.
+    /// folder holding the query and reference folders' parents, so names keep their folder
+    /// (`ref/00.jpg`), as `python -m semlook.hloc` names the map's images.
     #[arg(long, value_name = "DIR", requires = "pairs")]
     pub pairs_root: Option<PathBuf>,
     /// With --pairs: pairs per query (default: the config's matching.top_k; fewer where the
@@ -606,8 +629,10 @@ pub struct EvalArgs {
     /// Configuration file (TOML; `semlook config` prints the defaults); default: built-in defaults.
     #[arg(long, value_name = "FILE.toml")]
     pub config: Option<PathBuf>,
+    /// Print the evaluation report as JSON (metrics per setting, what was skipped and why).
     #[arg(long)]
     pub json: bool,
+    /// Skip (and report) query or reference images that fail to load instead of stopping.
     #[arg(long)]
     pub skip_invalid: bool,
     /// Write sheets (query | top-1 | a valid reference, with labels and scores) for the N worst
@@ -644,5 +669,32 @@ fn parse_positive(s: &str) -> Result<usize, String> {
         Ok(0) => Err("must be at least 1".into()),
         Ok(n) => Ok(n),
         Err(e) => Err(e.to_string()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Cli;
+    use clap::CommandFactory;
+
+    /// Every option and positional of every command says what it does in `--help` (issue 30:
+    /// `--json`, `--skip-invalid` and `--map` had none in several commands; seen failing then,
+    /// listing 23 of them).
+    #[test]
+    fn every_argument_has_help_text() {
+        fn walk(cmd: &clap::Command, path: &str, missing: &mut Vec<String>) {
+            for a in cmd.get_arguments() {
+                let id = a.get_id().as_str();
+                if a.get_help().is_none() && !["help", "version"].contains(&id) {
+                    missing.push(format!("{path} --{id}"));
+                }
+            }
+            for sub in cmd.get_subcommands() {
+                walk(sub, &format!("{path} {}", sub.get_name()), missing);
+            }
+        }
+        let mut missing = Vec::new();
+        walk(&Cli::command(), "semlook", &mut missing);
+        assert!(missing.is_empty(), "no help text: {missing:#?}");
     }
 }

@@ -726,16 +726,39 @@ fn models_cmd(json: bool) -> Result<()> {
         outln!("{}", to_json(&all)?);
         return Ok(());
     }
+    // one aligned row per file (status, name, where or what), details indented below
+    let width = all.iter().map(|m| m.name.len()).max().unwrap_or(0);
+    let (mut missing, mut absent) = (0, 0);
     for m in &all {
         match (&m.path, &m.sha256) {
             (Some(p), Some(sha)) => {
-                let note = if m.pinned == Some(true) { "" } else { " (not the file setup.sh installs: another build, untested)" };
-                outln!("ok       {}  {}  {} bytes  sha256 {sha}{note}", m.name, p.display(), m.bytes.unwrap_or(0));
+                outln!("ok       {:width$}  {}", m.name, p.display());
+                let note = if m.pinned == Some(true) { "" } else { "  (not the file setup.sh installs: another build, untested)" };
+                outln!("         {:width$}  {} bytes, sha256 {sha}{note}", "", m.bytes.unwrap_or(0));
             }
-            _ => outln!("{}  {}  ({}): from {}", if m.optional { "absent  " } else { "MISSING " }, m.name, m.role, m.source),
+            _ => {
+                if m.optional {
+                    absent += 1;
+                } else {
+                    missing += 1;
+                }
+                outln!("{} {:width$}  {}", if m.optional { "absent  " } else { "MISSING " }, m.name, m.role);
+                outln!("         {:width$}  comes from: {}", "", m.source);
+            }
         }
     }
     let dirs: Vec<String> = semlook::onnx::model_dirs().iter().map(|d| d.display().to_string()).collect();
-    outln!("(looked in, in order: {})", dirs.join(", "));
+    outln!("looked in, in order: {}", dirs.join(", "));
+    if missing + absent > 0 {
+        outln!(
+            "to install what is missing: `bash setup.sh` in the repository (or put the files in a folder and set {}){}",
+            semlook::onnx::MODELS_ENV,
+            if all.iter().any(|m| m.name == semlook::segmentation::DEFAULT_SEGMENTER && m.path.is_none()) {
+                "; without the segmenter, photos that have no label maps are encoded without labels (settings hog, appearance, verified)"
+            } else {
+                ""
+            }
+        );
+    }
     Ok(())
 }

@@ -63,14 +63,43 @@ pub enum PoseFormat {
     MatrixWorldToCam,
 }
 
-/// The png and jpeg files of a folder, sorted by name.
+/// The png and jpeg files of a folder, sorted by name. Hidden files (macOS's `._name.jpg`
+/// resource forks among them) are left out, and what else is left out (sub-folders, files of
+/// other kinds) is said in one warning naming the folder.
 pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>> {
+    if dir.is_file() {
+        return Err(Error::invalid(dir.display().to_string(), "is a file, not a folder of images"));
+    }
     let rd = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
-    let mut files: Vec<PathBuf> = rd
-        .flatten()
-        .map(|e| e.path())
-        .filter(|p| matches!(p.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref(), Some("png" | "jpg" | "jpeg")))
-        .collect();
+    let (mut files, mut folders, mut hidden, mut other) = (Vec::new(), 0usize, 0usize, Vec::new());
+    for e in rd.flatten() {
+        let p = e.path();
+        let name = e.file_name().to_string_lossy().into_owned();
+        if name.starts_with('.') {
+            hidden += 1;
+        } else if p.is_dir() {
+            folders += 1;
+        } else if matches!(p.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref(), Some("png" | "jpg" | "jpeg")) {
+            files.push(p);
+        } else {
+            other.push(name);
+        }
+    }
+    if folders + hidden + other.len() > 0 {
+        other.sort();
+        let mut said = Vec::new();
+        if !other.is_empty() {
+            let shown: Vec<&str> = other.iter().take(3).map(String::as_str).collect();
+            said.push(format!("{} files not png or jpg ({}{})", other.len(), shown.join(", "), if other.len() > 3 { ", ..." } else { "" }));
+        }
+        if folders > 0 {
+            said.push(format!("{folders} sub-folders (not searched)"));
+        }
+        if hidden > 0 {
+            said.push(format!("{hidden} hidden files (macOS ._ resource forks among them)"));
+        }
+        log::warn!("{}: skipped {}", dir.display(), said.join(", "));
+    }
     files.sort();
     Ok(files)
 }

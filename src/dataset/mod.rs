@@ -111,6 +111,14 @@ impl Dataset {
         match (dir, references, queries) {
             (Some(dir), _, _) => Dataset::open(dir, opts),
             (None, Some(refs), Some(queries)) => {
+                if let (Ok(a), Ok(b)) = (refs.canonicalize(), queries.canonicalize()) {
+                    if a == b {
+                        log::warn!(
+                            "{}: the query folder is the reference folder: every query finds its own image, so the metrics say nothing (give the queries of another visit)",
+                            queries.display()
+                        );
+                    }
+                }
                 let truth = match ground_truth {
                     Some(f) => PairTruth::from_file(f)?,
                     None => PairTruth::Utm(opts.max_distance.unwrap_or(pairs::UTM_DEFAULT_DISTANCE)),

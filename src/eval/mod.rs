@@ -273,12 +273,18 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
     })
 }
 
+/// The file stem of an image id (`00` of `ref/00.jpg` and of `00`): how a map built from a
+/// folder and a dataset naming files by path find one image.
+pub fn id_stem(id: &str) -> Option<String> {
+    std::path::Path::new(id).file_stem().map(|s| s.to_string_lossy().into_owned())
+}
+
 /// The index in `refs` of every dataset reference: by its id, else (a map built from a folder of
 /// images names them by file stem, a dataset by path: `00` against `ref/00.jpg`) by the file stem
 /// of its id where exactly one map image has that id.
 pub fn reference_indices(refs: &dyn RefSource, sources: &[crate::input::FrameSource], root: &std::path::Path) -> Result<Vec<u32>> {
     let index: HashMap<&str, u32> = (0..refs.len()).map(|i| (refs.id(i), i as u32)).collect();
-    let stem = |id: &str| std::path::Path::new(id).file_stem().map(|s| s.to_string_lossy().into_owned());
+    let stem = id_stem;
     // file stem -> map index, None where two map images share the stem
     let mut by_stem: HashMap<String, Option<u32>> = HashMap::new();
     for (&id, &i) in &index {

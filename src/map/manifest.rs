@@ -249,8 +249,15 @@ fn check(m: &Manifest) -> std::result::Result<(), String> {
 
 /// [`read`] for a directory that must hold a map: no manifest is a not-found error naming it.
 pub fn read_existing(dir: &Path) -> Result<Manifest> {
-    // the OS's own "No such file or directory" (a bare ErrorKind says "entity not found")
-    read(dir)?.ok_or_else(|| Error::io(dir.join(MANIFEST), std::io::Error::from_raw_os_error(NO_SUCH_FILE)))
+    match read(dir)? {
+        Some(m) => Ok(m),
+        // a folder that is there but holds no map says so, rather than "manifest.json: not found"
+        None if dir.is_dir() => {
+            Err(Error::refused(format!("{}", dir.display()), format!("is not a map (no {MANIFEST} in it)"), crate::error::Remedy::BuildOrResume))
+        }
+        // the OS's own "No such file or directory" (a bare ErrorKind says "entity not found")
+        None => Err(Error::io(dir, std::io::Error::from_raw_os_error(NO_SUCH_FILE))),
+    }
 }
 
 /// The configuration queries of a map are encoded and matched with when none is given: the map's

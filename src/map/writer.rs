@@ -19,7 +19,7 @@ use crate::descriptors::{validate, DescriptorSet, EncodedImage};
 use crate::error::{Error, Remedy, Result};
 use crate::util::sha256_hex;
 use crate::values::{ValueType, Values};
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::hash::{Hash, Hasher};
 use std::path::{Path, PathBuf};
 
@@ -393,10 +393,13 @@ impl MapWriter {
                 given_value: show(&set.codebook),
             });
         }
-        let mut ids = HashSet::new();
+        let mut ids = HashMap::new();
         for i in 0..set.len() {
             set.check_image(i, l.n_classes, self.opts.values).map_err(|reason| Error::InvalidImage { id: set.ids[i].clone(), reason })?;
-            if !ids.insert(set.ids[i].as_str()) || self.contains(&set.ids[i]) {
+            if let Some(first) = ids.insert(set.ids[i].as_str(), i) {
+                return Err(Error::RepeatedImageId { map: self.dir.clone(), id: set.ids[i].clone(), first, second: i });
+            }
+            if self.contains(&set.ids[i]) {
                 return Err(Error::DuplicateImageId { map: self.dir.clone(), id: set.ids[i].clone() });
             }
         }
@@ -512,11 +515,11 @@ impl Map {
         opts: StoreOptions,
     ) -> Result<Map> {
         let n_classes = ClassTable::from_config(&cfg.classes)?.len();
-        let mut ids = HashSet::new();
+        let mut ids = HashMap::new();
         for i in 0..set.len() {
             set.check_image(i, n_classes, opts.values).map_err(|reason| Error::InvalidImage { id: set.ids[i].clone(), reason })?;
-            if !ids.insert(&set.ids[i]) {
-                return Err(Error::DuplicateImageId { map: dir.into(), id: set.ids[i].clone() });
+            if let Some(first) = ids.insert(&set.ids[i], i) {
+                return Err(Error::RepeatedImageId { map: dir.into(), id: set.ids[i].clone(), first, second: i });
             }
         }
         let mut w = MapWriter::create(

@@ -150,7 +150,13 @@ pub fn edit_sealed_manifest(dir: &Path, edit: impl FnOnce(&str) -> String) {
 
 /// Runs the `semlook` binary with `args`.
 pub fn cli(args: &[&str]) -> std::process::Output {
-    std::process::Command::new(env!("CARGO_BIN_EXE_semlook")).args(args).output().expect("binary runs")
+    std::process::Command::new(bin()).args(args).output().expect("binary runs")
+}
+
+/// The `semlook` binary under test: this build's, or `$SEMLOOK_TEST_BIN` (an older build, to
+/// see a new test fail on what it was written against).
+pub fn bin() -> std::path::PathBuf {
+    std::env::var_os("SEMLOOK_TEST_BIN").filter(|b| !b.is_empty()).map_or_else(|| env!("CARGO_BIN_EXE_semlook").into(), Into::into)
 }
 
 /// The stdout of a `semlook` run that must succeed.

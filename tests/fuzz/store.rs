@@ -186,7 +186,8 @@ fn use_map(dir: &Path, named: &dyn Fn(&Error) -> bool, edit: bool) -> Verdict {
         match match_with(&mut CpuStages, &map, &queries, setting, &cfg) {
             Ok((m, _)) if m.len() == queries.len() && m.iter().flat_map(|q| &q.ranked).all(|c| (c.reference as usize) < map.len()) => {}
             Ok(_) => return Verdict::Violation(format!("{setting}: rankings of the wrong length or out of the map")),
-            Err(Error::InvalidInput { .. }) if setting.is_baseline() => {}
+            // a baseline the map cannot serve (no HOG stored, no appearance) is refused by name
+            Err(Error::InvalidInput { .. } | Error::Refused { .. }) if setting.is_baseline() => {}
             Err(e) => return Verdict::Violation(format!("{setting} on a sound map: {e}")),
         }
     }
@@ -248,7 +249,8 @@ fn damaged_queries(map: &Map, cfg: &Config, e: &Error) -> Option<Verdict> {
     for setting in Setting::ALL {
         match match_with(&mut CpuStages, map, &rows, setting, cfg) {
             Err(Error::CorruptMap { path, .. }) if e.to_string().contains(&path.display().to_string()) => {}
-            Err(Error::InvalidInput { .. }) if setting.is_baseline() => {}
+            // a baseline the map cannot serve (no HOG stored, no appearance) is refused by name
+            Err(Error::InvalidInput { .. } | Error::Refused { .. }) if setting.is_baseline() => {}
             Ok(_) => return Some(Verdict::Violation(format!("{setting} ranks a map with a damaged segment ({e})"))),
             Err(other) => return Some(Verdict::Violation(format!("{setting} on a damaged map: {other}, expected {e}"))),
         }

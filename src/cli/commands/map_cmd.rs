@@ -107,29 +107,8 @@ fn build_into(
         let plan = f.traversal.clone().map_or(TraversalPlan::Last, TraversalPlan::Named);
         (encoder, MapWriter::append(dir, opts)?.with_traversal(plan)?)
     } else {
-        MapWriter::check_new_dir(dir, f.resume)?;
-        let encoder = Encoder::new(cfg)?.with_hog(f.hog);
-        // photos with neither label maps nor a segmenter: a map for the settings that need no
-        // labels, marked so (the others are refused against it), rather than no map at all
-        let without_labels = encoder.cannot_label(frames);
-        let mut encoder = encoder.without_labels(without_labels);
-        if without_labels {
-            log::warn!(
-                "no label maps and no segmenter: the map holds no semantic labels; only {} can be matched against it (`semlook models` says what is installed)",
-                label_free_settings(f.hog)
-            );
-        }
-        // the codebook comes first: it is stored with the first segment
-        batch::train_codebook_skipping(&mut encoder, frames, skip, quiet)?;
-        let hog_dim = if f.hog { semlook::baseline::HOG_DIM } else { 0 };
-        let dims = semlook::map::Dims { appearance: encoder.appearance_dim(), hog: hog_dim, keypoints: encoder.keypoint_dim() };
-        let writer = MapWriter::create(dir, &cfg.encoding(), dims, encoder.appearance_record(), opts, f.resume)?;
-        let writer = if without_labels { writer.without_labels()? } else { writer };
-        let writer = match &f.traversal {
-            Some(name) => writer.with_traversal(TraversalPlan::Named(name.clone()))?,
-            None => writer,
-        };
-        (encoder, writer)
+        let o = batch::NewMapOptions { hog: f.hog, store: opts, traversal: f.traversal.clone(), skip_invalid: skip, resume: f.resume, quiet };
+        batch::new_map(cfg, frames, dir, &o)?
     };
     let r = batch::encode_into(engine, &encoder, frames, fmt, &mut writer, IntoOptions { skip_invalid: skip, skip_stored: f.resume, quiet })?;
     report_encoding(&r, quiet);

@@ -33,7 +33,7 @@ impl PairNames {
             None => {
                 let mut dirs: Vec<PathBuf> = a.references.clone();
                 dirs.extend(images.iter().map(|(_, p)| p.parent().map(Path::to_path_buf).unwrap_or_default()));
-                hloc::common_root(&dirs)?
+                hloc::default_root(&dirs)?
             }
         };
         let mut queries = HashMap::new();

@@ -305,13 +305,19 @@ pub fn worst_sheet(
     encoder: &Encoder,
     cell_width: u32,
 ) -> Result<RgbImage> {
+    // by id, else (a reference named by the map: `09` for the dataset's `ref/09.jpg`) by the
+    // file stem where exactly one reference frame has it, as eval resolves the map's images
     let find = |id: &str| {
-        std::iter::once(&ds.reference)
-            .chain(&ds.queries)
-            .flat_map(|t| &t.frames)
-            .find(|f| f.source.id == id)
-            .map(|f| &f.source)
-            .ok_or_else(|| Error::dataset(&ds.root, format!("frame {id:?} of the report is not in the dataset")))
+        let all = || std::iter::once(&ds.reference).chain(&ds.queries).flat_map(|t| &t.frames);
+        if let Some(f) = all().find(|f| f.source.id == id) {
+            return Ok(&f.source);
+        }
+        let stem = crate::eval::id_stem(id);
+        let mut same = ds.reference.frames.iter().filter(|f| stem.is_some() && crate::eval::id_stem(&f.source.id) == stem);
+        match (same.next(), same.next()) {
+            (Some(f), None) => Ok(&f.source),
+            _ => Err(Error::dataset(&ds.root, format!("frame {id:?} of the report is not in the dataset"))),
+        }
     };
     let mut cols = vec![frame_column(encoder, find(&o.query)?, ds.label_format, &[format!("query {}", o.query), format!("set {set}, {setting}")])?];
     if let Some(top) = &o.top1 {

@@ -7,21 +7,50 @@ use super::font;
 use crate::error::{Error, Result};
 use crate::eval::metrics::precision_recall_curve;
 use crate::eval::{EvalReport, SettingReport};
+use crate::matching::Setting;
 use plotters::prelude::*;
 use std::path::{Path, PathBuf};
 
 const SIZE: (u32, u32) = (720, 540);
-/// Series colours, one per setting in report order.
-const COLOURS: [RGBColor; 8] = [
+/// One colour per setting, in the order of [`Setting::ALL`] (so a setting keeps its colour in
+/// every chart, whichever others ran): the baselines grey and brown, the paper's settings
+/// ColorBrewer Set1, `fused` teal, and the recommended `verified` black, drawn last and
+/// thickest (before, colours went by position and `verified`, ninth, wrapped to `hog`'s red).
+const COLOURS: [RGBColor; 9] = [
+    RGBColor(150, 150, 150),
+    RGBColor(166, 86, 40),
     RGBColor(228, 26, 28),
     RGBColor(55, 126, 184),
     RGBColor(77, 175, 74),
     RGBColor(152, 78, 163),
     RGBColor(255, 127, 0),
-    RGBColor(166, 86, 40),
+    RGBColor(0, 150, 150),
     RGBColor(0, 0, 0),
-    RGBColor(247, 129, 191),
 ];
+
+/// A chart's series: label, points, colour, line width.
+struct Series {
+    label: String,
+    points: Vec<(f64, f64)>,
+    colour: RGBColor,
+    width: u32,
+}
+
+/// The series of `rows` (label, points each), coloured by setting; the recommended setting
+/// last and thicker, and a curve equal to one drawn before it says so in its label (it would
+/// hide that one, or be hidden).
+fn series_of(rows: Vec<(Setting, String, Vec<(f64, f64)>)>) -> Vec<Series> {
+    let mut rows = rows;
+    rows.sort_by_key(|(s, ..)| *s == Setting::RECOMMENDED);
+    let mut out: Vec<Series> = Vec::with_capacity(rows.len());
+    for (i, (setting, label, points)) in rows.iter().enumerate() {
+        let same: Vec<&str> = rows[..i].iter().filter(|(_, _, p)| p == points).map(|(s, ..)| s.name()).collect();
+        let label = if same.is_empty() { label.clone() } else { format!("{label} = {}", same.join(", ")) };
+        let colour = COLOURS[Setting::ALL.iter().position(|s| s == setting).unwrap_or(0) % COLOURS.len()];
+        out.push(Series { label, points: points.clone(), colour, width: if *setting == Setting::RECOMMENDED { 3 } else { 2 } });
+    }
+    out
+}
 
 /// (recall, precision) points of a setting's curve, queries without ground truth left out.
 pub fn curve(r: &SettingReport) -> Vec<(f64, f64)> {
@@ -50,8 +79,15 @@ pub fn query_sets(report: &EvalReport) -> Vec<&str> {
 }
 
 /// Every setting's precision-recall curve on query set `set`, labelled with its AUC.
-fn pr_series(report: &EvalReport, set: &str) -> Vec<(String, Vec<(f64, f64)>)> {
-    report.results.iter().filter(|r| r.query_set == set).map(|r| (format!("{} (AUC {:.3})", r.setting.name(), r.pr.auc), curve(r))).collect()
+fn pr_series(report: &EvalReport, set: &str) -> Vec<Series> {
+    series_of(
+        report
+            .results
+            .iter()
+            .filter(|r| r.query_set == set)
+            .map(|r| (r.setting, format!("{} (AUC {:.3})", r.setting.name(), r.pr.auc), curve(r)))
+            .collect(),
+    )
 }
 
 /// The precision-recall chart of query set `set`, as SVG text.
@@ -65,16 +101,18 @@ pub fn pr_svg(report: &EvalReport, set: &str) -> Result<String> {
 pub fn recall_svg(report: &EvalReport, set: &str) -> Result<String> {
     let rows: Vec<&SettingReport> = report.results.iter().filter(|r| r.query_set == set).collect();
     let ns: Vec<usize> = rows.first().map(|r| r.recall_at.iter().map(|x| x.0).collect()).unwrap_or_default();
-    let series: Vec<(String, Vec<(f64, f64)>)> = rows
-        .iter()
-        .map(|r| {
-            let r1 = r.recall_at.first().map_or(0.0, |x| x.1);
-            (
-                format!("{} (R@{} {r1:.3})", r.setting.name(), ns.first().unwrap_or(&1)),
-                r.recall_at.iter().enumerate().map(|(i, x)| (i as f64, x.1)).collect(),
-            )
-        })
-        .collect();
+    let series = series_of(
+        rows.iter()
+            .map(|r| {
+                let r1 = r.recall_at.first().map_or(0.0, |x| x.1);
+                (
+                    r.setting,
+                    format!("{} (R@{} {r1:.3})", r.setting.name(), ns.first().unwrap_or(&1)),
+                    r.recall_at.iter().enumerate().map(|(i, x)| (i as f64, x.1)).collect(),
+                )
+            })
+            .collect(),
+    );
     let label = |x: &f64| match ns.get(x.round() as usize) {
         Some(n) if (x - x.round()).abs() < 1e-6 => format!("N = {n}"),
         _ => String::new(),
@@ -109,7 +147,7 @@ struct Axes<'a> {
     points: bool,
 }
 
-fn svg_chart(title: &str, series: &[(String, Vec<(f64, f64)>)], axes: &Axes) -> Result<String> {
+fn svg_chart(title: &str, series: &[Series], axes: &Axes) -> Result<String> {
     let e = |e: &dyn std::fmt::Display| Error::invalid(format!("chart {title:?}"), e.to_string());
     let mut text = String::new();
     {
@@ -130,15 +168,15 @@ fn svg_chart(title: &str, series: &[(String, Vec<(f64, f64)>)], axes: &Axes) -> 
             .x_label_formatter(axes.x_label)
             .draw()
             .map_err(|x| e(&x))?;
-        for (i, (name, pts)) in series.iter().enumerate() {
-            let c = COLOURS[i % COLOURS.len()];
+        for s in series {
+            let (c, w) = (s.colour, s.width);
             chart
-                .draw_series(LineSeries::new(pts.iter().copied(), c.stroke_width(2)))
+                .draw_series(LineSeries::new(s.points.iter().copied(), c.stroke_width(w)))
                 .map_err(|x| e(&x))?
-                .label(name)
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+                .label(&s.label)
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(w)));
             if axes.points {
-                chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, c.filled()))).map_err(|x| e(&x))?;
+                chart.draw_series(s.points.iter().map(|&p| Circle::new(p, 2 + w, c.filled()))).map_err(|x| e(&x))?;
             }
         }
         chart
@@ -153,7 +191,7 @@ fn svg_chart(title: &str, series: &[(String, Vec<(f64, f64)>)], axes: &Axes) -> 
     Ok(text)
 }
 
-fn png_chart(path: &Path, title: &str, series: &[(String, Vec<(f64, f64)>)]) -> Result<()> {
+fn png_chart(path: &Path, title: &str, series: &[Series]) -> Result<()> {
     let (w, h) = SIZE;
     let mut buf = vec![255u8; (w * h * 3) as usize];
     let mut ticks = Vec::new();
@@ -177,8 +215,8 @@ fn png_chart(path: &Path, title: &str, series: &[(String, Vec<(f64, f64)>)]) -> 
             .bold_line_style(BLACK.mix(0.2))
             .draw()
             .map_err(|e| err(path, e))?;
-        for (i, (_, pts)) in series.iter().enumerate() {
-            chart.draw_series(LineSeries::new(pts.iter().copied(), COLOURS[i % COLOURS.len()].stroke_width(2))).map_err(|e| err(path, e))?;
+        for s in series {
+            chart.draw_series(LineSeries::new(s.points.iter().copied(), s.colour.stroke_width(s.width))).map_err(|e| err(path, e))?;
         }
         for k in 0..=5 {
             let v = k as f64 / 5.0;
@@ -207,8 +245,8 @@ fn png_chart(path: &Path, title: &str, series: &[(String, Vec<(f64, f64)>)]) -> 
     }
     text(&mut img, (w / 2) as i64 - 30, (h - 22) as i64, "recall", black);
     text(&mut img, 4, 24, "precision", black);
-    for (i, (name, _)) in series.iter().enumerate() {
-        let c = COLOURS[i % COLOURS.len()];
+    for (i, s) in series.iter().enumerate() {
+        let (c, name) = (s.colour, &s.label);
         let (x, y) = (legend_at.0 as i64 + 4, legend_at.1 as i64 + i as i64 * 20);
         for dx in 0..20 {
             for dy in 0..3 {
@@ -218,4 +256,39 @@ fn png_chart(path: &Path, title: &str, series: &[(String, Vec<(f64, f64)>)]) -> 
         text(&mut img, x + 26, y, name, black);
     }
     super::save(&img, path)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every setting of an evaluation of all nine gets its own colour, `verified` (the
+    /// recommended one) black, drawn last and thickest, whatever the order it ran in; a curve
+    /// equal to one drawn before it names it. Seen failing before: `verified`, ninth of nine,
+    /// took `hog`'s red (colours by position, eight of them) and equal curves said nothing.
+    #[test]
+    fn each_setting_keeps_its_colour_and_equal_curves_say_so() {
+        let line = |k: f64| vec![(0.0, 1.0), (1.0, k)];
+        let rows: Vec<(Setting, String, Vec<(f64, f64)>)> = Setting::ALL
+            .iter()
+            .enumerate()
+            .map(|(i, s)| (*s, s.name().to_string(), line(if *s == Setting::Fused { 0.9 } else { i as f64 / 10.0 })))
+            .collect();
+        let mut reversed = rows.clone();
+        reversed.reverse();
+        for order in [rows, reversed] {
+            let mut order = order;
+            // verified's curve equal to fused's
+            for r in order.iter_mut().filter(|r| r.0 == Setting::Verified) {
+                r.2 = line(0.9);
+            }
+            let series = series_of(order);
+            let colours: std::collections::HashSet<(u8, u8, u8)> = series.iter().map(|s| (s.colour.0, s.colour.1, s.colour.2)).collect();
+            assert_eq!(colours.len(), 9, "a colour shared");
+            let last = series.last().unwrap();
+            assert!(last.label.starts_with("verified") && (last.colour.0, last.colour.1, last.colour.2) == (0, 0, 0) && last.width == 3);
+            assert!(last.label.ends_with("= fused"), "{}", last.label);
+            assert!(series.iter().filter(|s| s.label.contains(" = ")).count() == 1);
+        }
+    }
 }
