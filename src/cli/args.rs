@@ -678,8 +678,8 @@ mod tests {
     use clap::CommandFactory;
 
     /// Every option and positional of every command says what it does in `--help` (issue 30:
-    /// `--json`, `--skip-invalid` and `--map` had none in several commands; seen failing then,
-    /// listing 23 of them).
+    /// `--json`, `--skip-invalid`, `--map` and others had none in 23 places; seen failing with one
+    /// of them removed again, naming it).
     #[test]
     fn every_argument_has_help_text() {
         fn walk(cmd: &clap::Command, path: &str, missing: &mut Vec<String>) {
