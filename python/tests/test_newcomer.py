@@ -90,6 +90,10 @@ def test_the_cli_from_photos_alone(bare):
     assert len([s for s in sheets if is_image(s)]) >= 3, sheets
     html = (work / "report" / "index.html").read_text()
     assert "(no sheet" not in html and "data:image/jpeg;base64," in html and "verified" in html
+    # and without a map, as a first try of eval is (issue 30 item 1: it failed after the run)
+    semlook("eval", "--references", ref, "--queries", query, "--ground-truth", truth, "--report", "report2", "--explain", "2", "--out", "explain2", "-q")
+    assert len([s for s in (work / "explain2").rglob("*.*") if is_image(s)]) >= 2
+    assert "(no sheet" not in (work / "report2" / "index.html").read_text()
     # hloc: the map's appearance vectors (its global descriptors are all one without labels),
     # under the names the pairs use
     out = subprocess.run([sys.executable, "-m", "semlook.hloc", "--map", "map", "--images", ref, "--out", "feats.h5"],
