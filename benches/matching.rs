@@ -1,8 +1,9 @@
 //! Matching throughput on the CPU path.
 //! - coarse: SSIM of a batch of queries against maps of 1k and 10k references with streaming
 //!   top-K, through the production fast path (`coarse_topk`: `matching::coarse_cpu`) and through
-//!   the GPU kernels' CPU twins (`coarse_topk_twin`: `ssim_tile` + `topk_merge`), the same
-//!   batches; throughput counts (query, reference) comparisons;
+//!   the CPU twins of the kernels the GPU path runs (`coarse_topk_twin`: `ssim_block`, then
+//!   `topk_partial` + `topk_merge_lists`), the same batches; throughput counts (query, reference)
+//!   comparisons;
 //! - fine: tree-set similarity of one query forest against one candidate forest.
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
@@ -28,7 +29,7 @@ fn bench(c: &mut Criterion) {
         g.bench_function(format!("coarse_topk (fast path)/{n}_refs_x4_queries"), |b| {
             b.iter(|| coarse_topk(&refs, &queries, &p, cfg.matching.top_k, cfg.matching.tile))
         });
-        g.bench_function(format!("coarse_topk_twin (shader twin)/{n}_refs_x4_queries"), |b| {
+        g.bench_function(format!("coarse_topk_twin (twins of ssim_block + topk_select)/{n}_refs_x4_queries"), |b| {
             b.iter(|| coarse_topk_twin(&refs, &queries, &p, cfg.matching.top_k, cfg.matching.tile))
         });
     }

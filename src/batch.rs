@@ -73,7 +73,7 @@ pub fn train_codebook_skipping(encoder: &mut Encoder, refs: &[FrameSource], skip
 
 /// The store's refusal of a frame's id (empty, too long, control characters), if it has one.
 fn id_refusal(f: &FrameSource) -> Option<Error> {
-    crate::descriptors::validate::id(&f.id).err().map(|reason| Error::InvalidImage { id: f.id.clone(), reason })
+    crate::descriptors::validate::id(&f.id).err().map(|e| e.named(|reason| Error::InvalidImage { id: f.id.clone(), reason }))
 }
 
 /// A set of frames encoded into a descriptor set.
@@ -111,7 +111,7 @@ pub fn encode_frames(
     let (images, times, skipped) = collect_encoded(results, skip_invalid)?;
     let mut set = encoder.descriptor_set();
     for img in &images {
-        set.push(img).map_err(|r| Error::invalid(what, r))?;
+        set.push(img).map_err(|e| e.named(|r| Error::invalid(what, r)))?;
     }
     Ok(EncodedFrames { set, times, wall_ms: wall, skipped })
 }
@@ -240,11 +240,7 @@ pub fn new_map(cfg: &crate::config::Config, frames: &[FrameSource], dir: &std::p
     let without_labels = encoder.cannot_label(frames);
     let mut encoder = encoder.without_labels(without_labels);
     if without_labels {
-        let served: Vec<&str> = crate::matching::Setting::ALL
-            .iter()
-            .filter(|&&s| s.label_free().is_none() && (opts.hog || s != crate::matching::Setting::Hog))
-            .map(|s| s.name())
-            .collect();
+        let served: Vec<&str> = crate::matching::Setting::served_without_labels(opts.hog).map(|s| s.name()).collect();
         log::warn!(
             "no label maps and no segmenter: the map holds no semantic labels; only {} can be matched against it (`semlook models` says what is installed)",
             served.join(", ")

@@ -19,7 +19,7 @@ pub struct ClassesConfig {
     /// File ids that mean "no class" (Cityscapes' ignore label is 255).
     pub void_ids: Vec<u32>,
     /// Class names left out of objects and edges, e.g. the dynamic classes
-    /// ["person", "rider", "car", "truck", "bus", "train", "motorcycle", "bicycle"]. [R] default: none.
+    /// ["person", "rider", "car", "truck", "bus", "train", "motorcycle", "bicycle"]. \[R\] default: none.
     pub exclude: Vec<String>,
 }
 

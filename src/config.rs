@@ -1,5 +1,5 @@
 //! Every tunable of the engine, with the defaults of the design reference (`semlook-spec.md` §3).
-//! Choices the paper does not state ([R] in the spec) are all here, so that a user can change them
+//! Choices the paper does not state (\[R\] in the spec) are all here, so that a user can change them
 //! in a TOML file. `semlook config` prints this struct's defaults.
 //!
 //! Sections split in two groups: the *encoding* sections ([`EncodingConfig`]: `input`, `classes`,
@@ -11,37 +11,60 @@ use crate::error::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
-#[serde(default, deny_unknown_fields)]
-pub struct Config {
-    pub input: InputConfig,
-    pub classes: ClassesConfig,
-    pub objects: ObjectsConfig,
-    pub global: GlobalConfig,
-    pub local: LocalConfig,
-    pub appearance: AppearanceConfig,
-    pub keypoints: KeypointsConfig,
-    pub segmentation: SegmentationConfig,
-    pub models: ModelPaths,
-    pub similarity: SimilarityConfig,
-    pub matching: MatchingConfig,
-    pub verification: VerificationConfig,
-    pub sequence: SequenceConfig,
-    pub stream: StreamConfig,
-    pub eval: EvalConfig,
+/// Defines [`Config`] and [`EncodingConfig`] from one list of sections, with the two functions that
+/// move the encoding sections between them: a new encoding section is added once, here.
+macro_rules! config_sections {
+    (encoding { $($e:ident: $et:ty,)* } other { $($o:ident: $ot:ty,)* }) => {
+        /// Every section: the encoding ones ([`EncodingConfig`]), then those that may change at
+        /// query time.
+        #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+        #[serde(default, deny_unknown_fields)]
+        pub struct Config {
+            $(#[allow(missing_docs)] pub $e: $et,)*
+            $(#[allow(missing_docs)] pub $o: $ot,)*
+        }
+
+        /// The sections that determine stored descriptors; a map and its queries must agree on them.
+        #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+        pub struct EncodingConfig {
+            $(#[allow(missing_docs)] pub $e: $et,)*
+        }
+
+        impl Config {
+            /// The encoding sections, as a map records them.
+            pub fn encoding(&self) -> EncodingConfig {
+                EncodingConfig { $($e: self.$e.clone(),)* }
+            }
+
+            /// Replaces the encoding sections with those a map was built with.
+            pub fn with_encoding(mut self, enc: &EncodingConfig) -> Config {
+                $(self.$e = enc.$e.clone();)*
+                self
+            }
+        }
+    };
 }
 
-/// The sections that determine stored descriptors; a map and its queries must agree on them.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct EncodingConfig {
-    pub input: InputConfig,
-    pub classes: ClassesConfig,
-    pub objects: ObjectsConfig,
-    pub global: GlobalConfig,
-    pub local: LocalConfig,
-    pub appearance: AppearanceConfig,
-    pub keypoints: KeypointsConfig,
-    pub segmentation: SegmentationConfig,
+config_sections! {
+    encoding {
+        input: InputConfig,
+        classes: ClassesConfig,
+        objects: ObjectsConfig,
+        global: GlobalConfig,
+        local: LocalConfig,
+        appearance: AppearanceConfig,
+        keypoints: KeypointsConfig,
+        segmentation: SegmentationConfig,
+    }
+    other {
+        models: ModelPaths,
+        similarity: SimilarityConfig,
+        matching: MatchingConfig,
+        verification: VerificationConfig,
+        sequence: SequenceConfig,
+        stream: StreamConfig,
+        eval: EvalConfig,
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -50,7 +73,7 @@ pub struct InputConfig {
     /// Label maps and images are brought to this long side (keeping the aspect ratio) before
     /// edges, objects and keypoints: descriptors then cost the same for any input resolution, and
     /// the keypoint network sees structures at a scale that survives seasons. 0: native size.
-    /// [R] 640, the resolution XFeat was trained and evaluated at (640x480). A segmenter runs on
+    /// \[R\] 640, the resolution XFeat was trained and evaluated at (640x480). A segmenter runs on
     /// the full image at its own input size.
     pub working_long_side: usize,
 }
@@ -67,12 +90,12 @@ pub use crate::classes::{ClassSpec, ClassesConfig, LabelIds, TableSpec};
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ObjectsConfig {
-    /// Objects smaller than this fraction of the image area are dropped. [R] 0.1 %.
+    /// Objects smaller than this fraction of the image area are dropped. \[R\] 0.1 %.
     pub min_area_fraction: f64,
-    /// At most this many objects per image, the largest kept (bounds GPU scratch space). [R] 64.
+    /// At most this many objects per image, the largest kept (bounds GPU scratch space). \[R\] 64.
     pub max_objects: usize,
     /// Object area: "pixels" (pixel count of the region) or "contour" (shoelace area of the
-    /// Suzuki-Abe outer border, as cv2.contourArea). [R] pixels.
+    /// Suzuki-Abe outer border, as cv2.contourArea). \[R\] pixels.
     pub area: AreaMode,
 }
 
@@ -92,14 +115,14 @@ pub enum AreaMode {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct GlobalConfig {
-    /// Distance-transform truncation τ as a fraction of the image diagonal. [R] 0.1.
+    /// Distance-transform truncation τ as a fraction of the image diagonal. \[R\] 0.1.
     pub truncation: f64,
-    /// Global descriptor width and height after area resizing. [R] 64 x 48.
+    /// Global descriptor width and height after area resizing. \[R\] 64 x 48.
     pub width: usize,
     pub height: usize,
-    /// SSIM window side (uniform window, odd). [R] 7, as skimage.
+    /// SSIM window side (uniform window, odd). \[R\] 7, as skimage.
     pub ssim_window: usize,
-    /// SSIM stabilisers C1 = (k1 L)^2, C2 = (k2 L)^2 with data range L = 1. [X] Wang et al. 2004.
+    /// SSIM stabilisers C1 = (k1 L)^2, C2 = (k2 L)^2 with data range L = 1. \[X\] Wang et al. 2004.
     pub ssim_k1: f64,
     pub ssim_k2: f64,
     /// Use sample (N-1) rather than population variances, as skimage does by default.
@@ -115,10 +138,10 @@ impl Default for GlobalConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct LocalConfig {
-    /// Neighbours per tree. [Q] 3.
+    /// Neighbours per tree. \[Q\] 3.
     pub neighbours: usize,
     /// Centroid distances (in image diagonals) closer than this count as a tie, broken by the
-    /// larger area. [R] 0.02.
+    /// larger area. \[R\] 0.02.
     pub tie_tolerance: f64,
 }
 
@@ -155,30 +178,30 @@ pub enum Sampling {
 pub struct AppearanceConfig {
     /// Keypoint network: "xfeat" (default), "onnx" or "none".
     pub model: AppearanceModelKind,
-    /// Descriptors at "keypoints" or "dense" over the descriptor map. [R] dense: sweeps 01-02
+    /// Descriptors at "keypoints" or "dense" over the descriptor map. \[R\] dense: sweeps 01-02
     /// (`sweeps/`): on the real sets per-object VLAD of dense cells beat keypoint VLAD
     /// (gardens day/night 0.9 vs 0.7 R@1, Nordland equal); every object gets descriptors.
     pub sampling: Sampling,
-    /// Non-maximum suppression radius in pixels. [X] SuperPoint demo: 4.
+    /// Non-maximum suppression radius in pixels. \[X\] SuperPoint demo: 4.
     pub nms_radius: usize,
-    /// Keypoints scoring (probability x reliability) at or below this are dropped. [R]
+    /// Keypoints scoring (probability x reliability) at or below this are dropped. \[R\]
     pub score_threshold: f64,
-    /// At most this many keypoints per image, best first. [R]
+    /// At most this many keypoints per image, best first. \[R\]
     pub max_keypoints: usize,
-    /// Keypoints this close to the border are dropped. [X] SuperPoint demo: 4.
+    /// Keypoints this close to the border are dropped. \[X\] SuperPoint demo: 4.
     pub border: usize,
-    /// VLAD codebook size Kv. [R] 64 (sweeps 02 and 04: 16 < 32 <= 64 in mean R@1 over the four
+    /// VLAD codebook size Kv. \[R\] 64 (sweeps 02 and 04: 16 < 32 <= 64 in mean R@1 over the four
     /// development sets; 64 x 64-d XFeat = 4096 values per tree, the size of the paper's 16 x
     /// 256-d SuperPoint-VLAD).
     pub vlad_centres: usize,
-    /// L2-normalise each centre's residual sum (intra-normalisation, Arandjelovic & Zisserman 2013). [R] on.
+    /// L2-normalise each centre's residual sum (intra-normalisation, Arandjelovic & Zisserman 2013). \[R\] on.
     pub intra_norm: bool,
-    /// Signed square root of the VLAD vector before the final L2 normalisation. [R] off.
+    /// Signed square root of the VLAD vector before the final L2 normalisation. \[R\] off.
     pub power_norm: bool,
-    /// Objects with fewer descriptors than this carry no appearance (their VLAD is noise). [R] 1.
+    /// Objects with fewer descriptors than this carry no appearance (their VLAD is noise). \[R\] 1.
     pub min_descriptors: usize,
     /// Codebook training: reference images sampled, descriptors kept per image, Lloyd
-    /// iterations and seed. [R]
+    /// iterations and seed. \[R\]
     pub codebook_images: usize,
     pub codebook_samples_per_image: usize,
     pub codebook_iterations: usize,
@@ -211,16 +234,16 @@ impl Default for AppearanceConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct KeypointsConfig {
-    /// Keypoints stored per image; 0 stores none (no geometric verification). [R] 384: 69 bytes
+    /// Keypoints stored per image; 0 stores none (no geometric verification). \[R\] 384: 69 bytes
     /// each with XFeat (26.5 kB per image). Sweep 05 (`verified`, three dev sets, K = 30): mean
     /// R@1 0.809 / 0.852 / 0.842 at 256 / 384 / 512 (an earlier run without XFeat's detector:
     /// 768 lower still); 512 would not fit a reference in 64 kB.
     pub stored: usize,
-    /// Non-maximum suppression radius in pixels. [X] XFeat's detector: a 5x5 window (radius 2).
+    /// Non-maximum suppression radius in pixels. \[X\] XFeat's detector: a 5x5 window (radius 2).
     pub nms_radius: usize,
-    /// Keypoints scoring (probability x reliability) at or below this are dropped. [X] XFeat: 0.05.
+    /// Keypoints scoring (probability x reliability) at or below this are dropped. \[X\] XFeat: 0.05.
     pub score_threshold: f64,
-    /// Keypoints this close to the border are dropped. [X] XFeat: none.
+    /// Keypoints this close to the border are dropped. \[X\] XFeat: none.
     pub border: usize,
 }
 
@@ -247,7 +270,7 @@ pub struct SegmentationConfig {
     /// Class of each output channel ("void" for ignore), in the class table's names.
     pub class_map: Vec<String>,
     /// Dark frames (mean grey level below this, in [0, 1]) are brightened by a gamma curve to
-    /// this mean before segmentation; 0 turns it off. [R] 0.35 (sweep 03: +0.03 to +0.07 R@1 on the
+    /// this mean before segmentation; 0 turns it off. \[R\] 0.35 (sweep 03: +0.03 to +0.07 R@1 on the
     /// CamVid night change with segmenter labels, no loss elsewhere at Kv = 64).
     pub brighten_dark: f64,
 }
@@ -306,38 +329,38 @@ impl Default for ModelPaths {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SimilarityConfig {
-    /// Weights of area, position and appearance inside S_in (normalised by their sum). [R]
+    /// Weights of area, position and appearance inside S_in (normalised by their sum). \[R\]
     /// 1/3, 1/3, 16 (sweeps 01-02: with segmenter labels, area and position of objects are
     /// noise on real frames; appearance carries the place: 0.3 -> 0.7 R@1 on Nordland).
     pub w_area: f64,
     pub w_position: f64,
     pub w_appearance: f64,
     /// Weights of the intrinsic part and the neighbour part of the tree similarity, normalised
-    /// by their sum. [R] 0.5 / 0.2 (sweep 02: 0.2 > 0 and > 0.5 in mean R@1).
+    /// by their sum. \[R\] 0.5 / 0.2 (sweep 02: 0.2 > 0 and > 0.5 in mean R@1).
     pub w_intrinsic: f64,
     pub w_neighbours: f64,
     /// Position similarity: "linear" max(0, 1 - d) or "gaussian" exp(-d^2 / 2 sigma^2), d in diagonals.
     pub position: PositionSimilarity,
     pub position_sigma: f64,
     /// Appearance missing on either side: "neutral" (score `neutral_appearance`) or "drop" (leave
-    /// the term out and renormalise the weights). [R] neutral 0.5.
+    /// the term out and renormalise the weights). \[R\] neutral 0.5.
     pub missing_appearance: MissingAppearance,
     pub neutral_appearance: f64,
     /// Image similarity from tree similarities: "greedy" one-to-one assignment, or "best_match"
-    /// (each query tree takes its best reference tree). [R] greedy.
+    /// (each query tree takes its best reference tree). \[R\] greedy.
     pub assignment: Assignment,
     /// Weight of a tree in the image similarity: "uniform", "area", "sqrt_area", or
     /// "descriptors" (its appearance descriptor count + 1; settings without appearance use the
-    /// area instead). A pair counts sqrt(w_t w_u). [R] descriptors (sweep 01: the single largest
+    /// area instead). A pair counts sqrt(w_t w_u). \[R\] descriptors (sweep 01: the single largest
     /// gain: many small, fragmented objects no longer outvote the large ones).
     pub tree_weight: TreeWeight,
     /// The sum of weighted pair scores is divided by "larger_forest" (the larger total tree
-    /// weight, spec §2.8) or "geometric_mean" (sqrt of the product of the totals). [R] larger_forest.
+    /// weight, spec §2.8) or "geometric_mean" (sqrt of the product of the totals). \[R\] larger_forest.
     pub normalise: Normalise,
     /// Which trees may pair (spec §2.8: only the same class): "class", "category" (the same
     /// category, e.g. road with sidewalk, building with wall: what an off-domain segmenter swaps),
     /// or "category_with_appearance" (categories where appearance takes part, classes in the
-    /// label-only Forest settings). [R] category_with_appearance (sweep 06, mean R@1 over the
+    /// label-only Forest settings). \[R\] category_with_appearance (sweep 06, mean R@1 over the
     /// three dev sets: categories raised `local` and `semlook` from 0.641 to 0.678 and `verified`
     /// from 0.848 to 0.852, and lowered `forest` from 0.228 to 0.174, which classes keep).
     pub class_match: ClassMatch,
@@ -425,21 +448,21 @@ pub enum Assignment {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct MatchingConfig {
-    /// Candidates the coarse stage passes to the fine stage. [R] 30 (sweep 05: with geometric
+    /// Candidates the coarse stage passes to the fine stage. \[R\] 30 (sweep 05: with geometric
     /// verification, 30 candidates gave `verified` 0.852 mean R@1 over the three real dev sets,
     /// 20 gave 0.840 and 10 0.825; `semlook` was the same at 20 and 30; sweeps 02-03 had chosen
     /// 20 over 10 and 40 before verification existed).
     pub top_k: usize,
     /// References scored per tile while streaming top-K; bounds the scratch memory.
     pub tile: usize,
-    /// Final score: "fine" (image similarity) or "fine_times_global" (times the SSIM). [R] fine.
+    /// Final score: "fine" (image similarity) or "fine_times_global" (times the SSIM). \[R\] fine.
     pub score: ScoreFusion,
     /// The fused coarse stage (`fused`, `verified`) ranks by cos(whole-image appearance) +
-    /// w_global x SSIM(global descriptors). [R] 0.25 (sweep 08: 0, 0.1, 0.25, 0.5, 1 compared).
+    /// w_global x SSIM(global descriptors). \[R\] 0.25 (sweep 08: 0, 0.1, 0.25, 0.5, 1 compared).
     pub w_global: f64,
     /// The coarse stage of the paper's two-stage settings (`global-forest`, `semlook`): "global",
     /// the semantic-edge descriptor alone (the paper's reading), or "fused" with the whole-image
-    /// appearance, as `fused` ranks. [R] fused (sweep 08: with the edge descriptor alone the right
+    /// appearance, as `fused` ranks. \[R\] fused (sweep 08: with the edge descriptor alone the right
     /// place survived to the fine stage for 27 % of the landmark queries at K = 20, and
     /// coarse-to-fine lost places that the fine stage alone finds).
     pub coarse: CoarseStage,
@@ -483,24 +506,24 @@ pub enum SemanticCheck {
 #[serde(default, deny_unknown_fields)]
 pub struct VerificationConfig {
     /// Keypoints match when each is the other's nearest neighbour and their cosine reaches this.
-    /// [X] XFeat's matcher: 0.82.
+    /// \[X\] XFeat's matcher: 0.82.
     pub min_cosine: f64,
     /// RANSAC inlier threshold on the homography's transfer error, in fractions of the image's
-    /// long side. [R] 0.00625 (4 px at the 640 px working size; sweep 07: 0.003125 and 0.0125
+    /// long side. \[R\] 0.00625 (4 px at the 640 px working size; sweep 07: 0.003125 and 0.0125
     /// lower).
     pub threshold: f64,
-    /// RANSAC iterations at most, and the confidence that stops earlier. [R] 1000, 0.999.
+    /// RANSAC iterations at most, and the confidence that stops earlier. \[R\] 1000, 0.999.
     pub max_iterations: u32,
     pub confidence: f64,
     /// Seed of RANSAC's sampling (the same for every pair: results do not depend on the batch).
     pub seed: u64,
-    /// Least-squares refits on the inliers of each new best model (LO-RANSAC). [R] on.
+    /// Least-squares refits on the inliers of each new best model (LO-RANSAC). \[R\] on.
     pub refine: bool,
-    /// Which inliers count. [R] off (sweep 07: `same_class` lost 0.044 mean R@1: the segmenter's
+    /// Which inliers count. \[R\] off (sweep 07: `same_class` lost 0.044 mean R@1: the segmenter's
     /// labels disagree across conditions where the geometry agrees).
     pub semantic: SemanticCheck,
     /// The verified score: w_inliers ln(1 + inliers) + w_coarse coarse + w_fine fine, with the
-    /// fused coarse score and the tree-set similarity of the pair. [R] 1, 2, 2 (sweep 07: the
+    /// fused coarse score and the tree-set similarity of the pair. \[R\] 1, 2, 2 (sweep 07: the
     /// best of w_coarse 1/2/4 x w_fine 0/1/2/4).
     pub w_inliers: f64,
     pub w_coarse: f64,
@@ -555,41 +578,41 @@ pub enum SequenceRows {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SequenceConfig {
-    /// Frames a trajectory spans (SeqSLAM's ds). [R] 12 (sweep 10: 5 / 8 / 12 / 20 compared over
+    /// Frames a trajectory spans (SeqSLAM's ds). \[R\] 12 (sweep 10: 5 / 8 / 12 / 20 compared over
     /// the six ordered dev sets; SeqSLAM used 10 to 20).
     pub length: usize,
     /// Velocities tried, in reference positions per query frame: `velocity_steps` values evenly
     /// from `velocity_min` to `velocity_max`. 0 is a stop; negative values drive backwards.
-    /// [R] 0 to 2 in 9 steps (sweep 10; SeqSLAM: 0.8 to 1.2, which misses stops).
+    /// \[R\] 0 to 2 in 9 steps (sweep 10; SeqSLAM: 0.8 to 1.2, which misses stops).
     pub velocity_min: f64,
     pub velocity_max: f64,
     pub velocity_steps: usize,
-    /// Which references each frame scores. [R] candidates.
+    /// Which references each frame scores. \[R\] candidates.
     pub rows: SequenceRows,
     /// The candidates of each frame are widened by this many positions either side along their
     /// traversal, each scored by the setting, so trajectories pass through scored neighbours.
-    /// [R] 1 (sweep 10).
+    /// \[R\] 1 (sweep 10).
     pub widen: usize,
-    /// Contrast normalisation of each frame's scores. [R] frame (sweep 10: SeqSLAM's window
+    /// Contrast normalisation of each frame's scores. \[R\] frame (sweep 10: SeqSLAM's window
     /// normalisation lost 0.08 to 0.58 R@1 on Nordland, where a route's neighbouring places all
     /// score high and an isolated alias stands out of its window; none was 0.01 to 0.02 below
     /// frame on the mean).
     pub contrast: Contrast,
-    /// Half-width of the contrast window, in positions. [X] SeqSLAM's R_window: 10.
+    /// Half-width of the contrast window, in positions. \[X\] SeqSLAM's R_window: 10.
     pub contrast_window: usize,
     /// The match is the newest frame's strongest place within this many positions of the best
     /// trajectory's end (a straight line through frames of a varying speed ends a little off).
-    /// [R] 2 (sweep 10).
+    /// \[R\] 2 (sweep 10).
     pub refine: usize,
     /// The uniqueness of a match is its score over the best score of a place further than this
-    /// many positions along the same traversal (or on another one). [X] SeqSLAM's R_window: 10.
+    /// many positions along the same traversal (or on another one). \[X\] SeqSLAM's R_window: 10.
     pub uniqueness_window: usize,
     /// A sequence match is accepted when its uniqueness reaches this and its trajectory spans at
-    /// least `min_frames` frames. [R] 1.05, 5 (sweep 10: 1.05 against 1.2 within 0.003).
+    /// least `min_frames` frames. \[R\] 1.05, 5 (sweep 10: 1.05 against 1.2 within 0.003).
     pub min_uniqueness: f64,
     pub min_frames: usize,
     /// And the newest frame agrees with it: its evidence at the match is at least this share of
-    /// its strongest evidence anywhere (0: no such condition). [R] 0.8 (sweep 10: at 0 a run of
+    /// its strongest evidence anywhere (0: no such condition). \[R\] 0.8 (sweep 10: at 0 a run of
     /// a few wrong single-frame matches became a standing trajectory that outvoted the frames
     /// after it, and the streams' answers lost against single frames on 5 of 36 set x setting
     /// pairs; at 0.8 on 1, by one Nordland query; the price: `global` on the synthetic stream gains
@@ -624,24 +647,24 @@ impl Default for SequenceConfig {
 pub struct StreamConfig {
     /// Loop-closure mode: frames of the stream are matched only against frames at least this
     /// many frames older, and at least `exclude_seconds` older where frames carry timestamps
-    /// (the recent past always looks like the present). [R] 50 frames (5 s at 10 Hz), 0 s.
+    /// (the recent past always looks like the present). \[R\] 50 frames (5 s at 10 Hz), 0 s.
     pub exclude_frames: usize,
     pub exclude_seconds: f64,
     /// Loop-closure mode: the frames added are committed to the map (one segment, the store's
     /// crash-safe commit) every this many frames; at most `exclude_frames`, so that every frame
-    /// that may be matched is stored. [R] 25.
+    /// that may be matched is stored. \[R\] 25.
     pub commit_frames: usize,
     /// While the last sequence match was accepted, only the references within this many
     /// positions of where it predicts the frame are searched (0: the whole map every frame);
     /// after `lost_after` frames without an accepted match, the whole map again. Large maps.
-    /// [R] 0 (off), 5.
+    /// \[R\] 0 (off), 5.
     pub track_radius: usize,
     pub lost_after: usize,
     /// Loop-closure mode: an accepted sequence match is a closure when its uniqueness reaches
     /// `closure_uniqueness` (some other place must score: a match with no competitor is not
     /// evidence) and its trajectory moves at least `closure_min_velocity` positions per frame
     /// (a standing trajectory says only that the recent frames all resemble one old place).
-    /// [R] 1.5 and 0.5, from the CamVid loop (the drive, then its shifted copy; tests/stream.rs):
+    /// \[R\] 1.5 and 0.5, from the CamVid loop (the drive, then its shifted copy; tests/stream.rs):
     /// of the false closures of the first pass 92 % stood or crawled (|v| <= 0.25), the true ones
     /// of the second moved at 0.5 to 1 with uniqueness 1.49 to 4.5.
     pub closure_uniqueness: f64,
@@ -699,19 +722,6 @@ impl Config {
         Ok(crate::util::sha256_hex(self.to_toml()?.as_bytes()))
     }
 
-    pub fn encoding(&self) -> EncodingConfig {
-        EncodingConfig {
-            input: self.input.clone(),
-            classes: self.classes.clone(),
-            objects: self.objects.clone(),
-            global: self.global.clone(),
-            local: self.local.clone(),
-            appearance: self.appearance.clone(),
-            keypoints: self.keypoints.clone(),
-            segmentation: self.segmentation.clone(),
-        }
-    }
-
     /// The defaults for CamVid's 11 classes: label files hold CamVid ids (11 = void), and a
     /// Cityscapes segmenter's channels map to CamVid classes (`classes::CITYSCAPES_TO_CAMVID`).
     pub fn camvid() -> Config {
@@ -729,19 +739,6 @@ impl Config {
     /// The defaults without appearance (label maps alone suffice to encode).
     pub fn without_appearance() -> Config {
         Config { appearance: AppearanceConfig { model: AppearanceModelKind::None, ..Default::default() }, ..Default::default() }
-    }
-
-    /// Replaces the encoding sections with those a map was built with.
-    pub fn with_encoding(mut self, enc: &EncodingConfig) -> Config {
-        self.input = enc.input.clone();
-        self.classes = enc.classes.clone();
-        self.objects = enc.objects.clone();
-        self.global = enc.global.clone();
-        self.local = enc.local.clone();
-        self.appearance = enc.appearance.clone();
-        self.keypoints = enc.keypoints.clone();
-        self.segmentation = enc.segmentation.clone();
-        self
     }
 
     /// Checks that every value is in its range (numbers finite) and that the class table

@@ -1,12 +1,16 @@
 //! The one error type of the crate. Every variant names the resource that failed (a file, a map,
-//! a config field) and what was wrong with it, so a CLI user can act on the message alone.
+//! a config field) and what was wrong with it, so a CLI user can act on the message alone; the
+//! one exception, [`Error::Check`], is what a low-level check says before its caller names the
+//! resource ([`Error::named`]).
 
 use std::path::PathBuf;
 
 /// Result alias used throughout the crate.
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 
+/// Non-exhaustive: a later version may add variants, so a `match` on it needs a `_` arm.
 #[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum Error {
     #[error("{path}: {source}")]
     Io {
@@ -55,6 +59,14 @@ pub enum Error {
     /// A request refused for a reason the caller can act on ([`Remedy`]).
     #[error("{what}: {reason}")]
     Refused { what: String, reason: String, remedy: Remedy },
+    /// Values that fail a check, said before the caller names where they come from: what the
+    /// low-level checks return (`descriptors::validate`, `DescriptorSet`'s appends and layout
+    /// checks, the tensor operations of `appearance::nn` and `appearance::keypoints`, the pickle
+    /// and `.npy` readers, ...), which know the values but not the image, file, model or argument
+    /// they belong to. A caller that knows it names it with [`Error::named`] (its message is then
+    /// that variant's, with this reason); the message alone is the reason.
+    #[error("{reason}")]
+    Check { reason: String },
 }
 
 /// What a caller can do about a refused request, in no front end's words: messages speak of the
@@ -113,6 +125,19 @@ impl Error {
     }
     pub fn refused(what: impl Into<String>, reason: impl Into<String>, remedy: Remedy) -> Self {
         Error::Refused { what: what.into(), reason: reason.into(), remedy }
+    }
+    /// A failed check, not yet named ([`Error::Check`]).
+    pub fn check(reason: impl Into<String>) -> Self {
+        Error::Check { reason: reason.into() }
+    }
+    /// Names what a failed [`Error::Check`] was about: `name` makes the error of its reason (e.g.
+    /// `|reason| Error::Model { path, reason }`); any other error, which names its resource
+    /// already, is returned as it is.
+    pub fn named(self, name: impl FnOnce(String) -> Error) -> Error {
+        match self {
+            Error::Check { reason } => name(reason),
+            other => other,
+        }
     }
     /// What the caller can do about this error, where the engine knows.
     pub fn remedy(&self) -> Option<Remedy> {

@@ -64,13 +64,24 @@ pub mod map;
 pub mod matching;
 pub mod models;
 pub mod objects;
+/// Internal, public for the binary and tests only: ONNX Runtime loading for the command line and the tests; embedders go through `segmentation` and `appearance`.
+#[doc(hidden)]
 pub mod onnx;
+/// Internal, public for the binary and tests only: the PyTorch checkpoint reader behind `appearance::xfeat` and `segmentation`, public for the fuzz tests only.
+#[doc(hidden)]
 pub mod pickle;
+/// Internal, public for the binary and tests only: the command line's progress bars.
+#[doc(hidden)]
 pub mod progress;
 pub mod segmentation;
 pub mod stream;
+/// Internal, public for the binary and tests only: the developer tools of the command line
+/// (synthetic benchmark, pictures, benchmarks, sweeps), behind the `tools` feature.
 #[cfg(feature = "tools")]
+#[doc(hidden)]
 pub mod tools;
+/// Internal, public for the binary and tests only: small helpers the command line and the tests share (atomic writes, hashing); not the API.
+#[doc(hidden)]
 pub mod util;
 pub mod values;
 pub mod verify;

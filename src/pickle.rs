@@ -8,8 +8,9 @@
 //! at most one node, so the arena is bounded by the input length; what an opcode copies (call
 //! arguments, joined global names) is charged to a budget proportional to the input, so a short
 //! pickle cannot make quadratic copies either. Calls (REDUCE, NEWOBJ) are
-//! never executed: they become [`Node::Call`] nodes that the reader interprets.
+//! never executed: they become `Node::Call` nodes that the reader interprets.
 
+use crate::error::{Error, Result};
 use std::collections::HashMap;
 
 /// Index of a node in the arena.
@@ -86,8 +87,9 @@ impl Pickle {
         }
     }
 
-    /// Runs the pickle program in `data`.
-    pub fn load(data: &[u8]) -> Result<Pickle, String> {
+    /// Runs the pickle program in `data`; what it cannot run is an [`Error::Check`] (the caller
+    /// names the file).
+    pub fn load(data: &[u8]) -> Result<Pickle> {
         let budget = data.len().saturating_mul(COPY_BUDGET_PER_BYTE).saturating_add(4096);
         Machine { data, pos: 0, nodes: Vec::new(), stack: Vec::new(), memo: HashMap::new(), budget }.run()
     }
@@ -107,36 +109,39 @@ struct Machine<'a> {
 }
 
 impl<'a> Machine<'a> {
-    fn spend(&mut self, n: usize) -> Result<(), String> {
-        self.budget = self.budget.checked_sub(n).ok_or("the pickle copies more data than its size allows")?;
+    fn spend(&mut self, n: usize) -> Result<()> {
+        self.budget = self.budget.checked_sub(n).ok_or_else(|| Error::check("the pickle copies more data than its size allows"))?;
         Ok(())
     }
-    fn take(&mut self, n: usize) -> Result<&'a [u8], String> {
-        let end = self.pos.checked_add(n).filter(|&e| e <= self.data.len()).ok_or("pickle ends early")?;
+    fn take(&mut self, n: usize) -> Result<&'a [u8]> {
+        let end = self.pos.checked_add(n).filter(|&e| e <= self.data.len()).ok_or_else(|| Error::check("pickle ends early"))?;
         let s = &self.data[self.pos..end];
         self.pos = end;
         Ok(s)
     }
-    fn u8(&mut self) -> Result<u8, String> {
+    fn u8(&mut self) -> Result<u8> {
         Ok(self.take(1)?[0])
     }
-    fn u32(&mut self) -> Result<u32, String> {
+    fn u32(&mut self) -> Result<u32> {
         let b = self.take(4)?;
         Ok(u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
     }
-    fn u64(&mut self) -> Result<u64, String> {
+    fn u64(&mut self) -> Result<u64> {
         let b = self.take(8)?;
-        Ok(u64::from_le_bytes(b.try_into().map_err(|_| "pickle ends early")?))
+        Ok(u64::from_le_bytes(b.try_into().map_err(|_| Error::check("pickle ends early"))?))
     }
-    fn line(&mut self) -> Result<&'a str, String> {
+    fn line(&mut self) -> Result<&'a str> {
         let rest = &self.data[self.pos..];
-        let n = rest.iter().position(|&b| b == b'\n').ok_or("text argument without newline")?;
-        let s = std::str::from_utf8(&rest[..n]).map_err(|_| "text argument is not UTF-8")?;
+        let n = rest.iter().position(|&b| b == b'\n').ok_or_else(|| Error::check("text argument without newline"))?;
+        let s = std::str::from_utf8(&rest[..n]).map_err(|_| Error::check("text argument is not UTF-8"))?;
         self.pos += n + 1;
         Ok(s)
     }
-    fn len_arg(&mut self, n: u64) -> Result<usize, String> {
-        usize::try_from(n).ok().filter(|&n| n <= self.data.len() - self.pos).ok_or_else(|| format!("length {n} runs past the end of the pickle"))
+    fn len_arg(&mut self, n: u64) -> Result<usize> {
+        usize::try_from(n)
+            .ok()
+            .filter(|&n| n <= self.data.len() - self.pos)
+            .ok_or_else(|| Error::check(format!("length {n} runs past the end of the pickle")))
     }
     fn push(&mut self, n: Node) -> Id {
         self.nodes.push(n);
@@ -144,60 +149,60 @@ impl<'a> Machine<'a> {
         self.stack.push(Slot::Node(id));
         id
     }
-    fn pop(&mut self, what: &str) -> Result<Id, String> {
+    fn pop(&mut self, what: &str) -> Result<Id> {
         match self.stack.pop() {
             Some(Slot::Node(id)) => Ok(id),
-            Some(Slot::Mark) => Err(format!("{what}: found a MARK")),
-            None => Err(format!("{what}: stack is empty")),
+            Some(Slot::Mark) => Err(Error::check(format!("{what}: found a MARK"))),
+            None => Err(Error::check(format!("{what}: stack is empty"))),
         }
     }
-    fn top(&self, what: &str) -> Result<Id, String> {
+    fn top(&self, what: &str) -> Result<Id> {
         match self.stack.last() {
             Some(Slot::Node(id)) => Ok(*id),
-            _ => Err(format!("{what}: no object on the stack")),
+            _ => Err(Error::check(format!("{what}: no object on the stack"))),
         }
     }
-    fn pop_mark(&mut self) -> Result<Vec<Id>, String> {
-        let m = self.stack.iter().rposition(|s| matches!(s, Slot::Mark)).ok_or("MARK missing")?;
+    fn pop_mark(&mut self) -> Result<Vec<Id>> {
+        let m = self.stack.iter().rposition(|s| matches!(s, Slot::Mark)).ok_or_else(|| Error::check("MARK missing"))?;
         // `m` is the last mark, so everything above it is a node
         let items = self.stack.split_off(m + 1).into_iter().filter_map(|s| if let Slot::Node(id) = s { Some(id) } else { None }).collect();
         self.stack.pop();
         Ok(items)
     }
-    fn memoise(&mut self, key: u32) -> Result<(), String> {
+    fn memoise(&mut self, key: u32) -> Result<()> {
         let id = self.top("memo")?;
         self.memo.insert(key, id);
         Ok(())
     }
-    fn recall(&mut self, key: u32) -> Result<(), String> {
-        let id = *self.memo.get(&key).ok_or_else(|| format!("memo {key} was never stored"))?;
+    fn recall(&mut self, key: u32) -> Result<()> {
+        let id = *self.memo.get(&key).ok_or_else(|| Error::check(format!("memo {key} was never stored")))?;
         self.stack.push(Slot::Node(id));
         Ok(())
     }
-    fn global(&mut self, id: Id) -> Result<String, String> {
-        let Node::Global(g) = &self.nodes[id] else { return Err("call of something that is not a global".into()) };
+    fn global(&mut self, id: Id) -> Result<String> {
+        let Node::Global(g) = &self.nodes[id] else { return Err(Error::check("call of something that is not a global")) };
         let g = g.clone();
         self.spend(g.len())?;
         Ok(g)
     }
-    fn set_items(&mut self, target: Id, kv: Vec<(Id, Id)>) -> Result<(), String> {
+    fn set_items(&mut self, target: Id, kv: Vec<(Id, Id)>) -> Result<()> {
         match &mut self.nodes[target] {
             Node::Dict(d) => d.extend(kv),
             Node::Call { items, .. } => items.extend(kv),
-            _ => return Err("SETITEM on an object that is not a dict".into()),
+            _ => return Err(Error::check("SETITEM on an object that is not a dict")),
         }
         Ok(())
     }
-    fn append(&mut self, target: Id, values: Vec<Id>) -> Result<(), String> {
+    fn append(&mut self, target: Id, values: Vec<Id>) -> Result<()> {
         match &mut self.nodes[target] {
             Node::List(l) => l.extend(values),
             Node::Call { appended, .. } => appended.extend(values),
-            _ => return Err("APPEND on an object that is not a list".into()),
+            _ => return Err(Error::check("APPEND on an object that is not a list")),
         }
         Ok(())
     }
 
-    fn run(mut self) -> Result<Pickle, String> {
+    fn run(mut self) -> Result<Pickle> {
         loop {
             let op = self.u8()?;
             match op {
@@ -218,14 +223,14 @@ impl<'a> Machine<'a> {
                     let name = self.pop("STACK_GLOBAL")?;
                     let module = self.pop("STACK_GLOBAL")?;
                     let (Node::Str(m), Node::Str(n)) = (&self.nodes[module], &self.nodes[name]) else {
-                        return Err("STACK_GLOBAL of non-strings".into());
+                        return Err(Error::check("STACK_GLOBAL of non-strings"));
                     };
                     let g = format!("{m}.{n}");
                     self.spend(g.len())?;
                     self.push(Node::Global(g));
                 }
                 b'p' => {
-                    let key = self.line()?.parse::<u32>().map_err(|_| "PUT with a bad key")?;
+                    let key = self.line()?.parse::<u32>().map_err(|_| Error::check("PUT with a bad key"))?;
                     self.memoise(key)?;
                 }
                 b'q' => {
@@ -237,11 +242,11 @@ impl<'a> Machine<'a> {
                     self.memoise(key)?;
                 }
                 0x94 => {
-                    let key = u32::try_from(self.memo.len()).map_err(|_| "memo overflow")?;
+                    let key = u32::try_from(self.memo.len()).map_err(|_| Error::check("memo overflow"))?;
                     self.memoise(key)?; // MEMOIZE
                 }
                 b'g' => {
-                    let key = self.line()?.parse::<u32>().map_err(|_| "GET with a bad key")?;
+                    let key = self.line()?.parse::<u32>().map_err(|_| Error::check("GET with a bad key"))?;
                     self.recall(key)?;
                 }
                 b'h' => {
@@ -285,7 +290,7 @@ impl<'a> Machine<'a> {
                     let v = match t {
                         "00" => Node::Bool(false),
                         "01" => Node::Bool(true),
-                        _ => Node::Int(t.parse().map_err(|_| format!("INT {t:?}"))?),
+                        _ => Node::Int(t.parse().map_err(|_| Error::check(format!("INT {t:?}")))?),
                     };
                     self.push(v);
                 }
@@ -294,7 +299,7 @@ impl<'a> Machine<'a> {
                     let n = if op == 0x8a { self.u8()? as u64 } else { self.u32()? as u64 };
                     let n = self.len_arg(n)?;
                     if n > 8 {
-                        return Err(format!("integer of {n} bytes does not fit 64 bits"));
+                        return Err(Error::check(format!("integer of {n} bytes does not fit 64 bits")));
                     }
                     let b = self.take(n)?;
                     let mut v: i64 = 0;
@@ -308,7 +313,7 @@ impl<'a> Machine<'a> {
                 }
                 b'G' => {
                     let b = self.take(8)?;
-                    let v = f64::from_be_bytes(b.try_into().map_err(|_| "BINFLOAT")?);
+                    let v = f64::from_be_bytes(b.try_into().map_err(|_| Error::check("BINFLOAT"))?);
                     self.push(Node::Float(v));
                 }
                 b'X' | 0x8c | 0x8d => {
@@ -318,7 +323,7 @@ impl<'a> Machine<'a> {
                         _ => self.u64()?,
                     };
                     let n = self.len_arg(n)?;
-                    let s = std::str::from_utf8(self.take(n)?).map_err(|_| "string is not UTF-8")?.to_string();
+                    let s = std::str::from_utf8(self.take(n)?).map_err(|_| Error::check("string is not UTF-8"))?.to_string();
                     self.push(Node::Str(s));
                 }
                 b'B' | b'C' | 0x8e | b'T' | b'U' => {
@@ -351,7 +356,7 @@ impl<'a> Machine<'a> {
                 b'd' => {
                     let items = self.pop_mark()?;
                     if items.len() % 2 != 0 {
-                        return Err("DICT with an odd number of items".into());
+                        return Err(Error::check("DICT with an odd number of items"));
                     }
                     let kv = items.chunks(2).map(|c| (c[0], c[1])).collect();
                     self.push(Node::Dict(kv));
@@ -375,7 +380,7 @@ impl<'a> Machine<'a> {
                 b'u' => {
                     let items = self.pop_mark()?;
                     if items.len() % 2 != 0 {
-                        return Err("SETITEMS with an odd number of items".into());
+                        return Err(Error::check("SETITEMS with an odd number of items"));
                     }
                     let target = self.top("SETITEMS")?;
                     self.set_items(target, items.chunks(2).map(|c| (c[0], c[1])).collect())?;
@@ -387,7 +392,7 @@ impl<'a> Machine<'a> {
                     let func = self.global(f)?;
                     let args = match &self.nodes[args] {
                         Node::Tuple(a) => a.clone(),
-                        _ => return Err("REDUCE arguments are not a tuple".into()),
+                        _ => return Err(Error::check("REDUCE arguments are not a tuple")),
                     };
                     self.spend(args.len())?;
                     self.push(Node::Call { func, args, state: None, items: vec![], appended: vec![] });
@@ -405,7 +410,7 @@ impl<'a> Machine<'a> {
                     self.push(Node::Persistent(pid));
                 }
                 b'0' => {
-                    self.stack.pop().ok_or("POP on an empty stack")?;
+                    self.stack.pop().ok_or_else(|| Error::check("POP on an empty stack"))?;
                 }
                 b'1' => {
                     self.pop_mark()?;
@@ -414,7 +419,7 @@ impl<'a> Machine<'a> {
                     let id = self.top("DUP")?;
                     self.stack.push(Slot::Node(id));
                 }
-                other => return Err(format!("unsupported pickle opcode 0x{other:02x} at byte {}", self.pos - 1)),
+                other => return Err(Error::check(format!("unsupported pickle opcode 0x{other:02x} at byte {}", self.pos - 1))),
             }
         }
         let root = self.pop("STOP")?;
@@ -476,6 +481,6 @@ mod tests {
         p.extend(std::iter::repeat_n(&b"h\x00h\x01R0"[..], 20_000).flatten());
         p.push(b'.');
         let err = Pickle::load(&p).unwrap_err();
-        assert!(err.contains("copies more"), "{err}");
+        assert!(err.to_string().contains("copies more"), "{err}");
     }
 }

@@ -1,7 +1,7 @@
 //! Progress of long work on stderr. On a terminal, an indicatif bar with rate and ETA; elsewhere
 //! (a pipe, a log file, CI) plain lines such as `references: 120/500 (24 %), 3.1/s, eta 2m03s`,
-//! at most one per tenth of the work or per [`LINE_EVERY`], whichever comes first, and one at the
-//! end. The library draws nothing unless the application asks with [`show`] (the CLI does, unless
+//! at most one per tenth of the work or per `LINE_EVERY`, whichever comes first, and one at the
+//! end. The library draws nothing unless the application asks with `show` (the CLI does, unless
 //! `--quiet`); standard output is never touched.
 
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
@@ -108,7 +108,7 @@ impl Lines {
 }
 
 /// Whether a plain line is due at `done` steps of `len` (0: unknown), the last one printed at
-/// `printed` steps `since` ago: a new tenth of the work reached, [`LINE_EVERY`] passed, or the end.
+/// `printed` steps `since` ago: a new tenth of the work reached, `LINE_EVERY` passed, or the end.
 pub fn due(len: u64, printed: u64, done: u64, since: Duration, finished: bool) -> bool {
     if done <= printed {
         return false;

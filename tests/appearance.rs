@@ -155,7 +155,17 @@ fn vlad_on_a_real_scene() {
             assert!(v.iter().all(|&x| x == 0.0));
             continue;
         }
-        let mine: Vec<&[f32]> = (a..b).map(|i| &descs[i * k.dim..(i + 1) * k.dim]).collect();
+        // the object's keypoints found here, not through group_by_object: those whose rounded
+        // (clamped) pixel the object owns, their descriptors straight from the network's output
+        let (w, h) = (objects.width as i64, objects.height as i64);
+        let mine: Vec<&[f32]> = (0..k.len())
+            .filter(|&i| {
+                let (x, y) = ((k.xy[i][0].round() as i64).clamp(0, w - 1), (k.xy[i][1].round() as i64).clamp(0, h - 1));
+                objects.object_of_pixel[(y * w + x) as usize] == o as u32
+            })
+            .map(|i| &k.descriptors[i * k.dim..(i + 1) * k.dim])
+            .collect();
+        assert_eq!(mine.len(), b - a, "object {o}: keypoints grouped");
         let r = semlook::appearance::vlad::vlad_reference(&cb.centres, cb.k, cb.dim, &mine, Default::default());
         assert!(v.iter().zip(&r).all(|(x, y)| (*x as f64 - y).abs() < 1e-4));
         assert!((v.iter().map(|x| x * x).sum::<f32>() - 1.0).abs() < 1e-4);

@@ -400,20 +400,26 @@ fn photo_sets(dir: &Path) -> (PathBuf, PathBuf, PathBuf) {
     let data = dir.join("data");
     ok(&["synth", "--out", p(&data), "--places", "6", "--size", "160x120", "-q"]);
     let (r, q) = (dir.join("ref"), dir.join("query"));
-    let mut gt = String::from("query,reference\n");
     for (from, to) in [("day", &r), ("sunset", &q)] {
         std::fs::create_dir_all(to).unwrap();
         for e in std::fs::read_dir(data.join(from).join("RGB/Stereo_Left/Omni_F")).unwrap().flatten() {
             std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
-            if from == "day" {
-                let n = e.file_name().to_string_lossy().into_owned();
-                gt += &format!("query/{n},ref/{n}\n");
-            }
         }
     }
-    let truth = dir.join("gt.csv");
-    std::fs::write(&truth, gt).unwrap();
+    let truth = same_name_truth(&r, "query/", "ref/", &dir.join("gt.csv"));
     (r, q, truth)
+}
+
+/// Writes `out`, a ground truth pairing each file `NAME` of `dir` as query `{query}NAME` with
+/// reference `{reference}NAME` (query and reference frames of one place share a file name).
+fn same_name_truth(dir: &Path, query: &str, reference: &str, out: &Path) -> PathBuf {
+    let mut gt = String::from("query,reference\n");
+    for e in std::fs::read_dir(dir).unwrap().flatten() {
+        let n = e.file_name().to_string_lossy().into_owned();
+        gt += &format!("{query}{n},{reference}{n}\n");
+    }
+    std::fs::write(out, gt).unwrap();
+    out.to_path_buf()
 }
 
 /// `map build` on photos with no label maps and no segmenter builds a map marked as holding no
@@ -599,13 +605,7 @@ fn eval_warns_when_the_queries_are_the_references() {
     let data = dir.path().join("data");
     ok(&["synth", "--out", p(&data), "--places", "3", "--size", "96x72", "-q"]);
     let labels = data.join("day/RGB/Stereo_Left/Omni_F");
-    let mut gt = String::from("query,reference\n");
-    for e in std::fs::read_dir(&labels).unwrap().flatten() {
-        let n = e.file_name().to_string_lossy().into_owned();
-        gt += &format!("Omni_F/{n},Omni_F/{n}\n");
-    }
-    let truth = labels.parent().unwrap().join("gt.csv");
-    std::fs::write(&truth, gt).unwrap();
+    let truth = same_name_truth(&labels, "Omni_F/", "Omni_F/", &labels.parent().unwrap().join("gt.csv"));
     let out = semlook(&[
         "eval",
         "--references",
@@ -639,13 +639,7 @@ fn every_way_of_building_serves_every_way_of_evaluating() {
     ok(&["synth", "--out", p(&data), "--places", "4", "--size", "96x72", "--query-condition", "fog", "-q"]);
     let (rgb, lab) = ("RGB/Stereo_Left/Omni_F", "GT/LABELS/Stereo_Left/Omni_F");
     let (r, l, q) = (data.join("day").join(rgb), data.join("day").join(lab), data.join("fog").join(rgb));
-    let mut gt = String::from("query,reference\n");
-    for e in std::fs::read_dir(&r).unwrap().flatten() {
-        let n = e.file_name().to_string_lossy().into_owned();
-        gt += &format!("fog/{rgb}/{n},day/{rgb}/{n}\n");
-    }
-    let truth = data.join("pairs.csv");
-    std::fs::write(&truth, gt).unwrap();
+    let truth = same_name_truth(&r, &format!("fog/{rgb}/"), &format!("day/{rgb}/"), &data.join("pairs.csv"));
     // (how, build flags, eval flags): label maps alone give no appearance, so that map is
     // evaluated in `global`, its photo queries labelled by the segmenter
     let segmenter = semlook::onnx::find_model(semlook::segmentation::DEFAULT_SEGMENTER, None, "segmenter").is_ok();

@@ -81,6 +81,20 @@ fn sixteen_bit_and_first_channel_ids_decode() {
     let m = load_label_map(&p, &ClassTable::cityscapes(), LabelFormat::Auto).unwrap();
     assert_eq!(m.classes()[0], semlook::classes::VOID);
     assert_eq!(m.classes()[1], 8);
+    // ids past one byte keep all sixteen bits: 264 and 8 share their low byte, 1000 has a high
+    // one; a decoder that drops or scales the high byte reads 264 as 8, or fails on 1000
+    let cfg = semlook::config::ClassesConfig {
+        label_ids: semlook::config::LabelIds::Custom(vec![(8, "road".into()), (264, "car".into()), (1000, "sky".into())]),
+        ..Default::default()
+    };
+    let custom = ClassTable::from_config(&cfg).unwrap();
+    let mut g = image::ImageBuffer::<Luma<u16>, Vec<u16>>::from_pixel(3, 1, Luma([8u16]));
+    g.put_pixel(1, 0, Luma([264]));
+    g.put_pixel(2, 0, Luma([1000]));
+    g.save(&p).unwrap();
+    let m = load_label_map(&p, &custom, LabelFormat::Auto).unwrap();
+    let names: Vec<&str> = m.classes().iter().map(|&c| custom.name(c)).collect();
+    assert_eq!(names, ["road", "car", "sky"]);
     // SYNTHIA style: class in the red channel of a colour file
     let p = dir.path().join("synthia.png");
     RgbImage::from_pixel(3, 3, Rgb([3, 77, 12])).save(&p).unwrap();

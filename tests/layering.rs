@@ -414,3 +414,118 @@ fn library_messages_name_no_command_line_flag() {
     }
     assert!(found.is_empty(), "library messages that name command-line flags:\n{}", found.join("\n"));
 }
+
+/// The crate's top-level modules: those a library user may rely on, and those public only for the
+/// command line and the tests (each `#[doc(hidden)]` with a reason on the line above). A new
+/// `pub mod` is one or the other by decision, never by default.
+const PUBLIC_MODULES: [&str; 25] = [
+    "appearance",
+    "baseline",
+    "batch",
+    "classes",
+    "config",
+    "dataset",
+    "descriptors",
+    "encode",
+    "engine",
+    "error",
+    "eval",
+    "global",
+    "gpu",
+    "hloc",
+    "input",
+    "kernels",
+    "local",
+    "map",
+    "matching",
+    "models",
+    "objects",
+    "segmentation",
+    "stream",
+    "values",
+    "verify",
+];
+const INTERNAL_MODULES: [&str; 5] = ["onnx", "pickle", "progress", "tools", "util"];
+
+/// `pub mod NAME` items of `text` (comments kept out), each with whether `#[doc(hidden)]` and a
+/// `///` reason come before it.
+fn pub_mods(raw: &str) -> Vec<(String, bool)> {
+    let lines: Vec<&str> = raw.lines().map(str::trim).collect();
+    let mut out = vec![];
+    for (i, l) in lines.iter().enumerate() {
+        let Some(name) = l.strip_prefix("pub mod ").and_then(|r| r.strip_suffix(';')) else { continue };
+        // the attributes and doc lines directly above
+        let above: Vec<&str> = lines[..i].iter().rev().take_while(|a| a.starts_with("#[") || a.starts_with("///")).copied().collect();
+        let hidden = above.contains(&"#[doc(hidden)]") && above.iter().any(|a| a.starts_with("///") && a.len() > 20);
+        out.push((name.to_string(), hidden));
+    }
+    out
+}
+
+/// What a library user sees is decided: every public module of `lib.rs` is on the API list, or is
+/// hidden with a reason and on the internal list.
+#[test]
+fn the_public_surface_is_decided() {
+    let lib = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("src/lib.rs")).unwrap();
+    let mods = pub_mods(&lib);
+    assert!(mods.len() >= 20, "lib.rs's modules were not read: {mods:?}");
+    let mut problems = vec![];
+    for (name, hidden) in &mods {
+        match (PUBLIC_MODULES.contains(&name.as_str()), INTERNAL_MODULES.contains(&name.as_str())) {
+            (true, _) if *hidden => problems.push(format!("{name}: on the API list but hidden")),
+            (true, _) => {}
+            (false, true) if *hidden => {}
+            (false, true) => problems.push(format!("{name}: internal, but public without `#[doc(hidden)]` and a reason")),
+            (false, false) => problems
+                .push(format!("{name}: a new public module: put it on the API list, or hide it (pub(crate), or #[doc(hidden)] with a reason)")),
+        }
+    }
+    for name in PUBLIC_MODULES.iter().chain(&INTERNAL_MODULES) {
+        if !mods.iter().any(|(m, _)| m == name) {
+            problems.push(format!("{name}: listed here but not a public module of lib.rs"));
+        }
+    }
+    assert!(problems.is_empty(), "the public surface:\n{}", problems.join("\n"));
+}
+
+/// Each setting's name has one definition (`Setting::name`, src/matching/setting.rs): no other
+/// file pairs a setting's name with a `Setting::` variant (a second table of names), in the
+/// library, the Python package or the ROS 2 node.
+#[test]
+fn setting_names_are_defined_once() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let setting = source(&root.join("src/matching/setting.rs"));
+    // the names, read from `Setting::name`'s arms: `Setting::X => "name",`
+    let names: Vec<String> = setting
+        .lines()
+        .filter_map(|l| {
+            l.trim()
+                .strip_prefix("Setting::")
+                .and_then(|r| r.split_once(" => \""))
+                .and_then(|(_, r)| r.strip_suffix("\","))
+                .filter(|n| n.chars().all(|c| c.is_ascii_lowercase() || c == '-'))
+                .map(str::to_string)
+        })
+        .collect();
+    assert!(names.len() >= 9 && names.iter().any(|n| n == "global-forest"), "the setting names were not read: {names:?}");
+    let mut found = vec![];
+    let mut stack = vec![root.join("src"), root.join("python/src"), root.join("ros2/src")];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap().flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                stack.push(p);
+                continue;
+            }
+            if p.extension().is_none_or(|x| x != "rs") || p.ends_with("src/matching/setting.rs") {
+                continue;
+            }
+            for (n, line) in source(&p).lines().enumerate() {
+                if line.contains("Setting::") && names.iter().any(|name| line.contains(&format!("\"{name}\""))) {
+                    found.push(format!("{}:{}: {}", p.strip_prefix(root).unwrap().display(), n + 1, line.trim()));
+                }
+            }
+        }
+    }
+    assert!(found.is_empty(), "setting names defined a second time (use Setting::name / Setting::from_name):\n{}", found.join("\n"));
+}

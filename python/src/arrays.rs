@@ -48,7 +48,7 @@ pub fn detached<T: Send>(py: Python<'_>, pool: Option<Arc<ThreadPool>>, f: impl 
 }
 
 pub fn setting(name: &str) -> PyResult<Setting> {
-    Setting::ALL.into_iter().find(|s| s.name() == name).ok_or_else(|| {
+    Setting::from_name(name).ok_or_else(|| {
         let names: Vec<&str> = Setting::ALL.iter().map(|s| s.name()).collect();
         invalid("setting", format!("{name:?} is not one of {}", names.join(", ")))
     })

@@ -226,7 +226,7 @@ impl PyEncoder {
                 let loaded = enc.frames().load_arrays(&id, rgb, labels)?;
                 let (img, _) = enc.encode_loaded(&id, &loaded, &mut Default::default())?;
                 let mut set = enc.descriptor_set();
-                set.push(&img).map_err(|r| semlook::Error::invalid(format!("image {id:?}"), r))?;
+                set.push(&img).map_err(|e| e.named(|r| semlook::Error::invalid(format!("image {id:?}"), r)))?;
                 Ok(set)
             })
             .py_err()?;

@@ -89,7 +89,8 @@ pub fn to_py(e: Error) -> PyErr {
         Error::InvalidInput { what, .. } | Error::Refused { what, .. } => ("InvalidInputError", None, Some(what.clone()), None),
         Error::Model { path, .. } => ("ModelError", shown(path), None, None),
         Error::Gpu(_) => ("GpuError", None, None, None),
-        #[allow(unreachable_patterns)]
+        // a check its caller did not name: a bad value all the same
+        Error::Check { .. } => ("InvalidInputError", None, None, None),
         _ => ("SemlookError", None, None, None),
     };
     Python::attach(|py| {

@@ -188,7 +188,7 @@ impl PyMap {
         segment_index(&map, s)?;
         let seg = &map.segments()[s];
         if verify {
-            seg.ensure().map_err(|r| crate::errors::to_py(semlook::Error::corrupt(&seg.path, r)))?;
+            seg.ensure().map_err(crate::errors::to_py)?;
         }
         let g = &map.manifest.config.global;
         let (values, shape) = match name {
@@ -200,8 +200,8 @@ impl PyMap {
         let owner = Bound::new(slf.py(), MapGeneration { _map: map.clone() })?.into_any();
         Ok(match values {
             Values::F32(v) => view(owner, v, &shape)?.into_any(),
-            // SAFETY: half::f16 is a transparent wrapper of its u16 bit pattern
-            Values::F16(v) => view(owner, unsafe { std::slice::from_raw_parts(v.as_ptr() as *const half::f16, v.len()) }, &shape)?.into_any(),
+            // the stored bit patterns as half::f16 (a Pod wrapper of its u16), no copy
+            Values::F16(v) => view(owner, bytemuck::cast_slice::<u16, half::f16>(v), &shape)?.into_any(),
             blocks @ Values::Blocks(_) => numpy::PyArrayMethods::reshape(&numpy::PyArray1::from_vec(owner.py(), blocks.to_vec()), shape)?.into_any(),
         })
     }
@@ -303,19 +303,8 @@ fn build_frames(
         return Err(invalid("ids", "given with a folder, whose frames are named by their file stems: give lists of paths to name them"));
     }
     let frames: Vec<FrameSource> = match (dir_images, dir_labels) {
-        (Some(dir), lab) => {
-            let files = semlook::dataset::image_files(&dir).py_err()?;
-            if files.is_empty() {
-                return Err(invalid(names[0], format!("{}: no images (png, jpg) in this folder", dir.display())));
-            }
-            files
-                .into_iter()
-                .map(|f| FrameSource { id: stem(&f), labels: lab.as_ref().map(|l| l.join(format!("{}.png", stem(&f)))), image: Some(f) })
-                .collect()
-        }
-        (None, Some(dir)) if images.is_none() => {
-            semlook::dataset::image_files(&dir).py_err()?.into_iter().map(|f| FrameSource { id: stem(&f), image: None, labels: Some(f) }).collect()
-        }
+        (Some(dir), lab) => return semlook::dataset::frames_from_folders(Some(&dir), lab.as_deref()).py_err(),
+        (None, Some(dir)) if images.is_none() => return semlook::dataset::frames_from_folders(None, Some(&dir)).py_err(),
         _ => {
             let (im, lb) = (as_list(images, names[0])?, as_list(labels, names[1])?);
             let n = im.as_ref().or(lb.as_ref()).map_or(0, Vec::len);
@@ -338,10 +327,7 @@ fn build_frames(
                 .collect()
         }
     };
-    let mut seen = std::collections::HashSet::new();
-    if let Some(f) = frames.iter().find(|f| !seen.insert(f.id.clone())) {
-        return Err(invalid("ids", format!("{:?} names two frames", f.id)));
-    }
+    semlook::dataset::unique_ids(&frames).py_err()?;
     Ok(frames)
 }
 
@@ -358,8 +344,9 @@ fn are_paths(obj: &Bound<'_, PyAny>) -> bool {
     if path(obj) {
         return true;
     }
-    obj.cast::<pyo3::types::PyList>().ok().and_then(|l| l.get_item(0).ok()).is_some_and(|first| path(&first))
-        || obj.cast::<pyo3::types::PyTuple>().ok().and_then(|t| t.get_item(0).ok()).is_some_and(|first| path(&first))
+    // a list or a tuple of them: a sequence whose first item is one
+    let sequence = obj.is_instance_of::<pyo3::types::PyList>() || obj.is_instance_of::<pyo3::types::PyTuple>();
+    sequence && obj.get_item(0).is_ok_and(|first| path(&first))
 }
 
 /// A query frame from arrays: id, RGB image, label map.
@@ -456,7 +443,7 @@ fn encode_frames(enc: &Encoder, frames: Vec<Frame>) -> semlook::Result<Descripto
     let mut set = enc.descriptor_set();
     for img in encoded {
         let img = img?;
-        set.push(&img).map_err(|r| semlook::Error::invalid(format!("image {:?}", img.id), r))?;
+        set.push(&img).map_err(|e| e.named(|r| semlook::Error::invalid(format!("image {:?}", img.id), r)))?;
     }
     Ok(set)
 }

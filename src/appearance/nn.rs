@@ -3,8 +3,9 @@
 //! inference-mode batch norm without affine terms fused with ReLU, average pooling, instance
 //! norm, bilinear resizing (PyTorch's align_corners = False) and 8x8 space-to-depth.
 //! Shapes come from a weights file, so every operation checks them and returns an error rather
-//! than panicking.
+//! than panicking (an [`Error::Check`]: what runs the network names it).
 
+use crate::error::{Error, Result};
 use rayon::prelude::*;
 
 /// A CHW tensor.
@@ -24,9 +25,9 @@ impl Chw {
         &self.data[c * self.h * self.w..(c + 1) * self.h * self.w]
     }
     /// Element-wise sum of two tensors of one shape.
-    pub fn plus(mut self, o: &Chw) -> Result<Chw, String> {
+    pub fn plus(mut self, o: &Chw) -> Result<Chw> {
         if (self.c, self.h, self.w) != (o.c, o.h, o.w) || self.data.len() != o.data.len() {
-            return Err(format!("cannot add a {}x{}x{} tensor to a {}x{}x{} one", o.c, o.h, o.w, self.c, self.h, self.w));
+            return Err(Error::check(format!("cannot add a {}x{}x{} tensor to a {}x{}x{} one", o.c, o.h, o.w, self.c, self.h, self.w)));
         }
         self.data.iter_mut().zip(&o.data).for_each(|(a, b)| *a += b);
         Ok(self)
@@ -89,20 +90,20 @@ fn im2col_band(x: &Chw, k: usize, stride: usize, pad: usize, wo: usize, b0: usiz
 /// 2-D convolution of `x` with `weight` [cout, cin, k, k], square stride and zero padding, plus
 /// an optional bias. A 1x1 convolution with stride 1 multiplies the input directly. Fails when
 /// the sizes do not fit together.
-pub fn conv2d(x: &Chw, weight: &[f32], bias: Option<&[f32]>, cout: usize, k: usize, stride: usize, pad: usize) -> Result<Chw, String> {
+pub fn conv2d(x: &Chw, weight: &[f32], bias: Option<&[f32]>, cout: usize, k: usize, stride: usize, pad: usize) -> Result<Chw> {
     let (cin, h, w) = (x.c, x.h, x.w);
     let want = cout.checked_mul(cin).and_then(|v| v.checked_mul(k)).and_then(|v| v.checked_mul(k));
     if want != Some(weight.len()) || k == 0 || stride == 0 || !x.is_consistent() {
-        return Err(format!(
+        return Err(Error::check(format!(
             "convolution weights of {} values do not fit {cout} outputs, {cin} inputs and a {k}x{k} kernel (stride {stride})",
             weight.len()
-        ));
+        )));
     }
     if bias.is_some_and(|b| b.len() != cout) {
-        return Err(format!("convolution bias of {} values for {cout} outputs", bias.map_or(0, <[f32]>::len)));
+        return Err(Error::check(format!("convolution bias of {} values for {cout} outputs", bias.map_or(0, <[f32]>::len))));
     }
     if h + 2 * pad < k || w + 2 * pad < k {
-        return Err(format!("{k}x{k} kernel on a {h}x{w} input"));
+        return Err(Error::check(format!("{k}x{k} kernel on a {h}x{w} input")));
     }
     let ho = (h + 2 * pad - k) / stride + 1;
     let wo = (w + 2 * pad - k) / stride + 1;
@@ -150,9 +151,9 @@ pub fn conv2d(x: &Chw, weight: &[f32], bias: Option<&[f32]>, cout: usize, k: usi
 }
 
 /// Inference-mode BatchNorm2d(affine = False), eps 1e-5, followed by ReLU, in place.
-pub fn batchnorm_relu(x: &mut Chw, mean: &[f32], var: &[f32]) -> Result<(), String> {
+pub fn batchnorm_relu(x: &mut Chw, mean: &[f32], var: &[f32]) -> Result<()> {
     if mean.len() != x.c || var.len() != x.c || !x.is_consistent() {
-        return Err(format!("batch norm of {} channels with {} means and {} variances", x.c, mean.len(), var.len()));
+        return Err(Error::check(format!("batch norm of {} channels with {} means and {} variances", x.c, mean.len(), var.len())));
     }
     let hw = x.h * x.w;
     if hw == 0 {
@@ -167,9 +168,9 @@ pub fn batchnorm_relu(x: &mut Chw, mean: &[f32], var: &[f32]) -> Result<(), Stri
 }
 
 /// AvgPool2d(k, stride k) on sizes divisible by k.
-pub fn avg_pool(x: &Chw, k: usize) -> Result<Chw, String> {
+pub fn avg_pool(x: &Chw, k: usize) -> Result<Chw> {
     if k == 0 || !x.is_consistent() {
-        return Err(format!("{k}x{k} average pooling of a {}x{}x{} tensor", x.c, x.h, x.w));
+        return Err(Error::check(format!("{k}x{k} average pooling of a {}x{}x{} tensor", x.c, x.h, x.w)));
     }
     let (ho, wo) = (x.h / k, x.w / k);
     let mut out = Chw::zeros(x.c, ho, wo);
@@ -216,9 +217,9 @@ fn source_index(dst: usize, in_len: usize, out_len: usize) -> (usize, usize, f32
 }
 
 /// F.interpolate(x, (h, w), mode = "bilinear", align_corners = False).
-pub fn resize_bilinear(x: &Chw, h: usize, w: usize) -> Result<Chw, String> {
+pub fn resize_bilinear(x: &Chw, h: usize, w: usize) -> Result<Chw> {
     if !x.is_consistent() || (h * w > 0 && x.h * x.w == 0) {
-        return Err(format!("cannot resize a {}x{}x{} tensor to {h}x{w}", x.c, x.h, x.w));
+        return Err(Error::check(format!("cannot resize a {}x{}x{} tensor to {h}x{w}", x.c, x.h, x.w)));
     }
     let mut out = Chw::zeros(x.c, h, w);
     if h * w == 0 {
@@ -240,9 +241,9 @@ pub fn resize_bilinear(x: &Chw, h: usize, w: usize) -> Result<Chw, String> {
 }
 
 /// XFeat's `_unfold2d(x, 8)` for one channel: [1, H, W] to [64, H/8, W/8], channel ky*8 + kx.
-pub fn space_to_depth8(x: &Chw) -> Result<Chw, String> {
+pub fn space_to_depth8(x: &Chw) -> Result<Chw> {
     if x.c != 1 || !x.is_consistent() {
-        return Err(format!("space-to-depth of a {}-channel tensor (needs 1)", x.c));
+        return Err(Error::check(format!("space-to-depth of a {}-channel tensor (needs 1)", x.c)));
     }
     let (ho, wo) = (x.h / 8, x.w / 8);
     let mut out = Chw::zeros(64, ho, wo);

@@ -5,6 +5,7 @@
 //! codebook, trained by k-means with k-means++ seeding; the kernels' CPU twins are in
 //! `kernels::vlad_accumulate` (named after `shaders/vlad_accumulate.wgsl`).
 
+use crate::error::{Error, Result};
 use crate::util::SplitMix64;
 
 /// The normalisations of a VLAD vector (spec §2.4).
@@ -66,25 +67,26 @@ pub struct Codebook {
 
 impl Codebook {
     /// The codebook as a map stores it: a safetensors file with one f32 tensor `centres` [k, dim].
-    pub fn file_bytes(&self) -> Result<Vec<u8>, String> {
-        let bad = |e: safetensors::SafeTensorError| format!("codebook of {} x {} with {} values: {e}", self.k, self.dim, self.centres.len());
+    pub fn file_bytes(&self) -> Result<Vec<u8>> {
+        let bad =
+            |e: safetensors::SafeTensorError| Error::check(format!("codebook of {} x {} with {} values: {e}", self.k, self.dim, self.centres.len()));
         let centres =
             safetensors::tensor::TensorView::new(safetensors::tensor::Dtype::F32, vec![self.k, self.dim], bytemuck::cast_slice(&self.centres))
                 .map_err(bad)?;
         safetensors::serialize([("centres", centres)], None).map_err(bad)
     }
     /// SHA-256 of [`Codebook::file_bytes`]: names the codebook in maps and descriptor sets.
-    pub fn sha256(&self) -> Result<String, String> {
+    pub fn sha256(&self) -> Result<String> {
         Ok(crate::util::sha256_hex(&self.file_bytes()?))
     }
 }
 
 /// k-means (Lloyd) with k-means++ seeding (Arthur & Vassilvitskii 2007), deterministic from
 /// `seed`. `samples` holds `dim` values per sample; needs at least `k` samples.
-pub fn train_codebook(samples: &[f32], dim: usize, k: usize, iterations: usize, seed: u64) -> Result<Codebook, String> {
+pub fn train_codebook(samples: &[f32], dim: usize, k: usize, iterations: usize, seed: u64) -> Result<Codebook> {
     let n = samples.len().checked_div(dim).unwrap_or(0);
     if n < k || k == 0 {
-        return Err(format!("{n} descriptors cannot train {k} centres"));
+        return Err(Error::check(format!("{n} descriptors cannot train {k} centres")));
     }
     let x = |i: usize| &samples[i * dim..(i + 1) * dim];
     let dist2 = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(p, q)| (p - q) * (p - q)).sum::<f32>();

@@ -6,6 +6,7 @@
 
 use super::nn::{avg_pool, batchnorm_relu, conv2d, instance_norm, resize_bilinear, space_to_depth8, Chw, NetOutputs};
 use super::torch_pt::{read_state_dict, Tensor};
+use crate::error::{Error, Result};
 use crate::kernels::xfeat::Epilogue;
 use std::collections::HashMap;
 use std::path::Path;
@@ -22,7 +23,7 @@ struct Basic {
 }
 
 impl Basic {
-    fn run(&self, x: &Chw) -> Result<Chw, String> {
+    fn run(&self, x: &Chw) -> Result<Chw> {
         let mut y = conv2d(x, &self.weight, None, self.cout, self.k, self.stride, self.k / 2)?;
         batchnorm_relu(&mut y, &self.mean, &self.var)?;
         Ok(y)
@@ -39,7 +40,7 @@ struct Conv {
 }
 
 impl Conv {
-    fn run(&self, x: &Chw) -> Result<Chw, String> {
+    fn run(&self, x: &Chw) -> Result<Chw> {
         conv2d(x, &self.weight, Some(&self.bias), self.cout, self.k, 1, self.k / 2)
     }
 }
@@ -98,67 +99,70 @@ struct Weights(HashMap<String, Tensor>);
 const MAX_KERNEL: usize = 15;
 
 impl Weights {
-    fn get(&self, name: &str) -> Result<&Tensor, String> {
-        self.0.get(name).ok_or_else(|| format!("tensor {name:?} missing from the state dict"))
+    fn get(&self, name: &str) -> Result<&Tensor> {
+        self.0.get(name).ok_or_else(|| Error::check(format!("tensor {name:?} missing from the state dict")))
     }
     /// A [cout, cin, k, k] weight with an odd k (same-size padding): (weights, cin, cout, k).
-    fn kernel(&self, name: &str) -> Result<(Vec<f32>, usize, usize, usize), String> {
+    fn kernel(&self, name: &str) -> Result<(Vec<f32>, usize, usize, usize)> {
         let w = self.get(name)?;
         match w.shape[..] {
             [cout, cin, k, k2] if k == k2 && k % 2 == 1 && k <= MAX_KERNEL && cout > 0 && cin > 0 => Ok((w.data.clone(), cin, cout, k)),
-            _ => Err(format!("{name}: weight shape {:?}, expected [out, in, k, k] with an odd k up to {MAX_KERNEL}", w.shape)),
+            _ => Err(Error::check(format!("{name}: weight shape {:?}, expected [out, in, k, k] with an odd k up to {MAX_KERNEL}", w.shape))),
         }
     }
     /// A per-channel vector of `n` values.
-    fn vector(&self, name: &str, n: usize) -> Result<Vec<f32>, String> {
+    fn vector(&self, name: &str, n: usize) -> Result<Vec<f32>> {
         let t = self.get(name)?;
         if t.shape != [n] {
-            return Err(format!("{name}: shape {:?}, expected [{n}]", t.shape));
+            return Err(Error::check(format!("{name}: shape {:?}, expected [{n}]", t.shape)));
         }
         Ok(t.data.clone())
     }
-    fn basic(&self, prefix: &str, stride: usize) -> Result<Basic, String> {
+    fn basic(&self, prefix: &str, stride: usize) -> Result<Basic> {
         let (weight, cin, cout, k) = self.kernel(&format!("{prefix}.layer.0.weight"))?;
         let mean = self.vector(&format!("{prefix}.layer.1.running_mean"), cout)?;
         let var = self.vector(&format!("{prefix}.layer.1.running_var"), cout)?;
         Ok(Basic { weight, cin, cout, k, stride, mean, var })
     }
-    fn conv(&self, prefix: &str) -> Result<Conv, String> {
+    fn conv(&self, prefix: &str) -> Result<Conv> {
         let (weight, cin, cout, k) = self.kernel(&format!("{prefix}.weight"))?;
         Ok(Conv { bias: self.vector(&format!("{prefix}.bias"), cout)?, weight, cin, cout, k })
     }
-    fn block(&self, name: &str, strides: &[usize]) -> Result<Vec<Basic>, String> {
+    fn block(&self, name: &str, strides: &[usize]) -> Result<Vec<Basic>> {
         strides.iter().enumerate().map(|(i, &s)| self.basic(&format!("{name}.{i}"), s)).collect()
     }
 }
 
 /// The channel count after `layers` applied to `cin` channels, or which layer does not fit.
-fn chain(name: &str, layers: &[Basic], cin: usize) -> Result<usize, String> {
+fn chain(name: &str, layers: &[Basic], cin: usize) -> Result<usize> {
     layers.iter().enumerate().try_fold(cin, |c, (i, l)| {
         if l.cin == c {
             Ok(l.cout)
         } else {
-            Err(format!("{name}.{i} takes {} channels but receives {c}", l.cin))
+            Err(Error::check(format!("{name}.{i} takes {} channels but receives {c}", l.cin)))
         }
     })
 }
 
-fn fits(name: &str, conv: &Conv, cin: usize, cout: Option<usize>) -> Result<usize, String> {
+fn fits(name: &str, conv: &Conv, cin: usize, cout: Option<usize>) -> Result<usize> {
     if conv.cin != cin || cout.is_some_and(|c| c != conv.cout) {
-        return Err(format!(
+        return Err(Error::check(format!(
             "{name} maps {} to {} channels; the network needs {cin} to {}",
             conv.cin,
             conv.cout,
             cout.map_or("any".into(), |c| c.to_string())
-        ));
+        )));
     }
     Ok(conv.cout)
 }
 
 impl XFeat {
-    /// Loads the weights of `xfeat.pt`.
-    pub fn load(path: &Path) -> Result<XFeat, String> {
-        let w = Weights(read_state_dict(path)?);
+    /// Loads the weights of `xfeat.pt`; an error is an [`Error::Model`] naming `path`.
+    pub fn load(path: &Path) -> Result<XFeat> {
+        Self::from_weights(Weights(read_state_dict(path)?)).map_err(|e| e.named(|reason| Error::Model { path: path.into(), reason }))
+    }
+
+    fn from_weights(w: Weights) -> Result<XFeat> {
         let net = XFeat {
             skip1: w.conv("skip1.1")?,
             block1: w.block("block1", &[1, 2, 1, 2])?,
@@ -178,14 +182,14 @@ impl XFeat {
     }
 
     /// Whether the layers' channel counts fit together as XFeat's graph joins them.
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<()> {
         let c1 = chain("block1", &self.block1, 1)?;
         fits("skip1.1", &self.skip1, 1, Some(c1))?;
         let c3 = chain("block3", &self.block3, chain("block2", &self.block2, c1)?)?;
         let c4 = chain("block4", &self.block4, c3)?;
         let c5 = chain("block5", &self.block5, c4)?;
         if c4 != c3 || c5 != c3 {
-            return Err(format!("blocks 3, 4 and 5 end in {c3}, {c4} and {c5} channels; they are summed"));
+            return Err(Error::check(format!("blocks 3, 4 and 5 end in {c3}, {c4} and {c5} channels; they are summed")));
         }
         let dim = fits("block_fusion.2", &self.fusion_out, chain("block_fusion", &self.fusion, c3)?, None)?;
         fits("heatmap_head.2", &self.heatmap_out, chain("heatmap_head", &self.heatmap, dim)?, Some(1))?;
@@ -235,16 +239,17 @@ impl XFeat {
     }
 
     /// Runs the network on a grey image [1, H, W] (values in [0, 1]; H and W multiples of 32).
-    pub fn forward(&self, grey: &Chw) -> Result<NetOutputs, String> {
+    /// Input and weights that do not fit are an [`Error::Check`] (the caller names the model).
+    pub fn forward(&self, grey: &Chw) -> Result<NetOutputs> {
         self.forward_with(grey, true)
     }
 
     /// [`XFeat::forward`]; without `heads` only the dense descriptors are computed (what dense
     /// sampling needs): the keypoint and reliability heads are skipped, `logits` is empty
     /// (0 channels) and `reliability` none.
-    pub fn forward_with(&self, grey: &Chw, heads: bool) -> Result<NetOutputs, String> {
+    pub fn forward_with(&self, grey: &Chw, heads: bool) -> Result<NetOutputs> {
         if grey.c != 1 || grey.h % 32 != 0 || grey.w % 32 != 0 || grey.h == 0 || grey.w == 0 || !grey.is_consistent() {
-            return Err(format!("input is {}x{}x{}; it must be 1 x (32k) x (32k)", grey.c, grey.h, grey.w));
+            return Err(Error::check(format!("input is {}x{}x{}; it must be 1 x (32k) x (32k)", grey.c, grey.h, grey.w)));
         }
         let seq = |layers: &[Basic], x: Chw| layers.iter().try_fold(x, |x, l| l.run(&x));
         let mut x = grey.clone();

@@ -1,5 +1,6 @@
 //! The commands behind the CLI.
 
+mod dev;
 mod localize;
 mod map_cmd;
 mod pairs;
@@ -67,12 +68,7 @@ pub fn dispatch(cli: Cli) -> Result<()> {
         Command::Eval(a) => eval_cmd(&mut engine()?, &a, quiet),
         Command::Localize(a) => localize::run(engine()?, &a, quiet),
         Command::Inspect(a) => inspect_cmd(&a, quiet),
-        Command::Dev(DevCommand::Bench(a)) => bench_cmd(&a, quiet),
-        Command::Dev(DevCommand::BenchEncode(a)) => bench_encode_cmd(&a, &mut engine()?, quiet),
-        Command::Dev(DevCommand::MapBench(a)) => map_cmd::bench(&a, quiet),
-        Command::Dev(DevCommand::Tune(a)) => tune_cmd(&a, &mut engine()?, quiet),
-        Command::Dev(DevCommand::BenchStream(a)) => bench_stream_cmd(&a, &engine, quiet),
-        Command::Dev(DevCommand::SegmenterAccuracy(a)) => segacc_cmd(&a, quiet),
+        Command::Dev(d) => dev::run(d, &engine, quiet),
         Command::Config => {
             out!("{}", Config::default().to_toml()?);
             Ok(())
@@ -345,7 +341,7 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
             .take(a.explain.unwrap_or(REPORT_WORST))
             .map(|w| {
                 // a frame that cannot be drawn costs its sheet, not the page
-                let sheet = semlook::tools::viz::worst_sheet(w, setting, &ds, &encoder, 320).map_err(|e| e.to_string());
+                let sheet = semlook::tools::viz::worst_sheet(w, setting, &ds, &encoder, 320);
                 WorstQuery { query_set: w.0, outcome: w.1, sheet }
             })
             .collect();
@@ -466,112 +462,6 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     Ok(())
 }
 
-/// Two timed phases: the segmenter on every frame (labels written at full size to a temporary
-/// folder), then encoding of the frames with those label maps: everything but segmentation.
-fn bench_encode_cmd(a: &BenchEncodeArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
-    use semlook::encode::StageTimes;
-    let cfg = apply_models(load_config(a.config.as_deref())?, &a.models);
-    let images: Vec<_> = semlook::dataset::image_files(&a.images)?.into_iter().take(a.frames).collect();
-    if images.is_empty() {
-        return Err(Error::invalid(a.images.display().to_string(), "no images"));
-    }
-    let sources: Vec<FrameSource> =
-        images.iter().map(|p| FrameSource { id: p.display().to_string(), image: Some(p.clone()), labels: None }).collect();
-    let mut encoder = Encoder::new(&cfg)?;
-    semlook::batch::train_codebook(&mut encoder, &sources, quiet)?;
-    // phase 1: segmentation alone, frames in parallel, label maps at the image size
-    let tmp = std::env::temp_dir().join(format!("semlook-bench-encode-{}", std::process::id()));
-    std::fs::create_dir_all(&tmp).map_err(|e| Error::io(&tmp, e))?;
-    let t = Instant::now();
-    let pb = progress::bar(sources.len(), "segmenting", quiet);
-    let seg_times: Vec<Result<(f64, std::path::PathBuf)>> = {
-        use rayon::prelude::*;
-        sources
-            .par_iter()
-            .enumerate()
-            .map(|(i, s)| {
-                let path = s.image.clone().unwrap_or_default();
-                let rgb = semlook::input::load_rgb(&path)?;
-                let seg = encoder.frames().segmenter_for(&path)?;
-                let t = Instant::now();
-                let labels = seg.segment(&rgb, &path)?;
-                let ms = t.elapsed().as_secs_f64() * 1e3;
-                let out = tmp.join(format!("{i:06}.png"));
-                let ids = image::GrayImage::from_fn(labels.width(), labels.height(), |x, y| image::Luma([labels.get(x, y)]));
-                ids.save(&out).map_err(|e| Error::invalid(out.display().to_string(), e.to_string()))?;
-                pb.inc(1);
-                Ok((ms, out))
-            })
-            .collect()
-    };
-    pb.finish_and_clear();
-    let seg_wall = t.elapsed().as_secs_f64() * 1e3 / sources.len() as f64;
-    let mut labelled = Vec::new();
-    let mut seg_ms = Vec::new();
-    for (s, r) in sources.iter().zip(seg_times) {
-        let (ms, path) = r?;
-        seg_ms.push(StageTimes { segment_ms: ms, ..Default::default() });
-        labelled.push(FrameSource { labels: Some(path), ..s.clone() });
-    }
-    // phase 2: everything else, with those label maps (train ids: the default class table's)
-    let enc = encode_frames(engine, &encoder, &labelled, LabelFormat::Auto, "encoding", false, quiet)?;
-    let _ = std::fs::remove_dir_all(&tmp);
-    let summary = enc.summary();
-    let seg = semlook::batch::EncodingSummary::new(&seg_ms, seg_wall * sources.len() as f64);
-    let size = semlook::input::image_size(&images[0])?;
-    if a.json {
-        outln!(
-            "{}",
-            to_json(
-                &serde_json::json!({ "frames": sources.len(), "image_size": size, "backend": engine.describe(), "segmentation": seg, "everything_else": summary })
-            )?
-        );
-    } else {
-        let (m, md) = (summary.mean, summary.median);
-        outln!("{} frames of {}x{}; backend {}", sources.len(), size.0, size.1, engine.describe());
-        outln!(
-            "segmentation ({}): median {:.1} ms per frame, wall clock {:.1} ms per frame (frames in parallel)",
-            encoder.frames().segmenter().map_or("-".into(), |s| s.path().display().to_string()),
-            seg.median.segment_ms,
-            seg.wall_ms_per_frame
-        );
-        outln!("everything but segmentation: wall clock {:.1} ms per frame (frames in parallel)", summary.wall_ms_per_frame);
-        outln!("  per frame, median (mean): decode+resize {:.1} ({:.1}) | edges+EDT+pool {:.1} ({:.1}) | objects+forest {:.1} ({:.1}) | appearance {:.1} ({:.1}), of which network {:.1} ({:.1}) | sum {:.1} ({:.1})",
-            md.decode_ms, m.decode_ms, md.global_ms, m.global_ms, md.forest_ms, m.forest_ms, md.appearance_ms, m.appearance_ms, md.network_ms, m.network_ms, md.without_segmentation_ms(), m.without_segmentation_ms());
-    }
-    Ok(())
-}
-
-fn segacc_cmd(a: &SegAccArgs, quiet: bool) -> Result<()> {
-    let base = if a.camvid { Config::camvid() } else { load_config(a.config.as_deref())? };
-    let cfg = apply_models(base, &a.models);
-    let encoder = Encoder::new(&cfg)?;
-    let table = encoder.class_table().clone();
-    let images = semlook::dataset::image_files(&a.images)?;
-    if images.is_empty() {
-        return Err(Error::invalid(a.images.display().to_string(), "no images"));
-    }
-    let pb = progress::bar(images.len(), "segmenting", quiet);
-    let mut confusion = semlook::eval::segmenter::Confusion::new(table.len());
-    for img in &images {
-        let stem = img.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-        let real = semlook::input::load_label_map(&a.labels.join(format!("{stem}.png")), &table, LabelFormat::Auto)?;
-        let rgb = semlook::input::load_rgb(img)?;
-        let seg = encoder.frames().segmenter_for(img)?;
-        let predicted = seg.segment(&rgb, img)?;
-        confusion.add(&real, &predicted)?;
-        pb.inc(1);
-    }
-    pb.finish_and_clear();
-    let r = confusion.report(&table);
-    if a.json {
-        outln!("{}", to_json(&r)?);
-    } else {
-        out!("{} images\n{}", images.len(), r.to_table());
-    }
-    Ok(())
-}
-
 fn inspect_cmd(a: &InspectArgs, quiet: bool) -> Result<()> {
     let cfg = apply_models(load_config(a.config.as_deref())?, &a.models);
     let encoder = Encoder::new(&cfg)?;
@@ -581,141 +471,6 @@ fn inspect_cmd(a: &InspectArgs, quiet: bool) -> Result<()> {
     let files = semlook::tools::viz::write_panels(&panels, &a.out)?;
     for f in &files {
         info(quiet, format!("wrote {}", f.display()));
-    }
-    Ok(())
-}
-
-fn tune_cmd(a: &TuneArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
-    let base = apply_models(load_config(a.config.as_deref())?, &a.models);
-    let text = std::fs::read_to_string(&a.sweep).map_err(|e| Error::io(&a.sweep, e))?;
-    let sweep = semlook::tools::tune::Sweep::parse(&text, &a.sweep.display().to_string(), &base)?;
-    let mut datasets: Vec<Dataset> = a.datasets.iter().map(|d| Dataset::open(d, &DatasetOptions::default())).collect::<Result<_>>()?;
-    for d in &a.segmented {
-        let mut ds = Dataset::open(d, &DatasetOptions::default())?.without_labels();
-        ds.name += " (segmented)";
-        datasets.push(ds);
-    }
-    let settings = if a.settings.is_empty() { vec![Setting::Semlook, Setting::Local, Setting::Forest, Setting::Global] } else { a.settings.clone() };
-    let n = sweep.combinations().len();
-    info(quiet, format!("{n} configurations x {} datasets", datasets.len()));
-    let pb = progress::bar(0, "frames", quiet);
-    let rows = semlook::tools::tune::run(&datasets, &sweep, &settings, a.sequence, engine, &|| pb.inc(1), &mut |ds, row| {
-        let vals: Vec<String> = row.values.iter().map(|(k, v)| format!("{k}={v}")).collect();
-        let r: Vec<String> = row.results.iter().filter(|r| r.0 == ds).map(|r| format!("{} {:.3}", r.1, r.2)).collect();
-        pb.suspend(|| info(quiet, format!("{ds}: {} -> R@1 {}", vals.join(" "), r.join(", "))));
-    })?;
-    pb.finish_and_clear();
-    let table = semlook::tools::tune::table(&rows);
-    if let Some(file) = &a.table {
-        write_file(file, &table)?;
-    }
-    out!("{table}");
-    Ok(())
-}
-
-fn bench_stream_cmd(a: &BenchStreamArgs, engine: &dyn Fn() -> Result<Engine>, quiet: bool) -> Result<()> {
-    use semlook::tools::bench_stream::{run, table, StreamBenchOptions};
-    let cfg = apply_models(load_config(a.config.as_deref())?, &a.models);
-    let frames = |dir: &Path| -> Result<Vec<FrameSource>> {
-        let files = semlook::dataset::image_files(dir)?;
-        if files.is_empty() {
-            return Err(Error::invalid(dir.display().to_string(), "no images (png, jpg) in this folder"));
-        }
-        Ok(files
-            .into_iter()
-            .map(|p| FrameSource { id: p.file_stem().unwrap_or_default().to_string_lossy().into_owned(), image: Some(p), labels: None })
-            .collect())
-    };
-    let mut distractors = Vec::new();
-    for (k, d) in a.distractors.iter().enumerate() {
-        distractors.extend(frames(d)?.into_iter().map(|mut f| {
-            f.id = format!("{k}/{}", f.id);
-            f
-        }));
-    }
-    let opts = StreamBenchOptions {
-        references: frames(&a.references)?,
-        stream: frames(&a.stream)?,
-        distractors,
-        sizes: a.sizes.clone(),
-        frames: a.frames,
-        setting: a.setting,
-        sequence: !a.no_sequence,
-        dir: a.dir.clone().unwrap_or_else(std::env::temp_dir),
-        keep: a.keep,
-        quiet,
-    };
-    let json = a.json;
-    let rows = run(&cfg, &opts, engine, &mut |r| {
-        if json {
-            let _ = writeln_row(r);
-        } else {
-            info(quiet, format!("{} places: {:.2} frames/s, p50 {:.1} ms, p99 {:.1} ms", r.map_size, r.frames_per_s, r.p50.total_ms, r.p99.total_ms));
-        }
-    })?;
-    if !json {
-        out!("{}", table(&rows));
-    }
-    Ok(())
-}
-
-fn writeln_row(r: &semlook::tools::bench_stream::StreamBenchRow) -> Result<()> {
-    outln!("{}", serde_json::to_string(r).map_err(|e| Error::invalid("JSON output", e.to_string()))?);
-    Ok(())
-}
-
-fn bench_cmd(a: &BenchArgs, quiet: bool) -> Result<()> {
-    let cfg = Config::default();
-    let opts = semlook::tools::bench::BenchOptions {
-        sizes: a.sizes.clone(),
-        batches: a.batches.clone(),
-        max_row_seconds: a.max_row_seconds,
-        resident_limit: semlook::tools::bench::RESIDENT_LIMIT,
-        gpu_peak_gflops: a.peak_gflops,
-    };
-    opts.validate()?;
-    info(quiet, "rendering and encoding the descriptor pools (64 map frames, 32 query frames)");
-    let pool = semlook::tools::bench::street_descriptors(&cfg, 64, Condition::Day, 0)?;
-    let queries = semlook::tools::bench::street_descriptors(&cfg, 32, Condition::Night, 5)?;
-    let mut engines = vec![Engine::cpu()];
-    if !a.cpu_only {
-        let gopts = GpuOptions {
-            resident_budget: a.resident_budget_mib.map(|m| m << 20),
-            max_binding_size: a.max_binding_mib.map(|m| m << 20),
-            ..Default::default()
-        };
-        match Engine::new(semlook::engine::Backend::Gpu, &gopts) {
-            Ok((e, _)) => engines.push(e),
-            Err(e) => info(quiet, format!("no GPU run: {e}")),
-        }
-    }
-    for e in &engines {
-        info(quiet, format!("backend: {}", e.describe()));
-    }
-    let mut shown = false;
-    // the first failed write of a row (a closed pipe), returned once the run is over
-    let mut write_err: Option<Error> = None;
-    let rows = semlook::tools::bench::run(&pool, &queries, &opts, &mut engines, &cfg, &mut |r| {
-        if a.json {
-            match serde_json::to_string(r) {
-                Ok(line) => {
-                    if write_err.is_none() {
-                        write_err = super::output::write_out(format_args!("{line}\n")).err();
-                    }
-                }
-                Err(e) => log::error!("bench row: {e}"),
-            }
-        } else if !quiet {
-            let t = semlook::tools::bench::table(std::slice::from_ref(r));
-            eprint!("{}", if shown { t.lines().nth(1).unwrap_or("").to_string() + "\n" } else { t });
-            shown = true;
-        }
-    })?;
-    if let Some(e) = write_err {
-        return Err(e);
-    }
-    if !a.json {
-        out!("{}{}", semlook::tools::bench::table(&rows), semlook::tools::bench::legend(&rows));
     }
     Ok(())
 }

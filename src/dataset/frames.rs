@@ -103,3 +103,50 @@ pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>> {
     files.sort();
     Ok(files)
 }
+
+/// The frames of a folder of images and/or a folder of label maps, as `map build --images/--labels`
+/// and Python's `Map.build` take them: each image `NAME.ext` is frame `NAME` (its file stem), with
+/// label map `NAME.png` of the labels folder when one is given; a labels folder alone gives one
+/// frame per label map. A folder without images, and two files of one stem (one id for two frames),
+/// are refused naming the files, before any work.
+pub fn frames_from_folders(images: Option<&Path>, labels: Option<&Path>) -> Result<Vec<FrameSource>> {
+    let listing = |dir: &Path| -> Result<Vec<PathBuf>> {
+        let files = image_files(dir)?;
+        if files.is_empty() {
+            return Err(Error::invalid(dir.display().to_string(), "no images (png, jpg) in this folder"));
+        }
+        Ok(files)
+    };
+    let stem = |p: &Path| p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    let frames: Vec<FrameSource> = match (images, labels) {
+        (Some(img), labels) => listing(img)?
+            .into_iter()
+            .map(|p| {
+                // the label file from the OS name itself: a non-UTF-8 name is found, not mangled
+                let label_name = |l: &Path| {
+                    let mut n = p.file_stem().unwrap_or_default().to_os_string();
+                    n.push(".png");
+                    l.join(n)
+                };
+                FrameSource { id: stem(&p), labels: labels.map(label_name), image: Some(p.clone()) }
+            })
+            .collect(),
+        (None, Some(labels)) => listing(labels)?.into_iter().map(|p| FrameSource { id: stem(&p), image: None, labels: Some(p) }).collect(),
+        (None, None) => return Err(Error::invalid("frames", "give a folder of images or of label maps")),
+    };
+    unique_ids(&frames)?;
+    Ok(frames)
+}
+
+/// Refuses two frames of one id, naming both frames' files (two files of one stem in a folder,
+/// or one id given twice).
+pub fn unique_ids(frames: &[FrameSource]) -> Result<()> {
+    let mut seen: std::collections::HashMap<&str, &FrameSource> = std::collections::HashMap::new();
+    for f in frames {
+        if let Some(other) = seen.insert(f.id.as_str(), f) {
+            let file = |s: &FrameSource| s.image.as_ref().or(s.labels.as_ref()).map_or(String::new(), |p| p.display().to_string());
+            return Err(Error::invalid(file(f), format!("has the same name (id {:?}) as {}: rename one of them", f.id, file(other))));
+        }
+    }
+    Ok(())
+}

@@ -18,7 +18,7 @@ mod poses;
 
 use crate::error::{Error, Result};
 use crate::input::{FrameSource, LabelFormat};
-pub use frames::{image_files, Dataset, Frame, GroundTruthRule, Pose, PoseFormat, Traversal};
+pub use frames::{frames_from_folders, image_files, unique_ids, Dataset, Frame, GroundTruthRule, Pose, PoseFormat, Traversal};
 use pairs::PairTruth;
 pub use poses::{parse_pose_list, parse_synthia_pose, read_pose_list, read_synthia_pose, write_synthia_pose};
 use serde::{Deserialize, Serialize};

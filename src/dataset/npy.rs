@@ -4,6 +4,7 @@
 //! lists of them, or NumPy integer arrays (as `np.where` returns them). Read with the crate's
 //! pickle machine: no Python, no code execution.
 
+use crate::error::{Error, Result};
 use crate::pickle::{Id, Node, Pickle};
 
 /// Most ground-truth rows a file may hold (a guard against absurd shapes in damaged files).
@@ -13,19 +14,20 @@ const MAX_ROWS: usize = 100_000_000;
 const INDICES_PER_BYTE: usize = 16;
 
 /// Per query index, the valid reference indices, from the bytes of a `.npy` file.
-pub fn read_ground_truth(bytes: &[u8]) -> Result<Vec<(u64, Vec<u64>)>, String> {
+/// What does not read is an [`Error::Check`] (the caller names the file).
+pub fn read_ground_truth(bytes: &[u8]) -> Result<Vec<(u64, Vec<u64>)>> {
     let (descr, shape, data) = header(bytes)?;
     if descr != "|O" {
-        return Err(format!("dtype {descr:?}: expected an object array ('|O') of [query, [references]] rows"));
+        return Err(Error::check(format!("dtype {descr:?}: expected an object array ('|O') of [query, [references]] rows")));
     }
-    let p = Pickle::load(data).map_err(|e| format!("pickled array: {e}"))?;
-    let (arr_shape, items) = array(&p, p.root)?.ok_or("the pickle does not hold a NumPy array")?;
+    let p = Pickle::load(data).map_err(|e| e.named(|r| Error::check(format!("pickled array: {r}"))))?;
+    let (arr_shape, items) = array(&p, p.root)?.ok_or_else(|| Error::check("the pickle does not hold a NumPy array"))?;
     if arr_shape != shape {
-        return Err(format!("the header says shape {shape:?}, the pickled array {arr_shape:?}"));
+        return Err(Error::check(format!("the header says shape {shape:?}, the pickled array {arr_shape:?}")));
     }
     let items = match items {
         Items::Objects(v) => v,
-        Items::Ints(_) => return Err("the array holds plain integers, not [query, [references]] rows".into()),
+        Items::Ints(_) => return Err(Error::check("the array holds plain integers, not [query, [references]] rows")),
     };
     let rows: Vec<(Id, Id)> = match arr_shape.as_slice() {
         // an (n, 2) object array: query, references
@@ -35,65 +37,65 @@ pub fn read_ground_truth(bytes: &[u8]) -> Result<Vec<(u64, Vec<u64>)>, String> {
             .iter()
             .map(|&row| match ints_or_seq(&p, row)? {
                 Some(Items::Objects(v)) if v.len() == 2 => Ok((v[0], v[1])),
-                _ => Err("a row is not a [query, references] pair".to_string()),
+                _ => Err(Error::check("a row is not a [query, references] pair")),
             })
-            .collect::<Result<_, _>>()?,
-        other => return Err(format!("shape {other:?}: expected (n, 2) rows of [query, references]")),
+            .collect::<Result<_>>()?,
+        other => return Err(Error::check(format!("shape {other:?}: expected (n, 2) rows of [query, references]"))),
     };
     if rows.len() > MAX_ROWS {
-        return Err(format!("{} rows is more than the {MAX_ROWS} this reader accepts", rows.len()));
+        return Err(Error::check(format!("{} rows is more than the {MAX_ROWS} this reader accepts", rows.len())));
     }
     let mut budget = bytes.len().saturating_mul(INDICES_PER_BYTE).saturating_add(1 << 20);
     rows.into_iter()
         .enumerate()
         .map(|(i, (q, r))| {
-            let q = index(&p, q).ok_or_else(|| format!("row {i}: the query index is not a non-negative integer"))?;
+            let q = index(&p, q).ok_or_else(|| Error::check(format!("row {i}: the query index is not a non-negative integer")))?;
             let refs = match ints_or_seq(&p, r)? {
                 Some(Items::Ints(v)) => v,
                 Some(Items::Objects(v)) => v
                     .iter()
                     .map(|&x| index(&p, x))
                     .collect::<Option<_>>()
-                    .ok_or_else(|| format!("row {i}: a reference index is not a non-negative integer"))?,
-                None => vec![index(&p, r).ok_or_else(|| format!("row {i}: references are neither a list nor an integer"))?],
+                    .ok_or_else(|| Error::check(format!("row {i}: a reference index is not a non-negative integer")))?,
+                None => vec![index(&p, r).ok_or_else(|| Error::check(format!("row {i}: references are neither a list nor an integer")))?],
             };
             budget = budget
                 .checked_sub(refs.len())
-                .ok_or_else(|| format!("row {i}: more reference indices than a file of {} bytes can hold", bytes.len()))?;
+                .ok_or_else(|| Error::check(format!("row {i}: more reference indices than a file of {} bytes can hold", bytes.len())))?;
             Ok((q, refs))
         })
         .collect()
 }
 
 /// `(descr, shape, data)` of a `.npy` file (format versions 1 to 3).
-fn header(bytes: &[u8]) -> Result<(String, Vec<usize>, &[u8]), String> {
+fn header(bytes: &[u8]) -> Result<(String, Vec<usize>, &[u8])> {
     if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
-        return Err("not a .npy file (magic bytes missing)".into());
+        return Err(Error::check("not a .npy file (magic bytes missing)"));
     }
     let (len, start): (usize, usize) = match bytes[6] {
         1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
         2 | 3 if bytes.len() >= 12 => (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12),
-        v => return Err(format!(".npy format version {v} is not supported")),
+        v => return Err(Error::check(format!(".npy format version {v} is not supported"))),
     };
-    let text = bytes.get(start..start.saturating_add(len)).ok_or(".npy header runs past the end of the file")?;
-    let text = std::str::from_utf8(text).map_err(|_| ".npy header is not text")?;
-    let field = |key: &str| -> Result<&str, String> {
-        let at = text.find(&format!("'{key}'")).ok_or_else(|| format!(".npy header has no {key:?}"))?;
+    let text = bytes.get(start..start.saturating_add(len)).ok_or_else(|| Error::check(".npy header runs past the end of the file"))?;
+    let text = std::str::from_utf8(text).map_err(|_| Error::check(".npy header is not text"))?;
+    let field = |key: &str| -> Result<&str> {
+        let at = text.find(&format!("'{key}'")).ok_or_else(|| Error::check(format!(".npy header has no {key:?}")))?;
         Ok(text[at + key.len() + 2..].trim_start().trim_start_matches(':').trim_start())
     };
     let descr = field("descr")?;
-    let descr = descr.strip_prefix('\'').and_then(|d| d.split('\'').next()).ok_or(".npy header: descr is not a string")?;
+    let descr = descr.strip_prefix('\'').and_then(|d| d.split('\'').next()).ok_or_else(|| Error::check(".npy header: descr is not a string"))?;
     if field("fortran_order")?.starts_with("True") {
-        return Err("Fortran-ordered arrays are not supported".into());
+        return Err(Error::check("Fortran-ordered arrays are not supported"));
     }
     let shape = field("shape")?;
-    let shape = shape.strip_prefix('(').and_then(|s| s.split(')').next()).ok_or(".npy header: shape is not a tuple")?;
+    let shape = shape.strip_prefix('(').and_then(|s| s.split(')').next()).ok_or_else(|| Error::check(".npy header: shape is not a tuple"))?;
     let shape = shape
         .split(',')
         .map(str::trim)
         .filter(|s| !s.is_empty())
-        .map(|s| s.parse::<usize>().map_err(|_| format!(".npy header: shape entry {s:?}")))
-        .collect::<Result<Vec<_>, _>>()?;
+        .map(|s| s.parse::<usize>().map_err(|_| Error::check(format!(".npy header: shape entry {s:?}"))))
+        .collect::<Result<Vec<_>>>()?;
     Ok((descr.to_string(), shape, &bytes[start + len..]))
 }
 
@@ -110,30 +112,30 @@ fn is_reconstruct(func: &str) -> bool {
 
 /// A pickled NumPy array: its shape and items, or `None` if `id` is not one.
 /// State layout (ndarray.__setstate__): (version, shape, dtype, fortran, data).
-fn array(p: &Pickle, id: Id) -> Result<Option<(Vec<usize>, Items)>, String> {
+fn array(p: &Pickle, id: Id) -> Result<Option<(Vec<usize>, Items)>> {
     let Node::Call { func, state: Some(state), .. } = p.node(id) else { return Ok(None) };
     if !is_reconstruct(func) {
         return Ok(None);
     }
-    let st = p.seq(*state).ok_or("array state is not a tuple")?;
-    let [_, shape, dtype, fortran, data] = st else { return Err(format!("array state has {} fields, expected 5", st.len())) };
+    let st = p.seq(*state).ok_or_else(|| Error::check("array state is not a tuple"))?;
+    let [_, shape, dtype, fortran, data] = st else { return Err(Error::check(format!("array state has {} fields, expected 5", st.len()))) };
     let shape = p
         .seq(*shape)
-        .ok_or("array shape is not a tuple")?
+        .ok_or_else(|| Error::check("array shape is not a tuple"))?
         .iter()
         .map(|&d| p.int(d).and_then(|d| usize::try_from(d).ok()))
         .collect::<Option<Vec<_>>>()
-        .ok_or("array shape holds a negative or non-integer size")?;
+        .ok_or_else(|| Error::check("array shape holds a negative or non-integer size"))?;
     if p.int(*fortran) == Some(1) {
-        return Err("Fortran-ordered arrays are not supported".into());
+        return Err(Error::check("Fortran-ordered arrays are not supported"));
     }
-    let count = shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d)).ok_or("array shape overflows")?;
+    let count = shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d)).ok_or_else(|| Error::check("array shape overflows"))?;
     let code = dtype_code(p, *dtype)?;
     let items = if code.get(1..).is_some_and(|c| c.starts_with('O')) {
-        let v = p.seq(*data).ok_or("object array data is not a list")?.to_vec();
+        let v = p.seq(*data).ok_or_else(|| Error::check("object array data is not a list"))?.to_vec();
         Items::Objects(v)
     } else {
-        let raw = bytes_of(p, *data).ok_or("numeric array data is not bytes")?;
+        let raw = bytes_of(p, *data).ok_or_else(|| Error::check("numeric array data is not bytes"))?;
         Items::Ints(int_values(&code, &raw)?)
     };
     let n = match &items {
@@ -141,33 +143,33 @@ fn array(p: &Pickle, id: Id) -> Result<Option<(Vec<usize>, Items)>, String> {
         Items::Ints(v) => v.len(),
     };
     if n != count {
-        return Err(format!("array of shape {shape:?} holds {n} items"));
+        return Err(Error::check(format!("array of shape {shape:?} holds {n} items")));
     }
     Ok(Some((shape, items)))
 }
 
 /// The type code of a pickled `numpy.dtype(code, ...)` with its byte order from the state ("<i8").
-fn dtype_code(p: &Pickle, id: Id) -> Result<String, String> {
-    let Node::Call { func, args, state, .. } = p.node(id) else { return Err("array dtype is not a numpy.dtype".into()) };
+fn dtype_code(p: &Pickle, id: Id) -> Result<String> {
+    let Node::Call { func, args, state, .. } = p.node(id) else { return Err(Error::check("array dtype is not a numpy.dtype")) };
     if !func.ends_with(".dtype") {
-        return Err(format!("array dtype is {func}, not numpy.dtype"));
+        return Err(Error::check(format!("array dtype is {func}, not numpy.dtype")));
     }
-    let code = args.first().and_then(|&a| p.str(a)).ok_or("dtype without a type code")?;
+    let code = args.first().and_then(|&a| p.str(a)).ok_or_else(|| Error::check("dtype without a type code"))?;
     let order = state.and_then(|s| p.seq(s)).and_then(|s| s.get(1).copied()).and_then(|o| p.str(o)).unwrap_or("|");
     Ok(format!("{}{code}", if order == ">" { ">" } else { "<" }))
 }
 
 /// Non-negative integers from a NumPy buffer of type `code` ("<i8", ">u4", ...).
-fn int_values(code: &str, raw: &[u8]) -> Result<Vec<u64>, String> {
+fn int_values(code: &str, raw: &[u8]) -> Result<Vec<u64>> {
     let big = code.starts_with('>');
     let body = code.get(1..).unwrap_or("");
     let (kind, size) = body.split_at(body.char_indices().nth(1).map_or(body.len(), |(i, _)| i));
-    let size: usize = size.parse().map_err(|_| format!("dtype {code:?}"))?;
+    let size: usize = size.parse().map_err(|_| Error::check(format!("dtype {code:?}")))?;
     if !matches!(kind, "i" | "u") || !matches!(size, 1 | 2 | 4 | 8) {
-        return Err(format!("dtype {code:?}: reference indices must be integers"));
+        return Err(Error::check(format!("dtype {code:?}: reference indices must be integers")));
     }
     if raw.len() % size != 0 {
-        return Err(format!("{} bytes of {code:?} values", raw.len()));
+        return Err(Error::check(format!("{} bytes of {code:?} values", raw.len())));
     }
     raw.chunks_exact(size)
         .map(|c| {
@@ -179,7 +181,7 @@ fn int_values(code: &str, raw: &[u8]) -> Result<Vec<u64>, String> {
                 b[..size].copy_from_slice(c);
             }
             if kind == "i" && c[if big { 0 } else { size - 1 }] & 0x80 != 0 {
-                return Err("a reference index is negative".to_string());
+                return Err(Error::check("a reference index is negative"));
             }
             Ok(u64::from_le_bytes(b))
         })
@@ -187,7 +189,7 @@ fn int_values(code: &str, raw: &[u8]) -> Result<Vec<u64>, String> {
 }
 
 /// A list/tuple of objects, a NumPy array (of objects or integers), or `None` for anything else.
-fn ints_or_seq(p: &Pickle, id: Id) -> Result<Option<Items>, String> {
+fn ints_or_seq(p: &Pickle, id: Id) -> Result<Option<Items>> {
     if let Some(s) = p.seq(id) {
         return Ok(Some(Items::Objects(s.to_vec())));
     }

@@ -156,7 +156,7 @@ fn read_npy(file: &Path, n_refs: usize, n_queries: usize) -> Result<Vec<Vec<u32>
 /// Per query, the valid reference indices of a VPR-Bench `ground_truth_new.npy` held in `bytes`
 /// (`file` names it in errors), checked against the folder sizes.
 pub fn parse_npy_ground_truth(bytes: &[u8], file: &Path, n_refs: usize, n_queries: usize) -> Result<Vec<Vec<u32>>> {
-    let rows = npy::read_ground_truth(bytes).map_err(|r| Error::dataset(file, r))?;
+    let rows = npy::read_ground_truth(bytes).map_err(|e| e.named(|r| Error::dataset(file, r)))?;
     let mut gt = vec![Vec::new(); n_queries];
     for (q, refs) in rows {
         let slot = usize::try_from(q)

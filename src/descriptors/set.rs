@@ -4,6 +4,7 @@
 //! indices stay local to their forest.
 
 use crate::descriptors::keypoints::{ImageKeypoints, KeypointsRef};
+use crate::error::{Error, Result};
 use crate::kernels::abi::SsimParams;
 use crate::kernels::tree_similarity::ForestRef;
 use crate::local::Forest;
@@ -136,30 +137,30 @@ impl DescriptorSet {
 
     /// Appends one image. Its global size, neighbour slots and appearance dimension must match
     /// the set's (an image without appearance gets zero vectors flagged absent; without HOG,
-    /// zeros), else the set is unchanged and the mismatch is returned. A set without statistics
-    /// ([`DescriptorSet::for_storage`]) ignores the image's.
-    pub fn push(&mut self, img: &EncodedImage) -> Result<(), String> {
+    /// zeros), else the set is unchanged and the mismatch is returned (an [`Error::Check`] naming
+    /// the image). A set without statistics ([`DescriptorSet::for_storage`]) ignores the image's.
+    pub fn push(&mut self, img: &EncodedImage) -> Result<()> {
         let f = &img.forest;
         let stats_ok = self.stats_len == 0 || img.global_stats.len() == self.stats_len;
         if img.global.len() != self.global_len || !stats_ok || f.neighbour_slots != self.neighbour_slots {
-            return Err(format!("image {:?} has another global descriptor size or neighbour count than the set", img.id));
+            return Err(Error::check(format!("image {:?} has another global descriptor size or neighbour count than the set", img.id)));
         }
         if (f.dim != self.appearance_dim && f.dim != 0) || (!img.appearance.is_empty() && img.appearance.len() != self.appearance_dim) {
-            return Err(format!("image {:?} has appearance of dimension {}, the set {}", img.id, f.dim, self.appearance_dim));
+            return Err(Error::check(format!("image {:?} has appearance of dimension {}, the set {}", img.id, f.dim, self.appearance_dim)));
         }
         if !img.hog.is_empty() && img.hog.len() != self.hog_dim {
-            return Err(format!("image {:?} has a HOG descriptor of {} values, the set {}", img.id, img.hog.len(), self.hog_dim));
+            return Err(Error::check(format!("image {:?} has a HOG descriptor of {} values, the set {}", img.id, img.hog.len(), self.hog_dim)));
         }
         let k = &img.keypoints;
         if !k.is_empty() && (k.dim != self.keypoint_dim || k.descriptors.len() != k.len() * k.dim || k.xy.len() != 2 * k.len()) {
-            return Err(format!(
+            return Err(Error::check(format!(
                 "image {:?} has {} keypoints of dimension {} ({} values), the set takes dimension {}",
                 img.id,
                 k.len(),
                 k.dim,
                 k.descriptors.len(),
                 self.keypoint_dim
-            ));
+            )));
         }
         self.ids.push(img.id.clone());
         self.sizes.push([img.width, img.height]);
@@ -198,32 +199,32 @@ impl DescriptorSet {
     }
 
     /// Appends all images of `other`; fails, leaving the set unchanged, when the layouts differ.
-    pub fn append(&mut self, other: &DescriptorSet) -> Result<(), String> {
+    pub fn append(&mut self, other: &DescriptorSet) -> Result<()> {
         self.append_range(other, 0, other.len())
     }
 
     /// Appends images `start..end` of `other` (a set without statistics takes none); fails,
     /// leaving the set unchanged, when the layouts differ or the range is not in `other`.
-    pub fn append_range(&mut self, other: &DescriptorSet, start: usize, end: usize) -> Result<(), String> {
+    pub fn append_range(&mut self, other: &DescriptorSet, start: usize, end: usize) -> Result<()> {
         let sizes = |s: &DescriptorSet| (s.global_len, s.neighbour_slots, s.appearance_dim, s.hog_dim, s.keypoint_dim);
         if self.appearance_dim > 0 && self.codebook != other.codebook {
-            return Err(format!(
+            return Err(Error::check(format!(
                 "images aggregated with another VLAD codebook (sha256 {}) do not join a set of sha256 {}",
                 other.codebook.as_deref().unwrap_or("none"),
                 self.codebook.as_deref().unwrap_or("none")
-            ));
+            )));
         }
         if sizes(self) != sizes(other) || (self.stats_len != 0 && self.stats_len != other.stats_len) {
-            return Err(format!(
+            return Err(Error::check(format!(
                 "images with (global values, neighbour slots, appearance dim, HOG dim, keypoint dim, statistics) {:?} / {} do not join a set of {:?} / {}",
                 sizes(other),
                 other.stats_len,
                 sizes(self),
                 self.stats_len
-            ));
+            )));
         }
         if start > end || end > other.len() {
-            return Err(format!("images {start}..{end} of a set of {}", other.len()));
+            return Err(Error::check(format!("images {start}..{end} of a set of {}", other.len())));
         }
         self.extend_from(other, start, end);
         Ok(())
@@ -320,15 +321,15 @@ impl DescriptorSet {
     /// Checks that every column holds as many values as the ids, sizes and forest offsets say
     /// (a set assembled from outside, e.g. numpy arrays); the message names the first column that
     /// does not. Values are checked per image by [`DescriptorSet::check_image`].
-    pub fn check_layout(&self) -> Result<(), String> {
+    pub fn check_layout(&self) -> Result<()> {
         let (n, o) = (self.ids.len(), &self.forest_offsets);
         if o.len() != n + 1 || o[0] != 0 || o.windows(2).any(|w| w[0] > w[1]) {
-            return Err(format!("forest_offsets: {} offsets for {n} images, from 0 and ascending", o.len()));
+            return Err(Error::check(format!("forest_offsets: {} offsets for {n} images, from 0 and ascending", o.len())));
         }
         let t = o[n] as usize;
         let ko = &self.keypoint_offsets;
         if ko.len() != n + 1 || ko[0] != 0 || ko.windows(2).any(|w| w[0] > w[1]) {
-            return Err(format!("keypoint_offsets: {} offsets for {n} images, from 0 and ascending", ko.len()));
+            return Err(Error::check(format!("keypoint_offsets: {} offsets for {n} images, from 0 and ascending", ko.len())));
         }
         let p = ko[n] as usize;
         let (s, d) = (self.neighbour_slots, self.appearance_dim);
@@ -351,13 +352,13 @@ impl DescriptorSet {
             ("global_len", self.global_len.min(1), 1),
         ];
         match columns.iter().find(|(_, got, want)| got != want) {
-            Some((name, got, want)) => Err(format!("{name}: {got} values, the layout needs {want}")),
+            Some((name, got, want)) => Err(Error::check(format!("{name}: {got} values, the layout needs {want}"))),
             None => Ok(()),
         }
     }
 
     /// Checks image `i` with [`crate::descriptors::validate::image`].
-    pub fn check_image(&self, i: usize, n_classes: usize, store: crate::values::ValueType) -> Result<(), String> {
+    pub fn check_image(&self, i: usize, n_classes: usize, store: crate::values::ValueType) -> Result<()> {
         let g = Values::F32(self.global(i));
         crate::descriptors::validate::image(
             &self.ids[i],
@@ -401,9 +402,9 @@ mod tests {
     fn appending_another_layout_or_a_range_outside_fails_and_changes_nothing() {
         let mut a = set(2, 4, 0);
         let before = a.clone();
-        assert!(a.append(&set(1, 5, 0)).unwrap_err().contains("do not join"));
+        assert!(a.append(&set(1, 5, 0)).unwrap_err().to_string().contains("do not join"));
         assert!(a.append(&set(1, 4, 3)).is_err());
-        assert!(a.append_range(&set(2, 4, 0), 1, 3).unwrap_err().contains("1..3 of a set of 2"));
+        assert!(a.append_range(&set(2, 4, 0), 1, 3).unwrap_err().to_string().contains("1..3 of a set of 2"));
         assert!(a.append_range(&set(2, 4, 0), 2, 1).is_err());
         assert_eq!(a, before);
         a.append_range(&set(3, 4, 0), 1, 3).unwrap();

@@ -1,7 +1,8 @@
 //! The value checks of one stored image: what a map refuses before it writes an image, and what it
-//! checks again when it first reads a segment. Each check says what is wrong; the caller names the
-//! image or the file.
+//! checks again when it first reads a segment. Each check says what is wrong (an [`Error::Check`]);
+//! the caller names the image or the file ([`Error::named`]).
 
+use crate::error::{Error, Result};
 use crate::kernels::tree_similarity::ForestRef;
 use crate::values::{ValueType, Values, F16_MAX};
 
@@ -19,12 +20,12 @@ const AREA_RANGE: std::ops::RangeInclusive<f32> = 0.0..=1.0;
 
 /// Checks an image id: not empty, at most [`MAX_ID_BYTES`], no control characters (ids are written
 /// one per line and into CSV files).
-pub fn id(id: &str) -> Result<(), String> {
+pub fn id(id: &str) -> Result<()> {
     if id.is_empty() || id.len() > MAX_ID_BYTES {
-        return Err(format!("image id is empty or longer than {MAX_ID_BYTES} bytes"));
+        return Err(Error::check(format!("image id is empty or longer than {MAX_ID_BYTES} bytes")));
     }
     if id.chars().any(char::is_control) {
-        return Err("image id holds a control character".into());
+        return Err(Error::check("image id holds a control character"));
     }
     Ok(())
 }
@@ -42,13 +43,13 @@ pub fn image(
     hog: &[f32],
     n_classes: usize,
     store: ValueType,
-) -> Result<(), String> {
+) -> Result<()> {
     id(id_)?;
     if size[0] == 0 || size[1] == 0 {
-        return Err(format!("image size {}x{} is empty", size[0], size[1]));
+        return Err(Error::check(format!("image size {}x{} is empty", size[0], size[1])));
     }
     if let Some((k, v)) = global.position(|v| !GLOBAL_RANGE.contains(&v)) {
-        return Err(format!("global descriptor value {k} is {v}, outside [0, 1]"));
+        return Err(Error::check(format!("global descriptor value {k} is {v}, outside [0, 1]")));
     }
     let t = forest.len();
     let f = &forest;
@@ -58,27 +59,27 @@ pub fn image(
         || f.has_appearance.len() != t
         || f.appearance.len() != t * f.dim
     {
-        return Err("tree arrays have different lengths".into());
+        return Err(Error::check("tree arrays have different lengths"));
     }
     if let Some(c) = f.classes.iter().find(|&&c| c as usize >= n_classes) {
-        return Err(format!("a tree has class {c}, outside the class table of {n_classes}"));
+        return Err(Error::check(format!("a tree has class {c}, outside the class table of {n_classes}")));
     }
     if let Some(a) = f.areas.iter().find(|a| !AREA_RANGE.contains(*a)) {
-        return Err(format!("a tree has area fraction {a}, outside [0, 1]"));
+        return Err(Error::check(format!("a tree has area fraction {a}, outside [0, 1]")));
     }
     if f.centroids.iter().any(|c| !c.is_finite()) {
-        return Err("a tree centroid is NaN or infinite".into());
+        return Err(Error::check("a tree centroid is NaN or infinite"));
     }
     if let Some(j) = f.neighbours.iter().find(|&&j| j < -1 || j >= t as i32) {
-        return Err(format!("a neighbour index {j} points outside the forest of {t} trees"));
+        return Err(Error::check(format!("a neighbour index {j} points outside the forest of {t} trees")));
     }
     if f.has_appearance.iter().any(|&h| h > 1) {
-        return Err("an appearance flag is neither 0 nor 1".into());
+        return Err(Error::check("an appearance flag is neither 0 nor 1"));
     }
     let limit = if store == ValueType::F16 { F16_MAX } else { f32::MAX };
     let bad = |v: Values| v.position(|x| !x.is_finite() || x.abs() > limit).is_some();
     if bad(f.appearance) || bad(appearance) {
-        return Err(format!("an appearance value is NaN, infinite or beyond what {} holds", store.name()));
+        return Err(Error::check(format!("an appearance value is NaN, infinite or beyond what {} holds", store.name())));
     }
     // VLAD vectors have unit length (or none): longer ones are not the encoder's, and one of
     // them would outscore every true match
@@ -87,10 +88,10 @@ pub fn image(
         wide.chunks(dim.max(1)).map(|c| c.iter().map(|x| x * x).sum::<f32>().sqrt()).find(|&n| n > MAX_APPEARANCE_NORM)
     };
     if let Some(n) = long(f.appearance, f.dim).or_else(|| long(appearance, appearance.len())) {
-        return Err(format!("an appearance vector has length {n}; the encoder's have length 1 (at most {MAX_APPEARANCE_NORM})"));
+        return Err(Error::check(format!("an appearance vector has length {n}; the encoder's have length 1 (at most {MAX_APPEARANCE_NORM})")));
     }
     if hog.iter().any(|x| !x.is_finite()) {
-        return Err("a HOG value is NaN or infinite".into());
+        return Err(Error::check("a HOG value is NaN or infinite"));
     }
     Ok(())
 }
@@ -98,19 +99,19 @@ pub fn image(
 /// Checks an image's verification keypoints: as many positions, classes and descriptor values as
 /// keypoints, classes in the table (or void), and descriptors no int8 rounding of a unit vector
 /// exceeds (every value above -128, the vector's norm at most 1.01 x the scale).
-pub fn keypoints(k: crate::descriptors::keypoints::KeypointsRef, n_classes: usize) -> Result<(), String> {
+pub fn keypoints(k: crate::descriptors::keypoints::KeypointsRef, n_classes: usize) -> Result<()> {
     let n = k.len();
     if k.xy.len() != 2 * n || k.descriptors.len() != n * k.dim {
-        return Err("keypoint arrays have different lengths".into());
+        return Err(Error::check("keypoint arrays have different lengths"));
     }
     if let Some(c) = k.classes.iter().find(|&&c| c != crate::classes::VOID && c as usize >= n_classes) {
-        return Err(format!("a keypoint has class {c}, outside the class table of {n_classes}"));
+        return Err(Error::check(format!("a keypoint has class {c}, outside the class table of {n_classes}")));
     }
     let limit = (1.01 * crate::descriptors::keypoints::DESCRIPTOR_SCALE).powi(2);
     for (i, d) in k.descriptors.chunks(k.dim.max(1)).enumerate() {
         let n2: f32 = d.iter().map(|&v| (v as f32).powi(2)).sum();
         if d.contains(&i8::MIN) || n2 > limit {
-            return Err(format!("keypoint {i}'s descriptor is not a quantised unit vector (squared norm {n2})"));
+            return Err(Error::check(format!("keypoint {i}'s descriptor is not a quantised unit vector (squared norm {n2})")));
         }
     }
     Ok(())

@@ -15,7 +15,7 @@ use std::sync::Arc;
 #[derive(Debug, Clone, Default)]
 pub struct VladInput {
     pub descriptors: Vec<f32>,
-    /// objects + 2 entries: object o owns offsets[o]..offsets[o + 1]; the last run is the image.
+    /// objects + 2 entries: object o owns `offsets[o]..offsets[o + 1]`; the last run is the image.
     pub offsets: Vec<u32>,
 }
 
@@ -64,7 +64,7 @@ impl AppearanceEncoder {
     /// VLAD of a frame's objects and of the whole image on the CPU (the twins of the GPU kernels).
     pub fn vlad(&self, input: &VladInput) -> Result<Vec<f32>> {
         let cb = self.codebook.as_ref().ok_or_else(|| Error::invalid("encoder", "VLAD input without a codebook"))?;
-        appearance::check_vlad_input(&input.descriptors, &input.offsets, cb).map_err(|r| Error::invalid("VLAD input", r))?;
+        appearance::check_vlad_input(&input.descriptors, &input.offsets, cb).map_err(|e| e.named(|r| Error::invalid("VLAD input", r)))?;
         Ok(appearance::object_vlad(&input.descriptors, &input.offsets, cb, self.vlad_norm()))
     }
 
@@ -122,7 +122,7 @@ impl AppearanceEncoder {
         let dim = keypoints.first().map(|k| k.dim).ok_or_else(|| Error::invalid("codebook", "no reference images to train it on"))?;
         let all: Vec<f32> = keypoints.iter().flat_map(|k| appearance::sample_descriptors(k, a.codebook_samples_per_image)).collect();
         let cb = appearance::vlad::train_codebook(&all, dim, a.vlad_centres, a.codebook_iterations, a.codebook_seed)
-            .map_err(|r| Error::invalid("codebook", format!("{r} (too few keypoints in the reference images)")))?;
+            .map_err(|e| e.named(|r| Error::invalid("codebook", format!("{r} (too few keypoints in the reference images)"))))?;
         self.set_codebook(cb);
         Ok(())
     }

@@ -142,9 +142,6 @@ impl Encoder {
             a.set_codebook(codebook);
         }
     }
-    pub fn computes_hog(&self) -> bool {
-        self.frames.hog
-    }
     /// The SHA-256 of the keypoint network and the codebook, for a new map.
     pub fn appearance_record(&self) -> Option<(&Codebook, &str)> {
         let a = self.appearance.as_ref()?;

@@ -83,7 +83,7 @@ impl Encoder {
             let image = vectors.split_off(vectors.len() - dim);
             let mut counts = appearance::object_counts(&input.offsets);
             counts.pop();
-            p.image.forest.set_appearance(dim, vectors, counts, self.cfg.appearance.min_descriptors).map_err(bad)?;
+            p.image.forest.set_appearance(dim, vectors, counts, self.cfg.appearance.min_descriptors).map_err(|e| e.named(bad))?;
             p.image.appearance = image;
             p.times.appearance_ms += vlad_ms;
         }

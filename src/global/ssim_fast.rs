@@ -5,7 +5,7 @@
 //! horizontal window sums, direct vertical sums, the SSIM window formula, the shader's 64-lane
 //! strided mean), laid out for SIMD:
 //! - window columns are processed a vector at a time (`pulp`'s native width: 8 lanes with AVX2),
-//!   from rows padded to a multiple of [`W`]; [`G`] vectors side by side, so that independent
+//!   from rows padded to a multiple of [`W`]; `G` vectors side by side, so that independent
 //!   addition chains hide the adders' latency;
 //! - the image is streamed row by row: one product row, a ring of `win` rows of horizontal sums
 //!   and the window values are all a pair writes, so its scratch stays in L1;
@@ -20,7 +20,7 @@
 //! a*b+c into a fused multiply-add nor reassociates, and only plain add/sub/mul/div are used), so
 //! scores equal the twin's exactly (a zero may differ in sign only), on every instruction set.
 //! Running-sum box filters would do fewer additions but round differently, and in the covariance
-//! E[xy] - mx*my a rounding difference is amplified by up to 2 / C2 (~2200 at the defaults) in
+//! E\[xy\] - mx*my a rounding difference is amplified by up to 2 / C2 (~2200 at the defaults) in
 //! windows of near-zero variance, so no tolerance like 1e-5 holds for every input; the direct
 //! sums were kept for exact equality.
 

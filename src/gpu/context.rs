@@ -293,7 +293,7 @@ impl GpuContext {
     }
 
     /// Bytes written to the device through the queue since the context was made: every upload
-    /// the executors do goes through [`GpuContext::write`].
+    /// the executors do goes through `GpuContext::write`.
     pub fn bytes_uploaded(&self) -> u64 {
         self.uploaded.load(Ordering::Relaxed)
     }

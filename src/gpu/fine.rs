@@ -2,7 +2,7 @@
 //!
 //! What is uploaded when:
 //! - the map's forests (tree records with their weights, appearance, spans), packed and uploaded
-//!   once in chunks the first time a batch meets the map (key: [`forest_key`], a stored map's
+//!   once in chunks the first time a batch meets the map (key: `forest_key`, a stored map's
 //!   identity and generation with the tree-weight rule; an in-memory set's cheap sampled key);
 //!   streamed through two slots beyond the budget. Each reference's tree count is read with
 //!   them, once per key, and decides which kernel scores its pairs;

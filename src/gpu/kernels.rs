@@ -78,8 +78,6 @@ pub(crate) struct Kernels {
     pub edt_columns: Kernel,
     pub edt_rows: Kernel,
     pub global_pool: Kernel,
-    pub ssim_tile: Kernel,
-    pub topk_merge: Kernel,
     pub ssim_block: Kernel,
     /// `ssim_stats.wgsl`: the SSIM window statistics of encoded descriptors.
     pub stats_row_sums: Kernel,
@@ -105,7 +103,8 @@ pub(crate) struct Kernels {
 
 fn module(device: &wgpu::Device, name: &str, subgroups: bool) -> Result<wgpu::ShaderModule, GpuError> {
     let src = SHADERS.iter().find(|s| s.0 == name).expect("known shader").1;
-    let text = preprocess(src, if subgroups { &["SUBGROUPS"] } else { &[] }).map_err(|message| GpuError::Shader { name: name.into(), message })?;
+    let text =
+        preprocess(src, if subgroups { &["SUBGROUPS"] } else { &[] }).map_err(|e| GpuError::Shader { name: name.into(), message: e.to_string() })?;
     let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
     let m = device.create_shader_module(wgpu::ShaderModuleDescriptor { label: Some(name), source: wgpu::ShaderSource::Wgsl(text.into()) });
     match pollster::block_on(scope.pop()) {
@@ -166,9 +165,72 @@ const PASS: u64 = std::mem::size_of::<crate::kernels::abi::PassParams>() as u64;
 /// Bytes of the fine stage's per-pass parameters.
 const FINE_PASS: u64 = std::mem::size_of::<crate::kernels::abi::FinePass>() as u64;
 /// Bytes of the XFeat kernels' uniforms (each bound at a dynamic offset of one buffer).
-pub(crate) const XF_CONV: u64 = std::mem::size_of::<crate::kernels::abi::ConvParams>() as u64;
-pub(crate) const XF_MAP: u64 = std::mem::size_of::<crate::kernels::abi::MapParams>() as u64;
-pub(crate) const XF_NORM: u64 = std::mem::size_of::<crate::kernels::abi::NormParams>() as u64;
+const XF_CONV: u64 = std::mem::size_of::<crate::kernels::abi::ConvParams>() as u64;
+const XF_MAP: u64 = std::mem::size_of::<crate::kernels::abi::MapParams>() as u64;
+const XF_NORM: u64 = std::mem::size_of::<crate::kernels::abi::NormParams>() as u64;
+
+use Slot::{Read, ReadWrite, Uniform, UniformAt};
+const EDT: &[(u32, Slot)] = &[(0, Uniform), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite), (5, ReadWrite)];
+const STATS: &[(u32, Slot)] = &[(0, Uniform), (1, Uniform), (2, Read), (3, ReadWrite), (4, ReadWrite)];
+const TOPK: &[(u32, Slot)] = &[(0, UniformAt(PASS)), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite)];
+const TREE: &[&[(u32, Slot)]] = &[
+    &[(0, Uniform), (1, UniformAt(FINE_PASS)), (2, Read), (3, Read), (4, Read), (5, ReadWrite), (6, ReadWrite)],
+    &[(0, Read), (1, Read), (2, Read)],
+];
+const XF_MAP1: &[(u32, Slot)] = &[(5, UniformAt(XF_MAP)), (6, Read), (9, ReadWrite)];
+
+/// Every entry point's bind groups as the host binds them (file, entry, group 0, group 1, ...:
+/// each a list of (binding, slot)); where a pass's parameters come from one buffer at dynamic
+/// offsets, the uniform is `UniformAt` its size. The only statement of the slots: kernels are
+/// built from it, and `layout_tests` holds it to naga's reflection of every shader (the address
+/// space and access of each binding an entry point uses), without an adapter.
+pub(crate) const BINDINGS: &[(&str, &str, &[&[(u32, Slot)]])] = &[
+    ("semantic_edges.wgsl", "semantic_edges", &[&[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite)]]),
+    ("edt.wgsl", "edt_columns", &[EDT]),
+    ("edt.wgsl", "edt_rows", &[EDT]),
+    ("global_pool.wgsl", "global_pool", &[&[(0, Uniform), (1, Read), (2, ReadWrite)]]),
+    ("ssim_topk.wgsl", "ssim_tile", &[&[(0, Uniform), (1, Uniform), (2, Read), (3, Read), (4, Read), (5, Read), (6, ReadWrite)]]),
+    ("ssim_topk.wgsl", "topk_merge", &[&[(1, Uniform), (6, ReadWrite), (7, ReadWrite), (8, ReadWrite)]]),
+    ("ssim_block.wgsl", "ssim_block", &[&[(0, Uniform), (1, UniformAt(PASS)), (2, Read), (3, Read), (4, ReadWrite)], &[(0, Read), (1, Read)]]),
+    ("ssim_stats.wgsl", "stats_row_sums", &[STATS]),
+    ("ssim_stats.wgsl", "stats_windows", &[STATS]),
+    ("topk_select.wgsl", "topk_partial", &[TOPK]),
+    ("topk_select.wgsl", "topk_merge_lists", &[TOPK]),
+    ("tree_similarity.wgsl", "tree_similarity", TREE),
+    ("tree_similarity.wgsl", "tree_similarity_small", TREE),
+    ("vlad_accumulate.wgsl", "vlad_assign", &[&[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite)]]),
+    ("vlad_accumulate.wgsl", "vlad_accumulate", &[&[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite), (4, Read), (5, ReadWrite)]]),
+    ("mnn_match.wgsl", "mnn_match", &[&[(0, Uniform), (1, Read), (2, Read), (3, Read), (4, ReadWrite), (5, ReadWrite)]]),
+    ("xfeat.wgsl", "instance_norm_partials", &[&[(10, UniformAt(XF_NORM)), (11, Read), (12, ReadWrite)]]),
+    ("xfeat.wgsl", "instance_norm_stats", &[&[(10, UniformAt(XF_NORM)), (13, Read), (14, ReadWrite)]]),
+    ("xfeat.wgsl", "instance_norm_apply", &[&[(10, UniformAt(XF_NORM)), (11, Read), (15, Read), (16, ReadWrite)]]),
+    ("xfeat.wgsl", "avg_pool", &[XF_MAP1]),
+    ("xfeat.wgsl", "space_to_depth8", &[XF_MAP1]),
+    ("xfeat.wgsl", "bilinear_add", &[&[(5, UniformAt(XF_MAP)), (6, Read), (7, Read), (8, Read), (9, ReadWrite)]]),
+    ("xfeat.wgsl", "conv2d", &[&[(0, UniformAt(XF_CONV)), (1, Read), (2, Read), (3, Read), (4, ReadWrite)]]),
+];
+
+/// The kernel `entry` of `file` (its module `m`), its bind groups from [`BINDINGS`].
+fn kernel(device: &wgpu::Device, m: &wgpu::ShaderModule, file: &str, entry: &str, made: &Arc<AtomicU64>) -> Result<Kernel, GpuError> {
+    let groups = BINDINGS
+        .iter()
+        .find(|b| b.0 == file && b.1 == entry)
+        .ok_or_else(|| GpuError::Shader {
+            name: format!("{file}:{entry}"),
+            message: "no bind groups listed for this entry point (gpu/kernels.rs BINDINGS)".into(),
+        })?
+        .2;
+    kernel_counted(device, m, file, entry, groups, made)
+}
+
+/// The one-pair reference kernels of `ssim_topk.wgsl` (`ssim_tile`, `topk_merge`), which no
+/// executor runs: built on demand by the device references (`gpu::reference`) and by
+/// `create_every_pipeline`, not by every context.
+pub(crate) fn reference_kernels(device: &wgpu::Device, subgroups: bool) -> Result<(Kernel, Kernel), GpuError> {
+    let made = Arc::new(AtomicU64::new(0));
+    let ssim = module(device, "ssim_topk.wgsl", subgroups)?;
+    Ok((kernel(device, &ssim, "ssim_topk.wgsl", "ssim_tile", &made)?, kernel(device, &ssim, "ssim_topk.wgsl", "topk_merge", &made)?))
+}
 
 impl Kernels {
     /// Bind groups made from any of these kernels so far.
@@ -177,95 +239,45 @@ impl Kernels {
     }
 
     pub fn new(device: &wgpu::Device, subgroups: bool) -> Result<Kernels, GpuError> {
-        use Slot::*;
         let made = Arc::new(AtomicU64::new(0));
-        let kernel = |device: &wgpu::Device, module: &wgpu::ShaderModule, file: &str, entry: &str, groups: &[&[(u32, Slot)]]| {
-            kernel_counted(device, module, file, entry, groups, &made)
-        };
         let m = |name| module(device, name, subgroups);
-        let (edges, edt, pool, ssim, block, topk, tree, vlad) = (
+        let (edges, edt, pool, block, topk, tree, vlad) = (
             m("semantic_edges.wgsl")?,
             m("edt.wgsl")?,
             m("global_pool.wgsl")?,
-            m("ssim_topk.wgsl")?,
             m("ssim_block.wgsl")?,
             m("topk_select.wgsl")?,
             m("tree_similarity.wgsl")?,
             m("vlad_accumulate.wgsl")?,
         );
-        let mnn = m("mnn_match.wgsl")?;
-        let stats = m("ssim_stats.wgsl")?;
-        let stats_slots: &[(u32, Slot)] = &[(0, Uniform), (1, Uniform), (2, Read), (3, ReadWrite), (4, ReadWrite)];
-        let xf = m("xfeat.wgsl")?;
-        let xk = |entry: &str, slots: &[(u32, Slot)]| kernel(device, &xf, "xfeat.wgsl", entry, &[slots]);
-        let map1: &[(u32, Slot)] = &[(5, UniformAt(XF_MAP)), (6, Read), (9, ReadWrite)];
-        let edt_slots: &[(u32, Slot)] = &[(0, Uniform), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite), (5, ReadWrite)];
-        let topk_slots: &[(u32, Slot)] = &[(0, UniformAt(PASS)), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite)];
-        let tree_sim = kernel(
-            device,
-            &tree,
-            "tree_similarity.wgsl",
-            "tree_similarity",
-            &[
-                &[(0, Uniform), (1, UniformAt(FINE_PASS)), (2, Read), (3, Read), (4, Read), (5, ReadWrite), (6, ReadWrite)],
-                &[(0, Read), (1, Read), (2, Read)],
-            ],
-        )?;
+        let (mnn, stats, xf) = (m("mnn_match.wgsl")?, m("ssim_stats.wgsl")?, m("xfeat.wgsl")?);
+        let k = |module: &wgpu::ShaderModule, file: &str, entry: &str| kernel(device, module, file, entry, &made);
+        let xk = |entry: &str| k(&xf, "xfeat.wgsl", entry);
+        let tree_sim = k(&tree, "tree_similarity.wgsl", "tree_similarity")?;
         Ok(Kernels {
             made: made.clone(),
-            semantic_edges: kernel(
-                device,
-                &edges,
-                "semantic_edges.wgsl",
-                "semantic_edges",
-                &[&[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite)]],
-            )?,
-            edt_columns: kernel(device, &edt, "edt.wgsl", "edt_columns", &[edt_slots])?,
-            edt_rows: kernel(device, &edt, "edt.wgsl", "edt_rows", &[edt_slots])?,
-            global_pool: kernel(device, &pool, "global_pool.wgsl", "global_pool", &[&[(0, Uniform), (1, Read), (2, ReadWrite)]])?,
-            ssim_tile: kernel(
-                device,
-                &ssim,
-                "ssim_topk.wgsl",
-                "ssim_tile",
-                &[&[(0, Uniform), (1, Uniform), (2, Read), (3, Read), (4, Read), (5, Read), (6, ReadWrite)]],
-            )?,
-            topk_merge: kernel(device, &ssim, "ssim_topk.wgsl", "topk_merge", &[&[(1, Uniform), (6, ReadWrite), (7, ReadWrite), (8, ReadWrite)]])?,
-            ssim_block: kernel(
-                device,
-                &block,
-                "ssim_block.wgsl",
-                "ssim_block",
-                &[&[(0, Uniform), (1, UniformAt(PASS)), (2, Read), (3, Read), (4, ReadWrite)], &[(0, Read), (1, Read)]],
-            )?,
-            stats_row_sums: kernel(device, &stats, "ssim_stats.wgsl", "stats_row_sums", &[stats_slots])?,
-            stats_windows: kernel(device, &stats, "ssim_stats.wgsl", "stats_windows", &[stats_slots])?,
-            topk_partial: kernel(device, &topk, "topk_select.wgsl", "topk_partial", &[topk_slots])?,
-            topk_merge_lists: kernel(device, &topk, "topk_select.wgsl", "topk_merge_lists", &[topk_slots])?,
+            semantic_edges: k(&edges, "semantic_edges.wgsl", "semantic_edges")?,
+            edt_columns: k(&edt, "edt.wgsl", "edt_columns")?,
+            edt_rows: k(&edt, "edt.wgsl", "edt_rows")?,
+            global_pool: k(&pool, "global_pool.wgsl", "global_pool")?,
+            ssim_block: k(&block, "ssim_block.wgsl", "ssim_block")?,
+            stats_row_sums: k(&stats, "ssim_stats.wgsl", "stats_row_sums")?,
+            stats_windows: k(&stats, "ssim_stats.wgsl", "stats_windows")?,
+            topk_partial: k(&topk, "topk_select.wgsl", "topk_partial")?,
+            topk_merge_lists: k(&topk, "topk_select.wgsl", "topk_merge_lists")?,
+            // one bind group serves both: the small variant shares the layouts
             tree_similarity_small: tree_sim.sibling(device, &tree, "tree_similarity.wgsl", "tree_similarity_small")?,
             tree_similarity: tree_sim,
-            vlad_assign: kernel(device, &vlad, "vlad_accumulate.wgsl", "vlad_assign", &[&[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite)]])?,
-            vlad_accumulate: kernel(
-                device,
-                &vlad,
-                "vlad_accumulate.wgsl",
-                "vlad_accumulate",
-                &[&[(0, Uniform), (1, Read), (2, Read), (3, ReadWrite), (4, Read), (5, ReadWrite)]],
-            )?,
-            mnn_match: kernel(
-                device,
-                &mnn,
-                "mnn_match.wgsl",
-                "mnn_match",
-                &[&[(0, Uniform), (1, Read), (2, Read), (3, Read), (4, ReadWrite), (5, ReadWrite)]],
-            )?,
-            instance_norm_partials: xk("instance_norm_partials", &[(10, UniformAt(XF_NORM)), (11, Read), (12, ReadWrite)])?,
-            instance_norm_stats: xk("instance_norm_stats", &[(10, UniformAt(XF_NORM)), (13, Read), (14, ReadWrite)])?,
-            instance_norm_apply: xk("instance_norm_apply", &[(10, UniformAt(XF_NORM)), (11, Read), (15, Read), (16, ReadWrite)])?,
-            avg_pool: xk("avg_pool", map1)?,
-            space_to_depth8: xk("space_to_depth8", map1)?,
-            bilinear_add: xk("bilinear_add", &[(5, UniformAt(XF_MAP)), (6, Read), (7, Read), (8, Read), (9, ReadWrite)])?,
-            conv2d: xk("conv2d", &[(0, UniformAt(XF_CONV)), (1, Read), (2, Read), (3, Read), (4, ReadWrite)])?,
+            vlad_assign: k(&vlad, "vlad_accumulate.wgsl", "vlad_assign")?,
+            vlad_accumulate: k(&vlad, "vlad_accumulate.wgsl", "vlad_accumulate")?,
+            mnn_match: k(&mnn, "mnn_match.wgsl", "mnn_match")?,
+            instance_norm_partials: xk("instance_norm_partials")?,
+            instance_norm_stats: xk("instance_norm_stats")?,
+            instance_norm_apply: xk("instance_norm_apply")?,
+            avg_pool: xk("avg_pool")?,
+            space_to_depth8: xk("space_to_depth8")?,
+            bilinear_add: xk("bilinear_add")?,
+            conv2d: xk("conv2d")?,
         })
     }
 }

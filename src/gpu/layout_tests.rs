@@ -202,3 +202,72 @@ fn the_context_requires_the_workgroup_memory_the_kernels_use() {
     assert_eq!(most.0, super::context::WORKGROUP_STORAGE, "the most workgroup memory is {} bytes, in {}", most.0, most.1);
     assert!(most.0 <= 16_384, "{}: beyond WebGPU's guaranteed 16 KiB", most.1);
 }
+
+/// Every entry point's bind groups as the host lists them (`kernels::BINDINGS`, what the
+/// pipelines are built from) are the shader's, checked from naga's reflection with no adapter:
+/// each binding the entry point uses (in every preprocessing variant) is listed in its group with
+/// its address space and access (uniform; storage read-only; storage read-write), each listed
+/// slot is a binding of the shader of that kind, and every entry point of every shader is listed.
+#[test]
+fn every_kernels_bind_groups_are_its_shaders() {
+    use super::kernels::{Slot, BINDINGS};
+    for (file, _) in SHADERS {
+        for ep in &module(file).entry_points {
+            assert!(BINDINGS.iter().any(|b| b.0 == file && b.1 == ep.name), "{file}: entry point {} has no bind groups listed", ep.name);
+        }
+    }
+    let kind = |g: &naga::GlobalVariable| match g.space {
+        naga::AddressSpace::Uniform => "uniform",
+        naga::AddressSpace::Storage { access } if access.contains(naga::StorageAccess::STORE) => "storage read-write",
+        naga::AddressSpace::Storage { .. } => "storage read-only",
+        _ => "other",
+    };
+    let slot_kind = |s: &Slot| match s {
+        Slot::Uniform | Slot::UniformAt(_) => "uniform",
+        Slot::Read => "storage read-only",
+        Slot::ReadWrite => "storage read-write",
+    };
+    let mut problems = vec![];
+    for (file, entry, groups) in BINDINGS {
+        let src = SHADERS.iter().find(|s| s.0 == *file).unwrap_or_else(|| panic!("BINDINGS names {file}, not a shader")).1;
+        for defs in [&[][..], &["SUBGROUPS"][..]] {
+            let m = naga::front::wgsl::parse_str(&preprocess(src, defs).unwrap()).unwrap_or_else(|e| panic!("{file}: {e}"));
+            let info = naga::valid::Validator::new(naga::valid::ValidationFlags::all(), naga::valid::Capabilities::all())
+                .validate(&m)
+                .unwrap_or_else(|e| panic!("{file}: {e:?}"));
+            let Some(i) = m.entry_points.iter().position(|ep| ep.name == *entry) else {
+                problems.push(format!("{file}: no entry point {entry}"));
+                continue;
+            };
+            let uses = info.get_entry_point(i);
+            for (h, g) in m.global_variables.iter() {
+                let Some(rb) = &g.binding else { continue };
+                let listed = groups.get(rb.group as usize).and_then(|s| s.iter().find(|(b, _)| *b == rb.binding));
+                match listed {
+                    None if !uses[h].is_empty() => {
+                        problems.push(format!("{file}:{entry} uses @group({}) @binding({}), which is not listed", rb.group, rb.binding))
+                    }
+                    Some((_, s)) if slot_kind(s) != kind(g) => problems.push(format!(
+                        "{file}:{entry} @group({}) @binding({}) is {} in the shader, listed as {}",
+                        rb.group,
+                        rb.binding,
+                        kind(g),
+                        slot_kind(s)
+                    )),
+                    _ => {}
+                }
+            }
+            for (group, slots) in groups.iter().enumerate() {
+                for (b, _) in slots.iter() {
+                    let declared =
+                        m.global_variables.iter().any(|(_, g)| g.binding.as_ref().is_some_and(|rb| rb.group as usize == group && rb.binding == *b));
+                    if !declared {
+                        problems.push(format!("{file}:{entry}: listed @group({group}) @binding({b}) is not in the shader"));
+                    }
+                }
+            }
+        }
+    }
+    problems.dedup();
+    assert!(problems.is_empty(), "bind groups that are not the shaders':\n{}", problems.join("\n"));
+}

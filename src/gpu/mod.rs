@@ -6,7 +6,8 @@
 //! | `semantic_edges.wgsl` | `semantic_edges` | `kernels::semantic_edges::semantic_edges` |
 //! | `edt.wgsl` | `edt_columns`, `edt_rows` | `kernels::edt::{edt_columns, edt_rows}` |
 //! | `global_pool.wgsl` | `global_pool` | `kernels::global_pool::global_pool` |
-//! | `ssim_topk.wgsl` | `ssim_tile`, `topk_merge` | `kernels::ssim_topk::{ssim_tile, topk_merge}` |
+//! | `ssim_stats.wgsl` | `stats_row_sums`, `stats_windows` | `kernels::ssim_stats::{stats_row_sums, stats_windows}` |
+//! | `ssim_topk.wgsl` | `ssim_tile`, `topk_merge` (one-pair references, `gpu::reference`) | `kernels::ssim_topk::{ssim_tile, topk_merge}` |
 //! | `ssim_block.wgsl` | `ssim_block` | `kernels::ssim_block::ssim_block` |
 //! | `topk_select.wgsl` | `topk_partial`, `topk_merge_lists` | `kernels::topk_select::{topk_partial, topk_merge_lists}` |
 //! | `tree_similarity.wgsl` | `tree_similarity`, `tree_similarity_small` | `kernels::tree_similarity::{tree_similarity, tree_similarity_small}` |
@@ -45,5 +46,6 @@ pub use wgsl::SHADERS;
 /// them: the driver checks each bind group layout against its shader's bindings. A test hook;
 /// contexts build their pipelines once, themselves.
 pub fn create_every_pipeline(device: &wgpu::Device, subgroups: bool) -> Result<(), GpuError> {
-    kernels::Kernels::new(device, subgroups).map(|_| ())
+    kernels::Kernels::new(device, subgroups)?;
+    kernels::reference_kernels(device, subgroups).map(|_| ())
 }

@@ -1,7 +1,8 @@
 //! The straightforward kernels of `shaders/ssim_topk.wgsl` (one workgroup per pair; one
 //! invocation per query folding a tile sequentially), kept as device references: tests hold the
 //! block-tiled kernel and the parallel top-K to them on the same device, and feed `topk_merge`
-//! scores no SSIM produces (NaN). The coarse executor does not use them.
+//! scores no SSIM produces (NaN). The coarse executor does not use them, and contexts do not build
+//! them: each call here builds its pipeline (`kernels::reference_kernels`).
 
 use super::context::{GpuContext, GpuError};
 use crate::kernels::abi::SsimParams;
@@ -33,8 +34,9 @@ pub fn ssim_tile_scores(ctx: &GpuContext, p: &SsimParams, queries: (&[f32], &[f3
         let (qg, qs, rg, rs) = (upload("queries", queries.0), upload("query stats", queries.1), upload("tile", refs.0), upload("tile stats", refs.1));
         let scores = ctx.storage("scores", (nq * nr * 4) as u64);
         let (pb, tpb) = (ctx.uniform("ssim params", p), ctx.uniform("tile params", &tp));
-        let g = ctx.kernels.ssim_tile.bind(&ctx.device, &[&pb, &tpb, &qg, &qs, &rg, &rs, &scores]);
-        ctx.run("ssim tile", &[(&ctx.kernels.ssim_tile.pipeline, &g, [nr as u32, nq as u32, 1])])?;
+        let (ssim_tile, _) = super::kernels::reference_kernels(&ctx.device, ctx.uses_subgroups())?;
+        let g = ssim_tile.bind(&ctx.device, &[&pb, &tpb, &qg, &qs, &rg, &rs, &scores]);
+        ctx.run("ssim tile", &[(&ssim_tile.pipeline, &g, [nr as u32, nq as u32, 1])])?;
         ctx.read_back_values(&scores, nq * nr)
     })?
 }
@@ -56,8 +58,9 @@ pub fn merge_scores(ctx: &GpuContext, tp: &TileParams, scores: &[f32], top_s: &[
             upload("top-k indices", bytemuck::cast_slice(&top_i[..n])),
         );
         let tpb = ctx.uniform("tile params", tp);
-        let g = ctx.kernels.topk_merge.bind(&ctx.device, &[&tpb, &sb, &tsb, &tib]);
-        ctx.run("topk merge", &[(&ctx.kernels.topk_merge.pipeline, &g, [tp.queries.div_ceil(64), 1, 1])])?;
+        let (_, topk_merge) = super::kernels::reference_kernels(&ctx.device, ctx.uses_subgroups())?;
+        let g = topk_merge.bind(&ctx.device, &[&tpb, &sb, &tsb, &tib]);
+        ctx.run("topk merge", &[(&topk_merge.pipeline, &g, [tp.queries.div_ceil(64), 1, 1])])?;
         Ok((ctx.read_back_values(&tsb, n)?, ctx.read_back_values(&tib, n)?))
     })?
 }

@@ -38,7 +38,7 @@ impl MnnGpu {
         MnnGpu { ctx, params: None, buffers: Buffers::default() }
     }
 
-    /// The best columns of every (query, reference) pair, as [`crate::kernels::mnn_match::best_columns`]
+    /// The best columns of every (query, reference) pair, as [`crate::verify::best_columns::best_columns`]
     /// gives them on the CPU (bit for bit: the arithmetic is integer).
     pub fn best_columns(&mut self, queries: &DescriptorSet, refs: &dyn RefSource, pairs: &[(u32, u32)]) -> Result<Vec<BestColumns>, GpuError> {
         let dim = queries.keypoint_dim;

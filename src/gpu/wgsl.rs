@@ -37,9 +37,30 @@ pub fn defines_used(src: &str) -> Vec<&'static str> {
     DEFINES.iter().copied().filter(|d| src.lines().any(|l| l.trim() == format!("//#if {d}"))).collect()
 }
 
+/// A preprocessor directive out of place (the build script includes this file, so it has an
+/// error type of its own rather than the crate's: `gpu` wraps it into `GpuError::Shader`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DirectiveError {
+    /// The directive's line (1-based); `None`: the end of the file.
+    pub line: Option<usize>,
+    pub reason: String,
+}
+
+impl std::fmt::Display for DirectiveError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.line {
+            Some(n) => write!(f, "line {n}: {}", self.reason),
+            None => f.write_str(&self.reason),
+        }
+    }
+}
+
+impl std::error::Error for DirectiveError {}
+
 /// `src` with the lines of the variant where the names in `on` are set; an error names the line
 /// of a directive out of place.
-pub fn preprocess(src: &str, on: &[&str]) -> Result<String, String> {
+pub fn preprocess(src: &str, on: &[&str]) -> Result<String, DirectiveError> {
+    let at = |n: usize, reason: String| DirectiveError { line: Some(n + 1), reason };
     let mut out = String::with_capacity(src.len());
     // None: outside a block; Some(keep): inside one, keeping its lines or not
     let mut state: Option<bool> = None;
@@ -50,7 +71,7 @@ pub fn preprocess(src: &str, on: &[&str]) -> Result<String, String> {
         if let Some(name) = t.strip_prefix("//#include ") {
             let name = name.trim();
             if state.is_some() || included.contains(&name) || !INCLUDES.iter().any(|i| i.0 == name) {
-                return Err(format!("line {}: cannot include {name:?} here (known: {:?}, once each, outside //#if)", n + 1, INCLUDES.map(|i| i.0)));
+                return Err(at(n, format!("cannot include {name:?} here (known: {:?}, once each, outside //#if)", INCLUDES.map(|i| i.0))));
             }
             included.push(name);
             out.push('\n');
@@ -59,7 +80,7 @@ pub fn preprocess(src: &str, on: &[&str]) -> Result<String, String> {
         let keep = match (t.strip_prefix("//#if "), t, state) {
             (Some(name), _, None) => {
                 if !DEFINES.contains(&name.trim()) {
-                    return Err(format!("line {}: unknown name {name:?} (known: {DEFINES:?})", n + 1));
+                    return Err(at(n, format!("unknown name {name:?} (known: {DEFINES:?})")));
                 }
                 state = Some(on.contains(&name.trim()));
                 seen_else = false;
@@ -74,8 +95,8 @@ pub fn preprocess(src: &str, on: &[&str]) -> Result<String, String> {
                 state = None;
                 false
             }
-            (Some(_), _, Some(_)) => return Err(format!("line {}: nested //#if", n + 1)),
-            (None, "//#else" | "//#endif", _) => return Err(format!("line {}: {t} without //#if", n + 1)),
+            (Some(_), _, Some(_)) => return Err(at(n, "nested //#if".into())),
+            (None, "//#else" | "//#endif", _) => return Err(at(n, format!("{t} without //#if"))),
             (None, _, s) => s.unwrap_or(true),
         };
         if keep {
@@ -84,7 +105,7 @@ pub fn preprocess(src: &str, on: &[&str]) -> Result<String, String> {
         out.push('\n');
     }
     if state.is_some() {
-        return Err("//#if without //#endif".into());
+        return Err(DirectiveError { line: None, reason: "//#if without //#endif".into() });
     }
     for name in included {
         let text = INCLUDES.iter().find(|i| i.0 == name).map_or("", |i| i.1);

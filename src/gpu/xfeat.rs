@@ -10,7 +10,7 @@
 //! storage binding or whose grid exceeds its workgroups per dimension is a typed
 //! [`GpuError::LimitsTooSmall`], never a silent CPU run.
 //!
-//! The plan of passes (which kernel, its parameters, which buffers) is data ([`Plan`]); the same
+//! The plan of passes (which kernel, its parameters, which buffers) is data (`Plan`); the same
 //! plan runs on the CPU twins in [`forward_on_twins`], the reference the device is held to.
 
 use super::context::{GpuContext, GpuError};
@@ -18,6 +18,7 @@ use super::kernels::Kernel;
 use crate::appearance::nn::{Chw, NetOutputs};
 use crate::appearance::xfeat::{Layer, XFeat};
 use crate::appearance::{network_input, AppearanceModel, Features};
+use crate::error::Error;
 use crate::kernels::abi::{ConvParams, MapParams, NormParams};
 use crate::kernels::xfeat::{self as twin, pack_conv};
 use image::RgbImage;
@@ -133,16 +134,16 @@ struct PackedNet {
     weights: Vec<f32>,
 }
 
-fn pack(net: &XFeat) -> Result<PackedNet, String> {
+fn pack(net: &XFeat) -> crate::Result<PackedNet> {
     let g = net.graph();
     let mut weights: Vec<f32> = Vec::new();
-    let mut one = |l: &Layer| -> Result<Packed, String> {
+    let mut one = |l: &Layer| -> crate::Result<Packed> {
         let (vals, sub, mul) = pack_conv(l.weight, l.cin, l.cout, l.k, l.epilogue)
-            .ok_or_else(|| format!("a {}x{}x{}x{} layer does not pack", l.cout, l.cin, l.k, l.k))?;
+            .ok_or_else(|| Error::check(format!("a {}x{}x{}x{} layer does not pack", l.cout, l.cin, l.k, l.k)))?;
         let at = weights.len();
         weights.extend_from_slice(&vals);
         if weights.len() >= u32::MAX as usize {
-            return Err("the packed weights exceed 2^32 values".into());
+            return Err(Error::check("the packed weights exceed 2^32 values"));
         }
         Ok(Packed {
             cin: l.cin,
@@ -155,7 +156,7 @@ fn pack(net: &XFeat) -> Result<PackedNet, String> {
             mul_at: (at + mul) as u32,
         })
     };
-    let mut many = |ls: &[Layer]| ls.iter().map(&mut one).collect::<Result<Vec<_>, String>>();
+    let mut many = |ls: &[Layer]| ls.iter().map(&mut one).collect::<crate::Result<Vec<_>>>();
     let blocks = [many(&g.block1)?, many(&g.block2)?, many(&g.block3)?, many(&g.block4)?, many(&g.block5)?];
     let (fusion, heatmap, keypoint) = (many(&g.fusion)?, many(&g.heatmap)?, many(&g.keypoint)?);
     Ok(PackedNet {
@@ -362,7 +363,7 @@ fn bad(reason: impl Into<String>) -> GpuError {
 impl XFeatGpu {
     /// Packs `net`'s weights and uploads them (once).
     pub fn new(ctx: Arc<GpuContext>, net: &XFeat) -> Result<XFeatGpu, GpuError> {
-        let packed = pack(net).map_err(bad)?;
+        let packed = pack(net).map_err(|e| bad(e.to_string()))?;
         let bytes = (packed.weights.len() * 4) as u64;
         ctx.check_binding("the packed XFeat weights", bytes)?;
         let counters = Counters::default();
@@ -546,15 +547,16 @@ fn outputs(plan: &Plan, data: Vec<f32>, heads: bool) -> NetOutputs {
 }
 
 /// The executor's plan run on the CPU twins (`kernels::xfeat`), pass by pass, buffer by buffer:
-/// what the device is held to. Slow (the twins are written for equivalence); for tests.
-pub fn forward_on_twins(net: &XFeat, grey: &Chw, heads: bool) -> Result<NetOutputs, String> {
+/// what the device is held to. Slow (the twins are written for equivalence); for tests. What
+/// does not fit is an [`Error::Check`].
+pub fn forward_on_twins(net: &XFeat, grey: &Chw, heads: bool) -> crate::Result<NetOutputs> {
     if grey.c != 1 || grey.h % 32 != 0 || grey.w % 32 != 0 || grey.h == 0 || grey.w == 0 || !grey.is_consistent() {
-        return Err(format!("input is {}x{}x{}; it must be 1 x (32k) x (32k)", grey.c, grey.h, grey.w));
+        return Err(Error::check(format!("input is {}x{}x{}; it must be 1 x (32k) x (32k)", grey.c, grey.h, grey.w)));
     }
     let packed = pack(net)?;
     let plan = Plan::new(&packed, grey.h, grey.w, 65_535).map_err(|e| match e {
-        PlanError::Limit(what, n, a) => format!("{what}: {n} > {a}"),
-        PlanError::Invalid(r) => r,
+        PlanError::Limit(what, n, a) => Error::check(format!("{what}: {n} > {a}")),
+        PlanError::Invalid(r) => Error::check(r),
     })?;
     let mut bufs: Vec<Vec<f32>> = plan.sizes.iter().map(|&n| vec![0.0; n]).collect();
     bufs[Buf::Grey as usize].copy_from_slice(&grey.data);
@@ -571,7 +573,7 @@ pub fn forward_on_twins(net: &XFeat, grey: &Chw, heads: bool) -> Result<NetOutpu
             (Entry::SpaceToDepth, Params::Map(mp)) => twin::space_to_depth8(mp, i(0), &mut o),
             (Entry::BilinearAdd, Params::Map(mp)) => twin::bilinear_add(mp, i(0), i(1), i(2), &mut o),
             (Entry::Conv, Params::Conv(cp)) => twin::conv2d(cp, i(0), i(1), i(2), &mut o),
-            (e, _) => return Err(format!("{e:?} planned with another kernel's parameters")),
+            (e, _) => return Err(Error::check(format!("{e:?} planned with another kernel's parameters"))),
         }
         bufs[out[0] as usize] = o;
     }
@@ -584,8 +586,8 @@ pub fn forward_on_twins(net: &XFeat, grey: &Chw, heads: bool) -> Result<NetOutpu
 }
 
 /// One `xfeat.wgsl` kernel alone on the device: `entry` (its name) with the uniform `params`
-/// and `inputs` bound in binding order, the output (`out_len` values, initially `out_init` when
-/// given, else zeros) read back. The device side of the twins' tests.
+/// and `inputs` bound in binding order, the output (`out_len` values, zeros before the kernel
+/// runs) read back. The device side of the twins' tests.
 pub fn run_kernel(ctx: &GpuContext, entry: &str, params: &[u8], grid: [u32; 3], inputs: &[&[f32]], out_len: usize) -> Result<Vec<f32>, GpuError> {
     let e = match entry {
         "instance_norm_partials" => Entry::Partials,

@@ -63,5 +63,10 @@ mod tests {
         for (i, &c) in classes.iter().enumerate() {
             assert_eq!(label_at(&packed, i), c as u32, "pixel {i}");
         }
+        // the layout the shader reads, stated independently of both functions: pixel 4w + k in
+        // byte k of word w, the lowest byte first, the last word zero-padded
+        pack_labels(&[0x01, 0x02, 0x03, 0x04, 0xfe], &mut packed);
+        assert_eq!(packed, vec![0x0403_0201, 0x0000_00fe]);
+        assert_eq!([0, 1, 2, 3, 4, 5].map(|i| label_at(&[0x0403_0201, 0x0000_00fe], i)), [1, 2, 3, 4, 0xfe, 0]);
     }
 }

@@ -4,6 +4,7 @@
 //! is O(queries x (K + tile)), never queries x map.
 
 use super::abi::{TileParams, EMPTY_INDEX, EMPTY_SCORE};
+use crate::error::{Error, Result};
 use crate::kernels::abi::SsimParams;
 use crate::kernels::ssim::{ssim_pair, SsimScratch};
 use rayon::prelude::*;
@@ -83,11 +84,11 @@ fn fold_indexed(items: impl Iterator<Item = (f32, u32)>, ts: &mut [f32], ti: &mu
 /// part's list holding the K best of its references) into the global K-lists: candidates sorted
 /// by index go through the same fold as one pass over the whole map, so the result is the one a
 /// single process computes, ties across parts included. Fails if the parts disagree on the
-/// number of queries, or a list holds one reference twice.
-pub fn merge_lists(parts: &[&[Vec<(f32, u32)>]], k: usize) -> Result<Vec<Vec<(f32, u32)>>, String> {
+/// number of queries, or a list holds one reference twice (an [`Error::Check`]).
+pub fn merge_lists(parts: &[&[Vec<(f32, u32)>]], k: usize) -> Result<Vec<Vec<(f32, u32)>>> {
     let nq = parts.first().map_or(0, |p| p.len());
     if let Some(p) = parts.iter().find(|p| p.len() != nq) {
-        return Err(format!("parts hold {} and {nq} queries", p.len()));
+        return Err(Error::check(format!("parts hold {} and {nq} queries", p.len())));
     }
     if k == 0 {
         return Ok(vec![vec![]; nq]);
@@ -97,7 +98,7 @@ pub fn merge_lists(parts: &[&[Vec<(f32, u32)>]], k: usize) -> Result<Vec<Vec<(f3
             let mut all: Vec<(f32, u32)> = parts.iter().flat_map(|p| p[q].iter().copied()).collect();
             all.sort_by_key(|&(_, r)| r);
             if let Some(w) = all.windows(2).find(|w| w[0].1 == w[1].1) {
-                return Err(format!("reference {} is a candidate of query {q} twice", w[0].1));
+                return Err(Error::check(format!("reference {} is a candidate of query {q} twice", w[0].1)));
             }
             let (mut ts, mut ti) = (vec![EMPTY_SCORE; k], vec![EMPTY_INDEX; k]);
             fold_indexed(all.into_iter(), &mut ts, &mut ti);

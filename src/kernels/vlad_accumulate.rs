@@ -39,7 +39,7 @@ fn tree(mut acc: [f32; LANES]) -> f32 {
 }
 
 /// Bindings: `p`, `centres`, `descriptors` (sorted by object), `assignment`, `object_offsets`
-/// (objects + 1: object o owns keypoints offsets[o]..offsets[o + 1]), `out` (objects x k x dim).
+/// (objects + 1: object o owns keypoints `offsets[o]..offsets[o + 1]`), `out` (objects x k x dim).
 /// One workgroup per object: residual sums, intra-normalisation, optional power
 /// normalisation, L2 normalisation. Objects without keypoints stay zero.
 pub fn vlad_accumulate(p: &VladParams, centres: &[f32], descriptors: &[f32], assignment: &[u32], object_offsets: &[u32], out: &mut [f32]) {

@@ -75,11 +75,6 @@ impl ConvParams {
         [(self.wo as usize).div_ceil(TILE_W) as u32, (self.ho as usize).div_ceil(TILE_H) as u32, self.groups() as u32]
     }
 
-    /// Values of the input (cin x h x w).
-    pub fn input_len(&self) -> usize {
-        (self.cin * self.h * self.w) as usize
-    }
-
     /// Values of the output (cout x ho x wo).
     pub fn output_len(&self) -> usize {
         (self.cout * self.ho * self.wo) as usize
@@ -108,7 +103,7 @@ impl Epilogue<'_> {
 }
 
 /// A layer's weights as `conv2d` reads them: `weight` ([cout, cin, k, k], PyTorch's layout)
-/// regrouped to [group][cin][k * k][CO_GROUP] (output channels past `cout` zero), then per output
+/// regrouped to `[group][cin][k * k][CO_GROUP]` (output channels past `cout` zero), then per output
 /// channel (padded to whole groups) the epilogue's subtrahend and factor: y = (acc - sub) * mul,
 /// i.e. (mean, 1 / sqrt(var + 1e-5)) for batch norm and (-bias, 1) for a bias. Returns the packed
 /// values and the offsets of the subtrahends and factors in them; `None` when the sizes disagree.

@@ -58,10 +58,16 @@ impl Forest {
     }
     /// Sets (or replaces) the appearance vectors: `vectors` holds `dim` values per tree,
     /// `counts` the descriptors each was aggregated from; trees with fewer than `min_count`
-    /// (and at least one) have no appearance. Other lengths fail, the forest unchanged.
-    pub fn set_appearance(&mut self, dim: usize, mut vectors: Vec<f32>, counts: Vec<u32>, min_count: usize) -> Result<(), String> {
+    /// (and at least one) have no appearance. Other lengths fail (an [`crate::Error::Check`]), the
+    /// forest unchanged.
+    pub fn set_appearance(&mut self, dim: usize, mut vectors: Vec<f32>, counts: Vec<u32>, min_count: usize) -> crate::Result<()> {
         if vectors.len() != dim * self.len() || counts.len() != self.len() {
-            return Err(format!("{} appearance values and {} counts for {} trees of dimension {dim}", vectors.len(), counts.len(), self.len()));
+            return Err(crate::Error::check(format!(
+                "{} appearance values and {} counts for {} trees of dimension {dim}",
+                vectors.len(),
+                counts.len(),
+                self.len()
+            )));
         }
         let present: Vec<u8> = counts.iter().map(|&c| (c > 0 && c as usize >= min_count) as u8).collect();
         for (k, &p) in present.iter().enumerate() {
@@ -88,14 +94,11 @@ impl<'a> ForestRef<'a> {
         let n = self.neighbour_slots;
         self.neighbours[k * n..(k + 1) * n].iter().filter(|&&j| j >= 0).map(|&j| j as usize)
     }
-    pub fn appearance_of(&self, k: usize) -> Option<Values<'a>> {
-        (self.dim > 0 && self.has_appearance[k] != 0).then(|| self.appearance.slice(k * self.dim, (k + 1) * self.dim))
-    }
 }
 
 /// Builds the forest of an image's objects; appearance is left empty (dim 0).
 ///
-/// Neighbour rule (spec §2.5, [Q] with [R] tolerance): candidates are ordered by centroid distance;
+/// Neighbour rule (spec §2.5, \[Q\] with \[R\] tolerance): candidates are ordered by centroid distance;
 /// repeatedly, among the remaining candidates within `tie_tolerance` of the nearest remaining one,
 /// the largest (then the nearest, then the first) is taken, until `neighbours` are chosen.
 pub fn build_forest(objects: &ObjectMap, cfg: &LocalConfig) -> Forest {

@@ -87,7 +87,7 @@ pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
         if buf.is_empty() {
             return Ok(());
         }
-        let (bytes, mut entry) = segment::encode(buf, &layout).map_err(|r| Error::invalid(format!("map {}", dir.display()), r))?;
+        let (bytes, mut entry) = segment::encode(buf, &layout).map_err(|e| e.named(|r| Error::invalid(format!("map {}", dir.display()), r)))?;
         // unique among the files kept, written, and replaced (deleted after the commit)
         let listed: Vec<SegmentEntry> = out.iter().chain(&old.segments).cloned().collect();
         entry.file = manifest::unique_segment_name(&listed, &entry.file, old.generation + 1);
@@ -106,7 +106,7 @@ pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
         } else {
             for entry in run.iter() {
                 let seg = Mapped::open(dir, entry, layout)?;
-                seg.ensure().map_err(|r| Error::corrupt(&seg.path, r))?;
+                seg.ensure()?;
                 for j in 0..seg.len() {
                     if entry.is_live(j) {
                         seg.append_row(j, buf);
@@ -217,7 +217,7 @@ pub fn verify(dir: &Path) -> Result<VerifyReport> {
         .par_iter()
         .map(|entry| {
             let problem = match Mapped::open(dir, entry, layout) {
-                Ok(seg) => seg.verify().err(),
+                Ok(seg) => seg.verify().err().map(reason_of),
                 Err(e) => Some(reason_of(e)),
             };
             FileCheck { file: entry.file.clone(), problem }

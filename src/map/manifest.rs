@@ -195,7 +195,7 @@ pub fn read(dir: &Path) -> Result<Option<Manifest>> {
             ))
         }
     }
-    check(&m).map_err(|r| Error::corrupt(&path, r))?;
+    check(&m).map_err(|e| e.named(|r| Error::corrupt(&path, r)))?;
     // the values a query is encoded and matched with, in the ranges a config file is held to
     // (a resealed edit such as `ssim_window = 0` is refused here, by open and verify alike)
     crate::config::Config::default().with_encoding(&m.config).validate(&path.display().to_string())?;
@@ -203,46 +203,52 @@ pub fn read(dir: &Path) -> Result<Option<Manifest>> {
 }
 
 /// Internal consistency of a manifest's fields.
-fn check(m: &Manifest) -> std::result::Result<(), String> {
+fn check(m: &Manifest) -> Result<()> {
     if m.neighbour_slots != m.config.local.neighbours {
-        return Err("neighbour slots differ from the config".into());
+        return Err(Error::check("neighbour slots differ from the config"));
     }
     if m.generation == u64::MAX {
-        return Err("the generation count is at its maximum (no further commit could be numbered)".into());
+        return Err(Error::check("the generation count is at its maximum (no further commit could be numbered)"));
     }
     let names = m.segments.iter().map(|s| s.file.as_str()).chain(m.codebook.as_ref().map(|c| c.file.as_str()));
     for name in names {
         if name.contains('/') || name.contains('\\') || name.contains("..") || !is_store_file(name) {
-            return Err(format!("file name {name:?} is not one the store writes (or leaves the map directory)"));
+            return Err(Error::check(format!("file name {name:?} is not one the store writes (or leaves the map directory)")));
         }
     }
     let mut seen = std::collections::HashSet::new();
     for s in &m.segments {
         if !seen.insert(&s.file) {
-            return Err(format!("segment {} is listed twice", s.file));
+            return Err(Error::check(format!("segment {} is listed twice", s.file)));
         }
         // forest and id offsets are u32
         if s.images > u32::MAX as usize - 1 || s.trees > u32::MAX as usize || s.keypoints > u32::MAX as usize {
-            return Err(format!("segment {}: {} images and {} trees are more than a segment file can index", s.file, s.images, s.trees));
+            return Err(Error::check(format!(
+                "segment {}: {} images and {} trees are more than a segment file can index",
+                s.file, s.images, s.trees
+            )));
         }
         if s.images == 0
             || s.removed.len() > s.images
             || !s.removed.windows(2).all(|w| w[0] < w[1])
             || s.removed.last().is_some_and(|&r| r as usize >= s.images)
         {
-            return Err(format!("segment {}: image count or removed rows are inconsistent", s.file));
+            return Err(Error::check(format!("segment {}: image count or removed rows are inconsistent", s.file)));
         }
         if s.sha256.len() != 64 || !s.sha256.bytes().all(|b| b.is_ascii_hexdigit()) {
-            return Err(format!("segment {}: the SHA-256 is not 64 hex digits", s.file));
+            return Err(Error::check(format!("segment {}: the SHA-256 is not 64 hex digits", s.file)));
         }
     }
     if m.appearance_dim != 0 && m.codebook.is_none() {
-        return Err("appearance vectors but no codebook".into());
+        return Err(Error::check("appearance vectors but no codebook"));
     }
     if (m.appearance_dim == 0) != (m.appearance_block == 0)
         || (m.appearance_block > 0 && (m.appearance_dim % m.appearance_block != 0 || m.appearance_dim / m.appearance_block > 256))
     {
-        return Err(format!("appearance vectors of {} values do not split into blocks of {} (at most 256)", m.appearance_dim, m.appearance_block));
+        return Err(Error::check(format!(
+            "appearance vectors of {} values do not split into blocks of {} (at most 256)",
+            m.appearance_dim, m.appearance_block
+        )));
     }
     Ok(())
 }

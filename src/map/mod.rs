@@ -167,16 +167,13 @@ impl Map {
     }
 
     /// Checks every segment not checked yet (in parallel), each once per process; the result of
-    /// every segment, in manifest order.
-    pub fn verify_all(&self) -> Vec<(&Path, std::result::Result<(), String>)> {
-        self.segments.par_iter().map(|s| (s.path.as_path(), s.ensure().map_err(str::to_string))).collect()
+    /// every segment, in manifest order (a damaged one's an [`Error::CorruptMap`] naming its file).
+    pub fn verify_all(&self) -> Vec<(&Path, Result<()>)> {
+        self.segments.par_iter().map(|s| (s.path.as_path(), s.ensure())).collect()
     }
     /// [`Map::verify_all`], failing with the first damaged segment.
     pub fn check_all(&self) -> Result<()> {
-        match self.verify_all().into_iter().find(|(_, r)| r.is_err()) {
-            Some((p, Err(reason))) => Err(Error::corrupt(p, reason)),
-            _ => Ok(()),
-        }
+        self.verify_all().into_iter().try_for_each(|(_, r)| r)
     }
 
     /// All live images in one set, SSIM statistics recomputed (one allocation of the whole map:

@@ -1,16 +1,16 @@
 //! One segment file: the descriptors of up to a few thousand images as safetensors (readable from
 //! Python with `safetensors.numpy.load_file`), read through a memory map without copying.
 //!
-//! Tensors (n images, t trees, f = f32 or f16 as the manifest says): `global` [n, gh, gw] f,
-//! `image_size` [n, 2] u32, `forest_offsets` [n + 1] u32, `tree_class` [t] u8, `tree_area` [t] f32,
-//! `tree_centroid` [t, 2] f32, `tree_neighbours` [t, slots] i32, `tree_has_appearance` [t] u8,
-//! `tree_descriptors` [t] u32, the trees' and the images' appearance vectors as their non-zero
+//! Tensors (n images, t trees, f = f32 or f16 as the manifest says): `global` `[n, gh, gw]` f,
+//! `image_size` `[n, 2]` u32, `forest_offsets` `[n + 1]` u32, `tree_class` `[t]` u8, `tree_area` `[t]` f32,
+//! `tree_centroid` `[t, 2]` f32, `tree_neighbours` `[t, slots]` i32, `tree_has_appearance` `[t]` u8,
+//! `tree_descriptors` `[t]` u32, the trees' and the images' appearance vectors as their non-zero
 //! blocks of int8 values (`values::Blocks`; VLAD: one block per centre) in `tree_block_offsets`
-//! [t + 1] u32, `tree_block_ids` [bt] u8, `tree_block_exponents` [bt] i8, `tree_block_values`
-//! [bt, block] i8 and `image_block_*` likewise over the n images,
-//! `image_hog` [n, hog] f32, the ids as UTF-8 bytes `id_bytes` [b] u8 with `id_offsets`
-//! [n + 1] u32, and the verification keypoints (p of them): `keypoint_offsets` [n + 1] u32,
-//! `keypoint_descriptors` [p, kdim] i8, `keypoint_xy` [p, 2] u16, `keypoint_class` [p] u8. SSIM
+//! `[t + 1]` u32, `tree_block_ids` `[bt]` u8, `tree_block_exponents` `[bt]` i8, `tree_block_values`
+//! `[bt, block]` i8 and `image_block_*` likewise over the n images,
+//! `image_hog` `[n, hog]` f32, the ids as UTF-8 bytes `id_bytes` `[b]` u8 with `id_offsets`
+//! `[n + 1]` u32, and the verification keypoints (p of them): `keypoint_offsets` `[n + 1]` u32,
+//! `keypoint_descriptors` `[p, kdim]` i8, `keypoint_xy` `[p, 2]` u16, `keypoint_class` `[p]` u8. SSIM
 //! statistics are not stored: readers recompute them per tile.
 //!
 //! Opening checks the header: every tensor's dtype, shape, and alignment (safetensors writers sort
@@ -74,7 +74,7 @@ impl Layout {
 
 /// Serialises a set (its rows must hold `layout.global_len()` global values) to segment bytes;
 /// fails naming the tensor whose data does not fill its shape (a set whose columns disagree).
-pub fn to_bytes(set: &DescriptorSet, layout: &Layout) -> std::result::Result<Vec<u8>, String> {
+pub fn to_bytes(set: &DescriptorSet, layout: &Layout) -> Result<Vec<u8>> {
     let (n, t, dim) = (set.len(), set.n_trees(), layout.dim);
     let sizes: Vec<u32> = set.sizes.iter().flatten().copied().collect();
     let mut id_bytes = Vec::new();
@@ -125,14 +125,16 @@ pub fn to_bytes(set: &DescriptorSet, layout: &Layout) -> std::result::Result<Vec
     ];
     let tensors = parts
         .into_iter()
-        .map(|(name, dtype, shape, bytes)| TensorView::new(dtype, shape, bytes).map(|v| (name, v)).map_err(|e| format!("tensor {name:?}: {e}")))
-        .collect::<std::result::Result<Vec<_>, String>>()?;
+        .map(|(name, dtype, shape, bytes)| {
+            TensorView::new(dtype, shape, bytes).map(|v| (name, v)).map_err(|e| Error::check(format!("tensor {name:?}: {e}")))
+        })
+        .collect::<Result<Vec<_>>>()?;
     let meta = std::collections::HashMap::from([("format".to_string(), "semlook-map-segment 4".to_string())]);
-    safetensors::serialize(tensors, Some(meta)).map_err(|e| format!("segment does not serialise: {e}"))
+    safetensors::serialize(tensors, Some(meta)).map_err(|e| Error::check(format!("segment does not serialise: {e}")))
 }
 
 /// A set as a segment file: its bytes and its manifest entry (named by the start of its SHA-256).
-pub fn encode(set: &DescriptorSet, layout: &Layout) -> std::result::Result<(Vec<u8>, SegmentEntry), String> {
+pub fn encode(set: &DescriptorSet, layout: &Layout) -> Result<(Vec<u8>, SegmentEntry)> {
     let bytes = to_bytes(set, layout)?;
     let sha = crate::util::sha256_hex(&bytes);
     let entry = SegmentEntry {
@@ -192,7 +194,8 @@ pub struct Mapped {
     /// Verification keypoints in the file.
     p: usize,
     r: Ranges,
-    verified: OnceLock<std::result::Result<(), String>>,
+    /// What [`Mapped::verify`] found wrong, once it ran (`None`: nothing).
+    verified: OnceLock<Option<String>>,
 }
 
 impl Mapped {
@@ -211,7 +214,7 @@ impl Mapped {
         // SAFETY: the store never changes a segment file after renaming it into place (new
         // contents always go to new files), so the mapped bytes do not change under the map.
         let mmap = unsafe { Mmap::map(&file) }.map_err(|e| Error::io(&path, e))?;
-        let r = ranges(&mmap, entry, &layout).map_err(|reason| Error::corrupt(&path, reason))?;
+        let r = ranges(&mmap, entry, &layout).map_err(|e| e.named(|reason| Error::corrupt(&path, reason)))?;
         Ok(Mapped { path, entry: entry.clone(), layout, mmap, n: entry.images, t: entry.trees, p: entry.keypoints, r, verified: OnceLock::new() })
     }
 
@@ -358,22 +361,28 @@ impl Mapped {
     }
 
     /// Checks the SHA-256 against the manifest, then every value (offsets, ids, and each image
-    /// with [`validate::image`]); the reason names the image where there is one.
-    pub fn verify(&self) -> std::result::Result<(), String> {
+    /// with [`validate::image`]); a failure is an [`Error::CorruptMap`] naming the file, its
+    /// reason the image where there is one.
+    pub fn verify(&self) -> Result<()> {
+        self.check_values().map_err(|e| e.named(|reason| Error::corrupt(&self.path, reason)))
+    }
+
+    /// [`Mapped::verify`]'s checks, before the file is named.
+    fn check_values(&self) -> Result<()> {
         if crate::util::sha256_hex(&self.mmap) != self.entry.sha256 {
-            return Err("SHA-256 differs from the manifest (file altered or damaged)".into());
+            return Err(Error::check("SHA-256 differs from the manifest (file altered or damaged)"));
         }
         let table_ok = |offsets: &[u32], end: usize| {
             offsets.first() == Some(&0) && offsets.windows(2).all(|w| w[0] <= w[1]) && offsets.last().map(|&l| l as usize) == Some(end)
         };
         if !table_ok(self.u32s(&self.r.forest_offsets), self.t) {
-            return Err("forest offsets do not run from 0 to the tree count".into());
+            return Err(Error::check("forest offsets do not run from 0 to the tree count"));
         }
         if !table_ok(self.u32s(&self.r.id_offsets), self.r.id_bytes.len()) {
-            return Err("id offsets do not run over the id bytes".into());
+            return Err(Error::check("id offsets do not run over the id bytes"));
         }
         if !table_ok(self.u32s(&self.r.keypoint_offsets), self.p) {
-            return Err("keypoint offsets do not run from 0 to the keypoint count".into());
+            return Err(Error::check("keypoint offsets do not run from 0 to the keypoint count"));
         }
         for (what, r, rows) in [("tree", &self.r.tree_blocks, self.t), ("image", &self.r.image_blocks, self.n)] {
             let count = r.ids.len();
@@ -383,11 +392,11 @@ impl Mapped {
                 || r.exponents.len() != count
                 || (self.layout.block > 0 && r.values.len() != count * self.layout.block)
             {
-                return Err(format!("{what} appearance block offsets do not run from 0 to the block count"));
+                return Err(Error::check(format!("{what} appearance block offsets do not run from 0 to the block count")));
             }
             let per_vector = self.layout.dim / self.layout.block.max(1);
             if self.raw(&r.ids).iter().any(|&id| id as usize >= per_vector) || offsets.windows(2).any(|w| w[1] - w[0] > per_vector as u32) {
-                return Err(format!("a {what} appearance block lies outside its vector of {per_vector} blocks"));
+                return Err(Error::check(format!("a {what} appearance block lies outside its vector of {per_vector} blocks")));
             }
         }
         let mut ids = std::collections::HashSet::with_capacity(self.n);
@@ -396,9 +405,9 @@ impl Mapped {
                 let (a, b) = Self::span(self.u32s(&self.r.id_offsets), j, self.r.id_bytes.len());
                 a..b
             }];
-            let id = std::str::from_utf8(raw).map_err(|_| format!("the id of row {j} is not UTF-8"))?;
+            let id = std::str::from_utf8(raw).map_err(|_| Error::check(format!("the id of row {j} is not UTF-8")))?;
             if !ids.insert(id) {
-                return Err(format!("image id {id:?} is stored twice"));
+                return Err(Error::check(format!("image id {id:?} is stored twice")));
             }
             let g = self.globals(j, j + 1);
             validate::image(
@@ -412,18 +421,21 @@ impl Mapped {
                 self.layout.values,
             )
             .and_then(|()| validate::keypoints(self.keypoints(j), self.layout.n_classes))
-            .map_err(|r| format!("image {id:?}: {r}"))?;
+            .map_err(|r| Error::check(format!("image {id:?}: {r}")))?;
         }
         Ok(())
     }
 
     /// [`Mapped::verify`], once per process: later calls return the first call's result.
-    pub fn ensure(&self) -> std::result::Result<(), &str> {
-        self.verified.get_or_init(|| self.verify()).as_ref().map_err(|r| r.as_str()).copied()
+    pub fn ensure(&self) -> Result<()> {
+        match self.verified.get_or_init(|| self.check_values().err().map(|e| e.to_string())) {
+            None => Ok(()),
+            Some(reason) => Err(Error::corrupt(&self.path, reason.clone())),
+        }
     }
-    /// The stored verification failure, if the segment was checked and failed.
+    /// The stored verification failure (its reason), if the segment was checked and failed.
     pub fn failure(&self) -> Option<&str> {
-        self.verified.get().and_then(|r| r.as_ref().err()).map(|s| s.as_str())
+        self.verified.get().and_then(|r| r.as_deref())
     }
 
     /// Appends row `j` to `set` (a [`DescriptorSet::for_storage`] of the same layout), widened
@@ -452,31 +464,31 @@ impl Mapped {
 }
 
 /// The checked byte ranges of every tensor.
-fn ranges(bytes: &[u8], entry: &SegmentEntry, l: &Layout) -> std::result::Result<Ranges, String> {
-    let (header, meta) = safetensors::SafeTensors::read_metadata(bytes).map_err(|e| format!("not a safetensors file: {e}"))?;
+fn ranges(bytes: &[u8], entry: &SegmentEntry, l: &Layout) -> Result<Ranges> {
+    let (header, meta) = safetensors::SafeTensors::read_metadata(bytes).map_err(|e| Error::check(format!("not a safetensors file: {e}")))?;
     let start = 8 + header;
     let (n, t) = (entry.images, entry.trees);
     let fdt = match l.values {
         ValueType::F32 => Dtype::F32,
         ValueType::F16 => Dtype::F16,
     };
-    let get = |name: &str, dtype: Dtype, shape: &[Option<usize>]| -> std::result::Result<Range<usize>, String> {
-        let info = meta.info(name).ok_or_else(|| format!("tensor {name:?} is missing"))?;
+    let get = |name: &str, dtype: Dtype, shape: &[Option<usize>]| -> Result<Range<usize>> {
+        let info = meta.info(name).ok_or_else(|| Error::check(format!("tensor {name:?} is missing")))?;
         let ok = info.dtype == dtype && info.shape.len() == shape.len() && info.shape.iter().zip(shape).all(|(a, b)| b.is_none_or(|b| *a == b));
         if !ok {
-            return Err(format!("tensor {name:?} is {:?} {:?}, expected {dtype:?} {shape:?}", info.dtype, info.shape));
+            return Err(Error::check(format!("tensor {name:?} is {:?} {:?}, expected {dtype:?} {shape:?}", info.dtype, info.shape)));
         }
         let (a, b) = info.data_offsets;
         let size = dtype.bitsize() / 8;
         if (start + a) % size != 0 {
-            return Err(format!(
+            return Err(Error::check(format!(
                 "tensor {name:?} starts at byte {}, not a multiple of its {size}-byte elements (written by another tool?)",
                 start + a
-            ));
+            )));
         }
         Ok(start + a..start + b)
     };
-    let block_ranges = |name: &str, rows: usize| -> std::result::Result<BlockRanges, String> {
+    let block_ranges = |name: &str, rows: usize| -> Result<BlockRanges> {
         let offsets = get(&format!("{name}_block_offsets"), Dtype::U32, &[Some(rows + 1)])?;
         let ids = get(&format!("{name}_block_ids"), Dtype::U8, &[None])?;
         let exponents = get(&format!("{name}_block_exponents"), Dtype::I8, &[None])?;

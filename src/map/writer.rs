@@ -118,7 +118,7 @@ impl MapWriter {
             (Some((cb, _)), d) if cb.k * cb.dim != d => return Err(Error::invalid(what(), "codebook size differs from the appearance vectors")),
             (None, d) if d != 0 => return Err(Error::invalid(what(), "appearance vectors without a codebook")),
             (Some((cb, _)), _) => {
-                let bytes = cb.file_bytes().map_err(|r| Error::invalid(what(), r))?;
+                let bytes = cb.file_bytes().map_err(|e| e.named(|r| Error::invalid(what(), r)))?;
                 let entry = FileEntry { file: CODEBOOK.into(), bytes: bytes.len() as u64, sha256: sha256_hex(&bytes) };
                 Some((bytes, entry))
             }
@@ -351,11 +351,11 @@ impl MapWriter {
         let app = if img.appearance.is_empty() { Values::F32(&[]) } else { Values::F32(&img.appearance) };
         validate::image(&img.id, [img.width, img.height], Values::F32(&img.global), f, app, &img.hog, self.layout.n_classes, self.opts.values)
             .and_then(|()| validate::keypoints(img.keypoints.as_ref(), self.layout.n_classes))
-            .map_err(|reason| Error::InvalidImage { id: img.id.clone(), reason })?;
+            .map_err(|e| e.named(|reason| Error::InvalidImage { id: img.id.clone(), reason }))?;
         if self.contains(&img.id) {
             return Err(Error::DuplicateImageId { map: self.dir.clone(), id: img.id.clone() });
         }
-        self.pending.push(img).map_err(|r| Error::invalid(format!("map {}", self.dir.display()), r))?;
+        self.pending.push(img).map_err(|e| e.named(|r| Error::invalid(format!("map {}", self.dir.display()), r)))?;
         self.known.insert(id_hash(&img.id));
         self.flush_if_full()
     }
@@ -395,7 +395,8 @@ impl MapWriter {
         }
         let mut ids = HashMap::new();
         for i in 0..set.len() {
-            set.check_image(i, l.n_classes, self.opts.values).map_err(|reason| Error::InvalidImage { id: set.ids[i].clone(), reason })?;
+            set.check_image(i, l.n_classes, self.opts.values)
+                .map_err(|e| e.named(|reason| Error::InvalidImage { id: set.ids[i].clone(), reason }))?;
             if let Some(first) = ids.insert(set.ids[i].as_str(), i) {
                 return Err(Error::RepeatedImageId { map: self.dir.clone(), id: set.ids[i].clone(), first, second: i });
             }
@@ -426,7 +427,8 @@ impl MapWriter {
         if self.pending.is_empty() {
             return Ok(());
         }
-        let (bytes, entry) = segment::encode(&self.pending, &self.layout).map_err(|r| Error::invalid(format!("map {}", self.dir.display()), r))?;
+        let (bytes, entry) =
+            segment::encode(&self.pending, &self.layout).map_err(|e| e.named(|r| Error::invalid(format!("map {}", self.dir.display()), r)))?;
         let ids: Vec<String> = self.pending.ids.clone();
         let file = self.commit(
             |m, file, traversal| {
@@ -517,7 +519,7 @@ impl Map {
         let n_classes = ClassTable::from_config(&cfg.classes)?.len();
         let mut ids = HashMap::new();
         for i in 0..set.len() {
-            set.check_image(i, n_classes, opts.values).map_err(|reason| Error::InvalidImage { id: set.ids[i].clone(), reason })?;
+            set.check_image(i, n_classes, opts.values).map_err(|e| e.named(|reason| Error::InvalidImage { id: set.ids[i].clone(), reason }))?;
             if let Some(first) = ids.insert(&set.ids[i], i) {
                 return Err(Error::RepeatedImageId { map: dir.into(), id: set.ids[i].clone(), first, second: i });
             }

@@ -473,13 +473,54 @@ pub fn coarse_topk(refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimPar
     })
 }
 
-/// The coarse stage through the GPU kernels' CPU twins (`ssim_tile`, `topk_merge`), tile by
-/// tile: the reference the fast path and the GPU path are held to.
+/// The coarse stage through the CPU twins of the kernels the GPU path runs (`ssim_block`, then
+/// `topk_partial` and `topk_merge_lists`), in the GPU executor's loop: passes of at most `tile`
+/// references (and at most what one merge takes), each scored into a queries x pass block,
+/// selected per segment and merged into the ping-pong running lists. The reference the fast path
+/// and the GPU path are held to. Descriptors too wide for `ssim_block`'s workgroup arrays (which
+/// the GPU path refuses) are scored by the one-pair reference twins (`ssim_tile`, `topk_merge`).
 pub fn coarse_topk_twin(refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimParams, k: usize, tile: usize) -> Vec<Vec<(f32, u32)>> {
+    use crate::kernels::abi::{Entry, PassParams};
+    use crate::kernels::topk_select::{topk_merge_lists, topk_partial, MAX_LISTS, SEG};
+    let (nq, n) = (queries.len(), refs.len());
     let mut buf = source::TileBuf::default();
-    stream_topk(queries.len(), refs.len(), k, tile, ssim_topk::topk_merge, |tp, scores| {
-        let (start, end) = (tp.tile_start as usize, (tp.tile_start + tp.tile_len) as usize);
-        let (g, st) = refs.tile(start, end, &mut buf);
-        ssim_topk::ssim_tile(p, tp, &queries.globals, &queries.global_stats, g, st, scores);
-    })
+    let Some((rb, qb)) = crate::kernels::ssim_block::block_shape(p) else {
+        return stream_topk(nq, n, k, tile, ssim_topk::topk_merge, |tp, scores| {
+            let (start, end) = (tp.tile_start as usize, (tp.tile_start + tp.tile_len) as usize);
+            let (g, st) = refs.tile(start, end, &mut buf);
+            ssim_topk::ssim_tile(p, tp, &queries.globals, &queries.global_stats, g, st, scores);
+        });
+    };
+    if nq == 0 || n == 0 || k == 0 {
+        return vec![Vec::new(); nq];
+    }
+    let pass_refs = tile.clamp(1, (MAX_LISTS - 1) * SEG);
+    let (mut top_a, mut top_b) = (vec![Entry::EMPTY; nq * k], vec![Entry::EMPTY; nq * k]);
+    let mut parity = 0;
+    for start in (0..n).step_by(pass_refs) {
+        let len = pass_refs.min(n - start);
+        let ps = PassParams {
+            queries: nq as u32,
+            refs: len as u32,
+            ref_first: 0,
+            ref_index: start as u32,
+            rb,
+            qb,
+            k: k as u32,
+            segs: len.div_ceil(SEG) as u32,
+            parity,
+            fresh: (start == 0) as u32,
+            ..Default::default()
+        };
+        let (g, st) = refs.tile(start, start + len, &mut buf);
+        let mut scores = vec![0.0; nq * len];
+        crate::kernels::ssim_block::ssim_block(p, &ps, &queries.globals, &queries.global_stats, &mut scores, g, st);
+        let mut partial = vec![Entry::EMPTY; nq * ps.segs as usize * k];
+        topk_partial(&ps, &scores, &mut partial);
+        topk_merge_lists(&ps, &partial, &mut top_a, &mut top_b);
+        parity ^= 1;
+    }
+    let top = if parity == 0 { top_a } else { top_b };
+    let (s, i): (Vec<f32>, Vec<u32>) = top.iter().map(|e| (e.score, e.index)).unzip();
+    ssim_topk::topk_lists(k, &s, &i)
 }

@@ -4,8 +4,11 @@ use crate::config::CoarseStage;
 use serde::{Deserialize, Serialize};
 
 /// A matching setting: which stages run and whether appearance takes part.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "kebab-case")]
+///
+/// Its names are [`Setting::name`]'s: serde writes and reads them (JSON, TOML, the map's files),
+/// and the command line's (clap's kebab-case) are held to them by a test. Every predicate below
+/// matches every variant, so a new one is decided for each, not counted false by default.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, clap::ValueEnum)]
 pub enum Setting {
     /// Baseline: VPR-Bench's HOG (grey 512 x 512, cosine), the floor any VPR method must beat.
     Hog,
@@ -59,39 +62,72 @@ impl Setting {
             // the appearance cosine; verification checks geometry (its semantic check is off)
             Setting::Hog | Setting::Appearance | Setting::Verified => None,
             Setting::Fused => Some("without labels its SSIM term is the same for every pair: it is the appearance baseline"),
-            _ => Some("needs semantic labels: give label maps, or install the default segmenter (`semlook models`)"),
+            Setting::Global | Setting::Forest | Setting::Local | Setting::GlobalForest | Setting::Semlook => {
+                Some("needs semantic labels: give label maps, or install the default segmenter (`semlook models`)")
+            }
         }
     }
-    pub fn is_baseline(self) -> bool {
-        matches!(self, Setting::Hog | Setting::Appearance)
+    /// The settings a map built without semantic labels serves, in [`Setting::ALL`]'s order:
+    /// those [`Setting::label_free`] lets run, `hog` only when the map stores HOG descriptors.
+    pub fn served_without_labels(hog: bool) -> impl Iterator<Item = Setting> {
+        Setting::ALL.into_iter().filter(move |&s| s.label_free().is_none() && (hog || s != Setting::Hog))
     }
+    /// A baseline (one whole-image vector per image, cosine), not a SemLook setting.
+    pub fn is_baseline(self) -> bool {
+        use Setting::*;
+        match self {
+            Hog | Appearance => true,
+            Global | Forest | Local | GlobalForest | Semlook | Fused | Verified => false,
+        }
+    }
+    /// The coarse stage (global SSIM, fused or not) ranks the map.
     pub fn uses_coarse(self) -> bool {
-        matches!(self, Setting::Global | Setting::GlobalForest | Setting::Semlook | Setting::Fused | Setting::Verified)
+        use Setting::*;
+        match self {
+            Global | GlobalForest | Semlook | Fused | Verified => true,
+            Hog | Appearance | Forest | Local => false,
+        }
     }
     /// Whether the coarse stage fuses the global descriptor with the whole-image appearance:
     /// always for `fused` and `verified`, for the paper's two-stage settings (3 and 4) when
     /// `matching.coarse` says so, never for `global` (the edge descriptor alone).
     pub fn fuses_coarse(self, coarse: CoarseStage) -> bool {
+        use Setting::*;
         match self {
-            Setting::Fused | Setting::Verified => true,
-            Setting::GlobalForest | Setting::Semlook => coarse == CoarseStage::Fused,
-            _ => false,
+            Fused | Verified => true,
+            GlobalForest | Semlook => coarse == CoarseStage::Fused,
+            Hog | Appearance | Global | Forest | Local => false,
         }
     }
+    /// The fine stage (forest similarity, with appearance where the setting has it) runs.
     pub fn uses_fine(self) -> bool {
-        !self.is_baseline() && !matches!(self, Setting::Global | Setting::Fused)
+        use Setting::*;
+        match self {
+            Forest | Local | GlobalForest | Semlook | Verified => true,
+            Hog | Appearance | Global | Fused => false,
+        }
     }
     /// The fine stage adds geometric verification.
     pub fn verifies(self) -> bool {
-        self == Setting::Verified
+        use Setting::*;
+        match self {
+            Verified => true,
+            Hog | Appearance | Global | Forest | Local | GlobalForest | Semlook | Fused => false,
+        }
     }
     /// Both stages: the fine stage re-ranks the coarse stage's candidates.
     pub fn reranks(self) -> bool {
         self.uses_coarse() && self.uses_fine()
     }
+    /// Appearance (XFeat VLAD) takes part in the ranking.
     pub fn uses_appearance(self) -> bool {
-        matches!(self, Setting::Local | Setting::Semlook | Setting::Fused | Setting::Verified)
+        use Setting::*;
+        match self {
+            Local | Semlook | Fused | Verified => true,
+            Hog | Appearance | Global | Forest | GlobalForest => false,
+        }
     }
+    /// The setting's one name: the command line's, the JSON's, the config's and Python's.
     pub fn name(self) -> &'static str {
         match self {
             Setting::Hog => "hog",
@@ -105,6 +141,11 @@ impl Setting {
             Setting::Verified => "verified",
         }
     }
+    /// The setting named by [`Setting::name`], if any.
+    pub fn from_name(name: &str) -> Option<Setting> {
+        Setting::ALL.into_iter().find(|s| s.name() == name)
+    }
+    /// A short description for tables.
     pub fn describe(self) -> &'static str {
         match self {
             Setting::Hog => "baseline: VPR-Bench HOG",
@@ -120,8 +161,54 @@ impl Setting {
     }
 }
 
+/// [`Setting::ALL`] holds each variant once, in the order of the enum.
+const _: () = {
+    let mut i = 0;
+    while i < Setting::ALL.len() {
+        assert!(Setting::ALL[i] as usize == i, "Setting::ALL is out of order or lacks a variant");
+        i += 1;
+    }
+};
+
+impl Serialize for Setting {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.name())
+    }
+}
+
+impl<'de> Deserialize<'de> for Setting {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let name = String::deserialize(d)?;
+        Setting::from_name(&name).ok_or_else(|| {
+            let names: Vec<&str> = Setting::ALL.iter().map(|s| s.name()).collect();
+            serde::de::Error::custom(format!("unknown setting {name:?}: expected one of {}", names.join(", ")))
+        })
+    }
+}
+
 impl std::fmt::Display for Setting {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(self.name())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Setting;
+
+    /// One name per setting: the command line's (clap), serde's and Python's are `Setting::name`,
+    /// and `ALL` is the command line's list of variants.
+    #[test]
+    fn setting_names_are_one() {
+        assert_eq!(<Setting as clap::ValueEnum>::value_variants(), &Setting::ALL);
+        for s in Setting::ALL {
+            assert_eq!(clap::ValueEnum::to_possible_value(&s).map(|v| v.get_name().to_string()), Some(s.name().to_string()));
+            assert_eq!(<Setting as clap::ValueEnum>::from_str(s.name(), false), Ok(s));
+            assert_eq!(serde_json::to_string(&s).ok(), Some(format!("\"{}\"", s.name())));
+            assert_eq!(serde_json::from_str::<Setting>(&format!("\"{}\"", s.name())).ok(), Some(s));
+            assert_eq!(Setting::from_name(s.name()), Some(s));
+        }
+        let err = serde_json::from_str::<Setting>("\"verify\"").unwrap_err().to_string();
+        assert!(err.contains("unknown setting \"verify\"") && err.contains("global-forest"), "{err}");
     }
 }

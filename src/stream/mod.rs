@@ -437,7 +437,7 @@ impl Localizer {
 
     /// What decodes frames to the working size (the labels read or made as `map build` does):
     /// cheap to clone, so another thread can decode the next frame while this one is matched
-    /// ([`load_frame`], then [`Localizer::push_loaded`]).
+    /// (`load_frame`, then [`Localizer::push_loaded`]).
     pub fn loader(&self) -> FrameDecoder {
         FrameDecoder { encoder: self.encoder.clone(), format: self.format }
     }
@@ -564,7 +564,7 @@ impl Localizer {
         let (range, tracking) = self.search_range(map, frame.timestamp);
         let src = Window::new(map, range);
         let mut queries = self.encoder.descriptor_set();
-        queries.push(img).map_err(|r| Error::invalid(format!("frame {:?}", frame.id), r))?;
+        queries.push(img).map_err(|e| e.named(|r| Error::invalid(format!("frame {:?}", frame.id), r)))?;
         let setting = self.opts.setting;
         let full_rows = self.opts.sequence && self.cfg.sequence.rows == SequenceRows::Full;
         let cfg_rows;

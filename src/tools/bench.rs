@@ -460,7 +460,7 @@ pub fn street_descriptors(cfg: &Config, n: usize, cond: crate::tools::synth::con
         .collect::<Result<_>>()?;
     let mut set = DescriptorSet::new(&enc.global().ssim_params(), cfg.local.neighbours, 0, 0);
     for img in &images {
-        set.push(img).map_err(|r| crate::Error::invalid("bench pool", r))?;
+        set.push(img).map_err(|e| e.named(|r| crate::Error::invalid("bench pool", r)))?;
     }
     Ok(set)
 }

@@ -39,15 +39,17 @@ pub struct Pass {
 }
 
 impl std::str::FromStr for Pass {
-    type Err = String;
-    /// `QUERIES` or `QUERIES:REFS` (`REFS` a number or `all`).
-    fn from_str(s: &str) -> std::result::Result<Pass, String> {
+    type Err = Error;
+    /// `QUERIES` or `QUERIES:REFS` (`REFS` a number or `all`); a bad one is an [`Error::Check`]
+    /// (the command line names the option).
+    fn from_str(s: &str) -> Result<Pass> {
         let (q, r) = s.split_once(':').unwrap_or((s, "all"));
-        let num = |v: &str| v.trim().parse::<usize>().map_err(|_| format!("{v:?} is not a whole number (expected QUERIES or QUERIES:REFS)"));
+        let num =
+            |v: &str| v.trim().parse::<usize>().map_err(|_| Error::check(format!("{v:?} is not a whole number (expected QUERIES or QUERIES:REFS)")));
         let queries = num(q)?;
         let refs = if r.trim() == "all" { None } else { Some(num(r)?) };
         if queries == 0 || refs == Some(0) {
-            return Err("a pass needs at least one query and one reference".into());
+            return Err(Error::check("a pass needs at least one query and one reference"));
         }
         Ok(Pass { queries, refs })
     }
@@ -267,7 +269,7 @@ pub fn run(cfg: &Config, opts: &StoreBenchOptions, tick: &mut dyn FnMut(&StoreBe
         for i in 0..n {
             let mut q = qpool[i % QUERY_POOL].clone();
             q.id = format!("q{i}");
-            queries.push(&q).map_err(|r| Error::invalid("bench queries", r))?;
+            queries.push(&q).map_err(|e| e.named(|r| Error::invalid("bench queries", r)))?;
         }
         Ok(queries)
     };

@@ -1,7 +1,7 @@
 //! What sits beside the engine, behind the `tools` cargo feature (on by default; the command line
-//! needs it): the synthetic benchmark's renderer ([`synth`]), pictures of every stage, explain
-//! sheets and precision-recall charts ([`viz`]), the large-map matching and store benchmarks with
-//! their /proc readers ([`bench`], [`bench_store`]), the stream replay benchmark ([`bench_stream`]) and the configuration sweeps ([`tune`]). The
+//! needs it): the synthetic benchmark's renderer (`synth`), pictures of every stage, explain
+//! sheets and precision-recall charts (`viz`), the large-map matching and store benchmarks with
+//! their /proc readers (`bench`, `bench_store`), the stream replay benchmark (`bench_stream`) and the configuration sweeps (`tune`). The
 //! engine never imports them (`tests/layering.rs`); an application embedding the engine turns the
 //! feature off (`default-features = false`) and builds none of them.
 

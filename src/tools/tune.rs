@@ -92,7 +92,7 @@ impl Sweep {
     pub fn config(&self, values: &[(String, toml::Value)], name: &str) -> Result<Config> {
         let mut t = self.base.clone();
         for (key, v) in values {
-            set_dotted(&mut t, key, v.clone()).map_err(|reason| Error::InvalidConfig { source_name: name.into(), reason })?;
+            set_dotted(&mut t, key, v.clone()).map_err(|e| e.named(|reason| Error::InvalidConfig { source_name: name.into(), reason }))?;
         }
         Config::from_toml(&toml::to_string(&t).map_err(|e| Error::InvalidConfig { source_name: name.into(), reason: e.to_string() })?, name)
     }
@@ -109,16 +109,16 @@ fn merge(dst: &mut toml::Table, src: &toml::Table) {
     }
 }
 
-fn set_dotted(t: &mut toml::Table, key: &str, v: toml::Value) -> std::result::Result<(), String> {
+fn set_dotted(t: &mut toml::Table, key: &str, v: toml::Value) -> Result<()> {
     let mut parts: Vec<&str> = key.split('.').collect();
-    let last = parts.pop().filter(|l| !l.is_empty()).ok_or_else(|| format!("empty key {key:?}"))?;
+    let last = parts.pop().filter(|l| !l.is_empty()).ok_or_else(|| Error::check(format!("empty key {key:?}")))?;
     let mut cur = t;
     for p in parts {
         cur = cur
             .entry(p.to_string())
             .or_insert_with(|| toml::Value::Table(Default::default()))
             .as_table_mut()
-            .ok_or_else(|| format!("{key:?}: {p:?} is not a section"))?;
+            .ok_or_else(|| Error::check(format!("{key:?}: {p:?} is not a section")))?;
     }
     cur.insert(last.to_string(), v);
     Ok(())
@@ -181,7 +181,7 @@ fn encode_cached(encoder: &Encoder, frames: &[Cached]) -> Result<DescriptorSet> 
         .collect::<Result<_>>()?;
     let mut set = encoder.descriptor_set();
     for img in &images {
-        set.push(img).map_err(|r| Error::invalid("tune", r))?;
+        set.push(img).map_err(|e| e.named(|r| Error::invalid("tune", r)))?;
     }
     Ok(set)
 }

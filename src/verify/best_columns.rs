@@ -27,6 +27,9 @@ pub fn best_columns(q: &[i8], r: &[i8], dim: usize, scratch: &mut Vec<f32>) -> B
     scratch.clear();
     scratch.resize(nq * nr, 0.0);
     // S = Q (nq x dim) * R^T (dim x nr)
+    // SAFETY: qf is nq x dim (row stride dim), rf read as dim x nr (row stride 1, column stride
+    // dim) is R^T, scratch is nq x nr (row stride nr); all three live for the call, and scratch,
+    // the only one written, aliases neither input.
     unsafe {
         matrixmultiply::sgemm(
             nq,

@@ -31,6 +31,7 @@ unsafe impl GlobalAlloc for Capped {
         if !admit(layout.size()) {
             return std::ptr::null_mut();
         }
+        // SAFETY: the caller's contract of GlobalAlloc, passed on to the system allocator unchanged
         let p = unsafe { System.alloc(layout) };
         if p.is_null() {
             LIVE.fetch_sub(layout.size(), Ordering::Relaxed);
@@ -41,6 +42,7 @@ unsafe impl GlobalAlloc for Capped {
         if !admit(layout.size()) {
             return std::ptr::null_mut();
         }
+        // SAFETY: the caller's contract of GlobalAlloc, passed on to the system allocator unchanged
         let p = unsafe { System.alloc_zeroed(layout) };
         if p.is_null() {
             LIVE.fetch_sub(layout.size(), Ordering::Relaxed);
@@ -48,6 +50,7 @@ unsafe impl GlobalAlloc for Capped {
         p
     }
     unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: the caller's contract of GlobalAlloc, passed on to the system allocator unchanged
         unsafe { System.dealloc(ptr, layout) };
         LIVE.fetch_sub(layout.size(), Ordering::Relaxed);
     }
@@ -56,6 +59,7 @@ unsafe impl GlobalAlloc for Capped {
         if new_size > MAX_ONE || (new_size > old && !admit(new_size - old)) {
             return std::ptr::null_mut();
         }
+        // SAFETY: the caller's contract of GlobalAlloc, passed on to the system allocator unchanged
         let p = unsafe { System.realloc(ptr, layout, new_size) };
         if p.is_null() {
             if new_size > old {

@@ -117,9 +117,7 @@ fn build_into(
 
 /// The settings a map without labels serves (`hog` only when it stores HOG descriptors).
 fn label_free_settings(hog: bool) -> String {
-    use semlook::matching::Setting;
-    let served = Setting::ALL.iter().filter(|&&s| s.label_free().is_none() && (hog || s != Setting::Hog));
-    served.map(|s| s.name()).collect::<Vec<_>>().join(", ")
+    semlook::matching::Setting::served_without_labels(hog).map(|s| s.name()).collect::<Vec<_>>().join(", ")
 }
 
 fn report_encoding(r: &batch::IntoReport, quiet: bool) {

@@ -68,40 +68,10 @@ pub fn frame_sources(s: &SourceArgs, cfg: &mut Config, keep_ids: bool) -> Result
         let frames = trav.frames.iter().map(|f| f.source.clone()).collect();
         return Ok((frames, s.label_format.unwrap_or(ds.label_format)));
     }
-    // a folder without images is named, before any work
-    let listing = |dir: &std::path::PathBuf| -> Result<Vec<std::path::PathBuf>> {
-        let files = semlook::dataset::image_files(dir)?;
-        if files.is_empty() {
-            return Err(Error::invalid(dir.display().to_string(), "no images (png, jpg) in this folder"));
-        }
-        Ok(files)
-    };
-    let stem = |p: &Path| p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-    let frames = match (&s.images, &s.labels) {
-        (Some(img), labels) => listing(img)?
-            .into_iter()
-            .map(|p| {
-                // the label file from the OS name itself: a non-UTF-8 name is found, not mangled
-                let label_name = |l: &std::path::PathBuf| {
-                    let mut n = p.file_stem().unwrap_or_default().to_os_string();
-                    n.push(".png");
-                    l.join(n)
-                };
-                FrameSource { id: stem(&p), labels: labels.as_ref().map(label_name), image: Some(p.clone()) }
-            })
-            .collect(),
-        (None, Some(labels)) => listing(labels)?.into_iter().map(|p| FrameSource { id: stem(&p), image: None, labels: Some(p) }).collect(),
-        (None, None) => return Err(Error::invalid("arguments", "give --dataset, --images or --labels")),
-    };
-    // two files of one stem would be one id: named before anything is created
-    let frames: Vec<FrameSource> = frames;
-    let mut seen: std::collections::HashMap<&str, &FrameSource> = std::collections::HashMap::new();
-    for f in &frames {
-        if let Some(other) = seen.insert(f.id.as_str(), f) {
-            let file = |s: &FrameSource| s.image.as_ref().or(s.labels.as_ref()).map_or(String::new(), |p| p.display().to_string());
-            return Err(Error::invalid(file(f), format!("has the same name (id {:?}) as {}: rename one of them", f.id, file(other))));
-        }
+    if s.images.is_none() && s.labels.is_none() {
+        return Err(Error::invalid("arguments", "give --dataset, --images or --labels"));
     }
+    let frames = semlook::dataset::frames_from_folders(s.images.as_deref(), s.labels.as_deref())?;
     Ok((frames, s.label_format.unwrap_or_default()))
 }
 

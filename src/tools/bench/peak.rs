@@ -1,7 +1,7 @@
 //! The peaks the benchmark divides by.
 //! - CPU: measured, not a data-sheet figure: an FMA loop on one thread with the widest vectors
 //!   `pulp` finds, [`ACCUMULATORS`] independent chains (2 flops per lane per FMA), best of
-//!   [`RUNS`], times the worker threads. It is what these cores sustain on dense multiply-adds;
+//!   `RUNS`, times the worker threads. It is what these cores sustain on dense multiply-adds;
 //!   an SSIM comparison also needs additions and a division per window, so it cannot reach it.
 //! - GPU: FP32 (non-tensor) data-sheet peaks of a few datacentre parts, or `--peak-gflops`.
 //!   Software adapters (lavapipe, llvmpipe) have none: their rows are correctness only.
@@ -80,7 +80,7 @@ pub fn cpu_model() -> String {
         .unwrap_or_else(|| "cpu".into())
 }
 
-/// FMA throughput of one thread, GFLOP/s: the best of [`RUNS`] runs of [`MEASURE_S`] each (other
+/// FMA throughput of one thread, GFLOP/s: the best of `RUNS` runs of `MEASURE_S` each (other
 /// processes on the machine can only lower a run, never raise it).
 pub fn thread_peak_gflops() -> f64 {
     let arch = pulp::Arch::new();

@@ -14,7 +14,7 @@ use crate::error::{Error, Result};
 use crate::input::{FrameSource, LabelFormat, LabelMap};
 use crate::local::Forest;
 use crate::objects::{ObjectMap, NO_OBJECT};
-use image::{GrayImage, Rgb, RgbImage};
+use image::{Rgb, RgbImage};
 use std::path::Path;
 
 /// A picture and its title.
@@ -241,14 +241,6 @@ pub fn write_panels(panels: &[Panel], dir: &Path) -> Result<Vec<std::path::PathB
 
 pub fn save(img: &RgbImage, path: &Path) -> Result<()> {
     img.save(path).map_err(|e| Error::invalid(path.display().to_string(), e.to_string()))
-}
-
-/// Grey image to RGB (for pasting).
-pub fn grey_to_rgb(g: &GrayImage) -> RgbImage {
-    RgbImage::from_fn(g.width(), g.height(), |x, y| {
-        let v = g.get_pixel(x, y).0[0];
-        Rgb([v, v, v])
-    })
 }
 
 /// One column of an explain sheet: a frame's image and labels under a caption (the image alone

@@ -16,7 +16,7 @@ use std::path::{Path, PathBuf};
 pub struct WorstQuery<'a> {
     pub query_set: &'a str,
     pub outcome: &'a QueryOutcome,
-    pub sheet: std::result::Result<RgbImage, String>,
+    pub sheet: Result<RgbImage>,
 }
 
 /// What the report shows beyond the evaluation itself.
@@ -189,7 +189,7 @@ fn worst_section(h: &mut String, inputs: &ReportInputs) -> Result<()> {
         match &w.sheet {
             Ok(sheet) => h.push_str(&img("image/jpeg", &jpeg(sheet)?, &caption)),
             Err(why) => {
-                let _ = write!(h, "<p>(no sheet: {})</p>", prose(why));
+                let _ = write!(h, "<p>(no sheet: {})</p>", prose(&why.to_string()));
             }
         }
         let _ = writeln!(h, "<figcaption>{}</figcaption></figure>", escape(&caption));
