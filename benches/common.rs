@@ -2,9 +2,10 @@
 #![allow(dead_code)]
 
 use semlook::config::Config;
-use semlook::encode::{EncodedImage, Encoder};
+use semlook::descriptors::DescriptorSet;
+use semlook::descriptors::EncodedImage;
+use semlook::encode::Encoder;
 use semlook::input::LabelMap;
-use semlook::map::DescriptorSet;
 use semlook::tools::synth::{self, condition::Condition, SynthConfig};
 
 /// `n` label maps of consecutive places at `w` x `h` (degraded as under `cond`).

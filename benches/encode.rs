@@ -53,15 +53,13 @@ fn bench(c: &mut Criterion) {
             g.bench_function("appearance: XFeat network, dense descriptors only (native)", |b| b.iter(|| model.run(&grey).unwrap()));
             // decoding needs the heads' outputs
             let out = with_heads.run(&grey).unwrap();
-            let params = semlook::appearance::keypoints::KeypointParams { nms_radius: 4, threshold: 0.005, max_keypoints: 1024, border: 4 };
+            // the decoding as the configuration sets it (`[appearance]`, and `[keypoints]` below)
+            let params = semlook::appearance::keypoints::KeypointParams::appearance(&Config::default().appearance);
             g.bench_function("appearance: keypoint decoding (keypoints::extract, keypoint sampling)", |b| {
                 b.iter(|| semlook::appearance::keypoints::extract(&out, &params).unwrap())
             });
-            let detect = semlook::appearance::keypoints::KeypointParams {
-                nms_radius: kp.nms_radius,
-                threshold: kp.score_threshold as f32,
-                max_keypoints: kp.stored,
-                border: kp.border,
+            let Some(detect) = semlook::appearance::keypoints::KeypointParams::verification(&kp) else {
+                return eprintln!("keypoint detection benchmark skipped: the config stores no verification keypoints");
             };
             g.bench_function("appearance: verification keypoints (keypoints::detect)", |b| {
                 b.iter(|| semlook::appearance::keypoints::detect(&out, &detect).unwrap())

@@ -1,5 +1,5 @@
-//! Every tunable of the engine, with the defaults of the design reference (`semlook-spec.md` §3).
-//! Choices the paper does not state (\[R\] in the spec) are all here, so that a user can change them
+//! Every tunable of the engine, with the defaults of the design reference (`docs/design/method.md` §3).
+//! Choices the paper does not state (\[R\] in method.md) are all here, so that a user can change them
 //! in a TOML file. `semlook config` prints this struct's defaults.
 //!
 //! Sections split in two groups: the *encoding* sections ([`EncodingConfig`]: `input`, `classes`,
@@ -355,9 +355,9 @@ pub struct SimilarityConfig {
     /// gain: many small, fragmented objects no longer outvote the large ones).
     pub tree_weight: TreeWeight,
     /// The sum of weighted pair scores is divided by "larger_forest" (the larger total tree
-    /// weight, spec §2.8) or "geometric_mean" (sqrt of the product of the totals). \[R\] larger_forest.
+    /// weight, method.md §2.8) or "geometric_mean" (sqrt of the product of the totals). \[R\] larger_forest.
     pub normalise: Normalise,
-    /// Which trees may pair (spec §2.8: only the same class): "class", "category" (the same
+    /// Which trees may pair (method.md §2.8: only the same class): "class", "category" (the same
     /// category, e.g. road with sidewalk, building with wall: what an off-domain segmenter swaps),
     /// or "category_with_appearance" (categories where appearance takes part, classes in the
     /// label-only Forest settings). \[R\] category_with_appearance (sweep 06, mean R@1 over the
@@ -375,7 +375,7 @@ pub enum ClassMatch {
 }
 
 impl SimilarityConfig {
-    /// The design reference's reconstruction (spec §2.8) before any sweep: S_in in equal thirds,
+    /// The design reference's reconstruction (method.md §2.8) before any sweep: S_in in equal thirds,
     /// S = 0.5 S_in + 0.5 S_N, uniform tree weights.
     pub fn spec() -> Self {
         SimilarityConfig {
@@ -472,7 +472,7 @@ pub struct MatchingConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum CoarseStage {
-    /// SSIM of the semantic-edge global descriptors (spec §2.7).
+    /// SSIM of the semantic-edge global descriptors (method.md §2.7).
     Global,
     /// cos(whole-image appearance) + w_global x SSIM.
     Fused,

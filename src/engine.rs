@@ -5,9 +5,11 @@
 //! never picks it; `gpu` accepts it, which is what the equivalence tests run on).
 
 use crate::config::Config;
+use crate::descriptors::source::{GlobalSource, RefSource};
 use crate::descriptors::DescriptorSet;
+use crate::descriptors::EncodedImage;
 use crate::encode::phases::Pending;
-use crate::encode::{EncodedImage, Encoder, Loaded, StageTimes};
+use crate::encode::{Encoder, Loaded, StageTimes};
 use crate::error::{Error, Result};
 use crate::gpu::{
     coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, verify::MnnGpu, vlad::VladGpu, xfeat::NetworkSlot, GpuContext,
@@ -16,11 +18,7 @@ use crate::gpu::{
 use crate::input::{FrameSource, LabelFormat, LabelMap};
 use crate::kernels::abi::SsimParams;
 use crate::kernels::abi::TreeSimParams;
-use crate::matching::{
-    candidates, fine_scores, match_with,
-    source::{GlobalSource, RefSource},
-    CandidateLists, CpuStages, MatchTimes, QueryMatch, Setting, Stages,
-};
+use crate::matching::{candidates, fine_scores, match_with, CandidateLists, CpuStages, MatchTimes, QueryMatch, Setting, Stages};
 use crate::util::ms_since;
 use crate::verify::{Verified, VerifyParams};
 use rayon::prelude::*;
@@ -124,7 +122,9 @@ impl GpuStages {
         (self.coarse.as_ref().map_or(0, |c| c.1.map_bytes()), self.fine.map_bytes())
     }
 
-    /// Most frames an encoding call has held decoded at once (at most [`STREAM_FRAMES`]).
+    /// Most frames an encoding call has held decoded at once (at most [`STREAM_FRAMES`]). A test
+    /// hook (the bounded-memory tests read it), not the API.
+    #[doc(hidden)]
     pub fn decoded_peak(&self) -> usize {
         self.decoded_peak
     }

@@ -43,7 +43,6 @@
 //! ```
 
 pub mod appearance;
-pub mod baseline;
 pub mod batch;
 
 pub mod classes;
@@ -57,6 +56,7 @@ pub mod eval;
 pub mod global;
 pub mod gpu;
 pub mod hloc;
+pub mod hog;
 pub mod input;
 pub mod kernels;
 pub mod local;

@@ -260,5 +260,5 @@ fn hog_leaves_the_encoding_of_a_real_frame_unchanged() {
     assert!(bits(&a.appearance) == bits(&b.appearance), "image appearance differs");
     // and HOG is still VPR-Bench's: from the full-size decode
     let (full, _) = semlook::input::load_rgb_at_least(&dir.join("020.jpg"), |size| size).unwrap();
-    assert!(bits(&b.hog) == bits(&semlook::baseline::vprbench_hog(&full)), "HOG is not from the full-size decode");
+    assert!(bits(&b.hog) == bits(&semlook::hog::vprbench_hog(&full)), "HOG is not from the full-size decode");
 }

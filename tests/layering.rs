@@ -420,7 +420,6 @@ fn library_messages_name_no_command_line_flag() {
 /// `pub mod` is one or the other by decision, never by default.
 const PUBLIC_MODULES: [&str; 25] = [
     "appearance",
-    "baseline",
     "batch",
     "classes",
     "config",
@@ -433,6 +432,7 @@ const PUBLIC_MODULES: [&str; 25] = [
     "global",
     "gpu",
     "hloc",
+    "hog",
     "input",
     "kernels",
     "local",

@@ -5,10 +5,10 @@
 mod common;
 
 use semlook::config::Config;
+use semlook::descriptors::source::{GlobalSource, RefSource, TileBuf};
 use semlook::descriptors::DescriptorSet;
 use semlook::error::Error;
 use semlook::map::{edit, Map, MapWriter, StoreOptions};
-use semlook::matching::source::{GlobalSource, RefSource, TileBuf};
 use semlook::matching::{match_batch, match_with, CpuStages, Setting};
 use semlook::values::ValueType;
 use std::path::Path;
@@ -421,7 +421,7 @@ fn an_f16_map_with_appearance_matches_like_its_widened_set() {
 
 #[test]
 fn device_cache_keys_follow_the_map_and_its_generation() {
-    use semlook::matching::source::SourceKey;
+    use semlook::descriptors::source::SourceKey;
     let dir = tempfile::tempdir().unwrap();
     let (cfg, set, mut a) = segmented(&dir.path().join("a"), 6, 4, ValueType::F16);
     let (_, _, b) = segmented(&dir.path().join("b"), 6, 4, ValueType::F16);

@@ -5,10 +5,10 @@
 mod common;
 
 use semlook::config::{AppearanceModelKind, Config};
+use semlook::descriptors::source::{Place, RefSource};
 use semlook::engine::Engine;
 use semlook::input::FrameSource;
 use semlook::map::{Map, MapWriter, StoreOptions, TraversalPlan};
-use semlook::matching::source::{Place, RefSource};
 use semlook::matching::Setting;
 use semlook::stream::{FrameResult, Localizer, Pixels, StreamFrame, StreamOptions};
 use semlook::tools::synth::camvid::{self, Change};

@@ -15,12 +15,11 @@ use numpy::{PyUntypedArray, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use rayon::prelude::*;
 use semlook::config::Config;
+use semlook::descriptors::source::RefSource;
 use semlook::descriptors::DescriptorSet;
 use semlook::encode::Encoder;
 use semlook::input::LabelMap;
 use semlook::map::{edit, Map, MapWriter, StoreOptions};
-use semlook::matching::source::RefSource;
-use semlook::matching::Setting;
 use semlook::values::{ValueType, Values};
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -62,7 +61,7 @@ impl PyMap {
         // serves the settings that need none and refuses the others by name
         let without_labels = !set.is_empty() && set.n_trees() == 0 && !enc.frames().can_segment();
         let m = py.detach(|| -> semlook::Result<Map> {
-            let dims = semlook::map::Dims { appearance: set.appearance_dim, hog: set.hog_dim, keypoints: set.keypoint_dim };
+            let dims = semlook::map::ColumnDims { appearance: set.appearance_dim, hog: set.hog_dim, keypoints: set.keypoint_dim };
             let mut w = MapWriter::create(&path, enc.config(), dims, enc.appearance_record(), opts, false)?;
             if without_labels {
                 w = w.without_labels()?;
@@ -240,7 +239,7 @@ impl PyMap {
                 (.., Some(_)) => return Err(invalid("ids", "given with Descriptors, which carry their ids")),
             },
             _ => {
-                let enc = py.detach(|| self.encoder(&map, &cfg)).py_err()?.with_hog(s == Setting::Hog);
+                let enc = py.detach(|| self.encoder(&map, &cfg)).py_err()?.for_setting(s);
                 // files: a folder or a list of paths (as queries=, images= or labels=)
                 match (queries, images, labels) {
                     (Some(q), None, None) if are_paths(q) => Input::Files(Box::new(enc), build_frames(Some(q), None, ids, ["queries", "labels"])?),

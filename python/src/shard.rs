@@ -16,10 +16,11 @@ use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2,
 use pyo3::prelude::*;
 use rayon::ThreadPool;
 use semlook::config::Config;
+use semlook::descriptors::source::RefSource;
 use semlook::engine::Engine;
 use semlook::kernels::ssim_topk::merge_lists;
 use semlook::map::{shard, Map};
-use semlook::matching::{self, source::RefSource};
+use semlook::matching;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 

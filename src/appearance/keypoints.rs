@@ -18,6 +18,25 @@ pub struct KeypointParams {
     pub border: usize,
 }
 
+impl KeypointParams {
+    /// The decoding of the appearance keypoints (`[appearance]`: VLAD's keypoints when
+    /// `sampling = "keypoints"`).
+    pub fn appearance(cfg: &crate::config::AppearanceConfig) -> KeypointParams {
+        KeypointParams { nms_radius: cfg.nms_radius, threshold: cfg.score_threshold as f32, max_keypoints: cfg.max_keypoints, border: cfg.border }
+    }
+
+    /// The detection of the stored verification keypoints (`[keypoints]`); `None` when a map
+    /// stores none.
+    pub fn verification(cfg: &crate::config::KeypointsConfig) -> Option<KeypointParams> {
+        (cfg.stored > 0).then_some(KeypointParams {
+            nms_radius: cfg.nms_radius,
+            threshold: cfg.score_threshold as f32,
+            max_keypoints: cfg.stored,
+            border: cfg.border,
+        })
+    }
+}
+
 /// Keypoints of one image, in the coordinates of the network input.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct Keypoints {

@@ -1,4 +1,4 @@
-//! Stage 2c: appearance, the "AP" half of SemLook's local descriptor (spec §2.4). A learned
+//! Stage 2c: appearance, the "AP" half of SemLook's local descriptor (`docs/design/method.md` §2.4). A learned
 //! keypoint network (XFeat by default, run natively; or any SuperPoint-layout ONNX model) gives
 //! keypoints and descriptors; the descriptors inside each object are aggregated by VLAD against
 //! a codebook trained on the map's reference images.
@@ -54,12 +54,7 @@ use crate::util::sha256_file;
 impl AppearanceModel {
     /// Loads the configured network; `None` when appearance is off.
     pub fn load(cfg: &AppearanceConfig, paths: &ModelPaths) -> Result<Option<AppearanceModel>> {
-        let params = KeypointParams {
-            nms_radius: cfg.nms_radius,
-            threshold: cfg.score_threshold as f32,
-            max_keypoints: cfg.max_keypoints,
-            border: cfg.border,
-        };
+        let params = KeypointParams::appearance(cfg);
         match cfg.model {
             AppearanceModelKind::None => Ok(None),
             AppearanceModelKind::Xfeat => {
@@ -103,12 +98,7 @@ impl AppearanceModel {
 
     /// The model that also detects the verification keypoints of `cfg` (none when it stores none).
     pub fn with_detection(mut self, cfg: &KeypointsConfig) -> AppearanceModel {
-        self.detect = (cfg.stored > 0).then_some(KeypointParams {
-            nms_radius: cfg.nms_radius,
-            threshold: cfg.score_threshold as f32,
-            max_keypoints: cfg.stored,
-            border: cfg.border,
-        });
+        self.detect = KeypointParams::verification(cfg);
         self
     }
 

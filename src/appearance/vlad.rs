@@ -1,4 +1,4 @@
-//! VLAD per object (Jégou, Douze, Schmid & Pérez, CVPR 2010; spec §2.4): each keypoint inside an
+//! VLAD per object (Jégou, Douze, Schmid & Pérez, CVPR 2010; `docs/design/method.md` §2.4): each keypoint inside an
 //! object is assigned to its nearest codebook centre, residuals are summed per centre, each
 //! centre's sum is L2-normalised (intra-normalisation), optionally power-normalised, and the
 //! concatenation is L2-normalised. Here: that definition (`vlad_reference`, in f64) and the
@@ -8,7 +8,7 @@
 use crate::error::{Error, Result};
 use crate::util::SplitMix64;
 
-/// The normalisations of a VLAD vector (spec §2.4).
+/// The normalisations of a VLAD vector (method.md §2.4).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct VladNorm {
     /// L2 per centre (intra-normalisation).

@@ -6,20 +6,22 @@ mod map_cmd;
 mod pairs;
 mod shared;
 
-use shared::{apply_models, check_output_dir, check_output_file, frame_sources, info, load_config, map_config, to_json};
+use shared::{apply_models, check_output_dir, check_output_file, frame_sources, info, load_config, map_config, to_json, write_file};
 
 use super::args::*;
 use semlook::batch::encode_frames;
 use semlook::config::Config;
 use semlook::dataset::{Dataset, DatasetOptions};
+use semlook::descriptors::source::RefSource;
+use semlook::descriptors::DescriptorSet;
 use semlook::encode::Encoder;
 use semlook::engine::{Backend, Engine};
 use semlook::error::{Error, Result};
 use semlook::eval::{evaluate, EvalOptions, EvalReport, RunRecord, DEFAULT_SETTINGS};
 use semlook::gpu::GpuOptions;
 use semlook::input::{FrameSource, LabelFormat};
-use semlook::map::{DescriptorSet, Map};
-use semlook::matching::{source::RefSource, QueryMatch, Setting};
+use semlook::map::Map;
+use semlook::matching::{QueryMatch, Setting};
 use semlook::progress;
 use semlook::tools::synth::condition::Condition;
 use semlook::tools::synth::{self, SynthConfig};
@@ -236,7 +238,7 @@ fn run_query(
     quiet: bool,
 ) -> Result<(DescriptorSet, Vec<QueryMatch>, RunRecord)> {
     semlook::matching::check_labels(map, setting)?;
-    let encoder = Encoder::for_map(cfg, map)?.with_hog(setting == Setting::Hog);
+    let encoder = Encoder::for_map(cfg, map)?.for_setting(setting);
     let queries = encode_sources(engine, &encoder, frames, fmt, "queries", s.skip_invalid, quiet)?;
     let t = Instant::now();
     let (matches, _) = engine.match_batch(map, &queries, setting, cfg)?;
@@ -245,10 +247,6 @@ fn run_query(
         format!("matched {} queries against {} references ({setting}) in {:.1} ms", queries.len(), map.len(), t.elapsed().as_secs_f64() * 1e3),
     );
     Ok((queries, matches, RunRecord::new(&encoder, cfg, engine)?))
-}
-
-fn write_file(path: &Path, text: &str) -> Result<()> {
-    std::fs::write(path, text).map_err(|e| Error::io(path, e))
 }
 
 fn query(engine: &mut Engine, a: &QueryArgs, quiet: bool) -> Result<()> {

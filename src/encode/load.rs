@@ -282,7 +282,7 @@ impl FrameLoader {
         let hog = match (f.hog_rgb.as_ref().or(f.rgb.as_ref()), self.hog) {
             (Some(img), true) => {
                 let t = Instant::now();
-                let h = crate::baseline::vprbench_hog(img);
+                let h = crate::hog::vprbench_hog(img);
                 times.hog_ms = ms_since(t);
                 Some(h)
             }

@@ -28,7 +28,7 @@ use crate::util::ms_since;
 use rayon::prelude::*;
 use std::time::Instant;
 
-pub use crate::descriptors::EncodedImage;
+use crate::descriptors::EncodedImage;
 
 /// What computes the global descriptor: semantic edges of the used classes, their distance
 /// transform, the pooled descriptor and its SSIM window statistics.
@@ -77,10 +77,15 @@ impl Encoder {
         let global = GlobalStage { cfg: cfg.global.clone(), used: table.used_mask(), ssim: SsimParams::new(&cfg.global) };
         Ok(Encoder { frames: FrameLoader::new(cfg, &table, appearance.is_some())?, global, table, cfg: cfg.encoding(), appearance })
     }
-    /// Whether the encoder also computes the HOG baseline (VPR-Bench's, [`crate::baseline`]).
+    /// Whether the encoder also computes the HOG baseline (VPR-Bench's, [`crate::hog`]).
     pub fn with_hog(mut self, hog: bool) -> Encoder {
         self.frames.hog = hog;
         self
+    }
+    /// The encoder for queries matched in `setting`: it computes the HOG baseline's descriptor
+    /// only for that setting (maps store HOG only when built with it).
+    pub fn for_setting(self, setting: crate::matching::Setting) -> Encoder {
+        self.with_hog(setting == crate::matching::Setting::Hog)
     }
     /// With `on`, a frame with neither a label map nor a segmenter to make one is encoded with a
     /// void label map: no edges, no objects, a global descriptor the same for every frame. Only
@@ -163,7 +168,7 @@ impl Encoder {
     }
     /// An empty descriptor set laid out for this encoder's images.
     pub fn descriptor_set(&self) -> crate::descriptors::DescriptorSet {
-        let hog = if self.frames.hog { crate::baseline::HOG_DIM } else { 0 };
+        let hog = if self.frames.hog { crate::hog::HOG_DIM } else { 0 };
         let codebook = self.codebook().filter(|_| self.appearance_dim() > 0).and_then(|c| c.sha256().ok());
         crate::descriptors::DescriptorSet::new(&self.global.ssim, self.cfg.local.neighbours, self.appearance_dim(), hog)
             .with_keypoint_dim(self.keypoint_dim())

@@ -1,4 +1,4 @@
-//! VPR-Bench metrics (Zaffar et al., IJCV 2021, `performance_comparison.py`; spec §4.3).
+//! VPR-Bench metrics (Zaffar et al., IJCV 2021, `performance_comparison.py`; `docs/design/method.md` §4.3).
 //!
 //! Each query contributes its top-1 score s(q) and whether its top-1 reference is correct y(q).
 //! The precision-recall curve is scikit-learn's `precision_recall_curve(y, s)`: one point per

@@ -1,4 +1,4 @@
-//! Stage 2a: the SemLook global descriptor ("Edge (Coarse)", spec §2.2 and §2.7).
+//! Stage 2a: the SemLook global descriptor ("Edge (Coarse)", `docs/design/method.md` §2.2 and §2.7).
 //!
 //! label map -> semantic boundary pixels -> exact Euclidean distance transform -> truncation at
 //! τ = `truncation` x diagonal -> area resize to `width` x `height`, values in [0, 1]; plus the

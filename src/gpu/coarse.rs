@@ -20,12 +20,12 @@ use super::context::{GpuContext, GpuError};
 use super::resident::{ChunkData, ChunkPlan, Resident};
 use super::stats::StatsOnDevice;
 use super::topk::{bytes_per_query, TopK, MAX_PASS_REFS};
+use crate::descriptors::source::{GlobalSource, SourceKey, TileBuf};
 use crate::descriptors::DescriptorSet;
 use crate::kernels::abi::PassParams;
 use crate::kernels::abi::SsimParams;
 use crate::kernels::ssim_block::block_shape;
 use crate::kernels::topk_select::SEG;
-use crate::matching::source::{GlobalSource, SourceKey, TileBuf};
 use std::sync::Arc;
 
 pub struct CoarseMatcherGpu {

@@ -25,13 +25,13 @@ use super::context::{GpuContext, GpuError};
 use super::fine_pack::{forest_key, pack, plan_chunks, ChunkedForests, ForestChunks, Packed};
 use super::resident::Resident;
 use super::topk::{bytes_per_query, TopK, MAX_PASS_REFS};
+use crate::descriptors::source::{RefSource, SourceKey};
 use crate::descriptors::DescriptorSet;
 use crate::kernels::abi::PassParams;
 use crate::kernels::abi::TreeSimParams;
 use crate::kernels::abi::{FinePass, MAX_SLOTS, MAX_TREES};
 use crate::kernels::topk_select::SEG;
 use crate::kernels::tree_similarity::{fits_small, PAIRS_PER_GROUP, SMALL_CELLS, SMALL_TREES};
-use crate::matching::source::{RefSource, SourceKey};
 use std::sync::Arc;
 
 /// What the fine stage's dispatches did since the executor was made (counted on the host).

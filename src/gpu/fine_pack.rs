@@ -3,10 +3,10 @@
 
 use super::context::{GpuContext, GpuError};
 use super::resident::{ChunkData, ChunkPlan};
+use crate::descriptors::source::{RefSource, SourceKey};
 use crate::kernels::abi::TreeSimParams;
 use crate::kernels::abi::{GpuTree, MAX_SLOTS};
 use crate::kernels::tree_similarity::ForestRef;
-use crate::matching::source::{RefSource, SourceKey};
 use crate::values::Values;
 
 /// Forests packed for the shader.
@@ -115,7 +115,7 @@ impl ChunkData for ForestChunks<'_> {
 
 /// Forests sampled into the key of a source without a generation (evenly spaced, first and last
 /// included), as [`SourceKey::of`] samples descriptors.
-pub(crate) const FOREST_SAMPLES: usize = crate::matching::source::FINGERPRINT_SAMPLES;
+pub(crate) const FOREST_SAMPLES: usize = crate::descriptors::source::FINGERPRINT_SAMPLES;
 /// Appearance values sampled per sampled forest (evenly spaced over its vectors).
 const APPEARANCE_SAMPLES: usize = 16;
 
@@ -252,7 +252,7 @@ mod tests {
                 descriptors: vec![3; trees],
                 dim,
             };
-            let img = crate::encode::EncodedImage {
+            let img = crate::descriptors::EncodedImage {
                 id: format!("i{i}"),
                 width: 10,
                 height: 10,

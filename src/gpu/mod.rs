@@ -29,6 +29,9 @@ mod fine_pack;
 mod kernels;
 #[cfg(test)]
 mod layout_tests;
+/// Test hook, not the API: device runs of the one-pair reference kernels the equivalence tests
+/// hold the production kernels to.
+#[doc(hidden)]
 pub mod reference;
 mod resident;
 mod stats;
@@ -45,6 +48,7 @@ pub use wgsl::SHADERS;
 /// Creates every kernel's pipeline on `device` (with or without the subgroup variants) and drops
 /// them: the driver checks each bind group layout against its shader's bindings. A test hook;
 /// contexts build their pipelines once, themselves.
+#[doc(hidden)]
 pub fn create_every_pipeline(device: &wgpu::Device, subgroups: bool) -> Result<(), GpuError> {
     kernels::Kernels::new(device, subgroups)?;
     kernels::reference_kernels(device, subgroups).map(|_| ())

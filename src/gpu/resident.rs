@@ -11,7 +11,7 @@
 
 use super::buffers::Reused;
 use super::context::{GpuContext, GpuError};
-use crate::matching::source::SourceKey;
+use crate::descriptors::source::SourceKey;
 
 /// What a chunk holds: references `first..first + len` of the map in buffers of these sizes.
 #[derive(Debug, Clone, PartialEq)]

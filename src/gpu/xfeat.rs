@@ -549,6 +549,7 @@ fn outputs(plan: &Plan, data: Vec<f32>, heads: bool) -> NetOutputs {
 /// The executor's plan run on the CPU twins (`kernels::xfeat`), pass by pass, buffer by buffer:
 /// what the device is held to. Slow (the twins are written for equivalence); for tests. What
 /// does not fit is an [`Error::Check`].
+#[doc(hidden)]
 pub fn forward_on_twins(net: &XFeat, grey: &Chw, heads: bool) -> crate::Result<NetOutputs> {
     if grey.c != 1 || grey.h % 32 != 0 || grey.w % 32 != 0 || grey.h == 0 || grey.w == 0 || !grey.is_consistent() {
         return Err(Error::check(format!("input is {}x{}x{}; it must be 1 x (32k) x (32k)", grey.c, grey.h, grey.w)));
@@ -588,6 +589,7 @@ pub fn forward_on_twins(net: &XFeat, grey: &Chw, heads: bool) -> crate::Result<N
 /// One `xfeat.wgsl` kernel alone on the device: `entry` (its name) with the uniform `params`
 /// and `inputs` bound in binding order, the output (`out_len` values, zeros before the kernel
 /// runs) read back. The device side of the twins' tests.
+#[doc(hidden)]
 pub fn run_kernel(ctx: &GpuContext, entry: &str, params: &[u8], grid: [u32; 3], inputs: &[&[f32]], out_len: usize) -> Result<Vec<f32>, GpuError> {
     let e = match entry {
         "instance_norm_partials" => Entry::Partials,

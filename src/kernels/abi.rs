@@ -54,14 +54,19 @@ pub(crate) struct FinePass {
 #[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 pub struct PoolParams {
+    /// Width of the distance transform in pixels.
     pub src_width: u32,
+    /// Height of the distance transform in pixels.
     pub src_height: u32,
+    /// Width of the pooled output in cells.
     pub dst_width: u32,
+    /// Height of the pooled output in cells.
     pub dst_height: u32,
     /// Truncation distance τ in pixels.
     pub tau: f32,
     /// Frames in a GPU batch (the twin handles one frame).
     pub frames: u32,
+    /// Padding to the shader's layout.
     pub _pad: [u32; 2],
 }
 
@@ -75,6 +80,7 @@ pub struct MnnParams {
     pub words: u32,
     /// Most keypoints of any image (rows of the per-pair output).
     pub max_keypoints: u32,
+    /// Padding to the shader's layout.
     pub _pad: u32,
 }
 
@@ -83,9 +89,13 @@ pub struct MnnParams {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 pub struct MnnPair {
+    /// First keypoint of the query in the packed query descriptors.
     pub query_start: u32,
+    /// Keypoints of the query.
     pub query_len: u32,
+    /// First keypoint of the reference in the packed reference descriptors.
     pub ref_start: u32,
+    /// Keypoints of the reference.
     pub ref_len: u32,
 }
 
@@ -95,19 +105,24 @@ pub struct MnnPair {
 pub struct SsimParams {
     /// Descriptor width and height.
     pub gw: u32,
+    /// Descriptor height.
     pub gh: u32,
     /// Window side.
     pub win: u32,
     /// Valid window positions per row and per column.
     pub nw: u32,
+    /// Valid window positions per column.
     pub nh: u32,
+    /// SSIM's first stabilising constant, K1^2 (descriptor values range over 1).
     pub c1: f32,
+    /// SSIM's second stabilising constant, K2^2.
     pub c2: f32,
     /// N / (N - 1) for sample statistics, else 1.
     pub cov_norm: f32,
 }
 
 impl SsimParams {
+    /// The sizes and constants of `cfg`'s descriptor and SSIM window.
     pub fn new(cfg: &GlobalConfig) -> Self {
         let win = cfg.ssim_window as u32;
         let n = (win * win) as f32;
@@ -122,12 +137,15 @@ impl SsimParams {
             cov_norm: if cfg.ssim_sample_covariance { n / (n - 1.0) } else { 1.0 },
         }
     }
+    /// Values of one descriptor (gw x gh).
     pub fn len(&self) -> usize {
         (self.gw * self.gh) as usize
     }
+    /// Whether a descriptor has no values.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
+    /// Valid window positions of one descriptor (nw x nh).
     pub fn windows(&self) -> usize {
         (self.nw * self.nh) as usize
     }
@@ -153,6 +171,7 @@ pub struct PassParams {
     pub ref_index: u32,
     /// Block shape: references and queries per workgroup.
     pub rb: u32,
+    /// Queries per workgroup.
     pub qb: u32,
     /// Top-K list length.
     pub k: u32,
@@ -163,7 +182,9 @@ pub struct PassParams {
     /// 1 on a query chunk's first pass: the running lists hold nothing yet and are not read (so
     /// no empty lists are written to the device first).
     pub fresh: u32,
+    /// Padding to the shader's layout.
     pub _pad1: u32,
+    /// Padding to the shader's layout.
     pub _pad2: u32,
 }
 
@@ -171,10 +192,13 @@ pub struct PassParams {
 #[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 pub struct TileParams {
+    /// Queries in the batch.
     pub queries: u32,
+    /// References in the tile.
     pub tile_len: u32,
     /// Map index of the tile's first reference.
     pub tile_start: u32,
+    /// Top-K list length.
     pub k: u32,
 }
 
@@ -182,11 +206,14 @@ pub struct TileParams {
 #[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 pub struct Entry {
+    /// SSIM score, or [`EMPTY_SCORE`] for an empty slot.
     pub score: f32,
+    /// Map index of the reference, or [`EMPTY_INDEX`] for an empty slot.
     pub index: u32,
 }
 
 impl Entry {
+    /// An empty slot.
     pub const EMPTY: Entry = Entry { score: EMPTY_SCORE, index: EMPTY_INDEX };
 }
 
@@ -194,12 +221,19 @@ impl Entry {
 #[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 pub struct TreeSimParams {
+    /// Weight of the area similarity S_A in S_in.
     pub w_area: f32,
+    /// Weight of the position similarity S_P in S_in.
     pub w_position: f32,
+    /// Weight of the appearance similarity S_V in S_in.
     pub w_appearance: f32,
+    /// Weight of S_in in the tree similarity (w_intrinsic + w_neighbours = 1).
     pub w_intrinsic: f32,
+    /// Weight of the neighbour similarity S_N in the tree similarity.
     pub w_neighbours: f32,
+    /// Sigma of the Gaussian position similarity, in image diagonals.
     pub position_sigma: f32,
+    /// Appearance similarity scored where appearance is missing on either side.
     pub neutral: f32,
     /// 1: Gaussian position similarity, 0: linear.
     pub gaussian_position: u32,
@@ -215,6 +249,7 @@ pub struct TreeSimParams {
     pub tree_weight: u32,
     /// 1: divide by the geometric mean of the forests' total weights, 0: by the larger total.
     pub geometric_norm: u32,
+    /// Padding to the shader's layout.
     pub _pad: [u32; 2],
     /// Per class, the key trees pair by (the class itself, or its category), four u8 to a word:
     /// two trees may pair when their classes' keys are equal.
@@ -288,12 +323,19 @@ impl TreeSimParams {
 #[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 pub struct VladParams {
+    /// Codebook centres.
     pub centres: u32,
+    /// Descriptor dimension.
     pub dim: u32,
+    /// Descriptors to assign, over all objects.
     pub keypoints: u32,
+    /// Objects, one VLAD vector each.
     pub objects: u32,
+    /// 1: signed square root of the VLAD vector, 0: none.
     pub power_norm: u32,
+    /// 1: L2-normalise each centre's residual sum, 0: none.
     pub intra_norm: u32,
+    /// Padding to the shader's layout.
     pub _pad: [u32; 2],
 }
 
@@ -319,9 +361,13 @@ impl VladParams {
 #[derive(Debug, Clone, Copy, PartialEq, Default, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 pub struct Dims {
+    /// Frame width in pixels.
     pub width: u32,
+    /// Frame height in pixels.
     pub height: u32,
+    /// Frames to process.
     pub frames: u32,
+    /// First frame to process in the bound buffers.
     pub first: u32,
 }
 
@@ -334,28 +380,44 @@ fn pack_key(key: &[u8; 256]) -> [u32; 64] {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 pub struct ConvParams {
+    /// Input channels.
     pub cin: u32,
+    /// Output channels.
     pub cout: u32,
+    /// Input height.
     pub h: u32,
+    /// Input width.
     pub w: u32,
+    /// Output height.
     pub ho: u32,
+    /// Output width.
     pub wo: u32,
+    /// Kernel side.
     pub k: u32,
+    /// Stride.
     pub stride: u32,
+    /// Zero padding on each side of the input, in pixels.
     pub pad: u32,
     /// Input channels per pass through workgroup memory.
     pub chunk: u32,
     /// Input tile rows ((TILE_H - 1) x stride + k), columns ((TILE_W - 1) x stride + k) and row
     /// pitch (columns rounded up to 8 mod 32).
     pub rows: u32,
+    /// Input tile columns.
     pub cols: u32,
+    /// Input tile row pitch.
     pub pitch: u32,
     /// Where the layer's packed weights, epilogue subtrahends and factors start in `weights`.
     pub weight_at: u32,
+    /// Where the layer's epilogue subtrahends start in `weights`.
     pub sub_at: u32,
+    /// Where the layer's epilogue factors start in `weights`.
     pub mul_at: u32,
+    /// Activation after the epilogue: 0 none, 1 ReLU, 2 sigmoid.
     pub act: u32,
+    /// 1: a tensor (`conv_add`) is added to the output after the activation, 0: none.
     pub has_add: u32,
+    /// Padding to the shader's layout.
     pub _pad: [u32; 2],
 }
 
@@ -365,26 +427,42 @@ pub struct ConvParams {
 #[derive(Debug, Clone, Copy, PartialEq, Default, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 pub struct MapParams {
+    /// Channels (planes) of the output.
     pub c: u32,
+    /// Input plane height.
     pub h: u32,
+    /// Input plane width.
     pub w: u32,
+    /// Output plane height.
     pub ho: u32,
+    /// Output plane width.
     pub wo: u32,
+    /// `avg_pool`: pooling window side and stride.
     pub k: u32,
+    /// Workgroups per row of the dispatch grid.
     pub row: u32,
+    /// Output values (c x ho x wo).
     pub n: u32,
     /// `bilinear_add`: the sizes of its second and third input, and the scales (source length /
     /// output length, as PyTorch computes them in f32) of their axes.
     pub h1: u32,
+    /// `bilinear_add`: width of the second input.
     pub w1: u32,
+    /// `bilinear_add`: height of the third input.
     pub h2: u32,
+    /// `bilinear_add`: width of the third input.
     pub w2: u32,
+    /// `bilinear_add`: vertical scale of the second input.
     pub sy1: f32,
+    /// `bilinear_add`: horizontal scale of the second input.
     pub sx1: f32,
+    /// `bilinear_add`: vertical scale of the third input.
     pub sy2: f32,
+    /// `bilinear_add`: horizontal scale of the third input.
     pub sx2: f32,
     /// `avg_pool`: 1 / (k * k).
     pub inv: f32,
+    /// Padding to the shader's layout.
     pub _pad: [u32; 3],
 }
 
@@ -392,10 +470,12 @@ pub struct MapParams {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 pub struct NormParams {
+    /// Values of the grey input.
     pub n: u32,
     /// Chunks of CHUNK values (`instance_norm_partials`' workgroups).
     pub chunks: u32,
     /// Workgroups per grid row of `instance_norm_apply` and of `instance_norm_partials`.
     pub row: u32,
+    /// Workgroups per grid row of `instance_norm_partials`.
     pub chunk_row: u32,
 }

@@ -5,7 +5,7 @@
 //! nearest edge pixel in that column; phase 2 takes, per row, the lower envelope of the parabolas
 //! (x - i)^2 + g(i)^2 with integer separators. Everything is 32-bit integer arithmetic, so the GPU
 //! twin reproduces the squared distances bit for bit. This is the exact transform that Shih & Wu's
-//! two-scan 3x3 propagation (paper ref. 24, spec §2.3) approximates.
+//! two-scan 3x3 propagation (paper ref. 24, `docs/design/method.md` §2.3) approximates.
 //!
 //! Pixels of an image without any edge get squared distances >= (w + h)^2 (the "infinity" of the
 //! paper), which the pooling stage truncates like any other far pixel.

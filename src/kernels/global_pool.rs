@@ -2,7 +2,7 @@
 //!
 //! Each output cell is the exact average of the truncated, normalised distance min(d, τ) / τ over
 //! the source rectangle it covers, with fractional edge pixels weighted by their overlap: the
-//! behaviour of OpenCV's INTER_AREA (spec §2.2) for any scale factor.
+//! behaviour of OpenCV's INTER_AREA (`docs/design/method.md` §2.2) for any scale factor.
 
 use super::abi::PoolParams;
 /// Bindings: `params`, `d2` (squared distances), `out` (dst_width x dst_height).

@@ -1,8 +1,8 @@
 //! Semantic edge extraction (CPU twin of `shaders/semantic_edges.wgsl`).
 //!
 //! A pixel is an edge pixel when its class takes part (not void, not excluded) and one of its
-//! 4-neighbours has a different class that also takes part: the "semantic boundary pixels" of spec
-//! §2.2, marked on both sides of each boundary.
+//! 4-neighbours has a different class that also takes part: the "semantic boundary pixels" of
+//! `docs/design/method.md` §2.2, marked on both sides of each boundary.
 //!
 //! Class ids are bytes, packed four to a `u32` word (pixel i in byte i % 4 of word i / 4, little
 //! endian) as the label maps hold them: the device receives one byte per pixel.

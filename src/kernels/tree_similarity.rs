@@ -1,4 +1,4 @@
-//! Forest-to-forest similarity (CPU twin of `shaders/tree_similarity.wgsl`; spec §2.8, whose
+//! Forest-to-forest similarity (CPU twin of `shaders/tree_similarity.wgsl`; `docs/design/method.md` §2.8, whose
 //! Eqs. (11)-(14) are reconstructions, all weights configurable).
 //!
 //! For one (query forest, reference forest) pair, in three phases:
@@ -12,7 +12,7 @@
 //! 3. image similarity: greedy one-to-one assignment (repeatedly the largest remaining S, ties to
 //!    the lowest (t, u)); an accepted pair adds S(t, u) sqrt(w_t w_u), with w the tree weight
 //!    (1, the area, its square root, or the descriptor count + 1); the sum is divided by the larger
-//!    total tree weight of the two forests (spec §2.8: the larger forest size, for unit weights)
+//!    total tree weight of the two forests (method.md §2.8: the larger forest size, for unit weights)
 //!    or by the geometric mean of the totals.
 //!
 //! Two entry points share these phases: [`tree_similarity`] is one pair (the shader's
@@ -235,7 +235,7 @@ pub(crate) fn greedy_assignment(
 }
 
 /// Reference for phase 3: sort all same-class pairs by score (descending, stable in (t, u)) and
-/// accept each whose row and column are free, as spec §2.8 writes it (unit weights).
+/// accept each whose row and column are free, as method.md §2.8 writes it (unit weights).
 pub fn greedy_assignment_reference(scores: &[f32], nq: usize, nr: usize) -> f32 {
     let mut pairs: Vec<usize> = (0..nq * nr).filter(|&i| scores[i] > NOT_A_PAIR).collect();
     pairs.sort_by(|&a, &b| scores[b].total_cmp(&scores[a]).then(a.cmp(&b)));

@@ -1,10 +1,10 @@
-//! Stage 2b: the local descriptor, a "forest" of one "tree" per semantic object (spec §2.5-2.6).
+//! Stage 2b: the local descriptor, a "forest" of one "tree" per semantic object (`docs/design/method.md` §2.5-2.6).
 //!
 //! A tree holds its object's class C, area A (fraction of the image), centroid P (pixels divided
-//! by the image diagonal, so that ||P_t - P_u|| is the spec's ||ΔP|| / D), an appearance vector V
+//! by the image diagonal, so that ||P_t - P_u|| is method.md §2.8's ||ΔP|| / D), an appearance vector V
 //! (SuperPoint/XFeat-VLAD; absent until an appearance model fills it), and the indices of its
 //! neighbour trees in the same image. Neighbours are not copied: their class and appearance are
-//! read through the index (spec §2.6 storage note).
+//! read through the index (method.md §2.6 storage note).
 
 use crate::config::LocalConfig;
 use crate::kernels::tree_similarity::ForestRef;
@@ -98,7 +98,7 @@ impl<'a> ForestRef<'a> {
 
 /// Builds the forest of an image's objects; appearance is left empty (dim 0).
 ///
-/// Neighbour rule (spec §2.5, \[Q\] with \[R\] tolerance): candidates are ordered by centroid distance;
+/// Neighbour rule (method.md §2.5, \[Q\] with \[R\] tolerance): candidates are ordered by centroid distance;
 /// repeatedly, among the remaining candidates within `tie_tolerance` of the nearest remaining one,
 /// the largest (then the nearest, then the first) is taken, until `neighbours` are chosen.
 pub fn build_forest(objects: &ObjectMap, cfg: &LocalConfig) -> Forest {

@@ -66,7 +66,7 @@ fn appearance_separates_same_geometry() {
 }
 
 proptest! {
-    /// Repeated-argmax greedy (the GPU loop shape) equals the sort-based greedy of the spec.
+    /// Repeated-argmax greedy (the GPU loop shape) equals the sort-based greedy of method.md §2.8.
     #[test]
     fn greedy_matches_sorting_reference(nq in 1usize..12, nr in 1usize..12, seed in any::<u64>()) {
         let mut rng = crate::util::SplitMix64::new(seed);

@@ -29,15 +29,15 @@ pub mod segment;
 pub mod shard;
 pub mod writer;
 
-pub use crate::descriptors::DescriptorSet;
 pub use manifest::{Manifest, SegmentEntry, FORMAT, VERSION};
-pub use writer::{Dims, MapWriter, StoreOptions, TraversalPlan};
+pub use writer::{ColumnDims, MapWriter, StoreOptions, TraversalPlan};
 
 use crate::appearance::vlad::Codebook;
 use crate::classes::ClassTable;
 use crate::config::{first_difference, EncodingConfig};
 use crate::descriptors::keypoints::KeypointsRef;
 use crate::descriptors::source::{GlobalSource, Place, RefSource, TileBuf};
+use crate::descriptors::DescriptorSet;
 use crate::error::{Error, Result};
 use crate::kernels::abi::SsimParams;
 use crate::kernels::ssim::{ssim_stats, SsimScratch};

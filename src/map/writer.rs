@@ -51,7 +51,7 @@ impl Default for StoreOptions {
 /// Values per image of the map's vector columns: its trees' and image's appearance, its HOG
 /// descriptor and its verification keypoints' descriptors (0: none of that column).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct Dims {
+pub struct ColumnDims {
     pub appearance: usize,
     pub hog: usize,
     pub keypoints: usize,
@@ -106,12 +106,12 @@ impl MapWriter {
     pub fn create(
         dir: &Path,
         cfg: &EncodingConfig,
-        dims: Dims,
+        dims: ColumnDims,
         appearance: Option<(&Codebook, &str)>,
         opts: StoreOptions,
         resume: bool,
     ) -> Result<MapWriter> {
-        let Dims { appearance: appearance_dim, hog: hog_dim, keypoints: keypoint_dim } = dims;
+        let ColumnDims { appearance: appearance_dim, hog: hog_dim, keypoints: keypoint_dim } = dims;
         let what = || format!("map {}", dir.display());
         MapWriter::check_new_dir(dir, resume)?;
         let codebook = match (appearance, appearance_dim) {
@@ -527,7 +527,7 @@ impl Map {
         let mut w = MapWriter::create(
             dir,
             cfg,
-            Dims { appearance: set.appearance_dim, hog: set.hog_dim, keypoints: set.keypoint_dim },
+            ColumnDims { appearance: set.appearance_dim, hog: set.hog_dim, keypoints: set.keypoint_dim },
             appearance,
             opts,
             false,

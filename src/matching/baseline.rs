@@ -5,7 +5,7 @@
 
 use super::coarse_cpu::stream_topk;
 use super::setting::Setting;
-use super::source::RefSource;
+use crate::descriptors::source::RefSource;
 use crate::descriptors::DescriptorSet;
 use crate::error::{Error, Result};
 use crate::values::Values;

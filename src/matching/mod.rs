@@ -1,5 +1,5 @@
-//! Stage 4: matching queries against a map (spec §2.7-2.9) in nine settings ([`Setting::ALL`]): two
-//! baselines, the paper's coarse stage and four ablation settings (§4.3, spec §6.1), `fused` and
+//! Stage 4: matching queries against a map (`docs/design/method.md` §2.7-2.9) in nine settings ([`Setting::ALL`]): two
+//! baselines, the paper's coarse stage and four ablation settings (paper §4.3, method.md §6.1), `fused` and
 //! `verified`.
 //!
 //! - coarse: SSIM of the query's global descriptor against every reference, streamed tile by tile
@@ -10,11 +10,11 @@
 pub mod baseline;
 pub mod coarse_cpu;
 pub mod setting;
-pub mod source;
 
 pub use setting::Setting;
 
 use crate::config::{Config, ScoreFusion};
+use crate::descriptors::source::{self, GlobalSource, RefSource};
 use crate::descriptors::DescriptorSet;
 use crate::error::{Error, Remedy, Result};
 use crate::kernels::abi::SsimParams;
@@ -27,7 +27,6 @@ use crate::verify::{verify_pair, Verified, VerifyParams};
 use coarse_cpu::stream_topk;
 use rayon::prelude::*;
 use serde::Serialize;
-use source::{GlobalSource, RefSource};
 use std::time::Instant;
 
 /// One ranked reference for a query.

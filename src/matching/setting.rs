@@ -16,14 +16,14 @@ pub enum Setting {
     Appearance,
     /// Coarse stage only: rank by SSIM of the global descriptors ("Edge (Coarse)").
     Global,
-    /// §6.1 (1): Forest descriptors only, against the whole map, no appearance.
+    /// method.md §6.1 (1): Forest descriptors only, against the whole map, no appearance.
     Forest,
-    /// §6.1 (2): SemLook local descriptors (Forest + appearance), against the whole map.
+    /// method.md §6.1 (2): SemLook local descriptors (Forest + appearance), against the whole map.
     Local,
-    /// §6.1 (3): global descriptor selects K candidates, Forest re-ranks them
+    /// method.md §6.1 (3): global descriptor selects K candidates, Forest re-ranks them
     /// (`matching.coarse`: the edge descriptor alone, or fused with the whole-image appearance).
     GlobalForest,
-    /// §6.1 (4): the full method: global top-K, SemLook local re-ranking (`matching.coarse` as
+    /// method.md §6.1 (4): the full method: global top-K, SemLook local re-ranking (`matching.coarse` as
     /// for setting 3).
     Semlook,
     /// Beyond the paper, coarse stage only: rank by cos(whole-image appearance) + w_global x SSIM

@@ -1,4 +1,4 @@
-//! Stage 1: label map -> semantic objects (spec §2.1).
+//! Stage 1: label map -> semantic objects (`docs/design/method.md` §2.1).
 //!
 //! An object is one 8-connected region of one class, i.e. exactly the region enclosed by one
 //! outer border of Suzuki & Abe's border following (ref. 25 of the paper; `cv2.findContours` with

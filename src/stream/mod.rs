@@ -22,7 +22,7 @@ use crate::encode::{Encoder, Loaded, StageTimes};
 use crate::engine::Engine;
 use crate::error::{Error, Result};
 use crate::input::{FrameSource, LabelFormat, LabelMap};
-use crate::map::{manifest, Dims, Map, MapWriter, StoreOptions, TraversalPlan};
+use crate::map::{manifest, ColumnDims, Map, MapWriter, StoreOptions, TraversalPlan};
 use crate::matching::{Candidate, Setting};
 use crate::util::ms_since;
 use image::RgbImage;
@@ -713,7 +713,7 @@ impl Localizer {
         }
         // frames without labels and no segmenter to make them: a map without labels
         let void = warm.iter().all(|(_, l, _)| l.labels.classes().iter().all(|&c| c == crate::classes::VOID));
-        let dims = Dims { appearance: self.encoder.appearance_dim(), hog: 0, keypoints: self.encoder.keypoint_dim() };
+        let dims = ColumnDims { appearance: self.encoder.appearance_dim(), hog: 0, keypoints: self.encoder.keypoint_dim() };
         let mut w = MapWriter::create(&lc.dir, &self.cfg.encoding(), dims, self.encoder.appearance_record(), StoreOptions::default(), false)?;
         if void && !self.encoder.frames().can_segment() {
             w = w.without_labels()?;

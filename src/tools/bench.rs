@@ -32,11 +32,11 @@
 pub mod peak;
 
 use crate::config::Config;
+use crate::descriptors::source::{GlobalSource, TileBuf};
 use crate::descriptors::DescriptorSet;
 use crate::engine::Engine;
 use crate::error::Result;
 use crate::kernels::abi::SsimParams;
-use crate::matching::source::{GlobalSource, TileBuf};
 use crate::matching::{CpuStages, Stages};
 use serde::Serialize;
 use std::sync::atomic::{AtomicUsize, Ordering};

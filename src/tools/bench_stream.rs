@@ -15,7 +15,7 @@ use crate::encode::Encoder;
 use crate::engine::Engine;
 use crate::error::{Error, Result};
 use crate::input::FrameSource;
-use crate::map::{Dims, MapWriter, StoreOptions, TraversalPlan};
+use crate::map::{ColumnDims, MapWriter, StoreOptions, TraversalPlan};
 use crate::matching::Setting;
 use crate::stream::{replay, Latency, Localizer, Pixels, Replayed, StreamFrame, StreamOptions};
 use serde::Serialize;
@@ -150,7 +150,7 @@ fn write_map(
     size: usize,
     without_labels: bool,
 ) -> Result<()> {
-    let dims = Dims { appearance: encoder.appearance_dim(), hog: 0, keypoints: encoder.keypoint_dim() };
+    let dims = ColumnDims { appearance: encoder.appearance_dim(), hog: 0, keypoints: encoder.keypoint_dim() };
     let mut w = MapWriter::create(dir, &cfg.encoding(), dims, encoder.appearance_record(), StoreOptions::default(), false)?;
     if without_labels {
         w = w.without_labels()?;

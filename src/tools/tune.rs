@@ -20,11 +20,11 @@
 use crate::appearance::{keypoints::Keypoints, Features};
 use crate::config::{Config, EncodingConfig};
 use crate::dataset::Dataset;
+use crate::descriptors::DescriptorSet;
 use crate::encode::{Encoder, Loaded};
 use crate::engine::Engine;
 use crate::error::{Error, Result};
 use crate::eval::{match_query_set, report_matches, SettingReport};
-use crate::map::DescriptorSet;
 use crate::matching::Setting;
 use rayon::prelude::*;
 use serde::Serialize;

@@ -2,9 +2,9 @@
 #![allow(dead_code)]
 
 use semlook::config::Config;
+use semlook::descriptors::DescriptorSet;
 use semlook::encode::Encoder;
 use semlook::input::LabelMap;
-use semlook::map::DescriptorSet;
 use semlook::tools::synth::{self, SynthConfig};
 use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};

@@ -6,13 +6,13 @@
 
 use super::{assert_same_lists, gpu, gpu_with, random_forest_set};
 use semlook::config::Config;
+use semlook::descriptors::source::{GlobalSource, RefSource, TileBuf};
+use semlook::descriptors::DescriptorSet;
 use semlook::engine::GpuStages;
 use semlook::gpu::GpuOptions;
 use semlook::kernels::abi::TreeSimParams;
 use semlook::kernels::tree_similarity::{fits_small, tree_similarity, tree_similarity_small, ForestRef, TreeSimScratch, PAIRS_PER_GROUP};
 use semlook::local::Forest;
-use semlook::map::DescriptorSet;
-use semlook::matching::source::{GlobalSource, RefSource, TileBuf};
 use semlook::matching::{CpuStages, Setting, Stages};
 use semlook::util::SplitMix64;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -102,7 +102,7 @@ pub fn forests_of_sizes(sizes: &[usize], dim: usize, seed: u64) -> DescriptorSet
             }
         }
         f.set_appearance(dim, app, counts, 1).unwrap();
-        let img = semlook::encode::EncodedImage {
+        let img = semlook::descriptors::EncodedImage {
             id: format!("s{i}"),
             width: 10,
             height: 10,

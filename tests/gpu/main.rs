@@ -88,12 +88,12 @@ fn scratch_d2(s: &semlook::global::GlobalScratch) -> &[u32] {
 }
 
 use semlook::config::Config;
+use semlook::descriptors::DescriptorSet;
 use semlook::engine::{Backend, Engine};
 use semlook::kernels::abi::SsimParams;
 use semlook::kernels::abi::TreeSimParams;
 use semlook::kernels::tree_similarity::{tree_similarity, TreeSimScratch};
 use semlook::local::Forest;
-use semlook::map::DescriptorSet;
 use semlook::matching::{coarse_topk_twin, match_batch, Setting, Stages};
 use semlook::util::SplitMix64;
 
@@ -181,7 +181,7 @@ pub fn random_descriptors(n: usize, cfg: &Config, seed: u64) -> DescriptorSet {
             .collect();
         let mut stats = vec![0.0; p.stats_len()];
         semlook::kernels::ssim::ssim_stats(&p, &g, &mut stats, &mut Default::default());
-        let img = semlook::encode::EncodedImage {
+        let img = semlook::descriptors::EncodedImage {
             id: format!("r{i}"),
             width: 64,
             height: 48,
@@ -254,7 +254,7 @@ pub fn random_forest_set(n: usize, dim: usize, seed: u64) -> DescriptorSet {
             }
         }
         f.set_appearance(dim, app, counts, 1).unwrap();
-        let img = semlook::encode::EncodedImage {
+        let img = semlook::descriptors::EncodedImage {
             id: format!("f{i}"),
             width: 10,
             height: 10,

@@ -3,10 +3,10 @@
 
 use super::{assert_same_lists, gpu, gpu_with, random_descriptors};
 use semlook::config::{Config, GlobalConfig};
+use semlook::descriptors::DescriptorSet;
 use semlook::engine::{Engine, GpuStages};
 use semlook::gpu::{GpuContext, GpuOptions};
 use semlook::kernels::abi::SsimParams;
-use semlook::map::DescriptorSet;
 use semlook::matching::{coarse_topk, coarse_topk_twin, Setting, Stages};
 use std::sync::Arc;
 
@@ -363,7 +363,7 @@ fn a_stored_map_sends_its_descriptors_alone() {
     let path = dir.path().join("m");
     semlook::map::Map::create(&path, &cfg.encoding(), &set, None).unwrap();
     let map = semlook::map::Map::open(&path).unwrap();
-    assert!(!semlook::matching::source::GlobalSource::stores_stats(&map));
+    assert!(!semlook::descriptors::source::GlobalSource::stores_stats(&map));
     let q = random_descriptors(4, &cfg, 42);
     let mut stages = GpuStages::new(ctx.clone());
     let b0 = ctx.bytes_uploaded();

@@ -7,7 +7,8 @@
 use super::common;
 use super::gpu;
 use semlook::config::{AppearanceConfig, AppearanceModelKind, Config};
-use semlook::encode::{EncodedImage, Encoder};
+use semlook::descriptors::EncodedImage;
+use semlook::encode::Encoder;
 use semlook::engine::{Engine, STREAM_FRAMES};
 use semlook::input::{FrameSource, LabelFormat};
 use semlook::kernels::abi::SsimParams;

@@ -1,7 +1,7 @@
 //! The developer commands (`semlook dev ...`): benchmarks, sweeps and the segmenter's accuracy.
 
 use super::map_cmd;
-use super::shared::{apply_models, info, load_config, to_json};
+use super::shared::{apply_models, info, load_config, to_json, write_file};
 use crate::cli::args::*;
 use semlook::batch::encode_frames;
 use semlook::config::Config;
@@ -157,7 +157,7 @@ fn tune_cmd(a: &TuneArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     pb.finish_and_clear();
     let table = semlook::tools::tune::table(&rows);
     if let Some(file) = &a.table {
-        super::write_file(file, &table)?;
+        write_file(file, &table)?;
     }
     out!("{table}");
     Ok(())

@@ -235,7 +235,7 @@ fn show(dir: &Path, json: bool) -> Result<()> {
 
 /// The map's traversals: name and live images of each.
 fn traversals(map: &Map) -> Vec<serde_json::Value> {
-    use semlook::matching::source::RefSource;
+    use semlook::descriptors::source::RefSource;
     semlook::map::manifest::traversal_names(&map.manifest)
         .into_iter()
         .enumerate()

@@ -2,12 +2,12 @@
 //! names them (see `semlook::hloc`).
 
 use crate::cli::args::PairsArgs;
+use semlook::descriptors::source::RefSource;
 use semlook::descriptors::DescriptorSet;
 use semlook::error::{Error, Result};
 use semlook::hloc;
 use semlook::input::FrameSource;
 use semlook::map::Map;
-use semlook::matching::source::RefSource;
 use semlook::matching::QueryMatch;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};

@@ -116,3 +116,8 @@ pub fn check_output_file(file: &Path, flag: &str) -> Result<()> {
     }
     Ok(())
 }
+
+/// Writes `text` to `path`; an error names the file.
+pub fn write_file(path: &Path, text: &str) -> Result<()> {
+    std::fs::write(path, text).map_err(|e| Error::io(path, e))
+}

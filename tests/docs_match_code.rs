@@ -1,6 +1,7 @@
-//! docs/config.md is held to the code: its table names every key of every section of
-//! `Config::default()` and no other, and where a row's default is a plain value (a number, a
-//! boolean, a quoted string, a list of numbers) it is the code's default, key by key.
+//! The docs that restate code are held to it: docs/config.md's table names every key of every
+//! section of `Config::default()` and no other, and where a row's default is a plain value (a
+//! number, a boolean, a quoted string, a list of numbers) it is the code's default, key by key;
+//! docs/library.md's example is the one src/lib.rs compiles (its doc test), line for line.
 
 use serde_json::Value;
 use std::collections::{BTreeMap, BTreeSet};
@@ -111,4 +112,23 @@ fn the_config_doc_names_every_key_and_its_default() {
     }
     assert!(checked >= 40, "only {checked} plain defaults read");
     assert!(wrong.is_empty(), "defaults docs/config.md misstates:\n{}", wrong.join("\n"));
+}
+
+/// The library example of docs/library.md (the first `rust` block under "## Library") is the doc
+/// test of src/lib.rs (the `no_run` block of its crate docs, hidden `# ` lines left out), so the
+/// example a reader copies is one the tests compile.
+#[test]
+fn the_library_example_is_the_compiled_one() {
+    let root = env!("CARGO_MANIFEST_DIR");
+    let md = std::fs::read_to_string(format!("{root}/docs/library.md")).unwrap();
+    let after = &md[md.find("## Library").expect("docs/library.md has a ## Library section")..];
+    let start = after.find("```rust\n").expect("a rust block under ## Library") + "```rust\n".len();
+    let doc_example: Vec<&str> = after[start..].split("\n```").next().unwrap().lines().collect();
+    let lib = std::fs::read_to_string(format!("{root}/src/lib.rs")).unwrap();
+    let crate_doc: Vec<&str> = lib.lines().filter_map(|l| l.strip_prefix("//!")).map(|l| l.strip_prefix(' ').unwrap_or(l)).collect();
+    let open = crate_doc.iter().position(|l| *l == "```no_run").expect("src/lib.rs has a no_run example");
+    let close = open + 1 + crate_doc[open + 1..].iter().position(|l| *l == "```").expect("the example ends");
+    let compiled: Vec<&str> = crate_doc[open + 1..close].iter().copied().filter(|l| !l.starts_with("# ") && *l != "#").collect();
+    assert!(compiled.len() >= 10, "the compiled example was not read: {compiled:?}");
+    assert_eq!(doc_example, compiled, "docs/library.md's example differs from src/lib.rs's doc test");
 }

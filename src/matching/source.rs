@@ -1,3 +1,0 @@
-//! The reference sources matching reads (defined in [`crate::descriptors::source`]).
-
-pub use crate::descriptors::source::*;
