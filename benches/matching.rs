@@ -44,7 +44,7 @@ fn bench(c: &mut Criterion) {
     match semlook::gpu::GpuContext::new(&Default::default()) {
         Ok(ctx) => {
             let name = ctx.info.name.clone();
-            let mut stages = semlook::engine::GpuStages::new(std::sync::Arc::new(ctx));
+            let mut stages = semlook::gpu::GpuStages::new(std::sync::Arc::new(ctx));
             let refs = common::map_of(&cfg, &images, 1_000);
             g.throughput(Throughput::Elements((1_000 * queries.len()) as u64));
             g.bench_function(format!("gpu ssim_block + topk_select on {name}/1000_refs_x4_queries"), |b| {

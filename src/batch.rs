@@ -22,14 +22,18 @@ pub const ENCODE_CHUNK: usize = 256;
 /// time per frame of the whole (parallel) encoding.
 #[derive(Debug, Clone, Copy, Default, Serialize)]
 pub struct EncodingSummary {
+    /// Frames encoded.
     pub frames: usize,
+    /// Mean time per frame of each stage.
     pub mean: StageTimes,
+    /// Median time per frame of each stage.
     pub median: StageTimes,
     /// Wall-clock milliseconds per frame over the batch (frames run in parallel).
     pub wall_ms_per_frame: f64,
 }
 
 impl EncodingSummary {
+    /// The summary of per-frame `times` and the batch's wall-clock milliseconds `wall_ms`.
     pub fn new(times: &[StageTimes], wall_ms: f64) -> Self {
         let mut total = StageTimes::default();
         for t in times {
@@ -78,6 +82,7 @@ fn id_refusal(f: &FrameSource) -> Option<Error> {
 
 /// A set of frames encoded into a descriptor set.
 pub struct EncodedFrames {
+    /// The encoded frames, in input order (skipped frames left out).
     pub set: DescriptorSet,
     /// Per encoded frame, in set order.
     pub times: Vec<StageTimes>,
@@ -88,6 +93,7 @@ pub struct EncodedFrames {
 }
 
 impl EncodedFrames {
+    /// The per-frame times summarised.
     pub fn summary(&self) -> EncodingSummary {
         EncodingSummary::new(&self.times, self.wall_ms)
     }
@@ -124,6 +130,7 @@ pub struct IntoOptions {
     /// Skip frames whose id the map already holds (`--resume`); otherwise such a frame is an
     /// error before anything is encoded.
     pub skip_stored: bool,
+    /// No progress bar.
     pub quiet: bool,
 }
 
@@ -136,6 +143,7 @@ pub struct IntoReport {
     pub already_stored: usize,
     /// Frames skipped as invalid: (id, error).
     pub invalid: Vec<(String, Error)>,
+    /// Encoding times of the frames this run encoded and wrote.
     pub summary: EncodingSummary,
 }
 
@@ -220,6 +228,7 @@ pub fn encode_into(
 pub struct NewMapOptions {
     /// Also store each image's HOG baseline descriptor.
     pub hog: bool,
+    /// How the map stores its values, and how large its segments grow.
     pub store: crate::map::StoreOptions,
     /// The traversal's name (default "0").
     pub traversal: Option<String>,
@@ -227,6 +236,7 @@ pub struct NewMapOptions {
     pub skip_invalid: bool,
     /// With `resume`, `dir` may hold what an interrupted build left (no manifest).
     pub resume: bool,
+    /// No progress bar.
     pub quiet: bool,
 }
 

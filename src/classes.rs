@@ -8,6 +8,7 @@
 use crate::error::{Error, Result};
 use serde::{Deserialize, Serialize};
 
+/// The `[classes]` section: the class table, how label-file ids map to it, and the classes left out.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ClassesConfig {
@@ -34,18 +35,25 @@ impl Default for ClassesConfig {
     }
 }
 
+/// Which class table (`classes.table`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(untagged)]
 pub enum TableSpec {
+    /// A built-in table by name: "cityscapes" ([`CITYSCAPES`]) or "camvid" ([`CAMVID`]).
     Builtin(String),
+    /// An inline table, one entry per class, in class index order.
     Custom(Vec<ClassSpec>),
 }
 
+/// One class of an inline class table.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ClassSpec {
+    /// The class name ("void" is reserved for pixels of no class).
     pub name: String,
+    /// The palette colour of the class in colour label maps, RGB; unique within the table.
     pub color: [u8; 3],
+    /// Whether the class is dynamic (it moves: people, vehicles); default false.
     #[serde(default)]
     pub dynamic: bool,
     /// The class's category (`similarity.class_match`); default: the built-in category of its
@@ -54,10 +62,14 @@ pub struct ClassSpec {
     pub category: Option<String>,
 }
 
+/// How the ids of single-channel label maps translate into classes (`classes.label_ids`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(untagged)]
 pub enum LabelIds {
+    /// A built-in mapping: "train_id" (id = class index), "cityscapes_label_id" or "synthia"
+    /// (both need the cityscapes table), or "camvid" (needs the camvid table; 11 is void).
     Named(String),
+    /// `(id, class name)` pairs; the name "void" marks an id of no class. Ids up to 65535.
     Custom(Vec<(u32, String)>),
 }
 use std::collections::HashMap;
@@ -308,12 +320,15 @@ impl ClassTable {
         Self::from_config(&ClassesConfig::default()).expect("built-in table is valid")
     }
 
+    /// The number of classes (1 to [`MAX_CLASSES`]).
     pub fn len(&self) -> usize {
         self.names.len()
     }
+    /// Whether the table holds no class (never, for a table built by [`ClassTable::from_config`]).
     pub fn is_empty(&self) -> bool {
         self.names.is_empty()
     }
+    /// The name of a class index; "void" for [`VOID`]. Panics on an index the table does not hold.
     pub fn name(&self, class: u8) -> &str {
         if class == VOID {
             "void"
@@ -329,9 +344,12 @@ impl ClassTable {
         }
         key
     }
+    /// The class index of a class name, if the table holds it ("void" is not a class).
     pub fn index(&self, name: &str) -> Option<u8> {
         self.names.iter().position(|n| n == name).map(|i| i as u8)
     }
+    /// The palette colour of a class index, RGB; black for [`VOID`]. Panics on an index the table
+    /// does not hold.
     pub fn color(&self, class: u8) -> [u8; 3] {
         if class == VOID {
             [0, 0, 0]
@@ -339,6 +357,8 @@ impl ClassTable {
             self.colors[class as usize]
         }
     }
+    /// Whether a class index is a dynamic class (false for [`VOID`]). Panics on an index the table
+    /// does not hold.
     pub fn is_dynamic(&self, class: u8) -> bool {
         class != VOID && self.dynamic[class as usize]
     }

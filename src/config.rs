@@ -67,6 +67,7 @@ config_sections! {
     }
 }
 
+/// The `[input]` section: the working resolution.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct InputConfig {
@@ -87,6 +88,7 @@ impl Default for InputConfig {
 /// The `[classes]` section; defined beside the table it builds ([`crate::classes`]).
 pub use crate::classes::{ClassSpec, ClassesConfig, LabelIds, TableSpec};
 
+/// The `[objects]` section: which regions of a label map become objects (trees).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ObjectsConfig {
@@ -105,13 +107,17 @@ impl Default for ObjectsConfig {
     }
 }
 
+/// How an object's area is measured (`objects.area`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum AreaMode {
+    /// The pixel count of the region.
     Pixels,
+    /// The shoelace area of the Suzuki-Abe outer border, as cv2.contourArea.
     Contour,
 }
 
+/// The `[global]` section: the semantic-edge global descriptor and its SSIM (method.md §2.7).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct GlobalConfig {
@@ -119,11 +125,13 @@ pub struct GlobalConfig {
     pub truncation: f64,
     /// Global descriptor width and height after area resizing. \[R\] 64 x 48.
     pub width: usize,
+    /// Global descriptor height (with `width`). \[R\] 48.
     pub height: usize,
     /// SSIM window side (uniform window, odd). \[R\] 7, as skimage.
     pub ssim_window: usize,
     /// SSIM stabilisers C1 = (k1 L)^2, C2 = (k2 L)^2 with data range L = 1. \[X\] Wang et al. 2004.
     pub ssim_k1: f64,
+    /// k2 of the stabiliser C2 (with `ssim_k1`). \[X\] 0.03.
     pub ssim_k2: f64,
     /// Use sample (N-1) rather than population variances, as skimage does by default.
     pub ssim_sample_covariance: bool,
@@ -135,6 +143,7 @@ impl Default for GlobalConfig {
     }
 }
 
+/// The `[local]` section: the neighbours of each tree.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct LocalConfig {
@@ -151,6 +160,7 @@ impl Default for LocalConfig {
     }
 }
 
+/// Which keypoint network gives appearance descriptors (`appearance.model`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum AppearanceModelKind {
@@ -173,6 +183,7 @@ pub enum Sampling {
     Dense,
 }
 
+/// The `[appearance]` section: the descriptors of each object and their VLAD aggregation.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct AppearanceConfig {
@@ -203,8 +214,11 @@ pub struct AppearanceConfig {
     /// Codebook training: reference images sampled, descriptors kept per image, Lloyd
     /// iterations and seed. \[R\]
     pub codebook_images: usize,
+    /// Codebook training: descriptors kept per sampled image. \[R\] 128.
     pub codebook_samples_per_image: usize,
+    /// Codebook training: Lloyd iterations. \[R\] 20.
     pub codebook_iterations: usize,
+    /// Codebook training: the seed of k-means++. \[R\] 1.
     pub codebook_seed: u64,
 }
 
@@ -260,10 +274,13 @@ impl Default for KeypointsConfig {
 pub struct SegmentationConfig {
     /// Network input size (the image is resized to it); multiples of 32 for most networks.
     pub input_width: usize,
+    /// Network input height (with `input_width`). 512, ESPNet's training size.
     pub input_height: usize,
     /// input = (pixel * scale - mean) / std per channel, pixel in 0..255.
     pub scale: f64,
+    /// Per-channel mean subtracted after scaling (see `scale`). 0.
     pub mean: [f64; 3],
+    /// Per-channel divisor applied after the mean (see `scale`). 1.
     pub std: [f64; 3],
     /// Channel order fed to the network.
     pub bgr: bool,
@@ -298,10 +315,13 @@ impl Default for SegmentationConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ModelPaths {
+    /// XFeat's weights for `appearance.model = "xfeat"` (else `xfeat.pt` in the model folders).
     #[serde(serialize_with = "lossy_path")]
     pub xfeat_weights: Option<std::path::PathBuf>,
+    /// The ONNX keypoint network for `appearance.model = "onnx"`.
     #[serde(serialize_with = "lossy_path")]
     pub keypoint_onnx: Option<std::path::PathBuf>,
+    /// The ONNX segmentation network that labels frames without a label map (`[segmentation]`).
     #[serde(serialize_with = "lossy_path")]
     pub segmenter_onnx: Option<std::path::PathBuf>,
     /// Without `segmenter_onnx`, segment frames that have no label map with the default
@@ -326,6 +346,7 @@ impl Default for ModelPaths {
     }
 }
 
+/// The `[similarity]` section: tree similarity and image similarity (method.md §2.8).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SimilarityConfig {
@@ -333,18 +354,24 @@ pub struct SimilarityConfig {
     /// 1/3, 1/3, 16 (sweeps 01-02: with segmenter labels, area and position of objects are
     /// noise on real frames; appearance carries the place: 0.3 -> 0.7 R@1 on Nordland).
     pub w_area: f64,
+    /// Weight of position inside S_in (see `w_area`). \[R\] 1/3.
     pub w_position: f64,
+    /// Weight of appearance inside S_in (see `w_area`). \[R\] 16.
     pub w_appearance: f64,
     /// Weights of the intrinsic part and the neighbour part of the tree similarity, normalised
     /// by their sum. \[R\] 0.5 / 0.2 (sweep 02: 0.2 > 0 and > 0.5 in mean R@1).
     pub w_intrinsic: f64,
+    /// Weight of the neighbour part S_N (see `w_intrinsic`). \[R\] 0.2.
     pub w_neighbours: f64,
     /// Position similarity: "linear" max(0, 1 - d) or "gaussian" exp(-d^2 / 2 sigma^2), d in diagonals.
     pub position: PositionSimilarity,
+    /// sigma of the "gaussian" position term, in image diagonals. \[R\] 0.1.
     pub position_sigma: f64,
     /// Appearance missing on either side: "neutral" (score `neutral_appearance`) or "drop" (leave
     /// the term out and renormalise the weights). \[R\] neutral 0.5.
     pub missing_appearance: MissingAppearance,
+    /// The appearance score of a pair where a tree has no appearance, with
+    /// `missing_appearance = "neutral"`. \[R\] 0.5.
     pub neutral_appearance: f64,
     /// Image similarity from tree similarities: "greedy" one-to-one assignment, or "best_match"
     /// (each query tree takes its best reference tree). \[R\] greedy.
@@ -366,11 +393,15 @@ pub struct SimilarityConfig {
     pub class_match: ClassMatch,
 }
 
+/// Which trees may pair (`similarity.class_match`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ClassMatch {
+    /// Only trees of the same class (method.md §2.8).
     Class,
+    /// Trees of the same category (road with sidewalk, building with wall, ...).
     Category,
+    /// Categories in the settings where appearance takes part, classes in the label-only ones.
     CategoryWithAppearance,
 }
 
@@ -388,19 +419,27 @@ impl SimilarityConfig {
     }
 }
 
+/// The weight of a tree in the image similarity (`similarity.tree_weight`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum TreeWeight {
+    /// Every tree weighs 1 (method.md §2.8).
     Uniform,
+    /// The tree's object area.
     Area,
+    /// The square root of the tree's object area.
     SqrtArea,
+    /// The tree's appearance descriptor count + 1 (the area in settings without appearance).
     Descriptors,
 }
 
+/// What the sum of weighted pair scores is divided by (`similarity.normalise`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Normalise {
+    /// The larger of the two forests' total tree weights (method.md §2.8).
     LargerForest,
+    /// The square root of the product of the two totals.
     GeometricMean,
 }
 
@@ -424,27 +463,38 @@ impl Default for SimilarityConfig {
     }
 }
 
+/// The position similarity of two trees from their centroid distance d, in image diagonals
+/// (`similarity.position`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum PositionSimilarity {
+    /// max(0, 1 - d).
     Linear,
+    /// exp(-d^2 / 2 sigma^2), sigma = `position_sigma`.
     Gaussian,
 }
 
+/// What a pair scores for appearance when either tree has none (`similarity.missing_appearance`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum MissingAppearance {
+    /// The score `neutral_appearance`.
     Neutral,
+    /// No score: the term is left out and the weights renormalised.
     Drop,
 }
 
+/// How tree similarities make the image similarity (`similarity.assignment`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Assignment {
+    /// Greedy one-to-one assignment of tree pairs, best pair first.
     Greedy,
+    /// Each query tree takes its best reference tree.
     BestMatch,
 }
 
+/// The `[matching]` section: the coarse stage and the final score.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct MatchingConfig {
@@ -484,10 +534,13 @@ impl Default for MatchingConfig {
     }
 }
 
+/// The final score of a candidate (`matching.score`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ScoreFusion {
+    /// The image similarity of the fine stage.
     Fine,
+    /// The image similarity times the SSIM of the global descriptors.
     FineTimesGlobal,
 }
 
@@ -514,6 +567,8 @@ pub struct VerificationConfig {
     pub threshold: f64,
     /// RANSAC iterations at most, and the confidence that stops earlier. \[R\] 1000, 0.999.
     pub max_iterations: u32,
+    /// RANSAC stops once an all-inlier sample was drawn with this probability, at the best
+    /// model's inlier ratio (see `max_iterations`). \[R\] 0.999.
     pub confidence: f64,
     /// Seed of RANSAC's sampling (the same for every pair: results do not depend on the batch).
     pub seed: u64,
@@ -526,7 +581,9 @@ pub struct VerificationConfig {
     /// fused coarse score and the tree-set similarity of the pair. \[R\] 1, 2, 2 (sweep 07: the
     /// best of w_coarse 1/2/4 x w_fine 0/1/2/4).
     pub w_inliers: f64,
+    /// Weight of the fused coarse score in the verified score (see `w_inliers`). \[R\] 2.
     pub w_coarse: f64,
+    /// Weight of the tree-set similarity in the verified score (see `w_inliers`). \[R\] 2.
     pub w_fine: f64,
 }
 
@@ -585,7 +642,9 @@ pub struct SequenceConfig {
     /// from `velocity_min` to `velocity_max`. 0 is a stop; negative values drive backwards.
     /// \[R\] 0 to 2 in 9 steps (sweep 10; SeqSLAM: 0.8 to 1.2, which misses stops).
     pub velocity_min: f64,
+    /// The fastest velocity tried (see `velocity_min`). \[R\] 2.
     pub velocity_max: f64,
+    /// The number of velocities tried (see `velocity_min`). \[R\] 9.
     pub velocity_steps: usize,
     /// Which references each frame scores. \[R\] candidates.
     pub rows: SequenceRows,
@@ -610,6 +669,7 @@ pub struct SequenceConfig {
     /// A sequence match is accepted when its uniqueness reaches this and its trajectory spans at
     /// least `min_frames` frames. \[R\] 1.05, 5 (sweep 10: 1.05 against 1.2 within 0.003).
     pub min_uniqueness: f64,
+    /// The fewest frames an accepted trajectory spans (see `min_uniqueness`). \[R\] 5.
     pub min_frames: usize,
     /// And the newest frame agrees with it: its evidence at the match is at least this share of
     /// its strongest evidence anywhere (0: no such condition). \[R\] 0.8 (sweep 10: at 0 a run of
@@ -649,6 +709,8 @@ pub struct StreamConfig {
     /// many frames older, and at least `exclude_seconds` older where frames carry timestamps
     /// (the recent past always looks like the present). \[R\] 50 frames (5 s at 10 Hz), 0 s.
     pub exclude_frames: usize,
+    /// Loop-closure mode: the seconds a matched frame is at least older, where frames carry
+    /// timestamps (see `exclude_frames`). \[R\] 0.
     pub exclude_seconds: f64,
     /// Loop-closure mode: the frames added are committed to the map (one segment, the store's
     /// crash-safe commit) every this many frames; at most `exclude_frames`, so that every frame
@@ -659,6 +721,8 @@ pub struct StreamConfig {
     /// after `lost_after` frames without an accepted match, the whole map again. Large maps.
     /// \[R\] 0 (off), 5.
     pub track_radius: usize,
+    /// Frames without an accepted match after which the whole map is searched again (see
+    /// `track_radius`). \[R\] 5.
     pub lost_after: usize,
     /// Loop-closure mode: an accepted sequence match is a closure when its uniqueness reaches
     /// `closure_uniqueness` (some other place must score: a match with no competitor is not
@@ -668,6 +732,8 @@ pub struct StreamConfig {
     /// of the false closures of the first pass 92 % stood or crawled (|v| <= 0.25), the true ones
     /// of the second moved at 0.5 to 1 with uniqueness 1.49 to 4.5.
     pub closure_uniqueness: f64,
+    /// Loop-closure mode: the least speed of a closure's trajectory, in positions per frame (see
+    /// `closure_uniqueness`). \[R\] 0.5.
     pub closure_min_velocity: f64,
 }
 
@@ -685,6 +751,7 @@ impl Default for StreamConfig {
     }
 }
 
+/// The `[eval]` section: what evaluation reports.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct EvalConfig {
@@ -706,6 +773,7 @@ impl Config {
         Ok(cfg)
     }
 
+    /// Reads, parses and validates the TOML config at `path`.
     pub fn load(path: &Path) -> Result<Config> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
         Config::from_toml(&text, &path.display().to_string())

@@ -5,22 +5,16 @@
 //! never picks it; `gpu` accepts it, which is what the equivalence tests run on).
 
 use crate::config::Config;
-use crate::descriptors::source::{GlobalSource, RefSource};
+use crate::descriptors::source::RefSource;
 use crate::descriptors::DescriptorSet;
 use crate::descriptors::EncodedImage;
 use crate::encode::phases::Pending;
 use crate::encode::{Encoder, Loaded, StageTimes};
 use crate::error::{Error, Result};
-use crate::gpu::{
-    coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, verify::MnnGpu, vlad::VladGpu, xfeat::NetworkSlot, GpuContext,
-    GpuOptions,
-};
+use crate::gpu::{GpuContext, GpuOptions, GpuStages};
 use crate::input::{FrameSource, LabelFormat, LabelMap};
-use crate::kernels::abi::SsimParams;
-use crate::kernels::abi::TreeSimParams;
 use crate::matching::{candidates, fine_scores, match_with, CandidateLists, CpuStages, MatchTimes, QueryMatch, Setting, Stages};
 use crate::util::ms_since;
-use crate::verify::{Verified, VerifyParams};
 use rayon::prelude::*;
 use std::sync::Arc;
 use std::time::Instant;
@@ -43,9 +37,11 @@ pub enum Backend {
 }
 
 impl Backend {
+    /// Every backend.
     pub const ALL: [Backend; 3] = [Backend::Cpu, Backend::Gpu, Backend::Auto];
     /// The backend of every front end (command line, Python) when none is named.
     pub const DEFAULT: Backend = Backend::Auto;
+    /// The backend's name, as the front ends spell it: "cpu", "gpu" or "auto".
     pub fn name(self) -> &'static str {
         match self {
             Backend::Cpu => "cpu",
@@ -61,146 +57,6 @@ impl Default for Backend {
     }
 }
 
-/// The GPU executors of an engine; pipelines live in the context, buffers in the executors.
-pub struct GpuStages {
-    pub ctx: Arc<GpuContext>,
-    /// Stage calls and encode batches run here (what `Engine::gpu_calls` counts from).
-    work: u64,
-    encoder: GlobalEncoderGpu,
-    coarse: Option<(SsimParams, CoarseMatcherGpu)>,
-    fine: FineMatcherGpu,
-    vlad: VladGpu,
-    mnn: MnnGpu,
-    /// The keypoint network (native XFeat) on the device.
-    network: NetworkSlot,
-    /// Most frames held decoded at once by an encoding call so far.
-    decoded_peak: usize,
-}
-
-impl GpuStages {
-    pub fn new(ctx: Arc<GpuContext>) -> Self {
-        GpuStages {
-            encoder: GlobalEncoderGpu::new(ctx.clone()),
-            fine: FineMatcherGpu::new(ctx.clone()),
-            vlad: VladGpu::new(ctx.clone()),
-            mnn: MnnGpu::new(ctx.clone()),
-            network: NetworkSlot::default(),
-            decoded_peak: 0,
-            coarse: None,
-            ctx,
-            work: 0,
-        }
-    }
-
-    /// Forgets the maps kept on the device (call after editing a map's vectors in place: the
-    /// resident copy is keyed by the map's identity and sampled content, see `SourceKey`).
-    pub fn forget_map(&mut self) {
-        if let Some((_, c)) = &mut self.coarse {
-            c.forget_map();
-        }
-        self.fine.forget_map();
-    }
-
-    /// Whether the last coarse map was kept resident (false: streamed, or none yet).
-    pub fn coarse_map_is_resident(&self) -> bool {
-        self.coarse.as_ref().is_some_and(|c| c.1.map_is_resident())
-    }
-
-    /// Whether the last fine-stage map's forests were kept resident (false: streamed).
-    pub fn fine_map_is_resident(&self) -> bool {
-        self.fine.map_is_resident()
-    }
-
-    /// What the fine stage's dispatches did so far (pairs and workgroups of each kernel).
-    pub fn fine_counters(&self) -> crate::gpu::fine::FineCounters {
-        self.fine.counters()
-    }
-
-    /// Bytes of the last maps on the device: (coarse descriptors and statistics, fine packed
-    /// forests).
-    pub fn map_bytes(&self) -> (u64, u64) {
-        (self.coarse.as_ref().map_or(0, |c| c.1.map_bytes()), self.fine.map_bytes())
-    }
-
-    /// Most frames an encoding call has held decoded at once (at most [`STREAM_FRAMES`]). A test
-    /// hook (the bounded-memory tests read it), not the API.
-    #[doc(hidden)]
-    pub fn decoded_peak(&self) -> usize {
-        self.decoded_peak
-    }
-
-    /// Uploads `refs` as the coarse stage's map for SSIM parameters `p` ahead of a batch (the
-    /// first batch against a map would otherwise upload it); true if it is kept resident, false
-    /// if it is beyond the budget and will be streamed with every batch.
-    pub fn upload_coarse_map(&mut self, refs: &dyn GlobalSource, p: &SsimParams) -> Result<bool> {
-        Ok(self.coarse_for(p)?.upload_map(refs)?)
-    }
-
-    /// Frames whose keypoint network ran on the device (native XFeat) in the current executor.
-    pub fn network_frames(&self) -> u64 {
-        self.network.frames()
-    }
-
-    /// Kernel time since the last call, from timestamp queries (`None` without them).
-    pub fn take_kernel_seconds(&self) -> Result<Option<f64>> {
-        Ok(self.ctx.take_kernel_seconds()?)
-    }
-
-    fn coarse_for(&mut self, p: &SsimParams) -> Result<&mut CoarseMatcherGpu> {
-        let matcher = match self.coarse.take() {
-            Some(c) if c.0 == *p => c,
-            _ => (*p, CoarseMatcherGpu::new(self.ctx.clone(), *p)?),
-        };
-        Ok(&mut self.coarse.insert(matcher).1)
-    }
-}
-
-impl Stages for GpuStages {
-    /// On the device the map stays resident and passes are sized by the device's limits, so
-    /// `tile` (the CPU path's scratch bound) does not apply.
-    fn coarse(&mut self, refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimParams, k: usize, _tile: usize) -> Result<Vec<Vec<(f32, u32)>>> {
-        self.work += 1;
-        Ok(self.coarse_for(p)?.topk(queries, refs, k)?)
-    }
-    fn fine_pairs(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<f32>> {
-        self.work += 1;
-        Ok(self.fine.score_pairs(p, queries, refs, pairs)?)
-    }
-    fn fine_topk(
-        &mut self,
-        p: &TreeSimParams,
-        refs: &dyn RefSource,
-        queries: &DescriptorSet,
-        k: usize,
-        _tile: usize,
-    ) -> Result<Vec<Vec<(f32, u32)>>> {
-        self.work += 1;
-        Ok(self.fine.topk_all(p, queries, refs, k)?)
-    }
-    /// On the CPU (the whole-image appearance vectors are not on the device).
-    fn fused_coarse(
-        &mut self,
-        refs: &dyn RefSource,
-        queries: &DescriptorSet,
-        p: &SsimParams,
-        w_global: f32,
-        k: usize,
-        tile: usize,
-    ) -> Result<Vec<Vec<(f32, u32)>>> {
-        CpuStages.fused_coarse(refs, queries, p, w_global, k, tile)
-    }
-    /// Mutual nearest neighbours on the GPU (`mnn_match`), RANSAC on the CPU.
-    fn verify_pairs(&mut self, p: &VerifyParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<Verified>> {
-        self.work += 1;
-        let best = self.mnn.best_columns(queries, refs, pairs)?;
-        Ok(pairs
-            .par_iter()
-            .zip(best.par_iter())
-            .map(|(&(q, r), b)| crate::verify::verify_from_best(p, queries.keypoints(q as usize), refs.keypoints(r as usize), b))
-            .collect())
-    }
-}
-
 /// Runs the pipeline on the chosen backend.
 pub struct Engine {
     gpu: Option<GpuStages>,
@@ -213,6 +69,7 @@ pub struct Engine {
 }
 
 impl Engine {
+    /// An engine on the CPU reference path.
     pub fn cpu() -> Engine {
         Engine { gpu: None, fall_back: false, gpu_calls: 0, fell_back: None }
     }
@@ -282,6 +139,7 @@ impl Engine {
         }
     }
 
+    /// Whether the engine runs on the GPU (false on the CPU path, also after `auto` fell back).
     pub fn is_gpu(&self) -> bool {
         self.gpu.is_some()
     }

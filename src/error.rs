@@ -12,53 +12,187 @@ pub type Result<T, E = Error> = std::result::Result<T, E>;
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum Error {
+    /// Reading or writing a file failed.
     #[error("{path}: {source}")]
     Io {
+        /// The file that failed.
         path: PathBuf,
+        /// The I/O error.
         #[source]
         source: std::io::Error,
     },
+    /// An image file could not be decoded.
     #[error("{path}: cannot decode image: {reason}")]
-    ImageDecode { path: PathBuf, reason: String },
+    ImageDecode {
+        /// The image file.
+        path: PathBuf,
+        /// What the decoder said.
+        reason: String,
+    },
+    /// An image (or label map) has no pixels.
     #[error("{path}: image is empty ({width}x{height})")]
-    EmptyImage { path: PathBuf, width: u32, height: u32 },
+    EmptyImage {
+        /// The image file.
+        path: PathBuf,
+        /// Its width in pixels.
+        width: u32,
+        /// Its height in pixels.
+        height: u32,
+    },
+    /// A label map's size differs from its image's.
     #[error("{labels}: label map is {label_size:?} (w, h) but image {image} is {image_size:?}")]
-    SizeMismatch { image: PathBuf, labels: PathBuf, image_size: (u32, u32), label_size: (u32, u32) },
+    SizeMismatch {
+        /// The image file.
+        image: PathBuf,
+        /// The label map file.
+        labels: PathBuf,
+        /// The image's size in pixels, (width, height).
+        image_size: (u32, u32),
+        /// The label map's size in pixels, (width, height).
+        label_size: (u32, u32),
+    },
+    /// A label map pixel holds a class id the class table does not know.
     #[error("{path}: pixel ({x}, {y}) has class id {id}, which the class table does not know (and is not void)")]
-    UnknownClassId { path: PathBuf, id: u32, x: u32, y: u32 },
+    UnknownClassId {
+        /// The label map file.
+        path: PathBuf,
+        /// The unknown class id.
+        id: u32,
+        /// The pixel's column.
+        x: u32,
+        /// The pixel's row.
+        y: u32,
+    },
+    /// A colour label map pixel holds a colour the class palette does not know.
     #[error("{path}: pixel ({x}, {y}) has colour {rgb:?}, which is not in the class palette")]
-    UnknownClassColor { path: PathBuf, rgb: [u8; 3], x: u32, y: u32 },
+    UnknownClassColor {
+        /// The label map file.
+        path: PathBuf,
+        /// The unknown colour, RGB.
+        rgb: [u8; 3],
+        /// The pixel's column.
+        x: u32,
+        /// The pixel's row.
+        y: u32,
+    },
+    /// A label map's pixel format cannot hold class ids, or is not the one asked for.
     #[error("{path}: unsupported label map: {reason}")]
-    UnsupportedLabelFormat { path: PathBuf, reason: String },
+    UnsupportedLabelFormat {
+        /// The label map file.
+        path: PathBuf,
+        /// What is wrong with its format.
+        reason: String,
+    },
+    /// An image has neither a label map nor a segmenter to make one.
     #[error("{image}: no label map given and no segmenter configured: give label maps, or a segmenter model")]
-    NoLabels { image: PathBuf },
+    NoLabels {
+        /// The image file.
+        image: PathBuf,
+    },
+    /// A config is malformed or one of its values is out of range.
     #[error("config {source_name}: {reason}")]
-    InvalidConfig { source_name: String, reason: String },
+    InvalidConfig {
+        /// Where the config came from (a file name, or a description of the source).
+        source_name: String,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// A stored map cannot be read as written.
     #[error("map {path}: corrupt: {reason}")]
-    CorruptMap { path: PathBuf, reason: String },
+    CorruptMap {
+        /// The map directory or file.
+        path: PathBuf,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// A stored map has a format version this build does not read.
     #[error("map {path}: format version {found} is not supported (this build reads version {supported}){}", version_hint(*found, *supported))]
-    MapVersion { path: PathBuf, found: u32, supported: u32 },
+    MapVersion {
+        /// The map directory or file.
+        path: PathBuf,
+        /// The version the map was written with.
+        found: u32,
+        /// The version this build reads.
+        supported: u32,
+    },
+    /// The query config differs from the map's in a field both must agree on.
     #[error("map {map}: built with {field} = {map_value}, but the query config has {given_value}; re-encode or use the map's config")]
-    IncompatibleConfig { map: PathBuf, field: String, map_value: String, given_value: String },
+    IncompatibleConfig {
+        /// The map.
+        map: PathBuf,
+        /// The config field that differs.
+        field: String,
+        /// The field's value in the map's config.
+        map_value: String,
+        /// The field's value in the given config.
+        given_value: String,
+    },
+    /// An image id added to a map is stored in it already.
     #[error("map {map}: image id {id:?} is already stored")]
-    DuplicateImageId { map: PathBuf, id: String },
+    DuplicateImageId {
+        /// The map.
+        map: PathBuf,
+        /// The image id.
+        id: String,
+    },
     /// One id given to two images of one batch (before: "is already stored", of a map that
     /// held neither).
     #[error("map {map}: image id {id:?} is given twice (images {first} and {second} of those added); ids must be unique")]
-    RepeatedImageId { map: PathBuf, id: String, first: usize, second: usize },
+    RepeatedImageId {
+        /// The map.
+        map: PathBuf,
+        /// The image id.
+        id: String,
+        /// The index of the first image with it, among those added (from 0).
+        first: usize,
+        /// The index of the second image with it, among those added (from 0).
+        second: usize,
+    },
+    /// An image given to a map fails a check, and nothing of it was written.
     #[error("image {id:?} refused, nothing of it written: {reason}")]
-    InvalidImage { id: String, reason: String },
+    InvalidImage {
+        /// The image id.
+        id: String,
+        /// What is wrong with the image.
+        reason: String,
+    },
+    /// A dataset's files or layout are missing or malformed.
     #[error("dataset {path}: {reason}")]
-    Dataset { path: PathBuf, reason: String },
+    Dataset {
+        /// The dataset's directory or file.
+        path: PathBuf,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// An argument or input value is invalid.
     #[error("{what}: {reason}")]
-    InvalidInput { what: String, reason: String },
+    InvalidInput {
+        /// What the value is (an argument, a file, an image).
+        what: String,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// The GPU path failed.
     #[error(transparent)]
     Gpu(#[from] GpuError),
+    /// A model file cannot be loaded or run, or its outputs are wrong.
     #[error("model {path}: {reason}")]
-    Model { path: PathBuf, reason: String },
+    Model {
+        /// The model file.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
     /// A request refused for a reason the caller can act on ([`Remedy`]).
     #[error("{what}: {reason}")]
-    Refused { what: String, reason: String, remedy: Remedy },
+    Refused {
+        /// What was refused (the map, the build, the argument).
+        what: String,
+        /// Why it was refused.
+        reason: String,
+        /// What the caller can do about it.
+        remedy: Remedy,
+    },
     /// Values that fail a check, said before the caller names where they come from: what the
     /// low-level checks return (`descriptors::validate`, `DescriptorSet`'s appends and layout
     /// checks, the tensor operations of `appearance::nn` and `appearance::keypoints`, the pickle
@@ -66,7 +200,10 @@ pub enum Error {
     /// they belong to. A caller that knows it names it with [`Error::named`] (its message is then
     /// that variant's, with this reason); the message alone is the reason.
     #[error("{reason}")]
-    Check { reason: String },
+    Check {
+        /// Why the values fail the check.
+        reason: String,
+    },
 }
 
 /// What a caller can do about a refused request, in no front end's words: messages speak of the
@@ -111,18 +248,23 @@ fn version_hint(found: u32, supported: u32) -> String {
 
 /// Short constructors for the common variants.
 impl Error {
+    /// An [`Error::Io`] on `path`.
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         Error::Io { path: path.into(), source }
     }
+    /// An [`Error::CorruptMap`] of the map at `path`.
     pub fn corrupt(path: impl Into<PathBuf>, reason: impl Into<String>) -> Self {
         Error::CorruptMap { path: path.into(), reason: reason.into() }
     }
+    /// An [`Error::Dataset`] of the dataset at `path`.
     pub fn dataset(path: impl Into<PathBuf>, reason: impl Into<String>) -> Self {
         Error::Dataset { path: path.into(), reason: reason.into() }
     }
+    /// An [`Error::InvalidInput`] about `what`.
     pub fn invalid(what: impl Into<String>, reason: impl Into<String>) -> Self {
         Error::InvalidInput { what: what.into(), reason: reason.into() }
     }
+    /// An [`Error::Refused`] of `what`, with what the caller can do about it.
     pub fn refused(what: impl Into<String>, reason: impl Into<String>, remedy: Remedy) -> Self {
         Error::Refused { what: what.into(), reason: reason.into(), remedy }
     }
@@ -154,18 +296,50 @@ impl Error {
 /// error enum imports no stage.
 #[derive(Debug, thiserror::Error)]
 pub enum GpuError {
+    /// No usable GPU adapter, or not the one asked for; the field holds the rest of the message
+    /// (the adapters seen, or how to install a driver), empty or starting with a separator.
     #[error("no GPU adapter found{0}")]
     NoAdapter(String),
+    /// The adapter would not create a device.
     #[error("adapter {adapter}: cannot create a device: {reason}")]
-    Device { adapter: String, reason: String },
+    Device {
+        /// The adapter's name.
+        adapter: String,
+        /// What the driver said.
+        reason: String,
+    },
+    /// The device was lost; the field holds what was going on, or the driver's message.
     #[error("GPU device lost: {0}")]
     DeviceLost(String),
+    /// The GPU ran out of memory; the field holds what was going on.
     #[error("GPU out of memory while {0}")]
     OutOfMemory(String),
+    /// A device limit is too small for the work asked for.
     #[error("adapter {adapter}: {what} needs {needed} but the limit is {available}")]
-    LimitsTooSmall { adapter: String, what: String, needed: u64, available: u64 },
+    LimitsTooSmall {
+        /// The adapter's name.
+        adapter: String,
+        /// What needs more (the limit and the work).
+        what: String,
+        /// What the work needs, in the limit's units.
+        needed: u64,
+        /// What the device allows, in the limit's units.
+        available: u64,
+    },
+    /// A shader failed to preprocess or compile.
     #[error("shader {name}: {message}")]
-    Shader { name: String, message: String },
+    Shader {
+        /// The shader's name (its file, and entry point where known).
+        name: String,
+        /// What the preprocessor or compiler said.
+        message: String,
+    },
+    /// Any other GPU error.
     #[error("GPU error while {what}: {reason}")]
-    Failed { what: String, reason: String },
+    Failed {
+        /// What was going on (e.g. "reading back").
+        what: String,
+        /// What went wrong.
+        reason: String,
+    },
 }

@@ -42,6 +42,9 @@
 //! # Ok(()) }
 //! ```
 
+// every public item is documented; clippy -D warnings (the test command) turns this into an error
+#![warn(missing_docs)]
+
 pub mod appearance;
 pub mod batch;
 

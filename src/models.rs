@@ -9,6 +9,7 @@ use std::path::PathBuf;
 /// One model file the engine can use.
 #[derive(Debug, Clone, Copy)]
 pub struct ModelFile {
+    /// The file name, as looked up in the model folders.
     pub name: &'static str,
     /// What it is for.
     pub role: &'static str,
@@ -78,16 +79,24 @@ pub const CATALOG: [ModelFile; 4] = [
 /// What is installed of one catalogue entry.
 #[derive(Debug, Clone, Serialize)]
 pub struct Installed {
+    /// The file name ([`ModelFile::name`]).
     pub name: String,
+    /// What it is for ([`ModelFile::role`]).
     pub role: String,
     /// The first folder of the search order that holds it; `None`: missing.
     pub path: Option<PathBuf>,
+    /// Its size in bytes; `None`: missing.
     pub bytes: Option<u64>,
+    /// The SHA-256 of the file found, lowercase hex; `None`: missing.
     pub sha256: Option<String>,
     /// Whether it is the file `setup.sh` installs (same SHA-256).
     pub pinned: Option<bool>,
+    /// The SHA-256 of the file `setup.sh` installs ([`ModelFile::sha256`]).
     pub expected_sha256: String,
+    /// Where it comes from ([`ModelFile::source`]), with the reason when the file found cannot be
+    /// read.
     pub source: String,
+    /// Whether the engine runs without it ([`ModelFile::optional`]).
     pub optional: bool,
 }
 

@@ -17,12 +17,14 @@ pub enum ValueType {
 }
 
 impl ValueType {
+    /// Bytes per stored value: 4 or 2.
     pub fn bytes(self) -> usize {
         match self {
             ValueType::F32 => 4,
             ValueType::F16 => 2,
         }
     }
+    /// The type's name, "f32" or "f16", as a map's manifest writes it.
     pub fn name(self) -> &'static str {
         match self {
             ValueType::F32 => "f32",
@@ -37,6 +39,7 @@ pub const F16_MAX: f32 = 65504.0;
 /// A borrowed run of values of either storage type.
 #[derive(Debug, Clone, Copy)]
 pub enum Values<'a> {
+    /// f32 values.
     F32(&'a [f32]),
     /// f16 bit patterns.
     F16(&'a [u16]),
@@ -50,15 +53,23 @@ pub enum Values<'a> {
 /// `offsets[v]..offsets[v + 1]` (indices into `ids`, `exponents` and `values` / `block`).
 #[derive(Debug, Clone, Copy)]
 pub struct Blocks<'a> {
+    /// Values per vector.
     pub dim: usize,
+    /// Values per block.
     pub block: usize,
+    /// Where each vector's stored blocks start in `ids`, then where the last one's end (vectors + 1
+    /// entries).
     pub offsets: &'a [u32],
+    /// Per stored block, its index in its vector.
     pub ids: &'a [u8],
+    /// Per stored block, its scale exponent e (value = q x 2^e).
     pub exponents: &'a [i8],
+    /// The stored blocks' int8 values q, `block` per stored block.
     pub values: &'a [i8],
 }
 
 impl<'a> Blocks<'a> {
+    /// The number of vectors.
     pub fn vectors(&self) -> usize {
         self.offsets.len().saturating_sub(1)
     }
@@ -151,8 +162,10 @@ pub fn to_blocks(dense: &[f32], dim: usize, block: usize, base: u32) -> (Vec<u32
 }
 
 impl<'a> Values<'a> {
+    /// No values.
     pub const EMPTY: Values<'static> = Values::F32(&[]);
 
+    /// The number of values (for blocks: vectors x dim, the zeros included).
     pub fn len(&self) -> usize {
         match self {
             Values::F32(v) => v.len(),
@@ -160,6 +173,7 @@ impl<'a> Values<'a> {
             Values::Blocks(b) => b.vectors() * b.dim,
         }
     }
+    /// Whether there are no values.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
@@ -196,6 +210,7 @@ impl<'a> Values<'a> {
         out.resize(at + self.len(), 0.0);
         self.write_to(&mut out[at..]);
     }
+    /// The values, widened, in a new vector.
     pub fn to_vec(&self) -> Vec<f32> {
         let mut v = Vec::with_capacity(self.len());
         self.extend_into(&mut v);

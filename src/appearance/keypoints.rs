@@ -8,11 +8,14 @@
 use super::nn::{Chw, NetOutputs};
 use crate::error::{Error, Result};
 
+/// Parameters of keypoint decoding: suppression radius, score threshold, keypoint budget, border.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct KeypointParams {
     /// Keep a pixel only if no pixel within this Chebyshev radius scores higher.
     pub nms_radius: usize,
+    /// Keep only pixels scoring above this (for [`detect`], the heatmap alone).
     pub threshold: f32,
+    /// Most keypoints kept, best first.
     pub max_keypoints: usize,
     /// Ignore keypoints this close to the image border (pixels).
     pub border: usize,
@@ -40,17 +43,22 @@ impl KeypointParams {
 /// Keypoints of one image, in the coordinates of the network input.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct Keypoints {
+    /// (x, y) per keypoint, in pixels.
     pub xy: Vec<[f32; 2]>,
+    /// Score per keypoint: probability times reliability (dense cells: the reliability, or 1).
     pub scores: Vec<f32>,
     /// `dim` values per keypoint, unit length.
     pub descriptors: Vec<f32>,
+    /// Length of a descriptor.
     pub dim: usize,
 }
 
 impl Keypoints {
+    /// Number of keypoints.
     pub fn len(&self) -> usize {
         self.xy.len()
     }
+    /// Whether there are no keypoints.
     pub fn is_empty(&self) -> bool {
         self.xy.is_empty()
     }

@@ -40,6 +40,7 @@ pub struct AppearanceModel {
     detect: Option<KeypointParams>,
     /// SHA-256 of the weights or model file (recorded in maps).
     pub sha256: String,
+    /// The weights or model file it was loaded from.
     pub path: PathBuf,
 }
 
@@ -211,6 +212,7 @@ pub struct Features {
     pub sampled: Keypoints,
     /// The verification keypoints, best first, when the model detects.
     pub detected: Option<Keypoints>,
+    /// Milliseconds spent in the network itself.
     pub network_ms: f64,
 }
 

@@ -11,16 +11,22 @@ use rayon::prelude::*;
 /// A CHW tensor.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Chw {
+    /// Channels.
     pub c: usize,
+    /// Height.
     pub h: usize,
+    /// Width.
     pub w: usize,
+    /// The values, channel by channel, each plane row-major (c x h x w).
     pub data: Vec<f32>,
 }
 
 impl Chw {
+    /// A tensor of `c` x `h` x `w` zeros.
     pub fn zeros(c: usize, h: usize, w: usize) -> Chw {
         Chw { c, h, w, data: vec![0.0; c * h * w] }
     }
+    /// Channel `c`'s plane (h x w values, row-major).
     pub fn plane(&self, c: usize) -> &[f32] {
         &self.data[c * self.h * self.w..(c + 1) * self.h * self.w]
     }

@@ -17,7 +17,9 @@ const MAX_STORAGE_BYTES: u64 = 1 << 30;
 /// A float tensor (row-major, contiguous).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Tensor {
+    /// Size of each dimension, outermost first.
     pub shape: Vec<usize>,
+    /// The values, row-major (the product of `shape` of them).
     pub data: Vec<f32>,
 }
 

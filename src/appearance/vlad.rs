@@ -18,6 +18,7 @@ pub struct VladNorm {
 }
 
 impl VladNorm {
+    /// The normalisations `[appearance]` asks for (`intra_norm`, `power_norm`).
     pub fn from_config(a: &crate::config::AppearanceConfig) -> Self {
         VladNorm { intra: a.intra_norm, power: a.power_norm }
     }
@@ -60,8 +61,11 @@ pub fn vlad_reference(centres: &[f32], k: usize, d: usize, descriptors: &[&[f32]
 /// A VLAD codebook: `k` centres of `dim` values.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Codebook {
+    /// Number of centres.
     pub k: usize,
+    /// Length of a centre (the descriptors' dimension).
     pub dim: usize,
+    /// The centres, `dim` values each, one after another (k x dim).
     pub centres: Vec<f32>,
 }
 

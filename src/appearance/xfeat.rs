@@ -50,10 +50,15 @@ impl Conv {
 pub struct Layer<'a> {
     /// [cout, cin, k, k].
     pub weight: &'a [f32],
+    /// Input channels.
     pub cin: usize,
+    /// Output channels.
     pub cout: usize,
+    /// Kernel side.
     pub k: usize,
+    /// Stride.
     pub stride: usize,
+    /// What follows the convolution.
     pub epilogue: Epilogue<'a>,
 }
 
@@ -64,20 +69,33 @@ pub struct Layer<'a> {
 /// the 8x8 space-to-depth of the normalised input (the logits).
 #[derive(Debug, Clone)]
 pub struct Graph<'a> {
+    /// The convolution of the input's 4x4 average pool, added to `block1`'s output.
     pub skip1: Layer<'a>,
+    /// The first backbone block, on the normalised input.
     pub block1: Vec<Layer<'a>>,
+    /// The second backbone block, on `block1`'s output plus `skip1`'s.
     pub block2: Vec<Layer<'a>>,
+    /// The third backbone block (x3).
     pub block3: Vec<Layer<'a>>,
+    /// The fourth backbone block (x4).
     pub block4: Vec<Layer<'a>>,
+    /// The fifth backbone block (x5).
     pub block5: Vec<Layer<'a>>,
+    /// The fusion block, on x3 + x4 and x5 resized to x3.
     pub fusion: Vec<Layer<'a>>,
+    /// The last fusion convolution: the dense descriptors.
     pub fusion_out: Layer<'a>,
+    /// The reliability head's block, on the descriptors.
     pub heatmap: Vec<Layer<'a>>,
+    /// The reliability head's last convolution (bias, then sigmoid).
     pub heatmap_out: Layer<'a>,
+    /// The keypoint head's block, on the 8x8 space-to-depth of the normalised input.
     pub keypoint: Vec<Layer<'a>>,
+    /// The keypoint head's last convolution: the 65-channel logits.
     pub keypoint_out: Layer<'a>,
 }
 
+/// The XFeat network with its weights, run natively on the CPU.
 pub struct XFeat {
     skip1: Conv,
     block1: Vec<Basic>,

@@ -9,19 +9,27 @@ use std::path::{Path, PathBuf};
 /// Camera centre and optical axis (unit vector) in world coordinates.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Pose {
+    /// Camera centre (dataset units, usually metres).
     pub position: [f64; 3],
+    /// Optical axis, a unit vector.
     pub forward: [f64; 3],
 }
 
+/// One frame of a traversal: its files and, when the dataset gives one, its pose.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Frame {
+    /// Id and image and label-map files.
     pub source: FrameSource,
+    /// Camera pose, when the dataset gives one.
     pub pose: Option<Pose>,
 }
 
+/// One visit of the route: a named, ordered list of frames.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Traversal {
+    /// Traversal name (its folder, or the manifest's `name`).
     pub name: String,
+    /// Frames in order.
     pub frames: Vec<Frame>,
     /// Per frame, the valid reference indices, when the dataset lists them.
     pub ground_truth: Option<Vec<Vec<u32>>>,
@@ -40,16 +48,23 @@ pub struct GroundTruthRule {
 /// A loaded dataset.
 #[derive(Debug, Clone)]
 pub struct Dataset {
+    /// Dataset directory; manifest paths are relative to it.
     pub root: PathBuf,
+    /// Dataset name (the manifest's, else the directory's name).
     pub name: String,
+    /// How the dataset's label-map files encode classes.
     pub label_format: LabelFormat,
     /// The `classes.label_ids` the dataset's label files use, when it says.
     pub label_ids: Option<crate::config::LabelIds>,
+    /// Reference traversal (the map).
     pub reference: Traversal,
+    /// Query traversals, none of them the reference.
     pub queries: Vec<Traversal>,
+    /// Rule that makes ground truth from poses, for queries without ground-truth lists.
     pub rule: Option<GroundTruthRule>,
 }
 
+/// Line format of a pose list file (one line per image).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum PoseFormat {

@@ -24,38 +24,54 @@ pub use poses::{parse_pose_list, parse_synthia_pose, read_pose_list, read_synthi
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
+/// File name of a dataset manifest, in the dataset directory.
 pub const MANIFEST: &str = "semlook-dataset.json";
 /// Default SYNTHIA camera folder.
 pub const SYNTHIA_CAMERA: &str = "Stereo_Left/Omni_F";
 
+/// A traversal as a manifest describes it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(untagged)]
 pub enum TraversalSpec {
     /// A traversal folder of the synthia layout.
     Named(String),
+    /// An image folder with optional label folder and pose list (the `folders` layout).
     Folders {
+        /// Traversal name; frame ids are `name/stem`.
         name: String,
+        /// Image folder, relative to the dataset root.
         images: PathBuf,
+        /// Label-map folder (same file stems, `.png`), relative to the dataset root.
         #[serde(default)]
         labels: Option<PathBuf>,
+        /// Pose list file, relative to the dataset root.
         #[serde(default)]
         poses: Option<PathBuf>,
+        /// Line format of the pose list; `quat_center` when not given.
         #[serde(default)]
         pose_format: Option<PoseFormat>,
     },
+    /// Every frame listed with its files (the `explicit` layout).
     Explicit {
+        /// Traversal name.
         name: String,
+        /// Frames in order.
         frames: Vec<FrameSpec>,
     },
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+/// One frame of an explicit traversal.
 pub struct FrameSpec {
+    /// Frame id.
     pub id: String,
+    /// RGB image file, relative to the dataset root.
     #[serde(default)]
     pub image: Option<PathBuf>,
+    /// Label-map file, relative to the dataset root.
     #[serde(default)]
     pub labels: Option<PathBuf>,
+    /// Camera pose.
     #[serde(default)]
     pub pose: Option<Pose>,
     /// Valid reference indices (query frames only).
@@ -66,20 +82,30 @@ pub struct FrameSpec {
 /// The `semlook-dataset.json` file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct DatasetManifest {
+    /// Always `semlook-dataset`.
     pub format: String,
+    /// Manifest version; 1.
     pub version: u32,
+    /// Dataset name; the directory's name when not given.
     #[serde(default)]
     pub name: Option<String>,
+    /// Layout: `synthia` (the default), `folders` or `explicit`; only `synthia` reads named traversals.
     #[serde(default = "default_layout")]
     pub layout: String,
+    /// SYNTHIA camera folder; [`SYNTHIA_CAMERA`] when not given.
     #[serde(default)]
     pub camera: Option<String>,
+    /// How the label-map files encode classes.
     #[serde(default)]
     pub label_format: LabelFormat,
+    /// The `classes.label_ids` the label files use, when known.
     #[serde(default)]
     pub label_ids: Option<crate::config::LabelIds>,
+    /// Reference traversal (the map).
     pub reference: TraversalSpec,
+    /// Query traversals; one equal to the reference is skipped.
     pub queries: Vec<TraversalSpec>,
+    /// Rule that makes ground truth from poses.
     #[serde(default)]
     pub ground_truth: Option<GroundTruthRule>,
 }
@@ -91,9 +117,13 @@ fn default_layout() -> String {
 /// Overrides from the command line.
 #[derive(Debug, Clone, Default)]
 pub struct DatasetOptions {
+    /// Reference traversal name, replacing the manifest's.
     pub reference: Option<String>,
+    /// Query traversal names, replacing the manifest's when not empty.
     pub queries: Vec<String>,
+    /// Ground-truth distance (dataset units, usually metres), replacing the manifest's rule.
     pub max_distance: Option<f64>,
+    /// Ground-truth angle between optical axes, in degrees.
     pub max_angle_deg: Option<f64>,
 }
 
@@ -202,6 +232,8 @@ impl Dataset {
         pairs::from_folders(&refs, &queries, &truth).map(Some)
     }
 
+    /// Loads the traversals `m` describes, with paths relative to `root`, and checks every
+    /// query's ground truth.
     pub fn from_manifest(root: &Path, m: &DatasetManifest) -> Result<Dataset> {
         let camera = m.camera.clone().unwrap_or_else(|| SYNTHIA_CAMERA.into());
         let load = |spec: &TraversalSpec| load_traversal(root, &m.layout, &camera, spec);

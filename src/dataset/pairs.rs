@@ -20,7 +20,9 @@ pub const UTM_DEFAULT_DISTANCE: f64 = 25.0;
 /// Where the ground truth of a folder pair comes from.
 #[derive(Debug, Clone, PartialEq)]
 pub enum PairTruth {
+    /// A CSV file of `query,reference` rows.
     Csv(PathBuf),
+    /// VPR-Bench's `ground_truth_new.npy`.
     Npy(PathBuf),
     /// UTM positions in the file names; positives within this many metres.
     Utm(f64),

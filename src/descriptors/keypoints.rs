@@ -21,17 +21,22 @@ pub struct ImageKeypoints {
     pub descriptors: Vec<i8>,
     /// (x, y) per keypoint.
     pub xy: Vec<u16>,
+    /// Semantic class under each keypoint (`classes::VOID` where the label map has none).
     pub classes: Vec<u8>,
+    /// Descriptor length (int8 values per keypoint).
     pub dim: usize,
 }
 
 impl ImageKeypoints {
+    /// Number of keypoints.
     pub fn len(&self) -> usize {
         self.classes.len()
     }
+    /// Whether there are no keypoints.
     pub fn is_empty(&self) -> bool {
         self.classes.is_empty()
     }
+    /// The keypoints borrowed.
     pub fn as_ref(&self) -> KeypointsRef<'_> {
         KeypointsRef { descriptors: &self.descriptors, xy: &self.xy, classes: &self.classes, dim: self.dim }
     }
@@ -40,17 +45,24 @@ impl ImageKeypoints {
 /// Borrowed verification keypoints (of a set, a map segment or one image).
 #[derive(Debug, Clone, Copy)]
 pub struct KeypointsRef<'a> {
+    /// `dim` values per keypoint.
     pub descriptors: &'a [i8],
+    /// (x, y) per keypoint.
     pub xy: &'a [u16],
+    /// Semantic class under each keypoint.
     pub classes: &'a [u8],
+    /// Descriptor length (int8 values per keypoint).
     pub dim: usize,
 }
 
 impl<'a> KeypointsRef<'a> {
+    /// No keypoints.
     pub const EMPTY: KeypointsRef<'static> = KeypointsRef { descriptors: &[], xy: &[], classes: &[], dim: 0 };
+    /// Number of keypoints.
     pub fn len(&self) -> usize {
         self.classes.len()
     }
+    /// Whether there are no keypoints.
     pub fn is_empty(&self) -> bool {
         self.classes.is_empty()
     }

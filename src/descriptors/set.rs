@@ -13,14 +13,17 @@ use crate::values::Values;
 /// Everything stored for one image.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EncodedImage {
+    /// Frame id.
     pub id: String,
     /// Size of the source image (descriptors are computed at the working size).
     pub width: u32,
+    /// Height of the source image, in pixels.
     pub height: u32,
     /// Global descriptor, `global.height` x `global.width`, values in [0, 1].
     pub global: Vec<f32>,
     /// SSIM window means then variances of `global`.
     pub global_stats: Vec<f32>,
+    /// The local descriptor: one tree per semantic object.
     pub forest: Forest,
     /// VLAD of all the image's appearance descriptors (the `appearance` baseline); empty without
     /// appearance.
@@ -31,23 +34,38 @@ pub struct EncodedImage {
     pub keypoints: ImageKeypoints,
 }
 
+/// Many encoded images, one column per field (see the module header).
 #[derive(Debug, Clone, PartialEq)]
 pub struct DescriptorSet {
+    /// Frame id of each image.
     pub ids: Vec<String>,
     /// (width, height) of each source image.
     pub sizes: Vec<[u32; 2]>,
+    /// Values per global descriptor.
     pub global_len: usize,
+    /// SSIM statistics values per image (0: the set keeps none).
     pub stats_len: usize,
+    /// `global_len` values per image.
     pub globals: Vec<f32>,
+    /// `stats_len` values per image: SSIM window means then variances of its global descriptor.
     pub global_stats: Vec<f32>,
+    /// `forest_offsets[i]..[i + 1]` are image i's trees (one more entry than images).
     pub forest_offsets: Vec<u32>,
+    /// Semantic class of each tree.
     pub tree_classes: Vec<u8>,
+    /// Area of each tree's object, as a fraction of the image.
     pub tree_areas: Vec<f32>,
+    /// (x, y) per tree, in image diagonals.
     pub tree_centroids: Vec<f32>,
+    /// Neighbour slots per tree.
     pub neighbour_slots: usize,
+    /// `neighbour_slots` entries per tree: indices into the tree's own forest, or `local::NO_NEIGHBOUR`.
     pub tree_neighbours: Vec<i32>,
+    /// Values per appearance vector (0: no appearance).
     pub appearance_dim: usize,
+    /// `appearance_dim` values per tree (zeros where `tree_has_appearance` is 0).
     pub tree_appearance: Vec<f32>,
+    /// 1 where a tree has an appearance vector, else 0.
     pub tree_has_appearance: Vec<u8>,
     /// Appearance descriptors each tree's VLAD was aggregated from.
     pub tree_descriptors: Vec<u32>,
@@ -56,6 +74,7 @@ pub struct DescriptorSet {
     pub image_appearance: Vec<f32>,
     /// Per image, the VPR-Bench HOG descriptor (`hog_dim` values; 0 when not computed).
     pub hog_dim: usize,
+    /// `hog_dim` values per image (zeros for an image without HOG).
     pub image_hog: Vec<f32>,
     /// Values per verification keypoint descriptor (0: the set holds no keypoints).
     pub keypoint_dim: usize,
@@ -73,6 +92,7 @@ pub struct DescriptorSet {
 }
 
 impl DescriptorSet {
+    /// An empty set of global descriptors and statistics sized by `ssim`, with no keypoints and no codebook.
     pub fn new(ssim: &SsimParams, neighbour_slots: usize, appearance_dim: usize, hog_dim: usize) -> Self {
         DescriptorSet {
             ids: vec![],
@@ -121,12 +141,15 @@ impl DescriptorSet {
         DescriptorSet { global_len, stats_len: 0, ..DescriptorSet::new(&bytemuck::Zeroable::zeroed(), neighbour_slots, appearance_dim, hog_dim) }
     }
 
+    /// Number of images.
     pub fn len(&self) -> usize {
         self.ids.len()
     }
+    /// Whether the set holds no images.
     pub fn is_empty(&self) -> bool {
         self.ids.is_empty()
     }
+    /// Trees of all images.
     pub fn n_trees(&self) -> usize {
         self.tree_classes.len()
     }
@@ -277,9 +300,11 @@ impl DescriptorSet {
         .with_codebook(self.codebook.clone())
     }
 
+    /// The global descriptor of image i.
     pub fn global(&self, i: usize) -> &[f32] {
         &self.globals[i * self.global_len..(i + 1) * self.global_len]
     }
+    /// The SSIM statistics of image i (empty when the set keeps none).
     pub fn stats(&self, i: usize) -> &[f32] {
         &self.global_stats[i * self.stats_len..(i + 1) * self.stats_len]
     }
@@ -302,6 +327,7 @@ impl DescriptorSet {
             dim: d,
         }
     }
+    /// The forest of image i.
     pub fn forest(&self, i: usize) -> ForestRef<'_> {
         let (a, b) = (self.forest_offsets[i] as usize, self.forest_offsets[i + 1] as usize);
         let (n, d) = (self.neighbour_slots, self.appearance_dim);

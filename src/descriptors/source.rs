@@ -10,13 +10,17 @@ use crate::values::Values;
 /// Reusable storage for tiles that a source must assemble (copy or generate).
 #[derive(Debug, Default)]
 pub struct TileBuf {
+    /// Global descriptors of an assembled tile.
     pub globals: Vec<f32>,
+    /// SSIM statistics of an assembled tile.
     pub stats: Vec<f32>,
 }
 
 /// Global descriptors and SSIM statistics of a map, readable by tiles.
 pub trait GlobalSource: Sync {
+    /// Number of references.
     fn len(&self) -> usize;
+    /// Whether the source holds no references.
     fn is_empty(&self) -> bool {
         self.len() == 0
     }
@@ -62,17 +66,21 @@ pub const FINGERPRINT_SAMPLES: usize = 64;
 /// in place must call the executor's `forget_map` (or give the source a generation).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub struct SourceKey {
+    /// Number of references.
     pub len: usize,
+    /// The source's [`GlobalSource::generation`].
     pub generation: Option<u64>,
     /// Floats per descriptor and per stats record.
     pub sizes: (usize, usize),
     /// Address of the first reference's descriptor (0 for an empty source, and for a source with
     /// a generation, whose tiles may be assembled in a buffer that moves).
     pub address: usize,
+    /// FNV-1a hash of the sampled references (its offset basis alone for a source with a generation).
     pub fingerprint: u64,
 }
 
 impl SourceKey {
+    /// The key of `src`'s current content.
     pub fn of(src: &dyn GlobalSource) -> SourceKey {
         let n = src.len();
         let generation = src.generation();
@@ -122,7 +130,9 @@ impl GlobalSource for DescriptorSet {
 /// never crosses from one traversal into another.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, serde::Serialize)]
 pub struct Place {
+    /// Traversal index.
     pub traversal: u32,
+    /// Position along the traversal, from 0.
     pub position: u32,
 }
 
@@ -130,14 +140,19 @@ pub struct Place {
 /// by index. Implemented by a [`DescriptorSet`] and by a stored [`crate::map::Map`]. Indices run
 /// over the references a source serves (a map leaves out removed images), `0..len()`.
 pub trait RefSource: GlobalSource {
+    /// The frame id of reference i.
     fn id(&self, i: usize) -> &str;
+    /// The forest of reference i.
     fn forest(&self, i: usize) -> ForestRef<'_>;
+    /// Neighbour slots per tree.
     fn neighbour_slots(&self) -> usize;
+    /// Values per appearance vector (0: no appearance).
     fn appearance_dim(&self) -> usize;
     /// The whole-image appearance vector of reference i (`appearance_dim` values).
     fn image_appearance(&self, i: usize) -> Values<'_>;
     /// Values of each reference's HOG descriptor (0: the source holds none).
     fn hog_dim(&self) -> usize;
+    /// The HOG descriptor of reference i (`hog_dim` values).
     fn image_hog(&self, i: usize) -> &[f32];
     /// Values per verification keypoint descriptor (0: the source stores no keypoints).
     fn keypoint_dim(&self) -> usize;

@@ -14,6 +14,7 @@ use std::sync::Arc;
 /// of all the frame's descriptors (for the whole-image VLAD): what the VLAD kernels take.
 #[derive(Debug, Clone, Default)]
 pub struct VladInput {
+    /// The descriptors, D values each, object by object, then the image's run.
     pub descriptors: Vec<f32>,
     /// objects + 2 entries: object o owns `offsets[o]..offsets[o + 1]`; the last run is the image.
     pub offsets: Vec<u32>,
@@ -34,12 +35,15 @@ impl AppearanceEncoder {
         AppearanceEncoder { model: Arc::new(model.with_detection(keypoints)), codebook: None, cfg: cfg.clone(), keypoints: keypoints.clone() }
     }
 
+    /// The keypoint network.
     pub fn model(&self) -> &AppearanceModel {
         &self.model
     }
+    /// The VLAD codebook, once trained or set.
     pub fn codebook(&self) -> Option<&Codebook> {
         self.codebook.as_deref()
     }
+    /// Sets the VLAD codebook (replacing any).
     pub fn set_codebook(&mut self, codebook: Codebook) {
         self.codebook = Some(Arc::new(codebook));
     }

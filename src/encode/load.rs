@@ -18,11 +18,16 @@ use std::time::Instant;
 /// A frame's decoded inputs, at the working size.
 #[derive(Debug, Clone)]
 pub struct Loaded {
+    /// The label map (given, or made by the segmenter) at the working size.
     pub labels: LabelMap,
+    /// The RGB image at the working size; only with appearance on and an image given.
     pub rgb: Option<RgbImage>,
     /// Size of the source image.
     pub source_size: (u32, u32),
+    /// The HOG baseline descriptor of the full image; only when the encoder stores HOG and an
+    /// image is given.
     pub hog: Option<Vec<f32>>,
+    /// Times of the loading stages (decode, segmentation, HOG); the others are 0.
     pub times: StageTimes,
 }
 

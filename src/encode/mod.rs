@@ -40,6 +40,7 @@ pub struct GlobalStage {
 }
 
 impl GlobalStage {
+    /// The `[global]` section it encodes with.
     pub fn config(&self) -> &GlobalConfig {
         &self.cfg
     }
@@ -47,6 +48,7 @@ impl GlobalStage {
     pub fn used_mask(&self) -> &[bool; 256] {
         &self.used
     }
+    /// The SSIM parameters of its descriptors (size, window, constants), as the matchers take them.
     pub fn ssim_params(&self) -> SsimParams {
         self.ssim
     }
@@ -135,9 +137,11 @@ impl Encoder {
     pub fn appearance_mut(&mut self) -> Option<&mut AppearanceEncoder> {
         self.appearance.as_mut()
     }
+    /// The keypoint network (none with appearance off).
     pub fn appearance_model(&self) -> Option<&AppearanceModel> {
         self.appearance.as_ref().map(|a| a.model())
     }
+    /// The VLAD codebook (none with appearance off, or before it is trained or set).
     pub fn codebook(&self) -> Option<&Codebook> {
         self.appearance.as_ref().and_then(|a| a.codebook())
     }
@@ -152,9 +156,11 @@ impl Encoder {
         let a = self.appearance.as_ref()?;
         Some((a.codebook()?, a.model().sha256.as_str()))
     }
+    /// The encoding sections it encodes with.
     pub fn config(&self) -> &EncodingConfig {
         &self.cfg
     }
+    /// The class table built from its `[classes]` section.
     pub fn class_table(&self) -> &ClassTable {
         &self.table
     }

@@ -40,6 +40,7 @@ impl StageTimes {
             hog_ms: f(self.hog_ms, o.hog_ms),
         }
     }
+    /// Every field multiplied by `by`.
     pub fn scaled(self, by: f64) -> StageTimes {
         self.zip(self, |a, _| a * by)
     }

@@ -52,11 +52,16 @@ pub fn auc(recall: &[f64], precision: &[f64]) -> f64 {
 /// AUC, R@100P and P@100R of one query set.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct PrMetrics {
+    /// Area under the precision-recall curve, in [0, 1].
     pub auc: f64,
+    /// Recall at 100 % precision, in [0, 1].
     pub recall_at_100_precision: f64,
+    /// Precision at 100 % recall, in [0, 1].
     pub precision_at_100_recall: f64,
 }
 
+/// The metrics of one query set from its top-1 `scores` and whether each top-1 is `correct`
+/// (parallel slices); all 0 when no query is correct.
 pub fn pr_metrics(scores: &[f64], correct: &[bool]) -> PrMetrics {
     if !correct.iter().any(|&c| c) {
         return PrMetrics { auc: 0.0, recall_at_100_precision: 0.0, precision_at_100_recall: 0.0 };

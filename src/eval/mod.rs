@@ -20,12 +20,18 @@ use metrics::{pr_metrics, recall_at_n, PrMetrics};
 use serde::Serialize;
 use std::collections::HashMap;
 
+/// What matching made of one query in one setting.
 #[derive(Debug, Clone, Serialize)]
 pub struct QueryOutcome {
+    /// Query frame id.
     pub query: String,
+    /// Id of the top-1 reference (none when the query got no candidate).
     pub top1: Option<String>,
+    /// Score of the top-1 reference.
     pub score: Option<f32>,
+    /// Whether the top-1 reference is a valid one.
     pub correct: bool,
+    /// Number of valid references of the query (0: no ground truth).
     pub valid_references: usize,
     /// The best-ranked valid reference in the query's list, and its rank (0 = top-1), when one
     /// made the list.
@@ -34,13 +40,18 @@ pub struct QueryOutcome {
     pub a_valid_reference: Option<String>,
 }
 
+/// The results of one query set in one setting.
 #[derive(Debug, Clone, Serialize)]
 pub struct SettingReport {
+    /// Query traversal name.
     pub query_set: String,
+    /// Matching setting.
     pub setting: Setting,
+    /// Queries matched.
     pub queries: usize,
     /// Queries without any valid reference are left out of the metrics.
     pub queries_without_ground_truth: usize,
+    /// AUC, R@100P and P@100R over the queries with ground truth.
     #[serde(flatten)]
     pub pr: PrMetrics,
     /// (N, Recall@N).
@@ -73,33 +84,43 @@ pub struct SequenceReport {
     pub pr: PrMetrics,
     /// Queries (with ground truth) whose sequence match was accepted, and of those, correct.
     pub accepted: usize,
+    /// Accepted queries whose sequence match is correct.
     pub accepted_correct: usize,
     /// Precision and recall of the accepted flag: correct accepted over accepted, and over the
     /// queries with ground truth.
     pub accepted_precision: f64,
+    /// Correct accepted queries over the queries with ground truth.
     pub accepted_recall: f64,
     /// Per query: the sequence match (none where the ring had no evidence), its uniqueness,
     /// whether it was accepted and whether it is correct.
     pub outcomes: Vec<SequenceOutcome>,
 }
 
+/// What sequence matching made of one query.
 #[derive(Debug, Clone, Serialize)]
 pub struct SequenceOutcome {
+    /// Query frame id.
     pub query: String,
     /// The stream's answer (see [`SequenceReport::recall_at_1`]) and whether it is valid.
     pub answer: Option<String>,
+    /// Whether `answer` is a valid reference.
     pub answer_correct: bool,
     /// The best trajectory's place.
     pub top1: Option<String>,
+    /// Uniqueness of the best trajectory.
     pub uniqueness: Option<f32>,
+    /// Whether the sequence match was accepted.
     pub accepted: bool,
+    /// Whether `top1` is a valid reference.
     pub correct: bool,
 }
 
 /// A model file that ran: where, and its SHA-256.
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct ModelRecord {
+    /// Path of the model file.
     pub path: String,
+    /// SHA-256 of the model file.
     pub sha256: String,
 }
 
@@ -117,6 +138,7 @@ pub struct RunRecord {
 }
 
 impl RunRecord {
+    /// The models of `encoder`, the hash of `cfg` and the backend of `engine`.
     pub fn new(encoder: &Encoder, cfg: &Config, engine: &Engine) -> Result<Self> {
         Ok(RunRecord {
             keypoints: encoder.appearance_model().map(|m| ModelRecord { path: m.path.display().to_string(), sha256: m.sha256.clone() }),
@@ -142,13 +164,20 @@ backend: {}
     }
 }
 
+/// The results of one evaluation run.
 #[derive(Debug, Clone, Serialize)]
 pub struct EvalReport {
+    /// Dataset name.
     pub dataset: String,
+    /// What ran.
     pub run: RunRecord,
+    /// Reference images matched against.
     pub references: usize,
+    /// Encoding times of the references (empty when a built map was used).
     pub reference_encoding: EncodingSummary,
+    /// Encoding times of all query sets together.
     pub query_encoding: EncodingSummary,
+    /// One report per query set and setting that ran.
     pub results: Vec<SettingReport>,
     /// Settings asked for that could not run, with the reason (e.g. a map without HOG).
     pub skipped: Vec<(Setting, String)>,
@@ -163,15 +192,21 @@ pub const DEFAULT_SETTINGS: [Setting; 9] = Setting::ALL;
 
 /// Options of one evaluation run.
 pub struct EvalOptions<'a> {
+    /// Settings to run, in order.
     pub settings: Vec<Setting>,
     /// A map built from the dataset's references, used instead of encoding them again.
     pub map: Option<&'a Map>,
+    /// Skip (and report) query frames that fail to load or encode, instead of stopping.
     pub skip_invalid: bool,
+    /// No progress bars.
     pub quiet: bool,
     /// Also sequence matching over each query set in its order ([`SequenceReport`]).
     pub sequence: bool,
 }
 
+/// Evaluates `ds`: encodes its references (or takes `opts.map`) and its queries, and matches
+/// every query set in every setting; settings that need labels are skipped, with the reason,
+/// when the frames have none.
 pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Engine) -> Result<EvalReport> {
     let ref_sources: Vec<_> = ds.reference.frames.iter().map(|f| f.source.clone()).collect();
     // RGB frames with no label map and no segmenter to make one: the settings that need no

@@ -16,6 +16,7 @@ pub struct Confusion {
 }
 
 impl Confusion {
+    /// An empty matrix over `classes` classes.
     pub fn new(classes: usize) -> Self {
         Confusion { classes, counts: vec![0; classes * (classes + 1)] }
     }
@@ -36,6 +37,7 @@ impl Confusion {
     fn at(&self, r: usize, p: usize) -> u64 {
         self.counts[r * (self.classes + 1) + p]
     }
+    /// The accuracy the counts so far give, classes named by `table`.
     pub fn report(&self, table: &ClassTable) -> SegmenterAccuracy {
         let n = self.classes;
         let total: u64 = self.counts.iter().sum();
@@ -55,17 +57,21 @@ impl Confusion {
     }
 }
 
+/// Accuracy of a segmenter over the images compared.
 #[derive(Debug, Clone, Serialize)]
 pub struct SegmenterAccuracy {
     /// Labelled pixels compared.
     pub pixels: u64,
+    /// Fraction of labelled pixels predicted right, in [0, 1].
     pub pixel_accuracy: f64,
     /// Mean of the per-class IoU over classes present in the real labels.
     pub mean_iou: f64,
+    /// (class name, IoU) of each class present in the real labels.
     pub iou: Vec<(String, f64)>,
 }
 
 impl SegmenterAccuracy {
+    /// The accuracy as text: pixel accuracy and mean IoU, then one IoU line per class, in percent.
     pub fn to_table(&self) -> String {
         let mut s = format!(
             "pixel accuracy {:.1} %, mean IoU {:.1} % ({} labelled pixels)\n",

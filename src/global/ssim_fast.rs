@@ -50,6 +50,7 @@ pub struct FastLayout {
 }
 
 impl FastLayout {
+    /// The padded layout of descriptors of `p`'s sizes.
     pub fn new(p: &SsimParams) -> Self {
         let (nw, nh) = (p.nw as usize, p.nh as usize);
         FastLayout { gw: p.gw as usize, gh: p.gh as usize, win: p.win as usize, nw, nh, stride: nw.next_multiple_of(W), n: nw * nh }
@@ -95,6 +96,7 @@ pub struct FastScratch {
 }
 
 impl FastScratch {
+    /// Scratch sized for descriptors of layout `l`.
     pub fn new(l: &FastLayout) -> Self {
         FastScratch {
             prod: vec![0.0; (l.stride + l.win - 1).max(l.gw).next_multiple_of(W)],

@@ -28,6 +28,8 @@ use crate::kernels::ssim_block::block_shape;
 use crate::kernels::topk_select::SEG;
 use std::sync::Arc;
 
+/// Executor of the coarse stage (SSIM top-K of queries against a map) on the device, the map
+/// kept resident between batches.
 pub struct CoarseMatcherGpu {
     ctx: Arc<GpuContext>,
     p: SsimParams,
@@ -68,6 +70,8 @@ impl ChunkData for MapChunks<'_> {
 }
 
 impl CoarseMatcherGpu {
+    /// An executor on `ctx` for descriptors of `p`'s sizes; fails on a lost device or when the
+    /// SSIM block kernel's workgroup arrays cannot hold them.
     pub fn new(ctx: Arc<GpuContext>, p: SsimParams) -> Result<Self, GpuError> {
         // Its parameter buffer is written here, outside any error scope: refuse a lost device first.
         ctx.check_lost()?;

@@ -70,8 +70,11 @@ pub(crate) const WORKGROUP_STORAGE: u64 = 16_384;
 
 /// A device and queue with the engine's pipelines, ready for the executors.
 pub struct GpuContext {
+    /// The wgpu device the pipelines and buffers live on.
     pub device: wgpu::Device,
+    /// The device's queue, which every submission and write goes through.
     pub queue: wgpu::Queue,
+    /// The adapter the device was requested from.
     pub info: wgpu::AdapterInfo,
     binding_limit: u64,
     max_workgroups: u32,
@@ -94,9 +97,13 @@ pub struct GpuContext {
 /// two readings give what a call did.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct GpuCounters {
+    /// Bytes written to device buffers.
     pub bytes_uploaded: u64,
+    /// Bytes read back from the device.
     pub bytes_read_back: u64,
+    /// Device buffers created.
     pub buffers_created: u64,
+    /// Bind groups created.
     pub bind_groups_created: u64,
 }
 

@@ -53,6 +53,7 @@ pub struct GlobalEncoderGpu {
 }
 
 impl GlobalEncoderGpu {
+    /// An executor on `ctx`; its buffers are made with the first batch.
     pub fn new(ctx: Arc<GpuContext>) -> Self {
         GlobalEncoderGpu { ctx, buffers: None, written: None, packed: Vec::new() }
     }

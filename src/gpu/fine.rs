@@ -44,14 +44,18 @@ pub struct FineCounters {
     /// Workgroups dispatched of `tree_similarity_small` and of `tree_similarity` (a grid
     /// dispatch with `skip_small` counts the workgroups of the pairs it skips too).
     pub small_workgroups: u64,
+    /// Workgroups dispatched of `tree_similarity`.
     pub large_workgroups: u64,
     /// Dispatches of the two kernels.
     pub small_dispatches: u64,
+    /// Dispatches of `tree_similarity`.
     pub large_dispatches: u64,
     /// The most global scratch one dispatch of `tree_similarity` used (bytes).
     pub scratch_bytes: u64,
 }
 
+/// Executor of the fine stage (forest similarity of query and reference pairs) on the device,
+/// the map's forests kept resident between batches.
 pub struct FineMatcherGpu {
     ctx: Arc<GpuContext>,
     map: Resident,
@@ -109,6 +113,7 @@ fn small_partner(nq: usize) -> Option<usize> {
 }
 
 impl FineMatcherGpu {
+    /// An executor on `ctx`; nothing is uploaded until a batch meets a map.
     pub fn new(ctx: Arc<GpuContext>) -> Self {
         let (passes, topk_passes) = (PassBuffer::new(&ctx), PassBuffer::new(&ctx));
         FineMatcherGpu {

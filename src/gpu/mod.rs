@@ -34,6 +34,7 @@ mod layout_tests;
 #[doc(hidden)]
 pub mod reference;
 mod resident;
+mod stages;
 mod stats;
 mod timer;
 mod topk;
@@ -43,6 +44,7 @@ pub mod wgsl;
 pub mod xfeat;
 
 pub use context::{GpuContext, GpuCounters, GpuError, GpuOptions, RESIDENT_FRACTION};
+pub use stages::GpuStages;
 pub use wgsl::SHADERS;
 
 /// Creates every kernel's pipeline on `device` (with or without the subgroup variants) and drops

@@ -26,6 +26,8 @@ struct Buffers {
     best_dot: Reused,
 }
 
+/// Executor of the mutual-nearest-neighbour search between keypoints of (query, reference)
+/// pairs on the device.
 pub struct MnnGpu {
     ctx: Arc<GpuContext>,
     /// The parameter buffer, made with the first batch (never on a lost device).
@@ -34,6 +36,7 @@ pub struct MnnGpu {
 }
 
 impl MnnGpu {
+    /// An executor on `ctx`; its buffers are made with the first batch.
     pub fn new(ctx: Arc<GpuContext>) -> Self {
         MnnGpu { ctx, params: None, buffers: Buffers::default() }
     }

@@ -31,6 +31,7 @@ struct Kept {
     groups: Option<([wgpu::BindGroup; 2], [u64; 5])>,
 }
 
+/// Executor of per-object VLAD aggregation on the device.
 pub struct VladGpu {
     ctx: Arc<GpuContext>,
     buffers: Buffers,
@@ -38,6 +39,7 @@ pub struct VladGpu {
 }
 
 impl VladGpu {
+    /// An executor on `ctx`; its buffers and uniform are made with the first batch.
     pub fn new(ctx: Arc<GpuContext>) -> Self {
         VladGpu { ctx, buffers: Buffers::default(), kept: None }
     }

@@ -43,6 +43,7 @@ pub fn defines_used(src: &str) -> Vec<&'static str> {
 pub struct DirectiveError {
     /// The directive's line (1-based); `None`: the end of the file.
     pub line: Option<usize>,
+    /// What is wrong with the directive.
     pub reason: String,
 }
 

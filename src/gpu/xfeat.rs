@@ -319,9 +319,13 @@ impl Plan {
 /// run.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct XFeatCounters {
+    /// Bytes written to the device: weights, parameters and frames.
     pub bytes_uploaded: u64,
+    /// Bytes read back from the device.
     pub bytes_read_back: u64,
+    /// Device buffers created, the read-back buffer included.
     pub buffers_created: u64,
+    /// Frames run.
     pub frames: u64,
 }
 
@@ -377,6 +381,7 @@ impl XFeatGpu {
         Ok(XFeatGpu { ctx, net: packed, weights, unused, sized: Mutex::new(None), counters })
     }
 
+    /// What the executor did since it was made.
     pub fn counters(&self) -> XFeatCounters {
         let c = &self.counters;
         XFeatCounters {

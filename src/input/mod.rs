@@ -35,15 +35,19 @@ impl LabelMap {
         debug_assert_eq!(classes.len(), width as usize * height as usize);
         LabelMap { width, height, classes }
     }
+    /// Width in pixels.
     pub fn width(&self) -> u32 {
         self.width
     }
+    /// Height in pixels.
     pub fn height(&self) -> u32 {
         self.height
     }
+    /// The class index of every pixel, row-major (width x height values).
     pub fn classes(&self) -> &[u8] {
         &self.classes
     }
+    /// The class index of pixel (x, y); panics outside the map.
     pub fn get(&self, x: u32, y: u32) -> u8 {
         self.classes[(y * self.width + x) as usize]
     }
@@ -309,6 +313,7 @@ pub fn label_map_from_ids(width: u32, height: u32, ids: &[u32], name: &Path, tab
 /// One image to encode: an id and where its pixels and labels come from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FrameSource {
+    /// The image's id, under which a map stores it and results name it.
     pub id: String,
     /// RGB image (needed by appearance and segmentation; optional for label-only encoding).
     pub image: Option<PathBuf>,

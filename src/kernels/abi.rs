@@ -437,7 +437,7 @@ pub struct MapParams {
     pub ho: u32,
     /// Output plane width.
     pub wo: u32,
-    /// `avg_pool`: pooling window side and stride.
+    /// Window side and stride: the pooling window of `avg_pool`, 8 for `space_to_depth8`.
     pub k: u32,
     /// Workgroups per row of the dispatch grid.
     pub row: u32,

@@ -21,6 +21,7 @@ pub fn edt_columns(edges: &[u32], g: &mut [i32], width: usize, height: usize) {
     }
 }
 
+/// Phase 1 for column `x`: one invocation of [`edt_columns`].
 #[inline]
 pub fn edt_column(edges: &[u32], g: &mut [i32], width: usize, height: usize, x: usize) {
     let inf = (width + height) as i32;
@@ -56,6 +57,7 @@ pub fn edt_rows(g: &[i32], s: &mut [i32], t: &mut [i32], d2: &mut [u32], width: 
     }
 }
 
+/// Phase 2 for row `y`: one invocation of [`edt_rows`].
 #[inline]
 pub fn edt_row(g: &[i32], s: &mut [i32], t: &mut [i32], d2: &mut [u32], width: usize, y: usize) {
     let row = y * width..(y + 1) * width;

@@ -15,6 +15,7 @@ pub fn global_pool(p: &PoolParams, d2: &[u32], out: &mut [f32]) {
     }
 }
 
+/// Output cell (`ox`, `oy`), in [0, 1]: one invocation of [`global_pool`].
 #[inline]
 pub fn global_pool_cell(p: &PoolParams, d2: &[u32], ox: u32, oy: u32) -> f32 {
     let sx = p.src_width as f32 / p.dst_width as f32;

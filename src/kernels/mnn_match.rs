@@ -29,6 +29,7 @@ fn dot4(x: u32, y: u32) -> i32 {
 
 /// Rows per workgroup and columns per tile of the kernel.
 pub const ROWS: usize = 64;
+/// Columns per tile of the kernel.
 pub const TILE: usize = 64;
 /// Longest descriptor the kernel holds, in words (256 int8 values, SuperPoint's width).
 pub const MAX_WORDS: usize = 64;

@@ -29,14 +29,23 @@ use crate::values::Values;
 /// vectors may be stored f16 (a map built with `--f16`); they are widened where they are scored.
 #[derive(Debug, Clone, Copy)]
 pub struct ForestRef<'a> {
+    /// Class of each tree.
     pub classes: &'a [u8],
+    /// Area of each tree's object, as a fraction of the image.
     pub areas: &'a [f32],
+    /// (x, y) per tree, in image diagonals.
     pub centroids: &'a [f32],
+    /// `neighbour_slots` entries per tree: indices into this forest, or -1 for an empty slot.
     pub neighbours: &'a [i32],
+    /// Neighbour slots per tree.
     pub neighbour_slots: usize,
+    /// `dim` values per tree (zeros where `has_appearance` is 0).
     pub appearance: Values<'a>,
+    /// 1 where a tree has an appearance vector, else 0.
     pub has_appearance: &'a [u8],
+    /// Appearance descriptors each tree's vector was aggregated from.
     pub descriptors: &'a [u32],
+    /// Length of an appearance vector (0: no appearance).
     pub dim: usize,
 }
 
@@ -290,11 +299,17 @@ struct Slot {
 /// [`tree_similarity`], and the rounds that held several pairs.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct SmallRounds {
+    /// Workgroups of the dispatch.
     pub workgroups: usize,
+    /// Rounds run over all workgroups.
     pub rounds: usize,
+    /// Pairs scored.
     pub pairs: usize,
+    /// Pairs left to [`tree_similarity`] (they do not [`fits_small`]).
     pub skipped: usize,
+    /// Rounds that held more than one pair.
     pub shared_rounds: usize,
+    /// Most pairs any round held.
     pub most_pairs_in_a_round: usize,
 }
 

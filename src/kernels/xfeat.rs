@@ -16,17 +16,21 @@ pub const LANES: usize = 256;
 pub const CHUNK: usize = 4096;
 /// Output pixels per `conv2d` workgroup: TILE_W x TILE_H.
 pub const TILE_W: usize = 32;
+/// Output rows per `conv2d` workgroup.
 pub const TILE_H: usize = 8;
 /// Output channels per `conv2d` workgroup (weights are packed in groups of this many).
 pub const CO_GROUP: usize = 8;
 /// Floats of `conv2d`'s workgroup input tile and weight tile.
 pub const IN_CAP: usize = 2560;
+/// Floats of `conv2d`'s workgroup weight tile.
 pub const W_CAP: usize = 576;
 /// Invocations of a `conv2d` workgroup (8 x 8).
 pub const THREADS: usize = 64;
 /// `conv2d` activations.
 pub const ACT_NONE: u32 = 0;
+/// `conv2d` activation: ReLU.
 pub const ACT_RELU: u32 = 1;
+/// `conv2d` activation: the logistic sigmoid.
 pub const ACT_SIGMOID: u32 = 2;
 
 impl ConvParams {
@@ -85,7 +89,12 @@ impl ConvParams {
 #[derive(Debug, Clone, Copy)]
 pub enum Epilogue<'a> {
     /// Inference-mode BatchNorm2d(affine = False, eps 1e-5), then ReLU.
-    BatchNormRelu { mean: &'a [f32], var: &'a [f32] },
+    BatchNormRelu {
+        /// Running mean per output channel.
+        mean: &'a [f32],
+        /// Running variance per output channel.
+        var: &'a [f32],
+    },
     /// A bias.
     Bias(&'a [f32]),
     /// A bias, then the logistic sigmoid.
@@ -93,6 +102,7 @@ pub enum Epilogue<'a> {
 }
 
 impl Epilogue<'_> {
+    /// The `conv2d` activation code that ends this epilogue (`ACT_*`).
     pub fn act(&self) -> u32 {
         match self {
             Epilogue::BatchNormRelu { .. } => ACT_RELU,

@@ -17,28 +17,36 @@ pub const NO_NEIGHBOUR: i32 = -1;
 /// The forest of one image, as parallel arrays (the layout of the map file and of the GPU).
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct Forest {
+    /// Semantic class of each tree.
     pub classes: Vec<u8>,
+    /// Area of each tree's object, as a fraction of the image.
     pub areas: Vec<f32>,
     /// (x, y) per tree, in image diagonals.
     pub centroids: Vec<f32>,
     /// `neighbour_slots` entries per tree: indices into this forest, or [`NO_NEIGHBOUR`].
     pub neighbours: Vec<i32>,
+    /// Neighbour slots per tree.
     pub neighbour_slots: usize,
     /// `dim` values per tree (zeros where `has_appearance` is 0).
     pub appearance: Vec<f32>,
+    /// 1 where a tree has an appearance vector, else 0.
     pub has_appearance: Vec<u8>,
     /// Appearance descriptors (keypoints or dense cells) inside each tree's object.
     pub descriptors: Vec<u32>,
+    /// Values per appearance vector (0: no appearance).
     pub dim: usize,
 }
 
 impl Forest {
+    /// Number of trees.
     pub fn len(&self) -> usize {
         self.classes.len()
     }
+    /// Whether the forest has no trees.
     pub fn is_empty(&self) -> bool {
         self.classes.is_empty()
     }
+    /// The forest borrowed.
     pub fn as_ref(&self) -> ForestRef<'_> {
         ForestRef {
             classes: &self.classes,
@@ -84,12 +92,15 @@ impl Forest {
 }
 
 impl<'a> ForestRef<'a> {
+    /// Number of trees.
     pub fn len(&self) -> usize {
         self.classes.len()
     }
+    /// Whether the forest has no trees.
     pub fn is_empty(&self) -> bool {
         self.classes.is_empty()
     }
+    /// Neighbour indices of tree `k` (filled slots only).
     pub fn neighbours_of(&self, k: usize) -> impl Iterator<Item = usize> + 'a {
         let n = self.neighbour_slots;
         self.neighbours[k * n..(k + 1) * n].iter().filter(|&&j| j >= 0).map(|&j| j as usize)

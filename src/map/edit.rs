@@ -60,11 +60,15 @@ pub fn remove(dir: &Path, ids: &[String]) -> Result<usize> {
 /// What `compact` did.
 #[derive(Debug, Clone, Serialize)]
 pub struct CompactReport {
+    /// Segment files before compacting.
     pub segments_before: usize,
+    /// Segment files after compacting.
     pub segments_after: usize,
     /// Removed images dropped from the files.
     pub dropped: usize,
+    /// Bytes of the segment files before compacting.
     pub bytes_before: u64,
+    /// Bytes of the segment files after compacting.
     pub bytes_after: u64,
     /// Files deleted that no manifest referenced (left by interrupted writers).
     pub stray_files: usize,
@@ -173,6 +177,7 @@ pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
 /// The check of one file.
 #[derive(Debug, Clone, Serialize)]
 pub struct FileCheck {
+    /// File name, in the map folder.
     pub file: String,
     /// What is wrong with it; `None` when sound.
     pub problem: Option<String>,
@@ -181,8 +186,11 @@ pub struct FileCheck {
 /// What `verify` found.
 #[derive(Debug, Clone, Serialize)]
 pub struct VerifyReport {
+    /// The manifest's generation.
     pub generation: u64,
+    /// Images of the map, removed ones left out.
     pub images: usize,
+    /// The check of every segment file, then of the codebook.
     pub files: Vec<FileCheck>,
     /// Temporary files and staging folders interrupted writers left ([`files::leftovers`]); the
     /// next writer removes them under the lock.
@@ -190,10 +198,12 @@ pub struct VerifyReport {
     /// SHA-256 of the keypoint network the map's appearance was computed with (queries must use
     /// the same), and how it is configured.
     pub appearance_model: Option<String>,
+    /// The kind of keypoint network the map's configuration names.
     pub appearance_kind: crate::config::AppearanceModelKind,
 }
 
 impl VerifyReport {
+    /// The files found damaged.
     pub fn damaged(&self) -> impl Iterator<Item = &FileCheck> {
         self.files.iter().filter(|f| f.problem.is_some())
     }

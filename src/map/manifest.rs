@@ -8,12 +8,15 @@ use crate::values::ValueType;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
+/// The manifest's `format`.
 pub const FORMAT: &str = "semlook-map";
 /// Version 4: version 3 (memory-mapped segments with ids as tensors and no SSIM statistics, f16
 /// option, generations, tombstones, content-named segment files) with the verification keypoints
 /// of every image.
 pub const VERSION: u32 = 4;
+/// File name of the manifest, in the map folder.
 pub const MANIFEST: &str = "manifest.json";
+/// File name of the VLAD codebook, in the map folder.
 pub const CODEBOOK: &str = "codebook.safetensors";
 /// ENOENT on Unix, ERROR_FILE_NOT_FOUND on Windows: the same number.
 const NO_SUCH_FILE: i32 = 2;
@@ -24,21 +27,28 @@ const MAX_MANIFEST_BYTES: u64 = 256 << 20;
 /// A file of the map with its size and checksum.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FileEntry {
+    /// File name, in the map folder.
     pub file: String,
+    /// File size in bytes.
     pub bytes: u64,
+    /// SHA-256 of the file's content.
     pub sha256: String,
 }
 
 /// One segment file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SegmentEntry {
+    /// File name, in the map folder.
     pub file: String,
     /// Images stored in the file (removed ones included).
     pub images: usize,
+    /// Trees stored in the file (those of removed images included).
     pub trees: usize,
     /// Verification keypoints stored in the file.
     pub keypoints: usize,
+    /// File size in bytes.
     pub bytes: u64,
+    /// SHA-256 of the file's content.
     pub sha256: String,
     /// Rows of removed images (tombstones), ascending; `map compact` drops them from the file.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -66,18 +76,25 @@ impl SegmentEntry {
     }
 }
 
+/// The content of `manifest.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Manifest {
+    /// Always [`FORMAT`].
     pub format: String,
+    /// Format version ([`VERSION`] for maps this build writes).
     pub version: u32,
     /// Number of commits so far: every build, add, remove or compact step writes the next one.
     pub generation: u64,
     /// Random id given at creation. A writer that finds another id under its lock knows the map
     /// was replaced (`build --force`) while it worked, and stops.
     pub uid: String,
+    /// The program that created the map (`semlook` and its version).
     pub created_by: String,
+    /// The encoding configuration every image of the map was encoded with.
     pub config: EncodingConfig,
+    /// Neighbour slots per tree.
     pub neighbour_slots: usize,
+    /// Values per appearance vector (0: no appearance).
     pub appearance_dim: usize,
     /// Values of each image's HOG baseline descriptor (0: the map holds none).
     pub hog_dim: usize,
@@ -88,6 +105,7 @@ pub struct Manifest {
     pub appearance_block: usize,
     /// How global descriptors and appearance vectors are stored.
     pub values: ValueType,
+    /// The segment files, in the order of the map's image indices.
     pub segments: Vec<SegmentEntry>,
     /// The VLAD codebook file, when trees carry appearance.
     pub codebook: Option<FileEntry>,

@@ -56,7 +56,9 @@ const OPEN_ATTEMPTS: usize = 5;
 /// An open map: its manifest and its memory-mapped segments.
 #[derive(Debug)]
 pub struct Map {
+    /// The map directory.
     pub path: PathBuf,
+    /// The manifest of the generation opened.
     pub manifest: Manifest,
     segments: Vec<Mapped>,
     /// Index of the first live image of each segment, then the live total.
@@ -139,6 +141,7 @@ impl Map {
     pub fn len(&self) -> usize {
         self.starts.last().copied().unwrap_or(0)
     }
+    /// Whether the map serves no images.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
@@ -146,9 +149,11 @@ impl Map {
     pub fn n_trees(&self) -> usize {
         self.manifest.segments.iter().map(|s| s.trees).sum()
     }
+    /// The mapped segment files, in manifest order.
     pub fn segments(&self) -> &[Mapped] {
         &self.segments
     }
+    /// Sizes of the map's columns.
     pub fn layout(&self) -> Layout {
         self.segments.first().map_or_else(|| layout_of(&self.manifest, 0), |s| s.layout)
     }

@@ -33,21 +33,29 @@ use std::sync::OnceLock;
 /// What every segment of a map shares: sizes from the manifest.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Layout {
+    /// Global descriptor width (`global.width`).
     pub gw: usize,
+    /// Global descriptor height (`global.height`).
     pub gh: usize,
+    /// Neighbour slots per tree.
     pub slots: usize,
+    /// Values per appearance vector (0: no appearance).
     pub dim: usize,
+    /// Values per image HOG descriptor (0: none stored).
     pub hog: usize,
     /// Values per verification keypoint descriptor (0: none stored).
     pub kdim: usize,
     /// Values per stored appearance block (the keypoint network's descriptor width; 0 without
     /// appearance).
     pub block: usize,
+    /// How global descriptors and appearance vectors are stored.
     pub values: ValueType,
+    /// Classes of the map's class table (stored class ids lie below it).
     pub n_classes: usize,
 }
 
 impl Layout {
+    /// Values per global descriptor.
     pub fn global_len(&self) -> usize {
         self.gw * self.gh
     }
@@ -185,8 +193,11 @@ struct BlockRanges {
 /// A memory-mapped segment file.
 #[derive(Debug)]
 pub struct Mapped {
+    /// Path of the segment file.
     pub path: PathBuf,
+    /// The file's manifest entry.
     pub entry: SegmentEntry,
+    /// Sizes of the map's columns.
     pub layout: Layout,
     mmap: Mmap,
     n: usize,
@@ -218,15 +229,19 @@ impl Mapped {
         Ok(Mapped { path, entry: entry.clone(), layout, mmap, n: entry.images, t: entry.trees, p: entry.keypoints, r, verified: OnceLock::new() })
     }
 
+    /// Images stored in the file (removed ones included).
     pub fn len(&self) -> usize {
         self.n
     }
+    /// Whether the file stores no images.
     pub fn is_empty(&self) -> bool {
         self.n == 0
     }
+    /// Trees stored in the file.
     pub fn n_trees(&self) -> usize {
         self.t
     }
+    /// Verification keypoints stored in the file.
     pub fn n_keypoints(&self) -> usize {
         self.p
     }
@@ -258,6 +273,7 @@ impl Mapped {
         let g = self.layout.global_len();
         self.vals(&self.r.global).slice(a * g, b * g)
     }
+    /// (width, height) of the source image of row `j`.
     pub fn size(&self, j: usize) -> [u32; 2] {
         let s = self.u32s(&self.r.image_size);
         [s[2 * j], s[2 * j + 1]]
@@ -270,6 +286,7 @@ impl Mapped {
             _ => (0, 0),
         }
     }
+    /// The forest of row `j` (no trees where the offsets table is broken).
     pub fn forest(&self, j: usize) -> ForestRef<'_> {
         let (a, b) = Self::span(self.u32s(&self.r.forest_offsets), j, self.t);
         let (s, d) = (self.layout.slots, self.layout.dim);
@@ -302,6 +319,7 @@ impl Mapped {
         let (a, b) = Self::span(self.u32s(&self.r.id_offsets), j, bytes.len());
         std::str::from_utf8(&bytes[a..b]).unwrap_or("")
     }
+    /// The whole-image appearance vector of row `j` (none without appearance).
     pub fn image_appearance(&self, j: usize) -> Values<'_> {
         self.blocks(&self.r.image_blocks, j, j + 1)
     }
@@ -355,6 +373,7 @@ impl Mapped {
             values: bytemuck::cast_slice(self.raw(&r.values)),
         })
     }
+    /// The HOG descriptor of row `j` (empty when the map stores none).
     pub fn image_hog(&self, j: usize) -> &[f32] {
         let h = self.layout.hog;
         &self.f32s(&self.r.image_hog)[j * h..(j + 1) * h]

@@ -15,9 +15,13 @@ use std::path::Path;
 /// live images, and the generation it was planned at.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ShardSpec {
+    /// Range of the manifest's segments.
     pub segments: Range<usize>,
+    /// Map index of the shard's first live image.
     pub global_start: usize,
+    /// Live images of the shard.
     pub len: usize,
+    /// Manifest generation the shard was planned at.
     pub generation: u64,
 }
 

@@ -52,8 +52,11 @@ impl Default for StoreOptions {
 /// descriptor and its verification keypoints' descriptors (0: none of that column).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct ColumnDims {
+    /// Values per appearance vector (trees' and image's).
     pub appearance: usize,
+    /// Values per HOG descriptor.
     pub hog: usize,
+    /// Values per verification keypoint descriptor.
     pub keypoints: usize,
 }
 
@@ -291,12 +294,15 @@ impl MapWriter {
         Ok(())
     }
 
+    /// The map directory.
     pub fn dir(&self) -> &Path {
         &self.dir
     }
+    /// Sizes of the map's columns.
     pub fn layout(&self) -> Layout {
         self.layout
     }
+    /// The last manifest this writer committed or read (for a new map: the one it will commit).
     pub fn manifest(&self) -> &Manifest {
         &self.manifest
     }

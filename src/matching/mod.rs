@@ -48,10 +48,12 @@ pub struct Candidate {
 /// could not run).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct QueryMatch {
+    /// Candidates, best first.
     pub ranked: Vec<Candidate>,
 }
 
 impl QueryMatch {
+    /// The top-1 candidate, if any.
     pub fn best(&self) -> Option<&Candidate> {
         self.ranked.first()
     }
@@ -60,12 +62,14 @@ impl QueryMatch {
 /// Wall-clock time of a batch, per stage.
 #[derive(Debug, Clone, Copy, Default, Serialize)]
 pub struct MatchTimes {
+    /// Milliseconds of the candidate stage: coarse top-K, or a baseline's ranking.
     pub coarse_ms: f64,
+    /// Milliseconds of the fine stage: re-ranking (with verification where it runs), or fine top-K over the whole map.
     pub fine_ms: f64,
 }
 
 /// The three heavy operations of matching, implemented by the CPU path ([`CpuStages`]) and by
-/// the GPU path (`engine::GpuStages`); [`match_with`] composes them the same way for both.
+/// the GPU path (`gpu::GpuStages`); [`match_with`] composes them the same way for both.
 pub trait Stages {
     /// For each query, the `k` best references by SSIM (best first).
     fn coarse(&mut self, refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimParams, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>>;

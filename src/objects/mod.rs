@@ -20,9 +20,11 @@ pub const NO_OBJECT: u32 = u32::MAX;
 /// One semantic object (one tree of the forest to come).
 #[derive(Debug, Clone, PartialEq)]
 pub struct SemanticObject {
+    /// The object's class index in the class table.
     pub class: u8,
     /// Area in pixels, measured as `ObjectsConfig::area` says.
     pub area: f64,
+    /// The number of pixels of the region.
     pub pixel_count: u32,
     /// Centroid (x, y) in pixel coordinates, from the region's moments.
     pub centroid: [f64; 2],
@@ -33,8 +35,11 @@ pub struct SemanticObject {
 /// The objects of one image and which pixel belongs to which.
 #[derive(Debug, Clone)]
 pub struct ObjectMap {
+    /// The label map's width in pixels.
     pub width: u32,
+    /// The label map's height in pixels.
     pub height: u32,
+    /// The kept objects, in raster order of their first pixel.
     pub objects: Vec<SemanticObject>,
     /// Per pixel, the index of its object in `objects`, or [`NO_OBJECT`].
     pub object_of_pixel: Vec<u32>,

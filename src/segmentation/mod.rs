@@ -16,6 +16,7 @@ use std::path::{Path, PathBuf};
 /// streets: CamVid mIoU 60.2 vs 36.6, and faster (see `../shared/models/README.md`).
 pub const DEFAULT_SEGMENTER: &str = "espnetv2_cityscapes.onnx";
 
+/// An ONNX segmentation network with its adapter (`[segmentation]`): RGB images in, label maps out.
 pub struct Segmenter {
     sessions: crate::onnx::SessionPool,
     cfg: SegmentationConfig,
@@ -54,6 +55,9 @@ pub fn brighten_lut(img: &RgbImage, target: f64) -> [f32; 256] {
 }
 
 impl Segmenter {
+    /// Loads the network at `path` (`onnxruntime`: `models.onnxruntime`, see
+    /// [`crate::onnx::library_path`]); fails if `cfg.class_map` names a class `table` lacks, or
+    /// does not name one class per output channel.
     pub fn load(path: &Path, cfg: &SegmentationConfig, table: &ClassTable, onnxruntime: Option<&Path>) -> Result<Segmenter> {
         let class_of_channel = cfg
             .class_map

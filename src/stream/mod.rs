@@ -38,9 +38,19 @@ pub enum Pixels {
     /// Files: an image and/or a label map (as `map build` reads them).
     Files(FrameSource),
     /// An image file's bytes (JPEG or PNG) in memory, optionally with a label map at its size.
-    Bytes { bytes: Vec<u8>, labels: Option<LabelMap> },
+    Bytes {
+        /// The file's bytes.
+        bytes: Vec<u8>,
+        /// Label map at the image's size.
+        labels: Option<LabelMap>,
+    },
     /// Decoded pixels, optionally with a label map at their size.
-    Rgb { image: RgbImage, labels: Option<LabelMap> },
+    Rgb {
+        /// The decoded image.
+        image: RgbImage,
+        /// Label map at the image's size.
+        labels: Option<LabelMap>,
+    },
     /// A label map alone (maps encoded without appearance).
     Labels(LabelMap),
 }
@@ -51,6 +61,7 @@ pub struct StreamFrame {
     /// The frame's id (its file stem, a ROS stamp...); in loop-closure mode the id it is stored
     /// under, so unique in the map.
     pub id: String,
+    /// The frame's pixels.
     pub pixels: Pixels,
     /// Seconds, when the stream has clocks; must not go backwards.
     pub timestamp: Option<f64>,
@@ -59,6 +70,7 @@ pub struct StreamFrame {
 /// How a stream is matched.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StreamOptions {
+    /// Matching setting.
     pub setting: Setting,
     /// Sequence matching over the last frames ([`sequence`]; on for streams by default).
     pub sequence: bool,
@@ -80,8 +92,11 @@ impl Default for StreamOptions {
 pub struct PlaceMatch {
     /// Index in the map's generation the frame was answered from.
     pub index: u32,
+    /// The reference's image id.
     pub id: String,
+    /// Where the reference lies on the map's routes.
     pub place: Place,
+    /// Ranking score (for a loop closure, the sequence match's score).
     pub score: f32,
     /// Keypoint inliers of the verification, where it ran.
     pub inliers: Option<u32>,
@@ -90,8 +105,11 @@ pub struct PlaceMatch {
 /// The sequence match of a frame.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct SequenceResult {
+    /// Index of the matched place in the map's generation the frame was answered from.
     pub index: u32,
+    /// Image id of the matched place.
     pub id: String,
+    /// The trajectory search's result.
     #[serde(flatten)]
     pub matched: SequenceMatch,
 }
@@ -99,10 +117,13 @@ pub struct SequenceResult {
 /// A loop closure: the frame matched a place the stream passed before (loop-closure mode).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct LoopClosure {
+    /// Id of the frame that closed the loop.
     pub frame: String,
+    /// The place matched.
     pub place: PlaceMatch,
     /// The sequence match's uniqueness and velocity.
     pub uniqueness: f32,
+    /// Velocity of the sequence match, in positions per frame.
     pub velocity: f32,
 }
 
@@ -162,13 +183,18 @@ pub const LATENCY_WINDOW: usize = 10_000;
 pub struct LatencySummary {
     /// Frames measured in all, and of them kept for the percentiles.
     pub frames: u64,
+    /// Frames kept for the percentiles (at most [`LATENCY_WINDOW`]).
     pub kept: usize,
+    /// Per stage, the median.
     pub p50: Latency,
+    /// Per stage, the 99th percentile.
     pub p99: Latency,
+    /// Per stage, the mean.
     pub mean: Latency,
 }
 
 impl LatencyStats {
+    /// Adds one frame's latencies, dropping the oldest beyond [`LATENCY_WINDOW`].
     pub fn push(&mut self, l: &Latency) {
         if self.last.len() == LATENCY_WINDOW {
             self.last.pop_front();
@@ -176,6 +202,7 @@ impl LatencyStats {
         self.last.push_back(*l);
         self.frames += 1;
     }
+    /// The percentiles and means over the frames kept.
     pub fn summary(&self) -> LatencySummary {
         let n = self.last.len();
         if n == 0 {
@@ -210,7 +237,9 @@ impl LatencyStats {
 pub struct FrameResult {
     /// Frames pushed before this one (refused ones included).
     pub frame: u64,
+    /// The frame's id.
     pub id: String,
+    /// The frame's timestamp, in seconds, when it has one.
     pub timestamp: Option<f64>,
     /// The map generation the frame was answered from.
     pub generation: u64,
@@ -226,6 +255,7 @@ pub struct FrameResult {
     pub tracking: bool,
     /// Loop-closure mode: no map yet (the first frames train its codebook).
     pub warming_up: bool,
+    /// Milliseconds per stage of this frame.
     pub latency: Latency,
 }
 
@@ -247,10 +277,13 @@ impl FrameResult {
 /// Counters of a stream so far.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
 pub struct StreamCounts {
+    /// Frames pushed (refused ones included).
     pub frames: u64,
     /// Frames refused (undecodable, a timestamp going backwards, ...): counted, skipped.
     pub refused: u64,
+    /// Frames whose sequence match was accepted.
     pub accepted: u64,
+    /// Loop closures found.
     pub closures: u64,
     /// Map generations moved to by [`Localizer::refresh`].
     pub reloads: u64,
@@ -378,6 +411,7 @@ impl Localizer {
     pub fn map(&self) -> Option<&Map> {
         self.map.as_ref()
     }
+    /// The configuration frames are encoded and matched with.
     pub fn config(&self) -> &Config {
         &self.cfg
     }
@@ -385,9 +419,11 @@ impl Localizer {
     pub fn encoder(&self) -> &Encoder {
         &self.encoder
     }
+    /// How the stream is matched.
     pub fn options(&self) -> StreamOptions {
         self.opts
     }
+    /// Counters of the stream so far.
     pub fn counts(&self) -> StreamCounts {
         self.counts
     }

@@ -140,6 +140,7 @@ pub struct SequenceMatcher {
 }
 
 impl SequenceMatcher {
+    /// An empty ring with the parameters of `cfg`.
     pub fn new(cfg: &SequenceConfig) -> SequenceMatcher {
         SequenceMatcher { cfg: cfg.clone(), velocities: velocities(cfg), rows: VecDeque::with_capacity(cfg.length) }
     }

@@ -8,8 +8,11 @@ use crate::kernels::mnn_match::NO_MATCH;
 /// reference keypoint (index into the query's).
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct BestColumns {
+    /// Per query keypoint, its best reference keypoint, or `NO_MATCH` when the reference has none.
     pub query_best: Vec<u32>,
+    /// Per query keypoint, the dot product with its best reference keypoint (`i32::MIN` without one).
     pub query_dot: Vec<i32>,
+    /// Per reference keypoint, its best query keypoint, or `NO_MATCH` when the query has none.
     pub ref_best: Vec<u32>,
 }
 

@@ -21,11 +21,14 @@ use ransac::RansacParams;
 pub struct VerifyParams {
     /// Smallest integer dot product of a match (the cosine x DESCRIPTOR_SCALE^2).
     pub min_dot: i32,
+    /// Parameters of the homography RANSAC.
     pub ransac: RansacParams,
+    /// Which RANSAC inliers count towards the verified score.
     pub semantic: SemanticCheck,
 }
 
 impl VerifyParams {
+    /// The parameters of `cfg`.
     pub fn new(cfg: &VerificationConfig) -> Self {
         VerifyParams {
             min_dot: (cfg.min_cosine as f32 * DESCRIPTOR_SCALE * DESCRIPTOR_SCALE).ceil() as i32,

@@ -14,9 +14,11 @@ use crate::util::SplitMix64;
 pub struct RansacParams {
     /// A match is an inlier when its forward transfer error is below this.
     pub threshold: f64,
+    /// Most iterations, whatever the adaptive stopping rule allows.
     pub max_iterations: u32,
     /// Stop once a better model would have been found with this probability.
     pub confidence: f64,
+    /// Seed of the sampling generator.
     pub seed: u64,
     /// Least-squares refits on the inliers of each new best model.
     pub refine: bool,

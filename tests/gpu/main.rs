@@ -206,7 +206,7 @@ fn coarse_top_k_matches_the_cpu_twin() {
     let p = SsimParams::new(&cfg.global);
     let refs = random_descriptors(150, &cfg, 3);
     let queries = random_descriptors(9, &cfg, 4);
-    let mut stages = semlook::engine::GpuStages::new(ctx);
+    let mut stages = semlook::gpu::GpuStages::new(ctx);
     for (k, tile) in [(10, 4096), (7, 16), (1, 1)] {
         let gpu = stages.coarse(&refs, &queries, &p, k, tile).unwrap();
         let cpu = coarse_topk_twin(&refs, &queries, &p, k, tile);
@@ -277,7 +277,7 @@ fn tree_similarity_matches_the_cpu_twin() {
     let Some(ctx) = gpu() else { return };
     let refs = random_forest_set(40, 16, 5);
     let queries = random_forest_set(6, 16, 6);
-    let mut stages = semlook::engine::GpuStages::new(ctx);
+    let mut stages = semlook::gpu::GpuStages::new(ctx);
     let pairs: Vec<(u32, u32)> = (0..6).flat_map(|q| (0..40).map(move |r| (q, r))).collect();
     let variants = [
         semlook::config::SimilarityConfig::default(),
@@ -337,7 +337,7 @@ fn tiling_under_a_small_binding_limit() {
     let m = semlook::gpu::coarse::CoarseMatcherGpu::new(ctx.clone(), SsimParams::new(&cfg.global)).unwrap();
     let chunk = m.chunk_len();
     assert!(chunk < refs.len() / 4, "chunks of {chunk} references do not split the map");
-    let mut stages = semlook::engine::GpuStages::new(ctx);
+    let mut stages = semlook::gpu::GpuStages::new(ctx);
     let gpu = stages.coarse(&refs, &queries, &SsimParams::new(&cfg.global), 10, 4096).unwrap();
     assert_same_lists(&gpu, &coarse_topk_twin(&refs, &queries, &SsimParams::new(&cfg.global), 10, 4096), 1e-5, "small binding limit");
     let frefs = random_forest_set(30, 0, 10);
@@ -357,7 +357,7 @@ fn too_small_limits_are_a_typed_error() {
     let mut cfg = Config::without_appearance();
     cfg.matching.coarse = semlook::config::CoarseStage::Global;
     let refs = random_descriptors(3, &cfg, 1);
-    let mut stages = semlook::engine::GpuStages::new(ctx);
+    let mut stages = semlook::gpu::GpuStages::new(ctx);
     let err = stages.coarse(&refs, &refs, &SsimParams::new(&cfg.global), 2, 10).unwrap_err();
     assert!(matches!(err, semlook::Error::Gpu(semlook::gpu::GpuError::LimitsTooSmall { .. })), "{err}");
 }

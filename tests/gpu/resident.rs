@@ -4,7 +4,8 @@
 use super::{assert_same_lists, gpu, gpu_with, random_descriptors};
 use semlook::config::{Config, GlobalConfig};
 use semlook::descriptors::DescriptorSet;
-use semlook::engine::{Engine, GpuStages};
+use semlook::engine::Engine;
+use semlook::gpu::GpuStages;
 use semlook::gpu::{GpuContext, GpuOptions};
 use semlook::kernels::abi::SsimParams;
 use semlook::matching::{coarse_topk, coarse_topk_twin, Setting, Stages};
