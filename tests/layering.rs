@@ -66,37 +66,43 @@ fn paths_after(text: &str, prefix: &str, out: &mut BTreeSet<String>) {
     }
 }
 
-/// Module (first path component under `src/`, a `NAME_tests.rs` file counted with `NAME`) ->
-/// the crate modules it imports.
-fn import_graph() -> BTreeMap<String, BTreeSet<String>> {
-    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
-    let mut graph: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
-    let mut stack = vec![src.clone()];
+/// Every `.rs` file under the folders `roots`, at any depth.
+fn rs_files(roots: &[std::path::PathBuf]) -> Vec<std::path::PathBuf> {
+    let mut out = vec![];
+    let mut stack = roots.to_vec();
     while let Some(d) = stack.pop() {
         for e in std::fs::read_dir(&d).unwrap().flatten() {
             let p = e.path();
             if p.is_dir() {
                 stack.push(p);
-                continue;
+            } else if p.extension().is_some_and(|x| x == "rs") {
+                out.push(p);
             }
-            if p.extension().is_none_or(|x| x != "rs") {
-                continue;
-            }
-            let rel = p.strip_prefix(&src).unwrap();
-            let first = rel.components().next().unwrap().as_os_str().to_string_lossy().into_owned();
-            let module = first.trim_end_matches(".rs").trim_end_matches("_tests").to_string();
-            if module == "lib" || module == "main" {
-                continue;
-            }
-            let text = strip_comments(&std::fs::read_to_string(&p).unwrap());
-            let mut names = BTreeSet::new();
-            paths_after(&text, "crate::", &mut names);
-            if rel.components().count() == 1 {
-                paths_after(&text, "super::", &mut names);
-            }
-            names.retain(|n| n.starts_with(|c: char| c.is_ascii_lowercase()) && *n != module);
-            graph.entry(module).or_default().extend(names);
         }
+    }
+    out
+}
+
+/// Module (first path component under `src/`, a `NAME_tests.rs` file counted with `NAME`) ->
+/// the crate modules it imports.
+fn import_graph() -> BTreeMap<String, BTreeSet<String>> {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut graph: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+    for p in rs_files(std::slice::from_ref(&src)) {
+        let rel = p.strip_prefix(&src).unwrap();
+        let first = rel.components().next().unwrap().as_os_str().to_string_lossy().into_owned();
+        let module = first.trim_end_matches(".rs").trim_end_matches("_tests").to_string();
+        if module == "lib" || module == "main" {
+            continue;
+        }
+        let text = strip_comments(&std::fs::read_to_string(&p).unwrap());
+        let mut names = BTreeSet::new();
+        paths_after(&text, "crate::", &mut names);
+        if rel.components().count() == 1 {
+            paths_after(&text, "super::", &mut names);
+        }
+        names.retain(|n| n.starts_with(|c: char| c.is_ascii_lowercase()) && *n != module);
+        graph.entry(module).or_default().extend(names);
     }
     graph
 }
@@ -509,21 +515,13 @@ fn setting_names_are_defined_once() {
         .collect();
     assert!(names.len() >= 9 && names.iter().any(|n| n == "global-forest"), "the setting names were not read: {names:?}");
     let mut found = vec![];
-    let mut stack = vec![root.join("src"), root.join("python/src"), root.join("ros2/src")];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap().flatten() {
-            let p = e.path();
-            if p.is_dir() {
-                stack.push(p);
-                continue;
-            }
-            if p.extension().is_none_or(|x| x != "rs") || p.ends_with("src/matching/setting.rs") {
-                continue;
-            }
-            for (n, line) in source(&p).lines().enumerate() {
-                if line.contains("Setting::") && names.iter().any(|name| line.contains(&format!("\"{name}\""))) {
-                    found.push(format!("{}:{}: {}", p.strip_prefix(root).unwrap().display(), n + 1, line.trim()));
-                }
+    for p in rs_files(&[root.join("src"), root.join("python/src"), root.join("ros2/src")]) {
+        if p.ends_with("src/matching/setting.rs") {
+            continue;
+        }
+        for (n, line) in source(&p).lines().enumerate() {
+            if line.contains("Setting::") && names.iter().any(|name| line.contains(&format!("\"{name}\""))) {
+                found.push(format!("{}:{}: {}", p.strip_prefix(root).unwrap().display(), n + 1, line.trim()));
             }
         }
     }
