@@ -34,6 +34,7 @@ fn keypoint_set(cfg: &Config, model: &semlook::appearance::AppearanceModel, dir:
             appearance: vec![],
             hog: vec![],
             keypoints,
+            pose: None,
         };
         set.push(&img).unwrap();
     }

@@ -122,9 +122,12 @@ pub fn encode_frames(
     Ok(EncodedFrames { set, times, wall_ms: wall, skipped })
 }
 
+/// Poses to store with the images they name (frame id -> pose): a dataset's own, or a pose list's.
+pub type PlacePoses = std::collections::HashMap<String, crate::descriptors::PlacePose>;
+
 /// How [`encode_into`] treats frames.
 #[derive(Debug, Clone, Copy, Default)]
-pub struct IntoOptions {
+pub struct IntoOptions<'a> {
     /// Skip (and report) frames that fail to load or encode, instead of stopping.
     pub skip_invalid: bool,
     /// Skip frames whose id the map already holds (`--resume`); otherwise such a frame is an
@@ -132,6 +135,9 @@ pub struct IntoOptions {
     pub skip_stored: bool,
     /// No progress bar.
     pub quiet: bool,
+    /// Poses stored with the frames they name (the map's `place_pose` column); frames they do
+    /// not name are stored without one.
+    pub poses: Option<&'a PlacePoses>,
 }
 
 /// What [`encode_into`] did.
@@ -157,7 +163,7 @@ pub fn encode_into(
     frames: &[FrameSource],
     format: LabelFormat,
     writer: &mut MapWriter,
-    opts: IntoOptions,
+    opts: IntoOptions<'_>,
 ) -> Result<IntoReport> {
     let mut ids = HashSet::new();
     if let Some(dup) = frames.iter().find(|f| !ids.insert(f.id.as_str())) {
@@ -194,7 +200,8 @@ pub fn encode_into(
             let chunk: Vec<FrameSource> = chunk.iter().map(|f| (*f).clone()).collect();
             for (src, r) in chunk.iter().zip(engine.encode_all(encoder, &chunk, format, &|| pb.inc(1))?) {
                 match r {
-                    Ok((img, t)) => {
+                    Ok((mut img, t)) => {
+                        img.pose = opts.poses.and_then(|p| p.get(&img.id)).copied();
                         writer.push(&img)?;
                         times.push(t);
                     }

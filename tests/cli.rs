@@ -669,3 +669,81 @@ fn every_way_of_building_serves_every_way_of_evaluating() {
         }
     }
 }
+
+/// Poses reach the map: a dataset's own (SYNTHIA CameraParams) with `--dataset`, a pose list with
+/// `--poses` for `--images`; `map info` counts them and `localize` answers with the matched
+/// place's. A list that misses an image fails before anything is created, naming it.
+#[test]
+fn maps_store_the_poses_they_are_given() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    ok(&["synth", "--out", p(&data), "--places", "4", "--size", "160x120", "-q"]);
+    let na = "--no-appearance";
+    let info = |map: &Path| -> serde_json::Value { serde_json::from_str(&ok(&["map", "info", "--map", p(map), "--json"])).unwrap() };
+    let from_dataset = dir.path().join("ds");
+    ok(&["map", "build", "--dataset", p(&data), "--map", p(&from_dataset), na, "-q"]);
+    assert_eq!(info(&from_dataset)["poses"], serde_json::json!({ "images": 4, "with_orientation": 4 }));
+    let images = data.join("day/RGB/Stereo_Left/Omni_F");
+    let labels = data.join("day/GT/LABELS/Stereo_Left/Omni_F");
+    let mut names: Vec<String> = std::fs::read_dir(&images).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+    names.sort();
+    // positions only for two (a matrix without rotation is the identity), by file name or stem
+    let list = dir.path().join("poses.txt");
+    let line = |i: usize, n: &str| format!("{n} 1 0 0 {} 0 1 0 0 0 0 1 0 0 0 0 1", 10 * i);
+    let mut text = format!("# camera to world\n{}\n", names.iter().enumerate().map(|(i, n)| line(i, n)).collect::<Vec<_>>().join("\n"));
+    let folder = dir.path().join("folder");
+    let build = |list: &Path| {
+        vec![
+            "map".to_string(),
+            "build".into(),
+            "--images".into(),
+            p(&images).into(),
+            "--labels".into(),
+            p(&labels).into(),
+            "--poses".into(),
+            p(list).into(),
+            "--pose-format".into(),
+            "matrix_cam_to_world".into(),
+            "--map".into(),
+            p(&folder).into(),
+            na.into(),
+            "-q".into(),
+        ]
+    };
+    let args = build(&list);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    // the last image has no line: refused before any work, nothing created
+    std::fs::write(&list, text.lines().take(names.len()).collect::<Vec<_>>().join("\n")).unwrap();
+    let err = fails(&args);
+    let last = names.last().unwrap().trim_end_matches(".png");
+    assert!(err.contains("poses.txt") && err.contains(&format!("{last:?}")) && err.contains("every image needs a pose"), "{err}");
+    assert!(!folder.exists(), "a refused build created the map");
+    std::fs::write(&list, &text).unwrap();
+    ok(&args);
+    assert_eq!(info(&folder)["poses"], serde_json::json!({ "images": 4, "with_orientation": 4 }));
+    // localize answers each frame with its place's pose
+    let lines = ok(&["localize", "--map", p(&folder), "--images", p(&images), "--labels", p(&labels), "--json", na, "-q"]);
+    let frames: Vec<serde_json::Value> =
+        lines.lines().map(|l| serde_json::from_str(l).unwrap()).filter(|v: &serde_json::Value| v.get("frame").is_some()).collect();
+    assert_eq!(frames.len(), 4);
+    for f in &frames {
+        let place =
+            f["sequence"]["id"].as_str().filter(|_| f["sequence"]["accepted"] == true).unwrap_or_else(|| f["top_k"][0]["id"].as_str().unwrap());
+        let i = names.iter().position(|n| n.trim_end_matches(".png") == place).unwrap();
+        assert_eq!(f["pose"], serde_json::json!({ "position": [10.0 * i as f64, 0.0, 0.0], "orientation": [0.0, 0.0, 0.0, 1.0] }), "{f}");
+    }
+    // a bad format and a list with --dataset are refused by the parser
+    text = text.replace(" 1 0 0 0 1 0 0 0 0 1\n", "\n");
+    std::fs::write(&list, &text).unwrap();
+    let out = semlook(&["map", "build", "--dataset", p(&data), "--poses", p(&list), "--map", p(&dir.path().join("x")), na, "-q"]);
+    assert!(
+        !out.status.success() && String::from_utf8_lossy(&out.stderr).contains("cannot be used with"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let mut bad = build(&list);
+    bad[9] = "quaternion".into();
+    let bad: Vec<&str> = bad.iter().map(String::as_str).collect();
+    let out = semlook(&bad);
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("not a pose format"));
+}

@@ -572,3 +572,80 @@ fn an_image_removed_and_added_again_gets_a_segment_of_its_own() {
     edit::compact(&path, StoreOptions::default()).unwrap();
     assert_eq!(Map::open(&path).unwrap().to_descriptor_set().unwrap().ids, ["r0", "r1"]);
 }
+
+/// Poses stored with places: round trip (with and without orientation, and images without one),
+/// segments without poses beside segments with them, removal and compaction keeping them, a bad
+/// pose refused before writing, and a stored pose row broken under a valid checksum named by verify.
+#[test]
+fn poses_are_stored_with_their_places_and_bad_ones_are_refused() {
+    use semlook::descriptors::PlacePose;
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = Config::without_appearance();
+    let mut set = common::encode(&cfg, &common::label_maps(9, 64, 48), "p");
+    let h = std::f64::consts::FRAC_1_SQRT_2;
+    let pose = |i: usize| match i % 3 {
+        0 => Some(PlacePose { position: [i as f64, -2.0, 0.5], orientation: Some([0.0, h, 0.0, h]) }),
+        1 => Some(PlacePose { position: [500_000.25 + i as f64, 6_000_000.5, 0.0], orientation: None }),
+        _ => None,
+    };
+    // images 0..3 without poses: their segment stores none, as maps from before poses
+    for i in 3..9 {
+        set.poses[i] = pose(i);
+    }
+    let path = dir.path().join("m");
+    let map = Map::create_with(&path, &cfg.encoding(), &set, None, StoreOptions { segment_images: 3, ..Default::default() }).unwrap();
+    assert!(!map.segments()[0].has_poses() && map.segments()[1].has_poses());
+    for i in 0..9 {
+        assert_eq!(map.pose(i), if i < 3 { None } else { pose(i) }, "image {i}");
+    }
+    assert_eq!(map.pose_counts(), (4, 2));
+    assert_eq!(map.to_descriptor_set().unwrap().poses, set.poses);
+    drop(map);
+    // removal and compaction keep every other image's pose
+    edit::remove(&path, &["p3".into(), "p7".into()]).unwrap();
+    edit::compact(&path, StoreOptions { segment_images: 4, ..Default::default() }).unwrap();
+    let map = Map::open(&path).unwrap();
+    let kept: Vec<Option<PlacePose>> = (0..9).filter(|i| ![3, 7].contains(i)).map(|i| set.poses[i]).collect();
+    assert_eq!((0..map.len()).map(|i| map.pose(i)).collect::<Vec<_>>(), kept);
+    let before = common::snapshot(&path);
+    drop(map);
+    // a pose that is not one is refused, naming the image, and nothing is written
+    let mut map = Map::open(&path).unwrap();
+    for bad in [
+        PlacePose { position: [f64::NAN, 0.0, 0.0], orientation: None },
+        PlacePose { position: [0.0; 3], orientation: Some([0.0, 0.0, 0.0, 2.0]) },
+        PlacePose { position: [0.0; 3], orientation: Some([0.0, f64::NAN, 0.0, 1.0]) },
+    ] {
+        let mut more = common::encode(&cfg, &common::label_maps(2, 64, 48), "n");
+        more.poses[1] = Some(bad);
+        let err = map.add(&more).unwrap_err();
+        assert!(matches!(&err, Error::InvalidImage { id, .. } if id == "n1"), "{bad:?}: {err}");
+        assert_eq!(common::snapshot(&path), before, "{bad:?}: a refused add changed the map");
+    }
+    drop(map);
+    // a pose row broken under a valid checksum (a writer bug, a hand edit that rehashed)
+    let (s, j, id) = {
+        let map = Map::open(&path).unwrap();
+        let (s, seg) = map.segments().iter().enumerate().find(|(_, g)| g.has_poses()).unwrap();
+        let j = (0..seg.len()).find(|&j| seg.pose(j).is_some_and(|p| p.orientation.is_some())).unwrap();
+        (s, j, seg.id(j).to_string())
+    };
+    let mut m: semlook::map::Manifest = serde_json::from_slice(&std::fs::read(path.join("manifest.json")).unwrap()).unwrap();
+    let entry = &mut m.segments[s];
+    let file = path.join(&entry.file);
+    let mut bytes = std::fs::read(&file).unwrap();
+    let (header, meta) = safetensors::SafeTensors::read_metadata(&bytes).unwrap();
+    let (a, _) = meta.info("place_pose").unwrap().data_offsets;
+    // row j's qw becomes 3
+    let at = 8 + header + a + (7 * j + 6) * 8;
+    bytes[at..at + 8].copy_from_slice(&3.0f64.to_le_bytes());
+    std::fs::write(&file, &bytes).unwrap();
+    (entry.bytes, entry.sha256) = (bytes.len() as u64, semlook::util::sha256_hex(&bytes));
+    std::fs::write(path.join("manifest.json"), m.to_json().unwrap()).unwrap();
+    let map = Map::open(&path).unwrap();
+    let report = map.verify_all();
+    let err = report.iter().find_map(|(_, r)| r.as_ref().err()).expect("verify names the broken pose").to_string();
+    assert!(err.contains(&format!("{id:?}")) && err.contains("unit quaternion"), "{err}");
+    let i = (0..map.len()).find(|&i| map.locate(i) == (s, j)).unwrap();
+    assert_eq!(map.pose(i), None, "a segment that failed its checks serves no pose");
+}

@@ -209,6 +209,8 @@ impl PyDescriptors {
             keypoint_descriptors: take_column(arrays, "keypoint_descriptors", &[k, kd])?,
             keypoint_xy: take_column(arrays, "keypoint_xy", &[k, 2])?,
             keypoint_classes: take_column(arrays, "keypoint_classes", &[k])?,
+            // the arrays carry no poses (matching never reads them; a map keeps its own)
+            poses: vec![None; n],
             codebook: match arrays.get_item("codebook")? {
                 Some(c) if !c.is_none() => {
                     Some(c.extract().map_err(|e| invalid("descriptor arrays[\"codebook\"]", format!("not a SHA-256 string: {e}")))?)

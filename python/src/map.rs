@@ -166,6 +166,16 @@ impl PyMap {
         let m = self.map();
         (0..m.len()).map(|i| m.id(i).to_string()).collect()
     }
+    /// The pose stored with image `i` (reference order): a dict with "position" [x, y, z] and
+    /// "orientation" [x, y, z, w] (camera to world; None where the source gave a position alone),
+    /// or None where the image has none (`semlook map build --poses`, or a dataset's own poses).
+    fn pose<'py>(&self, py: Python<'py>, i: usize) -> PyResult<Bound<'py, PyAny>> {
+        let m = self.map();
+        if i >= m.len() {
+            return Err(pyo3::exceptions::PyIndexError::new_err(format!("image {i} of a map of {}", m.len())));
+        }
+        to_py_object(py, &m.pose(i))
+    }
     /// The manifest as a dict.
     fn manifest<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
         to_py_object(py, &self.map().manifest)

@@ -340,6 +340,7 @@ def test_localizer_streams_frames_with_sequence_matching(tmp_path, encoder):
         r = loc.push(labels=q, timestamp=float(t))
         assert [c["id"] for c in r["top_k"]] == list(single.ids[t][: len(r["top_k"])])
         assert r["place"][0] == f"p{t:02d}", (t, r["place"])
+        assert r["pose"] is None, "a map without poses answers none"
         accepted += bool(r["sequence"] and r["sequence"]["accepted"])
     assert accepted >= 20, accepted
     with pytest.raises(semlook.InvalidInputError, match="before the previous frame"):
@@ -394,3 +395,28 @@ def test_evaluate_takes_one_setting_by_name(synth_dataset):
     assert {s["setting"] for s in r["results"]} == {"global"}
     with pytest.raises(semlook.InvalidInputError, match="setting"):
         semlook.evaluate(dataset=str(synth_dataset), settings=3)
+
+
+def test_poses_a_map_stores_are_read_back_and_answered(tmp_path, synth_dataset):
+    """A map built from a dataset with poses (SYNTHIA CameraParams): Map.pose gives each image's
+    camera centre and rotation as the files hold them, and a Localizer answers each frame with
+    its place's pose."""
+    path = tmp_path / "map"
+    subprocess.run([str(CLI), "map", "build", "--dataset", str(synth_dataset), "--map", str(path), "--no-appearance", "-q"], check=True)
+    m = semlook.Map.open(path)
+    for i, id in enumerate(m.ids):
+        traversal, stem = id.split("/")
+        v = [float(x) for x in (synth_dataset / traversal / "CameraParams" / "Stereo_Left" / "Omni_F" / f"{stem}.txt").read_text().split()]
+        p = m.pose(i)
+        assert p["position"] == pytest.approx(v[12:15], abs=1e-9), (id, p)
+        # the quaternion's z axis is the camera's optical axis, the matrix's third column
+        x, y, z, w = p["orientation"]
+        axis = [2 * (x * z + y * w), 2 * (y * z - x * w), 1 - 2 * (x * x + y * y)]
+        assert axis == pytest.approx(v[8:11], abs=1e-5), (id, p, v[8:11])
+    with pytest.raises(IndexError):
+        m.pose(len(m))
+    loc = semlook.Localizer(path, setting="forest", config=semlook.Config.without_appearance(), backend="cpu")
+    labels = sorted((synth_dataset / "sunset" / "GT" / "LABELS" / "Stereo_Left" / "Omni_F").glob("*.png"))
+    for t, f in enumerate(labels):
+        r = loc.push(labels_path=f, timestamp=float(t))
+        assert r["pose"] == m.pose(m.ids.index(r["place"][0])), (t, r["place"], r["pose"])

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from rclpy.serialization import serialize_message
 from semlook_msgs.msg import LoopClosure, PlaceMatch
+from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CompressedImage, Image
 from std_msgs.msg import Header
 
@@ -36,7 +37,13 @@ def samples():
     j = CompressedImage()
     j.header = header()
     j.format, j.data = "jpeg", bytes([0xFF, 0xD8, 0xFF, 0xD9])
-    return {"PlaceMatch": m, "LoopClosure": c, "Image": i, "CompressedImage": j}
+    p = PoseStamped()
+    p.header = header()
+    p.header.frame_id = "map"
+    p.pose.position.x, p.pose.position.y, p.pose.position.z = 12.5, -3.25, 0.75
+    o = p.pose.orientation
+    o.x, o.y, o.z, o.w = 0.5, -0.5, 0.5, 0.5
+    return {"PlaceMatch": m, "LoopClosure": c, "Image": i, "CompressedImage": j, "PoseStamped": p}
 
 
 def main(out):

@@ -1,6 +1,7 @@
 //! The messages the node reads and writes, as serde structs whose fields follow their `.msg`
-//! definitions in order (CDR is positional): `sensor_msgs` Image and CompressedImage in, and the
-//! node's own `semlook_msgs` PlaceMatch and LoopClosure out (`semlook_msgs/msg/*.msg`, a package a
+//! definitions in order (CDR is positional): `sensor_msgs` Image and CompressedImage in, the
+//! node's own `semlook_msgs` PlaceMatch and LoopClosure out, and `geometry_msgs` PoseStamped (the
+//! matched place's stored pose) out (`semlook_msgs/msg/*.msg`, a package a
 //! ROS user builds with colcon, or rosidl alone: `scripts/build_msgs_py.sh`). Their wire format
 //! is held to bytes rclpy wrote (`tests/golden/`, made by `scripts/golden.py`).
 
@@ -47,6 +48,44 @@ pub struct CompressedImage {
     pub format: String,
     #[serde(with = "serde_bytes")]
     pub data: Vec<u8>,
+}
+
+/// `geometry_msgs/msg/Point`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Point {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+}
+
+/// `geometry_msgs/msg/Quaternion`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Quaternion {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+    pub w: f64,
+}
+
+impl Default for Quaternion {
+    /// The identity, as the message's own default.
+    fn default() -> Self {
+        Quaternion { x: 0.0, y: 0.0, z: 0.0, w: 1.0 }
+    }
+}
+
+/// `geometry_msgs/msg/Pose`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Pose {
+    pub position: Point,
+    pub orientation: Quaternion,
+}
+
+/// `geometry_msgs/msg/PoseStamped`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct PoseStamped {
+    pub header: Header,
+    pub pose: Pose,
 }
 
 /// `semlook_msgs/msg/PlaceMatch`: what the node answers for every frame.
@@ -104,7 +143,7 @@ mod tests {
     use super::*;
 
     /// The messages of `scripts/golden.py`, built here field for field.
-    fn samples() -> (PlaceMatch, LoopClosure, Image, CompressedImage) {
+    fn samples() -> (PlaceMatch, LoopClosure, Image, CompressedImage, PoseStamped) {
         let header = Header { stamp: Time { sec: 1_700_000_123, nanosec: 456_789 }, frame_id: "cam0".into() };
         let m = PlaceMatch {
             header: header.clone(),
@@ -134,8 +173,12 @@ mod tests {
             inliers: -1,
         };
         let img = Image { header: header.clone(), height: 2, width: 3, encoding: "rgb8".into(), is_bigendian: 0, step: 9, data: (0u8..18).collect() };
-        let jpg = CompressedImage { header, format: "jpeg".into(), data: vec![0xFF, 0xD8, 0xFF, 0xD9] };
-        (m, c, img, jpg)
+        let jpg = CompressedImage { header: header.clone(), format: "jpeg".into(), data: vec![0xFF, 0xD8, 0xFF, 0xD9] };
+        let pose = PoseStamped {
+            header: Header { frame_id: "map".into(), ..header },
+            pose: Pose { position: Point { x: 12.5, y: -3.25, z: 0.75 }, orientation: Quaternion { x: 0.5, y: -0.5, z: 0.5, w: 0.5 } },
+        };
+        (m, c, img, jpg, pose)
     }
 
     fn golden(name: &str) -> Vec<u8> {
@@ -159,15 +202,17 @@ mod tests {
     /// bytes read back to the same message.
     #[test]
     fn messages_match_the_bytes_rclpy_writes() {
-        let (m, c, img, jpg) = samples();
+        let (m, c, img, jpg, pose) = samples();
         same_but_padding(&to_cdr(&m).unwrap(), &golden("PlaceMatch.hex"), "PlaceMatch");
         same_but_padding(&to_cdr(&c).unwrap(), &golden("LoopClosure.hex"), "LoopClosure");
         same_but_padding(&to_cdr(&img).unwrap(), &golden("Image.hex"), "Image");
         same_but_padding(&to_cdr(&jpg).unwrap(), &golden("CompressedImage.hex"), "CompressedImage");
+        same_but_padding(&to_cdr(&pose).unwrap(), &golden("PoseStamped.hex"), "PoseStamped");
         assert_eq!(from_cdr::<PlaceMatch>(&golden("PlaceMatch.hex")).unwrap(), m);
         assert_eq!(from_cdr::<LoopClosure>(&golden("LoopClosure.hex")).unwrap(), c);
         assert_eq!(from_cdr::<Image>(&golden("Image.hex")).unwrap(), img);
         assert_eq!(from_cdr::<CompressedImage>(&golden("CompressedImage.hex")).unwrap(), jpg);
+        assert_eq!(from_cdr::<PoseStamped>(&golden("PoseStamped.hex")).unwrap(), pose);
         assert!(from_cdr::<Image>(&[0, 0, 0, 0, 1]).is_err(), "big-endian or garbage is refused");
     }
 }

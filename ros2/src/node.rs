@@ -1,7 +1,7 @@
 //! The node: DDS participant, subscriptions and publishers on one thread (an async executor),
 //! the localizer on another, a bounded queue between them.
 
-use crate::msgs::{CompressedImage, Header, Image, LoopClosure, PlaceMatch};
+use crate::msgs::{CompressedImage, Header, Image, LoopClosure, PlaceMatch, Point, Pose, PoseStamped, Quaternion};
 use crate::params::Params;
 use futures::{FutureExt, StreamExt};
 use ros2_client::dds::rustdds::DomainParticipantBuilder;
@@ -136,11 +136,8 @@ pub fn frame_id(h: &Header) -> String {
 pub fn place_match(h: &Header, r: &FrameResult, latency_ms: f32) -> PlaceMatch {
     let best = r.best();
     let seq = r.sequence.as_ref();
-    let (place_id, place_index, score) = match (seq, best) {
-        (Some(s), _) if s.matched.accepted => (s.id.clone(), s.index, s.matched.score),
-        (_, Some(b)) => (b.id.clone(), b.index, b.score),
-        _ => (String::new(), 0, 0.0),
-    };
+    let (place_id, score) = r.place().map_or((String::new(), 0.0), |(id, score)| (id.to_string(), score));
+    let place_index = r.place_index().unwrap_or(0);
     PlaceMatch {
         header: h.clone(),
         frame: r.frame,
@@ -159,6 +156,24 @@ pub fn place_match(h: &Header, r: &FrameResult, latency_ms: f32) -> PlaceMatch {
         map_generation: r.generation,
         latency_ms,
     }
+}
+
+/// The PoseStamped of a localized frame: the pose the map stores for its answer, stamped with the
+/// frame's time, in `frame_id` (the map's frame); none where the map stores no pose for it. A
+/// pose without an orientation (positions alone, as from UTM names) gets the identity rotation.
+pub fn pose_stamped(h: &Header, r: &FrameResult, frame_id: &str) -> Option<PoseStamped> {
+    let p = r.pose?;
+    let orientation = p.orientation.map_or(Quaternion::default(), |[x, y, z, w]| Quaternion { x, y, z, w });
+    let [x, y, z] = p.position;
+    Some(PoseStamped { header: Header { stamp: h.stamp, frame_id: frame_id.to_string() }, pose: Pose { position: Point { x, y, z }, orientation } })
+}
+
+/// What the localizer thread publishes to.
+struct Outputs {
+    matches: ros2_client::Publisher<PlaceMatch>,
+    closures: ros2_client::Publisher<LoopClosure>,
+    poses: ros2_client::Publisher<PoseStamped>,
+    pose_frame_id: String,
 }
 
 /// The configuration the node localizes with: the file given, else the map's, with the
@@ -211,13 +226,19 @@ pub fn run(p: Params) -> Result<(), String> {
     let opts = StreamOptions { setting, sequence: p.sequence, loop_closure: p.loop_closure };
     let loc = Localizer::open(&p.map, cfg, opts, engine).map_err(|e| e.to_string())?;
     match loc.map() {
-        Some(m) => log::info!(
-            "map {}: {} places, generation {}; setting {setting}; {}",
-            p.map.display(),
-            m.len(),
-            m.manifest.generation,
-            loc.engine().describe()
-        ),
+        Some(m) => {
+            let (posed, oriented) = m.pose_counts();
+            log::info!(
+                "map {}: {} places ({posed} with a pose, {oriented} with an orientation), generation {}; setting {setting}; {}",
+                p.map.display(),
+                m.len(),
+                m.manifest.generation,
+                loc.engine().describe()
+            );
+            if posed > oriented {
+                log::info!("{} places have a position but no orientation: their poses are published with the identity rotation", posed - oriented);
+            }
+        }
         None => log::info!("map {}: made from the stream (loop closure)", p.map.display()),
     }
     let ctx = context()?;
@@ -250,11 +271,14 @@ pub fn run(p: Params) -> Result<(), String> {
     let t_cmp = topic(&mut node, &p.compressed_topic, "sensor_msgs", "CompressedImage", &sensor)?;
     let t_match = topic(&mut node, &own("match"), "semlook_msgs", "PlaceMatch", &reliable)?;
     let t_closure = topic(&mut node, &own("closure"), "semlook_msgs", "LoopClosure", &reliable)?;
+    let t_pose = topic(&mut node, &own("pose"), "geometry_msgs", "PoseStamped", &reliable)?;
     let sub_img = node.create_subscription::<Image>(&t_img, None).map_err(|e| format!("subscription: {e:?}"))?;
     let sub_cmp = node.create_subscription::<CompressedImage>(&t_cmp, None).map_err(|e| format!("subscription: {e:?}"))?;
     let pub_match = node.create_publisher::<PlaceMatch>(&t_match, None).map_err(|e| format!("publisher: {e:?}"))?;
     let pub_closure = node.create_publisher::<LoopClosure>(&t_closure, None).map_err(|e| format!("publisher: {e:?}"))?;
-    log::info!("subscribed {} and {}; publishing {} and {}", p.image_topic, p.compressed_topic, own("match"), own("closure"));
+    let pub_pose = node.create_publisher::<PoseStamped>(&t_pose, None).map_err(|e| format!("publisher: {e:?}"))?;
+    log::info!("subscribed {} and {}; publishing {}, {} and {}", p.image_topic, p.compressed_topic, own("match"), own("closure"), own("pose"));
+    let out = Outputs { matches: pub_match, closures: pub_closure, poses: pub_pose, pose_frame_id: p.pose_frame_id.clone() };
 
     let stop = Arc::new(AtomicBool::new(false));
     {
@@ -268,7 +292,7 @@ pub fn run(p: Params) -> Result<(), String> {
         let refresh = (p.map_refresh_s > 0.0).then(|| Duration::from_secs_f64(p.map_refresh_s));
         std::thread::Builder::new()
             .name("localizer".into())
-            .spawn(move || localize(loc, &queue, &counts, &stop, refresh, &pub_match, &pub_closure))
+            .spawn(move || localize(loc, &queue, &counts, &stop, refresh, &out))
             .map_err(|e| format!("localizer thread: {e}"))?
     };
     smol::block_on(ex.run(async {
@@ -333,6 +357,7 @@ fn declared(p: &Params) -> Vec<(&'static str, ParameterValue)> {
         ("compressed_topic", s(&p.compressed_topic)),
         ("queue_size", ParameterValue::Integer(p.queue_size as i64)),
         ("map_refresh_s", ParameterValue::Double(p.map_refresh_s)),
+        ("pose_frame_id", s(&p.pose_frame_id)),
     ]
 }
 
@@ -344,8 +369,7 @@ fn localize(
     counts: &Counts,
     stop: &AtomicBool,
     refresh: Option<Duration>,
-    pub_match: &ros2_client::Publisher<PlaceMatch>,
-    pub_closure: &ros2_client::Publisher<LoopClosure>,
+    out: &Outputs,
 ) -> (semlook::stream::StreamCounts, semlook::stream::LatencySummary) {
     let mut stats = LatencyStats::default();
     let mut checked = Instant::now();
@@ -379,13 +403,19 @@ fn localize(
                         uniqueness: c.uniqueness,
                         inliers: c.place.inliers.map_or(-1, |i| i.min(i32::MAX as u32) as i32),
                     };
-                    if let Err(e) = pub_closure.publish(msg) {
+                    if let Err(e) = out.closures.publish(msg) {
                         log::warn!("closure of frame {id} not published: {e:?}");
                     }
                 }
                 let latency = f.received.elapsed().as_secs_f64() * 1e3;
                 let msg = place_match(&f.header, &r, latency as f32);
-                match pub_match.publish(msg) {
+                // the pose first: a subscriber that has a frame's match has its pose too
+                if let Some(pose) = pose_stamped(&f.header, &r, &out.pose_frame_id) {
+                    if let Err(e) = out.poses.publish(pose) {
+                        log::warn!("pose of frame {id} not published: {e:?}");
+                    }
+                }
+                match out.matches.publish(msg) {
                     Ok(()) => {
                         counts.published.fetch_add(1, Ordering::Relaxed);
                         let total = f.received.elapsed().as_secs_f64() * 1e3;

@@ -19,7 +19,8 @@ parameters (defaults in brackets):
   image_topic      sensor_msgs/Image frames [/camera/image_raw]
   compressed_topic sensor_msgs/CompressedImage frames [/camera/image_raw/compressed]
   queue_size       frames waiting to be localized; beyond it the oldest is dropped [2]
-  map_refresh_s    seconds between checks for a newer map generation; 0: never [1.0]";
+  map_refresh_s    seconds between checks for a newer map generation; 0: never [1.0]
+  pose_frame_id    frame_id of the ~/pose messages: the frame the map's poses are in [map]";
 
 /// What the node runs with.
 #[derive(Debug, Clone, PartialEq)]
@@ -36,6 +37,7 @@ pub struct Params {
     pub compressed_topic: String,
     pub queue_size: usize,
     pub map_refresh_s: f64,
+    pub pose_frame_id: String,
     pub node_name: String,
     pub namespace: String,
 }
@@ -56,6 +58,7 @@ impl Params {
             compressed_topic: "/camera/image_raw/compressed".into(),
             queue_size: 2,
             map_refresh_s: 1.0,
+            pose_frame_id: "map".into(),
             node_name: "semlook".into(),
             namespace: "/".into(),
         };
@@ -82,6 +85,7 @@ impl Params {
                         "config" => p.config = Some(PathBuf::from(v)),
                         "image_topic" => p.image_topic = v.into(),
                         "compressed_topic" => p.compressed_topic = v.into(),
+                        "pose_frame_id" => p.pose_frame_id = v.into(),
                         "queue_size" => p.queue_size = v.parse().ok().filter(|&k| k > 0).ok_or_else(|| bad("a positive integer"))?,
                         "map_refresh_s" => {
                             p.map_refresh_s = v.parse().ok().filter(|s: &f64| s.is_finite() && *s >= 0.0).ok_or_else(|| bad("a number of seconds"))?

@@ -4,7 +4,8 @@
 //! = LOCALHOST, a domain of the test's own). Every frame is answered, and the answers equal
 //! `semlook query` (single frame) and `semlook localize` (sequence) on the same frames. Then the
 //! robustness cases: an unsupported encoding, a corrupt JPEG, the peer vanishing and another
-//! coming, the map growing on disk, and a burst faster than the node serves.
+//! coming, the map growing on disk, and a burst faster than the node serves. The map stores poses
+//! (`map build --poses`): each frame's PoseStamped is the pose of the place it was matched to.
 
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -133,7 +134,45 @@ fn the_node_answers_a_real_ros2_peer() {
     };
     let refs = data.join("ref");
     let queries = data.join("query");
-    run(&["--backend", "cpu", "map", "build", "--images", refs.to_str().unwrap(), "--map", map.to_str().unwrap()]);
+    // a pose per place (world-to-camera quaternion and camera centre, as CMU Seasons lists them):
+    // the camera turns about its y axis and moves along the route
+    let mut ref_names: Vec<String> = std::fs::read_dir(&refs).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+    ref_names.sort();
+    let pose_of = |i: usize| {
+        let a = 0.3 * i as f64;
+        let q_wc = [(a / 2.0).cos(), 0.0, (a / 2.0).sin(), 0.0]; // w x y z
+        let centre = [2.5 * i as f64, -1.0, 0.5 * i as f64];
+        (q_wc, centre)
+    };
+    let poses_file = dir.path().join("poses.txt");
+    let lines: Vec<String> = ref_names
+        .iter()
+        .enumerate()
+        .map(|(i, n)| {
+            let (q, c) = pose_of(i);
+            format!("{n} {} {} {} {} {} {} {}", q[0], q[1], q[2], q[3], c[0], c[1], c[2])
+        })
+        .collect();
+    std::fs::write(&poses_file, lines.join("\n") + "\n").unwrap();
+    // what the node must publish for place `id`: the camera centre and the camera-to-world
+    // rotation (the conjugate), x y z w
+    let expected_pose = |id: &str| -> Option<([f64; 3], [f64; 4])> {
+        let i = ref_names.iter().position(|n| n.strip_suffix(".jpg") == Some(id))?;
+        let (q, c) = pose_of(i);
+        Some((c, [-q[1], -q[2], -q[3], q[0]]))
+    };
+    run(&[
+        "--backend",
+        "cpu",
+        "map",
+        "build",
+        "--images",
+        refs.to_str().unwrap(),
+        "--poses",
+        poses_file.to_str().unwrap(),
+        "--map",
+        map.to_str().unwrap(),
+    ]);
     // what the command line answers for the same frames
     let query: serde_json::Value =
         serde_json::from_str(&run(&["--backend", "cpu", "query", "--map", map.to_str().unwrap(), "--images", queries.to_str().unwrap(), "--json"]))
@@ -196,6 +235,18 @@ fn the_node_answers_a_real_ros2_peer() {
         assert_eq!(m["sequence_id"].as_str().unwrap(), l["sequence"]["id"].as_str().unwrap_or(""), "frame {i}: the sequence of `semlook localize`");
         assert_eq!(m["accepted"], l["sequence"]["accepted"].as_bool().unwrap_or(false), "frame {i}");
     }
+    // every answer's place has a pose: one PoseStamped per frame, under the frame's stamp, in the
+    // map frame, the pose of the place the match names (and the one `semlook localize` gives)
+    let poses = one["poses"].as_array().unwrap();
+    assert_eq!(poses.len(), 10, "a pose per answered frame: {poses:?}");
+    let close = |a: &serde_json::Value, b: &[f64]| a.as_array().unwrap().iter().zip(b).all(|(a, b)| (a.as_f64().unwrap() - b).abs() < 1e-9);
+    for (i, (m, p)) in matches.iter().zip(poses).enumerate() {
+        assert_eq!((&p["sec"], p["frame_id"].as_str()), (&m["sec"], Some("map")), "frame {i}: {p}");
+        let (c, q) = expected_pose(m["place_id"].as_str().unwrap()).unwrap_or_else(|| panic!("frame {i}: place {} has no pose", m["place_id"]));
+        assert!(close(&p["position"], &c) && close(&p["orientation"], &q), "frame {i} matched {}: {p} against {c:?} {q:?}", m["place_id"]);
+        let l = &localize[i]["pose"];
+        assert!(close(&l["position"], &c) && close(&l["orientation"], &q), "frame {i}: `semlook localize` gives {l}");
+    }
     // phase 2: the map grows on disk (another writer adds the query photos as places, q00...)
     let g0 = matches[0]["map_generation"].as_u64().unwrap();
     let added = dir.path().join("added");
@@ -213,6 +264,9 @@ fn the_node_answers_a_real_ros2_peer() {
     assert!(m2.iter().all(|m| m["map_generation"].as_u64().unwrap() > g0), "the new generation: {m2:?}");
     // the query photo itself is now a place: it is its own best match
     assert_eq!(m2[0]["top_ids"][0].as_str().unwrap(), "q00", "{:?}", m2[0]["top_ids"]);
+    // the added places have no pose: a frame answered by one gets no PoseStamped
+    let posed = m2.iter().filter(|m| expected_pose(m["place_id"].as_str().unwrap()).is_some()).count();
+    assert_eq!(two["poses"].as_array().unwrap().len(), posed, "poses only for places that have one: {m2:?} {}", two["poses"]);
     // phase 3: a burst of 30 frames, faster than the node localizes
     let frames: Vec<serde_json::Value> = (0..30).map(|i| compressed_frame(&files[i % files.len()], "jpeg", 400 + i as i64)).collect();
     let three = peer(

@@ -9,7 +9,7 @@ PLAN: {"frames": [{"kind": "jpeg"|"png"|"rgb8"|"bgr8"|"mono8"|"16UC1", "file": P
        "expect": N,               # answers to wait for at the end
        "timeout": SECONDS}
 Raw kinds read FILE as packed pixels (rgb8: RGB, bgr8: BGR, mono8: grey); jpeg/png send FILE's
-bytes as a CompressedImage. OUT: {"matches": [...], "closures": [...], "published": n}.
+bytes as a CompressedImage. OUT: {"matches": [...], "closures": [...], "poses": [...], "published": n}.
 """
 
 import json
@@ -18,6 +18,7 @@ import time
 
 import rclpy
 from rclpy.node import Node
+from geometry_msgs.msg import PoseStamped
 from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy, qos_profile_sensor_data
 from semlook_msgs.msg import LoopClosure, PlaceMatch
 from sensor_msgs.msg import CompressedImage, Image
@@ -46,13 +47,24 @@ def as_dict(m):
     }
 
 
+def pose_dict(m):
+    p, o = m.pose.position, m.pose.orientation
+    return {
+        "sec": m.header.stamp.sec,
+        "nanosec": m.header.stamp.nanosec,
+        "frame_id": m.header.frame_id,
+        "position": [p.x, p.y, p.z],
+        "orientation": [o.x, o.y, o.z, o.w],
+    }
+
+
 def main(plan_path, out_path):
     plan = json.load(open(plan_path))
     rclpy.init()
     node = Node("semlook_test_peer")
     raw = node.create_publisher(Image, "/camera/image_raw", qos_profile_sensor_data)
     comp = node.create_publisher(CompressedImage, "/camera/image_raw/compressed", qos_profile_sensor_data)
-    matches, closures = [], []
+    matches, closures, poses = [], [], []
     reliable = QoSProfile(
         reliability=QoSReliabilityPolicy.RELIABLE,
         durability=QoSDurabilityPolicy.VOLATILE,
@@ -61,9 +73,10 @@ def main(plan_path, out_path):
     )
     node.create_subscription(PlaceMatch, "/semlook/match", lambda m: matches.append(as_dict(m)), reliable)
     node.create_subscription(LoopClosure, "/semlook/closure", lambda m: closures.append({"query_id": m.query_id, "place_id": m.place_id}), reliable)
+    node.create_subscription(PoseStamped, "/semlook/pose", lambda m: poses.append(pose_dict(m)), reliable)
     deadline = time.time() + plan.get("timeout", 120)
     # discovery: the node subscribes our topics and publishes its matches
-    while time.time() < deadline and (raw.get_subscription_count() == 0 or comp.get_subscription_count() == 0 or node.count_publishers("/semlook/match") == 0):
+    while time.time() < deadline and (raw.get_subscription_count() == 0 or comp.get_subscription_count() == 0 or node.count_publishers("/semlook/match") == 0 or node.count_publishers("/semlook/pose") == 0):
         rclpy.spin_once(node, timeout_sec=0.1)
     if time.time() >= deadline:
         print("peer: the node was not discovered", file=sys.stderr)
@@ -102,7 +115,7 @@ def main(plan_path, out_path):
     t = time.time() + plan.get("linger", 0.5)
     while time.time() < t:
         rclpy.spin_once(node, timeout_sec=0.05)
-    json.dump({"matches": matches, "closures": closures, "published": published}, open(out_path, "w"))
+    json.dump({"matches": matches, "closures": closures, "poses": poses, "published": published}, open(out_path, "w"))
     node.destroy_node()
     rclpy.shutdown()
 

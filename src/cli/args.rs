@@ -370,6 +370,27 @@ pub struct SourceArgs {
     pub models: ModelArgs,
 }
 
+/// Camera poses to store with the places of `map build` / `map add` (the ROS 2 node publishes
+/// the matched place's as a PoseStamped). A dataset's own poses (`--dataset`) are stored without
+/// these flags.
+#[derive(Args, Clone, Default)]
+pub struct PoseArgs {
+    /// A pose list for the images of --images: one `name numbers...` line per image (`#`
+    /// comments), `name` the image's file name or stem; every image needs a line.
+    #[arg(long, value_name = "FILE", requires = "images", conflicts_with = "dataset")]
+    pub poses: Option<PathBuf>,
+    /// Line format of --poses: quat_center (`qw qx qy qz cx cy cz`, world-to-camera rotation and
+    /// camera centre; the default), quat_translation (`qw qx qy qz tx ty tz`), matrix_cam_to_world
+    /// or matrix_world_to_cam (16 numbers, row-major 4x4).
+    #[arg(long, value_name = "FORMAT", requires = "poses", value_parser = parse_pose_format)]
+    pub pose_format: Option<semlook::dataset::PoseFormat>,
+}
+
+fn parse_pose_format(s: &str) -> Result<semlook::dataset::PoseFormat, String> {
+    serde_json::from_value(serde_json::Value::String(s.to_string()))
+        .map_err(|_| format!("{s:?} is not a pose format (quat_center, quat_translation, matrix_cam_to_world, matrix_world_to_cam)"))
+}
+
 /// How a map stores what it is given.
 #[derive(Args, Clone, Default)]
 pub struct StoreArgs {
@@ -412,6 +433,8 @@ pub enum MapCommand {
         traversal: Option<String>,
         #[command(flatten)]
         store: StoreArgs,
+        #[command(flatten)]
+        poses: PoseArgs,
     },
     /// Append images to a map without re-encoding what it holds.
     Add {
@@ -431,6 +454,8 @@ pub enum MapCommand {
         /// Most images per segment file (see `map build`).
         #[arg(long, value_name = "N", value_parser = parse_positive)]
         segment_images: Option<usize>,
+        #[command(flatten)]
+        poses: PoseArgs,
     },
     /// Show a map's size, layout, config and segments (reads the manifest; checks nothing).
     Info {

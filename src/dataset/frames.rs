@@ -6,13 +6,33 @@ use crate::input::{FrameSource, LabelFormat};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
-/// Camera centre and optical axis (unit vector) in world coordinates.
+/// Camera centre and optical axis (unit vector) in world coordinates, and the whole rotation
+/// where the dataset gives it.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Pose {
     /// Camera centre (dataset units, usually metres).
     pub position: [f64; 3],
     /// Optical axis, a unit vector.
     pub forward: [f64; 3],
+    /// The camera-to-world rotation as a unit quaternion `[x, y, z, w]` (ROS order; the camera's
+    /// z axis is `forward`), where the dataset gives a rotation (pose lists, SYNTHIA matrices);
+    /// none where it gives a position alone (UTM names).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub orientation: Option<[f64; 4]>,
+}
+
+impl Pose {
+    /// What a map stores of the pose ([`crate::descriptors::PlacePose`]).
+    pub fn place_pose(&self) -> crate::descriptors::PlacePose {
+        crate::descriptors::PlacePose { position: self.position, orientation: self.orientation }
+    }
+}
+
+/// The line of a pose list (name -> pose) for an image file: its file name, else its stem.
+pub fn pose_of_image<'a>(list: &'a std::collections::HashMap<String, Pose>, image: &Path) -> Option<&'a Pose> {
+    let name = image.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let stem = image.file_stem().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    list.get(&name).or_else(|| list.get(&stem))
 }
 
 /// One frame of a traversal: its files and, when the dataset gives one, its pose.

@@ -18,7 +18,7 @@ mod poses;
 
 use crate::error::{Error, Result};
 use crate::input::{FrameSource, LabelFormat};
-pub use frames::{frames_from_folders, image_files, unique_ids, Dataset, Frame, GroundTruthRule, Pose, PoseFormat, Traversal};
+pub use frames::{frames_from_folders, image_files, pose_of_image, unique_ids, Dataset, Frame, GroundTruthRule, Pose, PoseFormat, Traversal};
 use pairs::PairTruth;
 pub use poses::{parse_pose_list, parse_synthia_pose, read_pose_list, read_synthia_pose, write_synthia_pose};
 use serde::{Deserialize, Serialize};
@@ -375,13 +375,11 @@ fn load_traversal(root: &Path, layout: &str, camera: &str, spec: &TraversalSpec)
             let mut frames = Vec::new();
             for img in image_files(&dir)? {
                 let s = stem(&img);
-                let fname = img.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
                 let pose = match &pose_map {
-                    Some(m) => Some(
-                        *m.get(&fname)
-                            .or_else(|| m.get(&s))
-                            .ok_or_else(|| Error::dataset(root, format!("pose list has no line for image {fname:?}")))?,
-                    ),
+                    Some(m) => Some(*pose_of_image(m, &img).ok_or_else(|| {
+                        let fname = img.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+                        Error::dataset(root, format!("pose list has no line for image {fname:?}"))
+                    })?),
                     None => None,
                 };
                 frames.push(Frame {

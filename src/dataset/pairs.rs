@@ -92,7 +92,7 @@ pub fn from_folders(refs: &Path, queries: &Path, truth: &PairTruth) -> Result<Da
             for f in reference.frames.iter_mut().chain(query.frames.iter_mut()) {
                 let path = f.source.image.clone().unwrap_or_default();
                 let (east, north, zone) = utm_of_name(&path)?;
-                f.pose = Some(Pose { position: [east, north, zone], forward: [0.0, 0.0, 1.0] });
+                f.pose = Some(Pose { position: [east, north, zone], forward: [0.0, 0.0, 1.0], orientation: None });
             }
             rule = Some(GroundTruthRule { max_distance: *d, max_angle_deg: None });
         }

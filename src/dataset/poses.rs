@@ -27,7 +27,8 @@ pub fn parse_synthia_pose(text: &str, path: &Path) -> Result<Pose> {
         return Err(Error::dataset(path, format!("expected 16 numbers, found {}", v.len())));
     }
     // column-major: column j is v[4j..4j+4]; the camera's z axis is column 2, the centre column 3
-    Ok(Pose { position: [v[12], v[13], v[14]], forward: normalise([v[8], v[9], v[10]]) })
+    let r: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| v[4 * j + i]));
+    Ok(Pose { position: [v[12], v[13], v[14]], forward: normalise([v[8], v[9], v[10]]), orientation: Some(quat_of_matrix(&r)) })
 }
 
 /// Writes a pose in the SYNTHIA CameraParams format (camera looking along `forward`, y up).
@@ -54,6 +55,30 @@ pub(super) fn normalise(v: [f64; 3]) -> [f64; 3] {
     }
 }
 
+/// The unit quaternion `[x, y, z, w]` (w >= 0) of a rotation matrix (row-major; a matrix that is
+/// not quite orthonormal gives the quaternion of its nearest rotation, near enough for poses read
+/// from text). Shepperd's method: the largest of the four squared components is taken from the
+/// trace, the others from off-diagonal sums, so no division is by a small number.
+pub(super) fn quat_of_matrix(r: &[[f64; 3]; 3]) -> [f64; 4] {
+    let t = r[0][0] + r[1][1] + r[2][2];
+    let q = if t >= r[0][0].max(r[1][1]).max(r[2][2]) {
+        let s = (1.0 + t).max(0.0).sqrt() * 2.0;
+        [(r[2][1] - r[1][2]) / s, (r[0][2] - r[2][0]) / s, (r[1][0] - r[0][1]) / s, 0.25 * s]
+    } else if r[0][0] >= r[1][1] && r[0][0] >= r[2][2] {
+        let s = (1.0 + r[0][0] - r[1][1] - r[2][2]).max(0.0).sqrt() * 2.0;
+        [0.25 * s, (r[0][1] + r[1][0]) / s, (r[0][2] + r[2][0]) / s, (r[2][1] - r[1][2]) / s]
+    } else if r[1][1] >= r[2][2] {
+        let s = (1.0 + r[1][1] - r[0][0] - r[2][2]).max(0.0).sqrt() * 2.0;
+        [(r[0][1] + r[1][0]) / s, 0.25 * s, (r[1][2] + r[2][1]) / s, (r[0][2] - r[2][0]) / s]
+    } else {
+        let s = (1.0 + r[2][2] - r[0][0] - r[1][1]).max(0.0).sqrt() * 2.0;
+        [(r[0][2] + r[2][0]) / s, (r[1][2] + r[2][1]) / s, 0.25 * s, (r[1][0] - r[0][1]) / s]
+    };
+    let n = q.iter().map(|c| c * c).sum::<f64>().sqrt();
+    let sign = if q[3] < 0.0 { -1.0 } else { 1.0 };
+    q.map(|c| sign * c / n)
+}
+
 /// Rotation matrix (row-major) of a unit quaternion (w, x, y, z).
 fn quat_to_matrix(w: f64, x: f64, y: f64, z: f64) -> [[f64; 3]; 3] {
     let n = (w * w + x * x + y * y + z * z).sqrt();
@@ -63,6 +88,10 @@ fn quat_to_matrix(w: f64, x: f64, y: f64, z: f64) -> [[f64; 3]; 3] {
         [2.0 * (x * y + z * w), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - x * w)],
         [2.0 * (x * z - y * w), 2.0 * (y * z + x * w), 1.0 - 2.0 * (x * x + y * y)],
     ]
+}
+
+fn transpose(r: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    std::array::from_fn(|i| std::array::from_fn(|j| r[j][i]))
 }
 
 /// Reads a pose list (one `name numbers...` line per image; `#` comments) into name -> pose.
@@ -98,14 +127,18 @@ pub fn parse_pose_list(text: &str, path: &Path, format: PoseFormat) -> Result<st
                 // rows of a world-to-camera rotation are the camera axes in world coordinates
                 let position =
                     if format == PoseFormat::QuatCenter { t } else { std::array::from_fn(|j| -(0..3).map(|k| r[k][j] * t[k]).sum::<f64>()) };
-                Pose { position, forward: normalise(r[2]) }
+                // camera-to-world is the inverse rotation: the conjugate quaternion
+                Pose { position, forward: normalise(r[2]), orientation: Some(quat_of_matrix(&transpose(&r))) }
             }
-            PoseFormat::MatrixCamToWorld => Pose { position: [v[3], v[7], v[11]], forward: normalise([v[2], v[6], v[10]]) },
+            PoseFormat::MatrixCamToWorld => {
+                let r = [[v[0], v[1], v[2]], [v[4], v[5], v[6]], [v[8], v[9], v[10]]];
+                Pose { position: [v[3], v[7], v[11]], forward: normalise([v[2], v[6], v[10]]), orientation: Some(quat_of_matrix(&r)) }
+            }
             PoseFormat::MatrixWorldToCam => {
                 let r = [[v[0], v[1], v[2]], [v[4], v[5], v[6]], [v[8], v[9], v[10]]];
                 let t = [v[3], v[7], v[11]];
                 let position = std::array::from_fn(|j| -(0..3).map(|k| r[k][j] * t[k]).sum::<f64>());
-                Pose { position, forward: normalise(r[2]) }
+                Pose { position, forward: normalise(r[2]), orientation: Some(quat_of_matrix(&transpose(&r))) }
             }
         };
         out.insert(name.to_string(), pose);
@@ -120,7 +153,7 @@ mod tests {
 
     #[test]
     fn synthia_pose_round_trip() {
-        let p = Pose { position: [1.5, 1.6, -20.25], forward: normalise([0.1, 0.0, 1.0]) };
+        let p = Pose { position: [1.5, 1.6, -20.25], forward: normalise([0.1, 0.0, 1.0]), orientation: None };
         let dir = tempfile::tempdir().unwrap();
         let f = dir.path().join("p.txt");
         std::fs::write(&f, write_synthia_pose(&p)).unwrap();
@@ -142,12 +175,69 @@ mod tests {
         assert_eq!(t["a.jpg"].position, [-2.0, 0.0, 0.0]);
         assert_eq!(c["a.jpg"].forward, [0.0, 0.0, 1.0]);
         let refs = [c["a.jpg"], c["b.jpg"]];
-        let q = Pose { position: [1.0, 0.0, 0.0], forward: [0.0, 0.0, 1.0] };
+        let q = Pose { position: [1.0, 0.0, 0.0], forward: [0.0, 0.0, 1.0], orientation: None };
         assert_eq!(pose_matches(&q, &refs, &GroundTruthRule { max_distance: 1.5, max_angle_deg: None }), vec![0]);
         let turned = Pose { forward: [1.0, 0.0, 0.0], ..q };
         assert!(pose_matches(&turned, &refs, &GroundTruthRule { max_distance: 5.0, max_angle_deg: Some(30.0) }).is_empty());
         std::fs::write(&f, "a.jpg 1 0 0 nan 2 0 0\n").unwrap();
         let e = read_pose_list(&f, PoseFormat::QuatCenter).unwrap_err().to_string();
         assert!(e.contains("gt.txt") && e.contains("line 1"), "{e}");
+    }
+
+    /// The camera's z axis under a quaternion `[x, y, z, w]`: the third column of its matrix.
+    fn z_axis(q: [f64; 4]) -> [f64; 3] {
+        let r = quat_to_matrix(q[3], q[0], q[1], q[2]);
+        [r[0][2], r[1][2], r[2][2]]
+    }
+
+    /// Every pose-list format and the SYNTHIA matrix give the same camera-to-world orientation
+    /// for one camera, its z axis the pose's forward, and the quaternion reads back to the matrix.
+    #[test]
+    fn orientations_agree_across_formats() {
+        // camera-to-world rotation of a camera turned about three axes
+        let q_cw = {
+            let (w, x, y, z) = (0.8_f64, 0.3, -0.4, 0.2);
+            let n = (w * w + x * x + y * y + z * z).sqrt();
+            [x / n, y / n, z / n, w / n]
+        };
+        let r_cw = quat_to_matrix(q_cw[3], q_cw[0], q_cw[1], q_cw[2]);
+        assert!(quat_of_matrix(&r_cw).iter().zip(&q_cw).all(|(a, b)| (a - b).abs() < 1e-12), "matrix -> quaternion");
+        for m in [[[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]]] {
+            // half turns: the trace is not the largest term
+            let q = quat_of_matrix(&m);
+            let back = quat_to_matrix(q[3], q[0], q[1], q[2]);
+            assert!((0..3).all(|i| (0..3).all(|j| (back[i][j] - m[i][j]).abs() < 1e-12)), "{m:?} -> {q:?}");
+        }
+        let c = [4.0, -2.0, 1.5];
+        let r_wc = transpose(&r_cw);
+        let t: [f64; 3] = std::array::from_fn(|i| -(0..3).map(|k| r_wc[i][k] * c[k]).sum::<f64>());
+        let q_wc = [-q_cw[0], -q_cw[1], -q_cw[2], q_cw[3]];
+        let row = |r: &[[f64; 3]; 3], p: [f64; 3]| {
+            (0..3).flat_map(|i| [r[i][0], r[i][1], r[i][2], p[i]]).chain([0.0, 0.0, 0.0, 1.0]).map(|v| v.to_string()).collect::<Vec<_>>().join(" ")
+        };
+        let lines = [
+            (PoseFormat::QuatCenter, format!("a {} {} {} {} {} {} {}", q_wc[3], q_wc[0], q_wc[1], q_wc[2], c[0], c[1], c[2])),
+            (PoseFormat::QuatTranslation, format!("a {} {} {} {} {} {} {}", q_wc[3], q_wc[0], q_wc[1], q_wc[2], t[0], t[1], t[2])),
+            (PoseFormat::MatrixCamToWorld, format!("a {}", row(&r_cw, c))),
+            (PoseFormat::MatrixWorldToCam, format!("a {}", row(&r_wc, t))),
+        ];
+        let synthia: Vec<String> = (0..4)
+            .flat_map(|j| (0..4).map(move |i| (i, j)))
+            .map(|(i, j)| match (i, j) {
+                (3, 3) => "1".to_string(),
+                (3, _) => "0".to_string(),
+                (i, 3) => c[i].to_string(),
+                (i, j) => r_cw[i][j].to_string(),
+            })
+            .collect();
+        let mut poses: Vec<(String, Pose)> =
+            lines.iter().map(|(f, l)| (format!("{f:?}"), parse_pose_list(l, Path::new("x.txt"), *f).unwrap()["a"])).collect();
+        poses.push(("synthia".into(), parse_synthia_pose(&synthia.join(" "), Path::new("p.txt")).unwrap()));
+        for (what, p) in poses {
+            let q = p.orientation.unwrap_or_else(|| panic!("{what}: no orientation"));
+            assert!(q.iter().zip(&q_cw).all(|(a, b)| (a - b).abs() < 1e-9), "{what}: {q:?} against {q_cw:?}");
+            assert!(p.position.iter().zip(&c).all(|(a, b)| (a - b).abs() < 1e-9), "{what}: {:?}", p.position);
+            assert!(z_axis(q).iter().zip(&p.forward).all(|(a, b)| (a - b).abs() < 1e-9), "{what}: z axis and forward");
+        }
     }
 }

@@ -1,11 +1,13 @@
 //! The bottom layer that encoding, the map store, matching and appearance share: the columnar
-//! [`DescriptorSet`] and one encoded image ([`EncodedImage`]), the [`source`] traits matching
+//! [`DescriptorSet`] and one encoded image ([`EncodedImage`]) with its [`PlacePose`], the [`source`] traits matching
 //! reads references through, and the value checks of a stored image ([`validate`]). It imports
 //! none of those stages, so none of them imports another in a circle.
 
 pub mod keypoints;
+mod pose;
 mod set;
 pub mod source;
 pub mod validate;
 
+pub use pose::PlacePose;
 pub use set::{DescriptorSet, EncodedImage};

@@ -4,6 +4,7 @@
 //! indices stay local to their forest.
 
 use crate::descriptors::keypoints::{ImageKeypoints, KeypointsRef};
+use crate::descriptors::pose::PlacePose;
 use crate::error::{Error, Result};
 use crate::kernels::abi::SsimParams;
 use crate::kernels::tree_similarity::ForestRef;
@@ -32,6 +33,9 @@ pub struct EncodedImage {
     pub hog: Vec<f32>,
     /// The verification keypoints (empty when the encoder stores none).
     pub keypoints: ImageKeypoints,
+    /// Where the image was taken, when its source gives a pose (a dataset's poses, a pose list):
+    /// not encoded from pixels, but attached to the image so a map stores it with the place.
+    pub pose: Option<PlacePose>,
 }
 
 /// Many encoded images, one column per field (see the module header).
@@ -86,6 +90,8 @@ pub struct DescriptorSet {
     pub keypoint_xy: Vec<u16>,
     /// The semantic class under each keypoint.
     pub keypoint_classes: Vec<u8>,
+    /// Per image, its pose where its source gave one ([`PlacePose`]).
+    pub poses: Vec<Option<PlacePose>>,
     /// SHA-256 of the VLAD codebook the appearance vectors were aggregated with (`Codebook::sha256`;
     /// none without appearance): sets of two codebooks never join, nor enter a map of another.
     pub codebook: Option<String>,
@@ -119,6 +125,7 @@ impl DescriptorSet {
             keypoint_descriptors: vec![],
             keypoint_xy: vec![],
             keypoint_classes: vec![],
+            poses: vec![],
             codebook: None,
         }
     }
@@ -187,6 +194,7 @@ impl DescriptorSet {
         }
         self.ids.push(img.id.clone());
         self.sizes.push([img.width, img.height]);
+        self.poses.push(img.pose);
         self.globals.extend_from_slice(&img.global);
         if self.stats_len > 0 {
             self.global_stats.extend_from_slice(&img.global_stats);
@@ -261,6 +269,7 @@ impl DescriptorSet {
         let base = self.n_trees() as u32;
         self.ids.extend_from_slice(&other.ids[start..end]);
         self.sizes.extend_from_slice(&other.sizes[start..end]);
+        self.poses.extend_from_slice(&other.poses[start..end]);
         self.globals.extend_from_slice(&other.globals[start * g..end * g]);
         self.global_stats.extend_from_slice(&other.global_stats[start * sl..end * sl]);
         self.forest_offsets.extend(other.forest_offsets[start + 1..=end].iter().map(|o| o - a as u32 + base));
@@ -359,8 +368,9 @@ impl DescriptorSet {
         }
         let p = ko[n] as usize;
         let (s, d) = (self.neighbour_slots, self.appearance_dim);
-        let columns: [(&str, usize, usize); 16] = [
+        let columns: [(&str, usize, usize); 17] = [
             ("sizes", self.sizes.len(), n),
+            ("poses", self.poses.len(), n),
             ("globals", self.globals.len(), n * self.global_len),
             ("global_stats", self.global_stats.len(), n * self.stats_len),
             ("tree_classes", self.tree_classes.len(), t),
@@ -396,7 +406,8 @@ impl DescriptorSet {
             n_classes,
             store,
         )?;
-        crate::descriptors::validate::keypoints(self.keypoints(i), n_classes)
+        crate::descriptors::validate::keypoints(self.keypoints(i), n_classes)?;
+        self.poses.get(i).copied().flatten().map_or(Ok(()), |p| crate::descriptors::validate::pose_row(&p.to_row()))
     }
 }
 
@@ -418,6 +429,7 @@ mod tests {
                 appearance: vec![],
                 hog: vec![1.0; hog_dim],
                 keypoints: Default::default(),
+                pose: None,
             };
             s.push(&img).unwrap();
         }

@@ -62,8 +62,18 @@ impl Encoder {
         };
         let (width, height) = loaded.source_size;
         let hog = loaded.hog.clone().unwrap_or_default();
-        let image =
-            EncodedImage { id: id.to_string(), width, height, global, global_stats, forest, appearance: vec![], hog, keypoints: verification };
+        let image = EncodedImage {
+            id: id.to_string(),
+            width,
+            height,
+            global,
+            global_stats,
+            forest,
+            appearance: vec![],
+            hog,
+            keypoints: verification,
+            pose: None,
+        };
         Ok(Pending { image, times, vlad })
     }
 

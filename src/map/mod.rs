@@ -163,6 +163,26 @@ impl Map {
         let j = i - self.starts[s];
         (s, self.live[s].as_ref().map_or(j, |rows| rows[j] as usize))
     }
+    /// The pose stored with live image `i` (`map build` from a dataset with poses, or with
+    /// `--poses`); none where it has none or its segment failed its checks.
+    pub fn pose(&self, i: usize) -> Option<crate::descriptors::PlacePose> {
+        let (s, j) = self.locate(i);
+        self.sound(s)?.pose(j)
+    }
+    /// Live images with a pose, and of those with an orientation (reads every pose row of the
+    /// segments that store poses; `map info`).
+    pub fn pose_counts(&self) -> (usize, usize) {
+        let (mut with, mut oriented) = (0, 0);
+        for (s, seg) in self.segments.iter().enumerate().filter(|(_, g)| g.has_poses()) {
+            for j in self.live_rows(s) {
+                if let Some(p) = seg.pose(j) {
+                    with += 1;
+                    oriented += usize::from(p.orientation.is_some());
+                }
+            }
+        }
+        (with, oriented)
+    }
     /// Rows of segment `s` that are not removed.
     pub fn live_rows(&self, s: usize) -> Box<dyn Iterator<Item = usize> + '_> {
         match &self.live[s] {

@@ -10,8 +10,10 @@
 //! `[bt, block]` i8 and `image_block_*` likewise over the n images,
 //! `image_hog` `[n, hog]` f32, the ids as UTF-8 bytes `id_bytes` `[b]` u8 with `id_offsets`
 //! `[n + 1]` u32, and the verification keypoints (p of them): `keypoint_offsets` `[n + 1]` u32,
-//! `keypoint_descriptors` `[p, kdim]` i8, `keypoint_xy` `[p, 2]` u16, `keypoint_class` `[p]` u8. SSIM
-//! statistics are not stored: readers recompute them per tile.
+//! `keypoint_descriptors` `[p, kdim]` i8, `keypoint_xy` `[p, 2]` u16, `keypoint_class` `[p]` u8, and,
+//! only in segments where some image has a pose, `place_pose` `[n, 7]` f64 (`x y z qx qy qz qw`, NaN
+//! where there is none: [`PlacePose::to_row`]; segments without it, older ones among them, hold no
+//! poses). SSIM statistics are not stored: readers recompute them per tile.
 //!
 //! Opening checks the header: every tensor's dtype, shape, and alignment (safetensors writers sort
 //! tensors by element size and pad the header to 8 bytes, so each tensor starts at a multiple of
@@ -20,7 +22,7 @@
 
 use super::manifest::SegmentEntry;
 use crate::descriptors::keypoints::KeypointsRef;
-use crate::descriptors::{validate, DescriptorSet};
+use crate::descriptors::{validate, DescriptorSet, PlacePose};
 use crate::error::{Error, Result};
 use crate::kernels::tree_similarity::ForestRef;
 use crate::values::{to_f16_bits, ValueType, Values};
@@ -105,7 +107,10 @@ pub fn to_bytes(set: &DescriptorSet, layout: &Layout) -> Result<Vec<u8>> {
     // without appearance: no vectors, but one offset per tree and image
     let (to, io) = if dim == 0 { (vec![0u32; t + 1], vec![0u32; n + 1]) } else { (to, io) };
     let p = set.n_keypoints();
-    let parts: [(&str, Dtype, Vec<usize>, &[u8]); 24] = [
+    // poses only where some image has one, so maps without poses keep the bytes of before
+    let poses: Vec<f64> =
+        if set.poses.iter().any(Option::is_some) { set.poses.iter().flat_map(|q| q.map_or([f64::NAN; 7], |q| q.to_row())).collect() } else { vec![] };
+    let mut parts: Vec<(&str, Dtype, Vec<usize>, &[u8])> = vec![
         ("global", fdt, vec![n, layout.gh, layout.gw], g),
         ("image_size", Dtype::U32, vec![n, 2], bytemuck::cast_slice(&sizes)),
         ("forest_offsets", Dtype::U32, vec![n + 1], bytemuck::cast_slice(&set.forest_offsets)),
@@ -131,6 +136,9 @@ pub fn to_bytes(set: &DescriptorSet, layout: &Layout) -> Result<Vec<u8>> {
         ("keypoint_xy", Dtype::U16, vec![p, 2], bytemuck::cast_slice(&set.keypoint_xy)),
         ("keypoint_class", Dtype::U8, vec![p], &set.keypoint_classes),
     ];
+    if !poses.is_empty() {
+        parts.push(("place_pose", Dtype::F64, vec![n, 7], bytemuck::cast_slice(&poses)));
+    }
     let tensors = parts
         .into_iter()
         .map(|(name, dtype, shape, bytes)| {
@@ -179,6 +187,8 @@ struct Ranges {
     keypoint_descriptors: Range<usize>,
     keypoint_xy: Range<usize>,
     keypoint_class: Range<usize>,
+    /// Absent in segments without poses.
+    place_pose: Option<Range<usize>>,
 }
 
 /// The four tensors of a column of appearance blocks.
@@ -353,6 +363,9 @@ impl Mapped {
             ("hog", len(&[&r.image_hog])),
             ("ids and sizes", len(&[&r.id_bytes, &r.id_offsets, &r.image_size])),
         ];
+        if let Some(p) = &r.place_pose {
+            out.push(("poses", p.len()));
+        }
         let counted: usize = out.iter().map(|c| c.1).sum();
         out.push(("header and padding", self.mmap.len() - counted.min(self.mmap.len())));
         out
@@ -372,6 +385,17 @@ impl Mapped {
             exponents: bytemuck::cast_slice(self.raw(&r.exponents)),
             values: bytemuck::cast_slice(self.raw(&r.values)),
         })
+    }
+    /// The pose of row `j`: none where the segment stores no poses, the row holds none, or the
+    /// row is broken (which [`Mapped::verify`] reports).
+    pub fn pose(&self, j: usize) -> Option<PlacePose> {
+        let r = self.r.place_pose.as_ref()?;
+        let rows: &[f64] = bytemuck::cast_slice(self.raw(r));
+        PlacePose::from_row(rows.get(7 * j..7 * j + 7)?).ok().flatten()
+    }
+    /// Whether the segment stores poses (some of its images have one).
+    pub fn has_poses(&self) -> bool {
+        self.r.place_pose.is_some()
     }
     /// The HOG descriptor of row `j` (empty when the map stores none).
     pub fn image_hog(&self, j: usize) -> &[f32] {
@@ -441,6 +465,10 @@ impl Mapped {
             )
             .and_then(|()| validate::keypoints(self.keypoints(j), self.layout.n_classes))
             .map_err(|r| Error::check(format!("image {id:?}: {r}")))?;
+            if let Some(r) = &self.r.place_pose {
+                let rows: &[f64] = bytemuck::cast_slice(self.raw(r));
+                validate::pose_row(&rows[7 * j..7 * j + 7]).map_err(|e| e.named(|r| Error::check(format!("image {id:?}: {r}"))))?;
+            }
         }
         Ok(())
     }
@@ -463,6 +491,7 @@ impl Mapped {
         let f = self.forest(j);
         set.ids.push(self.id(j).to_string());
         set.sizes.push(self.size(j));
+        set.poses.push(self.pose(j));
         self.globals(j, j + 1).extend_into(&mut set.globals);
         set.tree_classes.extend_from_slice(f.classes);
         set.tree_areas.extend_from_slice(f.areas);
@@ -533,5 +562,9 @@ fn ranges(bytes: &[u8], entry: &SegmentEntry, l: &Layout) -> Result<Ranges> {
         keypoint_descriptors: get("keypoint_descriptors", Dtype::I8, &[Some(entry.keypoints), Some(l.kdim)])?,
         keypoint_xy: get("keypoint_xy", Dtype::U16, &[Some(entry.keypoints), Some(2)])?,
         keypoint_class: get("keypoint_class", Dtype::U8, &[Some(entry.keypoints)])?,
+        place_pose: match meta.info("place_pose") {
+            None => None,
+            Some(_) => Some(get("place_pose", Dtype::F64, &[Some(n), Some(7)])?),
+        },
     })
 }

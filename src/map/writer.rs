@@ -357,6 +357,7 @@ impl MapWriter {
         let app = if img.appearance.is_empty() { Values::F32(&[]) } else { Values::F32(&img.appearance) };
         validate::image(&img.id, [img.width, img.height], Values::F32(&img.global), f, app, &img.hog, self.layout.n_classes, self.opts.values)
             .and_then(|()| validate::keypoints(img.keypoints.as_ref(), self.layout.n_classes))
+            .and_then(|()| img.pose.map_or(Ok(()), |p| validate::pose_row(&p.to_row())))
             .map_err(|e| e.named(|reason| Error::InvalidImage { id: img.id.clone(), reason }))?;
         if self.contains(&img.id) {
             return Err(Error::DuplicateImageId { map: self.dir.clone(), id: img.id.clone() });

@@ -25,6 +25,7 @@ fn set(p: &SsimParams, n: usize, pool: usize, rng: &mut SplitMix64) -> Descripto
             appearance: vec![],
             hog: vec![],
             keypoints: Default::default(),
+            pose: None,
         })
         .unwrap();
     }

@@ -255,6 +255,10 @@ pub struct FrameResult {
     pub tracking: bool,
     /// Loop-closure mode: no map yet (the first frames train its codebook).
     pub warming_up: bool,
+    /// The pose the map stores for the stream's answer ([`FrameResult::place`]), where it stores
+    /// one (`map build` from a dataset with poses, or with `--poses`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pose: Option<crate::descriptors::PlacePose>,
     /// Milliseconds per stage of this frame.
     pub latency: Latency,
 }
@@ -270,6 +274,13 @@ impl FrameResult {
         match &self.sequence {
             Some(s) if s.matched.accepted => Some((s.id.as_str(), s.matched.score)),
             _ => self.best().map(|b| (b.id.as_str(), b.score)),
+        }
+    }
+    /// The map index of [`FrameResult::place`].
+    pub fn place_index(&self) -> Option<u32> {
+        match &self.sequence {
+            Some(s) if s.matched.accepted => Some(s.index),
+            _ => self.best().map(|b| b.index),
         }
     }
 }
@@ -672,7 +683,7 @@ impl Localizer {
             _ => None,
         };
         latency.total_ms = ms_since(t0);
-        Ok(FrameResult {
+        let mut r = FrameResult {
             frame: index,
             id: frame.id.clone(),
             timestamp: frame.timestamp,
@@ -683,8 +694,11 @@ impl Localizer {
             size_changed: false,
             tracking,
             warming_up: false,
+            pose: None,
             latency,
-        })
+        };
+        r.pose = r.place_index().and_then(|i| map.pose(i as usize));
+        Ok(r)
     }
 
     /// Loop-closure mode: adds the frame to the stream's traversal; commits every
@@ -734,6 +748,7 @@ impl Localizer {
             size_changed,
             tracking: false,
             warming_up: true,
+            pose: None,
             latency: Latency { total_ms: ms_since(t0), ..latency },
         })
     }
@@ -798,7 +813,7 @@ impl Drop for Localizer {
 /// What [`replay`] reports of each frame.
 pub enum Replayed {
     /// The frame was localized.
-    Answered(FrameResult),
+    Answered(Box<FrameResult>),
     /// The frame was refused (its own fault: counted, the stream goes on): its number, id, why.
     Refused(u64, String, Error),
 }
@@ -836,7 +851,7 @@ pub fn replay(
             match loc.push_loaded(id.clone(), ts, loaded) {
                 Ok(r) => {
                     stats.push(&r.latency);
-                    on(&mut *loc, Replayed::Answered(r))?;
+                    on(&mut *loc, Replayed::Answered(Box::new(r)))?;
                 }
                 Err(e) if loc.counts().refused > refused => on(&mut *loc, Replayed::Refused(frame, id, e))?,
                 Err(e) => return Err(e),

@@ -24,6 +24,7 @@ fn pool(n: usize, seed: u64) -> DescriptorSet {
             appearance: vec![],
             hog: vec![],
             keypoints: Default::default(),
+            pose: None,
         })
         .unwrap();
     }

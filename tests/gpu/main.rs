@@ -191,6 +191,7 @@ pub fn random_descriptors(n: usize, cfg: &Config, seed: u64) -> DescriptorSet {
             appearance: vec![],
             hog: vec![],
             keypoints: Default::default(),
+            pose: None,
         };
         set.push(&img).unwrap();
     }
@@ -264,6 +265,7 @@ pub fn random_forest_set(n: usize, dim: usize, seed: u64) -> DescriptorSet {
             appearance: vec![],
             hog: vec![],
             keypoints: Default::default(),
+            pose: None,
         };
         set.push(&img).unwrap();
     }

@@ -1,8 +1,9 @@
 //! The `map` subcommands: build (streamed into segments, `--resume`, `--force`, `--f16`), add,
 //! info, remove, compact, verify, and the store benchmark.
 
-use super::shared::{apply_models, frame_sources, info, load_config, map_config, to_json};
-use crate::cli::args::{MapCommand, SourceArgs, StoreArgs, StoreBenchArgs};
+use super::shared::{apply_models, frame_sources_posed, info, load_config, map_config, to_json};
+use crate::cli::args::{MapCommand, PoseArgs, SourceArgs, StoreArgs, StoreBenchArgs};
+use semlook::batch::PlacePoses;
 use semlook::batch::{self, IntoOptions};
 use semlook::config::Config;
 use semlook::encode::Encoder;
@@ -16,16 +17,16 @@ use std::path::Path;
 
 pub fn run(cmd: MapCommand, engine: &dyn Fn() -> Result<Engine>, quiet: bool) -> Result<()> {
     match cmd {
-        MapCommand::Build { source, map: out, config, force, resume, hog, traversal, store } => {
-            build(&mut engine()?, &source, &out, config.as_deref(), &BuildFlags { force, resume, hog, traversal, store }, quiet)
+        MapCommand::Build { source, map: out, config, force, resume, hog, traversal, store, poses } => {
+            build(&mut engine()?, &source, &out, config.as_deref(), &BuildFlags { force, resume, hog, traversal, store, poses }, quiet)
         }
-        MapCommand::Add { source, map, resume, segment_images, traversal } => {
+        MapCommand::Add { source, map, resume, segment_images, traversal, poses } => {
             let plan = match (traversal, resume) {
                 (Some(name), _) => TraversalPlan::Named(name),
                 (None, true) => TraversalPlan::Last,
                 (None, false) => TraversalPlan::New,
             };
-            add(&mut engine()?, &source, &map, resume, segment_images, plan, quiet)
+            add(&mut engine()?, &source, &poses, &map, resume, segment_images, plan, quiet)
         }
         MapCommand::Info { map, json } => show(&map, json),
         MapCommand::Remove { map, ids } => remove(&map, &ids, quiet),
@@ -42,6 +43,7 @@ pub struct BuildFlags {
     pub hog: bool,
     pub traversal: Option<String>,
     pub store: StoreArgs,
+    pub poses: PoseArgs,
 }
 
 fn store_options(f16: bool, segment_images: Option<usize>) -> StoreOptions {
@@ -51,16 +53,17 @@ fn store_options(f16: bool, segment_images: Option<usize>) -> StoreOptions {
 
 pub fn build(engine: &mut Engine, s: &SourceArgs, out: &Path, config: Option<&Path>, f: &BuildFlags, quiet: bool) -> Result<()> {
     let mut cfg = apply_models(load_config(config)?, &s.models);
-    let (frames, fmt) = frame_sources(s, &mut cfg, config.is_some())?;
+    let (frames, fmt, poses) = frame_sources_posed(s, Some(&f.poses), &mut cfg, config.is_some())?;
     if frames.is_empty() {
         return Err(Error::invalid("references", "no images found"));
     }
+    let sources = (frames.as_slice(), fmt, &poses);
     let opts = store_options(f.store.f16, f.store.segment_images);
     let map = if f.force && out.exists() {
-        edit::build_replacing(out, |dir| build_into(engine, &cfg, &frames, fmt, dir, f, opts, s.skip_invalid, quiet))?;
+        edit::build_replacing(out, |dir| build_into(engine, &cfg, sources, dir, f, opts, s.skip_invalid, quiet))?;
         Map::open(out)?
     } else {
-        build_into(engine, &cfg, &frames, fmt, out, f, opts, s.skip_invalid, quiet)?
+        build_into(engine, &cfg, sources, out, f, opts, s.skip_invalid, quiet)?
     };
     info(
         quiet,
@@ -81,8 +84,7 @@ pub fn build(engine: &mut Engine, s: &SourceArgs, out: &Path, config: Option<&Pa
 fn build_into(
     engine: &mut Engine,
     cfg: &Config,
-    frames: &[FrameSource],
-    fmt: LabelFormat,
+    (frames, fmt, poses): (&[FrameSource], LabelFormat, &PlacePoses),
     dir: &Path,
     f: &BuildFlags,
     opts: StoreOptions,
@@ -110,7 +112,8 @@ fn build_into(
         let o = batch::NewMapOptions { hog: f.hog, store: opts, traversal: f.traversal.clone(), skip_invalid: skip, resume: f.resume, quiet };
         batch::new_map(cfg, frames, dir, &o)?
     };
-    let r = batch::encode_into(engine, &encoder, frames, fmt, &mut writer, IntoOptions { skip_invalid: skip, skip_stored: f.resume, quiet })?;
+    let into = IntoOptions { skip_invalid: skip, skip_stored: f.resume, quiet, poses: Some(poses) };
+    let r = batch::encode_into(engine, &encoder, frames, fmt, &mut writer, into)?;
     report_encoding(&r, quiet);
     writer.finish()
 }
@@ -135,18 +138,28 @@ fn report_encoding(r: &batch::IntoReport, quiet: bool) {
     }
 }
 
-fn add(engine: &mut Engine, s: &SourceArgs, dir: &Path, resume: bool, segment_images: Option<usize>, plan: TraversalPlan, quiet: bool) -> Result<()> {
+#[allow(clippy::too_many_arguments)]
+fn add(
+    engine: &mut Engine,
+    s: &SourceArgs,
+    p: &PoseArgs,
+    dir: &Path,
+    resume: bool,
+    segment_images: Option<usize>,
+    plan: TraversalPlan,
+    quiet: bool,
+) -> Result<()> {
     let map = Map::open(dir)?;
     let mut cfg = map_config(&map, None, &s.models)?;
-    let (frames, fmt) = frame_sources(s, &mut cfg, true)?;
+    let (frames, fmt, poses) = frame_sources_posed(s, Some(p), &mut cfg, true)?;
     if frames.is_empty() {
         return Err(Error::invalid("new images", "no images found"));
     }
     let encoder = Encoder::for_map(&cfg, &map)?.with_hog(map.manifest.hog_dim > 0);
     drop(map);
     let mut writer = MapWriter::append(dir, store_options(false, segment_images))?.with_traversal(plan)?;
-    let r =
-        batch::encode_into(engine, &encoder, &frames, fmt, &mut writer, IntoOptions { skip_invalid: s.skip_invalid, skip_stored: resume, quiet })?;
+    let into = IntoOptions { skip_invalid: s.skip_invalid, skip_stored: resume, quiet, poses: Some(&poses) };
+    let r = batch::encode_into(engine, &encoder, &frames, fmt, &mut writer, into)?;
     report_encoding(&r, quiet);
     let map = writer.finish()?;
     info(
@@ -178,6 +191,7 @@ fn show(dir: &Path, json: bool) -> Result<()> {
         }
     }
     let per = |b: usize| b as f64 / m.stored_images().max(1) as f64;
+    let poses = map.pose_counts();
     let by_column: serde_json::Map<String, serde_json::Value> =
         columns.iter().map(|&(n, b)| (n.to_string(), serde_json::json!(per(b).round() as u64))).collect();
     if json {
@@ -195,6 +209,7 @@ fn show(dir: &Path, json: bool) -> Result<()> {
             "hog_dim": m.hog_dim,
             "labels": !m.without_labels,
             "traversals": traversals(&map),
+            "poses": { "images": poses.0, "with_orientation": poses.1 },
             "config": m.config,
         });
         outln!("{}", to_json(&v)?);
@@ -216,6 +231,9 @@ fn show(dir: &Path, json: bool) -> Result<()> {
         }
         let t: Vec<String> = traversals(&map).iter().map(|t| format!("{} ({} images)", t["name"].as_str().unwrap_or(""), t["images"])).collect();
         outln!("traversals: {}", t.join(", "));
+        if poses.0 > 0 {
+            outln!("poses: {} of {} images ({} with an orientation)", poses.0, map.len(), poses.1);
+        }
         for s in &m.segments {
             outln!(
                 "  {}  {} images ({} removed)  {} bytes  sha256 {}  traversal {}",

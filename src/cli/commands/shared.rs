@@ -1,6 +1,7 @@
 //! What the commands share: messages, config and model flags, the frames a source names, JSON.
 
-use crate::cli::args::{ModelArgs, SourceArgs};
+use crate::cli::args::{ModelArgs, PoseArgs, SourceArgs};
+use semlook::batch::PlacePoses;
 use semlook::config::Config;
 use semlook::dataset::{Dataset, DatasetOptions};
 use semlook::error::{Error, Result};
@@ -55,6 +56,18 @@ pub fn apply_models(mut cfg: Config, m: &ModelArgs) -> Config {
 /// frames come from a dataset whose labels use other ids, `cfg`'s label ids follow the dataset
 /// unless `keep_ids` (the user gave a config).
 pub fn frame_sources(s: &SourceArgs, cfg: &mut Config, keep_ids: bool) -> Result<(Vec<FrameSource>, LabelFormat)> {
+    frame_sources_posed(s, None, cfg, keep_ids).map(|(frames, fmt, _)| (frames, fmt))
+}
+
+/// [`frame_sources`] with the poses to store with them (frame id -> pose): the dataset's own
+/// (`--dataset`), or `--poses`' lines for the images of `--images`; read and matched to every
+/// frame before any is encoded, so a pose list that misses an image fails at once, naming it.
+pub fn frame_sources_posed(
+    s: &SourceArgs,
+    p: Option<&PoseArgs>,
+    cfg: &mut Config,
+    keep_ids: bool,
+) -> Result<(Vec<FrameSource>, LabelFormat, PlacePoses)> {
     if let Some(dir) = &s.dataset {
         let ds = Dataset::open(dir, &DatasetOptions::default())?;
         if let (Some(ids), false) = (&ds.label_ids, keep_ids) {
@@ -66,13 +79,41 @@ pub fn frame_sources(s: &SourceArgs, cfg: &mut Config, keep_ids: bool) -> Result
             Some(name) => ds.queries.iter().find(|q| q.name == *name).ok_or_else(|| Error::dataset(dir, format!("no traversal named {name:?}")))?,
         };
         let frames = trav.frames.iter().map(|f| f.source.clone()).collect();
-        return Ok((frames, s.label_format.unwrap_or(ds.label_format)));
+        let poses = trav.frames.iter().filter_map(|f| Some((f.source.id.clone(), f.pose?.place_pose()))).collect();
+        return Ok((frames, s.label_format.unwrap_or(ds.label_format), poses));
     }
     if s.images.is_none() && s.labels.is_none() {
         return Err(Error::invalid("arguments", "give --dataset, --images or --labels"));
     }
     let frames = semlook::dataset::frames_from_folders(s.images.as_deref(), s.labels.as_deref())?;
-    Ok((frames, s.label_format.unwrap_or_default()))
+    let poses = match p.and_then(|p| p.poses.as_ref().map(|f| (f, p.pose_format))) {
+        Some((file, format)) => pose_list_for(&frames, file, format.unwrap_or(semlook::dataset::PoseFormat::QuatCenter))?,
+        None => PlacePoses::new(),
+    };
+    Ok((frames, s.label_format.unwrap_or_default(), poses))
+}
+
+/// The pose of every frame from a pose list; fails naming the first image it has no line for.
+fn pose_list_for(frames: &[FrameSource], file: &Path, format: semlook::dataset::PoseFormat) -> Result<PlacePoses> {
+    let list = semlook::dataset::read_pose_list(file, format)?;
+    let mut out = PlacePoses::new();
+    let mut missing = Vec::new();
+    for f in frames {
+        match f.image.as_deref().and_then(|img| semlook::dataset::pose_of_image(&list, img)) {
+            Some(p) => {
+                out.insert(f.id.clone(), p.place_pose());
+            }
+            None => missing.push(&f.id),
+        }
+    }
+    if let Some(first) = missing.first() {
+        let also = if missing.len() > 1 { format!(" (and {} more)", missing.len() - 1) } else { String::new() };
+        return Err(Error::invalid(
+            format!("--poses {}", file.display()),
+            format!("has no line for image {first:?}{also}: every image needs a pose"),
+        ));
+    }
+    Ok(out)
 }
 
 /// The config for queries of a map: the map's encoding, `config`'s matching (or the defaults),

@@ -168,7 +168,7 @@ pub fn render_frame(cfg: &SynthConfig, scene: &Scene, dynamic: &[Prim], traversa
         rgb: condition::develop(&buf, &p, frame_seed),
         labels: condition::degrade_labels(&buf, cond, &p, frame_seed),
         clean_labels: buf.class.clone(),
-        pose: Pose { position: cam.pos, forward: cam.fwd },
+        pose: Pose { position: cam.pos, forward: cam.fwd, orientation: None },
     }
 }
 
