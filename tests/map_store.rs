@@ -621,6 +621,13 @@ fn poses_are_stored_with_their_places_and_bad_ones_are_refused() {
         let err = map.add(&more).unwrap_err();
         assert!(matches!(&err, Error::InvalidImage { id, .. } if id == "n1"), "{bad:?}: {err}");
         assert_eq!(common::snapshot(&path), before, "{bad:?}: a refused add changed the map");
+        // the streaming writer (`map build`/`add`) refuses it too
+        let mut w = MapWriter::append(&path, StoreOptions::default()).unwrap();
+        let enc = semlook::encode::Encoder::new(&cfg).unwrap();
+        let mut img = enc.encode_labels("w", &common::label_maps(1, 64, 48)[0], &mut Default::default()).unwrap().0;
+        img.pose = Some(bad);
+        assert!(matches!(w.push(&img), Err(Error::InvalidImage { id, .. }) if id == "w"), "{bad:?}");
+        assert_eq!(w.finish().unwrap().len(), 7, "{bad:?}: the refused image was stored");
     }
     drop(map);
     // a pose row broken under a valid checksum (a writer bug, a hand edit that rehashed)
