@@ -97,6 +97,30 @@ fn encoding_from_rgb_alone() {
     assert!(matches!(err, semlook::Error::NoLabels { .. }) && err.to_string().contains("frame.png"), "{err}");
 }
 
+/// A segmenter that fails to load on first use (a file that is not a network, here with the
+/// tiny model's 3 classes against a 2-class map) is named once in the error the frame gets, with
+/// the reason: the lazy loader keeps the model error as it is instead of wrapping it again.
+#[test]
+fn a_segmenter_that_fails_to_load_is_named_once() {
+    if load(&tiny(), &tiny_cfg()).is_none() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let img = dir.path().join("frame.png");
+    stripes(96, 64, false).save(&img).unwrap();
+    let mut cfg = Config::without_appearance();
+    cfg.segmentation = SegmentationConfig { class_map: vec!["road".into(), "sky".into()], ..tiny_cfg() };
+    cfg.models.segmenter_onnx = Some(tiny());
+    let enc = semlook::encode::Encoder::new(&cfg).unwrap();
+    let src = semlook::input::FrameSource { id: "f".into(), image: Some(img), labels: None };
+    for _ in 0..2 {
+        let err = enc.encode_source(&src, Default::default(), &mut Default::default()).unwrap_err();
+        let text = err.to_string();
+        assert!(matches!(err, semlook::Error::Model { .. }) && text.contains("3 output channels"), "{text}");
+        assert_eq!(text.matches("tiny_segmenter.onnx").count(), 1, "the model named more than once: {text}");
+    }
+}
+
 /// ESPNet on the two real Cityscapes frames: a plausible street segmentation, and objects and
 /// trees that behave on it.
 #[test]

@@ -49,7 +49,14 @@ impl std::fmt::Debug for LazySegmenter {
 impl LazySegmenter {
     fn get(&self) -> Result<&Segmenter> {
         self.loaded
-            .get_or_init(|| Segmenter::load(&self.path, &self.cfg, &self.table, self.onnxruntime.as_deref()).map_err(|e| e.to_string()))
+            .get_or_init(|| {
+                // kept as the reason of the model error every later frame gets: a model error's
+                // own reason, not its message (which names the model already)
+                Segmenter::load(&self.path, &self.cfg, &self.table, self.onnxruntime.as_deref()).map_err(|e| match e {
+                    Error::Model { path, reason } if path == self.path => reason,
+                    other => other.to_string(),
+                })
+            })
             .as_ref()
             .map_err(|reason| Error::Model { path: self.path.clone(), reason: reason.clone() })
     }
