@@ -48,10 +48,7 @@ pub fn detached<T: Send>(py: Python<'_>, pool: Option<Arc<ThreadPool>>, f: impl 
 }
 
 pub fn setting(name: &str) -> PyResult<Setting> {
-    Setting::from_name(name).ok_or_else(|| {
-        let names: Vec<&str> = Setting::ALL.iter().map(|s| s.name()).collect();
-        invalid("setting", format!("{name:?} is not one of {}", names.join(", ")))
-    })
+    Setting::parse(name).map_err(|reason| invalid("setting", reason))
 }
 
 pub fn fusion(name: &str) -> PyResult<semlook::config::ScoreFusion> {

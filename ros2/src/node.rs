@@ -215,7 +215,7 @@ fn context() -> Result<Context, String> {
 
 pub fn run(p: Params) -> Result<(), String> {
     // the localizer first: a bad map or parameter fails before any DDS traffic
-    let setting = Setting::ALL.into_iter().find(|s| s.name() == p.setting).ok_or_else(|| format!("setting {:?} is unknown", p.setting))?;
+    let setting = Setting::parse(&p.setting).map_err(|reason| format!("parameter setting: {reason}"))?;
     let backend =
         Backend::ALL.into_iter().find(|b| b.name() == p.backend).ok_or_else(|| format!("backend {:?} is unknown (cpu, gpu, auto)", p.backend))?;
     let (engine, why) = Engine::new(backend, &Default::default()).map_err(|e| e.to_string())?;

@@ -145,6 +145,10 @@ impl Setting {
     pub fn from_name(name: &str) -> Option<Setting> {
         Setting::ALL.into_iter().find(|s| s.name() == name)
     }
+    /// [`Setting::from_name`], or why `name` is none: "\"x\" is not one of hog, appearance, ...".
+    pub fn parse(name: &str) -> Result<Setting, String> {
+        Setting::from_name(name).ok_or_else(|| format!("{name:?} is not one of {}", Setting::ALL.map(Setting::name).join(", ")))
+    }
     /// A short description for tables.
     pub fn describe(self) -> &'static str {
         match self {
@@ -179,10 +183,7 @@ impl Serialize for Setting {
 impl<'de> Deserialize<'de> for Setting {
     fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
         let name = String::deserialize(d)?;
-        Setting::from_name(&name).ok_or_else(|| {
-            let names: Vec<&str> = Setting::ALL.iter().map(|s| s.name()).collect();
-            serde::de::Error::custom(format!("unknown setting {name:?}: expected one of {}", names.join(", ")))
-        })
+        Setting::parse(&name).map_err(|reason| serde::de::Error::custom(format!("unknown setting {reason}")))
     }
 }
 
@@ -210,5 +211,9 @@ mod tests {
         }
         let err = serde_json::from_str::<Setting>("\"verify\"").unwrap_err().to_string();
         assert!(err.contains("unknown setting \"verify\"") && err.contains("global-forest"), "{err}");
+        assert_eq!(
+            Setting::parse("verify").unwrap_err(),
+            "\"verify\" is not one of hog, appearance, global, forest, local, global-forest, semlook, fused, verified"
+        );
     }
 }
