@@ -629,9 +629,10 @@ pub enum SequenceRows {
 }
 
 /// Sequence matching over a stream (beyond the paper; `stream`): each frame's candidate scores
-/// go into a ring of the last `length` frames, and constant-velocity trajectories through them
-/// are scored (SeqSLAM, Milford & Wyeth 2012; SeqMatch, Garg & Milford 2021). Causal: the result
-/// at frame t uses frames up to t. A matching section: it may change at query time.
+/// go into a ring of the last `length` frames, and trajectories through them whose velocity
+/// changes smoothly are scored (SeqSLAM, Milford & Wyeth 2012; SeqMatch, Garg & Milford 2021).
+/// Causal: the result at frame t uses frames up to t. A matching section: it may change at query
+/// time.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SequenceConfig {
@@ -646,6 +647,9 @@ pub struct SequenceConfig {
     pub velocity_max: f64,
     /// The number of velocities tried (see `velocity_min`). \[R\] 9.
     pub velocity_steps: usize,
+    /// What a trajectory pays, in contribution units, each time its velocity changes by one step
+    /// between two frames (a very large value keeps SeqSLAM's straight lines). \[R\] 1 (sweep 10e).
+    pub velocity_change: f64,
     /// Which references each frame scores. \[R\] candidates.
     pub rows: SequenceRows,
     /// The candidates of each frame are widened by this many positions either side along their
@@ -660,24 +664,27 @@ pub struct SequenceConfig {
     /// Half-width of the contrast window, in positions. \[X\] SeqSLAM's R_window: 10.
     pub contrast_window: usize,
     /// The match is the newest frame's strongest place within this many positions of the best
-    /// trajectory's end (a straight line through frames of a varying speed ends a little off).
-    /// \[R\] 2 (sweep 10).
+    /// trajectory's end, where the frame gives that place at least `refine_share` of its
+    /// strongest evidence (a trajectory through frames of a varying speed may end a place off).
+    /// \[R\] 2 (sweep 10e).
     pub refine: usize,
+    /// See `refine`. \[R\] 0.9 (sweep 10e).
+    pub refine_share: f64,
     /// The uniqueness of a match is its score over the best score of a place further than this
     /// many positions along the same traversal (or on another one). \[X\] SeqSLAM's R_window: 10.
     pub uniqueness_window: usize,
     /// A sequence match is accepted when its uniqueness reaches this and its trajectory spans at
-    /// least `min_frames` frames. \[R\] 1.05, 5 (sweep 10: 1.05 against 1.2 within 0.003).
+    /// least `min_frames` frames. \[R\] 1.05, 5 (sweep 10).
     pub min_uniqueness: f64,
     /// The fewest frames an accepted trajectory spans (see `min_uniqueness`). \[R\] 5.
     pub min_frames: usize,
-    /// And the newest frame agrees with it: its evidence at the match is at least this share of
-    /// its strongest evidence anywhere (0: no such condition). \[R\] 0.8 (sweep 10: at 0 a run of
-    /// a few wrong single-frame matches became a standing trajectory that outvoted the frames
-    /// after it, and the streams' answers lost against single frames on 5 of 36 set x setting
-    /// pairs; at 0.8 on 1, by one Nordland query; the price: `global` on the synthetic stream gains
-    /// +0.09 instead of +0.33).
-    pub agreement: f64,
+    /// A trajectory slower than this (positions per frame, either way) is a stop, accepted only
+    /// where the frames stand still (`stillness`): a place that scores well against every frame
+    /// of a moving camera otherwise wins as a standing trajectory. \[R\] 0.3 (sweep 10e).
+    pub stop_velocity: f64,
+    /// The cosine of the newest two frames' rows at which the camera counts as standing still
+    /// (see `stop_velocity`; above 1: stops are never accepted). \[R\] 0.95 (sweep 10e).
+    pub stillness: f64,
 }
 
 impl Default for SequenceConfig {
@@ -687,15 +694,18 @@ impl Default for SequenceConfig {
             velocity_min: 0.0,
             velocity_max: 2.0,
             velocity_steps: 9,
+            velocity_change: 1.0,
             rows: SequenceRows::Candidates,
             widen: 1,
             contrast: Contrast::Frame,
             contrast_window: 10,
             refine: 2,
+            refine_share: 0.9,
             uniqueness_window: 10,
             min_uniqueness: 1.05,
             min_frames: 5,
-            agreement: 0.8,
+            stop_velocity: 0.3,
+            stillness: 0.95,
         }
     }
 }
@@ -904,7 +914,10 @@ impl Config {
         v.int("sequence.uniqueness_window", sq.uniqueness_window, 0, 100_000)?;
         v.real("sequence.min_uniqueness", sq.min_uniqueness, 0.0, 1e6)?;
         v.int("sequence.min_frames", sq.min_frames, 1, sq.length)?;
-        v.real("sequence.agreement", sq.agreement, 0.0, 1.0)?;
+        v.real("sequence.velocity_change", sq.velocity_change, 0.0, 1e9)?;
+        v.real("sequence.refine_share", sq.refine_share, 0.0, 1.0)?;
+        v.real("sequence.stop_velocity", sq.stop_velocity, 0.0, 16.0)?;
+        v.real("sequence.stillness", sq.stillness, 0.0, 2.0)?;
         let st = &self.stream;
         v.int("stream.exclude_frames", st.exclude_frames, 1, 1 << 24)?;
         v.real("stream.exclude_seconds", st.exclude_seconds, 0.0, 1e7)?;
