@@ -63,6 +63,7 @@ config_sections! {
         verification: VerificationConfig,
         sequence: SequenceConfig,
         stream: StreamConfig,
+        index: IndexConfig,
         eval: EvalConfig,
     }
 }
@@ -761,6 +762,67 @@ impl Default for StreamConfig {
     }
 }
 
+/// When the fused coarse stage searches a map through its approximate index ([`crate::index`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum IndexSearch {
+    /// Where the map has an index and the search covers at least `index.min_places` references.
+    Auto,
+    /// Never: every reference is scored exactly.
+    Exact,
+    /// Wherever the map has an index, whatever its size.
+    Approximate,
+}
+
+/// The `[index]` section: the approximate index of the coarse stage over large maps (beyond the
+/// paper; [`crate::index`]): how `map build --index` and `map index` build it (recorded in the
+/// map), and when and how matching uses it (a matching section: it may change at query time).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct IndexConfig {
+    /// When the fused coarse stage (`fused`, `verified`, and the coarse stage of `semlook` and
+    /// `global-forest`) uses the map's index. \[R\] auto.
+    pub search: IndexSearch,
+    /// `auto` uses the index from this many references searched. \[R\] 20,000 (sweep 11: at
+    /// 20,000 one query's exact scan took 368 ms and the index's 18 ms on the 2-core machine;
+    /// smaller maps keep the exact scan, which costs little there and assumes nothing).
+    pub min_places: usize,
+    /// Lists scanned per query. \[R\] 96 (sweep 11: the lowest of 32/48/96 with recall@30 at
+    /// least 0.95 against the exact fused top-30 at 1M references).
+    pub probe: usize,
+    /// References of the scanned lists rescored exactly by the fused score. \[R\] 1,000 (sweep
+    /// 11: 300/500/1,000, with `probe`).
+    pub shortlist: usize,
+    /// Build: reduced dimensions. \[R\] 256 (faiss's 1M-image example reduces 4,096-d image
+    /// descriptors to 256 the same way; 262 bytes a reference with its list and scale).
+    pub dims: usize,
+    /// Build: lists; 0 chooses 4 x sqrt(images) rounded to a power of two, 16 to 4,096.
+    /// \[R\] 0 (faiss's guideline: 4 to 16 x sqrt(N)).
+    pub lists: usize,
+    /// Build: images sampled to train on. \[R\] 32,768.
+    pub sample: usize,
+    /// Build: subspace and k-means iterations. \[R\] 8.
+    pub iterations: usize,
+    /// Build: seed. \[R\] 7.
+    pub seed: u64,
+}
+
+impl Default for IndexConfig {
+    fn default() -> Self {
+        IndexConfig {
+            search: IndexSearch::Auto,
+            min_places: 20_000,
+            probe: 96,
+            shortlist: 1000,
+            dims: 256,
+            lists: 0,
+            sample: 32_768,
+            iterations: 8,
+            seed: 7,
+        }
+    }
+}
+
 /// The `[eval]` section: what evaluation reports.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -918,6 +980,14 @@ impl Config {
         v.real("sequence.refine_share", sq.refine_share, 0.0, 1.0)?;
         v.real("sequence.stop_velocity", sq.stop_velocity, 0.0, 16.0)?;
         v.real("sequence.stillness", sq.stillness, 0.0, 2.0)?;
+        let ix = &self.index;
+        v.int("index.min_places", ix.min_places, 0, usize::MAX)?;
+        v.int("index.probe", ix.probe, 1, 65536)?;
+        v.int("index.shortlist", ix.shortlist, 1, 1 << 20)?;
+        v.int("index.dims", ix.dims, 1, 4096)?;
+        v.int("index.lists", ix.lists, 0, 65536)?;
+        v.int("index.sample", ix.sample, 1, 1 << 24)?;
+        v.int("index.iterations", ix.iterations, 1, 100)?;
         let st = &self.stream;
         v.int("stream.exclude_frames", st.exclude_frames, 1, 1 << 24)?;
         v.real("stream.exclude_seconds", st.exclude_seconds, 0.0, 1e7)?;

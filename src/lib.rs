@@ -60,6 +60,7 @@ pub mod global;
 pub mod gpu;
 pub mod hloc;
 pub mod hog;
+pub mod index;
 pub mod input;
 pub mod kernels;
 pub mod local;

@@ -74,6 +74,11 @@ pub enum DevCommand {
     /// maps of each size (the real references plus distractor places), frames/s and p50/p99
     /// latency per stage.
     BenchStream(BenchStreamArgs),
+    /// Approximate-index benchmark: maps of each size made from a real map's images (appearance
+    /// vectors made new per reference), the index built, real query photos through the index and
+    /// through the exact scan: build time, bytes per reference, p50/p99 latency, queries/s,
+    /// recall@30 of the index against the exact fused top-30, peak RSS.
+    IndexBench(IndexBenchArgs),
     /// Sweep configuration values over datasets and tabulate Recall@1 and AUC per setting.
     Tune(TuneArgs),
     /// Accuracy of the segmenter against real label maps (pixel accuracy, IoU per class, mean IoU).
@@ -96,6 +101,59 @@ pub struct BenchEncodeArgs {
     pub json: bool,
     #[command(flatten)]
     pub models: ModelArgs,
+}
+
+fn parse_search(s: &str) -> std::result::Result<(usize, usize), String> {
+    let (a, b) = s.split_once(':').ok_or_else(|| format!("{s:?}: expected PROBE:SHORTLIST"))?;
+    let n = |v: &str| v.parse::<usize>().ok().filter(|&x| x > 0).ok_or_else(|| format!("{v:?} is not a positive number"));
+    Ok((n(a)?, n(b)?))
+}
+
+/// Where a benchmark writes its maps and how it prints its rows.
+#[derive(Args)]
+pub struct BenchMapsArgs {
+    /// Folder for the maps (default: the system temporary folder); each is deleted after its row
+    /// unless --keep.
+    #[arg(long)]
+    pub dir: Option<PathBuf>,
+    /// Keep the maps in --dir after the run.
+    #[arg(long)]
+    pub keep: bool,
+    /// One JSON object per row and line.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Args)]
+pub struct IndexBenchArgs {
+    /// A map with labels and appearance (`map build` of real photos) whose images the references
+    /// are made from.
+    #[arg(long)]
+    pub from: PathBuf,
+    /// Folder of real query photos (encoded for that map).
+    #[arg(long)]
+    pub queries: PathBuf,
+    /// Map sizes (references).
+    #[arg(long, value_delimiter = ',', default_value = "100000,1000000")]
+    pub sizes: Vec<usize>,
+    /// Queries also scanned exactly, for the recall.
+    #[arg(long, default_value_t = 40)]
+    pub exact_queries: usize,
+    /// Queries of the batch whose queries/s is measured (the photos cycled).
+    #[arg(long, default_value_t = 1000)]
+    pub batch: usize,
+    /// Exact single queries timed (each scans the whole map alone; the recall's exact rankings
+    /// come from one batch).
+    #[arg(long, default_value_t = 3)]
+    pub exact_timed: usize,
+    /// Searches of each map, PROBE:SHORTLIST, one row each (default: the config's).
+    #[arg(long, value_delimiter = ',', value_parser = parse_search)]
+    pub search: Vec<(usize, usize)>,
+    /// Configuration file (TOML) whose `[index]` section builds and searches the index.
+    #[arg(long, value_name = "FILE.toml")]
+    pub config: Option<PathBuf>,
+    #[command(flatten)]
+    pub out: BenchMapsArgs,
 }
 
 #[derive(Args)]
@@ -124,16 +182,8 @@ pub struct BenchStreamArgs {
     /// Configuration file (TOML; `semlook config` prints the defaults); default: built-in defaults.
     #[arg(long, value_name = "FILE.toml")]
     pub config: Option<PathBuf>,
-    /// Folder for the maps (default: the system temporary folder); each is deleted after its row
-    /// unless --keep.
-    #[arg(long)]
-    pub dir: Option<PathBuf>,
-    /// Keep the maps in --dir after the run.
-    #[arg(long)]
-    pub keep: bool,
-    /// One JSON object per row and line.
-    #[arg(long)]
-    pub json: bool,
+    #[command(flatten)]
+    pub out: BenchMapsArgs,
     #[command(flatten)]
     pub models: ModelArgs,
 }
@@ -404,6 +454,18 @@ pub struct StoreArgs {
     pub segment_images: Option<usize>,
 }
 
+/// Whether `map build` builds the approximate index.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum IndexChoice {
+    /// When the map holds at least `index.min_places` images (and appearance).
+    #[default]
+    Auto,
+    /// Always (the map must hold appearance vectors).
+    Ivf,
+    /// Never.
+    None,
+}
+
 #[derive(Subcommand)]
 pub enum MapCommand {
     /// Encode images into a new map directory, committing a segment at a time.
@@ -431,10 +493,32 @@ pub enum MapCommand {
         /// matching follows); default "0".
         #[arg(long, value_name = "NAME")]
         traversal: Option<String>,
+        /// The approximate index of the coarse stage for large maps: `auto` builds one when the
+        /// map holds at least `index.min_places` images, `ivf` always (maps with appearance),
+        /// `none` never. `semlook map index` builds or drops one later.
+        #[arg(long, value_enum, default_value_t = IndexChoice::Auto)]
+        index: IndexChoice,
         #[command(flatten)]
         store: StoreArgs,
         #[command(flatten)]
         poses: PoseArgs,
+    },
+    /// Build (or rebuild) a map's approximate index of the coarse stage, or drop it: the model
+    /// trained on a sample of the map, each segment's codes, the recall measured; one commit.
+    Index {
+        /// The map directory.
+        #[arg(long)]
+        map: PathBuf,
+        /// Configuration file (TOML) whose `[index]` section gives the build parameters; default:
+        /// built-in defaults.
+        #[arg(long, value_name = "FILE.toml")]
+        config: Option<PathBuf>,
+        /// Drop the index instead (queries scan every reference exactly).
+        #[arg(long)]
+        drop: bool,
+        /// Print the index's record as JSON.
+        #[arg(long)]
+        json: bool,
     },
     /// Append images to a map without re-encoding what it holds.
     Add {
@@ -512,16 +596,8 @@ pub struct StoreBenchArgs {
     /// timed against one recomputing them per tile (maps up to 50,000 references).
     #[arg(long, value_delimiter = ',')]
     pub stats_comparison: Vec<usize>,
-    /// Folder for the maps (default: the system temporary folder); each is deleted afterwards
-    /// unless --keep.
-    #[arg(long)]
-    pub dir: Option<PathBuf>,
-    /// Keep the maps in --dir after the run.
-    #[arg(long)]
-    pub keep: bool,
-    /// Print one JSON object per row and line.
-    #[arg(long)]
-    pub json: bool,
+    #[command(flatten)]
+    pub out: BenchMapsArgs,
 }
 
 #[derive(Args)]

@@ -181,6 +181,27 @@ pub trait RefSource: GlobalSource {
             0
         }
     }
+    /// Whether the source has an approximate index of its appearance vectors
+    /// ([`crate::index`]: a stored map built or extended with one).
+    fn has_index(&self) -> bool {
+        false
+    }
+    /// The index's shortlist for one query's whole-image appearance vector among the references
+    /// of `range`: the `m` with the best approximate inner products among the `probe` lists
+    /// nearest to it, best first; `None` where the source has no index.
+    fn index_shortlist_in(
+        &self,
+        _appearance: &[f32],
+        _probe: usize,
+        _m: usize,
+        _range: std::ops::Range<usize>,
+    ) -> Option<crate::Result<Vec<(f32, u32)>>> {
+        None
+    }
+    /// [`RefSource::index_shortlist_in`] over every reference.
+    fn index_shortlist(&self, appearance: &[f32], probe: usize, m: usize) -> Option<crate::Result<Vec<(f32, u32)>>> {
+        self.index_shortlist_in(appearance, probe, m, 0..self.len())
+    }
 }
 
 impl RefSource for DescriptorSet {
@@ -296,5 +317,19 @@ impl RefSource for Window<'_> {
     }
     fn traversal_len(&self, t: u32) -> u32 {
         self.inner.traversal_len(t)
+    }
+    fn has_index(&self) -> bool {
+        self.inner.has_index()
+    }
+    fn index_shortlist_in(
+        &self,
+        appearance: &[f32],
+        probe: usize,
+        m: usize,
+        range: std::ops::Range<usize>,
+    ) -> Option<crate::Result<Vec<(f32, u32)>>> {
+        let (a, b) = (self.start + range.start.min(self.len), self.start + range.end.min(self.len));
+        let inner = self.inner.index_shortlist_in(appearance, probe, m, a..b)?;
+        Some(inner.map(|l| l.into_iter().map(|(s, i)| (s, i - self.start as u32)).collect()))
     }
 }

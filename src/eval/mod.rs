@@ -59,6 +59,11 @@ pub struct SettingReport {
     /// For settings with a coarse stage: its K and the share of queries (with ground truth) whose
     /// list of K candidates holds a valid reference, i.e. what survives to the fine stage.
     pub coarse_recall: Option<(usize, f64)>,
+    /// Where the coarse stage searched the map's approximate index (`index.search`): recall@K of
+    /// its fused top-K against the exact scan's on the same queries, for K = 10, 30, 100 (the
+    /// share of the exact top-K the index's top-K holds, averaged over the queries).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub index_recall: Option<Vec<(usize, f64)>>,
     /// Matching time per query per reference frame, as VPR-Bench reports it.
     pub matching_ms_per_ref: f64,
     /// Every query's top-1 and score, for the precision-recall curve and --explain.
@@ -365,6 +370,7 @@ pub fn match_query_set(
     results: &mut Vec<SettingReport>,
     skipped: &mut Vec<(Setting, String)>,
 ) -> Result<()> {
+    let mut index_recall: Option<Vec<(usize, f64)>> = None;
     for &setting in settings {
         if let Some(why) = setting.is_baseline().then(|| crate::matching::baseline::unavailable(refs, queries, setting)).flatten() {
             if !skipped.iter().any(|(s, _)| *s == setting) {
@@ -373,9 +379,54 @@ pub fn match_query_set(
             continue;
         }
         let (matches, times) = engine.match_batch(refs, queries, setting, cfg)?;
-        results.push(report_matches(engine, refs, name, queries, &matches, gt, setting, cfg, times.coarse_ms + times.fine_ms, sequence)?);
+        let mut r = report_matches(engine, refs, name, queries, &matches, gt, setting, cfg, times.coarse_ms + times.fine_ms, sequence)?;
+        if times.approximate {
+            if index_recall.is_none() {
+                index_recall = Some(approximate_recall(refs, queries, cfg)?);
+            }
+            r.index_recall = index_recall.clone();
+        }
+        results.push(r);
     }
     Ok(())
+}
+
+/// Recall@K (K = 10, 30, 100) of the approximate fused coarse stage against the exact one on the
+/// same queries: for each query the share of the exact top-K the approximate top-K holds, averaged
+/// (what `index.probe` and `index.shortlist` cost in candidates). Runs the exact scan once.
+pub fn approximate_recall(refs: &dyn RefSource, queries: &DescriptorSet, cfg: &Config) -> Result<Vec<(usize, f64)>> {
+    const KS: [usize; 3] = [10, 30, 100];
+    let deepest = KS[KS.len() - 1];
+    let with = |search| {
+        let mut c = cfg.clone();
+        c.index.search = search;
+        c.matching.top_k = deepest;
+        c
+    };
+    let st = Setting::Fused;
+    let (exact, _) = crate::matching::candidates(&mut crate::matching::CpuStages, refs, queries, st, &with(crate::config::IndexSearch::Exact))?;
+    let (approx, _) =
+        crate::matching::candidates(&mut crate::matching::CpuStages, refs, queries, st, &with(crate::config::IndexSearch::Approximate))?;
+    Ok(KS
+        .iter()
+        .map(|&k| {
+            let n = exact.len().max(1) as f64;
+            let sum: f64 = exact
+                .iter()
+                .zip(&approx)
+                .map(|(e, a)| {
+                    let want: Vec<u32> = e.iter().take(k).map(|x| x.1).collect();
+                    let got: std::collections::HashSet<u32> = a.iter().take(k).map(|x| x.1).collect();
+                    if want.is_empty() {
+                        1.0
+                    } else {
+                        want.iter().filter(|r| got.contains(r)).count() as f64 / want.len() as f64
+                    }
+                })
+                .sum();
+            (k, sum / n)
+        })
+        .collect())
 }
 
 /// The report of one setting from its matches (`matching_ms`: what matching took), with the
@@ -539,6 +590,7 @@ fn report(
         pr: pr_metrics(&scores, &correct),
         recall_at: cfg.eval.recall_at.iter().map(|&n| (n, recall_at_n(&ranked, &gts, n))).collect(),
         coarse_recall: setting.uses_coarse().then(|| (cfg.matching.top_k, recall_at_n(&ranked, &gts, cfg.matching.top_k))),
+        index_recall: None,
         matching_ms_per_ref: matching_ms / pairs,
         outcomes,
         sequence: None,
@@ -600,6 +652,19 @@ impl EvalReport {
                     );
                 }
             }
+        }
+        let mut shown: Vec<&str> = Vec::new();
+        for r in self.results.iter().filter(|r| r.index_recall.is_some()) {
+            if shown.contains(&r.query_set.as_str()) {
+                continue;
+            }
+            shown.push(&r.query_set);
+            let v: Vec<String> = r.index_recall.iter().flatten().map(|(k, x)| format!("@{k} {x:.3}")).collect();
+            s += &format!(
+                "{}: the coarse stage searched the map's approximate index; its recall against the exact scan {}\n",
+                r.query_set,
+                v.join(", ")
+            );
         }
         for (st, why) in &self.skipped {
             s += &format!("{:<12} {:<14} skipped: {why}\n", "", st.name());

@@ -87,6 +87,7 @@ pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
     let mut out: Vec<SegmentEntry> = Vec::new();
     let mut buf = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog).with_keypoint_dim(layout.kdim);
     let mut run: Vec<&SegmentEntry> = Vec::new();
+    let model = std::cell::RefCell::new(None);
     let flush = |buf: &mut DescriptorSet, out: &mut Vec<SegmentEntry>, traversal: u32| -> Result<()> {
         if buf.is_empty() {
             return Ok(());
@@ -97,6 +98,10 @@ pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
         entry.file = manifest::unique_segment_name(&listed, &entry.file, old.generation + 1);
         entry.traversal = traversal;
         write_atomic(dir, &entry.file, &bytes)?;
+        // a map with an index: the new segment's codes under the same model
+        if let Some(ix) = &old.index {
+            entry.index = Some(super::index_files::write_segment_codes(dir, &old, ix, &entry, layout, &mut model.borrow_mut())?);
+        }
         out.push(entry);
         *buf = buf.empty_like();
         Ok(())
@@ -150,11 +155,13 @@ pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
     let keep: HashSet<&str> = m
         .segments
         .iter()
-        .map(|s| s.file.as_str())
+        .flat_map(|s| std::iter::once(s.file.as_str()).chain(s.index.as_ref().map(|f| f.file.as_str())))
         .chain(m.codebook.as_ref().map(|c| c.file.as_str()))
+        .chain(m.index.as_ref().map(|i| i.model.file.as_str()))
         .chain([manifest::MANIFEST, files::LOCK])
         .collect();
-    let replaced: HashSet<&str> = old.segments.iter().map(|s| s.file.as_str()).collect();
+    let replaced: HashSet<&str> =
+        old.segments.iter().flat_map(|s| std::iter::once(s.file.as_str()).chain(s.index.as_ref().map(|f| f.file.as_str()))).collect();
     let mut stray = 0;
     for e in std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?.flatten() {
         let name = e.file_name().to_string_lossy().into_owned();
@@ -236,6 +243,35 @@ pub fn verify(dir: &Path) -> Result<VerifyReport> {
     if let Some(entry) = &m.codebook {
         let problem = super::read_codebook(dir, entry, m.appearance_dim).err().map(reason_of);
         files.push(FileCheck { file: entry.file.clone(), problem });
+    }
+    if let Some(ix) = &m.index {
+        // the model, then each segment's codes (header, segment and model named, SHA-256, values)
+        match super::index_files::MapIndex::open(dir, &m) {
+            Ok(Some(index)) => {
+                files.push(FileCheck { file: ix.model.file.clone(), problem: None });
+                for (path, r) in index.verify_all() {
+                    files.push(FileCheck {
+                        file: path.file_name().map_or(String::new(), |f| f.to_string_lossy().into_owned()),
+                        problem: r.err().map(reason_of),
+                    });
+                }
+            }
+            Ok(None) => {}
+            Err(e) => {
+                // name the file that failed to open, then check the others one by one
+                let why = reason_of(e);
+                files.push(FileCheck { file: ix.model.file.clone(), problem: super::index_files::model_problem(dir, &m).err().map(reason_of) });
+                for s in &m.segments {
+                    if let Some(f) = &s.index {
+                        let p = super::index_files::codes_problem(dir, &m, s).err().map(reason_of);
+                        files.push(FileCheck { file: f.file.clone(), problem: p });
+                    }
+                }
+                if files.iter().all(|f| f.problem.is_none()) {
+                    files.push(FileCheck { file: "index".into(), problem: Some(why) });
+                }
+            }
+        }
     }
     let leftovers = files::leftovers(dir).iter().map(|p| p.display().to_string()).collect();
     Ok(VerifyReport {

@@ -59,6 +59,50 @@ pub struct SegmentEntry {
     /// field existed.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub traversal: u32,
+    /// The file of the segment's index codes ([`crate::index::codes`]), when the map has an
+    /// index ([`Manifest::index`]). Absent in maps without one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub index: Option<FileEntry>,
+}
+
+/// A map's index: the model file, the parameters it was built with, and what was measured.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct IndexEntry {
+    /// The model file (`index-model-<sha>.safetensors`).
+    pub model: FileEntry,
+    /// How it was built.
+    pub params: crate::index::IndexParams,
+    /// Values per reduced vector and lists of the model as trained (at most the parameters').
+    pub dims: usize,
+    /// Lists of the model as trained.
+    pub lists: usize,
+    /// Live images when it was trained.
+    pub trained_on: usize,
+    /// Recall@30 of the index's shortlist against the exact appearance ranking, measured when it
+    /// was built on queries drawn from the map (each left out of its own ranking): the exact
+    /// top-30 references the shortlists held, of `recall_of` (integers, so that the manifest's
+    /// checksum survives a JSON round trip; floats may not). The recall against the fused score
+    /// is measured by `eval` and `dev index-bench`.
+    pub recall_hits: u64,
+    /// See `recall_hits`.
+    pub recall_of: u64,
+    /// The probe and shortlist the recall was measured with.
+    pub recall_probe: usize,
+    /// See `recall_probe`.
+    pub recall_shortlist: usize,
+    /// Milliseconds the build took.
+    pub build_ms: u64,
+}
+
+impl IndexEntry {
+    /// `recall_hits / recall_of` (1 where nothing was measured).
+    pub fn recall(&self) -> f64 {
+        if self.recall_of == 0 {
+            1.0
+        } else {
+            self.recall_hits as f64 / self.recall_of as f64
+        }
+    }
 }
 
 fn is_zero(v: &u32) -> bool {
@@ -123,6 +167,11 @@ pub struct Manifest {
     /// maps of one unnamed traversal.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub traversals: Vec<String>,
+    /// The approximate index of the coarse stage ([`crate::index`]): its model file, how it was
+    /// built and the recall measured then; every segment then names its codes. Absent in maps
+    /// without one, so their checksums are those of before the field existed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub index: Option<IndexEntry>,
     /// SHA-256 of this manifest's content ([`Manifest::content_sha256`]): an edit by hand or a
     /// damaged byte anywhere in the file (a removed row, a config value, a model hash) is refused
     /// at open, never served.
@@ -167,6 +216,7 @@ pub fn is_store_file(name: &str) -> bool {
         || name == super::files::LOCK
         || name == CODEBOOK
         || (name.starts_with("segment-") && name.ends_with(".safetensors"))
+        || (name.starts_with("index-") && name.ends_with(".safetensors"))
         || (name.starts_with('.') && name.ends_with(".tmp"))
 }
 
@@ -228,7 +278,12 @@ fn check(m: &Manifest) -> Result<()> {
     if m.generation == u64::MAX {
         return Err(Error::check("the generation count is at its maximum (no further commit could be numbered)"));
     }
-    let names = m.segments.iter().map(|s| s.file.as_str()).chain(m.codebook.as_ref().map(|c| c.file.as_str()));
+    let names = m
+        .segments
+        .iter()
+        .flat_map(|s| std::iter::once(s.file.as_str()).chain(s.index.as_ref().map(|i| i.file.as_str())))
+        .chain(m.codebook.as_ref().map(|c| c.file.as_str()))
+        .chain(m.index.as_ref().map(|i| i.model.file.as_str()));
     for name in names {
         if name.contains('/') || name.contains('\\') || name.contains("..") || !is_store_file(name) {
             return Err(Error::check(format!("file name {name:?} is not one the store writes (or leaves the map directory)")));
@@ -255,6 +310,24 @@ fn check(m: &Manifest) -> Result<()> {
         }
         if s.sha256.len() != 64 || !s.sha256.bytes().all(|b| b.is_ascii_hexdigit()) {
             return Err(Error::check(format!("segment {}: the SHA-256 is not 64 hex digits", s.file)));
+        }
+    }
+    match &m.index {
+        Some(ix) => {
+            if m.appearance_dim == 0 {
+                return Err(Error::check("an index but no appearance vectors to index"));
+            }
+            if ix.dims == 0 || ix.dims > m.appearance_dim || ix.lists == 0 || ix.lists > u16::MAX as usize + 1 {
+                return Err(Error::check(format!("index of {} dimensions and {} lists does not fit the map", ix.dims, ix.lists)));
+            }
+            if let Some(s) = m.segments.iter().find(|s| s.index.is_none()) {
+                return Err(Error::check(format!("segment {} has no index codes, the map has an index", s.file)));
+            }
+        }
+        None => {
+            if let Some(s) = m.segments.iter().find(|s| s.index.is_some()) {
+                return Err(Error::check(format!("segment {} names index codes, the map has no index", s.file)));
+            }
         }
     }
     if m.appearance_dim != 0 && m.codebook.is_none() {

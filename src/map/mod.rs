@@ -24,6 +24,8 @@
 
 pub mod edit;
 pub mod files;
+pub mod index;
+pub mod index_files;
 pub mod manifest;
 pub mod segment;
 pub mod shard;
@@ -68,6 +70,8 @@ pub struct Map {
     codebook: Option<Codebook>,
     ssim: SsimParams,
     routes: Routes,
+    /// The approximate index of the coarse stage, when the map has one.
+    index: Option<index_files::MapIndex>,
 }
 
 /// The traversals of a map's live images: each segment's first position along its traversal, and
@@ -116,6 +120,7 @@ impl Map {
             codebook,
             ssim: SsimParams::new(&cfg.global),
             routes: Routes::of(&manifest),
+            index: index_files::MapIndex::open(dir, &manifest)?,
             manifest: manifest.clone(),
         };
         for entry in &manifest.segments {
@@ -444,5 +449,12 @@ impl RefSource for Map {
     }
     fn traversal_len(&self, t: u32) -> u32 {
         self.routes.lens.get(t as usize).copied().unwrap_or(0)
+    }
+    fn has_index(&self) -> bool {
+        self.index.is_some()
+    }
+    fn index_shortlist_in(&self, appearance: &[f32], probe: usize, m: usize, range: std::ops::Range<usize>) -> Option<Result<Vec<(f32, u32)>>> {
+        self.index.as_ref()?;
+        Some(Map::index_shortlist(self, appearance, probe, m, range))
     }
 }

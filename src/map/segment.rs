@@ -162,6 +162,7 @@ pub fn encode(set: &DescriptorSet, layout: &Layout) -> Result<(Vec<u8>, SegmentE
         sha256: sha,
         removed: vec![],
         traversal: 0,
+        index: None,
     };
     Ok((bytes, entry))
 }

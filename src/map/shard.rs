@@ -116,6 +116,7 @@ mod tests {
                 sha256: "0".repeat(64),
                 removed: if n == 0 { vec![0] } else { vec![] },
                 traversal: 0,
+                index: None,
             })
             .collect();
         Manifest {
@@ -136,6 +137,7 @@ mod tests {
             appearance_model: None,
             without_labels: false,
             traversals: vec![],
+            index: None,
             checksum: String::new(),
         }
     }

@@ -100,6 +100,8 @@ pub struct MapWriter {
     plan: TraversalPlan,
     /// The traversal this writer's segments join, once its first commit resolved `plan`.
     traversal: Option<u32>,
+    /// The index model of the map (its SHA-256 and the model), once a commit needed it.
+    index_model: Option<(String, crate::index::Model)>,
 }
 
 impl MapWriter {
@@ -147,6 +149,7 @@ impl MapWriter {
             appearance_model: appearance.map(|(_, sha)| sha.to_string()),
             without_labels: false,
             traversals: vec![],
+            index: None,
             checksum: String::new(),
         };
         let layout = super::layout_of(&manifest, n_classes);
@@ -163,6 +166,7 @@ impl MapWriter {
             committed: 0,
             plan: TraversalPlan::New,
             traversal: None,
+            index_model: None,
         })
     }
 
@@ -263,6 +267,7 @@ impl MapWriter {
                 committed: 0,
                 plan: TraversalPlan::New,
                 traversal: None,
+                index_model: None,
                 manifest,
             };
             let segments = w.manifest.segments.clone();
@@ -437,15 +442,26 @@ impl MapWriter {
         let (bytes, entry) =
             segment::encode(&self.pending, &self.layout).map_err(|e| e.named(|r| Error::invalid(format!("map {}", self.dir.display()), r)))?;
         let ids: Vec<String> = self.pending.ids.clone();
+        let (dir, layout) = (self.dir.clone(), self.layout);
+        let mut cache = self.index_model.take();
         let file = self.commit(
             |m, file, traversal| {
                 if let Some(file) = file {
-                    m.segments.push(SegmentEntry { file: file.to_string(), traversal, ..entry.clone() });
+                    let mut e = SegmentEntry { file: file.to_string(), traversal, ..entry.clone() };
+                    // a map with an index: the segment's codes, under the model the manifest
+                    // names now (another writer may have rebuilt it meanwhile)
+                    if let Some(ix) = m.index.clone() {
+                        e.index = Some(super::index_files::write_segment_codes(&dir, m, &ix, &e, layout, &mut cache)?);
+                    }
+                    m.segments.push(e);
                 }
+                Ok(())
             },
             Some((&entry.file, &bytes)),
             &ids,
-        )?;
+        );
+        self.index_model = cache;
+        let file = file?;
         self.seen.extend(file);
         self.committed += self.pending.len();
         self.pending = self.pending.empty_like();
@@ -457,7 +473,7 @@ impl MapWriter {
     /// is returned.
     fn commit(
         &mut self,
-        change: impl FnOnce(&mut Manifest, Option<&str>, u32),
+        change: impl FnOnce(&mut Manifest, Option<&str>, u32) -> Result<()>,
         file: Option<(&str, &[u8])>,
         buffered: &[String],
     ) -> Result<Option<String>> {
@@ -487,7 +503,7 @@ impl MapWriter {
             write_atomic(&self.dir, name, bytes)?;
         }
         let traversal = self.resolve_traversal(&mut m);
-        change(&mut m, name.as_deref(), traversal);
+        change(&mut m, name.as_deref(), traversal)?;
         m.generation += 1;
         manifest::write(&self.dir, &m)?;
         self.manifest = m;
@@ -500,7 +516,7 @@ impl MapWriter {
     pub fn finish(mut self) -> Result<Map> {
         self.flush()?;
         if self.first.is_some() {
-            self.commit(|_, _, _| {}, None, &[])?;
+            self.commit(|_, _, _| Ok(()), None, &[])?;
         }
         Map::open(&self.dir)
     }

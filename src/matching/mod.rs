@@ -13,7 +13,7 @@ pub mod setting;
 
 pub use setting::Setting;
 
-use crate::config::{Config, ScoreFusion};
+use crate::config::{Config, IndexSearch, ScoreFusion};
 use crate::descriptors::source::{self, GlobalSource, RefSource};
 use crate::descriptors::DescriptorSet;
 use crate::error::{Error, Remedy, Result};
@@ -66,6 +66,9 @@ pub struct MatchTimes {
     pub coarse_ms: f64,
     /// Milliseconds of the fine stage: re-ranking (with verification where it runs), or fine top-K over the whole map.
     pub fine_ms: f64,
+    /// The coarse stage searched the map's approximate index (`index.search`), not every
+    /// reference.
+    pub approximate: bool,
 }
 
 /// The three heavy operations of matching, implemented by the CPU path ([`CpuStages`]) and by
@@ -207,6 +210,9 @@ pub fn candidates(
     let len = list_len(setting, cfg);
     let lists = if setting.is_baseline() {
         baseline::topk(refs, queries, setting, len, cfg.matching.tile)?
+    } else if setting.fuses_coarse(cfg.matching.coarse) && uses_index(refs, queries, cfg) {
+        times.approximate = true;
+        indexed_topk(refs, queries, cfg, len)?
     } else if setting.fuses_coarse(cfg.matching.coarse) {
         fused_topk(stages, refs, queries, cfg, len)?
     } else if setting.uses_coarse() {
@@ -317,6 +323,87 @@ fn fused_topk(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &Descripto
         return Ok(lists);
     }
     stages.fused_coarse(refs, queries, &SsimParams::new(&cfg.global), cfg.matching.w_global as f32, k, cfg.matching.tile)
+}
+
+/// Whether the fused coarse stage of `queries` against `refs` searches the approximate index:
+/// `index.search` says so (`auto`: from `index.min_places` references), the source has one, and
+/// the queries carry appearance vectors of its width.
+pub fn uses_index(refs: &dyn RefSource, queries: &DescriptorSet, cfg: &Config) -> bool {
+    let wanted = match cfg.index.search {
+        IndexSearch::Exact => false,
+        IndexSearch::Approximate => true,
+        IndexSearch::Auto => refs.len() >= cfg.index.min_places,
+    };
+    wanted && refs.has_index() && queries.appearance_dim == refs.appearance_dim() && queries.appearance_dim > 0
+}
+
+/// The largest SSIM of two descriptors (each window's term is at most 1), with room for rounding.
+const SSIM_MAX: f32 = 1.0 + 1e-4;
+/// References of a shortlist whose SSIM is computed at a time (see [`indexed_topk`]).
+const RESCORE_CHUNK: usize = 64;
+
+/// The fused coarse stage through the approximate index: each query's shortlist
+/// (`index.shortlist` references of its `index.probe` nearest lists) scored exactly as the full
+/// scan scores it (the same appearance cosine, the fast SSIM path, the same sum: bit for bit the
+/// scan's scores), the best `k` kept (ties to the lower reference). The SSIM, most of the cost,
+/// is computed in order of falling cosine and stops where the next cosine plus `w_global` x the
+/// largest SSIM cannot reach the k-th fused score so far: what is left out could not have entered
+/// the top-K, so the result is that of scoring the whole shortlist.
+pub fn indexed_topk(refs: &dyn RefSource, queries: &DescriptorSet, cfg: &Config, k: usize) -> Result<CandidateLists> {
+    let p = SsimParams::new(&cfg.global);
+    let (glen, slen) = (p.len(), p.stats_len());
+    let w_global = cfg.matching.w_global as f32;
+    let cosine = baseline::unavailable(refs, queries, Setting::Appearance).is_none();
+    let mut exec = coarse_cpu::CoarseCpu::new(&p);
+    let (mut globals, mut stats, mut scores) = (Vec::new(), Vec::new(), Vec::new());
+    let mut lists = Vec::with_capacity(queries.len());
+    if k == 0 {
+        return Ok(vec![vec![]; queries.len()]);
+    }
+    for q in 0..queries.len() {
+        let shortlist = match refs.index_shortlist(queries.image_appearance(q), cfg.index.probe, cfg.index.shortlist.max(k)) {
+            Some(r) => r?,
+            None => return Err(Error::invalid("coarse stage", "the references have no index")),
+        };
+        let qa = queries.image_appearance(q);
+        // exact cosines, highest first
+        let mut by_cos: Vec<(f32, u32)> =
+            shortlist.par_iter().map(|&(_, r)| (if cosine { Values::F32(qa).dot(&refs.image_appearance(r as usize)) } else { 0.0 }, r)).collect();
+        by_cos.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+        exec.prepare(queries.stats(q), 1);
+        let mut list: Vec<(f32, u32)> = Vec::with_capacity(by_cos.len());
+        let mut kth = f32::NEG_INFINITY;
+        for chunk in by_cos.chunks(RESCORE_CHUNK) {
+            if list.len() >= k && chunk[0].0 + w_global * SSIM_MAX < kth {
+                break;
+            }
+            let n = chunk.len();
+            globals.clear();
+            globals.resize(n * glen, 0.0);
+            stats.clear();
+            stats.resize(n * slen, 0.0);
+            globals.par_chunks_mut(glen).zip(stats.par_chunks_mut(slen)).zip(chunk.par_iter()).for_each_init(
+                || (source::TileBuf::default(), crate::kernels::ssim::SsimScratch::default()),
+                |(buf, scratch), ((g, st), &(_, r))| {
+                    g.copy_from_slice(refs.globals_tile(r as usize, r as usize + 1, buf));
+                    crate::kernels::ssim::ssim_stats(&p, g, st, scratch);
+                },
+            );
+            scores.clear();
+            scores.resize(n, 0.0);
+            exec.score_tile(queries.global(q), &globals, &stats, &mut scores);
+            list.extend(chunk.iter().zip(&scores).map(|(&(cos, r), &ssim)| (cos + w_global * ssim, r)));
+            if list.len() >= k {
+                list.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+                list.truncate(k);
+                kth = list[k - 1].0;
+            }
+        }
+        list.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+        list.truncate(k);
+        lists.push(list);
+    }
+    Ok(lists)
 }
 
 /// The fused coarse stage on the CPU: per tile of references, the SSIM scores of the fast path

@@ -31,6 +31,7 @@
 
 pub mod peak;
 
+use super::{reset_peak, status_mib};
 use crate::config::Config;
 use crate::descriptors::source::{GlobalSource, TileBuf};
 use crate::descriptors::DescriptorSet;
@@ -203,18 +204,6 @@ pub struct BenchRow {
     pub note: String,
 }
 
-/// Resets the kernel's peak-RSS counter of this process (Linux), so each row reports its own peak.
-fn reset_peak() {
-    let _ = std::fs::write("/proc/self/clear_refs", "5");
-}
-
-fn peak_rss_mib() -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| l.split_whitespace().nth(1)).and_then(|v| v.parse::<f64>().ok()))
-        .map_or(f64::NAN, |kb| kb / 1024.0)
-}
-
 /// User + system CPU time of this process so far (Linux /proc, USER_HZ = 100 ticks per second).
 fn process_cpu_s() -> f64 {
     std::fs::read_to_string("/proc/self/stat")
@@ -348,7 +337,7 @@ pub fn run(
                     row.bytes_per_s = Some((n * bytes_per_reference(&p)) as f64 / secs);
                     row.gflops = Some(rate * flops / 1e9);
                     row.fraction_of_peak = dev.peak_gflops.map(|pk| rate * flops / 1e9 / pk);
-                    row.peak_rss_mib = peak_rss_mib();
+                    row.peak_rss_mib = status_mib("VmHWM:");
                     row.tiles_copied = synthetic.as_ref().map_or(0, |s| s.take_copied());
                     if dev.backend == "cpu" {
                         cpu_rate.get_or_insert(rate);

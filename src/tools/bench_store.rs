@@ -6,6 +6,7 @@
 //! anonymous RSS (what the process allocated; mapped file pages, which the kernel can drop, left
 //! out) next to its peak total RSS, and bytes per reference.
 
+use super::{reset_peak, status_mib};
 use crate::config::{AppearanceConfig, AppearanceModelKind, Config};
 use crate::descriptors::source::{GlobalSource, TileBuf};
 use crate::descriptors::{DescriptorSet, EncodedImage};
@@ -121,19 +122,6 @@ pub struct StoreBenchRow {
     /// pays the first once per reference and the second once per (query, reference).
     pub stats_us_per_ref: f64,
     pub ssim_pair_us: f64,
-}
-
-/// Reads a field of /proc/self/status, in MiB (NaN where there is none).
-fn status_mib(field: &str) -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| s.lines().find(|l| l.starts_with(field)).and_then(|l| l.split_whitespace().nth(1)).and_then(|v| v.parse::<f64>().ok()))
-        .map_or(f64::NAN, |kb| kb / 1024.0)
-}
-
-/// Resets the kernel's peak-RSS counter (VmHWM) of this process.
-fn reset_peak() {
-    let _ = std::fs::write("/proc/self/clear_refs", "5");
 }
 
 /// Samples RssAnon in a thread until dropped; `peak()` is the largest value seen.

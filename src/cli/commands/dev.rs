@@ -25,6 +25,7 @@ pub fn run(cmd: DevCommand, engine: &dyn Fn() -> Result<Engine>, quiet: bool) ->
         DevCommand::MapBench(a) => map_cmd::bench(&a, quiet),
         DevCommand::Tune(a) => tune_cmd(&a, &mut engine()?, quiet),
         DevCommand::BenchStream(a) => bench_stream_cmd(&a, engine, quiet),
+        DevCommand::IndexBench(a) => index_bench_cmd(&a, &mut engine()?, quiet),
         DevCommand::SegmenterAccuracy(a) => segacc_cmd(&a, quiet),
     }
 }
@@ -163,6 +164,43 @@ fn tune_cmd(a: &TuneArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     Ok(())
 }
 
+fn index_bench_cmd(a: &IndexBenchArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
+    use semlook::tools::bench_index::{run, table, IndexBenchOptions};
+    let cfg = load_config(a.config.as_deref())?;
+    let files = semlook::dataset::image_files(&a.queries)?;
+    if files.is_empty() {
+        return Err(Error::invalid(a.queries.display().to_string(), "no images (png, jpg) in this folder"));
+    }
+    let queries = files
+        .into_iter()
+        .map(|p| FrameSource { id: p.file_stem().unwrap_or_default().to_string_lossy().into_owned(), image: Some(p), labels: None })
+        .collect();
+    let opts = IndexBenchOptions {
+        from: a.from.clone(),
+        queries,
+        sizes: a.sizes.clone(),
+        exact_queries: a.exact_queries,
+        batch: a.batch.max(1),
+        searches: a.search.clone(),
+        exact_timed: a.exact_timed,
+        dir: a.out.dir.clone().unwrap_or_else(std::env::temp_dir),
+        keep: a.out.keep,
+        quiet,
+    };
+    let json = a.out.json;
+    let rows = run(&cfg, &opts, engine, &mut |r| {
+        if json {
+            let _ = writeln_row(r);
+        } else {
+            info(quiet, format!("{} references done", r.map_size));
+        }
+    })?;
+    if !json {
+        out!("{}", table(&rows));
+    }
+    Ok(())
+}
+
 fn bench_stream_cmd(a: &BenchStreamArgs, engine: &dyn Fn() -> Result<Engine>, quiet: bool) -> Result<()> {
     use semlook::tools::bench_stream::{run, table, StreamBenchOptions};
     let cfg = apply_models(load_config(a.config.as_deref())?, &a.models);
@@ -191,11 +229,11 @@ fn bench_stream_cmd(a: &BenchStreamArgs, engine: &dyn Fn() -> Result<Engine>, qu
         frames: a.frames,
         setting: a.setting,
         sequence: !a.no_sequence,
-        dir: a.dir.clone().unwrap_or_else(std::env::temp_dir),
-        keep: a.keep,
+        dir: a.out.dir.clone().unwrap_or_else(std::env::temp_dir),
+        keep: a.out.keep,
         quiet,
     };
-    let json = a.json;
+    let json = a.out.json;
     let rows = run(&cfg, &opts, engine, &mut |r| {
         if json {
             let _ = writeln_row(r);
@@ -209,7 +247,7 @@ fn bench_stream_cmd(a: &BenchStreamArgs, engine: &dyn Fn() -> Result<Engine>, qu
     Ok(())
 }
 
-fn writeln_row(r: &semlook::tools::bench_stream::StreamBenchRow) -> Result<()> {
+fn writeln_row(r: &impl serde::Serialize) -> Result<()> {
     outln!("{}", serde_json::to_string(r).map_err(|e| Error::invalid("JSON output", e.to_string()))?);
     Ok(())
 }

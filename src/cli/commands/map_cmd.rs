@@ -2,7 +2,7 @@
 //! info, remove, compact, verify, and the store benchmark.
 
 use super::shared::{apply_models, frame_sources_posed, info, load_config, map_config, to_json};
-use crate::cli::args::{MapCommand, PoseArgs, SourceArgs, StoreArgs, StoreBenchArgs};
+use crate::cli::args::{IndexChoice, MapCommand, PoseArgs, SourceArgs, StoreArgs, StoreBenchArgs};
 use semlook::batch::PlacePoses;
 use semlook::batch::{self, IntoOptions};
 use semlook::config::Config;
@@ -17,9 +17,10 @@ use std::path::Path;
 
 pub fn run(cmd: MapCommand, engine: &dyn Fn() -> Result<Engine>, quiet: bool) -> Result<()> {
     match cmd {
-        MapCommand::Build { source, map: out, config, force, resume, hog, traversal, store, poses } => {
-            build(&mut engine()?, &source, &out, config.as_deref(), &BuildFlags { force, resume, hog, traversal, store, poses }, quiet)
+        MapCommand::Build { source, map: out, config, force, resume, hog, traversal, index, store, poses } => {
+            build(&mut engine()?, &source, &out, config.as_deref(), &BuildFlags { force, resume, hog, traversal, store, poses, index }, quiet)
         }
+        MapCommand::Index { map, config, drop, json } => index(&map, config.as_deref(), drop, json, quiet),
         MapCommand::Add { source, map, resume, segment_images, traversal, poses } => {
             let plan = match (traversal, resume) {
                 (Some(name), _) => TraversalPlan::Named(name),
@@ -44,6 +45,7 @@ pub struct BuildFlags {
     pub traversal: Option<String>,
     pub store: StoreArgs,
     pub poses: PoseArgs,
+    pub index: IndexChoice,
 }
 
 fn store_options(f16: bool, segment_images: Option<usize>) -> StoreOptions {
@@ -60,10 +62,13 @@ pub fn build(engine: &mut Engine, s: &SourceArgs, out: &Path, config: Option<&Pa
     let sources = (frames.as_slice(), fmt, &poses);
     let opts = store_options(f.store.f16, f.store.segment_images);
     let map = if f.force && out.exists() {
-        edit::build_replacing(out, |dir| build_into(engine, &cfg, sources, dir, f, opts, s.skip_invalid, quiet))?;
+        edit::build_replacing(out, |dir| {
+            build_into(engine, &cfg, sources, dir, f, opts, s.skip_invalid, quiet).and_then(|m| with_index(m, &cfg, f.index, quiet))
+        })?;
         Map::open(out)?
     } else {
-        build_into(engine, &cfg, sources, out, f, opts, s.skip_invalid, quiet)?
+        let m = build_into(engine, &cfg, sources, out, f, opts, s.skip_invalid, quiet)?;
+        with_index(m, &cfg, f.index, quiet)?
     };
     info(
         quiet,
@@ -116,6 +121,69 @@ fn build_into(
     let r = batch::encode_into(engine, &encoder, frames, fmt, &mut writer, into)?;
     report_encoding(&r, quiet);
     writer.finish()
+}
+
+/// `map build --index`: builds the index where asked (`auto`: from `index.min_places` images
+/// with appearance) and the map has none yet (a resumed build that had one keeps it current).
+fn with_index(map: Map, cfg: &Config, choice: IndexChoice, quiet: bool) -> Result<Map> {
+    let dir = map.path.clone();
+    let wanted = match choice {
+        IndexChoice::None => false,
+        IndexChoice::Ivf => true,
+        IndexChoice::Auto => map.len() >= cfg.index.min_places && map.manifest.appearance_dim > 0,
+    };
+    if !wanted || map.manifest.index.is_some() {
+        return Ok(map);
+    }
+    if map.manifest.appearance_dim == 0 {
+        return Err(Error::invalid(
+            format!("map {}", dir.display()),
+            "--index ivf needs appearance vectors (a map built without the keypoint network has none)",
+        ));
+    }
+    let n = map.len();
+    drop(map);
+    info(quiet, format!("building the index of {n} images"));
+    let r = semlook::map::index::build(&dir, &semlook::index::IndexParams::from_config(&cfg.index, n), cfg.index.probe, cfg.index.shortlist)?;
+    info(quiet, describe_index(&r.entry));
+    Map::open(&dir)
+}
+
+/// One line on an index: how it was built and what it measured.
+fn describe_index(ix: &semlook::map::manifest::IndexEntry) -> String {
+    format!(
+        "index: IVF over {} dimensions, {} lists, trained on {} images (sample {}, {} iterations, seed {}); recall@30 {:.3} ({} of {}) with {} lists probed and a shortlist of {}, against the exact appearance ranking; built in {:.1} s",
+        ix.dims,
+        ix.lists,
+        ix.trained_on,
+        ix.params.sample,
+        ix.params.iterations,
+        ix.params.seed,
+        ix.recall(),
+        ix.recall_hits,
+        ix.recall_of,
+        ix.recall_probe,
+        ix.recall_shortlist,
+        ix.build_ms as f64 / 1000.0
+    )
+}
+
+/// `map index`: build (or rebuild) or drop a map's index.
+fn index(dir: &Path, config: Option<&Path>, drop: bool, json: bool, quiet: bool) -> Result<()> {
+    if drop {
+        let dropped = semlook::map::index::drop_index(dir)?;
+        info(quiet, if dropped { format!("map {}: index dropped", dir.display()) } else { format!("map {}: had no index", dir.display()) });
+        return Ok(());
+    }
+    let cfg = load_config(config)?;
+    let n = Map::open(dir)?.len();
+    let r = semlook::map::index::build(dir, &semlook::index::IndexParams::from_config(&cfg.index, n), cfg.index.probe, cfg.index.shortlist)?;
+    if json {
+        outln!("{}", to_json(&r.entry)?);
+    } else {
+        outln!("map {}: {} ({} segments)", dir.display(), describe_index(&r.entry), r.segments);
+    }
+    Ok(())
 }
 
 /// The settings a map without labels serves (`hog` only when it stores HOG descriptors).
@@ -210,6 +278,7 @@ fn show(dir: &Path, json: bool) -> Result<()> {
             "labels": !m.without_labels,
             "traversals": traversals(&map),
             "poses": { "images": poses.0, "with_orientation": poses.1 },
+            "index": m.index,
             "config": m.config,
         });
         outln!("{}", to_json(&v)?);
@@ -233,6 +302,10 @@ fn show(dir: &Path, json: bool) -> Result<()> {
         outln!("traversals: {}", t.join(", "));
         if poses.0 > 0 {
             outln!("poses: {} of {} images ({} with an orientation)", poses.0, map.len(), poses.1);
+        }
+        match &m.index {
+            Some(ix) => outln!("{}", describe_index(ix)),
+            None => outln!("index: none (every query scans every reference; `semlook map index` builds one)"),
         }
         for s in &m.segments {
             outln!(
@@ -343,17 +416,17 @@ pub fn bench(a: &StoreBenchArgs, quiet: bool) -> Result<()> {
         sizes: a.sizes.clone(),
         passes: a.passes.clone(),
         values: if a.f16 { ValueType::F16 } else { ValueType::F32 },
-        dir: a.dir.clone().unwrap_or_else(std::env::temp_dir),
-        keep: a.keep,
+        dir: a.out.dir.clone().unwrap_or_else(std::env::temp_dir),
+        keep: a.out.keep,
         stats_comparison: a.stats_comparison.clone(),
     };
     info(quiet, "rendering and encoding the descriptor pools (64 map frames, 32 query frames)");
     let report = semlook::tools::bench_store::run(&cfg, &opts, &mut |r| {
-        if !quiet && !a.json {
+        if !quiet && !a.out.json {
             eprint!("{}", semlook::tools::bench_store::table(std::slice::from_ref(r)));
         }
     })?;
-    if a.json {
+    if a.out.json {
         outln!("{}", to_json(&report)?);
     } else {
         out!("{}", semlook::tools::bench_store::table(&report.passes));

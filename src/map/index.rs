@@ -1,0 +1,203 @@
+//! Building, dropping and searching a map's approximate index ([`crate::index`]); its files and
+//! their checks are [`super::index_files`]. Every change is one commit under the store's protocol.
+
+use super::files::{write_atomic, WriteLock};
+use super::index_files::{codes_for_segment, codes_name, delete_unreferenced, index_files, write_segment_codes, MapIndex};
+use super::manifest::{self, FileEntry, IndexEntry, Manifest};
+use super::segment::Layout;
+use super::{layout_of, Map};
+use crate::classes::ClassTable;
+use crate::error::{Error, Result};
+use crate::index::{IndexParams, Model, Probe, Shortlist};
+use crate::util::sha256_hex;
+use std::collections::HashSet;
+use std::ops::Range;
+use std::path::Path;
+use std::time::Instant;
+
+/// Queries drawn from the map to measure the recall of a new index.
+const RECALL_QUERIES: usize = 100;
+/// The ranking depth the recall is measured at.
+pub const RECALL_AT: usize = 30;
+
+impl Map {
+    /// The map's index, when it has one.
+    pub fn index(&self) -> Option<&MapIndex> {
+        self.index.as_ref()
+    }
+
+    /// The index's shortlist for one query's whole-image appearance vector: the `m` references of
+    /// `range` (map indices) with the best approximate inner products among the `probe` lists
+    /// nearest to it, best first. An error where the map has no index or a file it reads is
+    /// damaged.
+    pub fn index_shortlist(&self, appearance: &[f32], probe: usize, m: usize, range: Range<usize>) -> Result<Vec<(f32, u32)>> {
+        let ix = self.index.as_ref().ok_or_else(|| Error::invalid(format!("map {}", self.path.display()), "has no index (`semlook map index`)"))?;
+        if appearance.len() != ix.model.width {
+            return Err(Error::invalid("index query", format!("{} appearance values, the map's index reduces {}", appearance.len(), ix.model.width)));
+        }
+        let p = Probe::new(&ix.model, appearance, probe);
+        let mut out = Shortlist::new(m);
+        for (s, codes) in ix.codes.iter().enumerate() {
+            let (first, end) = (self.starts[s], self.starts[s + 1]);
+            if end <= range.start || first >= range.end {
+                continue;
+            }
+            codes.check()?;
+            let rows = self.live_rows(s).enumerate().map(|(k, j)| (j, (first + k) as u32)).filter(|(_, i)| range.contains(&(*i as usize)));
+            p.scan(codes, rows, &mut out);
+        }
+        Ok(out.into_sorted())
+    }
+}
+
+/// What [`build`] did.
+#[derive(Debug, Clone)]
+pub struct IndexReport {
+    /// The index's manifest entry.
+    pub entry: IndexEntry,
+    /// Segments whose codes were written.
+    pub segments: usize,
+}
+
+/// Live images evenly spread over `0..len`, `k` of them (all when `k >= len`), skipping `skip`.
+fn spread(len: usize, k: usize, offset: usize) -> Vec<usize> {
+    if k >= len {
+        return (0..len).collect();
+    }
+    (0..k).map(|i| ((i * len) / k + offset) % len).collect()
+}
+
+/// Builds (or rebuilds) the index of the map in `dir` with `params` and commits it: the model
+/// trained on a sample of the live images' appearance vectors, every segment's codes, the recall
+/// measured (`RECALL_QUERIES` of the map's own images as queries, each left out of its ranking,
+/// `probe` lists and a shortlist of `shortlist` against the exact appearance ranking), then one
+/// commit under the lock (segments committed meanwhile by another writer get their codes there).
+/// Files of an index the new one replaces are deleted after the commit. A kill at any point
+/// leaves the map as one of the two generations.
+pub fn build(dir: &Path, params: &IndexParams, probe: usize, shortlist: usize) -> Result<IndexReport> {
+    let t0 = Instant::now();
+    let map = Map::open(dir)?;
+    let what = || format!("map {}", dir.display());
+    if map.manifest.appearance_dim == 0 {
+        return Err(Error::invalid(what(), "holds no appearance vectors to index (built without the keypoint network)"));
+    }
+    let n = map.len();
+    if n == 0 {
+        return Err(Error::invalid(what(), "holds no images to index"));
+    }
+    map.check_all()?;
+    let width = map.manifest.appearance_dim;
+    let vector_of = |i: usize, dst: &mut [f32]| crate::descriptors::source::RefSource::image_appearance(&map, i).write_to(dst);
+    let sample_ix = spread(n, params.sample.max(1), 0);
+    let mut sample = vec![0.0f32; sample_ix.len() * width];
+    for (&i, dst) in sample_ix.iter().zip(sample.chunks_mut(width)) {
+        vector_of(i, dst);
+    }
+    let model = Model::train(&sample, sample_ix.len(), width, params)?;
+    drop(sample);
+    let model_bytes = model.file_bytes()?;
+    let model_sha = sha256_hex(&model_bytes);
+    let model_file = format!("index-model-{}.safetensors", &model_sha[..16]);
+    write_atomic(dir, &model_file, &model_bytes)?;
+    let entry0 = IndexEntry {
+        model: FileEntry { file: model_file, bytes: model_bytes.len() as u64, sha256: model_sha.clone() },
+        params: *params,
+        dims: model.dims,
+        lists: model.lists(),
+        trained_on: n,
+        recall_hits: 0,
+        recall_of: 0,
+        recall_probe: probe,
+        recall_shortlist: shortlist,
+        build_ms: 0,
+    };
+    // the recall queries and their exact rankings, folded segment by segment with the codes
+    let queries: Vec<usize> = spread(n, RECALL_QUERIES, n / (2 * RECALL_QUERIES).max(1) + 1);
+    let mut qv = vec![0.0f32; queries.len() * width];
+    for (&i, dst) in queries.iter().zip(qv.chunks_mut(width)) {
+        vector_of(i, dst);
+    }
+    let mut exact: Vec<Shortlist> = queries.iter().map(|_| Shortlist::new(RECALL_AT + 1)).collect();
+    let layout = map.layout();
+    let mut written: Vec<(String, FileEntry)> = Vec::new();
+    let mut approx: Vec<Vec<Shortlist>> = Vec::new();
+    let probes: Vec<Probe> = qv.chunks(width).map(|q| Probe::new(&model, q, probe)).collect();
+    let mut approx_lists: Vec<Shortlist> = queries.iter().map(|_| Shortlist::new(shortlist)).collect();
+    for (s, seg) in map.segments().iter().enumerate() {
+        let codes = codes_for_segment(&model, seg);
+        // exact inner products of the live rows against the recall queries
+        let rows: Vec<(usize, u32)> = map.live_rows(s).enumerate().map(|(k, j)| (j, (map.starts[s] + k) as u32)).collect();
+        let mut buf = vec![0.0f32; rows.len() * width];
+        for (&(j, _), dst) in rows.iter().zip(buf.chunks_mut(width)) {
+            seg.image_appearance(j).write_to(dst);
+        }
+        let mut sims = vec![0.0f32; queries.len() * rows.len()];
+        crate::index::model::matmul_bt(&qv, queries.len(), width, &buf, rows.len(), &mut sims);
+        for (q, l) in exact.iter_mut().enumerate() {
+            for (k, &(_, i)) in rows.iter().enumerate() {
+                if i as usize != queries[q] {
+                    l.offer(sims[q * rows.len() + k], i);
+                }
+            }
+        }
+        for (q, p) in probes.iter().enumerate() {
+            let own = queries[q] as u32;
+            p.scan(&codes, rows.iter().copied().filter(|r| r.1 != own), &mut approx_lists[q]);
+        }
+        let bytes = codes.to_bytes(&map.manifest.segments[s].sha256, &model_sha)?;
+        let name = codes_name(&map.manifest.segments[s].file, &model_sha);
+        write_atomic(dir, &name, &bytes)?;
+        written.push((map.manifest.segments[s].file.clone(), FileEntry { file: name, bytes: bytes.len() as u64, sha256: sha256_hex(&bytes) }));
+    }
+    approx.push(approx_lists);
+    let mut hits = 0usize;
+    let mut total = 0usize;
+    for (q, ex) in exact.into_iter().enumerate() {
+        let truth: Vec<u32> = ex.into_sorted().into_iter().take(RECALL_AT).map(|x| x.1).collect();
+        let got: HashSet<u32> = std::mem::take(&mut approx[0][q]).into_sorted().into_iter().map(|x| x.1).collect();
+        hits += truth.iter().filter(|i| got.contains(i)).count();
+        total += truth.len();
+    }
+    let generation = map.manifest.generation;
+    drop(map);
+    // the commit: segments committed since get their codes under the lock
+    let _lock = WriteLock::take(dir)?;
+    let mut m = manifest::read_existing(dir)?;
+    let layout_now: Layout = layout_of(&m, ClassTable::from_config(&m.config.classes)?.len());
+    debug_assert_eq!(layout_now, layout);
+    let entry = IndexEntry { recall_hits: hits as u64, recall_of: total as u64, build_ms: t0.elapsed().as_millis() as u64, ..entry0 };
+    let old_files = index_files(&m);
+    let mut cache = Some((model_sha.clone(), model));
+    let m_for_codes = Manifest { index: Some(entry.clone()), ..m.clone() };
+    let mut count = 0;
+    for s in 0..m.segments.len() {
+        let file = match written.iter().find(|(seg, _)| *seg == m.segments[s].file) {
+            Some((_, f)) => f.clone(),
+            None => write_segment_codes(dir, &m_for_codes, &entry, &m.segments[s], layout_now, &mut cache)?,
+        };
+        m.segments[s].index = Some(file);
+        count += 1;
+    }
+    m.index = Some(entry.clone());
+    m.generation += 1;
+    manifest::write(dir, &m)?;
+    let _ = generation;
+    delete_unreferenced(dir, &m, &old_files);
+    Ok(IndexReport { entry, segments: count })
+}
+
+/// Drops the map's index (one commit), deleting its files after.
+pub fn drop_index(dir: &Path) -> Result<bool> {
+    let _lock = WriteLock::take(dir)?;
+    let mut m = manifest::read_existing(dir)?;
+    if m.index.is_none() {
+        return Ok(false);
+    }
+    let old = index_files(&m);
+    m.index = None;
+    m.segments.iter_mut().for_each(|s| s.index = None);
+    m.generation += 1;
+    manifest::write(dir, &m)?;
+    delete_unreferenced(dir, &m, &old);
+    Ok(true)
+}

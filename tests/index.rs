@@ -1,0 +1,463 @@
+//! The approximate index of the coarse stage on real photos (CamVid's drive, its real labels, the
+//! XFeat appearance): with every list probed and a shortlist of the whole map it answers exactly
+//! as the exact scan (bit for bit); its recall against the exact ranking is measured; `map add`,
+//! `remove` and `compact` keep it current; damaged, truncated or foreign index files are refused
+//! by open, by the first query and by `map verify`; SIGKILL during `map index`, `map add` and
+//! `map compact` of an indexed map never breaks it, and finishing the command gives the answers
+//! of an uninterrupted run.
+
+mod common;
+
+use common::{cli, cli_ok, p};
+use semlook::config::IndexSearch;
+use semlook::descriptors::DescriptorSet;
+use semlook::engine::Engine;
+use semlook::index::CodeRows;
+use semlook::map::{edit, Map};
+use semlook::matching::{candidates, CpuStages, Setting};
+use semlook::tools::synth::camvid::{self, Change};
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// CamVid's drive every `step`-th frame and its night copy under `dir` (reference/, night/), or
+/// `None` (the test skips) without the shared data or the XFeat weights.
+fn drive(dir: &Path, step: usize) -> Option<(PathBuf, PathBuf)> {
+    let src = common::shared_or_required("data/camvid-test")?;
+    if !common::has_xfeat() {
+        return None;
+    }
+    camvid::generate(&src, dir, &[Change::Night], step, &|| {}).unwrap();
+    Some((dir.join("reference"), dir.join("night")))
+}
+
+/// `map build` of `frames` (images and real labels) into `map`, segments of `per` images, no index.
+fn build(frames: &Path, map: &Path, per: usize) {
+    let per = per.to_string();
+    cli_ok(&[
+        "map",
+        "build",
+        "--images",
+        p(&frames.join("images")),
+        "--labels",
+        p(&frames.join("labels")),
+        "--map",
+        p(map),
+        "--segment-images",
+        &per,
+        "--index",
+        "none",
+        "-q",
+    ]);
+}
+
+/// The frames of `from` (images/, labels/) copied into `to` under ids prefixed `n-`, so that they
+/// can join a map of the frames they were made from.
+fn renamed(from: &Path, to: &Path) -> PathBuf {
+    for sub in ["images", "labels"] {
+        std::fs::create_dir_all(to.join(sub)).unwrap();
+        for e in std::fs::read_dir(from.join(sub)).unwrap().flatten() {
+            std::fs::copy(e.path(), to.join(sub).join(format!("n-{}", e.file_name().to_string_lossy()))).unwrap();
+        }
+    }
+    to.to_path_buf()
+}
+
+/// A config file in `dir` with `[index]` values.
+fn index_config(dir: &Path, name: &str, body: &str) -> PathBuf {
+    let f = dir.join(name);
+    std::fs::write(&f, format!("[index]\n{body}\n")).unwrap();
+    f
+}
+
+/// The queries of `frames`, encoded for `map`.
+fn queries(map: &Map, frames: &Path) -> DescriptorSet {
+    let cfg = map.query_config();
+    let enc = semlook::encode::Encoder::for_map(&cfg, map).unwrap();
+    let files: Vec<_> = semlook::dataset::image_files(&frames.join("images")).unwrap();
+    let sources: Vec<semlook::input::FrameSource> = files
+        .iter()
+        .map(|f| {
+            let stem = f.file_stem().unwrap().to_string_lossy().into_owned();
+            semlook::input::FrameSource { id: stem.clone(), image: Some(f.clone()), labels: Some(frames.join("labels").join(format!("{stem}.png"))) }
+        })
+        .collect();
+    semlook::batch::encode_frames(&mut Engine::cpu(), &enc, &sources, Default::default(), "queries", false, true).unwrap().set
+}
+
+/// The fused coarse lists (top `k`) of `q` against `map`, exact or through the index.
+fn coarse(map: &Map, q: &DescriptorSet, search: IndexSearch, probe: usize, shortlist: usize, k: usize) -> Vec<Vec<(u32, u32)>> {
+    let mut cfg = map.query_config();
+    cfg.index.search = search;
+    cfg.index.probe = probe;
+    cfg.index.shortlist = shortlist;
+    cfg.matching.top_k = k;
+    let (lists, times) = candidates(&mut CpuStages, map, q, Setting::Fused, &cfg).unwrap();
+    assert_eq!(times.approximate, search == IndexSearch::Approximate, "the coarse stage ran the wrong way");
+    // scores as bits: the index path must give the scan's scores, not close ones
+    lists.into_iter().map(|l| l.into_iter().map(|(s, r)| (s.to_bits(), r)).collect()).collect()
+}
+
+/// The whole pipeline's answers (`verified`, best first) through the index at full probe.
+fn answers(map: &Map, q: &DescriptorSet, search: IndexSearch) -> Vec<Vec<(u32, u32)>> {
+    let mut cfg = map.query_config();
+    cfg.index.search = search;
+    cfg.index.probe = 1 << 16;
+    cfg.index.shortlist = 1 << 20;
+    let (m, _) = Engine::cpu().match_batch(map, q, Setting::Verified, &cfg).unwrap();
+    m.into_iter().map(|m| m.ranked.into_iter().map(|c| (c.score.to_bits(), c.reference)).collect()).collect()
+}
+
+#[test]
+fn the_index_at_full_probe_answers_as_the_exact_scan_and_its_recall_is_measured() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some((refs, night)) = drive(&dir.path().join("data"), 2) else { return };
+    let map = dir.path().join("map");
+    build(&refs, &map, 32);
+    let cfg = index_config(dir.path(), "ix.toml", "lists = 8\nprobe = 2\nshortlist = 20");
+    let out = cli_ok(&["map", "index", "--map", p(&map), "--config", p(&cfg), "--json"]);
+    let entry: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(entry["lists"], 8, "{out}");
+    let m = Map::open(&map).unwrap();
+    assert!(m.manifest.segments.iter().all(|s| s.index.is_some()));
+    let info = cli_ok(&["map", "info", "--map", p(&map)]);
+    assert!(info.contains("index: IVF over") && info.contains("8 lists"), "{info}");
+    let q = queries(&m, &night);
+    // every list probed, the whole map shortlisted: the scan's lists, bit for bit
+    let exact = coarse(&m, &q, IndexSearch::Exact, 0, 1, 30);
+    assert_eq!(coarse(&m, &q, IndexSearch::Approximate, 8, m.len(), 30), exact);
+    assert_eq!(answers(&m, &q, IndexSearch::Approximate), answers(&m, &q, IndexSearch::Exact));
+    // two lists of eight and a shortlist of 20: an approximation, measured
+    let approx = coarse(&m, &q, IndexSearch::Approximate, 2, 20, 10);
+    let exact10 = coarse(&m, &q, IndexSearch::Exact, 0, 1, 10);
+    let hits: usize = approx.iter().zip(&exact10).map(|(a, e)| e.iter().filter(|x| a.iter().any(|y| y.1 == x.1)).count()).sum();
+    let recall = hits as f64 / (10 * q.len()) as f64;
+    eprintln!("recall@10 with 2 of 8 lists and a shortlist of 20: {recall:.3}");
+    assert!(recall > 0.5 && recall < 1.0, "recall@10 {recall}: the small probe should approximate, not fail or be exact");
+    // the recall the build recorded is the one its own queries measure: between 0 and 1
+    let ix = m.index().unwrap();
+    assert!(ix.entry.recall_of > 0 && ix.entry.recall_hits <= ix.entry.recall_of);
+    // auto: a map below index.min_places is scanned exactly
+    let mut auto = m.query_config();
+    auto.index.search = IndexSearch::Auto;
+    assert!(!candidates(&mut CpuStages, &m, &q, Setting::Fused, &auto).unwrap().1.approximate);
+    auto.index.min_places = 1;
+    assert!(candidates(&mut CpuStages, &m, &q, Setting::Fused, &auto).unwrap().1.approximate);
+}
+
+#[test]
+fn add_remove_and_compact_keep_the_index_current() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some((refs, night)) = drive(&dir.path().join("data"), 3) else { return };
+    let map = dir.path().join("map");
+    build(&refs, &map, 40);
+    let cfg = index_config(dir.path(), "ix.toml", "lists = 4");
+    cli_ok(&["map", "index", "--map", p(&map), "--config", p(&cfg)]);
+    let model_sha = Map::open(&map).unwrap().manifest.index.clone().unwrap().model.sha256;
+    // the night copy added as a new traversal: its segments get codes under the same model
+    let night_ids = renamed(&night, &dir.path().join("night-renamed"));
+    cli_ok(&[
+        "map",
+        "add",
+        "--images",
+        p(&night_ids.join("images")),
+        "--labels",
+        p(&night_ids.join("labels")),
+        "--map",
+        p(&map),
+        "--segment-images",
+        "40",
+        "-q",
+    ]);
+    let m = Map::open(&map).unwrap();
+    let ix = m.index().unwrap();
+    assert_eq!(ix.entry.model.sha256, model_sha, "an add keeps the model");
+    assert!(m.manifest.segments.len() >= 4 && m.manifest.segments.iter().all(|s| s.index.is_some()));
+    // the added segments' codes are the model's codes of the values the segments store
+    for seg in m.segments() {
+        let want = semlook::map::index::codes_for_segment(&ix.model, seg);
+        let got = semlook::index::MappedCodes::open(
+            &map,
+            &seg.entry.index.as_ref().unwrap().file,
+            seg.entry.index.as_ref().unwrap().bytes,
+            &seg.entry.index.as_ref().unwrap().sha256,
+            &seg.entry.sha256,
+            &model_sha,
+            seg.len(),
+            ix.entry.dims,
+            ix.entry.lists,
+        )
+        .unwrap();
+        for j in 0..seg.len() {
+            assert_eq!(
+                (got.list(j), got.code(j), got.scale(j).to_bits()),
+                (want.list(j), want.code(j), want.scale(j).to_bits()),
+                "{}",
+                seg.path.display()
+            );
+        }
+    }
+    let q = queries(&m, &night);
+    assert_eq!(coarse(&m, &q, IndexSearch::Approximate, 4, m.len(), 30), coarse(&m, &q, IndexSearch::Exact, 0, 1, 30));
+    // removal: the removed never come back through the index
+    let gone: Vec<String> = (0..m.len()).step_by(3).map(|i| semlook::descriptors::source::RefSource::id(&m, i).to_string()).collect();
+    drop(m);
+    cli_ok(&["map", "remove", "--map", p(&map), "--ids"].into_iter().chain(gone.iter().map(String::as_str)).collect::<Vec<_>>());
+    let m = Map::open(&map).unwrap();
+    let ids: HashSet<&str> = gone.iter().map(String::as_str).collect();
+    let approx = coarse(&m, &q, IndexSearch::Approximate, 4, m.len(), 30);
+    for l in &approx {
+        assert!(l.iter().all(|&(_, r)| !ids.contains(semlook::descriptors::source::RefSource::id(&m, r as usize))));
+    }
+    assert_eq!(approx, coarse(&m, &q, IndexSearch::Exact, 0, 1, 30));
+    drop(m);
+    // compaction rewrites segments: their codes follow, the old files go
+    let before: HashSet<String> = std::fs::read_dir(&map).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+    cli_ok(&["map", "compact", "--map", p(&map)]);
+    let m = Map::open(&map).unwrap();
+    assert!(m.manifest.segments.iter().all(|s| s.index.is_some() && s.removed.is_empty()));
+    let listed: HashSet<String> = m
+        .manifest
+        .segments
+        .iter()
+        .flat_map(|s| [s.file.clone(), s.index.as_ref().unwrap().file.clone()])
+        .chain([m.manifest.index.as_ref().unwrap().model.file.clone()])
+        .collect();
+    let now: HashSet<String> = std::fs::read_dir(&map).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+    let stray: Vec<&String> = now.iter().filter(|f| (f.starts_with("index-") || f.starts_with("segment-")) && !listed.contains(*f)).collect();
+    assert!(stray.is_empty(), "compaction left {stray:?}");
+    assert!(before.iter().any(|f| f.starts_with("index-") && !now.contains(f)), "no replaced codes were deleted");
+    assert_eq!(coarse(&m, &q, IndexSearch::Approximate, 4, m.len(), 30), coarse(&m, &q, IndexSearch::Exact, 0, 1, 30));
+    assert_eq!(edit::verify(&map).unwrap().damaged().count(), 0);
+    // dropping it: one commit, its files gone, the map scanned exactly
+    drop(m);
+    cli_ok(&["map", "index", "--map", p(&map), "--drop"]);
+    let m = Map::open(&map).unwrap();
+    assert!(m.index().is_none() && m.manifest.segments.iter().all(|s| s.index.is_none()));
+    assert!(std::fs::read_dir(&map).unwrap().flatten().all(|e| !e.file_name().to_string_lossy().starts_with("index-")));
+}
+
+/// The manifest's entry of the codes of segment `s` of the map in `dir`.
+fn codes_file(dir: &Path, s: usize) -> PathBuf {
+    let m = semlook::map::manifest::read_existing(dir).unwrap();
+    dir.join(&m.segments[s].index.as_ref().unwrap().file)
+}
+
+#[test]
+fn damaged_truncated_or_foreign_index_files_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some((refs, night)) = drive(&dir.path().join("data"), 4) else { return };
+    let clean = dir.path().join("clean");
+    build(&refs, &clean, 20);
+    let cfg = index_config(dir.path(), "ix.toml", "lists = 4");
+    cli_ok(&["map", "index", "--map", p(&clean), "--config", p(&cfg)]);
+    let q = queries(&Map::open(&clean).unwrap(), &night);
+    let copy = |name: &str| -> PathBuf {
+        let d = dir.path().join(name);
+        std::fs::create_dir_all(&d).unwrap();
+        for e in std::fs::read_dir(&clean).unwrap().flatten() {
+            std::fs::copy(e.path(), d.join(e.file_name())).unwrap();
+        }
+        d
+    };
+    let verify_names = |d: &Path, file: &Path| {
+        let out = cli(&["map", "verify", "--map", p(d)]);
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert!(!out.status.success(), "verify passed a damaged index:\n{text}");
+        let name = file.file_name().unwrap().to_string_lossy();
+        assert!(text.lines().any(|l| l.starts_with("DAMAGED") && l.contains(name.as_ref())), "verify did not name {name}:\n{text}");
+    };
+    // a flipped bit in the codes: the map opens (headers are sound), the first query through
+    // the index refuses it naming the file, verify names it
+    let flipped = copy("flipped");
+    let f = codes_file(&flipped, 1);
+    let mut b = std::fs::read(&f).unwrap();
+    let last = b.len() - 3;
+    b[last] ^= 0x04;
+    std::fs::write(&f, &b).unwrap();
+    let m = Map::open(&flipped).unwrap();
+    let mut c = m.query_config();
+    c.index.search = IndexSearch::Approximate;
+    let e = candidates(&mut CpuStages, &m, &q, Setting::Fused, &c).unwrap_err().to_string();
+    assert!(e.contains(&*f.file_name().unwrap().to_string_lossy()) && e.contains("SHA-256"), "{e}");
+    verify_names(&flipped, &f);
+    // truncated: open refuses it
+    let cut = copy("truncated");
+    let f = codes_file(&cut, 0);
+    let b = std::fs::read(&f).unwrap();
+    std::fs::write(&f, &b[..b.len() - 10]).unwrap();
+    let e = Map::open(&cut).unwrap_err().to_string();
+    assert!(e.contains("truncated") && e.contains(&*f.file_name().unwrap().to_string_lossy()), "{e}");
+    verify_names(&cut, &f);
+    // another segment's codes in this one's place (same size): their header names the other
+    let swapped = copy("swapped");
+    let (f0, f1) = (codes_file(&swapped, 0), codes_file(&swapped, 1));
+    assert_eq!(std::fs::metadata(&f0).unwrap().len(), std::fs::metadata(&f1).unwrap().len(), "the test needs equal segments");
+    std::fs::copy(&f1, &f0).unwrap();
+    let e = Map::open(&swapped).unwrap_err().to_string();
+    assert!(e.contains("another segment or map"), "{e}");
+    verify_names(&swapped, &f0);
+    // the model damaged: open refuses it
+    let model = copy("model");
+    let mf = model.join(&semlook::map::manifest::read_existing(&model).unwrap().index.unwrap().model.file);
+    let mut b = std::fs::read(&mf).unwrap();
+    let mid = b.len() / 2;
+    b[mid] ^= 0x01;
+    std::fs::write(&mf, &b).unwrap();
+    let e = Map::open(&model).unwrap_err().to_string();
+    assert!(e.contains("SHA-256") && e.contains(&*mf.file_name().unwrap().to_string_lossy()), "{e}");
+    verify_names(&model, &mf);
+    // the clean map still answers
+    assert!(Map::open(&clean).is_ok() && edit::verify(&clean).unwrap().damaged().count() == 0);
+}
+
+/// Copies the map folder `from` to `to` (files only).
+/// A copy of the map at `from` in `to` (none where `from` does not exist: a build's start).
+fn copy_map(from: &Path, to: &Path) {
+    let _ = std::fs::remove_dir_all(to);
+    if !from.exists() {
+        return;
+    }
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap().flatten() {
+        if e.path().is_file() {
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+        }
+    }
+}
+
+/// SIGKILL at a random moment of each command, then: the map opens and verifies clean (leftovers
+/// of the interrupted writer allowed), the command run again to its end gives the answers of an
+/// uninterrupted run, bit for bit. 30 kills per command.
+#[test]
+fn sigkill_during_index_build_add_and_compact_never_breaks_an_indexed_map() {
+    const KILLS: usize = 30;
+    let dir = tempfile::tempdir().unwrap();
+    let Some((refs, night)) = drive(&dir.path().join("data"), 6) else { return };
+    let base = dir.path().join("base");
+    build(&refs, &base, 8);
+    let cfg = index_config(dir.path(), "ix.toml", "lists = 4");
+    let q = queries(&Map::open(&base).unwrap(), &night);
+    // the three commands, each from its starting map
+    let indexed = dir.path().join("indexed");
+    copy_map(&base, &indexed);
+    cli_ok(&["map", "index", "--map", p(&indexed), "--config", p(&cfg)]);
+    let removed = dir.path().join("removed");
+    copy_map(&indexed, &removed);
+    let ids: Vec<String> = {
+        let m = Map::open(&removed).unwrap();
+        (0..m.len()).step_by(2).map(|i| semlook::descriptors::source::RefSource::id(&m, i).to_string()).collect()
+    };
+    cli_ok(&["map", "remove", "--map", p(&removed), "--ids"].into_iter().chain(ids.iter().map(String::as_str)).collect::<Vec<_>>());
+    let night = renamed(&night, &dir.path().join("night-renamed"));
+    let night_images = p(&night.join("images")).to_string();
+    let night_labels = p(&night.join("labels")).to_string();
+    let ref_images = p(&refs.join("images")).to_string();
+    let ref_labels = p(&refs.join("labels")).to_string();
+    type Cmd = (&'static str, PathBuf, Vec<String>, Vec<String>);
+    let commands: Vec<Cmd> = vec![
+        (
+            "build",
+            dir.path().join("no-map-yet"),
+            ["map", "build", "--images", &ref_images, "--labels", &ref_labels, "--segment-images", "8", "--index", "ivf", "--config", p(&cfg), "-q"]
+                .map(String::from)
+                .to_vec(),
+            vec!["--resume".into()],
+        ),
+        ("index", base.clone(), vec!["map".into(), "index".into(), "--config".into(), p(&cfg).into()], vec![]),
+        (
+            "add",
+            indexed.clone(),
+            ["map", "add", "--images", &night_images, "--labels", &night_labels, "--segment-images", "4", "-q"].map(String::from).to_vec(),
+            vec!["--resume".into()],
+        ),
+        ("compact", removed.clone(), vec!["map".into(), "compact".into()], vec![]),
+    ];
+    let mut rng = semlook::util::SplitMix64::new(29);
+    for (name, start, args, again) in commands {
+        let run = |m: &Path, extra: &[String]| -> Command {
+            let mut c = Command::new(common::bin());
+            c.args(&args).arg("--map").arg(m).args(extra).stdout(Stdio::null()).stderr(Stdio::null());
+            c
+        };
+        // the uninterrupted run: its answers, how long it takes, and when it commits (the
+        // manifest's generation watched every 2 ms), so that most kills land around the commits
+        let whole = dir.path().join(format!("{name}-whole"));
+        copy_map(&start, &whole);
+        let generation = |m: &Path| semlook::map::manifest::read(m).ok().flatten().map_or(0, |x| x.generation);
+        let g_start = generation(&start);
+        let t = Instant::now();
+        let mut child = run(&whole, &[]).spawn().unwrap();
+        let (mut first, mut last) = (None, 0.0f64);
+        let status = loop {
+            if let Ok(Some(m)) = semlook::map::manifest::read(&whole) {
+                if m.generation > g_start {
+                    let at = t.elapsed().as_secs_f64();
+                    first.get_or_insert(at);
+                    last = at;
+                }
+            }
+            if let Some(st) = child.try_wait().unwrap() {
+                break st;
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        };
+        assert!(status.success(), "{name} failed uninterrupted");
+        let full = t.elapsed().as_secs_f64();
+        let first = first.unwrap_or(full);
+        let want = answers(&Map::open(&whole).unwrap(), &q, IndexSearch::Approximate);
+        let (g0, g1) = (g_start, generation(&whole));
+        let (mut before, mut partial) = (0, 0);
+        for k in 0..KILLS {
+            let m = dir.path().join(format!("{name}-{k}"));
+            copy_map(&start, &m);
+            // a third anywhere in the run, a third around its commits, a third as soon as the
+            // manifest shows a chosen commit (the command killed between two of its commits)
+            let at = if k % 3 == 0 { rng.range(0.0, full * 1.1) } else { rng.range((first - 0.02).max(0.0), last + 0.02) };
+            let target = g0 + 1 + (rng.next_u64() % (g1 - g0).max(1));
+            let mut child = run(&m, &[]).spawn().unwrap();
+            if k % 3 == 2 {
+                let t = Instant::now();
+                while child.try_wait().unwrap().is_none() && t.elapsed().as_secs_f64() < full * 2.0 {
+                    if semlook::map::manifest::read(&m).ok().flatten().is_some_and(|x| x.generation >= target) {
+                        break;
+                    }
+                    std::thread::sleep(Duration::from_micros(500));
+                }
+            } else {
+                std::thread::sleep(Duration::from_secs_f64(at));
+            }
+            let _ = child.kill(); // SIGKILL
+            let _ = child.wait();
+            // a build killed before its first commit leaves no manifest: nothing to open yet
+            let committed = semlook::map::manifest::read(&m).ok().flatten().is_some();
+            assert!(committed || name == "build", "{name}, kill {k} at {at:.3} s: the manifest is gone");
+            let g = if committed {
+                let opened = Map::open(&m).unwrap_or_else(|e| panic!("{name}, kill {k} at {at:.3} s: the map does not open: {e}"));
+                let v = edit::verify(&m).unwrap();
+                assert_eq!(v.damaged().count(), 0, "{name}, kill {k} at {at:.3} s: {:?}", v.files);
+                opened.manifest.generation
+            } else {
+                g0
+            };
+            before += usize::from(g == g0);
+            partial += usize::from(g > g0 && g < g1);
+            // finish the command
+            let finished = match name {
+                "index" => run(&m, &[]).status().unwrap(),
+                _ => run(&m, &again).status().unwrap(),
+            };
+            assert!(finished.success(), "{name}, kill {k}: finishing failed");
+            let got = answers(&Map::open(&m).unwrap(), &q, IndexSearch::Approximate);
+            assert_eq!(got, want, "{name}, kill {k} at {at:.3} s: answers differ from an uninterrupted run");
+            assert_eq!(edit::verify(&m).unwrap().damaged().count(), 0);
+            std::fs::remove_dir_all(&m).unwrap();
+        }
+        eprintln!("{name}: {KILLS} kills over {full:.2} s (commits from {first:.3} to {last:.3} s, generation {g0} to {g1}): {before} before its first commit, {partial} between commits");
+        assert!(before >= 3, "{name}: only {before} kills landed before the command committed: the test did not interrupt it");
+        if name == "add" || name == "build" {
+            assert!(partial >= 3, "{name}: only {partial} kills landed between its commits");
+        }
+    }
+}
