@@ -176,7 +176,7 @@ fn add_remove_and_compact_keep_the_index_current() {
     assert!(m.manifest.segments.len() >= 4 && m.manifest.segments.iter().all(|s| s.index.is_some()));
     // the added segments' codes are the model's codes of the values the segments store
     for seg in m.segments() {
-        let want = semlook::map::index::codes_for_segment(&ix.model, seg);
+        let want = semlook::map::index_files::codes_for_segment(&ix.model, seg);
         let got = semlook::index::MappedCodes::open(
             &map,
             &seg.entry.index.as_ref().unwrap().file,
