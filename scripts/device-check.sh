@@ -15,7 +15,8 @@
 # Runtime's CPU provider), the stream (`semlook dev bench-stream`: the night traversal of synthetic
 # 1920x1080 frames replayed against maps of 1k and 10k places through the streaming localizer on the
 # GPU backend, the real-time profile configs/stream-realtime.toml; target >= 100 frames/s), and the fine
-# stage (criterion `benches/matching.rs`, group `fine`, K = 20).
+# stage (criterion `benches/matching.rs`, group `fine`, K = 20), and the index (`semlook dev index-bench`:
+# 1M references, the approximate index on the CPU beside the exact scan on the device).
 # Carry the model folder to the device (`.semlook`, about 40 MB) for the encoding row.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -89,6 +90,23 @@ for line in sys.stdin:
         || note stream "stream $ssize" "dev bench-stream failed (see the log above)"
 else
     note stream "stream $ssize" "budget"
+fi
+
+# the index row (issue 29): the approximate index on the CPU against the exact fused coarse scan on the
+# device, on maps of the synthetic day traversal's real descriptors replicated (`semlook dev index-bench`)
+if [ $smoke = 1 ]; then isizes=2000 iq=10 itimed=1 ibatch=10 isearch=4:100; else isizes=1000000 iq=200 itimed=5 ibatch=1000 isearch=48:500,96:1000; fi
+if [ "$(left)" -gt 120 ] || [ $smoke = 1 ]; then
+    say "index: $isizes references, exact on the device, the index on the CPU"
+    [ -d "$work/stream" ] || "$bin" synth --out "$work/stream" --places "$sframes" --size "$ssize" --query-condition night -q
+    "$bin" map build --images "$work/stream/day/RGB/$cam" --labels "$work/stream/day/GT/LABELS/$cam" --map "$work/index-base" --index none -q \
+        && "$bin" --backend gpu dev index-bench --from "$work/index-base" --queries "$work/stream/night/RGB/$cam" --sizes "$isizes" \
+            --exact-queries "$iq" --exact-timed "$itimed" --batch "$ibatch" --search "$isearch" --dir "$work" --json -q \
+        | python3 -c 'import json,sys
+for line in sys.stdin:
+    r = json.loads(line); print(json.dumps({"row": "index", "result": r}))' >> "$rows" \
+        || note index "index $isizes" "dev index-bench failed (see the log above)"
+else
+    note index "index $isizes" "budget"
 fi
 
 # the fine stage, through criterion (full run only: its build is minutes)

@@ -40,5 +40,17 @@ fn the_device_check_smoke_run_writes_its_json() {
             common::skip_unless_required("REQUIRE_MODELS", format!("the stream row did not run: {stream}"));
         }
     }
+    let index = rows.iter().find(|r| r["row"] == "index").expect("an index row");
+    match index["result"]["map_size"].as_u64() {
+        Some(n) => {
+            assert_eq!(n, 2000, "{index}");
+            let recall = index["result"]["recall_at_30"].as_f64().unwrap_or(-1.0);
+            assert!((0.0..=1.0).contains(&recall), "the index row measures its recall: {index}");
+        }
+        None => {
+            assert!(index["reason"].as_str().is_some_and(|r| !r.is_empty()), "{index}");
+            common::skip_unless_required("REQUIRE_MODELS", format!("the index row did not run: {index}"));
+        }
+    }
     assert!(rows.iter().any(|r| r["row"] == "fine" && r["status"] == "not run"), "the smoke run names the rows it leaves out: {report}");
 }

@@ -10,10 +10,11 @@
 //! while the current one is matched), exactly as `semlook localize` runs it.
 
 use crate::batch::{encode_frames, train_codebook};
-use crate::config::Config;
+use crate::config::{Config, IndexSearch};
 use crate::encode::Encoder;
 use crate::engine::Engine;
 use crate::error::{Error, Result};
+use crate::index::IndexParams;
 use crate::input::FrameSource;
 use crate::map::{ColumnDims, MapWriter, StoreOptions, TraversalPlan};
 use crate::matching::Setting;
@@ -59,6 +60,9 @@ pub struct StreamBenchRow {
     pub accepted: f64,
     pub map_write_s: f64,
     pub map_bytes: u64,
+    /// Seconds building the map's approximate index (none below `index.min_places` or with
+    /// `index.search = "exact"`: the map is scanned exactly).
+    pub index_build_s: Option<f64>,
 }
 
 /// Runs every size; `engine` makes the engine of each row; `tick` hears about each row.
@@ -92,6 +96,13 @@ pub fn run(
         let t = Instant::now();
         write_map(&dir, cfg, &encoder, &refs, &fill, size, labels_free)?;
         let map_write_s = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let index_build_s = if size >= cfg.index.min_places && cfg.index.search != IndexSearch::Exact {
+            crate::map::index::build(&dir, &IndexParams::from_config(&cfg.index, size), cfg.index.probe, cfg.index.shortlist)?;
+            Some(t.elapsed().as_secs_f64())
+        } else {
+            None
+        };
         let map_bytes = dir_bytes(&dir);
         let sopts = StreamOptions { setting: opts.setting, sequence: opts.sequence, loop_closure: false };
         let mut loc = Localizer::open(&dir, Some(cfg.clone()), sopts, engine()?)?;
@@ -129,6 +140,7 @@ pub fn run(
             accepted: accepted as f64 / answered,
             map_write_s,
             map_bytes,
+            index_build_s,
         };
         tick(&row);
         rows.push(row);
@@ -176,8 +188,9 @@ fn dir_bytes(dir: &Path) -> u64 {
 /// The rows as a table.
 pub fn table(rows: &[StreamBenchRow]) -> String {
     let mut s = format!(
-        "{:>9} {:<10} {:>4} {:>4} {:>7} {:>8} {:>8} | {:>11} {:>11} {:>11} {:>11} {:>11} {:>11} {:>11} | {:>6} {:>6}\n",
+        "{:>9} {:>5} {:<10} {:>4} {:>4} {:>7} {:>8} {:>8} | {:>11} {:>11} {:>11} {:>11} {:>11} {:>11} {:>11} | {:>6} {:>6}\n",
         "places",
+        "index",
         "setting",
         "seq",
         "seg",
@@ -197,8 +210,9 @@ pub fn table(rows: &[StreamBenchRow]) -> String {
     for r in rows {
         let c = |a: f64, b: f64| format!("{a:.1}/{b:.1}");
         s += &format!(
-            "{:>9} {:<10} {:>4} {:>4} {:>7} {:>8.2} {:>8.0} | {:>11} {:>11} {:>11} {:>11} {:>11} {:>11} {:>11} | {:>6.2} {:>6.2}\n",
+            "{:>9} {:>5} {:<10} {:>4} {:>4} {:>7} {:>8.2} {:>8.0} | {:>11} {:>11} {:>11} {:>11} {:>11} {:>11} {:>11} | {:>6.2} {:>6.2}\n",
             r.map_size,
+            if r.index_build_s.is_some() { "ivf" } else { "exact" },
             r.setting.name(),
             if r.sequence { "on" } else { "off" },
             if r.segmented { "yes" } else { "no" },
