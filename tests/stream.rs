@@ -181,32 +181,73 @@ fn trajectories_stop_at_a_traversal_boundary() {
 fn loop_closure_finds_the_repeated_drive_and_nothing_recent() {
     let dir = tempfile::tempdir().unwrap();
     let Some((refs, shift)) = drive(&dir.path().join("data")) else { return };
-    let map = dir.path().join("loop-map");
-    let cfg = config();
-    let opts = StreamOptions { setting: Setting::Forest, sequence: true, loop_closure: true };
-    let mut l = Localizer::open(&map, Some(cfg.clone()), opts, Engine::cpu()).unwrap();
-    // the drive, then the same drive again (shifted): the second pass closes loops
+    closes_the_loop(&dir.path().join("loop-map"), &config(), Setting::Forest, &refs, &shift);
+}
+
+/// A synthetic route driven twice (by day, then overcast), photos and label maps, `verified`.
+#[test]
+fn loop_closure_finds_the_repeated_synthetic_route_and_nothing_recent() {
+    if !common::has_xfeat() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("synth");
+    // a route that repeats, not perceptual aliasing: no repeated layout templates (the
+    // renderer's default, 0.6, gives distinct places one layout)
+    let synth = semlook::tools::synth::SynthConfig {
+        seed: 11,
+        places: 90,
+        width: 320,
+        height: 240,
+        aliasing: 0.0,
+        queries: vec![semlook::tools::synth::condition::Condition::Overcast],
+        ..Default::default()
+    };
+    semlook::tools::synth::generate(&synth, &data, &|| {}).unwrap();
+    let frames = |t: &str| -> Vec<FrameSource> {
+        let d = data.join(t).join("GT/LABELS").join(semlook::dataset::SYNTHIA_CAMERA);
+        let mut v: Vec<PathBuf> = std::fs::read_dir(&d).unwrap().flatten().map(|e| e.path()).collect();
+        v.sort();
+        v.into_iter()
+            .map(|p| {
+                let image = data.join(t).join("RGB").join(semlook::dataset::SYNTHIA_CAMERA).join(p.file_name().unwrap());
+                FrameSource { id: format!("{t}/{}", p.file_stem().unwrap().to_string_lossy()), image: Some(image), labels: Some(p) }
+            })
+            .collect()
+    };
+    let cfg = Config::default();
+    closes_the_loop(&dir.path().join("loop-map"), &cfg, Setting::Verified, &frames("day"), &frames("overcast"));
+}
+
+/// Streams `first` and then `second` (the same route again) through a loop-closure localizer
+/// that starts the map at `map`: the second pass closes loops on the right places (within two),
+/// the first almost never, and no closure is on a frame of the excluded recent window.
+fn closes_the_loop(map: &Path, cfg: &Config, setting: Setting, first_pass: &[FrameSource], second_pass: &[FrameSource]) {
+    let opts = StreamOptions { setting, sequence: true, loop_closure: true };
+    let mut l = Localizer::open(map, Some(cfg.clone()), opts, Engine::cpu()).unwrap();
     let (mut first, mut second) = (vec![], vec![]);
-    for (k, f) in refs.iter().chain(&shift).enumerate() {
+    for (k, f) in first_pass.iter().chain(second_pass).enumerate() {
         let r = l.push(frame(f)).unwrap();
         if let Some(c) = &r.closure {
             // never a recent frame: the match is older than the excluded window
             assert!(c.place.index as usize + cfg.stream.exclude_frames <= k, "frame {k} closed on {}", c.place.index);
-            match k < refs.len() {
+            match k < first_pass.len() {
                 true => first.push(c.clone()),
-                false => second.push((k - refs.len(), c.clone())),
+                false => second.push((k - first_pass.len(), c.clone())),
             }
         }
     }
     l.finish().unwrap();
-    let correct = second.iter().filter(|(t, c)| index_of(&refs, &c.place.id).abs_diff(*t) <= 2).count();
-    assert!(second.len() >= refs.len() / 2, "{} closures in the second pass", second.len());
-    assert!(correct as f64 >= 0.95 * second.len() as f64, "{correct} of {} correct", second.len());
-    assert!(first.len() <= refs.len() / 20, "{} closures in the first pass, where the route does not repeat", first.len());
+    let wrong: Vec<(usize, usize)> =
+        second.iter().map(|(t, c)| (*t, index_of(first_pass, &c.place.id))).filter(|(t, i)| t.abs_diff(*i) > 2).collect();
+    eprintln!("closures: {} in the first pass, {} in the second, wrong there (frame, place): {wrong:?}", first.len(), second.len());
+    assert!(second.len() >= first_pass.len() / 2, "{} closures in the second pass", second.len());
+    assert!(wrong.len() as f64 <= 0.05 * second.len() as f64, "{} of {} wrong: {wrong:?}", wrong.len(), second.len());
+    assert!(first.len() <= first_pass.len() / 20, "{} closures in the first pass, where the route does not repeat", first.len());
     // the map holds the stream, committed through the store
-    let m = Map::open(&map).unwrap();
-    assert_eq!(m.len(), 2 * refs.len());
-    assert!(semlook::map::edit::verify(&map).unwrap().damaged().next().is_none());
+    let m = Map::open(map).unwrap();
+    assert_eq!(m.len(), first_pass.len() + second_pass.len());
+    assert!(semlook::map::edit::verify(map).unwrap().damaged().next().is_none());
 }
 
 #[test]

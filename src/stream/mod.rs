@@ -668,6 +668,7 @@ impl Localizer {
                 && m.uniqueness < sequence::UNIQUENESS_CAP
                 && m.uniqueness as f64 >= st.closure_uniqueness
                 && (m.velocity.abs() as f64) >= st.closure_min_velocity
+                && m.score as f64 >= st.closure_min_score
         };
         let closure = match (&self.lc, &sequence) {
             (Some(_), Some(s)) if closes(&s.matched) => {
