@@ -93,6 +93,8 @@ pub struct FastScratch {
     /// Per-window SSIM values, row-major as the twin numbers windows; zero from `n` to the next
     /// multiple of the reduction's lanes, then `W` of spill.
     vals: Vec<f32>,
+    /// Window means in padded rows (`stride` each, zero padding): the statistics' second pass.
+    means: Vec<f32>,
 }
 
 impl FastScratch {
@@ -102,6 +104,7 @@ impl FastScratch {
             prod: vec![0.0; (l.stride + l.win - 1).max(l.gw).next_multiple_of(W)],
             ring: vec![0.0; l.win * l.stride],
             vals: vec![0.0; l.n.next_multiple_of(RL) + W],
+            means: vec![0.0; l.nh * l.stride],
         }
     }
 }
@@ -144,7 +147,7 @@ pub fn ssim_pair_fast<S: Simd>(simd: S, p: &SsimParams, l: &FastLayout, x: &[f32
         c2: simd.splat_f32s(p.c2),
         two: simd.splat_f32s(2.0),
     };
-    let FastScratch { prod, ring, vals } = s;
+    let FastScratch { prod, ring, vals, .. } = s;
     let (mut slot, mut first) = (0, 0);
     for (r, (xr, yr)) in x.chunks_exact(gw).zip(y.chunks_exact(gw)).take(l.gh).enumerate() {
         // products, then horizontal window sums ((p[c] + p[c+1]) + ...) + p[c+win-1], as the twin adds them
@@ -203,6 +206,115 @@ pub fn ssim_pair_fast<S: Simd>(simd: S, p: &SsimParams, l: &FastLayout, x: &[f32
         h /= 2;
     }
     acc[0] / n as f32
+}
+
+/// The stats record of descriptor `x` ([means | variances], `p.stats_len()` values into `out`),
+/// equal to [`ssim_stats`]'s (a zero may differ in sign only): the same box sums, in the same
+/// order, of `x` and then of `x * x`, streamed row by row through the pair kernel's scratch like
+/// [`ssim_pair_fast`]. Maps store no statistics, so a query batch recomputes every reference's:
+/// for one query against a shortlist this costs more than the SSIM pairs did (the twin's loops
+/// took 15 µs a descriptor on the development machine).
+pub fn ssim_stats_fast<S: Simd>(simd: S, p: &SsimParams, l: &FastLayout, x: &[f32], out: &mut [f32], s: &mut FastScratch) {
+    let n = l.n;
+    let inv = simd.splat_f32s(1.0 / (l.win * l.win) as f32);
+    let cn = simd.splat_f32s(p.cov_norm);
+    // means: the window sums of x, times inv; kept in padded rows too for the second pass
+    box_rows(simd, l, x, false, s, |simd, sum, _, _| simd.mul_f32s(sum, inv));
+    out[..n].copy_from_slice(&s.vals[..n]);
+    for (src, dst) in out[..n].chunks_exact(l.nw).zip(s.means.chunks_exact_mut(l.stride)) {
+        dst[..l.nw].copy_from_slice(src);
+    }
+    // variances: (the window sums of x*x, times inv, less the mean squared) times cov_norm
+    let means = std::mem::take(&mut s.means);
+    box_rows(simd, l, x, true, s, |simd, sum, wr, c0| {
+        let m = ld::<S>(&means, wr * l.stride + c0);
+        simd.mul_f32s(simd.sub_f32s(simd.mul_f32s(sum, inv), simd.mul_f32s(m, m)), cn)
+    });
+    s.means = means;
+    out[n..2 * n].copy_from_slice(&s.vals[..n]);
+}
+
+/// The stats records of descriptors `globals` (`p.len()` values each) into `stats`
+/// (`p.stats_len()` each), in parallel, by [`ssim_stats_fast`] with the best vector instructions
+/// `pulp` finds, or by the twin's [`ssim_stats`] where it finds none (the same values either way).
+pub fn ssim_stats_batch(p: &SsimParams, globals: &[f32], stats: &mut [f32]) {
+    use rayon::prelude::*;
+    let (glen, slen, l) = (p.len(), p.stats_len(), FastLayout::new(p));
+    let arch = pulp::Arch::new();
+    if matches!(arch, pulp::Arch::Scalar) {
+        stats.par_chunks_mut(slen).zip(globals.par_chunks(glen)).for_each_init(SsimScratch::default, |sc, (out, x)| ssim_stats(p, x, out, sc));
+        return;
+    }
+    stats.par_chunks_mut(slen).zip(globals.par_chunks(glen)).for_each_init(
+        || FastScratch::new(&l),
+        |scratch, (out, x)| {
+            struct One<'a> {
+                p: &'a SsimParams,
+                l: &'a FastLayout,
+                x: &'a [f32],
+                out: &'a mut [f32],
+                s: &'a mut FastScratch,
+            }
+            impl pulp::WithSimd for One<'_> {
+                type Output = ();
+                #[inline(always)]
+                fn with_simd<S: Simd>(self, simd: S) {
+                    ssim_stats_fast(simd, self.p, self.l, self.x, self.out, self.s)
+                }
+            }
+            arch.dispatch(One { p, l: &l, x, out, s: scratch })
+        },
+    );
+}
+
+/// The window sums of `x` (of `x * x` where `square`), each turned into a value by `f(simd, sum,
+/// window row, first column)` and written to `s.vals` row-major (`nw` a row; a row's
+/// padding lanes spill into the next row, which overwrites them, and the last row's past `n`).
+#[inline(always)]
+fn box_rows<S: Simd>(simd: S, l: &FastLayout, x: &[f32], square: bool, s: &mut FastScratch, f: impl Fn(S, S::f32s, usize, usize) -> S::f32s) {
+    let (gw, stw, win, lanes) = (l.gw, l.stride, l.win, S::F32_LANES);
+    let chunks = stw / lanes;
+    let FastScratch { prod, ring, vals, .. } = s;
+    let (mut slot, mut first) = (0, 0);
+    for (r, xr) in x.chunks_exact(gw).take(l.gh).enumerate() {
+        if square {
+            let ((pv, pt), (xv, xt)) = (S::as_mut_simd_f32s(&mut prod[..gw]), S::as_simd_f32s(xr));
+            for (d, a) in pv.iter_mut().zip(xv) {
+                *d = simd.mul_f32s(*a, *a);
+            }
+            for (d, a) in pt.iter_mut().zip(xt) {
+                *d = a * a;
+            }
+        } else {
+            prod[..gw].copy_from_slice(xr);
+        }
+        let dst = &mut ring[slot * stw..(slot + 1) * stw];
+        let mut j = 0;
+        while j + G <= chunks {
+            horizontal::<S, G>(simd, prod, dst, j, win);
+            j += G;
+        }
+        while j < chunks {
+            horizontal::<S, 1>(simd, prod, dst, j, win);
+            j += 1;
+        }
+        slot = if slot + 1 == win { 0 } else { slot + 1 };
+        if r + 1 >= win {
+            let wr = r + 1 - win;
+            for j in 0..chunks {
+                let c0 = j * lanes;
+                let mut sum = ld::<S>(&ring[first * stw..], c0);
+                let mut k = first;
+                for _ in 1..win {
+                    k = if k + 1 == win { 0 } else { k + 1 };
+                    sum = simd.add_f32s(sum, ld::<S>(&ring[k * stw..], c0));
+                }
+                let v = f(simd, sum, wr, c0);
+                st::<S>(vals, wr * l.nw + c0, v);
+            }
+            first = if first + 1 == win { 0 } else { first + 1 };
+        }
+    }
 }
 
 /// Horizontal window sums of `N` vectors of one product row, from vector `j` on.
@@ -273,5 +385,45 @@ fn windows<S: Simd, const N: usize>(
             simd.add_f32s(simd.add_f32s(ld::<S>(vx, e), ld::<S>(vy, e)), k.c2),
         );
         st::<S>(out, e, simd.div_f32s(num, den));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(200))]
+        /// The vectorised statistics equal the twin's `ssim_stats` (a zero's sign aside), for every
+        /// instruction set pulp offers here and the scalar one, on random descriptors of random
+        /// shapes, some flat (near-zero variances: where a rounding difference would show).
+        #[test]
+        fn fast_stats_equal_the_twin(w in 3usize..40, h in 3usize..30, win in prop::sample::select(vec![3usize, 5, 7]), seed in any::<u64>(), flat in any::<bool>(), batch in 1usize..6) {
+            prop_assume!(w >= win && h >= win);
+            let cfg = crate::config::GlobalConfig { width: w, height: h, ssim_window: win, ..Default::default() };
+            let p = SsimParams::new(&cfg);
+            let mut rng = crate::util::SplitMix64::new(seed);
+            let globals: Vec<f32> = (0..batch * p.len()).map(|_| if flat { 0.5 + 1e-4 * rng.next_f64() as f32 } else { rng.next_f64() as f32 }).collect();
+            let mut want = vec![0.0f32; batch * p.stats_len()];
+            let mut sc = SsimScratch::default();
+            for (x, out) in globals.chunks(p.len()).zip(want.chunks_mut(p.stats_len())) {
+                ssim_stats(&p, x, out, &mut sc);
+            }
+            let mut got = vec![f32::NAN; batch * p.stats_len()];
+            ssim_stats_batch(&p, &globals, &mut got);
+            prop_assert!(got.iter().zip(&want).all(|(a, b)| a == b), "batch differs from the twin");
+            let l = FastLayout::new(&p);
+            let mut scalar = vec![f32::NAN; p.stats_len()];
+            ssim_stats_fast(pulp::Scalar::new(), &p, &l, &globals[..p.len()], &mut scalar, &mut FastScratch::new(&l));
+            prop_assert!(scalar.iter().zip(&want).all(|(a, b)| a == b), "scalar fast path differs from the twin");
+        }
+    }
+
+    /// An empty batch writes nothing.
+    #[test]
+    fn an_empty_batch_is_nothing_to_do() {
+        let p = SsimParams::new(&crate::config::GlobalConfig::default());
+        ssim_stats_batch(&p, &[], &mut []);
     }
 }

@@ -42,7 +42,6 @@ use crate::descriptors::source::{GlobalSource, Place, RefSource, TileBuf};
 use crate::descriptors::DescriptorSet;
 use crate::error::{Error, Result};
 use crate::kernels::abi::SsimParams;
-use crate::kernels::ssim::{ssim_stats, SsimScratch};
 use crate::kernels::tree_similarity::ForestRef;
 use crate::values::Values;
 use rayon::prelude::*;
@@ -302,8 +301,7 @@ impl Map {
 }
 
 fn compute_stats(p: &SsimParams, globals: &[f32], stats: &mut [f32]) {
-    let (glen, slen) = (p.len(), p.stats_len());
-    stats.par_chunks_mut(slen).zip(globals.par_chunks(glen)).for_each_init(SsimScratch::default, |sc, (out, x)| ssim_stats(p, x, out, sc));
+    crate::global::ssim_fast::ssim_stats_batch(p, globals, stats);
 }
 
 /// Reads and checks the codebook file (small: read and hashed in full at open).

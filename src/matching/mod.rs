@@ -382,13 +382,10 @@ pub fn indexed_topk(refs: &dyn RefSource, queries: &DescriptorSet, cfg: &Config,
             globals.resize(n * glen, 0.0);
             stats.clear();
             stats.resize(n * slen, 0.0);
-            globals.par_chunks_mut(glen).zip(stats.par_chunks_mut(slen)).zip(chunk.par_iter()).for_each_init(
-                || (source::TileBuf::default(), crate::kernels::ssim::SsimScratch::default()),
-                |(buf, scratch), ((g, st), &(_, r))| {
-                    g.copy_from_slice(refs.globals_tile(r as usize, r as usize + 1, buf));
-                    crate::kernels::ssim::ssim_stats(&p, g, st, scratch);
-                },
-            );
+            globals.par_chunks_mut(glen).zip(chunk.par_iter()).for_each_init(source::TileBuf::default, |buf, (g, &(_, r))| {
+                g.copy_from_slice(refs.globals_tile(r as usize, r as usize + 1, buf));
+            });
+            crate::global::ssim_fast::ssim_stats_batch(&p, &globals, &mut stats);
             scores.clear();
             scores.resize(n, 0.0);
             exec.score_tile(queries.global(q), &globals, &stats, &mut scores);
