@@ -88,7 +88,21 @@ fn queries(map: &Map, frames: &Path) -> DescriptorSet {
 
 /// The fused coarse lists (top `k`) of `q` against `map`, exact or through the index.
 fn coarse(map: &Map, q: &DescriptorSet, search: IndexSearch, probe: usize, shortlist: usize, k: usize) -> Vec<Vec<(u32, u32)>> {
+    coarse_weighted(map, q, search, probe, shortlist, k, map.query_config().matching.w_global)
+}
+
+/// [`coarse`] with the SSIM term weighted by `w_global`.
+fn coarse_weighted(
+    map: &Map,
+    q: &DescriptorSet,
+    search: IndexSearch,
+    probe: usize,
+    shortlist: usize,
+    k: usize,
+    w_global: f64,
+) -> Vec<Vec<(u32, u32)>> {
     let mut cfg = map.query_config();
+    cfg.matching.w_global = w_global;
     cfg.index.search = search;
     cfg.index.probe = probe;
     cfg.index.shortlist = shortlist;
@@ -128,6 +142,12 @@ fn the_index_at_full_probe_answers_as_the_exact_scan_and_its_recall_is_measured(
     let exact = coarse(&m, &q, IndexSearch::Exact, 0, 1, 30);
     assert_eq!(coarse(&m, &q, IndexSearch::Approximate, 8, m.len(), 30), exact);
     assert_eq!(answers(&m, &q, IndexSearch::Approximate), answers(&m, &q, IndexSearch::Exact));
+    // the SSIM weighted far above the cosine: the fused order leaves the cosine order the index
+    // path scores in, so its early stop (no SSIM past the bound) is what keeps the lists equal
+    for k in [1, 5, 30] {
+        let heavy = coarse_weighted(&m, &q, IndexSearch::Approximate, 8, m.len(), k, 20.0);
+        assert_eq!(heavy, coarse_weighted(&m, &q, IndexSearch::Exact, 0, 1, k, 20.0), "k = {k}, w_global 20");
+    }
     // two lists of eight and a shortlist of 20: an approximation, measured
     let approx = coarse(&m, &q, IndexSearch::Approximate, 2, 20, 10);
     let exact10 = coarse(&m, &q, IndexSearch::Exact, 0, 1, 10);
