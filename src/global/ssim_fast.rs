@@ -158,16 +158,7 @@ pub fn ssim_pair_fast<S: Simd>(simd: S, p: &SsimParams, l: &FastLayout, x: &[f32
         for ((d, a), b) in pt.iter_mut().zip(xt).zip(yt) {
             *d = a * b;
         }
-        let dst = &mut ring[slot * stw..(slot + 1) * stw];
-        let mut j = 0;
-        while j + G <= chunks {
-            horizontal::<S, G>(simd, prod, dst, j, win);
-            j += G;
-        }
-        while j < chunks {
-            horizontal::<S, 1>(simd, prod, dst, j, win);
-            j += 1;
-        }
+        horizontal_row(simd, prod, &mut ring[slot * stw..(slot + 1) * stw], chunks, win);
         slot = if slot + 1 == win { 0 } else { slot + 1 };
         // the window row whose last image row this was: vertical sums in row order from slot
         // `first` on, then the window formula
@@ -288,16 +279,7 @@ fn box_rows<S: Simd>(simd: S, l: &FastLayout, x: &[f32], square: bool, s: &mut F
         } else {
             prod[..gw].copy_from_slice(xr);
         }
-        let dst = &mut ring[slot * stw..(slot + 1) * stw];
-        let mut j = 0;
-        while j + G <= chunks {
-            horizontal::<S, G>(simd, prod, dst, j, win);
-            j += G;
-        }
-        while j < chunks {
-            horizontal::<S, 1>(simd, prod, dst, j, win);
-            j += 1;
-        }
+        horizontal_row(simd, prod, &mut ring[slot * stw..(slot + 1) * stw], chunks, win);
         slot = if slot + 1 == win { 0 } else { slot + 1 };
         if r + 1 >= win {
             let wr = r + 1 - win;
@@ -314,6 +296,20 @@ fn box_rows<S: Simd>(simd: S, l: &FastLayout, x: &[f32], square: bool, s: &mut F
             }
             first = if first + 1 == win { 0 } else { first + 1 };
         }
+    }
+}
+
+/// Horizontal window sums of one product row into `dst` (`chunks` vectors), `G` vectors at a time.
+#[inline(always)]
+fn horizontal_row<S: Simd>(simd: S, prod: &[f32], dst: &mut [f32], chunks: usize, win: usize) {
+    let mut j = 0;
+    while j + G <= chunks {
+        horizontal::<S, G>(simd, prod, dst, j, win);
+        j += G;
+    }
+    while j < chunks {
+        horizontal::<S, 1>(simd, prod, dst, j, win);
+        j += 1;
     }
 }
 
