@@ -120,7 +120,6 @@ pub fn build(dir: &Path, params: &IndexParams, probe: usize, shortlist: usize) -
     let mut exact: Vec<Shortlist> = queries.iter().map(|_| Shortlist::new(RECALL_AT + 1)).collect();
     let layout = map.layout();
     let mut written: Vec<(String, FileEntry)> = Vec::new();
-    let mut approx: Vec<Vec<Shortlist>> = Vec::new();
     let probes: Vec<Probe> = qv.chunks(width).map(|q| Probe::new(&model, q, probe)).collect();
     let mut approx_lists: Vec<Shortlist> = queries.iter().map(|_| Shortlist::new(shortlist)).collect();
     for (s, seg) in map.segments().iter().enumerate() {
@@ -149,16 +148,14 @@ pub fn build(dir: &Path, params: &IndexParams, probe: usize, shortlist: usize) -
         write_atomic(dir, &name, &bytes)?;
         written.push((map.manifest.segments[s].file.clone(), FileEntry { file: name, bytes: bytes.len() as u64, sha256: sha256_hex(&bytes) }));
     }
-    approx.push(approx_lists);
     let mut hits = 0usize;
     let mut total = 0usize;
-    for (q, ex) in exact.into_iter().enumerate() {
+    for (ex, approx) in exact.into_iter().zip(approx_lists) {
         let truth: Vec<u32> = ex.into_sorted().into_iter().take(RECALL_AT).map(|x| x.1).collect();
-        let got: HashSet<u32> = std::mem::take(&mut approx[0][q]).into_sorted().into_iter().map(|x| x.1).collect();
+        let got: HashSet<u32> = approx.into_sorted().into_iter().map(|x| x.1).collect();
         hits += truth.iter().filter(|i| got.contains(i)).count();
         total += truth.len();
     }
-    let generation = map.manifest.generation;
     drop(map);
     // the commit: segments committed since get their codes under the lock
     let _lock = WriteLock::take(dir)?;
@@ -181,7 +178,6 @@ pub fn build(dir: &Path, params: &IndexParams, probe: usize, shortlist: usize) -
     m.index = Some(entry.clone());
     m.generation += 1;
     manifest::write(dir, &m)?;
-    let _ = generation;
     delete_unreferenced(dir, &m, &old_files);
     Ok(IndexReport { entry, segments: count })
 }
