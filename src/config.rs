@@ -637,8 +637,9 @@ pub enum SequenceRows {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SequenceConfig {
-    /// Frames a trajectory spans (SeqSLAM's ds). \[R\] 12 (sweep 10: 5 / 8 / 12 / 20 compared over
-    /// the six ordered dev sets; SeqSLAM used 10 to 20).
+    /// Frames a trajectory spans (SeqSLAM's ds). \[R\] 20 (sweep 10f: 12 / 16 / 20 / 24 over the six
+    /// ordered dev sets and nine settings with trajectories whose speed changes; 20 is the longest
+    /// with no set's stream below its single frames; SeqSLAM used 10 to 20).
     pub length: usize,
     /// Velocities tried, in reference positions per query frame: `velocity_steps` values evenly
     /// from `velocity_min` to `velocity_max`. 0 is a stop; negative values drive backwards.
@@ -691,7 +692,7 @@ pub struct SequenceConfig {
 impl Default for SequenceConfig {
     fn default() -> Self {
         SequenceConfig {
-            length: 12,
+            length: 20,
             velocity_min: 0.0,
             velocity_max: 2.0,
             velocity_steps: 9,

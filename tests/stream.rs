@@ -163,12 +163,12 @@ fn trajectories_stop_at_a_traversal_boundary() {
             if i >= 110 {
                 assert_eq!(s.matched.place.traversal, 1, "frame {i}: {s:?}");
             }
-            // after the boundary a trajectory on traversal 1 has only the frames since it (on this
-            // drive the best stands at 99 until frame 104, then ends on traversal 1 scoring 1.9,
-            // rising to 3.9 at 111): it scores below the one-traversal map's, which counts the
-            // frames before the boundary too
+            // for `length` frames after the boundary a trajectory on traversal 1 has only the
+            // frames since it (on this drive, at length 20, the best stands at 99 until frame 108,
+            // then ends on traversal 1 scoring 1.9, rising to 4.1 at 119): it scores below the
+            // one-traversal map's, which counts the frames before the boundary too
             let w = rw.sequence.as_ref().unwrap();
-            if (100..110).contains(&i) && m.end.traversal == 1 && w.matched.end.position >= 100 {
+            if (100..100 + config().sequence.length).contains(&i) && m.end.traversal == 1 && w.matched.end.position >= 100 {
                 assert!(m.score < w.matched.score, "frame {i}: {} on two traversals, {} on one", m.score, w.matched.score);
                 crossed += 1;
             }

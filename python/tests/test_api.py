@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 import pytest
+import tomllib
 
 import semlook
 from conftest import CLI, encode_places, place, write_png
@@ -347,7 +348,8 @@ def test_localizer_streams_frames_with_sequence_matching(tmp_path, encoder):
         loc.push(labels=queries[0], timestamp=3.0)
     assert loc.counts["refused"] == 1 and loc.counts["frames"] == 31
     frames, entries = loc.state_size
-    assert frames == 12 and entries <= 12 * 30 * 3, loc.state_size
+    length = tomllib.loads(cfg.to_toml())["sequence"]["length"]
+    assert frames == length and entries <= length * 30 * 3, loc.state_size
     with pytest.raises(semlook.InvalidInputError):
         loc.push()
 
