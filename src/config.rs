@@ -221,6 +221,9 @@ pub struct AppearanceConfig {
     pub codebook_iterations: usize,
     /// Codebook training: the seed of k-means++. \[R\] 1.
     pub codebook_seed: u64,
+    /// Classes (names of the class table) whose descriptors are left out of the whole-image VLAD
+    /// (issue 32: dynamic classes and sky say little about the place). \[R\] none.
+    pub ignore_classes: Vec<String>,
 }
 
 impl Default for AppearanceConfig {
@@ -240,6 +243,7 @@ impl Default for AppearanceConfig {
             codebook_samples_per_image: 128,
             codebook_iterations: 20,
             codebook_seed: 1,
+            ignore_classes: vec![],
         }
     }
 }
@@ -586,6 +590,10 @@ pub struct VerificationConfig {
     pub w_coarse: f64,
     /// Weight of the tree-set similarity in the verified score (see `w_inliers`). \[R\] 2.
     pub w_fine: f64,
+    /// Classes (names of the class table) whose keypoints take no part in verification: a mutual
+    /// match with either end on one of them is dropped before RANSAC (issue 32: dynamic classes
+    /// and sky, whose matches do not say where the camera is). \[R\] none.
+    pub ignore_classes: Vec<String>,
 }
 
 impl Default for VerificationConfig {
@@ -601,6 +609,7 @@ impl Default for VerificationConfig {
             w_inliers: 1.0,
             w_coarse: 2.0,
             w_fine: 2.0,
+            ignore_classes: vec![],
         }
     }
 }
@@ -894,10 +903,17 @@ impl Config {
     /// resolves; the error names the field.
     pub fn validate(&self, source_name: &str) -> Result<()> {
         let v = Check(source_name);
-        crate::classes::ClassTable::from_config(&self.classes).map_err(|e| match e {
+        let table = crate::classes::ClassTable::from_config(&self.classes).map_err(|e| match e {
             Error::InvalidConfig { reason, .. } => v.err(format!("[classes] {reason}")),
             other => other,
         })?;
+        for (key, names) in
+            [("appearance.ignore_classes", &self.appearance.ignore_classes), ("verification.ignore_classes", &self.verification.ignore_classes)]
+        {
+            if let Some(name) = names.iter().find(|n| table.index(n).is_none()) {
+                return Err(v.err(format!("{key}: {name:?} is not a class of the table (classes.table)")));
+            }
+        }
         let i = &self.input;
         if i.working_long_side != 0 {
             v.int("input.working_long_side", i.working_long_side, 32, 8192)?;

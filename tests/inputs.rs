@@ -172,7 +172,14 @@ fn a_failed_add_loses_nothing_already_stored() {
 
 #[test]
 fn invalid_configs_are_refused() {
-    for text in ["[global]\nwidth = 3\n", "[similarity]\nw_area = -1\n", "[local]\ntie_tolerance = inf\n", "[classes]\ntable = \"mapillary\"\n"] {
+    for text in [
+        "[global]\nwidth = 3\n",
+        "[similarity]\nw_area = -1\n",
+        "[local]\ntie_tolerance = inf\n",
+        "[classes]\ntable = \"mapillary\"\n",
+        "[verification]\nignore_classes = [\"pedestrian\"]\n",
+        "[appearance]\nignore_classes = [\"sky\", \"clouds\"]\n",
+    ] {
         let e = Config::from_toml(text, "bad.toml").unwrap_err();
         assert!(matches!(e, Error::InvalidConfig { .. }) && e.to_string().contains("bad.toml"), "{text}: {e}");
     }

@@ -25,6 +25,36 @@ fn verification_with_no_keypoints_on_either_side_scores_zero() {
     assert!(m.iter().all(|q| !q.ranked.is_empty() && q.ranked.iter().all(|c| c.inliers == Some(0))));
 }
 
+/// `verification.ignore_classes`: a match with an end on an ignored class is dropped before RANSAC
+/// (20 keypoints matching themselves under the identity, half on road and half on person), and a
+/// class the table does not have is refused by name.
+#[test]
+fn matches_on_ignored_classes_take_no_part_in_verification() {
+    let table = semlook::classes::ClassTable::cityscapes();
+    let (road, person) = (table.index("road").unwrap(), table.index("person").unwrap());
+    let n = 20;
+    let mut descriptors = vec![0i8; n * 64];
+    let mut xy = vec![];
+    for i in 0..n {
+        for d in [i, i + 21, i + 42] {
+            descriptors[i * 64 + d] = 115;
+        }
+        xy.extend([(1000 + (i * 7 % 20) * 3000) as u16, (1000 + (i * 11 % 17) * 3500) as u16]);
+    }
+    let classes: Vec<u8> = (0..n).map(|i| if i < n / 2 { road } else { person }).collect();
+    let k = KeypointsRef { descriptors: &descriptors, xy: &xy, classes: &classes, dim: 64 };
+    let with = |names: &[&str]| {
+        let mut v = Config::default().verification;
+        v.ignore_classes = names.iter().map(|s| s.to_string()).collect();
+        VerifyParams::for_config(&v, &table)
+    };
+    assert_eq!(verify_pair(&with(&[]).unwrap(), k, k, &mut vec![]), Verified { matches: 20, inliers: 20 });
+    assert_eq!(verify_pair(&with(&["person", "sky"]).unwrap(), k, k, &mut vec![]), Verified { matches: 10, inliers: 10 });
+    assert_eq!(verify_pair(&with(&["person", "road"]).unwrap(), k, k, &mut vec![]), Verified::default());
+    let err = with(&["pedestrian"]).unwrap_err().to_string();
+    assert!(err.contains("ignore_classes") && err.contains("pedestrian"), "{err}");
+}
+
 #[test]
 fn a_map_of_the_previous_format_is_refused_saying_what_it_lacks() {
     let dir = tempfile::tempdir().unwrap();

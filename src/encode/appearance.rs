@@ -28,11 +28,32 @@ pub struct AppearanceEncoder {
     codebook: Option<Arc<Codebook>>,
     cfg: AppearanceConfig,
     keypoints: KeypointsConfig,
+    /// Per class index: whether its descriptors are left out of the whole-image VLAD.
+    ignored: [bool; 256],
 }
 
 impl AppearanceEncoder {
     pub(super) fn new(model: AppearanceModel, cfg: &AppearanceConfig, keypoints: &KeypointsConfig) -> AppearanceEncoder {
-        AppearanceEncoder { model: Arc::new(model.with_detection(keypoints)), codebook: None, cfg: cfg.clone(), keypoints: keypoints.clone() }
+        AppearanceEncoder {
+            model: Arc::new(model.with_detection(keypoints)),
+            codebook: None,
+            cfg: cfg.clone(),
+            keypoints: keypoints.clone(),
+            ignored: [false; 256],
+        }
+    }
+
+    /// Resolves `appearance.ignore_classes` in `classes`; a name the table does not have is an
+    /// error naming it.
+    pub(super) fn ignoring(mut self, classes: &crate::classes::ClassTable) -> Result<Self> {
+        for name in &self.cfg.ignore_classes {
+            let c = classes.index(name).ok_or_else(|| Error::InvalidConfig {
+                source_name: "[appearance]".into(),
+                reason: format!("ignore_classes: {name:?} is not a class of the table (classes.table)"),
+            })?;
+            self.ignored[c as usize] = true;
+        }
+        Ok(self)
     }
 
     /// The keypoint network.
@@ -106,9 +127,9 @@ impl AppearanceEncoder {
             None => ImageKeypoints::default(),
         };
         let (mut descriptors, mut offsets) = appearance::group_by_object(k, objects);
-        // the last run: every descriptor of the image
-        descriptors.extend_from_slice(&k.descriptors);
-        offsets.push(offsets.last().copied().unwrap_or(0) + k.len() as u32);
+        // the last run: every descriptor of the image not on an ignored class
+        let n = image_run(k, labels, &self.ignored, &mut descriptors);
+        offsets.push(offsets.last().copied().unwrap_or(0) + n as u32);
         Ok((VladInput { descriptors, offsets }, verification, network_ms))
     }
 
@@ -129,5 +150,59 @@ impl AppearanceEncoder {
             .map_err(|e| e.named(|r| Error::invalid("codebook", format!("{r} (too few keypoints in the reference images)"))))?;
         self.set_codebook(cb);
         Ok(())
+    }
+}
+
+/// Appends to `out` the descriptors of `k` whose keypoint is not on a class `ignored` marks (the
+/// class under its position in `labels`, whose pixels its positions are in); returns how many.
+fn image_run(k: &Keypoints, labels: &LabelMap, ignored: &[bool; 256], out: &mut Vec<f32>) -> usize {
+    if !ignored.iter().any(|&i| i) {
+        out.extend_from_slice(&k.descriptors);
+        return k.len();
+    }
+    let (w, h) = (labels.width() as i64, labels.height() as i64);
+    let mut n = 0;
+    for (p, d) in k.xy.iter().zip(k.descriptors.chunks_exact(k.dim.max(1))) {
+        let (x, y) = ((p[0].round() as i64).clamp(0, w - 1), (p[1].round() as i64).clamp(0, h - 1));
+        let class = labels.classes().get((y * w + x) as usize).copied().unwrap_or(crate::classes::VOID);
+        if !ignored[class as usize] {
+            out.extend_from_slice(d);
+            n += 1;
+        }
+    }
+    n
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::classes::ClassTable;
+
+    /// The image run leaves out exactly the descriptors whose keypoint lies on an ignored class,
+    /// in their order, and keeps all of them when nothing is ignored.
+    #[test]
+    fn the_image_run_leaves_out_ignored_classes() {
+        let table = ClassTable::cityscapes();
+        let (road, sky) = (table.index("road").unwrap(), table.index("sky").unwrap());
+        // 4 x 2 pixels: the left half road, the right half sky
+        let labels = LabelMap::new(4, 2, vec![road, road, sky, sky, road, road, sky, sky], &table).unwrap();
+        let k = Keypoints {
+            xy: vec![[0.0, 0.0], [3.0, 1.0], [1.2, 1.0], [2.6, 0.0], [-5.0, 9.0]],
+            scores: vec![1.0; 5],
+            descriptors: vec![1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5, 5.0, 5.5],
+            dim: 2,
+        };
+        let mut ignored = [false; 256];
+        let mut out = vec![9.0];
+        assert_eq!(image_run(&k, &labels, &ignored, &mut out), 5);
+        assert_eq!(out[1..], k.descriptors[..]);
+        ignored[sky as usize] = true;
+        let mut out = vec![];
+        // (3, 1) and (2.6 -> 3, 0) are on sky; (-5, 9) is clamped to (0, 1): road
+        assert_eq!(image_run(&k, &labels, &ignored, &mut out), 3);
+        assert_eq!(out, vec![1.0, 1.5, 3.0, 3.5, 5.0, 5.5]);
+        // an image without keypoints
+        let none = Keypoints { xy: vec![], scores: vec![], descriptors: vec![], dim: 2 };
+        assert_eq!(image_run(&none, &labels, &ignored, &mut out), 0);
     }
 }

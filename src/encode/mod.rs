@@ -75,7 +75,9 @@ impl Encoder {
     /// An encoder for `cfg`: loads the keypoint network (and finds the segmenter) the config names.
     pub fn new(cfg: &Config) -> Result<Encoder> {
         let table = ClassTable::from_config(&cfg.classes)?;
-        let appearance = AppearanceModel::load(&cfg.appearance, &cfg.models)?.map(|m| AppearanceEncoder::new(m, &cfg.appearance, &cfg.keypoints));
+        let appearance = AppearanceModel::load(&cfg.appearance, &cfg.models)?
+            .map(|m| AppearanceEncoder::new(m, &cfg.appearance, &cfg.keypoints).ignoring(&table))
+            .transpose()?;
         let global = GlobalStage { cfg: cfg.global.clone(), used: table.used_mask(), ssim: SsimParams::new(&cfg.global) };
         Ok(Encoder { frames: FrameLoader::new(cfg, &table, appearance.is_some())?, global, table, cfg: cfg.encoding(), appearance })
     }

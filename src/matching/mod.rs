@@ -13,6 +13,7 @@ pub mod setting;
 
 pub use setting::Setting;
 
+use crate::classes::ClassTable;
 use crate::config::{Config, IndexSearch, ScoreFusion};
 use crate::descriptors::source::{self, GlobalSource, RefSource};
 use crate::descriptors::DescriptorSet;
@@ -295,7 +296,8 @@ fn pair_scores(
     }
     let verified = match setting.verifies() {
         true => {
-            let v = stages.verify_pairs(&VerifyParams::new(&cfg.verification), refs, queries, pairs)?;
+            let v =
+                stages.verify_pairs(&VerifyParams::for_config(&cfg.verification, &ClassTable::from_config(&cfg.classes)?)?, refs, queries, pairs)?;
             if v.len() != pairs.len() {
                 return Err(Error::invalid("verification", format!("{} results for {} pairs", v.len(), pairs.len())));
             }

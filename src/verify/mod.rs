@@ -10,9 +10,10 @@ pub mod best_columns;
 pub mod homography;
 pub mod ransac;
 
-use crate::classes::VOID;
+use crate::classes::{ClassTable, VOID};
 use crate::config::{SemanticCheck, VerificationConfig};
 use crate::descriptors::keypoints::{KeypointsRef, DESCRIPTOR_SCALE};
+use crate::error::{Error, Result};
 use best_columns::BestColumns;
 use ransac::RansacParams;
 
@@ -25,6 +26,8 @@ pub struct VerifyParams {
     pub ransac: RansacParams,
     /// Which RANSAC inliers count towards the verified score.
     pub semantic: SemanticCheck,
+    /// Per class index: whether its keypoints are left out of matching (`ignore_classes`).
+    pub ignored: [bool; 256],
 }
 
 impl VerifyParams {
@@ -40,7 +43,21 @@ impl VerifyParams {
                 refine: cfg.refine,
             },
             semantic: cfg.semantic,
+            ignored: [false; 256],
         }
+    }
+    /// The parameters of `cfg`'s verification with its `ignore_classes` resolved in `classes`;
+    /// a name the table does not have is an error naming it.
+    pub fn for_config(cfg: &VerificationConfig, classes: &ClassTable) -> Result<Self> {
+        let mut p = VerifyParams::new(cfg);
+        for name in &cfg.ignore_classes {
+            let c = classes.index(name).ok_or_else(|| Error::InvalidConfig {
+                source_name: "[verification]".into(),
+                reason: format!("ignore_classes: {name:?} is not a class of the table (classes.table)"),
+            })?;
+            p.ignored[c as usize] = true;
+        }
+        Ok(p)
     }
 }
 
@@ -56,7 +73,8 @@ pub struct Verified {
 /// Verifies one pair from the best columns of its keypoints (the MNN kernel's, or the fast
 /// path's output): mutual matches, then RANSAC. A side without keypoints scores 0.
 pub fn verify_from_best(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, best: &BestColumns) -> Verified {
-    let m = best_columns::mutual(best, p.min_dot);
+    let mut m = best_columns::mutual(best, p.min_dot);
+    m.retain(|&(i, j)| !p.ignored[q.classes[i as usize] as usize] && !p.ignored[r.classes[j as usize] as usize]);
     let mut out = Verified { matches: m.len() as u32, inliers: 0 };
     if m.len() < 4 {
         return out;
