@@ -222,7 +222,10 @@ pub struct AppearanceConfig {
     /// Codebook training: the seed of k-means++. \[R\] 1.
     pub codebook_seed: u64,
     /// Classes (names of the class table) whose descriptors are left out of the whole-image VLAD
-    /// (issue 32: dynamic classes and sky say little about the place). \[R\] none.
+    /// (issue 32: dynamic classes and sky say little about the place). \[R\] none (sweep 13). Not
+    /// written where empty, so that the manifests (and checksums) of maps built before it stay as
+    /// they were.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
     pub ignore_classes: Vec<String>,
 }
 
@@ -592,7 +595,7 @@ pub struct VerificationConfig {
     pub w_fine: f64,
     /// Classes (names of the class table) whose keypoints take no part in verification: a mutual
     /// match with either end on one of them is dropped before RANSAC (issue 32: dynamic classes
-    /// and sky, whose matches do not say where the camera is). \[R\] none.
+    /// and sky, whose matches do not say where the camera is). \[R\] none (sweep 13).
     pub ignore_classes: Vec<String>,
 }
 

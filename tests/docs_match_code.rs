@@ -30,9 +30,21 @@ fn doc_rows() -> Vec<(Vec<String>, String)> {
     rows
 }
 
-/// Every `section.key` of the defaults, with its value.
+/// Every `section.key` of the defaults, with its value. Keys written only when set (so that
+/// manifests of maps built before them keep their checksums) are read from a config that sets
+/// them, with the default's value.
 fn code_keys() -> BTreeMap<String, Value> {
-    let v = serde_json::to_value(semlook::config::Config::default()).unwrap();
+    let mut v = serde_json::to_value(semlook::config::Config::default()).unwrap();
+    let mut set = semlook::config::Config::default();
+    set.appearance.ignore_classes = vec!["sky".into()];
+    let set = serde_json::to_value(set).unwrap();
+    for (section, body) in set.as_object().unwrap() {
+        for k in body.as_object().into_iter().flat_map(|b| b.keys()) {
+            if v[section].get(k).is_none() {
+                v[section][k] = Value::Array(vec![]);
+            }
+        }
+    }
     let mut out = BTreeMap::new();
     for (section, body) in v.as_object().unwrap() {
         match body.as_object() {

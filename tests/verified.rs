@@ -55,6 +55,19 @@ fn matches_on_ignored_classes_take_no_part_in_verification() {
     assert!(err.contains("ignore_classes") && err.contains("pedestrian"), "{err}");
 }
 
+/// A map built with the defaults writes no `ignore_classes` into its manifest: the manifests (and
+/// checksums) of maps built before the option existed are what this version writes too.
+#[test]
+fn an_unset_ignore_list_leaves_the_manifest_as_before() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = Config::without_appearance();
+    let set = common::encode(&cfg, &common::label_maps(2, 40, 30), "r");
+    let map = dir.path().join("m");
+    semlook::map::Map::create(&map, &cfg.encoding(), &set, None).unwrap();
+    let text = std::fs::read_to_string(map.join("manifest.json")).unwrap();
+    assert!(text.contains("\"appearance\"") && !text.contains("ignore_classes"), "{text}");
+}
+
 #[test]
 fn a_map_of_the_previous_format_is_refused_saying_what_it_lacks() {
     let dir = tempfile::tempdir().unwrap();
