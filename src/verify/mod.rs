@@ -74,7 +74,10 @@ pub struct Verified {
 /// path's output): mutual matches, then RANSAC. A side without keypoints scores 0.
 pub fn verify_from_best(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, best: &BestColumns) -> Verified {
     let mut m = best_columns::mutual(best, p.min_dot);
-    m.retain(|&(i, j)| !p.ignored[q.classes[i as usize] as usize] && !p.ignored[r.classes[j as usize] as usize]);
+    if p.ignored.contains(&true) {
+        let on_ignored = |classes: &[u8], i: u32| classes.get(i as usize).is_some_and(|&c| p.ignored[c as usize]);
+        m.retain(|&(i, j)| !on_ignored(q.classes, i) && !on_ignored(r.classes, j));
+    }
     let mut out = Verified { matches: m.len() as u32, inliers: 0 };
     if m.len() < 4 {
         return out;
