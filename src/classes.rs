@@ -348,6 +348,19 @@ impl ClassTable {
     pub fn index(&self, name: &str) -> Option<u8> {
         self.names.iter().position(|n| n == name).map(|i| i as u8)
     }
+    /// Per class index 0..=255: whether `names` lists it; a name the table does not have is an
+    /// error naming it and the config key `key` it came from.
+    pub fn mask(&self, key: &str, names: &[String]) -> Result<[bool; 256]> {
+        let mut mask = [false; 256];
+        for name in names {
+            let c = self.index(name).ok_or_else(|| Error::InvalidConfig {
+                source_name: format!("[{}]", key.split('.').next().unwrap_or(key)),
+                reason: format!("{key}: {name:?} is not a class of the table (classes.table)"),
+            })?;
+            mask[c as usize] = true;
+        }
+        Ok(mask)
+    }
     /// The palette colour of a class index, RGB; black for [`VOID`]. Panics on an index the table
     /// does not hold.
     pub fn color(&self, class: u8) -> [u8; 3] {

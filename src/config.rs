@@ -913,9 +913,10 @@ impl Config {
         for (key, names) in
             [("appearance.ignore_classes", &self.appearance.ignore_classes), ("verification.ignore_classes", &self.verification.ignore_classes)]
         {
-            if let Some(name) = names.iter().find(|n| table.index(n).is_none()) {
-                return Err(v.err(format!("{key}: {name:?} is not a class of the table (classes.table)")));
-            }
+            table.mask(key, names).map_err(|e| match e {
+                Error::InvalidConfig { reason, .. } => v.err(reason),
+                other => other,
+            })?;
         }
         let i = &self.input;
         if i.working_long_side != 0 {

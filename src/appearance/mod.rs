@@ -346,13 +346,11 @@ pub fn verification_keypoints(detected: &Keypoints, max: usize, labels: &crate::
     let dim = detected.dim;
     let mut out = ImageKeypoints { dim, ..Default::default() };
     out.descriptors.extend(detected.descriptors[..n * dim].iter().map(|&v| crate::descriptors::keypoints::quantise(v)));
-    let (w, h) = (labels.width() as i64, labels.height() as i64);
     let to_u16 = |v: f32| ((v.max(0.0) / long_side.max(1) as f32) * COORD_SCALE).round().clamp(0.0, COORD_SCALE) as u16;
     for p in &detected.xy[..n] {
         out.xy.push(to_u16(p[0]));
         out.xy.push(to_u16(p[1]));
-        let (x, y) = ((p[0].round() as i64).clamp(0, w - 1), (p[1].round() as i64).clamp(0, h - 1));
-        out.classes.push(labels.classes().get((y * w + x) as usize).copied().unwrap_or(crate::classes::VOID));
+        out.classes.push(labels.class_near(p[0], p[1]));
     }
     out
 }

@@ -46,13 +46,7 @@ impl AppearanceEncoder {
     /// Resolves `appearance.ignore_classes` in `classes`; a name the table does not have is an
     /// error naming it.
     pub(super) fn ignoring(mut self, classes: &crate::classes::ClassTable) -> Result<Self> {
-        for name in &self.cfg.ignore_classes {
-            let c = classes.index(name).ok_or_else(|| Error::InvalidConfig {
-                source_name: "[appearance]".into(),
-                reason: format!("ignore_classes: {name:?} is not a class of the table (classes.table)"),
-            })?;
-            self.ignored[c as usize] = true;
-        }
+        self.ignored = classes.mask("appearance.ignore_classes", &self.cfg.ignore_classes)?;
         Ok(self)
     }
 
@@ -160,12 +154,9 @@ fn image_run(k: &Keypoints, labels: &LabelMap, ignored: &[bool; 256], out: &mut 
         out.extend_from_slice(&k.descriptors);
         return k.len();
     }
-    let (w, h) = (labels.width() as i64, labels.height() as i64);
     let mut n = 0;
     for (p, d) in k.xy.iter().zip(k.descriptors.chunks_exact(k.dim.max(1))) {
-        let (x, y) = ((p[0].round() as i64).clamp(0, w - 1), (p[1].round() as i64).clamp(0, h - 1));
-        let class = labels.classes().get((y * w + x) as usize).copied().unwrap_or(crate::classes::VOID);
-        if !ignored[class as usize] {
+        if !ignored[labels.class_near(p[0], p[1]) as usize] {
             out.extend_from_slice(d);
             n += 1;
         }

@@ -47,6 +47,16 @@ impl LabelMap {
     pub fn classes(&self) -> &[u8] {
         &self.classes
     }
+    /// The class index under position (x, y) in pixels: the nearest pixel, positions outside the
+    /// map clamped to its border; VOID for an empty map.
+    pub fn class_near(&self, x: f32, y: f32) -> u8 {
+        if self.classes.is_empty() {
+            return crate::classes::VOID;
+        }
+        let (w, h) = (self.width as i64, self.height as i64);
+        let (x, y) = ((x.round() as i64).clamp(0, w - 1), (y.round() as i64).clamp(0, h - 1));
+        self.classes.get((y * w + x) as usize).copied().unwrap_or(crate::classes::VOID)
+    }
     /// The class index of pixel (x, y); panics outside the map.
     pub fn get(&self, x: u32, y: u32) -> u8 {
         self.classes[(y * self.width + x) as usize]

@@ -13,7 +13,7 @@ pub mod ransac;
 use crate::classes::{ClassTable, VOID};
 use crate::config::{SemanticCheck, VerificationConfig};
 use crate::descriptors::keypoints::{KeypointsRef, DESCRIPTOR_SCALE};
-use crate::error::{Error, Result};
+use crate::error::Result;
 use best_columns::BestColumns;
 use ransac::RansacParams;
 
@@ -49,15 +49,7 @@ impl VerifyParams {
     /// The parameters of `cfg`'s verification with its `ignore_classes` resolved in `classes`;
     /// a name the table does not have is an error naming it.
     pub fn for_config(cfg: &VerificationConfig, classes: &ClassTable) -> Result<Self> {
-        let mut p = VerifyParams::new(cfg);
-        for name in &cfg.ignore_classes {
-            let c = classes.index(name).ok_or_else(|| Error::InvalidConfig {
-                source_name: "[verification]".into(),
-                reason: format!("ignore_classes: {name:?} is not a class of the table (classes.table)"),
-            })?;
-            p.ignored[c as usize] = true;
-        }
-        Ok(p)
+        Ok(VerifyParams { ignored: classes.mask("verification.ignore_classes", &cfg.ignore_classes)?, ..VerifyParams::new(cfg) })
     }
 }
 
