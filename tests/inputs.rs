@@ -179,6 +179,9 @@ fn invalid_configs_are_refused() {
         "[classes]\ntable = \"mapillary\"\n",
         "[verification]\nignore_classes = [\"pedestrian\"]\n",
         "[appearance]\nignore_classes = [\"sky\", \"clouds\"]\n",
+        "[verification]\nmatcher = \"superglue\"\n",
+        "[verification]\nglue_threshold = 1.5\n",
+        "[verification]\nglue_width_confidence = 2\n",
     ] {
         let e = Config::from_toml(text, "bad.toml").unwrap_err();
         assert!(matches!(e, Error::InvalidConfig { .. }) && e.to_string().contains("bad.toml"), "{text}: {e}");

@@ -147,6 +147,10 @@ impl Stages for GpuStages {
     /// Mutual nearest neighbours on the GPU (`mnn_match`), RANSAC on the CPU.
     fn verify_pairs(&mut self, p: &VerifyParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<Verified>> {
         self.work += 1;
+        if p.matcher != crate::config::Matcher::Mnn {
+            // the learned matcher has no kernel yet: its CPU implementation serves this path
+            return crate::verify::verify_pairs_cpu(p, &|q| queries.keypoints(q as usize), &|r| refs.keypoints(r as usize), pairs);
+        }
         let best = self.mnn.best_columns(queries, refs, pairs)?;
         Ok(pairs
             .par_iter()

@@ -24,7 +24,7 @@ use crate::kernels::ssim_topk;
 use crate::kernels::tree_similarity::{tree_similarity, TreeSimScratch};
 use crate::util::ms_since;
 use crate::values::Values;
-use crate::verify::{verify_pair, Verified, VerifyParams};
+use crate::verify::{verify_pairs_cpu, Verified, VerifyParams};
 use coarse_cpu::stream_topk;
 use rayon::prelude::*;
 use serde::Serialize;
@@ -129,12 +129,9 @@ impl Stages for CpuStages {
     ) -> Result<Vec<Vec<(f32, u32)>>> {
         Ok(fused_topk_cpu(refs, queries, p, w_global, k, tile))
     }
-    /// Mutual nearest neighbours by the fast path (a matrix product per pair), then RANSAC.
+    /// Mutual nearest neighbours by the fast path (a matrix product per pair), or LighterGlue; then RANSAC.
     fn verify_pairs(&mut self, p: &VerifyParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<Verified>> {
-        Ok(pairs
-            .par_iter()
-            .map_init(Vec::new, |scratch, &(q, r)| verify_pair(p, queries.keypoints(q as usize), refs.keypoints(r as usize), scratch))
-            .collect())
+        verify_pairs_cpu(p, &|q| queries.keypoints(q as usize), &|r| refs.keypoints(r as usize), pairs)
     }
 }
 

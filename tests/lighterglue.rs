@@ -1,0 +1,156 @@
+//! The crate's LighterGlue (src/verify/lighterglue.rs) held to the authors' PyTorch model (kornia's
+//! `LightGlue` with XFeat's configuration and `xfeat-lighterglue.pt`) on real pairs: the reference
+//! outputs are committed in tests/data/lighterglue_pairs.json, written once by
+//! scripts/make_lighterglue_fixtures.py from XFeat keypoints of real photos stored as the map stores
+//! them (u16 positions, int8 descriptors).
+//!
+//! Tolerance: the matches (index pairs) identical, with and without point pruning; each match's
+//! probability within 1e-3 of the reference's (float32 on both sides, other summation orders; the
+//! largest difference seen is printed).
+
+mod common;
+
+use semlook::config::Config;
+use semlook::descriptors::keypoints::KeypointsRef;
+use semlook::verify::lighterglue::{GlueParams, LighterGlue, LIGHTERGLUE_WEIGHTS};
+use semlook::verify::{verify_pairs_cpu, VerifyParams};
+use serde_json::Value;
+
+const PROBABILITY_TOLERANCE: f32 = 1e-3;
+
+fn matcher() -> Option<LighterGlue> {
+    match semlook::onnx::find_model(LIGHTERGLUE_WEIGHTS, None, "LighterGlue") {
+        Ok(path) => Some(LighterGlue::load(&path).unwrap()),
+        Err(e) => {
+            common::skip_unless_required("REQUIRE_MODELS", format!("LighterGlue weights (run setup.sh): {e}"));
+            None
+        }
+    }
+}
+
+struct Stored {
+    xy: Vec<u16>,
+    descriptors: Vec<i8>,
+    classes: Vec<u8>,
+}
+
+impl Stored {
+    fn of(pair: &Value, image: &str) -> Stored {
+        let xy: Vec<u16> = pair[format!("{image}_xy")].as_array().unwrap().iter().map(|v| v.as_u64().unwrap() as u16).collect();
+        let b64 = pair[format!("{image}_descriptors_b64")].as_str().unwrap();
+        let descriptors: Vec<i8> = base64_decode(b64).into_iter().map(|b| b as i8).collect();
+        assert_eq!(descriptors.len(), xy.len() / 2 * 64);
+        Stored { classes: vec![0; xy.len() / 2], xy, descriptors }
+    }
+    fn as_ref(&self) -> KeypointsRef<'_> {
+        KeypointsRef { descriptors: &self.descriptors, xy: &self.xy, classes: &self.classes, dim: 64 }
+    }
+}
+
+fn base64_decode(s: &str) -> Vec<u8> {
+    let val = |c: u8| match c {
+        b'A'..=b'Z' => c - b'A',
+        b'a'..=b'z' => c - b'a' + 26,
+        b'0'..=b'9' => c - b'0' + 52,
+        b'+' => 62,
+        b'/' => 63,
+        _ => panic!("not base64: {c}"),
+    };
+    let bytes: Vec<u8> = s.bytes().filter(|&c| c != b'=').collect();
+    let mut out = Vec::with_capacity(bytes.len() * 3 / 4);
+    for chunk in bytes.chunks(4) {
+        let v: Vec<u32> = chunk.iter().map(|&c| val(c) as u32).collect();
+        let n = v.iter().enumerate().fold(0u32, |a, (i, &x)| a | x << (18 - 6 * i));
+        out.extend((0..chunk.len() - 1).map(|i| (n >> (16 - 8 * i)) as u8));
+    }
+    out
+}
+
+fn fixtures() -> Value {
+    serde_json::from_str(&std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/lighterglue_pairs.json")).unwrap()).unwrap()
+}
+
+#[test]
+fn matches_the_reference_on_real_pairs() {
+    let Some(net) = matcher() else { return };
+    let fx = fixtures();
+    let mut worst = 0.0f32;
+    let mut compared = 0;
+    for pair in fx["pairs"].as_array().unwrap() {
+        let (a, b) = (Stored::of(pair, "image0"), Stored::of(pair, "image1"));
+        for run in ["pruned", "full"] {
+            let r = &pair[run];
+            let p = GlueParams { width_confidence: r["width_confidence"].as_f64().unwrap() as f32, ..GlueParams::default() };
+            let ours = net.match_keypoints(&p, a.as_ref(), b.as_ref());
+            let want: Vec<(u32, u32, f32)> = r["matches0"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .enumerate()
+                .filter_map(|(i, j)| {
+                    let j = j.as_i64().unwrap();
+                    (j >= 0).then(|| (i as u32, j as u32, r["scores0"][i].as_f64().unwrap() as f32))
+                })
+                .collect();
+            let name = format!("{} ({run})", pair["name"].as_str().unwrap());
+            let pairs = |v: &[(u32, u32, f32)]| v.iter().map(|&(i, j, _)| (i, j)).collect::<Vec<_>>();
+            assert_eq!(pairs(&ours), pairs(&want), "{name}: matches differ from the reference");
+            for (o, w) in ours.iter().zip(&want) {
+                let d = (o.2 - w.2).abs();
+                worst = worst.max(d);
+                assert!(d <= PROBABILITY_TOLERANCE, "{name}: match {:?} probability {} vs reference {}", (o.0, o.1), o.2, w.2);
+            }
+            assert!(!want.is_empty(), "{name}: the fixture should have matches");
+            compared += want.len();
+        }
+    }
+    eprintln!("{compared} matches identical; largest probability difference {worst:.2e} (tolerance {PROBABILITY_TOLERANCE:.0e})");
+}
+
+#[test]
+fn a_side_without_keypoints_has_no_matches() {
+    let Some(net) = matcher() else { return };
+    let fx = fixtures();
+    let a = Stored::of(&fx["pairs"][0], "image0");
+    let p = GlueParams::default();
+    assert!(net.match_keypoints(&p, a.as_ref(), KeypointsRef::EMPTY).is_empty());
+    assert!(net.match_keypoints(&p, KeypointsRef::EMPTY, a.as_ref()).is_empty());
+    // one keypoint each side: runs, matches at most once
+    let one = KeypointsRef { descriptors: &a.descriptors[..64], xy: &a.xy[..2], classes: &a.classes[..1], dim: 64 };
+    assert!(net.match_keypoints(&p, one, one).len() <= 1);
+}
+
+#[test]
+fn early_exit_and_pruning_are_honoured() {
+    let Some(net) = matcher() else { return };
+    let fx = fixtures();
+    let pair = &fx["pairs"][1];
+    let (a, b) = (Stored::of(pair, "image0"), Stored::of(pair, "image1"));
+    let full = net.match_keypoints(&GlueParams { width_confidence: -1.0, ..GlueParams::default() }, a.as_ref(), b.as_ref());
+    // an early exit after the first layer (any share of confident points beats 0+) gives other matches
+    let early = net.match_keypoints(&GlueParams { width_confidence: -1.0, depth_confidence: 1e-6, ..GlueParams::default() }, a.as_ref(), b.as_ref());
+    assert_ne!(full, early);
+    // a stricter threshold keeps a subset
+    let strict = net.match_keypoints(&GlueParams { filter_threshold: 0.5, width_confidence: -1.0, ..GlueParams::default() }, a.as_ref(), b.as_ref());
+    assert!(strict.len() < full.len() && strict.iter().all(|m| full.iter().any(|f| (f.0, f.1) == (m.0, m.1))));
+}
+
+/// `verification.matcher = "lighterglue"` reaches verification: the pair is verified on the
+/// learned matcher's matches (the reference's count, without pruning), not on mutual nearest
+/// neighbours, and RANSAC keeps part of them.
+#[test]
+fn verification_with_the_learned_matcher_counts_its_matches() {
+    let Some(_) = matcher() else { return };
+    let fx = fixtures();
+    let pair = &fx["pairs"][1];
+    let (a, b) = (Stored::of(pair, "image0"), Stored::of(pair, "image1"));
+    let reference = pair["full"]["matches0"].as_array().unwrap().iter().filter(|j| j.as_i64().unwrap() >= 0).count() as u32;
+    let cfg = Config::from_toml("[verification]\nmatcher = \"lighterglue\"\nglue_width_confidence = -1\n", "glue.toml").unwrap();
+    let verify = |cfg: &Config| verify_pairs_cpu(&VerifyParams::new(&cfg.verification), &|_| a.as_ref(), &|_| b.as_ref(), &[(0, 0), (0, 0)]).unwrap();
+    let glue = verify(&cfg);
+    assert_eq!(glue[0], glue[1]);
+    assert_eq!(glue[0].matches, reference);
+    assert!(glue[0].inliers >= 10 && glue[0].inliers <= glue[0].matches, "{:?}", glue[0]);
+    let mnn = verify(&Config::default());
+    assert_ne!(mnn[0].matches, glue[0].matches, "mutual nearest neighbours give other matches");
+}
