@@ -115,12 +115,21 @@ fn a_default_map_of_real_frames_fits_64_kb_per_reference_and_reports_coarse_reca
     for r in results {
         let coarse = &r["coarse_recall"];
         match r["setting"].as_str().unwrap() {
-            "global" | "fused" | "global-forest" | "semlook" | "verified" => assert!(coarse[0] == k && coarse[1].as_f64().unwrap() > 0.5, "{r}"),
-            _ => assert!(coarse.is_null(), "{r}"),
+            "global" | "fused" | "global-forest" | "semlook" | "verified" => {
+                assert!(coarse[0] == k && coarse[1].as_f64().unwrap() > 0.5, "{r}");
+                // the coarse stage's own recall at 10, 30, 100: rising with K, equal to coarse@K at K
+                let at: Vec<(u64, f64)> =
+                    r["coarse_recall_at"].as_array().unwrap().iter().map(|x| (x[0].as_u64().unwrap(), x[1].as_f64().unwrap())).collect();
+                assert_eq!(at.iter().map(|x| x.0).collect::<Vec<_>>(), [10, 30, 100], "{r}");
+                assert!(at.windows(2).all(|w| w[0].1 <= w[1].1), "{r}");
+                assert_eq!(at[1].1, coarse[1].as_f64().unwrap(), "{r}");
+            }
+            _ => assert!(coarse.is_null() && r.get("coarse_recall_at").is_none(), "{r}"),
         }
     }
     let verified = results.iter().find(|r| r["setting"] == "verified").unwrap();
     assert!(verified["recall_at"][0][1].as_f64().unwrap() >= 0.9, "{verified}");
     let text = run(false);
     assert!(text.contains("coarse@K") && text.lines().any(|l| l.contains("verified") && l.contains(&format!("@{k}"))), "{text}");
+    assert!(text.lines().any(|l| l.contains("verified: coarse stage recall @10") && l.contains("@100")), "{text}");
 }

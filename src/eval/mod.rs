@@ -64,6 +64,12 @@ pub struct SettingReport {
     /// share of the exact top-K the index's top-K holds, averaged over the queries).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub index_recall: Option<Vec<(usize, f64)>>,
+    /// For settings with a coarse stage: (K, recall@K of the coarse stage's own ranking) for
+    /// K = 10, 30, 100 ([`COARSE_RECALL_KS`]): the share of queries with ground truth whose coarse
+    /// top-K holds a valid reference, whatever `matching.top_k` is (what a larger or smaller
+    /// shortlist would keep).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub coarse_recall_at: Option<Vec<(usize, f64)>>,
     /// Matching time per query per reference frame, as VPR-Bench reports it.
     pub matching_ms_per_ref: f64,
     /// Every query's top-1 and score, for the precision-recall curve and --explain.
@@ -371,6 +377,8 @@ pub fn match_query_set(
     skipped: &mut Vec<(Setting, String)>,
 ) -> Result<()> {
     let mut index_recall: Option<Vec<(usize, f64)>> = None;
+    // per coarse stage (fused or the edge descriptor alone): its recall@10/30/100
+    let mut coarse_at: Vec<(bool, Vec<(usize, f64)>)> = Vec::new();
     for &setting in settings {
         if let Some(why) = setting.is_baseline().then(|| crate::matching::baseline::unavailable(refs, queries, setting)).flatten() {
             if !skipped.iter().any(|(s, _)| *s == setting) {
@@ -386,9 +394,38 @@ pub fn match_query_set(
             }
             r.index_recall = index_recall.clone();
         }
+        if setting.uses_coarse() {
+            let fused = setting.fuses_coarse(cfg.matching.coarse);
+            if !coarse_at.iter().any(|(f, _)| *f == fused) {
+                coarse_at.push((fused, coarse_recall_at(engine, refs, queries, gt, setting, cfg)?));
+            }
+            r.coarse_recall_at = coarse_at.iter().find(|(f, _)| *f == fused).map(|(_, v)| v.clone());
+        }
         results.push(r);
     }
     Ok(())
+}
+
+/// The K of the coarse stage's recall in reports.
+pub const COARSE_RECALL_KS: [usize; 3] = [10, 30, 100];
+
+/// Recall@K of `setting`'s coarse stage (as configured: fused or the edge descriptor, exact or
+/// through the index) for K in [`COARSE_RECALL_KS`], over the queries with ground truth: its
+/// candidate lists made once at the deepest K.
+pub fn coarse_recall_at(
+    engine: &mut Engine,
+    refs: &dyn RefSource,
+    queries: &DescriptorSet,
+    gt: &[Vec<u32>],
+    setting: Setting,
+    cfg: &Config,
+) -> Result<Vec<(usize, f64)>> {
+    let mut c = cfg.clone();
+    c.matching.top_k = COARSE_RECALL_KS[COARSE_RECALL_KS.len() - 1];
+    let (lists, _) = engine.candidates(refs, queries, setting, &c)?;
+    let (ranked, gts): (Vec<Vec<u32>>, Vec<Vec<u32>>) =
+        lists.iter().zip(gt).filter(|(_, g)| !g.is_empty()).map(|(l, g)| (l.iter().map(|x| x.1).collect(), g.clone())).unzip();
+    Ok(COARSE_RECALL_KS.iter().map(|&k| (k, recall_at_n(&ranked, &gts, k))).collect())
 }
 
 /// Recall@K (K = 10, 30, 100) of the approximate fused coarse stage against the exact one on the
@@ -591,6 +628,7 @@ fn report(
         recall_at: cfg.eval.recall_at.iter().map(|&n| (n, recall_at_n(&ranked, &gts, n))).collect(),
         coarse_recall: setting.uses_coarse().then(|| (cfg.matching.top_k, recall_at_n(&ranked, &gts, cfg.matching.top_k))),
         index_recall: None,
+        coarse_recall_at: None,
         matching_ms_per_ref: matching_ms / pairs,
         outcomes,
         sequence: None,
@@ -652,6 +690,10 @@ impl EvalReport {
                     );
                 }
             }
+        }
+        for r in self.results.iter().filter(|r| r.coarse_recall_at.is_some()) {
+            let v: Vec<String> = r.coarse_recall_at.iter().flatten().map(|(k, x)| format!("@{k} {x:.3}")).collect();
+            s += &format!("{} {}: coarse stage recall {}\n", r.query_set, r.setting.name(), v.join(", "));
         }
         let mut shown: Vec<&str> = Vec::new();
         for r in self.results.iter().filter(|r| r.index_recall.is_some()) {
