@@ -3,8 +3,9 @@
 //! with the keypoints XFeat stores for real frames (Nordland spring queries against winter
 //! references from ../shared, 384 keypoints each, the default). Target (issue 16): <= 50 ms per
 //! query on the 2-core machine. The same pairs with the learned matcher (`verification.matcher =
-//! "lighterglue"`, the authors' pruning): target (issue 32) <= 150 ms per query at K = 30. Skips,
-//! saying why, without the frames or the weights.
+//! "lighterglue"`, the authors' pruning): target (issue 32) <= 150 ms per query at K = 30; and the
+//! fusion of both (`w_glue`: MNN on all K, LighterGlue on the `glue_candidates` best). Skips, saying
+//! why, without the frames or the weights.
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use semlook::config::Config;
@@ -81,6 +82,19 @@ fn bench(c: &mut Criterion) {
                         q = (q + 1) % queries.len() as u32;
                         let pairs: Vec<(u32, u32)> = (0..K as u32).map(|r| (q, r)).collect();
                         CpuStages.verify_pairs(&gp, &refs, &queries, &pairs).unwrap()
+                    })
+                },
+            );
+            // `w_glue`: MNN on all K, LighterGlue on the `glue_candidates` best (here the first ones)
+            let n = cfg.verification.glue_candidates.min(K);
+            g.bench_function(
+                format!("verify_pairs (CPU: MNN on {K} + LighterGlue on {n}, w_glue)/1_query_x{K}_candidates_{}_keypoints", cfg.keypoints.stored),
+                |b| {
+                    b.iter(|| {
+                        q = (q + 1) % queries.len() as u32;
+                        let pairs: Vec<(u32, u32)> = (0..K as u32).map(|r| (q, r)).collect();
+                        let mnn = CpuStages.verify_pairs(&vp, &refs, &queries, &pairs).unwrap();
+                        (mnn, CpuStages.verify_pairs(&gp, &refs, &queries, &pairs[..n]).unwrap())
                     })
                 },
             );

@@ -154,3 +154,77 @@ fn verification_with_the_learned_matcher_counts_its_matches() {
     let mnn = verify(&Config::default());
     assert_ne!(mnn[0].matches, glue[0].matches, "mutual nearest neighbours give other matches");
 }
+
+/// A descriptor set of stored keypoints alone (global descriptors all equal, no trees or
+/// appearance), so that the verified score is the inlier terms plus a constant.
+fn keypoint_set(cfg: &Config, images: &[&Stored]) -> semlook::descriptors::DescriptorSet {
+    let p = semlook::kernels::abi::SsimParams::new(&cfg.global);
+    let mut set = semlook::descriptors::DescriptorSet::new(&p, cfg.local.neighbours, 0, 0).with_keypoint_dim(64);
+    for (i, s) in images.iter().enumerate() {
+        let img = semlook::descriptors::EncodedImage {
+            id: format!("{i}"),
+            width: 640,
+            height: 480,
+            global: vec![0.5; p.len()],
+            global_stats: vec![0.0; p.stats_len()],
+            forest: semlook::local::Forest { neighbour_slots: cfg.local.neighbours, ..Default::default() },
+            appearance: vec![],
+            hog: vec![],
+            keypoints: semlook::descriptors::keypoints::ImageKeypoints {
+                descriptors: s.descriptors.clone(),
+                xy: s.xy.clone(),
+                classes: s.classes.clone(),
+                dim: 64,
+            },
+            pose: None,
+        };
+        set.push(&img).unwrap();
+    }
+    set
+}
+
+/// `verification.w_glue` > 0 with the MNN matcher: LighterGlue verifies each query's
+/// `glue_candidates` best candidates (by the score without its term) and adds w_glue ln(1 + its
+/// inliers) to their score, exactly; the other candidates keep today's score.
+#[test]
+fn w_glue_adds_the_learned_matchers_inliers_to_the_best_candidates() {
+    let Some(_) = matcher() else { return };
+    let fx = fixtures();
+    let img = |k: usize, side: &str| Stored::of(&fx["pairs"][k], side);
+    let (q0, q1) = (img(0, "image0"), img(1, "image0"));
+    let r = [img(0, "image1"), img(1, "image1"), img(2, "image1"), img(2, "image0")];
+    let base = Config::from_toml("[verification]\nglue_threshold = 0.7\n", "t.toml").unwrap();
+    let queries = keypoint_set(&base, &[&q0, &q1]);
+    let refs = keypoint_set(&base, &r.iter().collect::<Vec<_>>());
+    let with = Config::from_toml("[verification]\nglue_threshold = 0.7\nw_glue = 0.5\nglue_candidates = 2\n", "t.toml").unwrap();
+    let (plain, _) = semlook::matching::match_batch(&refs, &queries, semlook::matching::Setting::Verified, &base).unwrap();
+    let (fused, _) = semlook::matching::match_batch(&refs, &queries, semlook::matching::Setting::Verified, &with).unwrap();
+    let glue_cfg = Config::from_toml("[verification]\nmatcher = \"lighterglue\"\nglue_threshold = 0.7\n", "t.toml").unwrap();
+    let mut raised = 0;
+    for (qi, (p, f)) in plain.iter().zip(&fused).enumerate() {
+        assert_eq!(p.ranked.len(), r.len());
+        // the two best before: the only ones LighterGlue verifies
+        let best: Vec<u32> = p.ranked.iter().take(2).map(|c| c.reference).collect();
+        for c in &p.ranked {
+            let after = f.ranked.iter().find(|x| x.reference == c.reference).unwrap();
+            let glue = verify_pairs_cpu(
+                &VerifyParams::new(&glue_cfg.verification),
+                &|_| queries.keypoints(qi),
+                &|_| refs.keypoints(c.reference as usize),
+                &[(0, 0)],
+            )
+            .unwrap()[0]
+                .inliers;
+            let want = if best.contains(&c.reference) { 0.5 * (glue as f64).ln_1p() } else { 0.0 };
+            assert!(
+                ((after.score - c.score) as f64 - want).abs() < 1e-4,
+                "query {qi} reference {}: {} -> {} (glue inliers {glue})",
+                c.reference,
+                c.score,
+                after.score
+            );
+            raised += (want > 0.0) as usize;
+        }
+    }
+    assert!(raised >= 2, "LighterGlue found inliers on some chosen pair");
+}

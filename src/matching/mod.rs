@@ -14,7 +14,7 @@ pub mod setting;
 pub use setting::Setting;
 
 use crate::classes::ClassTable;
-use crate::config::{Config, IndexSearch, ScoreFusion};
+use crate::config::{Config, IndexSearch, Matcher, ScoreFusion};
 use crate::descriptors::source::{self, GlobalSource, RefSource};
 use crate::descriptors::DescriptorSet;
 use crate::error::{Error, Remedy, Result};
@@ -293,14 +293,17 @@ fn pair_scores(
     }
     let verified = match setting.verifies() {
         true => {
-            let v =
-                stages.verify_pairs(&VerifyParams::for_config(&cfg.verification, &ClassTable::from_config(&cfg.classes)?)?, refs, queries, pairs)?;
+            let vp = VerifyParams::for_config(&cfg.verification, &ClassTable::from_config(&cfg.classes)?)?;
+            let mut v = stages.verify_pairs(&vp, refs, queries, pairs)?;
             if v.len() != pairs.len() {
                 return Err(Error::invalid("verification", format!("{} results for {} pairs", v.len(), pairs.len())));
             }
             let w = &cfg.verification;
+            if w.matcher == Matcher::Mnn && w.w_glue > 0.0 {
+                glue_best_pairs(stages, refs, queries, cfg, &vp, pairs, &fine, &mut v)?;
+            }
             for (f, v) in fine.iter_mut().zip(&v) {
-                *f = (w.w_inliers * (v.inliers as f64).ln_1p() + w.w_fine * *f as f64) as f32;
+                *f = (w.w_inliers * (v.inliers as f64).ln_1p() + w.w_glue * (v.glue_inliers as f64).ln_1p() + w.w_fine * *f as f64) as f32;
             }
             Some(v)
         }
@@ -308,6 +311,42 @@ fn pair_scores(
     };
     refs.check()?;
     Ok((fine, verified))
+}
+
+/// `verification.w_glue`: LighterGlue's inliers for each query's `glue_candidates` best pairs by
+/// w_inliers ln(1 + MNN inliers) + w_fine similarity (ties: the earlier pair), into `v`.
+#[allow(clippy::too_many_arguments)]
+fn glue_best_pairs(
+    stages: &mut dyn Stages,
+    refs: &dyn RefSource,
+    queries: &DescriptorSet,
+    cfg: &Config,
+    vp: &VerifyParams,
+    pairs: &[(u32, u32)],
+    fine: &[f32],
+    v: &mut [Verified],
+) -> Result<()> {
+    let w = &cfg.verification;
+    let partial = |i: usize| w.w_inliers * (v[i].inliers as f64).ln_1p() + w.w_fine * fine[i] as f64;
+    let mut by_query: std::collections::BTreeMap<u32, Vec<usize>> = std::collections::BTreeMap::new();
+    for (i, &(q, _)) in pairs.iter().enumerate() {
+        by_query.entry(q).or_default().push(i);
+    }
+    let mut chosen = Vec::new();
+    for idx in by_query.values_mut() {
+        idx.sort_by(|&a, &b| partial(b).total_cmp(&partial(a)).then(a.cmp(&b)));
+        chosen.extend(idx.iter().take(w.glue_candidates).copied());
+    }
+    chosen.sort_unstable();
+    let sub: Vec<(u32, u32)> = chosen.iter().map(|&i| pairs[i]).collect();
+    let g = stages.verify_pairs(&VerifyParams { matcher: Matcher::Lighterglue, ..*vp }, refs, queries, &sub)?;
+    if g.len() != sub.len() {
+        return Err(Error::invalid("verification", format!("{} results for {} pairs", g.len(), sub.len())));
+    }
+    for (&i, g) in chosen.iter().zip(&g) {
+        v[i].glue_inliers = g.inliers;
+    }
+    Ok(())
 }
 
 /// The fused coarse stage: for each query, the `k` references of highest

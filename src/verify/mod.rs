@@ -34,7 +34,7 @@ pub struct VerifyParams {
     pub ignored: [bool; 256],
     /// Which matcher pairs keypoints up.
     pub matcher: Matcher,
-    /// The learned matcher's parameters (`matcher = lighterglue`).
+    /// The learned matcher's parameters (`matcher = lighterglue`, or `w_glue` > 0).
     pub glue: GlueParams,
 }
 
@@ -74,6 +74,9 @@ pub struct Verified {
     pub matches: u32,
     /// Matches the best homography explains (those whose classes agree, with the semantic check).
     pub inliers: u32,
+    /// With `w_glue` > 0 (and the MNN matcher): the inliers of LighterGlue's matches, for the
+    /// `glue_candidates` best pairs of each query (0 for the others).
+    pub glue_inliers: u32,
 }
 
 /// Verifies one pair from the best columns of its keypoints (the MNN kernel's, or the fast
@@ -89,7 +92,7 @@ fn verify_matches(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, mut m: Vec
         let on_ignored = |classes: &[u8], i: u32| classes.get(i as usize).is_some_and(|&c| p.ignored[c as usize]);
         m.retain(|&(i, j)| !on_ignored(q.classes, i) && !on_ignored(r.classes, j));
     }
-    let mut out = Verified { matches: m.len() as u32, inliers: 0 };
+    let mut out = Verified { matches: m.len() as u32, ..Verified::default() };
     if m.len() < 4 {
         return out;
     }
