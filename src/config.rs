@@ -1030,6 +1030,13 @@ impl Config {
         }
         v.real("verification.glue_threshold", vf.glue_threshold, 0.0, 1.0)?;
         v.int("verification.glue_candidates", vf.glue_candidates, 1, 1024)?;
+        if (vf.matcher == Matcher::Lighterglue || vf.w_glue > 0.0) && self.appearance.model != AppearanceModelKind::Xfeat {
+            // LighterGlue was trained on XFeat's descriptors: another network's keypoints would be matched as if they were
+            return Err(v.err(format!(
+                "verification.matcher = \"lighterglue\" (or w_glue > 0) matches XFeat keypoints; appearance.model is {:?}",
+                self.appearance.model
+            )));
+        }
         v.real("verification.glue_width_confidence", vf.glue_width_confidence, -1.0, 1.0)?;
         v.real("verification.glue_depth_confidence", vf.glue_depth_confidence, -1.0, 1.0)?;
         for (name, w) in [
@@ -1152,6 +1159,8 @@ mod tests {
             ("[global]\ntruncation = nan\n", "global.truncation"),
             ("[global]\nssim_window = 4\n", "ssim_window"),
             ("[matching]\ntop_k = 0\n", "top_k"),
+            ("[verification]\nmatcher = \"lighterglue\"\n[appearance]\nmodel = \"onnx\"\n", "matches XFeat keypoints"),
+            ("[verification]\nw_glue = 0.5\n[appearance]\nmodel = \"none\"\n", "matches XFeat keypoints"),
             ("[objects]\nmin_area = 1\n", "min_area"),
             ("[classes]\nexclude = [\"dragon\"]\n", "dragon"),
             ("[eval]\nrecall_at = [1, 100000]\n", "eval.recall_at[1]"),

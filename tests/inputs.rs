@@ -182,6 +182,8 @@ fn invalid_configs_are_refused() {
         "[verification]\nmatcher = \"superglue\"\n",
         "[verification]\nglue_threshold = 1.5\n",
         "[verification]\nglue_width_confidence = 2\n",
+        "[verification]\nmatcher = \"lighterglue\"\n[appearance]\nmodel = \"onnx\"\n",
+        "[verification]\nw_glue = 0.5\n[appearance]\nmodel = \"none\"\n",
     ] {
         let e = Config::from_toml(text, "bad.toml").unwrap_err();
         assert!(matches!(e, Error::InvalidConfig { .. }) && e.to_string().contains("bad.toml"), "{text}: {e}");
