@@ -300,7 +300,13 @@ fn pair_scores(
             }
             let w = &cfg.verification;
             if w.matcher == Matcher::Mnn && w.w_glue > 0.0 {
-                glue_best_pairs(stages, refs, queries, cfg, &vp, pairs, &fine, &mut v)?;
+                // the learned matcher beside MNN, on every pair: a pair's score never depends on
+                // which other pairs are scored with it (shards, sequence neighbours)
+                let g = stages.verify_pairs(&VerifyParams { matcher: Matcher::Lighterglue, ..vp }, refs, queries, pairs)?;
+                if g.len() != pairs.len() {
+                    return Err(Error::invalid("verification", format!("{} results for {} pairs", g.len(), pairs.len())));
+                }
+                v.iter_mut().zip(&g).for_each(|(v, g)| v.glue_inliers = g.inliers);
             }
             for (f, v) in fine.iter_mut().zip(&v) {
                 *f = (w.w_inliers * (v.inliers as f64).ln_1p() + w.w_glue * (v.glue_inliers as f64).ln_1p() + w.w_fine * *f as f64) as f32;
@@ -311,42 +317,6 @@ fn pair_scores(
     };
     refs.check()?;
     Ok((fine, verified))
-}
-
-/// `verification.w_glue`: LighterGlue's inliers for each query's `glue_candidates` best pairs by
-/// w_inliers ln(1 + MNN inliers) + w_fine similarity (ties: the earlier pair), into `v`.
-#[allow(clippy::too_many_arguments)]
-fn glue_best_pairs(
-    stages: &mut dyn Stages,
-    refs: &dyn RefSource,
-    queries: &DescriptorSet,
-    cfg: &Config,
-    vp: &VerifyParams,
-    pairs: &[(u32, u32)],
-    fine: &[f32],
-    v: &mut [Verified],
-) -> Result<()> {
-    let w = &cfg.verification;
-    let partial = |i: usize| w.w_inliers * (v[i].inliers as f64).ln_1p() + w.w_fine * fine[i] as f64;
-    let mut by_query: std::collections::BTreeMap<u32, Vec<usize>> = std::collections::BTreeMap::new();
-    for (i, &(q, _)) in pairs.iter().enumerate() {
-        by_query.entry(q).or_default().push(i);
-    }
-    let mut chosen = Vec::new();
-    for idx in by_query.values_mut() {
-        idx.sort_by(|&a, &b| partial(b).total_cmp(&partial(a)).then(a.cmp(&b)));
-        chosen.extend(idx.iter().take(w.glue_candidates).copied());
-    }
-    chosen.sort_unstable();
-    let sub: Vec<(u32, u32)> = chosen.iter().map(|&i| pairs[i]).collect();
-    let g = stages.verify_pairs(&VerifyParams { matcher: Matcher::Lighterglue, ..*vp }, refs, queries, &sub)?;
-    if g.len() != sub.len() {
-        return Err(Error::invalid("verification", format!("{} results for {} pairs", g.len(), sub.len())));
-    }
-    for (&i, g) in chosen.iter().zip(&g) {
-        v[i].glue_inliers = g.inliers;
-    }
-    Ok(())
 }
 
 /// The fused coarse stage: for each query, the `k` references of highest

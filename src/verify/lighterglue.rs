@@ -178,8 +178,9 @@ impl Weights {
 }
 
 impl LighterGlue {
-    /// Loads `xfeat-lighterglue.pt` (or any LightGlue state dict with one attention head); an
-    /// error is an [`Error::Model`] naming `path`.
+    /// Loads `xfeat-lighterglue.pt` (a LightGlue state dict of one attention head, an input
+    /// projection and 2-d positions, in the current key names); an error is an [`Error::Model`]
+    /// naming `path`.
     pub fn load(path: &Path) -> Result<LighterGlue> {
         Self::from_weights(Weights(read_state_dict(path)?)).map_err(|e| e.named(|reason| Error::Model { path: path.into(), reason }))
     }
@@ -320,8 +321,8 @@ impl LighterGlue {
         self.token_confidence[i].forward(&s.x, s.len()).into_iter().map(sigmoid).collect()
     }
 
-    /// The log assignment of the points left: `(m + 1) x (n + 1)` without the dustbins, as
-    /// `m x n` log probabilities followed by nothing else (the dustbins are not needed to match).
+    /// The log assignment of the points left: `m x n` log probabilities, without the dustbin row
+    /// and column (not needed to match).
     fn log_assignment(&self, a: &Assignment, s0: &Side, s1: &Side) -> Vec<f32> {
         let (m, n, d) = (s0.len(), s1.len(), self.d);
         let norm = (d as f32).powf(0.25);
@@ -396,7 +397,8 @@ fn network_inputs(k: KeypointsRef) -> (Vec<f32>, Vec<f32>) {
 
 /// LightGlue's confidence threshold of layer `i` of `n`.
 fn confidence_threshold(i: usize, n: usize) -> f32 {
-    (0.8 + 0.1 * (-4.0 * i as f32 / n as f32).exp()).clamp(0.0, 1.0)
+    // in f64, then stored as f32, as the reference's buffer holds it
+    (0.8 + 0.1 * (-4.0 * i as f64 / n as f64).exp()).clamp(0.0, 1.0) as f32
 }
 
 /// The rotary embedding of one point's `t` (`d` values): each pair rotated by its angle.

@@ -74,8 +74,7 @@ pub struct Verified {
     pub matches: u32,
     /// Matches the best homography explains (those whose classes agree, with the semantic check).
     pub inliers: u32,
-    /// With `w_glue` > 0 (and the MNN matcher): the inliers of LighterGlue's matches, for the
-    /// `glue_candidates` best pairs of each query (0 for the others).
+    /// With `w_glue` > 0 (and the MNN matcher): the inliers of LighterGlue's matches.
     pub glue_inliers: u32,
 }
 
