@@ -1,36 +1,50 @@
 //! The coarse stage's SSIM kernel on one thread:
-//! - one pair: the twin `ssim_pair` (the straightforward form the shader mirrors) against the
-//!   fast path's `ssim_pair_fast`, with the best instruction set pulp finds and with its scalar
-//!   fallback; throughput counts pairs;
-//! - one descriptor's terms for the fast path, from its stored stats or from the descriptor
-//!   alone (a store that keeps no stats); throughput counts descriptors.
+//! - the twin `ssim_pair` (the straightforward form the shader mirrors), one pair;
+//! - the fast path's `ssim_lanes_fast`: one query against a group of references side by side
+//!   (8 with AVX2), with the best instruction set pulp finds and with its scalar fallback (one
+//!   lane); throughput counts pairs;
+//! - one query's lane terms for the fast path, from its stats record; throughput counts queries.
 //!
 //! Inputs are real global descriptors of rendered street frames (64x48, 7x7 windows).
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use semlook::config::Config;
-use semlook::global::ssim_fast::{ssim_pair_fast, terms_from_descriptor, terms_from_stats, FastLayout, FastScratch};
+use semlook::global::ssim_fast::{
+    interleave, query_lane_terms, query_lane_terms_len, ref_lane_terms, ref_lane_terms_len, ssim_lanes_fast, LaneScratch,
+};
 use semlook::kernels::abi::SsimParams;
 use semlook::kernels::ssim::{ssim_pair, SsimScratch};
 use semlook::tools::synth::condition::Condition;
 
 mod common;
 
-struct Fast<'a> {
+/// One call of the lane kernel, dispatched to an instruction set.
+struct Lanes<'a> {
     p: &'a SsimParams,
-    l: &'a FastLayout,
     x: &'a [f32],
-    tx: &'a [f32],
-    y: &'a [f32],
-    ty: &'a [f32],
-    s: &'a mut FastScratch,
+    xt: &'a [f32],
+    refs: &'a [f32],
+    stats: &'a [f32],
+    y: &'a mut Vec<f32>,
+    ys: &'a mut Vec<f32>,
+    s: &'a mut LaneScratch,
+    out: &'a mut [f32],
 }
 
-impl pulp::WithSimd for Fast<'_> {
-    type Output = f32;
+impl pulp::WithSimd for Lanes<'_> {
+    type Output = usize;
+    /// Interleaves the group once (as a task does once per query pass), then scores it.
     #[inline(always)]
-    fn with_simd<S: pulp::Simd>(self, simd: S) -> f32 {
-        ssim_pair_fast(simd, self.p, self.l, self.x, self.tx, self.y, self.ty, self.s)
+    fn with_simd<S: pulp::Simd>(self, simd: S) -> usize {
+        let (len, lanes) = (self.p.len(), S::F32_LANES);
+        if self.y.len() != len * lanes {
+            self.y.resize(len * lanes, 0.0);
+            self.ys.resize(ref_lane_terms_len(self.p, lanes), 0.0);
+            interleave(self.refs, len, lanes, lanes, self.y);
+            ref_lane_terms(self.p, self.stats, lanes, lanes, self.ys);
+        }
+        ssim_lanes_fast(simd, self.p, self.x, self.xt, self.y, self.ys, self.s, self.out);
+        lanes
     }
 }
 
@@ -38,27 +52,41 @@ fn bench(c: &mut Criterion) {
     let cfg = Config::without_appearance();
     let images = common::encode_all(&cfg, &common::street_labels(2, 640, 480, Condition::Day));
     let p = SsimParams::new(&cfg.global);
-    let l = FastLayout::new(&p);
     let (x, y) = (&images[0], &images[1]);
-    let (mut tx, mut ty) = (vec![0.0; l.terms_len()], vec![0.0; l.terms_len()]);
-    terms_from_stats(&l, &x.global_stats, &mut tx);
-    terms_from_stats(&l, &y.global_stats, &mut ty);
+    let mut xt = vec![0.0; query_lane_terms_len(&p)];
+    query_lane_terms(&p, &x.global_stats, &mut xt);
+    // 16 references (enough for any vector width): y and x alternately
+    let refs: Vec<f32> = (0..16).flat_map(|i| if i % 2 == 0 { y.global.clone() } else { x.global.clone() }).collect();
+    let stats: Vec<f32> = (0..16).flat_map(|i| if i % 2 == 0 { y.global_stats.clone() } else { x.global_stats.clone() }).collect();
     let mut g = c.benchmark_group("ssim pair (1 thread)");
     g.throughput(Throughput::Elements(1));
     let mut scratch = SsimScratch::default();
     g.bench_function("twin ssim_pair", |b| b.iter(|| ssim_pair(&p, &x.global, &x.global_stats, &y.global, &y.global_stats, &mut scratch)));
-    let mut fs = FastScratch::new(&l);
-    for (name, arch) in [(format!("{:?}", pulp::Arch::new()), pulp::Arch::new()), ("Scalar".to_string(), pulp::Arch::Scalar)] {
-        g.bench_function(format!("ssim_pair_fast {}", name.split('(').next().unwrap_or("?")), |b| {
-            b.iter(|| arch.dispatch(Fast { p: &p, l: &l, x: &x.global, tx: &tx, y: &y.global, ty: &ty, s: &mut fs }))
-        });
-    }
     g.finish();
+    for (name, arch) in [(format!("{:?}", pulp::Arch::new()), pulp::Arch::new()), ("Scalar".to_string(), pulp::Arch::Scalar)] {
+        let (mut yl, mut ysl, mut ls, mut out) = (Vec::new(), Vec::new(), LaneScratch::default(), vec![0.0f32; 16]);
+        let mut call =
+            || arch.dispatch(Lanes { p: &p, x: &x.global, xt: &xt, refs: &refs, stats: &stats, y: &mut yl, ys: &mut ysl, s: &mut ls, out: &mut out });
+        let lanes = call();
+        let mut g = c.benchmark_group("ssim pair (1 thread)");
+        g.throughput(Throughput::Elements(lanes as u64));
+        g.bench_function(format!("ssim_lanes_fast {} ({lanes} pairs a call)", name.split('(').next().unwrap_or("?")), |b| b.iter(&mut call));
+        g.finish();
+    }
     let mut g = c.benchmark_group("fast-path terms (1 thread)");
     g.throughput(Throughput::Elements(1));
-    g.bench_function("terms_from_stats", |b| b.iter(|| terms_from_stats(&l, &x.global_stats, &mut tx)));
-    let (mut st, mut sc) = (vec![0.0; p.stats_len()], SsimScratch::default());
-    g.bench_function("terms_from_descriptor", |b| b.iter(|| terms_from_descriptor(&p, &l, &x.global, &mut st, &mut sc, &mut tx)));
+    g.bench_function("query_lane_terms", |b| b.iter(|| query_lane_terms(&p, &x.global_stats, &mut xt)));
+    g.finish();
+    // what a task pays once per group of 8 references and query pass (and a single query per group)
+    let mut g = c.benchmark_group("fast-path group preparation (1 thread)");
+    g.throughput(Throughput::Elements(8));
+    let (mut yl, mut yt) = (vec![0.0; p.len() * 8], vec![0.0; ref_lane_terms_len(&p, 8)]);
+    g.bench_function("interleave + ref_lane_terms, 8 references", |b| {
+        b.iter(|| {
+            interleave(&refs, p.len(), 8, 8, &mut yl);
+            ref_lane_terms(&p, &stats, 8, 8, &mut yt);
+        })
+    });
     g.finish();
 }
 

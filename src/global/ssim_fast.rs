@@ -1,20 +1,21 @@
-//! SSIM of one descriptor pair from precomputed per-descriptor terms: the kernel of the fast CPU
-//! coarse path (`matching::coarse_cpu`), equal bit for bit to [`ssim_pair`](crate::kernels::ssim::ssim_pair).
+//! The kernels of the fast CPU coarse path (`matching::coarse_cpu`): SSIM of one query against a
+//! group of references ([`ssim_lanes_fast`], equal bit for bit to
+//! [`ssim_pair`](crate::kernels::ssim::ssim_pair) for each pair) and the SSIM statistics of a
+//! descriptor ([`ssim_stats_fast`], equal to [`ssim_stats`]).
 //!
 //! Algorithm: the twin's arithmetic in the twin's order (product map, direct `win`-tap
 //! horizontal window sums, direct vertical sums, the SSIM window formula, the shader's 64-lane
 //! strided mean), laid out for SIMD:
-//! - window columns are processed a vector at a time (`pulp`'s native width: 8 lanes with AVX2),
-//!   from rows padded to a multiple of [`W`]; `G` vectors side by side, so that independent
-//!   addition chains hide the adders' latency;
-//! - the image is streamed row by row: one product row, a ring of `win` rows of horizontal sums
-//!   and the window values are all a pair writes, so its scratch stays in L1;
-//! - what depends on one descriptor only is laid out once per descriptor ([`terms_from_stats`]:
-//!   window means m and variances v in padded rows), not once per pair. Pre-adding the
-//!   constants (m*m + C1/2, v + C2/2) would round differently from the twin, which adds C1 and
-//!   C2 after summing the two descriptors' terms; pre-squaring m (a third plane) was measured
-//!   and bought nothing, since the kernel is not bound by those multiplications;
-//! - the per-window values go to a row-major buffer and are reduced as the twin reduces them.
+//! - pairs: one reference per vector lane (`pulp`'s native width: 8 with AVX2), the references'
+//!   descriptors and stats [`interleave`]d, the query's values broadcast. No vector straddles
+//!   windows, so there is no padding and no shifted load; the image is streamed row by row (one
+//!   product row and a ring of `win` rows of horizontal sums, in L1), `G` columns side by side
+//!   for independent addition chains, and each window's value goes straight to its lane of the
+//!   twin's reduction. What depends on the query only (its means, doubled and squared as the
+//!   twin rounds them, and variances: [`query_lane_terms`]) is computed once per query.
+//!   (Measured against the former one-pair kernel, whose vectors ran along window columns padded
+//!   to 64: 1.6 against 2.5 µs a pair on one Zen 4 core, `cargo bench --bench coarse_kernel`.)
+//! - statistics: window columns a vector at a time, from rows padded to a multiple of [`W`].
 //!
 //! IEEE operations evaluated in the same order give the same bits (Rust neither contracts
 //! a*b+c into a fused multiply-add nor reassociates, and only plain add/sub/mul/div are used), so
@@ -55,35 +56,10 @@ impl FastLayout {
         let (nw, nh) = (p.nw as usize, p.nh as usize);
         FastLayout { gw: p.gw as usize, gh: p.gh as usize, win: p.win as usize, nw, nh, stride: nw.next_multiple_of(W), n: nw * nh }
     }
-    /// Floats of one descriptor's terms: m and v, each `nh` rows of `stride`.
-    pub fn terms_len(&self) -> usize {
-        2 * self.nh * self.stride
-    }
 }
 
-/// The terms of one descriptor from its stats record ([means | variances], as `ssim_stats`
-/// writes it). Padding columns are zero; they only ever produce lanes that are discarded.
-pub fn terms_from_stats(l: &FastLayout, stats: &[f32], out: &mut [f32]) {
-    let plane = l.nh * l.stride;
-    let (means, vars) = stats[..2 * l.n].split_at(l.n);
-    for (src, dst) in [means, vars].into_iter().zip(out[..2 * plane].chunks_exact_mut(plane)) {
-        for (s, d) in src.chunks_exact(l.nw).zip(dst.chunks_exact_mut(l.stride)) {
-            d[..l.nw].copy_from_slice(s);
-            d[l.nw..].fill(0.0);
-        }
-    }
-}
-
-/// The terms of one descriptor from the descriptor itself, for stores that keep no stats: its
-/// stats are computed into `stats` exactly as `ssim_stats` computes them (the same bits as stored
-/// stats), then [`terms_from_stats`].
-pub fn terms_from_descriptor(p: &SsimParams, l: &FastLayout, x: &[f32], stats: &mut [f32], scratch: &mut SsimScratch, out: &mut [f32]) {
-    ssim_stats(p, x, stats, scratch);
-    terms_from_stats(l, stats, out);
-}
-
-/// Per-thread scratch of the kernel (owned by the executor, reused for every pair). Everything
-/// a pair writes stays in L1: one product row, `win` rows of horizontal sums, the window values.
+/// Per-thread scratch of the statistics kernel (reused for every descriptor). Everything it
+/// writes stays in L1: one product row, `win` rows of horizontal sums, the window values.
 #[derive(Debug, Clone)]
 pub struct FastScratch {
     /// Products x*y of one row, zero past `gw` so every vector-wide horizontal read is in bounds.
@@ -109,6 +85,10 @@ impl FastScratch {
     }
 }
 
+/// Vectors (or lane groups) processed side by side: independent addition chains, enough to cover
+/// the latency of an addition (3-4 cycles) on two adders, within 16 vector registers.
+const G: usize = 8;
+
 #[inline(always)]
 fn ld<S: Simd>(s: &[f32], o: usize) -> S::f32s {
     S::as_simd_f32s(&s[o..o + S::F32_LANES]).0[0]
@@ -119,90 +99,10 @@ fn st<S: Simd>(s: &mut [f32], o: usize, v: S::f32s) {
     S::as_mut_simd_f32s(&mut s[o..o + S::F32_LANES]).0[0] = v;
 }
 
-/// Vectors processed side by side (a window row of 64 columns is 8 AVX2 vectors): independent addition chains, enough to cover the latency of
-/// an addition (3-4 cycles) on two adders, and with their temporaries within 16 vector registers.
-const G: usize = 8;
-
-/// The SSIM constants as vectors.
-#[derive(Clone, Copy)]
-struct Consts<V> {
-    inv: V,
-    cn: V,
-    c1: V,
-    c2: V,
-    two: V,
-}
-
-/// SSIM of query `x` (terms `tx`) and reference `y` (terms `ty`): the twin's
-/// `ssim_pair(p, x, xs, y, ys)`, with the vector instructions of `simd`.
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-pub fn ssim_pair_fast<S: Simd>(simd: S, p: &SsimParams, l: &FastLayout, x: &[f32], tx: &[f32], y: &[f32], ty: &[f32], s: &mut FastScratch) -> f32 {
-    let (gw, stw, win) = (l.gw, l.stride, l.win);
-    let chunks = stw / S::F32_LANES;
-    let k = Consts {
-        inv: simd.splat_f32s(1.0 / (win * win) as f32),
-        cn: simd.splat_f32s(p.cov_norm),
-        c1: simd.splat_f32s(p.c1),
-        c2: simd.splat_f32s(p.c2),
-        two: simd.splat_f32s(2.0),
-    };
-    let FastScratch { prod, ring, vals, .. } = s;
-    let (mut slot, mut first) = (0, 0);
-    for (r, (xr, yr)) in x.chunks_exact(gw).zip(y.chunks_exact(gw)).take(l.gh).enumerate() {
-        // products, then horizontal window sums ((p[c] + p[c+1]) + ...) + p[c+win-1], as the twin adds them
-        let ((pv, pt), (xv, xt), (yv, yt)) = (S::as_mut_simd_f32s(&mut prod[..gw]), S::as_simd_f32s(xr), S::as_simd_f32s(yr));
-        for ((d, a), b) in pv.iter_mut().zip(xv).zip(yv) {
-            *d = simd.mul_f32s(*a, *b);
-        }
-        for ((d, a), b) in pt.iter_mut().zip(xt).zip(yt) {
-            *d = a * b;
-        }
-        horizontal_row(simd, prod, &mut ring[slot * stw..(slot + 1) * stw], chunks, win);
-        slot = if slot + 1 == win { 0 } else { slot + 1 };
-        // the window row whose last image row this was: vertical sums in row order from slot
-        // `first` on, then the window formula
-        if r + 1 >= win {
-            let wr = r + 1 - win;
-            let mut j = 0;
-            while j + G <= chunks {
-                windows::<S, G>(simd, &k, l, tx, ty, ring, first, vals, wr, j);
-                j += G;
-            }
-            while j < chunks {
-                windows::<S, 1>(simd, &k, l, tx, ty, ring, first, vals, wr, j);
-                j += 1;
-            }
-            first = if first + 1 == win { 0 } else { first + 1 };
-        }
-    }
-    // the twin's reduction: lane j sums windows j, j + RL, ...; then a tree over the lanes
-    // (the zeros past n leave the lanes they reach unchanged)
-    let n = l.n;
-    vals[n..n.next_multiple_of(RL)].fill(0.0);
-    let mut acc = [0.0f32; RL];
-    {
-        let accv = S::as_mut_simd_f32s(&mut acc).0;
-        for chunk in vals[..n.next_multiple_of(RL)].chunks_exact(RL) {
-            for (a, v) in accv.iter_mut().zip(S::as_simd_f32s(chunk).0) {
-                *a = simd.add_f32s(*a, *v);
-            }
-        }
-    }
-    let mut h = RL / 2;
-    while h > 0 {
-        for j in 0..h {
-            acc[j] += acc[j + h];
-        }
-        h /= 2;
-    }
-    acc[0] / n as f32
-}
-
 /// The stats record of descriptor `x` ([means | variances], `p.stats_len()` values into `out`),
 /// equal to [`ssim_stats`]'s (a zero may differ in sign only): the same box sums, in the same
-/// order, of `x` and then of `x * x`, streamed row by row through the pair kernel's scratch like
-/// [`ssim_pair_fast`]. Maps store no statistics, so a query batch recomputes every reference's:
+/// order, of `x` and then of `x * x`, streamed row by row (window columns a vector at a time, in
+/// padded rows). Maps store no statistics, so a query batch recomputes every reference's:
 /// for one query against a shortlist this costs more than the SSIM pairs did (the twin's loops
 /// took 15 µs a descriptor on the development machine).
 pub fn ssim_stats_fast<S: Simd>(simd: S, p: &SsimParams, l: &FastLayout, x: &[f32], out: &mut [f32], s: &mut FastScratch) {
@@ -333,55 +233,376 @@ fn horizontal<S: Simd, const N: usize>(simd: S, prod: &[f32], dst: &mut [f32], j
     }
 }
 
-/// Vertical sums and SSIM values of `N` vectors of window row `wr`, from vector `j` on; the
-/// window's first row of horizontal sums is in ring slot `first`. A row's padding lanes spill
-/// into the next row's first values, which that row then overwrites (the last row's spill is
-/// overwritten with zeros before the reduction).
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn windows<S: Simd, const N: usize>(
-    simd: S,
-    k: &Consts<S::f32s>,
-    l: &FastLayout,
-    tx: &[f32],
-    ty: &[f32],
-    ring: &[f32],
-    first: usize,
-    vals: &mut [f32],
-    wr: usize,
-    j: usize,
-) {
-    let (lanes, stw, win, plane) = (S::F32_LANES, l.stride, l.win, l.nh * l.stride);
-    let c0 = j * lanes;
-    let row = |slot: usize| &ring[slot * stw + c0..slot * stw + c0 + N * lanes];
-    let r0 = row(first);
-    let mut sum: [S::f32s; N] = std::array::from_fn(|i| ld::<S>(r0, i * lanes));
-    let mut slot = first;
-    for _ in 1..win {
-        slot = if slot + 1 == win { 0 } else { slot + 1 };
-        let rk = row(slot);
-        for (i, a) in sum.iter_mut().enumerate() {
-            *a = simd.add_f32s(*a, ld::<S>(rk, i * lanes));
+/// Scratch of [`ssim_lanes_fast`] (one per worker, reused for every call): one row of products,
+/// a ring of `win + 1` rows of horizontal sums, the reduction's accumulators; `lanes` floats per
+/// position. Everything a call writes stays in L1 (about 19 KiB at the default size with AVX2).
+#[derive(Debug, Clone, Default)]
+pub struct LaneScratch {
+    prod: Vec<f32>,
+    ring: Vec<f32>,
+    acc: Vec<f32>,
+    /// Offsets in `ring` of the rows of the window rows being summed, oldest first.
+    slots: Vec<usize>,
+}
+
+impl LaneScratch {
+    fn fit(&mut self, p: &SsimParams, lanes: usize) {
+        let (gw, nw, win) = (p.gw as usize, p.nw as usize, p.win as usize);
+        self.prod.resize(gw * lanes, 0.0);
+        self.ring.resize((win + 1) * nw * lanes, 0.0);
+        self.acc.resize(RL * lanes, 0.0);
+        self.slots.resize(win + 1, 0);
+    }
+}
+
+/// Floats of a query's lane terms ([`query_lane_terms`]): four planes of one value per window.
+pub fn query_lane_terms_len(p: &SsimParams) -> usize {
+    4 * p.windows()
+}
+
+/// The query-side terms [`ssim_lanes_fast`] reads, from the query's stats record: per window its
+/// mean m, 2 * m, m * m (each rounded as `ssim::ssim_window` rounds it) and its variance, as four
+/// planes. Computed once per query, not once per window and reference block.
+pub fn query_lane_terms(p: &SsimParams, stats: &[f32], out: &mut [f32]) {
+    let n = p.windows();
+    let (means, vars) = stats[..2 * n].split_at(n);
+    let (m, rest) = out[..4 * n].split_at_mut(n);
+    let (m2, rest) = rest.split_at_mut(n);
+    let (mm, v) = rest.split_at_mut(n);
+    for (i, &x) in means.iter().enumerate() {
+        (m[i], m2[i], mm[i]) = (x, 2.0 * x, x * x);
+    }
+    v.copy_from_slice(vars);
+}
+
+/// Floats of a group's reference lane terms ([`ref_lane_terms`]) for `lanes` lanes.
+pub fn ref_lane_terms_len(p: &SsimParams, lanes: usize) -> usize {
+    p.stats_len() * lanes
+}
+
+/// The reference-side terms [`ssim_lanes_fast`] reads, from the stats records of `count`
+/// references (`stats`, record-major): the records [`interleave`]d `lanes` side by side (a plane
+/// of means, then one of variances). (A third plane of squared means was measured and bought
+/// nothing in the kernel while adding a third to this preparation.)
+pub fn ref_lane_terms(p: &SsimParams, stats: &[f32], count: usize, lanes: usize, out: &mut [f32]) {
+    interleave(stats, p.stats_len(), count, lanes, out);
+}
+
+/// `count` records of `len` floats each (record-major in `src`) into `out` position-major,
+/// `lanes` records side by side (`out[i * lanes + j]` = record j's float i); lanes past `count`
+/// repeat the last record, so that they hold valid values (their results are discarded). `lanes`
+/// is at most 16.
+pub fn interleave(src: &[f32], len: usize, count: usize, lanes: usize, out: &mut [f32]) {
+    let mut recs = [&src[..0]; 16];
+    for (j, r) in recs[..lanes].iter_mut().enumerate() {
+        *r = &src[j.min(count - 1) * len..][..len];
+    }
+    let out = &mut out[..len * lanes];
+    #[cfg(target_arch = "x86_64")]
+    if lanes == 8 && std::arch::is_x86_feature_detected!("avx") {
+        // SAFETY: AVX is present (checked above); `transpose8_avx` reads and writes in bounds only.
+        let done = unsafe { transpose8_avx(&recs, out) };
+        for (i, o) in out.chunks_exact_mut(8).enumerate().skip(done) {
+            for (o, r) in o.iter_mut().zip(&recs) {
+                *o = r[i];
+            }
+        }
+        return;
+    }
+    // sequential writes, one read stream per lane
+    for (i, o) in out.chunks_exact_mut(lanes).enumerate() {
+        for (o, r) in o.iter_mut().zip(&recs[..lanes]) {
+            *o = r[i];
         }
     }
-    let o = wr * stw + c0;
-    let span = |i: usize| i * plane + o..i * plane + o + N * lanes;
-    let (mx, my) = (&tx[span(0)], &ty[span(0)]);
-    let (vx, vy) = (&tx[span(1)], &ty[span(1)]);
-    let v0 = wr * l.nw + c0;
-    let out = &mut vals[v0..v0 + N * lanes];
-    for (i, sum) in sum.into_iter().enumerate() {
-        let e = i * lanes;
-        let (mx, my) = (ld::<S>(mx, e), ld::<S>(my, e));
-        // ssim::ssim_window, operation for operation
-        let cov = simd.mul_f32s(simd.sub_f32s(simd.mul_f32s(sum, k.inv), simd.mul_f32s(mx, my)), k.cn);
-        let num = simd.mul_f32s(simd.add_f32s(simd.mul_f32s(simd.mul_f32s(k.two, mx), my), k.c1), simd.add_f32s(simd.mul_f32s(k.two, cov), k.c2));
-        let den = simd.mul_f32s(
-            simd.add_f32s(simd.add_f32s(simd.mul_f32s(mx, mx), simd.mul_f32s(my, my)), k.c1),
-            simd.add_f32s(simd.add_f32s(ld::<S>(vx, e), ld::<S>(vy, e)), k.c2),
-        );
-        st::<S>(out, e, simd.div_f32s(num, den));
+}
+
+/// [`interleave`] of 8 records by 8 x 8 transposes in AVX registers (the scalar loop takes three
+/// times as long as scoring the group once, which a single query pays for every group): the
+/// positions of whole blocks of 8; returns how many positions it wrote.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+unsafe fn transpose8_avx(recs: &[&[f32]; 16], out: &mut [f32]) -> usize {
+    use std::arch::x86_64::*;
+    let len = recs[0].len();
+    let blocks = len / 8;
+    for b in 0..blocks {
+        let i = b * 8;
+        let r: [__m256; 8] = std::array::from_fn(|j| _mm256_loadu_ps(recs[j][i..i + 8].as_ptr()));
+        let t0 = _mm256_unpacklo_ps(r[0], r[1]);
+        let t1 = _mm256_unpackhi_ps(r[0], r[1]);
+        let t2 = _mm256_unpacklo_ps(r[2], r[3]);
+        let t3 = _mm256_unpackhi_ps(r[2], r[3]);
+        let t4 = _mm256_unpacklo_ps(r[4], r[5]);
+        let t5 = _mm256_unpackhi_ps(r[4], r[5]);
+        let t6 = _mm256_unpacklo_ps(r[6], r[7]);
+        let t7 = _mm256_unpackhi_ps(r[6], r[7]);
+        let u0 = _mm256_shuffle_ps::<0x44>(t0, t2);
+        let u1 = _mm256_shuffle_ps::<0xEE>(t0, t2);
+        let u2 = _mm256_shuffle_ps::<0x44>(t1, t3);
+        let u3 = _mm256_shuffle_ps::<0xEE>(t1, t3);
+        let u4 = _mm256_shuffle_ps::<0x44>(t4, t6);
+        let u5 = _mm256_shuffle_ps::<0xEE>(t4, t6);
+        let u6 = _mm256_shuffle_ps::<0x44>(t5, t7);
+        let u7 = _mm256_shuffle_ps::<0xEE>(t5, t7);
+        let rows = [
+            _mm256_permute2f128_ps::<0x20>(u0, u4),
+            _mm256_permute2f128_ps::<0x20>(u1, u5),
+            _mm256_permute2f128_ps::<0x20>(u2, u6),
+            _mm256_permute2f128_ps::<0x20>(u3, u7),
+            _mm256_permute2f128_ps::<0x31>(u0, u4),
+            _mm256_permute2f128_ps::<0x31>(u1, u5),
+            _mm256_permute2f128_ps::<0x31>(u2, u6),
+            _mm256_permute2f128_ps::<0x31>(u3, u7),
+        ];
+        let dst = &mut out[i * 8..i * 8 + 64];
+        for (k, v) in rows.iter().enumerate() {
+            _mm256_storeu_ps(dst[k * 8..k * 8 + 8].as_mut_ptr(), *v);
+        }
     }
+    blocks * 8
+}
+
+/// SSIM of query `x` (lane terms `xt`, [`query_lane_terms`]) against `S::F32_LANES`
+/// references at once, one per vector lane: `y` holds the references' descriptors
+/// [`interleave`]d, `yt` their [`ref_lane_terms`]; their scores go to `out[..lanes]`. Each lane evaluates the
+/// twin's `ssim_pair` operation for operation (product map, direct `win`-tap
+/// horizontal then vertical window sums, `ssim_window`, the 64-lane strided mean and its tree), so
+/// scores equal the twin's bit for bit (a zero may differ in sign only). Since every lane is
+/// another pair, no vector straddles windows: no padding, shifted loads or lane shuffles. Columns
+/// are summed a few at a time (independent addition chains, each product loaded once for the
+/// default 7-wide window), window rows two at a time (the second's vertical sums reuse the
+/// first's rows).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+pub fn ssim_lanes_fast<S: Simd>(simd: S, p: &SsimParams, x: &[f32], xt: &[f32], y: &[f32], yt: &[f32], s: &mut LaneScratch, out: &mut [f32]) {
+    let lanes = S::F32_LANES;
+    s.fit(p, lanes);
+    let (gw, gh, nw, nh, win, n) = (p.gw as usize, p.gh as usize, p.nw as usize, p.nh as usize, p.win as usize, p.windows());
+    let k = LaneConsts {
+        inv: simd.splat_f32s(1.0 / (win * win) as f32),
+        cn: simd.splat_f32s(p.cov_norm),
+        c1: simd.splat_f32s(p.c1),
+        c2: simd.splat_f32s(p.c2),
+        two: simd.splat_f32s(2.0),
+    };
+    let q = QueryTerms { m: &xt[..n], m2: &xt[n..2 * n], mm: &xt[2 * n..3 * n], v: &xt[3 * n..4 * n] };
+    let yt = S::as_simd_f32s(&yt[..2 * n * lanes]).0;
+    let rt = RefTerms { m: &yt[..n], v: &yt[n..2 * n] };
+    let y = S::as_simd_f32s(&y[..gw * gh * lanes]).0;
+    let LaneScratch { prod, ring, acc, slots } = s;
+    let prod = S::as_mut_simd_f32s(&mut prod[..gw * lanes]).0;
+    let ring = S::as_mut_simd_f32s(&mut ring[..(win + 1) * nw * lanes]).0;
+    let acc = S::as_mut_simd_f32s(&mut acc[..RL * lanes]).0;
+    acc.fill(simd.splat_f32s(0.0));
+    // ring capacity: the rows of two window rows
+    let cap = win + 1;
+    let mut slot = 0;
+    for r in 0..gh {
+        for ((d, &a), &b) in prod.iter_mut().zip(&x[r * gw..(r + 1) * gw]).zip(&y[r * gw..(r + 1) * gw]) {
+            *d = simd.mul_f32s(simd.splat_f32s(a), b);
+        }
+        let dst = &mut ring[slot * nw..(slot + 1) * nw];
+        let mut c = 0;
+        if win == 7 {
+            while c + GH <= nw {
+                lanes_horizontal_7::<S, GH>(simd, prod, dst, c);
+                c += GH;
+            }
+        }
+        while c + G <= nw {
+            lanes_horizontal::<S, G>(simd, prod, dst, c, win);
+            c += G;
+        }
+        while c < nw {
+            lanes_horizontal::<S, 1>(simd, prod, dst, c, win);
+            c += 1;
+        }
+        slot = if slot + 1 == cap { 0 } else { slot + 1 };
+        // window rows in pairs (the second's vertical sums reuse `win - 1` of the first's rows),
+        // the last alone where their count is odd
+        let Some(wr) = (r + 1).checked_sub(win) else { continue };
+        let two = wr % 2 == 1;
+        if !two && wr + 1 < nh {
+            continue;
+        }
+        let lo = if two { wr - 1 } else { wr };
+        // the ring rows of window rows lo (and lo + 1), oldest first
+        let rows = &mut slots[..win + two as usize];
+        for (i, o) in rows.iter_mut().enumerate() {
+            *o = (lo + i) % cap * nw;
+        }
+        let mut c = 0;
+        while c + GW <= nw {
+            lanes_windows::<S, GW>(simd, two, &k, ring, rows, c, &q, &rt, acc, lo * nw + c, nw);
+            c += GW;
+        }
+        while c < nw {
+            lanes_windows::<S, 1>(simd, two, &k, ring, rows, c, &q, &rt, acc, lo * nw + c, nw);
+            c += 1;
+        }
+    }
+    // the twin's tree over its 64 lanes, then the mean
+    let mut h = RL / 2;
+    while h > 0 {
+        for j in 0..h {
+            acc[j] = simd.add_f32s(acc[j], acc[j + h]);
+        }
+        h /= 2;
+    }
+    let nf = n as f32;
+    for (o, a) in out[..lanes].iter_mut().zip(bytemuck::cast_slice::<S::f32s, f32>(&acc[..1])) {
+        *o = a / nf;
+    }
+}
+
+/// A query's lane terms as planes.
+struct QueryTerms<'a> {
+    m: &'a [f32],
+    m2: &'a [f32],
+    mm: &'a [f32],
+    v: &'a [f32],
+}
+
+/// Window columns whose SSIM values [`ssim_lanes_fast`] computes side by side.
+const GW: usize = 4;
+
+/// The constants of [`ssim_lanes_fast`] as vectors.
+#[derive(Clone, Copy)]
+struct LaneConsts<V> {
+    inv: V,
+    cn: V,
+    c1: V,
+    c2: V,
+    two: V,
+}
+
+/// Horizontal sums of `N` window columns from `c` on: ((p[c] + p[c+1]) + ...) + p[c+win-1].
+#[inline(always)]
+fn lanes_horizontal<S: Simd, const N: usize>(simd: S, prod: &[S::f32s], dst: &mut [S::f32s], c: usize, win: usize) {
+    let src = &prod[c..c + N + win - 1];
+    let mut a: [S::f32s; N] = std::array::from_fn(|i| src[i]);
+    for t in 1..win {
+        let sh = &src[t..t + N];
+        for (a, &b) in a.iter_mut().zip(sh) {
+            *a = simd.add_f32s(*a, b);
+        }
+    }
+    dst[c..c + N].copy_from_slice(&a);
+}
+
+/// Window columns whose horizontal sums [`lanes_horizontal_7`] computes side by side.
+const GH: usize = 4;
+
+/// [`lanes_horizontal`] for 7-column windows (the default): the `N + 6` products each loaded once
+/// and kept in registers, rather than 7 loads for each sum.
+#[inline(always)]
+fn lanes_horizontal_7<S: Simd, const N: usize>(simd: S, prod: &[S::f32s], dst: &mut [S::f32s], c: usize) {
+    let src = &prod[c..c + N + 6];
+    let mut v = [src[0]; 16];
+    v[..N + 6].copy_from_slice(src);
+    let mut a = [src[0]; N];
+    for (i, a) in a.iter_mut().enumerate() {
+        *a = v[i];
+        for t in 1..7 {
+            *a = simd.add_f32s(*a, v[i + t]);
+        }
+    }
+    dst[c..c + N].copy_from_slice(&a);
+}
+
+/// Vertical sums of `N` window columns from `c` on, of one window row (`rows`: its `win` ring
+/// rows, oldest first) or of two (`win + 1` rows: the first `win`, then the last `win`), and their
+/// SSIM values, added to the reduction's lanes; `w` is the first window's index, `nw` the windows
+/// of a row; `two` says which.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn lanes_windows<S: Simd, const N: usize>(
+    simd: S,
+    two: bool,
+    k: &LaneConsts<S::f32s>,
+    ring: &[S::f32s],
+    rows: &[usize],
+    c: usize,
+    q: &QueryTerms,
+    r: &RefTerms<S::f32s>,
+    acc: &mut [S::f32s],
+    w: usize,
+    nw: usize,
+) {
+    let row = |t: usize| &ring[rows[t] + c..rows[t] + c + N];
+    let mut a: [S::f32s; N] = std::array::from_fn(|i| row(0)[i]);
+    if !two {
+        for t in 1..rows.len() {
+            for (a, &v) in a.iter_mut().zip(row(t)) {
+                *a = simd.add_f32s(*a, v);
+            }
+        }
+        lanes_values(simd, k, a, q, r, acc, w);
+        return;
+    }
+    // a = ((r0 + r1) + r2) + ... + r[win-1]; b = ((r1 + r2) + ...) + r[win]: each row loaded once
+    let win = rows.len() - 1;
+    let mut b: [S::f32s; N] = std::array::from_fn(|i| row(1)[i]);
+    for (a, &b) in a.iter_mut().zip(&b) {
+        *a = simd.add_f32s(*a, b);
+    }
+    for t in 2..win {
+        for ((a, b), &v) in a.iter_mut().zip(b.iter_mut()).zip(row(t)) {
+            *a = simd.add_f32s(*a, v);
+            *b = simd.add_f32s(*b, v);
+        }
+    }
+    for (b, &v) in b.iter_mut().zip(row(win)) {
+        *b = simd.add_f32s(*b, v);
+    }
+    lanes_values(simd, k, a, q, r, acc, w);
+    lanes_values(simd, k, b, q, r, acc, w + nw);
+}
+
+/// The SSIM values of `N` consecutive windows from window `w` on, given their sums of x * y,
+/// added to the reduction's lanes `w % 64`, ....
+#[inline(always)]
+fn lanes_values<S: Simd, const N: usize>(
+    simd: S,
+    k: &LaneConsts<S::f32s>,
+    sum: [S::f32s; N],
+    q: &QueryTerms,
+    r: &RefTerms<S::f32s>,
+    acc: &mut [S::f32s],
+    w: usize,
+) {
+    let (qm, qm2, qmm, qv) = (&q.m[w..w + N], &q.m2[w..w + N], &q.mm[w..w + N], &q.v[w..w + N]);
+    let (my, vy) = (&r.m[w..w + N], &r.v[w..w + N]);
+    let mut vals = sum;
+    for (i, val) in vals.iter_mut().enumerate() {
+        // ssim::ssim_window, operation for operation (2 * mx and mx * mx precomputed)
+        let rm = my[i];
+        let cov = simd.mul_f32s(simd.sub_f32s(simd.mul_f32s(sum[i], k.inv), simd.mul_f32s(simd.splat_f32s(qm[i]), rm)), k.cn);
+        let num = simd.mul_f32s(simd.add_f32s(simd.mul_f32s(simd.splat_f32s(qm2[i]), rm), k.c1), simd.add_f32s(simd.mul_f32s(k.two, cov), k.c2));
+        let den = simd.mul_f32s(
+            simd.add_f32s(simd.add_f32s(simd.splat_f32s(qmm[i]), simd.mul_f32s(rm, rm)), k.c1),
+            simd.add_f32s(simd.add_f32s(simd.splat_f32s(qv[i]), vy[i]), k.c2),
+        );
+        *val = simd.div_f32s(num, den);
+    }
+    let j = w % RL;
+    if j + N <= RL {
+        for (a, v) in acc[j..j + N].iter_mut().zip(vals) {
+            *a = simd.add_f32s(*a, v);
+        }
+    } else {
+        for (i, v) in vals.into_iter().enumerate() {
+            let j = (w + i) % RL;
+            acc[j] = simd.add_f32s(acc[j], v);
+        }
+    }
+}
+
+/// A reference group's lane terms as planes.
+struct RefTerms<'a, V> {
+    m: &'a [V],
+    v: &'a [V],
 }
 
 #[cfg(test)]
@@ -413,6 +634,26 @@ mod tests {
             let mut scalar = vec![f32::NAN; p.stats_len()];
             ssim_stats_fast(pulp::Scalar::new(), &p, &l, &globals[..p.len()], &mut scalar, &mut FastScratch::new(&l));
             prop_assert!(scalar.iter().zip(&want).all(|(a, b)| a == b), "scalar fast path differs from the twin");
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(100))]
+        /// `interleave` puts record j's float i at i * lanes + j, repeating the last record in
+        /// lanes past `count`, whichever way it runs (the AVX transposes of 8 x 8 blocks and their
+        /// tail, or the plain loop for other lane counts).
+        #[test]
+        fn interleave_transposes_records(len in 1usize..100, count in 1usize..=8, lanes in prop::sample::select(vec![1usize, 4, 8, 16]), seed in any::<u64>()) {
+            let count = count.min(lanes);
+            let mut rng = crate::util::SplitMix64::new(seed);
+            let src: Vec<f32> = (0..count * len).map(|_| rng.next_f64() as f32).collect();
+            let mut out = vec![f32::NAN; len * lanes];
+            interleave(&src, len, count, lanes, &mut out);
+            for i in 0..len {
+                for j in 0..lanes {
+                    prop_assert_eq!(out[i * lanes + j], src[j.min(count - 1) * len + i], "float {} of lane {}", i, j);
+                }
+            }
         }
     }
 

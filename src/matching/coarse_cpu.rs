@@ -1,39 +1,40 @@
 //! The CPU coarse stage at hardware speed: SSIM of a query batch against a map tile by blocked,
-//! vectorised, parallel evaluation of [`ssim_pair_fast`] (scores equal to the twin
-//! `ssim_topk::ssim_tile`'s bit for bit), folded by the same streaming top-K.
+//! vectorised, parallel evaluation of [`ssim_lanes_fast`] (one reference per vector lane; scores
+//! equal to the twin `ssim_topk::ssim_tile`'s bit for bit), folded by the same streaming top-K.
 //!
-//! Algorithm (cache-blocked batched SSIM):
-//! - terms: each query's terms ([`terms_from_stats`]) are prepared once per batch
-//!   ([`CoarseCpu::prepare`]); a reference's once per block and query pass, inside the block's
-//!   task, into that worker's scratch (no tile-sized buffer);
+//! Algorithm (cache-blocked batched SSIM, one pair per vector lane):
+//! - terms: each query's lane terms ([`query_lane_terms`]) are prepared once per batch
+//!   ([`CoarseCpu::prepare`]); a task interleaves its references' descriptors and stats records
+//!   ([`interleave`], [`ref_lane_terms`]) once per query pass, into that worker's scratch (no tile-sized buffer);
 //! - blocking: a task scores [`REFS_PER_BLOCK`] references against up to [`QUERIES_PER_PASS`]
-//!   queries, query-major, so a reference's descriptor and terms are read from memory once per
-//!   pass and then reused from cache by every query of the pass;
+//!   queries, so the interleaved references are read from memory once per pass and then reused
+//!   from cache by every query of the pass;
 //! - parallelism: rayon over the blocks of a tile, each worker with its own scratch from the
 //!   executor's pool (no allocation per tile or pair);
 //! - SIMD: the block loop is generic over `pulp`'s vector types and compiled once per instruction
-//!   set; `pulp::Arch` picks one at run time (AVX2 on x86-64-v3 processors; AVX-512 was measured
-//!   slower on the Zen 4 development machine and is not built). Every instantiation evaluates the
+//!   set; `pulp::Arch` picks one at run time (AVX2 on x86-64-v3 processors; AVX-512, 16 pairs a
+//!   vector, was measured 10% slower per pair on the Zen 4 development machine and is not built). Every instantiation evaluates the
 //!   same IEEE operations in the same order, so they give the same bits. Where pulp finds no
 //!   vector instruction set, blocks run the twin's `ssim_pair` instead ([`Simd::Twin`]).
 //!
 //! Scores are written reference-major (`scores[r * queries + q]`) so that each block owns one
 //! contiguous slice; `ssim_topk::topk_merge_ref_major` folds them into the K-lists.
 
-use crate::global::ssim_fast::{ssim_pair_fast, terms_from_stats, FastLayout, FastScratch};
+use crate::global::ssim_fast::{
+    interleave, query_lane_terms, query_lane_terms_len, ref_lane_terms, ref_lane_terms_len, ssim_lanes_fast, LaneScratch,
+};
 use crate::kernels::abi::{self, SsimParams};
 use crate::kernels::ssim::{ssim_pair, SsimScratch};
 use crate::kernels::ssim_topk;
 use rayon::prelude::*;
 use std::sync::{Mutex, PoisonError};
 
-/// References per task. Each takes ~34 KiB at the default 64x48 size (descriptor 12 KiB, terms
-/// 21 KiB), so 8 of them plus one query's ~34 KiB stay within a 512 KiB-1 MiB L2 while the
-/// pass's queries stream past; a 4096-reference tile still makes 512 tasks for the workers.
-/// (Measured on the 2-core Zen 4 machine: 4 and 16 were 5-10% slower.)
+/// References per task: one group of 8 vector lanes with AVX2 (two with NEON). A group's
+/// descriptors and stats, interleaved, take ~250 KiB at the default 64x48 size: they stay in
+/// L2 while the pass's queries stream past; a 4096-reference tile still makes 512 tasks.
 pub const REFS_PER_BLOCK: usize = 8;
 
-/// Queries per pass over a tile. Their descriptors and terms (~4.3 MiB at the default size)
+/// Queries per pass over a tile. Their descriptors and terms (~6.3 MiB at the default size)
 /// stay in a shared L3 while every block reads them; larger batches take several passes, each
 /// re-reading the tile's references from memory once.
 pub const QUERIES_PER_PASS: usize = 128;
@@ -41,32 +42,34 @@ pub const QUERIES_PER_PASS: usize = 128;
 /// The kernel and instruction set the block loop runs with.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Simd {
-    /// `ssim_pair_fast`, one lane at a time (pulp's scalar fallback): any processor.
+    /// `ssim_lanes_fast`, one lane at a time (pulp's scalar fallback): any processor.
     Scalar,
     /// The twin's `ssim_pair` per pair (the same bits): what `Best` falls back to where pulp finds
     /// no vector instruction set, since the twin's loops, auto-vectorised for the build's
-    /// baseline (SSE2), beat one-lane code (criterion: 7.3 µs against 10.8 µs a pair).
+    /// baseline (SSE2), beat one-lane code.
     Twin,
-    /// `ssim_pair_fast` with the best `pulp` finds at run time: AVX2+FMA ("x86-64-v3") on x86-64,
+    /// `ssim_lanes_fast` with the best `pulp` finds at run time: AVX2+FMA ("x86-64-v3") on x86-64,
     /// NEON on aarch64; else `Twin`.
     Best,
 }
 
 /// Scratch of one worker thread.
+#[derive(Default)]
 struct Worker {
-    /// Terms of the block's references.
+    /// One lane group's descriptors (interleaved) and lane terms.
+    ref_lanes: Vec<f32>,
     ref_terms: Vec<f32>,
-    pair: FastScratch,
+    lanes: LaneScratch,
     twin: SsimScratch,
 }
 
 /// Executor of the fast coarse stage: owns the query batch's terms and one scratch per worker.
 pub struct CoarseCpu {
     p: SsimParams,
-    l: FastLayout,
     simd: Simd,
     arch: pulp::Arch,
     nq: usize,
+    /// The batch's lane terms ([`query_lane_terms`]).
     query_terms: Vec<f32>,
     /// The batch's stats records (kept for `Simd::Twin` only).
     query_stats: Vec<f32>,
@@ -86,7 +89,7 @@ impl CoarseCpu {
             (Simd::Best, a) => (Simd::Best, a),
             (Simd::Scalar, _) => (Simd::Scalar, pulp::Arch::Scalar),
         };
-        CoarseCpu { p: *p, l: FastLayout::new(p), simd, arch, nq: 0, query_terms: Vec::new(), query_stats: Vec::new(), workers: Vec::new() }
+        CoarseCpu { p: *p, simd, arch, nq: 0, query_terms: Vec::new(), query_stats: Vec::new(), workers: Vec::new() }
     }
 
     /// The kernel in use: pulp's name of the instruction set (`V3` is AVX2), "scalar" or "twin".
@@ -100,21 +103,17 @@ impl CoarseCpu {
 
     /// Prepares a batch of `nq` queries from their stats records (once per batch).
     pub fn prepare(&mut self, query_stats: &[f32], nq: usize) {
-        let (l, tl, sl) = (self.l, self.l.terms_len(), self.p.stats_len());
+        let (p, tl, sl) = (self.p, query_lane_terms_len(&self.p), self.p.stats_len());
         if self.simd == Simd::Twin {
             self.query_stats.clear();
             self.query_stats.extend_from_slice(&query_stats[..nq * sl]);
         } else {
             self.query_terms.resize(nq * tl, 0.0);
-            self.query_terms.par_chunks_mut(tl).zip(query_stats[..nq * sl].par_chunks(sl)).for_each(|(t, s)| terms_from_stats(&l, s, t));
+            self.query_terms.par_chunks_mut(tl).zip(query_stats[..nq * sl].par_chunks(sl)).for_each(|(t, s)| query_lane_terms(&p, s, t));
         }
         self.nq = nq;
         while self.workers.len() < rayon::current_num_threads() {
-            self.workers.push(Mutex::new(Worker {
-                ref_terms: vec![0.0; REFS_PER_BLOCK * tl],
-                pair: FastScratch::new(&l),
-                twin: SsimScratch::default(),
-            }));
+            self.workers.push(Mutex::new(Worker::default()));
         }
     }
 
@@ -181,18 +180,30 @@ impl pulp::WithSimd for Block<'_> {
 
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, simd: S) {
-        let CoarseCpu { p, l, nq, query_terms, .. } = self.x;
-        let (len, sl, tl) = (p.len(), p.stats_len(), l.terms_len());
+        let CoarseCpu { p, nq, query_terms, .. } = self.x;
+        let (len, sl, tl, lanes) = (p.len(), p.stats_len(), query_lane_terms_len(p), S::F32_LANES);
         let nr = self.refs.len() / len;
         let w = self.w;
-        for (t, s) in w.ref_terms.chunks_exact_mut(tl).zip(self.ref_stats.chunks_exact(sl)) {
-            terms_from_stats(l, s, t);
+        let groups = nr.div_ceil(lanes);
+        let (gl, gt) = (len * lanes, ref_lane_terms_len(p, lanes));
+        w.ref_lanes.resize(groups * gl, 0.0);
+        w.ref_terms.resize(groups * gt, 0.0);
+        // each group of `lanes` references interleaved once; then every query of the pass against
+        // the groups in turn (its values still in cache for the second)
+        for (g, (yl, yt)) in w.ref_lanes.chunks_exact_mut(gl).zip(w.ref_terms.chunks_exact_mut(gt)).take(groups).enumerate() {
+            let (r0, m) = (g * lanes, lanes.min(nr - g * lanes));
+            interleave(&self.refs[r0 * len..(r0 + m) * len], len, m, lanes, yl);
+            ref_lane_terms(p, &self.ref_stats[r0 * sl..(r0 + m) * sl], m, lanes, yt);
         }
-        for q in self.qs {
-            let (x, tx) = (&self.queries[q * len..(q + 1) * len], &query_terms[q * tl..(q + 1) * tl]);
-            for r in 0..nr {
-                self.out[r * nq + q] =
-                    ssim_pair_fast(simd, p, l, x, tx, &self.refs[r * len..(r + 1) * len], &w.ref_terms[r * tl..(r + 1) * tl], &mut w.pair);
+        let mut scores = [0.0f32; 64];
+        for q in self.qs.clone() {
+            let (x, xt) = (&self.queries[q * len..(q + 1) * len], &query_terms[q * tl..(q + 1) * tl]);
+            for (g, (yl, yt)) in w.ref_lanes.chunks_exact(gl).zip(w.ref_terms.chunks_exact(gt)).take(groups).enumerate() {
+                let (r0, m) = (g * lanes, lanes.min(nr - g * lanes));
+                ssim_lanes_fast(simd, p, x, xt, yl, yt, &mut w.lanes, &mut scores);
+                for (i, s) in scores[..m].iter().enumerate() {
+                    self.out[(r0 + i) * nq + q] = *s;
+                }
             }
         }
     }

@@ -3,7 +3,6 @@
 use super::*;
 use crate::descriptors::DescriptorSet;
 use crate::kernels::abi::TileParams;
-use crate::kernels::ssim::SsimScratch;
 use crate::kernels::ssim_topk::ssim_tile;
 use crate::kernels::test_data::{params, shape};
 use crate::matching::{coarse_topk, coarse_topk_twin};
@@ -89,40 +88,4 @@ fn several_query_passes_equal_the_twin() {
     ssim_tile(&p, &tp, &q.globals, &q.global_stats, &r.globals, &r.global_stats, &mut twin);
     assert_eq!(fast_scores(&p, Simd::Best, &q, &r), twin);
     assert_eq!(coarse_topk(&r, &q, &p, 5, 7), coarse_topk_twin(&r, &q, &p, 5, 7));
-}
-
-/// Terms derived from the descriptor alone (a store without stats) are the terms of the stored
-/// stats, bit for bit, and both are the window means and sample variances of the descriptor,
-/// computed here independently (each window's values summed in f64), at the layout the fast
-/// kernel reads: a means plane, then a variances plane, rows of `stride` with zeros past `nw`.
-#[test]
-fn terms_from_the_descriptor_equal_terms_from_stats() {
-    use crate::global::ssim_fast::{terms_from_descriptor, terms_from_stats, FastLayout};
-    let p = params(64, 48, 7, true, (0.01, 0.03));
-    let l = FastLayout::new(&p);
-    let s = set(&p, 6, 6, &mut SplitMix64::new(4));
-    let (gw, win, nw, nh) = (p.gw as usize, p.win as usize, p.nw as usize, p.nh as usize);
-    let stride = l.terms_len() / (2 * nh);
-    assert!(stride >= nw, "stride {stride} < nw {nw}");
-    let (mut a, mut b, mut st) = (vec![0.0; l.terms_len()], vec![0.0; l.terms_len()], vec![0.0; p.stats_len()]);
-    for i in 0..s.len() {
-        terms_from_stats(&l, s.stats(i), &mut a);
-        terms_from_descriptor(&p, &l, s.global(i), &mut st, &mut SsimScratch::default(), &mut b);
-        assert_eq!(a.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), b.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), "descriptor {i}");
-        let x = s.global(i);
-        let mut expect = vec![0.0f64; l.terms_len()];
-        let n2 = (win * win) as f64;
-        for wy in 0..nh {
-            for wx in 0..nw {
-                let vals = (0..win).flat_map(|dy| (0..win).map(move |dx| x[(wy + dy) * gw + wx + dx] as f64));
-                let (sum, sq) = vals.fold((0.0, 0.0), |(s, q), v| (s + v, q + v * v));
-                let mean = sum / n2;
-                expect[wy * stride + wx] = mean;
-                expect[nh * stride + wy * stride + wx] = (sq / n2 - mean * mean) * p.cov_norm as f64;
-            }
-        }
-        for (j, (&got, &want)) in b.iter().zip(&expect).enumerate() {
-            assert!((got as f64 - want).abs() <= 1e-5 * want.abs().max(1.0), "descriptor {i}, term {j}: {got} vs {want}");
-        }
-    }
 }
