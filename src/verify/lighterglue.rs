@@ -62,32 +62,7 @@ impl Linear {
     /// `rows` rows of `x` (each `n_in` long) through the layer.
     fn forward(&self, x: &[f32], rows: usize) -> Vec<f32> {
         debug_assert_eq!(x.len(), rows * self.n_in);
-        let mut y = Vec::with_capacity(rows * self.n_out);
-        for _ in 0..rows {
-            y.extend_from_slice(&self.b);
-        }
-        if rows > 0 {
-            // SAFETY: x is rows x n_in, w is n_out x n_in (read transposed), y is rows x n_out, all row-major.
-            unsafe {
-                sgemm(
-                    rows,
-                    self.n_in,
-                    self.n_out,
-                    1.0,
-                    x.as_ptr(),
-                    self.n_in as isize,
-                    1,
-                    self.w.as_ptr(),
-                    1,
-                    self.n_in as isize,
-                    1.0,
-                    y.as_mut_ptr(),
-                    self.n_out as isize,
-                    1,
-                );
-            }
-        }
-        y
+        gemm_nt_add(x, &self.w, rows, self.n_out, self.n_in, self.b.repeat(rows))
     }
 }
 
@@ -153,9 +128,13 @@ pub struct LighterGlue {
 struct Weights(HashMap<String, Tensor>);
 
 impl Weights {
+    /// The tensor `name`, under the wrapper's `matcher.` prefix or without it.
+    fn get(&self, name: &str) -> Option<&Tensor> {
+        self.0.get(&format!("matcher.{name}")).or_else(|| self.0.get(name))
+    }
     fn tensor(&self, name: &str, shape: &[usize]) -> Result<Vec<f32>> {
         let key = format!("matcher.{name}");
-        let t = self.0.get(&key).or_else(|| self.0.get(name)).ok_or_else(|| Error::check(format!("missing tensor {key}")))?;
+        let t = self.get(name).ok_or_else(|| Error::check(format!("missing tensor {key}")))?;
         if t.shape != shape {
             return Err(Error::check(format!("{key} has shape {:?}, expected {shape:?}", t.shape)));
         }
@@ -173,7 +152,7 @@ impl Weights {
         })
     }
     fn has(&self, name: &str) -> bool {
-        self.0.contains_key(&format!("matcher.{name}")) || self.0.contains_key(name)
+        self.get(name).is_some()
     }
 }
 
@@ -186,7 +165,7 @@ impl LighterGlue {
     }
 
     fn from_weights(w: Weights) -> Result<LighterGlue> {
-        let shape = |name: &str| w.0.get(&format!("matcher.{name}")).or_else(|| w.0.get(name)).map(|t| t.shape.clone());
+        let shape = |name: &str| w.get(name).map(|t| t.shape.clone());
         let Some([d, input_dim]) = shape("input_proj.weight").and_then(|s| <[usize; 2]>::try_from(s).ok()) else {
             return Err(Error::check("no input_proj.weight of two dimensions: not a LighterGlue state dict"));
         };
@@ -487,10 +466,15 @@ fn filter_matches(scores: &[f32], m: usize, n: usize, th: f32) -> Vec<GlueMatch>
 
 /// `a (m x k) b^T`, `b` being `n x k`: `m x n`.
 fn gemm_nt(a: &[f32], b: &[f32], m: usize, n: usize, k: usize) -> Vec<f32> {
-    let mut c = vec![0.0f32; m * n];
+    gemm_nt_add(a, b, m, n, k, vec![0.0f32; m * n])
+}
+
+/// `c + a (m x k) b^T` with `b` `n x k` and `c` `m x n`: [`gemm_nt`] onto a start value (a layer's bias).
+fn gemm_nt_add(a: &[f32], b: &[f32], m: usize, n: usize, k: usize, mut c: Vec<f32>) -> Vec<f32> {
+    debug_assert_eq!((a.len(), b.len(), c.len()), (m * k, n * k, m * n));
     if m > 0 && n > 0 {
         // SAFETY: a is m x k, b is n x k read transposed, c is m x n, all row-major and in bounds.
-        unsafe { sgemm(m, k, n, 1.0, a.as_ptr(), k as isize, 1, b.as_ptr(), 1, k as isize, 0.0, c.as_mut_ptr(), n as isize, 1) }
+        unsafe { sgemm(m, k, n, 1.0, a.as_ptr(), k as isize, 1, b.as_ptr(), 1, k as isize, 1.0, c.as_mut_ptr(), n as isize, 1) }
     }
     c
 }
