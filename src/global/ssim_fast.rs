@@ -9,12 +9,12 @@
 //! - pairs: one reference per vector lane (`pulp`'s native width: 8 with AVX2), the references'
 //!   descriptors and stats [`interleave`]d, the query's values broadcast. No vector straddles
 //!   windows, so there is no padding and no shifted load; the image is streamed row by row (one
-//!   product row and a ring of `win` rows of horizontal sums, in L1), `G` columns side by side
+//!   product row and a ring of `win + 1` rows of horizontal sums, in L1), `G` columns side by side
 //!   for independent addition chains, and each window's value goes straight to its lane of the
 //!   twin's reduction. What depends on the query only (its means, doubled and squared as the
 //!   twin rounds them, and variances: [`query_lane_terms`]) is computed once per query.
 //!   (Measured against the former one-pair kernel, whose vectors ran along window columns padded
-//!   to 64: 1.6 against 2.5 µs a pair on one Zen 4 core, `cargo bench --bench coarse_kernel`.)
+//!   to 64: 1.5-1.65 against 2.5 µs a pair on one Zen 4 core, `cargo bench --bench coarse_kernel`.)
 //! - statistics: window columns a vector at a time, from rows padded to a multiple of [`W`].
 //!
 //! IEEE operations evaluated in the same order give the same bits (Rust neither contracts
@@ -293,6 +293,7 @@ pub fn ref_lane_terms(p: &SsimParams, stats: &[f32], count: usize, lanes: usize,
 /// repeat the last record, so that they hold valid values (their results are discarded). `lanes`
 /// is at most 16.
 pub fn interleave(src: &[f32], len: usize, count: usize, lanes: usize, out: &mut [f32]) {
+    debug_assert!(count >= 1 && lanes <= 16, "interleave: {count} records into {lanes} lanes");
     let mut recs = [&src[..0]; 16];
     for (j, r) in recs[..lanes].iter_mut().enumerate() {
         *r = &src[j.min(count - 1) * len..][..len];
@@ -397,6 +398,7 @@ pub fn ssim_lanes_fast<S: Simd>(simd: S, p: &SsimParams, x: &[f32], xt: &[f32], 
     acc.fill(simd.splat_f32s(0.0));
     // ring capacity: the rows of two window rows
     let cap = win + 1;
+    let pairs = nw <= RL;
     let mut slot = 0;
     for r in 0..gh {
         for ((d, &a), &b) in prod.iter_mut().zip(&x[r * gw..(r + 1) * gw]).zip(&y[r * gw..(r + 1) * gw]) {
@@ -420,10 +422,13 @@ pub fn ssim_lanes_fast<S: Simd>(simd: S, p: &SsimParams, x: &[f32], xt: &[f32], 
         }
         slot = if slot + 1 == cap { 0 } else { slot + 1 };
         // window rows in pairs (the second's vertical sums reuse `win - 1` of the first's rows),
-        // the last alone where their count is odd
+        // the last alone where their count is odd. Pairs add a row's values to the reduction's
+        // lanes before the end of the row above, which keeps the twin's order of each lane's
+        // additions only while a row has at most 64 windows (no lane holds two windows of the
+        // same row pair's columns out of order); wider descriptors take their rows one at a time.
         let Some(wr) = (r + 1).checked_sub(win) else { continue };
-        let two = wr % 2 == 1;
-        if !two && wr + 1 < nh {
+        let two = pairs && wr % 2 == 1;
+        if pairs && !two && wr + 1 < nh {
             continue;
         }
         let lo = if two { wr - 1 } else { wr };

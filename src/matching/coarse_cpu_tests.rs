@@ -76,6 +76,29 @@ proptest! {
     }
 }
 
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(24))]
+
+    /// Descriptors wider than 64 windows a row (which `shape()` never makes): the reduction's
+    /// lanes then hold windows of two rows' columns, and the fast path still adds them in the
+    /// twin's order, bit for bit.
+    #[test]
+    fn wide_descriptors_equal_the_twin_bit_for_bit(nw in 55usize..150, dh in 0usize..5, win in prop::sample::select(vec![3usize, 5, 7]), nr in 1usize..12, seed in any::<u64>()) {
+        let p = params(win + nw - 1, win + dh, win, true, (0.01, 0.03));
+        let mut rng = SplitMix64::new(seed);
+        let (q, r) = (set(&p, 2, 2, &mut rng), set(&p, nr, 4, &mut rng));
+        let tp = TileParams { queries: 2, tile_len: nr as u32, tile_start: 0, k: 1 };
+        let mut twin = vec![0.0; 2 * nr];
+        ssim_tile(&p, &tp, &q.globals, &q.global_stats, &r.globals, &r.global_stats, &mut twin);
+        for simd in [Simd::Best, Simd::Scalar] {
+            let fast = fast_scores(&p, simd, &q, &r);
+            for (i, (a, b)) in fast.iter().zip(&twin).enumerate() {
+                prop_assert!(same(*a, *b), "{simd:?} nw {nw} pair {i}: fast {a:e} ({:#x}) twin {b:e} ({:#x})", a.to_bits(), b.to_bits());
+            }
+        }
+    }
+}
+
 /// A batch larger than one query pass (and a block count that does not divide the tile):
 /// scores still equal the twin's.
 #[test]
