@@ -49,3 +49,14 @@ struct Dims {
 // An empty top-K slot: a score below any SSIM and an index no reference has.
 const EMPTY_SCORE: f32 = -3.0e38;
 const EMPTY_INDEX: u32 = 0xffffffffu;
+
+// The cross term's window sums in the twins' pair order (`kernels::ssim::pair_order_sum`): the
+// window starting at j sums its values from pair_lo(j) on, `win - 1` of them in index order, then
+// adds the one at pair_own(j, win) (windows j and j + 1, j even, share the first `win - 1`).
+fn pair_lo(j: u32) -> u32 {
+    return select(j, j + 1u, j % 2u == 0u);
+}
+
+fn pair_own(j: u32, win: u32) -> u32 {
+    return select(j + win - 1u, j, j % 2u == 0u);
+}

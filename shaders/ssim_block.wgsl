@@ -5,9 +5,9 @@
 // chosen on the host so that the workgroup arrays below hold it). The image is streamed row by
 // row, every row once per block:
 //   1. the products x*y of the row, for every pair of the block, into `prod`;
-//   2. the direct `win`-tap horizontal window sums of those products into a ring of `win` rows
-//      (`ring`, slot row % win);
-//   3. once `win` rows are in the ring, the direct vertical sums of the window row that ends here,
+//   2. the direct `win`-tap horizontal window sums of those products (in the twin's pair order,
+//      `pair_lo`/`pair_own`) into a ring of `win` rows (`ring`, slot row % win);
+//   3. once `win` rows are in the ring, the direct vertical sums (pair order) of the window row that ends here,
 //      the SSIM window formula with both descriptors' window means and variances, and the
 //      accumulation of window w into lane slot w % 64 of the pair (`acc`);
 // then, per pair, a tree over the 64 lane slots gives the mean. That is the twin `ssim_pair`'s
@@ -41,10 +41,11 @@ var<workgroup> prod: array<f32, PROD_CAP>;
 var<workgroup> ring: array<f32, RING_CAP>;
 var<workgroup> acc: array<f32, 512>;
 
-fn ssim_window(mean_xy: f32, mx: f32, my: f32, vx: f32, vy: f32) -> f32 {
-    let cov = (mean_xy - mx * my) * p.cov_norm;
-    let num = (2.0 * mx * my + p.c1) * (2.0 * cov + p.c2);
-    let den = (mx * mx + my * my + p.c1) * (vx + vy + p.c2);
+fn ssim_window(sum_xy: f32, mx: f32, my: f32, vx: f32, vy: f32) -> f32 {
+    // the twin's grouping (src/kernels/ssim.rs, ssim_window)
+    let a = mx * my;
+    let num = (2.0 * a + p.c1) * ((sum_xy * (1.0 / f32(p.win * p.win)) - a) * (2.0 * p.cov_norm) + p.c2);
+    let den = ((mx * mx + p.c1) + my * my) * ((vx + p.c2) + vy);
     return num / den;
 }
 
@@ -56,7 +57,6 @@ fn ssim_block(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_in
     let r0 = wg.y * rb;
     let len = p.gw * p.gh;
     let n = p.nw * p.nh;
-    let inv = 1.0 / f32(p.win * p.win);
     for (var i = lane; i < np * LANES; i += LANES) {
         acc[i] = 0.0;
     }
@@ -79,10 +79,12 @@ fn ssim_block(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_in
         for (var i = lane; i < np * p.nw; i += LANES) {
             let pair = i / p.nw;
             let c = i % p.nw;
-            var h = 0.0;
-            for (var k = 0u; k < p.win; k++) {
-                h += prod[pair * p.gw + c + k];
+            let lo = pair * p.gw + pair_lo(c);
+            var h = prod[lo];
+            for (var k = 1u; k + 1u < p.win; k++) {
+                h += prod[lo + k];
             }
+            h += prod[pair * p.gw + pair_own(c, p.win)];
             ring[(pair * p.win + slot) * p.nw + c] = h;
         }
         workgroupBarrier();
@@ -96,14 +98,16 @@ fn ssim_block(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_in
                 let q = q0 + pair / rb;
                 let r = r0 + pair % rb;
                 if (q < ps.queries && r < ps.refs) {
-                    var v = 0.0;
-                    for (var k = 0u; k < p.win; k++) {
-                        v += ring[(pair * p.win + (wr + k) % p.win) * p.nw + c];
+                    let lo = pair_lo(wr);
+                    var v = ring[(pair * p.win + lo % p.win) * p.nw + c];
+                    for (var k = 1u; k + 1u < p.win; k++) {
+                        v += ring[(pair * p.win + (lo + k) % p.win) * p.nw + c];
                     }
+                    v += ring[(pair * p.win + pair_own(wr, p.win) % p.win) * p.nw + c];
                     let w = wr * p.nw + c;
                     let sq = q * 2u * n;
                     let sr = (ps.ref_first + r) * 2u * n;
-                    let s = ssim_window(v * inv, query_stats[sq + w], ref_stats[sr + w], query_stats[sq + n + w], ref_stats[sr + n + w]);
+                    let s = ssim_window(v, query_stats[sq + w], ref_stats[sr + w], query_stats[sq + n + w], ref_stats[sr + n + w]);
                     acc[pair * LANES + w % LANES] += s;
                 }
             }

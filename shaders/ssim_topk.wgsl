@@ -3,8 +3,9 @@
 // src/kernels/ssim.rs (`ssim_pair`) for one pair.
 //
 // ssim_tile: one workgroup per (reference in tile, query) pair. Lanes compute the horizontal
-// window sums of x*y into workgroup memory, then the vertical sums and the per-window SSIM of
-// windows lane, lane + 64, ..., then a tree reduction gives the mean.
+// window sums of x*y into workgroup memory, then the vertical sums (both in the twin's pair
+// order: `pair_lo`, `pair_own`) and the per-window SSIM of windows lane, lane + 64, ..., then a
+// tree reduction gives the mean.
 // topk_merge: one invocation per query folds the tile's scores into its running top-K list
 // (ties go to the lower reference index; NaN scores are skipped). Only the K-lists are ever
 // read back.
@@ -35,10 +36,11 @@ const MAX_ROW_SUMS: u32 = 3840u;
 var<workgroup> rows: array<f32, 3840>;
 var<workgroup> partial: array<f32, 64>;
 
-fn ssim_window(mean_xy: f32, mx: f32, my: f32, vx: f32, vy: f32) -> f32 {
-    let cov = (mean_xy - mx * my) * p.cov_norm;
-    let num = (2.0 * mx * my + p.c1) * (2.0 * cov + p.c2);
-    let den = (mx * mx + my * my + p.c1) * (vx + vy + p.c2);
+fn ssim_window(sum_xy: f32, mx: f32, my: f32, vx: f32, vy: f32) -> f32 {
+    // the twin's grouping (src/kernels/ssim.rs, ssim_window)
+    let a = mx * my;
+    let num = (2.0 * a + p.c1) * ((sum_xy * (1.0 / f32(p.win * p.win)) - a) * (2.0 * p.cov_norm) + p.c2);
+    let den = ((mx * mx + p.c1) + my * my) * ((vx + p.c2) + vy);
     return num / den;
 }
 
@@ -53,27 +55,30 @@ fn ssim_tile(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_ind
     for (var idx = lane; idx < nrows; idx += LANES) {
         let row = idx / p.nw;
         let c = idx % p.nw;
-        var acc = 0.0;
-        for (var k = 0u; k < p.win; k++) {
-            let o = row * p.gw + c + k;
-            acc += queries[xq + o] * refs[yr + o];
+        let lo = row * p.gw + pair_lo(c);
+        var acc = queries[xq + lo] * refs[yr + lo];
+        for (var k = 1u; k + 1u < p.win; k++) {
+            acc += queries[xq + lo + k] * refs[yr + lo + k];
         }
+        let own = row * p.gw + pair_own(c, p.win);
+        acc += queries[xq + own] * refs[yr + own];
         rows[idx] = acc;
     }
     workgroupBarrier();
     let n = p.nw * p.nh;
-    let inv = 1.0 / f32(p.win * p.win);
     let sq = q * 2u * n;
     let sr = r * 2u * n;
     var acc = 0.0;
     for (var w = lane; w < n; w += LANES) {
         let row = w / p.nw;
         let c = w % p.nw;
-        var v = 0.0;
-        for (var k = 0u; k < p.win; k++) {
-            v += rows[(row + k) * p.nw + c];
+        let lo = pair_lo(row);
+        var v = rows[lo * p.nw + c];
+        for (var k = 1u; k + 1u < p.win; k++) {
+            v += rows[(lo + k) * p.nw + c];
         }
-        acc += ssim_window(v * inv, query_stats[sq + w], ref_stats[sr + w], query_stats[sq + n + w], ref_stats[sr + n + w]);
+        v += rows[pair_own(row, p.win) * p.nw + c];
+        acc += ssim_window(v, query_stats[sq + w], ref_stats[sr + w], query_stats[sq + n + w], ref_stats[sr + n + w]);
     }
     partial[lane] = acc;
     workgroupBarrier();

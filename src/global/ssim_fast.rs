@@ -4,29 +4,33 @@
 //! descriptor ([`ssim_stats_fast`], equal to [`ssim_stats`]).
 //!
 //! Algorithm: the twin's arithmetic in the twin's order (product map, direct `win`-tap
-//! horizontal window sums, direct vertical sums, the SSIM window formula, the shader's 64-lane
-//! strided mean), laid out for SIMD:
+//! horizontal window sums, direct vertical sums, both in `ssim::pair_order_sum`'s order, the
+//! SSIM window formula as `ssim::ssim_window` groups it, the shader's 64-lane strided mean), laid
+//! out for SIMD:
 //! - pairs: one reference per vector lane (`pulp`'s native width: 8 with AVX2), the references'
 //!   descriptors and stats [`interleave`]d, the query's values broadcast. No vector straddles
 //!   windows, so there is no padding and no shifted load; the image is streamed row by row (one
 //!   product row and a ring of `win + 1` rows of horizontal sums, in L1), `G` columns side by side
 //!   for independent addition chains, and each window's value goes straight to its lane of the
-//!   twin's reduction. What depends on the query only (its means, doubled and squared as the
-//!   twin rounds them, and variances: [`query_lane_terms`]) is computed once per query.
+//!   twin's reduction. What depends on the query only (`ssim::window_x_terms`:
+//!   [`query_lane_terms`]) is computed once per query. Two neighbouring windows share `win - 1`
+//!   of their values, in columns and in rows: the pair order sums those once for both.
 //!   (Measured against the former one-pair kernel, whose vectors ran along window columns padded
-//!   to 64: 1.5-1.65 against 2.5 µs a pair on one Zen 4 core, `cargo bench --bench coarse_kernel`.)
+//!   to 64: 1.5-1.65 against 2.5 µs a pair on one Zen 4 core, `cargo bench --bench coarse_kernel`;
+//!   the pair order and the regrouped window formula then took it to 1.35-1.5 µs.)
 //! - statistics: window columns a vector at a time, from rows padded to a multiple of [`W`].
 //!
 //! IEEE operations evaluated in the same order give the same bits (Rust neither contracts
 //! a*b+c into a fused multiply-add nor reassociates, and only plain add/sub/mul/div are used), so
 //! scores equal the twin's exactly (a zero may differ in sign only), on every instruction set.
-//! Running-sum box filters would do fewer additions but round differently, and in the covariance
-//! E\[xy\] - mx*my a rounding difference is amplified by up to 2 / C2 (~2200 at the defaults) in
-//! windows of near-zero variance, so no tolerance like 1e-5 holds for every input; the direct
-//! sums were kept for exact equality.
+//! Running-sum box filters would do fewer additions still, but each sum would then depend on
+//! every earlier one (a shader's invocations compute theirs independently), and in the
+//! covariance E\[xy\] - mx*my a rounding difference is amplified by up to 2 / C2 (~2200 at the
+//! defaults) in windows of near-zero variance, so no tolerance like 1e-5 would hold between them
+//! for every input; direct sums in a fixed order keep every path exactly equal.
 
 use crate::kernels::abi::SsimParams;
-use crate::kernels::ssim::{ssim_stats, SsimScratch, LANES};
+use crate::kernels::ssim::{ssim_stats, window_factors, window_x_terms, SsimScratch, LANES};
 use pulp::Simd;
 
 /// Row padding in f32 lanes: a multiple of every vector width the kernel is built for (8 for
@@ -255,24 +259,22 @@ impl LaneScratch {
     }
 }
 
-/// Floats of a query's lane terms ([`query_lane_terms`]): four planes of one value per window.
+/// Floats of a query's lane terms ([`query_lane_terms`]): three planes of one value per window.
 pub fn query_lane_terms_len(p: &SsimParams) -> usize {
-    4 * p.windows()
+    3 * p.windows()
 }
 
-/// The query-side terms [`ssim_lanes_fast`] reads, from the query's stats record: per window its
-/// mean m, 2 * m, m * m (each rounded as `ssim::ssim_window` rounds it) and its variance, as four
+/// The query-side terms [`ssim_lanes_fast`] reads, from the query's stats record: per window
+/// `ssim::window_x_terms` (m, m * m + C1, v + C2, rounded as the twin rounds them), as three
 /// planes. Computed once per query, not once per window and reference block.
 pub fn query_lane_terms(p: &SsimParams, stats: &[f32], out: &mut [f32]) {
     let n = p.windows();
     let (means, vars) = stats[..2 * n].split_at(n);
-    let (m, rest) = out[..4 * n].split_at_mut(n);
-    let (m2, rest) = rest.split_at_mut(n);
-    let (mm, v) = rest.split_at_mut(n);
-    for (i, &x) in means.iter().enumerate() {
-        (m[i], m2[i], mm[i]) = (x, 2.0 * x, x * x);
+    let (m, rest) = out[..3 * n].split_at_mut(n);
+    let (mmc1, vc2) = rest.split_at_mut(n);
+    for (i, (&mx, &vx)) in means.iter().zip(vars).enumerate() {
+        [m[i], mmc1[i], vc2[i]] = window_x_terms(p, mx, vx);
     }
-    v.copy_from_slice(vars);
 }
 
 /// Floats of a group's reference lane terms ([`ref_lane_terms`]) for `lanes` lanes.
@@ -380,14 +382,10 @@ pub fn ssim_lanes_fast<S: Simd>(simd: S, p: &SsimParams, x: &[f32], xt: &[f32], 
     let lanes = S::F32_LANES;
     s.fit(p, lanes);
     let (gw, gh, nw, nh, win, n) = (p.gw as usize, p.gh as usize, p.nw as usize, p.nh as usize, p.win as usize, p.windows());
-    let k = LaneConsts {
-        inv: simd.splat_f32s(1.0 / (win * win) as f32),
-        cn: simd.splat_f32s(p.cov_norm),
-        c1: simd.splat_f32s(p.c1),
-        c2: simd.splat_f32s(p.c2),
-        two: simd.splat_f32s(2.0),
-    };
-    let q = QueryTerms { m: &xt[..n], m2: &xt[n..2 * n], mm: &xt[2 * n..3 * n], v: &xt[3 * n..4 * n] };
+    let (inv, n2) = window_factors(p);
+    let sp = |v: f32| simd.splat_f32s(v);
+    let k = LaneConsts { inv: sp(inv), n2: sp(n2), two: sp(2.0), c1: sp(p.c1), c2: sp(p.c2) };
+    let q = QueryTerms { m: &xt[..n], mmc1: &xt[n..2 * n], vc2: &xt[2 * n..3 * n] };
     let yt = S::as_simd_f32s(&yt[..2 * n * lanes]).0;
     let rt = RefTerms { m: &yt[..n], v: &yt[n..2 * n] };
     let y = S::as_simd_f32s(&y[..gw * gh * lanes]).0;
@@ -439,11 +437,11 @@ pub fn ssim_lanes_fast<S: Simd>(simd: S, p: &SsimParams, x: &[f32], xt: &[f32], 
         }
         let mut c = 0;
         while c + GW <= nw {
-            lanes_windows::<S, GW>(simd, two, &k, ring, rows, c, &q, &rt, acc, lo * nw + c, nw);
+            lanes_windows::<S, GW>(simd, two, lo % 2 == 1, &k, ring, rows, c, &q, &rt, acc, lo * nw + c, nw);
             c += GW;
         }
         while c < nw {
-            lanes_windows::<S, 1>(simd, two, &k, ring, rows, c, &q, &rt, acc, lo * nw + c, nw);
+            lanes_windows::<S, 1>(simd, two, lo % 2 == 1, &k, ring, rows, c, &q, &rt, acc, lo * nw + c, nw);
             c += 1;
         }
     }
@@ -461,12 +459,11 @@ pub fn ssim_lanes_fast<S: Simd>(simd: S, p: &SsimParams, x: &[f32], xt: &[f32], 
     }
 }
 
-/// A query's lane terms as planes.
+/// A query's lane terms as planes (`ssim::window_x_terms`).
 struct QueryTerms<'a> {
     m: &'a [f32],
-    m2: &'a [f32],
-    mm: &'a [f32],
-    v: &'a [f32],
+    mmc1: &'a [f32],
+    vc2: &'a [f32],
 }
 
 /// Window columns whose SSIM values [`ssim_lanes_fast`] computes side by side.
@@ -476,21 +473,38 @@ const GW: usize = 4;
 #[derive(Clone, Copy)]
 struct LaneConsts<V> {
     inv: V,
-    cn: V,
+    n2: V,
+    two: V,
     c1: V,
     c2: V,
-    two: V,
 }
 
-/// Horizontal sums of `N` window columns from `c` on: ((p[c] + p[c+1]) + ...) + p[c+win-1].
+/// Horizontal sums of `N` window columns from `c` on, in `ssim::pair_order_sum`'s order: from an
+/// even column on, a pair of columns shares its `win - 1` common products (one addition chain for
+/// two sums); otherwise column by column.
 #[inline(always)]
 fn lanes_horizontal<S: Simd, const N: usize>(simd: S, prod: &[S::f32s], dst: &mut [S::f32s], c: usize, win: usize) {
     let src = &prod[c..c + N + win - 1];
-    let mut a: [S::f32s; N] = std::array::from_fn(|i| src[i]);
-    for t in 1..win {
-        let sh = &src[t..t + N];
-        for (a, &b) in a.iter_mut().zip(sh) {
-            *a = simd.add_f32s(*a, b);
+    let mut a: [S::f32s; N] = [src[0]; N];
+    if c % 2 == 0 && N % 2 == 0 {
+        let mut inner: [S::f32s; N] = std::array::from_fn(|j| src[(2 * j + 1).min(N - 1)]);
+        for t in 2..win {
+            for (j, v) in inner[..N / 2].iter_mut().enumerate() {
+                *v = simd.add_f32s(*v, src[2 * j + t]);
+            }
+        }
+        for (j, &v) in inner[..N / 2].iter().enumerate() {
+            a[2 * j] = simd.add_f32s(v, src[2 * j]);
+            a[2 * j + 1] = simd.add_f32s(v, src[2 * j + win]);
+        }
+    } else {
+        for (i, a) in a.iter_mut().enumerate() {
+            let (lo, own) = if (c + i) % 2 == 0 { (i + 1, i) } else { (i, i + win - 1) };
+            let mut v = src[lo];
+            for t in 1..win - 1 {
+                v = simd.add_f32s(v, src[lo + t]);
+            }
+            *a = simd.add_f32s(v, src[own]);
         }
     }
     dst[c..c + N].copy_from_slice(&a);
@@ -499,32 +513,37 @@ fn lanes_horizontal<S: Simd, const N: usize>(simd: S, prod: &[S::f32s], dst: &mu
 /// Window columns whose horizontal sums [`lanes_horizontal_7`] computes side by side.
 const GH: usize = 4;
 
-/// [`lanes_horizontal`] for 7-column windows (the default): the `N + 6` products each loaded once
-/// and kept in registers, rather than 7 loads for each sum.
+/// [`lanes_horizontal`] for 7-column windows (the default) from an even column `c`, `N` even:
+/// the `N + 6` products each loaded once and kept in registers, rather than loaded for each pair.
 #[inline(always)]
 fn lanes_horizontal_7<S: Simd, const N: usize>(simd: S, prod: &[S::f32s], dst: &mut [S::f32s], c: usize) {
+    debug_assert!(c % 2 == 0 && N % 2 == 0);
     let src = &prod[c..c + N + 6];
     let mut v = [src[0]; 16];
     v[..N + 6].copy_from_slice(src);
     let mut a = [src[0]; N];
-    for (i, a) in a.iter_mut().enumerate() {
-        *a = v[i];
-        for t in 1..7 {
-            *a = simd.add_f32s(*a, v[i + t]);
+    for i in (0..N).step_by(2) {
+        let mut inner = v[i + 1];
+        for t in 2..7 {
+            inner = simd.add_f32s(inner, v[i + t]);
         }
+        a[i] = simd.add_f32s(inner, v[i]);
+        a[i + 1] = simd.add_f32s(inner, v[i + 7]);
     }
     dst[c..c + N].copy_from_slice(&a);
 }
 
-/// Vertical sums of `N` window columns from `c` on, of one window row (`rows`: its `win` ring
-/// rows, oldest first) or of two (`win + 1` rows: the first `win`, then the last `win`), and their
-/// SSIM values, added to the reduction's lanes; `w` is the first window's index, `nw` the windows
-/// of a row; `two` says which.
+/// Vertical sums of `N` window columns from `c` on, in `ssim::pair_order_sum`'s order, of one
+/// window row (`rows`: its `win` ring rows, oldest first; `odd`: whether its index is odd) or of
+/// an even one and the next (`win + 1` rows, sharing the `win - 1` rows they have in common), and
+/// their SSIM values, added to the reduction's lanes; `w` is the first window's index, `nw` the
+/// windows of a row; `two` says which.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn lanes_windows<S: Simd, const N: usize>(
     simd: S,
     two: bool,
+    odd: bool,
     k: &LaneConsts<S::f32s>,
     ring: &[S::f32s],
     rows: &[usize],
@@ -536,33 +555,22 @@ fn lanes_windows<S: Simd, const N: usize>(
     nw: usize,
 ) {
     let row = |t: usize| &ring[rows[t] + c..rows[t] + c + N];
-    let mut a: [S::f32s; N] = std::array::from_fn(|i| row(0)[i]);
-    if !two {
-        for t in 1..rows.len() {
-            for (a, &v) in a.iter_mut().zip(row(t)) {
-                *a = simd.add_f32s(*a, v);
-            }
+    let win = if two { rows.len() - 1 } else { rows.len() };
+    // the rows the window row shares with its partner: 1..win of an even one, 0..win - 1 of an odd one
+    let lo = if odd { 0 } else { 1 };
+    let mut inner: [S::f32s; N] = std::array::from_fn(|i| row(lo)[i]);
+    for t in lo + 1..lo + win - 1 {
+        for (a, &v) in inner.iter_mut().zip(row(t)) {
+            *a = simd.add_f32s(*a, v);
         }
-        lanes_values(simd, k, a, q, r, acc, w);
+    }
+    let own = |t: usize| -> [S::f32s; N] { std::array::from_fn(|i| simd.add_f32s(inner[i], row(t)[i])) };
+    if !two {
+        lanes_values(simd, k, own(if odd { win - 1 } else { 0 }), q, r, acc, w);
         return;
     }
-    // a = ((r0 + r1) + r2) + ... + r[win-1]; b = ((r1 + r2) + ...) + r[win]: each row loaded once
-    let win = rows.len() - 1;
-    let mut b: [S::f32s; N] = std::array::from_fn(|i| row(1)[i]);
-    for (a, &b) in a.iter_mut().zip(&b) {
-        *a = simd.add_f32s(*a, b);
-    }
-    for t in 2..win {
-        for ((a, b), &v) in a.iter_mut().zip(b.iter_mut()).zip(row(t)) {
-            *a = simd.add_f32s(*a, v);
-            *b = simd.add_f32s(*b, v);
-        }
-    }
-    for (b, &v) in b.iter_mut().zip(row(win)) {
-        *b = simd.add_f32s(*b, v);
-    }
-    lanes_values(simd, k, a, q, r, acc, w);
-    lanes_values(simd, k, b, q, r, acc, w + nw);
+    lanes_values(simd, k, own(0), q, r, acc, w);
+    lanes_values(simd, k, own(win), q, r, acc, w + nw);
 }
 
 /// The SSIM values of `N` consecutive windows from window `w` on, given their sums of x * y,
@@ -577,18 +585,16 @@ fn lanes_values<S: Simd, const N: usize>(
     acc: &mut [S::f32s],
     w: usize,
 ) {
-    let (qm, qm2, qmm, qv) = (&q.m[w..w + N], &q.m2[w..w + N], &q.mm[w..w + N], &q.v[w..w + N]);
+    let (mx, mmc1, vc2) = (&q.m[w..w + N], &q.mmc1[w..w + N], &q.vc2[w..w + N]);
     let (my, vy) = (&r.m[w..w + N], &r.v[w..w + N]);
     let mut vals = sum;
     for (i, val) in vals.iter_mut().enumerate() {
-        // ssim::ssim_window, operation for operation (2 * mx and mx * mx precomputed)
-        let rm = my[i];
-        let cov = simd.mul_f32s(simd.sub_f32s(simd.mul_f32s(sum[i], k.inv), simd.mul_f32s(simd.splat_f32s(qm[i]), rm)), k.cn);
-        let num = simd.mul_f32s(simd.add_f32s(simd.mul_f32s(simd.splat_f32s(qm2[i]), rm), k.c1), simd.add_f32s(simd.mul_f32s(k.two, cov), k.c2));
-        let den = simd.mul_f32s(
-            simd.add_f32s(simd.add_f32s(simd.splat_f32s(qmm[i]), simd.mul_f32s(rm, rm)), k.c1),
-            simd.add_f32s(simd.add_f32s(simd.splat_f32s(qv[i]), vy[i]), k.c2),
-        );
+        // ssim::ssim_window_terms, operation for operation
+        let (rm, sp) = (my[i], |v: f32| simd.splat_f32s(v));
+        let a = simd.mul_f32s(sp(mx[i]), rm);
+        let cross = simd.add_f32s(simd.mul_f32s(simd.sub_f32s(simd.mul_f32s(sum[i], k.inv), a), k.n2), k.c2);
+        let num = simd.mul_f32s(simd.add_f32s(simd.mul_f32s(k.two, a), k.c1), cross);
+        let den = simd.mul_f32s(simd.add_f32s(sp(mmc1[i]), simd.mul_f32s(rm, rm)), simd.add_f32s(sp(vc2[i]), vy[i]));
         *val = simd.div_f32s(num, den);
     }
     let j = w % RL;

@@ -5,11 +5,13 @@
 //! SSIM (Wang, Bovik, Sheikh & Simoncelli, IEEE TIP 2004; paper ref. 26) with a uniform square
 //! window over all valid window positions, as skimage's `structural_similarity` computes it. Each
 //! descriptor carries its own window means and variances ("stats", computed once at encoding), so
-//! a pair costs only the cross term: a product map, a separable box sum, and the SSIM formula.
+//! a pair costs only the cross term: a product map, a separable box sum (in the pair order of
+//! [`pair_order_sum`]), and the SSIM formula (grouped as [`ssim_window`] says).
 
 use super::abi::SsimParams;
 
-/// Window sums of `values` (gw x gh) into `out` (nw x nh), separably: rows into `rows`, then columns.
+/// Window sums of `values` (gw x gh) into `out` (nw x nh), separably: rows into `rows`, then
+/// columns, each sum in index order (the statistics' order).
 fn box_sums(p: &SsimParams, values: &[f32], rows: &mut [f32], out: &mut [f32]) {
     let (gw, nw, nh, win) = (p.gw as usize, p.nw as usize, p.nh as usize, p.win as usize);
     for r in 0..p.gh as usize {
@@ -30,6 +32,39 @@ fn box_sums(p: &SsimParams, values: &[f32], rows: &mut [f32], out: &mut [f32]) {
             for c in 0..nw {
                 dst[c] += src[c];
             }
+        }
+    }
+}
+
+/// The sum of the `win` values `at(j)` .. `at(j + win - 1)` of the window starting at `j`, in the
+/// cross term's pair order: windows j and j + 1 (j even) share their `win - 1` common values,
+/// summed first in index order, and then each adds its own end value (`at(j)` for an even j,
+/// `at(j + win - 1)` for an odd one). A window row of a pair (or a window column) so costs
+/// `win / 2 + 1` additions a window rather than `win - 1`, which the fast path's lanes use; the
+/// twins and the shaders sum in this order too, window by window. `win` is at least 2.
+#[inline(always)]
+pub fn pair_order_sum(j: usize, win: usize, at: impl Fn(usize) -> f32) -> f32 {
+    let (lo, own) = if j % 2 == 0 { (j + 1, j) } else { (j, j + win - 1) };
+    let mut s = at(lo);
+    for k in 1..win - 1 {
+        s += at(lo + k);
+    }
+    s + at(own)
+}
+
+/// Window sums of the product map `values` (gw x gh) into `out` (nw x nh), separably (rows into
+/// `rows`, then columns), each in [`pair_order_sum`]'s order.
+fn cross_box_sums(p: &SsimParams, values: &[f32], rows: &mut [f32], out: &mut [f32]) {
+    let (gw, nw, nh, win) = (p.gw as usize, p.nw as usize, p.nh as usize, p.win as usize);
+    for r in 0..p.gh as usize {
+        let src = &values[r * gw..(r + 1) * gw];
+        for c in 0..nw {
+            rows[r * nw + c] = pair_order_sum(c, win, |i| src[i]);
+        }
+    }
+    for r in 0..nh {
+        for c in 0..nw {
+            out[r * nw + c] = pair_order_sum(r, win, |i| rows[i * nw + c]);
         }
     }
 }
@@ -70,15 +105,15 @@ pub fn ssim_stats(p: &SsimParams, x: &[f32], out: &mut [f32], scratch: &mut Ssim
 }
 
 /// SSIM of descriptors `x` and `y` given their stats: the mean over windows of
-/// ((2 μx μy + C1)(2 σxy + C2)) / ((μx² + μy² + C1)(σx² + σy² + C2)).
+/// ((2 μx μy + C1)(2 σxy + C2)) / ((μx² + μy² + C1)(σx² + σy² + C2)), grouped as
+/// [`ssim_window`] says.
 pub fn ssim_pair(p: &SsimParams, x: &[f32], xs: &[f32], y: &[f32], ys: &[f32], scratch: &mut SsimScratch) -> f32 {
     scratch.fit(p);
     let n = p.windows();
-    let inv = 1.0 / (p.win * p.win) as f32;
     for ((q, a), b) in scratch.product.iter_mut().zip(x).zip(y) {
         *q = a * b;
     }
-    box_sums(p, &scratch.product, &mut scratch.rows, &mut scratch.sums);
+    cross_box_sums(p, &scratch.product, &mut scratch.rows, &mut scratch.sums);
     let (mx, vx) = xs.split_at(n);
     let (my, vy) = ys.split_at(n);
     // The shader's reduction: lane l sums windows l, l + LANES, ...; then a tree over the lanes.
@@ -88,7 +123,7 @@ pub fn ssim_pair(p: &SsimParams, x: &[f32], xs: &[f32], y: &[f32], ys: &[f32], s
         let m = LANES.min(n - start);
         for l in 0..m {
             let i = start + l;
-            acc[l] += ssim_window(p, scratch.sums[i] * inv, mx[i], my[i], vx[i], vy[i]);
+            acc[l] += ssim_window(p, scratch.sums[i], mx[i], my[i], vx[i], vy[i]);
         }
     }
     let mut h = LANES / 2;
@@ -104,12 +139,39 @@ pub fn ssim_pair(p: &SsimParams, x: &[f32], xs: &[f32], y: &[f32], ys: &[f32], s
 /// Lanes of the SSIM reduction: the workgroup size of `ssim_topk.wgsl`.
 pub const LANES: usize = 64;
 
-/// SSIM of one window from the mean of x*y, the two means and the two variances.
+/// SSIM of one window from the sum of x*y over it, the two means and the two variances:
+/// (2 a + C1) ((Σxy / win² - a) 2cn + C2) / (((μx² + C1) + μy²) ((σx² + C2) + σy²)) with
+/// a = μx μy and cn the covariance normalisation; in exact arithmetic the textbook
+/// (2 μx μy + C1)(2 σxy + C2) / ((μx² + μy² + C1)(σx² + σy² + C2)). The numerator rounds as
+/// the textbook order does (doubling is exact); the denominator is grouped so that what depends
+/// on x alone ([`window_x_terms`]) is computed once per query rather than once per pair: 13
+/// operations a window instead of 16, which the coarse scan's speed rests on. Every path (this
+/// twin, the shaders, `global::ssim_fast`) evaluates exactly this grouping.
 #[inline(always)]
-pub fn ssim_window(p: &SsimParams, mean_xy: f32, mx: f32, my: f32, vx: f32, vy: f32) -> f32 {
-    let cov = (mean_xy - mx * my) * p.cov_norm;
-    let num = (2.0 * mx * my + p.c1) * (2.0 * cov + p.c2);
-    let den = (mx * mx + my * my + p.c1) * (vx + vy + p.c2);
+pub fn ssim_window(p: &SsimParams, sum_xy: f32, mx: f32, my: f32, vx: f32, vy: f32) -> f32 {
+    ssim_window_terms(p, window_factors(p), sum_xy, window_x_terms(p, mx, vx), my, vy)
+}
+
+/// The window formula's factors that depend on the parameters only: (1 / win², 2 cn), as the
+/// shaders compute them.
+#[inline(always)]
+pub fn window_factors(p: &SsimParams) -> (f32, f32) {
+    (1.0 / (p.win * p.win) as f32, 2.0 * p.cov_norm)
+}
+
+/// The terms of a window that depend on x (the query) alone: [μx, μx² + C1, σx² + C2].
+#[inline(always)]
+pub fn window_x_terms(p: &SsimParams, mx: f32, vx: f32) -> [f32; 3] {
+    [mx, mx * mx + p.c1, vx + p.c2]
+}
+
+/// [`ssim_window`] from x's terms ([`window_x_terms`]) and the factors ([`window_factors`]).
+#[inline(always)]
+pub fn ssim_window_terms(p: &SsimParams, (inv, n2): (f32, f32), sum_xy: f32, x: [f32; 3], my: f32, vy: f32) -> f32 {
+    let [mx, mmc1, vc2] = x;
+    let a = mx * my;
+    let num = (2.0 * a + p.c1) * ((sum_xy * inv - a) * n2 + p.c2);
+    let den = (mmc1 + my * my) * (vc2 + vy);
     num / den
 }
 
@@ -137,4 +199,22 @@ pub fn ssim_reference(p: &SsimParams, x: &[f32], y: &[f32]) -> f64 {
         }
     }
     total / (p.nw * p.nh) as f64
+}
+
+#[cfg(test)]
+mod tests {
+    use super::pair_order_sum;
+
+    /// Every window's pair-order sum adds each of its `win` values once and no other: with the
+    /// values distinct powers of two every such sum is exact, so any other index set shows.
+    #[test]
+    fn pair_order_sum_adds_each_value_of_the_window_once() {
+        let at = |i: usize| (1u32 << i) as f32;
+        for win in [2, 3, 5, 7, 9, 15] {
+            for j in 0..24 - win {
+                let want: f32 = (j..j + win).map(at).sum();
+                assert_eq!(pair_order_sum(j, win, at), want, "window {j}, {win} wide");
+            }
+        }
+    }
 }

@@ -7,7 +7,7 @@
 
 use super::abi::PassParams;
 use crate::kernels::abi::SsimParams;
-use crate::kernels::ssim::{ssim_window, LANES};
+use crate::kernels::ssim::{pair_order_sum, ssim_window, LANES};
 
 /// Most pairs (rb x qb) a workgroup scores: the shader's `PAIR_CAP`.
 pub const PAIR_CAP: usize = 8;
@@ -67,7 +67,6 @@ fn block(
     let (q0, r0) = (wg[0] * ps.qb as usize, wg[1] * rb);
     let (gw, gh, win, nw, nh) = (p.gw as usize, p.gh as usize, p.win as usize, p.nw as usize, p.nh as usize);
     let (len, n, first) = (gw * gh, nw * nh, ps.ref_first as usize);
-    let inv = 1.0 / (p.win * p.win) as f32;
     let valid = |pair: usize| {
         let (q, r) = (q0 + pair / rb, r0 + pair % rb);
         (q < ps.queries as usize && r < ps.refs as usize).then_some((q, r))
@@ -79,15 +78,12 @@ fn block(
             let o = row * gw + i % gw;
             w.prod[i] = valid(i / gw).map_or(0.0, |(q, r)| queries[q * len + o] * refs[(first + r) * len + o]);
         }
-        // 2. horizontal window sums into ring slot row % win
+        // 2. horizontal window sums (in `pair_order_sum`'s order) into ring slot row % win
         let slot = row % win;
         for i in 0..np * nw {
             let (pair, c) = (i / nw, i % nw);
-            let mut h = 0.0f32;
-            for k in 0..win {
-                h += w.prod[pair * gw + c + k];
-            }
-            w.ring[(pair * win + slot) * nw + c] = h;
+            let prod = &w.prod[pair * gw..];
+            w.ring[(pair * win + slot) * nw + c] = pair_order_sum(c, win, |i| prod[i]);
         }
         // 3. the window row ending here: vertical sums, window formula, lane slot w % 64
         if row + 1 >= win {
@@ -95,14 +91,12 @@ fn block(
             for i in 0..np * nw {
                 let (pair, c) = (i / nw, i % nw);
                 let Some((q, r)) = valid(pair) else { continue };
-                let mut v = 0.0f32;
-                for k in 0..win {
-                    v += w.ring[(pair * win + (wr + k) % win) * nw + c];
-                }
+                let ring = &w.ring;
+                let v = pair_order_sum(wr, win, |i| ring[(pair * win + i % win) * nw + c]);
                 let wi = wr * nw + c;
                 let (sq, sr) = (q * 2 * n, (first + r) * 2 * n);
                 w.acc[pair * LANES + wi % LANES] +=
-                    ssim_window(p, v * inv, query_stats[sq + wi], ref_stats[sr + wi], query_stats[sq + n + wi], ref_stats[sr + n + wi]);
+                    ssim_window(p, v, query_stats[sq + wi], ref_stats[sr + wi], query_stats[sq + n + wi], ref_stats[sr + n + wi]);
             }
         }
     }

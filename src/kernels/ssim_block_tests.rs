@@ -63,7 +63,6 @@ fn ssim_running(p: &SsimParams, x: &[f32], xs: &[f32], y: &[f32], ys: &[f32]) ->
         }
     }
     let n = nw * nh;
-    let inv = 1.0 / (win * win) as f32;
     let mut total = 0.0f64;
     for c in 0..nw {
         let mut s: f32 = (0..win).map(|k| rows[k * nw + c]).sum();
@@ -72,7 +71,7 @@ fn ssim_running(p: &SsimParams, x: &[f32], xs: &[f32], y: &[f32], ys: &[f32]) ->
                 s = s + rows[(r + win - 1) * nw + c] - rows[(r - 1) * nw + c];
             }
             let w = r * nw + c;
-            total += ssim_window(p, s * inv, xs[w], ys[w], xs[n + w], ys[n + w]) as f64;
+            total += ssim_window(p, s, xs[w], ys[w], xs[n + w], ys[n + w]) as f64;
         }
     }
     (total / n as f64) as f32
