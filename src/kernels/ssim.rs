@@ -53,18 +53,41 @@ pub fn pair_order_sum(j: usize, win: usize, at: impl Fn(usize) -> f32) -> f32 {
 }
 
 /// Window sums of the product map `values` (gw x gh) into `out` (nw x nh), separably (rows into
-/// `rows`, then columns), each in [`pair_order_sum`]'s order.
-fn cross_box_sums(p: &SsimParams, values: &[f32], rows: &mut [f32], out: &mut [f32]) {
+/// `rows`, then columns), each in [`pair_order_sum`]'s order, written as loops that vectorise:
+/// the shared sums of `win - 1` values (`inner`) first, from every odd start (the `lo` of both
+/// windows of a pair), then each window's own value.
+fn cross_box_sums(p: &SsimParams, values: &[f32], rows: &mut [f32], inner: &mut [f32], out: &mut [f32]) {
     let (gw, nw, nh, win) = (p.gw as usize, p.nw as usize, p.nh as usize, p.win as usize);
+    let inner = &mut inner[..nw + 1];
     for r in 0..p.gh as usize {
         let src = &values[r * gw..(r + 1) * gw];
-        for c in 0..nw {
-            rows[r * nw + c] = pair_order_sum(c, win, |i| src[i]);
+        // inner[a] for every a (the odd ones are used): src[a] + ... + src[a + win - 2]
+        inner.copy_from_slice(&src[..nw + 1]);
+        for k in 1..win - 1 {
+            for (t, &v) in inner.iter_mut().zip(&src[k..]) {
+                *t += v;
+            }
+        }
+        for (c, d) in rows[r * nw..(r + 1) * nw].iter_mut().enumerate() {
+            *d = if c % 2 == 0 { inner[c + 1] + src[c] } else { inner[c] + src[c + win - 1] };
         }
     }
-    for r in 0..nh {
-        for c in 0..nw {
-            out[r * nw + c] = pair_order_sum(r, win, |i| rows[i * nw + c]);
+    let inner = &mut inner[..nw];
+    for a in (1..=nh).step_by(2) {
+        inner.copy_from_slice(&rows[a * nw..(a + 1) * nw]);
+        for k in 1..win - 1 {
+            for (t, &v) in inner.iter_mut().zip(&rows[(a + k) * nw..(a + k + 1) * nw]) {
+                *t += v;
+            }
+        }
+        for (d, (&t, &v)) in out[(a - 1) * nw..a * nw].iter_mut().zip(inner.iter().zip(&rows[(a - 1) * nw..a * nw])) {
+            *d = t + v;
+        }
+        if a < nh {
+            let own = &rows[(a + win - 1) * nw..(a + win) * nw];
+            for (d, (&t, &v)) in out[a * nw..(a + 1) * nw].iter_mut().zip(inner.iter().zip(own)) {
+                *d = t + v;
+            }
         }
     }
 }
@@ -75,6 +98,7 @@ pub struct SsimScratch {
     product: Vec<f32>,
     rows: Vec<f32>,
     sums: Vec<f32>,
+    inner: Vec<f32>,
 }
 
 impl SsimScratch {
@@ -82,6 +106,7 @@ impl SsimScratch {
         self.product.resize(p.len(), 0.0);
         self.rows.resize(p.gh as usize * p.nw as usize, 0.0);
         self.sums.resize(p.windows(), 0.0);
+        self.inner.resize(p.nw as usize + 1, 0.0);
     }
 }
 
@@ -113,7 +138,7 @@ pub fn ssim_pair(p: &SsimParams, x: &[f32], xs: &[f32], y: &[f32], ys: &[f32], s
     for ((q, a), b) in scratch.product.iter_mut().zip(x).zip(y) {
         *q = a * b;
     }
-    cross_box_sums(p, &scratch.product, &mut scratch.rows, &mut scratch.sums);
+    cross_box_sums(p, &scratch.product, &mut scratch.rows, &mut scratch.inner, &mut scratch.sums);
     let (mx, vx) = xs.split_at(n);
     let (my, vy) = ys.split_at(n);
     // The shader's reduction: lane l sums windows l, l + LANES, ...; then a tree over the lanes.
