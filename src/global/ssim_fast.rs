@@ -17,7 +17,7 @@
 //!   of their values, in columns and in rows: the pair order sums those once for both.
 //!   (Measured against the former one-pair kernel, whose vectors ran along window columns padded
 //!   to 64: 1.5-1.65 against 2.5 µs a pair on one Zen 4 core, `cargo bench --bench coarse_kernel`;
-//!   the pair order and the regrouped window formula then took it to 1.35-1.5 µs.)
+//!   the pair order and the regrouped window formula then took it to 1.31-1.47 µs.)
 //! - statistics: window columns a vector at a time, from rows padded to a multiple of [`W`].
 //!
 //! IEEE operations evaluated in the same order give the same bits (Rust neither contracts

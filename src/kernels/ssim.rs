@@ -39,11 +39,13 @@ fn box_sums(p: &SsimParams, values: &[f32], rows: &mut [f32], out: &mut [f32]) {
 /// The sum of the `win` values `at(j)` .. `at(j + win - 1)` of the window starting at `j`, in the
 /// cross term's pair order: windows j and j + 1 (j even) share their `win - 1` common values,
 /// summed first in index order, and then each adds its own end value (`at(j)` for an even j,
-/// `at(j + win - 1)` for an odd one). A window row of a pair (or a window column) so costs
-/// `win / 2 + 1` additions a window rather than `win - 1`, which the fast path's lanes use; the
-/// twins and the shaders sum in this order too, window by window. `win` is at least 2.
+/// `at(j + win - 1)` for an odd one). Summed pair by pair, as the fast path's lanes do, two
+/// windows cost `win` additions rather than `2 (win - 1)` (3.5 a window instead of 6 at the
+/// default 7-wide window); the twins and the shaders sum in this order too, window by window.
+/// `win` is at least 2 (the configuration allows 3 and up).
 #[inline(always)]
 pub fn pair_order_sum(j: usize, win: usize, at: impl Fn(usize) -> f32) -> f32 {
+    debug_assert!(win >= 2, "pair_order_sum: window {win}");
     let (lo, own) = if j % 2 == 0 { (j + 1, j) } else { (j, j + win - 1) };
     let mut s = at(lo);
     for k in 1..win - 1 {
@@ -54,8 +56,9 @@ pub fn pair_order_sum(j: usize, win: usize, at: impl Fn(usize) -> f32) -> f32 {
 
 /// Window sums of the product map `values` (gw x gh) into `out` (nw x nh), separably (rows into
 /// `rows`, then columns), each in [`pair_order_sum`]'s order, written as loops that vectorise:
-/// the shared sums of `win - 1` values (`inner`) first, from every odd start (the `lo` of both
-/// windows of a pair), then each window's own value.
+/// the shared sums of `win - 1` values (`inner`) first (in rows from every start, of which the
+/// odd ones, the `lo` of both windows of a pair, are used; in columns from the odd starts only),
+/// then each window's own value.
 fn cross_box_sums(p: &SsimParams, values: &[f32], rows: &mut [f32], inner: &mut [f32], out: &mut [f32]) {
     let (gw, nw, nh, win) = (p.gw as usize, p.nw as usize, p.nh as usize, p.win as usize);
     let inner = &mut inner[..nw + 1];
@@ -165,7 +168,7 @@ pub fn ssim_pair(p: &SsimParams, x: &[f32], xs: &[f32], y: &[f32], ys: &[f32], s
 pub const LANES: usize = 64;
 
 /// SSIM of one window from the sum of x*y over it, the two means and the two variances:
-/// (2 a + C1) ((Σxy / win² - a) 2cn + C2) / (((μx² + C1) + μy²) ((σx² + C2) + σy²)) with
+/// (2 a + C1) ((Σxy · (1 / win²) - a) 2cn + C2) / (((μx² + C1) + μy²) ((σx² + C2) + σy²)) with
 /// a = μx μy and cn the covariance normalisation; in exact arithmetic the textbook
 /// (2 μx μy + C1)(2 σxy + C2) / ((μx² + μy² + C1)(σx² + σy² + C2)). The numerator rounds as
 /// the textbook order does (doubling is exact); the denominator is grouped so that what depends
