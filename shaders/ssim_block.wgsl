@@ -41,10 +41,11 @@ var<workgroup> prod: array<f32, PROD_CAP>;
 var<workgroup> ring: array<f32, RING_CAP>;
 var<workgroup> acc: array<f32, 512>;
 
-fn ssim_window(sum_xy: f32, mx: f32, my: f32, vx: f32, vy: f32) -> f32 {
-    // the twin's grouping (src/kernels/ssim.rs, ssim_window)
+// f: the factors (1 / win², 2 cov_norm) (`window_factors`)
+fn ssim_window(f: vec2<f32>, sum_xy: f32, mx: f32, my: f32, vx: f32, vy: f32) -> f32 {
+    // the twin's grouping (src/kernels/ssim.rs, ssim_window_terms)
     let a = mx * my;
-    let num = (2.0 * a + p.c1) * ((sum_xy * (1.0 / f32(p.win * p.win)) - a) * (2.0 * p.cov_norm) + p.c2);
+    let num = (2.0 * a + p.c1) * ((sum_xy * f.x - a) * f.y + p.c2);
     let den = ((mx * mx + p.c1) + my * my) * ((vx + p.c2) + vy);
     return num / den;
 }
@@ -57,6 +58,8 @@ fn ssim_block(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_in
     let r0 = wg.y * rb;
     let len = p.gw * p.gh;
     let n = p.nw * p.nh;
+    // the twin's `window_factors`, once per invocation
+    let f = vec2<f32>(1.0 / f32(p.win * p.win), 2.0 * p.cov_norm);
     for (var i = lane; i < np * LANES; i += LANES) {
         acc[i] = 0.0;
     }
@@ -107,7 +110,7 @@ fn ssim_block(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_in
                     let w = wr * p.nw + c;
                     let sq = q * 2u * n;
                     let sr = (ps.ref_first + r) * 2u * n;
-                    let s = ssim_window(v, query_stats[sq + w], ref_stats[sr + w], query_stats[sq + n + w], ref_stats[sr + n + w]);
+                    let s = ssim_window(f, v, query_stats[sq + w], ref_stats[sr + w], query_stats[sq + n + w], ref_stats[sr + n + w]);
                     acc[pair * LANES + w % LANES] += s;
                 }
             }

@@ -36,10 +36,11 @@ const MAX_ROW_SUMS: u32 = 3840u;
 var<workgroup> rows: array<f32, 3840>;
 var<workgroup> partial: array<f32, 64>;
 
-fn ssim_window(sum_xy: f32, mx: f32, my: f32, vx: f32, vy: f32) -> f32 {
-    // the twin's grouping (src/kernels/ssim.rs, ssim_window)
+// f: the factors (1 / win², 2 cov_norm) (`window_factors`)
+fn ssim_window(f: vec2<f32>, sum_xy: f32, mx: f32, my: f32, vx: f32, vy: f32) -> f32 {
+    // the twin's grouping (src/kernels/ssim.rs, ssim_window_terms)
     let a = mx * my;
-    let num = (2.0 * a + p.c1) * ((sum_xy * (1.0 / f32(p.win * p.win)) - a) * (2.0 * p.cov_norm) + p.c2);
+    let num = (2.0 * a + p.c1) * ((sum_xy * f.x - a) * f.y + p.c2);
     let den = ((mx * mx + p.c1) + my * my) * ((vx + p.c2) + vy);
     return num / den;
 }
@@ -66,6 +67,8 @@ fn ssim_tile(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_ind
     }
     workgroupBarrier();
     let n = p.nw * p.nh;
+    // the twin's `window_factors`, once per invocation
+    let f = vec2<f32>(1.0 / f32(p.win * p.win), 2.0 * p.cov_norm);
     let sq = q * 2u * n;
     let sr = r * 2u * n;
     var acc = 0.0;
@@ -78,7 +81,7 @@ fn ssim_tile(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_ind
             v += rows[(lo + k) * p.nw + c];
         }
         v += rows[pair_own(row, p.win) * p.nw + c];
-        acc += ssim_window(v, query_stats[sq + w], ref_stats[sr + w], query_stats[sq + n + w], ref_stats[sr + n + w]);
+        acc += ssim_window(f, v, query_stats[sq + w], ref_stats[sr + w], query_stats[sq + n + w], ref_stats[sr + n + w]);
     }
     partial[lane] = acc;
     workgroupBarrier();

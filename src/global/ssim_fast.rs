@@ -370,12 +370,12 @@ unsafe fn transpose8_avx(recs: &[&[f32]; 16], out: &mut [f32]) -> usize {
 /// references at once, one per vector lane: `y` holds the references' descriptors
 /// [`interleave`]d, `yt` their [`ref_lane_terms`]; their scores go to `out[..lanes]`. Each lane evaluates the
 /// twin's `ssim_pair` operation for operation (product map, direct `win`-tap
-/// horizontal then vertical window sums, `ssim_window`, the 64-lane strided mean and its tree), so
-/// scores equal the twin's bit for bit (a zero may differ in sign only). Since every lane is
-/// another pair, no vector straddles windows: no padding, shifted loads or lane shuffles. Columns
-/// are summed a few at a time (independent addition chains, each product loaded once for the
-/// default 7-wide window), window rows two at a time (the second's vertical sums reuse the
-/// first's rows).
+/// horizontal then vertical window sums in `ssim::pair_order_sum`'s order, `ssim_window_terms`,
+/// the 64-lane strided mean and its tree), so scores equal the twin's bit for bit (a zero may
+/// differ in sign only). Since every lane is another pair, no vector straddles windows: no
+/// padding, shifted loads or lane shuffles. Columns are summed a few at a time (independent
+/// addition chains, each product loaded once for the default 7-wide window), window rows two at
+/// a time; a pair of columns or of window rows sums its `win - 1` shared values once.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 pub fn ssim_lanes_fast<S: Simd>(simd: S, p: &SsimParams, x: &[f32], xt: &[f32], y: &[f32], yt: &[f32], s: &mut LaneScratch, out: &mut [f32]) {
@@ -419,7 +419,7 @@ pub fn ssim_lanes_fast<S: Simd>(simd: S, p: &SsimParams, x: &[f32], xt: &[f32], 
             c += 1;
         }
         slot = if slot + 1 == cap { 0 } else { slot + 1 };
-        // window rows in pairs (the second's vertical sums reuse `win - 1` of the first's rows),
+        // window rows in pairs (sharing the sum of their `win - 1` common rows),
         // the last alone where their count is odd. Pairs add a row's values to the reduction's
         // lanes before the end of the row above, which keeps the twin's order of each lane's
         // additions only while a row has at most 64 windows (no lane holds two windows of the
