@@ -10,11 +10,12 @@
 
 mod common;
 
+use common::glue::{fixtures, reference_matches, Stored};
+
 use semlook::config::Config;
 use semlook::descriptors::keypoints::KeypointsRef;
 use semlook::verify::lighterglue::{GlueParams, LighterGlue, LIGHTERGLUE_WEIGHTS};
 use semlook::verify::{verify_pairs_cpu, VerifyParams};
-use serde_json::Value;
 
 const PROBABILITY_TOLERANCE: f32 = 1e-3;
 
@@ -26,48 +27,6 @@ fn matcher() -> Option<LighterGlue> {
             None
         }
     }
-}
-
-struct Stored {
-    xy: Vec<u16>,
-    descriptors: Vec<i8>,
-    classes: Vec<u8>,
-}
-
-impl Stored {
-    fn of(pair: &Value, image: &str) -> Stored {
-        let xy: Vec<u16> = pair[format!("{image}_xy")].as_array().unwrap().iter().map(|v| v.as_u64().unwrap() as u16).collect();
-        let b64 = pair[format!("{image}_descriptors_b64")].as_str().unwrap();
-        let descriptors: Vec<i8> = base64_decode(b64).into_iter().map(|b| b as i8).collect();
-        assert_eq!(descriptors.len(), xy.len() / 2 * 64);
-        Stored { classes: vec![0; xy.len() / 2], xy, descriptors }
-    }
-    fn as_ref(&self) -> KeypointsRef<'_> {
-        KeypointsRef { descriptors: &self.descriptors, xy: &self.xy, classes: &self.classes, dim: 64 }
-    }
-}
-
-fn base64_decode(s: &str) -> Vec<u8> {
-    let val = |c: u8| match c {
-        b'A'..=b'Z' => c - b'A',
-        b'a'..=b'z' => c - b'a' + 26,
-        b'0'..=b'9' => c - b'0' + 52,
-        b'+' => 62,
-        b'/' => 63,
-        _ => panic!("not base64: {c}"),
-    };
-    let bytes: Vec<u8> = s.bytes().filter(|&c| c != b'=').collect();
-    let mut out = Vec::with_capacity(bytes.len() * 3 / 4);
-    for chunk in bytes.chunks(4) {
-        let v: Vec<u32> = chunk.iter().map(|&c| val(c) as u32).collect();
-        let n = v.iter().enumerate().fold(0u32, |a, (i, &x)| a | x << (18 - 6 * i));
-        out.extend((0..chunk.len() - 1).map(|i| (n >> (16 - 8 * i)) as u8));
-    }
-    out
-}
-
-fn fixtures() -> Value {
-    serde_json::from_str(&std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/lighterglue_pairs.json")).unwrap()).unwrap()
 }
 
 #[test]
@@ -82,16 +41,7 @@ fn matches_the_reference_on_real_pairs() {
             let r = &pair[run];
             let p = GlueParams { width_confidence: r["width_confidence"].as_f64().unwrap() as f32, ..GlueParams::default() };
             let ours = net.match_keypoints(&p, a.as_ref(), b.as_ref());
-            let want: Vec<(u32, u32, f32)> = r["matches0"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .enumerate()
-                .filter_map(|(i, j)| {
-                    let j = j.as_i64().unwrap();
-                    (j >= 0).then(|| (i as u32, j as u32, r["scores0"][i].as_f64().unwrap() as f32))
-                })
-                .collect();
+            let want = reference_matches(pair, run);
             let name = format!("{} ({run})", pair["name"].as_str().unwrap());
             let pairs = |v: &[(u32, u32, f32)]| v.iter().map(|&(i, j, _)| (i, j)).collect::<Vec<_>>();
             assert_eq!(pairs(&ours), pairs(&want), "{name}: matches differ from the reference");
@@ -231,4 +181,39 @@ fn w_glue_adds_the_learned_matchers_inliers_to_every_candidate() {
             .unwrap();
     let in_batch = fused[1].ranked.iter().find(|c| c.reference == 2).unwrap();
     assert_eq!(alone[0].score, in_batch.score);
+}
+
+/// The device executor's forward pass run on the CPU twins of `lighterglue.wgsl`
+/// (`gpu::lighterglue::forward_on_twins`: the same passes the device runs, the online softmax,
+/// erf by a polynomial) held to the authors' model like the crate's CPU matcher: matches
+/// identical with and without pruning, probabilities within 1e-3; all pairs in one batch, with
+/// an empty pair among them. What the device is then held to (tests/gpu/lighterglue.rs).
+#[test]
+fn the_device_plan_on_the_twins_matches_the_reference() {
+    let Some(_) = matcher() else { return };
+    let net = matcher().unwrap();
+    let fx = fixtures();
+    let stored: Vec<(Stored, Stored)> = fx["pairs"].as_array().unwrap().iter().map(|p| (Stored::of(p, "image0"), Stored::of(p, "image1"))).collect();
+    let mut worst = 0.0f32;
+    for run in ["pruned", "full"] {
+        let mut pairs: Vec<(KeypointsRef, KeypointsRef)> = stored.iter().map(|(a, b)| (a.as_ref(), b.as_ref())).collect();
+        pairs.insert(1, (stored[0].0.as_ref(), KeypointsRef::EMPTY));
+        let width = fx["pairs"][0][run]["width_confidence"].as_f64().unwrap() as f32;
+        let p = GlueParams { width_confidence: width, ..GlueParams::default() };
+        let got = semlook::gpu::lighterglue::forward_on_twins(&net, &p, &pairs);
+        assert_eq!(got.len(), pairs.len());
+        assert!(got[1].is_empty(), "a side without keypoints has no matches");
+        let got: Vec<_> = got.into_iter().enumerate().filter(|&(k, _)| k != 1).map(|x| x.1).collect();
+        for (pair, ours) in fx["pairs"].as_array().unwrap().iter().zip(&got) {
+            let want = reference_matches(pair, run);
+            let name = format!("{} ({run})", pair["name"].as_str().unwrap());
+            let ij = |v: &[(u32, u32, f32)]| v.iter().map(|&(i, j, _)| (i, j)).collect::<Vec<_>>();
+            assert_eq!(ij(ours), ij(&want), "{name}: the twins' matches differ from the reference");
+            for (o, w) in ours.iter().zip(&want) {
+                worst = worst.max((o.2 - w.2).abs());
+            }
+        }
+    }
+    assert!(worst <= PROBABILITY_TOLERANCE, "largest probability difference {worst}");
+    eprintln!("twins: matches identical; largest probability difference {worst:.2e}");
 }

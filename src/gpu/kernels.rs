@@ -99,6 +99,14 @@ pub(crate) struct Kernels {
     pub space_to_depth8: Kernel,
     pub bilinear_add: Kernel,
     pub conv2d: Kernel,
+    /// `lighterglue.wgsl`: the learned matcher.
+    pub lg_linear: Kernel,
+    pub lg_layer_norm: Kernel,
+    pub lg_rotary: Kernel,
+    pub lg_attention: Kernel,
+    pub lg_row_lse: Kernel,
+    pub lg_assignment_best: Kernel,
+    pub lg_gather: Kernel,
 }
 
 fn module(device: &wgpu::Device, name: &str, subgroups: bool) -> Result<wgpu::ShaderModule, GpuError> {
@@ -168,6 +176,8 @@ const FINE_PASS: u64 = std::mem::size_of::<crate::kernels::abi::FinePass>() as u
 const XF_CONV: u64 = std::mem::size_of::<crate::kernels::abi::ConvParams>() as u64;
 const XF_MAP: u64 = std::mem::size_of::<crate::kernels::abi::MapParams>() as u64;
 const XF_NORM: u64 = std::mem::size_of::<crate::kernels::abi::NormParams>() as u64;
+/// Bytes of the LighterGlue kernels' uniform (bound at a dynamic offset of one buffer).
+const LG: u64 = std::mem::size_of::<crate::kernels::abi::LgParams>() as u64;
 
 use Slot::{Read, ReadWrite, Uniform, UniformAt};
 const EDT: &[(u32, Slot)] = &[(0, Uniform), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite), (5, ReadWrite)];
@@ -208,6 +218,13 @@ pub(crate) const BINDINGS: &[(&str, &str, &[&[(u32, Slot)]])] = &[
     ("xfeat.wgsl", "space_to_depth8", &[XF_MAP1]),
     ("xfeat.wgsl", "bilinear_add", &[&[(5, UniformAt(XF_MAP)), (6, Read), (7, Read), (8, Read), (9, ReadWrite)]]),
     ("xfeat.wgsl", "conv2d", &[&[(0, UniformAt(XF_CONV)), (1, Read), (2, Read), (3, Read), (4, ReadWrite)]]),
+    ("lighterglue.wgsl", "lg_linear", &[&[(0, UniformAt(LG)), (1, Read), (2, Read), (3, Read), (4, ReadWrite)]]),
+    ("lighterglue.wgsl", "lg_layer_norm", &[&[(0, UniformAt(LG)), (3, Read), (4, ReadWrite)]]),
+    ("lighterglue.wgsl", "lg_rotary", &[&[(0, UniformAt(LG)), (1, Read), (2, Read), (4, ReadWrite)]]),
+    ("lighterglue.wgsl", "lg_attention", &[&[(0, UniformAt(LG)), (1, Read), (2, Read), (4, ReadWrite), (5, Read)]]),
+    ("lighterglue.wgsl", "lg_row_lse", &[&[(0, UniformAt(LG)), (1, Read), (2, Read), (4, ReadWrite), (5, Read)]]),
+    ("lighterglue.wgsl", "lg_assignment_best", &[&[(0, UniformAt(LG)), (1, Read), (2, Read), (4, ReadWrite), (5, Read), (6, ReadWrite)]]),
+    ("lighterglue.wgsl", "lg_gather", &[&[(0, UniformAt(LG)), (1, Read), (4, ReadWrite), (5, Read)]]),
 ];
 
 /// The kernel `entry` of `file` (its module `m`), its bind groups from [`BINDINGS`].
@@ -250,9 +267,10 @@ impl Kernels {
             m("tree_similarity.wgsl")?,
             m("vlad_accumulate.wgsl")?,
         );
-        let (mnn, stats, xf) = (m("mnn_match.wgsl")?, m("ssim_stats.wgsl")?, m("xfeat.wgsl")?);
+        let (mnn, stats, xf, lg) = (m("mnn_match.wgsl")?, m("ssim_stats.wgsl")?, m("xfeat.wgsl")?, m("lighterglue.wgsl")?);
         let k = |module: &wgpu::ShaderModule, file: &str, entry: &str| kernel(device, module, file, entry, &made);
         let xk = |entry: &str| k(&xf, "xfeat.wgsl", entry);
+        let lk = |entry: &str| k(&lg, "lighterglue.wgsl", entry);
         let tree_sim = k(&tree, "tree_similarity.wgsl", "tree_similarity")?;
         Ok(Kernels {
             made: made.clone(),
@@ -278,6 +296,13 @@ impl Kernels {
             space_to_depth8: xk("space_to_depth8")?,
             bilinear_add: xk("bilinear_add")?,
             conv2d: xk("conv2d")?,
+            lg_linear: lk("lg_linear")?,
+            lg_layer_norm: lk("lg_layer_norm")?,
+            lg_rotary: lk("lg_rotary")?,
+            lg_attention: lk("lg_attention")?,
+            lg_row_lse: lk("lg_row_lse")?,
+            lg_assignment_best: lk("lg_assignment_best")?,
+            lg_gather: lk("lg_gather")?,
         })
     }
 }

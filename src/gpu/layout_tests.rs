@@ -89,6 +89,11 @@ fn shared_structs_have_the_shaders_layouts() {
     );
     same_layout("xfeat.wgsl", "MapParams", rust!(MapParams { c, h, w, ho, wo, k, row, n, h1, w1, h2, w2, sy1, sx1, sy2, sx2, inv }));
     same_layout("xfeat.wgsl", "NormParams", rust!(NormParams { n, chunks, row, chunk_row }));
+    same_layout(
+        "lighterglue.wgsl",
+        "LgParams",
+        rust!(crate::kernels::abi::LgParams { rows, n_in, n_out, split, w_off, b_off, g_off, flags, scale, o_off, q_off, k_off, v_off }),
+    );
 }
 
 /// The value of the WGSL constant `name` of `file`, as f64.
@@ -105,9 +110,10 @@ fn wgsl_const(file: &str, name: &str) -> f64 {
 
 #[test]
 fn shared_constants_agree() {
+    use crate::kernels::lighterglue as lg;
     use crate::kernels::xfeat as xf;
     use crate::kernels::{abi, ssim_block as b, topk_select as t};
-    let checks: [(&str, &str, f64); 31] = [
+    let checks: [(&str, &str, f64); 39] = [
         ("ssim_topk.wgsl", "LANES", crate::kernels::ssim::LANES as f64),
         ("ssim_topk.wgsl", "MAX_ROW_SUMS", super::reference::MAX_ROW_SUMS as f64),
         ("ssim_block.wgsl", "LANES", crate::kernels::ssim::LANES as f64),
@@ -139,6 +145,14 @@ fn shared_constants_agree() {
         ("xfeat.wgsl", "THREADS", xf::THREADS as f64),
         ("xfeat.wgsl", "ACT_RELU", xf::ACT_RELU as f64),
         ("xfeat.wgsl", "ACT_SIGMOID", xf::ACT_SIGMOID as f64),
+        ("lighterglue.wgsl", "LANES", lg::LANES as f64),
+        ("lighterglue.wgsl", "TILE", lg::TILE as f64),
+        ("lighterglue.wgsl", "LN_ROWS", lg::LN_ROWS as f64),
+        ("lighterglue.wgsl", "FLAG_ACCUMULATE", lg::FLAG_ACCUMULATE as f64),
+        ("lighterglue.wgsl", "FLAG_GELU", lg::FLAG_GELU as f64),
+        ("lighterglue.wgsl", "NO_PARTNER", lg::NO_PARTNER as f64),
+        ("lighterglue.wgsl", "LN_EPS", lg::LN_EPS as f64),
+        ("lighterglue.wgsl", "LOWEST", lg::LOWEST as f64),
     ];
     for (file, name, rust) in checks {
         assert_eq!(wgsl_const(file, name), rust, "{file}: {name}");

@@ -29,6 +29,7 @@ mod fine_pack;
 mod kernels;
 #[cfg(test)]
 mod layout_tests;
+pub mod lighterglue;
 /// Test hook, not the API: device runs of the one-pair reference kernels the equivalence tests
 /// hold the production kernels to.
 #[doc(hidden)]

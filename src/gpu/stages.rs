@@ -3,7 +3,8 @@
 //! GPU path drives (global descriptors, the keypoint network, VLAD).
 
 use super::{
-    coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, verify::MnnGpu, vlad::VladGpu, xfeat::NetworkSlot, GpuContext,
+    coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, lighterglue::GlueGpu, verify::MnnGpu, vlad::VladGpu,
+    xfeat::NetworkSlot, GpuContext,
 };
 use crate::descriptors::source::{GlobalSource, RefSource};
 use crate::descriptors::DescriptorSet;
@@ -25,6 +26,8 @@ pub struct GpuStages {
     fine: FineMatcherGpu,
     pub(crate) vlad: VladGpu,
     mnn: MnnGpu,
+    /// The learned matcher on the device, made with the first pair it verifies.
+    glue: Option<GlueGpu>,
     /// The keypoint network (native XFeat) on the device.
     pub(crate) network: NetworkSlot,
     /// Most frames held decoded at once by an encoding call so far.
@@ -39,6 +42,7 @@ impl GpuStages {
             fine: FineMatcherGpu::new(ctx.clone()),
             vlad: VladGpu::new(ctx.clone()),
             mnn: MnnGpu::new(ctx.clone()),
+            glue: None,
             network: NetworkSlot::default(),
             decoded_peak: 0,
             coarse: None,
@@ -144,12 +148,18 @@ impl Stages for GpuStages {
     ) -> Result<Vec<Vec<(f32, u32)>>> {
         CpuStages.fused_coarse(refs, queries, p, w_global, k, tile)
     }
-    /// Mutual nearest neighbours on the GPU (`mnn_match`), RANSAC on the CPU.
+    /// Mutual nearest neighbours (`mnn_match`) or LighterGlue (`lighterglue.wgsl`) on the GPU,
+    /// RANSAC on the CPU.
     fn verify_pairs(&mut self, p: &VerifyParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<Verified>> {
         self.work += 1;
-        if p.matcher != crate::config::Matcher::Mnn {
-            // the learned matcher has no kernel yet: its CPU implementation serves this path
-            return crate::verify::verify_pairs_cpu(p, &|q| queries.keypoints(q as usize), &|r| refs.keypoints(r as usize), pairs);
+        if p.matcher == crate::config::Matcher::Lighterglue {
+            if self.glue.is_none() {
+                self.glue = Some(GlueGpu::new(self.ctx.clone(), &*crate::verify::shared_lighterglue()?)?);
+            }
+            let glue = self.glue.as_mut().expect("made above");
+            let kp: Vec<_> = pairs.iter().map(|&(q, r)| (queries.keypoints(q as usize), refs.keypoints(r as usize))).collect();
+            let matches = glue.match_pairs(&p.glue, &kp)?;
+            return Ok(kp.par_iter().zip(matches.par_iter()).map(|(&(q, r), m)| crate::verify::verify_from_glue(p, q, r, m)).collect());
         }
         let best = self.mnn.best_columns(queries, refs, pairs)?;
         Ok(pairs

@@ -15,7 +15,7 @@
 pub const DEFINES: [&str; 1] = ["SUBGROUPS"];
 
 /// WGSL sources, by file name.
-pub const SHADERS: [(&str, &str); 11] = [
+pub const SHADERS: [(&str, &str); 12] = [
     ("semantic_edges.wgsl", include_str!("../../shaders/semantic_edges.wgsl")),
     ("edt.wgsl", include_str!("../../shaders/edt.wgsl")),
     ("global_pool.wgsl", include_str!("../../shaders/global_pool.wgsl")),
@@ -27,6 +27,7 @@ pub const SHADERS: [(&str, &str); 11] = [
     ("vlad_accumulate.wgsl", include_str!("../../shaders/vlad_accumulate.wgsl")),
     ("mnn_match.wgsl", include_str!("../../shaders/mnn_match.wgsl")),
     ("xfeat.wgsl", include_str!("../../shaders/xfeat.wgsl")),
+    ("lighterglue.wgsl", include_str!("../../shaders/lighterglue.wgsl")),
 ];
 
 /// Files shaders include, by file name; validated on their own by the build script too.

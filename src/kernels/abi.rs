@@ -479,3 +479,43 @@ pub struct NormParams {
     /// Workgroups per grid row of `instance_norm_partials`.
     pub chunk_row: u32,
 }
+
+/// The uniform of `lighterglue.wgsl`'s kernels, in the shader's field order; which fields a
+/// kernel reads is documented at each twin (`kernels::lighterglue`).
+#[derive(Debug, Clone, Copy, PartialEq, Default, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct LgParams {
+    /// Rows (points of the batch) the pass covers.
+    pub rows: u32,
+    /// Input width (`lg_linear`), row width (`lg_layer_norm`, `lg_gather`) or the descriptor
+    /// dimension (`lg_rotary`, `lg_attention`, `lg_row_lse`, `lg_assignment_best`).
+    pub n_in: u32,
+    /// Output width (`lg_linear`).
+    pub n_out: u32,
+    /// `lg_linear`: input columns read from `a`; the rest from `b`.
+    pub split: u32,
+    /// Offset of the weight matrix in the weights buffer.
+    pub w_off: u32,
+    /// Offset of the bias (or the layer norm's shift).
+    pub b_off: u32,
+    /// Offset of the layer norm's gain.
+    pub g_off: u32,
+    /// `lg_linear`: FLAG_ACCUMULATE; `lg_layer_norm`: FLAG_GELU.
+    pub flags: u32,
+    /// Output scale (`lg_linear`) or score scale (the partner kernels).
+    pub scale: f32,
+    /// Offset of the output in its buffer.
+    pub o_off: u32,
+    /// Offsets of the queries, keys and values in `a` (the partner kernels, `lg_rotary`'s output).
+    pub q_off: u32,
+    /// Offset of the keys.
+    pub k_off: u32,
+    /// Offset of the values.
+    pub v_off: u32,
+    /// Padding to the shader's layout.
+    pub _pad0: u32,
+    /// Padding.
+    pub _pad1: u32,
+    /// Padding.
+    pub _pad2: u32,
+}

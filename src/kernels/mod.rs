@@ -15,6 +15,7 @@
 pub mod abi;
 pub mod edt;
 pub mod global_pool;
+pub mod lighterglue;
 pub mod mnn_match;
 pub mod semantic_edges;
 pub mod ssim;

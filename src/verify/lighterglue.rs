@@ -283,16 +283,7 @@ impl LighterGlue {
 
     /// The rotary encoding of each point: `d / 2` (cos, sin) pairs of its learnable Fourier features.
     fn rotary(&self, kpts: &[f32]) -> Vec<f32> {
-        let h = self.d / 2;
-        let mut enc = Vec::with_capacity(kpts.len() / 2 * self.d);
-        for xy in kpts.chunks_exact(2) {
-            for k in 0..h {
-                let a = self.wr[2 * k] * xy[0] + self.wr[2 * k + 1] * xy[1];
-                enc.push(a.cos());
-                enc.push(a.sin());
-            }
-        }
-        enc
+        rotary_encoding(&self.wr, self.d, kpts)
     }
 
     /// Token confidences after layer `i`.
@@ -332,6 +323,140 @@ impl LighterGlue {
     }
 }
 
+/// The rotary encoding of points (2 values each) by the learnable Fourier features `wr` (`d / 2`
+/// x 2): `d / 2` (cos, sin) pairs a point.
+pub fn rotary_encoding(wr: &[f32], d: usize, kpts: &[f32]) -> Vec<f32> {
+    let h = d / 2;
+    let mut enc = Vec::with_capacity(kpts.len() / 2 * d);
+    for xy in kpts.chunks_exact(2) {
+        for k in 0..h {
+            let a = wr[2 * k] * xy[0] + wr[2 * k + 1] * xy[1];
+            enc.push(a.cos());
+            enc.push(a.sin());
+        }
+    }
+    enc
+}
+
+/// One linear layer's place in a packed weights buffer ([`LighterGlue::pack`]): W (`n_out` x
+/// `n_in`, row-major) at `w_off`, the bias at `b_off`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PackedLinear {
+    /// Offset of the weight matrix.
+    pub w_off: u32,
+    /// Offset of the bias.
+    pub b_off: u32,
+    /// Input width.
+    pub n_in: u32,
+    /// Output width.
+    pub n_out: u32,
+}
+
+/// A feed-forward block's layers in the packed buffer: `l1`, the layer norm's gain and shift, `l2`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PackedFfn {
+    /// `Linear(2d, 2d)`.
+    pub l1: PackedLinear,
+    /// Offset of the layer norm's gain (`2d` values).
+    pub ln_g: u32,
+    /// Offset of the layer norm's shift.
+    pub ln_b: u32,
+    /// `Linear(2d, d)`.
+    pub l2: PackedLinear,
+}
+
+/// One transformer layer and its heads in the packed buffer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PackedLayer {
+    /// Self-attention: Wqkv (d to 3d, q, k and v interleaved per dimension).
+    pub wqkv: PackedLinear,
+    /// Self-attention's output projection.
+    pub self_out: PackedLinear,
+    /// Self-attention's feed-forward block.
+    pub self_ffn: PackedFfn,
+    /// Cross-attention: the shared query/key projection.
+    pub to_qk: PackedLinear,
+    /// Cross-attention: the value projection.
+    pub to_v: PackedLinear,
+    /// Cross-attention's output projection.
+    pub cross_out: PackedLinear,
+    /// Cross-attention's feed-forward block.
+    pub cross_ffn: PackedFfn,
+    /// The assignment head's matchability (d to 1).
+    pub matchability: PackedLinear,
+    /// The assignment head's projection (d to d).
+    pub final_proj: PackedLinear,
+    /// The token confidence (d to 1); none after the last layer.
+    pub token: Option<PackedLinear>,
+}
+
+/// The network's weights in one buffer, as the device executor (`gpu::lighterglue`) uploads
+/// them, with every layer's offsets.
+#[derive(Debug, Clone)]
+pub struct PackedGlue {
+    /// Every weight and bias, f32.
+    pub weights: Vec<f32>,
+    /// The input projection (input_dim to d).
+    pub input_proj: PackedLinear,
+    /// The layers, in order.
+    pub layers: Vec<PackedLayer>,
+    /// Descriptor dimension inside the network.
+    pub d: usize,
+    /// Descriptor dimension of the keypoints it matches.
+    pub input_dim: usize,
+    /// The positional encoding's learnable Fourier features (`d / 2` x 2; host-side).
+    pub wr: Vec<f32>,
+}
+
+impl PackedGlue {
+    /// The rotary encoding of points, as the network computes it.
+    pub fn rotary(&self, kpts: &[f32]) -> Vec<f32> {
+        rotary_encoding(&self.wr, self.d, kpts)
+    }
+}
+
+impl LighterGlue {
+    /// The weights in one buffer with their offsets (the same values, in PyTorch's layouts).
+    pub fn pack(&self) -> PackedGlue {
+        let mut w: Vec<f32> = Vec::new();
+        let mut put = |v: &[f32]| {
+            let at = w.len() as u32;
+            w.extend_from_slice(v);
+            at
+        };
+        let lin = |l: &Linear, put: &mut dyn FnMut(&[f32]) -> u32| PackedLinear {
+            w_off: put(&l.w),
+            b_off: put(&l.b),
+            n_in: l.n_in as u32,
+            n_out: l.n_out as u32,
+        };
+        let ffn = |f: &Ffn, put: &mut dyn FnMut(&[f32]) -> u32| PackedFfn {
+            l1: lin(&f.l1, put),
+            ln_g: put(&f.ln_g),
+            ln_b: put(&f.ln_b),
+            l2: lin(&f.l2, put),
+        };
+        let input_proj = lin(&self.input_proj, &mut put);
+        let mut layers = Vec::with_capacity(self.layers.len());
+        for (i, (sb, cb)) in self.layers.iter().enumerate() {
+            let a = &self.assignment[i];
+            layers.push(PackedLayer {
+                wqkv: lin(&sb.wqkv, &mut put),
+                self_out: lin(&sb.out, &mut put),
+                self_ffn: ffn(&sb.ffn, &mut put),
+                to_qk: lin(&cb.to_qk, &mut put),
+                to_v: lin(&cb.to_v, &mut put),
+                cross_out: lin(&cb.out, &mut put),
+                cross_ffn: ffn(&cb.ffn, &mut put),
+                matchability: lin(&a.matchability, &mut put),
+                final_proj: lin(&a.final_proj, &mut put),
+                token: self.token_confidence.get(i).map(|t| lin(t, &mut put)),
+            });
+        }
+        PackedGlue { weights: w, input_proj, layers, d: self.d, input_dim: self.input_dim, wr: self.wr.clone() }
+    }
+}
+
 /// The points of one image still in the network.
 struct Side {
     /// `d` values per point.
@@ -364,7 +489,7 @@ impl Side {
 
 /// Positions normalised as LightGlue does (long side spanning [-1, 1]) and unit float descriptors
 /// from stored keypoints.
-fn network_inputs(k: KeypointsRef) -> (Vec<f32>, Vec<f32>) {
+pub fn network_inputs(k: KeypointsRef) -> (Vec<f32>, Vec<f32>) {
     let kpts = k.xy.iter().map(|&v| 2.0 * (v as f32 / COORD_SCALE) - 1.0).collect();
     let mut desc = Vec::with_capacity(k.descriptors.len());
     for row in k.descriptors.chunks_exact(k.dim) {
@@ -375,7 +500,7 @@ fn network_inputs(k: KeypointsRef) -> (Vec<f32>, Vec<f32>) {
 }
 
 /// LightGlue's confidence threshold of layer `i` of `n`.
-fn confidence_threshold(i: usize, n: usize) -> f32 {
+pub fn confidence_threshold(i: usize, n: usize) -> f32 {
     // in f64, then stored as f32, as the reference's buffer holds it
     (0.8 + 0.1 * (-4.0 * i as f64 / n as f64).exp()).clamp(0.0, 1.0) as f32
 }
@@ -530,7 +655,8 @@ fn gelu(x: f32) -> f32 {
     0.5 * x * (1.0 + libm::erff(x * std::f32::consts::FRAC_1_SQRT_2))
 }
 
-fn sigmoid(x: f32) -> f32 {
+/// The logistic function, as the matcher's heads use it.
+pub fn sigmoid(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())
 }
 

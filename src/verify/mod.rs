@@ -116,8 +116,13 @@ pub fn classes_agree(check: SemanticCheck, a: u8, b: u8) -> bool {
 
 /// Verifies one pair with the learned matcher `net`.
 pub fn verify_pair_glue(p: &VerifyParams, net: &LighterGlue, q: KeypointsRef, r: KeypointsRef) -> Verified {
-    let m = net.match_keypoints(&p.glue, q, r).into_iter().map(|(i, j, _)| (i, j)).collect();
-    verify_matches(p, q, r, m)
+    verify_from_glue(p, q, r, &net.match_keypoints(&p.glue, q, r))
+}
+
+/// Verifies one pair from the learned matcher's matches (the CPU's, or the device's:
+/// `gpu::lighterglue`): those on ignored classes dropped, then RANSAC.
+pub fn verify_from_glue(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, matches: &[lighterglue::GlueMatch]) -> Verified {
+    verify_matches(p, q, r, matches.iter().map(|&(i, j, _)| (i, j)).collect())
 }
 
 /// The learned matcher, loaded once per process from `xfeat-lighterglue.pt` in the model folders
@@ -136,7 +141,7 @@ pub fn shared_lighterglue() -> Result<Arc<LighterGlue>> {
 }
 
 /// Verifies the (query, reference) pairs on the CPU with `p`'s matcher: the fast MNN path, or
-/// LighterGlue (on the GPU path too: it has no kernel of its own yet), in parallel over pairs.
+/// LighterGlue, in parallel over pairs.
 pub fn verify_pairs_cpu<'a>(
     p: &VerifyParams,
     q: &(dyn Fn(u32) -> KeypointsRef<'a> + Sync),

@@ -9,6 +9,8 @@ use semlook::tools::synth::{self, SynthConfig};
 use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
+pub mod glue;
+
 static SKIPS: AtomicUsize = AtomicUsize::new(0);
 
 /// Says that the running test skips, and why, on a line that starts with `SKIPPED` and counts the

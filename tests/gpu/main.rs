@@ -6,6 +6,7 @@ mod bench;
 #[path = "../common/mod.rs"]
 mod common;
 mod fine;
+mod lighterglue;
 mod resident;
 mod stream;
 mod verify;

@@ -86,7 +86,9 @@ fn mnn_kernel_equals_its_twin_and_the_fast_path_exactly() {
 }
 
 /// Real frames: two Nordland spring/winter views of one place and a third of another; the GPU
-/// verification's matches and inliers equal the CPU path's exactly.
+/// verification's matches and inliers equal the CPU path's exactly, with mutual nearest
+/// neighbours and with the learned matcher (LighterGlue on the device, `lighterglue.wgsl`, against
+/// the CPU's `verify::lighterglue`: the same matches, so the same RANSAC inliers).
 #[test]
 fn verification_on_the_gpu_equals_the_cpu_on_real_frames() {
     let Some(ctx) = gpu() else { return };
@@ -127,4 +129,13 @@ fn verification_on_the_gpu_equals_the_cpu_on_real_frames() {
     let gpu = engine.gpu_stages().unwrap().verify_pairs(&vp, &set, &set, &pairs).unwrap();
     assert_eq!(gpu, cpu);
     assert!(cpu[0].inliers > 3 * cpu[1].inliers.max(5), "the same place verifies far better than another: {cpu:?}");
+    if let Err(e) = semlook::verify::shared_lighterglue() {
+        return common::skip_unless_required("REQUIRE_MODELS", format!("LighterGlue weights (setup.sh): {e}"));
+    }
+    let glue = semlook::verify::VerifyParams { matcher: semlook::config::Matcher::Lighterglue, ..vp };
+    let cpu = CpuStages.verify_pairs(&glue, &set, &set, &pairs).unwrap();
+    let gpu = engine.gpu_stages().unwrap().verify_pairs(&glue, &set, &set, &pairs).unwrap();
+    eprintln!("LighterGlue verification, CPU {cpu:?}, GPU {gpu:?}");
+    assert_eq!(gpu, cpu, "LighterGlue on the device verifies as on the CPU");
+    assert!(cpu[0].matches > 0 && cpu[0].inliers > cpu[1].inliers, "{cpu:?}");
 }
