@@ -4,8 +4,9 @@
 //! references from ../shared, 384 keypoints each, the default). Target (issue 16): <= 50 ms per
 //! query on the 2-core machine. The same pairs with the learned matcher (`verification.matcher =
 //! "lighterglue"`, the authors' pruning): target (issue 32) <= 150 ms per query at K = 30; and the
-//! fusion of both (`w_glue`: MNN and LighterGlue on all K). Skips, saying why, without the frames
-//! or the weights.
+//! fusion of both (`w_glue`: MNN and LighterGlue on all K). On a GPU (not a software adapter):
+//! LighterGlue on the device, target (issue 32) <= 5 ms per query at K = 30. Skips, saying why,
+//! without the frames, the weights or an adapter.
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use semlook::config::Config;
@@ -85,6 +86,7 @@ fn bench(c: &mut Criterion) {
                     })
                 },
             );
+            gpu_rows(&mut g, &queries, &refs, &gp, K, cfg.keypoints.stored);
             // `w_glue`: MNN and LighterGlue on all K
             g.bench_function(
                 format!("verify_pairs (CPU: MNN + LighterGlue, w_glue)/1_query_x{K}_candidates_{}_keypoints", cfg.keypoints.stored),
@@ -100,6 +102,35 @@ fn bench(c: &mut Criterion) {
         }
     }
     g.finish();
+}
+
+/// LighterGlue verification on the device (`lighterglue.wgsl`, RANSAC on the CPU): rows where an
+/// adapter that is not a software rasteriser is found (lavapipe would take minutes a sample; set
+/// SEMLOOK_BENCH_SOFTWARE_GPU=1 to run it there anyway). `scripts/device-check.sh` runs these.
+fn gpu_rows(
+    g: &mut criterion::BenchmarkGroup<criterion::measurement::WallTime>,
+    queries: &DescriptorSet,
+    refs: &DescriptorSet,
+    gp: &VerifyParams,
+    k: usize,
+    stored: usize,
+) {
+    let ctx = match semlook::gpu::GpuContext::new(&semlook::gpu::GpuOptions::default()) {
+        Ok(c) if !c.is_software() || std::env::var_os("SEMLOOK_BENCH_SOFTWARE_GPU").is_some() => std::sync::Arc::new(c),
+        Ok(c) => return eprintln!("GPU LighterGlue rows skipped: {} is a software adapter", c.describe()),
+        Err(e) => return eprintln!("GPU LighterGlue rows skipped: no adapter ({e})"),
+    };
+    eprintln!("GPU LighterGlue rows on {}", ctx.describe());
+    let mut engine = semlook::engine::Engine::with_context(ctx);
+    let stages = engine.gpu_stages().unwrap();
+    let mut q = 0u32;
+    g.bench_function(format!("verify_pairs (GPU: LighterGlue + LO-RANSAC)/1_query_x{k}_candidates_{stored}_keypoints"), |b| {
+        b.iter(|| {
+            q = (q + 1) % queries.len() as u32;
+            let pairs: Vec<(u32, u32)> = (0..k as u32).map(|r| (q, r)).collect();
+            stages.verify_pairs(gp, refs, queries, &pairs).unwrap()
+        })
+    });
 }
 
 criterion_group! {

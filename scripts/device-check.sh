@@ -15,7 +15,8 @@
 # Runtime's CPU provider), the stream (`semlook dev bench-stream`: the night traversal of synthetic
 # 1920x1080 frames replayed against maps of 1k and 10k places through the streaming localizer on the
 # GPU backend, the real-time profile configs/stream-realtime.toml; target >= 100 frames/s), and the fine
-# stage (criterion `benches/matching.rs`, group `fine`, K = 20), and the index (`semlook dev index-bench`:
+# stage (criterion `benches/matching.rs`, group `fine`, K = 20), verification with LighterGlue on the
+# device (criterion `benches/verify.rs`, its GPU row, K = 30, target <= 5 ms a query), and the index (`semlook dev index-bench`:
 # 1M references, the approximate index on the CPU beside the exact scan on the device).
 # Carry the model folder to the device (`.semlook`, about 40 MB) for the encoding row.
 set -euo pipefail
@@ -109,23 +110,39 @@ else
     note index "index $isizes" "budget"
 fi
 
-# the fine stage, through criterion (full run only: its build is minutes)
-if [ $smoke = 1 ]; then
-    note fine "fine K=20" "smoke: criterion rows run in the full check only"
-elif [ "$(left)" -gt 90 ]; then
-    say "fine stage (criterion, group fine)"
-    cargo bench --bench matching -- fine --warm-up-time 1 --measurement-time 3 >&2
-    python3 - "$rows" <<'PY'
+# criterion rows (full run only: their build is minutes): the fine stage (group fine, K = 20) and
+# verification with LighterGlue on the device (group verify, K = 30; target <= 5 ms a query)
+criterion_rows() { # row kind, criterion group
+    python3 - "$rows" "$1" "$2" <<'PY'
 import glob, json, os, sys
-for est in glob.glob("target/criterion/fine/*/new/estimates.json"):
-    name = os.path.basename(os.path.dirname(os.path.dirname(est)))
+rows, kind, group = sys.argv[1:]
+for est in glob.glob(f"target/criterion/{group}/*/*/new/estimates.json") + glob.glob(f"target/criterion/{group}/*/new/estimates.json"):
+    name = os.path.relpath(os.path.dirname(os.path.dirname(est)), f"target/criterion/{group}")
     with open(est) as f:
         e = json.load(f)
-    with open(sys.argv[1], "a") as out:
-        out.write(json.dumps({"row": "fine", "name": name, "median_s": e["median"]["point_estimate"] * 1e-9}) + "\n")
+    with open(rows, "a") as out:
+        out.write(json.dumps({"row": kind, "name": name, "median_s": e["median"]["point_estimate"] * 1e-9}) + "\n")
 PY
+}
+if [ $smoke = 1 ]; then
+    note fine "fine K=20" "smoke: criterion rows run in the full check only"
+    note verify "verify K=30 (GPU: LighterGlue)" "smoke: criterion rows run in the full check only"
 else
-    note fine "fine K=20" "budget"
+    if [ "$(left)" -gt 90 ]; then
+        say "fine stage (criterion, group fine)"
+        cargo bench --bench matching -- fine --warm-up-time 1 --measurement-time 3 >&2
+        criterion_rows fine fine
+    else
+        note fine "fine K=20" "budget"
+    fi
+    if [ "$(left)" -gt 90 ]; then
+        say "verification with LighterGlue on the device (criterion, group verify, GPU rows)"
+        rm -rf target/criterion/verify
+        cargo bench --bench verify -- "GPU" --warm-up-time 1 --measurement-time 3 >&2
+        criterion_rows verify verify
+    else
+        note verify "verify K=30 (GPU: LighterGlue)" "budget"
+    fi
 fi
 
 python3 - "$rows" "$out" "$smoke" "$budget" "$(( $(date +%s) - start ))" <<'PY'
