@@ -216,4 +216,24 @@ fn the_device_plan_on_the_twins_matches_the_reference() {
     }
     assert!(worst <= PROBABILITY_TOLERANCE, "largest probability difference {worst}");
     eprintln!("twins: matches identical; largest probability difference {worst:.2e}");
+    // early exit (per pair) and pruning to an empty side, which the fixtures do not cover: the
+    // twins' plan against the crate's CPU matcher, which is held to the reference above
+    let pairs: Vec<(KeypointsRef, KeypointsRef)> = stored.iter().map(|(a, b)| (a.as_ref(), b.as_ref())).collect();
+    let full = semlook::gpu::lighterglue::forward_on_twins(&net, &GlueParams { width_confidence: -1.0, ..GlueParams::default() }, &pairs);
+    for (what, p) in [
+        ("early exit after the first layer", GlueParams { width_confidence: -1.0, depth_confidence: 1e-6, ..GlueParams::default() }),
+        ("early exit 0.95 with pruning", GlueParams { depth_confidence: 0.95, ..GlueParams::default() }),
+        ("pruning nearly every point", GlueParams { width_confidence: 1e-6, ..GlueParams::default() }),
+    ] {
+        let twins = semlook::gpu::lighterglue::forward_on_twins(&net, &p, &pairs);
+        for (k, (a, b)) in pairs.iter().enumerate() {
+            let cpu = net.match_keypoints(&p, *a, *b);
+            let ij = |v: &[(u32, u32, f32)]| v.iter().map(|&(i, j, _)| (i, j)).collect::<Vec<_>>();
+            assert_eq!(ij(&twins[k]), ij(&cpu), "{what}, pair {k}: the twins' plan differs from the CPU matcher");
+            assert!(twins[k].iter().zip(&cpu).all(|(t, c)| (t.2 - c.2).abs() <= PROBABILITY_TOLERANCE), "{what}, pair {k}");
+        }
+        if what.starts_with("early exit after") {
+            assert!(twins.iter().zip(&full).all(|(e, f)| e != f), "an exit after the first layer gives other matches on every pair");
+        }
+    }
 }

@@ -23,7 +23,7 @@ use super::context::{GpuContext, GpuError};
 use super::kernels::Kernel;
 use crate::descriptors::keypoints::KeypointsRef;
 use crate::kernels::abi::LgParams;
-use crate::kernels::lighterglue::{self as twin, grid, FLAG_ACCUMULATE, FLAG_GELU, NO_PARTNER};
+use crate::kernels::lighterglue::{self as twin, grid, FLAG_ACCUMULATE, FLAG_GELU, LANES, LN_ROWS, NO_PARTNER, TILE};
 use crate::verify::lighterglue::{
     confidence_threshold, network_inputs, sigmoid, GlueMatch, GlueParams, LighterGlue, PackedFfn, PackedGlue, PackedLinear,
 };
@@ -559,6 +559,12 @@ impl GlueGpu {
     /// Packs `net`'s weights and uploads them (once).
     pub fn new(ctx: Arc<GpuContext>, net: &LighterGlue) -> Result<GlueGpu, GpuError> {
         let packed = Arc::new(net.pack());
+        if packed.d > LANES || packed.d % 2 != 0 {
+            return Err(GpuError::Failed {
+                what: "LighterGlue on the device".into(),
+                reason: format!("the kernels take an even descriptor dimension up to {LANES}; the network's is {}", packed.d),
+            });
+        }
         let bytes = (packed.weights.len() * 4) as u64;
         ctx.check_binding("the packed LighterGlue weights", bytes)?;
         let (weights, unused) = ctx.scoped("uploading the LighterGlue weights", || {
@@ -566,10 +572,20 @@ impl GlueGpu {
             ctx.write(&w, 0, bytemuck::cast_slice(&packed.weights));
             (w, ctx.storage("lighterglue unused binding", 16))
         })?;
-        // the widest buffers are 3d values a row
-        let max_rows = (ctx.binding_limit() / (3 * packed.d.max(packed.input_dim) as u64 * 4)) as usize;
+        let max_rows = Self::max_rows(&ctx, &packed);
         let bufs = (0..BUFS).map(|_| Reused::default()).collect();
         Ok(GlueGpu { ctx, packed, weights, unused, bufs, params: None, pending: Vec::new(), max_rows })
+    }
+
+    /// Rows of the largest batch: its widest buffer (3d values a row) within the storage binding,
+    /// all its buffers within the context's resident budget, `lg_linear`'s and `lg_layer_norm`'s
+    /// grids within the workgroups of one dimension, and its offsets within u32.
+    fn max_rows(ctx: &GpuContext, packed: &PackedGlue) -> usize {
+        let widest = 3 * packed.d.max(packed.input_dim) as u64 * 4;
+        let per_row: u64 = sizes(1, packed.d, packed.input_dim).iter().map(|s| s.1 as u64 * 4).sum();
+        let wg = ctx.max_workgroups() as u64;
+        let rows = (ctx.binding_limit() / widest).min(ctx.resident_budget() / per_row).min(wg * TILE as u64).min(wg * LN_ROWS as u64);
+        rows.min(u32::MAX as u64 / widest) as usize
     }
 
     /// LighterGlue's matches of every (query, reference) pair, as the CPU's
@@ -581,7 +597,10 @@ impl GlueGpu {
         while at < pairs.len() {
             let (mut end, mut rows) = (at, 0);
             while end < pairs.len() {
-                let r = pairs[end].0.len() + pairs[end].1.len();
+                // the rows `forward` gives the pair (none where it has no matches to find)
+                let (a, b) = pairs[end];
+                let runs = !a.is_empty() && !b.is_empty() && a.dim == self.packed.input_dim && b.dim == self.packed.input_dim;
+                let r = if runs { a.len() + b.len() } else { 0 };
                 if end > at && rows + r > self.max_rows {
                     break;
                 }
@@ -591,9 +610,10 @@ impl GlueGpu {
             if rows > self.max_rows {
                 return Err(GpuError::LimitsTooSmall {
                     adapter: self.ctx.describe(),
-                    what: format!("LighterGlue on a pair of {rows} keypoints"),
-                    needed: (rows * 3 * self.packed.d * 4) as u64,
-                    available: self.ctx.binding_limit(),
+                    what: "rows of a LighterGlue batch (one pair's keypoints; the storage binding, the resident budget and the grid bound them)"
+                        .into(),
+                    needed: rows as u64,
+                    available: self.max_rows as u64,
                 });
             }
             let packed = self.packed.clone();
@@ -646,7 +666,7 @@ impl GlueGpu {
             {
                 let mut pass = ctx.begin_pass(&mut enc, "lighterglue")?;
                 for ((s, g), off) in pending.iter().zip(&groups).zip(&offsets) {
-                    let [x, y, z] = grid(s.entry.name(), &s.p);
+                    let [x, y, z] = grid(s.entry.name(), &s.p, ctx.max_workgroups());
                     if x == 0 || y == 0 || s.p.rows == 0 {
                         continue;
                     }

@@ -32,25 +32,23 @@ pub const NO_PARTNER: u32 = u32::MAX;
 pub const LN_EPS: f32 = 1e-5;
 /// The score of a row without partners.
 pub const LOWEST: f32 = -3.402823e38;
-/// Workgroups of one grid dimension the executor uses at most (WebGPU's guaranteed limit).
-pub const MAX_GRID_X: u32 = 65_535;
-
-/// A grid of `groups` workgroups (x at most [`MAX_GRID_X`], the rest folded into y), as the row
-/// kernels' `row_of` reads it.
-pub fn row_grid(groups: usize) -> [u32; 3] {
-    let x = groups.clamp(1, MAX_GRID_X as usize);
+/// A grid of `groups` workgroups (x at most `max_x`, the rest folded into y), as the row kernels'
+/// `row_of` reads it.
+pub fn row_grid(groups: usize, max_x: u32) -> [u32; 3] {
+    let x = groups.clamp(1, max_x.max(1) as usize);
     [x as u32, groups.div_ceil(x).max(1) as u32, 1]
 }
 
-/// The grid of each entry point for `p`.
-pub fn grid(entry: &str, p: &LgParams) -> [u32; 3] {
+/// The grid of each entry point for `p`, at most `max_x` workgroups in x (`lg_linear`'s y is
+/// rows / TILE and `lg_layer_norm`'s x rows / LN_ROWS: the executor keeps batches within them).
+pub fn grid(entry: &str, p: &LgParams, max_x: u32) -> [u32; 3] {
     let (rows, n_in) = (p.rows as usize, p.n_in as usize);
     match entry {
         "lg_linear" => [(p.n_out as usize).div_ceil(TILE) as u32, rows.div_ceil(TILE) as u32, 1],
         "lg_layer_norm" => [rows.div_ceil(LN_ROWS) as u32, 1, 1],
-        "lg_rotary" => row_grid((rows * (n_in / 2)).div_ceil(LANES)),
-        "lg_gather" => row_grid((rows * n_in).div_ceil(LANES)),
-        _ => row_grid(rows),
+        "lg_rotary" => row_grid((rows * (n_in / 2)).div_ceil(LANES), max_x),
+        "lg_gather" => row_grid((rows * n_in).div_ceil(LANES), max_x),
+        _ => row_grid(rows, max_x),
     }
 }
 

@@ -19,9 +19,10 @@
 //! keypoints, and a batch of such pairs only, has no matches.
 
 use super::common::glue::{fixtures, Stored};
-use super::{common, gpu};
+use super::{common, gpu, gpu_with};
 use semlook::descriptors::keypoints::KeypointsRef;
-use semlook::gpu::lighterglue::{forward, run_kernel, Backend, Buf, Entry, GlueGpu, Pass, Twins};
+use semlook::gpu::lighterglue::{forward, forward_on_twins, run_kernel, Backend, Buf, Entry, GlueGpu, Pass, Twins};
+use semlook::gpu::{GpuError, GpuOptions};
 use semlook::kernels::abi::LgParams;
 use semlook::kernels::lighterglue::{FLAG_ACCUMULATE, FLAG_GELU};
 use semlook::util::SplitMix64;
@@ -288,4 +289,35 @@ fn lighterglue_on_the_device_matches_the_twins_on_real_pairs() {
     // a batch of empty pairs only: nothing runs, nothing matches
     let none = dev.match_pairs(&GlueParams::default(), &[(KeypointsRef::EMPTY, KeypointsRef::EMPTY); 3]).unwrap();
     assert_eq!(none, vec![Vec::new(); 3]);
+}
+
+/// Batches split by what the device allows: a resident budget that holds one real pair's rows
+/// (768) but not two gives, batch by batch, the twins' matches; one that cannot hold a single
+/// pair is a typed error naming the limit, never a silent CPU run. A pair without keypoints on one
+/// side counts no rows.
+#[test]
+fn lighterglue_batches_split_where_the_device_allows_less() {
+    let Some(net) = network() else { return };
+    let fx = fixtures();
+    let stored: Vec<(Stored, Stored)> = fx["pairs"].as_array().unwrap().iter().map(|p| (Stored::of(p, "image0"), Stored::of(p, "image1"))).collect();
+    let mut pairs: Vec<(KeypointsRef, KeypointsRef)> = stored.iter().map(|(a, b)| (a.as_ref(), b.as_ref())).collect();
+    pairs.push((KeypointsRef::EMPTY, stored[0].1.as_ref()));
+    // every buffer of a batch, in bytes a row: 1,615 values
+    let per_row = 1_615 * 4;
+    let opts = |rows: u64| GpuOptions { resident_budget: Some(rows * per_row), ..GpuOptions::default() };
+    let Some(one_pair) = gpu_with(&opts(800)) else { return };
+    let p = GlueParams::default();
+    let got = GlueGpu::new(one_pair, &net).unwrap().match_pairs(&p, &pairs).unwrap();
+    let want = forward_on_twins(&net, &p, &pairs);
+    let ij = |v: &[(u32, u32, f32)]| v.iter().map(|&(i, j, _)| (i, j)).collect::<Vec<_>>();
+    for (k, (g, w)) in got.iter().zip(&want).enumerate() {
+        assert_eq!(ij(g), ij(w), "pair {k}: split batches give other matches");
+        assert!(g.iter().zip(w).all(|(a, b)| (a.2 - b.2).abs() <= 1e-3), "pair {k}");
+    }
+    assert!(got[3].is_empty());
+    let Some(too_small) = gpu_with(&opts(500)) else { return };
+    match GlueGpu::new(too_small, &net).unwrap().match_pairs(&p, &pairs) {
+        Err(e @ GpuError::LimitsTooSmall { .. }) => assert!(e.to_string().contains("LighterGlue"), "{e}"),
+        other => panic!("a pair larger than a batch: {:?}", other.map(|m| m.len())),
+    }
 }
