@@ -76,29 +76,19 @@ fn bench(c: &mut Criterion) {
     match semlook::verify::shared_lighterglue() {
         Err(e) => eprintln!("LighterGlue rows skipped: {e}"),
         Ok(_) => {
-            g.bench_function(
-                format!("verify_pairs (CPU: LighterGlue + LO-RANSAC)/1_query_x{K}_candidates_{}_keypoints", cfg.keypoints.stored),
-                |b| {
-                    b.iter(|| {
-                        q = (q + 1) % queries.len() as u32;
-                        let pairs: Vec<(u32, u32)> = (0..K as u32).map(|r| (q, r)).collect();
-                        CpuStages.verify_pairs(&gp, &refs, &queries, &pairs).unwrap()
-                    })
-                },
-            );
-            // LighterGlue's early exit (depth confidence 0.95, LightGlue's default; off in ours)
+            // LighterGlue as configured, and with early exit (depth confidence 0.95, LightGlue's
+            // default; off in ours)
             let exit_cfg = Config::from_toml("[verification]\nmatcher = \"lighterglue\"\nglue_depth_confidence = 0.95\n", "bench").unwrap();
             let ep = VerifyParams::new(&exit_cfg.verification);
-            g.bench_function(
-                format!("verify_pairs (CPU: LighterGlue, early exit 0.95, + LO-RANSAC)/1_query_x{K}_candidates_{}_keypoints", cfg.keypoints.stored),
-                |b| {
+            for (what, p) in [("LighterGlue + LO-RANSAC", &gp), ("LighterGlue, early exit 0.95, + LO-RANSAC", &ep)] {
+                g.bench_function(format!("verify_pairs (CPU: {what})/1_query_x{K}_candidates_{}_keypoints", cfg.keypoints.stored), |b| {
                     b.iter(|| {
                         q = (q + 1) % queries.len() as u32;
                         let pairs: Vec<(u32, u32)> = (0..K as u32).map(|r| (q, r)).collect();
-                        CpuStages.verify_pairs(&ep, &refs, &queries, &pairs).unwrap()
+                        CpuStages.verify_pairs(p, &refs, &queries, &pairs).unwrap()
                     })
-                },
-            );
+                });
+            }
             gpu_rows(&mut g, &queries, &refs, &gp, K, cfg.keypoints.stored);
             // `w_glue`: MNN and LighterGlue on all K
             g.bench_function(

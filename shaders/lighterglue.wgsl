@@ -212,6 +212,26 @@ fn chunk_max(n: u32) -> f32 {
     return m;
 }
 
+// One chunk of the online softmax over the scores in ss: ps = exp(score - the new running
+// maximum), the running maximum m and sum l updated; returns the factor earlier sums are rescaled
+// by (0 for the first chunk).
+fn online_step(c0: u32, n: u32, lane: u32, m: ptr<function, f32>, l: ptr<function, f32>) -> f32 {
+    let cm = chunk_max(n);
+    let nm = select(max(*m, cm), cm, c0 == 0u);
+    let alpha = select(exp(*m - nm), 0.0, c0 == 0u);
+    if (lane < n) {
+        ps[lane] = exp(ss[lane] - nm);
+    }
+    workgroupBarrier();
+    var cs = 0.0;
+    for (var j = 0u; j < n; j++) {
+        cs += ps[j];
+    }
+    *l = *l * alpha + cs;
+    *m = nm;
+    return alpha;
+}
+
 @compute @workgroup_size(128, 1, 1)
 fn lg_attention(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_index) lane: u32) {
     let r = row_of(wg, nwg);
@@ -230,18 +250,7 @@ fn lg_attention(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) n
         let n = min(LANES, len - c0);
         chunk_scores(r, start, c0, n, lane, false);
         workgroupBarrier();
-        let cm = chunk_max(n);
-        let nm = select(max(m, cm), cm, c0 == 0u);
-        let alpha = select(exp(m - nm), 0.0, c0 == 0u);
-        if (lane < n) {
-            ps[lane] = exp(ss[lane] - nm);
-        }
-        workgroupBarrier();
-        var cs = 0.0;
-        for (var j = 0u; j < n; j++) {
-            cs += ps[j];
-        }
-        l = l * alpha + cs;
+        let alpha = online_step(c0, n, lane, &m, &l);
         if (lane < d) {
             var t = 0.0;
             for (var j = 0u; j < n; j++) {
@@ -249,7 +258,6 @@ fn lg_attention(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) n
             }
             acc = acc * alpha + t;
         }
-        m = nm;
         workgroupBarrier();
     }
     if (lane < d) {
@@ -275,19 +283,7 @@ fn lg_row_lse(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg
         let n = min(LANES, len - c0);
         chunk_scores(r, start, c0, n, lane, false);
         workgroupBarrier();
-        let cm = chunk_max(n);
-        let nm = select(max(m, cm), cm, c0 == 0u);
-        let alpha = select(exp(m - nm), 0.0, c0 == 0u);
-        if (lane < n) {
-            ps[lane] = exp(ss[lane] - nm);
-        }
-        workgroupBarrier();
-        var cs = 0.0;
-        for (var j = 0u; j < n; j++) {
-            cs += ps[j];
-        }
-        l = l * alpha + cs;
-        m = nm;
+        online_step(c0, n, lane, &m, &l);
         workgroupBarrier();
     }
     if (lane == 0u) {

@@ -14,19 +14,13 @@ use common::glue::{fixtures, reference_matches, Stored};
 
 use semlook::config::Config;
 use semlook::descriptors::keypoints::KeypointsRef;
-use semlook::verify::lighterglue::{GlueParams, LighterGlue, LIGHTERGLUE_WEIGHTS};
+use semlook::verify::lighterglue::{GlueParams, LighterGlue};
 use semlook::verify::{verify_pairs_cpu, VerifyParams};
 
 const PROBABILITY_TOLERANCE: f32 = 1e-3;
 
 fn matcher() -> Option<LighterGlue> {
-    match semlook::onnx::find_model(LIGHTERGLUE_WEIGHTS, None, "LighterGlue") {
-        Ok(path) => Some(LighterGlue::load(&path).unwrap()),
-        Err(e) => {
-            common::skip_unless_required("REQUIRE_MODELS", format!("LighterGlue weights (run setup.sh): {e}"));
-            None
-        }
-    }
+    common::glue::network()
 }
 
 #[test]

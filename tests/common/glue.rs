@@ -3,6 +3,7 @@
 //! authors' model's matches. Shared by tests/lighterglue.rs and tests/gpu/lighterglue.rs.
 
 use semlook::descriptors::keypoints::KeypointsRef;
+use semlook::verify::lighterglue::{LighterGlue, LIGHTERGLUE_WEIGHTS};
 use serde_json::Value;
 
 /// One image's stored keypoints.
@@ -64,4 +65,16 @@ pub fn reference_matches(pair: &Value, run: &str) -> Vec<(u32, u32, f32)> {
             (j >= 0).then(|| (i as u32, j as u32, r["scores0"][i].as_f64().unwrap() as f32))
         })
         .collect()
+}
+
+/// The LighterGlue weights setup.sh installs, loaded; without them the test skips with the reason
+/// (or fails under CI or REQUIRE_MODELS=1) and should return.
+pub fn network() -> Option<LighterGlue> {
+    match semlook::onnx::find_model(LIGHTERGLUE_WEIGHTS, None, "LighterGlue") {
+        Ok(path) => Some(LighterGlue::load(&path).unwrap()),
+        Err(e) => {
+            super::skip_unless_required("REQUIRE_MODELS", format!("LighterGlue weights (run setup.sh): {e}"));
+            None
+        }
+    }
 }

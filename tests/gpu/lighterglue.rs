@@ -18,15 +18,15 @@
 //! Empty inputs: a pass of no rows leaves its output as it was; a pair with a side without
 //! keypoints, and a batch of such pairs only, has no matches.
 
-use super::common::glue::{fixtures, Stored};
-use super::{common, gpu, gpu_with};
+use super::common::glue::{fixtures, network, Stored};
+use super::{gpu, gpu_with};
 use semlook::descriptors::keypoints::KeypointsRef;
 use semlook::gpu::lighterglue::{forward, forward_on_twins, run_kernel, Backend, Buf, Entry, GlueGpu, Pass, Twins};
 use semlook::gpu::{GpuError, GpuOptions};
 use semlook::kernels::abi::LgParams;
 use semlook::kernels::lighterglue::{FLAG_ACCUMULATE, FLAG_GELU};
 use semlook::util::SplitMix64;
-use semlook::verify::lighterglue::{GlueParams, LighterGlue, LIGHTERGLUE_WEIGHTS};
+use semlook::verify::lighterglue::GlueParams;
 
 fn randn(rng: &mut SplitMix64, n: usize) -> Vec<f32> {
     (0..n).map(|_| rng.normal() as f32).collect()
@@ -239,16 +239,6 @@ fn lighterglue_kernels_match_their_twins_on_random_inputs() {
         );
         if r > 0 {
             assert_eq!(&t[49 * 96..50 * 96], &x[index[49] as usize * 96..][..96]);
-        }
-    }
-}
-
-fn network() -> Option<LighterGlue> {
-    match semlook::onnx::find_model(LIGHTERGLUE_WEIGHTS, None, "LighterGlue") {
-        Ok(path) => Some(LighterGlue::load(&path).unwrap()),
-        Err(e) => {
-            common::skip_unless_required("REQUIRE_MODELS", format!("LighterGlue weights (run setup.sh): {e}"));
-            None
         }
     }
 }
