@@ -10,22 +10,18 @@
 
 mod common;
 
-use common::glue::{fixtures, reference_matches, Stored};
+use common::glue::{fixtures, network, reference_matches, Stored};
 
 use semlook::config::Config;
 use semlook::descriptors::keypoints::KeypointsRef;
-use semlook::verify::lighterglue::{GlueParams, LighterGlue};
+use semlook::verify::lighterglue::GlueParams;
 use semlook::verify::{verify_pairs_cpu, VerifyParams};
 
 const PROBABILITY_TOLERANCE: f32 = 1e-3;
 
-fn matcher() -> Option<LighterGlue> {
-    common::glue::network()
-}
-
 #[test]
 fn matches_the_reference_on_real_pairs() {
-    let Some(net) = matcher() else { return };
+    let Some(net) = network() else { return };
     let fx = fixtures();
     let mut worst = 0.0f32;
     let mut compared = 0;
@@ -53,7 +49,7 @@ fn matches_the_reference_on_real_pairs() {
 
 #[test]
 fn a_side_without_keypoints_has_no_matches() {
-    let Some(net) = matcher() else { return };
+    let Some(net) = network() else { return };
     let fx = fixtures();
     let a = Stored::of(&fx["pairs"][0], "image0");
     let p = GlueParams::default();
@@ -66,7 +62,7 @@ fn a_side_without_keypoints_has_no_matches() {
 
 #[test]
 fn early_exit_and_pruning_are_honoured() {
-    let Some(net) = matcher() else { return };
+    let Some(net) = network() else { return };
     let fx = fixtures();
     let pair = &fx["pairs"][1];
     let (a, b) = (Stored::of(pair, "image0"), Stored::of(pair, "image1"));
@@ -84,7 +80,7 @@ fn early_exit_and_pruning_are_honoured() {
 /// neighbours, and RANSAC keeps part of them.
 #[test]
 fn verification_with_the_learned_matcher_counts_its_matches() {
-    let Some(_) = matcher() else { return };
+    let Some(_) = network() else { return };
     let fx = fixtures();
     let pair = &fx["pairs"][1];
     let (a, b) = (Stored::of(pair, "image0"), Stored::of(pair, "image1"));
@@ -132,7 +128,7 @@ fn keypoint_set(cfg: &Config, images: &[&Stored]) -> semlook::descriptors::Descr
 /// the same whatever other pairs are scored with it.
 #[test]
 fn w_glue_adds_the_learned_matchers_inliers_to_every_candidate() {
-    let Some(_) = matcher() else { return };
+    let Some(_) = network() else { return };
     let fx = fixtures();
     let img = |k: usize, side: &str| Stored::of(&fx["pairs"][k], side);
     let (q0, q1) = (img(0, "image0"), img(1, "image0"));
@@ -184,8 +180,7 @@ fn w_glue_adds_the_learned_matchers_inliers_to_every_candidate() {
 /// an empty pair among them. What the device is then held to (tests/gpu/lighterglue.rs).
 #[test]
 fn the_device_plan_on_the_twins_matches_the_reference() {
-    let Some(_) = matcher() else { return };
-    let net = matcher().unwrap();
+    let Some(net) = network() else { return };
     let fx = fixtures();
     let stored: Vec<(Stored, Stored)> = fx["pairs"].as_array().unwrap().iter().map(|p| (Stored::of(p, "image0"), Stored::of(p, "image1"))).collect();
     let mut worst = 0.0f32;

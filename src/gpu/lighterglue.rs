@@ -565,14 +565,19 @@ impl GlueGpu {
                 reason: format!("the kernels take an even descriptor dimension up to {LANES}; the network's is {}", packed.d),
             });
         }
-        let bytes = (packed.weights.len() * 4) as u64;
+        let max_rows = Self::max_rows(&ctx, &packed);
+        Self::resident(ctx, packed, max_rows)
+    }
+
+    /// The executor of `packed` with its weights uploaded (once) and no buffers yet.
+    fn resident(ctx: Arc<GpuContext>, packed: Arc<PackedGlue>, max_rows: usize) -> Result<GlueGpu, GpuError> {
+        let bytes = (packed.weights.len().max(1) * 4) as u64;
         ctx.check_binding("the packed LighterGlue weights", bytes)?;
         let (weights, unused) = ctx.scoped("uploading the LighterGlue weights", || {
             let w = ctx.storage("lighterglue weights", bytes);
             ctx.write(&w, 0, bytemuck::cast_slice(&packed.weights));
             (w, ctx.storage("lighterglue unused binding", 16))
         })?;
-        let max_rows = Self::max_rows(&ctx, &packed);
         let bufs = (0..BUFS).map(|_| Reused::default()).collect();
         Ok(GlueGpu { ctx, packed, weights, unused, bufs, params: None, pending: Vec::new(), max_rows })
     }
@@ -706,13 +711,16 @@ impl Backend for GlueGpu {
         Ok(())
     }
     fn read(&mut self, buf: Buf, len: usize) -> Result<Vec<f32>, GpuError> {
-        self.flush()?;
-        if len == 0 {
-            return Ok(Vec::new());
-        }
-        self.ctx.read_back_values(self.buffer(buf), len)
+        self.read_values(buf, len)
     }
     fn read_u32(&mut self, buf: Buf, len: usize) -> Result<Vec<u32>, GpuError> {
+        self.read_values(buf, len)
+    }
+}
+
+impl GlueGpu {
+    /// The first `len` 32-bit values of a buffer, after the pending passes.
+    fn read_values<T: bytemuck::Pod>(&mut self, buf: Buf, len: usize) -> Result<Vec<T>, GpuError> {
         self.flush()?;
         if len == 0 {
             return Ok(Vec::new());
@@ -733,10 +741,37 @@ fn kernel(k: &super::kernels::Kernels, e: Entry) -> &Kernel {
     }
 }
 
-/// One `lighterglue.wgsl` kernel alone on the device: `pass` with `inputs` (f32 values by buffer)
-/// and `tables` (u32) uploaded, its output buffer holding `out` before the kernel runs; the
-/// output and, for `lg_assignment_best`, the best partners read back. The device side of the
-/// twins' tests; the weights are `weights`.
+/// One pass alone on `be`: `inputs` (f32 values by buffer) and `tables` (u32) uploaded, its output
+/// buffer holding `out` before it runs; the output and, for `lg_assignment_best`, the best partners
+/// read back. What the kernel tests run on the device ([`run_kernel`]) and on the twins.
+#[doc(hidden)]
+pub fn run_pass(
+    be: &mut dyn Backend,
+    pass: Pass,
+    inputs: &[(Buf, &[f32])],
+    tables: &[(Buf, &[u32])],
+    out: &[f32],
+) -> Result<(Vec<f32>, Vec<u32>), GpuError> {
+    let rows = pass.p.rows as usize;
+    let mut sizes: Vec<(Buf, usize)> = inputs.iter().map(|(b, d)| (*b, d.len())).collect();
+    sizes.extend(tables.iter().map(|(b, d)| (*b, d.len())));
+    sizes.extend([(pass.out, out.len()), (pass.best, rows)]);
+    be.alloc(&sizes)?;
+    for (b, d) in inputs {
+        be.upload(*b, d)?;
+    }
+    for (b, d) in tables {
+        be.upload_u32(*b, d)?;
+    }
+    be.upload(pass.out, out)?;
+    be.run(pass)?;
+    let o = be.read(pass.out, out.len())?;
+    let best = if pass.entry == Entry::AssignmentBest { be.read_u32(pass.best, rows)? } else { Vec::new() };
+    Ok((o, best))
+}
+
+/// One `lighterglue.wgsl` kernel alone on the device ([`run_pass`]), the weights `weights`. The
+/// device side of the twins' tests.
 #[doc(hidden)]
 pub fn run_kernel(
     ctx: &Arc<GpuContext>,
@@ -746,33 +781,7 @@ pub fn run_kernel(
     tables: &[(Buf, &[u32])],
     out: &[f32],
 ) -> Result<(Vec<f32>, Vec<u32>), GpuError> {
-    let weights_buf = ctx.storage("kernel weights", (weights.len().max(1) * 4) as u64);
-    ctx.write(&weights_buf, 0, bytemuck::cast_slice(weights));
     let z = PackedLinear { w_off: 0, b_off: 0, n_in: 0, n_out: 0 };
-    let mut g = GlueGpu {
-        ctx: ctx.clone(),
-        packed: Arc::new(PackedGlue { weights: Vec::new(), input_proj: z, layers: Vec::new(), d: 0, input_dim: 0, wr: Vec::new() }),
-        weights: weights_buf,
-        unused: ctx.storage("unused", 16),
-        bufs: (0..BUFS).map(|_| Reused::default()).collect(),
-        params: None,
-        pending: Vec::new(),
-        max_rows: 0,
-    };
-    let rows = pass.p.rows as usize;
-    let mut sizes: Vec<(Buf, usize)> = inputs.iter().map(|(b, d)| (*b, d.len())).collect();
-    sizes.extend(tables.iter().map(|(b, d)| (*b, d.len())));
-    sizes.extend([(pass.out, out.len()), (pass.best, rows)]);
-    g.alloc(&sizes)?;
-    for (b, d) in inputs {
-        g.upload(*b, d)?;
-    }
-    for (b, d) in tables {
-        g.upload_u32(*b, d)?;
-    }
-    g.upload(pass.out, out)?;
-    g.run(pass)?;
-    let o = g.read(pass.out, out.len())?;
-    let best = if pass.entry == Entry::AssignmentBest { g.read_u32(pass.best, rows)? } else { Vec::new() };
-    Ok((o, best))
+    let packed = PackedGlue { weights: weights.to_vec(), input_proj: z, layers: Vec::new(), d: 0, input_dim: 0, wr: Vec::new() };
+    run_pass(&mut GlueGpu::resident(ctx.clone(), Arc::new(packed), 0)?, pass, inputs, tables, out)
 }

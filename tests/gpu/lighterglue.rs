@@ -21,7 +21,7 @@
 use super::common::glue::{fixtures, network, Stored};
 use super::{gpu, gpu_with};
 use semlook::descriptors::keypoints::KeypointsRef;
-use semlook::gpu::lighterglue::{forward, forward_on_twins, run_kernel, Backend, Buf, Entry, GlueGpu, Pass, Twins};
+use semlook::gpu::lighterglue::{forward, forward_on_twins, run_kernel, run_pass, Buf, Entry, GlueGpu, Pass, Twins};
 use semlook::gpu::{GpuError, GpuOptions};
 use semlook::kernels::abi::LgParams;
 use semlook::kernels::lighterglue::{FLAG_ACCUMULATE, FLAG_GELU};
@@ -39,25 +39,6 @@ fn max_rel(a: &[f32], b: &[f32]) -> f32 {
 
 fn pass(entry: Entry, p: LgParams, a: Buf, b: Buf, out: Buf, table: Buf) -> Pass {
     Pass { entry, p, a, b, out, table, best: if entry == Entry::AssignmentBest { Buf::Best } else { Buf::Unused } }
-}
-
-/// The pass on the twins (through the executor's twin backend): output and best partners.
-fn on_twins(weights: &[f32], s: Pass, inputs: &[(Buf, &[f32])], tables: &[(Buf, &[u32])], out: &[f32]) -> (Vec<f32>, Vec<u32>) {
-    let mut t = Twins::new(weights);
-    let mut sizes: Vec<(Buf, usize)> = inputs.iter().map(|(b, d)| (*b, d.len())).collect();
-    sizes.extend(tables.iter().map(|(b, d)| (*b, d.len())));
-    sizes.extend([(s.out, out.len()), (Buf::Best, s.p.rows as usize), (Buf::Unused, 1)]);
-    t.alloc(&sizes).unwrap();
-    for (b, d) in inputs {
-        t.upload(*b, d).unwrap();
-    }
-    for (b, d) in tables {
-        t.upload_u32(*b, d).unwrap();
-    }
-    t.upload(s.out, out).unwrap();
-    t.run(s).unwrap();
-    let best = if s.entry == Entry::AssignmentBest { t.read_u32(Buf::Best, s.p.rows as usize).unwrap() } else { Vec::new() };
-    (t.read(s.out, out.len()).unwrap(), best)
 }
 
 /// Partner ranges of three "pairs" of 150, 1 and 0 + 40 rows: row r's partners are another
@@ -87,7 +68,7 @@ fn lighterglue_kernels_match_their_twins_on_random_inputs() {
     let weights = randn(&mut rng, 20_000);
     let check = |name: String, s: Pass, inputs: &[(Buf, &[f32])], tables: &[(Buf, &[u32])], out: &[f32]| {
         let (dev, dev_best) = run_kernel(&ctx, &weights, s, inputs, tables, out).unwrap();
-        let (twin, twin_best) = on_twins(&weights, s, inputs, tables, out);
+        let (twin, twin_best) = run_pass(&mut Twins::new(&weights), s, inputs, tables, out).unwrap();
         let d = max_rel(&dev, &twin);
         eprintln!("{name}: device vs twin {d:.2e} (relative to max(1, |twin|))");
         assert!(d <= 1e-5, "{name}: device and twin differ by {d}");
