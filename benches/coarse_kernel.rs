@@ -90,9 +90,37 @@ fn bench(c: &mut Criterion) {
     g.finish();
 }
 
+/// The index's thumbnails ([`semlook::index::thumb`]): one query's thumbnail against 2,000
+/// references' (real descriptors, pooled by 2 and 4), as the index's pool re-ranking scores them,
+/// on one thread; throughput counts references.
+fn thumbnails(c: &mut Criterion) {
+    use semlook::index::thumb::{ThumbScorer, ThumbSpec};
+    let cfg = Config::without_appearance();
+    let images = common::encode_all(&cfg, &common::street_labels(2, 640, 480, Condition::Day));
+    let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().expect("a thread pool");
+    for pool in [2, 4] {
+        let spec = ThumbSpec { width: cfg.global.width, height: cfg.global.height, pool };
+        let mut thumbs: Vec<Vec<u8>> = Vec::new();
+        for i in 0..2000 {
+            let mut t = Vec::new();
+            spec.thumbnail(&images[i % 2].global, &mut t);
+            thumbs.push(t);
+        }
+        let mut scorer = ThumbScorer::new(&spec, &cfg.global);
+        scorer.set_query(&spec, &images[0].global);
+        let mut g = c.benchmark_group("index thumbnails (1 thread)");
+        g.throughput(Throughput::Elements(thumbs.len() as u64));
+        let (w, h) = spec.dims();
+        g.bench_function(format!("ThumbScorer::score, {w}x{h} (pooled by {pool}), 2,000 references"), |b| {
+            b.iter(|| one.install(|| scorer.score(thumbs.iter().map(Vec::as_slice)).len()))
+        });
+        g.finish();
+    }
+}
+
 criterion_group! {
     name = benches;
     config = Criterion::default().sample_size(20).measurement_time(std::time::Duration::from_secs(3));
-    targets = bench
+    targets = bench, thumbnails
 }
 criterion_main!(benches);

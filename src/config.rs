@@ -840,12 +840,18 @@ pub struct IndexConfig {
     /// 20,000 one query's exact scan took 368 ms and the index's 18 ms on the 2-core machine;
     /// smaller maps keep the exact scan, which costs little there and assumes nothing).
     pub min_places: usize,
-    /// Lists scanned per query. \[R\] 96 (sweep 11: of 32/48/96, the best recall@30 against the
-    /// exact fused top-30 at 1M references under 30 ms a query: 0.940 at 28 ms).
+    /// Lists scanned per query. \[R\] 112 (sweep 11b: with `shortlist` and `pool`, the best
+    /// recall@30 against the exact fused top-30 at 1M references under 20 ms a query: 0.969 at
+    /// 16.5 ms; sweep 11 had chosen 96 with a shortlist of 1,000 and no pool).
     pub probe: usize,
-    /// References of the scanned lists rescored exactly by the fused score. \[R\] 1,000 (sweep
-    /// 11: 300/500/1,000, with `probe`).
+    /// References rescored exactly by the fused score (the best of the pool by its approximation).
+    /// \[R\] 150 (sweep 11b: 150/200/300 with the pool; 1,000 without it, sweep 11).
     pub shortlist: usize,
+    /// The scan's best references by the appearance codes that are re-ranked by the codes plus
+    /// `matching.w_global` x the SSIM of the index's thumbnails before the `shortlist` best go to
+    /// the exact score (an index without thumbnails, or `pool` <= `shortlist`: the codes alone
+    /// choose the shortlist). \[R\] 6,000 (sweep 11b: 4,000/6,000).
+    pub pool: usize,
     /// Build: reduced dimensions. \[R\] 256 (faiss's 1M-image example reduces 4,096-d image
     /// descriptors to 256 the same way; 262 bytes a reference with its list and scale).
     pub dims: usize,
@@ -858,6 +864,11 @@ pub struct IndexConfig {
     pub iterations: usize,
     /// Build: seed. \[R\] 7.
     pub seed: u64,
+    /// Build: the global descriptors' thumbnails kept beside the codes, pooled by this factor
+    /// (8-bit, 768 bytes a reference at 2 for a 64 x 48 descriptor); 0: none. \[R\] 2 (on the
+    /// real dev sets the SSIM of thumbnails pooled by 2 follows the exact SSIM at r = 0.990, by 4
+    /// at 0.951: docs/index.md).
+    pub thumbnail: usize,
 }
 
 impl Default for IndexConfig {
@@ -865,13 +876,15 @@ impl Default for IndexConfig {
         IndexConfig {
             search: IndexSearch::Auto,
             min_places: 20_000,
-            probe: 96,
-            shortlist: 1000,
+            probe: 112,
+            shortlist: 150,
+            pool: 6000,
             dims: 256,
             lists: 0,
             sample: 32_768,
             iterations: 8,
             seed: 7,
+            thumbnail: 2,
         }
     }
 }
@@ -1066,6 +1079,8 @@ impl Config {
         v.int("index.min_places", ix.min_places, 0, usize::MAX)?;
         v.int("index.probe", ix.probe, 1, 65536)?;
         v.int("index.shortlist", ix.shortlist, 1, 1 << 20)?;
+        v.int("index.pool", ix.pool, 0, 1 << 22)?;
+        v.int("index.thumbnail", ix.thumbnail, 0, 64)?;
         v.int("index.dims", ix.dims, 1, 4096)?;
         v.int("index.lists", ix.lists, 0, 65536)?;
         v.int("index.sample", ix.sample, 1, 1 << 24)?;

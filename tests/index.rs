@@ -166,6 +166,132 @@ fn the_index_at_full_probe_answers_as_the_exact_scan_and_its_recall_is_measured(
     assert!(candidates(&mut CpuStages, &m, &q, Setting::Fused, &auto).unwrap().1.approximate);
 }
 
+/// The codes of segment `s` of `m`'s index, opened as the map opens them.
+fn segment_codes(m: &Map, s: usize) -> semlook::index::MappedCodes {
+    let (ix, seg) = (m.index().unwrap(), &m.manifest.segments[s]);
+    let f = seg.index.as_ref().unwrap();
+    semlook::index::MappedCodes::open(
+        &m.path,
+        &f.file,
+        f.bytes,
+        &f.sha256,
+        &seg.sha256,
+        &ix.entry.model.sha256,
+        seg.images,
+        ix.entry.dims,
+        ix.entry.lists,
+        ix.thumb.len(),
+    )
+    .unwrap()
+}
+
+#[test]
+fn the_pool_reranks_by_the_codes_plus_the_thumbnails_ssim_as_a_brute_force_does() {
+    use semlook::index::thumb::widen;
+    use semlook::index::{code_dot, IndexQuery, Probe, Shortlist};
+    use semlook::kernels::ssim::{ssim_pair, ssim_stats, SsimScratch};
+    let dir = tempfile::tempdir().unwrap();
+    let Some((refs, night)) = drive(&dir.path().join("data"), 4) else { return };
+    let map = dir.path().join("map");
+    build(&refs, &map, 16);
+    cli_ok(&["map", "index", "--map", p(&map), "--config", p(&index_config(dir.path(), "ix.toml", "lists = 8")), "-q"]);
+    let m = Map::open(&map).unwrap();
+    let info = cli_ok(&["map", "info", "--map", p(&map)]);
+    assert!(info.contains("thumbnails 32x24"), "{info}");
+    let ix = m.index().unwrap();
+    let cfg = m.query_config();
+    let q = queries(&m, &night);
+    let codes: Vec<_> = (0..m.manifest.segments.len()).map(|s| segment_codes(&m, s)).collect();
+    let tp = ix.thumb.ssim_params(&cfg.global);
+    let mut sc = SsimScratch::default();
+    let (mut xs, mut ys) = (vec![0.0; tp.stats_len()], vec![0.0; tp.stats_len()]);
+    let (probe, pool, shortlist) = (3, 24, 8);
+    let mut moved = 0;
+    for i in 0..q.len() {
+        let iq = IndexQuery {
+            appearance: q.image_appearance(i),
+            global: q.global(i),
+            probe,
+            pool,
+            shortlist,
+            w_global: cfg.matching.w_global as f32,
+            ssim: &cfg.global,
+        };
+        let got = m.index_shortlist(&iq, 0..m.len()).unwrap();
+        // the brute force: the probed lists' pool by the codes, then codes + w x the twin's SSIM
+        let pr = Probe::new(&ix.model, iq.appearance, probe);
+        let mut by_codes = Shortlist::new(pool);
+        for r in 0..m.len() {
+            let (s, j) = m.locate(r);
+            if pr.lists[codes[s].list(j) as usize] {
+                by_codes.offer(code_dot(codes[s].code(j), codes[s].scale(j), &pr.reduced), r as u32);
+            }
+        }
+        let mut qt = Vec::new();
+        ix.thumb.thumbnail(iq.global, &mut qt);
+        let (mut x, mut want) = (Vec::new(), Vec::new());
+        widen(&qt, &mut x);
+        ssim_stats(&tp, &x, &mut xs, &mut sc);
+        let pooled = by_codes.into_sorted();
+        for &(a, r) in &pooled {
+            let (s, j) = m.locate(r as usize);
+            let mut y = Vec::new();
+            widen(codes[s].thumb(j), &mut y);
+            ssim_stats(&tp, &y, &mut ys, &mut sc);
+            want.push((a + iq.w_global * ssim_pair(&tp, &x, &xs, &y, &ys, &mut sc), r));
+        }
+        want.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+        assert_eq!(got.len(), shortlist.min(want.len()));
+        // the same references with the same scores (1e-5: the fast path against the twin), a
+        // near tie at the cut excepted
+        let cut = want.get(shortlist).map_or(f32::NEG_INFINITY, |w| w.0);
+        for (g, w) in got.iter().zip(&want) {
+            assert!((g.0 - w.0).abs() <= 1e-5 || (w.0 - cut).abs() <= 1e-5, "query {i}: {g:?} vs the brute force's {w:?}");
+            let brute = want.iter().find(|x| x.1 == g.1).expect("a reference of the pool");
+            assert!((brute.0 - g.0).abs() <= 1e-5, "query {i}: reference {} scored {} vs {}", g.1, g.0, brute.0);
+        }
+        let codes_only: HashSet<u32> = pooled.iter().take(shortlist).map(|x| x.1).collect();
+        moved += got.iter().filter(|g| !codes_only.contains(&g.1)).count();
+    }
+    eprintln!("references the thumbnails brought into the shortlists of {} queries: {moved}", q.len());
+    assert!(moved > 0, "the thumbnails never changed a shortlist: the test does not exercise them");
+    // pool 0, or no larger than the shortlist: the codes alone, as before thumbnails
+    let iq = IndexQuery { appearance: q.image_appearance(0), global: q.global(0), probe, pool: 0, shortlist, w_global: 0.25, ssim: &cfg.global };
+    let plain = m.index_shortlist(&iq, 0..m.len()).unwrap();
+    assert_eq!(m.index_shortlist(&IndexQuery { pool: shortlist, ..iq }, 0..m.len()).unwrap(), plain);
+    assert_eq!(m.index_shortlist(&IndexQuery { pool: 500, w_global: 0.0, ..iq }, 0..m.len()).unwrap(), plain);
+}
+
+#[test]
+fn an_index_without_thumbnails_is_the_index_of_before_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some((refs, night)) = drive(&dir.path().join("data"), 8) else { return };
+    let map = dir.path().join("map");
+    build(&refs, &map, 16);
+    cli_ok(&["map", "index", "--map", p(&map), "--config", p(&index_config(dir.path(), "ix.toml", "lists = 8\nthumbnail = 0")), "-q"]);
+    // the manifest has no thumbnail field (as a manifest of before it: same checksum rules), the
+    // codes are format 1, and a pool changes nothing
+    let manifest = std::fs::read_to_string(map.join("manifest.json")).unwrap();
+    assert!(!manifest.contains("thumbnail"), "{manifest}");
+    let m = Map::open(&map).unwrap();
+    assert!(m.index().unwrap().thumb.is_empty());
+    let codes = std::fs::read(m.path.join(&m.manifest.segments[0].index.as_ref().unwrap().file)).unwrap();
+    assert!(String::from_utf8_lossy(&codes[..200.min(codes.len())]).contains("semlook-map-index 1"));
+    let info = cli_ok(&["map", "info", "--map", p(&map)]);
+    assert!(info.contains("no thumbnails"), "{info}");
+    let q = queries(&m, &night);
+    let with_pool = coarse(&m, &q, IndexSearch::Approximate, 2, 10, 10);
+    let mut cfg = m.query_config();
+    cfg.index.pool = 0;
+    cfg.index.search = IndexSearch::Approximate;
+    cfg.index.probe = 2;
+    cfg.index.shortlist = 10;
+    cfg.matching.top_k = 10;
+    let (lists, _) = candidates(&mut CpuStages, &m, &q, Setting::Fused, &cfg).unwrap();
+    let without: Vec<Vec<(u32, u32)>> = lists.into_iter().map(|l| l.into_iter().map(|(s, r)| (s.to_bits(), r)).collect()).collect();
+    assert_eq!(with_pool, without);
+}
+
 #[test]
 fn add_remove_and_compact_keep_the_index_current() {
     let dir = tempfile::tempdir().unwrap();
@@ -196,7 +322,7 @@ fn add_remove_and_compact_keep_the_index_current() {
     assert!(m.manifest.segments.len() >= 4 && m.manifest.segments.iter().all(|s| s.index.is_some()));
     // the added segments' codes are the model's codes of the values the segments store
     for seg in m.segments() {
-        let want = semlook::map::index_files::codes_for_segment(&ix.model, seg);
+        let want = semlook::map::index_files::codes_for_segment(&ix.model, &ix.thumb, seg);
         let got = semlook::index::MappedCodes::open(
             &map,
             &seg.entry.index.as_ref().unwrap().file,
@@ -207,12 +333,14 @@ fn add_remove_and_compact_keep_the_index_current() {
             seg.len(),
             ix.entry.dims,
             ix.entry.lists,
+            ix.thumb.len(),
         )
         .unwrap();
+        assert!(!ix.thumb.is_empty(), "the default index keeps thumbnails");
         for j in 0..seg.len() {
             assert_eq!(
-                (got.list(j), got.code(j), got.scale(j).to_bits()),
-                (want.list(j), want.code(j), want.scale(j).to_bits()),
+                (got.list(j), got.code(j), got.scale(j).to_bits(), got.thumb(j)),
+                (want.list(j), want.code(j), want.scale(j).to_bits(), want.thumb(j)),
                 "{}",
                 seg.path.display()
             );

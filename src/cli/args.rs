@@ -103,10 +103,14 @@ pub struct BenchEncodeArgs {
     pub models: ModelArgs,
 }
 
-fn parse_search(s: &str) -> std::result::Result<(usize, usize), String> {
-    let (a, b) = s.split_once(':').ok_or_else(|| format!("{s:?}: expected PROBE:SHORTLIST"))?;
+fn parse_search(s: &str) -> std::result::Result<(usize, usize, Option<usize>), String> {
+    let parts: Vec<&str> = s.split(':').collect();
     let n = |v: &str| v.parse::<usize>().ok().filter(|&x| x > 0).ok_or_else(|| format!("{v:?} is not a positive number"));
-    Ok((n(a)?, n(b)?))
+    match parts[..] {
+        [a, b] => Ok((n(a)?, n(b)?, None)),
+        [a, b, c] => Ok((n(a)?, n(b)?, Some(c.parse::<usize>().map_err(|_| format!("{c:?} is not a number"))?))),
+        _ => Err(format!("{s:?}: expected PROBE:SHORTLIST or PROBE:SHORTLIST:POOL")),
+    }
 }
 
 /// Where a benchmark writes its maps and how it prints its rows.
@@ -136,7 +140,7 @@ pub struct IndexBenchArgs {
     /// Map sizes (references).
     #[arg(long, value_delimiter = ',', default_value = "100000,1000000")]
     pub sizes: Vec<usize>,
-    /// Queries also scanned exactly, for the recall.
+    /// Queries also scanned exactly, for the recall (evenly spread over the photos).
     #[arg(long, default_value_t = 40)]
     pub exact_queries: usize,
     /// Queries of the batch whose queries/s is measured (the photos cycled).
@@ -146,9 +150,10 @@ pub struct IndexBenchArgs {
     /// come from one batch).
     #[arg(long, default_value_t = 3)]
     pub exact_timed: usize,
-    /// Searches of each map, PROBE:SHORTLIST, one row each (default: the config's).
+    /// Searches of each map, PROBE:SHORTLIST or PROBE:SHORTLIST:POOL (`index.pool`; 0: the codes
+    /// alone choose the shortlist), one row each (default: the config's).
     #[arg(long, value_delimiter = ',', value_parser = parse_search)]
-    pub search: Vec<(usize, usize)>,
+    pub search: Vec<(usize, usize, Option<usize>)>,
     /// Configuration file (TOML) whose `[index]` section builds and searches the index.
     #[arg(long, value_name = "FILE.toml")]
     pub config: Option<PathBuf>,

@@ -189,18 +189,12 @@ pub trait RefSource: GlobalSource {
     /// The index's shortlist for one query's whole-image appearance vector among the references
     /// of `range`: the `m` with the best approximate inner products among the `probe` lists
     /// nearest to it, best first; `None` where the source has no index.
-    fn index_shortlist_in(
-        &self,
-        _appearance: &[f32],
-        _probe: usize,
-        _m: usize,
-        _range: std::ops::Range<usize>,
-    ) -> Option<crate::Result<Vec<(f32, u32)>>> {
+    fn index_shortlist_in(&self, _query: &crate::index::IndexQuery, _range: std::ops::Range<usize>) -> Option<crate::Result<Vec<(f32, u32)>>> {
         None
     }
     /// [`RefSource::index_shortlist_in`] over every reference.
-    fn index_shortlist(&self, appearance: &[f32], probe: usize, m: usize) -> Option<crate::Result<Vec<(f32, u32)>>> {
-        self.index_shortlist_in(appearance, probe, m, 0..self.len())
+    fn index_shortlist(&self, query: &crate::index::IndexQuery) -> Option<crate::Result<Vec<(f32, u32)>>> {
+        self.index_shortlist_in(query, 0..self.len())
     }
 }
 
@@ -321,15 +315,9 @@ impl RefSource for Window<'_> {
     fn has_index(&self) -> bool {
         self.inner.has_index()
     }
-    fn index_shortlist_in(
-        &self,
-        appearance: &[f32],
-        probe: usize,
-        m: usize,
-        range: std::ops::Range<usize>,
-    ) -> Option<crate::Result<Vec<(f32, u32)>>> {
+    fn index_shortlist_in(&self, query: &crate::index::IndexQuery, range: std::ops::Range<usize>) -> Option<crate::Result<Vec<(f32, u32)>>> {
         let (a, b) = (self.start + range.start.min(self.len), self.start + range.end.min(self.len));
-        let inner = self.inner.index_shortlist_in(appearance, probe, m, a..b)?;
+        let inner = self.inner.index_shortlist_in(query, a..b)?;
         Some(inner.map(|l| l.into_iter().map(|(s, i)| (s, i - self.start as u32)).collect()))
     }
 }

@@ -1,6 +1,7 @@
 //! The codes of one segment's images, written beside the segment as
 //! `index-<sha>.safetensors`: tensors `list` `[n]` u16, `code` `[n, dims]` i8, `scale` `[n]` f32,
-//! and in the header the SHA-256 of the segment they describe and of the model that made them, so
+//! with thumbnails ([`super::thumb`]) `thumb` `[n, thumb_len]` u8 (format 2; format 1, written
+//! where the index keeps none, is the file of before thumbnails byte for byte), and in the header the SHA-256 of the segment they describe and of the model that made them, so
 //! that codes of another segment, another map or another model are refused at open. Rows follow
 //! the segment's rows, removed ones included (the map leaves those out of the index space).
 
@@ -12,8 +13,9 @@ use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-/// The header's format tag.
+/// The header's format tag without thumbnails, and with them.
 const FORMAT: &str = "semlook-map-index 1";
+const FORMAT_THUMBS: &str = "semlook-map-index 2";
 
 /// Codes in memory.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -26,12 +28,16 @@ pub struct Codes {
     pub codes: Vec<i8>,
     /// Per row, the scale of its values.
     pub scales: Vec<f32>,
+    /// Bytes of a row's thumbnail (0: none).
+    pub thumb_len: usize,
+    /// Per row, `thumb_len` bytes.
+    pub thumbs: Vec<u8>,
 }
 
 impl Codes {
     /// Empty codes of `dims` values, room for `n` rows.
     pub fn with_capacity(n: usize, dims: usize) -> Codes {
-        Codes { dims, lists: Vec::with_capacity(n), codes: Vec::with_capacity(n * dims), scales: Vec::with_capacity(n) }
+        Codes { dims, lists: Vec::with_capacity(n), codes: Vec::with_capacity(n * dims), scales: Vec::with_capacity(n), thumb_len: 0, thumbs: vec![] }
     }
     /// Rows held.
     pub fn len(&self) -> usize {
@@ -54,11 +60,17 @@ impl Codes {
     /// The file's bytes, naming the segment (`segment_sha`) and the model (`model_sha`).
     pub fn to_bytes(&self, segment_sha: &str, model_sha: &str) -> Result<Vec<u8>> {
         let n = self.len();
-        let parts = [
+        if self.thumbs.len() != n * self.thumb_len {
+            return Err(Error::check(format!("{} thumbnail bytes for {n} rows of {}", self.thumbs.len(), self.thumb_len)));
+        }
+        let mut parts = vec![
             ("list", Dtype::U16, vec![n], bytemuck::cast_slice::<u16, u8>(&self.lists)),
             ("code", Dtype::I8, vec![n, self.dims], bytemuck::cast_slice::<i8, u8>(&self.codes)),
             ("scale", Dtype::F32, vec![n], bytemuck::cast_slice::<f32, u8>(&self.scales)),
         ];
+        if self.thumb_len > 0 {
+            parts.push(("thumb", Dtype::U8, vec![n, self.thumb_len], &self.thumbs));
+        }
         let tensors = parts
             .into_iter()
             .map(|(name, dt, shape, bytes)| {
@@ -66,7 +78,7 @@ impl Codes {
             })
             .collect::<Result<Vec<_>>>()?;
         let meta = std::collections::HashMap::from([
-            ("format".to_string(), FORMAT.to_string()),
+            ("format".to_string(), if self.thumb_len > 0 { FORMAT_THUMBS } else { FORMAT }.to_string()),
             ("segment".to_string(), segment_sha.to_string()),
             ("model".to_string(), model_sha.to_string()),
         ]);
@@ -84,6 +96,9 @@ impl CodeRows for Codes {
     fn scale(&self, j: usize) -> f32 {
         self.scales[j]
     }
+    fn thumb(&self, j: usize) -> &[u8] {
+        &self.thumbs[j * self.thumb_len..(j + 1) * self.thumb_len]
+    }
 }
 
 /// A segment's codes, memory-mapped.
@@ -99,12 +114,52 @@ pub struct MappedCodes {
     list: Range<usize>,
     code: Range<usize>,
     scale: Range<usize>,
+    thumb_len: usize,
+    thumb: Range<usize>,
     checked: OnceLock<Option<String>>,
+    by_list: OnceLock<Inverted>,
+}
+
+/// A segment's rows grouped by list (the inverted lists proper): list `l`'s rows are
+/// `rows[starts[l]..starts[l + 1]]`, ascending.
+#[derive(Debug, Default)]
+pub struct Inverted {
+    starts: Vec<u32>,
+    rows: Vec<u32>,
+}
+
+impl Inverted {
+    /// Groups rows `0..n` by `list(j)` (< `lists`) by a counting sort.
+    fn new(n: usize, lists: usize, list: impl Fn(usize) -> usize) -> Inverted {
+        let mut starts = vec![0u32; lists + 1];
+        for j in 0..n {
+            starts[list(j).min(lists - 1) + 1] += 1;
+        }
+        for l in 0..lists {
+            starts[l + 1] += starts[l];
+        }
+        let mut next = starts.clone();
+        let mut rows = vec![0u32; n];
+        for j in 0..n {
+            let l = list(j).min(lists - 1);
+            rows[next[l] as usize] = j as u32;
+            next[l] += 1;
+        }
+        Inverted { starts, rows }
+    }
+    /// The rows of list `l` (none past the model's lists).
+    pub fn rows(&self, l: usize) -> &[u32] {
+        match (self.starts.get(l), self.starts.get(l + 1)) {
+            (Some(&a), Some(&b)) => &self.rows[a as usize..b as usize],
+            _ => &[],
+        }
+    }
 }
 
 impl MappedCodes {
     /// Maps `dir/file` and checks its size, header, shapes and alignment, and that it describes
-    /// the segment `segment_sha` (with `n` rows) with the model `model_sha` (`dims`, `lists`).
+    /// the segment `segment_sha` (with `n` rows) with the model `model_sha` (`dims`, `lists`,
+    /// thumbnails of `thumb_len` bytes: 0, none).
     /// Its SHA-256 (`sha256`) and values are checked on first use ([`MappedCodes::check`]).
     #[allow(clippy::too_many_arguments)]
     pub fn open(
@@ -117,6 +172,7 @@ impl MappedCodes {
         n: usize,
         dims: usize,
         lists: usize,
+        thumb_len: usize,
     ) -> Result<MappedCodes> {
         let path = dir.join(file);
         let f = std::fs::File::open(&path).map_err(|e| Error::io(&path, e))?;
@@ -127,8 +183,23 @@ impl MappedCodes {
         // SAFETY: the store never changes a file after renaming it into place (new contents
         // always go to new, content-named files), so the mapped bytes do not change.
         let mmap = unsafe { Mmap::map(&f) }.map_err(|e| Error::io(&path, e))?;
-        let (list, code, scale) = header(&mmap, segment_sha, model_sha, n, dims).map_err(|e| e.named(|r| Error::corrupt(&path, r)))?;
-        Ok(MappedCodes { path, sha256: sha256.to_string(), mmap, n, dims, lists, list, code, scale, checked: OnceLock::new() })
+        let [list, code, scale, thumb] =
+            header(&mmap, segment_sha, model_sha, n, dims, thumb_len).map_err(|e| e.named(|r| Error::corrupt(&path, r)))?;
+        Ok(MappedCodes {
+            path,
+            sha256: sha256.to_string(),
+            mmap,
+            n,
+            dims,
+            lists,
+            list,
+            code,
+            scale,
+            thumb_len,
+            thumb,
+            checked: OnceLock::new(),
+            by_list: OnceLock::new(),
+        })
     }
 
     /// Rows of the file.
@@ -138,6 +209,11 @@ impl MappedCodes {
     /// Whether the file holds no rows.
     pub fn is_empty(&self) -> bool {
         self.n == 0
+    }
+
+    /// The rows grouped by list, made on first use (one pass over the lists; after [`Self::check`]).
+    pub fn inverted(&self) -> &Inverted {
+        self.by_list.get_or_init(|| Inverted::new(self.n, self.lists.max(1), |j| self.list(j) as usize))
     }
 
     /// The SHA-256 against the manifest, and every value: lists below the model's, finite positive
@@ -175,15 +251,24 @@ impl CodeRows for MappedCodes {
     fn scale(&self, j: usize) -> f32 {
         bytemuck::cast_slice::<u8, f32>(&self.mmap[self.scale.clone()])[j]
     }
+    fn thumb(&self, j: usize) -> &[u8] {
+        &self.mmap[self.thumb.clone()][j * self.thumb_len..(j + 1) * self.thumb_len]
+    }
 }
 
-/// The three tensors' byte ranges, checked against what the manifest expects.
-fn header(bytes: &[u8], segment_sha: &str, model_sha: &str, n: usize, dims: usize) -> Result<(Range<usize>, Range<usize>, Range<usize>)> {
+/// The tensors' byte ranges (list, code, scale, thumb: empty without thumbnails), checked against
+/// what the manifest expects.
+fn header(bytes: &[u8], segment_sha: &str, model_sha: &str, n: usize, dims: usize, thumb_len: usize) -> Result<[Range<usize>; 4]> {
     let (hlen, meta) = safetensors::SafeTensors::read_metadata(bytes).map_err(|e| Error::check(format!("not an index codes file: {e}")))?;
     let tags = meta.metadata().clone().unwrap_or_default();
     let tag = |k: &str| tags.get(k).map(String::as_str).unwrap_or("");
-    if tag("format") != FORMAT {
-        return Err(Error::check(format!("format {:?}, not {FORMAT:?}", tag("format"))));
+    let format = if thumb_len > 0 { FORMAT_THUMBS } else { FORMAT };
+    if tag("format") != format {
+        return Err(Error::check(format!(
+            "format {:?}, not {format:?} (the manifest's index {} thumbnails)",
+            tag("format"),
+            if thumb_len > 0 { "keeps" } else { "keeps no" }
+        )));
     }
     if tag("segment") != segment_sha {
         return Err(Error::check(format!(
@@ -206,7 +291,8 @@ fn header(bytes: &[u8], segment_sha: &str, model_sha: &str, n: usize, dims: usiz
         }
         Ok(r)
     };
-    Ok((get("list", Dtype::U16, vec![n], 2)?, get("code", Dtype::I8, vec![n, dims], 1)?, get("scale", Dtype::F32, vec![n], 4)?))
+    let thumb = if thumb_len > 0 { get("thumb", Dtype::U8, vec![n, thumb_len], 1)? } else { start..start };
+    Ok([get("list", Dtype::U16, vec![n], 2)?, get("code", Dtype::I8, vec![n, dims], 1)?, get("scale", Dtype::F32, vec![n], 4)?, thumb])
 }
 
 #[cfg(test)]
@@ -238,7 +324,8 @@ mod tests {
         let bytes = c.to_bytes("seg", "mod").unwrap();
         std::fs::write(dir.path().join("index-x.safetensors"), &bytes).unwrap();
         let sha = crate::util::sha256_hex(&bytes);
-        let open = |seg: &str, model: &str, n: usize, len: u64| MappedCodes::open(dir.path(), "index-x.safetensors", len, &sha, seg, model, n, 4, 3);
+        let open =
+            |seg: &str, model: &str, n: usize, len: u64| MappedCodes::open(dir.path(), "index-x.safetensors", len, &sha, seg, model, n, 4, 3, 0);
         let m = open("seg", "mod", 3, bytes.len() as u64).unwrap();
         m.check().unwrap();
         for j in 0..3 {
@@ -258,9 +345,37 @@ mod tests {
         // no rows
         let empty = Codes::with_capacity(0, 4).to_bytes("seg", "mod").unwrap();
         std::fs::write(dir.path().join("index-e.safetensors"), &empty).unwrap();
-        let e = MappedCodes::open(dir.path(), "index-e.safetensors", empty.len() as u64, &crate::util::sha256_hex(&empty), "seg", "mod", 0, 4, 3)
+        let e = MappedCodes::open(dir.path(), "index-e.safetensors", empty.len() as u64, &crate::util::sha256_hex(&empty), "seg", "mod", 0, 4, 3, 0)
             .unwrap();
         e.check().unwrap();
         assert!(e.is_empty());
+    }
+
+    #[test]
+    fn thumbnails_are_read_back_and_a_file_without_them_is_refused_where_they_are_expected() {
+        let dir = tempfile::tempdir().unwrap();
+        let plain = codes();
+        let mut c = codes();
+        c.thumb_len = 2;
+        c.thumbs = vec![1, 2, 3, 4, 5, 6];
+        let bytes = c.to_bytes("seg", "mod").unwrap();
+        let old = plain.to_bytes("seg", "mod").unwrap();
+        std::fs::write(dir.path().join("t.safetensors"), &bytes).unwrap();
+        std::fs::write(dir.path().join("p.safetensors"), &old).unwrap();
+        let open = |f: &str, b: &[u8], thumb: usize| {
+            MappedCodes::open(dir.path(), f, b.len() as u64, &crate::util::sha256_hex(b), "seg", "mod", 3, 4, 3, thumb)
+        };
+        let m = open("t.safetensors", &bytes, 2).unwrap();
+        m.check().unwrap();
+        for j in 0..3 {
+            assert_eq!((m.list(j), m.code(j), m.scale(j), m.thumb(j)), (c.list(j), c.code(j), c.scale(j), c.thumb(j)));
+        }
+        assert!(open("t.safetensors", &bytes, 3).is_err(), "another thumbnail size");
+        assert!(open("t.safetensors", &bytes, 0).unwrap_err().to_string().contains("keeps no thumbnails"));
+        assert!(open("p.safetensors", &old, 2).unwrap_err().to_string().contains("keeps thumbnails"));
+        assert!(open("p.safetensors", &old, 0).unwrap().thumb(1).is_empty());
+        // rows and thumbnails that disagree do not serialise
+        c.thumbs.pop();
+        assert!(c.to_bytes("seg", "mod").is_err());
     }
 }

@@ -21,13 +21,21 @@
 //! any point leaves the manifest's generation whole; a graph over all references is one mutable
 //! structure across every segment. Measured side by side (docs/index.md) on the same vectors.
 //!
-//! What it costs: `dims` + 6 bytes per reference (262 at the defaults) and the model
-//! (`dims` x the appearance width + `lists` x `dims` floats).
+//! The shortlist follows the fused score, not the appearance alone: the scan's best `index.pool`
+//! by the codes are re-ranked by the codes plus `w_global` x the SSIM of 8-bit thumbnails of the
+//! global descriptors ([`thumb`], kept beside the codes), and the best `index.shortlist` of those
+//! go to the exact score. At a million references with repeated scenes the appearance codes alone
+//! left out references that the SSIM lifts into the exact top-30 (docs/index.md).
+//!
+//! What it costs: `dims` + 6 bytes per reference (262 at the defaults) and the thumbnail
+//! (768 at the default pooling of a 64 x 48 descriptor by 2), and the model (`dims` x the
+//! appearance width + `lists` x `dims` floats).
 
 pub mod codes;
 pub mod model;
+pub mod thumb;
 
-pub use codes::{Codes, MappedCodes};
+pub use codes::{Codes, Inverted, MappedCodes};
 pub use model::{IndexParams, Model};
 
 use std::cmp::Ordering;
@@ -84,7 +92,7 @@ impl Shortlist {
 
 /// The approximate inner product of a reduced query `y` with a stored code: `scale` x
 /// sum(code_i x y_i).
-#[inline]
+#[inline(always)]
 pub fn code_dot(code: &[i8], scale: f32, y: &[f32]) -> f32 {
     let mut acc = [0.0f32; 8];
     let chunks = code.len() / 8;
@@ -142,6 +150,28 @@ pub trait CodeRows {
     fn code(&self, j: usize) -> &[i8];
     /// The scale of row `j`.
     fn scale(&self, j: usize) -> f32;
+    /// The thumbnail of row `j` (empty where the index keeps none).
+    fn thumb(&self, j: usize) -> &[u8];
+}
+
+/// One query of the index ([`crate::descriptors::source::RefSource::index_shortlist_in`]).
+#[derive(Debug, Clone, Copy)]
+pub struct IndexQuery<'a> {
+    /// The query's whole-image appearance vector.
+    pub appearance: &'a [f32],
+    /// Its global descriptor (for the thumbnails' SSIM).
+    pub global: &'a [f32],
+    /// Lists scanned.
+    pub probe: usize,
+    /// The best of the scan by the appearance codes re-ranked by the codes plus `w_global` x the
+    /// thumbnails' SSIM (where the index keeps thumbnails and `pool` > `shortlist`).
+    pub pool: usize,
+    /// References handed to the exact fused score.
+    pub shortlist: usize,
+    /// The fused score's weight of the SSIM.
+    pub w_global: f32,
+    /// The coarse stage's SSIM constants.
+    pub ssim: &'a crate::config::GlobalConfig,
 }
 
 #[cfg(test)]

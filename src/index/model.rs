@@ -22,6 +22,15 @@ pub struct IndexParams {
     pub iterations: usize,
     /// Seed of the starting basis and centroids.
     pub seed: u64,
+    /// Pooling factor of the global descriptors' thumbnails kept beside the codes
+    /// ([`super::thumb`]); 0: none (as every index built before thumbnails, whose manifests
+    /// lack the field and keep their checksums).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub thumbnail: usize,
+}
+
+fn is_zero(v: &usize) -> bool {
+    *v == 0
 }
 
 impl IndexParams {
@@ -32,7 +41,7 @@ impl IndexParams {
             0 => (4.0 * (images as f64).sqrt()).max(1.0).log2().round().exp2().clamp(16.0, 4096.0) as usize,
             n => n,
         };
-        IndexParams { dims: c.dims, lists, sample: c.sample, iterations: c.iterations, seed: c.seed }
+        IndexParams { dims: c.dims, lists, sample: c.sample, iterations: c.iterations, seed: c.seed, thumbnail: c.thumbnail }
     }
 }
 
@@ -322,7 +331,7 @@ mod tests {
     }
 
     fn params() -> IndexParams {
-        IndexParams { dims: 16, lists: 8, sample: 4096, iterations: 6, seed: 7 }
+        IndexParams { dims: 16, lists: 8, sample: 4096, iterations: 6, seed: 7, thumbnail: 0 }
     }
 
     #[test]

@@ -8,13 +8,17 @@ use super::segment::Layout;
 use super::{layout_of, Map};
 use crate::classes::ClassTable;
 use crate::error::{Error, Result};
-use crate::index::{IndexParams, Model, Probe, Shortlist};
+use crate::index::thumb::{ThumbScorer, ThumbSpec};
+use crate::index::{CodeRows, IndexParams, IndexQuery, Model, Probe, Shortlist};
 use crate::util::sha256_hex;
+use rayon::prelude::*;
 use std::collections::HashSet;
 use std::ops::Range;
 use std::path::Path;
 use std::time::Instant;
 
+/// References of the pool whose thumbnails one task scores.
+const POOL_CHUNK: usize = 512;
 /// Queries drawn from the map to measure the recall of a new index.
 const RECALL_QUERIES: usize = 100;
 /// The ranking depth the recall is measured at.
@@ -26,27 +30,117 @@ impl Map {
         self.index.as_ref()
     }
 
-    /// The index's shortlist for one query's whole-image appearance vector: the `m` references of
-    /// `range` (map indices) with the best approximate inner products among the `probe` lists
-    /// nearest to it, best first. An error where the map has no index or a file it reads is
-    /// damaged.
-    pub fn index_shortlist(&self, appearance: &[f32], probe: usize, m: usize, range: Range<usize>) -> Result<Vec<(f32, u32)>> {
+    /// The index's shortlist for one query: the `q.shortlist` references of `range` (map
+    /// indices) with the best approximate scores among the `q.probe` lists nearest to its
+    /// appearance vector, best first. The approximate score is the inner product of the codes;
+    /// where the index keeps thumbnails, the `q.pool` best by it are re-ranked by it plus
+    /// `q.w_global` x the thumbnails' SSIM (the fused score's approximation). An error where the
+    /// map has no index or a file it reads is damaged.
+    pub fn index_shortlist(&self, q: &IndexQuery, range: Range<usize>) -> Result<Vec<(f32, u32)>> {
         let ix = self.index.as_ref().ok_or_else(|| Error::invalid(format!("map {}", self.path.display()), "has no index (`semlook map index`)"))?;
-        if appearance.len() != ix.model.width {
-            return Err(Error::invalid("index query", format!("{} appearance values, the map's index reduces {}", appearance.len(), ix.model.width)));
+        if q.appearance.len() != ix.model.width {
+            return Err(Error::invalid(
+                "index query",
+                format!("{} appearance values, the map's index reduces {}", q.appearance.len(), ix.model.width),
+            ));
         }
-        let p = Probe::new(&ix.model, appearance, probe);
-        let mut out = Shortlist::new(m);
-        for (s, codes) in ix.codes.iter().enumerate() {
-            let (first, end) = (self.starts[s], self.starts[s + 1]);
-            if end <= range.start || first >= range.end {
-                continue;
+        let fused = !ix.thumb.is_empty() && q.pool > q.shortlist && q.w_global != 0.0;
+        if fused && q.global.len() != ix.thumb.width * ix.thumb.height {
+            return Err(Error::invalid(
+                "index query",
+                format!("{} global values, the map's index keeps thumbnails of {}", q.global.len(), ix.thumb.width * ix.thumb.height),
+            ));
+        }
+        let p = Probe::new(&ix.model, q.appearance, q.probe);
+        let probed: Vec<usize> = (0..p.lists.len()).filter(|&l| p.lists[l]).collect();
+        let cap = if fused { q.pool } else { q.shortlist };
+        // each segment's probed lists scanned in parallel, their shortlists merged (the same
+        // best with ties to the lower reference whatever the order)
+        let parts: Vec<Shortlist> = ix
+            .codes
+            .par_iter()
+            .enumerate()
+            .filter(|&(s, _)| self.starts[s + 1] > range.start && self.starts[s] < range.end)
+            .map(|(s, codes)| {
+                codes.check()?;
+                let mut out = Shortlist::new(cap);
+                pulp::Arch::new().dispatch(ScanLists { map: self, s, codes, probe: &p, probed: &probed, range: range.clone(), out: &mut out });
+                Ok(out)
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let mut out = Shortlist::new(cap);
+        for part in parts {
+            for (x, r) in part.into_sorted() {
+                out.offer(x, r);
             }
-            codes.check()?;
-            let rows = self.live_rows(s).enumerate().map(|(k, j)| (j, (first + k) as u32)).filter(|(_, i)| range.contains(&(*i as usize)));
-            p.scan(codes, rows, &mut out);
         }
-        Ok(out.into_sorted())
+        if !fused {
+            return Ok(out.into_sorted());
+        }
+        // the pool's thumbnails scored by the coarse stage's SSIM, in parallel chunks
+        let pooled = out.into_sorted();
+        let ssim: Vec<f32> = pooled
+            .par_chunks(POOL_CHUNK)
+            .map_init(
+                || {
+                    let mut scorer = ThumbScorer::new(&ix.thumb, q.ssim);
+                    scorer.set_query(&ix.thumb, q.global);
+                    scorer
+                },
+                |scorer, chunk| {
+                    scorer
+                        .score(chunk.iter().map(|&(_, r)| {
+                            let (s, j) = self.locate(r as usize);
+                            ix.codes[s].thumb(j)
+                        }))
+                        .to_vec()
+                },
+            )
+            .flatten()
+            .collect();
+        let scored = pooled.iter().zip(&ssim).map(|(&(a, r), &s)| (a + q.w_global * s, r));
+        let mut best = Shortlist::new(q.shortlist);
+        for (x, r) in scored {
+            best.offer(x, r);
+        }
+        Ok(best.into_sorted())
+    }
+}
+
+/// One segment's probed lists offered to a shortlist (compiled for the best vector instructions,
+/// for [`crate::index::code_dot`]): each list's rows, live ones only, as map indices in `range`.
+struct ScanLists<'a> {
+    map: &'a Map,
+    s: usize,
+    codes: &'a crate::index::MappedCodes,
+    probe: &'a Probe,
+    probed: &'a [usize],
+    range: Range<usize>,
+    out: &'a mut Shortlist,
+}
+
+impl pulp::WithSimd for ScanLists<'_> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        let (first, inv, live) = (self.map.starts[self.s], self.codes.inverted(), self.map.live[self.s].as_deref());
+        for &l in self.probed {
+            for &j in inv.rows(l) {
+                // the row's place among the segment's live rows (removed rows are not offered)
+                let k = match live {
+                    None => j as usize,
+                    Some(rows) => match rows.binary_search(&j) {
+                        Ok(k) => k,
+                        Err(_) => continue,
+                    },
+                };
+                let r = first + k;
+                if self.range.contains(&r) {
+                    let j = j as usize;
+                    self.out.offer(crate::index::code_dot(self.codes.code(j), self.codes.scale(j), &self.probe.reduced), r as u32);
+                }
+            }
+        }
     }
 }
 
@@ -77,6 +171,9 @@ fn spread(len: usize, k: usize, offset: usize) -> Vec<usize> {
 pub fn build(dir: &Path, params: &IndexParams, probe: usize, shortlist: usize) -> Result<IndexReport> {
     let t0 = Instant::now();
     let map = Map::open(dir)?;
+    // thumbnails too small for one window are not kept, and the manifest says so
+    let thumb = ThumbSpec::new(&map.manifest.config.global, params.thumbnail);
+    let params = &IndexParams { thumbnail: if thumb.is_empty() { 0 } else { params.thumbnail }, ..*params };
     let what = || format!("map {}", dir.display());
     if map.manifest.appearance_dim == 0 {
         return Err(Error::invalid(what(), "holds no appearance vectors to index (built without the keypoint network)"));
@@ -123,7 +220,7 @@ pub fn build(dir: &Path, params: &IndexParams, probe: usize, shortlist: usize) -
     let probes: Vec<Probe> = qv.chunks(width).map(|q| Probe::new(&model, q, probe)).collect();
     let mut approx_lists: Vec<Shortlist> = queries.iter().map(|_| Shortlist::new(shortlist)).collect();
     for (s, seg) in map.segments().iter().enumerate() {
-        let codes = codes_for_segment(&model, seg);
+        let codes = codes_for_segment(&model, &thumb, seg);
         // exact inner products of the live rows against the recall queries
         let rows: Vec<(usize, u32)> = map.live_rows(s).enumerate().map(|(k, j)| (j, (map.starts[s] + k) as u32)).collect();
         let mut buf = vec![0.0f32; rows.len() * width];

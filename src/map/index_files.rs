@@ -8,6 +8,7 @@ use super::files::{self, write_atomic};
 use super::manifest::{self, FileEntry, IndexEntry, Manifest, SegmentEntry};
 use super::segment::{Layout, Mapped};
 use crate::error::{Error, Result};
+use crate::index::thumb::ThumbSpec;
 use crate::index::{Codes, MappedCodes, Model};
 use crate::util::sha256_hex;
 use std::collections::HashSet;
@@ -22,6 +23,8 @@ pub struct MapIndex {
     pub entry: IndexEntry,
     /// The model.
     pub model: Model,
+    /// What its thumbnails are (none: an index of before thumbnails, or built without).
+    pub thumb: ThumbSpec,
     pub(super) codes: Vec<MappedCodes>,
 }
 
@@ -42,12 +45,13 @@ impl MapIndex {
     pub(crate) fn open(dir: &Path, m: &Manifest) -> Result<Option<MapIndex>> {
         let Some(ix) = &m.index else { return Ok(None) };
         let model = read_model(dir, m, ix)?;
+        let thumb = ix.thumb(&m.config.global);
         let mut codes = Vec::with_capacity(m.segments.len());
         for s in &m.segments {
             let f = s.index.as_ref().ok_or_else(|| Error::corrupt(dir.join(manifest::MANIFEST), format!("segment {} has no index codes", s.file)))?;
-            codes.push(MappedCodes::open(dir, &f.file, f.bytes, &f.sha256, &s.sha256, &ix.model.sha256, s.images, ix.dims, ix.lists)?);
+            codes.push(MappedCodes::open(dir, &f.file, f.bytes, &f.sha256, &s.sha256, &ix.model.sha256, s.images, ix.dims, ix.lists, thumb.len())?);
         }
-        Ok(Some(MapIndex { entry: ix.clone(), model, codes }))
+        Ok(Some(MapIndex { entry: ix.clone(), model, thumb, codes }))
     }
 
     /// Checks every segment's codes in full (`map verify`): the check of each, in manifest order.
@@ -65,10 +69,13 @@ fn segment_vectors(width: usize, seg: &Mapped, a: usize, b: usize, buf: &mut Vec
     }
 }
 
-/// The codes of every row of a stored segment (removed ones included), from the values it stores.
-pub fn codes_for_segment(model: &Model, seg: &Mapped) -> Codes {
+/// The codes of every row of a stored segment (removed ones included), from the values it
+/// stores, with the thumbnails `thumb` of its global descriptors.
+pub fn codes_for_segment(model: &Model, thumb: &ThumbSpec, seg: &Mapped) -> Codes {
     let n = seg.len();
     let mut out = Codes::with_capacity(n, model.dims);
+    out.thumb_len = thumb.len();
+    out.thumbs.reserve(n * thumb.len());
     let mut buf = Vec::new();
     for a in (0..n).step_by(CHUNK) {
         let b = (a + CHUNK).min(n);
@@ -77,6 +84,13 @@ pub fn codes_for_segment(model: &Model, seg: &Mapped) -> Codes {
         out.lists.extend(c.lists);
         out.codes.extend(c.codes);
         out.scales.extend(c.scales);
+    }
+    if !thumb.is_empty() {
+        let mut global = vec![0.0f32; thumb.width * thumb.height];
+        for j in 0..n {
+            seg.globals(j, j + 1).write_to(&mut global);
+            thumb.thumbnail(&global, &mut out.thumbs);
+        }
     }
     out
 }
@@ -98,7 +112,8 @@ pub(crate) fn model_problem(dir: &Path, m: &Manifest) -> Result<()> {
 /// Whether the codes of segment `s` open and check in full: `map verify`.
 pub(crate) fn codes_problem(dir: &Path, m: &Manifest, s: &SegmentEntry) -> Result<()> {
     let (Some(ix), Some(f)) = (&m.index, &s.index) else { return Ok(()) };
-    MappedCodes::open(dir, &f.file, f.bytes, &f.sha256, &s.sha256, &ix.model.sha256, s.images, ix.dims, ix.lists)?.check()
+    let thumb = ix.thumb(&m.config.global).len();
+    MappedCodes::open(dir, &f.file, f.bytes, &f.sha256, &s.sha256, &ix.model.sha256, s.images, ix.dims, ix.lists, thumb)?.check()
 }
 
 /// Writes the codes of segment `entry` (already written to `dir`) under the index `ix`, loading
@@ -116,7 +131,7 @@ pub(crate) fn write_segment_codes(
     }
     let model = &cache.as_ref().ok_or_else(|| Error::check("no index model"))?.1;
     let seg = Mapped::open(dir, entry, layout)?;
-    let codes = codes_for_segment(model, &seg);
+    let codes = codes_for_segment(model, &ix.thumb(&m.config.global), &seg);
     let bytes = codes.to_bytes(&entry.sha256, &ix.model.sha256)?;
     let name = codes_name(&entry.file, &ix.model.sha256);
     write_atomic(dir, &name, &bytes)?;

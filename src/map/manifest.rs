@@ -95,6 +95,11 @@ pub struct IndexEntry {
 }
 
 impl IndexEntry {
+    /// The thumbnails this index keeps for a map whose global descriptors are `g`'s (none: built
+    /// without them, or before them).
+    pub fn thumb(&self, g: &crate::config::GlobalConfig) -> crate::index::thumb::ThumbSpec {
+        crate::index::thumb::ThumbSpec::new(g, self.params.thumbnail)
+    }
     /// `recall_hits / recall_of` (1 where nothing was measured).
     pub fn recall(&self) -> f64 {
         if self.recall_of == 0 {

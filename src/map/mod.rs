@@ -451,8 +451,8 @@ impl RefSource for Map {
     fn has_index(&self) -> bool {
         self.index.is_some()
     }
-    fn index_shortlist_in(&self, appearance: &[f32], probe: usize, m: usize, range: std::ops::Range<usize>) -> Option<Result<Vec<(f32, u32)>>> {
+    fn index_shortlist_in(&self, query: &crate::index::IndexQuery, range: std::ops::Range<usize>) -> Option<Result<Vec<(f32, u32)>>> {
         self.index.as_ref()?;
-        Some(Map::index_shortlist(self, appearance, probe, m, range))
+        Some(Map::index_shortlist(self, query, range))
     }
 }

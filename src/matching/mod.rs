@@ -369,7 +369,16 @@ pub fn indexed_topk(refs: &dyn RefSource, queries: &DescriptorSet, cfg: &Config,
         return Ok(vec![vec![]; queries.len()]);
     }
     for q in 0..queries.len() {
-        let shortlist = match refs.index_shortlist(queries.image_appearance(q), cfg.index.probe, cfg.index.shortlist.max(k)) {
+        let iq = crate::index::IndexQuery {
+            appearance: queries.image_appearance(q),
+            global: queries.global(q),
+            probe: cfg.index.probe,
+            pool: cfg.index.pool,
+            shortlist: cfg.index.shortlist.max(k),
+            w_global,
+            ssim: &cfg.global,
+        };
+        let shortlist = match refs.index_shortlist(&iq) {
             Some(r) => r?,
             None => return Err(Error::invalid("coarse stage", "the references have no index")),
         };

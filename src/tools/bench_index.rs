@@ -34,12 +34,13 @@ pub struct IndexBenchOptions {
     pub queries: Vec<FrameSource>,
     pub sizes: Vec<usize>,
     /// Queries scanned exactly too, for the recall (the exact scan of a large map takes seconds
-    /// a query).
+    /// a query), evenly spread over the query photos.
     pub exact_queries: usize,
     /// The batch whose queries/s is measured (queries cycled).
     pub batch: usize,
-    /// (probe, shortlist) pairs searched on each map (one row each); empty: the config's.
-    pub searches: Vec<(usize, usize)>,
+    /// (probe, shortlist, pool: the config's where none) searched on each map (one row each);
+    /// empty: the config's.
+    pub searches: Vec<(usize, usize, Option<usize>)>,
     /// Exact single queries timed (each scans the whole map alone).
     pub exact_timed: usize,
     pub dir: PathBuf,
@@ -60,6 +61,10 @@ pub struct IndexBenchRow {
     pub index_lists: usize,
     pub probe: usize,
     pub shortlist: usize,
+    /// `index.pool`: the codes' best re-ranked with the thumbnails' SSIM (0 or <= shortlist: none).
+    pub pool: usize,
+    /// Bytes of a reference's thumbnail in the index (0: none).
+    pub thumbnail_bytes: usize,
     /// Recall@30 recorded by the build (shortlists against the exact appearance ranking).
     pub build_recall: f64,
     /// One query at a time through the index (fused coarse stage): p50, p99 ms.
@@ -166,9 +171,11 @@ pub fn run(cfg: &Config, opts: &IndexBenchOptions, engine: &mut Engine, tick: &m
         let with_k = |c: &Config| Config { matching: crate::config::MatchingConfig { top_k: k, ..c.matching.clone() }, ..c.clone() };
         let one = |q: usize| queries.slice(q, q + 1);
         // the exact top-30 of the recall queries, in one batch
+        // the recall queries, evenly spread over the photos (they come set after set)
         let nx = opts.exact_queries.min(queries.len());
+        let recall_of: Vec<usize> = (0..nx).map(|i| i * queries.len() / nx.max(1)).collect();
         let mut exact_set = encoder.descriptor_set();
-        for q in 0..nx {
+        for &q in &recall_of {
             exact_set.extend_from(&queries, q, q + 1);
         }
         reset_peak();
@@ -186,10 +193,12 @@ pub fn run(cfg: &Config, opts: &IndexBenchOptions, engine: &mut Engine, tick: &m
             }
         }
         let exact_peak = status_mib("VmHWM:");
-        let searches = if opts.searches.is_empty() { vec![(cfg.index.probe, cfg.index.shortlist)] } else { opts.searches.clone() };
-        for &(probe, shortlist) in &searches {
+        let searches = if opts.searches.is_empty() { vec![(cfg.index.probe, cfg.index.shortlist, None)] } else { opts.searches.clone() };
+        let thumbnail_bytes = map.index().map_or(0, |i| i.thumb.len());
+        for &(probe, shortlist, pool) in &searches {
+            let pool = pool.unwrap_or(cfg.index.pool);
             let approx_cfg = Config {
-                index: crate::config::IndexConfig { search: IndexSearch::Approximate, probe, shortlist, ..cfg.index.clone() },
+                index: crate::config::IndexConfig { search: IndexSearch::Approximate, probe, shortlist, pool, ..cfg.index.clone() },
                 ..qcfg.clone()
             };
             // one query at a time through the index
@@ -204,7 +213,7 @@ pub fn run(cfg: &Config, opts: &IndexBenchOptions, engine: &mut Engine, tick: &m
                 if !times.approximate {
                     return Err(Error::invalid("index-bench", "the coarse stage did not take the index"));
                 }
-                if let Some(tr) = truth.get(q) {
+                if let Some(tr) = recall_of.iter().position(|&x| x == q).and_then(|i| truth.get(i)) {
                     let want: Vec<u32> = tr.iter().take(k).map(|x| x.1).collect();
                     let got: HashSet<u32> = l[0].iter().take(k).map(|x| x.1).collect();
                     recalls.push(want.iter().filter(|r| got.contains(r)).count() as f64 / want.len().max(1) as f64);
@@ -229,6 +238,8 @@ pub fn run(cfg: &Config, opts: &IndexBenchOptions, engine: &mut Engine, tick: &m
                 index_lists: ix.entry.lists,
                 probe,
                 shortlist,
+                pool,
+                thumbnail_bytes,
                 build_recall: ix.entry.recall(),
                 index_p50_ms: percentile(&mut approx_ms.clone(), 0.5),
                 index_p99_ms: percentile(&mut approx_ms, 0.99),
@@ -258,11 +269,11 @@ pub fn run(cfg: &Config, opts: &IndexBenchOptions, engine: &mut Engine, tick: &m
 /// The rows as a table.
 pub fn table(rows: &[IndexBenchRow]) -> String {
     let mut s = String::from(
-        "references  build s  B/ref  dims lists probe short | index p50/p99 ms  q/s (batch) | exact p50/p99 ms  q/s | recall@30 mean/min (n) | build recall | RSS MiB index/exact\n",
+        "references  build s  B/ref  dims lists probe short  pool | index p50/p99 ms  q/s (batch) | exact p50/p99 ms  q/s | recall@30 mean/min (n) | build recall | RSS MiB index/exact\n",
     );
     for r in rows {
         s += &format!(
-            "{:>10} {:>8.1} {:>6.0} {:>5} {:>5} {:>5} {:>5} | {:>7.2}/{:<7.2} {:>6.0} ({}) | {:>8.1}/{:<8.1} {:>5.2} | {:.3}/{:.3} ({}) | {:.3} | {:.0}/{:.0}\n",
+            "{:>10} {:>8.1} {:>6.0} {:>5} {:>5} {:>5} {:>5} {:>5} | {:>7.2}/{:<7.2} {:>6.0} ({}) | {:>8.1}/{:<8.1} {:>5.2} | {:.3}/{:.3} ({}) | {:.3} | {:.0}/{:.0}\n",
             r.map_size,
             r.index_build_s,
             r.index_bytes_per_reference,
@@ -270,6 +281,7 @@ pub fn table(rows: &[IndexBenchRow]) -> String {
             r.index_lists,
             r.probe,
             r.shortlist,
+            r.pool,
             r.index_p50_ms,
             r.index_p99_ms,
             r.index_batch_qps,

@@ -145,14 +145,20 @@ fn with_index(map: Map, cfg: &Config, choice: IndexChoice, quiet: bool) -> Resul
     drop(map);
     info(quiet, format!("building the index of {n} images"));
     let r = semlook::map::index::build(&dir, &semlook::index::IndexParams::from_config(&cfg.index, n), cfg.index.probe, cfg.index.shortlist)?;
-    info(quiet, describe_index(&r.entry));
-    Map::open(&dir)
+    let map = Map::open(&dir)?;
+    info(quiet, describe_index(&r.entry, &map.manifest.config.global));
+    Ok(map)
 }
 
 /// One line on an index: how it was built and what it measured.
-fn describe_index(ix: &semlook::map::manifest::IndexEntry) -> String {
+fn describe_index(ix: &semlook::map::manifest::IndexEntry, global: &semlook::config::GlobalConfig) -> String {
+    let t = ix.thumb(global);
+    let thumbs = match t.dims() {
+        (0, _) => "no thumbnails (the shortlist follows the appearance codes alone; `semlook map index` rebuilds with them)".to_string(),
+        (w, h) => format!("thumbnails {w}x{h} (global descriptors pooled by {}, {} bytes a reference)", t.pool, t.len()),
+    };
     format!(
-        "index: IVF over {} dimensions, {} lists, trained on {} images (sample {}, {} iterations, seed {}); recall@30 {:.3} ({} of {}) with {} lists probed and a shortlist of {}, against the exact appearance ranking; built in {:.1} s",
+        "index: IVF over {} dimensions, {} lists, {thumbs}, trained on {} images (sample {}, {} iterations, seed {}); recall@30 {:.3} ({} of {}) with {} lists probed and a shortlist of {}, against the exact appearance ranking; built in {:.1} s",
         ix.dims,
         ix.lists,
         ix.trained_on,
@@ -181,7 +187,8 @@ fn index(dir: &Path, config: Option<&Path>, drop: bool, json: bool, quiet: bool)
     if json {
         outln!("{}", to_json(&r.entry)?);
     } else {
-        outln!("map {}: {} ({} segments)", dir.display(), describe_index(&r.entry), r.segments);
+        let global = Map::open(dir)?.manifest.config.global;
+        outln!("map {}: {} ({} segments)", dir.display(), describe_index(&r.entry, &global), r.segments);
     }
     Ok(())
 }
@@ -304,7 +311,7 @@ fn show(dir: &Path, json: bool) -> Result<()> {
             outln!("poses: {} of {} images ({} with an orientation)", poses.0, map.len(), poses.1);
         }
         match &m.index {
-            Some(ix) => outln!("{}", describe_index(ix)),
+            Some(ix) => outln!("{}", describe_index(ix, &m.config.global)),
             None => outln!("index: none (every query scans every reference; `semlook map index` builds one)"),
         }
         for s in &m.segments {
