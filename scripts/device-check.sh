@@ -95,7 +95,7 @@ fi
 
 # the index row (issue 29): the approximate index on the CPU against the exact fused coarse scan on the
 # device, on maps of the synthetic day traversal's real descriptors replicated (`semlook dev index-bench`)
-if [ $smoke = 1 ]; then isizes=2000 iq=10 itimed=1 ibatch=10 isearch=4:100; else isizes=1000000 iq=200 itimed=5 ibatch=1000 isearch=48:500,96:1000; fi
+if [ $smoke = 1 ]; then isizes=2000 iq=10 itimed=1 ibatch=10 isearch=4:100; else isizes=1000000 iq=200 itimed=5 ibatch=1000 isearch=48:500:0,96:1000:0,112:150:6000; fi
 if [ "$(left)" -gt 120 ] || [ $smoke = 1 ]; then
     say "index: $isizes references, exact on the device, the index on the CPU"
     [ -d "$work/stream" ] || "$bin" synth --out "$work/stream" --places "$sframes" --size "$ssize" --query-condition night -q
