@@ -107,7 +107,7 @@ fn thumbnails(c: &mut Criterion) {
             thumbs.push(t);
         }
         let mut scorer = ThumbScorer::new(&spec, &cfg.global);
-        scorer.set_query(&spec, &images[0].global);
+        scorer.set_query(&images[0].global);
         let mut g = c.benchmark_group("index thumbnails (1 thread)");
         g.throughput(Throughput::Elements(thumbs.len() as u64));
         let (w, h) = spec.dims();

@@ -844,8 +844,10 @@ pub struct IndexConfig {
     /// recall@30 against the exact fused top-30 at 1M references under 20 ms a query: 0.969 at
     /// 16.5 ms; sweep 11 had chosen 96 with a shortlist of 1,000 and no pool).
     pub probe: usize,
-    /// References rescored exactly by the fused score (the best of the pool by its approximation).
-    /// \[R\] 150 (sweep 11b: 150/200/300 with the pool; 1,000 without it, sweep 11).
+    /// References rescored exactly by the fused score (the best of the pool by its approximation);
+    /// 0: 150 where the pool is re-ranked with thumbnails, 1,000 where the codes alone choose
+    /// (an index without thumbnails). \[R\] 0 (sweep 11b: 150/200/300 with the pool; sweep 11:
+    /// 1,000 without it).
     pub shortlist: usize,
     /// The scan's best references by the appearance codes that are re-ranked by the codes plus
     /// `matching.w_global` x the SSIM of the index's thumbnails before the `shortlist` best go to
@@ -877,7 +879,7 @@ impl Default for IndexConfig {
             search: IndexSearch::Auto,
             min_places: 20_000,
             probe: 112,
-            shortlist: 150,
+            shortlist: 0,
             pool: 6000,
             dims: 256,
             lists: 0,
@@ -1078,7 +1080,7 @@ impl Config {
         let ix = &self.index;
         v.int("index.min_places", ix.min_places, 0, usize::MAX)?;
         v.int("index.probe", ix.probe, 1, 65536)?;
-        v.int("index.shortlist", ix.shortlist, 1, 1 << 20)?;
+        v.int("index.shortlist", ix.shortlist, 0, 1 << 20)?;
         v.int("index.pool", ix.pool, 0, 1 << 22)?;
         v.int("index.thumbnail", ix.thumbnail, 0, 64)?;
         v.int("index.dims", ix.dims, 1, 4096)?;

@@ -214,6 +214,7 @@ fn the_pool_reranks_by_the_codes_plus_the_thumbnails_ssim_as_a_brute_force_does(
             probe,
             pool,
             shortlist,
+            at_least: 0,
             w_global: cfg.matching.w_global as f32,
             ssim: &cfg.global,
         };
@@ -250,16 +251,16 @@ fn the_pool_reranks_by_the_codes_plus_the_thumbnails_ssim_as_a_brute_force_does(
             let brute = want.iter().find(|x| x.1 == g.1).expect("a reference of the pool");
             assert!((brute.0 - g.0).abs() <= 1e-5, "query {i}: reference {} scored {} vs {}", g.1, g.0, brute.0);
         }
-        let codes_only: HashSet<u32> = pooled.iter().take(shortlist).map(|x| x.1).collect();
-        moved += got.iter().filter(|g| !codes_only.contains(&g.1)).count();
+        let codes_only: Vec<(f32, u32)> = pooled.iter().take(shortlist).copied().collect();
+        moved += got.iter().filter(|g| !codes_only.iter().any(|c| c.1 == g.1)).count();
+        // pool 0, no larger than the shortlist, or no SSIM weight: the codes' best, as before
+        // thumbnails
+        for plain in [IndexQuery { pool: 0, ..iq }, IndexQuery { pool: shortlist, ..iq }, IndexQuery { pool: 500, w_global: 0.0, ..iq }] {
+            assert_eq!(m.index_shortlist(&plain, 0..m.len()).unwrap(), codes_only, "query {i}: pool {} w {}", plain.pool, plain.w_global);
+        }
     }
     eprintln!("references the thumbnails brought into the shortlists of {} queries: {moved}", q.len());
     assert!(moved > 0, "the thumbnails never changed a shortlist: the test does not exercise them");
-    // pool 0, or no larger than the shortlist: the codes alone, as before thumbnails
-    let iq = IndexQuery { appearance: q.image_appearance(0), global: q.global(0), probe, pool: 0, shortlist, w_global: 0.25, ssim: &cfg.global };
-    let plain = m.index_shortlist(&iq, 0..m.len()).unwrap();
-    assert_eq!(m.index_shortlist(&IndexQuery { pool: shortlist, ..iq }, 0..m.len()).unwrap(), plain);
-    assert_eq!(m.index_shortlist(&IndexQuery { pool: 500, w_global: 0.0, ..iq }, 0..m.len()).unwrap(), plain);
 }
 
 #[test]
@@ -268,7 +269,16 @@ fn an_index_without_thumbnails_is_the_index_of_before_them() {
     let Some((refs, night)) = drive(&dir.path().join("data"), 8) else { return };
     let map = dir.path().join("map");
     build(&refs, &map, 16);
+    // first with thumbnails, then rebuilt without: the same model (only the thumbnails differ), so
+    // the codes must go to new files, never over the ones the committed manifest lists (a kill
+    // between writing them and the commit would leave a map whose files differ from its manifest)
+    let files =
+        |m: &Path| -> HashSet<String> { Map::open(m).unwrap().manifest.segments.iter().map(|s| s.index.as_ref().unwrap().file.clone()).collect() };
+    cli_ok(&["map", "index", "--map", p(&map), "--config", p(&index_config(dir.path(), "ix2.toml", "lists = 8")), "-q"]);
+    let (with, model) = (files(&map), Map::open(&map).unwrap().manifest.index.unwrap().model.sha256);
     cli_ok(&["map", "index", "--map", p(&map), "--config", p(&index_config(dir.path(), "ix.toml", "lists = 8\nthumbnail = 0")), "-q"]);
+    assert_eq!(Map::open(&map).unwrap().manifest.index.unwrap().model.sha256, model, "the same model");
+    assert!(files(&map).is_disjoint(&with), "codes rewritten under the names of the committed ones: {with:?}");
     // the manifest has no thumbnail field (as a manifest of before it: same checksum rules), the
     // codes are format 1, and a pool changes nothing
     let manifest = std::fs::read_to_string(map.join("manifest.json")).unwrap();
@@ -279,17 +289,32 @@ fn an_index_without_thumbnails_is_the_index_of_before_them() {
     assert!(String::from_utf8_lossy(&codes[..200.min(codes.len())]).contains("semlook-map-index 1"));
     let info = cli_ok(&["map", "info", "--map", p(&map)]);
     assert!(info.contains("no thumbnails"), "{info}");
+    // each query's shortlist is the scan of before thumbnails (every live row's codes, the
+    // probed lists' best), whatever the pool
+    use semlook::index::{IndexQuery, Probe, Shortlist};
     let q = queries(&m, &night);
-    let with_pool = coarse(&m, &q, IndexSearch::Approximate, 2, 10, 10);
-    let mut cfg = m.query_config();
-    cfg.index.pool = 0;
-    cfg.index.search = IndexSearch::Approximate;
-    cfg.index.probe = 2;
-    cfg.index.shortlist = 10;
-    cfg.matching.top_k = 10;
-    let (lists, _) = candidates(&mut CpuStages, &m, &q, Setting::Fused, &cfg).unwrap();
-    let without: Vec<Vec<(u32, u32)>> = lists.into_iter().map(|l| l.into_iter().map(|(s, r)| (s.to_bits(), r)).collect()).collect();
-    assert_eq!(with_pool, without);
+    let ix = m.index().unwrap();
+    let codes: Vec<_> = (0..m.manifest.segments.len()).map(|s| segment_codes(&m, s)).collect();
+    let cfg = m.query_config();
+    for i in 0..q.len() {
+        let pr = Probe::new(&ix.model, q.image_appearance(i), 2);
+        let mut before = Shortlist::new(10);
+        for (s, c) in codes.iter().enumerate() {
+            let first: usize = (0..s).map(|t| m.manifest.segments[t].live()).sum();
+            pr.scan(c, m.live_rows(s).enumerate().map(|(k, j)| (j, (first + k) as u32)), &mut before);
+        }
+        let iq = IndexQuery {
+            appearance: q.image_appearance(i),
+            global: q.global(i),
+            probe: 2,
+            pool: 6000,
+            shortlist: 10,
+            at_least: 0,
+            w_global: cfg.matching.w_global as f32,
+            ssim: &cfg.global,
+        };
+        assert_eq!(m.index_shortlist(&iq, 0..m.len()).unwrap(), before.into_sorted(), "query {i}");
+    }
 }
 
 #[test]
@@ -486,6 +511,9 @@ fn sigkill_during_index_build_add_and_compact_never_breaks_an_indexed_map() {
     let base = dir.path().join("base");
     build(&refs, &base, 8);
     let cfg = index_config(dir.path(), "ix.toml", "lists = 4");
+    // a rebuild that changes only the thumbnails trains the same model: its files must not
+    // replace the ones the committed manifest lists
+    let cfg0 = index_config(dir.path(), "ix0.toml", "lists = 4\nthumbnail = 0");
     let q = queries(&Map::open(&base).unwrap(), &night);
     // the three commands, each from its starting map
     let indexed = dir.path().join("indexed");
@@ -514,6 +542,7 @@ fn sigkill_during_index_build_add_and_compact_never_breaks_an_indexed_map() {
             vec!["--resume".into()],
         ),
         ("index", base.clone(), vec!["map".into(), "index".into(), "--config".into(), p(&cfg).into()], vec![]),
+        ("reindex", indexed.clone(), vec!["map".into(), "index".into(), "--config".into(), p(&cfg0).into()], vec![]),
         (
             "add",
             indexed.clone(),
@@ -593,7 +622,7 @@ fn sigkill_during_index_build_add_and_compact_never_breaks_an_indexed_map() {
             partial += usize::from(g > g0 && g < g1);
             // finish the command
             let finished = match name {
-                "index" => run(&m, &[]).status().unwrap(),
+                "index" | "reindex" => run(&m, &[]).status().unwrap(),
                 _ => run(&m, &again).status().unwrap(),
             };
             assert!(finished.success(), "{name}, kill {k}: finishing failed");

@@ -17,6 +17,15 @@ use std::sync::OnceLock;
 const FORMAT: &str = "semlook-map-index 1";
 const FORMAT_THUMBS: &str = "semlook-map-index 2";
 
+/// The format tag of codes with thumbnails of `thumb_len` bytes (0: none).
+fn format_of(thumb_len: usize) -> &'static str {
+    if thumb_len > 0 {
+        FORMAT_THUMBS
+    } else {
+        FORMAT
+    }
+}
+
 /// Codes in memory.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Codes {
@@ -78,7 +87,7 @@ impl Codes {
             })
             .collect::<Result<Vec<_>>>()?;
         let meta = std::collections::HashMap::from([
-            ("format".to_string(), if self.thumb_len > 0 { FORMAT_THUMBS } else { FORMAT }.to_string()),
+            ("format".to_string(), format_of(self.thumb_len).to_string()),
             ("segment".to_string(), segment_sha.to_string()),
             ("model".to_string(), model_sha.to_string()),
         ]);
@@ -262,7 +271,7 @@ fn header(bytes: &[u8], segment_sha: &str, model_sha: &str, n: usize, dims: usiz
     let (hlen, meta) = safetensors::SafeTensors::read_metadata(bytes).map_err(|e| Error::check(format!("not an index codes file: {e}")))?;
     let tags = meta.metadata().clone().unwrap_or_default();
     let tag = |k: &str| tags.get(k).map(String::as_str).unwrap_or("");
-    let format = if thumb_len > 0 { FORMAT_THUMBS } else { FORMAT };
+    let format = format_of(thumb_len);
     if tag("format") != format {
         return Err(Error::check(format!(
             "format {:?}, not {format:?} (the manifest's index {} thumbnails)",
@@ -377,5 +386,14 @@ mod tests {
         // rows and thumbnails that disagree do not serialise
         c.thumbs.pop();
         assert!(c.to_bytes("seg", "mod").is_err());
+    }
+
+    #[test]
+    fn inverted_lists_hold_every_row_once_under_its_list_in_order() {
+        let lists = [2usize, 0, 2, 1, 2, 0];
+        let inv = Inverted::new(lists.len(), 4, |j| lists[j]);
+        assert_eq!((inv.rows(0), inv.rows(1), inv.rows(2), inv.rows(3)), (&[1u32, 5][..], &[3u32][..], &[0u32, 2, 4][..], &[][..]));
+        assert!(inv.rows(4).is_empty() && inv.rows(usize::MAX).is_empty(), "past the model's lists: none");
+        assert!(Inverted::new(0, 4, |_| 0).rows(0).is_empty());
     }
 }

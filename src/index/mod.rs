@@ -154,6 +154,17 @@ pub trait CodeRows {
     fn thumb(&self, j: usize) -> &[u8];
 }
 
+/// The shortlist of `index.shortlist = 0` (the default): 150 where the pool is re-ranked with
+/// thumbnails (sweep 11b), 1,000 where the codes alone choose it (an index without thumbnails, or
+/// `w_global` = 0: the shortlist of before thumbnails, sweep 11).
+pub fn auto_shortlist(reranked: bool) -> usize {
+    if reranked {
+        150
+    } else {
+        1000
+    }
+}
+
 /// One query of the index ([`crate::descriptors::source::RefSource::index_shortlist_in`]).
 #[derive(Debug, Clone, Copy)]
 pub struct IndexQuery<'a> {
@@ -166,8 +177,10 @@ pub struct IndexQuery<'a> {
     /// The best of the scan by the appearance codes re-ranked by the codes plus `w_global` x the
     /// thumbnails' SSIM (where the index keeps thumbnails and `pool` > `shortlist`).
     pub pool: usize,
-    /// References handed to the exact fused score.
+    /// References handed to the exact fused score (0: [`auto_shortlist`]).
     pub shortlist: usize,
+    /// The caller keeps this many: the shortlist is never shorter.
+    pub at_least: usize,
     /// The fused score's weight of the SSIM.
     pub w_global: f32,
     /// The coarse stage's SSIM constants.

@@ -103,6 +103,7 @@ pub fn widen(thumb: &[u8], out: &mut Vec<f32>) {
 /// the windows that straddle a row's end computed and masked out; in f32 without fused
 /// multiply-adds. Held to the twin within 1e-5 (tests). The scratch is kept between calls.
 pub struct ThumbScorer {
+    spec: ThumbSpec,
     p: SsimParams,
     /// Thumbnail width and height.
     w: usize,
@@ -127,6 +128,7 @@ pub struct ThumbScorer {
 /// (`out[i]`, `i` < (h - 2) w - 2; a window where `i % w < w - 2`), through `rows`.
 #[inline(always)]
 fn window_sums(v: &[f32], w: usize, rows: &mut Vec<f32>, out: &mut Vec<f32>) {
+    debug_assert!(w >= WINDOW && v.len() >= WINDOW * w, "a thumbnail smaller than one window");
     let n = v.len() - 2;
     rows.resize(n, 0.0);
     let (a, b, c, r) = (&v[..n], &v[1..n + 1], &v[2..n + 2], &mut rows[..n]);
@@ -160,6 +162,7 @@ impl ThumbScorer {
     pub fn new(spec: &ThumbSpec, g: &GlobalConfig) -> ThumbScorer {
         let (w, h) = spec.dims();
         ThumbScorer {
+            spec: *spec,
             p: spec.ssim_params(g),
             w,
             h,
@@ -177,10 +180,10 @@ impl ThumbScorer {
         }
     }
 
-    /// Sets the query: the thumbnail of its global descriptor (`spec`'s size).
-    pub fn set_query(&mut self, spec: &ThumbSpec, global: &[f32]) {
-        let mut bytes = Vec::with_capacity(spec.len());
-        spec.thumbnail(global, &mut bytes);
+    /// Sets the query: the thumbnail of its global descriptor (the scorer's size).
+    pub fn set_query(&mut self, global: &[f32]) {
+        let mut bytes = Vec::with_capacity(self.spec.len());
+        self.spec.thumbnail(global, &mut bytes);
         self.x.clear();
         widen(&bytes, &mut self.x);
         for v in [&mut self.mx, &mut self.two_mx, &mut self.mx2_c1, &mut self.vx_c2, &mut self.valid] {
@@ -189,17 +192,17 @@ impl ThumbScorer {
         if self.w == 0 || self.x.len() != self.w * self.h {
             return;
         }
-        let (n, p, w) = ((WINDOW * WINDOW) as f32, self.p, self.w);
+        let (inv_n, p, w) = (1.0 / (WINDOW * WINDOW) as f32, self.p, self.w);
         let [sx, sxx, _] = &mut self.sums;
         let xx: Vec<f32> = self.x.iter().map(|v| v * v).collect();
         window_sums(&self.x, w, &mut self.rows, sx);
         window_sums(&xx, w, &mut self.rows, sxx);
         for (i, (&a, &b)) in sx.iter().zip(sxx.iter()).enumerate() {
-            let (m, window) = (a / n, i % w < w + 1 - WINDOW);
+            let (m, window) = (a * inv_n, i % w < w + 1 - WINDOW);
             self.mx.push(if window { m } else { 0.0 });
             self.two_mx.push(if window { 2.0 * m } else { 0.0 });
             self.mx2_c1.push(if window { m * m + p.c1 } else { 1.0 });
-            self.vx_c2.push(if window { (b / n - m * m) * p.cov_norm + p.c2 } else { 1.0 });
+            self.vx_c2.push(if window { (b * inv_n - m * m) * p.cov_norm + p.c2 } else { 1.0 });
             self.valid.push(if window { 1.0 } else { 0.0 });
         }
     }
@@ -231,7 +234,7 @@ impl<'a, I: Iterator<Item = &'a [u8]>> pulp::WithSimd for Run<'_, I> {
         let (w, len) = (s.w, s.w * s.h);
         // one division a window: the window means by a multiplication (within 1e-7 of a division)
         let (inv_n, p) = (1.0 / (WINDOW * WINDOW) as f32, s.p);
-        let windows = ((s.w + 1).saturating_sub(WINDOW) * (s.h + 1).saturating_sub(WINDOW)) as f32;
+        let windows = p.windows() as f32;
         for t in self.thumbs {
             if s.valid.is_empty() || t.len() != len {
                 self.out.push(0.0);
@@ -277,7 +280,7 @@ mod tests {
     fn thumbnails_compare_by_the_coarse_stages_ssim_fast_path_as_its_twin() {
         let g = GlobalConfig::default();
         let mut rng = SplitMix64::new(3);
-        for (w, h, pool) in [(64, 48, 2), (64, 48, 4), (13, 9, 3)] {
+        for (w, h, pool) in [(64, 48, 2), (64, 48, 4), (13, 9, 3), (9, 9, 3)] {
             let spec = ThumbSpec { width: w, height: h, pool };
             let p = spec.ssim_params(&g);
             assert_eq!((p.gw as usize, p.gh as usize, p.win as usize), (spec.dims().0, spec.dims().1, WINDOW));
@@ -304,7 +307,7 @@ mod tests {
                 })
                 .collect();
             let mut scorer = ThumbScorer::new(&spec, &g);
-            scorer.set_query(&spec, &global);
+            scorer.set_query(&global);
             let fast = scorer.score(thumbs.iter().map(Vec::as_slice)).to_vec();
             let mut sc = SsimScratch::default();
             let (mut xs, mut ys) = (vec![0.0; p.stats_len()], vec![0.0; p.stats_len()]);

@@ -9,7 +9,7 @@ use super::{layout_of, Map};
 use crate::classes::ClassTable;
 use crate::error::{Error, Result};
 use crate::index::thumb::{ThumbScorer, ThumbSpec};
-use crate::index::{CodeRows, IndexParams, IndexQuery, Model, Probe, Shortlist};
+use crate::index::{auto_shortlist, CodeRows, IndexParams, IndexQuery, Model, Probe, Shortlist};
 use crate::util::sha256_hex;
 use rayon::prelude::*;
 use std::collections::HashSet;
@@ -30,7 +30,8 @@ impl Map {
         self.index.as_ref()
     }
 
-    /// The index's shortlist for one query: the `q.shortlist` references of `range` (map
+    /// The index's shortlist for one query: the `q.shortlist` references (0: [`auto_shortlist`],
+    /// never fewer than `q.at_least`) of `range` (map
     /// indices) with the best approximate scores among the `q.probe` lists nearest to its
     /// appearance vector, best first. The approximate score is the inner product of the codes;
     /// where the index keeps thumbnails, the `q.pool` best by it are re-ranked by it plus
@@ -44,7 +45,13 @@ impl Map {
                 format!("{} appearance values, the map's index reduces {}", q.appearance.len(), ix.model.width),
             ));
         }
-        let fused = !ix.thumb.is_empty() && q.pool > q.shortlist && q.w_global != 0.0;
+        let reranked = !ix.thumb.is_empty() && q.w_global != 0.0;
+        let shortlist = match q.shortlist {
+            0 => auto_shortlist(reranked),
+            s => s,
+        }
+        .max(q.at_least);
+        let fused = reranked && q.pool > shortlist;
         if fused && q.global.len() != ix.thumb.width * ix.thumb.height {
             return Err(Error::invalid(
                 "index query",
@@ -53,10 +60,10 @@ impl Map {
         }
         let p = Probe::new(&ix.model, q.appearance, q.probe);
         let probed: Vec<usize> = (0..p.lists.len()).filter(|&l| p.lists[l]).collect();
-        let cap = if fused { q.pool } else { q.shortlist };
+        let cap = if fused { q.pool } else { shortlist };
         // each segment's probed lists scanned in parallel, their shortlists merged (the same
         // best with ties to the lower reference whatever the order)
-        let parts: Vec<Shortlist> = ix
+        let parts = ix
             .codes
             .par_iter()
             .enumerate()
@@ -67,7 +74,9 @@ impl Map {
                 pulp::Arch::new().dispatch(ScanLists { map: self, s, codes, probe: &p, probed: &probed, range: range.clone(), out: &mut out });
                 Ok(out)
             })
-            .collect::<Result<Vec<_>>>()?;
+            .collect::<Vec<Result<Shortlist>>>()
+            .into_iter()
+            .collect::<Result<Vec<_>>>()?; // the first damaged segment in manifest order
         let mut out = Shortlist::new(cap);
         for part in parts {
             for (x, r) in part.into_sorted() {
@@ -84,7 +93,7 @@ impl Map {
             .map_init(
                 || {
                     let mut scorer = ThumbScorer::new(&ix.thumb, q.ssim);
-                    scorer.set_query(&ix.thumb, q.global);
+                    scorer.set_query(q.global);
                     scorer
                 },
                 |scorer, chunk| {
@@ -99,7 +108,7 @@ impl Map {
             .flatten()
             .collect();
         let scored = pooled.iter().zip(&ssim).map(|(&(a, r), &s)| (a + q.w_global * s, r));
-        let mut best = Shortlist::new(q.shortlist);
+        let mut best = Shortlist::new(shortlist);
         for (x, r) in scored {
             best.offer(x, r);
         }
@@ -170,6 +179,8 @@ fn spread(len: usize, k: usize, offset: usize) -> Vec<usize> {
 /// leaves the map as one of the two generations.
 pub fn build(dir: &Path, params: &IndexParams, probe: usize, shortlist: usize) -> Result<IndexReport> {
     let t0 = Instant::now();
+    // the recall is the codes' own (against the exact appearance ranking): their shortlist
+    let shortlist = if shortlist == 0 { auto_shortlist(false) } else { shortlist };
     let map = Map::open(dir)?;
     // thumbnails too small for one window are not kept, and the manifest says so
     let thumb = ThumbSpec::new(&map.manifest.config.global, params.thumbnail);
@@ -241,7 +252,7 @@ pub fn build(dir: &Path, params: &IndexParams, probe: usize, shortlist: usize) -
             p.scan(&codes, rows.iter().copied().filter(|r| r.1 != own), &mut approx_lists[q]);
         }
         let bytes = codes.to_bytes(&map.manifest.segments[s].sha256, &model_sha)?;
-        let name = codes_name(&map.manifest.segments[s].file, &model_sha);
+        let name = codes_name(&map.manifest.segments[s].file, &model_sha, params.thumbnail);
         write_atomic(dir, &name, &bytes)?;
         written.push((map.manifest.segments[s].file.clone(), FileEntry { file: name, bytes: bytes.len() as u64, sha256: sha256_hex(&bytes) }));
     }

@@ -95,10 +95,16 @@ pub fn codes_for_segment(model: &Model, thumb: &ThumbSpec, seg: &Mapped) -> Code
     out
 }
 
-/// The file name of segment `segment`'s codes under the model `model_sha`.
-pub(super) fn codes_name(segment: &str, model_sha: &str) -> String {
+/// The file name of segment `segment`'s codes under the model `model_sha`, with thumbnails pooled
+/// by `thumbnail` named in it (a rebuild that changes only the thumbnails trains the same model and
+/// must not write over files the committed manifest lists); without thumbnails, the name of before.
+pub(super) fn codes_name(segment: &str, model_sha: &str, thumbnail: usize) -> String {
     let stem = segment.strip_prefix("segment-").unwrap_or(segment).strip_suffix(".safetensors").unwrap_or(segment);
-    format!("index-{stem}-{}.safetensors", &model_sha[..16.min(model_sha.len())])
+    let model = &model_sha[..16.min(model_sha.len())];
+    match thumbnail {
+        0 => format!("index-{stem}-{model}.safetensors"),
+        t => format!("index-{stem}-{model}-t{t}.safetensors"),
+    }
 }
 
 /// Whether the model file of `m`'s index opens (size, SHA-256, shapes, values): `map verify`.
@@ -133,7 +139,7 @@ pub(crate) fn write_segment_codes(
     let seg = Mapped::open(dir, entry, layout)?;
     let codes = codes_for_segment(model, &ix.thumb(&m.config.global), &seg);
     let bytes = codes.to_bytes(&entry.sha256, &ix.model.sha256)?;
-    let name = codes_name(&entry.file, &ix.model.sha256);
+    let name = codes_name(&entry.file, &ix.model.sha256, ix.params.thumbnail);
     write_atomic(dir, &name, &bytes)?;
     Ok(FileEntry { file: name, bytes: bytes.len() as u64, sha256: sha256_hex(&bytes) })
 }
