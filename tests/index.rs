@@ -168,21 +168,8 @@ fn the_index_at_full_probe_answers_as_the_exact_scan_and_its_recall_is_measured(
 
 /// The codes of segment `s` of `m`'s index, opened as the map opens them.
 fn segment_codes(m: &Map, s: usize) -> semlook::index::MappedCodes {
-    let (ix, seg) = (m.index().unwrap(), &m.manifest.segments[s]);
-    let f = seg.index.as_ref().unwrap();
-    semlook::index::MappedCodes::open(
-        &m.path,
-        &f.file,
-        f.bytes,
-        &f.sha256,
-        &seg.sha256,
-        &ix.entry.model.sha256,
-        seg.images,
-        ix.entry.dims,
-        ix.entry.lists,
-        ix.thumb.len(),
-    )
-    .unwrap()
+    let (ix, seg) = (m.manifest.index.as_ref().unwrap(), &m.manifest.segments[s]);
+    semlook::map::index_files::open_codes(&m.path, &m.manifest, ix, seg, seg.index.as_ref().unwrap()).unwrap()
 }
 
 #[test]
@@ -349,21 +336,9 @@ fn add_remove_and_compact_keep_the_index_current() {
     assert_eq!(ix.entry.model.sha256, model_sha, "an add keeps the model");
     assert!(m.manifest.segments.len() >= 4 && m.manifest.segments.iter().all(|s| s.index.is_some()));
     // the added segments' codes are the model's codes of the values the segments store
-    for seg in m.segments() {
+    for (s, seg) in m.segments().iter().enumerate() {
         let want = semlook::map::index_files::codes_for_segment(&ix.model, &ix.thumb, seg);
-        let got = semlook::index::MappedCodes::open(
-            &map,
-            &seg.entry.index.as_ref().unwrap().file,
-            seg.entry.index.as_ref().unwrap().bytes,
-            &seg.entry.index.as_ref().unwrap().sha256,
-            &seg.entry.sha256,
-            &model_sha,
-            seg.len(),
-            ix.entry.dims,
-            ix.entry.lists,
-            ix.thumb.len(),
-        )
-        .unwrap();
+        let got = segment_codes(&m, s);
         assert!(!ix.thumb.is_empty(), "the default index keeps thumbnails");
         for j in 0..seg.len() {
             assert_eq!(

@@ -1,7 +1,8 @@
 //! The codes of one segment's images, written beside the segment as
 //! `index-<sha>.safetensors`: tensors `list` `[n]` u16, `code` `[n, dims]` i8, `scale` `[n]` f32,
 //! with thumbnails ([`super::thumb`]) `thumb` `[n, thumb_len]` u8 (format 2; format 1, written
-//! where the index keeps none, is the file of before thumbnails byte for byte), and in the header the SHA-256 of the segment they describe and of the model that made them, so
+//! where the index keeps none, is the file of before thumbnails byte for byte), and in the header
+//! the SHA-256 of the segment they describe and of the model that made them, so
 //! that codes of another segment, another map or another model are refused at open. Rows follow
 //! the segment's rows, removed ones included (the map leaves those out of the index space).
 

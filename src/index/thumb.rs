@@ -92,7 +92,13 @@ fn quantise(v: f32) -> u8 {
 /// Thumbnail bytes as the values they stand for (v / 255), appended to `out`.
 #[inline(always)]
 pub fn widen(thumb: &[u8], out: &mut Vec<f32>) {
-    out.extend(thumb.iter().map(|&v| v as f32 / 255.0));
+    out.extend(thumb.iter().map(|&v| value(v)));
+}
+
+/// The value a thumbnail byte stands for.
+#[inline(always)]
+fn value(b: u8) -> f32 {
+    b as f32 / 255.0
 }
 
 /// One query's thumbnail against many, as the index's pool re-ranking scores them: the SSIM of
@@ -246,7 +252,7 @@ impl<'a, I: Iterator<Item = &'a [u8]>> pulp::WithSimd for Run<'_, I> {
             }
             let (y, yy, xy, x, t) = (&mut y[..len], &mut yy[..len], &mut xy[..len], &s.x[..len], &t[..len]);
             for i in 0..len {
-                let v = t[i] as f32 / 255.0;
+                let v = value(t[i]);
                 y[i] = v;
                 yy[i] = v * v;
                 xy[i] = v * x[i];

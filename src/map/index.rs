@@ -31,9 +31,8 @@ impl Map {
     }
 
     /// The index's shortlist for one query: the `q.shortlist` references (0: [`auto_shortlist`],
-    /// never fewer than `q.at_least`) of `range` (map
-    /// indices) with the best approximate scores among the `q.probe` lists nearest to its
-    /// appearance vector, best first. The approximate score is the inner product of the codes;
+    /// never fewer than `q.at_least`) of `range` (map indices) with the best approximate scores
+    /// among the `q.probe` lists nearest to its appearance vector, best first. The approximate score is the inner product of the codes;
     /// where the index keeps thumbnails, the `q.pool` best by it are re-ranked by it plus
     /// `q.w_global` x the thumbnails' SSIM (the fused score's approximation). An error where the
     /// map has no index or a file it reads is damaged.

@@ -45,13 +45,12 @@ impl MapIndex {
     pub(crate) fn open(dir: &Path, m: &Manifest) -> Result<Option<MapIndex>> {
         let Some(ix) = &m.index else { return Ok(None) };
         let model = read_model(dir, m, ix)?;
-        let thumb = ix.thumb(&m.config.global);
         let mut codes = Vec::with_capacity(m.segments.len());
         for s in &m.segments {
             let f = s.index.as_ref().ok_or_else(|| Error::corrupt(dir.join(manifest::MANIFEST), format!("segment {} has no index codes", s.file)))?;
-            codes.push(MappedCodes::open(dir, &f.file, f.bytes, &f.sha256, &s.sha256, &ix.model.sha256, s.images, ix.dims, ix.lists, thumb.len())?);
+            codes.push(open_codes(dir, m, ix, s, f)?);
         }
-        Ok(Some(MapIndex { entry: ix.clone(), model, thumb, codes }))
+        Ok(Some(MapIndex { entry: ix.clone(), model, thumb: ix.thumb(&m.config.global), codes }))
     }
 
     /// Checks every segment's codes in full (`map verify`): the check of each, in manifest order.
@@ -115,11 +114,18 @@ pub(crate) fn model_problem(dir: &Path, m: &Manifest) -> Result<()> {
     }
 }
 
+/// The codes file `f` of segment `s` under the index `ix` of manifest `m` in `dir`, mapped with its
+/// header checked against what the manifest expects (the segment, the model, the shapes, the
+/// thumbnails).
+pub fn open_codes(dir: &Path, m: &Manifest, ix: &IndexEntry, s: &SegmentEntry, f: &FileEntry) -> Result<MappedCodes> {
+    let thumb = ix.thumb(&m.config.global).len();
+    MappedCodes::open(dir, &f.file, f.bytes, &f.sha256, &s.sha256, &ix.model.sha256, s.images, ix.dims, ix.lists, thumb)
+}
+
 /// Whether the codes of segment `s` open and check in full: `map verify`.
 pub(crate) fn codes_problem(dir: &Path, m: &Manifest, s: &SegmentEntry) -> Result<()> {
     let (Some(ix), Some(f)) = (&m.index, &s.index) else { return Ok(()) };
-    let thumb = ix.thumb(&m.config.global).len();
-    MappedCodes::open(dir, &f.file, f.bytes, &f.sha256, &s.sha256, &ix.model.sha256, s.images, ix.dims, ix.lists, thumb)?.check()
+    open_codes(dir, m, ix, s, f)?.check()
 }
 
 /// Writes the codes of segment `entry` (already written to `dir`) under the index `ix`, loading

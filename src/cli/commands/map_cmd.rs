@@ -187,7 +187,7 @@ fn index(dir: &Path, config: Option<&Path>, drop: bool, json: bool, quiet: bool)
     if json {
         outln!("{}", to_json(&r.entry)?);
     } else {
-        let global = Map::open(dir)?.manifest.config.global;
+        let global = semlook::map::manifest::read_existing(dir)?.config.global;
         outln!("map {}: {} ({} segments)", dir.display(), describe_index(&r.entry, &global), r.segments);
     }
     Ok(())
