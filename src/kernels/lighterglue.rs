@@ -95,12 +95,19 @@ pub fn lg_linear(p: &LgParams, a: &[f32], b: &[f32], weights: &[f32], out: &mut 
 
 /// erf by Abramowitz and Stegun 7.1.26 (|error| <= 1.5e-7), as the shader computes it (the
 /// same decimal constants, so the same f32 values).
-#[allow(clippy::excessive_precision)]
 pub fn lg_erf(x: f32) -> f32 {
+    erf_with(x, f32::exp)
+}
+
+/// Abramowitz and Stegun 7.1.26 on the exponential `exp`: [`lg_erf`]'s form, which the CPU
+/// matcher (`verify::lighterglue`) also computes, on its vectorising `exp`.
+#[inline(always)]
+#[allow(clippy::excessive_precision)]
+pub fn erf_with(x: f32, exp: impl Fn(f32) -> f32) -> f32 {
     let z = x.abs();
     let t = 1.0 / (1.0 + 0.3275911 * z);
     let poly = ((((1.061405429 * t - 1.453152027) * t + 1.421413741) * t - 0.284496736) * t + 0.254829592) * t;
-    let y = 1.0 - poly * (-z * z).exp();
+    let y = 1.0 - poly * exp(-z * z);
     if x < 0.0 {
         -y
     } else {
