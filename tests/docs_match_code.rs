@@ -144,3 +144,19 @@ fn the_library_example_is_the_compiled_one() {
     assert!(compiled.len() >= 10, "the compiled example was not read: {compiled:?}");
     assert_eq!(doc_example, compiled, "docs/library.md's example differs from src/lib.rs's doc test");
 }
+
+/// The profiles in configs/ load and pass validation (a key renamed or a value out of range in the
+/// code fails here, not in a user's run).
+#[test]
+fn the_config_profiles_load() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
+    let mut n = 0;
+    for e in std::fs::read_dir(&dir).unwrap() {
+        let path = e.unwrap().path();
+        if path.extension().is_some_and(|x| x == "toml") {
+            semlook::config::Config::load(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            n += 1;
+        }
+    }
+    assert!(n >= 2, "profiles found in {}: {n}", dir.display());
+}

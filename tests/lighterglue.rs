@@ -173,6 +173,70 @@ fn w_glue_adds_the_learned_matchers_inliers_to_every_candidate() {
     assert_eq!(alone[0].score, in_batch.score);
 }
 
+/// `glue_min_inliers`: LighterGlue's term only on the pairs whose MNN inliers reach the floor,
+/// the others scored as without `w_glue`; a floor between the pairs' MNN inliers, so that both
+/// sides of it hold pairs where LighterGlue finds inliers.
+#[test]
+fn glue_min_inliers_runs_the_learned_matcher_only_where_mnn_found_enough() {
+    let Some(_) = network() else { return };
+    let fx = fixtures();
+    let img = |k: usize, side: &str| Stored::of(&fx["pairs"][k], side);
+    let qs = [img(0, "image0"), img(1, "image0"), img(2, "image0")];
+    let r = [img(0, "image1"), img(1, "image1"), img(2, "image1"), img(2, "image0"), img(0, "image0")];
+    let base = Config::from_toml("[verification]\nglue_threshold = 0.7\n", "t.toml").unwrap();
+    let queries = keypoint_set(&base, &qs.iter().collect::<Vec<_>>());
+    let refs = keypoint_set(&base, &r.iter().collect::<Vec<_>>());
+    let run = |toml: &str| {
+        let cfg = Config::from_toml(toml, "t.toml").unwrap();
+        semlook::matching::match_batch(&refs, &queries, semlook::matching::Setting::Verified, &cfg).unwrap().0
+    };
+    let plain = run("[verification]\nglue_threshold = 0.7\n");
+    let all = run("[verification]\nglue_threshold = 0.7\nw_glue = 0.5\n");
+    // the floor: the median MNN inliers of the pairs where LighterGlue adds something
+    let find = |lists: &Vec<semlook::matching::QueryMatch>, q: usize, r: u32| *lists[q].ranked.iter().find(|c| c.reference == r).unwrap();
+    let mut lifted: Vec<u32> = Vec::new();
+    for (q, p) in plain.iter().enumerate() {
+        for c in &p.ranked {
+            if find(&all, q, c.reference).score > c.score {
+                lifted.push(c.inliers.unwrap());
+            }
+        }
+    }
+    lifted.sort();
+    let floor = lifted[lifted.len() / 2].max(1);
+    let gated = run(&format!("[verification]\nglue_threshold = 0.7\nw_glue = 0.5\nglue_min_inliers = {floor}\n"));
+    let (mut kept, mut dropped) = (0, 0);
+    for (q, p) in plain.iter().enumerate() {
+        for c in &p.ranked {
+            let (a, g) = (find(&all, q, c.reference), find(&gated, q, c.reference));
+            let want = match c.inliers.unwrap() >= floor {
+                true => a.score,
+                false => c.score,
+            };
+            assert_eq!(g.score, want, "query {q} reference {}: MNN inliers {:?}, floor {floor}", c.reference, c.inliers);
+            kept += (c.inliers.unwrap() >= floor && a.score > c.score) as usize;
+            dropped += (c.inliers.unwrap() < floor && a.score > c.score) as usize;
+        }
+    }
+    assert!(kept > 0 && dropped > 0, "pairs with LighterGlue inliers on both sides of the floor {floor}: {kept} kept, {dropped} dropped");
+    // a pair scored alone scores as in the batch
+    let cfg = Config::from_toml(&format!("[verification]\nglue_threshold = 0.7\nw_glue = 0.5\nglue_min_inliers = {floor}\n"), "t.toml").unwrap();
+    for (q, p) in gated.iter().enumerate() {
+        for c in &p.ranked {
+            let alone = semlook::matching::score_pairs(
+                &mut semlook::matching::CpuStages,
+                &refs,
+                &queries,
+                semlook::matching::Setting::Verified,
+                &cfg,
+                &[(q as u32, c.reference)],
+            )
+            .unwrap();
+            assert_eq!(alone[0].score, c.score);
+        }
+    }
+}
+
 /// The device executor's forward pass run on the CPU twins of `lighterglue.wgsl`
 /// (`gpu::lighterglue::forward_on_twins`: the same passes the device runs, the online softmax,
 /// erf by a polynomial) held to the authors' model like the crate's CPU matcher: matches

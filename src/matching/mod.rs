@@ -300,13 +300,16 @@ fn pair_scores(
             }
             let w = &cfg.verification;
             if w.matcher == Matcher::Mnn && w.w_glue > 0.0 {
-                // the learned matcher beside MNN, on every pair: a pair's score never depends on
-                // which other pairs are scored with it (shards, sequence neighbours)
-                let g = stages.verify_pairs(&VerifyParams { matcher: Matcher::Lighterglue, ..vp }, refs, queries, pairs)?;
-                if g.len() != pairs.len() {
-                    return Err(Error::invalid("verification", format!("{} results for {} pairs", g.len(), pairs.len())));
+                // the learned matcher beside MNN, on every pair whose MNN inliers reach
+                // `glue_min_inliers`: a rule of the pair alone, so its score never depends on which
+                // other pairs are scored with it (shards, sequence neighbours)
+                let gated: Vec<usize> = (0..pairs.len()).filter(|&i| v[i].inliers >= w.glue_min_inliers).collect();
+                let sub: Vec<(u32, u32)> = gated.iter().map(|&i| pairs[i]).collect();
+                let g = stages.verify_pairs(&VerifyParams { matcher: Matcher::Lighterglue, ..vp }, refs, queries, &sub)?;
+                if g.len() != sub.len() {
+                    return Err(Error::invalid("verification", format!("{} results for {} pairs", g.len(), sub.len())));
                 }
-                v.iter_mut().zip(&g).for_each(|(v, g)| v.glue_inliers = g.inliers);
+                gated.iter().zip(&g).for_each(|(&i, g)| v[i].glue_inliers = g.inliers);
             }
             for (f, v) in fine.iter_mut().zip(&v) {
                 *f = (w.w_inliers * (v.inliers as f64).ln_1p() + w.w_glue * (v.glue_inliers as f64).ln_1p() + w.w_fine * *f as f64) as f32;
