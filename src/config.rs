@@ -622,7 +622,8 @@ pub struct VerificationConfig {
     /// With `matcher = "mnn"`: weight of ln(1 + LighterGlue's RANSAC inliers) added to the verified
     /// score, LighterGlue then also verifying every candidate; 0 runs only the chosen matcher.
     /// \[R\] 0 (sweep 14: 0.5 with `glue_threshold` 0.7 and `w_inliers` 2 is the best measured
-    /// fusion, dev mean R@1 0.864 against 0.852, at about 130 times the verification time).
+    /// fusion, dev mean R@1 0.864 against 0.852; with `glue_min_inliers` 5 at about 40 times the
+    /// verification time: sweep 14b, `configs/verified-lighterglue.toml`).
     pub w_glue: f64,
     /// With `w_glue` > 0: LighterGlue verifies only the pairs whose MNN verification found at
     /// least this many inliers (a rule of the pair alone, so a pair scores the same in any batch,
