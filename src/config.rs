@@ -620,7 +620,8 @@ pub struct VerificationConfig {
     /// the keypoints is confident; -1 turns it off. \[X\] -1 (the authors' `depth_confidence`).
     pub glue_depth_confidence: f64,
     /// With `matcher = "mnn"`: weight of ln(1 + LighterGlue's RANSAC inliers) added to the verified
-    /// score, LighterGlue then also verifying every candidate; 0 runs only the chosen matcher.
+    /// score, LighterGlue then also verifying every candidate (those `glue_min_inliers` admits); 0 runs
+    /// only the chosen matcher.
     /// \[R\] 0 (sweep 14: 0.5 with `glue_threshold` 0.7 and `w_inliers` 2 is the best measured
     /// fusion, dev mean R@1 0.864 against 0.852; with `glue_min_inliers` 5 at about 40 times the
     /// verification time: sweep 14b, `configs/verified-lighterglue.toml`).

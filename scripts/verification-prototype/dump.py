@@ -1,6 +1,6 @@
 """The verification keypoints of every query and reference image of the three dev sets, through the Python
 API (`Encoder.for_map` on run.sh's maps), and the queries' keypoints at other working sizes (448, 896 and
-1,024 px long side) for multiscale.py. The other sizes come from copies of the map whose manifest's working
+1,024 px long side) for geometry.py. The other sizes come from copies of the map whose manifest's working
 size is rewritten (checksum recomputed, index dropped): a measurement hack, not a supported edit.
 Usage: OUT=... .venv/bin/python scripts/verification-prototype/dump.py (about 5 minutes)."""
 import hashlib, json, os, shutil, sys

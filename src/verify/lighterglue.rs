@@ -657,6 +657,7 @@ impl RowOp for NormGelu<'_> {
 /// their loops vectorise for this instruction set (they were half of the matcher's time as
 /// scalar code).
 fn each_row(x: &mut [f32], n: usize, op: impl RowOp) {
+    debug_assert!(n > 0 && x.len() % n == 0, "{} values in rows of {n}", x.len());
     struct Rows<'a, O>(&'a mut [f32], usize, O);
     impl<O: RowOp> pulp::WithSimd for Rows<'_, O> {
         type Output = ();
@@ -704,11 +705,16 @@ fn row_sum(r: &[f32], f: impl Fn(f32) -> f32) -> f32 {
     acc.iter().sum::<f32>() + tail.iter().map(|&v| f(v)).sum::<f32>()
 }
 
+/// A softmax's terms below e^this of the largest are 0 (4e-31 of it: nothing in an f32 sum), so
+/// that no weight is subnormal after the normalisation (rows up to 10^7 values).
+const SOFTMAX_FLOOR: f32 = -70.0;
+
 #[inline(always)]
 fn softmax(r: &mut [f32]) {
     let max = row_max(r);
     for x in r.iter_mut() {
-        *x = exp(*x - max);
+        let d = *x - max;
+        *x = if d < SOFTMAX_FLOOR { 0.0 } else { exp(d) };
     }
     let inv = 1.0 / row_sum(r, |v| v);
     for x in r.iter_mut() {
@@ -766,7 +772,7 @@ fn exp(x: f32) -> f32 {
     }
 }
 
-/// GELU, exact (erf) form, as `nn.GELU()`; erf by Abramowitz and Stegun 7.1.26 (|error| <=
+/// GELU in its erf form, as `nn.GELU()`; erf by Abramowitz and Stegun 7.1.26 (|error| <=
 /// 1.5e-7, the device's form: [`erf_with`]) on [`exp`].
 #[inline(always)]
 fn gelu(x: f32) -> f32 {
@@ -809,10 +815,14 @@ mod tests {
         for i in 0..=2_000_000 {
             let x = -87.3 + (88.3 + 87.3) * i as f32 / 2_000_000.0;
             let exact = (x as f64).exp();
-            let ulp = f32::EPSILON as f64 * exact;
+            let ulp = 2f64.powi(exact.log2().floor() as i32 - 23); // of an f32 at `exact`
             worst = worst.max((exp(x) as f64 - exact).abs() / ulp);
         }
         assert!(worst <= 2.0, "exp: worst {worst} ulp");
+        // softmax weights are 0 or normal, never subnormal (a row reaching e^-100 of its largest)
+        let mut r: Vec<f32> = (0..500).map(|i| -(i as f32) * 0.2).collect();
+        each_row(&mut r, 500, Softmax(1.0));
+        assert!(r.iter().all(|v| *v == 0.0 || v.is_normal()), "a subnormal softmax weight");
         // 0 below the range (never subnormal), finite above it
         assert!(exp(-87.4) == 0.0 && exp(-1000.0) == 0.0 && exp(f32::NEG_INFINITY) == 0.0 && exp(1000.0).is_finite());
     }
@@ -828,22 +838,30 @@ mod tests {
             let row: Vec<f32> = (0..n).map(|_| rnd()).collect();
             let max = row.iter().fold(f64::NEG_INFINITY, |m, &v| m.max(v as f64));
             let sum: f64 = row.iter().map(|&v| (v as f64 - max).exp()).sum();
-            let (mut sm, mut lsm) = (row.clone(), row.clone());
+            // three rows through each_row: the row and two others (rows must not leak into each other)
+            let three: Vec<f32> = row.iter().map(|v| v + 3.0).chain(row.iter().copied()).chain(row.iter().map(|v| -v)).collect();
+            let (mut sm, mut lsm) = (three.clone(), three.clone());
             each_row(&mut sm, n, Softmax(1.0));
             each_row(&mut lsm, n, LogSoftmax);
+            let (sm, lsm) = (&sm[n..2 * n], &lsm[n..2 * n]); // the middle row; row + 3's softmax is the same: below
             for i in 0..n {
                 let p = (row[i] as f64 - max).exp() / sum;
                 assert!((sm[i] as f64 - p).abs() <= 1e-6 * p.max(1e-3), "softmax n {n} i {i}: {} vs {p}", sm[i]);
                 assert!((lsm[i] as f64 - p.ln()).abs() <= 2e-6 * p.ln().abs().max(1.0), "log_softmax n {n} i {i}");
             }
             let (g, b): (Vec<f32>, Vec<f32>) = (0..n).map(|_| (rnd(), rnd())).unzip();
-            let mut ln = row.clone();
-            layer_norm(&mut ln, &g, &b);
+            let mut ln = three.clone();
+            each_row(&mut ln, n, NormGelu(&g, &b));
+            let mut first = three[..n].to_vec();
+            each_row(&mut first, n, Softmax(1.0));
+            assert!(first.iter().zip(sm).all(|(a, b)| (a - b).abs() <= 1e-6), "softmax of row + 3, n {n}");
             let mean = row.iter().map(|&v| v as f64).sum::<f64>() / n as f64;
             let var = row.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n as f64;
             for i in 0..n {
-                let want = (row[i] as f64 - mean) / (var + LN_EPS as f64).sqrt() * g[i] as f64 + b[i] as f64;
-                assert!((ln[i] as f64 - want).abs() <= 1e-5 * want.abs().max(1.0), "layer_norm n {n} i {i}: {} vs {want}", ln[i]);
+                let norm = ((row[i] as f64 - mean) / (var + LN_EPS as f64).sqrt() * g[i] as f64 + b[i] as f64) as f32;
+                let want = 0.5 * norm * (1.0 + crate::kernels::lighterglue::lg_erf(norm * std::f32::consts::FRAC_1_SQRT_2));
+                let got = ln[n + i];
+                assert!((got - want).abs() <= 1e-5 * want.abs().max(1.0), "layer norm + GELU n {n} i {i}: {got} vs {want}");
             }
         }
         // GELU on the fast exp against the device's form on the standard one
