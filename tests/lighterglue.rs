@@ -204,7 +204,8 @@ fn glue_min_inliers_runs_the_learned_matcher_only_where_mnn_found_enough() {
     }
     lifted.sort();
     let floor = lifted[lifted.len() / 2].max(1);
-    let gated = run(&format!("[verification]\nglue_threshold = 0.7\nw_glue = 0.5\nglue_min_inliers = {floor}\n"));
+    let gated_toml = format!("[verification]\nglue_threshold = 0.7\nw_glue = 0.5\nglue_min_inliers = {floor}\n");
+    let gated = run(&gated_toml);
     let (mut kept, mut dropped) = (0, 0);
     for (q, p) in plain.iter().enumerate() {
         for c in &p.ranked {
@@ -220,7 +221,7 @@ fn glue_min_inliers_runs_the_learned_matcher_only_where_mnn_found_enough() {
     }
     assert!(kept > 0 && dropped > 0, "pairs with LighterGlue inliers on both sides of the floor {floor}: {kept} kept, {dropped} dropped");
     // a pair scored alone scores as in the batch
-    let cfg = Config::from_toml(&format!("[verification]\nglue_threshold = 0.7\nw_glue = 0.5\nglue_min_inliers = {floor}\n"), "t.toml").unwrap();
+    let cfg = Config::from_toml(&gated_toml, "t.toml").unwrap();
     for (q, p) in gated.iter().enumerate() {
         for c in &p.ranked {
             let alone = semlook::matching::score_pairs(

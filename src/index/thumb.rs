@@ -149,20 +149,6 @@ fn window_sums(v: &[f32], w: usize, rows: &mut Vec<f32>, out: &mut Vec<f32>) {
     }
 }
 
-/// The sum of `v` in eight interleaved partial sums (vectorisable; a fixed order).
-#[inline(always)]
-fn sum8(v: &[f32]) -> f32 {
-    let mut acc = [0.0f32; 8];
-    let chunks = v.chunks_exact(8);
-    let rest: f32 = chunks.remainder().iter().sum();
-    for c in chunks {
-        for l in 0..8 {
-            acc[l] += c[l];
-        }
-    }
-    acc.iter().sum::<f32>() + rest
-}
-
 impl ThumbScorer {
     /// A scorer for thumbnails `spec` with the coarse stage's constants `g`.
     pub fn new(spec: &ThumbSpec, g: &GlobalConfig) -> ThumbScorer {
@@ -271,7 +257,7 @@ impl<'a, I: Iterator<Item = &'a [u8]>> pulp::WithSimd for Run<'_, I> {
                 let cxy = (sxy[i] * inv_n - mx[i] * my) * p.cov_norm;
                 terms[i] = valid[i] * (((two_mx[i] * my + p.c1) * (2.0 * cxy + p.c2)) / ((mx2_c1[i] + my * my) * (vx_c2[i] + vy)));
             }
-            self.out.push(sum8(&s.terms) / windows);
+            self.out.push(crate::util::lane_sum(&s.terms, |v| v) / windows);
         }
     }
 }

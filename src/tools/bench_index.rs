@@ -170,7 +170,6 @@ pub fn run(cfg: &Config, opts: &IndexBenchOptions, engine: &mut Engine, tick: &m
         let k = 30;
         let with_k = |c: &Config| Config { matching: crate::config::MatchingConfig { top_k: k, ..c.matching.clone() }, ..c.clone() };
         let one = |q: usize| queries.slice(q, q + 1);
-        // the exact top-30 of the recall queries, in one batch
         // the recall queries, evenly spread over the photos (they come set after set)
         let nx = opts.exact_queries.min(queries.len());
         let recall_of: Vec<usize> = (0..nx).map(|i| i * queries.len() / nx.max(1)).collect();
@@ -178,6 +177,7 @@ pub fn run(cfg: &Config, opts: &IndexBenchOptions, engine: &mut Engine, tick: &m
         for &q in &recall_of {
             exact_set.extend_from(&queries, q, q + 1);
         }
+        // their exact top-30, in one batch
         reset_peak();
         let t = Instant::now();
         let (truth, _) =

@@ -19,6 +19,7 @@ use crate::appearance::torch_pt::{read_state_dict, Tensor};
 use crate::descriptors::keypoints::{KeypointsRef, COORD_SCALE};
 use crate::error::{Error, Result};
 use crate::kernels::lighterglue::erf_with;
+use crate::util::lane_sum;
 use matrixmultiply::sgemm;
 use std::collections::HashMap;
 use std::path::Path;
@@ -673,15 +674,11 @@ fn each_row(x: &mut [f32], n: usize, op: impl RowOp) {
     pulp::Arch::new().dispatch(Rows(x, n, op));
 }
 
-/// Lanes of the sums and maxima below: each lane runs over every `LANES`-th value, then the
-/// lanes are combined (a fixed order, so a row's result does not depend on the machine).
-const LANES: usize = 8;
-
-/// The largest value of `r` (`-inf` for none).
+/// The largest value of `r` (`-inf` for none), by eight lanes as [`lane_sum`] sums.
 #[inline(always)]
 fn row_max(r: &[f32]) -> f32 {
-    let mut acc = [f32::NEG_INFINITY; LANES];
-    let chunks = r.chunks_exact(LANES);
+    let mut acc = [f32::NEG_INFINITY; 8];
+    let chunks = r.chunks_exact(8);
     let tail = chunks.remainder();
     for c in chunks {
         for (a, &v) in acc.iter_mut().zip(c) {
@@ -689,20 +686,6 @@ fn row_max(r: &[f32]) -> f32 {
         }
     }
     tail.iter().chain(&acc).fold(f32::NEG_INFINITY, |a, &v| a.max(v))
-}
-
-/// The sum of `f` over `r`, by lanes.
-#[inline(always)]
-fn row_sum(r: &[f32], f: impl Fn(f32) -> f32) -> f32 {
-    let mut acc = [0.0f32; LANES];
-    let chunks = r.chunks_exact(LANES);
-    let tail = chunks.remainder();
-    for c in chunks {
-        for (a, &v) in acc.iter_mut().zip(c) {
-            *a += f(v);
-        }
-    }
-    acc.iter().sum::<f32>() + tail.iter().map(|&v| f(v)).sum::<f32>()
 }
 
 /// A softmax's terms below e^this of the largest are 0 (4e-31 of it: nothing in an f32 sum), so
@@ -716,7 +699,7 @@ fn softmax(r: &mut [f32]) {
         let d = *x - max;
         *x = if d < SOFTMAX_FLOOR { 0.0 } else { exp(d) };
     }
-    let inv = 1.0 / row_sum(r, |v| v);
+    let inv = 1.0 / lane_sum(r, |v| v);
     for x in r.iter_mut() {
         *x *= inv;
     }
@@ -725,7 +708,7 @@ fn softmax(r: &mut [f32]) {
 #[inline(always)]
 fn log_softmax(r: &mut [f32]) {
     let max = row_max(r);
-    let lse = row_sum(r, |x| exp(x - max)).ln() + max;
+    let lse = lane_sum(r, |x| exp(x - max)).ln() + max;
     for x in r.iter_mut() {
         *x -= lse;
     }
@@ -734,8 +717,8 @@ fn log_softmax(r: &mut [f32]) {
 #[inline(always)]
 fn layer_norm(x: &mut [f32], g: &[f32], b: &[f32]) {
     let n = x.len() as f32;
-    let mean = row_sum(x, |v| v) / n;
-    let var = row_sum(x, |v| (v - mean) * (v - mean)) / n;
+    let mean = lane_sum(x, |v| v) / n;
+    let var = lane_sum(x, |v| (v - mean) * (v - mean)) / n;
     let inv = 1.0 / (var + LN_EPS).sqrt();
     for ((v, &g), &b) in x.iter_mut().zip(g).zip(b) {
         *v = (*v - mean) * inv * g + b;
