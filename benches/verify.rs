@@ -4,8 +4,8 @@
 //! references from ../shared, 384 keypoints each, the default). Target (issue 16): <= 50 ms per
 //! query on the 2-core machine. The same pairs with the learned matcher (`verification.matcher =
 //! "lighterglue"`, the authors' pruning): target (issue 32) <= 150 ms per query at K = 30; and the
-//! fusion of both (`w_glue`: MNN and LighterGlue on all K, and on the pairs where MNN finds at
-//! least 5 inliers, `glue_min_inliers`, through the fine stage). On a GPU (not a software adapter):
+//! fusion of both (`w_glue`: MNN and LighterGlue on all K; and the learned-matcher profile
+//! `configs/verified-lighterglue.toml`, read from its file, through the fine stage). On a GPU (not a software adapter):
 //! LighterGlue on the device, target (issue 32) <= 5 ms per query at K = 30. Skips, saying why,
 //! without the frames, the weights or an adapter.
 
@@ -103,21 +103,24 @@ fn bench(c: &mut Criterion) {
                     })
                 },
             );
-            // sweep 14b's fusion through the product's fine stage: LighterGlue only on the pairs
-            // whose MNN verification finds at least 5 inliers (`glue_min_inliers`)
-            let gated =
-                Config::from_toml("[verification]\nw_glue = 0.5\nglue_threshold = 0.7\nw_inliers = 2\nglue_min_inliers = 5\n", "bench").unwrap();
+            // the learned-matcher profile through the product's fine stage, read from its file:
+            // LighterGlue only on the pairs whose MNN verification finds `glue_min_inliers`
+            let profile = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/verified-lighterglue.toml");
+            let gated = Config::load(&profile).unwrap();
             let all: Vec<(u32, u32)> = (0..queries.len() as u32).flat_map(|q| (0..K as u32).map(move |r| (q, r))).collect();
             let mnn = CpuStages.verify_pairs(&vp, &refs, &queries, &all).unwrap();
             eprintln!(
-                "glue_min_inliers = 5: LighterGlue on {} of these {} pairs",
+                "{}: glue_min_inliers = {}, glue_width_confidence = {}: LighterGlue on {} of these {} pairs",
+                profile.display(),
+                gated.verification.glue_min_inliers,
+                gated.verification.glue_width_confidence,
                 mnn.iter().filter(|v| v.inliers >= gated.verification.glue_min_inliers).count(),
                 all.len()
             );
             g.bench_function(
                 format!(
-                    "fine_scores (CPU: MNN + LighterGlue where MNN finds >= 5 inliers, w_glue)/1_query_x{K}_candidates_{}_keypoints",
-                    cfg.keypoints.stored
+                    "fine_scores (CPU: configs/verified-lighterglue.toml, MNN + LighterGlue where MNN finds >= {} inliers)/1_query_x{K}_candidates_{}_keypoints",
+                    gated.verification.glue_min_inliers, cfg.keypoints.stored
                 ),
                 |b| {
                     b.iter(|| {

@@ -614,7 +614,8 @@ pub struct VerificationConfig {
     /// \[X\] 0.1 (the authors' `filter_threshold`).
     pub glue_threshold: f64,
     /// LighterGlue's point pruning: after each layer but the last, keypoints whose matchability is
-    /// at most 1 - this are dropped; -1 turns it off. \[X\] 0.95 (the authors' `width_confidence`).
+    /// at most 1 - this are dropped; -1 turns it off. \[X\] 0.95 (the authors' `width_confidence`;
+    /// `configs/verified-lighterglue.toml` sets 0.8: sweep 14c).
     pub glue_width_confidence: f64,
     /// LighterGlue's early exit: after each layer but the last, stop once more than this share of
     /// the keypoints is confident; -1 turns it off. \[X\] -1 (the authors' `depth_confidence`).
@@ -623,8 +624,9 @@ pub struct VerificationConfig {
     /// score, LighterGlue then also verifying every candidate (those `glue_min_inliers` admits); 0 runs
     /// only the chosen matcher.
     /// \[R\] 0 (sweep 14: 0.5 with `glue_threshold` 0.7 and `w_inliers` 2 is the best measured
-    /// fusion, dev mean R@1 0.864 against 0.852; with `glue_min_inliers` 5 at about 40 times the
-    /// verification time: sweep 14b, `configs/verified-lighterglue.toml`).
+    /// fusion, dev mean R@1 0.864 against 0.852; with `glue_min_inliers` 5 and
+    /// `glue_width_confidence` 0.8 at about 30 times the verification time: sweeps 14b and 14c,
+    /// `configs/verified-lighterglue.toml`).
     pub w_glue: f64,
     /// With `w_glue` > 0: LighterGlue verifies only the pairs whose MNN verification found at
     /// least this many inliers (a rule of the pair alone, so a pair scores the same in any batch,

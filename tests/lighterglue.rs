@@ -95,6 +95,32 @@ fn verification_with_the_learned_matcher_counts_its_matches() {
     assert_ne!(mnn[0].matches, glue[0].matches, "mutual nearest neighbours give other matches");
 }
 
+/// Many pairs in one call (each query's side prepared once for all its pairs, a block of queries
+/// at a time) verify as each pair alone, whatever their order: more queries than one block, a
+/// query's pairs scattered through the list, a pair twice, a query without keypoints.
+#[test]
+fn a_batch_of_pairs_verifies_as_each_pair_alone() {
+    let Some(_) = network() else { return };
+    let fx = fixtures();
+    let images: Vec<Stored> = (0..3).flat_map(|k| ["image0", "image1"].map(|side| Stored::of(&fx["pairs"][k], side))).collect();
+    let cfg = Config::from_toml("[verification]\nmatcher = \"lighterglue\"\nglue_threshold = 0.5\n", "glue.toml").unwrap();
+    let p = VerifyParams::new(&cfg.verification);
+    // 13 query indices over the 6 images (index 12: no keypoints), 3 references each, interleaved
+    let q = |a: u32| if a == 12 { KeypointsRef::EMPTY } else { images[a as usize % 6].as_ref() };
+    let r = |b: u32| images[(b as usize + 1) % 6].as_ref();
+    let mut pairs: Vec<(u32, u32)> = (0..3).flat_map(|b| (0..13).rev().map(move |a| (a, (a + 2 * b) % 6))).collect();
+    pairs.push(pairs[5]);
+    let batch = verify_pairs_cpu(&p, &q, &r, &pairs).unwrap();
+    let mut found = 0;
+    for (k, &pair) in pairs.iter().enumerate() {
+        let alone = verify_pairs_cpu(&p, &q, &r, &[pair]).unwrap()[0];
+        assert_eq!(batch[k], alone, "pair {k} {pair:?}");
+        found += (alone.inliers > 0) as usize;
+    }
+    assert!(found >= 3, "pairs with inliers among the batch: {found}");
+    assert!(pairs.iter().zip(&batch).all(|(p, v)| p.0 != 12 || *v == Default::default()), "the query without keypoints matches nothing");
+}
+
 /// A descriptor set of stored keypoints alone (global descriptors all equal, no trees or
 /// appearance), so that the verified score is the inlier terms plus a constant.
 fn keypoint_set(cfg: &Config, images: &[&Stored]) -> semlook::descriptors::DescriptorSet {

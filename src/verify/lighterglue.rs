@@ -11,7 +11,9 @@
 //! cross-attention block between them, each followed by a two-layer MLP with layer norm and GELU; after
 //! each layer but the last, optional early exit (depth confidence) and point pruning (width
 //! confidence); then the assignment: a dual softmax of projected descriptor similarities plus
-//! per-point matchability, and mutual best matches whose probability exceeds a threshold.
+//! per-point matchability, and mutual best matches whose probability exceeds a threshold. The steps
+//! that see one image alone (the projection, the rotary encoding, the first layer's self-attention)
+//! make a [`GlueSide`] ([`LighterGlue::prepare`]), computed once for all the pairs an image is in.
 //! Positions enter as fractions of the image's long side (what the map stores): the rotary encoding
 //! depends only on differences of positions, so the image's size beyond its long side is not needed.
 
@@ -219,28 +221,57 @@ impl LighterGlue {
     /// mutual matches above `p.filter_threshold`, in order of the first image's keypoints. Sides
     /// without keypoints, or of another descriptor length, have no matches.
     pub fn match_keypoints(&self, p: &GlueParams, a: KeypointsRef, b: KeypointsRef) -> Vec<GlueMatch> {
-        if a.is_empty() || b.is_empty() || a.dim != self.input_dim || b.dim != self.input_dim {
-            return Vec::new();
+        match (self.prepare(a), self.prepare(b)) {
+            (Some(a), Some(b)) => self.match_prepared(p, &a, &b),
+            _ => Vec::new(),
         }
-        let (ka, da) = network_inputs(a);
-        let (kb, db) = network_inputs(b);
-        self.forward(p, &ka, &da, &kb, &db)
+    }
+
+    /// What the network computes from one image's stored keypoints alone, shared by every pair
+    /// it is matched in ([`GlueSide`]); `None` for no keypoints or descriptors of another
+    /// dimension (nothing can match).
+    pub fn prepare(&self, k: KeypointsRef) -> Option<GlueSide> {
+        if k.is_empty() || k.dim != self.input_dim {
+            return None;
+        }
+        let (kpts, desc) = network_inputs(k);
+        self.side(&kpts, &desc)
     }
 
     /// The network on positions (2 per point, normalised as LightGlue does: the long side spans 2)
     /// and float descriptors (`input_dim` per point).
     pub fn forward(&self, p: &GlueParams, kpts0: &[f32], desc0: &[f32], kpts1: &[f32], desc1: &[f32]) -> Vec<GlueMatch> {
-        let (m, n, d) = (kpts0.len() / 2, kpts1.len() / 2, self.d);
-        if m == 0 || n == 0 || desc0.len() != m * self.input_dim || desc1.len() != n * self.input_dim {
-            return Vec::new();
+        match (self.side(kpts0, desc0), self.side(kpts1, desc1)) {
+            (Some(a), Some(b)) => self.match_prepared(p, &a, &b),
+            _ => Vec::new(),
         }
-        let mut s0 = Side { x: self.input_proj.forward(desc0, m), enc: self.rotary(kpts0), index: (0..m as u32).collect() };
-        let mut s1 = Side { x: self.input_proj.forward(desc1, n), enc: self.rotary(kpts1), index: (0..n as u32).collect() };
+    }
+
+    /// One image's side before the pair: descriptors projected, the rotary encoding, the first
+    /// layer's self-attention block (its only step that sees one image alone).
+    fn side(&self, kpts: &[f32], desc: &[f32]) -> Option<GlueSide> {
+        let n = kpts.len() / 2;
+        if n == 0 || kpts.len() != 2 * n || desc.len() != n * self.input_dim {
+            return None;
+        }
+        let mut s = Side { x: self.input_proj.forward(desc, n), enc: self.rotary(kpts), index: (0..n as u32).collect() };
+        self_block(&self.layers[0].0, &mut s, self.d);
+        Some(GlueSide(s))
+    }
+
+    /// The network on two prepared sides: the matches of the pair, as [`Self::forward`] gives
+    /// them (the same operations in the same order: the same bits).
+    pub fn match_prepared(&self, p: &GlueParams, a: &GlueSide, b: &GlueSide) -> Vec<GlueMatch> {
+        let (m, n, d) = (a.0.len(), b.0.len(), self.d);
+        let (mut s0, mut s1) = (a.0.clone(), b.0.clone());
         let last = self.layers.len() - 1;
         let mut used = last;
         for (i, (sb, cb)) in self.layers.iter().enumerate() {
-            self_block(sb, &mut s0, d);
-            self_block(sb, &mut s1, d);
+            if i > 0 {
+                // layer 0's self-attention is in the prepared sides
+                self_block(sb, &mut s0, d);
+                self_block(sb, &mut s1, d);
+            }
             cross_block(cb, &mut s0, &mut s1, d);
             if i == last {
                 break;
@@ -452,6 +483,11 @@ impl LighterGlue {
 }
 
 /// The points of one image still in the network.
+/// One image's keypoints through the network's steps that see that image alone
+/// ([`LighterGlue::prepare`]): computed once per image, however many pairs it is in.
+pub struct GlueSide(Side);
+
+#[derive(Clone)]
 struct Side {
     /// `d` values per point.
     x: Vec<f32>,

@@ -114,10 +114,6 @@ pub fn classes_agree(check: SemanticCheck, a: u8, b: u8) -> bool {
     }
 }
 
-/// Verifies one pair with the learned matcher `net`.
-pub fn verify_pair_glue(p: &VerifyParams, net: &LighterGlue, q: KeypointsRef, r: KeypointsRef) -> Verified {
-    verify_from_glue(p, q, r, &net.match_keypoints(&p.glue, q, r))
-}
 
 /// Verifies one pair from the learned matcher's matches (the CPU's, or the device's:
 /// `gpu::lighterglue`): those on ignored classes dropped, then RANSAC.
@@ -151,11 +147,59 @@ pub fn verify_pairs_cpu<'a>(
     use rayon::prelude::*;
     Ok(match p.matcher {
         Matcher::Mnn => pairs.par_iter().map_init(Vec::new, |scratch, &(a, b)| verify_pair(p, q(a), r(b), scratch)).collect(),
-        Matcher::Lighterglue => {
-            let net = shared_lighterglue()?;
-            pairs.par_iter().map(|&(a, b)| verify_pair_glue(p, &net, q(a), r(b))).collect()
-        }
+        Matcher::Lighterglue => verify_pairs_glue(p, &*shared_lighterglue()?, q, r, pairs),
     })
+}
+
+/// Queries whose LighterGlue sides are held at once by [`verify_pairs_glue`], a multiple of the
+/// threads (about 0.3 MB each at 384 keypoints).
+const GLUE_QUERY_BLOCK: usize = 8;
+
+/// Verifies the pairs with the learned matcher `net`, in parallel over pairs: what the network
+/// computes from one image alone ([`LighterGlue::prepare`]) once per query for all its pairs, a
+/// block of queries at a time (memory bounded by the block, not by the pairs), and once per pair
+/// for the reference. The same matches as each pair through [`LighterGlue::match_keypoints`].
+fn verify_pairs_glue<'a>(
+    p: &VerifyParams,
+    net: &LighterGlue,
+    q: &(dyn Fn(u32) -> KeypointsRef<'a> + Sync),
+    r: &(dyn Fn(u32) -> KeypointsRef<'a> + Sync),
+    pairs: &[(u32, u32)],
+) -> Vec<Verified> {
+    use rayon::prelude::*;
+    let mut order: Vec<usize> = (0..pairs.len()).collect();
+    order.sort_by_key(|&i| pairs[i].0); // stable: a query's pairs keep their order
+    let mut out = vec![Verified::default(); pairs.len()];
+    let mut rest = &order[..];
+    while !rest.is_empty() {
+        // the next GLUE_QUERY_BLOCK queries' pairs
+        let (mut end, mut seen) = (0, 0);
+        while end < rest.len() && (seen < GLUE_QUERY_BLOCK || pairs[rest[end]].0 == pairs[rest[end - 1]].0) {
+            if end == 0 || pairs[rest[end]].0 != pairs[rest[end - 1]].0 {
+                seen += 1;
+            }
+            end += 1;
+        }
+        let (block, tail) = rest.split_at(end);
+        let mut queries: Vec<u32> = block.iter().map(|&i| pairs[i].0).collect();
+        queries.dedup();
+        let sides: Vec<_> = queries.par_iter().map(|&a| net.prepare(q(a))).collect();
+        let found: Vec<(usize, Verified)> = block
+            .par_iter()
+            .map(|&i| {
+                let (a, b) = pairs[i];
+                let side = &sides[queries.binary_search(&a).expect("the block's query")];
+                let matches = match (side, net.prepare(r(b))) {
+                    (Some(sa), Some(sb)) => net.match_prepared(&p.glue, sa, &sb),
+                    _ => Vec::new(),
+                };
+                (i, verify_from_glue(p, q(a), r(b), &matches))
+            })
+            .collect();
+        found.into_iter().for_each(|(i, v)| out[i] = v);
+        rest = tail;
+    }
+    out
 }
 
 /// Verifies one pair on the CPU (fast MNN path).
