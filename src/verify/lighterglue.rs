@@ -79,11 +79,22 @@ struct Ffn {
 }
 
 impl Ffn {
-    fn add_to(&self, x: &mut [f32], message: &[f32], rows: usize, d: usize) {
+    /// The block on `[x, out(context)]`, added to `x`: the message (`out`'s product, onto its
+    /// bias) written straight into each row's second half.
+    fn add_message(&self, out: &Linear, context: &[f32], x: &mut [f32], rows: usize, d: usize) {
+        assert!(out.n_out == d && x.len() == rows * d && context.len() == rows * out.n_in);
         let mut cat = Vec::with_capacity(rows * 2 * d);
         for r in 0..rows {
             cat.extend_from_slice(&x[r * d..(r + 1) * d]);
-            cat.extend_from_slice(&message[r * d..(r + 1) * d]);
+            cat.extend_from_slice(&out.b);
+        }
+        if rows > 0 {
+            // SAFETY: context is rows x n_in, out.w is d x n_in read transposed, cat holds rows
+            // rows of 2d values whose second halves (rows x d, 2d apart) are written.
+            unsafe {
+                let (k, c) = (out.n_in, cat.as_mut_ptr().add(d));
+                sgemm(rows, k, d, 1.0, context.as_ptr(), k as isize, 1, out.w.as_ptr(), 1, k as isize, 1.0, c, 2 * d as isize, 1)
+            }
         }
         let mut h = self.l1.forward(&cat, rows);
         each_row(&mut h, self.l1.n_out, NormGelu(&self.ln_g, &self.ln_b));
@@ -93,7 +104,10 @@ impl Ffn {
 }
 
 struct SelfBlock {
+    /// PyTorch's Wqkv (q, k and v interleaved per dimension), as [`LighterGlue::pack`] gives it.
     wqkv: Linear,
+    /// The same rows reordered so that a point's output is its q, then its k, then its v.
+    qkv: Linear,
     out: Linear,
     ffn: Ffn,
 }
@@ -101,6 +115,8 @@ struct SelfBlock {
 struct CrossBlock {
     to_qk: Linear,
     to_v: Linear,
+    /// `to_qk` and `to_v` in one layer: a point's output is its qk, then its v.
+    qk_v: Linear,
     out: Linear,
     ffn: Ffn,
 }
@@ -182,10 +198,16 @@ impl LighterGlue {
             let s = format!("transformers.{i}.self_attn");
             let c = format!("transformers.{i}.cross_attn");
             layers.push((
-                SelfBlock { wqkv: w.linear(&format!("{s}.Wqkv"), d, 3 * d)?, out: w.linear(&format!("{s}.out_proj"), d, d)?, ffn: w.ffn(&s, d)? },
+                SelfBlock {
+                    wqkv: w.linear(&format!("{s}.Wqkv"), d, 3 * d)?,
+                    qkv: deinterleave_qkv(&w.linear(&format!("{s}.Wqkv"), d, 3 * d)?),
+                    out: w.linear(&format!("{s}.out_proj"), d, d)?,
+                    ffn: w.ffn(&s, d)?,
+                },
                 CrossBlock {
                     to_qk: w.linear(&format!("{c}.to_qk"), d, d)?,
                     to_v: w.linear(&format!("{c}.to_v"), d, d)?,
+                    qk_v: stack(&w.linear(&format!("{c}.to_qk"), d, d)?, &w.linear(&format!("{c}.to_v"), d, d)?),
                     out: w.linear(&format!("{c}.to_out"), d, d)?,
                     ffn: w.ffn(&c, d)?,
                 },
@@ -544,48 +566,61 @@ fn apply_rotary(t: &mut [f32], enc: &[f32]) {
     }
 }
 
+/// Two layers on the same input as one: `a`'s outputs, then `b`'s.
+fn stack(a: &Linear, b: &Linear) -> Linear {
+    assert_eq!(a.n_in, b.n_in);
+    Linear { w: [&a.w[..], &b.w].concat(), b: [&a.b[..], &b.b].concat(), n_in: a.n_in, n_out: a.n_out + b.n_out }
+}
+
+/// `Wqkv` with its output rows reordered from (q, k, v) per dimension to all q, all k, all v.
+fn deinterleave_qkv(l: &Linear) -> Linear {
+    let (d, n_in) = (l.n_out / 3, l.n_in);
+    let src = |part: usize, c: usize| 3 * c + part;
+    let order: Vec<usize> = (0..3).flat_map(|part| (0..d).map(move |c| src(part, c))).collect();
+    Linear {
+        w: order.iter().flat_map(|&r| l.w[r * n_in..(r + 1) * n_in].iter().copied()).collect(),
+        b: order.iter().map(|&r| l.b[r]).collect(),
+        n_in,
+        n_out: l.n_out,
+    }
+}
+
 fn self_block(b: &SelfBlock, s: &mut Side, d: usize) {
     let n = s.len();
-    let qkv = b.wqkv.forward(&s.x, n);
-    let (mut q, mut k, mut v) = (Vec::with_capacity(n * d), Vec::with_capacity(n * d), Vec::with_capacity(n * d));
-    for row in qkv.chunks_exact(3 * d) {
-        for c in row.chunks_exact(3) {
-            q.push(c[0]);
-            k.push(c[1]);
-            v.push(c[2]);
-        }
+    // each point's row: q, k, v (d each)
+    let mut qkv = b.qkv.forward(&s.x, n);
+    for (row, enc) in qkv.chunks_exact_mut(3 * d).zip(s.enc.chunks_exact(d)) {
+        let (q, kv) = row.split_at_mut(d);
+        apply_rotary(q, enc);
+        apply_rotary(&mut kv[..d], enc);
     }
-    for i in 0..n {
-        apply_rotary(&mut q[i * d..(i + 1) * d], &s.enc[i * d..(i + 1) * d]);
-        apply_rotary(&mut k[i * d..(i + 1) * d], &s.enc[i * d..(i + 1) * d]);
-    }
-    let mut sim = gemm_nt(&q, &k, n, n, d);
+    let mut sim = gemm_nt_strided(&qkv, 3 * d, &qkv[d..], 3 * d, n, n, d);
     let scale = 1.0 / (d as f32).sqrt();
     each_row(&mut sim, n, Softmax(scale));
-    let context = gemm_nn(&sim, &v, n, n, d);
-    let message = b.out.forward(&context, n);
-    b.ffn.add_to(&mut s.x, &message, n, d);
+    let context = gemm_nn_strided(&sim, &qkv[2 * d..], 3 * d, n, n, d);
+    b.ffn.add_message(&b.out, &context, &mut s.x, n, d);
 }
 
 fn cross_block(b: &CrossBlock, s0: &mut Side, s1: &mut Side, d: usize) {
     let (m, n) = (s0.len(), s1.len());
     let root = (1.0 / (d as f32).sqrt()).sqrt();
-    let scaled = |mut v: Vec<f32>| {
-        v.iter_mut().for_each(|x| *x *= root);
-        v
+    // each point's row: qk (scaled), then v
+    let project = |x: &[f32], rows: usize| {
+        let mut y = b.qk_v.forward(x, rows);
+        for row in y.chunks_exact_mut(2 * d) {
+            row[..d].iter_mut().for_each(|v| *v *= root);
+        }
+        y
     };
-    let qk0 = scaled(b.to_qk.forward(&s0.x, m));
-    let qk1 = scaled(b.to_qk.forward(&s1.x, n));
-    let v0 = b.to_v.forward(&s0.x, m);
-    let v1 = b.to_v.forward(&s1.x, n);
-    let mut a01 = gemm_nt(&qk0, &qk1, m, n, d);
+    let (y0, y1) = (project(&s0.x, m), project(&s1.x, n));
+    let mut a01 = gemm_nt_strided(&y0, 2 * d, &y1, 2 * d, m, n, d);
     let mut a10 = transpose(&a01, m, n);
     each_row(&mut a01, n, Softmax(1.0));
     each_row(&mut a10, m, Softmax(1.0));
-    let m0 = b.out.forward(&gemm_nn(&a01, &v1, m, n, d), m);
-    let m1 = b.out.forward(&gemm_nn(&a10, &v0, n, m, d), n);
-    b.ffn.add_to(&mut s0.x, &m0, m, d);
-    b.ffn.add_to(&mut s1.x, &m1, n, d);
+    let c0 = gemm_nn_strided(&a01, &y1[d..], 2 * d, m, n, d);
+    let c1 = gemm_nn_strided(&a10, &y0[d..], 2 * d, n, m, d);
+    b.ffn.add_message(&b.out, &c0, &mut s0.x, m, d);
+    b.ffn.add_message(&b.out, &c1, &mut s1.x, n, d);
 }
 
 /// Mutual best matches of a log assignment (`m x n`, row-major) whose probability exceeds `th`:
@@ -614,7 +649,29 @@ fn filter_matches(scores: &[f32], m: usize, n: usize, th: f32) -> Vec<GlueMatch>
 
 /// `a (m x k) b^T`, `b` being `n x k`: `m x n`.
 fn gemm_nt(a: &[f32], b: &[f32], m: usize, n: usize, k: usize) -> Vec<f32> {
-    gemm_nt_add(a, b, m, n, k, vec![0.0f32; m * n])
+    gemm_nt_strided(a, k, b, k, m, n, k)
+}
+
+/// [`gemm_nt`] on rows `lda` and `ldb` apart (the first `k` values of each).
+fn gemm_nt_strided(a: &[f32], lda: usize, b: &[f32], ldb: usize, m: usize, n: usize, k: usize) -> Vec<f32> {
+    assert!(m == 0 || n == 0 || (k <= lda.min(ldb) && a.len() >= (m - 1) * lda + k && b.len() >= (n - 1) * ldb + k));
+    product(m, n, |c| {
+        // SAFETY: a holds m rows of k values lda apart, b n rows of k values ldb apart (asserted),
+        // c is m x n row-major.
+        unsafe { sgemm(m, k, n, 1.0, a.as_ptr(), lda as isize, 1, b.as_ptr(), 1, ldb as isize, 0.0, c, n as isize, 1) }
+    })
+}
+
+/// An `m x n` product that `write` stores whole (matrixmultiply with beta 0 writes every element
+/// of C without reading it, k = 0 included): no zeroing first.
+fn product(m: usize, n: usize, write: impl FnOnce(*mut f32)) -> Vec<f32> {
+    let mut c = Vec::with_capacity(m * n);
+    if m > 0 && n > 0 {
+        write(c.as_mut_ptr());
+    }
+    // SAFETY: every one of the m x n elements was written above (or there are none).
+    unsafe { c.set_len(m * n) };
+    c
 }
 
 /// `c + a (m x k) b^T` with `b` `n x k` and `c` `m x n`: [`gemm_nt`] onto a start value (a layer's bias).
@@ -627,21 +684,27 @@ fn gemm_nt_add(a: &[f32], b: &[f32], m: usize, n: usize, k: usize, mut c: Vec<f3
     c
 }
 
-/// `a (m x k) b (k x n)`: `m x n`.
-fn gemm_nn(a: &[f32], b: &[f32], m: usize, k: usize, n: usize) -> Vec<f32> {
-    let mut c = vec![0.0f32; m * n];
-    if m > 0 && n > 0 {
-        // SAFETY: a is m x k, b is k x n, c is m x n, all row-major and in bounds.
-        unsafe { sgemm(m, k, n, 1.0, a.as_ptr(), k as isize, 1, b.as_ptr(), n as isize, 1, 0.0, c.as_mut_ptr(), n as isize, 1) }
-    }
-    c
+/// `a (m x k) b (k x n)`: `m x n`, `b`'s rows `ldb` apart (the first `n` values of each).
+fn gemm_nn_strided(a: &[f32], b: &[f32], ldb: usize, m: usize, k: usize, n: usize) -> Vec<f32> {
+    assert!(m == 0 || n == 0 || (a.len() >= m * k && n <= ldb && (k == 0 || b.len() >= (k - 1) * ldb + n)));
+    product(m, n, |c| {
+        // SAFETY: a is m x k row-major, b holds k rows of n values ldb apart (asserted), c is m x n.
+        unsafe { sgemm(m, k, n, 1.0, a.as_ptr(), k as isize, 1, b.as_ptr(), ldb as isize, 1, 0.0, c, n as isize, 1) }
+    })
 }
 
+/// `a` (`m x n`, row-major) transposed, by tiles of 16 x 16 (the cache lines of both
+/// sides stay in use).
 fn transpose(a: &[f32], m: usize, n: usize) -> Vec<f32> {
+    const TILE: usize = 16;
     let mut t = vec![0.0f32; m * n];
-    for i in 0..m {
-        for j in 0..n {
-            t[j * m + i] = a[i * n + j];
+    for i0 in (0..m).step_by(TILE) {
+        for j0 in (0..n).step_by(TILE) {
+            for i in i0..(i0 + TILE).min(m) {
+                for j in j0..(j0 + TILE).min(n) {
+                    t[j * m + i] = a[i * n + j];
+                }
+            }
         }
     }
     t
@@ -662,12 +725,7 @@ struct NormGelu<'a>(&'a [f32], &'a [f32]);
 impl RowOp for Softmax {
     #[inline(always)]
     fn apply(&self, r: &mut [f32]) {
-        if self.0 != 1.0 {
-            for x in r.iter_mut() {
-                *x *= self.0;
-            }
-        }
-        softmax(r);
+        softmax(r, self.0);
     }
 }
 
@@ -688,26 +746,49 @@ impl RowOp for NormGelu<'_> {
     }
 }
 
-/// `op` on each row (`n` values) of `x`, compiled for the best vector instructions `pulp` finds:
-/// the row operations below are written without calls into libm, with lane-wise sums and with
-/// `for` loops (a `for_each`'s `fold` is not always inlined), and are inlined here, so that
-/// their loops vectorise for this instruction set (they were half of the matcher's time as
-/// scalar code).
+/// `op` on each row (`n` values) of `x`, compiled for the best vector instructions the processor
+/// has (AVX-512 where it is found, else what `pulp` finds): the row operations below are written
+/// without calls into libm, with lane-wise sums and with `for` loops (a `for_each`'s `fold` is
+/// not always inlined), and are inlined here, so that their loops vectorise for this instruction
+/// set (they were half of the matcher's time as scalar code). Every instruction set computes
+/// each value by the same operations in the same order (sums and maxima by eight lanes whatever
+/// the vector width): the same bits.
 fn each_row(x: &mut [f32], n: usize, op: impl RowOp) {
     debug_assert!(n > 0 && x.len() % n == 0, "{} values in rows of {n}", x.len());
+    if n == 0 {
+        return;
+    }
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx512vl") {
+        // SAFETY: the processor has the features the function is compiled for (checked above).
+        return unsafe { rows_avx512(x, n, op) };
+    }
+    each_row_portable(x, n, op)
+}
+
+/// [`each_row`] through `pulp`'s dispatch (AVX2 where the processor has it, else scalar code).
+fn each_row_portable(x: &mut [f32], n: usize, op: impl RowOp) {
     struct Rows<'a, O>(&'a mut [f32], usize, O);
     impl<O: RowOp> pulp::WithSimd for Rows<'_, O> {
         type Output = ();
         #[inline(always)]
         fn with_simd<S: pulp::Simd>(self, _simd: S) {
-            if self.1 > 0 {
-                for r in self.0.chunks_exact_mut(self.1) {
-                    self.2.apply(r);
-                }
+            for r in self.0.chunks_exact_mut(self.1) {
+                self.2.apply(r);
             }
         }
     }
     pulp::Arch::new().dispatch(Rows(x, n, op));
+}
+
+/// [`each_row`]'s loop compiled for AVX-512 (16 lanes; 5 % off the matcher's time on the
+/// development machine's Xeon).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+unsafe fn rows_avx512(x: &mut [f32], n: usize, op: impl RowOp) {
+    for r in x.chunks_exact_mut(n) {
+        op.apply(r);
+    }
 }
 
 /// The largest value of `r` (`-inf` for none), by eight lanes as [`lane_sum`] sums.
@@ -728,11 +809,15 @@ fn row_max(r: &[f32]) -> f32 {
 /// that no weight is subnormal after the normalisation (rows up to 10^7 values).
 const SOFTMAX_FLOOR: f32 = -70.0;
 
+/// The softmax of `r` times `scale` (> 0): the largest scaled value is the scaled largest
+/// (rounding is monotonic), so the scale is applied in the pass that takes the exponentials (the
+/// same bits as scaling the row first). (Taking their sum in that pass too kept the loop from
+/// vectorising: 30 % slower.)
 #[inline(always)]
-fn softmax(r: &mut [f32]) {
-    let max = row_max(r);
+fn softmax(r: &mut [f32], scale: f32) {
+    let max = row_max(r) * scale;
     for x in r.iter_mut() {
-        let d = *x - max;
+        let d = *x * scale - max;
         *x = if d < SOFTMAX_FLOOR { 0.0 } else { exp(d) };
     }
     let inv = 1.0 / lane_sum(r, |v| v);
@@ -815,7 +900,7 @@ mod tests {
     #[test]
     fn small_operations_match_their_definitions() {
         let mut r = [1.0f32, 2.0, 3.0];
-        softmax(&mut r);
+        softmax(&mut r, 1.0);
         let e: Vec<f32> = [1.0f32, 2.0, 3.0].iter().map(|x| x.exp()).collect();
         let s: f32 = e.iter().sum();
         for (a, b) in r.iter().zip(&e) {
@@ -825,7 +910,12 @@ mod tests {
         assert!((gelu(1.0) - 0.841_344_7).abs() < 1e-6);
         let a = [1.0f32, 2.0, 3.0, 4.0, 5.0, 6.0]; // 2 x 3
         assert_eq!(gemm_nt(&a, &a, 2, 2, 3), vec![14.0, 32.0, 32.0, 77.0]);
-        assert_eq!(gemm_nn(&a, &[1.0, 0.0, 0.0, 1.0, 1.0, 1.0], 2, 3, 2), vec![4.0, 5.0, 10.0, 11.0]);
+        assert_eq!(gemm_nn_strided(&a, &[1.0, 0.0, 0.0, 1.0, 1.0, 1.0], 2, 2, 3, 2), vec![4.0, 5.0, 10.0, 11.0]);
+        // rows further apart than their values: the padding is never read
+        let padded = [1.0f32, 0.0, 9.0, 0.0, 1.0, 9.0, 1.0, 1.0];
+        assert_eq!(gemm_nn_strided(&a, &padded, 3, 2, 3, 2), vec![4.0, 5.0, 10.0, 11.0]);
+        let a_padded = [1.0f32, 2.0, 3.0, 9.0, 4.0, 5.0, 6.0];
+        assert_eq!(gemm_nt_strided(&a_padded, 4, &a_padded, 4, 2, 2, 3), vec![14.0, 32.0, 32.0, 77.0]);
     }
 
     #[test]
@@ -847,6 +937,34 @@ mod tests {
     }
 
     #[test]
+    fn row_operations_give_the_same_bits_on_every_instruction_set() {
+        let mut seed = 11u64;
+        let mut rnd = || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((seed >> 40) as f32 / (1u64 << 24) as f32 - 0.5) * 40.0
+        };
+        for n in [1, 7, 8, 9, 31, 96, 192, 383] {
+            let x: Vec<f32> = (0..3 * n).map(|_| rnd()).collect();
+            let (g, b): (Vec<f32>, Vec<f32>) = (0..n).map(|_| (rnd(), rnd())).unzip();
+            // each operation inlined into each loop (as the matcher runs them), against the same
+            // operation applied row by row in this function (compiled for the baseline target)
+            macro_rules! same_bits {
+                ($op:expr) => {{
+                    let (mut best, mut portable, mut plain) = (x.clone(), x.clone(), x.clone());
+                    each_row(&mut best, n, $op);
+                    each_row_portable(&mut portable, n, $op);
+                    plain.chunks_exact_mut(n).for_each(|r| $op.apply(r));
+                    assert_eq!(best, portable, "n {n}: {}", stringify!($op));
+                    assert_eq!(best, plain, "n {n}: {}", stringify!($op));
+                }};
+            }
+            same_bits!(Softmax(0.37));
+            same_bits!(LogSoftmax);
+            same_bits!(NormGelu(&g, &b));
+        }
+    }
+
+    #[test]
     fn row_operations_match_their_definitions_at_every_length() {
         let mut seed = 7u64;
         let mut rnd = || {
@@ -862,6 +980,12 @@ mod tests {
             let (mut sm, mut lsm) = (three.clone(), three.clone());
             each_row(&mut sm, n, Softmax(1.0));
             each_row(&mut lsm, n, LogSoftmax);
+            // a scale is folded into the exponentials: the same bits as the softmax of the scaled rows
+            let s = 0.37f32;
+            let (mut scaled_first, mut folded) = (three.iter().map(|v| v * s).collect::<Vec<f32>>(), three.clone());
+            each_row(&mut scaled_first, n, Softmax(1.0));
+            each_row(&mut folded, n, Softmax(s));
+            assert_eq!(scaled_first, folded, "softmax with a scale, n {n}");
             let (sm, lsm) = (&sm[n..2 * n], &lsm[n..2 * n]); // the middle row; row + 3's softmax is the same: below
             for i in 0..n {
                 let p = (row[i] as f64 - max).exp() / sum;

@@ -114,7 +114,6 @@ pub fn classes_agree(check: SemanticCheck, a: u8, b: u8) -> bool {
     }
 }
 
-
 /// Verifies one pair from the learned matcher's matches (the CPU's, or the device's:
 /// `gpu::lighterglue`): those on ignored classes dropped, then RANSAC.
 pub fn verify_from_glue(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, matches: &[lighterglue::GlueMatch]) -> Verified {
