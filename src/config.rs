@@ -985,7 +985,7 @@ impl Config {
         let g = &self.global;
         v.real("global.truncation", g.truncation, 1e-3, 1.0)?;
         v.int("global.ssim_window", g.ssim_window, 3, 1023)?;
-        if g.ssim_window % 2 == 0 {
+        if g.ssim_window.is_multiple_of(2) {
             return Err(v.err(format!("global.ssim_window = {} must be odd", g.ssim_window)));
         }
         v.int("global.width", g.width, g.ssim_window, 1024)?;

@@ -184,7 +184,7 @@ impl<'a> Values<'a> {
             Values::F32(v) => Values::F32(&v[a..b]),
             Values::F16(v) => Values::F16(&v[a..b]),
             Values::Blocks(k) => {
-                assert!(k.dim > 0 && a % k.dim == 0 && b % k.dim == 0 && a <= b, "blocks slice by whole vectors");
+                assert!(k.dim > 0 && a.is_multiple_of(k.dim) && b.is_multiple_of(k.dim) && a <= b, "blocks slice by whole vectors");
                 Values::Blocks(k.vectors_range(a / k.dim, b / k.dim))
             }
         }

@@ -86,7 +86,7 @@ struct KillSchedule {
 impl KillSchedule {
     fn next(&self, trial: usize, build: bool, rng: &mut semlook::util::SplitMix64) -> f64 {
         let m = usize::from(build);
-        if trial % 3 == 0 {
+        if trial.is_multiple_of(3) {
             return rng.range(0.0, self.full);
         }
         let (a, b) = (self.none_until[m].min(self.all_from[m]), self.none_until[m].max(self.all_from[m]));

@@ -266,7 +266,7 @@ impl XFeat {
     /// sampling needs): the keypoint and reliability heads are skipped, `logits` is empty
     /// (0 channels) and `reliability` none.
     pub fn forward_with(&self, grey: &Chw, heads: bool) -> Result<NetOutputs> {
-        if grey.c != 1 || grey.h % 32 != 0 || grey.w % 32 != 0 || grey.h == 0 || grey.w == 0 || !grey.is_consistent() {
+        if grey.c != 1 || !grey.h.is_multiple_of(32) || !grey.w.is_multiple_of(32) || grey.h == 0 || grey.w == 0 || !grey.is_consistent() {
             return Err(Error::check(format!("input is {}x{}x{}; it must be 1 x (32k) x (32k)", grey.c, grey.h, grey.w)));
         }
         let seq = |layers: &[Basic], x: Chw| layers.iter().try_fold(x, |x, l| l.run(&x));

@@ -168,7 +168,7 @@ fn int_values(code: &str, raw: &[u8]) -> Result<Vec<u64>> {
     if !matches!(kind, "i" | "u") || !matches!(size, 1 | 2 | 4 | 8) {
         return Err(Error::check(format!("dtype {code:?}: reference indices must be integers")));
     }
-    if raw.len() % size != 0 {
+    if !raw.len().is_multiple_of(size) {
         return Err(Error::check(format!("{} bytes of {code:?} values", raw.len())));
     }
     raw.chunks_exact(size)

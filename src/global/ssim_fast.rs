@@ -486,7 +486,7 @@ struct LaneConsts<V> {
 fn lanes_horizontal<S: Simd, const N: usize>(simd: S, prod: &[S::f32s], dst: &mut [S::f32s], c: usize, win: usize) {
     let src = &prod[c..c + N + win - 1];
     let mut a: [S::f32s; N] = [src[0]; N];
-    if c % 2 == 0 && N % 2 == 0 {
+    if c.is_multiple_of(2) && N.is_multiple_of(2) {
         let mut inner: [S::f32s; N] = std::array::from_fn(|j| src[(2 * j + 1).min(N - 1)]);
         for t in 2..win {
             for (j, v) in inner[..N / 2].iter_mut().enumerate() {
@@ -499,7 +499,7 @@ fn lanes_horizontal<S: Simd, const N: usize>(simd: S, prod: &[S::f32s], dst: &mu
         }
     } else {
         for (i, a) in a.iter_mut().enumerate() {
-            let (lo, own) = if (c + i) % 2 == 0 { (i + 1, i) } else { (i, i + win - 1) };
+            let (lo, own) = if (c + i).is_multiple_of(2) { (i + 1, i) } else { (i, i + win - 1) };
             let mut v = src[lo];
             for t in 1..win - 1 {
                 v = simd.add_f32s(v, src[lo + t]);
@@ -517,7 +517,7 @@ const GH: usize = 4;
 /// the `N + 6` products each loaded once and kept in registers, rather than loaded for each pair.
 #[inline(always)]
 fn lanes_horizontal_7<S: Simd, const N: usize>(simd: S, prod: &[S::f32s], dst: &mut [S::f32s], c: usize) {
-    debug_assert!(c % 2 == 0 && N % 2 == 0);
+    debug_assert!(c.is_multiple_of(2) && N.is_multiple_of(2));
     let src = &prod[c..c + N + 6];
     let mut v = [src[0]; 16];
     v[..N + 6].copy_from_slice(src);

@@ -559,7 +559,7 @@ impl GlueGpu {
     /// Packs `net`'s weights and uploads them (once).
     pub fn new(ctx: Arc<GpuContext>, net: &LighterGlue) -> Result<GlueGpu, GpuError> {
         let packed = Arc::new(net.pack());
-        if packed.d > LANES || packed.d % 2 != 0 {
+        if packed.d > LANES || !packed.d.is_multiple_of(2) {
             return Err(GpuError::Failed {
                 what: "LighterGlue on the device".into(),
                 reason: format!("the kernels take an even descriptor dimension up to {LANES}; the network's is {}", packed.d),

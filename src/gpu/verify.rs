@@ -49,7 +49,7 @@ impl MnnGpu {
         if pairs.is_empty() || dim == 0 {
             return Ok(vec![BestColumns::default(); pairs.len()]);
         }
-        if dim % 4 != 0 || dim / 4 > MAX_WORDS || refs.keypoint_dim() != dim {
+        if !dim.is_multiple_of(4) || dim / 4 > MAX_WORDS || refs.keypoint_dim() != dim {
             return Err(fail(format!(
                 "descriptors of {dim} values (the references' {}); the kernel takes multiples of 4 up to {}",
                 refs.keypoint_dim(),

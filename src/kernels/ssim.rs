@@ -46,7 +46,7 @@ fn box_sums(p: &SsimParams, values: &[f32], rows: &mut [f32], out: &mut [f32]) {
 #[inline(always)]
 pub fn pair_order_sum(j: usize, win: usize, at: impl Fn(usize) -> f32) -> f32 {
     debug_assert!(win >= 2, "pair_order_sum: window {win}");
-    let (lo, own) = if j % 2 == 0 { (j + 1, j) } else { (j, j + win - 1) };
+    let (lo, own) = if j.is_multiple_of(2) { (j + 1, j) } else { (j, j + win - 1) };
     let mut s = at(lo);
     for k in 1..win - 1 {
         s += at(lo + k);

@@ -339,7 +339,7 @@ fn check(m: &Manifest) -> Result<()> {
         return Err(Error::check("appearance vectors but no codebook"));
     }
     if (m.appearance_dim == 0) != (m.appearance_block == 0)
-        || (m.appearance_block > 0 && (m.appearance_dim % m.appearance_block != 0 || m.appearance_dim / m.appearance_block > 256))
+        || (m.appearance_block > 0 && (!m.appearance_dim.is_multiple_of(m.appearance_block) || m.appearance_dim / m.appearance_block > 256))
     {
         return Err(Error::check(format!(
             "appearance vectors of {} values do not split into blocks of {} (at most 256)",

@@ -17,6 +17,7 @@
 //! Positions enter as fractions of the image's long side (what the map stores): the rotary encoding
 //! depends only on differences of positions, so the image's size beyond its long side is not needed.
 
+use super::dense::Dense as Linear;
 use crate::appearance::torch_pt::{read_state_dict, Tensor};
 use crate::descriptors::keypoints::{KeypointsRef, COORD_SCALE};
 use crate::error::{Error, Result};
@@ -54,22 +55,6 @@ impl Default for GlueParams {
 /// One match: keypoint of image 0, keypoint of image 1, assignment probability.
 pub type GlueMatch = (u32, u32, f32);
 
-/// `y = x W^T + b` (PyTorch's `nn.Linear`).
-struct Linear {
-    w: Vec<f32>,
-    b: Vec<f32>,
-    n_in: usize,
-    n_out: usize,
-}
-
-impl Linear {
-    /// `rows` rows of `x` (each `n_in` long) through the layer.
-    fn forward(&self, x: &[f32], rows: usize) -> Vec<f32> {
-        debug_assert_eq!(x.len(), rows * self.n_in);
-        gemm_nt_add(x, &self.w, rows, self.n_out, self.n_in, self.b.repeat(rows))
-    }
-}
-
 /// `Linear -> LayerNorm -> GELU -> Linear` on `[x, message]`, added to `x`.
 struct Ffn {
     l1: Linear,
@@ -82,22 +67,16 @@ impl Ffn {
     /// The block on `[x, out(context)]`, added to `x`: the message (`out`'s product, onto its
     /// bias) written straight into each row's second half.
     fn add_message(&self, out: &Linear, context: &[f32], x: &mut [f32], rows: usize, d: usize) {
-        assert!(out.n_out == d && x.len() == rows * d && context.len() == rows * out.n_in);
-        let mut cat = Vec::with_capacity(rows * 2 * d);
-        for r in 0..rows {
-            cat.extend_from_slice(&x[r * d..(r + 1) * d]);
-            cat.extend_from_slice(&out.b);
+        assert!(out.n_out() == d && x.len() == rows * d);
+        let mut cat = vec![0.0f32; rows * 2 * d];
+        for (c, x) in cat.chunks_exact_mut(2 * d).zip(x.chunks_exact(d)) {
+            c[..d].copy_from_slice(x);
         }
         if rows > 0 {
-            // SAFETY: context is rows x n_in, out.w is d x n_in read transposed, cat holds rows
-            // rows of 2d values whose second halves (rows x d, 2d apart) are written.
-            unsafe {
-                let (k, c) = (out.n_in, cat.as_mut_ptr().add(d));
-                sgemm(rows, k, d, 1.0, context.as_ptr(), k as isize, 1, out.w.as_ptr(), 1, k as isize, 1.0, c, 2 * d as isize, 1)
-            }
+            out.forward_into(context, out.n_in(), rows, &mut cat[d..], 2 * d);
         }
         let mut h = self.l1.forward(&cat, rows);
-        each_row(&mut h, self.l1.n_out, NormGelu(&self.ln_g, &self.ln_b));
+        each_row(&mut h, self.l1.n_out(), NormGelu(&self.ln_g, &self.ln_b));
         let y = self.l2.forward(&h, rows);
         x.iter_mut().zip(&y).for_each(|(a, b)| *a += b);
     }
@@ -157,7 +136,7 @@ impl Weights {
         Ok(t.data.clone())
     }
     fn linear(&self, name: &str, n_in: usize, n_out: usize) -> Result<Linear> {
-        Ok(Linear { w: self.tensor(&format!("{name}.weight"), &[n_out, n_in])?, b: self.tensor(&format!("{name}.bias"), &[n_out])?, n_in, n_out })
+        Ok(Linear::new(self.tensor(&format!("{name}.weight"), &[n_out, n_in])?, self.tensor(&format!("{name}.bias"), &[n_out])?, n_in, n_out))
     }
     fn ffn(&self, name: &str, d: usize) -> Result<Ffn> {
         Ok(Ffn {
@@ -472,10 +451,10 @@ impl LighterGlue {
             at
         };
         let lin = |l: &Linear, put: &mut dyn FnMut(&[f32]) -> u32| PackedLinear {
-            w_off: put(&l.w),
-            b_off: put(&l.b),
-            n_in: l.n_in as u32,
-            n_out: l.n_out as u32,
+            w_off: put(l.weights()),
+            b_off: put(l.bias()),
+            n_in: l.n_in() as u32,
+            n_out: l.n_out() as u32,
         };
         let ffn = |f: &Ffn, put: &mut dyn FnMut(&[f32]) -> u32| PackedFfn {
             l1: lin(&f.l1, put),
@@ -568,21 +547,16 @@ fn apply_rotary(t: &mut [f32], enc: &[f32]) {
 
 /// Two layers on the same input as one: `a`'s outputs, then `b`'s.
 fn stack(a: &Linear, b: &Linear) -> Linear {
-    assert_eq!(a.n_in, b.n_in);
-    Linear { w: [&a.w[..], &b.w].concat(), b: [&a.b[..], &b.b].concat(), n_in: a.n_in, n_out: a.n_out + b.n_out }
+    assert_eq!(a.n_in(), b.n_in());
+    Linear::new([a.weights(), b.weights()].concat(), [a.bias(), b.bias()].concat(), a.n_in(), a.n_out() + b.n_out())
 }
 
 /// `Wqkv` with its output rows reordered from (q, k, v) per dimension to all q, all k, all v.
 fn deinterleave_qkv(l: &Linear) -> Linear {
-    let (d, n_in) = (l.n_out / 3, l.n_in);
+    let (d, n_in, w, b) = (l.n_out() / 3, l.n_in(), l.weights(), l.bias());
     let src = |part: usize, c: usize| 3 * c + part;
     let order: Vec<usize> = (0..3).flat_map(|part| (0..d).map(move |c| src(part, c))).collect();
-    Linear {
-        w: order.iter().flat_map(|&r| l.w[r * n_in..(r + 1) * n_in].iter().copied()).collect(),
-        b: order.iter().map(|&r| l.b[r]).collect(),
-        n_in,
-        n_out: l.n_out,
-    }
+    Linear::new(order.iter().flat_map(|&r| w[r * n_in..(r + 1) * n_in].iter().copied()).collect(), order.iter().map(|&r| b[r]).collect(), n_in, 3 * d)
 }
 
 fn self_block(b: &SelfBlock, s: &mut Side, d: usize) {
@@ -674,16 +648,6 @@ fn product(m: usize, n: usize, write: impl FnOnce(*mut f32)) -> Vec<f32> {
     c
 }
 
-/// `c + a (m x k) b^T` with `b` `n x k` and `c` `m x n`: [`gemm_nt`] onto a start value (a layer's bias).
-fn gemm_nt_add(a: &[f32], b: &[f32], m: usize, n: usize, k: usize, mut c: Vec<f32>) -> Vec<f32> {
-    debug_assert_eq!((a.len(), b.len(), c.len()), (m * k, n * k, m * n));
-    if m > 0 && n > 0 {
-        // SAFETY: a is m x k, b is n x k read transposed, c is m x n, all row-major and in bounds.
-        unsafe { sgemm(m, k, n, 1.0, a.as_ptr(), k as isize, 1, b.as_ptr(), 1, k as isize, 1.0, c.as_mut_ptr(), n as isize, 1) }
-    }
-    c
-}
-
 /// `a (m x k) b (k x n)`: `m x n`, `b`'s rows `ldb` apart (the first `n` values of each).
 fn gemm_nn_strided(a: &[f32], b: &[f32], ldb: usize, m: usize, k: usize, n: usize) -> Vec<f32> {
     assert!(m == 0 || n == 0 || (a.len() >= m * k && n <= ldb && (k == 0 || b.len() >= (k - 1) * ldb + n)));
@@ -754,7 +718,7 @@ impl RowOp for NormGelu<'_> {
 /// each value by the same operations in the same order (sums and maxima by eight lanes whatever
 /// the vector width): the same bits.
 fn each_row(x: &mut [f32], n: usize, op: impl RowOp) {
-    debug_assert!(n > 0 && x.len() % n == 0, "{} values in rows of {n}", x.len());
+    debug_assert!(n > 0 && x.len().is_multiple_of(n), "{} values in rows of {n}", x.len());
     if n == 0 {
         return;
     }

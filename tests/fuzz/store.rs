@@ -262,7 +262,7 @@ pub fn map_manifest() -> Option<Target> {
     let st = Store::new();
     let seeds = st.manifests.clone();
     let run = move |b: &[u8]| match st.restore(b, None) {
-        Ok(()) => use_map(&st.work, &|e| names_map_file(e, &st.work), b.len() % 4 == 0),
+        Ok(()) => use_map(&st.work, &|e| names_map_file(e, &st.work), b.len().is_multiple_of(4)),
         Err(v) => v,
     };
     Some(Target { name: "map_manifest", seeds, fixup: None, quick: 300, run: Box::new(run) })
@@ -408,7 +408,7 @@ pub fn map_codebook() -> Option<Target> {
     let run = move |b: &[u8]| {
         let manifest = st.rehashed(1, CODEBOOK, b);
         match st.restore(&manifest, Some((CODEBOOK, b))) {
-            Ok(()) => use_map(&st.work, &|e| names_file(e, &st.work, CODEBOOK), b.len() % 4 == 0),
+            Ok(()) => use_map(&st.work, &|e| names_file(e, &st.work, CODEBOOK), b.len().is_multiple_of(4)),
             Err(v) => v,
         }
     };

@@ -114,7 +114,7 @@ impl XFeatGpu {
     /// [`XFeat::forward_with`] on the device: the same outputs (descriptors; with `heads`, the
     /// keypoint logits and the reliability, else empty logits and no reliability).
     pub fn forward_with(&self, grey: &Chw, heads: bool) -> Result<NetOutputs, GpuError> {
-        if grey.c != 1 || grey.h % 32 != 0 || grey.w % 32 != 0 || grey.h == 0 || grey.w == 0 || !grey.is_consistent() {
+        if grey.c != 1 || !grey.h.is_multiple_of(32) || !grey.w.is_multiple_of(32) || grey.h == 0 || grey.w == 0 || !grey.is_consistent() {
             return Err(bad(format!("input is {}x{}x{}; it must be 1 x (32k) x (32k)", grey.c, grey.h, grey.w)));
         }
         let ctx = self.ctx.clone();

@@ -12,7 +12,7 @@ use crate::kernels::xfeat as twin;
 /// does not fit is an [`Error::Check`].
 #[doc(hidden)]
 pub fn forward_on_twins(net: &XFeat, grey: &Chw, heads: bool) -> crate::Result<NetOutputs> {
-    if grey.c != 1 || grey.h % 32 != 0 || grey.w % 32 != 0 || grey.h == 0 || grey.w == 0 || !grey.is_consistent() {
+    if grey.c != 1 || !grey.h.is_multiple_of(32) || !grey.w.is_multiple_of(32) || grey.h == 0 || grey.w == 0 || !grey.is_consistent() {
         return Err(Error::check(format!("input is {}x{}x{}; it must be 1 x (32k) x (32k)", grey.c, grey.h, grey.w)));
     }
     let packed = pack(net)?;
