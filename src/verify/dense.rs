@@ -16,6 +16,9 @@ use matrixmultiply::sgemm;
 const PANEL: usize = 32;
 /// Rows of one micro-kernel call (16 accumulators).
 const ROWS: usize = 8;
+/// Depth of one block of k: matrixmultiply's `S_KC` (its products over more are sums of blocks'
+/// partial products, which the kernel adds in the same order).
+const KC: usize = 256;
 
 /// A dense layer: `n_out` x `n_in` weights (PyTorch's layout), bias, and the weights in panels.
 pub struct Dense {
@@ -90,7 +93,7 @@ impl Dense {
         if !self.panels.is_empty() && std::arch::is_x86_feature_detected!("avx512f") {
             // SAFETY: the processor has AVX-512F (checked); x holds rows rows of k values lda
             // apart, y rows of n values ldy apart (asserted), the panels n x k values.
-            return unsafe { kernel::product(x.as_ptr(), lda, rows, &self.panels, &self.b, k, n, y, ldy) };
+            return unsafe { kernel::product(x.as_ptr(), lda, rows, self.panels.as_ptr(), k * PANEL, PANEL, self.b.as_ptr(), k, n, y, ldy) };
         }
         for r in 0..rows {
             // SAFETY: row r's n outputs are within the asserted extent of y.
@@ -101,47 +104,104 @@ impl Dense {
     }
 }
 
+/// `a (rows x k, rows lda apart) b (k x n, rows ldb apart)`: `rows x n`, as matrixmultiply's
+/// `sgemm` gives it (the same bits: the kernel where the processor has AVX-512 and `n` is a
+/// multiple of 32, reading `b` in place; matrixmultiply otherwise).
+pub fn product(a: &[f32], lda: usize, rows: usize, k: usize, b: &[f32], ldb: usize, n: usize) -> Vec<f32> {
+    assert!(rows == 0 || n == 0 || (lda >= k && a.len() >= (rows - 1) * lda + k && ldb >= n && (k == 0 || b.len() >= (k - 1) * ldb + n)));
+    let mut y: Vec<f32> = Vec::with_capacity(rows * n);
+    let out = y.spare_capacity_mut().as_mut_ptr().cast::<f32>();
+    if rows > 0 && n > 0 {
+        #[cfg(target_arch = "x86_64")]
+        let kernel = n % PANEL == 0 && std::arch::is_x86_feature_detected!("avx512f");
+        #[cfg(not(target_arch = "x86_64"))]
+        let kernel = false;
+        if kernel {
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: AVX-512F present (checked); a, b and y within the asserted extents (b's
+            // panel p is columns 32p.. of its rows).
+            unsafe {
+                kernel::product(a.as_ptr(), lda, rows, b.as_ptr(), PANEL, ldb, std::ptr::null(), k, n, out, n)
+            }
+        } else {
+            // SAFETY: as asserted; beta 0 writes every element of C.
+            unsafe { sgemm(rows, k, n, 1.0, a.as_ptr(), lda as isize, 1, b.as_ptr(), ldb as isize, 1, 0.0, out, n as isize, 1) }
+        }
+    }
+    // SAFETY: every one of the rows x n outputs was written above (or there are none).
+    unsafe { y.set_len(rows * n) };
+    y
+}
+
 #[cfg(target_arch = "x86_64")]
 mod kernel {
-    use super::{PANEL, ROWS};
+    use super::{KC, PANEL, ROWS};
     use std::arch::x86_64::*;
 
-    /// Every row block and panel.
+    /// Every row block and panel of `x (rows x k) W`: panel p's row kk (its 32 columns) at
+    /// `w + p * panel_step + kk * row_step`; plus `bias` (32 a panel) where it is not null.
     #[target_feature(enable = "avx512f")]
     #[allow(clippy::too_many_arguments)]
-    pub(super) unsafe fn product(x: *const f32, lda: usize, rows: usize, panels: &[f32], b: &[f32], k: usize, n: usize, y: *mut f32, ldy: usize) {
+    pub(super) unsafe fn product(
+        x: *const f32,
+        lda: usize,
+        rows: usize,
+        w: *const f32,
+        panel_step: usize,
+        row_step: usize,
+        bias: *const f32,
+        k: usize,
+        n: usize,
+        y: *mut f32,
+        ldy: usize,
+    ) {
         for p in 0..n / PANEL {
-            let (w, bias) = (panels.as_ptr().add(p * k * PANEL), b.as_ptr().add(p * PANEL));
+            let (w, bias) = (w.add(p * panel_step), if bias.is_null() { bias } else { bias.add(p * PANEL) });
             let mut r = 0;
             while r + ROWS <= rows {
-                block::<ROWS>(x.add(r * lda), lda, w, bias, k, y.add(r * ldy + p * PANEL), ldy);
+                block::<ROWS>(x.add(r * lda), lda, w, row_step, bias, k, y.add(r * ldy + p * PANEL), ldy);
                 r += ROWS;
             }
             while r < rows {
-                block::<1>(x.add(r * lda), lda, w, bias, k, y.add(r * ldy + p * PANEL), ldy);
+                block::<1>(x.add(r * lda), lda, w, row_step, bias, k, y.add(r * ldy + p * PANEL), ldy);
                 r += 1;
             }
         }
     }
 
-    /// `R` rows by one panel: 2R accumulators over k, then the bias.
+    /// `R` rows by one panel: for each block of `KC` of k, 2R accumulators from zero, added to
+    /// the bias (first block; 0 without one) or to the sum so far.
     #[target_feature(enable = "avx512f")]
     #[inline]
-    unsafe fn block<const R: usize>(x: *const f32, lda: usize, w: *const f32, bias: *const f32, k: usize, y: *mut f32, ldy: usize) {
-        let mut acc = [[_mm512_setzero_ps(); 2]; R];
-        for kk in 0..k {
-            let w0 = _mm512_loadu_ps(w.add(kk * PANEL));
-            let w1 = _mm512_loadu_ps(w.add(kk * PANEL + 16));
-            for (r, a) in acc.iter_mut().enumerate() {
-                let v = _mm512_set1_ps(*x.add(r * lda + kk));
-                a[0] = _mm512_fmadd_ps(v, w0, a[0]);
-                a[1] = _mm512_fmadd_ps(v, w1, a[1]);
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn block<const R: usize>(x: *const f32, lda: usize, w: *const f32, row_step: usize, bias: *const f32, k: usize, y: *mut f32, ldy: usize) {
+        let mut k0 = 0;
+        loop {
+            let k1 = (k0 + KC).min(k);
+            let mut acc = [[_mm512_setzero_ps(); 2]; R];
+            for kk in k0..k1 {
+                let w0 = _mm512_loadu_ps(w.add(kk * row_step));
+                let w1 = _mm512_loadu_ps(w.add(kk * row_step + 16));
+                for (r, a) in acc.iter_mut().enumerate() {
+                    let v = _mm512_set1_ps(*x.add(r * lda + kk));
+                    a[0] = _mm512_fmadd_ps(v, w0, a[0]);
+                    a[1] = _mm512_fmadd_ps(v, w1, a[1]);
+                }
             }
-        }
-        let (b0, b1) = (_mm512_loadu_ps(bias), _mm512_loadu_ps(bias.add(16)));
-        for (r, a) in acc.iter().enumerate() {
-            _mm512_storeu_ps(y.add(r * ldy), _mm512_add_ps(a[0], b0));
-            _mm512_storeu_ps(y.add(r * ldy + 16), _mm512_add_ps(a[1], b1));
+            for (r, a) in acc.iter().enumerate() {
+                let out = y.add(r * ldy);
+                let (c0, c1) = match (k0, bias.is_null()) {
+                    (0, true) => (a[0], a[1]),
+                    (0, false) => (_mm512_add_ps(a[0], _mm512_loadu_ps(bias)), _mm512_add_ps(a[1], _mm512_loadu_ps(bias.add(16)))),
+                    _ => (_mm512_add_ps(a[0], _mm512_loadu_ps(out)), _mm512_add_ps(a[1], _mm512_loadu_ps(out.add(16)))),
+                };
+                _mm512_storeu_ps(out, c0);
+                _mm512_storeu_ps(out.add(16), c1);
+            }
+            if k1 >= k {
+                break;
+            }
+            k0 = k1;
         }
     }
 }
@@ -163,6 +223,42 @@ mod tests {
     /// The kernel (where the processor has AVX-512) and matrixmultiply give the same bits at
     /// every shape the matcher uses and at row counts around the kernel's blocks; outputs within
     /// 1e-5 of the f64 product; `forward_into` leaves the rest of each row alone.
+    /// [`product`] against matrixmultiply at the attention's shapes: depths past one block of
+    /// k (summed in matrixmultiply's order), rows around the kernel's blocks, `b` read in place
+    /// from wider rows; widths that are not a multiple of 32 go to matrixmultiply.
+    #[test]
+    fn products_give_matrixmultiplys_bits() {
+        for (k, n) in [(0, 96), (1, 32), (96, 96), (255, 96), (256, 96), (257, 96), (384, 96), (600, 64), (384, 40)] {
+            for rows in [0, 1, 9, 300] {
+                let (a, b) = (random(rows * k, 5 + k as u64), random((k + 1) * (2 * n + 1), 6));
+                let got = product(&a, k, rows, k, &b[n + 1..], 2 * n + 1, n);
+                let mut want = vec![0.0f32; rows * n];
+                if rows > 0 {
+                    // SAFETY: a is rows x k, b's rows from n + 1 hold n values 2n + 1 apart.
+                    unsafe {
+                        sgemm(
+                            rows,
+                            k,
+                            n,
+                            1.0,
+                            a.as_ptr(),
+                            k as isize,
+                            1,
+                            b[n + 1..].as_ptr(),
+                            (2 * n + 1) as isize,
+                            1,
+                            0.0,
+                            want.as_mut_ptr(),
+                            n as isize,
+                            1,
+                        )
+                    }
+                }
+                assert_eq!(got, want, "{rows} x {k} x {n}");
+            }
+        }
+    }
+
     #[test]
     fn the_kernel_gives_matrixmultiplys_bits() {
         #[cfg(target_arch = "x86_64")]

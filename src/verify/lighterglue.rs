@@ -650,11 +650,7 @@ fn product(m: usize, n: usize, write: impl FnOnce(*mut f32)) -> Vec<f32> {
 
 /// `a (m x k) b (k x n)`: `m x n`, `b`'s rows `ldb` apart (the first `n` values of each).
 fn gemm_nn_strided(a: &[f32], b: &[f32], ldb: usize, m: usize, k: usize, n: usize) -> Vec<f32> {
-    assert!(m == 0 || n == 0 || (a.len() >= m * k && n <= ldb && (k == 0 || b.len() >= (k - 1) * ldb + n)));
-    product(m, n, |c| {
-        // SAFETY: a is m x k row-major, b holds k rows of n values ldb apart (asserted), c is m x n.
-        unsafe { sgemm(m, k, n, 1.0, a.as_ptr(), k as isize, 1, b.as_ptr(), ldb as isize, 1, 0.0, c, n as isize, 1) }
-    })
+    super::dense::product(a, k, m, k, b, ldb, n)
 }
 
 /// `a` (`m x n`, row-major) transposed, by tiles of 16 x 16 (the cache lines of both
