@@ -113,7 +113,7 @@ pub fn product(a: &[f32], lda: usize, rows: usize, k: usize, b: &[f32], ldb: usi
     let out = y.spare_capacity_mut().as_mut_ptr().cast::<f32>();
     if rows > 0 && n > 0 {
         #[cfg(target_arch = "x86_64")]
-        let kernel = n % PANEL == 0 && std::arch::is_x86_feature_detected!("avx512f");
+        let kernel = n.is_multiple_of(PANEL) && std::arch::is_x86_feature_detected!("avx512f");
         #[cfg(not(target_arch = "x86_64"))]
         let kernel = false;
         if kernel {
