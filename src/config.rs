@@ -625,7 +625,7 @@ pub struct VerificationConfig {
     /// only the chosen matcher.
     /// \[R\] 0 (sweep 14: 0.5 with `glue_threshold` 0.7 and `w_inliers` 2 is the best measured
     /// fusion, dev mean R@1 0.864 against 0.852; with `glue_min_inliers` 5 and
-    /// `glue_width_confidence` 0.8 at about 30 times the verification time: sweeps 14b and 14c,
+    /// `glue_width_confidence` 0.8 at about 25 times the verification time: sweeps 14b and 14c,
     /// `configs/verified-lighterglue.toml`).
     pub w_glue: f64,
     /// With `w_glue` > 0: LighterGlue verifies only the pairs whose MNN verification found at
