@@ -105,8 +105,16 @@ fn a_batch_of_pairs_verifies_as_each_pair_alone() {
     let images: Vec<Stored> = (0..3).flat_map(|k| ["image0", "image1"].map(|side| Stored::of(&fx["pairs"][k], side))).collect();
     let cfg = Config::from_toml("[verification]\nmatcher = \"lighterglue\"\nglue_threshold = 0.5\n", "glue.toml").unwrap();
     let p = VerifyParams::new(&cfg.verification);
-    // 13 query indices over the 6 images (index 12: no keypoints), 3 references each, interleaved
-    let q = |a: u32| if a == 12 { KeypointsRef::EMPTY } else { images[a as usize % 6].as_ref() };
+    // 13 query indices over the 6 images, each its own keypoints (indices 6-11 without their
+    // image's last 11; index 12: none), 3 references each, interleaved
+    let q = |a: u32| match a {
+        12 => KeypointsRef::EMPTY,
+        _ => {
+            let k = images[a as usize % 6].as_ref();
+            let n = k.xy.len() / 2 - 11 * (a as usize / 6);
+            KeypointsRef { descriptors: &k.descriptors[..n * 64], xy: &k.xy[..2 * n], classes: &k.classes[..n], dim: 64 }
+        }
+    };
     let r = |b: u32| images[(b as usize + 1) % 6].as_ref();
     let mut pairs: Vec<(u32, u32)> = (0..3).flat_map(|b| (0..13).rev().map(move |a| (a, (a + 2 * b) % 6))).collect();
     pairs.push(pairs[5]);

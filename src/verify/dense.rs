@@ -6,19 +6,36 @@
 //! the inputs read in place. Where the processor lacks AVX-512, or for widths that are not a
 //! multiple of 32, matrixmultiply does the product.
 //!
-//! Each output is `fma(x[k], w[k], acc)` over k in order from 0, then plus its bias: the
-//! arithmetic of matrixmultiply's AVX-512 kernel at these depths (one block of k), so both paths
-//! give the same bits (`tests::the_kernel_gives_matrixmultiplys_bits`).
+//! [`product`] runs the same kernel on a second operand read in place (the attention's weighted
+//! sums of values).
+//!
+//! Each output is `fma(x[k], w[k], acc)` over k in order from 0 within each block of 256 of k,
+//! each block's sum added to the bias (or 0) or to the blocks before: the arithmetic of
+//! matrixmultiply 0.3.11's FMA kernels (AVX2 + FMA, AVX-512), so the paths give the same bits
+//! (`tests::the_kernel_gives_matrixmultiplys_bits`, `tests::products_give_matrixmultiplys_bits`;
+//! Cargo.toml pins the version). Its kernels without FMA round differently: on such processors
+//! results differ from these in the last bits, as they did before this module.
 
 use matrixmultiply::sgemm;
 
 /// Output columns of one panel (two AVX-512 vectors).
 const PANEL: usize = 32;
 /// Rows of one micro-kernel call (16 accumulators).
+#[cfg(target_arch = "x86_64")]
 const ROWS: usize = 8;
 /// Depth of one block of k: matrixmultiply's `S_KC` (its products over more are sums of blocks'
 /// partial products, which the kernel adds in the same order).
+#[cfg(target_arch = "x86_64")]
 const KC: usize = 256;
+
+/// `(rows - 1) ld + n`: the values that `rows` rows of `n`, `ld` apart, span (0 for no rows);
+/// panics on overflow.
+fn extent(rows: usize, ld: usize, n: usize) -> usize {
+    match rows {
+        0 => 0,
+        _ => (rows - 1).checked_mul(ld).and_then(|v| v.checked_add(n)).expect("matrix extent overflows"),
+    }
+}
 
 /// A dense layer: `n_out` x `n_in` weights (PyTorch's layout), bias, and the weights in panels.
 pub struct Dense {
@@ -27,6 +44,7 @@ pub struct Dense {
     n_in: usize,
     n_out: usize,
     /// For each panel of 32 outputs, `n_in` rows of its 32 weights; empty where the kernel is not used.
+    #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
     panels: Vec<f32>,
 }
 
@@ -35,7 +53,7 @@ impl Dense {
     pub fn new(w: Vec<f32>, b: Vec<f32>, n_in: usize, n_out: usize) -> Dense {
         assert_eq!((w.len(), b.len()), (n_out * n_in, n_out));
         let mut panels = Vec::new();
-        if n_out.is_multiple_of(PANEL) && n_in > 0 {
+        if cfg!(target_arch = "x86_64") && n_out.is_multiple_of(PANEL) && n_in > 0 {
             panels.reserve(n_out * n_in);
             for p in 0..n_out / PANEL {
                 for k in 0..n_in {
@@ -68,24 +86,24 @@ impl Dense {
 
     /// `rows` rows of `x` (each `n_in` long) through the layer.
     pub fn forward(&self, x: &[f32], rows: usize) -> Vec<f32> {
-        let mut y = Vec::with_capacity(rows * self.n_out);
-        self.write(x, self.n_in, rows, y.spare_capacity_mut().as_mut_ptr().cast(), self.n_out, rows * self.n_out);
+        let len = extent(rows, self.n_out, self.n_out);
+        let mut y = Vec::with_capacity(len);
+        self.write(x, self.n_in, rows, y.spare_capacity_mut().as_mut_ptr().cast(), self.n_out, len);
         // SAFETY: `write` stored every one of the rows x n_out outputs.
-        unsafe { y.set_len(rows * self.n_out) };
+        unsafe { y.set_len(len) };
         y
     }
 
     /// The layer's outputs for `rows` rows of `x` (`lda` apart) into `y`'s rows (`ldy` apart;
     /// the first `n_out` values of each are written, the rest left as they are).
     pub fn forward_into(&self, x: &[f32], lda: usize, rows: usize, y: &mut [f32], ldy: usize) {
-        assert!(rows == 0 || y.len() >= (rows - 1) * ldy + self.n_out);
         self.write(x, lda, rows, y.as_mut_ptr(), ldy, y.len());
     }
 
     /// Writes the outputs through `y` (`len` values from it may be written).
     fn write(&self, x: &[f32], lda: usize, rows: usize, y: *mut f32, ldy: usize, len: usize) {
         let (k, n) = (self.n_in, self.n_out);
-        assert!(rows == 0 || (lda >= k && x.len() >= (rows - 1) * lda + k && ldy >= n && len >= (rows - 1) * ldy + n));
+        assert!(lda >= k && ldy >= n && x.len() >= extent(rows, lda, k) && len >= extent(rows, ldy, n));
         if rows == 0 || n == 0 {
             return;
         }
@@ -108,8 +126,12 @@ impl Dense {
 /// `sgemm` gives it (the same bits: the kernel where the processor has AVX-512 and `n` is a
 /// multiple of 32, reading `b` in place; matrixmultiply otherwise).
 pub fn product(a: &[f32], lda: usize, rows: usize, k: usize, b: &[f32], ldb: usize, n: usize) -> Vec<f32> {
-    assert!(rows == 0 || n == 0 || (lda >= k && a.len() >= (rows - 1) * lda + k && ldb >= n && (k == 0 || b.len() >= (k - 1) * ldb + n)));
-    let mut y: Vec<f32> = Vec::with_capacity(rows * n);
+    assert!(lda >= k && ldb >= n && a.len() >= extent(rows, lda, k) && b.len() >= extent(k, ldb, n));
+    let len = extent(rows, n, n);
+    if k == 0 {
+        return vec![0.0; len]; // (matrixmultiply's zeros; the kernel would not read b, but address it)
+    }
+    let mut y: Vec<f32> = Vec::with_capacity(len);
     let out = y.spare_capacity_mut().as_mut_ptr().cast::<f32>();
     if rows > 0 && n > 0 {
         #[cfg(target_arch = "x86_64")]
@@ -129,7 +151,7 @@ pub fn product(a: &[f32], lda: usize, rows: usize, k: usize, b: &[f32], ldb: usi
         }
     }
     // SAFETY: every one of the rows x n outputs was written above (or there are none).
-    unsafe { y.set_len(rows * n) };
+    unsafe { y.set_len(len) };
     y
 }
 
@@ -220,9 +242,6 @@ mod tests {
             .collect()
     }
 
-    /// The kernel (where the processor has AVX-512) and matrixmultiply give the same bits at
-    /// every shape the matcher uses and at row counts around the kernel's blocks; outputs within
-    /// 1e-5 of the f64 product; `forward_into` leaves the rest of each row alone.
     /// [`product`] against matrixmultiply at the attention's shapes: depths past one block of
     /// k (summed in matrixmultiply's order), rows around the kernel's blocks, `b` read in place
     /// from wider rows; widths that are not a multiple of 32 go to matrixmultiply.
@@ -259,6 +278,9 @@ mod tests {
         }
     }
 
+    /// The kernel (where the processor has AVX-512) and matrixmultiply give the same bits at
+    /// every shape the matcher uses and at row counts around the kernel's blocks; outputs within
+    /// 1e-5 of the f64 product; `forward_into` leaves the rest of each row alone.
     #[test]
     fn the_kernel_gives_matrixmultiplys_bits() {
         #[cfg(target_arch = "x86_64")]

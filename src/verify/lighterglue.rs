@@ -240,7 +240,8 @@ impl LighterGlue {
     }
 
     /// The network on positions (2 per point, normalised as LightGlue does: the long side spans 2)
-    /// and float descriptors (`input_dim` per point).
+    /// and float descriptors (`input_dim` per point). Inputs of inconsistent lengths (an odd
+    /// number of coordinates, descriptors for another number of points) have no matches.
     pub fn forward(&self, p: &GlueParams, kpts0: &[f32], desc0: &[f32], kpts1: &[f32], desc1: &[f32]) -> Vec<GlueMatch> {
         match (self.side(kpts0, desc0), self.side(kpts1, desc1)) {
             (Some(a), Some(b)) => self.match_prepared(p, &a, &b),
@@ -483,11 +484,12 @@ impl LighterGlue {
     }
 }
 
-/// The points of one image still in the network.
 /// One image's keypoints through the network's steps that see that image alone
-/// ([`LighterGlue::prepare`]): computed once per image, however many pairs it is in.
+/// ([`LighterGlue::prepare`]): computed once per image, however many pairs it is in. Only for
+/// the network that prepared it.
 pub struct GlueSide(Side);
 
+/// The points of one image still in the network.
 #[derive(Clone)]
 struct Side {
     /// `d` values per point.
@@ -719,7 +721,11 @@ fn each_row(x: &mut [f32], n: usize, op: impl RowOp) {
         return;
     }
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx512vl") {
+    if std::arch::is_x86_feature_detected!("avx512f")
+        && std::arch::is_x86_feature_detected!("avx512vl")
+        && std::arch::is_x86_feature_detected!("avx2")
+        && std::arch::is_x86_feature_detected!("fma")
+    {
         // SAFETY: the processor has the features the function is compiled for (checked above).
         return unsafe { rows_avx512(x, n, op) };
     }

@@ -151,8 +151,8 @@ pub fn verify_pairs_cpu<'a>(
     })
 }
 
-/// Queries whose LighterGlue sides are held at once by [`verify_pairs_glue`], a multiple of the
-/// threads (about 0.3 MB each at 384 keypoints).
+/// Queries whose LighterGlue sides are held at once by [`verify_pairs_glue`] (about 0.3 MB each
+/// at 384 keypoints; their pairs are shared among the threads).
 const GLUE_QUERY_BLOCK: usize = 8;
 
 /// Verifies the pairs with the learned matcher `net`, in parallel over pairs: what the network
