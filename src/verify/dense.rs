@@ -157,7 +157,7 @@ pub fn product(a: &[f32], lda: usize, rows: usize, k: usize, b: &[f32], ldb: usi
 
 #[cfg(target_arch = "x86_64")]
 mod kernel {
-    use super::{KC, PANEL, ROWS};
+    use crate::verify::dense::{KC, PANEL, ROWS};
     use std::arch::x86_64::*;
 
     /// Every row block and panel of `x (rows x k) W`: panel p's row kk (its 32 columns) at
