@@ -233,13 +233,8 @@ mod tests {
     use super::*;
 
     fn random(n: usize, seed: u64) -> Vec<f32> {
-        let mut s = seed;
-        (0..n)
-            .map(|_| {
-                s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-                (s >> 40) as f32 / (1u64 << 24) as f32 - 0.5
-            })
-            .collect()
+        let mut g = crate::util::SplitMix64::new(seed);
+        (0..n).map(|_| g.range(-0.5, 0.5) as f32).collect()
     }
 
     /// [`product`] against matrixmultiply at the attention's shapes: depths past one block of

@@ -176,20 +176,11 @@ impl LighterGlue {
         for i in 0..n_layers {
             let s = format!("transformers.{i}.self_attn");
             let c = format!("transformers.{i}.cross_attn");
+            let wqkv = w.linear(&format!("{s}.Wqkv"), d, 3 * d)?;
+            let (to_qk, to_v) = (w.linear(&format!("{c}.to_qk"), d, d)?, w.linear(&format!("{c}.to_v"), d, d)?);
             layers.push((
-                SelfBlock {
-                    wqkv: w.linear(&format!("{s}.Wqkv"), d, 3 * d)?,
-                    qkv: deinterleave_qkv(&w.linear(&format!("{s}.Wqkv"), d, 3 * d)?),
-                    out: w.linear(&format!("{s}.out_proj"), d, d)?,
-                    ffn: w.ffn(&s, d)?,
-                },
-                CrossBlock {
-                    to_qk: w.linear(&format!("{c}.to_qk"), d, d)?,
-                    to_v: w.linear(&format!("{c}.to_v"), d, d)?,
-                    qk_v: stack(&w.linear(&format!("{c}.to_qk"), d, d)?, &w.linear(&format!("{c}.to_v"), d, d)?),
-                    out: w.linear(&format!("{c}.to_out"), d, d)?,
-                    ffn: w.ffn(&c, d)?,
-                },
+                SelfBlock { qkv: deinterleave_qkv(&wqkv), wqkv, out: w.linear(&format!("{s}.out_proj"), d, d)?, ffn: w.ffn(&s, d)? },
+                CrossBlock { qk_v: stack(&to_qk, &to_v), to_qk, to_v, out: w.linear(&format!("{c}.to_out"), d, d)?, ffn: w.ffn(&c, d)? },
             ));
             assignment.push(Assignment {
                 matchability: w.linear(&format!("log_assignment.{i}.matchability"), d, 1)?,
@@ -904,11 +895,8 @@ mod tests {
 
     #[test]
     fn row_operations_give_the_same_bits_on_every_instruction_set() {
-        let mut seed = 11u64;
-        let mut rnd = || {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((seed >> 40) as f32 / (1u64 << 24) as f32 - 0.5) * 40.0
-        };
+        let mut g = crate::util::SplitMix64::new(11);
+        let mut rnd = || g.range(-20.0, 20.0) as f32;
         for n in [1, 7, 8, 9, 31, 96, 192, 383] {
             let x: Vec<f32> = (0..3 * n).map(|_| rnd()).collect();
             let (g, b): (Vec<f32>, Vec<f32>) = (0..n).map(|_| (rnd(), rnd())).unzip();
@@ -932,11 +920,8 @@ mod tests {
 
     #[test]
     fn row_operations_match_their_definitions_at_every_length() {
-        let mut seed = 7u64;
-        let mut rnd = || {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((seed >> 40) as f32 / (1u64 << 24) as f32 - 0.5) * 12.0
-        };
+        let mut g = crate::util::SplitMix64::new(7);
+        let mut rnd = || g.range(-6.0, 6.0) as f32;
         for n in 1..=41 {
             let row: Vec<f32> = (0..n).map(|_| rnd()).collect();
             let max = row.iter().fold(f64::NEG_INFINITY, |m, &v| m.max(v as f64));
