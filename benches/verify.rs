@@ -38,6 +38,7 @@ fn keypoint_set(cfg: &Config, model: &semlook::appearance::AppearanceModel, dir:
             forest,
             appearance: vec![],
             hog: vec![],
+            embedding: vec![],
             keypoints,
             pose: None,
         };

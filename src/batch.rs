@@ -266,7 +266,8 @@ pub fn new_map(cfg: &crate::config::Config, frames: &[FrameSource], dir: &std::p
     train_codebook_skipping(&mut encoder, frames, opts.skip_invalid, opts.quiet)?;
     let hog_dim = if opts.hog { crate::hog::HOG_DIM } else { 0 };
     let dims = crate::map::ColumnDims { appearance: encoder.appearance_dim(), hog: hog_dim, keypoints: encoder.keypoint_dim() };
-    let writer = MapWriter::create(dir, &cfg.encoding(), dims, encoder.appearance_record(), opts.store, opts.resume)?;
+    let writer = MapWriter::create(dir, &cfg.encoding(), dims, encoder.appearance_record(), opts.store, opts.resume)?
+        .with_embedding(encoder.embedding_record())?;
     let writer = if without_labels { writer.without_labels()? } else { writer };
     let writer = match &opts.traversal {
         Some(name) => writer.with_traversal(crate::map::TraversalPlan::Named(name.clone()))?,

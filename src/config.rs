@@ -65,6 +65,7 @@ config_sections! {
         stream: StreamConfig,
         index: IndexConfig,
         eval: EvalConfig,
+        embedding: EmbeddingConfig,
     }
 }
 
@@ -524,6 +525,10 @@ pub struct MatchingConfig {
     /// place survived to the fine stage for 27 % of the landmark queries at K = 20, and
     /// coarse-to-fine lost places that the fine stage alone finds).
     pub coarse: CoarseStage,
+    /// The fused coarse stage adds w_embedding x the cosine of the whole-image embeddings
+    /// (`[embedding]`) where the map and the queries both have them. \[R\] 2 (sweep 16: 1, 2, 3
+    /// and 4 compared on the three real dev sets).
+    pub w_embedding: f64,
 }
 
 /// Which scores the coarse stage of the paper's two-stage settings ranks by.
@@ -538,7 +543,7 @@ pub enum CoarseStage {
 
 impl Default for MatchingConfig {
     fn default() -> Self {
-        MatchingConfig { top_k: 30, tile: 4096, score: ScoreFusion::Fine, w_global: 0.25, coarse: CoarseStage::Fused }
+        MatchingConfig { top_k: 30, tile: 4096, score: ScoreFusion::Fine, w_global: 0.25, coarse: CoarseStage::Fused, w_embedding: 2.0 }
     }
 }
 
@@ -1218,5 +1223,28 @@ mod tests {
         let (field, va, vb) = first_difference(&a, &b).unwrap();
         assert_eq!((field.as_str(), va.as_str(), vb.as_str()), ("global.width", "64", "32"));
         assert!(first_difference(&a, &a).is_none());
+    }
+}
+
+/// The `[embedding]` section: the whole-image embedding a new map stores ([`crate::embedding`]).
+/// Not an encoding section: a map records the network it was built with (its file name and
+/// SHA-256, `map info`) and its queries are embedded with that one, whatever this section says; a
+/// map built without one (or before embeddings) has none, and its fused score no embedding term.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct EmbeddingConfig {
+    /// The ONNX network (a file name looked up in the model folders, or a path), or "none".
+    /// \[R\] `efficientnet_lite1_gem.onnx`, EfficientNet-Lite1's ImageNet weights with GeM pooling,
+    /// converted by `setup.sh` (sweep 16: Lite0, Lite1 and Lite2 compared). Where the default
+    /// network is not installed, maps are built without embeddings and a warning says so; a
+    /// network named here that is missing is an error.
+    pub network: String,
+    /// The image's long side in pixels as the network sees it. \[R\] 448 (sweep 16: 320-640).
+    pub long_side: u32,
+}
+
+impl Default for EmbeddingConfig {
+    fn default() -> Self {
+        EmbeddingConfig { network: crate::models::EMBEDDING_NETWORK.into(), long_side: 448 }
     }
 }

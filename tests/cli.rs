@@ -468,7 +468,15 @@ fn models_lists_what_is_installed_and_where_the_rest_comes_from() {
     let names: Vec<&str> = all.as_array().unwrap().iter().map(|m| m["name"].as_str().unwrap()).collect();
     assert_eq!(
         names,
-        ["xfeat.pt", "xfeat-lighterglue.pt", semlook::onnx::ORT_LIBRARY, "espnetv2_cityscapes.onnx", "espnetv2_s_2.0_city_1024x512.pth"]
+        [
+            "xfeat.pt",
+            "xfeat-lighterglue.pt",
+            semlook::onnx::ORT_LIBRARY,
+            "espnetv2_cityscapes.onnx",
+            "espnetv2_s_2.0_city_1024x512.pth",
+            "efficientnet_lite1_gem.onnx",
+            "efficientnet-lite1-77cc7160.pth"
+        ]
     );
     let xfeat = &all[0];
     assert_eq!(xfeat["path"].as_str().unwrap(), p(&dir.path().join("xfeat.pt")));
@@ -590,13 +598,13 @@ fn models_text_is_aligned_and_says_what_to_do() {
         .unwrap();
     let text = String::from_utf8(out.stdout).unwrap();
     let rows: Vec<&str> = text.lines().filter(|l| ["ok ", "absent ", "MISSING "].iter().any(|s| l.starts_with(s))).collect();
-    assert_eq!(rows.len(), 5, "{text}");
+    assert_eq!(rows.len(), 7, "{text}");
     let third = |l: &str| l[9..].find("  ").map(|i| 9 + i + l[9 + i..].len() - l[9 + i..].trim_start().len());
     let cols: std::collections::HashSet<Option<usize>> = rows.iter().map(|l| third(l)).collect();
     assert_eq!(cols.len(), 1, "columns not aligned:\n{text}");
     assert!(!text.contains("from converted"), "{text}");
     assert!(rows.iter().all(|l| !l.starts_with("ok ")), "{text}");
-    assert_eq!(text.matches("comes from: ").count(), 5, "{text}");
+    assert_eq!(text.matches("comes from: ").count(), 7, "{text}");
     assert!(text.contains("bash setup.sh") && text.contains("encoded without labels"), "{text}");
 }
 

@@ -204,6 +204,8 @@ fn the_pool_reranks_by_the_codes_plus_the_thumbnails_ssim_as_a_brute_force_does(
             at_least: 0,
             w_global: cfg.matching.w_global as f32,
             ssim: &cfg.global,
+            embedding: &[],
+            w_embedding: 0.0,
         };
         let got = m.index_shortlist(&iq, 0..m.len()).unwrap();
         // the brute force: the probed lists' pool by the codes, then codes + w x the twin's SSIM
@@ -302,6 +304,8 @@ fn an_index_without_thumbnails_is_the_index_of_before_them() {
             at_least: 0,
             w_global: cfg.matching.w_global as f32,
             ssim: &cfg.global,
+            embedding: &[],
+            w_embedding: 0.0,
         };
         assert_eq!(m.index_shortlist(&iq, 0..m.len()).unwrap(), before.into_sorted(), "query {i}");
     }

@@ -144,6 +144,7 @@ fn keypoint_set(cfg: &Config, images: &[&Stored]) -> semlook::descriptors::Descr
             forest: semlook::local::Forest { neighbour_slots: cfg.local.neighbours, ..Default::default() },
             appearance: vec![],
             hog: vec![],
+            embedding: vec![],
             keypoints: semlook::descriptors::keypoints::ImageKeypoints {
                 descriptors: s.descriptors.clone(),
                 xy: s.xy.clone(),

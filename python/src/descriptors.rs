@@ -41,6 +41,7 @@ fn columns(d: &DescriptorSet) -> Vec<(&'static str, Vec<usize>)> {
         ("tree_descriptors", vec![t]),
         ("image_appearance", vec![n, d.appearance_dim]),
         ("image_hog", vec![n, d.hog_dim]),
+        ("image_embedding", vec![n, d.embedding_dim]),
         ("keypoint_offsets", vec![n + 1]),
         ("keypoint_descriptors", vec![k, d.keypoint_dim]),
         ("keypoint_xy", vec![k, 2]),
@@ -63,6 +64,7 @@ fn column_view<'py>(owner: Bound<'py, PyAny>, d: &DescriptorSet, name: &str, sha
         "tree_descriptors" => view(owner, &d.tree_descriptors, shape)?.into_any(),
         "image_appearance" => view(owner, &d.image_appearance, shape)?.into_any(),
         "image_hog" => view(owner, &d.image_hog, shape)?.into_any(),
+        "image_embedding" => view(owner, &d.image_embedding, shape)?.into_any(),
         "keypoint_offsets" => view(owner, &d.keypoint_offsets, shape)?.into_any(),
         "keypoint_descriptors" => view(owner, &d.keypoint_descriptors, shape)?.into_any(),
         "keypoint_xy" => view(owner, &d.keypoint_xy, shape)?.into_any(),
@@ -156,10 +158,14 @@ impl PyDescriptors {
             ("appearance_dim", d.appearance_dim),
             ("hog_dim", d.hog_dim),
             ("keypoint_dim", d.keypoint_dim),
+            ("embedding_dim", d.embedding_dim),
         ] {
             out.set_item(k, v)?;
         }
         out.set_item("codebook", d.codebook.clone())?;
+        // what made the embeddings, as JSON (none without embeddings)
+        let rec = d.embedding.as_ref().map(serde_json::to_string).transpose().map_err(|e| invalid("descriptor arrays", e.to_string()))?;
+        out.set_item("embedding_record", rec)?;
         for (name, shape) in columns(&d) {
             out.set_item(name, column_view(slf.clone().into_any(), &d, name, &shape)?)?;
         }
@@ -178,6 +184,8 @@ impl PyDescriptors {
             dim(arrays, "hog_dim")?,
         );
         let kd = dim(arrays, "keypoint_dim")?;
+        // arrays of before embeddings have none
+        let e = if arrays.contains("embedding_dim")? { dim(arrays, "embedding_dim")? } else { 0 };
         let n = ids.len();
         let offsets: Vec<u32> = take_column(arrays, "forest_offsets", &[n + 1])?;
         let t = offsets.last().copied().unwrap_or(0) as usize;
@@ -204,11 +212,20 @@ impl PyDescriptors {
             image_appearance: take_column(arrays, "image_appearance", &[n, a])?,
             hog_dim: h,
             image_hog: take_column(arrays, "image_hog", &[n, h])?,
+            embedding_dim: e,
+            image_embedding: if e > 0 { take_column(arrays, "image_embedding", &[n, e])? } else { vec![] },
             keypoint_dim: kd,
             keypoint_offsets: kp_offsets,
             keypoint_descriptors: take_column(arrays, "keypoint_descriptors", &[k, kd])?,
             keypoint_xy: take_column(arrays, "keypoint_xy", &[k, 2])?,
             keypoint_classes: take_column(arrays, "keypoint_classes", &[k])?,
+            embedding: match arrays.get_item("embedding_record")? {
+                Some(r) if !r.is_none() => {
+                    let text: String = r.extract().map_err(|e| invalid("descriptor arrays[\"embedding_record\"]", format!("not a string: {e}")))?;
+                    Some(serde_json::from_str(&text).map_err(|e| invalid("descriptor arrays[\"embedding_record\"]", e.to_string()))?)
+                }
+                _ => None,
+            },
             // the arrays carry no poses (matching never reads them; a map keeps its own)
             poses: vec![None; n],
             codebook: match arrays.get_item("codebook")? {

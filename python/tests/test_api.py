@@ -22,6 +22,9 @@ def test_descriptor_arrays_round_trip_and_pickle(encoder):
     back = semlook.Descriptors.from_arrays(arrays)
     for name in semlook.Descriptors.columns():
         assert np.array_equal(back.column(name), d.column(name)), name
+    # what made the embeddings travels with them (a set of another network never joins)
+    assert back.to_arrays()["embedding_record"] == arrays["embedding_record"]
+    assert back.to_arrays()["embedding_dim"] == arrays["embedding_dim"]
     p = pickle.loads(pickle.dumps(d))
     assert p.ids == d.ids and np.array_equal(p.globals, d.globals)
     assert not d.globals.flags.writeable

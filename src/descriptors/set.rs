@@ -31,6 +31,9 @@ pub struct EncodedImage {
     pub appearance: Vec<f32>,
     /// VPR-Bench HOG (the `hog` baseline); empty unless the encoder computes it.
     pub hog: Vec<f32>,
+    /// The whole-image embedding ([`crate::embedding`], L2-normalised); empty unless the encoder
+    /// computes it.
+    pub embedding: Vec<f32>,
     /// The verification keypoints (empty when the encoder stores none).
     pub keypoints: ImageKeypoints,
     /// Where the image was taken, when its source gives a pose (a dataset's poses, a pose list):
@@ -80,6 +83,13 @@ pub struct DescriptorSet {
     pub hog_dim: usize,
     /// `hog_dim` values per image (zeros for an image without HOG).
     pub image_hog: Vec<f32>,
+    /// Values per whole-image embedding ([`crate::embedding`]; 0: the set holds none).
+    pub embedding_dim: usize,
+    /// `embedding_dim` values per image (zeros for an image without one).
+    pub image_embedding: Vec<f32>,
+    /// What made the embeddings (the encoder's network; none for a set without embeddings or a
+    /// storage buffer): sets of two networks never join.
+    pub embedding: Option<crate::embedding::EmbeddingRecord>,
     /// Values per verification keypoint descriptor (0: the set holds no keypoints).
     pub keypoint_dim: usize,
     /// `keypoint_offsets[i]..[i + 1]` are image i's keypoints.
@@ -120,6 +130,9 @@ impl DescriptorSet {
             image_appearance: vec![],
             hog_dim,
             image_hog: vec![],
+            embedding_dim: 0,
+            image_embedding: vec![],
+            embedding: None,
             keypoint_dim: 0,
             keypoint_offsets: vec![0],
             keypoint_descriptors: vec![],
@@ -133,6 +146,26 @@ impl DescriptorSet {
     /// The same empty set, its appearance aggregated with the codebook of SHA-256 `codebook`.
     pub fn with_codebook(mut self, codebook: Option<String>) -> Self {
         self.codebook = codebook;
+        self
+    }
+
+    /// The same empty set holding whole-image embeddings of `dim` values each.
+    pub fn with_embedding_dim(mut self, dim: usize) -> Self {
+        self.embedding_dim = dim;
+        self
+    }
+
+    /// The same empty set holding the whole-image embeddings of the network `rec` records (none:
+    /// no embeddings).
+    pub fn with_embedding(mut self, rec: Option<crate::embedding::EmbeddingRecord>) -> Self {
+        self.embedding_dim = rec.as_ref().map_or(0, |r| r.dim);
+        self.embedding = rec;
+        self
+    }
+
+    /// The same empty set with `rec` as what made its embeddings, its width unchanged.
+    fn with_embedding_record(mut self, rec: Option<crate::embedding::EmbeddingRecord>) -> Self {
+        self.embedding = rec;
         self
     }
 
@@ -181,6 +214,14 @@ impl DescriptorSet {
         if !img.hog.is_empty() && img.hog.len() != self.hog_dim {
             return Err(Error::check(format!("image {:?} has a HOG descriptor of {} values, the set {}", img.id, img.hog.len(), self.hog_dim)));
         }
+        if !img.embedding.is_empty() && img.embedding.len() != self.embedding_dim {
+            return Err(Error::check(format!(
+                "image {:?} has an embedding of {} values, the set {}",
+                img.id,
+                img.embedding.len(),
+                self.embedding_dim
+            )));
+        }
         let k = &img.keypoints;
         if !k.is_empty() && (k.dim != self.keypoint_dim || k.descriptors.len() != k.len() * k.dim || k.xy.len() != 2 * k.len()) {
             return Err(Error::check(format!(
@@ -221,6 +262,7 @@ impl DescriptorSet {
         };
         fill(&mut self.image_appearance, &img.appearance, self.appearance_dim);
         fill(&mut self.image_hog, &img.hog, self.hog_dim);
+        fill(&mut self.image_embedding, &img.embedding, self.embedding_dim);
         self.forest_offsets.push(self.tree_classes.len() as u32);
         self.keypoint_descriptors.extend_from_slice(&k.descriptors);
         self.keypoint_xy.extend_from_slice(&k.xy);
@@ -237,7 +279,7 @@ impl DescriptorSet {
     /// Appends images `start..end` of `other` (a set without statistics takes none); fails,
     /// leaving the set unchanged, when the layouts differ or the range is not in `other`.
     pub fn append_range(&mut self, other: &DescriptorSet, start: usize, end: usize) -> Result<()> {
-        let sizes = |s: &DescriptorSet| (s.global_len, s.neighbour_slots, s.appearance_dim, s.hog_dim, s.keypoint_dim);
+        let sizes = |s: &DescriptorSet| (s.global_len, s.neighbour_slots, s.appearance_dim, s.hog_dim, s.keypoint_dim, s.embedding_dim);
         if self.appearance_dim > 0 && self.codebook != other.codebook {
             return Err(Error::check(format!(
                 "images aggregated with another VLAD codebook (sha256 {}) do not join a set of sha256 {}",
@@ -245,9 +287,17 @@ impl DescriptorSet {
                 self.codebook.as_deref().unwrap_or("none")
             )));
         }
+        if let (Some(a), Some(b)) = (&self.embedding, &other.embedding) {
+            if a != b {
+                return Err(Error::check(format!(
+                    "images embedded by another network ({}, sha256 {}) do not join a set of {} (sha256 {})",
+                    b.network, b.sha256, a.network, a.sha256
+                )));
+            }
+        }
         if sizes(self) != sizes(other) || (self.stats_len != 0 && self.stats_len != other.stats_len) {
             return Err(Error::check(format!(
-                "images with (global values, neighbour slots, appearance dim, HOG dim, keypoint dim, statistics) {:?} / {} do not join a set of {:?} / {}",
+                "images with (global values, neighbour slots, appearance dim, HOG dim, keypoint dim, embedding dim, statistics) {:?} / {} do not join a set of {:?} / {}",
                 sizes(other),
                 other.stats_len,
                 sizes(self),
@@ -282,6 +332,8 @@ impl DescriptorSet {
         self.tree_descriptors.extend_from_slice(&other.tree_descriptors[a..b]);
         self.image_appearance.extend_from_slice(&other.image_appearance[start * d..end * d]);
         self.image_hog.extend_from_slice(&other.image_hog[start * h..end * h]);
+        let e = self.embedding_dim;
+        self.image_embedding.extend_from_slice(&other.image_embedding[start * e..end * e]);
         let (ka, kb, kd) = (other.keypoint_offsets[start] as usize, other.keypoint_offsets[end] as usize, self.keypoint_dim);
         let kbase = self.n_keypoints() as u32;
         self.keypoint_offsets.extend(other.keypoint_offsets[start + 1..=end].iter().map(|o| o - ka as u32 + kbase));
@@ -306,6 +358,8 @@ impl DescriptorSet {
             ..DescriptorSet::new(&bytemuck::Zeroable::zeroed(), self.neighbour_slots, self.appearance_dim, self.hog_dim)
         }
         .with_keypoint_dim(self.keypoint_dim)
+        .with_embedding_dim(self.embedding_dim)
+        .with_embedding_record(self.embedding.clone())
         .with_codebook(self.codebook.clone())
     }
 
@@ -324,6 +378,10 @@ impl DescriptorSet {
     /// The HOG descriptor of image i (empty when the set holds none).
     pub fn image_hog(&self, i: usize) -> &[f32] {
         &self.image_hog[i * self.hog_dim..(i + 1) * self.hog_dim]
+    }
+    /// The whole-image embedding of image i (empty when the set holds none).
+    pub fn image_embedding(&self, i: usize) -> &[f32] {
+        &self.image_embedding[i * self.embedding_dim..(i + 1) * self.embedding_dim]
     }
     /// The verification keypoints of image i.
     pub fn keypoints(&self, i: usize) -> KeypointsRef<'_> {
@@ -368,7 +426,7 @@ impl DescriptorSet {
         }
         let p = ko[n] as usize;
         let (s, d) = (self.neighbour_slots, self.appearance_dim);
-        let columns: [(&str, usize, usize); 17] = [
+        let columns: [(&str, usize, usize); 18] = [
             ("sizes", self.sizes.len(), n),
             ("poses", self.poses.len(), n),
             ("globals", self.globals.len(), n * self.global_len),
@@ -382,11 +440,15 @@ impl DescriptorSet {
             ("tree_descriptors", self.tree_descriptors.len(), t),
             ("image_appearance", self.image_appearance.len(), d * n),
             ("image_hog", self.image_hog.len(), self.hog_dim * n),
+            ("image_embedding", self.image_embedding.len(), self.embedding_dim * n),
             ("keypoint_descriptors", self.keypoint_descriptors.len(), self.keypoint_dim * p),
             ("keypoint_xy", self.keypoint_xy.len(), 2 * p),
             ("keypoint_classes", self.keypoint_classes.len(), p),
             ("global_len", self.global_len.min(1), 1),
         ];
+        if let Some(r) = self.embedding.as_ref().filter(|r| r.dim != self.embedding_dim) {
+            return Err(Error::check(format!("embedding_dim {} but the embedding network {} gives {} values", self.embedding_dim, r.network, r.dim)));
+        }
         match columns.iter().find(|(_, got, want)| got != want) {
             Some((name, got, want)) => Err(Error::check(format!("{name}: {got} values, the layout needs {want}"))),
             None => Ok(()),
@@ -406,6 +468,7 @@ impl DescriptorSet {
             n_classes,
             store,
         )?;
+        crate::descriptors::validate::embedding(&self.ids[i], self.image_embedding(i))?;
         crate::descriptors::validate::keypoints(self.keypoints(i), n_classes)?;
         self.poses.get(i).copied().flatten().map_or(Ok(()), |p| crate::descriptors::validate::pose_row(&p.to_row()))
     }
@@ -428,6 +491,7 @@ mod tests {
                 forest,
                 appearance: vec![],
                 hog: vec![1.0; hog_dim],
+                embedding: vec![],
                 keypoints: Default::default(),
                 pose: None,
             };

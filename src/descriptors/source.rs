@@ -154,6 +154,14 @@ pub trait RefSource: GlobalSource {
     fn hog_dim(&self) -> usize;
     /// The HOG descriptor of reference i (`hog_dim` values).
     fn image_hog(&self, i: usize) -> &[f32];
+    /// Values per whole-image embedding (0: the source holds none).
+    fn embedding_dim(&self) -> usize {
+        0
+    }
+    /// The whole-image embedding of reference i (`embedding_dim` values).
+    fn image_embedding(&self, _i: usize) -> &[f32] {
+        &[]
+    }
     /// Values per verification keypoint descriptor (0: the source stores no keypoints).
     fn keypoint_dim(&self) -> usize;
     /// The verification keypoints of reference i.
@@ -219,6 +227,12 @@ impl RefSource for DescriptorSet {
     }
     fn image_hog(&self, i: usize) -> &[f32] {
         DescriptorSet::image_hog(self, i)
+    }
+    fn embedding_dim(&self) -> usize {
+        self.embedding_dim
+    }
+    fn image_embedding(&self, i: usize) -> &[f32] {
+        DescriptorSet::image_embedding(self, i)
     }
     fn keypoint_dim(&self) -> usize {
         self.keypoint_dim
@@ -293,6 +307,12 @@ impl RefSource for Window<'_> {
     }
     fn image_hog(&self, i: usize) -> &[f32] {
         self.inner.image_hog(self.start + i)
+    }
+    fn embedding_dim(&self) -> usize {
+        self.inner.embedding_dim()
+    }
+    fn image_embedding(&self, i: usize) -> &[f32] {
+        self.inner.image_embedding(self.start + i)
     }
     fn keypoint_dim(&self) -> usize {
         self.inner.keypoint_dim()

@@ -96,6 +96,24 @@ pub fn image(
     Ok(())
 }
 
+/// Checks an image's whole-image embedding (`id` names the image): finite values of length 1
+/// (the network's output is L2-normalised) or none; a longer one would outscore every true match.
+pub fn embedding(id_: &str, e: &[f32]) -> Result<()> {
+    if e.is_empty() {
+        return Ok(());
+    }
+    if e.iter().any(|x| !x.is_finite()) {
+        return Err(Error::check(format!("image {id_:?}: an embedding value is NaN or infinite")));
+    }
+    let n = e.iter().map(|x| x * x).sum::<f32>().sqrt();
+    if n > MAX_APPEARANCE_NORM {
+        return Err(Error::check(format!(
+            "image {id_:?}: the embedding has length {n}; the encoder's have length 1 (at most {MAX_APPEARANCE_NORM})"
+        )));
+    }
+    Ok(())
+}
+
 /// Checks an image's verification keypoints: as many positions, classes and descriptor values as
 /// keypoints, classes in the table (or void), and descriptors no int8 rounding of a unit vector
 /// exceeds (every value above -128, the vector's norm at most 1.01 x the scale).

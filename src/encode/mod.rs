@@ -69,6 +69,9 @@ pub struct Encoder {
     frames: FrameLoader,
     global: GlobalStage,
     appearance: Option<AppearanceEncoder>,
+    /// The whole-image embedding network (none: `embedding.network = "none"`, not installed, or
+    /// appearance off, which loads no RGB image).
+    embedder: Option<std::sync::Arc<crate::embedding::Embedder>>,
 }
 
 impl Encoder {
@@ -79,7 +82,11 @@ impl Encoder {
             .map(|m| AppearanceEncoder::new(m, &cfg.appearance, &cfg.keypoints).ignoring(&table))
             .transpose()?;
         let global = GlobalStage { cfg: cfg.global.clone(), used: table.used_mask(), ssim: SsimParams::new(&cfg.global) };
-        Ok(Encoder { frames: FrameLoader::new(cfg, &table, appearance.is_some())?, global, table, cfg: cfg.encoding(), appearance })
+        let embedder = match appearance.is_some() {
+            true => crate::embedding::from_config(&cfg.embedding, &cfg.models)?.map(std::sync::Arc::new),
+            false => None,
+        };
+        Ok(Encoder { frames: FrameLoader::new(cfg, &table, appearance.is_some())?, global, table, cfg: cfg.encoding(), appearance, embedder })
     }
     /// Whether the encoder also computes the HOG baseline (VPR-Bench's, [`crate::hog`]).
     pub fn with_hog(mut self, hog: bool) -> Encoder {
@@ -119,6 +126,15 @@ impl Encoder {
         if let Some(cb) = map.codebook() {
             enc.set_codebook(cb.clone());
         }
+        // the map's embedding network, whatever `[embedding]` says: the one that made its embeddings
+        enc.embedder = match (&map.manifest.embedding, enc.embedder.take()) {
+            (None, _) => None,
+            (Some(rec), Some(e)) if e.sha256() == rec.sha256 && e.long_side() == rec.long_side => Some(e),
+            (Some(_), _) if enc.appearance.is_none() => {
+                return Err(Error::invalid(format!("map {}", map.path.display()), "the map's embeddings need appearance on"))
+            }
+            (Some(rec), _) => Some(std::sync::Arc::new(crate::embedding::for_record(rec, &cfg.models)?)),
+        };
         // a map built without labels takes its frames without labels too
         Ok(enc.without_labels(map.manifest.without_labels))
     }
@@ -170,6 +186,20 @@ impl Encoder {
     pub fn appearance_dim(&self) -> usize {
         self.appearance.as_ref().map_or(0, |a| a.dim())
     }
+    /// The whole-image embedding network (none when the encoder makes no embeddings).
+    pub fn embedder(&self) -> Option<&crate::embedding::Embedder> {
+        self.embedder.as_deref()
+    }
+    /// What a new map records of the embedding network (none without one).
+    pub fn embedding_record(&self) -> Option<crate::embedding::EmbeddingRecord> {
+        let e = self.embedder.as_ref()?;
+        let network = e.path().file_name().map_or_else(|| e.path().display().to_string(), |n| n.to_string_lossy().into_owned());
+        Some(crate::embedding::EmbeddingRecord { network, sha256: e.sha256().into(), dim: e.dim(), long_side: e.long_side() })
+    }
+    /// Values per whole-image embedding (0 without an embedding network).
+    pub fn embedding_dim(&self) -> usize {
+        self.embedder.as_ref().map_or(0, |e| e.dim())
+    }
     /// Values per stored verification keypoint descriptor (0 when none are stored).
     pub fn keypoint_dim(&self) -> usize {
         self.appearance.as_ref().map_or(0, |a| a.keypoint_dim())
@@ -180,6 +210,7 @@ impl Encoder {
         let codebook = self.codebook().filter(|_| self.appearance_dim() > 0).and_then(|c| c.sha256().ok());
         crate::descriptors::DescriptorSet::new(&self.global.ssim, self.cfg.local.neighbours, self.appearance_dim(), hog)
             .with_keypoint_dim(self.keypoint_dim())
+            .with_embedding(self.embedding_record())
             .with_codebook(codebook)
     }
 

@@ -60,6 +60,15 @@ impl Encoder {
             (Some(_), None) => return Err(Error::invalid(format!("frame {id:?}"), "appearance needs the RGB image")),
             _ => (None, Default::default()),
         };
+        let embedding = match (&self.embedder, &loaded.rgb) {
+            (Some(e), Some(rgb)) => {
+                let t = Instant::now();
+                let v = e.embed(rgb).map_err(|err| err.named(|r| Error::invalid(format!("frame {id:?}"), r)))?;
+                times.embedding_ms = ms_since(t);
+                v
+            }
+            _ => vec![],
+        };
         let (width, height) = loaded.source_size;
         let hog = loaded.hog.clone().unwrap_or_default();
         let image = EncodedImage {
@@ -71,6 +80,7 @@ impl Encoder {
             forest,
             appearance: vec![],
             hog,
+            embedding,
             keypoints: verification,
             pose: None,
         };

@@ -261,6 +261,7 @@ mod tests {
                 forest: f,
                 appearance: vec![0.0; dim],
                 hog: vec![],
+                embedding: vec![],
                 keypoints: Default::default(),
                 pose: None,
             };

@@ -142,11 +142,11 @@ impl Stages for GpuStages {
         refs: &dyn RefSource,
         queries: &DescriptorSet,
         p: &SsimParams,
-        w_global: f32,
+        w: crate::matching::FusedWeights,
         k: usize,
         tile: usize,
     ) -> Result<Vec<Vec<(f32, u32)>>> {
-        CpuStages.fused_coarse(refs, queries, p, w_global, k, tile)
+        CpuStages.fused_coarse(refs, queries, p, w, k, tile)
     }
     /// Mutual nearest neighbours (`mnn_match`) or LighterGlue (`lighterglue.wgsl`) on the GPU,
     /// RANSAC on the CPU.

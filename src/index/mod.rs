@@ -185,6 +185,10 @@ pub struct IndexQuery<'a> {
     pub w_global: f32,
     /// The coarse stage's SSIM constants.
     pub ssim: &'a crate::config::GlobalConfig,
+    /// The query's whole-image embedding (empty without one).
+    pub embedding: &'a [f32],
+    /// The fused score's weight of the embeddings' cosine (0: no embedding term).
+    pub w_embedding: f32,
 }
 
 #[cfg(test)]

@@ -85,7 +85,7 @@ pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
     let layout = layout_of(&old, ClassTable::from_config(&old.config.classes)?.len());
     let small = |e: &SegmentEntry| e.live() * 2 < opts.segment_images && (e.bytes as usize) * 2 < opts.segment_bytes;
     let mut out: Vec<SegmentEntry> = Vec::new();
-    let mut buf = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog).with_keypoint_dim(layout.kdim);
+    let mut buf = layout.storage_set();
     let mut run: Vec<&SegmentEntry> = Vec::new();
     let model = std::cell::RefCell::new(None);
     let flush = |buf: &mut DescriptorSet, out: &mut Vec<SegmentEntry>, traversal: u32| -> Result<()> {

@@ -106,7 +106,17 @@ impl Map {
             )
             .flatten()
             .collect();
-        let scored = pooled.iter().zip(&ssim).map(|(&(a, r), &s)| (a + q.w_global * s, r));
+        // the embedding term of the fused score, exact (a dot product per pooled reference)
+        let emb = |r: u32| -> f32 {
+            match q.w_embedding {
+                0.0 => 0.0,
+                w => {
+                    w * crate::values::Values::F32(q.embedding)
+                        .dot(&crate::values::Values::F32(crate::descriptors::source::RefSource::image_embedding(self, r as usize)))
+                }
+            }
+        };
+        let scored = pooled.iter().zip(&ssim).map(|(&(a, r), &s)| (a + q.w_global * s + emb(r), r));
         let mut best = Shortlist::new(shortlist);
         for (x, r) in scored {
             best.offer(x, r);

@@ -177,6 +177,11 @@ pub struct Manifest {
     /// without one, so their checksums are those of before the field existed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub index: Option<IndexEntry>,
+    /// The network that made the images' whole-image embeddings ([`crate::embedding`]); queries
+    /// are embedded by the same file (same SHA-256). Absent in maps without embeddings (and in
+    /// those built before them), so their checksums are those of before the field existed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub embedding: Option<crate::embedding::EmbeddingRecord>,
     /// SHA-256 of this manifest's content ([`Manifest::content_sha256`]): an edit by hand or a
     /// damaged byte anywhere in the file (a removed row, a config value, a model hash) is refused
     /// at open, never served.

@@ -31,6 +31,7 @@ pub mod segment;
 pub mod shard;
 pub mod writer;
 
+pub use crate::embedding::EmbeddingRecord;
 pub use manifest::{Manifest, SegmentEntry, FORMAT, VERSION};
 pub use writer::{ColumnDims, MapWriter, StoreOptions, TraversalPlan};
 
@@ -212,6 +213,7 @@ impl Map {
         let l = self.layout();
         let mut set = DescriptorSet::for_storage(l.global_len(), l.slots, l.dim, l.hog)
             .with_keypoint_dim(l.kdim)
+            .with_embedding(self.manifest.embedding.clone())
             .with_codebook(self.manifest.codebook.as_ref().map(|c| c.sha256.clone()));
         for (s, seg) in self.segments.iter().enumerate() {
             for j in self.live_rows(s) {
@@ -265,6 +267,7 @@ pub(crate) fn layout_of(m: &Manifest, n_classes: usize) -> Layout {
         dim: m.appearance_dim,
         hog: m.hog_dim,
         kdim: m.keypoint_dim,
+        emb: m.embedding.as_ref().map_or(0, |e| e.dim),
         block: m.appearance_block,
         values: m.values,
         n_classes,
@@ -426,6 +429,13 @@ impl RefSource for Map {
     }
     fn keypoint_dim(&self) -> usize {
         self.manifest.keypoint_dim
+    }
+    fn embedding_dim(&self) -> usize {
+        self.layout().emb
+    }
+    fn image_embedding(&self, i: usize) -> &[f32] {
+        let (s, j) = self.locate(i);
+        self.sound(s).map_or(&[], |seg| seg.image_embedding(j))
     }
     fn keypoints(&self, i: usize) -> KeypointsRef<'_> {
         let (s, j) = self.locate(i);

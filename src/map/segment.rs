@@ -47,6 +47,8 @@ pub struct Layout {
     pub hog: usize,
     /// Values per verification keypoint descriptor (0: none stored).
     pub kdim: usize,
+    /// Values per whole-image embedding (0: none stored).
+    pub emb: usize,
     /// Values per stored appearance block (the keypoint network's descriptor width; 0 without
     /// appearance).
     pub block: usize,
@@ -63,7 +65,7 @@ impl Layout {
     }
     /// Bytes of one image without its trees, at most (every appearance block stored).
     pub fn image_bytes(&self) -> usize {
-        self.global_len() * self.values.bytes() + self.appearance_bytes() + self.hog * 4 + 2 * 4 + 2 * 4 + 4
+        self.global_len() * self.values.bytes() + self.appearance_bytes() + self.hog * 4 + self.emb * 4 + 2 * 4 + 2 * 4 + 4
     }
     /// Bytes of one tree, at most.
     pub fn tree_bytes(&self) -> usize {
@@ -79,6 +81,10 @@ impl Layout {
     /// Bytes of one verification keypoint.
     pub fn keypoint_bytes(&self) -> usize {
         self.kdim + 4 + 1
+    }
+    /// An empty set of this layout without SSIM statistics: the buffer of a segment being written.
+    pub fn storage_set(&self) -> DescriptorSet {
+        DescriptorSet::for_storage(self.global_len(), self.slots, self.dim, self.hog).with_keypoint_dim(self.kdim).with_embedding_dim(self.emb)
     }
 }
 
@@ -139,6 +145,10 @@ pub fn to_bytes(set: &DescriptorSet, layout: &Layout) -> Result<Vec<u8>> {
     if !poses.is_empty() {
         parts.push(("place_pose", Dtype::F64, vec![n, 7], bytemuck::cast_slice(&poses)));
     }
+    // embeddings only in maps that have them, so maps without keep the bytes of before
+    if layout.emb > 0 {
+        parts.push(("image_embedding", Dtype::F32, vec![n, layout.emb], bytemuck::cast_slice(&set.image_embedding)));
+    }
     let tensors = parts
         .into_iter()
         .map(|(name, dtype, shape, bytes)| {
@@ -190,6 +200,8 @@ struct Ranges {
     keypoint_class: Range<usize>,
     /// Absent in segments without poses.
     place_pose: Option<Range<usize>>,
+    /// Empty in maps without embeddings.
+    image_embedding: Range<usize>,
 }
 
 /// The four tensors of a column of appearance blocks.
@@ -362,6 +374,7 @@ impl Mapped {
             ("tree appearance", blocks(&r.tree_blocks)),
             ("verification keypoints", len(&[&r.keypoint_offsets, &r.keypoint_descriptors, &r.keypoint_xy, &r.keypoint_class])),
             ("hog", len(&[&r.image_hog])),
+            ("embedding", len(&[&r.image_embedding])),
             ("ids and sizes", len(&[&r.id_bytes, &r.id_offsets, &r.image_size])),
         ];
         if let Some(p) = &r.place_pose {
@@ -402,6 +415,11 @@ impl Mapped {
     pub fn image_hog(&self, j: usize) -> &[f32] {
         let h = self.layout.hog;
         &self.f32s(&self.r.image_hog)[j * h..(j + 1) * h]
+    }
+    /// The whole-image embedding of row `j` (empty when the map stores none).
+    pub fn image_embedding(&self, j: usize) -> &[f32] {
+        let e = self.layout.emb;
+        &self.f32s(&self.r.image_embedding)[j * e..(j + 1) * e]
     }
 
     /// Checks the SHA-256 against the manifest, then every value (offsets, ids, and each image
@@ -465,6 +483,7 @@ impl Mapped {
                 self.layout.values,
             )
             .and_then(|()| validate::keypoints(self.keypoints(j), self.layout.n_classes))
+            .and_then(|()| validate::embedding(id, self.image_embedding(j)))
             .map_err(|r| Error::check(format!("image {id:?}: {r}")))?;
             if let Some(r) = &self.r.place_pose {
                 let rows: &[f64] = bytemuck::cast_slice(self.raw(r));
@@ -503,6 +522,7 @@ impl Mapped {
         set.tree_descriptors.extend_from_slice(f.descriptors);
         self.image_appearance(j).extend_into(&mut set.image_appearance);
         set.image_hog.extend_from_slice(self.image_hog(j));
+        set.image_embedding.extend_from_slice(self.image_embedding(j));
         set.forest_offsets.push(set.tree_classes.len() as u32);
         let k = self.keypoints(j);
         set.keypoint_descriptors.extend_from_slice(k.descriptors);
@@ -566,6 +586,10 @@ fn ranges(bytes: &[u8], entry: &SegmentEntry, l: &Layout) -> Result<Ranges> {
         place_pose: match meta.info("place_pose") {
             None => None,
             Some(_) => Some(get("place_pose", Dtype::F64, &[Some(n), Some(7)])?),
+        },
+        image_embedding: match l.emb {
+            0 => 0..0,
+            e => get("image_embedding", Dtype::F32, &[Some(n), Some(e)])?,
         },
     })
 }

@@ -138,6 +138,7 @@ mod tests {
             without_labels: false,
             traversals: vec![],
             index: None,
+            embedding: None,
             checksum: String::new(),
         }
     }

@@ -150,10 +150,11 @@ impl MapWriter {
             without_labels: false,
             traversals: vec![],
             index: None,
+            embedding: None,
             checksum: String::new(),
         };
         let layout = super::layout_of(&manifest, n_classes);
-        let pending = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog).with_keypoint_dim(layout.kdim);
+        let pending = layout.storage_set();
         Ok(MapWriter {
             dir: dir.into(),
             layout,
@@ -225,6 +226,21 @@ impl MapWriter {
         Ok(self)
     }
 
+    /// A new map whose images carry whole-image embeddings made by the network `rec` records
+    /// (none: without embeddings). Only before the first commit.
+    pub fn with_embedding(mut self, rec: Option<super::EmbeddingRecord>) -> Result<MapWriter> {
+        if self.first.is_none() {
+            return Err(Error::invalid(format!("map {}", self.dir.display()), "a stored map's embeddings cannot be changed"));
+        }
+        if rec.as_ref().is_some_and(|r| r.dim == 0) {
+            return Err(Error::invalid(format!("map {}", self.dir.display()), "an embedding network of width 0"));
+        }
+        self.manifest.embedding = rec;
+        self.layout.emb = self.manifest.embedding.as_ref().map_or(0, |e| e.dim);
+        self.pending = self.layout.storage_set();
+        Ok(self)
+    }
+
     /// Fails unless a new map may be created in `dir`: it does not exist, or is empty, or (with
     /// `resume`) holds only files an interrupted build left and no manifest.
     pub fn check_new_dir(dir: &Path, resume: bool) -> Result<()> {
@@ -255,7 +271,7 @@ impl MapWriter {
         super::with_current_manifest(dir, |manifest| {
             let n_classes = ClassTable::from_config(&manifest.config.classes)?.len();
             let layout = super::layout_of(&manifest, n_classes);
-            let pending = DescriptorSet::for_storage(layout.global_len(), layout.slots, layout.dim, layout.hog).with_keypoint_dim(layout.kdim);
+            let pending = layout.storage_set();
             let mut w = MapWriter {
                 dir: dir.into(),
                 layout,
@@ -362,6 +378,11 @@ impl MapWriter {
         let app = if img.appearance.is_empty() { Values::F32(&[]) } else { Values::F32(&img.appearance) };
         validate::image(&img.id, [img.width, img.height], Values::F32(&img.global), f, app, &img.hog, self.layout.n_classes, self.opts.values)
             .and_then(|()| validate::keypoints(img.keypoints.as_ref(), self.layout.n_classes))
+            .and_then(|()| validate::embedding(&img.id, &img.embedding))
+            .and_then(|()| match img.embedding.len() == self.layout.emb {
+                true => Ok(()),
+                false => Err(Error::check(format!("an embedding of {} values, the map's have {}", img.embedding.len(), self.layout.emb))),
+            })
             .and_then(|()| img.pose.map_or(Ok(()), |p| validate::pose_row(&p.to_row())))
             .map_err(|e| e.named(|reason| Error::InvalidImage { id: img.id.clone(), reason }))?;
         if self.contains(&img.id) {
@@ -381,12 +402,13 @@ impl MapWriter {
             || set.appearance_dim != l.dim
             || set.hog_dim != l.hog
             || set.keypoint_dim != l.kdim
+            || set.embedding_dim != l.emb
         {
             return Err(Error::invalid(
                 format!("map {}", self.dir.display()),
                 format!(
-                    "new images have {} global values / {} neighbour slots / appearance dim {} / HOG dim {} / keypoint dim {}, the map {} / {} / {} / {} / {}",
-                    set.global_len, set.neighbour_slots, set.appearance_dim, set.hog_dim, set.keypoint_dim, l.global_len(), l.slots, l.dim, l.hog, l.kdim
+                    "new images have {} global values / {} neighbour slots / appearance dim {} / HOG dim {} / keypoint dim {} / embedding dim {}, the map {} / {} / {} / {} / {} / {}",
+                    set.global_len, set.neighbour_slots, set.appearance_dim, set.hog_dim, set.keypoint_dim, set.embedding_dim, l.global_len(), l.slots, l.dim, l.hog, l.kdim, l.emb
                 ),
             ));
         }
@@ -404,6 +426,19 @@ impl MapWriter {
                 map_value: show(&map_codebook),
                 given_value: show(&set.codebook),
             });
+        }
+        if let (Some(given), Some(map)) = (&set.embedding, &self.manifest.embedding) {
+            if given != map {
+                let show = |r: &crate::embedding::EmbeddingRecord| {
+                    format!("{} sha256 {} ({} values, long side {})", r.network, r.sha256, r.dim, r.long_side)
+                };
+                return Err(Error::IncompatibleConfig {
+                    map: self.dir.clone(),
+                    field: "embedding network".into(),
+                    map_value: show(map),
+                    given_value: show(given),
+                });
+            }
         }
         let mut ids = HashMap::new();
         for i in 0..set.len() {
@@ -554,7 +589,8 @@ impl Map {
             appearance,
             opts,
             false,
-        )?;
+        )?
+        .with_embedding(set.embedding.clone())?;
         w.push_set(set)?;
         w.finish()
     }

@@ -23,6 +23,7 @@ fn set(p: &SsimParams, n: usize, pool: usize, rng: &mut SplitMix64) -> Descripto
             forest: crate::local::Forest { neighbour_slots: 1, ..Default::default() },
             appearance: vec![],
             hog: vec![],
+            embedding: vec![],
             keypoints: Default::default(),
             pose: None,
         })

@@ -81,13 +81,14 @@ pub trait Stages {
     fn fine_pairs(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<f32>>;
     /// For each query, the `k` best references of the whole map by tree-set similarity.
     fn fine_topk(&mut self, p: &TreeSimParams, refs: &dyn RefSource, queries: &DescriptorSet, k: usize, tile: usize) -> Result<Vec<Vec<(f32, u32)>>>;
-    /// For each query, the `k` best references by cos(appearance) + `w_global` x SSIM.
+    /// For each query, the `k` best references by cos(appearance) + `w.embedding` x
+    /// cos(embeddings) + `w.global` x SSIM.
     fn fused_coarse(
         &mut self,
         refs: &dyn RefSource,
         queries: &DescriptorSet,
         p: &SsimParams,
-        w_global: f32,
+        w: FusedWeights,
         k: usize,
         tile: usize,
     ) -> Result<Vec<Vec<(f32, u32)>>>;
@@ -123,11 +124,11 @@ impl Stages for CpuStages {
         refs: &dyn RefSource,
         queries: &DescriptorSet,
         p: &SsimParams,
-        w_global: f32,
+        w: FusedWeights,
         k: usize,
         tile: usize,
     ) -> Result<Vec<Vec<(f32, u32)>>> {
-        Ok(fused_topk_cpu(refs, queries, p, w_global, k, tile))
+        Ok(fused_topk_cpu(refs, queries, p, w, k, tile))
     }
     /// Mutual nearest neighbours by the fast path (a matrix product per pair), or LighterGlue; then RANSAC.
     fn verify_pairs(&mut self, p: &VerifyParams, refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Result<Vec<Verified>> {
@@ -210,9 +211,9 @@ pub fn candidates(
         baseline::topk(refs, queries, setting, len, cfg.matching.tile)?
     } else if setting.fuses_coarse(cfg.matching.coarse) && uses_index(refs, queries, cfg) {
         times.approximate = true;
-        indexed_topk(refs, queries, cfg, len)?
+        indexed_topk(refs, queries, cfg, setting, len)?
     } else if setting.fuses_coarse(cfg.matching.coarse) {
-        fused_topk(stages, refs, queries, cfg, len)?
+        fused_topk(stages, refs, queries, cfg, setting, len)?
     } else if setting.uses_coarse() {
         stages.coarse(refs, queries, &SsimParams::new(&cfg.global), len, cfg.matching.tile)?
     } else {
@@ -325,7 +326,14 @@ fn pair_scores(
 /// The fused coarse stage: for each query, the `k` references of highest
 /// cos(whole-image appearance) + `matching.w_global` x SSIM(global descriptors). Descriptors
 /// without appearance have no cosine term (the ranking is then the global descriptor's).
-fn fused_topk(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &DescriptorSet, cfg: &Config, k: usize) -> Result<CandidateLists> {
+fn fused_topk(
+    stages: &mut dyn Stages,
+    refs: &dyn RefSource,
+    queries: &DescriptorSet,
+    cfg: &Config,
+    setting: Setting,
+    k: usize,
+) -> Result<CandidateLists> {
     let w = cfg.matching.w_global as f32;
     if baseline::unavailable(refs, queries, Setting::Appearance).is_some() && w > 0.0 {
         // no cosine term: the global ranking, each score times w (as the fused scan computes it)
@@ -333,7 +341,41 @@ fn fused_topk(stages: &mut dyn Stages, refs: &dyn RefSource, queries: &Descripto
         lists.iter_mut().flatten().for_each(|(s, _)| *s *= w);
         return Ok(lists);
     }
-    stages.fused_coarse(refs, queries, &SsimParams::new(&cfg.global), cfg.matching.w_global as f32, k, cfg.matching.tile)
+    stages.fused_coarse(refs, queries, &SsimParams::new(&cfg.global), FusedWeights::of(refs, queries, cfg, setting), k, cfg.matching.tile)
+}
+
+/// The weights of the fused coarse score's terms beside the appearance cosine.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FusedWeights {
+    /// Of the SSIM of the global descriptors (`matching.w_global`).
+    pub global: f32,
+    /// Of the cosine of the whole-image embeddings (`matching.w_embedding`; 0 where the setting
+    /// has no embedding term or the queries and references do not both have embeddings of one
+    /// width).
+    pub embedding: f32,
+}
+
+impl FusedWeights {
+    /// The weights `cfg` gives `setting` for `queries` against `refs`.
+    pub fn of(refs: &dyn RefSource, queries: &DescriptorSet, cfg: &Config, setting: Setting) -> FusedWeights {
+        let both = queries.embedding_dim > 0 && refs.embedding_dim() == queries.embedding_dim;
+        let embedding = if setting.embeds() && both { cfg.matching.w_embedding as f32 } else { 0.0 };
+        FusedWeights { global: cfg.matching.w_global as f32, embedding }
+    }
+    /// SSIM only (no embedding term).
+    pub fn global_only(w_global: f32) -> FusedWeights {
+        FusedWeights { global: w_global, embedding: 0.0 }
+    }
+    /// The fused score's terms other than the SSIM for query `q` and reference `r`: the appearance
+    /// cosine (with `cosine`) plus `embedding` x the embeddings' cosine (both of length 1).
+    #[inline]
+    fn appearance(&self, refs: &dyn RefSource, queries: &DescriptorSet, q: usize, r: usize, cosine: bool) -> f32 {
+        let a = if cosine { Values::F32(queries.image_appearance(q)).dot(&refs.image_appearance(r)) } else { 0.0 };
+        match self.embedding {
+            0.0 => a,
+            w => a + w * Values::F32(queries.image_embedding(q)).dot(&Values::F32(refs.image_embedding(r))),
+        }
+    }
 }
 
 /// Whether the fused coarse stage of `queries` against `refs` searches the approximate index:
@@ -360,10 +402,11 @@ const RESCORE_CHUNK: usize = 64;
 /// is computed in order of falling cosine and stops where the next cosine plus `w_global` x the
 /// largest SSIM cannot reach the k-th fused score so far: what is left out could not have entered
 /// the top-K, so the result is that of scoring the whole shortlist.
-pub fn indexed_topk(refs: &dyn RefSource, queries: &DescriptorSet, cfg: &Config, k: usize) -> Result<CandidateLists> {
+pub fn indexed_topk(refs: &dyn RefSource, queries: &DescriptorSet, cfg: &Config, setting: Setting, k: usize) -> Result<CandidateLists> {
     let p = SsimParams::new(&cfg.global);
     let (glen, slen) = (p.len(), p.stats_len());
-    let w_global = cfg.matching.w_global as f32;
+    let w = FusedWeights::of(refs, queries, cfg, setting);
+    let w_global = w.global;
     let cosine = baseline::unavailable(refs, queries, Setting::Appearance).is_none();
     let mut exec = coarse_cpu::CoarseCpu::new(&p);
     let (mut globals, mut stats, mut scores) = (Vec::new(), Vec::new(), Vec::new());
@@ -381,15 +424,15 @@ pub fn indexed_topk(refs: &dyn RefSource, queries: &DescriptorSet, cfg: &Config,
             at_least: k,
             w_global,
             ssim: &cfg.global,
+            embedding: queries.image_embedding(q),
+            w_embedding: w.embedding,
         };
         let shortlist = match refs.index_shortlist(&iq) {
             Some(r) => r?,
             None => return Err(Error::invalid("coarse stage", "the references have no index")),
         };
-        let qa = queries.image_appearance(q);
-        // exact cosines, highest first
-        let mut by_cos: Vec<(f32, u32)> =
-            shortlist.par_iter().map(|&(_, r)| (if cosine { Values::F32(qa).dot(&refs.image_appearance(r as usize)) } else { 0.0 }, r)).collect();
+        // exact cosines (and the embedding term), highest first
+        let mut by_cos: Vec<(f32, u32)> = shortlist.par_iter().map(|&(_, r)| (w.appearance(refs, queries, q, r as usize, cosine), r)).collect();
         by_cos.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
         exec.prepare(queries.stats(q), 1);
         let mut list: Vec<(f32, u32)> = Vec::with_capacity(by_cos.len());
@@ -426,7 +469,7 @@ pub fn indexed_topk(refs: &dyn RefSource, queries: &DescriptorSet, cfg: &Config,
 
 /// The fused coarse stage on the CPU: per tile of references, the SSIM scores of the fast path
 /// plus `w_global` x their appearance cosines, folded into the K-lists.
-pub fn fused_topk_cpu(refs: &dyn RefSource, queries: &DescriptorSet, p: &SsimParams, w_global: f32, k: usize, tile: usize) -> Vec<Vec<(f32, u32)>> {
+pub fn fused_topk_cpu(refs: &dyn RefSource, queries: &DescriptorSet, p: &SsimParams, w: FusedWeights, k: usize, tile: usize) -> Vec<Vec<(f32, u32)>> {
     let mut exec = coarse_cpu::CoarseCpu::new(p);
     exec.prepare(&queries.global_stats, queries.len());
     let mut buf = source::TileBuf::default();
@@ -437,10 +480,8 @@ pub fn fused_topk_cpu(refs: &dyn RefSource, queries: &DescriptorSet, p: &SsimPar
         let (g, st) = refs.tile(start, end, &mut buf);
         exec.score_tile(&queries.globals, g, st, scores);
         scores.par_chunks_mut(nq).enumerate().for_each(|(j, row)| {
-            let r = refs.image_appearance(start + j);
             for (q, s) in row.iter_mut().enumerate() {
-                let cos = if cosine { Values::F32(queries.image_appearance(q)).dot(&r) } else { 0.0 };
-                *s = cos + w_global * *s;
+                *s = w.appearance(refs, queries, q, start + j, cosine) + w.global * *s;
             }
         });
     })
@@ -546,7 +587,8 @@ pub fn score_pairs(
 /// the appearance cosine where the stage fuses them (as [`fused_topk`] and [`coarse_topk`]).
 fn coarse_pair_scores(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config, pairs: &[(u32, u32)]) -> Vec<f32> {
     let p = SsimParams::new(&cfg.global);
-    let w = cfg.matching.w_global as f32;
+    let fw = FusedWeights::of(refs, queries, cfg, setting);
+    let w = fw.global;
     let fused = setting.fuses_coarse(cfg.matching.coarse);
     let cosine = fused && baseline::unavailable(refs, queries, Setting::Appearance).is_none();
     pairs
@@ -559,7 +601,7 @@ fn coarse_pair_scores(refs: &dyn RefSource, queries: &DescriptorSet, setting: Se
                 let ssim = crate::kernels::ssim::ssim_pair(&p, queries.global(q), queries.stats(q), g, st, scratch);
                 match (fused, cosine) {
                     (false, _) => ssim,
-                    (true, true) => Values::F32(queries.image_appearance(q)).dot(&refs.image_appearance(r)) + w * ssim,
+                    (true, true) => fw.appearance(refs, queries, q, r, true) + w * ssim,
                     (true, false) => w * ssim,
                 }
             },

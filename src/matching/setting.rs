@@ -99,6 +99,11 @@ impl Setting {
             Hog | Appearance | Global | Forest | Local => false,
         }
     }
+    /// Its fused coarse stage adds the whole-image embeddings' cosine (`matching.w_embedding`):
+    /// the settings beyond the paper (the paper's two-stage settings keep their coarse stage).
+    pub fn embeds(self) -> bool {
+        matches!(self, Setting::Fused | Setting::Verified)
+    }
     /// The fine stage (forest similarity, with appearance where the setting has it) runs.
     pub fn uses_fine(self) -> bool {
         use Setting::*;

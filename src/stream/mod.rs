@@ -766,7 +766,8 @@ impl Localizer {
         // frames without labels and no segmenter to make them: a map without labels
         let void = warm.iter().all(|(_, l, _)| l.labels.classes().iter().all(|&c| c == crate::classes::VOID));
         let dims = ColumnDims { appearance: self.encoder.appearance_dim(), hog: 0, keypoints: self.encoder.keypoint_dim() };
-        let mut w = MapWriter::create(&lc.dir, &self.cfg.encoding(), dims, self.encoder.appearance_record(), StoreOptions::default(), false)?;
+        let mut w = MapWriter::create(&lc.dir, &self.cfg.encoding(), dims, self.encoder.appearance_record(), StoreOptions::default(), false)?
+            .with_embedding(self.encoder.embedding_record())?;
         if void && !self.encoder.frames().can_segment() {
             w = w.without_labels()?;
         }

@@ -119,6 +119,7 @@ fn reference(base: &DescriptorSet, k: usize, rng_seed: u64) -> EncodedImage {
         forest: Forest { neighbour_slots: base.neighbour_slots, ..Default::default() },
         appearance: v,
         hog: vec![],
+        embedding: vec![],
         keypoints: Default::default(),
         pose: None,
     }

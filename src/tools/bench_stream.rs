@@ -163,7 +163,8 @@ fn write_map(
     without_labels: bool,
 ) -> Result<()> {
     let dims = ColumnDims { appearance: encoder.appearance_dim(), hog: 0, keypoints: encoder.keypoint_dim() };
-    let mut w = MapWriter::create(dir, &cfg.encoding(), dims, encoder.appearance_record(), StoreOptions::default(), false)?;
+    let mut w = MapWriter::create(dir, &cfg.encoding(), dims, encoder.appearance_record(), StoreOptions::default(), false)?
+        .with_embedding(encoder.embedding_record())?;
     if without_labels {
         w = w.without_labels()?;
     }

@@ -23,6 +23,7 @@ fn pool(n: usize, seed: u64) -> DescriptorSet {
             forest: Forest { neighbour_slots: 1, ..Default::default() },
             appearance: vec![],
             hog: vec![],
+            embedding: vec![],
             keypoints: Default::default(),
             pose: None,
         })

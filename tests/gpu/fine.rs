@@ -111,6 +111,7 @@ pub fn forests_of_sizes(sizes: &[usize], dim: usize, seed: u64) -> DescriptorSet
             forest: f,
             appearance: vec![],
             hog: vec![],
+            embedding: vec![],
             keypoints: Default::default(),
             pose: None,
         };

@@ -191,6 +191,7 @@ pub fn random_descriptors(n: usize, cfg: &Config, seed: u64) -> DescriptorSet {
             forest: Forest { neighbour_slots: 3, ..Default::default() },
             appearance: vec![],
             hog: vec![],
+            embedding: vec![],
             keypoints: Default::default(),
             pose: None,
         };
@@ -265,6 +266,7 @@ pub fn random_forest_set(n: usize, dim: usize, seed: u64) -> DescriptorSet {
             forest: f,
             appearance: vec![],
             hog: vec![],
+            embedding: vec![],
             keypoints: Default::default(),
             pose: None,
         };

@@ -39,6 +39,7 @@ fn keypoint_set(counts: &[usize], dim: usize, rng: &mut SplitMix64) -> Descripto
             forest: Forest { neighbour_slots: 3, ..Default::default() },
             appearance: vec![],
             hog: vec![],
+            embedding: vec![],
             keypoints: k,
             pose: None,
         };
@@ -117,6 +118,7 @@ fn verification_on_the_gpu_equals_the_cpu_on_real_frames() {
             forest: Forest { neighbour_slots: 3, ..Default::default() },
             appearance: vec![],
             hog: vec![],
+            embedding: vec![],
             keypoints: k,
             pose: None,
         };

