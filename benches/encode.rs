@@ -1,4 +1,5 @@
-//! Encoding time per frame at 640x480 (no network): global descriptor, forest, and both.
+//! Encoding time per frame at 640x480 (no network): global descriptor, forest, and both; then the
+//! networks' rows (XFeat and VLAD, the whole-image embedding) where setup.sh installed them.
 //! Target (issue 2): <= 10 ms per frame, median, on 2 cores (one frame runs on one core).
 
 use criterion::{criterion_group, criterion_main, Criterion};
@@ -75,6 +76,15 @@ fn bench(c: &mut Criterion) {
             });
         }
         other => eprintln!("appearance benchmarks skipped: {:?}", other.err()),
+    }
+    // the whole-image embedding of a 640 x 480 frame (the fused coarse stage's embedding term;
+    // needs setup.sh), one call with ONNX Runtime's threads for the whole machine
+    match semlook::embedding::from_config(&Default::default(), &Default::default()) {
+        Ok(Some(e)) => {
+            let rgb = image::RgbImage::from_fn(640, 480, |x, y| image::Rgb([(x % 256) as u8, (y % 256) as u8, ((x ^ y) % 256) as u8]));
+            g.bench_function("embedding: EfficientNet-Lite1 + GeM at 448 x 336 (ONNX Runtime)", |b| b.iter(|| e.embed(&rgb).unwrap()));
+        }
+        other => eprintln!("embedding benchmark skipped: {:?}", other.err().map_or("not installed".to_string(), |e| e.to_string())),
     }
     g.finish();
 }

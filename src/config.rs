@@ -1237,7 +1237,8 @@ pub struct EmbeddingConfig {
     /// \[R\] `efficientnet_lite1_gem.onnx`, EfficientNet-Lite1's ImageNet weights with GeM pooling,
     /// converted by `setup.sh` (sweep 16: Lite0, Lite1 and Lite2 compared). Where the default
     /// network is not installed, maps are built without embeddings and a warning says so; a
-    /// network named here that is missing is an error.
+    /// network named here that is missing is an error. With appearance off (no RGB image is
+    /// loaded) there are no embeddings either.
     pub network: String,
     /// The image's long side in pixels as the network sees it. \[R\] 448 (sweep 16: 320-640).
     pub long_side: u32,

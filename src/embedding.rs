@@ -90,7 +90,8 @@ impl Embedder {
         self.long_side
     }
 
-    /// The embedding of `rgb`, resized to [`working_size`] (Catmull-Rom), of length 1.
+    /// The embedding of `rgb`, resized to [`working_size`] (Catmull-Rom), of length 1, its values
+    /// rounded to f16 (what a map stores, so that a stored image reads back the same).
     pub fn embed(&self, rgb: &RgbImage) -> Result<Vec<f32>> {
         if rgb.width() == 0 || rgb.height() == 0 {
             return Err(Error::invalid("image", "empty image"));
@@ -115,7 +116,9 @@ impl Embedder {
         if out.len() != self.dim {
             return Err(fail(format!("{} values, the network's output is {} wide", out.len(), self.dim)));
         }
-        normalised(out).ok_or_else(|| fail("the embedding is zero, NaN or infinite".into()))
+        let mut v = normalised(out).ok_or_else(|| fail("the embedding is zero, NaN or infinite".into()))?;
+        crate::values::round_through_f16(&mut v);
+        Ok(v)
     }
 }
 

@@ -4,8 +4,8 @@
 //! through a map: stored, read back, and the fused coarse stage's embedding term.
 //!
 //! Tolerances: on the synthetic image, already at the working size (no resize on either side),
-//! every value within 1e-6 of the reference (float32, another thread count; the largest difference
-//! seen is printed); on the real photos, whose resize differs (PIL's bicubic there, the `image`
+//! every value within 1e-6 + 2^-11 of its size of the reference (float32, another thread count, and
+//! the f16 rounding of what a map stores; the largest difference seen is printed); on the real photos, whose resize differs (PIL's bicubic there, the `image`
 //! crate's Catmull-Rom here), a cosine of at least 0.998 with the reference (0.9995 seen).
 
 mod common;
@@ -17,6 +17,8 @@ use semlook::map::{ColumnDims, EmbeddingRecord, Map, MapWriter, StoreOptions};
 use semlook::matching::{FusedWeights, Setting};
 
 const VALUE_TOLERANCE: f32 = 1e-6;
+/// The relative rounding of f16 (half its step): the product's embeddings are stored as f16.
+const F16_ROUNDING: f32 = 1.0 / 2048.0;
 const REAL_COSINE: f32 = 0.998;
 
 fn fixture(name: &str) -> serde_json::Value {
@@ -52,11 +54,15 @@ fn matches_the_reference_on_a_synthetic_image() {
     let ours = e.embed(&img).unwrap();
     let want = floats(&fx["embedding"]);
     assert_eq!(ours.len(), want.len());
-    let worst = ours.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
-    eprintln!("synthetic: largest difference {worst:.2e} (tolerance {VALUE_TOLERANCE:.0e})");
-    assert!(worst <= VALUE_TOLERANCE, "largest difference {worst}");
+    let worst = ours.iter().zip(&want).map(|(a, b)| (a - b).abs() / (VALUE_TOLERANCE + F16_ROUNDING * b.abs())).fold(0.0f32, f32::max);
+    eprintln!("synthetic: largest difference {worst:.2} of the tolerance (1e-6 + 2^-11 of the value)");
+    assert!(worst <= 1.0, "largest difference {worst} of the tolerance");
     let norm = ours.iter().map(|x| x * x).sum::<f32>().sqrt();
-    assert!((norm - 1.0).abs() < 1e-5, "length {norm}");
+    assert!((norm - 1.0).abs() < 1e-3, "length {norm}");
+    // every value is an f16 value (what a map stores reads back the same)
+    let mut rounded = ours.clone();
+    semlook::values::round_through_f16(&mut rounded);
+    assert_eq!(rounded, ours);
 }
 
 #[test]
@@ -119,7 +125,9 @@ fn unit(d: usize, a: usize, i: usize) -> Vec<f32> {
     let mut v: Vec<f32> = (0..d).map(|k| ((k * 31 + i * 17) % 11) as f32 / 100.0).collect();
     v[a % d] += 1.0;
     let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
-    v.iter().map(|x| x / n).collect()
+    let mut v: Vec<f32> = v.iter().map(|x| x / n).collect();
+    semlook::values::round_through_f16(&mut v); // as the encoder gives them (a map stores f16)
+    v
 }
 
 #[test]
@@ -249,7 +257,7 @@ fn encoders_follow_the_maps_record() {
     let cfg = Config::default();
     let (with, set) = build(&cfg, "with");
     assert_eq!(set.embedding_dim, 1280);
-    assert!(set.image_embedding.chunks(1280).all(|e| (e.iter().map(|x| x * x).sum::<f32>() - 1.0).abs() < 1e-4), "unit embeddings");
+    assert!(set.image_embedding.chunks(1280).all(|e| (e.iter().map(|x| x * x).sum::<f32>() - 1.0).abs() < 2e-3), "unit embeddings");
     assert_eq!(with.manifest.embedding.as_ref().map(|r| r.sha256.as_str()), Some(semlook::models::EMBEDDING_SHA256));
     assert!(semlook::encode::Encoder::for_map(&cfg, &with).unwrap().embedder().is_some());
     let mut off = Config::default();

@@ -468,7 +468,7 @@ impl DescriptorSet {
             n_classes,
             store,
         )?;
-        crate::descriptors::validate::embedding(&self.ids[i], self.image_embedding(i))?;
+        crate::descriptors::validate::embedding(&self.ids[i], Values::F32(self.image_embedding(i)))?;
         crate::descriptors::validate::keypoints(self.keypoints(i), n_classes)?;
         self.poses.get(i).copied().flatten().map_or(Ok(()), |p| crate::descriptors::validate::pose_row(&p.to_row()))
     }

@@ -159,8 +159,8 @@ pub trait RefSource: GlobalSource {
         0
     }
     /// The whole-image embedding of reference i (`embedding_dim` values).
-    fn image_embedding(&self, _i: usize) -> &[f32] {
-        &[]
+    fn image_embedding(&self, _i: usize) -> Values<'_> {
+        Values::EMPTY
     }
     /// Values per verification keypoint descriptor (0: the source stores no keypoints).
     fn keypoint_dim(&self) -> usize;
@@ -231,8 +231,8 @@ impl RefSource for DescriptorSet {
     fn embedding_dim(&self) -> usize {
         self.embedding_dim
     }
-    fn image_embedding(&self, i: usize) -> &[f32] {
-        DescriptorSet::image_embedding(self, i)
+    fn image_embedding(&self, i: usize) -> Values<'_> {
+        Values::F32(DescriptorSet::image_embedding(self, i))
     }
     fn keypoint_dim(&self) -> usize {
         self.keypoint_dim
@@ -311,7 +311,7 @@ impl RefSource for Window<'_> {
     fn embedding_dim(&self) -> usize {
         self.inner.embedding_dim()
     }
-    fn image_embedding(&self, i: usize) -> &[f32] {
+    fn image_embedding(&self, i: usize) -> Values<'_> {
         self.inner.image_embedding(self.start + i)
     }
     fn keypoint_dim(&self) -> usize {

@@ -98,10 +98,11 @@ pub fn image(
 
 /// Checks an image's whole-image embedding (`id` names the image): finite values of length 1
 /// (the network's output is L2-normalised) or none; a longer one would outscore every true match.
-pub fn embedding(id_: &str, e: &[f32]) -> Result<()> {
+pub fn embedding(id_: &str, e: Values) -> Result<()> {
     if e.is_empty() {
         return Ok(());
     }
+    let e = e.to_vec();
     if e.iter().any(|x| !x.is_finite()) {
         return Err(Error::check(format!("image {id_:?}: an embedding value is NaN or infinite")));
     }

@@ -110,10 +110,7 @@ impl Map {
         let emb = |r: u32| -> f32 {
             match q.w_embedding {
                 0.0 => 0.0,
-                w => {
-                    w * crate::values::Values::F32(q.embedding)
-                        .dot(&crate::values::Values::F32(crate::descriptors::source::RefSource::image_embedding(self, r as usize)))
-                }
+                w => w * crate::values::Values::F32(q.embedding).dot(&crate::descriptors::source::RefSource::image_embedding(self, r as usize)),
             }
         };
         let scored = pooled.iter().zip(&ssim).map(|(&(a, r), &s)| (a + q.w_global * s + emb(r), r));

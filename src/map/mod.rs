@@ -433,9 +433,9 @@ impl RefSource for Map {
     fn embedding_dim(&self) -> usize {
         self.layout().emb
     }
-    fn image_embedding(&self, i: usize) -> &[f32] {
+    fn image_embedding(&self, i: usize) -> Values<'_> {
         let (s, j) = self.locate(i);
-        self.sound(s).map_or(&[], |seg| seg.image_embedding(j))
+        self.sound(s).map_or(Values::EMPTY, |seg| seg.image_embedding(j))
     }
     fn keypoints(&self, i: usize) -> KeypointsRef<'_> {
         let (s, j) = self.locate(i);

@@ -65,7 +65,7 @@ impl Layout {
     }
     /// Bytes of one image without its trees, at most (every appearance block stored).
     pub fn image_bytes(&self) -> usize {
-        self.global_len() * self.values.bytes() + self.appearance_bytes() + self.hog * 4 + self.emb * 4 + 2 * 4 + 2 * 4 + 4
+        self.global_len() * self.values.bytes() + self.appearance_bytes() + self.hog * 4 + self.emb * 2 + 2 * 4 + 2 * 4 + 4
     }
     /// Bytes of one tree, at most.
     pub fn tree_bytes(&self) -> usize {
@@ -145,9 +145,10 @@ pub fn to_bytes(set: &DescriptorSet, layout: &Layout) -> Result<Vec<u8>> {
     if !poses.is_empty() {
         parts.push(("place_pose", Dtype::F64, vec![n, 7], bytemuck::cast_slice(&poses)));
     }
-    // embeddings only in maps that have them, so maps without keep the bytes of before
+    // embeddings (f16) only in maps that have them, so maps without keep the bytes of before
+    let embedding = to_f16_bits(&set.image_embedding);
     if layout.emb > 0 {
-        parts.push(("image_embedding", Dtype::F32, vec![n, layout.emb], bytemuck::cast_slice(&set.image_embedding)));
+        parts.push(("image_embedding", Dtype::F16, vec![n, layout.emb], bytemuck::cast_slice(&embedding)));
     }
     let tensors = parts
         .into_iter()
@@ -416,10 +417,11 @@ impl Mapped {
         let h = self.layout.hog;
         &self.f32s(&self.r.image_hog)[j * h..(j + 1) * h]
     }
-    /// The whole-image embedding of row `j` (empty when the map stores none).
-    pub fn image_embedding(&self, j: usize) -> &[f32] {
+    /// The whole-image embedding of row `j`, f16 (empty when the map stores none).
+    pub fn image_embedding(&self, j: usize) -> Values<'_> {
         let e = self.layout.emb;
-        &self.f32s(&self.r.image_embedding)[j * e..(j + 1) * e]
+        let all: &[u16] = bytemuck::cast_slice(self.raw(&self.r.image_embedding));
+        Values::F16(&all[j * e..(j + 1) * e])
     }
 
     /// Checks the SHA-256 against the manifest, then every value (offsets, ids, and each image
@@ -522,7 +524,7 @@ impl Mapped {
         set.tree_descriptors.extend_from_slice(f.descriptors);
         self.image_appearance(j).extend_into(&mut set.image_appearance);
         set.image_hog.extend_from_slice(self.image_hog(j));
-        set.image_embedding.extend_from_slice(self.image_embedding(j));
+        self.image_embedding(j).extend_into(&mut set.image_embedding);
         set.forest_offsets.push(set.tree_classes.len() as u32);
         let k = self.keypoints(j);
         set.keypoint_descriptors.extend_from_slice(k.descriptors);
@@ -589,7 +591,7 @@ fn ranges(bytes: &[u8], entry: &SegmentEntry, l: &Layout) -> Result<Ranges> {
         },
         image_embedding: match l.emb {
             0 => 0..0,
-            e => get("image_embedding", Dtype::F32, &[Some(n), Some(e)])?,
+            e => get("image_embedding", Dtype::F16, &[Some(n), Some(e)])?,
         },
     })
 }

@@ -378,7 +378,7 @@ impl MapWriter {
         let app = if img.appearance.is_empty() { Values::F32(&[]) } else { Values::F32(&img.appearance) };
         validate::image(&img.id, [img.width, img.height], Values::F32(&img.global), f, app, &img.hog, self.layout.n_classes, self.opts.values)
             .and_then(|()| validate::keypoints(img.keypoints.as_ref(), self.layout.n_classes))
-            .and_then(|()| validate::embedding(&img.id, &img.embedding))
+            .and_then(|()| validate::embedding(&img.id, Values::F32(&img.embedding)))
             .and_then(|()| match img.embedding.len() == self.layout.emb {
                 true => Ok(()),
                 false => Err(Error::check(format!("an embedding of {} values, the map's have {}", img.embedding.len(), self.layout.emb))),

@@ -373,7 +373,7 @@ impl FusedWeights {
         let a = if cosine { Values::F32(queries.image_appearance(q)).dot(&refs.image_appearance(r)) } else { 0.0 };
         match self.embedding {
             0.0 => a,
-            w => a + w * Values::F32(queries.image_embedding(q)).dot(&Values::F32(refs.image_embedding(r))),
+            w => a + w * Values::F32(queries.image_embedding(q)).dot(&refs.image_embedding(r)),
         }
     }
 }
