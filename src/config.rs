@@ -525,8 +525,9 @@ pub struct MatchingConfig {
     /// place survived to the fine stage for 27 % of the landmark queries at K = 20, and
     /// coarse-to-fine lost places that the fine stage alone finds).
     pub coarse: CoarseStage,
-    /// The fused coarse stage adds w_embedding x the cosine of the whole-image embeddings
-    /// (`[embedding]`) where the map and the queries both have them. \[R\] 2 (sweep 16: 1, 2, 3
+    /// The fused coarse stage of `fused` and `verified` adds w_embedding x the cosine of the
+    /// whole-image embeddings (`[embedding]`) where the map and the queries both have them, made by
+    /// one network; the paper's two-stage settings never (their coarse stage keeps its meaning). \[R\] 2 (sweep 16: 1, 2, 3
     /// and 4 compared on the three real dev sets).
     pub w_embedding: f64,
 }
@@ -1040,6 +1041,8 @@ impl Config {
         v.real("similarity.neutral_appearance", s.neutral_appearance, 0.0, 1.0)?;
         v.int("matching.top_k", self.matching.top_k, 1, 1024)?;
         v.real("matching.w_global", self.matching.w_global, 0.0, 1e3)?;
+        v.real("matching.w_embedding", self.matching.w_embedding, 0.0, 1e3)?;
+        v.int("embedding.long_side", self.embedding.long_side as usize, 32, 4096)?;
         let k = &self.keypoints;
         v.int("keypoints.stored", k.stored, 0, 8192)?;
         v.int("keypoints.nms_radius", k.nms_radius, 0, 64)?;
@@ -1226,6 +1229,10 @@ mod tests {
     }
 }
 
+/// The default image-embedding network (EfficientNet-Lite1 ImageNet, GeM pooling), as looked up in
+/// the model folders (`setup.sh` installs it; [`crate::models`] lists it).
+pub const EMBEDDING_NETWORK: &str = "efficientnet_lite1_gem.onnx";
+
 /// The `[embedding]` section: the whole-image embedding a new map stores ([`crate::embedding`]).
 /// Not an encoding section: a map records the network it was built with (its file name and
 /// SHA-256, `map info`) and its queries are embedded with that one, whatever this section says; a
@@ -1233,7 +1240,7 @@ mod tests {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct EmbeddingConfig {
-    /// The ONNX network (a file name looked up in the model folders, or a path), or "none".
+    /// The ONNX network (a file name looked up in the model folders, or an absolute path), or "none".
     /// \[R\] `efficientnet_lite1_gem.onnx`, EfficientNet-Lite1's ImageNet weights with GeM pooling,
     /// converted by `setup.sh` (sweep 16: Lite0, Lite1 and Lite2 compared). Where the default
     /// network is not installed, maps are built without embeddings and a warning says so; a
@@ -1246,6 +1253,6 @@ pub struct EmbeddingConfig {
 
 impl Default for EmbeddingConfig {
     fn default() -> Self {
-        EmbeddingConfig { network: crate::models::EMBEDDING_NETWORK.into(), long_side: 448 }
+        EmbeddingConfig { network: EMBEDDING_NETWORK.into(), long_side: 448 }
     }
 }

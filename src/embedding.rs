@@ -29,6 +29,14 @@ pub struct EmbeddingRecord {
     pub long_side: u32,
 }
 
+impl EmbeddingRecord {
+    /// Whether two records name the same network seeing the same size (the file's bytes, its
+    /// width and the long side; the file's name may differ).
+    pub fn same_network(&self, other: &EmbeddingRecord) -> bool {
+        self.sha256 == other.sha256 && self.dim == other.dim && self.long_side == other.long_side
+    }
+}
+
 /// The size the network sees an image at: its long side `long_side`, its short side in
 /// proportion (rounded, at least 32 pixels: the network halves it five times).
 pub fn working_size(width: u32, height: u32, long_side: u32) -> (u32, u32) {
@@ -40,6 +48,8 @@ pub fn working_size(width: u32, height: u32, long_side: u32) -> (u32, u32) {
 /// An ONNX embedding network: an RGB image in, one L2-normalised vector out.
 pub struct Embedder {
     sessions: crate::onnx::SessionPool,
+    /// The network as `[embedding]` or a map's record names it (a file name or a path).
+    name: String,
     path: PathBuf,
     sha256: String,
     long_side: u32,
@@ -56,21 +66,28 @@ impl Embedder {
     /// Loads the network at `path` (`onnxruntime`: see [`crate::onnx::library_path`]); fails,
     /// naming the file, unless it has one input and one output of a static width.
     pub fn new(path: &Path, onnxruntime: Option<&Path>, long_side: u32) -> Result<Embedder> {
+        let name = path.file_name().map_or_else(|| path.display().to_string(), |n| n.to_string_lossy().into_owned());
+        Embedder::named(&name, path, onnxruntime, long_side)
+    }
+
+    /// [`Embedder::new`], the network recorded under `name` (how `[embedding]` names it: a file
+    /// name in the model folders or an absolute path).
+    fn named(name: &str, path: &Path, onnxruntime: Option<&Path>, long_side: u32) -> Result<Embedder> {
         let fail = |reason: String| Error::Model { path: path.to_path_buf(), reason };
         if !(32..=4096).contains(&long_side) {
             return Err(Error::check(format!("embedding.long_side {long_side} is outside 32..=4096")));
         }
         let sha256 = crate::util::sha256_file(path)?;
         let sessions = crate::onnx::SessionPool::new(path, onnxruntime)?;
-        let (inputs, shape) = sessions.with_shared(|s| (s.inputs().len(), crate::onnx::output_shape(s, 0)));
+        let (inputs, outputs, shape) = sessions.with_shared(|s| (s.inputs().len(), s.outputs().len(), crate::onnx::output_shape(s, 0)));
         let dim = match shape[..] {
             [_, d] if d > 0 => d as usize,
             _ => return Err(fail(format!("output shape {shape:?}: an embedding network gives [1, D] with a static D"))),
         };
-        if inputs != 1 {
-            return Err(fail(format!("{inputs} inputs: an embedding network takes one RGB image")));
+        if inputs != 1 || outputs != 1 {
+            return Err(fail(format!("{inputs} inputs and {outputs} outputs: an embedding network takes one RGB image and gives one vector")));
         }
-        Ok(Embedder { sessions, path: path.into(), sha256, long_side, dim })
+        Ok(Embedder { sessions, name: name.into(), path: path.into(), sha256, long_side, dim })
     }
 
     /// Values per embedding.
@@ -80,6 +97,10 @@ impl Embedder {
     /// The network file.
     pub fn path(&self) -> &Path {
         &self.path
+    }
+    /// What a map built with this network records of it.
+    pub fn record(&self) -> EmbeddingRecord {
+        EmbeddingRecord { network: self.name.clone(), sha256: self.sha256.clone(), dim: self.dim, long_side: self.long_side }
     }
     /// SHA-256 of the network file.
     pub fn sha256(&self) -> &str {
@@ -94,7 +115,7 @@ impl Embedder {
     /// rounded to f16 (what a map stores, so that a stored image reads back the same).
     pub fn embed(&self, rgb: &RgbImage) -> Result<Vec<f32>> {
         if rgb.width() == 0 || rgb.height() == 0 {
-            return Err(Error::invalid("image", "empty image"));
+            return Err(Error::check("an empty image has no embedding"));
         }
         let (w, h) = working_size(rgb.width(), rgb.height(), self.long_side);
         let small = image::imageops::resize(rgb, w, h, image::imageops::FilterType::CatmullRom);
@@ -139,7 +160,7 @@ pub fn from_config(cfg: &crate::config::EmbeddingConfig, models: &crate::config:
     if cfg.network == "none" {
         return Ok(None);
     }
-    let default = cfg.network == crate::models::EMBEDDING_NETWORK;
+    let default = cfg.network == crate::config::EMBEDDING_NETWORK;
     let path = match crate::onnx::find_model(&cfg.network, None, "embedding network (embedding.network)") {
         Ok(p) => p,
         Err(_) if default => {
@@ -151,7 +172,7 @@ pub fn from_config(cfg: &crate::config::EmbeddingConfig, models: &crate::config:
         }
         Err(e) => return Err(e),
     };
-    Embedder::new(&path, models.onnxruntime.as_deref(), cfg.long_side).map(Some)
+    Embedder::named(&cfg.network, &path, models.onnxruntime.as_deref(), cfg.long_side).map(Some)
 }
 
 /// A map's embedding network: the file it names in the model folders, which must have the SHA-256
@@ -159,8 +180,8 @@ pub fn from_config(cfg: &crate::config::EmbeddingConfig, models: &crate::config:
 /// they were alike).
 pub fn for_record(rec: &EmbeddingRecord, models: &crate::config::ModelPaths) -> Result<Embedder> {
     let path = crate::onnx::find_model(&rec.network, None, "the map's embedding network")?;
-    let e = Embedder::new(&path, models.onnxruntime.as_deref(), rec.long_side)?;
-    if e.sha256 != rec.sha256 || e.dim != rec.dim {
+    let e = Embedder::named(&rec.network, &path, models.onnxruntime.as_deref(), rec.long_side)?;
+    if !e.record().same_network(rec) {
         return Err(Error::Model {
             path,
             reason: format!(

@@ -40,9 +40,7 @@ pub const SEGMENTER_CHECKPOINT_SHA256: &str = "a72d59699801c7ce8e8b89a53af9097ea
 pub const SEGMENTER_CHECKPOINT_URL: &str =
     "https://github.com/sacmehta/EdgeNets/raw/2b232d3f7fb60658755dad1ebca0ffc895cc795e/model/segmentation/model_zoo/espnetv2/espnetv2_s_2.0_city_1024x512.pth";
 
-/// The default image-embedding network (EfficientNet-Lite1 ImageNet, GeM pooling), as looked up in
-/// the model folders.
-pub const EMBEDDING_NETWORK: &str = "efficientnet_lite1_gem.onnx";
+pub use crate::config::EMBEDDING_NETWORK;
 /// SHA-256 of the embedding network as `setup.sh` converts it from the checkpoint with our exporter
 /// (`python/tools/export_embedding.py`, byte-deterministic with the pinned packages of
 /// `python/tools/requirements-export.txt`).

@@ -134,9 +134,10 @@ fn unit(d: usize, a: usize, i: usize) -> Vec<f32> {
 fn a_map_stores_its_embeddings_and_the_fused_stage_adds_their_cosine() {
     let dir = tempfile::tempdir().unwrap();
     let d = 24;
-    let refs = set(9, d, |i| unit(d, i, i));
-    let cfg = Config::default();
     let rec = EmbeddingRecord { network: "test.onnx".into(), sha256: "0".repeat(64), dim: d, long_side: 448 };
+    let mut refs = set(9, d, |i| unit(d, i, i));
+    refs.embedding = Some(rec.clone());
+    let cfg = Config::default();
     let path = dir.path().join("m");
     let mut w = MapWriter::create(&path, &cfg.encoding(), ColumnDims::default(), None, StoreOptions::default(), false)
         .unwrap()
@@ -159,6 +160,7 @@ fn a_map_stores_its_embeddings_and_the_fused_stage_adds_their_cosine() {
             q.globals.extend_from_slice(swapped.global(8 - i));
             q.global_stats.extend_from_slice(swapped.stats(8 - i));
         }
+        q.embedding = Some(rec.clone());
         q
     };
     let p = semlook::kernels::abi::SsimParams::new(&cfg.global);
@@ -166,13 +168,16 @@ fn a_map_stores_its_embeddings_and_the_fused_stage_adds_their_cosine() {
     // without the term: the SSIM decides (reference 8 - i first); with a large one: the embedding
     let plain = top(&back, FusedWeights::global_only(0.25));
     let with = top(&back, FusedWeights { global: 0.25, embedding: 10.0 });
+    let mut scratch = Default::default();
     for i in 0..9 {
         assert_eq!(plain[i][0].1 as usize, 8 - i, "query {i} without the embedding term");
         assert_eq!(with[i][0].1 as usize, i, "query {i} with the embedding term");
-        let want = plain[i].iter().find(|c| c.1 as usize == i).map(|c| c.0);
-        let cos: f32 = queries.image_embedding(i).iter().zip(refs.image_embedding(i)).map(|(a, b)| a * b).sum();
-        if let Some(base) = want {
-            assert!((with[i][0].0 - (base + 10.0 * cos)).abs() < 1e-4, "query {i}: the score is the SSIM term plus 10 x the cosine");
+        // every listed score is 0.25 x SSIM + 10 x the embeddings' cosine, computed here pair by pair
+        for &(score, r) in &with[i] {
+            let r = r as usize;
+            let ssim = semlook::kernels::ssim::ssim_pair(&p, queries.global(i), queries.stats(i), refs.global(r), refs.stats(r), &mut scratch);
+            let cos: f32 = queries.image_embedding(i).iter().zip(refs.image_embedding(r)).map(|(a, b)| a * b).sum();
+            assert!((score - (0.25 * ssim + 10.0 * cos)).abs() < 1e-4, "query {i}, reference {r}: {score} vs {}", 0.25 * ssim + 10.0 * cos);
         }
     }
     // the map and the set in memory give the same lists
@@ -182,6 +187,21 @@ fn a_map_stores_its_embeddings_and_the_fused_stage_adds_their_cosine() {
     assert_eq!(FusedWeights::of(&back, &queries, &cfg, Setting::Semlook).embedding, 0.0);
     let without = set(2, 0, |_| vec![]);
     assert_eq!(FusedWeights::of(&back, &without, &cfg, Setting::Verified).embedding, 0.0);
+    // queries of another network (same width, other bytes) get no embedding term
+    let mut other = queries.clone();
+    other.embedding = Some(EmbeddingRecord { sha256: "1".repeat(64), ..rec.clone() });
+    assert_eq!(FusedWeights::of(&back, &other, &cfg, Setting::Verified).embedding, 0.0);
+    // wired through the coarse stage of the settings: with a large weight, `fused` ranks by the
+    // embedding (reference i first), the paper's `semlook` (coarse stage fused) by the SSIM (8 - i)
+    let mut heavy = cfg.clone();
+    heavy.matching.w_embedding = 10.0;
+    heavy.index.search = semlook::config::IndexSearch::Exact;
+    for (setting, first) in [(Setting::Fused, (|i| i) as fn(usize) -> usize), (Setting::Semlook, |i| 8 - i)] {
+        let (lists, _) = semlook::matching::candidates(&mut semlook::matching::CpuStages, &back, &queries, setting, &heavy).unwrap();
+        for (i, l) in lists.iter().enumerate() {
+            assert_eq!(l[0].1 as usize, first(i), "{setting}: query {i}");
+        }
+    }
 }
 
 #[test]
@@ -198,10 +218,19 @@ fn images_without_the_maps_embeddings_are_refused() {
     assert!(w.push_set(&none).is_err());
     let wide = set(1, 9, |_| unit(9, 0, 0));
     assert!(w.push_set(&wide).is_err());
-    let long = set(1, 8, |_| vec![1.0; 8]);
+    let mut long = set(1, 8, |_| vec![1.0; 8]);
+    long.embedding = Some(EmbeddingRecord { network: "test.onnx".into(), sha256: "0".repeat(64), dim: 8, long_side: 448 });
     let err = w.push_set(&long).unwrap_err().to_string();
     assert!(err.contains("embedding"), "{err}");
-    let good = set(2, 8, |i| unit(8, i, i));
+    // a zero row (an image pushed into a set without its embedding) is not a place unlike all others
+    let mut zero = set(2, 8, |i| if i == 0 { unit(8, 0, 0) } else { vec![] });
+    zero.embedding = Some(EmbeddingRecord { network: "test.onnx".into(), sha256: "0".repeat(64), dim: 8, long_side: 448 });
+    let err = w.push_set(&zero).unwrap_err().to_string();
+    assert!(err.contains("length 0"), "{err}");
+    // embeddings of no recorded network
+    let mut good = set(2, 8, |i| unit(8, i, i));
+    assert!(matches!(w.push_set(&good), Err(semlook::Error::IncompatibleConfig { .. })));
+    good.embedding = zero.embedding.clone();
     w.push_set(&good).unwrap();
     assert_eq!(w.finish().unwrap().len(), 2);
 }
@@ -259,16 +288,46 @@ fn encoders_follow_the_maps_record() {
     assert_eq!(set.embedding_dim, 1280);
     assert!(set.image_embedding.chunks(1280).all(|e| (e.iter().map(|x| x * x).sum::<f32>() - 1.0).abs() < 2e-3), "unit embeddings");
     assert_eq!(with.manifest.embedding.as_ref().map(|r| r.sha256.as_str()), Some(semlook::models::EMBEDDING_SHA256));
-    assert!(semlook::encode::Encoder::for_map(&cfg, &with).unwrap().embedder().is_some());
+    assert_eq!(semlook::encode::Encoder::for_map(&cfg, &with).unwrap().embedding_record().as_ref(), with.manifest.embedding.as_ref());
     let mut off = Config::default();
     off.embedding.network = "none".into();
     let (without, set) = build(&off, "without");
     assert_eq!((set.embedding_dim, without.manifest.embedding.is_none()), (0, true));
-    // queries for a map without embeddings get none, though the default config asks for them
+    // a map without embeddings keeps the manifest and segments of before them (no key, no tensor)
+    assert!(!std::fs::read_to_string(dir.path().join("without/manifest.json")).unwrap().contains("embedding"));
+    for f in std::fs::read_dir(dir.path().join("without")).unwrap().flatten().filter(|f| f.file_name().to_string_lossy().starts_with("segment-")) {
+        assert!(!String::from_utf8_lossy(&std::fs::read(f.path()).unwrap()).contains("image_embedding"));
+    }
+    // queries for a map without embeddings get none, though the default config asks for them;
+    // queries for a map with them get its network, though the config says "none" (or names a
+    // network that is not installed)
     assert!(semlook::encode::Encoder::for_map(&cfg, &without).unwrap().embedder().is_none());
+    assert_eq!(semlook::encode::Encoder::for_map(&off, &with).unwrap().embedding_record().as_ref(), with.manifest.embedding.as_ref());
+    let mut missing = Config::default();
+    missing.embedding.network = "no-such-network.onnx".into();
+    assert!(semlook::encode::Encoder::for_map(&missing, &with).unwrap().embedder().is_some());
+    assert!(semlook::encode::Encoder::for_map(&missing, &without).unwrap().embedder().is_none());
+    // a map that recorded another long side is embedded at that size
+    std::fs::create_dir(dir.path().join("small")).unwrap();
+    for f in std::fs::read_dir(dir.path().join("with")).unwrap().flatten() {
+        std::fs::copy(f.path(), dir.path().join("small").join(f.file_name())).unwrap();
+    }
+    common::edit_sealed_manifest(&dir.path().join("small"), |t| t.replace("\"long_side\": 448", "\"long_side\": 384"));
+    let small = Map::open(&dir.path().join("small")).unwrap();
+    assert_eq!(semlook::encode::Encoder::for_map(&cfg, &small).unwrap().embedder().unwrap().long_side(), 384);
     // a map that recorded another file of the same name is refused
     common::edit_sealed_manifest(&dir.path().join("with"), |t| t.replace(semlook::models::EMBEDDING_SHA256, &"f".repeat(64)));
     let changed = Map::open(&dir.path().join("with")).unwrap();
-    let err = semlook::encode::Encoder::for_map(&cfg, &changed).err().expect("another network's map is refused").to_string();
+    let Err(err) = semlook::encode::Encoder::for_map(&cfg, &changed) else { panic!("another network's map is refused") };
+    let err = err.to_string();
     assert!(err.contains("efficientnet_lite1_gem.onnx") && err.contains(&"f".repeat(64)), "{err}");
+    // `map verify` says so too (exit 1, the manifest named), and is content with the map without
+    let verify = |name: &str| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_semlook")).args(["map", "verify", "--map"]).arg(dir.path().join(name)).output().unwrap()
+    };
+    let out = verify("with");
+    let text = String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{text}");
+    assert!(text.contains("manifest.json") && text.contains("embeddings were made by the network of sha256"), "{text}");
+    assert_eq!(verify("without").status.code(), Some(0));
 }

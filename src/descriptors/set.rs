@@ -288,7 +288,7 @@ impl DescriptorSet {
             )));
         }
         if let (Some(a), Some(b)) = (&self.embedding, &other.embedding) {
-            if a != b {
+            if !a.same_network(b) {
                 return Err(Error::check(format!(
                     "images embedded by another network ({}, sha256 {}) do not join a set of {} (sha256 {})",
                     b.network, b.sha256, a.network, a.sha256
@@ -468,7 +468,7 @@ impl DescriptorSet {
             n_classes,
             store,
         )?;
-        crate::descriptors::validate::embedding(&self.ids[i], Values::F32(self.image_embedding(i)))?;
+        crate::descriptors::validate::embedding(Values::F32(self.image_embedding(i)))?;
         crate::descriptors::validate::keypoints(self.keypoints(i), n_classes)?;
         self.poses.get(i).copied().flatten().map_or(Ok(()), |p| crate::descriptors::validate::pose_row(&p.to_row()))
     }

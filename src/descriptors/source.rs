@@ -158,6 +158,10 @@ pub trait RefSource: GlobalSource {
     fn embedding_dim(&self) -> usize {
         0
     }
+    /// What made the embeddings (none: the source holds none, or does not say).
+    fn embedding_record(&self) -> Option<&crate::embedding::EmbeddingRecord> {
+        None
+    }
     /// The whole-image embedding of reference i (`embedding_dim` values).
     fn image_embedding(&self, _i: usize) -> Values<'_> {
         Values::EMPTY
@@ -230,6 +234,9 @@ impl RefSource for DescriptorSet {
     }
     fn embedding_dim(&self) -> usize {
         self.embedding_dim
+    }
+    fn embedding_record(&self) -> Option<&crate::embedding::EmbeddingRecord> {
+        self.embedding.as_ref()
     }
     fn image_embedding(&self, i: usize) -> Values<'_> {
         Values::F32(DescriptorSet::image_embedding(self, i))
@@ -310,6 +317,9 @@ impl RefSource for Window<'_> {
     }
     fn embedding_dim(&self) -> usize {
         self.inner.embedding_dim()
+    }
+    fn embedding_record(&self) -> Option<&crate::embedding::EmbeddingRecord> {
+        self.inner.embedding_record()
     }
     fn image_embedding(&self, i: usize) -> Values<'_> {
         self.inner.image_embedding(self.start + i)

@@ -96,21 +96,20 @@ pub fn image(
     Ok(())
 }
 
-/// Checks an image's whole-image embedding (`id` names the image): finite values of length 1
-/// (the network's output is L2-normalised) or none; a longer one would outscore every true match.
-pub fn embedding(id_: &str, e: Values) -> Result<()> {
+/// Checks an image's whole-image embedding: finite values of length 1 (the network's output is
+/// L2-normalised, then rounded to f16) or none. A longer one would outscore every true match; a
+/// zero one (an image pushed without its embedding) would be served as a place unlike any other.
+pub fn embedding(e: Values) -> Result<()> {
     if e.is_empty() {
         return Ok(());
     }
     let e = e.to_vec();
     if e.iter().any(|x| !x.is_finite()) {
-        return Err(Error::check(format!("image {id_:?}: an embedding value is NaN or infinite")));
+        return Err(Error::check("an embedding value is NaN or infinite"));
     }
     let n = e.iter().map(|x| x * x).sum::<f32>().sqrt();
-    if n > MAX_APPEARANCE_NORM {
-        return Err(Error::check(format!(
-            "image {id_:?}: the embedding has length {n}; the encoder's have length 1 (at most {MAX_APPEARANCE_NORM})"
-        )));
+    if !(2.0 - MAX_APPEARANCE_NORM..=MAX_APPEARANCE_NORM).contains(&n) {
+        return Err(Error::check(format!("the embedding has length {n}; the encoder's have length 1 (within {:.2})", MAX_APPEARANCE_NORM - 1.0)));
     }
     Ok(())
 }

@@ -77,12 +77,16 @@ pub struct Encoder {
 impl Encoder {
     /// An encoder for `cfg`: loads the keypoint network (and finds the segmenter) the config names.
     pub fn new(cfg: &Config) -> Result<Encoder> {
+        Encoder::build(cfg, true)
+    }
+    /// [`Encoder::new`]; with `embed` false, without the embedding network `[embedding]` names.
+    fn build(cfg: &Config, embed: bool) -> Result<Encoder> {
         let table = ClassTable::from_config(&cfg.classes)?;
         let appearance = AppearanceModel::load(&cfg.appearance, &cfg.models)?
             .map(|m| AppearanceEncoder::new(m, &cfg.appearance, &cfg.keypoints).ignoring(&table))
             .transpose()?;
         let global = GlobalStage { cfg: cfg.global.clone(), used: table.used_mask(), ssim: SsimParams::new(&cfg.global) };
-        let embedder = match appearance.is_some() {
+        let embedder = match appearance.is_some() && embed {
             true => crate::embedding::from_config(&cfg.embedding, &cfg.models)?.map(std::sync::Arc::new),
             false => None,
         };
@@ -121,19 +125,19 @@ impl Encoder {
     /// network must be the one the map was built with, and the map's codebook is used.
     pub fn for_map(cfg: &Config, map: &crate::map::Map) -> Result<Encoder> {
         map.check_compatible(&cfg.encoding())?;
-        let mut enc = Encoder::new(cfg)?;
+        // the map's embedding network below, whatever `[embedding]` says
+        let mut enc = Encoder::build(cfg, false)?;
         map.check_model(enc.appearance_model().map(|a| a.sha256.as_str()))?;
         if let Some(cb) = map.codebook() {
             enc.set_codebook(cb.clone());
         }
-        // the map's embedding network, whatever `[embedding]` says: the one that made its embeddings
-        enc.embedder = match (&map.manifest.embedding, enc.embedder.take()) {
-            (None, _) => None,
-            (Some(rec), Some(e)) if e.sha256() == rec.sha256 && e.long_side() == rec.long_side => Some(e),
-            (Some(_), _) if enc.appearance.is_none() => {
+        // the network that made the map's embeddings
+        enc.embedder = match &map.manifest.embedding {
+            None => None,
+            Some(_) if enc.appearance.is_none() => {
                 return Err(Error::invalid(format!("map {}", map.path.display()), "the map's embeddings need appearance on"))
             }
-            (Some(rec), _) => Some(std::sync::Arc::new(crate::embedding::for_record(rec, &cfg.models)?)),
+            Some(rec) => Some(std::sync::Arc::new(crate::embedding::for_record(rec, &cfg.models)?)),
         };
         // a map built without labels takes its frames without labels too
         Ok(enc.without_labels(map.manifest.without_labels))
@@ -192,9 +196,7 @@ impl Encoder {
     }
     /// What a new map records of the embedding network (none without one).
     pub fn embedding_record(&self) -> Option<crate::embedding::EmbeddingRecord> {
-        let e = self.embedder.as_ref()?;
-        let network = e.path().file_name().map_or_else(|| e.path().display().to_string(), |n| n.to_string_lossy().into_owned());
-        Some(crate::embedding::EmbeddingRecord { network, sha256: e.sha256().into(), dim: e.dim(), long_side: e.long_side() })
+        self.embedder.as_ref().map(|e| e.record())
     }
     /// Values per whole-image embedding (0 without an embedding network).
     pub fn embedding_dim(&self) -> usize {

@@ -714,7 +714,7 @@ impl EvalReport {
         let e = &self.query_encoding;
         let (m, md) = (&e.mean, &e.median);
         s += &format!(
-            "\nencoding, ms per frame ({} query frames; mean / median):\n  file decoding and resizing {:.2} / {:.2} | segmentation {:.2} / {:.2}\n  edge (coarse) {:.2} / {:.2} | forest {:.2} / {:.2} | appearance {:.2} / {:.2} (network {:.2} / {:.2}) | SemLook total {:.2} / {:.2}\n  HOG baseline {:.2} / {:.2} | wall clock, frames in parallel: {:.2} per frame\n",
+            "\nencoding, ms per frame ({} query frames; mean / median):\n  file decoding and resizing {:.2} / {:.2} | segmentation {:.2} / {:.2}\n  edge (coarse) {:.2} / {:.2} | forest {:.2} / {:.2} | appearance {:.2} / {:.2} (network {:.2} / {:.2}) | embedding {:.2} / {:.2} | total {:.2} / {:.2}\n  HOG baseline {:.2} / {:.2} | wall clock, frames in parallel: {:.2} per frame\n",
             e.frames,
             m.decode_ms,
             md.decode_ms,
@@ -728,6 +728,8 @@ impl EvalReport {
             md.appearance_ms,
             m.network_ms,
             md.network_ms,
+            m.embedding_ms,
+            md.embedding_ms,
             m.encode_ms(),
             md.encode_ms(),
             m.hog_ms,

@@ -207,6 +207,9 @@ pub struct VerifyReport {
     pub appearance_model: Option<String>,
     /// The kind of keypoint network the map's configuration names.
     pub appearance_kind: crate::config::AppearanceModelKind,
+    /// The network that made the map's whole-image embeddings (queries must use the same file).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub embedding: Option<crate::embedding::EmbeddingRecord>,
 }
 
 impl VerifyReport {
@@ -281,6 +284,7 @@ pub fn verify(dir: &Path) -> Result<VerifyReport> {
         leftovers,
         appearance_model: m.appearance_model.clone(),
         appearance_kind: m.config.appearance.model,
+        embedding: m.embedding.clone(),
     })
 }
 

@@ -44,14 +44,17 @@ impl Map {
                 format!("{} appearance values, the map's index reduces {}", q.appearance.len(), ix.model.width),
             ));
         }
-        let reranked = !ix.thumb.is_empty() && q.w_global != 0.0;
+        // the pool is re-ranked by the fused score's other terms where it has any here: the
+        // thumbnails' SSIM, the embeddings' cosine
+        let thumbs = !ix.thumb.is_empty() && q.w_global != 0.0;
+        let reranked = thumbs || q.w_embedding != 0.0;
         let shortlist = match q.shortlist {
             0 => auto_shortlist(reranked),
             s => s,
         }
         .max(q.at_least);
         let fused = reranked && q.pool > shortlist;
-        if fused && q.global.len() != ix.thumb.width * ix.thumb.height {
+        if fused && thumbs && q.global.len() != ix.thumb.width * ix.thumb.height {
             return Err(Error::invalid(
                 "index query",
                 format!("{} global values, the map's index keeps thumbnails of {}", q.global.len(), ix.thumb.width * ix.thumb.height),
@@ -85,27 +88,32 @@ impl Map {
         if !fused {
             return Ok(out.into_sorted());
         }
-        // the pool's thumbnails scored by the coarse stage's SSIM, in parallel chunks
+        // the pool's thumbnails scored by the coarse stage's SSIM, in parallel chunks (none
+        // without thumbnails)
         let pooled = out.into_sorted();
-        let ssim: Vec<f32> = pooled
-            .par_chunks(POOL_CHUNK)
-            .map_init(
-                || {
-                    let mut scorer = ThumbScorer::new(&ix.thumb, q.ssim);
-                    scorer.set_query(q.global);
-                    scorer
-                },
-                |scorer, chunk| {
-                    scorer
-                        .score(chunk.iter().map(|&(_, r)| {
-                            let (s, j) = self.locate(r as usize);
-                            ix.codes[s].thumb(j)
-                        }))
-                        .to_vec()
-                },
-            )
-            .flatten()
-            .collect();
+        let ssim: Vec<f32> = if !thumbs {
+            vec![0.0; pooled.len()]
+        } else {
+            pooled
+                .par_chunks(POOL_CHUNK)
+                .map_init(
+                    || {
+                        let mut scorer = ThumbScorer::new(&ix.thumb, q.ssim);
+                        scorer.set_query(q.global);
+                        scorer
+                    },
+                    |scorer, chunk| {
+                        scorer
+                            .score(chunk.iter().map(|&(_, r)| {
+                                let (s, j) = self.locate(r as usize);
+                                ix.codes[s].thumb(j)
+                            }))
+                            .to_vec()
+                    },
+                )
+                .flatten()
+                .collect()
+        };
         // the embedding term of the fused score, exact (a dot product per pooled reference)
         let emb = |r: u32| -> f32 {
             match q.w_embedding {

@@ -433,6 +433,9 @@ impl RefSource for Map {
     fn embedding_dim(&self) -> usize {
         self.layout().emb
     }
+    fn embedding_record(&self) -> Option<&crate::embedding::EmbeddingRecord> {
+        self.manifest.embedding.as_ref()
+    }
     fn image_embedding(&self, i: usize) -> Values<'_> {
         let (s, j) = self.locate(i);
         self.sound(s).map_or(Values::EMPTY, |seg| seg.image_embedding(j))

@@ -13,7 +13,8 @@
 //! `keypoint_descriptors` `[p, kdim]` i8, `keypoint_xy` `[p, 2]` u16, `keypoint_class` `[p]` u8, and,
 //! only in segments where some image has a pose, `place_pose` `[n, 7]` f64 (`x y z qx qy qz qw`, NaN
 //! where there is none: [`PlacePose::to_row`]; segments without it, older ones among them, hold no
-//! poses). SSIM statistics are not stored: readers recompute them per tile.
+//! poses), and only in maps with whole-image embeddings `image_embedding` `[n, emb]` f16. SSIM
+//! statistics are not stored: readers recompute them per tile.
 //!
 //! Opening checks the header: every tensor's dtype, shape, and alignment (safetensors writers sort
 //! tensors by element size and pad the header to 8 bytes, so each tensor starts at a multiple of
@@ -485,7 +486,7 @@ impl Mapped {
                 self.layout.values,
             )
             .and_then(|()| validate::keypoints(self.keypoints(j), self.layout.n_classes))
-            .and_then(|()| validate::embedding(id, self.image_embedding(j)))
+            .and_then(|()| validate::embedding(self.image_embedding(j)))
             .map_err(|r| Error::check(format!("image {id:?}: {r}")))?;
             if let Some(r) = &self.r.place_pose {
                 let rows: &[f64] = bytemuck::cast_slice(self.raw(r));

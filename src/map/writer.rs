@@ -378,7 +378,7 @@ impl MapWriter {
         let app = if img.appearance.is_empty() { Values::F32(&[]) } else { Values::F32(&img.appearance) };
         validate::image(&img.id, [img.width, img.height], Values::F32(&img.global), f, app, &img.hog, self.layout.n_classes, self.opts.values)
             .and_then(|()| validate::keypoints(img.keypoints.as_ref(), self.layout.n_classes))
-            .and_then(|()| validate::embedding(&img.id, Values::F32(&img.embedding)))
+            .and_then(|()| validate::embedding(Values::F32(&img.embedding)))
             .and_then(|()| match img.embedding.len() == self.layout.emb {
                 true => Ok(()),
                 false => Err(Error::check(format!("an embedding of {} values, the map's have {}", img.embedding.len(), self.layout.emb))),
@@ -427,8 +427,8 @@ impl MapWriter {
                 given_value: show(&set.codebook),
             });
         }
-        if let (Some(given), Some(map)) = (&set.embedding, &self.manifest.embedding) {
-            if given != map {
+        if let (Some(map), true) = (&self.manifest.embedding, set.embedding_dim > 0) {
+            if !set.embedding.as_ref().is_some_and(|given| given.same_network(map)) {
                 let show = |r: &crate::embedding::EmbeddingRecord| {
                     format!("{} sha256 {} ({} values, long side {})", r.network, r.sha256, r.dim, r.long_side)
                 };
@@ -436,7 +436,7 @@ impl MapWriter {
                     map: self.dir.clone(),
                     field: "embedding network".into(),
                     map_value: show(map),
-                    given_value: show(given),
+                    given_value: set.embedding.as_ref().map_or_else(|| "embeddings of no recorded network".into(), show),
                 });
             }
         }

@@ -335,13 +335,14 @@ fn fused_topk(
     k: usize,
 ) -> Result<CandidateLists> {
     let w = cfg.matching.w_global as f32;
-    if baseline::unavailable(refs, queries, Setting::Appearance).is_some() && w > 0.0 {
+    let weights = FusedWeights::of(refs, queries, cfg, setting);
+    if baseline::unavailable(refs, queries, Setting::Appearance).is_some() && w > 0.0 && weights.embedding == 0.0 {
         // no cosine term: the global ranking, each score times w (as the fused scan computes it)
         let mut lists = stages.coarse(refs, queries, &SsimParams::new(&cfg.global), k, cfg.matching.tile)?;
         lists.iter_mut().flatten().for_each(|(s, _)| *s *= w);
         return Ok(lists);
     }
-    stages.fused_coarse(refs, queries, &SsimParams::new(&cfg.global), FusedWeights::of(refs, queries, cfg, setting), k, cfg.matching.tile)
+    stages.fused_coarse(refs, queries, &SsimParams::new(&cfg.global), weights, k, cfg.matching.tile)
 }
 
 /// The weights of the fused coarse score's terms beside the appearance cosine.
@@ -358,7 +359,12 @@ pub struct FusedWeights {
 impl FusedWeights {
     /// The weights `cfg` gives `setting` for `queries` against `refs`.
     pub fn of(refs: &dyn RefSource, queries: &DescriptorSet, cfg: &Config, setting: Setting) -> FusedWeights {
-        let both = queries.embedding_dim > 0 && refs.embedding_dim() == queries.embedding_dim;
+        // embeddings of one network on both sides (a record on each: a set of unknown origin has none)
+        let same = match (&queries.embedding, refs.embedding_record()) {
+            (Some(a), Some(b)) => a.same_network(b),
+            _ => false,
+        };
+        let both = same && queries.embedding_dim > 0 && refs.embedding_dim() == queries.embedding_dim;
         let embedding = if setting.embeds() && both { cfg.matching.w_embedding as f32 } else { 0.0 };
         FusedWeights { global: cfg.matching.w_global as f32, embedding }
     }
@@ -370,10 +376,15 @@ impl FusedWeights {
     /// cosine (with `cosine`) plus `embedding` x the embeddings' cosine (both of length 1).
     #[inline]
     fn appearance(&self, refs: &dyn RefSource, queries: &DescriptorSet, q: usize, r: usize, cosine: bool) -> f32 {
-        let a = if cosine { Values::F32(queries.image_appearance(q)).dot(&refs.image_appearance(r)) } else { 0.0 };
+        self.appearance_of(queries, q, &refs.image_appearance(r), &refs.image_embedding(r), cosine)
+    }
+    /// [`FusedWeights::appearance`] with the reference's vectors read once by the caller.
+    #[inline]
+    fn appearance_of(&self, queries: &DescriptorSet, q: usize, ra: &Values, re: &Values, cosine: bool) -> f32 {
+        let a = if cosine { Values::F32(queries.image_appearance(q)).dot(ra) } else { 0.0 };
         match self.embedding {
             0.0 => a,
-            w => a + w * Values::F32(queries.image_embedding(q)).dot(&refs.image_embedding(r)),
+            w => a + w * Values::F32(queries.image_embedding(q)).dot(re),
         }
     }
 }
@@ -480,8 +491,9 @@ pub fn fused_topk_cpu(refs: &dyn RefSource, queries: &DescriptorSet, p: &SsimPar
         let (g, st) = refs.tile(start, end, &mut buf);
         exec.score_tile(&queries.globals, g, st, scores);
         scores.par_chunks_mut(nq).enumerate().for_each(|(j, row)| {
+            let (ra, re) = (refs.image_appearance(start + j), refs.image_embedding(start + j));
             for (q, s) in row.iter_mut().enumerate() {
-                *s = w.appearance(refs, queries, q, start + j, cosine) + w.global * *s;
+                *s = w.appearance_of(queries, q, &ra, &re, cosine) + w.global * *s;
             }
         });
     })
@@ -602,7 +614,7 @@ fn coarse_pair_scores(refs: &dyn RefSource, queries: &DescriptorSet, setting: Se
                 match (fused, cosine) {
                     (false, _) => ssim,
                     (true, true) => fw.appearance(refs, queries, q, r, true) + w * ssim,
-                    (true, false) => w * ssim,
+                    (true, false) => fw.appearance(refs, queries, q, r, false) + w * ssim,
                 }
             },
         )

@@ -204,8 +204,8 @@ fn report_encoding(r: &batch::IntoReport, quiet: bool) {
     info(
         quiet,
         format!(
-            "encoded {} images{stored} ({:.2} ms per frame: edge {:.2}, forest {:.2}, appearance {:.2} of which network {:.2}; decoding {:.2}, segmentation {:.2})",
-            r.added, m.encode_ms(), m.global_ms, m.forest_ms, m.appearance_ms, m.network_ms, m.decode_ms, m.segment_ms
+            "encoded {} images{stored} ({:.2} ms per frame: edge {:.2}, forest {:.2}, appearance {:.2} of which network {:.2}, embedding {:.2}; decoding {:.2}, segmentation {:.2})",
+            r.added, m.encode_ms(), m.global_ms, m.forest_ms, m.appearance_ms, m.network_ms, m.embedding_ms, m.decode_ms, m.segment_ms
         ),
     );
     if !r.invalid.is_empty() {
@@ -286,6 +286,7 @@ fn show(dir: &Path, json: bool) -> Result<()> {
             "traversals": traversals(&map),
             "poses": { "images": poses.0, "with_orientation": poses.1 },
             "index": m.index,
+            "embedding": m.embedding,
             "config": m.config,
         });
         outln!("{}", to_json(&v)?);
@@ -309,6 +310,10 @@ fn show(dir: &Path, json: bool) -> Result<()> {
         outln!("traversals: {}", t.join(", "));
         if poses.0 > 0 {
             outln!("poses: {} of {} images ({} with an orientation)", poses.0, map.len(), poses.1);
+        }
+        match &m.embedding {
+            Some(e) => outln!("embeddings: {} values by {} at {} px long side (sha256 {})", e.dim, e.network, e.long_side, e.sha256),
+            None => outln!("embeddings: none (the fused score has no embedding term)"),
         }
         match &m.index {
             Some(ix) => outln!("{}", describe_index(ix, &m.config.global)),
@@ -387,6 +392,10 @@ fn verify(dir: &Path, json: bool) -> Result<()> {
     if let (Some(line), false) = (&model, json) {
         outln!("{line}");
     }
+    let embedding = check_installed_embedding(&mut r);
+    if let (Some(line), false) = (&embedding, json) {
+        outln!("{line}");
+    }
     if json {
         outln!("{}", to_json(&r)?);
     } else {
@@ -445,6 +454,29 @@ pub fn bench(a: &StoreBenchArgs, quiet: bool) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// What a query checks of the embedding network, checked by verify too: the file of the name the
+/// map recorded is installed and has its SHA-256. A mismatch is a problem of the manifest (queries
+/// would be refused); the line says what was checked.
+fn check_installed_embedding(r: &mut edit::VerifyReport) -> Option<String> {
+    let rec = r.embedding.clone()?;
+    let Ok(path) = semlook::onnx::find_model(&rec.network, None, "embedding network") else {
+        return Some(format!("model    not checked: no {} installed (queries need the one with sha256 {})", rec.network, rec.sha256));
+    };
+    match semlook::util::sha256_file(&path) {
+        Ok(sha) if sha == rec.sha256 => Some(format!("ok       embedding network {} (sha256 {sha})", path.display())),
+        Ok(sha) => {
+            let problem = format!(
+                "the map's embeddings were made by the network of sha256 {}; the installed {} is {sha}, so queries would be refused",
+                rec.sha256,
+                path.display()
+            );
+            r.files.push(edit::FileCheck { file: "manifest.json".into(), problem: Some(problem) });
+            None
+        }
+        Err(e) => Some(format!("model    not checked: {e}")),
+    }
 }
 
 /// What a query checks of the keypoint network, checked by verify too: the installed network
