@@ -428,26 +428,27 @@ def test_poses_a_map_stores_are_read_back_and_answered(tmp_path, synth_dataset):
         assert r["pose"] == m.pose(m.ids.index(r["place"][0])), (t, r["place"], r["pose"])
 
 
-def test_embeddings_travel_with_their_network(tmp_path):
-    """With the default config the encoder embeds each image (setup.sh installs the network): the
-    arrays carry the embeddings and the network's record, and a map made from them keeps both."""
+def test_embeddings_travel_with_their_network(tmp_path, synth_dataset):
+    """With the default config a map stores each image's embedding (setup.sh installs the network)
+    and records the network; the encoder for the map embeds its queries with it; the arrays carry
+    the embeddings and the record, and a map made from them keeps both."""
     models = os.environ.get("SEMLOOK_MODELS", os.path.join(os.path.dirname(__file__), "..", "..", ".semlook"))
     if not os.path.isfile(os.path.join(models, "efficientnet_lite1_gem.onnx")) or not os.path.isfile(os.path.join(models, "xfeat.pt")):
         if os.environ.get("CI") or os.environ.get("REQUIRE_MODELS") == "1":
             pytest.fail(f"required here (CI or REQUIRE_MODELS=1) but missing: the embedding network or XFeat in {models} (run setup.sh)")
         pytest.skip(f"no embedding network or XFeat in {models} (run setup.sh)")
-    enc = semlook.Encoder(semlook.Config())
-    rng = np.random.default_rng(3)
-    images = [rng.integers(0, 256, (72, 96, 3), dtype=np.uint8) for _ in range(3)]
-    d = semlook.Descriptors.concat([enc.encode(f"e{i}", image=images[i], labels=place(i)) for i in range(3)])
-    arrays = d.to_arrays()
-    assert arrays["embedding_dim"] == 1280
-    record = json.loads(arrays["embedding_record"])
+    photos = synth_dataset / "day" / "RGB" / "Stereo_Left" / "Omni_F"
+    m = semlook.Map.build(tmp_path / "m", images=photos, segmenter=False)
+    record = m.manifest()["embedding"]
     assert record["network"] == "efficientnet_lite1_gem.onnx" and record["dim"] == 1280
+    enc = semlook.Encoder.for_map(m)
+    files = sorted(str(p) for p in photos.iterdir())[:3]
+    d = enc.encode_files([f"q{i}" for i in range(3)], images=files)
+    arrays = d.to_arrays()
+    assert arrays["embedding_dim"] == 1280 and json.loads(arrays["embedding_record"]) == record
     e = np.asarray(d.column("image_embedding"))
     assert e.shape == (3, 1280) and np.allclose(np.linalg.norm(e, axis=1), 1.0, atol=2e-3)
     back = semlook.Descriptors.from_arrays(arrays)
     assert back.to_arrays()["embedding_record"] == arrays["embedding_record"]
-    semlook.Map.create(str(tmp_path / "m"), back, enc)
-    again = semlook.Map.open(str(tmp_path / "m"))
-    assert len(again) == 3
+    made = semlook.Map.create(str(tmp_path / "made"), back, enc)
+    assert len(made) == 3 and made.manifest()["embedding"] == record

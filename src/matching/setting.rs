@@ -26,8 +26,9 @@ pub enum Setting {
     /// method.md §6.1 (4): the full method: global top-K, SemLook local re-ranking (`matching.coarse` as
     /// for setting 3).
     Semlook,
-    /// Beyond the paper, coarse stage only: rank by cos(whole-image appearance) + w_global x SSIM
-    /// of the global descriptors (`matching.w_global`).
+    /// Beyond the paper, coarse stage only: rank by cos(whole-image appearance) + w_embedding x
+    /// cos(whole-image embeddings) + w_global x SSIM of the global descriptors
+    /// (`matching.w_embedding`, `matching.w_global`).
     Fused,
     /// Beyond the paper, the recommended pipeline: the fused coarse top-K, re-ranked by SemLook
     /// local similarity and geometric verification (`verification`).
@@ -59,9 +60,12 @@ impl Setting {
     pub fn label_free(self) -> Option<&'static str> {
         match self {
             // verified: the coarse stage's SSIM term is the same for every pair, so it ranks by
-            // the appearance cosine; verification checks geometry (its semantic check is off)
+            // the appearance cosine (and the embeddings'); verification checks geometry (its
+            // semantic check is off)
             Setting::Hog | Setting::Appearance | Setting::Verified => None,
-            Setting::Fused => Some("without labels its SSIM term is the same for every pair: it is the appearance baseline"),
+            Setting::Fused => {
+                Some("without labels its SSIM term is the same for every pair: `verified` ranks by the same coarse stage and verifies it")
+            }
             Setting::Global | Setting::Forest | Setting::Local | Setting::GlobalForest | Setting::Semlook => {
                 Some("needs semantic labels: give label maps, or install the default segmenter (`semlook models`)")
             }
