@@ -254,7 +254,7 @@ pub struct NewMapOptions {
 pub fn new_map(cfg: &crate::config::Config, frames: &[FrameSource], dir: &std::path::Path, opts: &NewMapOptions) -> Result<(Encoder, MapWriter)> {
     MapWriter::check_new_dir(dir, opts.resume)?;
     let encoder = Encoder::new(cfg)?.with_hog(opts.hog);
-    let without_labels = encoder.cannot_label(frames);
+    let without_labels = encoder.labels_rule(None, frames)?;
     let mut encoder = encoder.without_labels(without_labels);
     if without_labels {
         let served: Vec<&str> = crate::matching::Setting::served_without_labels(opts.hog).map(|s| s.name()).collect();

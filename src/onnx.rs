@@ -16,16 +16,25 @@ static ENV: OnceLock<std::result::Result<ort::environment::Environment, String>>
 /// The environment variable naming a folder of model files; it comes before the data folders.
 pub const MODELS_ENV: &str = "SEMLOOK_MODELS";
 
+/// With this environment variable set to 1, $SEMLOOK_MODELS is the only folder searched: what a
+/// machine with only that folder sees (CI's newcomer step runs so, where the repository's
+/// `.semlook` holds models a fresh machine cannot make).
+pub const MODELS_ONLY_ENV: &str = "SEMLOOK_MODELS_ONLY";
+
 /// The folders searched for model files, in order: $SEMLOOK_MODELS, then the data folders:
 /// `.semlook` in the working directory, `.semlook` beside the executable and up to three
 /// folders above it (a repository's `target/release/semlook`), `share/semlook/models` beside
 /// the executable's prefix (an installed `PREFIX/bin/semlook`), the user's data directory
 /// ($XDG_DATA_HOME or ~/.local/share) and the system ones ($XDG_DATA_DIRS or /usr/local/share
-/// and /usr/share), each with `semlook/models`. Nothing is fixed at build time.
+/// and /usr/share), each with `semlook/models`; with $SEMLOOK_MODELS_ONLY=1, $SEMLOOK_MODELS
+/// alone ([`MODELS_ONLY_ENV`]). Nothing is fixed at build time.
 pub fn model_dirs() -> Vec<PathBuf> {
     let mut dirs = Vec::new();
     if let Some(d) = std::env::var_os(MODELS_ENV).filter(|d| !d.is_empty()) {
         dirs.push(PathBuf::from(d));
+    }
+    if std::env::var_os(MODELS_ONLY_ENV).is_some_and(|v| v == "1") {
+        return dirs;
     }
     if let Ok(cwd) = std::env::current_dir() {
         dirs.push(cwd.join(".semlook"));

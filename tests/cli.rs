@@ -667,7 +667,7 @@ fn every_way_of_building_serves_every_way_of_evaluating() {
         ok(&[&["map", "build", "--map", p(&map), "-q"][..], args].concat());
         for (named, eargs) in &evals {
             if *built == "labels" && *named == "folders" && !segmenter {
-                common::skip_unless_required("REQUIRE_MODELS", "the default segmenter (photo queries against a map of label maps)");
+                common::no_segmenter("the default segmenter (photo queries against a map of label maps)");
                 continue;
             }
             let out = semlook(&[&["eval", "--map", p(&map), "--json"][..], setting, eargs].concat());

@@ -620,3 +620,57 @@ fn sigkill_during_index_build_add_and_compact_never_breaks_an_indexed_map() {
         }
     }
 }
+
+/// Issue 49: `map compact` and `map remove` while `map index` rebuilds. The build is held (by
+/// its test hook, no timing) between writing its model and codes and taking the lock for its
+/// commit; a compaction and a removal run there; the build then commits. Before, the compaction
+/// deleted the new model and codes as unlisted and the build committed a manifest naming them:
+/// no command could open the map. Now the build's files are staged out of the other writers'
+/// sight and moved in by its commit: the map opens, verifies, and its index answers as the
+/// exact scan at full probe.
+#[test]
+fn compaction_and_removal_during_an_index_rebuild_leave_a_map_that_verifies() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some((refs, night)) = drive(&dir.path().join("data"), 6) else { return };
+    let map = dir.path().join("map");
+    build(&refs, &map, 10);
+    let cfg = index_config(dir.path(), "ix.toml", "lists = 4");
+    cli_ok(&["map", "index", "--map", p(&map), "--config", p(&cfg)]);
+    // removed images: the compaction below has segments to rewrite
+    let ids: Vec<String> = {
+        let m = Map::open(&map).unwrap();
+        (0..m.len()).step_by(4).map(|i| semlook::descriptors::source::RefSource::id(&m, i).to_string()).collect()
+    };
+    edit::remove(&map, &ids[..ids.len() / 2]).unwrap();
+    let (staged_tx, staged_rx) = std::sync::mpsc::channel::<()>();
+    let (go_tx, go_rx) = std::sync::mpsc::channel::<()>();
+    let go_rx = std::sync::Mutex::new(go_rx);
+    let staged_tx = std::sync::Mutex::new(staged_tx);
+    semlook::map::index::set_staged_hook(Some(Box::new(move || {
+        staged_tx.lock().unwrap().send(()).unwrap();
+        go_rx.lock().unwrap().recv().unwrap();
+    })));
+    let builder = {
+        let map = map.clone();
+        // another model than the one committed (more lists): new file names
+        let params = semlook::index::IndexParams { lists: 6, ..semlook::index::IndexParams::from_config(&Default::default(), 100) };
+        std::thread::spawn(move || semlook::map::index::build(&map, &params, 6, 0))
+    };
+    staged_rx.recv().unwrap();
+    let report = edit::compact(&map, semlook::map::StoreOptions { segment_images: 10, ..Default::default() }).unwrap();
+    assert!(report.segments_after < report.segments_before || report.dropped > 0, "the compaction had nothing to do: {report:?}");
+    edit::remove(&map, &ids[ids.len() / 2..]).unwrap();
+    go_tx.send(()).unwrap();
+    let built = builder.join().unwrap();
+    semlook::map::index::set_staged_hook(None);
+    built.unwrap();
+    let m = Map::open(&map).unwrap();
+    assert_eq!(m.index().unwrap().entry.lists, 6, "the rebuilt index is committed");
+    assert_eq!(edit::verify(&map).unwrap().damaged().count(), 0);
+    assert!(
+        std::fs::read_dir(&map).unwrap().flatten().all(|e| !e.file_name().to_string_lossy().starts_with(".index-staging-")),
+        "the staging folder is gone"
+    );
+    let q = queries(&m, &night);
+    assert_eq!(coarse(&m, &q, IndexSearch::Approximate, 6, m.len(), 30), coarse(&m, &q, IndexSearch::Exact, 0, 1, 30));
+}

@@ -53,7 +53,7 @@ fn build(dir: &Path, frames: &[FrameSource], traversals: &[usize]) {
 }
 
 fn localizer(map: &Path, setting: Setting) -> Localizer {
-    Localizer::open(map, Some(config()), StreamOptions { setting, sequence: true, loop_closure: false }, Engine::cpu()).unwrap()
+    Localizer::open(map, Some(config()), StreamOptions { setting, ..Default::default() }, Engine::cpu()).unwrap()
 }
 
 fn frame(f: &FrameSource) -> StreamFrame {
@@ -223,7 +223,7 @@ fn loop_closure_finds_the_repeated_synthetic_route_and_nothing_recent() {
 /// that starts the map at `map`: the second pass closes loops on the right places (within two),
 /// the first almost never, and no closure is on a frame of the excluded recent window.
 fn closes_the_loop(map: &Path, cfg: &Config, setting: Setting, first_pass: &[FrameSource], second_pass: &[FrameSource]) {
-    let opts = StreamOptions { setting, sequence: true, loop_closure: true };
+    let opts = StreamOptions { setting, loop_closure: true, ..Default::default() };
     let mut l = Localizer::open(map, Some(cfg.clone()), opts, Engine::cpu()).unwrap();
     let (mut first, mut second) = (vec![], vec![]);
     for (k, f) in first_pass.iter().chain(second_pass).enumerate() {

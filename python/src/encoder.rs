@@ -178,7 +178,7 @@ impl PyEncoder {
     ) -> PyResult<Bound<'py, Self>> {
         let frames = frames(ids, Some(images), labels)?;
         let enc = slf.get().inner().clone();
-        let enc = enc.clone().without_labels(enc.cannot_label(&frames));
+        let enc = enc.clone().without_labels(enc.labels_rule(None, &frames).py_err()?);
         let mut trained = enc;
         detached(py, pool(threads)?, || semlook::batch::train_codebook(&mut trained, &frames, true)).py_err()?;
         if let Some(cb) = trained.codebook() {
@@ -207,7 +207,7 @@ impl PyEncoder {
         let fmt = self::label_format(label_format)?;
         // photos without label maps and no segmenter: encoded without labels (as `map build`)
         let enc = self.inner();
-        let enc = enc.clone().without_labels(enc.cannot_label(&frames));
+        let enc = enc.clone().without_labels(enc.labels_rule(None, &frames).py_err()?);
         let engine = resolve(py, engine)?;
         let encoded =
             run(py, pool(threads)?, engine.as_ref(), |e| semlook::batch::encode_frames(e, &enc, &frames, fmt, "frames", skip_invalid, true))?;
@@ -220,7 +220,11 @@ impl PyEncoder {
         let rgb = image.map(|a| rgb_from_array(py, a, &format!("image of {id:?}"))).transpose()?;
         let enc = self.inner().clone();
         let labels = labels.map(|l| labels_from_array(py, l, &format!("labels of {id:?}"), &enc)).transpose()?;
-        let enc = enc.clone().without_labels(rgb.is_some() && labels.is_none() && !enc.frames().can_segment());
+        let free = match rgb.is_some() && labels.is_none() {
+            true => enc.photos_rule(None, &format!("frame {id:?}")).py_err()?,
+            false => false,
+        };
+        let enc = enc.clone().without_labels(free);
         let set = py
             .detach(|| -> semlook::Result<_> {
                 let loaded = enc.frames().load_arrays(&id, rgb, labels)?;

@@ -224,7 +224,7 @@ impl PyMap {
     /// query (default: the config's top_k), `config` as `semlook query --config` (default:
     /// `Config.for_map(map)`), `threads` for a pool of its own, `engine` the `Engine` matching
     /// runs on (default: `default_engine()`).
-    #[pyo3(signature = (queries=None, setting="verified", k=None, config=None, threads=None, engine=None, *, images=None, labels=None, ids=None))]
+    #[pyo3(signature = (queries=None, setting="verified", k=None, config=None, threads=None, engine=None, *, images=None, labels=None, ids=None, segmenter=None))]
     #[allow(clippy::too_many_arguments)]
     fn query(
         &self,
@@ -238,10 +238,11 @@ impl PyMap {
         images: Option<&Bound<'_, PyAny>>,
         labels: Option<&Bound<'_, PyAny>>,
         ids: Option<Vec<String>>,
+        segmenter: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<PyMatches> {
         let map = self.map();
         let s = self::setting(setting)?;
-        let cfg = query_config(&map, config.map(|c| c.inner.clone()), k)?;
+        let cfg = crate::encoder::with_segmenter(query_config(&map, config.map(|c| c.inner.clone()), k)?, segmenter)?;
         let input = match queries.map(|q| q.cast::<PyDescriptors>()) {
             Some(Ok(d)) => match (images, labels, ids) {
                 (None, None, None) => Input::Encoded(d.get().inner.clone()),
@@ -258,6 +259,16 @@ impl PyMap {
                     }
                     _ => {
                         let frames = raw_frames(py, &enc, queries, images, labels, ids)?;
+                        // photos without label maps: segmented, label-free where nothing reads
+                        // labels, else refused before any encoding (`Encoder::labels_rule`)
+                        let photos = frames.iter().filter(|f| f.1.is_some() && f.2.is_none()).map(|f| f.0.clone()).next();
+                        let enc = match photos {
+                            Some(first) => {
+                                let free = enc.photos_rule(Some(s), &format!("frame {first:?}")).py_err()?;
+                                enc.without_labels(free)
+                            }
+                            None => enc,
+                        };
                         Input::Frames(Box::new(enc), frames)
                     }
                 }
@@ -269,8 +280,9 @@ impl PyMap {
                 Input::Encoded(set) => set,
                 Input::Frames(enc, frames) => Arc::new(encode_frames(&enc, frames)?),
                 Input::Files(enc, frames) => {
-                    // photos without label maps and no segmenter: encoded without labels
-                    let label_free = enc.cannot_label(&frames);
+                    // photos without label maps: segmented, label-free where nothing reads
+                    // labels, else refused before any encoding (`Encoder::labels_rule`)
+                    let label_free = enc.labels_rule(Some(s), &frames)?;
                     let enc = (*enc).without_labels(label_free);
                     let fmt = semlook::input::LabelFormat::default();
                     Arc::new(semlook::batch::encode_frames(e, &enc, &frames, fmt, "queries", false, true)?.set)

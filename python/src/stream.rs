@@ -24,7 +24,8 @@ pub struct PyLocalizer {
 #[pymethods]
 impl PyLocalizer {
     #[new]
-    #[pyo3(signature = (path, setting="verified", sequence=true, loop_closure=false, config=None, backend=None))]
+    #[pyo3(signature = (path, setting="verified", sequence=true, loop_closure=false, config=None, backend=None, *, segmenter=None))]
+    #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
         path: PathBuf,
@@ -33,14 +34,30 @@ impl PyLocalizer {
         loop_closure: bool,
         config: Option<PyRef<'_, PyConfig>>,
         backend: Option<&str>,
+        segmenter: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
         let s = self::setting(setting)?;
         if loop_closure && !sequence {
             return Err(invalid("sequence", "loop closure finds its closures by sequence matching: keep sequence=True"));
         }
         let (engine, _) = engine_for(py, backend, None)?;
-        let cfg = config.map(|c| c.inner.clone());
-        let opts = StreamOptions { setting: s, sequence, loop_closure };
+        // the segmenter named replaces the config's (or the map's) choice
+        let cfg = match (config.map(|c| c.inner.clone()), segmenter) {
+            (cfg, None) => cfg,
+            (cfg, seg) => {
+                let base = match cfg {
+                    Some(c) => c,
+                    None => match semlook::map::manifest::read(&path).py_err()? {
+                        Some(m) => semlook::map::manifest::query_config(&m),
+                        None => semlook::config::Config::default(),
+                    },
+                };
+                Some(crate::encoder::with_segmenter(base, seg)?)
+            }
+        };
+        // frames may come with their label maps (`push(labels=...)`): one without, on a map that
+        // holds labels and with no segmenter, is refused when pushed, naming the fix
+        let opts = StreamOptions { setting: s, sequence, loop_closure, labelled_frames: true };
         let loc = py.detach(|| Localizer::open(&path, cfg, opts, engine)).py_err()?;
         Ok(PyLocalizer { inner: Mutex::new(loc) })
     }

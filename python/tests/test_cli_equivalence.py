@@ -2,7 +2,9 @@
 Python's defaults are the command line's (backend, evaluated settings)."""
 
 import json
+import os
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -65,3 +67,47 @@ def test_evaluate_runs_the_settings_the_command_line_runs(cli_eval, synth_datase
     assert ran(py) == ran(cli) and py["skipped"] == cli["skipped"]
     asked = [s for s in dict.fromkeys(x["setting"] for x in cli["results"])] + [s for s, _ in cli["skipped"]]
     assert sorted(asked, key=semlook.EVAL_SETTINGS.index) == list(semlook.EVAL_SETTINGS)
+
+
+TINY = Path(__file__).resolve().parents[2] / "tests" / "data" / "tiny_segmenter.onnx"
+TINY_CONFIG = '[appearance]\nmodel = "none"\n[segmentation]\ninput_width = 64\ninput_height = 48\nclass_map = ["road", "vegetation", "sky"]\n'
+
+
+def test_a_labelled_map_never_scores_photos_without_labels(tmp_path, synth_dataset, cpu):
+    """Issue 49: `Map.query` on a map built with a segmenter. Before, photo queries with no
+    segmenter to label them were encoded without labels, without a word, and scored against the
+    map's labelled references (`semlook` scored every query 0.0). Now they are refused before any
+    encoding, naming the fix; with the map's segmenter given as `segmenter=` they are segmented
+    and score as the command line's `query --segmenter` does."""
+    if not CLI.exists():
+        pytest.skip(f"{CLI} not built (cargo build --release)")
+    photos = synth_dataset / "day" / "RGB" / "Stereo_Left" / "Omni_F"
+    night = synth_dataset / "night" / "RGB" / "Stereo_Left" / "Omni_F"
+    cfg = semlook.Config(TINY_CONFIG)
+    try:
+        m = semlook.Map.build(tmp_path / "m", images=photos, segmenter=str(TINY), config=cfg, engine=cpu)
+    except semlook.SemlookError as e:
+        if "ONNX Runtime" in str(e) and not os.environ.get("CI"):
+            pytest.skip(f"no ONNX Runtime ({e})")
+        raise
+    assert m.manifest().get("without_labels") in (None, False), "the map holds the segmenter's labels"
+    with pytest.raises(semlook.SemlookError, match="holds semantic labels") as e:
+        m.query(night, "semlook", segmenter=False, engine=cpu)
+    assert "segmenter" in str(e.value)
+    # arrays too: RGB frames alone
+    rgb = [np.zeros((72, 96, 3), np.uint8) + 40]
+    with pytest.raises(semlook.SemlookError, match="holds semantic labels"):
+        m.query(rgb, "semlook", segmenter=False, engine=cpu)
+    # the encoder for the map refuses them as well
+    enc = semlook.Encoder.for_map(m, semlook.Config(TINY_CONFIG + "[models]\ndefault_segmenter = false\n"))
+    with pytest.raises(semlook.SemlookError, match="holds semantic labels"):
+        enc.encode("q", image=rgb[0])
+    got = m.query(night, "semlook", segmenter=str(TINY), engine=cpu)
+    out = subprocess.run([str(CLI), "query", "--map", str(tmp_path / "m"), "--images", str(night), "--segmenter", str(TINY), "--setting", "semlook", "--json", "--backend", "cpu"],
+                         check=True, capture_output=True, text=True)
+    cli = {row["query"]: row["top_k"] for row in json.loads(out.stdout)["queries"]}
+    assert sorted(cli) == sorted(got.queries)
+    for i, q in enumerate(got.queries):
+        assert [t["reference"] for t in cli[q]] == got.ids[i], q
+        assert np.array_equal(np.array([t["score"] for t in cli[q]], np.float32), got.scores[i, :got.counts[i]]), q
+    assert float(np.max(got.scores)) > 0.0, "segmented queries score above zero"

@@ -187,6 +187,14 @@ fn config(p: &Params) -> Result<Option<Config>, String> {
     if let Some(k) = p.top_k {
         cfg.matching.top_k = k;
     }
+    match &p.segmenter {
+        None => {}
+        Some(None) => {
+            cfg.models.default_segmenter = false;
+            cfg.models.segmenter_onnx = None;
+        }
+        Some(Some(path)) => cfg.models.segmenter_onnx = Some(path.clone()),
+    }
     if let Some(n) = p.sequence_length {
         cfg.sequence.length = n;
         cfg.sequence.min_frames = cfg.sequence.min_frames.min(n);
@@ -223,7 +231,7 @@ pub fn run(p: Params) -> Result<(), String> {
         log::info!("backend auto: {why}");
     }
     let cfg = config(&p)?;
-    let opts = StreamOptions { setting, sequence: p.sequence, loop_closure: p.loop_closure };
+    let opts = StreamOptions { setting, sequence: p.sequence, loop_closure: p.loop_closure, ..Default::default() };
     let loc = Localizer::open(&p.map, cfg, opts, engine).map_err(|e| e.to_string())?;
     match loc.map() {
         Some(m) => {
@@ -353,6 +361,14 @@ fn declared(p: &Params) -> Vec<(&'static str, ParameterValue)> {
         ("loop_closure", ParameterValue::Boolean(p.loop_closure)),
         ("backend", s(&p.backend)),
         ("config", s(&p.config.as_ref().map_or(String::new(), |c| c.display().to_string()))),
+        (
+            "segmenter",
+            s(&match &p.segmenter {
+                None => String::new(),
+                Some(None) => "none".into(),
+                Some(Some(path)) => path.display().to_string(),
+            }),
+        ),
         ("image_topic", s(&p.image_topic)),
         ("compressed_topic", s(&p.compressed_topic)),
         ("queue_size", ParameterValue::Integer(p.queue_size as i64)),

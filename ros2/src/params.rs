@@ -16,6 +16,8 @@ parameters (defaults in brackets):
   loop_closure     query the map, then add the frame to it; closures on ~/closure [false]
   backend          cpu, gpu or auto [auto]
   config           a semlook TOML config (its encoding sections must be the map's) [the map's]
+  segmenter        the segmentation model (ONNX) that labels the frames of a map that holds labels;
+                   none: no segmenter (such a map is then refused) [the installed default one]
   image_topic      sensor_msgs/Image frames [/camera/image_raw]
   compressed_topic sensor_msgs/CompressedImage frames [/camera/image_raw/compressed]
   queue_size       frames waiting to be localized; beyond it the oldest is dropped [2]
@@ -33,6 +35,8 @@ pub struct Params {
     pub loop_closure: bool,
     pub backend: String,
     pub config: Option<PathBuf>,
+    /// `None`: the installed default segmenter; `Some(None)`: none; `Some(Some(path))`: that model.
+    pub segmenter: Option<Option<PathBuf>>,
     pub image_topic: String,
     pub compressed_topic: String,
     pub queue_size: usize,
@@ -54,6 +58,7 @@ impl Params {
             loop_closure: false,
             backend: "auto".into(),
             config: None,
+            segmenter: None,
             image_topic: "/camera/image_raw".into(),
             compressed_topic: "/camera/image_raw/compressed".into(),
             queue_size: 2,
@@ -83,6 +88,7 @@ impl Params {
                         "loop_closure" => p.loop_closure = parse_bool(v).ok_or_else(|| bad("true or false"))?,
                         "backend" => p.backend = v.into(),
                         "config" => p.config = Some(PathBuf::from(v)),
+                        "segmenter" => p.segmenter = Some(Some(PathBuf::from(v)).filter(|_| v != "none")),
                         "image_topic" => p.image_topic = v.into(),
                         "compressed_topic" => p.compressed_topic = v.into(),
                         "pose_frame_id" => p.pose_frame_id = v.into(),

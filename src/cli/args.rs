@@ -83,6 +83,22 @@ pub enum DevCommand {
     Tune(TuneArgs),
     /// Accuracy of the segmenter against real label maps (pixel accuracy, IoU per class, mean IoU).
     SegmenterAccuracy(SegAccArgs),
+    /// A copy of a ref/ + query/ + ground_truth.csv dataset at another size (every image resized
+    /// to WxH, written as PNG; the ground truth's names follow): low-resolution dev checks.
+    Downscale(DownscaleArgs),
+}
+
+#[derive(Args)]
+pub struct DownscaleArgs {
+    /// The dataset: ref/, query/ and ground_truth.csv (query,reference paths relative to it).
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// The size of every image of the copy, WxH (e.g. 64x32).
+    #[arg(long)]
+    pub size: String,
+    /// Folder of the copy (must not exist, or be empty).
+    #[arg(long)]
+    pub out: PathBuf,
 }
 
 #[derive(Args)]
@@ -259,6 +275,15 @@ pub struct TuneArgs {
     /// tabulate its R@1 and AUC as a column `<setting>+seq`.
     #[arg(long)]
     pub sequence: bool,
+    /// Also print (and with --table write beside it, `.cv.tsv`) the leave-one-set-out
+    /// cross-validation: per dataset, the R@1 of the row chosen on the other datasets.
+    #[arg(long)]
+    pub cross_validate: bool,
+    /// Write the features of every candidate pair `verified` re-ranks (coarse terms, tree
+    /// similarity, matches, inliers, keypoints, sizes, ground truth) into DIR, one TSV per
+    /// dataset, query set and row: what a re-ranking prototype reads.
+    #[arg(long, value_name = "DIR")]
+    pub candidates: Option<PathBuf>,
     #[command(flatten)]
     pub models: ModelArgs,
 }

@@ -240,6 +240,10 @@ fn run_query(
 ) -> Result<(DescriptorSet, Vec<QueryMatch>, RunRecord)> {
     semlook::matching::check_labels(map, setting)?;
     let encoder = Encoder::for_map(cfg, map)?.for_setting(setting);
+    // photos without label maps: segmented, or label-free where nothing reads labels, else refused
+    // here, before any encoding
+    let label_free = encoder.labels_rule(Some(setting), frames)?;
+    let encoder = encoder.without_labels(label_free || map.manifest.without_labels);
     let queries = encode_sources(engine, &encoder, frames, fmt, "queries", s.skip_invalid, quiet)?;
     let t = Instant::now();
     let (matches, _) = engine.match_batch(map, &queries, setting, cfg)?;

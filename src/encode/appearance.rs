@@ -50,6 +50,12 @@ impl AppearanceEncoder {
         Ok(self)
     }
 
+    /// Whether the whole-image VLAD leaves some class out (`appearance.ignore_classes`): it then
+    /// reads the frame's labels.
+    pub fn reads_labels(&self) -> bool {
+        self.ignored.contains(&true)
+    }
+
     /// The keypoint network.
     pub fn model(&self) -> &AppearanceModel {
         &self.model

@@ -126,6 +126,11 @@ impl FrameLoader {
         })
     }
 
+    /// No segmenter: frames without label maps stay without (a map built without labels).
+    pub(super) fn drop_segmenter(&mut self) {
+        self.segmenter = None;
+    }
+
     /// Whether a segmenter makes the label maps of frames that have none.
     pub fn can_segment(&self) -> bool {
         self.segmenter.is_some()
@@ -183,7 +188,9 @@ impl FrameLoader {
         times.decode_ms = ms_since(t);
         let labels = match (&src.labels, &self.segmenter, &rgb) {
             (None, Some(_), Some(_)) => None,
-            (None, None, Some(_)) if self.void_labels => None,
+            // no segmenter, and void labels asked for: whether or not the image was decoded (HOG
+            // alone decodes it into `hog_rgb`)
+            (None, None, _) if self.void_labels => None,
             // the decoded image is compared below; no need to read its header again
             (Some(path), _, Some(_)) => Some(input::load_label_map(path, &self.table, format)?),
             _ => Some(input::load_frame_labels(src, &self.table, format)?),
@@ -288,7 +295,8 @@ impl FrameLoader {
                 times.segment_ms = ms_since(t);
                 l
             }
-            (None, None, Some(_)) if self.void_labels => LabelMap::void(ww, wh),
+            (None, None, _) if self.void_labels => LabelMap::void(ww, wh),
+            (None, None, _) => return Err(Error::NoLabels { image: f.image.map_or_else(|| format!("frame {id:?}").into(), Into::into) }),
             _ => return Err(Error::invalid(format!("frame {id:?}"), "no label map")),
         };
         let hog = match (f.hog_rgb.as_ref().or(f.rgb.as_ref()), self.hog) {

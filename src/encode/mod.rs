@@ -72,6 +72,9 @@ pub struct Encoder {
     /// The whole-image embedding network (none: `embedding.network = "none"`, not installed, or
     /// appearance off, which loads no RGB image).
     embedder: Option<std::sync::Arc<crate::embedding::Embedder>>,
+    /// For an encoder of a map's queries ([`Encoder::for_map`]): whether the map holds semantic
+    /// labels, which its queries then need too ([`Encoder::labels_rule`]).
+    map_labelled: Option<bool>,
 }
 
 impl Encoder {
@@ -90,7 +93,15 @@ impl Encoder {
             true => crate::embedding::from_config(&cfg.embedding, &cfg.models)?.map(std::sync::Arc::new),
             false => None,
         };
-        Ok(Encoder { frames: FrameLoader::new(cfg, &table, appearance.is_some())?, global, table, cfg: cfg.encoding(), appearance, embedder })
+        Ok(Encoder {
+            frames: FrameLoader::new(cfg, &table, appearance.is_some())?,
+            global,
+            table,
+            cfg: cfg.encoding(),
+            appearance,
+            embedder,
+            map_labelled: None,
+        })
     }
     /// Whether the encoder also computes the HOG baseline (VPR-Bench's, [`crate::hog`]).
     pub fn with_hog(mut self, hog: bool) -> Encoder {
@@ -106,20 +117,57 @@ impl Encoder {
     /// void label map: no edges, no objects, a global descriptor the same for every frame. Only
     /// the settings that need no labels ([`crate::matching::Setting::label_free`]) may then be
     /// matched; the caller skips the others.
+    /// The encoder of a map built without labels keeps its frames without labels whatever `on`.
     pub fn without_labels(mut self, on: bool) -> Encoder {
-        self.frames.void_labels = on;
+        self.frames.void_labels = on || self.map_labelled == Some(false);
         self
     }
-    /// Whether `frames` can have no labels here: there is at least one, every one is an RGB
-    /// image without a label map, and no segmenter is installed to make them. Such frames are
-    /// encoded [`Encoder::without_labels`], for the settings that need no labels.
-    pub fn cannot_label<'a>(&self, frames: impl IntoIterator<Item = &'a FrameSource>) -> bool {
-        let mut any = false;
+    /// The one rule for frames that come as photos without label maps, at every entry point (the
+    /// command line's `query`, `eval`, `localize` and `map build`/`add`, Python's `Map.query` and
+    /// `Encoder`, the ROS node): `Ok(false)` where they are labelled (each has its label map, or a
+    /// segmenter makes them); `Ok(true)` where they are encoded without labels: no segmenter, and
+    /// either no map's references to match (a new map is then marked so) or a map that holds none,
+    /// or `setting` reads no labels (`hog`; `appearance` unless `appearance.ignore_classes` leaves
+    /// some class out); an error (refused, naming `first`, the remedy label maps or a segmenter)
+    /// where the references hold labels and `setting` (`None`: any) reads them: label-free frames
+    /// scored against labelled references would be silently wrong.
+    pub fn labels_rule<'a>(&self, setting: Option<crate::matching::Setting>, frames: impl IntoIterator<Item = &'a FrameSource>) -> Result<bool> {
+        let mut first = None;
         let all = frames.into_iter().all(|f| {
-            any = true;
+            first.get_or_insert_with(|| f.image.as_ref().map_or_else(|| f.id.clone(), |p| p.display().to_string()));
             f.labels.is_none() && f.image.is_some()
         });
-        any && all && !self.frames.can_segment()
+        match first {
+            Some(name) if all => self.photos_rule(setting, &name),
+            _ => Ok(false),
+        }
+    }
+    /// [`Encoder::labels_rule`] for photos without label maps, the first named `name` (frames
+    /// given as pixels, a stream's).
+    pub fn photos_rule(&self, setting: Option<crate::matching::Setting>, name: &str) -> Result<bool> {
+        if self.frames.can_segment() {
+            return Ok(false);
+        }
+        use crate::matching::Setting;
+        // what reads the frame's labels: every setting but the two baselines (`appearance` only
+        // where `appearance.ignore_classes` leaves classes out of its VLAD)
+        let reads_labels = match setting {
+            Some(Setting::Hog) => false,
+            Some(Setting::Appearance) => self.appearance.as_ref().is_some_and(|a| a.reads_labels()),
+            _ => true,
+        };
+        match self.map_labelled {
+            Some(true) if reads_labels => Err(Error::refused(
+                name.to_string(),
+                "the map holds semantic labels, and this photo has no label map and no segmenter is configured or installed to make one (label-free scores against labelled references would be wrong)",
+                crate::error::Remedy::GiveLabels,
+            )),
+            _ => Ok(true),
+        }
+    }
+    /// Whether this encoder serves the queries of a map that holds semantic labels.
+    pub fn map_labelled(&self) -> Option<bool> {
+        self.map_labelled
     }
     /// An encoder for queries of `map`: `cfg`'s encoding must equal the map's, its keypoint
     /// network must be the one the map was built with, and the map's codebook is used.
@@ -139,7 +187,11 @@ impl Encoder {
             }
             Some(rec) => Some(std::sync::Arc::new(crate::embedding::for_record(rec, &cfg.models)?)),
         };
-        // a map built without labels takes its frames without labels too
+        enc.map_labelled = Some(!map.manifest.without_labels);
+        // a map built without labels takes its frames without labels too, unsegmented
+        if map.manifest.without_labels {
+            enc.frames.drop_segmenter();
+        }
         Ok(enc.without_labels(map.manifest.without_labels))
     }
 

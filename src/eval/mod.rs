@@ -231,15 +231,25 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
         frames.iter().map(|f| &f.source)
     }
     let unlabelled_map = opts.map.filter(|m| !m.labelled());
-    let queries_unlabelled = base.cannot_label(ds.queries.iter().flat_map(|q| sources(&q.frames)));
-    let without_labels = unlabelled_map.is_some() || (queries_unlabelled && (opts.map.is_some() || base.cannot_label(sources(&ds.reference.frames))));
+    // the one rule for photos without label maps (`Encoder::labels_rule`): on a map that holds
+    // labels, queries no segmenter can label are matched in `hog` alone, every other setting
+    // skipped with the reason (never label-free queries against labelled references)
+    let query_sources = || ds.queries.iter().flat_map(|q| sources(&q.frames));
+    let labelled_refused = match opts.map {
+        Some(m) if m.labelled() => base.labels_rule(None, query_sources()).err(),
+        _ => None,
+    };
+    let queries_unlabelled = labelled_refused.is_some() || base.labels_rule(Some(Setting::Hog), query_sources())?;
+    let without_labels =
+        unlabelled_map.is_some() || (queries_unlabelled && (opts.map.is_some() || base.labels_rule(None, sources(&ds.reference.frames))?));
     let mut skipped = Vec::new();
     let mut settings = opts.settings.clone();
     if without_labels {
         settings.retain(|&s| {
-            let why = match unlabelled_map {
-                Some(m) => crate::matching::check_labels(m, s).err().map(|e| e.to_string()),
-                None => s.label_free().map(String::from),
+            let why = match (unlabelled_map, &labelled_refused) {
+                (Some(m), _) => crate::matching::check_labels(m, s).err().map(|e| e.to_string()),
+                (None, Some(_)) => base.labels_rule(Some(s), query_sources()).err().map(|e| e.to_string()),
+                (None, _) => s.label_free().map(String::from),
             };
             match why {
                 None => true,
@@ -253,12 +263,16 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
             if let (Some(m), Some(&(s, _))) = (unlabelled_map, skipped.first()) {
                 crate::matching::check_labels(m, s)?;
             }
+            if let Some(e) = labelled_refused {
+                return Err(e);
+            }
             let frame = ds.queries.iter().flat_map(|q| &q.frames).chain(&ds.reference.frames).find_map(|f| f.source.image.clone());
             return Err(Error::NoLabels { image: frame.unwrap_or_else(|| ds.root.clone()) });
         }
-        let why = match unlabelled_map {
-            Some(_) => "the map was built without semantic labels",
-            None => "no label maps and no segmenter",
+        let why = match (unlabelled_map, &labelled_refused) {
+            (Some(_), _) => "the map was built without semantic labels",
+            (None, Some(_)) => "the map holds semantic labels, but the queries have no label maps and there is no segmenter",
+            (None, None) => "no label maps and no segmenter",
         };
         // hog runs only where HOG descriptors exist: a stored map without them skips it below
         let runs = settings.iter().filter(|&&s| s != Setting::Hog || opts.map.is_none_or(|m| m.manifest.hog_dim > 0));
@@ -390,7 +404,7 @@ pub fn match_query_set(
         let mut r = report_matches(engine, refs, name, queries, &matches, gt, setting, cfg, times.coarse_ms + times.fine_ms, sequence)?;
         if times.approximate {
             if index_recall.is_none() {
-                index_recall = Some(approximate_recall(refs, queries, cfg)?);
+                index_recall = Some(approximate_recall(refs, queries, cfg, setting)?);
             }
             r.index_recall = index_recall.clone();
         }
@@ -430,8 +444,9 @@ pub fn coarse_recall_at(
 
 /// Recall@K (K = 10, 30, 100) of the approximate fused coarse stage against the exact one on the
 /// same queries: for each query the share of the exact top-K the approximate top-K holds, averaged
-/// (what `index.probe` and `index.shortlist` cost in candidates). Runs the exact scan once.
-pub fn approximate_recall(refs: &dyn RefSource, queries: &DescriptorSet, cfg: &Config) -> Result<Vec<(usize, f64)>> {
+/// (what `index.probe` and `index.shortlist` cost in candidates), for `setting`'s fused coarse
+/// stage. Runs the exact scan once.
+pub fn approximate_recall(refs: &dyn RefSource, queries: &DescriptorSet, cfg: &Config, setting: Setting) -> Result<Vec<(usize, f64)>> {
     const KS: [usize; 3] = [10, 30, 100];
     let deepest = KS[KS.len() - 1];
     let with = |search| {
@@ -440,7 +455,7 @@ pub fn approximate_recall(refs: &dyn RefSource, queries: &DescriptorSet, cfg: &C
         c.matching.top_k = deepest;
         c
     };
-    let st = Setting::Fused;
+    let st = setting;
     let (exact, _) = crate::matching::candidates(&mut crate::matching::CpuStages, refs, queries, st, &with(crate::config::IndexSearch::Exact))?;
     let (approx, _) =
         crate::matching::candidates(&mut crate::matching::CpuStages, refs, queries, st, &with(crate::config::IndexSearch::Approximate))?;

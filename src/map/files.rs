@@ -116,16 +116,26 @@ impl Drop for WriteLock {
     }
 }
 
+/// The name prefix of an index build's staging folder in the map folder (`map::index::build`),
+/// followed by its process id.
+pub const INDEX_STAGING: &str = ".index-staging-";
+
 /// What interrupted writers of map `dir` left: temporary files `.NAME.tmp` in it (written only
-/// under the write lock, so stale whenever the lock is free) and the staging folders of
-/// `build --force` beside it (`.DIR.building-PID-...`) whose process no longer runs (Linux; where
-/// that cannot be told, none are listed).
+/// under the write lock, so stale whenever the lock is free), the staging folders of index builds
+/// in it (`.index-staging-PID-...`) and of `build --force` beside it (`.DIR.building-PID-...`)
+/// whose process no longer runs (Linux; where that cannot be told, none are listed).
 pub fn leftovers(dir: &Path) -> Vec<PathBuf> {
+    let dead_pid = |rest: &str| rest.split('-').next().and_then(|p| p.parse::<u32>().ok()).is_some_and(process_is_gone);
     let mut out: Vec<PathBuf> = std::fs::read_dir(dir)
         .into_iter()
         .flatten()
         .flatten()
-        .filter(|e| e.file_name().to_str().is_some_and(|n| n.starts_with('.') && n.ends_with(".tmp")) && e.file_type().is_ok_and(|t| t.is_file()))
+        .filter(|e| {
+            let (name, kind) = (e.file_name(), e.file_type());
+            let Some(n) = name.to_str() else { return false };
+            (n.starts_with('.') && n.ends_with(".tmp") && kind.as_ref().is_ok_and(|t| t.is_file()))
+                || (n.strip_prefix(INDEX_STAGING).is_some_and(dead_pid) && kind.as_ref().is_ok_and(|t| t.is_dir()))
+        })
         .map(|e| e.path())
         .collect();
     if let (Some(name), Some(parent)) = (dir.file_name().and_then(|n| n.to_str()), dir.parent()) {

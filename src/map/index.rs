@@ -220,7 +220,12 @@ pub fn build(dir: &Path, params: &IndexParams, probe: usize, shortlist: usize) -
     let model_bytes = model.file_bytes()?;
     let model_sha = sha256_hex(&model_bytes);
     let model_file = format!("index-model-{}.safetensors", &model_sha[..16]);
-    write_atomic(dir, &model_file, &model_bytes)?;
+    // the files written before the commit are staged in a folder of this build's own, outside
+    // what compaction, removal or a writer's cleaning of leftovers see, and moved into the map
+    // under the lock by the commit (an interrupted build's folder is a leftover once its
+    // process is gone: `files::leftovers`)
+    let staging = Staging::new(dir)?;
+    write_atomic(&staging.path, &model_file, &model_bytes)?;
     let entry0 = IndexEntry {
         model: FileEntry { file: model_file, bytes: model_bytes.len() as u64, sha256: model_sha.clone() },
         params: *params,
@@ -267,7 +272,7 @@ pub fn build(dir: &Path, params: &IndexParams, probe: usize, shortlist: usize) -
         }
         let bytes = codes.to_bytes(&map.manifest.segments[s].sha256, &model_sha)?;
         let name = codes_name(&map.manifest.segments[s].file, &model_sha, params.thumbnail);
-        write_atomic(dir, &name, &bytes)?;
+        write_atomic(&staging.path, &name, &bytes)?;
         written.push((map.manifest.segments[s].file.clone(), FileEntry { file: name, bytes: bytes.len() as u64, sha256: sha256_hex(&bytes) }));
     }
     let mut hits = 0usize;
@@ -279,6 +284,7 @@ pub fn build(dir: &Path, params: &IndexParams, probe: usize, shortlist: usize) -
         total += truth.len();
     }
     drop(map);
+    staged_hook();
     // the commit: segments committed since get their codes under the lock
     let _lock = WriteLock::take(dir)?;
     let mut m = manifest::read_existing(dir)?;
@@ -289,19 +295,70 @@ pub fn build(dir: &Path, params: &IndexParams, probe: usize, shortlist: usize) -
     let mut cache = Some((model_sha.clone(), model));
     let m_for_codes = Manifest { index: Some(entry.clone()), ..m.clone() };
     let mut count = 0;
+    staging.adopt(dir, &entry.model.file)?;
     for s in 0..m.segments.len() {
+        // codes staged for a segment still listed move in; a segment committed (or rewritten by
+        // a compaction) since gets its codes here
         let file = match written.iter().find(|(seg, _)| *seg == m.segments[s].file) {
-            Some((_, f)) => f.clone(),
+            Some((_, f)) => {
+                staging.adopt(dir, &f.file)?;
+                f.clone()
+            }
             None => write_segment_codes(dir, &m_for_codes, &entry, &m.segments[s], layout_now, &mut cache)?,
         };
         m.segments[s].index = Some(file);
         count += 1;
     }
+    super::files::sync_dir(dir);
     m.index = Some(entry.clone());
     m.generation += 1;
     manifest::write(dir, &m)?;
     delete_unreferenced(dir, &m, &old_files);
     Ok(IndexReport { entry, segments: count })
+}
+
+/// The folder an index build writes its files into before its commit (`.index-staging-PID-...`
+/// in the map folder), removed when the build ends, committed or not.
+struct Staging {
+    path: std::path::PathBuf,
+}
+
+impl Staging {
+    fn new(dir: &Path) -> Result<Staging> {
+        let path = dir.join(format!("{}{}", super::files::INDEX_STAGING, super::files::unique_suffix()));
+        std::fs::create_dir(&path).map_err(|e| Error::io(&path, e))?;
+        Ok(Staging { path })
+    }
+    /// Moves staged file `name` into the map folder `dir` (under the lock).
+    fn adopt(&self, dir: &Path, name: &str) -> Result<()> {
+        let (from, to) = (self.path.join(name), dir.join(name));
+        std::fs::rename(&from, &to).map_err(|e| Error::io(&to, e))
+    }
+}
+
+impl Drop for Staging {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.path);
+    }
+}
+
+/// A function [`build`] calls once its files are staged, before it takes the lock to commit
+/// them (a test holds it there while other writers run).
+type StagedHook = Box<dyn Fn() + Send + Sync>;
+static STAGED_HOOK: std::sync::Mutex<Option<StagedHook>> = std::sync::Mutex::new(None);
+
+/// Test hook: `hook` runs in every [`build`] of this process between staging its files and
+/// taking the write lock for the commit (`None` removes it): a test holds a build there, runs a
+/// compaction, a removal or an add, then lets it commit, with no timing involved.
+#[doc(hidden)]
+pub fn set_staged_hook(hook: Option<StagedHook>) {
+    *STAGED_HOOK.lock().unwrap_or_else(|e| e.into_inner()) = hook;
+}
+
+fn staged_hook() {
+    if let Some(h) = STAGED_HOOK.lock().unwrap_or_else(|e| e.into_inner()).as_ref() {
+        h();
+    }
 }
 
 /// Drops the map's index (one commit), deleting its files after.

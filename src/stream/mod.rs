@@ -79,11 +79,14 @@ pub struct StreamOptions {
     /// `exclude_seconds`) are never matched. Needs `sequence`: closures are accepted sequence
     /// matches.
     pub loop_closure: bool,
+    /// The frames come with their label maps: a map that holds labels then needs no segmenter
+    /// (without them, opening such a map without a segmenter is refused: `Encoder::labels_rule`).
+    pub labelled_frames: bool,
 }
 
 impl Default for StreamOptions {
     fn default() -> Self {
-        StreamOptions { setting: Setting::RECOMMENDED, sequence: true, loop_closure: false }
+        StreamOptions { setting: Setting::RECOMMENDED, sequence: true, loop_closure: false, labelled_frames: false }
     }
 }
 
@@ -395,6 +398,15 @@ impl Localizer {
             return Err(Error::invalid(format!("setting {}", opts.setting), "the map stores no HOG descriptors"));
         }
         let encoder = Encoder::for_map(&cfg, &map)?.with_hog(opts.setting == Setting::Hog);
+        // photos without label maps: segmented, label-free where nothing reads labels, else
+        // refused now rather than frame by frame
+        let encoder = match opts.labelled_frames {
+            true => encoder,
+            false => {
+                let free = encoder.photos_rule(Some(opts.setting), &format!("the stream's frames (map {})", map.path.display()))?;
+                encoder.without_labels(free || map.manifest.without_labels)
+            }
+        };
         Ok(Localizer {
             seq: SequenceMatcher::new(&cfg.sequence),
             engine,

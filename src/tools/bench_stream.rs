@@ -84,7 +84,7 @@ pub fn run(
     let mut e = engine()?;
     let mut encoder = Encoder::new(cfg)?;
     let segmented = encoder.frames().can_segment();
-    let labels_free = encoder.cannot_label(opts.references.iter());
+    let labels_free = encoder.labels_rule(None, opts.references.iter())?;
     encoder = encoder.without_labels(labels_free);
     train_codebook(&mut encoder, &opts.references, opts.quiet)?;
     let refs = encode_frames(&mut e, &encoder, &opts.references, Default::default(), "references", false, opts.quiet)?.set;
@@ -104,7 +104,7 @@ pub fn run(
             None
         };
         let map_bytes = dir_bytes(&dir);
-        let sopts = StreamOptions { setting: opts.setting, sequence: opts.sequence, loop_closure: false };
+        let sopts = StreamOptions { setting: opts.setting, sequence: opts.sequence, ..Default::default() };
         let mut loc = Localizer::open(&dir, Some(cfg.clone()), sopts, engine()?)?;
         let frames: Vec<StreamFrame> = (0..opts.frames)
             .map(|k| {

@@ -207,11 +207,13 @@ impl TuneRow {
 
 /// Runs every combination of `sweep` on `datasets` in `settings` (each dataset's class settings
 /// follow it: [`Dataset::adapt_config`]). `progress` hears about each finished dataset and row.
+#[allow(clippy::too_many_arguments)]
 pub fn run(
     datasets: &[Dataset],
     sweep: &Sweep,
     settings: &[Setting],
     sequence: bool,
+    candidates: Option<&std::path::Path>,
     engine: &mut Engine,
     tick: &(dyn Fn() + Sync),
     progress: &mut dyn FnMut(&str, &TuneRow),
@@ -274,6 +276,10 @@ pub fn run(
                             matched.insert(key.clone(), (m, t.coarse_ms + t.fine_ms));
                         }
                         let (m, ms) = &matched[&key];
+                        if let (Some(dir), Setting::Verified) = (candidates, st) {
+                            let file = dir.join(format!("{}--{}--row{i}.tsv", file_name(&cd.name), file_name(name)));
+                            write_candidates(&file, refs, set, gt, cfg)?;
+                        }
                         let mut r = report_matches(engine, refs, name, set, m, gt, st, cfg, *ms, false)?;
                         if sequence {
                             // the scored rows depend on the matching, `rows` and `widen` alone
@@ -310,6 +316,176 @@ pub fn run(
         }
     }
     Ok(rows)
+}
+
+/// `name` with every character a file name should not hold replaced by `_`.
+fn file_name(name: &str) -> String {
+    name.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '.' { c } else { '_' }).collect()
+}
+
+/// The features of every candidate pair `verified` re-ranks, as a table a prototype reads
+/// (`semlook dev tune --candidates DIR`, one file per dataset, query set and row): per query its
+/// fused coarse top-K, each pair with whether the ground truth holds it, the coarse score and its
+/// terms (appearance cosine, embedding cosine, SSIM of the global descriptors), the tree-set
+/// similarity, the verification's mutual matches and inliers, both images' stored keypoints and
+/// source sizes, and the HOG cosine where both have HOG.
+fn write_candidates(file: &std::path::Path, refs: &DescriptorSet, queries: &DescriptorSet, gt: &[Vec<u32>], cfg: &Config) -> Result<()> {
+    use crate::matching::{self, CpuStages, Stages};
+    use crate::values::Values;
+    let st = Setting::Verified;
+    let (lists, _) = matching::candidates(&mut CpuStages, refs, queries, st, cfg)?;
+    let pairs = matching::pairs_of(&lists);
+    let params = matching::tree_params(cfg, st, refs.neighbour_slots)?;
+    let fine = CpuStages.fine_pairs(&params, refs, queries, &pairs)?;
+    let vp = crate::verify::VerifyParams::for_config(&cfg.verification, &crate::classes::ClassTable::from_config(&cfg.classes)?)?;
+    let verified = CpuStages.verify_pairs(&vp, refs, queries, &pairs)?;
+    let p = crate::kernels::abi::SsimParams::new(&cfg.global);
+    let dot = |a: &[f32], b: &[f32]| if a.is_empty() || b.is_empty() { f32::NAN } else { Values::F32(a).dot(&Values::F32(b)) };
+    let mut out = String::from(
+        "query\tquery_id\trank\treference\treference_id\tcorrect\tcoarse\tappearance\tembedding\tssim\tfine\tmatches\tinliers\tquery_keypoints\treference_keypoints\tquery_width\tquery_height\treference_width\treference_height\thog\n",
+    );
+    let mut scratch = crate::kernels::ssim::SsimScratch::default();
+    let mut k = 0;
+    for (q, list) in lists.iter().enumerate() {
+        for (rank, &(coarse, r)) in list.iter().enumerate() {
+            let (qi, ri) = (q, r as usize);
+            let ssim = crate::kernels::ssim::ssim_pair(&p, queries.global(qi), queries.stats(qi), refs.global(ri), refs.stats(ri), &mut scratch);
+            let (qs, rs) = (queries.sizes[qi], refs.sizes[ri]);
+            out += &format!(
+                "{q}\t{}\t{rank}\t{r}\t{}\t{}\t{coarse}\t{}\t{}\t{ssim}\t{}\t{}\t{}\t{}\t{}\t{}\t{}\t{}\t{}\t{}\n",
+                queries.ids[qi],
+                refs.ids[ri],
+                gt.get(q).is_some_and(|g| g.contains(&r)) as u8,
+                dot(queries.image_appearance(qi), refs.image_appearance(ri)),
+                dot(queries.image_embedding(qi), refs.image_embedding(ri)),
+                fine[k],
+                verified[k].matches,
+                verified[k].inliers,
+                queries.keypoints(qi).len(),
+                refs.keypoints(ri).len(),
+                qs[0],
+                qs[1],
+                rs[0],
+                rs[1],
+                dot(queries.image_hog(qi), refs.image_hog(ri)),
+            );
+            k += 1;
+        }
+    }
+    if let Some(d) = file.parent() {
+        std::fs::create_dir_all(d).map_err(|e| Error::io(d, e))?;
+    }
+    std::fs::write(file, out).map_err(|e| Error::io(file, e))?;
+    // every pair's coarse terms (a dev set's queries x references: small), for prototypes of the
+    // coarse score itself
+    let dense = file.with_extension("dense.tsv");
+    let mut out = String::from("query\treference\tcorrect\tappearance\tembedding\tssim\n");
+    for q in 0..queries.len() {
+        let rows: Vec<String> = (0..refs.len())
+            .into_par_iter()
+            .map_init(crate::kernels::ssim::SsimScratch::default, |scratch, r| {
+                let ssim = crate::kernels::ssim::ssim_pair(&p, queries.global(q), queries.stats(q), refs.global(r), refs.stats(r), scratch);
+                format!(
+                    "{q}\t{r}\t{}\t{}\t{}\t{ssim}\n",
+                    gt.get(q).is_some_and(|g| g.contains(&(r as u32))) as u8,
+                    dot(queries.image_appearance(q), refs.image_appearance(r)),
+                    dot(queries.image_embedding(q), refs.image_embedding(r)),
+                )
+            })
+            .collect();
+        rows.iter().for_each(|r| out += r);
+    }
+    std::fs::write(&dense, out).map_err(|e| Error::io(&dense, e))
+}
+
+/// Leave-one-set-out cross-validation of a sweep: for every dataset and column (a setting, or
+/// `<setting>+seq`), the R@1 on that dataset of the row chosen on the *other* datasets (highest
+/// mean R@1 over them; ties to the higher mean AUC over them, then to the earlier row, so a sweep
+/// lists the current default first), beside the in-sample best row's. What a default chosen this
+/// way is expected to give on a set it was not tuned on.
+#[derive(Debug, Clone, Serialize)]
+pub struct CrossValidated {
+    /// The column (setting) cross-validated.
+    pub column: String,
+    /// Per held-out dataset: its name, the row chosen without it, and that row's R@1 on it.
+    pub held_out: Vec<(String, usize, f64)>,
+    /// The row with the highest mean R@1 over every dataset (ties as above), and that mean.
+    pub in_sample: (usize, f64),
+}
+
+impl CrossValidated {
+    /// Mean of the held-out R@1s.
+    pub fn mean(&self) -> f64 {
+        self.held_out.iter().map(|h| h.2).sum::<f64>() / self.held_out.len().max(1) as f64
+    }
+}
+
+/// The row of `rows` with the highest mean R@1 of `column` over the datasets `keep` admits (ties
+/// to the higher mean AUC, then the earlier row).
+fn best_row(rows: &[TuneRow], column: &str, keep: &dyn Fn(&str) -> bool) -> Option<(usize, f64)> {
+    let mean = |r: &TuneRow, auc: bool| {
+        let v: Vec<f64> = r.results.iter().filter(|x| x.1 == column && keep(&x.0)).map(|x| if auc { x.3 } else { x.2 }).collect();
+        (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+    };
+    let mut best: Option<(usize, f64, f64)> = None;
+    for (i, r) in rows.iter().enumerate() {
+        let (Some(r1), Some(auc)) = (mean(r, false), mean(r, true)) else { continue };
+        // a difference below 1e-9 is a tie (means of the same fractions summed in another order)
+        let better = match best {
+            None => true,
+            Some((_, b1, bauc)) => r1 > b1 + 1e-9 || ((r1 - b1).abs() <= 1e-9 && auc > bauc + 1e-9),
+        };
+        if better {
+            best = Some((i, r1, auc));
+        }
+    }
+    best.map(|(i, r1, _)| (i, r1))
+}
+
+/// Leave-one-set-out cross-validation of every column of `rows` ([`CrossValidated`]).
+pub fn cross_validate(rows: &[TuneRow]) -> Vec<CrossValidated> {
+    let Some(first) = rows.first() else { return vec![] };
+    let mut columns: Vec<&str> = Vec::new();
+    let mut sets: Vec<&str> = Vec::new();
+    for r in &first.results {
+        if !columns.contains(&r.1.as_str()) {
+            columns.push(&r.1);
+        }
+        if !sets.contains(&r.0.as_str()) {
+            sets.push(&r.0);
+        }
+    }
+    let r1 = |row: &TuneRow, set: &str, column: &str| row.results.iter().find(|x| x.0 == set && x.1 == column).map_or(f64::NAN, |x| x.2);
+    columns
+        .iter()
+        .filter_map(|&column| {
+            let in_sample = best_row(rows, column, &|_| true)?;
+            let held_out = sets
+                .iter()
+                .filter_map(|&set| {
+                    let (row, _) = best_row(rows, column, &|d| d != set)?;
+                    Some((set.to_string(), row, r1(&rows[row], set, column)))
+                })
+                .collect();
+            Some(CrossValidated { column: column.to_string(), held_out, in_sample })
+        })
+        .collect()
+}
+
+/// The cross-validation as a table: per column, each held-out set's R@1 and the values of the row
+/// chosen without it, the mean of the held-out R@1s, and the in-sample best row.
+pub fn cross_validation_table(rows: &[TuneRow], cv: &[CrossValidated]) -> String {
+    let values = |i: usize| rows[i].values.iter().map(|(k, v)| format!("{k}={v}")).collect::<Vec<_>>().join(" ");
+    let mut out = String::from("column\theld-out set\tR@1 held out\tR@1 in sample (row)\tchosen without it\n");
+    for c in cv {
+        let (best, mean) = c.in_sample;
+        for (set, row, r1) in &c.held_out {
+            let own = rows[best].results.iter().find(|x| &x.0 == set && x.1 == c.column).map_or(f64::NAN, |x| x.2);
+            out += &format!("{}\t{set}\t{r1:.3}\t{own:.3}\trow {row}: {}\n", c.column, values(*row));
+        }
+        out += &format!("{}\tmean\t{:.3}\t{mean:.3}\tin sample: row {best}: {}\n", c.column, c.mean(), values(best));
+    }
+    out
 }
 
 /// The rows as a table: swept values, R@1 per dataset and setting, and the mean over datasets.

@@ -38,6 +38,17 @@ pub fn skip_unless_required(var: &str, reason: impl std::fmt::Display) {
     skip(reason);
 }
 
+/// The default segmenter is missing: the test skips with `reason`. In CI's newcomer step
+/// (`SEMLOOK_MODELS_ONLY=1`, a model folder without the segmenter: `scripts/newcomer-tests.sh`)
+/// its absence is the point, so it skips there too; elsewhere under CI (or REQUIRE_MODELS=1) it
+/// fails.
+pub fn no_segmenter(reason: impl std::fmt::Display) {
+    match std::env::var(semlook::onnx::MODELS_ONLY_ENV).is_ok_and(|v| v == "1") {
+        true => skip(format!("{reason} (a fresh machine's model folder: no segmenter)")),
+        false => skip_unless_required("REQUIRE_MODELS", reason),
+    }
+}
+
 /// Whether the XFeat weights setup.sh installs are found; if not, the test skips with the reason
 /// (or fails under CI or REQUIRE_MODELS=1) and should return.
 pub fn has_xfeat() -> bool {

@@ -27,7 +27,48 @@ pub fn run(cmd: DevCommand, engine: &dyn Fn() -> Result<Engine>, quiet: bool) ->
         DevCommand::BenchStream(a) => bench_stream_cmd(&a, engine, quiet),
         DevCommand::IndexBench(a) => index_bench_cmd(&a, &mut engine()?, quiet),
         DevCommand::SegmenterAccuracy(a) => segacc_cmd(&a, quiet),
+        DevCommand::Downscale(a) => downscale_cmd(&a, quiet),
     }
+}
+
+/// `semlook dev downscale`: every image of ref/ and query/ resized to the size asked for (a
+/// triangle filter whose support grows with the reduction: an average over each output pixel's
+/// footprint), written as PNG, and the ground truth with the new names.
+fn downscale_cmd(a: &DownscaleArgs, quiet: bool) -> Result<()> {
+    let bad = |reason: String| Error::invalid("--size", reason);
+    let (w, h) = a.size.split_once('x').ok_or_else(|| bad(format!("{:?}: expected WxH, e.g. 64x32", a.size)))?;
+    let (w, h): (u32, u32) = (w.parse().map_err(|_| bad(format!("width {w:?}")))?, h.parse().map_err(|_| bad(format!("height {h:?}")))?);
+    if w == 0 || h == 0 {
+        return Err(bad("a side of 0".into()));
+    }
+    let gt_in = a.dataset.join("ground_truth.csv");
+    let gt = std::fs::read_to_string(&gt_in).map_err(|e| Error::io(&gt_in, e))?;
+    super::shared::check_output_dir(&a.out, "--out")?;
+    let png = |rel: &str| Path::new(rel).with_extension("png").to_string_lossy().into_owned();
+    let mut n = 0;
+    for sub in ["ref", "query"] {
+        let dir = a.out.join(sub);
+        std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+        for img in semlook::dataset::image_files(&a.dataset.join(sub))? {
+            let rgb = semlook::input::load_rgb(&img)?;
+            let small = image::imageops::resize(&rgb, w, h, image::imageops::FilterType::Triangle);
+            let name = img.file_name().map(|f| png(&f.to_string_lossy())).unwrap_or_default();
+            let out = dir.join(name);
+            small.save(&out).map_err(|e| Error::invalid(out.display().to_string(), e.to_string()))?;
+            n += 1;
+        }
+    }
+    let mut text = String::new();
+    for (i, line) in gt.lines().enumerate() {
+        match (i, line.split_once(',')) {
+            (0, _) | (_, None) => text += line,
+            (_, Some((q, r))) => text += &format!("{},{}", png(q.trim()), png(r.trim())),
+        }
+        text.push('\n');
+    }
+    write_file(&a.out.join("ground_truth.csv"), &text)?;
+    info(quiet, format!("{n} images at {w}x{h} -> {}", a.out.display()));
+    Ok(())
 }
 
 /// Two timed phases: the segmenter on every frame (labels written at full size to a temporary
@@ -150,17 +191,25 @@ fn tune_cmd(a: &TuneArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     let n = sweep.combinations().len();
     info(quiet, format!("{n} configurations x {} datasets", datasets.len()));
     let pb = progress::bar(0, "frames", quiet);
-    let rows = semlook::tools::tune::run(&datasets, &sweep, &settings, a.sequence, engine, &|| pb.inc(1), &mut |ds, row| {
-        let vals: Vec<String> = row.values.iter().map(|(k, v)| format!("{k}={v}")).collect();
-        let r: Vec<String> = row.results.iter().filter(|r| r.0 == ds).map(|r| format!("{} {:.3}", r.1, r.2)).collect();
-        pb.suspend(|| info(quiet, format!("{ds}: {} -> R@1 {}", vals.join(" "), r.join(", "))));
-    })?;
+    let rows =
+        semlook::tools::tune::run(&datasets, &sweep, &settings, a.sequence, a.candidates.as_deref(), engine, &|| pb.inc(1), &mut |ds, row| {
+            let vals: Vec<String> = row.values.iter().map(|(k, v)| format!("{k}={v}")).collect();
+            let r: Vec<String> = row.results.iter().filter(|r| r.0 == ds).map(|r| format!("{} {:.3}", r.1, r.2)).collect();
+            pb.suspend(|| info(quiet, format!("{ds}: {} -> R@1 {}", vals.join(" "), r.join(", "))));
+        })?;
     pb.finish_and_clear();
     let table = semlook::tools::tune::table(&rows);
     if let Some(file) = &a.table {
         write_file(file, &table)?;
     }
     out!("{table}");
+    if a.cross_validate {
+        let cv = semlook::tools::tune::cross_validation_table(&rows, &semlook::tools::tune::cross_validate(&rows));
+        if let Some(file) = &a.table {
+            write_file(&file.with_extension("cv.tsv"), &cv)?;
+        }
+        out!("\nleave-one-set-out cross-validation (each set's R@1 with the row chosen on the others):\n{cv}");
+    }
     Ok(())
 }
 

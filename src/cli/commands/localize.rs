@@ -25,7 +25,7 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
         true => map_config(&Map::open(&a.map)?, a.config.as_deref(), &a.models)?,
         false => apply_models(load_config(a.config.as_deref())?, &a.models),
     };
-    let opts = StreamOptions { setting: a.setting, sequence: !a.no_sequence, loop_closure: a.loop_closure };
+    let opts = StreamOptions { setting: a.setting, sequence: !a.no_sequence, loop_closure: a.loop_closure, labelled_frames: a.labels.is_some() };
     let mut loc = Localizer::open(&a.map, Some(cfg), opts, engine)?.with_label_format(a.label_format.unwrap_or_default());
     info(quiet, format!("backend: {}", loc.engine().describe()));
     match loc.map() {
@@ -42,6 +42,7 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
         })),
     };
     let start = Instant::now();
+    let mut first_refusal: Option<String> = None;
     let stats = replay(&mut loc, frames, AHEAD, |loc, r| {
         if a.follow_map {
             // between frames: the next one is answered from the newest generation
@@ -53,6 +54,7 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
             Replayed::Answered(r) => print_frame(&r, a.json),
             Replayed::Refused(frame, id, e) => {
                 log::warn!("frame {frame} ({id}) skipped: {e}");
+                first_refusal.get_or_insert_with(|| format!("frame {frame} ({id}): {e}"));
                 if a.json {
                     outln!("{}", serde_json::json!({ "frame": frame, "id": id, "refused": e.to_string() }));
                 }
@@ -98,7 +100,13 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
             p99.store_ms
         );
     }
-    Ok(())
+    // a stream none of whose frames could be used is a failed run, not an empty success
+    match first_refusal {
+        Some(first) if counts.frames > 0 && counts.refused == counts.frames => {
+            Err(Error::invalid("localize", format!("every frame ({}) was refused; the first: {first}", counts.frames)))
+        }
+        _ => Ok(()),
+    }
 }
 
 fn print_frame(r: &FrameResult, json: bool) -> Result<()> {
