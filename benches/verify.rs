@@ -39,6 +39,7 @@ fn keypoint_set(cfg: &Config, model: &semlook::appearance::AppearanceModel, dir:
             appearance: vec![],
             hog: vec![],
             embedding: vec![],
+            compact_hog: vec![],
             keypoints,
             pose: None,
         };

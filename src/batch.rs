@@ -255,7 +255,12 @@ pub fn new_map(cfg: &crate::config::Config, frames: &[FrameSource], dir: &std::p
     MapWriter::check_new_dir(dir, opts.resume)?;
     let encoder = Encoder::new(cfg)?.with_hog(opts.hog);
     let without_labels = encoder.labels_rule(None, frames)?;
-    let mut encoder = encoder.without_labels(without_labels);
+    // small frames: the map stores each image's compact HOG too
+    let small = encoder.small_frames(frames)?;
+    let mut encoder = encoder.without_labels(without_labels).with_compact_hog(small);
+    if small {
+        log::info!("small frames (long side at most input.compact_hog_long_side): the map stores each image's compact HOG");
+    }
     if without_labels {
         let served: Vec<&str> = crate::matching::Setting::served_without_labels(opts.hog).map(|s| s.name()).collect();
         log::warn!(
@@ -265,7 +270,12 @@ pub fn new_map(cfg: &crate::config::Config, frames: &[FrameSource], dir: &std::p
     }
     train_codebook_skipping(&mut encoder, frames, opts.skip_invalid, opts.quiet)?;
     let hog_dim = if opts.hog { crate::hog::HOG_DIM } else { 0 };
-    let dims = crate::map::ColumnDims { appearance: encoder.appearance_dim(), hog: hog_dim, keypoints: encoder.keypoint_dim() };
+    let dims = crate::map::ColumnDims {
+        appearance: encoder.appearance_dim(),
+        hog: hog_dim,
+        keypoints: encoder.keypoint_dim(),
+        compact_hog: encoder.compact_hog_dim(),
+    };
     let writer = MapWriter::create(dir, &cfg.encoding(), dims, encoder.appearance_record(), opts.store, opts.resume)?
         .with_embedding(encoder.embedding_record())?;
     let writer = if without_labels { writer.without_labels()? } else { writer };

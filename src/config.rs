@@ -79,11 +79,17 @@ pub struct InputConfig {
     /// \[R\] 640, the resolution XFeat was trained and evaluated at (640x480). A segmenter runs on
     /// the full image at its own input size.
     pub working_long_side: usize,
+    /// A map whose frames have a long side of at most this many pixels (its first frame's) also
+    /// stores each image's compact HOG, which `verified` adds as evidence where it stands out
+    /// (`verification.w_compact_hog`): at that size the keypoint network finds little; 0: never.
+    /// \[R\] 256 (sweep 17: Nordland dev copies at 64x32 and 128x64 fell below `hog` without it,
+    /// at 256x128 not).
+    pub compact_hog_long_side: usize,
 }
 
 impl Default for InputConfig {
     fn default() -> Self {
-        InputConfig { working_long_side: 640 }
+        InputConfig { working_long_side: 640, compact_hog_long_side: 256 }
     }
 }
 
@@ -568,6 +574,18 @@ pub enum SemanticCheck {
     SameClass,
 }
 
+/// How the verified score counts a candidate's inliers (`verification.inliers`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum InlierEvidence {
+    /// `w_inliers` x ln(1 + inliers), whatever the query's other candidates show (the score before
+    /// issue 51).
+    Count,
+    /// `w_inliers` x how far ln(1 + inliers) stands above the query's other candidates: its
+    /// z-score among them beyond `unusual_above` (0 below `min_inliers`).
+    Unusual,
+}
+
 /// How verification pairs up the keypoints of a query and a candidate.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -602,10 +620,28 @@ pub struct VerificationConfig {
     /// Which inliers count. \[R\] off (sweep 07: `same_class` lost 0.044 mean R@1: the segmenter's
     /// labels disagree across conditions where the geometry agrees).
     pub semantic: SemanticCheck,
-    /// The verified score: w_inliers ln(1 + inliers) + w_coarse coarse + w_fine fine, with the
-    /// fused coarse score and the tree-set similarity of the pair. \[R\] 1, 2, 2 (sweep 07: the
-    /// best of w_coarse 1/2/4 x w_fine 0/1/2/4).
+    /// The verified score: w_coarse coarse + w_fine fine + w_inliers x the inliers' evidence
+    /// (`inliers`) + w_compact_hog x the compact HOGs' evidence, with the fused coarse score and
+    /// the tree-set similarity of the pair. \[R\] WINL (sweep 17, leave-one-set-out; 1 with
+    /// `inliers = "count"` before, sweep 07).
     pub w_inliers: f64,
+    /// How the inliers count: "unusual" (how far above the query's other candidates they stand,
+    /// so that where every candidate shows as many, geometry says little and the coarse order
+    /// stands) or "count" (ln(1 + inliers) whatever the others show). \[R\] unusual (sweep 17:
+    /// the same or better on every dev set held out).
+    pub inliers: InlierEvidence,
+    /// With `inliers = "unusual"`: the z-score of a candidate's ln(1 + inliers) among its query's
+    /// K candidates counts beyond this. \[R\] UNA (sweep 17).
+    pub unusual_above: f64,
+    /// With `inliers = "unusual"`: fewer inliers than this count nothing (what chance gives a
+    /// homography on few keypoints). \[R\] MININL (sweep 17).
+    pub min_inliers: u32,
+    /// Weight of the compact HOGs' evidence (maps of small frames, `input.compact_hog_long_side`):
+    /// the z-score of the pair's compact HOG cosine among its query's K candidates beyond
+    /// `compact_hog_above`. \[R\] WCH (sweep 17).
+    pub w_compact_hog: f64,
+    /// See `w_compact_hog`. \[R\] CHA (sweep 17).
+    pub compact_hog_above: f64,
     /// Weight of the fused coarse score in the verified score (see `w_inliers`). \[R\] 2.
     pub w_coarse: f64,
     /// Weight of the tree-set similarity in the verified score (see `w_inliers`). \[R\] 2.
@@ -653,6 +689,11 @@ impl Default for VerificationConfig {
             refine: true,
             semantic: SemanticCheck::Off,
             w_inliers: 1.0,
+            inliers: InlierEvidence::Unusual,
+            unusual_above: 1.0,
+            min_inliers: 0,
+            w_compact_hog: 2.0,
+            compact_hog_above: 1.0,
             w_coarse: 2.0,
             w_fine: 2.0,
             ignore_classes: vec![],
@@ -983,6 +1024,7 @@ impl Config {
             })?;
         }
         let i = &self.input;
+        v.int("input.compact_hog_long_side", i.compact_hog_long_side, 0, 8192)?;
         if i.working_long_side != 0 {
             v.int("input.working_long_side", i.working_long_side, 32, 8192)?;
         }
@@ -1076,6 +1118,9 @@ impl Config {
             ));
         }
         v.int("verification.glue_min_inliers", vf.glue_min_inliers as usize, 0, 100_000)?;
+        v.int("verification.min_inliers", vf.min_inliers as usize, 0, 100_000)?;
+        v.real("verification.unusual_above", vf.unusual_above, -10.0, 10.0)?;
+        v.real("verification.compact_hog_above", vf.compact_hog_above, -10.0, 10.0)?;
         v.real("verification.glue_width_confidence", vf.glue_width_confidence, -1.0, 1.0)?;
         v.real("verification.glue_depth_confidence", vf.glue_depth_confidence, -1.0, 1.0)?;
         for (name, w) in [
@@ -1083,6 +1128,7 @@ impl Config {
             ("verification.w_coarse", vf.w_coarse),
             ("verification.w_fine", vf.w_fine),
             ("verification.w_glue", vf.w_glue),
+            ("verification.w_compact_hog", vf.w_compact_hog),
         ] {
             v.real(name, w, 0.0, 1e3)?;
         }

@@ -222,11 +222,26 @@ impl Engine {
         setting: Setting,
         cfg: &Config,
         pairs: &[(u32, u32)],
-    ) -> Result<Vec<f32>> {
+    ) -> Result<Vec<crate::matching::PairScore>> {
         self.on_stages(|st| fine_scores(st, refs, queries, setting, cfg, pairs))
     }
 
-    /// What `setting` scores each (query, reference) pair (see [`crate::matching::score_pairs`]).
+    /// What the fine stage measures of (query, reference) pairs, unweighed (see
+    /// [`crate::matching::pair_terms`]).
+    pub fn pair_terms(
+        &mut self,
+        refs: &dyn RefSource,
+        queries: &DescriptorSet,
+        setting: Setting,
+        cfg: &Config,
+        pairs: &[(u32, u32)],
+    ) -> Result<Vec<crate::matching::PairTerms>> {
+        self.on_stages(|st| crate::matching::pair_terms(st, refs, queries, setting, cfg, pairs))
+    }
+
+    /// What `setting` scores each (query, reference) pair, the evidence of `verified` weighed
+    /// against `evidence[q]` (see [`crate::matching::score_pairs`]).
+    #[allow(clippy::too_many_arguments)]
     pub fn score_pairs(
         &mut self,
         refs: &dyn RefSource,
@@ -234,8 +249,9 @@ impl Engine {
         setting: Setting,
         cfg: &Config,
         pairs: &[(u32, u32)],
+        evidence: Option<&[Option<crate::matching::Evidence>]>,
     ) -> Result<Vec<crate::matching::Candidate>> {
-        self.on_stages(|st| crate::matching::score_pairs(st, refs, queries, setting, cfg, pairs))
+        self.on_stages(|st| crate::matching::score_pairs(st, refs, queries, setting, cfg, pairs, evidence))
     }
 
     /// Encodes frames, in input order; `tick` is called per frame. Per-frame input errors are

@@ -758,3 +758,43 @@ fn maps_store_the_poses_they_are_given() {
     let out = semlook(&bad);
     assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("not a pose format"));
 }
+
+/// Issue 51: a map of small frames (a long side of at most `input.compact_hog_long_side`, 256)
+/// stores each image's compact HOG, which `verified` weighs as evidence; its queries get one
+/// too, and a map of larger frames stores none and keeps the manifest of before (no
+/// `compact_hog_dim` key, so its checksum is unchanged).
+#[test]
+fn a_map_of_small_frames_stores_compact_hogs_and_its_queries_use_them() {
+    if !common::has_xfeat() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    for (size, small) in [("96x72", true), ("320x240", false)] {
+        let data = dir.path().join(format!("data-{size}"));
+        ok(&["synth", "--out", p(&data), "--places", "4", "--size", size, "--query-condition", "fog", "-q"]);
+        let rgb = "RGB/Stereo_Left/Omni_F";
+        let (r, l, q) = (data.join("day").join(rgb), data.join("day/GT/LABELS/Stereo_Left/Omni_F"), data.join("fog").join(rgb));
+        let map = dir.path().join(format!("map-{size}"));
+        ok(&["map", "build", "--images", p(&r), "--labels", p(&l), "--map", p(&map), "-q"]);
+        let manifest = std::fs::read_to_string(map.join("manifest.json")).unwrap();
+        let m: serde_json::Value = serde_json::from_str(&manifest).unwrap();
+        match small {
+            true => assert_eq!(m["compact_hog_dim"].as_u64(), Some(semlook::hog::COMPACT_HOG_DIM as u64), "{size}"),
+            false => assert!(!manifest.contains("compact_hog_dim"), "{size}: {manifest}"),
+        }
+        let opened = semlook::map::Map::open(&map).unwrap();
+        let stored = semlook::descriptors::source::RefSource::image_compact_hog(&opened, 0).to_vec();
+        assert_eq!(stored.len(), if small { semlook::hog::COMPACT_HOG_DIM } else { 0 });
+        if small {
+            assert!((stored.iter().map(|v| v * v).sum::<f32>() - 1.0).abs() < 1e-2, "unit length");
+            // the queries of the map are encoded with one (the map's encoder decides, not the frame)
+            let enc = semlook::encode::Encoder::for_map(&opened.query_config(), &opened).unwrap();
+            assert_eq!(enc.compact_hog_dim(), semlook::hog::COMPACT_HOG_DIM);
+        }
+        let lq = data.join("fog/GT/LABELS/Stereo_Left/Omni_F");
+        let out = semlook(&["query", "--map", p(&map), "--images", p(&q), "--labels", p(&lq), "--setting", "verified", "--json"]);
+        assert!(out.status.success(), "{size}: {}", String::from_utf8_lossy(&out.stderr));
+        let doc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        assert_eq!(doc["queries"].as_array().unwrap().len(), 4, "{size}");
+    }
+}

@@ -112,6 +112,7 @@ fn set(n: usize, emb: usize, e: impl Fn(usize) -> Vec<f32>) -> DescriptorSet {
             appearance: vec![],
             hog: vec![],
             embedding: e(i),
+            compact_hog: vec![],
             keypoints: Default::default(),
             pose: None,
         })

@@ -145,6 +145,7 @@ fn keypoint_set(cfg: &Config, images: &[&Stored]) -> semlook::descriptors::Descr
             appearance: vec![],
             hog: vec![],
             embedding: vec![],
+            compact_hog: vec![],
             keypoints: semlook::descriptors::keypoints::ImageKeypoints {
                 descriptors: s.descriptors.clone(),
                 xy: s.xy.clone(),
@@ -201,9 +202,18 @@ fn w_glue_adds_the_learned_matchers_inliers_to_every_candidate() {
     }
     assert!(raised >= 2, "LighterGlue found inliers on some pairs");
     // one pair scored alone (as a shard or a sequence neighbour would score it) scores as in the batch
-    let alone =
-        semlook::matching::score_pairs(&mut semlook::matching::CpuStages, &refs, &queries, semlook::matching::Setting::Verified, &with, &[(1, 2)])
-            .unwrap();
+    // (weighed against its query's candidates, as the batch weighed it)
+    let evidence: Vec<_> = fused.iter().map(|m| m.evidence).collect();
+    let alone = semlook::matching::score_pairs(
+        &mut semlook::matching::CpuStages,
+        &refs,
+        &queries,
+        semlook::matching::Setting::Verified,
+        &with,
+        &[(1, 2)],
+        Some(&evidence),
+    )
+    .unwrap();
     let in_batch = fused[1].ranked.iter().find(|c| c.reference == 2).unwrap();
     assert_eq!(alone[0].score, in_batch.score);
 }
@@ -257,6 +267,7 @@ fn glue_min_inliers_runs_the_learned_matcher_only_where_mnn_found_enough() {
     assert!(kept > 0 && dropped > 0, "pairs with LighterGlue inliers on both sides of the floor {floor}: {kept} kept, {dropped} dropped");
     // a pair scored alone scores as in the batch
     let cfg = Config::from_toml(&gated_toml, "t.toml").unwrap();
+    let evidence: Vec<_> = gated.iter().map(|m| m.evidence).collect();
     for (q, p) in gated.iter().enumerate() {
         for c in &p.ranked {
             let alone = semlook::matching::score_pairs(
@@ -266,6 +277,7 @@ fn glue_min_inliers_runs_the_learned_matcher_only_where_mnn_found_enough() {
                 semlook::matching::Setting::Verified,
                 &cfg,
                 &[(q as u32, c.reference)],
+                Some(&evidence),
             )
             .unwrap();
             assert_eq!(alone[0].score, c.score);

@@ -32,7 +32,7 @@ fn sharded(dir: &Path, n_shards: usize, queries: &DescriptorSet, setting: Settin
                 let (map, spec) = shards.iter().find(|(_, s)| (s.global_start..s.global_start + s.len).contains(&(r as usize))).unwrap();
                 fine_scores(&mut CpuStages, map, queries, setting, cfg, &[(q, r - spec.global_start as u32)]).unwrap()[0]
             })
-            .collect::<Vec<f32>>()
+            .collect::<Vec<_>>()
     });
     rank(setting, &lists, fine.as_deref(), cfg).unwrap()
 }

@@ -42,6 +42,7 @@ fn columns(d: &DescriptorSet) -> Vec<(&'static str, Vec<usize>)> {
         ("image_appearance", vec![n, d.appearance_dim]),
         ("image_hog", vec![n, d.hog_dim]),
         ("image_embedding", vec![n, d.embedding_dim]),
+        ("image_compact_hog", vec![n, d.compact_hog_dim]),
         ("keypoint_offsets", vec![n + 1]),
         ("keypoint_descriptors", vec![k, d.keypoint_dim]),
         ("keypoint_xy", vec![k, 2]),
@@ -65,6 +66,7 @@ fn column_view<'py>(owner: Bound<'py, PyAny>, d: &DescriptorSet, name: &str, sha
         "image_appearance" => view(owner, &d.image_appearance, shape)?.into_any(),
         "image_hog" => view(owner, &d.image_hog, shape)?.into_any(),
         "image_embedding" => view(owner, &d.image_embedding, shape)?.into_any(),
+        "image_compact_hog" => view(owner, &d.image_compact_hog, shape)?.into_any(),
         "keypoint_offsets" => view(owner, &d.keypoint_offsets, shape)?.into_any(),
         "keypoint_descriptors" => view(owner, &d.keypoint_descriptors, shape)?.into_any(),
         "keypoint_xy" => view(owner, &d.keypoint_xy, shape)?.into_any(),
@@ -159,6 +161,7 @@ impl PyDescriptors {
             ("hog_dim", d.hog_dim),
             ("keypoint_dim", d.keypoint_dim),
             ("embedding_dim", d.embedding_dim),
+            ("compact_hog_dim", d.compact_hog_dim),
         ] {
             out.set_item(k, v)?;
         }
@@ -186,6 +189,8 @@ impl PyDescriptors {
         let kd = dim(arrays, "keypoint_dim")?;
         // arrays of before embeddings have none
         let e = if arrays.contains("embedding_dim")? { dim(arrays, "embedding_dim")? } else { 0 };
+        // and of before compact HOGs none
+        let c = if arrays.contains("compact_hog_dim")? { dim(arrays, "compact_hog_dim")? } else { 0 };
         let n = ids.len();
         let offsets: Vec<u32> = take_column(arrays, "forest_offsets", &[n + 1])?;
         let t = offsets.last().copied().unwrap_or(0) as usize;
@@ -214,6 +219,8 @@ impl PyDescriptors {
             image_hog: take_column(arrays, "image_hog", &[n, h])?,
             embedding_dim: e,
             image_embedding: if e > 0 { take_column(arrays, "image_embedding", &[n, e])? } else { vec![] },
+            compact_hog_dim: c,
+            image_compact_hog: if c > 0 { take_column(arrays, "image_compact_hog", &[n, c])? } else { vec![] },
             keypoint_dim: kd,
             keypoint_offsets: kp_offsets,
             keypoint_descriptors: take_column(arrays, "keypoint_descriptors", &[k, kd])?,

@@ -61,7 +61,12 @@ impl PyMap {
         // serves the settings that need none and refuses the others by name
         let without_labels = !set.is_empty() && set.n_trees() == 0 && !enc.frames().can_segment();
         let m = py.detach(|| -> semlook::Result<Map> {
-            let dims = semlook::map::ColumnDims { appearance: set.appearance_dim, hog: set.hog_dim, keypoints: set.keypoint_dim };
+            let dims = semlook::map::ColumnDims {
+                appearance: set.appearance_dim,
+                hog: set.hog_dim,
+                keypoints: set.keypoint_dim,
+                compact_hog: set.compact_hog_dim,
+            };
             let mut w = MapWriter::create(&path, enc.config(), dims, enc.appearance_record(), opts, false)?.with_embedding(set.embedding.clone())?;
             if without_labels {
                 w = w.without_labels()?;

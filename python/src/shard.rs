@@ -118,7 +118,9 @@ impl PyShard {
         let lists: Lists = lists.into_iter().map(|l| l.into_iter().map(|(sc, r)| (sc, r + start)).collect()).collect();
         Ok(to_arrays(py, &lists, matching::list_len(s, cfg)))
     }
-    /// Fine scores of pairs (query index `q[i]`, whole-map reference `r[i]`), all owned here.
+    /// Fine scores of pairs (query index `q[i]`, whole-map reference `r[i]`), all owned here:
+    /// float32 [n, 3], per pair its fine score, its inliers (-1: not verified) and its compact
+    /// HOGs' cosine (NaN: none), what `rank` weighs against each query's other candidates.
     fn fine<'py>(
         &self,
         py: Python<'py>,
@@ -126,7 +128,7 @@ impl PyShard {
         setting: &str,
         q: PyReadonlyArray1<'_, u32>,
         r: PyReadonlyArray1<'_, i64>,
-    ) -> PyResult<Bound<'py, PyArray1<f32>>> {
+    ) -> PyResult<Bound<'py, PyArray2<f32>>> {
         let s = self::setting(setting)?;
         if q.len() != r.len() {
             return Err(invalid("pairs", format!("{} queries and {} references", q.len(), r.len())));
@@ -143,7 +145,8 @@ impl PyShard {
             .collect::<PyResult<Vec<_>>>()?;
         let (map, set, cfg) = (self.map.clone(), queries.inner.clone(), &self.cfg);
         let f = run(py, self.pool.clone(), Some(&self.engine), |e| e.fine_scores(map.as_ref(), &set, s, cfg, &pairs))?;
-        Ok(f.into_pyarray(py))
+        let rows: Vec<f32> = f.iter().flat_map(|p| [p.fine, p.inliers.map_or(-1.0, |i| i as f32), p.compact_hog.unwrap_or(f32::NAN)]).collect();
+        Ok(Array2::from_shape_vec((f.len(), 3), rows).map_err(|e| invalid("fine", e.to_string()))?.into_pyarray(py))
     }
     /// Ids of whole-map references `r`, all owned here.
     fn reference_ids(&self, r: Vec<i64>) -> PyResult<Vec<String>> {
@@ -183,9 +186,10 @@ pub fn merge_candidates<'py>(
     Ok(to_arrays(py, &merged, k))
 }
 
-/// The final ranking of merged candidates, as `Map.query` returns it: `fine` holds the fine score
-/// of every candidate in row order (settings with both stages; else None), `ids` the id of
-/// every candidate in the same order, `queries` the query ids.
+/// The final ranking of merged candidates, as `Map.query` returns it: `fine` holds what
+/// `Shard.fine` gives every candidate in row order (float32 [n, 3]: fine score, inliers or -1,
+/// compact HOGs' cosine or NaN; settings with both stages; else None), `ids` the id of every
+/// candidate in the same order, `queries` the query ids.
 #[pyfunction]
 #[pyo3(signature = (setting, scores, references, counts, fine, queries, ids, fusion="fine", config=None))]
 #[allow(clippy::too_many_arguments)]
@@ -194,7 +198,7 @@ pub fn rank(
     scores: PyReadonlyArray2<'_, f32>,
     references: PyReadonlyArray2<'_, i64>,
     counts: PyReadonlyArray1<'_, i32>,
-    fine: Option<PyReadonlyArray1<'_, f32>>,
+    fine: Option<PyReadonlyArray2<'_, f32>>,
     queries: Vec<String>,
     ids: Vec<String>,
     fusion: &str,
@@ -209,7 +213,21 @@ pub fn rank(
     if ids.len() != pairs.len() {
         return Err(invalid("rank", format!("{} ids for {} candidates", ids.len(), pairs.len())));
     }
-    let fine: Option<Vec<f32>> = fine.map(|f| f.as_array().to_vec());
+    let fine: Option<Vec<matching::PairScore>> = match fine {
+        None => None,
+        Some(f) if f.shape()[1] != 3 => return Err(invalid("rank", format!("fine holds {} columns, Shard.fine gives 3", f.shape()[1]))),
+        Some(f) => Some(
+            f.as_array()
+                .rows()
+                .into_iter()
+                .map(|r| matching::PairScore {
+                    fine: r[0],
+                    inliers: (r[1] >= 0.0).then_some(r[1] as u32),
+                    compact_hog: (!r[2].is_nan()).then_some(r[2]),
+                })
+                .collect(),
+        ),
+    };
     let mut cfg = config.map_or_else(Config::default, |c| c.inner.clone());
     cfg.matching.score = self::fusion(fusion)?;
     let ranked = matching::rank(s, &lists, fine.as_deref(), &cfg).py_err()?;

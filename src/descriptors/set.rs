@@ -34,6 +34,9 @@ pub struct EncodedImage {
     /// The whole-image embedding ([`crate::embedding`], L2-normalised); empty unless the encoder
     /// computes it.
     pub embedding: Vec<f32>,
+    /// The compact HOG of the whole image ([`crate::hog::compact_hog`], L2-normalised); empty
+    /// unless the encoder computes it (maps of small frames).
+    pub compact_hog: Vec<f32>,
     /// The verification keypoints (empty when the encoder stores none).
     pub keypoints: ImageKeypoints,
     /// Where the image was taken, when its source gives a pose (a dataset's poses, a pose list):
@@ -90,6 +93,10 @@ pub struct DescriptorSet {
     /// What made the embeddings (the encoder's network; none for a set without embeddings or a
     /// storage buffer): sets of two networks never join.
     pub embedding: Option<crate::embedding::EmbeddingRecord>,
+    /// Values per compact HOG ([`crate::hog::COMPACT_HOG_DIM`]; 0: the set holds none).
+    pub compact_hog_dim: usize,
+    /// `compact_hog_dim` values per image (zeros for an image without one).
+    pub image_compact_hog: Vec<f32>,
     /// Values per verification keypoint descriptor (0: the set holds no keypoints).
     pub keypoint_dim: usize,
     /// `keypoint_offsets[i]..[i + 1]` are image i's keypoints.
@@ -133,6 +140,8 @@ impl DescriptorSet {
             embedding_dim: 0,
             image_embedding: vec![],
             embedding: None,
+            compact_hog_dim: 0,
+            image_compact_hog: vec![],
             keypoint_dim: 0,
             keypoint_offsets: vec![0],
             keypoint_descriptors: vec![],
@@ -160,6 +169,12 @@ impl DescriptorSet {
     pub fn with_embedding(mut self, rec: Option<crate::embedding::EmbeddingRecord>) -> Self {
         self.embedding_dim = rec.as_ref().map_or(0, |r| r.dim);
         self.embedding = rec;
+        self
+    }
+
+    /// The same empty set holding compact HOGs of `dim` values each (0: none).
+    pub fn with_compact_hog_dim(mut self, dim: usize) -> Self {
+        self.compact_hog_dim = dim;
         self
     }
 
@@ -222,6 +237,14 @@ impl DescriptorSet {
                 self.embedding_dim
             )));
         }
+        if !img.compact_hog.is_empty() && img.compact_hog.len() != self.compact_hog_dim {
+            return Err(Error::check(format!(
+                "image {:?} has a compact HOG of {} values, the set {}",
+                img.id,
+                img.compact_hog.len(),
+                self.compact_hog_dim
+            )));
+        }
         let k = &img.keypoints;
         if !k.is_empty() && (k.dim != self.keypoint_dim || k.descriptors.len() != k.len() * k.dim || k.xy.len() != 2 * k.len()) {
             return Err(Error::check(format!(
@@ -263,6 +286,7 @@ impl DescriptorSet {
         fill(&mut self.image_appearance, &img.appearance, self.appearance_dim);
         fill(&mut self.image_hog, &img.hog, self.hog_dim);
         fill(&mut self.image_embedding, &img.embedding, self.embedding_dim);
+        fill(&mut self.image_compact_hog, &img.compact_hog, self.compact_hog_dim);
         self.forest_offsets.push(self.tree_classes.len() as u32);
         self.keypoint_descriptors.extend_from_slice(&k.descriptors);
         self.keypoint_xy.extend_from_slice(&k.xy);
@@ -279,7 +303,8 @@ impl DescriptorSet {
     /// Appends images `start..end` of `other` (a set without statistics takes none); fails,
     /// leaving the set unchanged, when the layouts differ or the range is not in `other`.
     pub fn append_range(&mut self, other: &DescriptorSet, start: usize, end: usize) -> Result<()> {
-        let sizes = |s: &DescriptorSet| (s.global_len, s.neighbour_slots, s.appearance_dim, s.hog_dim, s.keypoint_dim, s.embedding_dim);
+        let sizes =
+            |s: &DescriptorSet| (s.global_len, s.neighbour_slots, s.appearance_dim, s.hog_dim, s.keypoint_dim, s.embedding_dim, s.compact_hog_dim);
         if self.appearance_dim > 0 && self.codebook != other.codebook {
             return Err(Error::check(format!(
                 "images aggregated with another VLAD codebook (sha256 {}) do not join a set of sha256 {}",
@@ -297,7 +322,7 @@ impl DescriptorSet {
         }
         if sizes(self) != sizes(other) || (self.stats_len != 0 && self.stats_len != other.stats_len) {
             return Err(Error::check(format!(
-                "images with (global values, neighbour slots, appearance dim, HOG dim, keypoint dim, embedding dim, statistics) {:?} / {} do not join a set of {:?} / {}",
+                "images with (global values, neighbour slots, appearance dim, HOG dim, keypoint dim, embedding dim, compact HOG dim, statistics) {:?} / {} do not join a set of {:?} / {}",
                 sizes(other),
                 other.stats_len,
                 sizes(self),
@@ -334,6 +359,8 @@ impl DescriptorSet {
         self.image_hog.extend_from_slice(&other.image_hog[start * h..end * h]);
         let e = self.embedding_dim;
         self.image_embedding.extend_from_slice(&other.image_embedding[start * e..end * e]);
+        let c = self.compact_hog_dim;
+        self.image_compact_hog.extend_from_slice(&other.image_compact_hog[start * c..end * c]);
         let (ka, kb, kd) = (other.keypoint_offsets[start] as usize, other.keypoint_offsets[end] as usize, self.keypoint_dim);
         let kbase = self.n_keypoints() as u32;
         self.keypoint_offsets.extend(other.keypoint_offsets[start + 1..=end].iter().map(|o| o - ka as u32 + kbase));
@@ -360,6 +387,7 @@ impl DescriptorSet {
         .with_keypoint_dim(self.keypoint_dim)
         .with_embedding_dim(self.embedding_dim)
         .with_embedding_record(self.embedding.clone())
+        .with_compact_hog_dim(self.compact_hog_dim)
         .with_codebook(self.codebook.clone())
     }
 
@@ -382,6 +410,10 @@ impl DescriptorSet {
     /// The whole-image embedding of image i (empty when the set holds none).
     pub fn image_embedding(&self, i: usize) -> &[f32] {
         &self.image_embedding[i * self.embedding_dim..(i + 1) * self.embedding_dim]
+    }
+    /// The compact HOG of image i (empty when the set holds none).
+    pub fn image_compact_hog(&self, i: usize) -> &[f32] {
+        &self.image_compact_hog[i * self.compact_hog_dim..(i + 1) * self.compact_hog_dim]
     }
     /// The verification keypoints of image i.
     pub fn keypoints(&self, i: usize) -> KeypointsRef<'_> {
@@ -426,7 +458,7 @@ impl DescriptorSet {
         }
         let p = ko[n] as usize;
         let (s, d) = (self.neighbour_slots, self.appearance_dim);
-        let columns: [(&str, usize, usize); 18] = [
+        let columns: [(&str, usize, usize); 19] = [
             ("sizes", self.sizes.len(), n),
             ("poses", self.poses.len(), n),
             ("globals", self.globals.len(), n * self.global_len),
@@ -441,6 +473,7 @@ impl DescriptorSet {
             ("image_appearance", self.image_appearance.len(), d * n),
             ("image_hog", self.image_hog.len(), self.hog_dim * n),
             ("image_embedding", self.image_embedding.len(), self.embedding_dim * n),
+            ("image_compact_hog", self.image_compact_hog.len(), self.compact_hog_dim * n),
             ("keypoint_descriptors", self.keypoint_descriptors.len(), self.keypoint_dim * p),
             ("keypoint_xy", self.keypoint_xy.len(), 2 * p),
             ("keypoint_classes", self.keypoint_classes.len(), p),
@@ -469,6 +502,7 @@ impl DescriptorSet {
             store,
         )?;
         crate::descriptors::validate::embedding(Values::F32(self.image_embedding(i)))?;
+        crate::descriptors::validate::compact_hog(Values::F32(self.image_compact_hog(i)))?;
         crate::descriptors::validate::keypoints(self.keypoints(i), n_classes)?;
         self.poses.get(i).copied().flatten().map_or(Ok(()), |p| crate::descriptors::validate::pose_row(&p.to_row()))
     }
@@ -492,6 +526,7 @@ mod tests {
                 appearance: vec![],
                 hog: vec![1.0; hog_dim],
                 embedding: vec![],
+                compact_hog: vec![],
                 keypoints: Default::default(),
                 pose: None,
             };

@@ -166,6 +166,14 @@ pub trait RefSource: GlobalSource {
     fn image_embedding(&self, _i: usize) -> Values<'_> {
         Values::EMPTY
     }
+    /// Values per compact HOG (0: the source holds none; maps of small frames hold them).
+    fn compact_hog_dim(&self) -> usize {
+        0
+    }
+    /// The compact HOG of reference i (`compact_hog_dim` values).
+    fn image_compact_hog(&self, _i: usize) -> Values<'_> {
+        Values::EMPTY
+    }
     /// Values per verification keypoint descriptor (0: the source stores no keypoints).
     fn keypoint_dim(&self) -> usize;
     /// The verification keypoints of reference i.
@@ -240,6 +248,12 @@ impl RefSource for DescriptorSet {
     }
     fn image_embedding(&self, i: usize) -> Values<'_> {
         Values::F32(DescriptorSet::image_embedding(self, i))
+    }
+    fn compact_hog_dim(&self) -> usize {
+        self.compact_hog_dim
+    }
+    fn image_compact_hog(&self, i: usize) -> Values<'_> {
+        Values::F32(DescriptorSet::image_compact_hog(self, i))
     }
     fn keypoint_dim(&self) -> usize {
         self.keypoint_dim
@@ -323,6 +337,12 @@ impl RefSource for Window<'_> {
     }
     fn image_embedding(&self, i: usize) -> Values<'_> {
         self.inner.image_embedding(self.start + i)
+    }
+    fn compact_hog_dim(&self) -> usize {
+        self.inner.compact_hog_dim()
+    }
+    fn image_compact_hog(&self, i: usize) -> Values<'_> {
+        self.inner.image_compact_hog(self.start + i)
     }
     fn keypoint_dim(&self) -> usize {
         self.inner.keypoint_dim()

@@ -114,6 +114,24 @@ pub fn embedding(e: Values) -> Result<()> {
     Ok(())
 }
 
+/// Checks an image's compact HOG ([`crate::hog::compact_hog`]): finite values, none negative (a
+/// histogram), of length at most 1 (the encoder's are L2-normalised, or all zero for a flat
+/// image), or none.
+pub fn compact_hog(v: Values) -> Result<()> {
+    if v.is_empty() {
+        return Ok(());
+    }
+    let v = v.to_vec();
+    if v.iter().any(|x| !x.is_finite() || *x < 0.0) {
+        return Err(Error::check("a compact HOG value is negative, NaN or infinite"));
+    }
+    let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+    if n > MAX_APPEARANCE_NORM {
+        return Err(Error::check(format!("the compact HOG has length {n}; the encoder's have length 1 (at most {MAX_APPEARANCE_NORM})")));
+    }
+    Ok(())
+}
+
 /// Checks an image's verification keypoints: as many positions, classes and descriptor values as
 /// keypoints, classes in the table (or void), and descriptors no int8 rounding of a unit vector
 /// exceeds (every value above -128, the vector's norm at most 1.01 x the scale).

@@ -75,6 +75,9 @@ pub struct Encoder {
     /// For an encoder of a map's queries ([`Encoder::for_map`]): whether the map holds semantic
     /// labels, which its queries then need too ([`Encoder::labels_rule`]).
     map_labelled: Option<bool>,
+    /// Whether each image also gets a compact HOG ([`crate::hog::compact_hog`]): maps of small
+    /// frames store one ([`Encoder::small_frames`]), and their queries then need one.
+    compact_hog: bool,
 }
 
 impl Encoder {
@@ -101,7 +104,40 @@ impl Encoder {
             appearance,
             embedder,
             map_labelled: None,
+            compact_hog: false,
         })
+    }
+    /// Whether each image also gets a compact HOG (needs appearance on: it is computed from the
+    /// RGB image the keypoint network sees; without appearance, none).
+    pub fn with_compact_hog(mut self, on: bool) -> Encoder {
+        self.compact_hog = on && self.appearance.is_some();
+        self
+    }
+    /// Values per compact HOG (0 when the encoder makes none).
+    pub fn compact_hog_dim(&self) -> usize {
+        if self.compact_hog {
+            crate::hog::COMPACT_HOG_DIM
+        } else {
+            0
+        }
+    }
+    /// Whether `frames` are small frames, whose map stores compact HOGs: the first frame that
+    /// has an image (its header read) has a long side of at most `input.compact_hog_long_side`
+    /// pixels (0: never). Frames at that size give the keypoint network too little to find
+    /// (sweep 17: on Nordland dev copies at 64x32 and 128x64 `verified` fell below `hog`, at
+    /// 256x128 it matched it).
+    pub fn small_frames<'a>(&self, frames: impl IntoIterator<Item = &'a FrameSource>) -> Result<bool> {
+        let limit = self.cfg.input.compact_hog_long_side;
+        if limit == 0 || self.appearance.is_none() {
+            return Ok(false);
+        }
+        match frames.into_iter().find_map(|f| f.image.as_ref()) {
+            Some(p) => {
+                let (w, h) = crate::input::image_size(p)?;
+                Ok(w.max(h) as usize <= limit)
+            }
+            None => Ok(false),
+        }
     }
     /// Whether the encoder also computes the HOG baseline (VPR-Bench's, [`crate::hog`]).
     pub fn with_hog(mut self, hog: bool) -> Encoder {
@@ -188,6 +224,8 @@ impl Encoder {
             Some(rec) => Some(std::sync::Arc::new(crate::embedding::for_record(rec, &cfg.models)?)),
         };
         enc.map_labelled = Some(!map.manifest.without_labels);
+        // a map of small frames: its queries get the compact HOG it stores
+        enc.compact_hog = map.manifest.compact_hog_dim > 0 && enc.appearance.is_some();
         // a map built without labels takes its frames without labels too, unsegmented
         if map.manifest.without_labels {
             enc.frames.drop_segmenter();
@@ -265,6 +303,7 @@ impl Encoder {
         crate::descriptors::DescriptorSet::new(&self.global.ssim, self.cfg.local.neighbours, self.appearance_dim(), hog)
             .with_keypoint_dim(self.keypoint_dim())
             .with_embedding(self.embedding_record())
+            .with_compact_hog_dim(self.compact_hog_dim())
             .with_codebook(codebook)
     }
 

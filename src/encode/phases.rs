@@ -69,6 +69,16 @@ impl Encoder {
             }
             _ => vec![],
         };
+        let compact_hog = match (self.compact_hog, &loaded.rgb) {
+            (true, Some(rgb)) => {
+                // rounded to f16, what a map stores: a stored image reads back the same
+                let mut v = crate::hog::compact_hog(rgb);
+                crate::values::round_through_f16(&mut v);
+                v
+            }
+            (true, None) => return Err(Error::invalid(format!("frame {id:?}"), "the compact HOG needs the RGB image")),
+            (false, _) => vec![],
+        };
         let (width, height) = loaded.source_size;
         let hog = loaded.hog.clone().unwrap_or_default();
         let image = EncodedImage {
@@ -81,6 +91,7 @@ impl Encoder {
             appearance: vec![],
             hog,
             embedding,
+            compact_hog,
             keypoints: verification,
             pose: None,
         };

@@ -285,6 +285,11 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
     let wants_hog = opts.settings.contains(&Setting::Hog);
     let owned;
     let mut encoder = base.with_hog(wants_hog && opts.map.is_none_or(|m| m.manifest.hog_dim > 0)).without_labels(without_labels);
+    // references encoded here: small frames get compact HOGs, as a map of them would store
+    if opts.map.is_none() {
+        let small = encoder.small_frames(&ref_sources)?;
+        encoder = encoder.with_compact_hog(small);
+    }
     let (refs, ref_enc): (&dyn RefSource, EncodingSummary) = match opts.map {
         Some(m) => (m, EncodingSummary::default()),
         None => {
@@ -529,19 +534,19 @@ pub fn sequence_rows(
     cfg: &Config,
 ) -> Result<Vec<Vec<(crate::descriptors::source::Place, f32)>>> {
     let full;
-    let lists: Vec<Vec<crate::matching::Candidate>> = match cfg.sequence.rows {
-        crate::config::SequenceRows::Candidates => matches.iter().map(|m| m.ranked.clone()).collect(),
+    let lists: &[crate::matching::QueryMatch] = match cfg.sequence.rows {
+        crate::config::SequenceRows::Candidates => matches,
         crate::config::SequenceRows::Full => {
             let c = Config { matching: crate::config::MatchingConfig { top_k: refs.len().max(1), ..cfg.matching.clone() }, ..cfg.clone() };
             full = engine.match_batch(refs, queries, setting, &c)?.0;
-            full.iter().map(|m| m.ranked.clone()).collect()
+            &full
         }
     };
     let widen = match cfg.sequence.rows {
         crate::config::SequenceRows::Candidates => cfg.sequence.widen,
         crate::config::SequenceRows::Full => 0,
     };
-    crate::stream::scored_rows(engine, refs, queries, &lists, setting, cfg, widen)
+    crate::stream::scored_rows(engine, refs, queries, lists, setting, cfg, widen)
 }
 
 /// [`sequence_report`] from the rows of [`sequence_rows`].

@@ -262,6 +262,7 @@ mod tests {
                 appearance: vec![0.0; dim],
                 hog: vec![],
                 embedding: vec![],
+                compact_hog: vec![],
                 keypoints: Default::default(),
                 pose: None,
             };

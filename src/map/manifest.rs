@@ -114,6 +114,10 @@ fn is_zero(v: &u32) -> bool {
     *v == 0
 }
 
+fn is_zero_usize(v: &usize) -> bool {
+    *v == 0
+}
+
 impl SegmentEntry {
     /// Images of the file that are not removed.
     pub fn live(&self) -> usize {
@@ -147,6 +151,11 @@ pub struct Manifest {
     pub appearance_dim: usize,
     /// Values of each image's HOG baseline descriptor (0: the map holds none).
     pub hog_dim: usize,
+    /// Values of each image's compact HOG ([`crate::hog::compact_hog`]; 0: the map holds none).
+    /// Maps of small frames hold them (`input.compact_hog_long_side`); absent (0) in the
+    /// manifests of the others, so their checksums are those of before the field existed.
+    #[serde(default, skip_serializing_if = "is_zero_usize")]
+    pub compact_hog_dim: usize,
     /// Values per verification keypoint descriptor (0: the map stores no keypoints).
     pub keypoint_dim: usize,
     /// Values per stored block of the appearance vectors (the keypoint network's descriptor

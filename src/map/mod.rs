@@ -214,6 +214,7 @@ impl Map {
         let mut set = DescriptorSet::for_storage(l.global_len(), l.slots, l.dim, l.hog)
             .with_keypoint_dim(l.kdim)
             .with_embedding(self.manifest.embedding.clone())
+            .with_compact_hog_dim(l.chog)
             .with_codebook(self.manifest.codebook.as_ref().map(|c| c.sha256.clone()));
         for (s, seg) in self.segments.iter().enumerate() {
             for j in self.live_rows(s) {
@@ -268,6 +269,7 @@ pub(crate) fn layout_of(m: &Manifest, n_classes: usize) -> Layout {
         hog: m.hog_dim,
         kdim: m.keypoint_dim,
         emb: m.embedding.as_ref().map_or(0, |e| e.dim),
+        chog: m.compact_hog_dim,
         block: m.appearance_block,
         values: m.values,
         n_classes,
@@ -439,6 +441,13 @@ impl RefSource for Map {
     fn image_embedding(&self, i: usize) -> Values<'_> {
         let (s, j) = self.locate(i);
         self.sound(s).map_or(Values::EMPTY, |seg| seg.image_embedding(j))
+    }
+    fn compact_hog_dim(&self) -> usize {
+        self.manifest.compact_hog_dim
+    }
+    fn image_compact_hog(&self, i: usize) -> Values<'_> {
+        let (s, j) = self.locate(i);
+        self.sound(s).map_or(Values::EMPTY, |seg| seg.image_compact_hog(j))
     }
     fn keypoints(&self, i: usize) -> KeypointsRef<'_> {
         let (s, j) = self.locate(i);

@@ -13,7 +13,8 @@
 //! `keypoint_descriptors` `[p, kdim]` i8, `keypoint_xy` `[p, 2]` u16, `keypoint_class` `[p]` u8, and,
 //! only in segments where some image has a pose, `place_pose` `[n, 7]` f64 (`x y z qx qy qz qw`, NaN
 //! where there is none: [`PlacePose::to_row`]; segments without it, older ones among them, hold no
-//! poses), and only in maps with whole-image embeddings `image_embedding` `[n, emb]` f16. SSIM
+//! poses), only in maps with whole-image embeddings `image_embedding` `[n, emb]` f16, and only in
+//! maps of small frames compact HOGs `image_compact_hog` `[n, chog]` f16. SSIM
 //! statistics are not stored: readers recompute them per tile.
 //!
 //! Opening checks the header: every tensor's dtype, shape, and alignment (safetensors writers sort
@@ -50,6 +51,8 @@ pub struct Layout {
     pub kdim: usize,
     /// Values per whole-image embedding (0: none stored).
     pub emb: usize,
+    /// Values per compact HOG (0: none stored; maps of small frames store them).
+    pub chog: usize,
     /// Values per stored appearance block (the keypoint network's descriptor width; 0 without
     /// appearance).
     pub block: usize,
@@ -66,7 +69,7 @@ impl Layout {
     }
     /// Bytes of one image without its trees, at most (every appearance block stored).
     pub fn image_bytes(&self) -> usize {
-        self.global_len() * self.values.bytes() + self.appearance_bytes() + self.hog * 4 + self.emb * 2 + 2 * 4 + 2 * 4 + 4
+        self.global_len() * self.values.bytes() + self.appearance_bytes() + self.hog * 4 + self.emb * 2 + self.chog * 2 + 2 * 4 + 2 * 4 + 4
     }
     /// Bytes of one tree, at most.
     pub fn tree_bytes(&self) -> usize {
@@ -85,7 +88,10 @@ impl Layout {
     }
     /// An empty set of this layout without SSIM statistics: the buffer of a segment being written.
     pub fn storage_set(&self) -> DescriptorSet {
-        DescriptorSet::for_storage(self.global_len(), self.slots, self.dim, self.hog).with_keypoint_dim(self.kdim).with_embedding_dim(self.emb)
+        DescriptorSet::for_storage(self.global_len(), self.slots, self.dim, self.hog)
+            .with_keypoint_dim(self.kdim)
+            .with_embedding_dim(self.emb)
+            .with_compact_hog_dim(self.chog)
     }
 }
 
@@ -151,6 +157,11 @@ pub fn to_bytes(set: &DescriptorSet, layout: &Layout) -> Result<Vec<u8>> {
     if layout.emb > 0 {
         parts.push(("image_embedding", Dtype::F16, vec![n, layout.emb], bytemuck::cast_slice(&embedding)));
     }
+    // compact HOGs (f16) only in maps of small frames
+    let compact_hog = to_f16_bits(&set.image_compact_hog);
+    if layout.chog > 0 {
+        parts.push(("image_compact_hog", Dtype::F16, vec![n, layout.chog], bytemuck::cast_slice(&compact_hog)));
+    }
     let tensors = parts
         .into_iter()
         .map(|(name, dtype, shape, bytes)| {
@@ -204,6 +215,8 @@ struct Ranges {
     place_pose: Option<Range<usize>>,
     /// Empty in maps without embeddings.
     image_embedding: Range<usize>,
+    /// Empty in maps without compact HOGs.
+    image_compact_hog: Range<usize>,
 }
 
 /// The four tensors of a column of appearance blocks.
@@ -377,6 +390,7 @@ impl Mapped {
             ("verification keypoints", len(&[&r.keypoint_offsets, &r.keypoint_descriptors, &r.keypoint_xy, &r.keypoint_class])),
             ("hog", len(&[&r.image_hog])),
             ("embedding", len(&[&r.image_embedding])),
+            ("compact hog", len(&[&r.image_compact_hog])),
             ("ids and sizes", len(&[&r.id_bytes, &r.id_offsets, &r.image_size])),
         ];
         if let Some(p) = &r.place_pose {
@@ -423,6 +437,12 @@ impl Mapped {
         let e = self.layout.emb;
         let all: &[u16] = bytemuck::cast_slice(self.raw(&self.r.image_embedding));
         Values::F16(&all[j * e..(j + 1) * e])
+    }
+    /// The compact HOG of row `j`, f16 (empty when the map stores none).
+    pub fn image_compact_hog(&self, j: usize) -> Values<'_> {
+        let c = self.layout.chog;
+        let all: &[u16] = bytemuck::cast_slice(self.raw(&self.r.image_compact_hog));
+        Values::F16(&all[j * c..(j + 1) * c])
     }
 
     /// Checks the SHA-256 against the manifest, then every value (offsets, ids, and each image
@@ -487,6 +507,7 @@ impl Mapped {
             )
             .and_then(|()| validate::keypoints(self.keypoints(j), self.layout.n_classes))
             .and_then(|()| validate::embedding(self.image_embedding(j)))
+            .and_then(|()| validate::compact_hog(self.image_compact_hog(j)))
             .map_err(|r| Error::check(format!("image {id:?}: {r}")))?;
             if let Some(r) = &self.r.place_pose {
                 let rows: &[f64] = bytemuck::cast_slice(self.raw(r));
@@ -526,6 +547,7 @@ impl Mapped {
         self.image_appearance(j).extend_into(&mut set.image_appearance);
         set.image_hog.extend_from_slice(self.image_hog(j));
         self.image_embedding(j).extend_into(&mut set.image_embedding);
+        self.image_compact_hog(j).extend_into(&mut set.image_compact_hog);
         set.forest_offsets.push(set.tree_classes.len() as u32);
         let k = self.keypoints(j);
         set.keypoint_descriptors.extend_from_slice(k.descriptors);
@@ -593,6 +615,10 @@ fn ranges(bytes: &[u8], entry: &SegmentEntry, l: &Layout) -> Result<Ranges> {
         image_embedding: match l.emb {
             0 => 0..0,
             e => get("image_embedding", Dtype::F16, &[Some(n), Some(e)])?,
+        },
+        image_compact_hog: match l.chog {
+            0 => 0..0,
+            c => get("image_compact_hog", Dtype::F16, &[Some(n), Some(c)])?,
         },
     })
 }

@@ -129,6 +129,7 @@ mod tests {
             config,
             appearance_dim: 0,
             hog_dim: 0,
+            compact_hog_dim: 0,
             keypoint_dim: 0,
             appearance_block: 0,
             values: Default::default(),

@@ -58,6 +58,8 @@ pub struct ColumnDims {
     pub hog: usize,
     /// Values per verification keypoint descriptor.
     pub keypoints: usize,
+    /// Values per compact HOG (maps of small frames; [`crate::hog::COMPACT_HOG_DIM`]).
+    pub compact_hog: usize,
 }
 
 /// Which traversal (a run of frames in order, `Manifest::traversals`) a writer's images join.
@@ -116,7 +118,7 @@ impl MapWriter {
         opts: StoreOptions,
         resume: bool,
     ) -> Result<MapWriter> {
-        let ColumnDims { appearance: appearance_dim, hog: hog_dim, keypoints: keypoint_dim } = dims;
+        let ColumnDims { appearance: appearance_dim, hog: hog_dim, keypoints: keypoint_dim, compact_hog: compact_hog_dim } = dims;
         let what = || format!("map {}", dir.display());
         MapWriter::check_new_dir(dir, resume)?;
         let codebook = match (appearance, appearance_dim) {
@@ -141,6 +143,7 @@ impl MapWriter {
             neighbour_slots: cfg.local.neighbours,
             appearance_dim,
             hog_dim,
+            compact_hog_dim,
             keypoint_dim,
             appearance_block: appearance.map_or(0, |(cb, _)| cb.dim),
             values: opts.values,
@@ -383,6 +386,11 @@ impl MapWriter {
                 true => Ok(()),
                 false => Err(Error::check(format!("an embedding of {} values, the map's have {}", img.embedding.len(), self.layout.emb))),
             })
+            .and_then(|()| validate::compact_hog(Values::F32(&img.compact_hog)))
+            .and_then(|()| match img.compact_hog.len() == self.layout.chog {
+                true => Ok(()),
+                false => Err(Error::check(format!("a compact HOG of {} values, the map's have {}", img.compact_hog.len(), self.layout.chog))),
+            })
             .and_then(|()| img.pose.map_or(Ok(()), |p| validate::pose_row(&p.to_row())))
             .map_err(|e| e.named(|reason| Error::InvalidImage { id: img.id.clone(), reason }))?;
         if self.contains(&img.id) {
@@ -403,12 +411,26 @@ impl MapWriter {
             || set.hog_dim != l.hog
             || set.keypoint_dim != l.kdim
             || set.embedding_dim != l.emb
+            || set.compact_hog_dim != l.chog
         {
             return Err(Error::invalid(
                 format!("map {}", self.dir.display()),
                 format!(
-                    "new images have {} global values / {} neighbour slots / appearance dim {} / HOG dim {} / keypoint dim {} / embedding dim {}, the map {} / {} / {} / {} / {} / {}",
-                    set.global_len, set.neighbour_slots, set.appearance_dim, set.hog_dim, set.keypoint_dim, set.embedding_dim, l.global_len(), l.slots, l.dim, l.hog, l.kdim, l.emb
+                    "new images have {} global values / {} neighbour slots / appearance dim {} / HOG dim {} / keypoint dim {} / embedding dim {} / compact HOG dim {}, the map {} / {} / {} / {} / {} / {} / {}",
+                    set.global_len,
+                    set.neighbour_slots,
+                    set.appearance_dim,
+                    set.hog_dim,
+                    set.keypoint_dim,
+                    set.embedding_dim,
+                    set.compact_hog_dim,
+                    l.global_len(),
+                    l.slots,
+                    l.dim,
+                    l.hog,
+                    l.kdim,
+                    l.emb,
+                    l.chog
                 ),
             ));
         }
@@ -585,7 +607,7 @@ impl Map {
         let mut w = MapWriter::create(
             dir,
             cfg,
-            ColumnDims { appearance: set.appearance_dim, hog: set.hog_dim, keypoints: set.keypoint_dim },
+            ColumnDims { appearance: set.appearance_dim, hog: set.hog_dim, keypoints: set.keypoint_dim, compact_hog: set.compact_hog_dim },
             appearance,
             opts,
             false,

@@ -24,6 +24,7 @@ fn set(p: &SsimParams, n: usize, pool: usize, rng: &mut SplitMix64) -> Descripto
             appearance: vec![],
             hog: vec![],
             embedding: vec![],
+            compact_hog: vec![],
             keypoints: Default::default(),
             pose: None,
         })

@@ -9,8 +9,10 @@
 
 pub mod baseline;
 pub mod coarse_cpu;
+pub mod evidence;
 pub mod setting;
 
+pub use evidence::{Evidence, PairScore};
 pub use setting::Setting;
 
 use crate::classes::ClassTable;
@@ -51,6 +53,9 @@ pub struct Candidate {
 pub struct QueryMatch {
     /// Candidates, best first.
     pub ranked: Vec<Candidate>,
+    /// `verified`: how the candidates spread in each evidence term ([`score_pairs`] scores other
+    /// references of the query against it).
+    pub evidence: Option<Evidence>,
 }
 
 impl QueryMatch {
@@ -155,27 +160,16 @@ pub fn match_with(
     cfg: &Config,
 ) -> Result<(Vec<QueryMatch>, MatchTimes)> {
     let (lists, mut times) = candidates(stages, refs, queries, setting, cfg)?;
-    let (fine, verified) = match setting.reranks() {
+    let fine = match setting.reranks() {
         true => {
             let t = Instant::now();
-            let (f, v) = pair_scores(stages, refs, queries, setting, cfg, &pairs_of(&lists))?;
+            let (f, _) = pair_scores(stages, refs, queries, setting, cfg, &pairs_of(&lists))?;
             times.fine_ms = ms_since(t);
-            (Some(f), v)
+            Some(f)
         }
-        false => (None, None),
+        false => None,
     };
-    let mut ranked = rank(setting, &lists, fine.as_deref(), cfg)?;
-    if let Some(v) = verified {
-        // the inliers behind each candidate's score, for reports and --explain
-        let mut it = v.iter();
-        for (m, l) in ranked.iter_mut().zip(&lists) {
-            let inliers: Vec<(u32, u32)> = l.iter().map(|&(_, r)| (r, it.next().map_or(0, |v| v.inliers))).collect();
-            for c in &mut m.ranked {
-                c.inliers = inliers.iter().find(|x| x.0 == c.reference).map(|x| x.1);
-            }
-        }
-    }
-    Ok((ranked, times))
+    Ok((rank(setting, &lists, fine.as_deref(), cfg)?, times))
 }
 
 /// Length of the candidate lists of `setting`: K for the settings with a coarse stage, else the
@@ -261,9 +255,10 @@ pub fn pairs_of(lists: &[Vec<(f32, u32)>]) -> Vec<(u32, u32)> {
     lists.iter().enumerate().flat_map(|(q, l)| l.iter().map(move |&(_, r)| (q as u32, r))).collect()
 }
 
-/// The fine score of each (query, reference index in `refs`) pair under `setting`: the tree-set
-/// similarity, and for `verified` `w_inliers ln(1 + inliers) + w_fine similarity` (the part of
-/// the verified score that depends on the pair alone; [`rank`] adds the coarse part).
+/// The fine score of each (query, reference index in `refs`) pair under `setting` ([`PairScore`]):
+/// the tree-set similarity, and for `verified` the part of the verified score that depends on the
+/// pair alone and its evidence (inliers, compact HOGs' cosine); [`rank`] adds the coarse part and
+/// weighs the evidence against the query's other candidates.
 pub fn fine_scores(
     stages: &mut dyn Stages,
     refs: &dyn RefSource,
@@ -271,7 +266,7 @@ pub fn fine_scores(
     setting: Setting,
     cfg: &Config,
     pairs: &[(u32, u32)],
-) -> Result<Vec<f32>> {
+) -> Result<Vec<PairScore>> {
     Ok(pair_scores(stages, refs, queries, setting, cfg, pairs)?.0)
 }
 
@@ -283,16 +278,60 @@ fn pair_scores(
     setting: Setting,
     cfg: &Config,
     pairs: &[(u32, u32)],
-) -> Result<(Vec<f32>, Option<Vec<Verified>>)> {
+) -> Result<(Vec<PairScore>, Option<Vec<Verified>>)> {
+    let terms = pair_terms(stages, refs, queries, setting, cfg, pairs)?;
+    let verified = setting.verifies().then(|| terms.iter().map(|t| t.verified.unwrap_or_default()).collect());
+    Ok((terms.iter().map(|t| t.score(&cfg.verification)).collect(), verified))
+}
+
+/// What the fine stage measures of one pair, before any weight: the tree-set similarity and, for
+/// `verified`, the verification and the compact HOGs' cosine. [`PairTerms::score`] weighs them
+/// (a sweep of the weights measures once, `semlook dev tune`).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct PairTerms {
+    /// Tree-set similarity.
+    pub similarity: f32,
+    /// `verified`: what verification found.
+    pub verified: Option<Verified>,
+    /// `verified`, where both images have compact HOGs: their cosine.
+    pub compact_hog: Option<f32>,
+}
+
+impl PairTerms {
+    /// The pair's [`PairScore`] under `v`'s weights: for `verified`, `w_fine` x the similarity +
+    /// `w_glue` x ln(1 + LighterGlue's inliers), with the evidence for [`rank`] to weigh; else the
+    /// similarity.
+    pub fn score(&self, v: &crate::config::VerificationConfig) -> PairScore {
+        match self.verified {
+            None => PairScore { fine: self.similarity, inliers: None, compact_hog: None },
+            Some(ver) => PairScore {
+                fine: (v.w_glue * (ver.glue_inliers as f64).ln_1p() + v.w_fine * self.similarity as f64) as f32,
+                inliers: Some(ver.inliers),
+                compact_hog: self.compact_hog,
+            },
+        }
+    }
+}
+
+/// The [`PairTerms`] of each (query, reference) pair under `setting`.
+pub fn pair_terms(
+    stages: &mut dyn Stages,
+    refs: &dyn RefSource,
+    queries: &DescriptorSet,
+    setting: Setting,
+    cfg: &Config,
+    pairs: &[(u32, u32)],
+) -> Result<Vec<PairTerms>> {
     if let Some(&(q, r)) = pairs.iter().find(|&&(q, r)| q as usize >= queries.len() || r as usize >= refs.len()) {
         return Err(Error::invalid("fine stage", format!("pair ({q}, {r}) outside {} queries x {} references", queries.len(), refs.len())));
     }
     let params = tree_params(cfg, setting, refs.neighbour_slots())?;
-    let mut fine = stages.fine_pairs(&params, refs, queries, pairs)?;
-    if fine.len() != pairs.len() {
-        return Err(Error::invalid("fine stage", format!("{} scores for {} pairs", fine.len(), pairs.len())));
+    let similarity = stages.fine_pairs(&params, refs, queries, pairs)?;
+    if similarity.len() != pairs.len() {
+        return Err(Error::invalid("fine stage", format!("{} scores for {} pairs", similarity.len(), pairs.len())));
     }
-    let verified = match setting.verifies() {
+    let mut terms: Vec<PairTerms> = similarity.iter().map(|&f| PairTerms { similarity: f, ..PairTerms::default() }).collect();
+    match setting.verifies() {
         true => {
             let vp = VerifyParams::for_config(&cfg.verification, &ClassTable::from_config(&cfg.classes)?)?;
             let mut v = stages.verify_pairs(&vp, refs, queries, pairs)?;
@@ -312,15 +351,17 @@ fn pair_scores(
                 }
                 gated.iter().zip(&g).for_each(|(&i, g)| v[i].glue_inliers = g.inliers);
             }
-            for (f, v) in fine.iter_mut().zip(&v) {
-                *f = (w.w_inliers * (v.inliers as f64).ln_1p() + w.w_glue * (v.glue_inliers as f64).ln_1p() + w.w_fine * *f as f64) as f32;
+            // the compact HOGs' cosine where both sides have them (maps of small frames)
+            let hog = queries.compact_hog_dim > 0 && refs.compact_hog_dim() == queries.compact_hog_dim;
+            for ((t, v), &(q, r)) in terms.iter_mut().zip(&v).zip(pairs) {
+                t.verified = Some(*v);
+                t.compact_hog = hog.then(|| Values::F32(queries.image_compact_hog(q as usize)).dot(&refs.image_compact_hog(r as usize)));
             }
-            Some(v)
         }
-        false => None,
-    };
+        false => {}
+    }
     refs.check()?;
-    Ok((fine, verified))
+    Ok(terms)
 }
 
 /// The fused coarse stage: for each query, the `k` references of highest
@@ -502,44 +543,51 @@ pub fn fused_topk_cpu(refs: &dyn RefSource, queries: &DescriptorSet, p: &SsimPar
 /// The final ranking from candidate lists and, for settings with both stages, the fine score of
 /// every candidate in list order (as [`pairs_of`] lists them): the score is the fine one (or fine
 /// x SSIM, `matching.score`; for `verified`, fine + `verification.w_coarse` x the fused coarse
-/// score), best first, ties keeping the coarse order (stable sort).
-pub fn rank(setting: Setting, lists: &[Vec<(f32, u32)>], fine: Option<&[f32]>, cfg: &Config) -> Result<Vec<QueryMatch>> {
+/// score + the evidence terms against the query's candidates, [`Evidence::terms`]), best first,
+/// ties keeping the coarse order (stable sort).
+pub fn rank(setting: Setting, lists: &[Vec<(f32, u32)>], fine: Option<&[PairScore]>, cfg: &Config) -> Result<Vec<QueryMatch>> {
     let total: usize = lists.iter().map(Vec::len).sum();
     let two_stages = setting.reranks();
     match (two_stages, fine) {
         (true, Some(f)) if f.len() == total => {}
         (false, None) => {}
         (true, got) => {
-            return Err(Error::invalid("ranking", format!("setting {setting} needs {total} fine scores, got {}", got.map_or(0, <[f32]>::len))))
+            return Err(Error::invalid("ranking", format!("setting {setting} needs {total} fine scores, got {}", got.map_or(0, <[PairScore]>::len))))
         }
         (false, Some(_)) => return Err(Error::invalid("ranking", format!("setting {setting} takes no fine scores for its candidates"))),
     }
-    let mut fine = fine.unwrap_or(&[]).iter();
+    let fine = fine.unwrap_or(&[]);
+    let mut at = 0;
     Ok(lists
         .iter()
         .map(|l| {
+            let mine = if two_stages { &fine[at..at + l.len()] } else { &[][..] };
+            at += mine.len();
+            let evidence = setting.verifies().then(|| Evidence::of(mine));
             let mut ranked: Vec<Candidate> =
-                l.iter().map(|&(s, r)| candidate(setting, cfg, s, r, if two_stages { fine.next().copied() } else { None })).collect();
+                l.iter().enumerate().map(|(k, &(s, r))| candidate(setting, cfg, s, r, mine.get(k), evidence.as_ref())).collect();
             // best first; ties keep the coarse order (stable sort)
             ranked.sort_by(|a, b| b.score.total_cmp(&a.score));
-            QueryMatch { ranked }
+            QueryMatch { ranked, evidence }
         })
         .collect())
 }
 
 /// A ranked reference from the score `s` of its candidate list and, for settings with both
-/// stages, its fine score `f`: what [`rank`] and [`score_pairs`] give.
-fn candidate(setting: Setting, cfg: &Config, s: f32, r: u32, f: Option<f32>) -> Candidate {
+/// stages, its fine score `f` (for `verified` weighed against its query's candidates, `e`): what
+/// [`rank`] and [`score_pairs`] give.
+fn candidate(setting: Setting, cfg: &Config, s: f32, r: u32, f: Option<&PairScore>, e: Option<&Evidence>) -> Candidate {
     match (setting.is_baseline(), setting.uses_coarse(), f) {
         (true, _, _) => Candidate { reference: r, coarse: None, fine: None, inliers: None, score: s },
         (_, true, None) => Candidate { reference: r, coarse: Some(s), fine: None, inliers: None, score: s },
-        (_, true, Some(f)) => {
+        (_, true, Some(p)) => {
+            let f = p.fine;
             let score = match (setting.verifies(), cfg.matching.score) {
-                (true, _) => f + cfg.verification.w_coarse as f32 * s,
+                (true, _) => f + cfg.verification.w_coarse as f32 * s + e.map_or(0.0, |e| e.terms(p, &cfg.verification)),
                 (false, ScoreFusion::Fine) => f,
                 (false, ScoreFusion::FineTimesGlobal) => f * s,
             };
-            Candidate { reference: r, coarse: Some(s), fine: Some(f), inliers: None, score }
+            Candidate { reference: r, coarse: Some(s), fine: Some(f), inliers: p.inliers, score }
         }
         (_, false, _) => Candidate { reference: r, coarse: None, fine: Some(s), inliers: None, score: s },
     }
@@ -548,8 +596,11 @@ fn candidate(setting: Setting, cfg: &Config, s: f32, r: u32, f: Option<f32>) -> 
 /// What `setting` scores each (query, reference) pair, as if the reference had been one of the
 /// query's candidates: the coarse score its coarse stage gives the pair (or the baseline's
 /// cosine), the fine score and inliers where the setting has them, and the final score [`rank`]
-/// would rank it by. For pairs that were candidates, the same values as [`match_with`] (sequence
-/// matching scores the neighbours of each frame's candidates with it).
+/// would rank it by, the evidence of `verified` weighed against `evidence[q]` (the spread of the
+/// query's candidates, [`QueryMatch::evidence`]; `None`, or a query it has none for: against the
+/// pairs given for that query). For pairs that were candidates, with their query's evidence, the
+/// same values as [`match_with`] (sequence matching scores the neighbours of each frame's
+/// candidates with it).
 pub fn score_pairs(
     stages: &mut dyn Stages,
     refs: &dyn RefSource,
@@ -557,6 +608,7 @@ pub fn score_pairs(
     setting: Setting,
     cfg: &Config,
     pairs: &[(u32, u32)],
+    evidence: Option<&[Option<Evidence>]>,
 ) -> Result<Vec<Candidate>> {
     check_labels(refs, setting)?;
     if let Some(&(q, r)) = pairs.iter().find(|&&(q, r)| q as usize >= queries.len() || r as usize >= refs.len()) {
@@ -576,21 +628,28 @@ pub fn score_pairs(
         let params = tree_params(cfg, setting, refs.neighbour_slots())?;
         stages.fine_pairs(&params, refs, queries, pairs)?
     };
-    let (fine, verified) = match setting.reranks() {
-        true => {
-            let (f, v) = pair_scores(stages, refs, queries, setting, cfg, pairs)?;
-            (Some(f), v)
-        }
-        false => (None, None),
+    let fine = match setting.reranks() {
+        true => Some(pair_scores(stages, refs, queries, setting, cfg, pairs)?.0),
+        false => None,
     };
     refs.check()?;
+    // each query's evidence: given, else the spread of its pairs here
+    let mut own: std::collections::HashMap<u32, Evidence> = std::collections::HashMap::new();
+    if let (true, Some(f)) = (setting.verifies(), &fine) {
+        let mut by_query: std::collections::BTreeMap<u32, Vec<PairScore>> = Default::default();
+        for (&(q, _), p) in pairs.iter().zip(f) {
+            if evidence.and_then(|e| e.get(q as usize).copied().flatten()).is_none() {
+                by_query.entry(q).or_default().push(*p);
+            }
+        }
+        own = by_query.into_iter().map(|(q, v)| (q, Evidence::of(&v))).collect();
+    }
     Ok(pairs
         .iter()
         .enumerate()
-        .map(|(k, &(_, r))| {
-            let mut c = candidate(setting, cfg, first[k], r, fine.as_ref().map(|f| f[k]));
-            c.inliers = verified.as_ref().map(|v| v[k].inliers);
-            c
+        .map(|(k, &(q, r))| {
+            let e = evidence.and_then(|e| e.get(q as usize).copied().flatten()).or_else(|| own.get(&q).copied());
+            candidate(setting, cfg, first[k], r, fine.as_ref().map(|f| &f[k]), e.as_ref())
         })
         .collect())
 }

@@ -23,7 +23,7 @@ use crate::engine::Engine;
 use crate::error::{Error, Result};
 use crate::input::{FrameSource, LabelFormat, LabelMap};
 use crate::map::{manifest, ColumnDims, Map, MapWriter, StoreOptions, TraversalPlan};
-use crate::matching::{Candidate, Setting};
+use crate::matching::{Candidate, QueryMatch, Setting};
 use crate::util::ms_since;
 use image::RgbImage;
 use sequence::{contributions, SequenceMatch, SequenceMatcher};
@@ -640,7 +640,8 @@ impl Localizer {
         let (mut matches, times) = self.engine.match_batch(&src, &queries, setting, cfg)?;
         latency.coarse_ms = times.coarse_ms;
         latency.fine_ms = times.fine_ms;
-        let ranked = matches.pop().map(|m| m.ranked).unwrap_or_default();
+        let matched = matches.pop().unwrap_or(QueryMatch { ranked: vec![], evidence: None });
+        let ranked = &matched.ranked;
         let report = |c: &Candidate| PlaceMatch {
             index: src.inner_index(c.reference as usize) as u32,
             id: src.id(c.reference as usize).to_string(),
@@ -654,7 +655,7 @@ impl Localizer {
             let t = Instant::now();
             let widen = if full_rows { 0 } else { self.cfg.sequence.widen };
             let scored =
-                scored_rows(&mut self.engine, &src, &queries, std::slice::from_ref(&ranked), setting, &self.cfg, widen)?.pop().unwrap_or_default();
+                scored_rows(&mut self.engine, &src, &queries, std::slice::from_ref(&matched), setting, &self.cfg, widen)?.pop().unwrap_or_default();
             let lens = |t: u32| map.traversal_len(t);
             let row = contributions(&self.cfg.sequence, &scored, &lens);
             let m = self.seq.push(row, &lens);
@@ -777,7 +778,12 @@ impl Localizer {
         }
         // frames without labels and no segmenter to make them: a map without labels
         let void = warm.iter().all(|(_, l, _)| l.labels.classes().iter().all(|&c| c == crate::classes::VOID));
-        let dims = ColumnDims { appearance: self.encoder.appearance_dim(), hog: 0, keypoints: self.encoder.keypoint_dim() };
+        let dims = ColumnDims {
+            appearance: self.encoder.appearance_dim(),
+            hog: 0,
+            keypoints: self.encoder.keypoint_dim(),
+            compact_hog: self.encoder.compact_hog_dim(),
+        };
         let mut w = MapWriter::create(&lc.dir, &self.cfg.encoding(), dims, self.encoder.appearance_record(), StoreOptions::default(), false)?
             .with_embedding(self.encoder.embedding_record())?;
         if void && !self.encoder.frames().can_segment() {
@@ -876,21 +882,23 @@ pub fn replay(
     Ok(stats)
 }
 
-/// Each query's scored places for sequence matching: its ranked candidates (`lists[q]`, in
+/// Each query's scored places for sequence matching: its ranked candidates (`matches[q]`, in
 /// `refs`' indices) with their scores, and the references within `widen` positions of them along
-/// their traversals, scored by `setting` (all of a batch in one call).
+/// their traversals, scored by `setting` as if they had been candidates (all of a batch in one
+/// call; `verified` weighs their evidence against the query's candidates').
 pub fn scored_rows(
     engine: &mut Engine,
     refs: &dyn RefSource,
     queries: &crate::descriptors::DescriptorSet,
-    lists: &[Vec<Candidate>],
+    matches: &[QueryMatch],
     setting: Setting,
     cfg: &Config,
     widen: usize,
 ) -> Result<Vec<Vec<(Place, f32)>>> {
-    let mut rows: Vec<Vec<(Place, f32)>> = lists.iter().map(|l| l.iter().map(|c| (refs.place(c.reference as usize), c.score)).collect()).collect();
+    let mut rows: Vec<Vec<(Place, f32)>> =
+        matches.iter().map(|m| m.ranked.iter().map(|c| (refs.place(c.reference as usize), c.score)).collect()).collect();
     let mut pairs: Vec<(u32, u32)> = Vec::new();
-    for (q, list) in lists.iter().enumerate() {
+    for (q, list) in matches.iter().map(|m| &m.ranked).enumerate() {
         let have: HashSet<u32> = list.iter().map(|c| c.reference).collect();
         let mut extra: Vec<u32> = Vec::new();
         for c in list {
@@ -908,7 +916,8 @@ pub fn scored_rows(
         pairs.extend(extra.into_iter().map(|j| (q as u32, j)));
     }
     if !pairs.is_empty() {
-        let scores = engine.score_pairs(refs, queries, setting, cfg, &pairs)?;
+        let evidence: Vec<Option<crate::matching::Evidence>> = matches.iter().map(|m| m.evidence).collect();
+        let scores = engine.score_pairs(refs, queries, setting, cfg, &pairs, Some(&evidence))?;
         for (&(q, _), c) in pairs.iter().zip(&scores) {
             rows[q as usize].push((refs.place(c.reference as usize), c.score));
         }

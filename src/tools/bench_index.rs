@@ -120,6 +120,7 @@ fn reference(base: &DescriptorSet, k: usize, rng_seed: u64) -> EncodedImage {
         appearance: v,
         hog: vec![],
         embedding: vec![],
+        compact_hog: vec![],
         keypoints: Default::default(),
         pose: None,
     }
@@ -147,7 +148,7 @@ pub fn run(cfg: &Config, opts: &IndexBenchOptions, engine: &mut Engine, tick: &m
         let _ = std::fs::remove_dir_all(&dir);
         let t = Instant::now();
         {
-            let dims = ColumnDims { appearance: base.appearance_dim, hog: 0, keypoints: 0 };
+            let dims = ColumnDims { appearance: base.appearance_dim, ..Default::default() };
             let rec = record.as_ref().map(|(c, s)| (c, s.as_str()));
             let mut w = MapWriter::create(&dir, &qcfg.encoding(), dims, rec, StoreOptions::default(), false)?;
             let pb = crate::progress::bar(size, "references", opts.quiet);

@@ -162,7 +162,7 @@ fn write_map(
     size: usize,
     without_labels: bool,
 ) -> Result<()> {
-    let dims = ColumnDims { appearance: encoder.appearance_dim(), hog: 0, keypoints: encoder.keypoint_dim() };
+    let dims = ColumnDims { appearance: encoder.appearance_dim(), hog: 0, keypoints: encoder.keypoint_dim(), compact_hog: encoder.compact_hog_dim() };
     let mut w = MapWriter::create(dir, &cfg.encoding(), dims, encoder.appearance_record(), StoreOptions::default(), false)?
         .with_embedding(encoder.embedding_record())?;
     if without_labels {

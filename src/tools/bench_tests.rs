@@ -24,6 +24,7 @@ fn pool(n: usize, seed: u64) -> DescriptorSet {
             appearance: vec![],
             hog: vec![],
             embedding: vec![],
+            compact_hog: vec![],
             keypoints: Default::default(),
             pose: None,
         })

@@ -11,6 +11,11 @@
 //! "similarity.w_appearance" = [0.34, 0.8]
 //! ```
 //!
+//! Instead of `[values]`, several `[[grid]]` tables each give a product of their own, run one
+//! after another on one encoding (a key a grid does not list keeps the base value there):
+//! families of settings that share no axis, e.g. `verification.inliers = ["count"]` with its
+//! weights and `["unusual"]` with its thresholds.
+//!
 //! The expensive part of encoding (decoding, segmentation, the keypoint network) depends only on
 //! the input, class, segmentation, model and keypoint-decoding settings; it is run once per
 //! distinct group of those and cached in memory, and every configuration of the group encodes
@@ -30,11 +35,11 @@ use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::HashMap;
 
-/// A parsed sweep: the base config and the axes (dotted key, values).
+/// A parsed sweep: the base config and its grids, each a list of axes (dotted key, values).
 #[derive(Debug, Clone)]
 pub struct Sweep {
     base: toml::Table,
-    pub axes: Vec<(String, Vec<toml::Value>)>,
+    pub grids: Vec<Vec<(String, Vec<toml::Value>)>>,
 }
 
 /// Most combinations one sweep may hold (a guard against a typo exploding the product).
@@ -49,19 +54,36 @@ impl Sweep {
             let b = b.as_table().ok_or_else(|| bad("[base] must be a table".into()))?;
             merge(&mut base_table, b);
         }
-        let mut axes = Vec::new();
-        if let Some(v) = doc.get("values") {
-            let v = v.as_table().ok_or_else(|| bad("[values] must be a table of dotted keys".into()))?;
-            for (key, vals) in v {
-                let list = vals.as_array().filter(|a| !a.is_empty()).ok_or_else(|| bad(format!("values of {key:?} must be a non-empty list")))?;
-                axes.push((key.clone(), list.clone()));
+        let axes_of = |v: &toml::Value, what: &str| -> Result<Vec<(String, Vec<toml::Value>)>> {
+            let v = v.as_table().ok_or_else(|| bad(format!("{what} must be a table of dotted keys")))?;
+            v.iter()
+                .map(|(key, vals)| {
+                    let list = vals.as_array().filter(|a| !a.is_empty()).ok_or_else(|| bad(format!("values of {key:?} must be a non-empty list")))?;
+                    Ok((key.clone(), list.clone()))
+                })
+                .collect()
+        };
+        let mut grids = Vec::new();
+        match (doc.get("values"), doc.get("grid")) {
+            (Some(_), Some(_)) => return Err(bad("give [values] or [[grid]] tables, not both".into())),
+            (Some(v), None) => grids.push(axes_of(v, "[values]")?),
+            (None, Some(g)) => {
+                let g = g.as_array().ok_or_else(|| bad("grid must be [[grid]] tables".into()))?;
+                for t in g {
+                    grids.push(axes_of(t, "[[grid]]")?);
+                }
             }
+            (None, None) => grids.push(vec![]),
         }
-        if let Some(k) = doc.keys().find(|k| *k != "base" && *k != "values") {
-            return Err(bad(format!("unknown section [{k}] (expected [base] and [values])")));
+        if let Some(k) = doc.keys().find(|k| !["base", "values", "grid"].contains(&k.as_str())) {
+            return Err(bad(format!("unknown section [{k}] (expected [base], and [values] or [[grid]])")));
         }
-        let sweep = Sweep { base: base_table, axes };
-        let n = sweep.axes.iter().try_fold(1usize, |a, (_, v)| a.checked_mul(v.len())).filter(|&n| n <= MAX_COMBINATIONS);
+        let sweep = Sweep { base: base_table, grids };
+        let n = sweep
+            .grids
+            .iter()
+            .try_fold(0usize, |total, axes| axes.iter().try_fold(1usize, |a, (_, v)| a.checked_mul(v.len())).and_then(|n| total.checked_add(n)))
+            .filter(|&n| n <= MAX_COMBINATIONS);
         n.ok_or_else(|| bad(format!("more than {MAX_COMBINATIONS} combinations")))?;
         // every combination must make a valid config
         for values in sweep.combinations() {
@@ -70,22 +92,43 @@ impl Sweep {
         Ok(sweep)
     }
 
-    /// Every combination of the axes' values, the last axis fastest.
+    /// Every combination of each grid's values, grid after grid, the last axis fastest; each
+    /// lists every key of every grid (in the order first seen), a key its grid does not vary at
+    /// the base config's value.
     pub fn combinations(&self) -> Vec<Vec<(String, toml::Value)>> {
-        let mut out: Vec<Vec<(String, toml::Value)>> = vec![vec![]];
-        for (key, vals) in &self.axes {
-            out = out
-                .into_iter()
-                .flat_map(|c| {
-                    vals.iter().map(move |v| {
-                        let mut c = c.clone();
-                        c.push((key.clone(), v.clone()));
-                        c
-                    })
-                })
-                .collect();
+        let mut keys: Vec<&String> = Vec::new();
+        for (k, _) in self.grids.iter().flatten() {
+            if !keys.contains(&k) {
+                keys.push(k);
+            }
         }
-        out
+        let mut all = Vec::new();
+        for axes in &self.grids {
+            let mut out: Vec<Vec<(String, toml::Value)>> = vec![vec![]];
+            for (key, vals) in axes {
+                out = out
+                    .into_iter()
+                    .flat_map(|c| {
+                        vals.iter().map(move |v| {
+                            let mut c = c.clone();
+                            c.push((key.clone(), v.clone()));
+                            c
+                        })
+                    })
+                    .collect();
+            }
+            for c in out {
+                let full = keys
+                    .iter()
+                    .map(|&k| match c.iter().find(|(ck, _)| ck == k) {
+                        Some((_, v)) => (k.clone(), v.clone()),
+                        None => (k.clone(), get_dotted(&self.base, k).unwrap_or(toml::Value::String("-".into()))),
+                    })
+                    .collect();
+                all.push(full);
+            }
+        }
+        all
     }
 
     /// The config of one combination.
@@ -107,6 +150,20 @@ fn merge(dst: &mut toml::Table, src: &toml::Table) {
             }
         }
     }
+}
+
+/// The value at dotted `key` of `t`, if any.
+fn get_dotted(t: &toml::Table, key: &str) -> Option<toml::Value> {
+    let mut parts = key.split('.').peekable();
+    let mut cur = t;
+    while let Some(p) = parts.next() {
+        let v = cur.get(p)?;
+        if parts.peek().is_none() {
+            return Some(v.clone());
+        }
+        cur = v.as_table()?;
+    }
+    None
 }
 
 fn set_dotted(t: &mut toml::Table, key: &str, v: toml::Value) -> Result<()> {
@@ -238,15 +295,20 @@ pub fn run(
             let mut widest = configs[members[0]].clone();
             widest.keypoints.stored = members.iter().map(|&i| configs[i].keypoints.stored).max().unwrap_or(0);
             let first = Encoder::new(&widest)?.with_hog(wants_hog);
+            // small frames: compact HOGs, as `map build` of them would store
+            let small = first.small_frames(ds.reference.frames.iter().map(|f| &f.source))?;
             let cd = cache_dataset(ds, &first, tick)?;
             let mut encoded: HashMap<String, (DescriptorSet, Vec<(String, DescriptorSet, Vec<Vec<u32>>)>)> = HashMap::new();
             let mut matched: HashMap<(String, String, Setting), (Vec<crate::matching::QueryMatch>, f64)> = HashMap::new();
+            // `verified`: candidates and unweighed pair terms, shared by the configurations that
+            // differ only in the verified score's weights (ranked again for each)
+            let mut measured: HashMap<(String, String), (crate::matching::CandidateLists, Vec<crate::matching::PairTerms>, f64)> = HashMap::new();
             let mut scored: HashMap<(String, String, Setting), Vec<Vec<(crate::descriptors::source::Place, f32)>>> = HashMap::new();
             for &i in members {
                 let cfg = &configs[i];
                 let enc_key = serde_json::to_string::<EncodingConfig>(&cfg.encoding()).map_err(|e| Error::invalid("sweep", e.to_string()))?;
                 if !encoded.contains_key(&enc_key) {
-                    let mut encoder = Encoder::new(cfg)?.with_hog(wants_hog);
+                    let mut encoder = Encoder::new(cfg)?.with_hog(wants_hog).with_compact_hog(small);
                     if let Some(a) = encoder.appearance_mut() {
                         let picks = a.codebook_picks(cd.refs.len());
                         let kps: Vec<&Keypoints> = picks.iter().filter_map(|&p| cd.refs[p].keypoints.as_ref().map(|f| &f.sampled)).collect();
@@ -271,6 +333,18 @@ pub fn run(
                             continue;
                         }
                         let key = (match_key.clone(), name.clone(), st);
+                        if !matched.contains_key(&key) && st == Setting::Verified {
+                            let terms_key = (format!("{enc_key}|{}", unweighed(&no_seq).to_toml()?), name.clone());
+                            if !measured.contains_key(&terms_key) {
+                                let t = std::time::Instant::now();
+                                let (lists, _) = engine.candidates(refs, set, st, cfg)?;
+                                let terms = engine.pair_terms(refs, set, st, cfg, &crate::matching::pairs_of(&lists))?;
+                                measured.insert(terms_key.clone(), (lists, terms, crate::util::ms_since(t)));
+                            }
+                            let (lists, terms, ms) = &measured[&terms_key];
+                            let fine: Vec<crate::matching::PairScore> = terms.iter().map(|t| t.score(&cfg.verification)).collect();
+                            matched.insert(key.clone(), (crate::matching::rank(st, lists, Some(&fine), cfg)?, *ms));
+                        }
                         if !matched.contains_key(&key) {
                             let (m, t) = engine.match_batch(refs, set, st, cfg)?;
                             matched.insert(key.clone(), (m, t.coarse_ms + t.fine_ms));
@@ -318,6 +392,22 @@ pub fn run(
     Ok(rows)
 }
 
+/// `cfg` with the weights of the verified score (what [`crate::matching::PairTerms::score`] and
+/// `rank` read, nothing the measurements depend on) at their defaults: configurations equal in
+/// the rest share their candidates and pair terms.
+fn unweighed(cfg: &Config) -> Config {
+    let d = crate::config::VerificationConfig::default();
+    let mut c = cfg.clone();
+    let v = &mut c.verification;
+    (v.w_inliers, v.w_coarse, v.w_fine, v.inliers, v.unusual_above, v.min_inliers, v.w_compact_hog, v.compact_hog_above) =
+        (d.w_inliers, d.w_coarse, d.w_fine, d.inliers, d.unusual_above, d.min_inliers, d.w_compact_hog, d.compact_hog_above);
+    // w_glue's weight alone: whether LighterGlue runs (w_glue > 0) is a measurement
+    if v.w_glue > 0.0 {
+        v.w_glue = 1.0;
+    }
+    c
+}
+
 /// `name` with every character a file name should not hold replaced by `_`.
 fn file_name(name: &str) -> String {
     name.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '.' { c } else { '_' }).collect()
@@ -342,7 +432,7 @@ fn write_candidates(file: &std::path::Path, refs: &DescriptorSet, queries: &Desc
     let p = crate::kernels::abi::SsimParams::new(&cfg.global);
     let dot = |a: &[f32], b: &[f32]| if a.is_empty() || b.is_empty() { f32::NAN } else { Values::F32(a).dot(&Values::F32(b)) };
     let mut out = String::from(
-        "query\tquery_id\trank\treference\treference_id\tcorrect\tcoarse\tappearance\tembedding\tssim\tfine\tmatches\tinliers\tquery_keypoints\treference_keypoints\tquery_width\tquery_height\treference_width\treference_height\thog\n",
+        "query\tquery_id\trank\treference\treference_id\tcorrect\tcoarse\tappearance\tembedding\tssim\tfine\tmatches\tinliers\tquery_keypoints\treference_keypoints\tquery_width\tquery_height\treference_width\treference_height\thog\tcompact_hog\n",
     );
     let mut scratch = crate::kernels::ssim::SsimScratch::default();
     let mut k = 0;
@@ -352,7 +442,7 @@ fn write_candidates(file: &std::path::Path, refs: &DescriptorSet, queries: &Desc
             let ssim = crate::kernels::ssim::ssim_pair(&p, queries.global(qi), queries.stats(qi), refs.global(ri), refs.stats(ri), &mut scratch);
             let (qs, rs) = (queries.sizes[qi], refs.sizes[ri]);
             out += &format!(
-                "{q}\t{}\t{rank}\t{r}\t{}\t{}\t{coarse}\t{}\t{}\t{ssim}\t{}\t{}\t{}\t{}\t{}\t{}\t{}\t{}\t{}\t{}\n",
+                "{q}\t{}\t{rank}\t{r}\t{}\t{}\t{coarse}\t{}\t{}\t{ssim}\t{}\t{}\t{}\t{}\t{}\t{}\t{}\t{}\t{}\t{}\t{}\n",
                 queries.ids[qi],
                 refs.ids[ri],
                 gt.get(q).is_some_and(|g| g.contains(&r)) as u8,
@@ -368,6 +458,7 @@ fn write_candidates(file: &std::path::Path, refs: &DescriptorSet, queries: &Desc
                 rs[0],
                 rs[1],
                 dot(queries.image_hog(qi), refs.image_hog(ri)),
+                dot(queries.image_compact_hog(qi), refs.image_compact_hog(ri)),
             );
             k += 1;
         }
@@ -541,5 +632,45 @@ mod tests {
         assert!(bad.contains("top_k") && bad.contains("bad.toml"), "{bad}");
         assert!(Sweep::parse("[values]\n\"matching.nonsense\" = [1]\n", "x", &Config::default()).is_err());
         assert!(Sweep::parse("[other]\n", "x", &Config::default()).is_err());
+    }
+
+    #[test]
+    fn grids_run_one_after_another_with_every_key_listed() {
+        let text = "[[grid]]\n\"verification.inliers\" = [\"count\"]\n\"verification.w_inliers\" = [1.0, 2.0]\n\n[[grid]]\n\"verification.inliers\" = [\"unusual\"]\n\"verification.unusual_above\" = [0.5, 1.0, 1.5]\n";
+        let s = Sweep::parse(text, "g.toml", &Config::default()).unwrap();
+        let combos = s.combinations();
+        assert_eq!(combos.len(), 5);
+        // every combination lists the three keys; a grid's absent key at the base value
+        assert!(combos.iter().all(|c| c.len() == 3));
+        let c = s.config(&combos[4], "g").unwrap();
+        assert_eq!(
+            (c.verification.inliers, c.verification.unusual_above, c.verification.w_inliers),
+            (crate::config::InlierEvidence::Unusual, 1.5, 1.0)
+        );
+        let c = s.config(&combos[1], "g").unwrap();
+        assert_eq!((c.verification.inliers, c.verification.w_inliers), (crate::config::InlierEvidence::Count, 2.0));
+        assert!(Sweep::parse("[values]\n\"matching.top_k\" = [5]\n[[grid]]\n\"matching.top_k\" = [6]\n", "x", &Config::default()).is_err());
+    }
+
+    #[test]
+    fn cross_validation_picks_each_held_out_sets_row_on_the_others() {
+        let row = |r1: [f64; 3]| TuneRow {
+            values: vec![],
+            results: ["a", "b", "c"].iter().zip(r1).map(|(d, v)| (d.to_string(), "verified".to_string(), v, 0.5)).collect(),
+        };
+        // row 0 wins on a and b, row 1 on c; held out a: b and c tie on means (0.75 vs 0.75) and
+        // the earlier row wins; held out c: row 0 (a and b)
+        let rows = vec![row([1.0, 1.0, 0.5]), row([0.5, 0.5, 1.0])];
+        let cv = cross_validate(&rows);
+        assert_eq!(cv.len(), 1);
+        let held: Vec<(String, usize, f64)> = cv[0].held_out.clone();
+        assert_eq!(held, vec![("a".into(), 0, 1.0), ("b".into(), 0, 1.0), ("c".into(), 0, 0.5)]);
+        assert_eq!(cv[0].in_sample.0, 0);
+        assert!((cv[0].mean() - 2.5 / 3.0).abs() < 1e-12);
+        // a set's own best never leaks into its held-out choice
+        let rows = vec![row([0.0, 0.6, 0.6]), row([1.0, 0.5, 0.5])];
+        let cv = cross_validate(&rows);
+        assert_eq!(cv[0].held_out[0], ("a".into(), 0, 0.0));
+        assert_eq!(cv[0].in_sample.0, 1);
     }
 }

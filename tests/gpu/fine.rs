@@ -112,6 +112,7 @@ pub fn forests_of_sizes(sizes: &[usize], dim: usize, seed: u64) -> DescriptorSet
             appearance: vec![],
             hog: vec![],
             embedding: vec![],
+            compact_hog: vec![],
             keypoints: Default::default(),
             pose: None,
         };

@@ -192,6 +192,7 @@ pub fn random_descriptors(n: usize, cfg: &Config, seed: u64) -> DescriptorSet {
             appearance: vec![],
             hog: vec![],
             embedding: vec![],
+            compact_hog: vec![],
             keypoints: Default::default(),
             pose: None,
         };
@@ -267,6 +268,7 @@ pub fn random_forest_set(n: usize, dim: usize, seed: u64) -> DescriptorSet {
             appearance: vec![],
             hog: vec![],
             embedding: vec![],
+            compact_hog: vec![],
             keypoints: Default::default(),
             pose: None,
         };

@@ -40,6 +40,7 @@ fn keypoint_set(counts: &[usize], dim: usize, rng: &mut SplitMix64) -> Descripto
             appearance: vec![],
             hog: vec![],
             embedding: vec![],
+            compact_hog: vec![],
             keypoints: k,
             pose: None,
         };
@@ -119,6 +120,7 @@ fn verification_on_the_gpu_equals_the_cpu_on_real_frames() {
             appearance: vec![],
             hog: vec![],
             embedding: vec![],
+            compact_hog: vec![],
             keypoints: k,
             pose: None,
         };
