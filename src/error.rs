@@ -105,6 +105,18 @@ pub enum Error {
         /// What is wrong with it.
         reason: String,
     },
+    /// A file of a map's approximate index is missing or fails its checks. The index is built
+    /// from the map's own descriptors, so building it again (`map::index::build`) or dropping it
+    /// (`map::index::drop_index`) mends the map ([`Remedy::RebuildIndex`]).
+    #[error("map index file {path}: {reason} (a file of the map's index: build the index again, or drop it)")]
+    DamagedIndex {
+        /// The index file.
+        path: PathBuf,
+        /// What is wrong with it.
+        reason: String,
+        /// Whether the file is missing (not there at all).
+        missing: bool,
+    },
     /// A stored map has a format version this build does not read.
     #[error("map {path}: format version {found} is not supported (this build reads version {supported}){}", version_hint(*found, *supported))]
     MapVersion {
@@ -233,8 +245,15 @@ pub enum Remedy {
     RebuildWithLabels,
     /// Build the map again with the HOG baseline's descriptors stored.
     RebuildWithHog,
-    /// Skip the images the map holds already (an interrupted add or build goes on).
+    /// Skip the images the map holds already (an interrupted add or build goes on), or store the
+    /// new ones under other ids.
     SkipStored,
+    /// Build the map's approximate index again (from the map), or drop it.
+    RebuildIndex,
+    /// Skip the images that fail to load (and report them) instead of stopping.
+    SkipInvalid,
+    /// Wait for the build of the map that another process is running, then ask again.
+    WaitForBuild,
 }
 
 /// What a map of format `found` lacks, and how to get a readable one.
@@ -287,7 +306,30 @@ impl Error {
             Error::Refused { remedy, .. } => Some(*remedy),
             Error::NoLabels { .. } => Some(Remedy::GiveLabels),
             Error::DuplicateImageId { .. } => Some(Remedy::SkipStored),
+            Error::DamagedIndex { .. } => Some(Remedy::RebuildIndex),
+            Error::ImageDecode { .. } | Error::EmptyImage { .. } => Some(Remedy::SkipInvalid),
             _ => None,
+        }
+    }
+    /// This error as an [`Error::DamagedIndex`] where it is about a file of a map's index: an I/O
+    /// error on it, or a failed check naming it ([`Error::CorruptMap`]); any other as it is. For
+    /// the readers of index files, which know the file is one.
+    pub fn in_index(self) -> Error {
+        match self {
+            Error::Io { path, source } => {
+                Error::DamagedIndex { reason: source.to_string(), missing: source.kind() == std::io::ErrorKind::NotFound, path }
+            }
+            Error::CorruptMap { path, reason } => Error::DamagedIndex { path, reason, missing: false },
+            other => other,
+        }
+    }
+    /// Whether this error says a file is not there: an I/O error "not found", or an index file
+    /// missing ([`Error::DamagedIndex`]).
+    pub fn is_missing_file(&self) -> bool {
+        match self {
+            Error::Io { source, .. } => source.kind() == std::io::ErrorKind::NotFound,
+            Error::DamagedIndex { missing, .. } => *missing,
+            _ => false,
         }
     }
 }

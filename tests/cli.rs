@@ -798,3 +798,301 @@ fn a_map_of_small_frames_stores_compact_hogs_and_its_queries_use_them() {
         assert_eq!(doc["queries"].as_array().unwrap().len(), 4, "{size}");
     }
 }
+
+/// Issue 49's stumbles: a map of 4 synthetic places built from label maps (`--no-appearance`),
+/// in `dir`: (the dataset, its reference images, their label maps, the map).
+fn labelled_map(dir: &Path) -> (PathBuf, PathBuf, PathBuf, PathBuf) {
+    let data = dir.join("data");
+    ok(&["synth", "--out", p(&data), "--places", "4", "--size", "96x72", "--query-condition", "fog", "-q"]);
+    let (images, labels) = (data.join("day/RGB/Stereo_Left/Omni_F"), data.join("day/GT/LABELS/Stereo_Left/Omni_F"));
+    let map = dir.join("map");
+    ok(&["map", "build", "--images", p(&images), "--labels", p(&labels), "--map", p(&map), "--no-appearance", "-q"]);
+    (data, images, labels, map)
+}
+
+/// `localize` on frames each refused in turn (the label maps given are all of the wrong size)
+/// prints a CSV row per frame with `refused` in the `accepted` column and the match columns
+/// empty, and exits 1 naming the count and the first reason. Seen failing on the build of before
+/// (refused frames were on stderr only: no rows) and with the exit path removed (status 0).
+#[test]
+fn localize_prints_refused_frames_and_fails_when_all_are() {
+    let dir = tempfile::tempdir().unwrap();
+    let (data, _, labels, map) = labelled_map(dir.path());
+    let small = dir.path().join("small");
+    std::fs::create_dir(&small).unwrap();
+    for e in std::fs::read_dir(&labels).unwrap().flatten() {
+        image::GrayImage::new(8, 6).save(small.join(e.file_name())).unwrap();
+    }
+    let fog = data.join("fog/RGB/Stereo_Left/Omni_F");
+    let out = semlook(&["localize", "--map", p(&map), "--images", p(&fog), "--labels", p(&small), "--no-segmenter", "--no-appearance"]);
+    let (stdout, err) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    let table: String = stdout.lines().filter(|l| !l.starts_with('#')).map(|l| format!("{l}\n")).collect();
+    let mut reader = csv::Reader::from_reader(table.as_bytes());
+    let accepted = reader.headers().unwrap().iter().position(|h| h == "accepted").unwrap();
+    let rows: Vec<csv::StringRecord> = reader.records().map(|r| r.unwrap()).collect();
+    assert_eq!(rows.len(), 4, "a row per refused frame:\n{stdout}");
+    assert!(rows.iter().all(|r| r.len() == 10 && &r[accepted] == "refused" && r[2].is_empty() && r[9].is_empty()), "{stdout}");
+    assert_eq!(out.status.code(), Some(1), "{stdout}\n{err}");
+    assert!(err.contains("every frame (4) was refused; the first: frame 0") && err.contains("label map is"), "{err}");
+}
+
+/// `query` says which coarse search ran (an information line, left out with `-q`), and warns
+/// where the config asks for the approximate index and the map has none, naming `semlook map
+/// index`. Seen failing on the build of before (neither line).
+#[test]
+fn query_says_which_coarse_search_ran() {
+    let dir = tempfile::tempdir().unwrap();
+    let (data, _, _, map) = labelled_map(dir.path());
+    let approximate = dir.path().join("approximate.toml");
+    std::fs::write(&approximate, "[index]\nsearch = \"approximate\"\n").unwrap();
+    let fog = data.join("fog/GT/LABELS/Stereo_Left/Omni_F");
+    let query =
+        |extra: &[&str]| semlook(&[&["query", "--map", p(&map), "--labels", p(&fog), "--setting", "forest", "--no-appearance"][..], extra].concat());
+    let out = query(&[]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && err.contains("coarse search: exact scan of 4 places") && !err.contains("warning"), "{err}");
+    let out = query(&["--config", p(&approximate), "-q"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && err.contains("warning: index.search = \"approximate\", but map") && err.contains("semlook map index"), "{err}");
+    assert!(!err.contains("coarse search:"), "-q shows no information: {err}");
+}
+
+/// An image that does not decode: the hint names `--skip-invalid` where the command has it.
+/// Seen failing on the build of before (no hint).
+#[test]
+fn an_undecodable_image_hint_names_skip_invalid() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, images, labels, map) = labelled_map(dir.path());
+    let broken = dir.path().join("broken");
+    std::fs::create_dir(&broken).unwrap();
+    for e in std::fs::read_dir(&images).unwrap().flatten() {
+        std::fs::copy(e.path(), broken.join(e.file_name())).unwrap();
+    }
+    let first = std::fs::read_dir(&broken).unwrap().flatten().map(|e| e.path()).min().unwrap();
+    std::fs::write(&first, b"not an image").unwrap();
+    let err = fails(&["query", "--map", p(&map), "--images", p(&broken), "--labels", p(&labels), "--no-appearance", "-q"]);
+    assert!(err.contains("cannot decode image") && err.contains("hint: --skip-invalid skips images that fail to load"), "{err}");
+}
+
+/// Photos whose names the map holds: the duplicate id's hint names `--id-prefix`, which adds them
+/// under PREFIX + file stem; `map add --help` lists `--traversal` once (the dataset's) beside
+/// `--map-traversal` (it listed `--traversal` twice, with two meanings). Seen failing on the
+/// build of before (no `--id-prefix`).
+#[test]
+fn id_prefix_adds_photos_whose_names_are_stored() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, images, labels, map) = labelled_map(dir.path());
+    let add = ["map", "add", "--images", p(&images), "--labels", p(&labels), "--map", p(&map), "--no-appearance", "-q"];
+    let err = fails(&add);
+    assert!(err.contains("is already stored") && err.contains("--id-prefix PREFIX"), "{err}");
+    ok(&[&add[..], &["--id-prefix", "again-"]].concat());
+    let json: serde_json::Value =
+        serde_json::from_str(&ok(&["query", "--map", p(&map), "--labels", p(&labels), "--setting", "forest", "--json", "--no-appearance", "-q"]))
+            .unwrap();
+    let mut ids: Vec<&str> = json["queries"][0]["top_k"].as_array().unwrap().iter().map(|c| c["reference"].as_str().unwrap()).collect();
+    ids.sort();
+    assert_eq!(ids, ["000000", "000001", "000002", "000003", "again-000000", "again-000001", "again-000002", "again-000003"]);
+    let help = ok(&["map", "add", "--help"]);
+    assert_eq!(help.matches("--traversal <").count(), 1, "{help}");
+    assert!(help.contains("--map-traversal <NAME>"), "{help}");
+}
+
+/// A store file no manifest references (what a failed write leaves) is listed by `map verify`,
+/// in text and JSON, as no damage; compaction removes it. Seen failing on the build of before
+/// (not listed).
+#[test]
+fn map_verify_lists_unreferenced_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, _, _, map) = labelled_map(dir.path());
+    let seg = std::fs::read_dir(&map).unwrap().flatten().map(|e| e.path()).find(|p| p.to_string_lossy().contains("segment-")).unwrap();
+    std::fs::copy(&seg, map.join("segment-00000000deadbeef.safetensors")).unwrap();
+    let text = ok(&["map", "verify", "--map", p(&map)]);
+    assert!(
+        text.contains("UNREFERENCED segment-00000000deadbeef.safetensors (left by a failed write; `semlook map compact` removes them)"),
+        "{text}"
+    );
+    let json: serde_json::Value = serde_json::from_str(&ok(&["map", "verify", "--map", p(&map), "--json"])).unwrap();
+    assert_eq!(json["unreferenced"], serde_json::json!(["segment-00000000deadbeef.safetensors"]));
+    ok(&["map", "compact", "--map", p(&map), "-q"]);
+    assert!(!ok(&["map", "verify", "--map", p(&map)]).contains("UNREFERENCED"));
+}
+
+/// A ground truth of bare names says that names are paths relative to the CSV's folder, with one
+/// that would be found. Seen failing on the build of before (it said only "is not an image of
+/// query").
+#[test]
+fn a_ground_truth_of_bare_names_says_where_names_are_looked_for() {
+    let dir = tempfile::tempdir().unwrap();
+    let (data, images, _, _) = labelled_map(dir.path());
+    let pairs = dir.path().join("pairs");
+    for (from, to) in [(images, "ref"), (data.join("fog/RGB/Stereo_Left/Omni_F"), "query")] {
+        std::fs::create_dir_all(pairs.join(to)).unwrap();
+        for e in std::fs::read_dir(from).unwrap().flatten() {
+            std::fs::copy(e.path(), pairs.join(to).join(e.file_name())).unwrap();
+        }
+    }
+    let name = std::fs::read_dir(pairs.join("query")).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).min().unwrap();
+    std::fs::write(pairs.join("gt.csv"), format!("query,reference\n{name},{name}\n")).unwrap();
+    let (r, q, gt) = (pairs.join("ref"), pairs.join("query"), pairs.join("gt.csv"));
+    let err = fails(&["eval", "--references", p(&r), "--queries", p(&q), "--ground-truth", p(&gt), "--no-appearance", "-q"]);
+    assert!(err.contains("relative to the CSV's folder") && err.contains(&format!("\"query/{name}\"")), "{err}");
+}
+
+/// `inspect` takes one label map: its hint asks for `--labels FILE`, not the folder other
+/// commands take. Seen failing on the build of before (`--labels DIR`).
+#[test]
+fn inspect_asks_for_one_label_map_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, images, _, _) = labelled_map(dir.path());
+    let image = std::fs::read_dir(&images).unwrap().flatten().map(|e| e.path()).min().unwrap();
+    let err = fails(&["inspect", p(&image), "--out", p(&dir.path().join("inspect")), "--no-segmenter", "-q"]);
+    assert!(err.contains("--labels FILE") && !err.contains("--labels DIR"), "{err}");
+}
+
+/// A map folder whose build has committed nothing yet is not "no map" to resume: while the build
+/// holds the folder's write lock (from its start to its first commit), `query`, `map info` and a
+/// second `map build` there say it is being built and to wait, never `--resume` (which failed
+/// once the first build finished); once the builder is gone, the folder is no map, and the hint
+/// offers `--resume`. Seen failing on the build of before (it suggested `map build --resume`).
+#[test]
+fn a_map_being_built_says_wait_not_resume() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    ok(&["synth", "--out", p(&data), "--places", "3", "--size", "96x72", "-q"]);
+    let labels = data.join("day/GT/LABELS/Stereo_Left/Omni_F");
+    let map = dir.path().join("map");
+    let cfg = semlook::config::Config::default();
+    let writer = semlook::map::MapWriter::create(&map, &cfg.encoding(), Default::default(), None, Default::default(), false).unwrap();
+    for args in [
+        vec!["query", "--map", p(&map), "--labels", p(&labels), "--no-appearance", "-q"],
+        vec!["map", "info", "--map", p(&map)],
+        vec!["map", "build", "--labels", p(&labels), "--map", p(&map), "--no-appearance", "-q"],
+    ] {
+        let err = fails(&args);
+        assert!(err.contains("being built by another process") && err.contains("wait for the build to finish"), "{args:?}: {err}");
+        assert!(!err.contains("--resume"), "{args:?}: {err}");
+    }
+    drop(writer);
+    let err = fails(&["map", "info", "--map", p(&map)]);
+    assert!(err.contains("is not a map") && err.contains("--resume"), "{err}");
+}
+
+/// A map of 8 synthetic places with appearance and an index (8 lists), in `dir`: (the dataset,
+/// the map, a config that asks for the index, the fog query images); `None` without XFeat.
+fn indexed_map(dir: &Path) -> Option<(PathBuf, PathBuf, PathBuf, PathBuf)> {
+    if !common::has_xfeat() {
+        return None;
+    }
+    let data = dir.join("data");
+    ok(&["synth", "--out", p(&data), "--places", "8", "--size", "160x120", "--query-condition", "fog", "-q"]);
+    let map = dir.join("map");
+    ok(&["map", "build", "--dataset", p(&data), "--map", p(&map), "--index", "ivf", "-q"]);
+    let approximate = dir.join("approximate.toml");
+    std::fs::write(&approximate, "[index]\nsearch = \"approximate\"\n").unwrap();
+    let fog = data.join("fog/RGB/Stereo_Left/Omni_F");
+    Some((data, map, approximate, fog))
+}
+
+/// `map info` clamps the lists it says were probed to those the index has (it said "112 lists
+/// probed" of an index of 8). Seen failing on the build of before.
+#[test]
+fn map_info_says_no_more_lists_probed_than_there_are() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some((_, map, _, _)) = indexed_map(dir.path()) else { return };
+    let lists = semlook::map::Map::open(&map).unwrap().manifest.index.unwrap().lists;
+    assert!(lists < semlook::config::Config::default().index.probe, "the test needs fewer lists than the default probe");
+    let info = ok(&["map", "info", "--map", p(&map)]);
+    assert!(info.contains(&format!("all {lists} lists probed")) && !info.contains("112 lists"), "{info}");
+}
+
+/// `query` and `eval` through the index say so, with the lists probed and the shortlist; `eval`
+/// names the settings of each search (`forest` has no fused coarse stage). Seen failing on the
+/// build of before (no line).
+#[test]
+fn query_and_eval_say_when_the_index_searched() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some((data, map, approximate, fog)) = indexed_map(dir.path()) else { return };
+    let lists = semlook::map::Map::open(&map).unwrap().manifest.index.unwrap().lists;
+    let out = semlook(&["query", "--map", p(&map), "--images", p(&fog), "--config", p(&approximate)]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && err.contains(&format!("coarse search: index (probe {lists} of {lists} lists, shortlist ")), "{err}");
+    let out = semlook(&["eval", "--dataset", p(&data), "--map", p(&map), "--setting", "fused,forest", "--config", p(&approximate)]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && err.contains("coarse search: index (probe") && err.contains("(fused)"), "{err}");
+    assert!(err.contains("coarse search: exact scan of 8 places (forest)"), "{err}");
+}
+
+/// A damaged or missing file of a map's index: every query and `map verify` say so with the way
+/// out (`semlook map index`, or `--drop`); before, a bare "SHA-256 differs" or "No such file or
+/// directory" and no hint (seen failing on the build of before). Dropping the index mends it.
+#[test]
+fn a_damaged_index_says_how_to_mend_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some((_, map, _, fog)) = indexed_map(dir.path()) else { return };
+    let copy = |name: &str| {
+        let d = dir.path().join(name);
+        std::fs::create_dir(&d).unwrap();
+        for e in std::fs::read_dir(&map).unwrap().flatten() {
+            std::fs::copy(e.path(), d.join(e.file_name())).unwrap();
+        }
+        d
+    };
+    let hint = "hint: build the index again with `semlook map index --map MAP`; or drop it with `semlook map index --map MAP --drop`";
+    let damaged = copy("damaged");
+    let m = semlook::map::manifest::read_existing(&damaged).unwrap();
+    let model = damaged.join(&m.index.as_ref().unwrap().model.file);
+    let mut bytes = std::fs::read(&model).unwrap();
+    let mid = bytes.len() / 2;
+    bytes[mid] ^= 1;
+    std::fs::write(&model, bytes).unwrap();
+    let missing = copy("missing");
+    std::fs::remove_file(missing.join(&m.segments[0].index.as_ref().unwrap().file)).unwrap();
+    for (d, says) in [(&damaged, "SHA-256"), (&missing, "No such file")] {
+        for args in [vec!["query", "--map", p(d), "--images", p(&fog), "-q"], vec!["map", "verify", "--map", p(d)]] {
+            let err = fails(&args);
+            assert!(err.contains("map index file") && err.contains(says) && err.contains(hint), "{args:?}: {err}");
+        }
+    }
+    ok(&["map", "index", "--map", p(&missing), "--drop", "-q"]);
+    ok(&["map", "verify", "--map", p(&missing)]);
+}
+
+/// A segmenter file named as the default one whose SHA-256 is not the tested build's is loaded
+/// with one warning naming it (before, it ran without a word); the pinned one gives none.
+#[test]
+fn an_untested_default_segmenter_is_named_once() {
+    let name = semlook::segmentation::DEFAULT_SEGMENTER;
+    let Ok(segmenter) = semlook::onnx::find_model(name, None, "segmenter") else {
+        common::no_segmenter("the default segmenter is not installed");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    ok(&["synth", "--out", p(&data), "--places", "3", "--size", "96x72", "--query-condition", "fog", "-q"]);
+    let map = dir.path().join("map");
+    ok(&["map", "build", "--labels", p(&data.join("day/GT/LABELS/Stereo_Left/Omni_F")), "--map", p(&map), "--no-appearance", "-q"]);
+    // the models folder, the segmenter with an unknown protobuf field appended (other bytes,
+    // the same network)
+    let models = dir.path().join("models");
+    std::fs::create_dir(&models).unwrap();
+    for e in std::fs::read_dir(segmenter.parent().unwrap()).unwrap().flatten() {
+        std::os::unix::fs::symlink(e.path(), models.join(e.file_name())).unwrap();
+    }
+    std::fs::remove_file(models.join(name)).unwrap();
+    let mut bytes = std::fs::read(&segmenter).unwrap();
+    bytes.extend_from_slice(&[0xa0, 0x06, 0x01]);
+    std::fs::write(models.join(name), bytes).unwrap();
+    let query = |models: &Path| {
+        let out = Command::new(common::bin())
+            .args(["query", "--map", p(&map), "--images", p(&data.join("fog/RGB/Stereo_Left/Omni_F")), "--no-appearance", "-q"])
+            .env("SEMLOOK_MODELS", models)
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        String::from_utf8(out.stderr).unwrap()
+    };
+    let err = query(&models);
+    assert_eq!(err.matches("is not the tested build").count(), 1, "{err}");
+    assert!(err.contains(&*models.join(name).to_string_lossy()), "{err}");
+    assert!(!query(segmenter.parent().unwrap()).contains("tested build"));
+}

@@ -84,8 +84,11 @@ fn piped_images_are_localized_and_garbage_costs_one_frame() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let text = String::from_utf8(out.stdout).unwrap();
     let rows: Vec<&str> = text.lines().filter(|l| !l.starts_with('#') && !l.starts_with("frame,")).collect();
-    assert_eq!(rows.len(), 16, "every piped image answered:\n{text}");
-    assert!(rows.iter().all(|r| r.split(',').nth(2).is_some_and(|best| !best.is_empty())), "{text}");
+    // the garbage's row says `refused` in the accepted column, with no match
+    let (refused, answered): (Vec<&str>, Vec<&str>) = rows.iter().partition(|r| r.split(',').nth(7) == Some("refused"));
+    assert_eq!((answered.len(), refused.len()), (16, 1), "every piped image answered:\n{text}");
+    assert!(answered.iter().all(|r| r.split(',').nth(2).is_some_and(|best| !best.is_empty())), "{text}");
+    assert!(refused[0].starts_with("8,") && refused[0].split(',').nth(2) == Some(""), "{text}");
     assert!(text.contains("# 17 frames (1 refused)"), "{text}");
     assert!(String::from_utf8_lossy(&out.stderr).contains("neither a JPEG nor a PNG"));
 }

@@ -81,6 +81,9 @@ pub fn to_py(e: Error) -> PyErr {
         Error::NoLabels { image } => ("InputFileError", shown(image), None, None),
         Error::InvalidConfig { source_name, .. } => ("InvalidConfigError", Some(source_name.clone()), None, None),
         Error::CorruptMap { path, .. } => ("CorruptMapError", shown(path), None, None),
+        // a file of a map's index: missing as any missing file, damaged as any damaged map file
+        Error::DamagedIndex { path, missing: true, .. } => ("MissingFileError", shown(path), None, None),
+        Error::DamagedIndex { path, .. } => ("CorruptMapError", shown(path), None, None),
         Error::MapVersion { path, .. } => ("MapVersionError", shown(path), None, None),
         Error::IncompatibleConfig { map, field, .. } => ("IncompatibleConfigError", shown(map), Some(field.clone()), None),
         Error::DuplicateImageId { map, id } | Error::RepeatedImageId { map, id, .. } => ("DuplicateImageIdError", shown(map), None, Some(id.clone())),

@@ -215,7 +215,7 @@ pub struct SegAccArgs {
     #[arg(long)]
     pub images: PathBuf,
     /// Folder of their real label maps (`<stem>.png`).
-    #[arg(long)]
+    #[arg(long, value_name = "DIR")]
     pub labels: PathBuf,
     /// The labels are CamVid's (11 classes, SegNet ids); a Cityscapes segmenter is mapped to them.
     #[arg(long)]
@@ -235,7 +235,7 @@ pub struct InspectArgs {
     /// The image (png or jpeg).
     pub image: PathBuf,
     /// Its label map (else the segmenter labels it).
-    #[arg(long)]
+    #[arg(long, value_name = "FILE")]
     pub labels: Option<PathBuf>,
     /// Folder for the PNGs (one per stage, and sheet.png with all of them).
     #[arg(long)]
@@ -431,14 +431,14 @@ pub struct SourceArgs {
     /// A dataset directory: encode its reference traversal (or --traversal).
     #[arg(long, conflicts_with = "images")]
     pub dataset: Option<PathBuf>,
-    /// With --dataset: which traversal to encode (default: the dataset's reference).
-    #[arg(long, requires = "dataset")]
+    /// With --dataset: which of the dataset's traversals to encode (default: its reference).
+    #[arg(long, value_name = "NAME", requires = "dataset")]
     pub traversal: Option<String>,
     /// A folder of RGB images (png/jpg).
     #[arg(long)]
     pub images: Option<PathBuf>,
     /// A folder of label maps named like the images (`<stem>.png`); alone, encodes label maps only.
-    #[arg(long)]
+    #[arg(long, value_name = "DIR")]
     pub labels: Option<PathBuf>,
     /// How label files encode classes.
     #[arg(long, value_enum)]
@@ -519,10 +519,11 @@ pub enum MapCommand {
         /// baseline can be matched and evaluated against this map.
         #[arg(long)]
         hog: bool,
-        /// Name of the traversal the images make (a run of frames in order, which sequence
-        /// matching follows); default "0".
+        /// Name of the map's traversal the images make (a run of frames in order, which sequence
+        /// matching follows); default "0". (`--traversal` picks which of a dataset's traversals
+        /// is encoded.)
         #[arg(long, value_name = "NAME")]
-        traversal: Option<String>,
+        map_traversal: Option<String>,
         /// The approximate index of the coarse stage for large maps: `auto` builds one when the
         /// map holds at least `index.min_places` images, `ivf` always (maps with appearance),
         /// `none` never. `semlook map index` builds or drops one later.
@@ -561,10 +562,15 @@ pub enum MapCommand {
         /// the map's last traversal.
         #[arg(long)]
         resume: bool,
-        /// The traversal the images join: a new one by default (a new run of frames: sequence
-        /// matching never crosses from one traversal into another); an existing name continues it.
+        /// The map's traversal the images join: a new one by default (a new run of frames:
+        /// sequence matching never crosses from one traversal into another); an existing name
+        /// continues it. (`--traversal` picks which of a dataset's traversals is encoded.)
         #[arg(long, value_name = "NAME")]
-        traversal: Option<String>,
+        map_traversal: Option<String>,
+        /// Store the images under ids PREFIX + their file stem (PREFIX + the dataset's id with
+        /// --dataset), e.g. to add photos whose names the map holds already.
+        #[arg(long, value_name = "PREFIX")]
+        id_prefix: Option<String>,
         /// Most images per segment file (see `map build`).
         #[arg(long, value_name = "N", value_parser = parse_positive)]
         segment_images: Option<usize>,
@@ -685,7 +691,7 @@ pub struct LocalizeArgs {
     #[arg(long, conflicts_with = "stdin", required_unless_present = "stdin")]
     pub images: Option<PathBuf>,
     /// Label maps of the frames, `<stem>.png` (else the segmenter labels them).
-    #[arg(long, requires = "images")]
+    #[arg(long, value_name = "DIR", requires = "images")]
     pub labels: Option<PathBuf>,
     /// How label files encode classes.
     #[arg(long, value_enum, requires = "labels")]

@@ -6,7 +6,10 @@ mod map_cmd;
 mod pairs;
 mod shared;
 
-use shared::{apply_models, check_output_dir, check_output_file, frame_sources, info, load_config, map_config, to_json, write_file};
+use shared::{
+    apply_models, check_output_dir, check_output_file, coarse_search, frame_sources, info, load_config, map_config, to_json, warn_if_no_index,
+    write_file,
+};
 
 use super::args::*;
 use semlook::batch::encode_frames;
@@ -239,6 +242,7 @@ fn run_query(
     quiet: bool,
 ) -> Result<(DescriptorSet, Vec<QueryMatch>, RunRecord)> {
     semlook::matching::check_labels(map, setting)?;
+    warn_if_no_index(cfg, Some(map));
     let encoder = Encoder::for_map(cfg, map)?.for_setting(setting);
     // photos without label maps: segmented, or label-free where nothing reads labels, else refused
     // here, before any encoding
@@ -246,11 +250,13 @@ fn run_query(
     let encoder = encoder.without_labels(label_free || map.manifest.without_labels);
     let queries = encode_sources(engine, &encoder, frames, fmt, "queries", s.skip_invalid, quiet)?;
     let t = Instant::now();
-    let (matches, _) = engine.match_batch(map, &queries, setting, cfg)?;
+    let (matches, times) = engine.match_batch(map, &queries, setting, cfg)?;
     info(
         quiet,
         format!("matched {} queries against {} references ({setting}) in {:.1} ms", queries.len(), map.len(), t.elapsed().as_secs_f64() * 1e3),
     );
+    let w_embedding = semlook::matching::FusedWeights::of(map, &queries, cfg, setting).embedding;
+    info(quiet, format!("coarse search: {}", coarse_search(Some(map), map.len(), cfg, setting, times.approximate, w_embedding)));
     Ok((queries, matches, RunRecord::new(&encoder, cfg, engine)?))
 }
 
@@ -310,12 +316,16 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
         cfg = ds.adapt_config(cfg);
     }
     let settings = if a.settings.is_empty() { DEFAULT_SETTINGS.to_vec() } else { dedup(&a.settings) };
+    warn_if_no_index(&cfg, map.as_ref());
     let report = evaluate(
         &ds,
         &cfg,
         &EvalOptions { settings: settings.clone(), map: map.as_ref(), skip_invalid: a.skip_invalid, quiet, sequence: a.sequence },
         engine,
     )?;
+    for line in eval_coarse_searches(&report, map.as_ref(), &cfg) {
+        info(quiet, line);
+    }
     print_report(&report, a.json)?;
     if let Some(dir) = &a.plots {
         for f in semlook::tools::viz::plots::write_pr_plots(&report, dir)? {
@@ -352,6 +362,29 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
         info(quiet, format!("wrote {}", semlook::tools::viz::report::write(&report, &inputs, dir)?.display()));
     }
     Ok(())
+}
+
+/// The info lines on which coarse search each setting of `report` ran (`coarse search: ...`),
+/// settings that ran the same one on one line (named where the lines differ).
+fn eval_coarse_searches(report: &EvalReport, map: Option<&Map>, cfg: &Config) -> Vec<String> {
+    let mut searches: Vec<(String, Vec<&str>)> = Vec::new();
+    for r in &report.results {
+        // queries are encoded for the map, with its embedding network
+        let w_embedding = match map.is_some_and(|m| m.manifest.embedding.is_some()) && r.setting.embeds() {
+            true => cfg.matching.w_embedding as f32,
+            false => 0.0,
+        };
+        let s = coarse_search(map, report.references, cfg, r.setting, r.index_recall.is_some(), w_embedding);
+        match searches.iter_mut().find(|(x, _)| *x == s) {
+            Some((_, names)) if !names.contains(&r.setting.name()) => names.push(r.setting.name()),
+            Some(_) => {}
+            None => searches.push((s, vec![r.setting.name()])),
+        }
+    }
+    match searches.len() {
+        1 => vec![format!("coarse search: {}", searches[0].0)],
+        _ => searches.into_iter().map(|(s, names)| format!("coarse search: {s} ({})", names.join(", "))).collect(),
+    }
 }
 
 /// `settings` in the order given, each once.

@@ -1,13 +1,15 @@
 //! The command line's words for what the engine says a caller can do ([`Remedy`]): library
 //! messages speak of the API, this names the flags. A hint names only flags the running command
 //! has: each way out of a refusal names the flag it needs, and is left out of commands without it
-//! (other commands are named in full, `` `semlook map build --force` ``).
+//! (other commands are named in full, `` `semlook map build --force` ``). A way may need the flag
+//! with the shape of its value (`--labels DIR`, a folder, against `inspect`'s `--labels FILE`).
 
 use semlook::error::{Error, Remedy};
 use std::sync::OnceLock;
 
 /// One way out: its words, and the flag of the running command they need (`None`: they need
-/// none, or name another command in full).
+/// none, or name another command in full), alone (`--resume`) or with its value's name
+/// (`--labels DIR`: only where `--labels` takes a DIR).
 struct Way {
     text: &'static str,
     needs: Option<&'static str>,
@@ -30,7 +32,8 @@ fn ways(r: Remedy) -> &'static [Way] {
             Way { text: "continue an interrupted build with `semlook map build --resume`", needs: None },
         ],
         Remedy::GiveLabels => &[
-            Way { text: "pass --labels DIR (label maps named like the images)", needs: Some("--labels") },
+            Way { text: "pass --labels DIR (label maps named like the images)", needs: Some("--labels DIR") },
+            Way { text: "pass --labels FILE (the image's label map)", needs: Some("--labels FILE") },
             Way { text: "pass --segmenter MODEL.onnx", needs: Some("--segmenter") },
             Way { text: "`semlook models` lists the segmenter setup.sh installs, and what is missing", needs: None },
         ],
@@ -55,16 +58,24 @@ fn ways(r: Remedy) -> &'static [Way] {
             },
         ],
         Remedy::RebuildWithHog => &[Way { text: "build the map again with HOG descriptors: `semlook map build --force --hog`", needs: None }],
-        Remedy::SkipStored => {
-            &[Way { text: "--resume skips the images the map holds already (an interrupted run goes on)", needs: Some("--resume") }]
-        }
+        Remedy::SkipStored => &[
+            Way { text: "--resume skips the images the map holds already (an interrupted run goes on)", needs: Some("--resume") },
+            Way { text: "--id-prefix PREFIX stores the new images under other ids (PREFIX + file name)", needs: Some("--id-prefix") },
+        ],
+        Remedy::RebuildIndex => &[
+            Way { text: "build the index again with `semlook map index --map MAP`", needs: None },
+            Way { text: "or drop it with `semlook map index --map MAP --drop` (queries then scan every place)", needs: None },
+        ],
+        Remedy::SkipInvalid => &[Way { text: "--skip-invalid skips images that fail to load", needs: Some("--skip-invalid") }],
+        Remedy::WaitForBuild => &[Way { text: "wait for the build to finish, then run this again", needs: None }],
     }
 }
 
 /// The long flags of the command that runs, once it is known (see [`set_command_flags`]).
 static FLAGS: OnceLock<Vec<String>> = OnceLock::new();
 
-/// Records the long flags of the running (sub)command, which hints may name.
+/// Records the long flags of the running (sub)command, which hints may name: each `--flag`, and
+/// `--flag NAME` for a flag whose value is named (`value_name`).
 pub fn set_command_flags(flags: Vec<String>) {
     let _ = FLAGS.set(flags);
 }
@@ -81,9 +92,22 @@ pub fn hint_for(r: Remedy, has: &dyn Fn(&str) -> bool) -> Option<String> {
     (!words.is_empty()).then(|| words.join("; "))
 }
 
+/// The long flags of clap command `c` (its own arguments), as [`set_command_flags`] takes them.
+pub fn flags_of(c: &clap::Command) -> Vec<String> {
+    let mut out = Vec::new();
+    for a in c.get_arguments() {
+        let Some(long) = a.get_long() else { continue };
+        out.push(format!("--{long}"));
+        if let Some([name]) = a.get_value_names() {
+            out.push(format!("--{long} {name}"));
+        }
+    }
+    out
+}
+
 /// Every remedy (for the tests).
 #[cfg(test)]
-const ALL: [Remedy; 12] = [
+const ALL: [Remedy; 15] = [
     Remedy::AddResumeOrReplace,
     Remedy::ResumeOrReplace,
     Remedy::BuildOrResume,
@@ -96,6 +120,9 @@ const ALL: [Remedy; 12] = [
     Remedy::RebuildWithLabels,
     Remedy::RebuildWithHog,
     Remedy::SkipStored,
+    Remedy::RebuildIndex,
+    Remedy::SkipInvalid,
+    Remedy::WaitForBuild,
 ];
 
 #[cfg(test)]
@@ -116,11 +143,12 @@ mod tests {
         out
     }
 
-    /// Every (sub)command with its long flags, globals included.
+    /// Every (sub)command with its long flags (and `--flag NAME` where the value is named),
+    /// globals included.
     fn commands() -> Vec<(String, Vec<String>)> {
         fn walk(c: &clap::Command, path: String, globals: &[String], out: &mut Vec<(String, Vec<String>)>) {
             let mut flags: Vec<String> = globals.to_vec();
-            flags.extend(c.get_arguments().filter_map(|a| a.get_long()).map(|l| format!("--{l}")));
+            flags.extend(flags_of(c));
             out.push((path.clone(), flags.clone()));
             for s in c.get_subcommands() {
                 walk(s, format!("{path} {}", s.get_name()), &flags, out);
@@ -138,7 +166,8 @@ mod tests {
         for w in ALL.iter().flat_map(|&r| ways(r)) {
             let named = own_flags(w.text);
             match w.needs {
-                Some(f) => assert_eq!(named, [f], "{:?} names other flags than it needs", w.text),
+                // the flag itself, without the name of its value
+                Some(f) => assert_eq!(named, [f.split(' ').next().unwrap_or(f)], "{:?} names other flags than it needs", w.text),
                 None => assert!(named.is_empty(), "{:?} names {named:?} without needing them", w.text),
             }
         }
@@ -155,5 +184,24 @@ mod tests {
         let eval = commands().into_iter().find(|c| c.0 == "semlook eval").unwrap().1;
         let h = hint_for(Remedy::GiveLabels, &|f| eval.iter().any(|x| x == f)).unwrap();
         assert!(h.contains("--segmenter") && !h.contains("--labels"), "{h}");
+    }
+
+    /// Each hint for label maps names the value `--labels` takes in the command: a folder for
+    /// `query`, `map build` and `localize`, one file for `inspect` (its hint said `--labels DIR`,
+    /// and `inspect --labels` takes the image's label map). Seen failing with the words of
+    /// before (one `--labels DIR` way needing `--labels`).
+    #[test]
+    fn the_labels_hint_names_the_value_each_command_takes() {
+        let all = commands();
+        let hint = |cmd: &str| {
+            let flags = &all.iter().find(|c| c.0 == cmd).unwrap_or_else(|| panic!("no command {cmd}")).1;
+            hint_for(Remedy::GiveLabels, &|f| flags.iter().any(|x| x == f)).unwrap()
+        };
+        let inspect = hint("semlook inspect");
+        assert!(inspect.contains("--labels FILE") && !inspect.contains("--labels DIR"), "{inspect}");
+        for cmd in ["semlook query", "semlook map build", "semlook map add", "semlook localize"] {
+            let h = hint(cmd);
+            assert!(h.contains("--labels DIR") && !h.contains("--labels FILE"), "{cmd}: {h}");
+        }
     }
 }

@@ -19,10 +19,11 @@ pub fn run() -> semlook::Result<()> {
     commands::dispatch(cli)
 }
 
-/// The long flags of the (sub)command `m` runs, its parents' included (the global ones).
+/// The long flags of the (sub)command `m` runs, its parents' included (the global ones), as
+/// [`hint::flags_of`] lists them.
 fn command_flags(m: &clap::ArgMatches) -> Vec<String> {
     use clap::CommandFactory;
-    let longs = |c: &clap::Command| c.get_arguments().filter_map(|a| a.get_long()).map(|l| format!("--{l}")).collect::<Vec<_>>();
+    let longs = hint::flags_of;
     let mut cmd = args::Cli::command();
     let mut flags = longs(&cmd);
     let mut m = m;

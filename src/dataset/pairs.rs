@@ -119,17 +119,29 @@ fn read_csv(csv: &Path, refs: &Traversal, queries: &Traversal) -> Result<Vec<Vec
             .ok_or_else(|| Error::dataset(csv, format!("no {name:?} column (the header must name query and reference)")))
     };
     let (qc, rc) = (col("query")?, col("reference")?);
+    // a name that is no image says where names are looked for, with one that would be found
+    let base = if dir.as_os_str().is_empty() { Path::new(".") } else { dir };
+    let not_found = |line: usize, what: &str, name: &str, t: &Traversal| {
+        let example =
+            t.frames.first().and_then(|f| f.source.image.as_deref()).and_then(|p| key(p).strip_prefix(key(base)).ok().map(Path::to_path_buf));
+        let example = example.map_or(String::new(), |e| format!(", e.g. {:?}", e.to_string_lossy()));
+        Error::dataset(
+            csv,
+            format!(
+                "line {line}: {what} {name:?} is not an image of {}: names in the ground truth are paths relative to the CSV's folder {}{example} (this one is {})",
+                t.name,
+                base.display(),
+                base.join(name).display()
+            ),
+        )
+    };
     let mut gt = vec![Vec::new(); queries.frames.len()];
     for (line, row) in reader.records().enumerate() {
         let line = line + 2;
         let row = row.map_err(|e| Error::dataset(csv, format!("line {line}: {e}")))?;
         let (q, r) = (row.get(qc).unwrap_or(""), row.get(rc).unwrap_or(""));
-        let qi = query_index
-            .get(&key(&dir.join(q)))
-            .ok_or_else(|| Error::dataset(csv, format!("line {line}: query {q:?} is not an image of {}", queries.name)))?;
-        let ri = ref_index
-            .get(&key(&dir.join(r)))
-            .ok_or_else(|| Error::dataset(csv, format!("line {line}: reference {r:?} is not an image of {}", refs.name)))?;
+        let qi = query_index.get(&key(&dir.join(q))).ok_or_else(|| not_found(line, "query", q, queries))?;
+        let ri = ref_index.get(&key(&dir.join(r))).ok_or_else(|| not_found(line, "reference", r, refs))?;
         let list = &mut gt[*qi as usize];
         if !list.contains(ri) {
             list.push(*ri);

@@ -46,16 +46,28 @@ impl std::fmt::Debug for LazySegmenter {
     }
 }
 
+/// Segmenter files whose warning (not the tested build: [`crate::models::segmenter_warning`])
+/// this process has given: once per file, however many encoders load it.
+static WARNED: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
+
 impl LazySegmenter {
     fn get(&self) -> Result<&Segmenter> {
         self.loaded
             .get_or_init(|| {
                 // kept as the reason of the model error every later frame gets: a model error's
                 // own reason, not its message (which names the model already)
-                Segmenter::load(&self.path, &self.cfg, &self.table, self.onnxruntime.as_deref()).map_err(|e| match e {
+                let s = Segmenter::load(&self.path, &self.cfg, &self.table, self.onnxruntime.as_deref()).map_err(|e| match e {
                     Error::Model { path, reason } if path == self.path => reason,
                     other => other.to_string(),
-                })
+                })?;
+                if let Some(w) = crate::models::segmenter_warning(s.path(), s.sha256()) {
+                    let mut warned = WARNED.lock().unwrap_or_else(|e| e.into_inner());
+                    if !warned.iter().any(|p| p == s.path()) {
+                        warned.push(s.path().to_path_buf());
+                        log::warn!("{w}");
+                    }
+                }
+                Ok(s)
             })
             .as_ref()
             .map_err(|reason| Error::Model { path: self.path.clone(), reason: reason.clone() })

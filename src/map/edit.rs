@@ -152,14 +152,7 @@ pub fn compact(dir: &Path, opts: StoreOptions) -> Result<CompactReport> {
         manifest::write(dir, &m)?;
     }
     // delete what the new manifest does not reference: replaced segments and strays
-    let keep: HashSet<&str> = m
-        .segments
-        .iter()
-        .flat_map(|s| std::iter::once(s.file.as_str()).chain(s.index.as_ref().map(|f| f.file.as_str())))
-        .chain(m.codebook.as_ref().map(|c| c.file.as_str()))
-        .chain(m.index.as_ref().map(|i| i.model.file.as_str()))
-        .chain([manifest::MANIFEST, files::LOCK])
-        .collect();
+    let keep: HashSet<&str> = manifest::referenced_files(&m);
     let replaced: HashSet<&str> =
         old.segments.iter().flat_map(|s| std::iter::once(s.file.as_str()).chain(s.index.as_ref().map(|f| f.file.as_str()))).collect();
     let mut stray = 0;
@@ -202,6 +195,11 @@ pub struct VerifyReport {
     /// Temporary files and staging folders interrupted writers left ([`files::leftovers`]); the
     /// next writer removes them under the lock.
     pub leftovers: Vec<String>,
+    /// Store files in the map folder (segments, index files, a codebook) that the manifest does
+    /// not reference: left by a write that failed after writing them (a writer commits them
+    /// under the lock, so one committing while `verify` runs may be listed too); `compact`
+    /// deletes them.
+    pub unreferenced: Vec<String>,
     /// SHA-256 of the keypoint network the map's appearance was computed with (queries must use
     /// the same), and how it is configured.
     pub appearance_model: Option<String>,
@@ -217,18 +215,45 @@ impl VerifyReport {
     pub fn damaged(&self) -> impl Iterator<Item = &FileCheck> {
         self.files.iter().filter(|f| f.problem.is_some())
     }
+    /// Whether files are damaged and every one of them belongs to the map's approximate index
+    /// (building the index again or dropping it mends the map).
+    pub fn only_index_damaged(&self) -> bool {
+        self.damaged().count() > 0 && self.damaged().all(|f| manifest::is_index_file(&f.file) || f.file == INDEX_ENTRY)
+    }
 }
+
+/// The report's name for the index as a whole, where it fails to open and no file of it names why.
+pub const INDEX_ENTRY: &str = "index";
 
 /// What is wrong with a file, without the "map X: corrupt:" the report adds once.
 fn reason_of(e: Error) -> String {
     match e {
-        Error::CorruptMap { reason, .. } => reason,
+        Error::CorruptMap { reason, .. } | Error::DamagedIndex { reason, .. } => reason,
         other => other.to_string(),
     }
 }
 
+/// The store files (segments, index files, a codebook) in `dir` that neither `m` nor the manifest
+/// there now references, sorted.
+fn unreferenced(dir: &Path, m: &manifest::Manifest) -> Result<Vec<String>> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .map_err(|e| Error::io(dir, e))?
+        .flatten()
+        .filter(|e| e.file_type().is_ok_and(|t| t.is_file()))
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| manifest::is_store_file(n) && !n.starts_with('.'))
+        .collect();
+    // a writer that committed since `m` was read references its new files in the manifest now
+    let now = manifest::read(dir).ok().flatten();
+    let (then, now) = (manifest::referenced_files(m), now.as_ref().map(manifest::referenced_files).unwrap_or_default());
+    names.retain(|n| !then.contains(n.as_str()) && !now.contains(n.as_str()));
+    names.sort();
+    Ok(names)
+}
+
 /// Checks every file of the map in full (in parallel): the codebook, and each segment's header,
-/// size, SHA-256 and values. Reports every damaged file, not just the first.
+/// size, SHA-256 and values, the index's model and codes. Reports every damaged file, not just
+/// the first, and lists what interrupted or failed writes left (leftovers, unreferenced files).
 pub fn verify(dir: &Path) -> Result<VerifyReport> {
     let m = manifest::read_existing(dir)?;
     let layout = layout_of(&m, ClassTable::from_config(&m.config.classes)?.len());
@@ -271,17 +296,19 @@ pub fn verify(dir: &Path) -> Result<VerifyReport> {
                     }
                 }
                 if files.iter().all(|f| f.problem.is_none()) {
-                    files.push(FileCheck { file: "index".into(), problem: Some(why) });
+                    files.push(FileCheck { file: INDEX_ENTRY.into(), problem: Some(why) });
                 }
             }
         }
     }
     let leftovers = files::leftovers(dir).iter().map(|p| p.display().to_string()).collect();
+    let unreferenced = unreferenced(dir, &m)?;
     Ok(VerifyReport {
         generation: m.generation,
         images: m.live_images(),
         files,
         leftovers,
+        unreferenced,
         appearance_model: m.appearance_model.clone(),
         appearance_kind: m.config.appearance.model,
         embedding: m.embedding.clone(),

@@ -79,27 +79,17 @@ impl WriteLock {
         let file = std::fs::OpenOptions::new().create(true).truncate(false).write(true).open(&p).map_err(|e| Error::io(&p, e))?;
         let t = Instant::now();
         let mut said = false;
+        let mut file = Some(file);
         loop {
-            match fs4::FileExt::try_lock(&file) {
-                Ok(()) => {
-                    // temporaries are written only under this lock: any there now is stale
-                    for stale in leftovers(dir) {
-                        let gone = if stale.is_dir() { std::fs::remove_dir_all(&stale) } else { std::fs::remove_file(&stale) };
-                        match gone {
-                            Ok(()) => log::info!("removed {}, left by an interrupted writer", stale.display()),
-                            Err(e) => log::warn!("cannot remove {}, left by an interrupted writer: {e}", stale.display()),
-                        }
-                    }
-                    return Ok(WriteLock { file });
+            match WriteLock::try_lock(dir, &mut file)? {
+                Some(lock) => return Ok(lock),
+                None if t.elapsed() > LOCK_WAIT => {
+                    return Err(Error::invalid(
+                        format!("map {}", dir.display()),
+                        format!("another semlook process has held the write lock {} for more than {} s", p.display(), LOCK_WAIT.as_secs()),
+                    ));
                 }
-                Err(fs4::TryLockError::WouldBlock) => {}
-                Err(fs4::TryLockError::Error(e)) => return Err(Error::io(&p, e)),
-            }
-            if t.elapsed() > LOCK_WAIT {
-                return Err(Error::invalid(
-                    format!("map {}", dir.display()),
-                    format!("another semlook process has held the write lock {} for more than {} s", p.display(), LOCK_WAIT.as_secs()),
-                ));
+                None => {}
             }
             if !said && t.elapsed() > Duration::from_secs(1) {
                 log::info!("waiting for another writer of {} (lock {})", dir.display(), p.display());
@@ -107,6 +97,49 @@ impl WriteLock {
             }
             std::thread::sleep(LOCK_POLL);
         }
+    }
+
+    /// Takes the lock of `dir` (which must exist) if no other writer holds it; `None` if one does.
+    pub fn try_take(dir: &Path) -> Result<Option<WriteLock>> {
+        let p = dir.join(LOCK);
+        let file = std::fs::OpenOptions::new().create(true).truncate(false).write(true).open(&p).map_err(|e| Error::io(&p, e))?;
+        WriteLock::try_lock(dir, &mut Some(file))
+    }
+
+    /// One try at locking `file`, the lock file of `dir` (taken from the option when locked):
+    /// then removes what interrupted writers left.
+    fn try_lock(dir: &Path, file: &mut Option<std::fs::File>) -> Result<Option<WriteLock>> {
+        let Some(f) = file.as_ref() else { return Ok(None) };
+        match fs4::FileExt::try_lock(f) {
+            Ok(()) => {
+                // temporaries are written only under this lock: any there now is stale
+                for stale in leftovers(dir) {
+                    let gone = if stale.is_dir() { std::fs::remove_dir_all(&stale) } else { std::fs::remove_file(&stale) };
+                    match gone {
+                        Ok(()) => log::info!("removed {}, left by an interrupted writer", stale.display()),
+                        Err(e) => log::warn!("cannot remove {}, left by an interrupted writer: {e}", stale.display()),
+                    }
+                }
+                Ok(file.take().map(|file| WriteLock { file }))
+            }
+            Err(fs4::TryLockError::WouldBlock) => Ok(None),
+            Err(fs4::TryLockError::Error(e)) => Err(Error::io(dir.join(LOCK), e)),
+        }
+    }
+}
+
+/// Whether a writer holds the write lock of `dir` now (a build that has committed nothing yet
+/// holds it from its start: [`super::MapWriter::create`]). Creates no file: a folder without a
+/// lock file is not locked. False where it cannot be told.
+pub fn is_locked(dir: &Path) -> bool {
+    let Ok(file) = std::fs::File::open(dir.join(LOCK)) else { return false };
+    match fs4::FileExt::try_lock_shared(&file) {
+        Ok(()) => {
+            let _ = fs4::FileExt::unlock(&file);
+            false
+        }
+        Err(fs4::TryLockError::WouldBlock) => true,
+        Err(fs4::TryLockError::Error(_)) => false,
     }
 }
 

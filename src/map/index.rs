@@ -48,11 +48,7 @@ impl Map {
         // thumbnails' SSIM, the embeddings' cosine
         let thumbs = !ix.thumb.is_empty() && q.w_global != 0.0;
         let reranked = thumbs || q.w_embedding != 0.0;
-        let shortlist = match q.shortlist {
-            0 => auto_shortlist(reranked),
-            s => s,
-        }
-        .max(q.at_least);
+        let shortlist = shortlist_len(ix, q.shortlist, q.at_least, q.w_global, q.w_embedding);
         let fused = reranked && q.pool > shortlist;
         if fused && thumbs && q.global.len() != ix.thumb.width * ix.thumb.height {
             return Err(Error::invalid(
@@ -71,7 +67,7 @@ impl Map {
             .enumerate()
             .filter(|&(s, _)| self.starts[s + 1] > range.start && self.starts[s] < range.end)
             .map(|(s, codes)| {
-                codes.check()?;
+                codes.check().map_err(Error::in_index)?;
                 let mut out = Shortlist::new(cap);
                 pulp::Arch::new().dispatch(ScanLists { map: self, s, codes, probe: &p, probed: &probed, range: range.clone(), out: &mut out });
                 Ok(out)
@@ -128,6 +124,40 @@ impl Map {
         }
         Ok(best.into_sorted())
     }
+}
+
+/// What one search of a map's index scans ([`Map::index_plan`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct IndexPlan {
+    /// Lists probed (never more than the index has).
+    pub probed: usize,
+    /// Lists of the index.
+    pub lists: usize,
+    /// References shortlisted for the exact score.
+    pub shortlist: usize,
+}
+
+impl Map {
+    /// What a search of the index with these fields of an [`IndexQuery`] scans, without running
+    /// one (for reports): `probe` lists of the index's, and the shortlist [`Map::index_shortlist`]
+    /// rescores (`shortlist` 0: [`auto_shortlist`], never fewer than `at_least`). `None` without
+    /// an index.
+    pub fn index_plan(&self, probe: usize, shortlist: usize, at_least: usize, w_global: f32, w_embedding: f32) -> Option<IndexPlan> {
+        let ix = self.index.as_ref()?;
+        let lists = ix.model.lists();
+        Some(IndexPlan { probed: probe.max(1).min(lists), lists, shortlist: shortlist_len(ix, shortlist, at_least, w_global, w_embedding) })
+    }
+}
+
+/// The shortlist a query of `ix` rescores: `shortlist`, or for 0 [`auto_shortlist`] of whether
+/// the pool is re-ranked (by thumbnails the index keeps, or an embedding term), at least `at_least`.
+fn shortlist_len(ix: &MapIndex, shortlist: usize, at_least: usize, w_global: f32, w_embedding: f32) -> usize {
+    let reranked = (!ix.thumb.is_empty() && w_global != 0.0) || w_embedding != 0.0;
+    match shortlist {
+        0 => auto_shortlist(reranked),
+        s => s,
+    }
+    .max(at_least)
 }
 
 /// One segment's probed lists offered to a shortlist (compiled for the best vector instructions,

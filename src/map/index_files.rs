@@ -28,14 +28,15 @@ pub struct MapIndex {
     pub(super) codes: Vec<MappedCodes>,
 }
 
-/// Reads and checks a model file (small: read and hashed in full).
+/// Reads and checks a model file (small: read and hashed in full); a missing or damaged one is an
+/// [`Error::DamagedIndex`].
 pub(super) fn read_model(dir: &Path, m: &Manifest, ix: &IndexEntry) -> Result<Model> {
     let p = dir.join(&ix.model.file);
-    let bytes = std::fs::read(&p).map_err(|e| Error::io(&p, e))?;
+    let bytes = std::fs::read(&p).map_err(|e| Error::io(&p, e).in_index())?;
     if bytes.len() as u64 != ix.model.bytes || sha256_hex(&bytes) != ix.model.sha256 {
-        return Err(Error::corrupt(&p, "size or SHA-256 differs from the manifest"));
+        return Err(Error::corrupt(&p, "size or SHA-256 differs from the manifest").in_index());
     }
-    Model::from_bytes(&bytes, m.appearance_dim, ix.dims, ix.lists).map_err(|e| e.named(|r| Error::corrupt(&p, r)))
+    Model::from_bytes(&bytes, m.appearance_dim, ix.dims, ix.lists).map_err(|e| e.named(|r| Error::corrupt(&p, r)).in_index())
 }
 
 impl MapIndex {
@@ -53,9 +54,10 @@ impl MapIndex {
         Ok(Some(MapIndex { entry: ix.clone(), model, thumb: ix.thumb(&m.config.global), codes }))
     }
 
-    /// Checks every segment's codes in full (`map verify`): the check of each, in manifest order.
+    /// Checks every segment's codes in full (`map verify`): the check of each, in manifest order
+    /// (a damaged one's an [`Error::DamagedIndex`]).
     pub fn verify_all(&self) -> Vec<(&Path, Result<()>)> {
-        self.codes.iter().map(|c| (c.path.as_path(), c.check())).collect()
+        self.codes.iter().map(|c| (c.path.as_path(), c.check().map_err(Error::in_index))).collect()
     }
 }
 
@@ -116,16 +118,16 @@ pub(crate) fn model_problem(dir: &Path, m: &Manifest) -> Result<()> {
 
 /// The codes file `f` of segment `s` under the index `ix` of manifest `m` in `dir`, mapped with its
 /// header checked against what the manifest expects (the segment, the model, the shapes, the
-/// thumbnails).
+/// thumbnails); a missing or damaged file is an [`Error::DamagedIndex`].
 pub fn open_codes(dir: &Path, m: &Manifest, ix: &IndexEntry, s: &SegmentEntry, f: &FileEntry) -> Result<MappedCodes> {
     let thumb = ix.thumb(&m.config.global).len();
-    MappedCodes::open(dir, &f.file, f.bytes, &f.sha256, &s.sha256, &ix.model.sha256, s.images, ix.dims, ix.lists, thumb)
+    MappedCodes::open(dir, &f.file, f.bytes, &f.sha256, &s.sha256, &ix.model.sha256, s.images, ix.dims, ix.lists, thumb).map_err(Error::in_index)
 }
 
 /// Whether the codes of segment `s` open and check in full: `map verify`.
 pub(crate) fn codes_problem(dir: &Path, m: &Manifest, s: &SegmentEntry) -> Result<()> {
     let (Some(ix), Some(f)) = (&m.index, &s.index) else { return Ok(()) };
-    open_codes(dir, m, ix, s, f)?.check()
+    open_codes(dir, m, ix, s, f)?.check().map_err(Error::in_index)
 }
 
 /// Writes the codes of segment `entry` (already written to `dir`) under the index `ix`, loading

@@ -239,6 +239,24 @@ pub fn is_store_file(name: &str) -> bool {
         || (name.starts_with('.') && name.ends_with(".tmp"))
 }
 
+/// Whether `name` is the name of a file of a map's approximate index (its model, a segment's
+/// codes: `index-*.safetensors`).
+pub fn is_index_file(name: &str) -> bool {
+    name.starts_with("index-") && name.ends_with(".safetensors")
+}
+
+/// The files of its folder that `m` references: every segment and its index codes, the codebook,
+/// the index model, and the manifest and lock themselves.
+pub fn referenced_files(m: &Manifest) -> std::collections::HashSet<&str> {
+    m.segments
+        .iter()
+        .flat_map(|s| std::iter::once(s.file.as_str()).chain(s.index.as_ref().map(|f| f.file.as_str())))
+        .chain(m.codebook.as_ref().map(|c| c.file.as_str()))
+        .chain(m.index.as_ref().map(|i| i.model.file.as_str()))
+        .chain([MANIFEST, super::files::LOCK])
+        .collect()
+}
+
 /// A segment file name for `content_name` (named by its content's hash) that no entry of
 /// `segments` holds: the same images removed and added again make the same bytes, and a second
 /// entry of one file would share its rows and tombstones. A taken name gets the generation that
@@ -368,12 +386,30 @@ pub fn read_existing(dir: &Path) -> Result<Manifest> {
     match read(dir)? {
         Some(m) => Ok(m),
         // a folder that is there but holds no map says so, rather than "manifest.json: not found"
-        None if dir.is_dir() => {
-            Err(Error::refused(format!("{}", dir.display()), format!("is not a map (no {MANIFEST} in it)"), crate::error::Remedy::BuildOrResume))
-        }
+        None if dir.is_dir() => Err(not_a_map(dir)),
         // the OS's own "No such file or directory" (a bare ErrorKind says "entity not found")
         None => Err(Error::io(dir, std::io::Error::from_raw_os_error(NO_SUCH_FILE))),
     }
+}
+
+/// The refusal of folder `dir`, which holds no manifest, as a map: a build another process runs
+/// there has committed nothing yet ([`being_built`]), or it is no map (build it, or go on with
+/// its interrupted build).
+pub fn not_a_map(dir: &Path) -> Error {
+    match super::files::is_locked(dir) {
+        true => being_built(dir),
+        false => Error::refused(format!("{}", dir.display()), format!("is not a map (no {MANIFEST} in it)"), crate::error::Remedy::BuildOrResume),
+    }
+}
+
+/// The refusal of map `dir` while another process builds it: the build holds the write lock and
+/// has committed nothing yet (its first commit writes the manifest).
+pub fn being_built(dir: &Path) -> Error {
+    Error::refused(
+        format!("map {}", dir.display()),
+        "the map is being built by another process (nothing committed yet); wait for it to finish",
+        crate::error::Remedy::WaitForBuild,
+    )
 }
 
 /// The configuration queries of a map are encoded and matched with when none is given: the map's

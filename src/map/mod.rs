@@ -309,17 +309,16 @@ fn compute_stats(p: &SsimParams, globals: &[f32], stats: &mut [f32]) {
     crate::global::ssim_fast::ssim_stats_batch(p, globals, stats);
 }
 
-/// Reads and checks the codebook file (small: read and hashed in full at open).
 /// Runs `read` on the current manifest of `dir`, again on the next one when a segment it lists
-/// was deleted meanwhile (a compaction committed between the two reads); a file missing twice
-/// from the same generation is an error.
+/// (or an index file it lists) was deleted meanwhile (a compaction committed between the two
+/// reads); a file missing twice from the same generation is an error.
 pub(crate) fn with_current_manifest<T>(dir: &Path, mut read: impl FnMut(Manifest) -> Result<T>) -> Result<T> {
     let mut last_generation = None;
     for _ in 0..OPEN_ATTEMPTS {
         let m = manifest::read_existing(dir)?;
         let generation = m.generation;
         match read(m) {
-            Err(Error::Io { source, .. }) if source.kind() == std::io::ErrorKind::NotFound && last_generation != Some(generation) => {
+            Err(e) if e.is_missing_file() && last_generation != Some(generation) => {
                 last_generation = Some(generation);
             }
             other => return other,
@@ -331,6 +330,7 @@ pub(crate) fn with_current_manifest<T>(dir: &Path, mut read: impl FnMut(Manifest
     ))
 }
 
+/// Reads and checks the codebook file (small: read and hashed in full at open).
 fn read_codebook(dir: &Path, entry: &manifest::FileEntry, appearance_dim: usize) -> Result<Codebook> {
     let p = dir.join(&entry.file);
     let bytes = std::fs::read(&p).map_err(|e| Error::io(&p, e))?;

@@ -104,12 +104,17 @@ pub struct MapWriter {
     traversal: Option<u32>,
     /// The index model of the map (its SHA-256 and the model), once a commit needed it.
     index_model: Option<(String, crate::index::Model)>,
+    /// A new map's write lock, held from its creation to its first commit: a reader of the
+    /// folder meanwhile is told that a build is running there (`manifest::read_existing`).
+    held: Option<WriteLock>,
 }
 
 impl MapWriter {
     /// A writer for a new map in `dir`, which must not exist, or be empty, or (with `resume`) hold
     /// only files an interrupted build left (no manifest). With appearance, `appearance` gives the
-    /// VLAD codebook and the keypoint network's SHA-256, both stored with the first commit.
+    /// VLAD codebook and the keypoint network's SHA-256, both stored with the first commit. Holds
+    /// the folder's write lock until its first commit (a build another process runs in `dir` is
+    /// refused, and readers of `dir` are told one runs there).
     pub fn create(
         dir: &Path,
         cfg: &EncodingConfig,
@@ -132,6 +137,7 @@ impl MapWriter {
             (None, _) => None,
         };
         std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+        let held = WriteLock::try_take(dir)?.ok_or_else(|| manifest::being_built(dir))?;
         let n_classes = ClassTable::from_config(&cfg.classes)?.len();
         let manifest = Manifest {
             format: FORMAT.into(),
@@ -171,6 +177,7 @@ impl MapWriter {
             plan: TraversalPlan::New,
             traversal: None,
             index_model: None,
+            held: Some(held),
         })
     }
 
@@ -251,6 +258,10 @@ impl MapWriter {
         if manifest::read(dir)?.is_some() {
             return Err(Error::refused(what(), "a map already exists there", Remedy::AddResumeOrReplace));
         }
+        // the files there are a running build's, not an interrupted one's
+        if super::files::is_locked(dir) {
+            return Err(manifest::being_built(dir));
+        }
         if dir.exists() {
             let entries: Vec<String> =
                 std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?.flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
@@ -268,7 +279,7 @@ impl MapWriter {
     /// ignored). Reads the ids of every stored segment (not their checksums).
     pub fn append(dir: &Path, opts: StoreOptions) -> Result<MapWriter> {
         if manifest::read(dir)?.is_none() {
-            return Err(Error::refused(format!("map {}", dir.display()), "no manifest.json: not a map", Remedy::BuildOrResume));
+            return Err(manifest::not_a_map(dir));
         }
         // read without the lock: a compaction may delete a listed segment meanwhile
         super::with_current_manifest(dir, |manifest| {
@@ -287,6 +298,7 @@ impl MapWriter {
                 plan: TraversalPlan::New,
                 traversal: None,
                 index_model: None,
+                held: None,
                 manifest,
             };
             let segments = w.manifest.segments.clone();
@@ -534,7 +546,11 @@ impl MapWriter {
         file: Option<(&str, &[u8])>,
         buffered: &[String],
     ) -> Result<Option<String>> {
-        let _lock = WriteLock::take(&self.dir)?;
+        // a new map's first commit under the lock it holds since its creation
+        let _lock = match self.held.take() {
+            Some(held) => held,
+            None => WriteLock::take(&self.dir)?,
+        };
         let what = || format!("map {}", self.dir.display());
         let mut m = match (manifest::read(&self.dir)?, &self.first) {
             (None, Some(codebook)) => {

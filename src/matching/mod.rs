@@ -331,34 +331,31 @@ pub fn pair_terms(
         return Err(Error::invalid("fine stage", format!("{} scores for {} pairs", similarity.len(), pairs.len())));
     }
     let mut terms: Vec<PairTerms> = similarity.iter().map(|&f| PairTerms { similarity: f, ..PairTerms::default() }).collect();
-    match setting.verifies() {
-        true => {
-            let vp = VerifyParams::for_config(&cfg.verification, &ClassTable::from_config(&cfg.classes)?)?;
-            let mut v = stages.verify_pairs(&vp, refs, queries, pairs)?;
-            if v.len() != pairs.len() {
-                return Err(Error::invalid("verification", format!("{} results for {} pairs", v.len(), pairs.len())));
-            }
-            let w = &cfg.verification;
-            if w.matcher == Matcher::Mnn && w.w_glue > 0.0 {
-                // the learned matcher beside MNN, on every pair whose MNN inliers reach
-                // `glue_min_inliers`: a rule of the pair alone, so its score never depends on which
-                // other pairs are scored with it (shards, sequence neighbours)
-                let gated: Vec<usize> = (0..pairs.len()).filter(|&i| v[i].inliers >= w.glue_min_inliers).collect();
-                let sub: Vec<(u32, u32)> = gated.iter().map(|&i| pairs[i]).collect();
-                let g = stages.verify_pairs(&VerifyParams { matcher: Matcher::Lighterglue, ..vp }, refs, queries, &sub)?;
-                if g.len() != sub.len() {
-                    return Err(Error::invalid("verification", format!("{} results for {} pairs", g.len(), sub.len())));
-                }
-                gated.iter().zip(&g).for_each(|(&i, g)| v[i].glue_inliers = g.inliers);
-            }
-            // the compact HOGs' cosine where both sides have them (maps of small frames)
-            let hog = queries.compact_hog_dim > 0 && refs.compact_hog_dim() == queries.compact_hog_dim;
-            for ((t, v), &(q, r)) in terms.iter_mut().zip(&v).zip(pairs) {
-                t.verified = Some(*v);
-                t.compact_hog = hog.then(|| Values::F32(queries.image_compact_hog(q as usize)).dot(&refs.image_compact_hog(r as usize)));
-            }
+    if setting.verifies() {
+        let vp = VerifyParams::for_config(&cfg.verification, &ClassTable::from_config(&cfg.classes)?)?;
+        let mut v = stages.verify_pairs(&vp, refs, queries, pairs)?;
+        if v.len() != pairs.len() {
+            return Err(Error::invalid("verification", format!("{} results for {} pairs", v.len(), pairs.len())));
         }
-        false => {}
+        let w = &cfg.verification;
+        if w.matcher == Matcher::Mnn && w.w_glue > 0.0 {
+            // the learned matcher beside MNN, on every pair whose MNN inliers reach
+            // `glue_min_inliers`: a rule of the pair alone, so its score never depends on which
+            // other pairs are scored with it (shards, sequence neighbours)
+            let gated: Vec<usize> = (0..pairs.len()).filter(|&i| v[i].inliers >= w.glue_min_inliers).collect();
+            let sub: Vec<(u32, u32)> = gated.iter().map(|&i| pairs[i]).collect();
+            let g = stages.verify_pairs(&VerifyParams { matcher: Matcher::Lighterglue, ..vp }, refs, queries, &sub)?;
+            if g.len() != sub.len() {
+                return Err(Error::invalid("verification", format!("{} results for {} pairs", g.len(), sub.len())));
+            }
+            gated.iter().zip(&g).for_each(|(&i, g)| v[i].glue_inliers = g.inliers);
+        }
+        // the compact HOGs' cosine where both sides have them (maps of small frames)
+        let hog = queries.compact_hog_dim > 0 && refs.compact_hog_dim() == queries.compact_hog_dim;
+        for ((t, v), &(q, r)) in terms.iter_mut().zip(&v).zip(pairs) {
+            t.verified = Some(*v);
+            t.compact_hog = hog.then(|| Values::F32(queries.image_compact_hog(q as usize)).dot(&refs.image_compact_hog(r as usize)));
+        }
     }
     refs.check()?;
     Ok(terms)

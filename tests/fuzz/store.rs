@@ -129,7 +129,7 @@ impl Store {
 /// Whether `e` is a typed map error naming `dir` or a file in it: the manifest, or a file it lists.
 fn names_map_file(e: &Error, dir: &Path) -> bool {
     match e {
-        Error::CorruptMap { path, .. } | Error::Io { path, .. } => path == dir || path.parent() == Some(dir),
+        Error::CorruptMap { path, .. } | Error::Io { path, .. } | Error::DamagedIndex { path, .. } => path == dir || path.parent() == Some(dir),
         Error::MapVersion { path, .. } => path == dir,
         Error::InvalidConfig { source_name, .. } => *source_name == dir.join(MANIFEST).display().to_string(),
         _ => false,
@@ -138,7 +138,7 @@ fn names_map_file(e: &Error, dir: &Path) -> bool {
 
 /// Whether `e` is a typed map error naming file `name` of `dir`.
 fn names_file(e: &Error, dir: &Path, name: &str) -> bool {
-    matches!(e, Error::CorruptMap { path, .. } | Error::Io { path, .. } if *path == dir.join(name))
+    matches!(e, Error::CorruptMap { path, .. } | Error::Io { path, .. } | Error::DamagedIndex { path, .. } if *path == dir.join(name))
 }
 
 fn verdict(e: &Error, named: &dyn Fn(&Error) -> bool) -> Verdict {

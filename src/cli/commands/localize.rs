@@ -13,6 +13,9 @@ use std::time::Instant;
 
 /// Frames decoded ahead of the one being matched.
 const AHEAD: usize = 2;
+/// The `accepted` column of a refused frame's CSV row (its match columns are empty; the reason
+/// goes to standard error): what a reader tells a refused frame by, beside `true` and `false`.
+const REFUSED: &str = "refused";
 
 pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
     // the frames a folder holds and their times are checked before any work
@@ -55,8 +58,10 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
             Replayed::Refused(frame, id, e) => {
                 log::warn!("frame {frame} ({id}) skipped: {e}");
                 first_refusal.get_or_insert_with(|| format!("frame {frame} ({id}): {e}"));
-                if a.json {
-                    outln!("{}", serde_json::json!({ "frame": frame, "id": id, "refused": e.to_string() }));
+                match a.json {
+                    true => outln!("{}", serde_json::json!({ "frame": frame, "id": id, "refused": e.to_string() })),
+                    // the frame's row with no match and `refused` in the accepted column
+                    false => outln!("{frame},{},,,,,,{REFUSED},,", csv_field(&id)),
                 }
                 Ok(())
             }
@@ -116,10 +121,7 @@ fn print_frame(r: &FrameResult, json: bool) -> Result<()> {
     }
     let best = r.best();
     let seq = r.sequence.as_ref();
-    let csv = |s: &str| match s.contains([',', '"', '\n']) {
-        true => format!("\"{}\"", s.replace('"', "\"\"")),
-        false => s.to_string(),
-    };
+    let csv = csv_field;
     outln!(
         "{},{},{},{},{},{},{},{},{},{:.1}",
         r.frame,
@@ -134,4 +136,12 @@ fn print_frame(r: &FrameResult, json: bool) -> Result<()> {
         r.latency.total_ms
     );
     Ok(())
+}
+
+/// A CSV field: quoted (quotes doubled) where it holds a separator, a quote or a line break.
+fn csv_field(s: &str) -> String {
+    match s.contains([',', '"', '\n']) {
+        true => format!("\"{}\"", s.replace('"', "\"\"")),
+        false => s.to_string(),
+    }
 }

@@ -17,17 +17,18 @@ use std::path::Path;
 
 pub fn run(cmd: MapCommand, engine: &dyn Fn() -> Result<Engine>, quiet: bool) -> Result<()> {
     match cmd {
-        MapCommand::Build { source, map: out, config, force, resume, hog, traversal, index, store, poses } => {
+        MapCommand::Build { source, map: out, config, force, resume, hog, map_traversal: traversal, index, store, poses } => {
             build(&mut engine()?, &source, &out, config.as_deref(), &BuildFlags { force, resume, hog, traversal, store, poses, index }, quiet)
         }
         MapCommand::Index { map, config, drop, json } => index(&map, config.as_deref(), drop, json, quiet),
-        MapCommand::Add { source, map, resume, segment_images, traversal, poses } => {
-            let plan = match (traversal, resume) {
+        MapCommand::Add { source, map, resume, segment_images, map_traversal, id_prefix, poses } => {
+            let plan = match (map_traversal, resume) {
                 (Some(name), _) => TraversalPlan::Named(name),
                 (None, true) => TraversalPlan::Last,
                 (None, false) => TraversalPlan::New,
             };
-            add(&mut engine()?, &source, &poses, &map, resume, segment_images, plan, quiet)
+            let how = AddFlags { resume, segment_images, plan, id_prefix };
+            add(&mut engine()?, &source, &poses, &map, how, quiet)
         }
         MapCommand::Info { map, json } => show(&map, json),
         MapCommand::Remove { map, ids } => remove(&map, &ids, quiet),
@@ -42,6 +43,7 @@ pub struct BuildFlags {
     pub force: bool,
     pub resume: bool,
     pub hog: bool,
+    /// `--map-traversal`: the map's traversal the images make.
     pub traversal: Option<String>,
     pub store: StoreArgs,
     pub poses: PoseArgs,
@@ -158,7 +160,7 @@ fn describe_index(ix: &semlook::map::manifest::IndexEntry, global: &semlook::con
         (w, h) => format!("thumbnails {w}x{h} (global descriptors pooled by {}, {} bytes a reference)", t.pool, t.len()),
     };
     format!(
-        "index: IVF over {} dimensions, {} lists, {thumbs}, trained on {} images (sample {}, {} iterations, seed {}); recall@30 {:.3} ({} of {}) with {} lists probed and a shortlist of {}, against the exact appearance ranking; built in {:.1} s",
+        "index: IVF over {} dimensions, {} lists, {thumbs}, trained on {} images (sample {}, {} iterations, seed {}); recall@30 {:.3} ({} of {}) with {} and a shortlist of {}, against the exact appearance ranking; built in {:.1} s",
         ix.dims,
         ix.lists,
         ix.trained_on,
@@ -168,10 +170,19 @@ fn describe_index(ix: &semlook::map::manifest::IndexEntry, global: &semlook::con
         ix.recall(),
         ix.recall_hits,
         ix.recall_of,
-        ix.recall_probe,
+        lists_probed(ix.recall_probe, ix.lists),
         ix.recall_shortlist,
         ix.build_ms as f64 / 1000.0
     )
+}
+
+/// How many of an index's `lists` a search asking for `probe` scans, in words: never more than
+/// the index has (`index.probe` 112 of an index of 10 lists scans all 10).
+pub fn lists_probed(probe: usize, lists: usize) -> String {
+    match probe.max(1) {
+        p if p >= lists => format!("all {lists} lists probed"),
+        p => format!("{p} of {lists} lists probed"),
+    }
 }
 
 /// `map index`: build (or rebuild) or drop a map's index.
@@ -213,22 +224,29 @@ fn report_encoding(r: &batch::IntoReport, quiet: bool) {
     }
 }
 
-#[allow(clippy::too_many_arguments)]
-fn add(
-    engine: &mut Engine,
-    s: &SourceArgs,
-    p: &PoseArgs,
-    dir: &Path,
+/// The switches of `map add`.
+struct AddFlags {
     resume: bool,
     segment_images: Option<usize>,
     plan: TraversalPlan,
-    quiet: bool,
-) -> Result<()> {
+    /// `--id-prefix`: put before every new image's id.
+    id_prefix: Option<String>,
+}
+
+fn add(engine: &mut Engine, s: &SourceArgs, p: &PoseArgs, dir: &Path, f: AddFlags, quiet: bool) -> Result<()> {
+    let AddFlags { resume, segment_images, plan, id_prefix } = f;
     let map = Map::open(dir)?;
     let mut cfg = map_config(&map, None, &s.models)?;
-    let (frames, fmt, poses) = frame_sources_posed(s, Some(p), &mut cfg, true)?;
+    let (mut frames, fmt, mut poses) = frame_sources_posed(s, Some(p), &mut cfg, true)?;
     if frames.is_empty() {
         return Err(Error::invalid("new images", "no images found"));
+    }
+    if let Some(prefix) = &id_prefix {
+        // the poses follow their images' new ids
+        poses = poses.into_iter().map(|(id, pose)| (format!("{prefix}{id}"), pose)).collect();
+        for f in &mut frames {
+            f.id = format!("{prefix}{}", f.id);
+        }
     }
     let encoder = Encoder::for_map(&cfg, &map)?.with_hog(map.manifest.hog_dim > 0);
     drop(map);
@@ -408,6 +426,9 @@ fn verify(dir: &Path, json: bool) -> Result<()> {
         for l in &r.leftovers {
             outln!("LEFTOVER {l} (an interrupted writer's; the next add, remove or compact removes it)");
         }
+        for f in &r.unreferenced {
+            outln!("UNREFERENCED {f} (left by a failed write; `semlook map compact` removes them)");
+        }
     }
     let damaged: Vec<&str> = r.damaged().map(|f| f.file.as_str()).collect();
     match damaged.first() {
@@ -421,7 +442,12 @@ fn verify(dir: &Path, json: bool) -> Result<()> {
             let problem = r.damaged().next().and_then(|f| f.problem.clone()).unwrap_or_default();
             let others =
                 if damaged.len() > 1 { format!(" (and {} more damaged: {})", damaged.len() - 1, damaged[1..].join(", ")) } else { String::new() };
-            Err(Error::corrupt(dir.join(first), format!("{problem}{others}")))
+            let reason = format!("{problem}{others}");
+            // files of the index alone: building it again or dropping it mends the map
+            match r.only_index_damaged() {
+                true => Err(Error::DamagedIndex { path: dir.join(first), reason, missing: false }),
+                false => Err(Error::corrupt(dir.join(first), reason)),
+            }
         }
     }
 }

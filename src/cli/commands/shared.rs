@@ -7,6 +7,7 @@ use semlook::dataset::{Dataset, DatasetOptions};
 use semlook::error::{Error, Result};
 use semlook::input::{FrameSource, LabelFormat};
 use semlook::map::Map;
+use semlook::matching::Setting;
 use std::path::Path;
 
 pub fn info(quiet: bool, msg: impl AsRef<str>) {
@@ -156,6 +157,42 @@ pub fn check_output_file(file: &Path, flag: &str) -> Result<()> {
         return Err(Error::invalid(format!("{flag} {}", file.display()), format!("its folder {} does not exist", parent.display())));
     }
     Ok(())
+}
+
+/// Which coarse search a match of `setting` against `map` (`places` references; none: references
+/// encoded in memory) ran, in the words of the info line after `coarse search: `: the map's
+/// index where `approximate` (`MatchTimes::approximate`) says it was searched, with what it
+/// probed and shortlisted (`w_embedding`: the fused score's embedding weight for these queries),
+/// else the exact scan.
+pub fn coarse_search(map: Option<&Map>, places: usize, cfg: &Config, setting: Setting, approximate: bool, w_embedding: f32) -> String {
+    let at_least = semlook::matching::list_len(setting, cfg);
+    let plan = map
+        .filter(|_| approximate)
+        .and_then(|m| m.index_plan(cfg.index.probe, cfg.index.shortlist, at_least, cfg.matching.w_global as f32, w_embedding));
+    match plan {
+        Some(p) => format!("index (probe {} of {} lists, shortlist {})", p.probed, p.lists, p.shortlist),
+        None => format!("exact scan of {places} places"),
+    }
+}
+
+/// Warns where the config asks for the approximate index (`index.search = "approximate"`) and
+/// the references have none, so the coarse search scans every place (`map`: the map matched
+/// against; none: references encoded in memory).
+pub fn warn_if_no_index(cfg: &Config, map: Option<&Map>) {
+    if cfg.index.search != semlook::config::IndexSearch::Approximate {
+        return;
+    }
+    match map {
+        Some(m) if m.index().is_none() => log::warn!(
+            "index.search = \"approximate\", but map {} has no index: the coarse search scans every place (`semlook map index --map {}` builds one)",
+            m.path.display(),
+            m.path.display()
+        ),
+        None => log::warn!(
+            "index.search = \"approximate\", but the references are encoded here, without an index: the coarse search scans every place (`semlook map index` builds one for a map given with --map)"
+        ),
+        Some(_) => {}
+    }
 }
 
 /// Writes `text` to `path`; an error names the file.

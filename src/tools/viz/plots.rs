@@ -12,6 +12,37 @@ use plotters::prelude::*;
 use std::path::{Path, PathBuf};
 
 const SIZE: (u32, u32) = (720, 540);
+/// The PNG's text rows above the plot area (bitmap font at scale 2, 14 px high): the title, then
+/// the y axis's name below it, then the plot area (the two rows overlapped where the plot area
+/// began 40 px down).
+const PNG_TITLE_Y: i64 = 10;
+/// The top of the y axis's name in the PNG (below the title's 14 px and a gap).
+const PNG_Y_DESC_Y: i64 = 34;
+/// The PNG's plot area starts this far down (below the y axis's name and room for the top tick
+/// label, which is centred on its grid line).
+const PNG_MARGIN_TOP: u32 = 60;
+/// The PNG's rows below the plot area: the x tick labels, then the x axis's name below them (they
+/// overlapped in the 40 px there were).
+const PNG_X_LABEL_AREA: u32 = 52;
+/// The x tick labels' top below the plot area's bottom line.
+const PNG_X_TICK_GAP: i64 = 8;
+/// The x axis's name's top above the picture's bottom edge.
+const PNG_X_DESC_FROM_BOTTOM: i64 = 20;
+
+// The PNG's rows of text do not overlap, checked when the crate compiles: the title, the y axis's
+// name below it and the top tick label (centred on the plot area's top grid line or lower); the x
+// tick labels and the x axis's name below the plot area (whose bottom line is PNG_X_LABEL_AREA
+// above the picture's bottom edge). The layout of before fails them (title at 12, "precision" at
+// 24, plot area from 40; ticks 6 px below it, "recall" 22 px above the edge in 40 px: "precision"
+// shared the title's rows, "recall" the tick labels').
+const _: () = {
+    const GLYPH: i64 = 14; // 7 rows at scale 2
+    assert!(PNG_TITLE_Y + GLYPH < PNG_Y_DESC_Y, "the y axis's name overlaps the title");
+    assert!(PNG_Y_DESC_Y + GLYPH < PNG_MARGIN_TOP as i64 - 7, "the top tick label overlaps the y axis's name");
+    let (tick_bottom, name_top) = (PNG_X_TICK_GAP + GLYPH, PNG_X_LABEL_AREA as i64 - PNG_X_DESC_FROM_BOTTOM);
+    assert!(tick_bottom < name_top, "the x axis's name overlaps the tick labels");
+    assert!(name_top + GLYPH <= PNG_X_LABEL_AREA as i64, "the x axis's name leaves the picture");
+};
 /// One colour per setting, in the order of [`Setting::ALL`] (so a setting keeps its colour in
 /// every chart, whichever others ran): the baselines grey and brown, the paper's settings
 /// ColorBrewer Set1, `fused` teal, and the recommended `verified` black, drawn last and
@@ -201,9 +232,9 @@ fn png_chart(path: &Path, title: &str, series: &[Series]) -> Result<()> {
         // no text through plotters (it has no font here): tick labels, title and legend are
         // drawn below in the bitmap font at the positions plotters maps them to
         let mut chart = ChartBuilder::on(&root)
-            .margin_top(40)
+            .margin_top(PNG_MARGIN_TOP)
             .margin_right(16)
-            .x_label_area_size(40)
+            .x_label_area_size(PNG_X_LABEL_AREA)
             .y_label_area_size(50)
             .build_cartesian_2d(0f64..1.0f64, 0f64..1.02f64)
             .map_err(|e| err(path, e))?;
@@ -235,16 +266,16 @@ fn png_chart(path: &Path, title: &str, series: &[Series]) -> Result<()> {
             }
         })
     };
-    text(&mut img, 16, 12, title, black);
+    text(&mut img, 16, PNG_TITLE_Y, title, black);
     for ((x, y), s, on_x) in &ticks {
         if *on_x {
-            text(&mut img, *x as i64 - font::width(s, 2) as i64 / 2, *y as i64 + 6, s, black);
+            text(&mut img, *x as i64 - font::width(s, 2) as i64 / 2, *y as i64 + PNG_X_TICK_GAP, s, black);
         } else {
             text(&mut img, *x as i64 - font::width(s, 2) as i64 - 6, *y as i64 - 7, s, black);
         }
     }
-    text(&mut img, (w / 2) as i64 - 30, (h - 22) as i64, "recall", black);
-    text(&mut img, 4, 24, "precision", black);
+    text(&mut img, (w / 2) as i64 - 30, h as i64 - PNG_X_DESC_FROM_BOTTOM, "recall", black);
+    text(&mut img, 4, PNG_Y_DESC_Y, "precision", black);
     for (i, s) in series.iter().enumerate() {
         let (c, name) = (s.colour, &s.label);
         let (x, y) = (legend_at.0 as i64 + 4, legend_at.1 as i64 + i as i64 * 20);
