@@ -17,13 +17,13 @@
 //! Positions enter as fractions of the image's long side (what the map stores): the rotary encoding
 //! depends only on differences of positions, so the image's size beyond its long side is not needed.
 
-use super::dense::Dense as Linear;
 use crate::appearance::torch_pt::{read_state_dict, Tensor};
 use crate::descriptors::keypoints::{KeypointsRef, COORD_SCALE};
 use crate::error::{Error, Result};
 use crate::kernels::lighterglue::erf_with;
 use crate::util::lane_sum;
-use matrixmultiply::sgemm;
+use ndarray::linalg::general_mat_mul;
+use ndarray::{ArrayView2, ArrayViewMut2, ShapeBuilder};
 use std::collections::HashMap;
 use std::path::Path;
 
@@ -614,36 +614,86 @@ fn filter_matches(scores: &[f32], m: usize, n: usize, th: f32) -> Vec<GlueMatch>
     out
 }
 
+/// `rows` rows of `n` values `ld` apart in `v`, as a matrix view (strides: no copy).
+fn view(v: &[f32], rows: usize, n: usize, ld: usize) -> ArrayView2<'_, f32> {
+    let len = if rows == 0 { 0 } else { (rows - 1) * ld + n };
+    ArrayView2::from_shape((rows, n).strides((ld, 1)), &v[..len.min(v.len())]).expect("rows within the slice")
+}
+
 /// `a (m x k) b^T`, `b` being `n x k`: `m x n`.
 fn gemm_nt(a: &[f32], b: &[f32], m: usize, n: usize, k: usize) -> Vec<f32> {
     gemm_nt_strided(a, k, b, k, m, n, k)
 }
 
-/// [`gemm_nt`] on rows `lda` and `ldb` apart (the first `k` values of each).
+/// [`gemm_nt`] on rows `lda` and `ldb` apart (the first `k` values of each): ndarray's product
+/// (matrixmultiply's kernels) on strided views, nothing copied.
 fn gemm_nt_strided(a: &[f32], lda: usize, b: &[f32], ldb: usize, m: usize, n: usize, k: usize) -> Vec<f32> {
-    assert!(m == 0 || n == 0 || (k <= lda.min(ldb) && a.len() >= (m - 1) * lda + k && b.len() >= (n - 1) * ldb + k));
-    product(m, n, |c| {
-        // SAFETY: a holds m rows of k values lda apart, b n rows of k values ldb apart (asserted),
-        // c is m x n row-major.
-        unsafe { sgemm(m, k, n, 1.0, a.as_ptr(), lda as isize, 1, b.as_ptr(), 1, ldb as isize, 0.0, c, n as isize, 1) }
-    })
-}
-
-/// An `m x n` product that `write` stores whole (matrixmultiply with beta 0 writes every element
-/// of C without reading it, k = 0 included): no zeroing first.
-fn product(m: usize, n: usize, write: impl FnOnce(*mut f32)) -> Vec<f32> {
-    let mut c = Vec::with_capacity(m * n);
+    let mut c = vec![0.0f32; m * n];
     if m > 0 && n > 0 {
-        write(c.as_mut_ptr());
+        let mut cv = ArrayViewMut2::from_shape((m, n), &mut c).expect("m x n");
+        general_mat_mul(1.0, &view(a, m, k, lda), &view(b, n, k, ldb).t(), 0.0, &mut cv);
     }
-    // SAFETY: every one of the m x n elements was written above (or there are none).
-    unsafe { c.set_len(m * n) };
     c
 }
 
 /// `a (m x k) b (k x n)`: `m x n`, `b`'s rows `ldb` apart (the first `n` values of each).
 fn gemm_nn_strided(a: &[f32], b: &[f32], ldb: usize, m: usize, k: usize, n: usize) -> Vec<f32> {
-    super::dense::product(a, k, m, k, b, ldb, n)
+    let mut c = vec![0.0f32; m * n];
+    if m > 0 && n > 0 {
+        let mut cv = ArrayViewMut2::from_shape((m, n), &mut c).expect("m x n");
+        general_mat_mul(1.0, &view(a, m, k, k), &view(b, k, n, ldb), 0.0, &mut cv);
+    }
+    c
+}
+
+/// A linear layer `y = x W^T + b`: `n_out` x `n_in` weights in PyTorch's layout.
+pub struct Linear {
+    w: Vec<f32>,
+    b: Vec<f32>,
+    n_in: usize,
+    n_out: usize,
+}
+
+impl Linear {
+    /// The layer of weights `w` (`n_out` x `n_in`, row-major) and bias `b`.
+    pub fn new(w: Vec<f32>, b: Vec<f32>, n_in: usize, n_out: usize) -> Linear {
+        assert_eq!((w.len(), b.len()), (n_out * n_in, n_out));
+        Linear { w, b, n_in, n_out }
+    }
+    /// Weights (`n_out` x `n_in`, row-major).
+    pub fn weights(&self) -> &[f32] {
+        &self.w
+    }
+    /// Bias.
+    pub fn bias(&self) -> &[f32] {
+        &self.b
+    }
+    /// Input width.
+    pub fn n_in(&self) -> usize {
+        self.n_in
+    }
+    /// Output width.
+    pub fn n_out(&self) -> usize {
+        self.n_out
+    }
+    /// `rows` rows of `x` (each `n_in` long) through the layer.
+    pub fn forward(&self, x: &[f32], rows: usize) -> Vec<f32> {
+        let mut y = vec![0.0f32; rows * self.n_out];
+        self.forward_into(x, self.n_in, rows, &mut y, self.n_out);
+        y
+    }
+    /// The layer's outputs for `rows` rows of `x` (`lda` apart) into `y`'s rows (`ldy` apart; the
+    /// first `n_out` values of each are written, the rest left as they are).
+    pub fn forward_into(&self, x: &[f32], lda: usize, rows: usize, y: &mut [f32], ldy: usize) {
+        let (k, n) = (self.n_in, self.n_out);
+        if rows == 0 || n == 0 {
+            return;
+        }
+        let len = (rows - 1) * ldy + n;
+        let mut yv = ArrayViewMut2::from_shape((rows, n).strides((ldy, 1)), &mut y[..len]).expect("rows within y");
+        yv.rows_mut().into_iter().for_each(|mut r| r.assign(&ndarray::ArrayView1::from(&self.b[..])));
+        general_mat_mul(1.0, &view(x, rows, k, lda), &view(&self.w, n, k, k).t(), 1.0, &mut yv);
+    }
 }
 
 /// `a` (`m x n`, row-major) transposed, by tiles of 16 x 16 (the cache lines of both

@@ -8,7 +8,6 @@
 //! is trusted.
 
 pub mod best_columns;
-mod dense;
 pub mod homography;
 pub mod lighterglue;
 pub mod ransac;
