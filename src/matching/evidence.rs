@@ -12,7 +12,7 @@ use crate::config::{InlierEvidence, VerificationConfig};
 use serde::Serialize;
 
 /// What the fine stage gives one (query, reference) pair: its tree-set similarity and, for
-/// `verified`, the pair's part of the verified score and the evidence [`rank`] weighs against the
+/// `verified`, the pair's part of the verified score and the evidence [`rank`](super::rank) weighs against the
 /// query's other candidates ([`Evidence`]).
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
 pub struct PairScore {
