@@ -74,6 +74,23 @@ fn bench(c: &mut Criterion) {
             CpuStages.verify_pairs(&vp, &refs, &queries, &pairs).unwrap()
         })
     });
+    // the whole fine stage of `verified` for one query and its ranking (tree similarity,
+    // verification, the score): the score of before issue 51 (`inliers = "count"`) and the
+    // default's (evidence weighed against the query's candidates, sweep 17)
+    for (what, toml) in [("inliers = count, the score before issue 51", "[verification]\ninliers = \"count\"\n"), ("the default score", "")] {
+        let c = Config::from_toml(toml, "bench").unwrap();
+        g.bench_function(format!("fine_scores + rank (CPU: {what})/1_query_x{K}_candidates_{}_keypoints", cfg.keypoints.stored), |b| {
+            b.iter(|| {
+                q = (q + 1) % queries.len() as u32;
+                let pairs: Vec<(u32, u32)> = (0..K as u32).map(|r| (q, r)).collect();
+                let lists = vec![pairs.iter().map(|&(_, r)| (1.0 - r as f32 * 0.01, r)).collect::<Vec<_>>()];
+                let one = queries.slice(q as usize, q as usize + 1);
+                let single: Vec<(u32, u32)> = pairs.iter().map(|&(_, r)| (0, r)).collect();
+                let fine = semlook::matching::fine_scores(&mut CpuStages, &refs, &one, semlook::matching::Setting::Verified, &c, &single).unwrap();
+                semlook::matching::rank(semlook::matching::Setting::Verified, &lists, Some(&fine), &c).unwrap()
+            })
+        });
+    }
     let glue_cfg = Config::from_toml("[verification]\nmatcher = \"lighterglue\"\n", "bench").unwrap();
     let gp = VerifyParams::new(&glue_cfg.verification);
     match semlook::verify::shared_lighterglue() {

@@ -332,7 +332,15 @@ pub fn run(
                             match_query_set(engine, refs, name, set, gt, &[st], cfg, false, &mut reports, &mut skipped)?;
                             continue;
                         }
-                        let key = (match_key.clone(), name.clone(), st);
+                        // a setting that does not verify reads no verification section: configurations that
+                        // differ only there share its matches (the baselines and `fused` run once)
+                        let key = match st.verifies() {
+                            true => (match_key.clone(), name.clone(), st),
+                            false => {
+                                let plain = Config { verification: Default::default(), ..no_seq.clone() };
+                                (format!("{enc_key}|{}", plain.to_toml()?), name.clone(), st)
+                            }
+                        };
                         if !matched.contains_key(&key) && st == Setting::Verified {
                             let terms_key = (format!("{enc_key}|{}", unweighed(&no_seq).to_toml()?), name.clone());
                             if !measured.contains_key(&terms_key) {
