@@ -98,7 +98,7 @@ fn the_answer_at_frame_t_does_not_depend_on_the_frames_after_it() {
 
 /// Share of results whose answer lies within `tol` frames of the frame the stream shows.
 fn near(results: &[(usize, FrameResult)], refs: &[FrameSource], tol: usize) -> f64 {
-    let ok = results.iter().filter(|(truth, r)| r.place().is_some_and(|(id, _)| index_of(refs, id).abs_diff(*truth) <= tol)).count();
+    let ok = results.iter().filter(|(truth, r)| r.place().is_some_and(|a| index_of(refs, &a.id).abs_diff(*truth) <= tol)).count();
     ok as f64 / results.len().max(1) as f64
 }
 

@@ -136,7 +136,7 @@ pub fn frame_id(h: &Header) -> String {
 pub fn place_match(h: &Header, r: &FrameResult, latency_ms: f32) -> PlaceMatch {
     let best = r.best();
     let seq = r.sequence.as_ref();
-    let (place_id, score) = r.place().map_or((String::new(), 0.0), |(id, score)| (id.to_string(), score));
+    let (place_id, score) = r.place().map_or((String::new(), 0.0), |a| (a.id.clone(), a.score));
     let place_index = r.place_index().unwrap_or(0);
     PlaceMatch {
         header: h.clone(),
@@ -436,7 +436,7 @@ fn localize(
                         counts.published.fetch_add(1, Ordering::Relaxed);
                         let total = f.received.elapsed().as_secs_f64() * 1e3;
                         stats.push(&Latency { total_ms: total, ..r.latency });
-                        log::debug!("frame {id}: {:?} in {total:.1} ms", r.place());
+                        log::debug!("frame {id}: {:?} in {total:.1} ms", r.place().map(|a| (&a.id, a.score, a.source)));
                     }
                     Err(e) => log::warn!("match of frame {id} not published: {e:?}"),
                 }

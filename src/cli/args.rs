@@ -74,6 +74,10 @@ pub enum DevCommand {
     /// maps of each size (the real references plus distractor places), frames/s and p50/p99
     /// latency per stage.
     BenchStream(BenchStreamArgs),
+    /// `localize --stdin` against `localize --images` on the same files: frames/s and latency
+    /// from a frame's bytes being complete to its answer, each way, and whether the answers are
+    /// equal frame for frame.
+    BenchPipe(BenchPipeArgs),
     /// Approximate-index benchmark: maps of each size made from a real map's images (appearance
     /// vectors made new per reference), the index built, real query photos through the index and
     /// through the exact scan: build time, bytes per reference, p50/p99 latency, queries/s,
@@ -175,6 +179,27 @@ pub struct IndexBenchArgs {
     pub config: Option<PathBuf>,
     #[command(flatten)]
     pub out: BenchMapsArgs,
+}
+
+#[derive(Args)]
+pub struct BenchPipeArgs {
+    /// The map to localize against.
+    #[arg(long)]
+    pub map: PathBuf,
+    /// Folder of images (JPEG or PNG), localized in name order from the folder and piped.
+    #[arg(long)]
+    pub images: PathBuf,
+    /// Which stages rank the map per frame.
+    #[arg(long, value_enum, default_value_t = Setting::RECOMMENDED)]
+    pub setting: Setting,
+    /// Configuration file (TOML); default: the map's.
+    #[arg(long, value_name = "FILE.toml")]
+    pub config: Option<PathBuf>,
+    /// One JSON object per row and line.
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub models: ModelArgs,
 }
 
 #[derive(Args)]

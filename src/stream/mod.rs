@@ -105,6 +105,49 @@ pub struct PlaceMatch {
     pub inliers: Option<u32>,
 }
 
+/// Where a stream's answer comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AnswerSource {
+    /// The accepted sequence match.
+    Sequence,
+    /// The single-frame best (sequence matching off, no match accepted yet, or none accepted at
+    /// this frame).
+    Frame,
+}
+
+impl AnswerSource {
+    /// `sequence` or `frame`, as the CSV and JSON lines write it.
+    pub fn name(self) -> &'static str {
+        match self {
+            AnswerSource::Sequence => "sequence",
+            AnswerSource::Frame => "frame",
+        }
+    }
+}
+
+/// The stream's answer for one frame: the accepted sequence match where there is one, else the
+/// single-frame best. Its `score` is on one scale whatever the source: the setting's score of the
+/// answered place against this frame (the scale of [`FrameResult::top_k`]'s scores; the sequence
+/// match's own score stays in [`FrameResult::sequence`]).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Answer {
+    /// Index of the place in the map's generation the frame was answered from.
+    pub index: u32,
+    /// The place's image id.
+    pub id: String,
+    /// Where the place lies on the map's routes.
+    pub place: Place,
+    /// The setting's score of the place against this frame (higher is better; the scale of
+    /// `top_k`'s scores).
+    pub score: f32,
+    /// Whether the answer is the accepted sequence match or the single-frame best.
+    pub source: AnswerSource,
+    /// The answer is an accepted sequence match (`source` is `sequence`); a single-frame answer
+    /// is never accepted.
+    pub accepted: bool,
+}
+
 /// The sequence match of a frame.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct SequenceResult {
@@ -151,6 +194,10 @@ pub struct Latency {
     pub store_ms: f64,
     /// From the call to the answer.
     pub total_ms: f64,
+    /// From the moment the frame's bytes were complete (a piped image read to its end, a
+    /// folder's frame taken in turn; [`replay`]) to the answer: `total_ms` plus reading,
+    /// decoding and the wait for the matcher. [`Localizer::push`] alone: `total_ms`.
+    pub arrival_ms: f64,
 }
 
 impl Latency {
@@ -166,6 +213,7 @@ impl Latency {
             sequence_ms: f(self.sequence_ms, o.sequence_ms),
             store_ms: f(self.store_ms, o.store_ms),
             total_ms: f(self.total_ms, o.total_ms),
+            arrival_ms: f(self.arrival_ms, o.arrival_ms),
         }
     }
 }
@@ -228,6 +276,7 @@ impl LatencyStats {
                 sequence_ms: field(|l| l.sequence_ms),
                 store_ms: field(|l| l.store_ms),
                 total_ms: field(|l| l.total_ms),
+                arrival_ms: field(|l| l.arrival_ms),
             }
         };
         let sum = self.last.iter().fold(Latency::default(), |a, b| a.zip(*b, |x, y| x + y));
@@ -242,6 +291,9 @@ pub struct FrameResult {
     pub frame: u64,
     /// The frame's id.
     pub id: String,
+    /// The stream's answer ([`Answer`]): the accepted sequence match, else the single-frame best;
+    /// `None` where the frame has no match (a loop-closure map warming up, an empty map).
+    pub answer: Option<Answer>,
     /// The frame's timestamp, in seconds, when it has one.
     pub timestamp: Option<f64>,
     /// The map generation the frame was answered from.
@@ -271,20 +323,14 @@ impl FrameResult {
     pub fn best(&self) -> Option<&PlaceMatch> {
         self.top_k.first()
     }
-    /// The stream's answer: the sequence match where it is accepted, else the single-frame best
-    /// (id, score).
-    pub fn place(&self) -> Option<(&str, f32)> {
-        match &self.sequence {
-            Some(s) if s.matched.accepted => Some((s.id.as_str(), s.matched.score)),
-            _ => self.best().map(|b| (b.id.as_str(), b.score)),
-        }
+    /// The stream's answer ([`FrameResult::answer`]): the sequence match where it is accepted,
+    /// else the single-frame best.
+    pub fn place(&self) -> Option<&Answer> {
+        self.answer.as_ref()
     }
     /// The map index of [`FrameResult::place`].
     pub fn place_index(&self) -> Option<u32> {
-        match &self.sequence {
-            Some(s) if s.matched.accepted => Some(s.index),
-            _ => self.best().map(|b| b.index),
-        }
+        self.answer.as_ref().map(|a| a.index)
     }
 }
 
@@ -573,6 +619,7 @@ impl Localizer {
             r.latency.store_ms = ms_since(t);
         }
         r.latency.total_ms = ms_since(t0);
+        r.latency.arrival_ms = r.latency.total_ms;
         Ok(r)
     }
 
@@ -651,6 +698,14 @@ impl Localizer {
         };
         let top_k: Vec<PlaceMatch> = ranked.iter().take(self.cfg.matching.top_k).map(report).collect();
         let mut sequence = None;
+        let mut answer = top_k.first().map(|b| Answer {
+            index: b.index,
+            id: b.id.clone(),
+            place: b.place,
+            score: b.score,
+            source: AnswerSource::Frame,
+            accepted: false,
+        });
         if self.opts.sequence {
             let t = Instant::now();
             let widen = if full_rows { 0 } else { self.cfg.sequence.widen };
@@ -660,6 +715,20 @@ impl Localizer {
             let row = contributions(&self.cfg.sequence, &scored, &lens);
             let m = self.seq.push(row, &lens);
             sequence = m.and_then(|m| map.at(m.place).map(|i| SequenceResult { index: i as u32, id: map.id(i).to_string(), matched: m }));
+            if let Some(s) = sequence.as_ref().filter(|s| s.matched.accepted) {
+                // the answer's score on the frame's scale: the place's score in this frame's row,
+                // or (a place the row did not reach) scored now, as its neighbours were
+                let score = match scored.iter().find(|(p, _)| *p == s.matched.place) {
+                    Some(&(_, v)) => v,
+                    None => {
+                        let evidence = [matched.evidence];
+                        let c = self.engine.score_pairs(map, &queries, setting, &self.cfg, &[(0, s.index)], Some(&evidence))?;
+                        c.first().map_or(f32::NEG_INFINITY, |c| c.score)
+                    }
+                };
+                answer =
+                    Some(Answer { index: s.index, id: s.id.clone(), place: s.matched.place, score, source: AnswerSource::Sequence, accepted: true });
+            }
             latency.sequence_ms = ms_since(t);
         }
         // tracking follows accepted matches, and lets go after `lost_after` frames without one
@@ -700,6 +769,7 @@ impl Localizer {
         let mut r = FrameResult {
             frame: index,
             id: frame.id.clone(),
+            answer,
             timestamp: frame.timestamp,
             generation: map.manifest.generation,
             top_k,
@@ -754,6 +824,7 @@ impl Localizer {
         Ok(FrameResult {
             frame: index,
             id: frame.id.clone(),
+            answer: None,
             timestamp: frame.timestamp,
             generation: self.map.as_ref().map_or(0, |m| m.manifest.generation),
             top_k: vec![],
@@ -763,7 +834,7 @@ impl Localizer {
             tracking: false,
             warming_up: true,
             pose: None,
-            latency: Latency { total_ms: ms_since(t0), ..latency },
+            latency: Latency { total_ms: ms_since(t0), arrival_ms: ms_since(t0), ..latency },
         })
     }
 
@@ -849,27 +920,30 @@ pub fn replay(
     mut on: impl FnMut(&mut Localizer, Replayed) -> Result<()>,
 ) -> Result<LatencyStats> {
     let decoder = loc.loader();
-    let (tx, rx) = std::sync::mpsc::sync_channel::<(String, Option<f64>, Result<Loaded>)>(ahead.max(1));
+    let (tx, rx) = std::sync::mpsc::sync_channel::<(String, Option<f64>, Result<Loaded>, Instant)>(ahead.max(1));
     let mut stats = LatencyStats::default();
     std::thread::scope(|s| -> Result<()> {
         s.spawn(move || {
             for (k, f) in frames.enumerate() {
+                // the source has handed the frame over: its bytes are complete
+                let arrived = Instant::now();
                 let item = match f {
                     Ok(StreamFrame { id, pixels, timestamp }) => {
                         let l = decoder.load(&id, pixels);
-                        (id, timestamp, l)
+                        (id, timestamp, l, arrived)
                     }
-                    Err(e) => (format!("frame-{k:06}"), None, Err(e)),
+                    Err(e) => (format!("frame-{k:06}"), None, Err(e), arrived),
                 };
                 if tx.send(item).is_err() {
                     return;
                 }
             }
         });
-        for (id, ts, loaded) in rx {
+        for (id, ts, loaded, arrived) in rx {
             let (frame, refused) = (loc.counts().frames, loc.counts().refused);
             match loc.push_loaded(id.clone(), ts, loaded) {
-                Ok(r) => {
+                Ok(mut r) => {
+                    r.latency.arrival_ms = ms_since(arrived);
                     stats.push(&r.latency);
                     on(&mut *loc, Replayed::Answered(Box::new(r)))?;
                 }

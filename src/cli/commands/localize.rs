@@ -16,6 +16,10 @@ const AHEAD: usize = 2;
 /// The `accepted` column of a refused frame's CSV row (its match columns are empty; the reason
 /// goes to standard error): what a reader tells a refused frame by, beside `true` and `false`.
 const REFUSED: &str = "refused";
+/// The CSV header: the stream's answer first (id, place as `traversal:position`, score on the
+/// setting's single-frame scale, source `sequence` or `frame`, accepted), then the single-frame
+/// best, the sequence match, the closure and the frame's milliseconds.
+pub const HEADER: &str = "frame,id,answer,place,score,source,accepted,best,best_score,sequence,sequence_score,uniqueness,closure,ms";
 
 pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
     // the frames a folder holds and their times are checked before any work
@@ -36,7 +40,7 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
         None => info(quiet, format!("map {}: created from the stream (its first frames train the codebook)", a.map.display())),
     }
     if !a.json {
-        outln!("frame,id,best,score,sequence,sequence_score,uniqueness,accepted,closure,ms");
+        outln!("{HEADER}");
     }
     let frames: Box<dyn Iterator<Item = Result<StreamFrame>> + Send> = match listed {
         Some(frames) => Box::new(frames.into_iter().map(Ok)),
@@ -61,7 +65,7 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
                 match a.json {
                     true => outln!("{}", serde_json::json!({ "frame": frame, "id": id, "refused": e.to_string() })),
                     // the frame's row with no match and `refused` in the accepted column
-                    false => outln!("{frame},{},,,,,,{REFUSED},,", csv_field(&id)),
+                    false => outln!("{}", refused_row(frame, &id)),
                 }
                 Ok(())
             }
@@ -86,7 +90,9 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
         );
         let (p50, p99) = (summary.p50, summary.p99);
         outln!(
-            "# latency ms p50/p99: total {:.1}/{:.1} | decode {:.1}/{:.1} segment {:.1}/{:.1} encode {:.1}/{:.1} coarse {:.1}/{:.1} fine {:.1}/{:.1} sequence {:.1}/{:.1} store {:.1}/{:.1}",
+            "# latency ms p50/p99: from the frame's bytes {:.1}/{:.1} | total {:.1}/{:.1} | decode {:.1}/{:.1} segment {:.1}/{:.1} encode {:.1}/{:.1} coarse {:.1}/{:.1} fine {:.1}/{:.1} sequence {:.1}/{:.1} store {:.1}/{:.1}",
+            p50.arrival_ms,
+            p99.arrival_ms,
             p50.total_ms,
             p99.total_ms,
             p50.decode_ms,
@@ -119,23 +125,45 @@ fn print_frame(r: &FrameResult, json: bool) -> Result<()> {
         outln!("{}", serde_json::to_string(r).map_err(|e| Error::invalid("JSON output", e.to_string()))?);
         return Ok(());
     }
+    outln!("{}", csv_row(r));
+    Ok(())
+}
+
+/// A frame's CSV row (see [`HEADER`]).
+pub fn csv_row(r: &FrameResult) -> String {
+    let csv = csv_field;
     let best = r.best();
     let seq = r.sequence.as_ref();
-    let csv = csv_field;
-    outln!(
-        "{},{},{},{},{},{},{},{},{},{:.1}",
+    let a = r.place();
+    format!(
+        "{},{},{},{},{},{},{},{},{},{},{},{},{},{:.1}",
         r.frame,
         csv(&r.id),
+        a.map_or(String::new(), |a| csv(&a.id)),
+        a.map_or(String::new(), |a| format!("{}:{}", a.place.traversal, a.place.position)),
+        a.map_or(String::new(), |a| format!("{:.4}", a.score)),
+        a.map_or("", |a| a.source.name()),
+        a.is_some_and(|a| a.accepted),
         best.map_or(String::new(), |b| csv(&b.id)),
         best.map_or(String::new(), |b| format!("{:.4}", b.score)),
         seq.map_or(String::new(), |s| csv(&s.id)),
         seq.map_or(String::new(), |s| format!("{:.4}", s.matched.score)),
         seq.map_or(String::new(), |s| format!("{:.3}", s.matched.uniqueness)),
-        seq.is_some_and(|s| s.matched.accepted),
         r.closure.as_ref().map_or(String::new(), |c| csv(&c.place.id)),
         r.latency.total_ms
-    );
-    Ok(())
+    )
+}
+
+/// A refused frame's CSV row: its number and id, `refused` in the `accepted` column, every
+/// other column empty.
+pub fn refused_row(frame: u64, id: &str) -> String {
+    let columns = HEADER.split(',').count();
+    let accepted = HEADER.split(',').position(|c| c == "accepted").unwrap_or(6);
+    let mut row: Vec<String> = vec![String::new(); columns];
+    row[0] = frame.to_string();
+    row[1] = csv_field(id);
+    row[accepted] = REFUSED.into();
+    row.join(",")
 }
 
 /// A CSV field: quoted (quotes doubled) where it holds a separator, a quote or a line break.
