@@ -215,7 +215,7 @@ fn the_node_answers_a_real_ros2_peer() {
     // frame as soon as it sees the node's subscription, which must not lose it (3 of 4 runs did
     // before the node let discovery settle before subscribing)
     let plan = serde_json::json!({ "frames": frames, "wait": true, "expect": 10, "timeout": 180, "linger": 2.0 });
-    let (one, mut node) = std::thread::scope(|s| {
+    let (one, node) = std::thread::scope(|s| {
         let first = s.spawn(|| peer(&venv, &plan, dir.path(), "one", domain));
         std::thread::sleep(Duration::from_secs(3));
         let mut node = Node { child: cmd.stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap() };
