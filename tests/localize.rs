@@ -230,6 +230,84 @@ fn piped_jpegs_are_answered_as_the_folder_answers_them() {
     }
 }
 
+/// A `--loop-closure` run killed with SIGKILL and restarted with `--resume`: the restart skips
+/// the frames the map holds (says how many), adds the others, and every frame is stored exactly
+/// once, whatever was committed before the kill.
+#[test]
+fn a_killed_loop_closure_run_resumes_and_stores_every_frame_once() {
+    use std::io::BufRead;
+    if !common::has_xfeat() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    common::tiny_synth(&data, 24, 7);
+    let (_, _, q_rgb, _) = folders(&data);
+    let frames: Vec<Vec<u8>> = (0..24).map(|i| std::fs::read(q_rgb.join(format!("{i:06}.png"))).unwrap()).collect();
+    // the first 8 frames make the map, then a commit every 4
+    let cfg = dir.path().join("lc.toml");
+    std::fs::write(&cfg, "[stream]\nexclude_frames = 8\ncommit_frames = 4\n").unwrap();
+    let map = dir.path().join("map");
+    let run = |resume: bool| {
+        let mut args =
+            vec!["--backend", "cpu", "localize", "--map", p(&map), "--stdin", "--loop-closure", "--no-segmenter", "--config", p(&cfg), "-q"];
+        if resume {
+            args.push("--resume");
+        }
+        std::process::Command::new(env!("CARGO_BIN_EXE_semlook"))
+            .args(args)
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    // the first run gets 14 frames, answers them, and is killed waiting for the 15th: frames 0-11
+    // are committed (the map's 8, then 4), 12 and 13 were buffered
+    let mut first = run(false);
+    let mut stdin = first.stdin.take().unwrap();
+    for f in &frames[..14] {
+        stdin.write_all(f).unwrap();
+    }
+    stdin.flush().unwrap();
+    let mut out = std::io::BufReader::new(first.stdout.take().unwrap());
+    let mut answered = 0;
+    let mut line = String::new();
+    while answered < 14 {
+        line.clear();
+        assert!(out.read_line(&mut line).unwrap() > 0, "the first run ended early");
+        answered += usize::from(line.starts_with(char::is_numeric));
+    }
+    first.kill().unwrap(); // SIGKILL
+    first.wait().unwrap();
+    drop(stdin);
+    let held = |map: &Path| -> Vec<String> {
+        use semlook::descriptors::source::RefSource;
+        let m = semlook::map::Map::open(map).unwrap();
+        (0..m.len()).map(|i| m.id(i).to_string()).collect()
+    };
+    let before = held(&map);
+    assert_eq!(before.len(), 12, "committed before the kill: {before:?}");
+    // the restart gets every frame again from the first
+    let mut second = run(true);
+    let mut stdin = second.stdin.take().unwrap();
+    let all: Vec<u8> = frames.concat();
+    let writer = std::thread::spawn(move || stdin.write_all(&all).unwrap());
+    let done = second.wait_with_output().unwrap();
+    writer.join().unwrap();
+    let (text, err) = (String::from_utf8_lossy(&done.stdout), String::from_utf8_lossy(&done.stderr));
+    assert!(done.status.success(), "{err}");
+    assert!(text.contains("# resumed: 12 frames skipped"), "{text}");
+    assert!(text.contains("# 12 frames (0 refused)"), "the other 12 frames answered:\n{text}");
+    let mut after = held(&map);
+    assert_eq!(after.len(), 24, "{after:?}");
+    after.sort();
+    let want: Vec<String> = (0..24).map(|k| format!("frame-{k:06}")).collect();
+    assert_eq!(after, want, "every frame stored exactly once");
+    let m = semlook::map::Map::open(&map).unwrap();
+    assert_eq!(semlook::map::manifest::traversal_names(&m.manifest).len(), 1, "the restart continued the stream's traversal");
+}
+
 #[test]
 fn eval_reports_sequence_matching_beside_single_frames() {
     let dir = tempfile::tempdir().unwrap();

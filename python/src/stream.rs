@@ -57,7 +57,7 @@ impl PyLocalizer {
         };
         // frames may come with their label maps (`push(labels=...)`): one without, on a map that
         // holds labels and with no segmenter, is refused when pushed, naming the fix
-        let opts = StreamOptions { setting: s, sequence, loop_closure, labelled_frames: true };
+        let opts = StreamOptions { setting: s, sequence, loop_closure, labelled_frames: true, resume: false };
         let loc = py.detach(|| Localizer::open(&path, cfg, opts, engine)).py_err()?;
         Ok(PyLocalizer { inner: Mutex::new(loc) })
     }

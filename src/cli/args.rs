@@ -489,6 +489,11 @@ pub struct PoseArgs {
     /// or matrix_world_to_cam (16 numbers, row-major 4x4).
     #[arg(long, value_name = "FORMAT", requires = "poses", value_parser = parse_pose_format)]
     pub pose_format: Option<semlook::dataset::PoseFormat>,
+    /// The times of the images of --images (`name time` lines, seconds, as `localize
+    /// --timestamps` reads them): the map stores its traversal's frame interval (their median
+    /// step), from which a stream with timestamps derives its sequence velocity range.
+    #[arg(long, value_name = "FILE", requires = "images", conflicts_with = "dataset")]
+    pub timestamps: Option<PathBuf>,
 }
 
 fn parse_pose_format(s: &str) -> Result<semlook::dataset::PoseFormat, String> {
@@ -740,6 +745,17 @@ pub struct LocalizeArgs {
     /// closures found.
     #[arg(long, conflicts_with = "no_sequence")]
     pub loop_closure: bool,
+    /// A restarted --loop-closure run: continue the map's last traversal and skip the frames
+    /// the map already holds (by id: a file's stem, or frame-N of a pipe, so a restarted pipe
+    /// must start from the same first frame); says how many it skipped.
+    #[arg(long, requires = "loop_closure")]
+    pub resume: bool,
+    /// Multiply the sequence velocity range by this (`sequence.velocity_scale`): map positions
+    /// per stream frame at the normal speed, e.g. 4 for a camera at a quarter of the map's frame
+    /// rate. Default: derived from the timestamps where the map (`map build --timestamps`) and
+    /// the stream (--timestamps) both have them, else 1.
+    #[arg(long, value_name = "X", conflicts_with = "no_sequence")]
+    pub velocity_scale: Option<f64>,
     /// Before each frame, move to the map's newest generation if another writer committed one.
     #[arg(long)]
     pub follow_map: bool,

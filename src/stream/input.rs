@@ -53,8 +53,8 @@ pub fn folder_frames(images: &Path, labels: Option<&Path>, timestamps: Option<&P
         .collect())
 }
 
-/// `name time` lines of a timestamps file.
-fn read_timestamps(path: &Path) -> Result<Vec<(String, f64)>> {
+/// `name time` lines of a timestamps file (seconds; `#` lines and a header line ignored).
+pub fn read_timestamps(path: &Path) -> Result<Vec<(String, f64)>> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
     let mut out = Vec::new();
     for (k, line) in text.lines().enumerate() {
@@ -74,6 +74,35 @@ fn read_timestamps(path: &Path) -> Result<Vec<(String, f64)>> {
         }
     }
     Ok(out)
+}
+
+/// The median step, in seconds, between the times a timestamps file gives `frames` (in their
+/// order: the order a map adds them), each found by its image's file name or stem. The times
+/// must increase along the frames; two frames at least.
+pub fn median_interval(path: &Path, frames: &[FrameSource]) -> Result<f64> {
+    let times = read_timestamps(path)?;
+    let bad = |r: String| Error::invalid(path.display().to_string(), r);
+    let mut at: Vec<(String, f64)> = Vec::with_capacity(frames.len());
+    for f in frames {
+        let img = f.image.as_deref().ok_or_else(|| bad(format!("frame {:?} has no image file to find its time by", f.id)))?;
+        let name = img.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let stem = img.file_stem().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let t = times.iter().find(|(n, _)| *n == name || *n == stem).ok_or_else(|| bad(format!("no time for {name}")))?.1;
+        if let Some((prev, last)) = at.last() {
+            if t <= *last {
+                return Err(bad(format!(
+                    "{name} at {t} s does not come after {prev} at {last} s: times must increase in the order the images are added (name order)"
+                )));
+            }
+        }
+        at.push((name, t));
+    }
+    if at.len() < 2 {
+        return Err(bad("a frame interval needs the times of two frames at least".into()));
+    }
+    let mut steps: Vec<f64> = at.windows(2).map(|w| w[1].1 - w[0].1).collect();
+    steps.sort_by(f64::total_cmp);
+    Ok(steps[steps.len() / 2])
 }
 
 /// Most bytes one image of a piped stream may take.

@@ -28,11 +28,20 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
         None => None,
     };
     let exists = semlook::map::manifest::read(&a.map)?.is_some();
-    let cfg = match exists {
+    let mut cfg = match exists {
         true => map_config(&Map::open(&a.map)?, a.config.as_deref(), &a.models)?,
         false => apply_models(load_config(a.config.as_deref())?, &a.models),
     };
-    let opts = StreamOptions { setting: a.setting, sequence: !a.no_sequence, loop_closure: a.loop_closure, labelled_frames: a.labels.is_some() };
+    if let Some(k) = a.velocity_scale {
+        cfg.sequence.velocity_scale = Some(k);
+    }
+    let opts = StreamOptions {
+        setting: a.setting,
+        sequence: !a.no_sequence,
+        loop_closure: a.loop_closure,
+        labelled_frames: a.labels.is_some(),
+        resume: a.resume,
+    };
     let mut loc = Localizer::open(&a.map, Some(cfg), opts, engine)?.with_label_format(a.label_format.unwrap_or_default());
     info(quiet, format!("backend: {}", loc.engine().describe()));
     match loc.map() {
@@ -42,11 +51,35 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
     if !a.json {
         outln!("{HEADER}");
     }
+    // a resumed loop closure skips the frames the map already holds (stored before a restart)
+    let held: std::collections::HashSet<String> = match a.resume {
+        true => loc
+            .map()
+            .map(|m| (0..m.len()).map(|i| semlook::descriptors::source::RefSource::id(m, i).to_string()).filter(|id| loc.holds(id)).collect())
+            .unwrap_or_default(),
+        false => Default::default(),
+    };
+    let skipped = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let skip = {
+        let skipped = skipped.clone();
+        move |f: &Result<StreamFrame>| {
+            let hold = f.as_ref().is_ok_and(|f| held.contains(&f.id));
+            if hold {
+                skipped.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            }
+            !hold
+        }
+    };
     let frames: Box<dyn Iterator<Item = Result<StreamFrame>> + Send> = match listed {
-        Some(frames) => Box::new(frames.into_iter().map(Ok)),
-        None => Box::new(ImageStream::new(std::io::stdin(), "standard input").enumerate().map(|(k, bytes)| {
-            bytes.map(|b| StreamFrame { id: format!("frame-{k:06}"), pixels: Pixels::Bytes { bytes: b, labels: None }, timestamp: None })
-        })),
+        Some(frames) => Box::new(frames.into_iter().map(Ok).filter(skip)),
+        None => Box::new(
+            ImageStream::new(std::io::stdin(), "standard input")
+                .enumerate()
+                .map(|(k, bytes)| {
+                    bytes.map(|b| StreamFrame { id: format!("frame-{k:06}"), pixels: Pixels::Bytes { bytes: b, labels: None }, timestamp: None })
+                })
+                .filter(skip),
+        ),
     };
     let start = Instant::now();
     let mut first_refusal: Option<String> = None;
@@ -76,9 +109,19 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
     let counts = loc.counts();
     let summary = stats.summary();
     let rate = counts.frames as f64 / wall.max(1e-9);
+    let skipped = skipped.load(std::sync::atomic::Ordering::Relaxed);
+    if a.resume {
+        info(quiet, format!("resumed: skipped {skipped} frames the map already held"));
+    }
     if a.json {
-        outln!("{}", serde_json::json!({ "summary": { "counts": counts, "wall_s": wall, "frames_per_s": rate, "latency": summary } }));
+        outln!(
+            "{}",
+            serde_json::json!({ "summary": { "counts": counts, "skipped": skipped, "wall_s": wall, "frames_per_s": rate, "latency": summary } })
+        );
     } else {
+        if a.resume {
+            outln!("# resumed: {skipped} frames skipped (the map already held them)");
+        }
         outln!(
             "# {} frames ({} refused), {} accepted sequence matches, {} loop closures; {:.2} frames/s over {:.1} s",
             counts.frames,
