@@ -751,6 +751,12 @@ pub struct SequenceConfig {
     pub velocity_max: f64,
     /// The number of velocities tried (see `velocity_min`). \[R\] 9.
     pub velocity_steps: usize,
+    /// `velocity_min` and `velocity_max` are multiplied by this (issue 48: a map recorded at one
+    /// frame rate and a camera at another). Unset (the default): the stream's frame interval over
+    /// the map's where both are known (the stream's timestamps, the map's `map build/add
+    /// --timestamps`), else 1. \[R\] unset (derived).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub velocity_scale: Option<f64>,
     /// What a trajectory pays, in contribution units, each time its velocity changes by one step
     /// between two frames (a very large value keeps SeqSLAM's straight lines). \[R\] 1 (sweep 10e).
     pub velocity_change: f64,
@@ -798,6 +804,7 @@ impl Default for SequenceConfig {
             velocity_min: 0.0,
             velocity_max: 2.0,
             velocity_steps: 9,
+            velocity_scale: None,
             velocity_change: 1.0,
             rows: SequenceRows::Candidates,
             widen: 1,
@@ -1137,6 +1144,9 @@ impl Config {
         v.int("sequence.length", sq.length, 1, 256)?;
         v.real("sequence.velocity_min", sq.velocity_min, -16.0, 16.0)?;
         v.real("sequence.velocity_max", sq.velocity_max, sq.velocity_min, 16.0)?;
+        if let Some(k) = sq.velocity_scale {
+            v.real("sequence.velocity_scale", k, 1.0 / 64.0, 64.0)?;
+        }
         v.int("sequence.velocity_steps", sq.velocity_steps, 1, 64)?;
         v.int("sequence.widen", sq.widen, 0, 16)?;
         v.int("sequence.contrast_window", sq.contrast_window, 1, 1000)?;

@@ -37,6 +37,7 @@ fn code_keys() -> BTreeMap<String, Value> {
     let mut v = serde_json::to_value(semlook::config::Config::default()).unwrap();
     let mut set = semlook::config::Config::default();
     set.appearance.ignore_classes = vec!["sky".into()];
+    set.sequence.velocity_scale = Some(1.0);
     let set = serde_json::to_value(set).unwrap();
     for (section, body) in set.as_object().unwrap() {
         for k in body.as_object().into_iter().flat_map(|b| b.keys()) {

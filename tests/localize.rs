@@ -53,6 +53,77 @@ fn a_folder_in_time_order_is_localized_frame_by_frame() {
     assert!(err.contains("times.csv") && err.contains("no time for 000001.png"), "{err}");
 }
 
+/// The columns of a `localize` CSV line by name.
+fn csv_rows(text: &str) -> Vec<std::collections::HashMap<String, String>> {
+    let mut lines = text.lines().filter(|l| !l.starts_with('#'));
+    let header: Vec<String> = lines.next().unwrap().split(',').map(String::from).collect();
+    lines.map(|l| header.iter().cloned().zip(l.split(',').map(String::from)).collect()).collect()
+}
+
+/// The printed answer (CSV `answer` columns, JSON `answer`) is the accepted sequence match where
+/// one is accepted, else the single-frame best, its score on the single-frame scale either way.
+#[test]
+fn the_printed_answer_is_the_accepted_sequence_match() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    common::tiny_synth(&data, 24, 3);
+    let (ref_rgb, ref_lab, q_rgb, q_lab) = folders(&data);
+    let map = dir.path().join("map");
+    cli_ok(&["map", "build", "--images", p(&ref_rgb), "--labels", p(&ref_lab), "--no-appearance", "--map", p(&map), "-q"]);
+    let args = [
+        "--backend",
+        "cpu",
+        "localize",
+        "--map",
+        p(&map),
+        "--images",
+        p(&q_rgb),
+        "--labels",
+        p(&q_lab),
+        "--setting",
+        "global",
+        "--no-appearance",
+        "-q",
+    ];
+    let lines = cli_ok(&[&args[..], &["--json"]].concat());
+    // the answer comes first in each frame's line, after the frame's number and id
+    assert!(lines.lines().filter(|l| !l.contains("summary")).all(|l| l.starts_with("{\"frame\":") && l.contains(",\"answer\":")), "{lines}");
+    let json: Vec<serde_json::Value> =
+        lines.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()).filter(|v| v.get("frame").is_some()).collect();
+    let csv = csv_rows(&cli_ok(&args));
+    assert_eq!((json.len(), csv.len()), (24, 24));
+    let (mut from_sequence, mut differs) = (0, 0);
+    for (j, c) in json.iter().zip(&csv) {
+        let (a, seq, best) = (&j["answer"], &j["sequence"], &j["top_k"][0]);
+        if seq["accepted"] == true {
+            from_sequence += 1;
+            assert_eq!(
+                (&a["id"], &a["index"], &a["place"], &a["source"], &a["accepted"]),
+                (&seq["id"], &seq["index"], &seq["place"], &"sequence".into(), &true.into()),
+                "{j}"
+            );
+            differs += usize::from(seq["id"] != best["id"]);
+            // on the single-frame scale: the place's score where the ranking holds it
+            if let Some(c) = j["top_k"].as_array().unwrap().iter().find(|c| c["id"] == a["id"]) {
+                assert!((c["score"].as_f64().unwrap() - a["score"].as_f64().unwrap()).abs() < 1e-6, "{j}");
+            }
+        } else {
+            assert_eq!((&a["id"], &a["score"], &a["source"], &a["accepted"]), (&best["id"], &best["score"], &"frame".into(), &false.into()), "{j}");
+        }
+        // the CSV line says the same
+        let place = format!("{}:{}", a["place"]["traversal"], a["place"]["position"]);
+        assert_eq!(
+            (c["answer"].as_str(), c["place"].as_str(), c["source"].as_str(), c["accepted"].as_str()),
+            (a["id"].as_str().unwrap(), place.as_str(), a["source"].as_str().unwrap(), if a["accepted"] == true { "true" } else { "false" }),
+            "{c:?} against {j}"
+        );
+        assert!((c["score"].parse::<f64>().unwrap() - a["score"].as_f64().unwrap()).abs() < 1e-3, "{c:?}");
+        assert_eq!(c["best"].as_str(), best["id"].as_str().unwrap(), "{c:?}");
+    }
+    assert!(from_sequence >= 6, "{from_sequence} answers from an accepted sequence match");
+    assert!(differs >= 1, "no frame where the accepted sequence match is not the single-frame best: the test would not tell them apart");
+}
+
 #[test]
 fn piped_images_are_localized_and_garbage_costs_one_frame() {
     if !common::has_xfeat() {
@@ -85,12 +156,156 @@ fn piped_images_are_localized_and_garbage_costs_one_frame() {
     let text = String::from_utf8(out.stdout).unwrap();
     let rows: Vec<&str> = text.lines().filter(|l| !l.starts_with('#') && !l.starts_with("frame,")).collect();
     // the garbage's row says `refused` in the accepted column, with no match
-    let (refused, answered): (Vec<&str>, Vec<&str>) = rows.iter().partition(|r| r.split(',').nth(7) == Some("refused"));
+    let (refused, answered): (Vec<&str>, Vec<&str>) = rows.iter().partition(|r| r.split(',').nth(6) == Some("refused"));
     assert_eq!((answered.len(), refused.len()), (16, 1), "every piped image answered:\n{text}");
-    assert!(answered.iter().all(|r| r.split(',').nth(2).is_some_and(|best| !best.is_empty())), "{text}");
-    assert!(refused[0].starts_with("8,") && refused[0].split(',').nth(2) == Some(""), "{text}");
+    assert!(answered.iter().all(|r| r.split(',').nth(2).is_some_and(|a| !a.is_empty())), "{text}");
+    assert!(answered.iter().all(|r| r.split(',').nth(7).is_some_and(|best| !best.is_empty())), "{text}");
+    assert!(refused[0].starts_with("8,") && refused[0].split(',').skip(2).filter(|c| !c.is_empty()).eq(["refused"]), "{text}");
     assert!(text.contains("# 17 frames (1 refused)"), "{text}");
     assert!(String::from_utf8_lossy(&out.stderr).contains("neither a JPEG nor a PNG"));
+}
+
+/// `localize --stdin` answers piped JPEGs exactly as `localize --images` answers the same files:
+/// ranking, scores, sequence, answer, frame for frame.
+#[test]
+fn piped_jpegs_are_answered_as_the_folder_answers_them() {
+    if !common::has_xfeat() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    common::tiny_synth(&data, 20, 6);
+    let (ref_rgb, _, q_rgb, _) = folders(&data);
+    let map = dir.path().join("map");
+    cli_ok(&["--backend", "cpu", "map", "build", "--images", p(&ref_rgb), "--no-segmenter", "--map", p(&map), "-q"]);
+    // the night frames as JPEGs of several qualities (restart-free baseline JPEGs, as ffmpeg's
+    // mjpeg writes them)
+    let jpegs = dir.path().join("jpegs");
+    std::fs::create_dir(&jpegs).unwrap();
+    let mut piped = Vec::new();
+    for i in 0..20 {
+        let img = image::open(q_rgb.join(format!("{i:06}.png"))).unwrap().to_rgb8();
+        let mut bytes = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut bytes, 60 + (i as u8 % 4) * 10).encode_image(&img).unwrap();
+        std::fs::write(jpegs.join(format!("{i:06}.jpg")), &bytes).unwrap();
+        piped.extend(bytes);
+    }
+    let args = ["--backend", "cpu", "localize", "--map", p(&map), "--no-segmenter", "--json", "-q"];
+    let answers = |text: &str| -> Vec<serde_json::Value> {
+        text.lines()
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+            .filter(|v| v.get("frame").is_some())
+            .map(|mut v| {
+                let o = v.as_object_mut().unwrap();
+                // what depends on the source alone: the frame's id (the file's stem, or frame-N) and the clock
+                o.remove("id");
+                o.remove("latency");
+                v
+            })
+            .collect()
+    };
+    let folder = answers(&cli_ok(&[&args[..], &["--images", p(&jpegs)]].concat()));
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_semlook"))
+        .args([&args[..], &["--stdin"]].concat())
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut stdin = child.stdin.take().unwrap();
+    // written in uneven pieces, as a pipe delivers them
+    let writer = std::thread::spawn(move || {
+        for piece in piped.chunks(4093) {
+            stdin.write_all(piece).unwrap();
+        }
+    });
+    let out = child.wait_with_output().unwrap();
+    writer.join().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let stdin = answers(&String::from_utf8(out.stdout).unwrap());
+    assert_eq!(folder.len(), 20);
+    assert_eq!(stdin.len(), folder.len(), "every piped image answered once");
+    for (k, (a, b)) in folder.iter().zip(&stdin).enumerate() {
+        assert_eq!(a, b, "frame {k}: the folder's answer against the pipe's");
+    }
+}
+
+/// A `--loop-closure` run killed with SIGKILL and restarted with `--resume`: the restart skips
+/// the frames the map holds (says how many), adds the others, and every frame is stored exactly
+/// once, whatever was committed before the kill.
+#[test]
+fn a_killed_loop_closure_run_resumes_and_stores_every_frame_once() {
+    use std::io::BufRead;
+    if !common::has_xfeat() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    common::tiny_synth(&data, 24, 7);
+    let (_, _, q_rgb, _) = folders(&data);
+    let frames: Vec<Vec<u8>> = (0..24).map(|i| std::fs::read(q_rgb.join(format!("{i:06}.png"))).unwrap()).collect();
+    // the first 8 frames make the map, then a commit every 4
+    let cfg = dir.path().join("lc.toml");
+    std::fs::write(&cfg, "[stream]\nexclude_frames = 8\ncommit_frames = 4\n").unwrap();
+    let map = dir.path().join("map");
+    let run = |resume: bool| {
+        let mut args =
+            vec!["--backend", "cpu", "localize", "--map", p(&map), "--stdin", "--loop-closure", "--no-segmenter", "--config", p(&cfg), "-q"];
+        if resume {
+            args.push("--resume");
+        }
+        std::process::Command::new(env!("CARGO_BIN_EXE_semlook"))
+            .args(args)
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    // the first run gets 14 frames, answers them, and is killed waiting for the 15th: frames 0-11
+    // are committed (the map's 8, then 4), 12 and 13 were buffered
+    let mut first = run(false);
+    let mut stdin = first.stdin.take().unwrap();
+    for f in &frames[..14] {
+        stdin.write_all(f).unwrap();
+    }
+    stdin.flush().unwrap();
+    let mut out = std::io::BufReader::new(first.stdout.take().unwrap());
+    let mut answered = 0;
+    let mut line = String::new();
+    while answered < 14 {
+        line.clear();
+        assert!(out.read_line(&mut line).unwrap() > 0, "the first run ended early");
+        answered += usize::from(line.starts_with(char::is_numeric));
+    }
+    first.kill().unwrap(); // SIGKILL
+    first.wait().unwrap();
+    drop(stdin);
+    let held = |map: &Path| -> Vec<String> {
+        use semlook::descriptors::source::RefSource;
+        let m = semlook::map::Map::open(map).unwrap();
+        (0..m.len()).map(|i| m.id(i).to_string()).collect()
+    };
+    let before = held(&map);
+    assert_eq!(before.len(), 12, "committed before the kill: {before:?}");
+    // the restart gets every frame again from the first
+    let mut second = run(true);
+    let mut stdin = second.stdin.take().unwrap();
+    let all: Vec<u8> = frames.concat();
+    let writer = std::thread::spawn(move || stdin.write_all(&all).unwrap());
+    let done = second.wait_with_output().unwrap();
+    writer.join().unwrap();
+    let (text, err) = (String::from_utf8_lossy(&done.stdout), String::from_utf8_lossy(&done.stderr));
+    assert!(done.status.success(), "{err}");
+    assert!(text.contains("# resumed: 12 frames skipped"), "{text}");
+    assert!(text.contains("# 12 frames (0 refused)"), "the other 12 frames answered:\n{text}");
+    let mut after = held(&map);
+    assert_eq!(after.len(), 24, "{after:?}");
+    after.sort();
+    let want: Vec<String> = (0..24).map(|k| format!("frame-{k:06}")).collect();
+    assert_eq!(after, want, "every frame stored exactly once");
+    let m = semlook::map::Map::open(&map).unwrap();
+    assert_eq!(semlook::map::manifest::traversal_names(&m.manifest).len(), 1, "the restart continued the stream's traversal");
 }
 
 #[test]

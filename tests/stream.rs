@@ -98,7 +98,7 @@ fn the_answer_at_frame_t_does_not_depend_on_the_frames_after_it() {
 
 /// Share of results whose answer lies within `tol` frames of the frame the stream shows.
 fn near(results: &[(usize, FrameResult)], refs: &[FrameSource], tol: usize) -> f64 {
-    let ok = results.iter().filter(|(truth, r)| r.place().is_some_and(|(id, _)| index_of(refs, id).abs_diff(*truth) <= tol)).count();
+    let ok = results.iter().filter(|(truth, r)| r.place().is_some_and(|a| index_of(refs, &a.id).abs_diff(*truth) <= tol)).count();
     ok as f64 / results.len().max(1) as f64
 }
 
@@ -388,4 +388,51 @@ fn places_follow_traversals_through_add_remove_and_compact() {
     assert!(m.manifest.segments.len() < before);
     assert_eq!(m.manifest.segments.iter().map(|s| s.traversal).collect::<Vec<_>>(), [0, 1, 2]);
     check(&[3, 12]);
+}
+
+/// A camera at a quarter of the map's frame rate moves 4 positions a frame, beyond the default
+/// range (0 to 2): with timestamps on both sides the range follows the rate and the stream's
+/// answers stay near the truth; without them the best trajectory runs at the range's edge (counted)
+/// and the answers are worse.
+#[test]
+fn the_velocity_range_follows_the_frame_rates_of_map_and_stream() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some((refs, shift)) = drive(&dir.path().join("data")) else { return };
+    let map = dir.path().join("map");
+    let cfg = config();
+    let enc = semlook::encode::Encoder::new(&cfg).unwrap();
+    // the map recorded at 30 frames/s
+    let mut w = MapWriter::create(&map, &cfg.encoding(), Default::default(), None, StoreOptions::default(), false)
+        .unwrap()
+        .with_frame_interval(1.0 / 30.0)
+        .unwrap();
+    let mut scratch = Default::default();
+    for f in &refs {
+        w.push(&enc.encode_source(f, Default::default(), &mut scratch).unwrap().0).unwrap();
+    }
+    let m = w.finish().unwrap();
+    assert_eq!(m.frame_interval(0), Some(1.0 / 30.0));
+    drop(m);
+    // the camera at 7.5 frames/s: every 4th frame of the drive
+    let route: Vec<usize> = (0..refs.len()).step_by(4).collect();
+    let stream = |timed: bool| {
+        let mut l = localizer(&map, Setting::Forest);
+        let results: Vec<(usize, FrameResult)> = route
+            .iter()
+            .enumerate()
+            .map(|(k, &i)| {
+                let f = StreamFrame { timestamp: timed.then_some(k as f64 / 7.5), ..frame(&shift[i]) };
+                (i, l.push(f).unwrap())
+            })
+            .collect();
+        (results, l.counts())
+    };
+    let (timed, timed_counts) = stream(true);
+    let (untimed, untimed_counts) = stream(false);
+    let scale = timed.last().unwrap().1.sequence.as_ref().unwrap().velocity_scale;
+    assert!((scale - 4.0).abs() < 1e-6, "the stream's interval over the map's: {scale}");
+    let (with, without) = (near(&timed[10..], &refs, 2), near(&untimed[10..], &refs, 2));
+    assert!(with >= 0.9, "with timestamps: {with:.2} near");
+    assert!(with > without, "with timestamps {with:.2}, without {without:.2}");
+    assert!(untimed_counts.velocity_edge > timed_counts.velocity_edge, "{untimed_counts:?} against {timed_counts:?}");
 }

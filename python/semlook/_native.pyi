@@ -1,7 +1,7 @@
 """Type stubs of semlook._native (the pyo3 extension)."""
 
 from os import PathLike
-from typing import Any, Iterator, Optional, Sequence, final
+from typing import Any, Iterator, Literal, Optional, Sequence, TypedDict, final
 
 from typing_extensions import Self
 
@@ -203,11 +203,40 @@ class Map:
 
 _Lists = tuple[npt.NDArray[np.float32], npt.NDArray[np.int64], npt.NDArray[np.int32]]
 
+class _Place(TypedDict):
+    traversal: int
+    position: int
+
+class _Answer(TypedDict):
+    """The stream's answer: the accepted sequence match, else the single-frame best."""
+    index: int
+    id: str
+    place: _Place
+    score: float  # the setting's score of the place against this frame (top_k's scale), whatever the source
+    source: Literal["sequence", "frame"]
+    accepted: bool  # the answer is the accepted sequence match
+
+class _FrameResult(TypedDict):
+    """What `Localizer.push` returns (the line `semlook localize --json` prints)."""
+    frame: int
+    id: str
+    answer: Optional[_Answer]
+    timestamp: Optional[float]
+    generation: int
+    top_k: list[dict[str, Any]]
+    sequence: Optional[dict[str, Any]]
+    closure: Optional[dict[str, Any]]
+    size_changed: bool
+    tracking: bool
+    warming_up: bool
+    pose: Optional[dict[str, Any]]
+    latency: dict[str, float]
+
 @final
 class Localizer:
     """Frames localized one at a time against a map, with sequence matching over the last frames."""
     def __new__(cls, path: _Path, setting: str = "verified", sequence: bool = True, loop_closure: bool = False, config: Optional[Config] = None, backend: Optional[str] = None, *, segmenter: Optional[_Path | bool] = None) -> Self: ...
-    def push(self, image: Optional[npt.NDArray[np.uint8]] = None, labels: Optional[npt.NDArray[Any]] = None, *, path: Optional[_Path] = None, labels_path: Optional[_Path] = None, data: Optional[bytes] = None, id: Optional[str] = None, timestamp: Optional[float] = None) -> dict[str, Any]: ...
+    def push(self, image: Optional[npt.NDArray[np.uint8]] = None, labels: Optional[npt.NDArray[Any]] = None, *, path: Optional[_Path] = None, labels_path: Optional[_Path] = None, data: Optional[bytes] = None, id: Optional[str] = None, timestamp: Optional[float] = None) -> _FrameResult: ...
     def refresh(self) -> bool: ...
     def reset(self) -> None: ...
     def finish(self) -> None: ...

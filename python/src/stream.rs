@@ -57,7 +57,7 @@ impl PyLocalizer {
         };
         // frames may come with their label maps (`push(labels=...)`): one without, on a map that
         // holds labels and with no segmenter, is refused when pushed, naming the fix
-        let opts = StreamOptions { setting: s, sequence, loop_closure, labelled_frames: true };
+        let opts = StreamOptions { setting: s, sequence, loop_closure, labelled_frames: true, resume: false };
         let loc = py.detach(|| Localizer::open(&path, cfg, opts, engine)).py_err()?;
         Ok(PyLocalizer { inner: Mutex::new(loc) })
     }
@@ -67,8 +67,9 @@ impl PyLocalizer {
     /// PNG file; `id` names it (default frame-N; in loop-closure mode the id it is stored under),
     /// `timestamp` in seconds must not go backwards. Returns a dict: `top_k` (the single-frame
     /// ranking: id, index, place, score, inliers), `sequence` (the sequence match: id, score,
-    /// uniqueness, accepted, velocity, frames; None without evidence), `place` (the answer: the
-    /// accepted sequence match, else the best single-frame one), `pose` (the pose the map stores for
+    /// uniqueness, accepted, velocity, frames; None without evidence), `answer` (the stream's
+    /// answer, a dict: id, index, place, score on the single-frame scale whatever the source,
+    /// source "sequence" or "frame", accepted; None without a match), `pose` (the pose the map stores for
     /// the answer, as `Map.pose` gives it; None where it stores none), `closure`, `generation`,
     /// `latency` (ms per stage). A frame that cannot be used raises, and the stream goes on.
     #[pyo3(signature = (image=None, labels=None, *, path=None, labels_path=None, data=None, id=None, timestamp=None))]
@@ -102,8 +103,6 @@ impl PyLocalizer {
         let l: &mut Localizer = &mut loc;
         let r = py.detach(|| l.push(frame)).py_err()?;
         let out = to_py_object(py, &r)?;
-        let place = r.place().map(|(id, score)| (id.to_string(), score));
-        out.set_item("place", place)?;
         out.set_item("pose", to_py_object(py, &r.pose)?)?;
         Ok(out)
     }

@@ -344,9 +344,19 @@ def test_localizer_streams_frames_with_sequence_matching(tmp_path, encoder):
     for t, q in enumerate(queries):
         r = loc.push(labels=q, timestamp=float(t))
         assert [c["id"] for c in r["top_k"]] == list(single.ids[t][: len(r["top_k"])])
-        assert r["place"][0] == f"p{t:02d}", (t, r["place"])
+        a = r["answer"]
+        assert a["id"] == f"p{t:02d}", (t, a)
         assert r["pose"] is None, "a map without poses answers none"
-        accepted += bool(r["sequence"] and r["sequence"]["accepted"])
+        seq = r["sequence"]
+        if seq and seq["accepted"]:
+            # the answer is the accepted sequence match, its score on the single-frame scale
+            assert (a["id"], a["index"], a["source"], a["accepted"]) == (seq["id"], seq["index"], "sequence", True), (t, a, seq)
+            scored = {c["id"]: c["score"] for c in r["top_k"]}
+            assert a["id"] not in scored or a["score"] == pytest.approx(scored[a["id"]]), (t, a, r["top_k"])
+        else:
+            best = r["top_k"][0]
+            assert (a["id"], a["score"], a["source"], a["accepted"]) == (best["id"], best["score"], "frame", False), (t, a, best)
+        accepted += bool(seq and seq["accepted"])
     assert accepted >= 20, accepted
     with pytest.raises(semlook.InvalidInputError, match="before the previous frame"):
         loc.push(labels=queries[0], timestamp=3.0)
@@ -425,7 +435,7 @@ def test_poses_a_map_stores_are_read_back_and_answered(tmp_path, synth_dataset):
     labels = sorted((synth_dataset / "sunset" / "GT" / "LABELS" / "Stereo_Left" / "Omni_F").glob("*.png"))
     for t, f in enumerate(labels):
         r = loc.push(labels_path=f, timestamp=float(t))
-        assert r["pose"] == m.pose(m.ids.index(r["place"][0])), (t, r["place"], r["pose"])
+        assert r["pose"] == m.pose(m.ids.index(r["answer"]["id"])), (t, r["answer"], r["pose"])
 
 
 def test_embeddings_travel_with_their_network(tmp_path, synth_dataset):

@@ -20,6 +20,13 @@ mod node;
 mod params;
 
 fn main() {
+    // Mesa's Vulkan loader prints `error: XDG_RUNTIME_DIR is invalid or not set` when it is unset
+    // (headless machines; the default backend `auto` looks for a GPU); it is not used for
+    // compute. Set before any thread starts, as the semlook command line does.
+    if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
+        // SAFETY: single-threaded here, at the very start of main.
+        unsafe { std::env::set_var("XDG_RUNTIME_DIR", std::env::temp_dir()) };
+    }
     node::init_logging();
     let args: Vec<String> = std::env::args().skip(1).collect();
     let params = match params::Params::parse(&args) {

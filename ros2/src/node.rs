@@ -21,6 +21,11 @@ use std::time::{Duration, Instant};
 /// Most pixels a raw frame may have (a 8K frame); larger ones are refused.
 const MAX_PIXELS: u64 = 7680 * 4320;
 
+/// Set once the node has stopped (its summary written): what the DDS stack says while it tears
+/// down (RustDDS fails to leave a multicast group it joined on loopback, for one) is not an error
+/// of the node's, and shows only with `SEMLOOK_LOG=debug`.
+static TEARING_DOWN: AtomicBool = AtomicBool::new(false);
+
 /// Log lines on standard error (`SEMLOOK_LOG=debug` for one line per frame).
 pub fn init_logging() {
     struct Stderr(log::LevelFilter);
@@ -28,7 +33,9 @@ pub fn init_logging() {
         fn enabled(&self, m: &log::Metadata) -> bool {
             // the DDS stack's own warnings (multicast joins on a loopback-only host, readers
             // without locators during discovery) only with SEMLOOK_LOG=debug
-            m.level() <= self.0 && (m.target().starts_with("semlook") || m.level() <= log::Level::Error || self.0 >= log::LevelFilter::Debug)
+            let ours = m.target().starts_with("semlook");
+            let stack_error = m.level() <= log::Level::Error && !TEARING_DOWN.load(Ordering::Relaxed);
+            m.level() <= self.0 && (ours || stack_error || self.0 >= log::LevelFilter::Debug)
         }
         fn log(&self, r: &log::Record) {
             if self.enabled(r.metadata()) {
@@ -53,6 +60,9 @@ struct Incoming {
     header: Header,
     pixels: Pixels,
     received: Instant,
+    /// Frames the node received before this one (dropped and refused ones included): the
+    /// `frame` of its PlaceMatch.
+    number: u64,
 }
 
 /// The frames between the DDS thread and the localizer: at most `cap`; a frame arriving at a full
@@ -88,6 +98,20 @@ struct Counts {
     /// Frames refused before the localizer: unsupported encoding or format, bad sizes.
     unsupported: AtomicU64,
     published: AtomicU64,
+}
+
+/// A received frame (its pixels, or why they cannot be used) counted and queued: every frame
+/// gets the next number, whether it is localized, dropped from a full queue or refused, so
+/// that a PlaceMatch's `frame` counts every frame before it.
+fn receive(queue: &Queue, counts: &Counts, header: Header, pixels: Result<Pixels, String>, received: Instant) {
+    let number = counts.received.fetch_add(1, Ordering::Relaxed);
+    match pixels {
+        Ok(pixels) => queue.push(Incoming { header, pixels, received, number }),
+        Err(why) => {
+            counts.unsupported.fetch_add(1, Ordering::Relaxed);
+            log::warn!("frame {} refused: {why}", frame_id(&header));
+        }
+    }
 }
 
 /// An `Image` as pixels: rgb8, bgr8 and mono8 (rows of `step` bytes); others refused.
@@ -132,15 +156,16 @@ pub fn frame_id(h: &Header) -> String {
     format!("{}.{:09}", h.stamp.sec, h.stamp.nanosec)
 }
 
-/// The PlaceMatch of a localized frame.
-pub fn place_match(h: &Header, r: &FrameResult, latency_ms: f32) -> PlaceMatch {
+/// The PlaceMatch of a localized frame; `number`: frames the node received before it (dropped
+/// and refused ones included).
+pub fn place_match(h: &Header, number: u64, r: &FrameResult, latency_ms: f32) -> PlaceMatch {
     let best = r.best();
     let seq = r.sequence.as_ref();
-    let (place_id, score) = r.place().map_or((String::new(), 0.0), |(id, score)| (id.to_string(), score));
+    let (place_id, score) = r.place().map_or((String::new(), 0.0), |a| (a.id.clone(), a.score));
     let place_index = r.place_index().unwrap_or(0);
     PlaceMatch {
         header: h.clone(),
-        frame: r.frame,
+        frame: number,
         place_id,
         place_index,
         score,
@@ -280,6 +305,10 @@ pub fn run(p: Params) -> Result<(), String> {
     let t_match = topic(&mut node, &own("match"), "semlook_msgs", "PlaceMatch", &reliable)?;
     let t_closure = topic(&mut node, &own("closure"), "semlook_msgs", "LoopClosure", &reliable)?;
     let t_pose = topic(&mut node, &own("pose"), "geometry_msgs", "PoseStamped", &reliable)?;
+    // the publishers already up are known before our subscriptions are announced: a camera that
+    // sees them matched then sends to a reader that knows it (else its first frames are dropped)
+    let known = settle_discovery(&ctx.domain_participant());
+    log::info!("discovery settled: {known} remote writers known");
     let sub_img = node.create_subscription::<Image>(&t_img, None).map_err(|e| format!("subscription: {e:?}"))?;
     let sub_cmp = node.create_subscription::<CompressedImage>(&t_cmp, None).map_err(|e| format!("subscription: {e:?}"))?;
     let pub_match = node.create_publisher::<PlaceMatch>(&t_match, None).map_err(|e| format!("publisher: {e:?}"))?;
@@ -316,15 +345,7 @@ pub fn run(p: Params) -> Result<(), String> {
             };
             let received = Instant::now();
             match got {
-                Some(Ok((header, Ok(pixels)))) => {
-                    counts.received.fetch_add(1, Ordering::Relaxed);
-                    queue.push(Incoming { header, pixels, received });
-                }
-                Some(Ok((header, Err(why)))) => {
-                    counts.received.fetch_add(1, Ordering::Relaxed);
-                    counts.unsupported.fetch_add(1, Ordering::Relaxed);
-                    log::warn!("frame {} refused: {why}", frame_id(&header));
-                }
+                Some(Ok((header, pixels))) => receive(&queue, &counts, header, pixels, received),
                 Some(Err(e)) => log::warn!("a sample could not be read: {e:?}"),
                 None => break,
             }
@@ -333,6 +354,9 @@ pub fn run(p: Params) -> Result<(), String> {
     stop.store(true, Ordering::SeqCst);
     queue.ready.notify_all();
     let summary = worker.join().map_err(|_| "the localizer thread panicked".to_string())?;
+    // the node tells its spinner to stop while the executor (and the spinner's task) still
+    // exists: dropped after it, the node logged an error on every clean stop
+    drop(node);
     let s = serde_json::json!({
         "summary": {
             "received": counts.received.load(Ordering::Relaxed),
@@ -346,7 +370,35 @@ pub fn run(p: Params) -> Result<(), String> {
     });
     log::info!("stopped: {s}");
     println!("{s}");
+    TEARING_DOWN.store(true, Ordering::Relaxed);
     Ok(())
+}
+
+/// Shortest wait for discovery at start.
+const SETTLE_MIN: Duration = Duration::from_millis(1500);
+/// Discovery counts as settled once no new remote writer came for this long.
+const SETTLE_QUIET: Duration = Duration::from_millis(1000);
+/// Longest wait for discovery at start.
+const SETTLE_MAX: Duration = Duration::from_secs(6);
+
+/// Waits until the remote writers the DDS participant knows stop changing (at least
+/// [`SETTLE_MIN`], at most [`SETTLE_MAX`]); returns how many it knows. A best-effort sample from a
+/// writer the node has not discovered yet is dropped by the DDS stack (RustDDS keeps no sample of
+/// an unknown writer), and a ROS 2 publisher already running sends as soon as it sees the node's
+/// subscription: announcing the subscriptions only after the publishers present are known keeps
+/// their first frames (issue 48: 3 of 4 runs of a publisher started before the node lost its
+/// first frame).
+fn settle_discovery(dp: &ros2_client::dds::rustdds::DomainParticipant) -> usize {
+    let start = Instant::now();
+    let (mut known, mut changed) = (dp.discovered_writers().len(), Instant::now());
+    while start.elapsed() < SETTLE_MAX && (start.elapsed() < SETTLE_MIN || changed.elapsed() < SETTLE_QUIET) {
+        std::thread::sleep(Duration::from_millis(100));
+        let n = dp.discovered_writers().len();
+        if n != known {
+            (known, changed) = (n, Instant::now());
+        }
+    }
+    known
 }
 
 /// The parameters as the node declares them (what parameter clients read back).
@@ -424,7 +476,7 @@ fn localize(
                     }
                 }
                 let latency = f.received.elapsed().as_secs_f64() * 1e3;
-                let msg = place_match(&f.header, &r, latency as f32);
+                let msg = place_match(&f.header, f.number, &r, latency as f32);
                 // the pose first: a subscriber that has a frame's match has its pose too
                 if let Some(pose) = pose_stamped(&f.header, &r, &out.pose_frame_id) {
                     if let Err(e) = out.poses.publish(pose) {
@@ -436,7 +488,7 @@ fn localize(
                         counts.published.fetch_add(1, Ordering::Relaxed);
                         let total = f.received.elapsed().as_secs_f64() * 1e3;
                         stats.push(&Latency { total_ms: total, ..r.latency });
-                        log::debug!("frame {id}: {:?} in {total:.1} ms", r.place());
+                        log::debug!("frame {id}: {:?} in {total:.1} ms", r.place().map(|a| (&a.id, a.score, a.source)));
                     }
                     Err(e) => log::warn!("match of frame {id} not published: {e:?}"),
                 }
@@ -497,17 +549,45 @@ mod tests {
         assert!(compressed_pixels(&c).is_ok());
     }
 
-    /// A full queue drops its oldest frame, counts it, and never holds more than its size.
+    /// A burst into a full queue: the oldest frames are dropped and counted, the queue never holds
+    /// more than its size, every frame received (dropped and refused ones too) is numbered, and
+    /// the PlaceMatch of a frame that is localized carries its number, not the localizer's count.
     #[test]
-    fn a_burst_drops_the_oldest_frames() {
+    fn a_burst_drops_the_oldest_frames_and_the_counters_count_them() {
         let q = Queue { items: Mutex::new(VecDeque::new()), ready: Condvar::new(), cap: 2, dropped: AtomicU64::new(0) };
-        for sec in 0..10 {
+        let counts = Counts::default();
+        for sec in 0..12 {
             let header = Header { stamp: crate::msgs::Time { sec, nanosec: 0 }, frame_id: String::new() };
-            q.push(Incoming { header, pixels: Pixels::Bytes { bytes: vec![], labels: None }, received: Instant::now() });
+            // frame 3 has an encoding the node cannot read
+            let pixels = match sec {
+                3 => Err("encoding \"16UC1\" is not supported".to_string()),
+                _ => Ok(Pixels::Bytes { bytes: vec![], labels: None }),
+            };
+            receive(&q, &counts, header, pixels, Instant::now());
             assert!(q.items.lock().unwrap().len() <= 2);
         }
-        assert_eq!(q.dropped.load(Ordering::Relaxed), 8);
-        let left: Vec<i32> = std::iter::from_fn(|| q.pop(Duration::from_millis(1))).map(|f| f.header.stamp.sec).collect();
-        assert_eq!(left, [8, 9]);
+        let (received, unsupported, dropped) =
+            (counts.received.load(Ordering::Relaxed), counts.unsupported.load(Ordering::Relaxed), q.dropped.load(Ordering::Relaxed));
+        assert_eq!((received, unsupported, dropped), (12, 1, 9));
+        let left: Vec<Incoming> = std::iter::from_fn(|| q.pop(Duration::from_millis(1))).collect();
+        assert_eq!(left.iter().map(|f| (f.header.stamp.sec, f.number)).collect::<Vec<_>>(), [(10, 10), (11, 11)]);
+        assert_eq!(received, left.len() as u64 + dropped + unsupported, "every frame received is queued, dropped or refused");
+        // the localizer saw none of the dropped frames: its own count is 0 for the first it gets
+        let r = FrameResult {
+            frame: 0,
+            id: frame_id(&left[0].header),
+            answer: None,
+            timestamp: Some(10.0),
+            generation: 1,
+            top_k: vec![],
+            sequence: None,
+            closure: None,
+            size_changed: false,
+            tracking: false,
+            warming_up: false,
+            pose: None,
+            latency: Latency::default(),
+        };
+        assert_eq!(place_match(&left[0].header, left[0].number, &r, 1.0).frame, 10, "frames before it, dropped ones included");
     }
 }

@@ -49,9 +49,9 @@ struct Node {
 }
 
 impl Node {
-    /// Stops the node with SIGTERM and returns its stdout (the summary line) and stderr.
+    /// Stops the node with SIGINT (Ctrl-C) and returns its stdout (the summary line) and stderr.
     fn stop(mut self) -> (String, String) {
-        let _ = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status();
+        let _ = Command::new("kill").args(["-INT", &self.child.id().to_string()]).status();
         let t = Instant::now();
         while t.elapsed() < Duration::from_secs(30) {
             if let Ok(Some(_)) = self.child.try_wait() {
@@ -187,12 +187,6 @@ fn the_node_answers_a_real_ros2_peer() {
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_semlook_node"));
     cmd.args(["--ros-args", "-p", &format!("map:={}", map.display()), "-p", "backend:=cpu", "-p", "queue_size:=2", "-p", "map_refresh_s:=0.5"]);
     ros_env(&mut cmd, domain);
-    let mut node = Node { child: cmd.stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap() };
-    std::thread::sleep(Duration::from_secs(2));
-    if let Ok(Some(status)) = node.child.try_wait() {
-        let (_, err) = node.stop();
-        panic!("the node stopped at once ({status}):\n{err}");
-    }
 
     // phase 1: the ten photos, alternating CompressedImage (jpeg) and Image (rgb8, bgr8), each
     // answered before the next; then an unsupported encoding and a corrupt JPEG, not answered
@@ -217,12 +211,26 @@ fn the_node_answers_a_real_ros2_peer() {
     broken["answered"] = false.into();
     frames.push(bad);
     frames.push(broken);
-    let one =
-        peer(&venv, &serde_json::json!({ "frames": frames, "wait": true, "expect": 10, "timeout": 180, "linger": 2.0 }), dir.path(), "one", domain);
+    // the first peer is up before the node (a camera already publishing): it sends its first
+    // frame as soon as it sees the node's subscription, which must not lose it (3 of 4 runs did
+    // before the node let discovery settle before subscribing)
+    let plan = serde_json::json!({ "frames": frames, "wait": true, "expect": 10, "timeout": 180, "linger": 2.0 });
+    let (one, node) = std::thread::scope(|s| {
+        let first = s.spawn(|| peer(&venv, &plan, dir.path(), "one", domain));
+        std::thread::sleep(Duration::from_secs(3));
+        let mut node = Node { child: cmd.stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap() };
+        std::thread::sleep(Duration::from_secs(2));
+        if let Ok(Some(status)) = node.child.try_wait() {
+            let (_, err) = node.stop();
+            panic!("the node stopped at once ({status}):\n{err}");
+        }
+        (first.join().unwrap(), node)
+    });
     let matches = one["matches"].as_array().unwrap();
     assert_eq!(matches.len(), 10, "every photo answered once, the two bad frames not: {matches:?}");
     for (i, m) in matches.iter().enumerate() {
         assert_eq!(m["sec"], 100 + i as i64, "in order, under the frame's own stamp");
+        assert_eq!(m["frame"], i as u64, "frames received before it");
         let q = &query["queries"][i];
         let want_ids: Vec<&str> = q["top_k"].as_array().unwrap().iter().map(|c| c["reference"].as_str().unwrap()).collect();
         let got_ids: Vec<&str> = m["top_ids"].as_array().unwrap().iter().map(|v| v.as_str().unwrap()).collect();
@@ -277,6 +285,11 @@ fn the_node_answers_a_real_ros2_peer() {
         domain,
     );
     let m3 = three["matches"].as_array().unwrap();
+    // a frame's number counts every frame received before it, dropped ones included: the 12 of
+    // phase 1 (two of them refused), the 3 of phase 2, then the burst's own
+    for m in m3 {
+        assert_eq!(m["frame"].as_i64().unwrap(), 15 + (m["sec"].as_i64().unwrap() - 400), "{m}");
+    }
     let (out, err) = node.stop();
     let summary: serde_json::Value =
         out.lines().find_map(|l| serde_json::from_str::<serde_json::Value>(l).ok()).unwrap_or_else(|| panic!("no summary:\n{out}\n{err}"));
@@ -286,6 +299,9 @@ fn the_node_answers_a_real_ros2_peer() {
     assert_eq!(s["unsupported"].as_u64().unwrap(), 1, "{s}");
     assert_eq!(s["localizer"]["refused"].as_u64().unwrap(), 1, "the corrupt JPEG: {s}");
     assert!(err.contains("16UC1") && err.contains("not supported"), "{err}");
+    // a clean start and a clean Ctrl-C: no error line (the GPU probe's XDG_RUNTIME_DIR complaint,
+    // the DDS stack's teardown)
+    assert!(!err.contains("ERROR") && !err.contains("XDG_RUNTIME_DIR"), "{err}");
     let published = s["published"].as_u64().unwrap();
     assert_eq!(published, 13 + m3.len() as u64, "{s}");
     assert_eq!(
@@ -295,4 +311,35 @@ fn the_node_answers_a_real_ros2_peer() {
     );
     assert!(s["receive_to_publish_ms"]["p50"].as_f64().unwrap() > 0.0);
     eprintln!("node summary: {s}");
+}
+
+/// The node with its defaults (backend `auto`: it looks for a GPU) starts and stops on Ctrl-C
+/// without an error line: neither Mesa's `XDG_RUNTIME_DIR` complaint at start nor the DDS stack's
+/// teardown (its spinner notified after its executor was gone, a multicast group left on
+/// loopback).
+#[test]
+fn a_clean_start_and_ctrl_c_log_no_error() {
+    let data = repo().join("../shared/data/real-vpr/gardenspoint-day-night-mini");
+    if !data.exists() {
+        return skip(&format!("{} is absent", data.display()));
+    }
+    let Some(semlook) = semlook_bin() else { return skip("the semlook binary is not built beside this test (cargo test --workspace builds it)") };
+    if semlook::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, Some(&repo().join(".semlook/xfeat.pt")), "XFeat").is_err() {
+        return skip("no XFeat weights in .semlook (run setup.sh)");
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let map = dir.path().join("map");
+    let mut build = Command::new(&semlook);
+    build.args(["-q", "--backend", "cpu", "map", "build", "--images"]).arg(data.join("ref")).arg("--map").arg(&map);
+    ros_env(&mut build, 0);
+    assert!(build.status().unwrap().success());
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_semlook_node"));
+    cmd.args(["--ros-args", "-p", &format!("map:={}", map.display())]).env_remove("XDG_RUNTIME_DIR");
+    ros_env(&mut cmd, 200 + (std::process::id() % 50) as u16);
+    let node = Node { child: cmd.stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap() };
+    std::thread::sleep(Duration::from_secs(5));
+    let (out, err) = node.stop();
+    assert!(out.contains("\"summary\""), "it stopped cleanly, with its summary:\n{out}\n{err}");
+    assert!(err.contains("subscribed"), "{err}");
+    assert!(!err.contains("ERROR") && !err.contains("XDG_RUNTIME_DIR"), "{err}");
 }

@@ -74,6 +74,10 @@ pub enum DevCommand {
     /// maps of each size (the real references plus distractor places), frames/s and p50/p99
     /// latency per stage.
     BenchStream(BenchStreamArgs),
+    /// `localize --stdin` against `localize --images` on the same files: frames/s and latency
+    /// from a frame's bytes being complete to its answer, each way, and whether the answers are
+    /// equal frame for frame.
+    BenchPipe(BenchPipeArgs),
     /// Approximate-index benchmark: maps of each size made from a real map's images (appearance
     /// vectors made new per reference), the index built, real query photos through the index and
     /// through the exact scan: build time, bytes per reference, p50/p99 latency, queries/s,
@@ -175,6 +179,27 @@ pub struct IndexBenchArgs {
     pub config: Option<PathBuf>,
     #[command(flatten)]
     pub out: BenchMapsArgs,
+}
+
+#[derive(Args)]
+pub struct BenchPipeArgs {
+    /// The map to localize against.
+    #[arg(long)]
+    pub map: PathBuf,
+    /// Folder of images (JPEG or PNG), localized in name order from the folder and piped.
+    #[arg(long)]
+    pub images: PathBuf,
+    /// Which stages rank the map per frame.
+    #[arg(long, value_enum, default_value_t = Setting::RECOMMENDED)]
+    pub setting: Setting,
+    /// Configuration file (TOML); default: the map's.
+    #[arg(long, value_name = "FILE.toml")]
+    pub config: Option<PathBuf>,
+    /// One JSON object per row and line.
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub models: ModelArgs,
 }
 
 #[derive(Args)]
@@ -464,6 +489,11 @@ pub struct PoseArgs {
     /// or matrix_world_to_cam (16 numbers, row-major 4x4).
     #[arg(long, value_name = "FORMAT", requires = "poses", value_parser = parse_pose_format)]
     pub pose_format: Option<semlook::dataset::PoseFormat>,
+    /// The times of the images of --images (`name time` lines, seconds, as `localize
+    /// --timestamps` reads them): the map stores its traversal's frame interval (their median
+    /// step), from which a stream with timestamps derives its sequence velocity range.
+    #[arg(long, value_name = "FILE", requires = "images", conflicts_with = "dataset")]
+    pub timestamps: Option<PathBuf>,
 }
 
 fn parse_pose_format(s: &str) -> Result<semlook::dataset::PoseFormat, String> {
@@ -715,6 +745,17 @@ pub struct LocalizeArgs {
     /// closures found.
     #[arg(long, conflicts_with = "no_sequence")]
     pub loop_closure: bool,
+    /// A restarted --loop-closure run: continue the map's last traversal and skip the frames
+    /// the map already holds (by id: a file's stem, or frame-N of a pipe, so a restarted pipe
+    /// must start from the same first frame); says how many it skipped.
+    #[arg(long, requires = "loop_closure")]
+    pub resume: bool,
+    /// Multiply the sequence velocity range by this (`sequence.velocity_scale`): map positions
+    /// per stream frame at the normal speed, e.g. 4 for a camera at a quarter of the map's frame
+    /// rate. Default: derived from the timestamps where the map (`map build --timestamps`) and
+    /// the stream (--timestamps) both have them, else 1.
+    #[arg(long, value_name = "X", conflicts_with = "no_sequence")]
+    pub velocity_scale: Option<f64>,
     /// Before each frame, move to the map's newest generation if another writer committed one.
     #[arg(long)]
     pub follow_map: bool,

@@ -181,6 +181,12 @@ pub struct Manifest {
     /// maps of one unnamed traversal.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub traversals: Vec<String>,
+    /// Seconds between consecutive frames of a traversal (the median step of its images'
+    /// timestamps, `map build/add --timestamps`), by traversal: a stream with timestamps derives
+    /// its sequence velocity range from it (`sequence.velocity_scale`). Absent in maps without
+    /// timed traversals, so their checksums are those of before the field existed.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub frame_intervals: std::collections::BTreeMap<u32, f64>,
     /// The approximate index of the coarse stage ([`crate::index`]): its model file, how it was
     /// built and the recall measured then; every segment then names its codes. Absent in maps
     /// without one, so their checksums are those of before the field existed.

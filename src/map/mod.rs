@@ -174,6 +174,11 @@ impl Map {
         let (s, j) = self.locate(i);
         self.sound(s)?.pose(j)
     }
+    /// Seconds between consecutive frames of traversal `t`, where the map was given its images'
+    /// timestamps ([`manifest::Manifest::frame_intervals`]).
+    pub fn frame_interval(&self, t: u32) -> Option<f64> {
+        self.manifest.frame_intervals.get(&t).copied()
+    }
     /// Live images with a pose, and of those with an orientation (reads every pose row of the
     /// segments that store poses; `map info`).
     pub fn pose_counts(&self) -> (usize, usize) {

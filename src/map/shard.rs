@@ -138,6 +138,7 @@ mod tests {
             appearance_model: None,
             without_labels: false,
             traversals: vec![],
+            frame_intervals: Default::default(),
             index: None,
             embedding: None,
             checksum: String::new(),

@@ -107,6 +107,8 @@ pub struct MapWriter {
     /// A new map's write lock, held from its creation to its first commit: a reader of the
     /// folder meanwhile is told that a build is running there (`manifest::read_existing`).
     held: Option<WriteLock>,
+    /// Seconds between this writer's frames, stored for its traversal at each commit.
+    frame_interval: Option<f64>,
 }
 
 impl MapWriter {
@@ -158,6 +160,7 @@ impl MapWriter {
             appearance_model: appearance.map(|(_, sha)| sha.to_string()),
             without_labels: false,
             traversals: vec![],
+            frame_intervals: Default::default(),
             index: None,
             embedding: None,
             checksum: String::new(),
@@ -178,6 +181,7 @@ impl MapWriter {
             traversal: None,
             index_model: None,
             held: Some(held),
+            frame_interval: None,
         })
     }
 
@@ -194,6 +198,24 @@ impl MapWriter {
         }
         self.plan = plan;
         Ok(self)
+    }
+
+    /// The seconds between consecutive frames of the traversal the images join (the median step
+    /// of their timestamps), stored in the manifest with each commit
+    /// ([`Manifest::frame_intervals`]); it replaces what the traversal had.
+    pub fn with_frame_interval(mut self, seconds: f64) -> Result<MapWriter> {
+        self.set_frame_interval(seconds)?;
+        Ok(self)
+    }
+
+    /// [`MapWriter::with_frame_interval`] on a writer in use (a stream that measures its rate as
+    /// it goes): from the next commit on.
+    pub fn set_frame_interval(&mut self, seconds: f64) -> Result<()> {
+        if !(seconds > 0.0 && seconds.is_finite()) {
+            return Err(Error::invalid(format!("map {}", self.dir.display()), format!("a frame interval of {seconds} s (must be positive)")));
+        }
+        self.frame_interval = Some(seconds);
+        Ok(())
     }
 
     /// The traversal the committed images joined (after the first commit).
@@ -299,6 +321,7 @@ impl MapWriter {
                 traversal: None,
                 index_model: None,
                 held: None,
+                frame_interval: None,
                 manifest,
             };
             let segments = w.manifest.segments.clone();
@@ -576,6 +599,9 @@ impl MapWriter {
             write_atomic(&self.dir, name, bytes)?;
         }
         let traversal = self.resolve_traversal(&mut m);
+        if let Some(s) = self.frame_interval {
+            m.frame_intervals.insert(traversal, s);
+        }
         change(&mut m, name.as_deref(), traversal)?;
         m.generation += 1;
         manifest::write(&self.dir, &m)?;

@@ -82,11 +82,15 @@ pub struct StreamOptions {
     /// The frames come with their label maps: a map that holds labels then needs no segmenter
     /// (without them, opening such a map without a segmenter is refused: `Encoder::labels_rule`).
     pub labelled_frames: bool,
+    /// Loop-closure mode, a restarted stream: the map's last traversal is continued rather than
+    /// a new one started, and [`Localizer::holds`] names the frames the map already holds (to be
+    /// skipped: every frame stored once, whatever was committed before a kill).
+    pub resume: bool,
 }
 
 impl Default for StreamOptions {
     fn default() -> Self {
-        StreamOptions { setting: Setting::RECOMMENDED, sequence: true, loop_closure: false, labelled_frames: false }
+        StreamOptions { setting: Setting::RECOMMENDED, sequence: true, loop_closure: false, labelled_frames: false, resume: false }
     }
 }
 
@@ -105,6 +109,49 @@ pub struct PlaceMatch {
     pub inliers: Option<u32>,
 }
 
+/// Where a stream's answer comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AnswerSource {
+    /// The accepted sequence match.
+    Sequence,
+    /// The single-frame best (sequence matching off, no match accepted yet, or none accepted at
+    /// this frame).
+    Frame,
+}
+
+impl AnswerSource {
+    /// `sequence` or `frame`, as the CSV and JSON lines write it.
+    pub fn name(self) -> &'static str {
+        match self {
+            AnswerSource::Sequence => "sequence",
+            AnswerSource::Frame => "frame",
+        }
+    }
+}
+
+/// The stream's answer for one frame: the accepted sequence match where there is one, else the
+/// single-frame best. Its `score` is on one scale whatever the source: the setting's score of the
+/// answered place against this frame (the scale of [`FrameResult::top_k`]'s scores; the sequence
+/// match's own score stays in [`FrameResult::sequence`]).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Answer {
+    /// Index of the place in the map's generation the frame was answered from.
+    pub index: u32,
+    /// The place's image id.
+    pub id: String,
+    /// Where the place lies on the map's routes.
+    pub place: Place,
+    /// The setting's score of the place against this frame (higher is better; the scale of
+    /// `top_k`'s scores).
+    pub score: f32,
+    /// Whether the answer is the accepted sequence match or the single-frame best.
+    pub source: AnswerSource,
+    /// The answer is an accepted sequence match (`source` is `sequence`); a single-frame answer
+    /// is never accepted.
+    pub accepted: bool,
+}
+
 /// The sequence match of a frame.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct SequenceResult {
@@ -115,6 +162,9 @@ pub struct SequenceResult {
     /// The trajectory search's result.
     #[serde(flatten)]
     pub matched: SequenceMatch,
+    /// What the velocity range was multiplied by ([`crate::config::SequenceConfig::velocity_scale`]:
+    /// set, or the stream's frame interval over the map's).
+    pub velocity_scale: f64,
 }
 
 /// A loop closure: the frame matched a place the stream passed before (loop-closure mode).
@@ -151,6 +201,10 @@ pub struct Latency {
     pub store_ms: f64,
     /// From the call to the answer.
     pub total_ms: f64,
+    /// From the moment the frame's bytes were complete (a piped image read to its end, a
+    /// folder's frame taken in turn; [`replay`]) to the answer: `total_ms` plus reading,
+    /// decoding and the wait for the matcher. [`Localizer::push`] alone: `total_ms`.
+    pub arrival_ms: f64,
 }
 
 impl Latency {
@@ -166,6 +220,7 @@ impl Latency {
             sequence_ms: f(self.sequence_ms, o.sequence_ms),
             store_ms: f(self.store_ms, o.store_ms),
             total_ms: f(self.total_ms, o.total_ms),
+            arrival_ms: f(self.arrival_ms, o.arrival_ms),
         }
     }
 }
@@ -228,6 +283,7 @@ impl LatencyStats {
                 sequence_ms: field(|l| l.sequence_ms),
                 store_ms: field(|l| l.store_ms),
                 total_ms: field(|l| l.total_ms),
+                arrival_ms: field(|l| l.arrival_ms),
             }
         };
         let sum = self.last.iter().fold(Latency::default(), |a, b| a.zip(*b, |x, y| x + y));
@@ -242,6 +298,9 @@ pub struct FrameResult {
     pub frame: u64,
     /// The frame's id.
     pub id: String,
+    /// The stream's answer ([`Answer`]): the accepted sequence match, else the single-frame best;
+    /// `None` where the frame has no match (a loop-closure map warming up, an empty map).
+    pub answer: Option<Answer>,
     /// The frame's timestamp, in seconds, when it has one.
     pub timestamp: Option<f64>,
     /// The map generation the frame was answered from.
@@ -271,20 +330,14 @@ impl FrameResult {
     pub fn best(&self) -> Option<&PlaceMatch> {
         self.top_k.first()
     }
-    /// The stream's answer: the sequence match where it is accepted, else the single-frame best
-    /// (id, score).
-    pub fn place(&self) -> Option<(&str, f32)> {
-        match &self.sequence {
-            Some(s) if s.matched.accepted => Some((s.id.as_str(), s.matched.score)),
-            _ => self.best().map(|b| (b.id.as_str(), b.score)),
-        }
+    /// The stream's answer ([`FrameResult::answer`]): the sequence match where it is accepted,
+    /// else the single-frame best.
+    pub fn place(&self) -> Option<&Answer> {
+        self.answer.as_ref()
     }
     /// The map index of [`FrameResult::place`].
     pub fn place_index(&self) -> Option<u32> {
-        match &self.sequence {
-            Some(s) if s.matched.accepted => Some(s.index),
-            _ => self.best().map(|b| b.index),
-        }
+        self.answer.as_ref().map(|a| a.index)
     }
 }
 
@@ -303,6 +356,10 @@ pub struct StreamCounts {
     pub reloads: u64,
     /// Loop-closure mode: frames kept to create the map with (answered without a match).
     pub warm_up: u64,
+    /// Frames whose best trajectory ran at the fastest (or, below 0, the slowest) velocity tried:
+    /// the camera may move faster than the range follows (a warning is logged once 8 come in a
+    /// row).
+    pub velocity_edge: u64,
 }
 
 /// Loop-closure state: the writer of the stream's traversal and what the exclusion needs.
@@ -316,6 +373,10 @@ struct LoopState {
     recent: VecDeque<(u64, f64)>,
     /// Before the map exists: the first frames, decoded, to train its codebook on.
     warm: Vec<(String, Loaded, Option<f64>)>,
+    /// A resumed stream: the traversal it continues (known before the writer's first commit).
+    resumed: Option<u32>,
+    /// A resumed stream: the ids the map held when it was opened.
+    held: HashSet<String>,
 }
 
 /// Tracking: the last accepted sequence match (place, velocity) and the frames since it.
@@ -340,6 +401,68 @@ pub struct Localizer {
     last_timestamp: Option<f64>,
     last_size: Option<(u32, u32)>,
     format: LabelFormat,
+    /// The velocity range's scale and what it follows.
+    rate: Rate,
+}
+
+/// Frames in a row whose best trajectory runs at the velocity range's edge before the warning
+/// (at most `sequence.length`).
+const EDGE_FRAMES: usize = 8;
+
+/// Frames to measure a stream's frame interval over (the median step of their timestamps).
+const INTERVAL_FRAMES: usize = 15;
+
+/// The stream's frame rate against the map's, and the trajectories at the velocity range's edge.
+#[derive(Debug, Clone, Default)]
+struct Rate {
+    /// The last steps between the stream's timestamps, seconds.
+    steps: VecDeque<f64>,
+    /// Frames in a row whose best trajectory ran at the range's edge.
+    edge_run: usize,
+    /// The edge was warned about (once per stream).
+    warned: bool,
+}
+
+impl Rate {
+    /// The stream's frame interval: the median of the last steps.
+    fn interval(&self) -> Option<f64> {
+        let mut v: Vec<f64> = self.steps.iter().copied().collect();
+        v.sort_by(f64::total_cmp);
+        v.get(v.len() / 2).copied()
+    }
+}
+
+/// Counts the frames whose best trajectory runs at the velocity range's edge, and warns once
+/// [`EDGE_FRAMES`] of them come in a row: the camera is likely faster than the range follows.
+fn watch_edge(seq: &SequenceMatcher, cfg: &crate::config::SequenceConfig, rate: &mut Rate, counts: &mut StreamCounts, m: Option<&SequenceMatch>) {
+    let (lo, hi) = seq.velocity_range();
+    let at_edge = m.is_some_and(|m| {
+        let v = m.velocity as f64;
+        m.frames > 1 && ((v - hi).abs() < 1e-3 * hi.abs().max(1.0) || (lo < 0.0 && (v - lo).abs() < 1e-3 * lo.abs().max(1.0)))
+    });
+    match at_edge {
+        true => {
+            counts.velocity_edge += 1;
+            rate.edge_run += 1;
+        }
+        false => rate.edge_run = 0,
+    }
+    if rate.edge_run >= EDGE_FRAMES.min(cfg.length).max(2) && !rate.warned {
+        rate.warned = true;
+        log::warn!(
+            "sequence: the best trajectory has run at the edge of the velocity range ({lo:.2} to {hi:.2} positions per frame) for {} frames: \
+             the camera may move faster than the range follows (a map and a stream at other frame rates?); give both timestamps \
+             (map build/add --timestamps, localize --timestamps) or set sequence.velocity_scale (localize --velocity-scale)",
+            rate.edge_run
+        );
+    }
+}
+
+/// The median frame interval of the map's timed traversals.
+fn map_interval(map: &Map) -> Option<f64> {
+    let mut v: Vec<f64> = map.manifest.frame_intervals.values().copied().collect();
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied()
 }
 
 impl Localizer {
@@ -355,19 +478,40 @@ impl Localizer {
     }
 
     /// Loop-closure mode on the map in `dir`: an existing map gets a new traversal for the
-    /// stream; where there is none, one is created, its codebook trained on the first
+    /// stream (with `opts.resume`, its last traversal is continued: a restarted stream); where
+    /// there is none, one is created, its codebook trained on the first
     /// min(`appearance.codebook_images`, `stream.exclude_frames`) frames (answered without a
     /// match: nothing older exists to match them against).
     pub fn loop_closure(dir: &Path, cfg: Option<Config>, opts: StreamOptions, engine: Engine) -> Result<Localizer> {
         let opts = StreamOptions { loop_closure: true, sequence: true, ..opts };
-        let lc = |writer| LoopState { writer, dir: dir.to_path_buf(), added: 0, recent: VecDeque::new(), warm: vec![] };
+        let lc = |writer| LoopState {
+            writer,
+            dir: dir.to_path_buf(),
+            added: 0,
+            recent: VecDeque::new(),
+            warm: vec![],
+            resumed: None,
+            held: HashSet::new(),
+        };
         if manifest::read(dir)?.is_some() {
             let map = Map::open(dir)?;
             let cfg = cfg.unwrap_or_else(|| map.query_config());
-            let writer = MapWriter::append(dir, StoreOptions::default())?.with_traversal(TraversalPlan::New)?;
-            return Localizer::with_map(map, cfg, opts, engine, Some(lc(Some(writer))));
+            let plan = if opts.resume { TraversalPlan::Last } else { TraversalPlan::New };
+            let writer = MapWriter::append(dir, StoreOptions::default())?.with_traversal(plan)?;
+            let mut state = lc(Some(writer));
+            if opts.resume {
+                // the last traversal goes on where the stream stopped: its frames are the ones
+                // the restarted stream does not add again
+                let last = manifest::traversal_names(&map.manifest).len().saturating_sub(1) as u32;
+                state.resumed = Some(last);
+                state.added = map.traversal_len(last) as u64;
+                state.held = (0..map.len()).map(|i| map.id(i).to_string()).collect();
+            }
+            return Localizer::with_map(map, cfg, opts, engine, Some(state));
         }
-        MapWriter::check_new_dir(dir, false)?;
+        // a stream killed before its map's first commit left no map: it starts anew (files of the
+        // unfinished build taken over with `resume`)
+        MapWriter::check_new_dir(dir, opts.resume)?;
         let cfg = cfg.unwrap_or_default();
         cfg.validate("configuration")?;
         let encoder = Encoder::new(&cfg)?.with_hog(opts.setting == Setting::Hog);
@@ -388,6 +532,7 @@ impl Localizer {
             last_timestamp: None,
             last_size: None,
             format: LabelFormat::default(),
+            rate: Rate::default(),
         })
     }
 
@@ -421,6 +566,7 @@ impl Localizer {
             last_timestamp: None,
             last_size: None,
             format: LabelFormat::default(),
+            rate: Rate::default(),
         })
     }
 
@@ -454,6 +600,12 @@ impl Localizer {
     pub fn engine(&self) -> &Engine {
         &self.engine
     }
+    /// A resumed loop-closure stream ([`StreamOptions::resume`]): whether the map held a frame of
+    /// this id when it was opened (the frame was stored before a restart: skip it).
+    pub fn holds(&self, id: &str) -> bool {
+        self.lc.as_ref().is_some_and(|l| l.held.contains(id))
+    }
+
     /// What the stream keeps: frames in the ring and their entries.
     pub fn state_size(&self) -> (usize, usize) {
         (self.seq.frames(), self.seq.entries())
@@ -465,6 +617,7 @@ impl Localizer {
         self.track = Track::default();
         self.last_timestamp = None;
         self.last_size = None;
+        self.rate = Rate::default();
     }
 
     /// Moves to the map's newest generation when another writer committed one (an add, a removal,
@@ -563,6 +716,12 @@ impl Localizer {
         let size_changed = self.last_size.is_some_and(|s| s != size);
         self.last_size = Some(size);
         if let Some(t) = frame.timestamp {
+            if let Some(step) = self.last_timestamp.map(|last| t - last).filter(|&d| d > 0.0) {
+                if self.rate.steps.len() == INTERVAL_FRAMES {
+                    self.rate.steps.pop_front();
+                }
+                self.rate.steps.push_back(step);
+            }
             self.last_timestamp = Some(t);
         }
         let mut r = self.locate(index, frame, &img, latency, t0)?;
@@ -573,6 +732,7 @@ impl Localizer {
             r.latency.store_ms = ms_since(t);
         }
         r.latency.total_ms = ms_since(t0);
+        r.latency.arrival_ms = r.latency.total_ms;
         Ok(r)
     }
 
@@ -586,7 +746,7 @@ impl Localizer {
     fn search_range(&self, map: &Map, timestamp: Option<f64>) -> (std::ops::Range<usize>, bool) {
         let all = 0..map.len();
         if let Some(lc) = &self.lc {
-            let Some(t) = lc.writer.as_ref().and_then(MapWriter::traversal) else { return (all, false) };
+            let Some(t) = lc.writer.as_ref().and_then(MapWriter::traversal).or(lc.resumed) else { return (all, false) };
             let st = &self.cfg.stream;
             let mut excluded = (st.exclude_frames as u64).min(lc.added);
             if let (Some(now), true) = (timestamp, st.exclude_seconds > 0.0) {
@@ -651,6 +811,14 @@ impl Localizer {
         };
         let top_k: Vec<PlaceMatch> = ranked.iter().take(self.cfg.matching.top_k).map(report).collect();
         let mut sequence = None;
+        let mut answer = top_k.first().map(|b| Answer {
+            index: b.index,
+            id: b.id.clone(),
+            place: b.place,
+            score: b.score,
+            source: AnswerSource::Frame,
+            accepted: false,
+        });
         if self.opts.sequence {
             let t = Instant::now();
             let widen = if full_rows { 0 } else { self.cfg.sequence.widen };
@@ -658,8 +826,35 @@ impl Localizer {
                 scored_rows(&mut self.engine, &src, &queries, std::slice::from_ref(&matched), setting, &self.cfg, widen)?.pop().unwrap_or_default();
             let lens = |t: u32| map.traversal_len(t);
             let row = contributions(&self.cfg.sequence, &scored, &lens);
+            // the velocity range follows the stream's frame rate against the map's
+            let scale = match (self.cfg.sequence.velocity_scale, self.rate.interval(), map_interval(map)) {
+                (Some(k), _, _) => k,
+                (None, Some(stream), Some(map)) => (stream / map).clamp(1.0 / 64.0, 64.0),
+                _ => 1.0,
+            };
+            if (scale / self.seq.velocity_scale() - 1.0).abs() > 0.05 {
+                log::info!("sequence: velocity range x{scale:.3} (the stream's frame interval over the map's)");
+                self.seq.set_velocity_scale(scale);
+            }
             let m = self.seq.push(row, &lens);
-            sequence = m.and_then(|m| map.at(m.place).map(|i| SequenceResult { index: i as u32, id: map.id(i).to_string(), matched: m }));
+            let velocity_scale = self.seq.velocity_scale();
+            sequence =
+                m.and_then(|m| map.at(m.place).map(|i| SequenceResult { index: i as u32, id: map.id(i).to_string(), matched: m, velocity_scale }));
+            watch_edge(&self.seq, &self.cfg.sequence, &mut self.rate, &mut self.counts, sequence.as_ref().map(|s| &s.matched));
+            if let Some(s) = sequence.as_ref().filter(|s| s.matched.accepted) {
+                // the answer's score on the frame's scale: the place's score in this frame's row,
+                // or (a place the row did not reach) scored now, as its neighbours were
+                let score = match scored.iter().find(|(p, _)| *p == s.matched.place) {
+                    Some(&(_, v)) => v,
+                    None => {
+                        let evidence = [matched.evidence];
+                        let c = self.engine.score_pairs(map, &queries, setting, &self.cfg, &[(0, s.index)], Some(&evidence))?;
+                        c.first().map_or(f32::NEG_INFINITY, |c| c.score)
+                    }
+                };
+                answer =
+                    Some(Answer { index: s.index, id: s.id.clone(), place: s.matched.place, score, source: AnswerSource::Sequence, accepted: true });
+            }
             latency.sequence_ms = ms_since(t);
         }
         // tracking follows accepted matches, and lets go after `lost_after` frames without one
@@ -700,6 +895,7 @@ impl Localizer {
         let mut r = FrameResult {
             frame: index,
             id: frame.id.clone(),
+            answer,
             timestamp: frame.timestamp,
             generation: map.manifest.generation,
             top_k,
@@ -730,6 +926,10 @@ impl Localizer {
         }
         lc.added += 1;
         if lc.added % commit as u64 == 0 {
+            // the stream's traversal records its frame interval (what a later stream's range follows)
+            if let Some(dt) = self.rate.interval() {
+                w.set_frame_interval(dt)?;
+            }
             w.flush()?;
             self.refresh()?;
         }
@@ -754,6 +954,7 @@ impl Localizer {
         Ok(FrameResult {
             frame: index,
             id: frame.id.clone(),
+            answer: None,
             timestamp: frame.timestamp,
             generation: self.map.as_ref().map_or(0, |m| m.manifest.generation),
             top_k: vec![],
@@ -763,7 +964,7 @@ impl Localizer {
             tracking: false,
             warming_up: true,
             pose: None,
-            latency: Latency { total_ms: ms_since(t0), ..latency },
+            latency: Latency { total_ms: ms_since(t0), arrival_ms: ms_since(t0), ..latency },
         })
     }
 
@@ -784,8 +985,9 @@ impl Localizer {
             keypoints: self.encoder.keypoint_dim(),
             compact_hog: self.encoder.compact_hog_dim(),
         };
-        let mut w = MapWriter::create(&lc.dir, &self.cfg.encoding(), dims, self.encoder.appearance_record(), StoreOptions::default(), false)?
-            .with_embedding(self.encoder.embedding_record())?;
+        let mut w =
+            MapWriter::create(&lc.dir, &self.cfg.encoding(), dims, self.encoder.appearance_record(), StoreOptions::default(), self.opts.resume)?
+                .with_embedding(self.encoder.embedding_record())?;
         if void && !self.encoder.frames().can_segment() {
             w = w.without_labels()?;
         }
@@ -849,27 +1051,30 @@ pub fn replay(
     mut on: impl FnMut(&mut Localizer, Replayed) -> Result<()>,
 ) -> Result<LatencyStats> {
     let decoder = loc.loader();
-    let (tx, rx) = std::sync::mpsc::sync_channel::<(String, Option<f64>, Result<Loaded>)>(ahead.max(1));
+    let (tx, rx) = std::sync::mpsc::sync_channel::<(String, Option<f64>, Result<Loaded>, Instant)>(ahead.max(1));
     let mut stats = LatencyStats::default();
     std::thread::scope(|s| -> Result<()> {
         s.spawn(move || {
             for (k, f) in frames.enumerate() {
+                // the source has handed the frame over: its bytes are complete
+                let arrived = Instant::now();
                 let item = match f {
                     Ok(StreamFrame { id, pixels, timestamp }) => {
                         let l = decoder.load(&id, pixels);
-                        (id, timestamp, l)
+                        (id, timestamp, l, arrived)
                     }
-                    Err(e) => (format!("frame-{k:06}"), None, Err(e)),
+                    Err(e) => (format!("frame-{k:06}"), None, Err(e), arrived),
                 };
                 if tx.send(item).is_err() {
                     return;
                 }
             }
         });
-        for (id, ts, loaded) in rx {
+        for (id, ts, loaded, arrived) in rx {
             let (frame, refused) = (loc.counts().frames, loc.counts().refused);
             match loc.push_loaded(id.clone(), ts, loaded) {
-                Ok(r) => {
+                Ok(mut r) => {
+                    r.latency.arrival_ms = ms_since(arrived);
                     stats.push(&r.latency);
                     on(&mut *loc, Replayed::Answered(Box::new(r)))?;
                 }

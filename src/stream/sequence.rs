@@ -169,12 +169,35 @@ pub struct SequenceMatcher {
     grid: Grid,
     /// Newest first.
     rows: VecDeque<Row>,
+    /// What `velocity_min` and `velocity_max` are multiplied by ([`SequenceMatcher::set_velocity_scale`]).
+    scale: f64,
 }
 
 impl SequenceMatcher {
-    /// An empty ring with the parameters of `cfg`.
+    /// An empty ring with the parameters of `cfg` (its `velocity_scale` where set, else 1).
     pub fn new(cfg: &SequenceConfig) -> SequenceMatcher {
-        SequenceMatcher { cfg: cfg.clone(), grid: Grid::new(cfg), rows: VecDeque::with_capacity(cfg.length) }
+        let mut m = SequenceMatcher { cfg: cfg.clone(), grid: Grid::new(cfg), rows: VecDeque::with_capacity(cfg.length), scale: 1.0 };
+        m.set_velocity_scale(cfg.velocity_scale.unwrap_or(1.0));
+        m
+    }
+
+    /// Multiplies the velocity range by `scale` from the next frame on (a stream at another
+    /// frame rate than the map's); the ring is kept (the search runs over it anew each frame).
+    pub fn set_velocity_scale(&mut self, scale: f64) {
+        let scaled = SequenceConfig { velocity_min: self.cfg.velocity_min * scale, velocity_max: self.cfg.velocity_max * scale, ..self.cfg.clone() };
+        self.grid = Grid::new(&scaled);
+        self.scale = scale;
+    }
+
+    /// What the velocity range is multiplied by.
+    pub fn velocity_scale(&self) -> f64 {
+        self.scale
+    }
+
+    /// The slowest and fastest velocities tried, in positions per frame (the range scaled).
+    pub fn velocity_range(&self) -> (f64, f64) {
+        let v = &self.grid.velocities;
+        (v.first().copied().unwrap_or(0.0), v.last().copied().unwrap_or(0.0))
     }
 
     /// Frames in the ring (at most `sequence.length`).

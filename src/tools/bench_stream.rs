@@ -233,3 +233,121 @@ pub fn table(rows: &[StreamBenchRow]) -> String {
     }
     s + "latency columns: p50/p99 ms per frame; total from the localizer taking the decoded frame to its answer (decoding and segmentation run a frame ahead on a second thread: their columns; frames/s is end to end)\n"
 }
+
+/// One source of [`pipe_vs_folder`]: the same files as a folder or piped.
+#[derive(Debug, Clone, Serialize)]
+pub struct PipeBenchRow {
+    /// `images` (a folder, as `localize --images`) or `stdin` (the files' bytes one after another
+    /// through an OS pipe, as `cat *.jpg | localize --stdin`).
+    pub source: &'static str,
+    /// Frames answered.
+    pub frames: u64,
+    /// Frames per second of wall clock, end to end.
+    pub frames_per_s: f64,
+    /// Latency from the frame's bytes being complete to its answer (p50, p99, ms).
+    pub arrival_ms: (f64, f64),
+    /// Latency from the localizer taking the decoded frame to its answer (p50, p99, ms).
+    pub total_ms: (f64, f64),
+    /// Reading and decoding on the second thread (p50, p99, ms).
+    pub decode_ms: (f64, f64),
+}
+
+/// `semlook dev bench-pipe`: the files of `images` (name order) localized against the map in
+/// `map`, once from the folder and once piped through an OS pipe into [`ImageStream`] (as
+/// `localize --stdin` reads them), each through [`replay`]. Returns both rows, and the first frame
+/// whose answers differ (ranking, sequence, answer), if any.
+///
+/// [`ImageStream`]: crate::stream::input::ImageStream
+pub fn pipe_vs_folder(
+    map: &Path,
+    images: &Path,
+    cfg: Option<Config>,
+    opts: StreamOptions,
+    engine: &dyn Fn() -> Result<Engine>,
+) -> Result<(Vec<PipeBenchRow>, Option<String>)> {
+    use crate::stream::input::{folder_frames, ImageStream};
+    let listed = folder_frames(images, None, None)?;
+    let files: Vec<PathBuf> = listed
+        .iter()
+        .filter_map(|f| match &f.pixels {
+            Pixels::Files(s) => s.image.clone(),
+            _ => None,
+        })
+        .collect();
+    let mut rows = Vec::new();
+    let mut answers: Vec<Vec<serde_json::Value>> = Vec::new();
+    for source in ["images", "stdin"] {
+        let mut loc = Localizer::open(map, cfg.clone(), opts, engine()?)?;
+        let mut got = Vec::new();
+        let mut on = |_: &mut Localizer, r: Replayed| -> Result<()> {
+            if let Replayed::Answered(r) = r {
+                let mut v = serde_json::to_value(&*r).map_err(|e| Error::invalid("bench-pipe", e.to_string()))?;
+                if let Some(o) = v.as_object_mut() {
+                    // what depends on the source alone: the frame's id and the clock
+                    o.remove("id");
+                    o.remove("latency");
+                }
+                got.push(v);
+            }
+            Ok(())
+        };
+        let t = Instant::now();
+        let stats = match source {
+            "images" => replay(&mut loc, listed.clone().into_iter().map(Ok), 2, &mut on)?,
+            _ => {
+                let (reader, mut writer) = std::io::pipe().map_err(|e| Error::io(Path::new("pipe"), e))?;
+                let files = files.clone();
+                let feeder = std::thread::spawn(move || -> std::io::Result<()> {
+                    use std::io::Write;
+                    for f in &files {
+                        writer.write_all(&std::fs::read(f)?)?;
+                    }
+                    Ok(())
+                });
+                let frames = ImageStream::new(reader, "the pipe").enumerate().map(|(k, bytes)| {
+                    bytes.map(|b| StreamFrame { id: format!("frame-{k:06}"), pixels: Pixels::Bytes { bytes: b, labels: None }, timestamp: None })
+                });
+                let stats = replay(&mut loc, frames, 2, &mut on)?;
+                feeder.join().map_err(|_| Error::invalid("bench-pipe", "the feeding thread panicked"))?.map_err(|e| Error::io(images, e))?;
+                stats
+            }
+        };
+        let wall = t.elapsed().as_secs_f64();
+        let s = stats.summary();
+        let c = loc.counts();
+        rows.push(PipeBenchRow {
+            source,
+            frames: c.frames - c.refused,
+            frames_per_s: c.frames as f64 / wall.max(1e-9),
+            arrival_ms: (s.p50.arrival_ms, s.p99.arrival_ms),
+            total_ms: (s.p50.total_ms, s.p99.total_ms),
+            decode_ms: (s.p50.decode_ms, s.p99.decode_ms),
+        });
+        answers.push(got);
+    }
+    let differ = match answers[0].len() == answers[1].len() {
+        false => Some(format!("{} frames answered from the folder, {} from the pipe", answers[0].len(), answers[1].len())),
+        true => {
+            answers[0].iter().zip(&answers[1]).position(|(a, b)| a != b).map(|k| format!("frame {k}: {} against {}", answers[0][k], answers[1][k]))
+        }
+    };
+    Ok((rows, differ))
+}
+
+/// The rows of [`pipe_vs_folder`] as a table.
+pub fn pipe_table(rows: &[PipeBenchRow]) -> String {
+    let mut s = format!("{:<7} {:>7} {:>9} | {:>15} {:>13} {:>13}\n", "source", "frames", "frames/s", "from bytes", "total", "decode");
+    for r in rows {
+        let c = |(a, b): (f64, f64)| format!("{a:.1}/{b:.1}");
+        s += &format!(
+            "{:<7} {:>7} {:>9.2} | {:>15} {:>13} {:>13}\n",
+            r.source,
+            r.frames,
+            r.frames_per_s,
+            c(r.arrival_ms),
+            c(r.total_ms),
+            c(r.decode_ms)
+        );
+    }
+    s + "latency columns: p50/p99 ms per frame; from bytes: from the frame's bytes being complete (piped: read to its end; folder: taken in turn) to its answer\n"
+}

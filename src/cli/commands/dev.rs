@@ -25,6 +25,7 @@ pub fn run(cmd: DevCommand, engine: &dyn Fn() -> Result<Engine>, quiet: bool) ->
         DevCommand::MapBench(a) => map_cmd::bench(&a, quiet),
         DevCommand::Tune(a) => tune_cmd(&a, &mut engine()?, quiet),
         DevCommand::BenchStream(a) => bench_stream_cmd(&a, engine, quiet),
+        DevCommand::BenchPipe(a) => bench_pipe_cmd(&a, engine, quiet),
         DevCommand::IndexBench(a) => index_bench_cmd(&a, &mut engine()?, quiet),
         DevCommand::SegmenterAccuracy(a) => segacc_cmd(&a, quiet),
         DevCommand::Downscale(a) => downscale_cmd(&a, quiet),
@@ -294,6 +295,30 @@ fn bench_stream_cmd(a: &BenchStreamArgs, engine: &dyn Fn() -> Result<Engine>, qu
         out!("{}", table(&rows));
     }
     Ok(())
+}
+
+fn bench_pipe_cmd(a: &BenchPipeArgs, engine: &dyn Fn() -> Result<Engine>, quiet: bool) -> Result<()> {
+    use semlook::tools::bench_stream::{pipe_table, pipe_vs_folder};
+    let map = semlook::map::Map::open(&a.map)?;
+    let cfg = super::shared::map_config(&map, a.config.as_deref(), &a.models)?;
+    drop(map);
+    let opts = semlook::stream::StreamOptions { setting: a.setting, ..Default::default() };
+    info(quiet, format!("{} against {}: from the folder, then piped", a.images.display(), a.map.display()));
+    let (rows, differ) = pipe_vs_folder(&a.map, &a.images, Some(cfg), opts, engine)?;
+    if a.json {
+        for r in &rows {
+            writeln_row(r)?;
+        }
+    } else {
+        out!("{}", pipe_table(&rows));
+    }
+    match differ {
+        None => {
+            info(quiet, "the answers are equal frame for frame");
+            Ok(())
+        }
+        Some(d) => Err(Error::invalid("bench-pipe", format!("the piped frames were answered otherwise: {d}"))),
+    }
 }
 
 fn writeln_row(r: &impl serde::Serialize) -> Result<()> {

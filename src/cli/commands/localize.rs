@@ -16,6 +16,10 @@ const AHEAD: usize = 2;
 /// The `accepted` column of a refused frame's CSV row (its match columns are empty; the reason
 /// goes to standard error): what a reader tells a refused frame by, beside `true` and `false`.
 const REFUSED: &str = "refused";
+/// The CSV header: the stream's answer first (id, place as `traversal:position`, score on the
+/// setting's single-frame scale, source `sequence` or `frame`, accepted), then the single-frame
+/// best, the sequence match, the closure and the frame's milliseconds.
+pub const HEADER: &str = "frame,id,answer,place,score,source,accepted,best,best_score,sequence,sequence_score,uniqueness,closure,ms";
 
 pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
     // the frames a folder holds and their times are checked before any work
@@ -24,11 +28,20 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
         None => None,
     };
     let exists = semlook::map::manifest::read(&a.map)?.is_some();
-    let cfg = match exists {
+    let mut cfg = match exists {
         true => map_config(&Map::open(&a.map)?, a.config.as_deref(), &a.models)?,
         false => apply_models(load_config(a.config.as_deref())?, &a.models),
     };
-    let opts = StreamOptions { setting: a.setting, sequence: !a.no_sequence, loop_closure: a.loop_closure, labelled_frames: a.labels.is_some() };
+    if let Some(k) = a.velocity_scale {
+        cfg.sequence.velocity_scale = Some(k);
+    }
+    let opts = StreamOptions {
+        setting: a.setting,
+        sequence: !a.no_sequence,
+        loop_closure: a.loop_closure,
+        labelled_frames: a.labels.is_some(),
+        resume: a.resume,
+    };
     let mut loc = Localizer::open(&a.map, Some(cfg), opts, engine)?.with_label_format(a.label_format.unwrap_or_default());
     info(quiet, format!("backend: {}", loc.engine().describe()));
     match loc.map() {
@@ -36,13 +49,37 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
         None => info(quiet, format!("map {}: created from the stream (its first frames train the codebook)", a.map.display())),
     }
     if !a.json {
-        outln!("frame,id,best,score,sequence,sequence_score,uniqueness,accepted,closure,ms");
+        outln!("{HEADER}");
     }
+    // a resumed loop closure skips the frames the map already holds (stored before a restart)
+    let held: std::collections::HashSet<String> = match a.resume {
+        true => loc
+            .map()
+            .map(|m| (0..m.len()).map(|i| semlook::descriptors::source::RefSource::id(m, i).to_string()).filter(|id| loc.holds(id)).collect())
+            .unwrap_or_default(),
+        false => Default::default(),
+    };
+    let skipped = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let skip = {
+        let skipped = skipped.clone();
+        move |f: &Result<StreamFrame>| {
+            let hold = f.as_ref().is_ok_and(|f| held.contains(&f.id));
+            if hold {
+                skipped.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            }
+            !hold
+        }
+    };
     let frames: Box<dyn Iterator<Item = Result<StreamFrame>> + Send> = match listed {
-        Some(frames) => Box::new(frames.into_iter().map(Ok)),
-        None => Box::new(ImageStream::new(std::io::stdin(), "standard input").enumerate().map(|(k, bytes)| {
-            bytes.map(|b| StreamFrame { id: format!("frame-{k:06}"), pixels: Pixels::Bytes { bytes: b, labels: None }, timestamp: None })
-        })),
+        Some(frames) => Box::new(frames.into_iter().map(Ok).filter(skip)),
+        None => Box::new(
+            ImageStream::new(std::io::stdin(), "standard input")
+                .enumerate()
+                .map(|(k, bytes)| {
+                    bytes.map(|b| StreamFrame { id: format!("frame-{k:06}"), pixels: Pixels::Bytes { bytes: b, labels: None }, timestamp: None })
+                })
+                .filter(skip),
+        ),
     };
     let start = Instant::now();
     let mut first_refusal: Option<String> = None;
@@ -61,7 +98,7 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
                 match a.json {
                     true => outln!("{}", serde_json::json!({ "frame": frame, "id": id, "refused": e.to_string() })),
                     // the frame's row with no match and `refused` in the accepted column
-                    false => outln!("{frame},{},,,,,,{REFUSED},,", csv_field(&id)),
+                    false => outln!("{}", refused_row(frame, &id)),
                 }
                 Ok(())
             }
@@ -72,9 +109,19 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
     let counts = loc.counts();
     let summary = stats.summary();
     let rate = counts.frames as f64 / wall.max(1e-9);
+    let skipped = skipped.load(std::sync::atomic::Ordering::Relaxed);
+    if a.resume {
+        info(quiet, format!("resumed: skipped {skipped} frames the map already held"));
+    }
     if a.json {
-        outln!("{}", serde_json::json!({ "summary": { "counts": counts, "wall_s": wall, "frames_per_s": rate, "latency": summary } }));
+        outln!(
+            "{}",
+            serde_json::json!({ "summary": { "counts": counts, "skipped": skipped, "wall_s": wall, "frames_per_s": rate, "latency": summary } })
+        );
     } else {
+        if a.resume {
+            outln!("# resumed: {skipped} frames skipped (the map already held them)");
+        }
         outln!(
             "# {} frames ({} refused), {} accepted sequence matches, {} loop closures; {:.2} frames/s over {:.1} s",
             counts.frames,
@@ -86,7 +133,9 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
         );
         let (p50, p99) = (summary.p50, summary.p99);
         outln!(
-            "# latency ms p50/p99: total {:.1}/{:.1} | decode {:.1}/{:.1} segment {:.1}/{:.1} encode {:.1}/{:.1} coarse {:.1}/{:.1} fine {:.1}/{:.1} sequence {:.1}/{:.1} store {:.1}/{:.1}",
+            "# latency ms p50/p99: from the frame's bytes {:.1}/{:.1} | total {:.1}/{:.1} | decode {:.1}/{:.1} segment {:.1}/{:.1} encode {:.1}/{:.1} coarse {:.1}/{:.1} fine {:.1}/{:.1} sequence {:.1}/{:.1} store {:.1}/{:.1}",
+            p50.arrival_ms,
+            p99.arrival_ms,
             p50.total_ms,
             p99.total_ms,
             p50.decode_ms,
@@ -119,23 +168,45 @@ fn print_frame(r: &FrameResult, json: bool) -> Result<()> {
         outln!("{}", serde_json::to_string(r).map_err(|e| Error::invalid("JSON output", e.to_string()))?);
         return Ok(());
     }
+    outln!("{}", csv_row(r));
+    Ok(())
+}
+
+/// A frame's CSV row (see [`HEADER`]).
+pub fn csv_row(r: &FrameResult) -> String {
+    let csv = csv_field;
     let best = r.best();
     let seq = r.sequence.as_ref();
-    let csv = csv_field;
-    outln!(
-        "{},{},{},{},{},{},{},{},{},{:.1}",
+    let a = r.place();
+    format!(
+        "{},{},{},{},{},{},{},{},{},{},{},{},{},{:.1}",
         r.frame,
         csv(&r.id),
+        a.map_or(String::new(), |a| csv(&a.id)),
+        a.map_or(String::new(), |a| format!("{}:{}", a.place.traversal, a.place.position)),
+        a.map_or(String::new(), |a| format!("{:.4}", a.score)),
+        a.map_or("", |a| a.source.name()),
+        a.is_some_and(|a| a.accepted),
         best.map_or(String::new(), |b| csv(&b.id)),
         best.map_or(String::new(), |b| format!("{:.4}", b.score)),
         seq.map_or(String::new(), |s| csv(&s.id)),
         seq.map_or(String::new(), |s| format!("{:.4}", s.matched.score)),
         seq.map_or(String::new(), |s| format!("{:.3}", s.matched.uniqueness)),
-        seq.is_some_and(|s| s.matched.accepted),
         r.closure.as_ref().map_or(String::new(), |c| csv(&c.place.id)),
         r.latency.total_ms
-    );
-    Ok(())
+    )
+}
+
+/// A refused frame's CSV row: its number and id, `refused` in the `accepted` column, every
+/// other column empty.
+pub fn refused_row(frame: u64, id: &str) -> String {
+    let columns = HEADER.split(',').count();
+    let accepted = HEADER.split(',').position(|c| c == "accepted").unwrap_or(6);
+    let mut row: Vec<String> = vec![String::new(); columns];
+    row[0] = frame.to_string();
+    row[1] = csv_field(id);
+    row[accepted] = REFUSED.into();
+    row.join(",")
 }
 
 /// A CSV field: quoted (quotes doubled) where it holds a separator, a quote or a line break.

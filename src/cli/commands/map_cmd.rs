@@ -119,6 +119,9 @@ fn build_into(
         let o = batch::NewMapOptions { hog: f.hog, store: opts, traversal: f.traversal.clone(), skip_invalid: skip, resume: f.resume, quiet };
         batch::new_map(cfg, frames, dir, &o)?
     };
+    if let Some(t) = &f.poses.timestamps {
+        writer = writer.with_frame_interval(semlook::stream::input::median_interval(t, frames)?)?;
+    }
     let into = IntoOptions { skip_invalid: skip, skip_stored: f.resume, quiet, poses: Some(poses) };
     let r = batch::encode_into(engine, &encoder, frames, fmt, &mut writer, into)?;
     report_encoding(&r, quiet);
@@ -251,6 +254,9 @@ fn add(engine: &mut Engine, s: &SourceArgs, p: &PoseArgs, dir: &Path, f: AddFlag
     let encoder = Encoder::for_map(&cfg, &map)?.with_hog(map.manifest.hog_dim > 0);
     drop(map);
     let mut writer = MapWriter::append(dir, store_options(false, segment_images))?.with_traversal(plan)?;
+    if let Some(t) = &p.timestamps {
+        writer = writer.with_frame_interval(semlook::stream::input::median_interval(t, &frames)?)?;
+    }
     let into = IntoOptions { skip_invalid: s.skip_invalid, skip_stored: resume, quiet, poses: Some(&poses) };
     let r = batch::encode_into(engine, &encoder, &frames, fmt, &mut writer, into)?;
     report_encoding(&r, quiet);
