@@ -455,15 +455,17 @@ const PUBLIC_MODULES: [&str; 26] = [
 const INTERNAL_MODULES: [&str; 6] = ["kernels", "onnx", "pickle", "progress", "tools", "util"];
 
 /// `pub mod NAME` items of `text` (comments kept out), each with whether `#[doc(hidden)]` and a
-/// `///` reason come before it.
+/// reason (a `///` or `//` comment) come before it.
 fn pub_mods(raw: &str) -> Vec<(String, bool)> {
     let lines: Vec<&str> = raw.lines().map(str::trim).collect();
     let mut out = vec![];
     for (i, l) in lines.iter().enumerate() {
         let Some(name) = l.strip_prefix("pub mod ").and_then(|r| r.strip_suffix(';')) else { continue };
         // the attributes and doc lines directly above
-        let above: Vec<&str> = lines[..i].iter().rev().take_while(|a| a.starts_with("#[") || a.starts_with("///")).copied().collect();
-        let hidden = above.contains(&"#[doc(hidden)]") && above.iter().any(|a| a.starts_with("///") && a.len() > 20);
+        // the reason may be a plain comment: a `///` line would join the module's own `//!` docs
+        // and resolve their links from the parent
+        let above: Vec<&str> = lines[..i].iter().rev().take_while(|a| a.starts_with("#[") || a.starts_with("//")).copied().collect();
+        let hidden = above.contains(&"#[doc(hidden)]") && above.iter().any(|a| a.starts_with("//") && a.len() > 20);
         out.push((name.to_string(), hidden));
     }
     out
