@@ -327,3 +327,61 @@ fn eval_reports_sequence_matching_beside_single_frames() {
     let without = cli_ok(&["--backend", "cpu", "eval", "--dataset", p(&data), "--setting", "forest", "--no-appearance", "--json", "-q"]);
     assert!(!without.contains("\"sequence\""), "no sequence section unless asked");
 }
+
+/// `stream.embed_when_tracking = false` (the real-time profile's): a frame searched within the
+/// tracking window is encoded without the whole-image embedding, a frame that searches the whole
+/// map (the first, and those after tracking is lost at a jump) with it; on (the default), every
+/// frame is embedded.
+#[test]
+fn tracked_frames_go_without_the_embedding_where_asked() {
+    if !common::has_xfeat() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    common::tiny_synth(&data, 40, 8);
+    let (ref_rgb, _, _, _) = folders(&data);
+    let q_rgb = data.join("overcast/RGB").join(semlook::dataset::SYNTHIA_CAMERA);
+    let map = dir.path().join("map");
+    cli_ok(&["--backend", "cpu", "map", "build", "--images", p(&ref_rgb), "--no-segmenter", "--map", p(&map), "-q"]);
+    let info: serde_json::Value = serde_json::from_str(&cli_ok(&["map", "info", "--map", p(&map), "--json"])).unwrap();
+    if info["embedding"].is_null() {
+        common::skip_unless_required("REQUIRE_MODELS", "the map has no embeddings (embedding network not installed: run setup.sh)");
+        return;
+    }
+    // the overcast frames 0..16, 10 frames of noise (a covered lens: nothing matches, tracking is
+    // lost), then frames 26..40 (found again)
+    let frames = dir.path().join("frames");
+    std::fs::create_dir(&frames).unwrap();
+    let mut rng = semlook::util::SplitMix64::new(5);
+    for k in 0..40 {
+        let to = frames.join(format!("{k:06}.png"));
+        match k {
+            16..26 => image::RgbImage::from_fn(160, 120, |_, _| image::Rgb([rng.below(256) as u8; 3])).save(&to).unwrap(),
+            _ => drop(std::fs::copy(q_rgb.join(format!("{k:06}.png")), &to).unwrap()),
+        }
+    }
+    let run = |embed: bool| -> Vec<serde_json::Value> {
+        let cfg = dir.path().join(format!("stream-{embed}.toml"));
+        std::fs::write(&cfg, format!("[sequence]\nlength = 5\n[stream]\ntrack_radius = 4\nlost_after = 2\nembed_when_tracking = {embed}\n")).unwrap();
+        let args = ["--backend", "cpu", "localize", "--map", p(&map), "--images", p(&frames), "--no-segmenter", "--config", p(&cfg), "--json", "-q"];
+        cli_ok(&args).lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()).filter(|v| v.get("frame").is_some()).collect()
+    };
+    let flag = |v: &serde_json::Value, k: &str| v[k].as_bool().unwrap_or_else(|| panic!("no {k} in {v}"));
+    let lean = run(false);
+    assert_eq!(lean.len(), 40);
+    let pattern: String = lean.iter().map(|v| if flag(v, "tracking") { 't' } else { 'W' }).collect();
+    let accepted: String = lean.iter().map(|v| if v["sequence"]["accepted"] == true { 'a' } else { '.' }).collect();
+    eprintln!("frames searched within the tracking window (t) or the whole map (W): {pattern}\nsequence matches accepted (a):                                     {accepted}");
+    assert!(!flag(&lean[0], "tracking") && flag(&lean[0], "embedded"), "the first frame searches the whole map, embedded: {}", lean[0]);
+    for v in &lean {
+        assert_eq!(flag(v, "embedded"), !flag(v, "tracking"), "embedded exactly where the whole map is searched: {v}");
+    }
+    let tracked = lean.iter().filter(|v| flag(v, "tracking")).count();
+    assert!(tracked >= 20, "most frames are tracked: {pattern}");
+    // lost in the noise: the whole map searched again (embedded), then tracked again
+    assert!(pattern[16..].contains("tW") && pattern[16..].contains("Wt"), "tracking lost in the noise and found again: {pattern}");
+    let full = run(true);
+    assert!(full.iter().all(|v| flag(v, "embedded")), "embed_when_tracking = true embeds every frame");
+    assert!(full.iter().any(|v| flag(v, "tracking")));
+}

@@ -228,6 +228,7 @@ class _FrameResult(TypedDict):
     closure: Optional[dict[str, Any]]
     size_changed: bool
     tracking: bool
+    embedded: bool  # encoded with the whole-image embedding (not a tracked frame with stream.embed_when_tracking off)
     warming_up: bool
     pose: Optional[dict[str, Any]]
     latency: dict[str, float]

@@ -584,6 +584,7 @@ mod tests {
             closure: None,
             size_changed: false,
             tracking: false,
+            embedded: false,
             warming_up: false,
             pose: None,
             latency: Latency::default(),

@@ -315,6 +315,9 @@ pub struct FrameResult {
     pub size_changed: bool,
     /// Only the references near the tracked place were searched (`stream.track_radius`).
     pub tracking: bool,
+    /// The frame was encoded with its whole-image embedding (false: the map has none, or a
+    /// tracked frame with `stream.embed_when_tracking` off).
+    pub embedded: bool,
     /// Loop-closure mode: no map yet (the first frames train its codebook).
     pub warming_up: bool,
     /// The pose the map stores for the stream's answer ([`FrameResult::place`]), where it stores
@@ -403,6 +406,9 @@ pub struct Localizer {
     format: LabelFormat,
     /// The velocity range's scale and what it follows.
     rate: Rate,
+    /// `stream.embed_when_tracking = false` on a map with embeddings: the encoder of the frames
+    /// searched within the tracking window (no embedding).
+    tracked: Option<Encoder>,
 }
 
 /// Frames in a row whose best trajectory runs at the velocity range's edge before the warning
@@ -456,6 +462,11 @@ fn watch_edge(seq: &SequenceMatcher, cfg: &crate::config::SequenceConfig, rate: 
             rate.edge_run
         );
     }
+}
+
+/// The encoder of tracked frames where `stream.embed_when_tracking` is off and `encoder` embeds.
+fn lean_encoder(cfg: &Config, encoder: &Encoder) -> Option<Encoder> {
+    (!cfg.stream.embed_when_tracking && encoder.embedder().is_some()).then(|| encoder.clone().without_embedding())
 }
 
 /// The median frame interval of the map's timed traversals.
@@ -533,6 +544,7 @@ impl Localizer {
             last_size: None,
             format: LabelFormat::default(),
             rate: Rate::default(),
+            tracked: None,
         })
     }
 
@@ -552,7 +564,9 @@ impl Localizer {
                 encoder.without_labels(free || map.manifest.without_labels)
             }
         };
+        let tracked = lean_encoder(&cfg, &encoder);
         Ok(Localizer {
+            tracked,
             seq: SequenceMatcher::new(&cfg.sequence),
             engine,
             encoder,
@@ -640,6 +654,7 @@ impl Localizer {
             self.track = Track::default();
         }
         if let Some(e) = encoder {
+            self.tracked = lean_encoder(&self.cfg, &e);
             self.encoder = e;
         }
         self.map = Some(new);
@@ -703,7 +718,9 @@ impl Localizer {
         if self.map.is_none() {
             return self.warm_up(index, frame, loaded, latency, t0);
         }
-        let (img, times) = match self.encode_one(&frame.id, loaded) {
+        // a frame searched within the tracking window goes without its embedding where asked
+        let lean = self.tracked.is_some() && self.map.as_ref().is_some_and(|m| self.search_range(m, frame.timestamp).1);
+        let (img, times) = match self.encode_one(&frame.id, loaded, lean) {
             Ok(v) => v,
             Err(e) => {
                 if !matches!(e, Error::Gpu(_)) {
@@ -724,7 +741,7 @@ impl Localizer {
             }
             self.last_timestamp = Some(t);
         }
-        let mut r = self.locate(index, frame, &img, latency, t0)?;
+        let mut r = self.locate(index, frame, &img, latency, t0, lean)?;
         r.size_changed = size_changed;
         if self.lc.is_some() {
             let t = Instant::now();
@@ -736,8 +753,12 @@ impl Localizer {
         Ok(r)
     }
 
-    fn encode_one(&mut self, id: &str, loaded: Loaded) -> Result<(EncodedImage, StageTimes)> {
-        let mut out = self.engine.encode_loaded(&self.encoder, vec![(id.to_string(), Ok(loaded))])?;
+    fn encode_one(&mut self, id: &str, loaded: Loaded, lean: bool) -> Result<(EncodedImage, StageTimes)> {
+        let encoder = match (lean, &self.tracked) {
+            (true, Some(e)) => e,
+            _ => &self.encoder,
+        };
+        let mut out = self.engine.encode_loaded(encoder, vec![(id.to_string(), Ok(loaded))])?;
         out.pop().unwrap_or_else(|| Err(Error::invalid(format!("frame {id:?}"), "not encoded")))
     }
 
@@ -778,11 +799,14 @@ impl Localizer {
         }
     }
 
-    fn locate(&mut self, index: u64, frame: &FrameMeta, img: &EncodedImage, mut latency: Latency, t0: Instant) -> Result<FrameResult> {
+    fn locate(&mut self, index: u64, frame: &FrameMeta, img: &EncodedImage, mut latency: Latency, t0: Instant, lean: bool) -> Result<FrameResult> {
         let map = self.map.as_ref().ok_or_else(|| Error::invalid("stream", "no map"))?;
         let (range, tracking) = self.search_range(map, frame.timestamp);
         let src = Window::new(map, range);
-        let mut queries = self.encoder.descriptor_set();
+        let mut queries = match (lean, &self.tracked) {
+            (true, Some(e)) => e.descriptor_set(),
+            _ => self.encoder.descriptor_set(),
+        };
         queries.push(img).map_err(|e| e.named(|r| Error::invalid(format!("frame {:?}", frame.id), r)))?;
         let setting = self.opts.setting;
         let full_rows = self.opts.sequence && self.cfg.sequence.rows == SequenceRows::Full;
@@ -903,6 +927,7 @@ impl Localizer {
             closure,
             size_changed: false,
             tracking,
+            embedded: !img.embedding.is_empty(),
             warming_up: false,
             pose: None,
             latency,
@@ -962,6 +987,7 @@ impl Localizer {
             closure: None,
             size_changed,
             tracking: false,
+            embedded: false,
             warming_up: true,
             pose: None,
             latency: Latency { total_ms: ms_since(t0), arrival_ms: ms_since(t0), ..latency },
