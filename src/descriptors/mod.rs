@@ -9,5 +9,5 @@ mod set;
 pub mod source;
 pub mod validate;
 
-pub use pose::PlacePose;
+pub use pose::{PlacePose, PoseRowError};
 pub use set::{DescriptorSet, EncodedImage};

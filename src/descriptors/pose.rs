@@ -26,13 +26,13 @@ impl PlacePose {
 
     /// A stored row back: `None` for a row of NaN (an image without a pose); an error for a
     /// position that is not finite, a quaternion half given, or one not of unit length.
-    pub fn from_row(r: &[f64]) -> std::result::Result<Option<PlacePose>, String> {
-        let [x, y, z, qx, qy, qz, qw] = <[f64; 7]>::try_from(r).map_err(|_| format!("a pose row of {} values, not 7", r.len()))?;
+    pub fn from_row(r: &[f64]) -> std::result::Result<Option<PlacePose>, PoseRowError> {
+        let [x, y, z, qx, qy, qz, qw] = <[f64; 7]>::try_from(r).map_err(|_| PoseRowError::Length(r.len()))?;
         if r.iter().all(|v| v.is_nan()) {
             return Ok(None);
         }
         if ![x, y, z].iter().all(|v| v.is_finite()) {
-            return Err(format!("pose position {:?} is not finite", [x, y, z]));
+            return Err(PoseRowError::Position([x, y, z]));
         }
         let q = [qx, qy, qz, qw];
         let orientation = if q.iter().all(|v| v.is_nan()) {
@@ -40,10 +40,33 @@ impl PlacePose {
         } else {
             let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
             if !q.iter().all(|v| v.is_finite()) || (n - 1.0).abs() > Self::UNIT_TOLERANCE {
-                return Err(format!("pose orientation {q:?} is not a unit quaternion"));
+                return Err(PoseRowError::Orientation(q));
             }
             Some(q)
         };
         Ok(Some(PlacePose { position: [x, y, z], orientation }))
     }
 }
+
+/// Why a stored pose row is no [`PlacePose`].
+#[derive(Debug, Clone, PartialEq)]
+pub enum PoseRowError {
+    /// A row of this many values, not 7.
+    Length(usize),
+    /// A position that is not finite.
+    Position([f64; 3]),
+    /// A quaternion half given, not finite, or not of unit length.
+    Orientation([f64; 4]),
+}
+
+impl std::fmt::Display for PoseRowError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            PoseRowError::Length(n) => write!(f, "a pose row of {n} values, not 7"),
+            PoseRowError::Position(p) => write!(f, "pose position {p:?} is not finite"),
+            PoseRowError::Orientation(q) => write!(f, "pose orientation {q:?} is not a unit quaternion"),
+        }
+    }
+}
+
+impl std::error::Error for PoseRowError {}

@@ -156,5 +156,5 @@ pub fn keypoints(k: crate::descriptors::keypoints::KeypointsRef, n_classes: usiz
 /// Checks a stored pose row (`x y z qx qy qz qw`, [`crate::descriptors::PlacePose::to_row`]): all
 /// NaN (no pose), or a finite position with no quaternion (NaN) or a unit one.
 pub fn pose_row(row: &[f64]) -> Result<()> {
-    crate::descriptors::pose::PlacePose::from_row(row).map(|_| ()).map_err(Error::check)
+    crate::descriptors::pose::PlacePose::from_row(row).map(|_| ()).map_err(|e| Error::check(e.to_string()))
 }

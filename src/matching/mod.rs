@@ -13,7 +13,7 @@ pub mod evidence;
 pub mod setting;
 
 pub use evidence::{Evidence, PairScore};
-pub use setting::Setting;
+pub use setting::{Setting, UnknownSetting};
 
 use crate::classes::ClassTable;
 use crate::config::{Config, IndexSearch, Matcher, ScoreFusion};

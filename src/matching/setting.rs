@@ -154,9 +154,9 @@ impl Setting {
     pub fn from_name(name: &str) -> Option<Setting> {
         Setting::ALL.into_iter().find(|s| s.name() == name)
     }
-    /// [`Setting::from_name`], or why `name` is none: "\"x\" is not one of hog, appearance, ...".
-    pub fn parse(name: &str) -> Result<Setting, String> {
-        Setting::from_name(name).ok_or_else(|| format!("{name:?} is not one of {}", Setting::ALL.map(Setting::name).join(", ")))
+    /// [`Setting::from_name`], or [`UnknownSetting`] naming the settings there are.
+    pub fn parse(name: &str) -> Result<Setting, UnknownSetting> {
+        Setting::from_name(name).ok_or_else(|| UnknownSetting { name: name.to_string() })
     }
     /// A short description for tables.
     pub fn describe(self) -> &'static str {
@@ -173,6 +173,21 @@ impl Setting {
         }
     }
 }
+
+/// A name that is no [`Setting`]; displays as "\"x\" is not one of hog, appearance, ...".
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct UnknownSetting {
+    /// The name given.
+    pub name: String,
+}
+
+impl std::fmt::Display for UnknownSetting {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{:?} is not one of {}", self.name, Setting::ALL.map(Setting::name).join(", "))
+    }
+}
+
+impl std::error::Error for UnknownSetting {}
 
 /// [`Setting::ALL`] holds each variant once, in the order of the enum.
 const _: () = {
@@ -221,7 +236,7 @@ mod tests {
         let err = serde_json::from_str::<Setting>("\"verify\"").unwrap_err().to_string();
         assert!(err.contains("unknown setting \"verify\"") && err.contains("global-forest"), "{err}");
         assert_eq!(
-            Setting::parse("verify").unwrap_err(),
+            Setting::parse("verify").unwrap_err().to_string(),
             "\"verify\" is not one of hog, appearance, global, forest, local, global-forest, semlook, fused, verified"
         );
     }
