@@ -63,6 +63,8 @@ pub mod hloc;
 pub mod hog;
 pub mod index;
 pub mod input;
+/// Internal, public for the binary and tests only: the CPU twins of the WGSL kernels and their ABI structs, reached by the GPU equivalence tests and the benchmarks; the API is `engine`, `matching` and `gpu`'s context types.
+#[doc(hidden)]
 pub mod kernels;
 pub mod local;
 pub mod map;

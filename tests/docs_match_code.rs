@@ -161,3 +161,48 @@ fn the_config_profiles_load() {
     }
     assert!(n >= 2, "profiles found in {}: {n}", dir.display());
 }
+
+/// README's two commands are the ones `.ci/run` runs (issue 50): the main job and the test
+/// command, character for character, so a newcomer runs what CI checks.
+#[test]
+fn readme_commands_are_the_ones_ci_runs() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
+    let ci = std::fs::read_to_string(root.join(".ci/run")).unwrap();
+    let commands: Vec<&str> = readme.lines().filter(|l| l.starts_with("bash setup.sh && ")).map(|l| l.split("  #").next().unwrap().trim()).collect();
+    assert_eq!(commands.len(), 2, "README names two commands that start with `bash setup.sh && `: {commands:?}");
+    for c in &commands {
+        assert!(ci.contains(&format!("bash -c '{c}'")) || ci.contains(&format!("{c} ||")), ".ci/run does not run README's `{c}`");
+    }
+}
+
+/// Every relative link of README and of the docs' pages points at a file or folder of the
+/// repository (anchors and web addresses aside).
+#[test]
+fn readme_and_docs_links_resolve() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let mut pages = vec![root.join("README.md"), root.join("sweeps/README.md")];
+    for e in std::fs::read_dir(root.join("docs")).unwrap().flatten() {
+        if e.path().extension().is_some_and(|x| x == "md") {
+            pages.push(e.path());
+        }
+    }
+    let mut broken = vec![];
+    for page in &pages {
+        let text = std::fs::read_to_string(page).unwrap();
+        let mut rest = text.as_str();
+        while let Some(i) = rest.find("](") {
+            rest = &rest[i + 2..];
+            let Some(end) = rest.find(')') else { break };
+            let target = rest[..end].split('#').next().unwrap().trim();
+            rest = &rest[end..];
+            if target.is_empty() || target.contains("://") || target.starts_with("mailto:") || target.contains(' ') {
+                continue;
+            }
+            if !page.parent().unwrap().join(target).exists() {
+                broken.push(format!("{}: {target}", page.strip_prefix(root).unwrap().display()));
+            }
+        }
+    }
+    assert!(broken.is_empty(), "links to nothing: {broken:?}");
+}

@@ -21,14 +21,22 @@
 //! uploaded once per batch; only top-K lists or pair scores come back.
 
 mod buffers;
+/// Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
+#[doc(hidden)]
 pub mod coarse;
 mod context;
+/// Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
+#[doc(hidden)]
 pub mod encode;
+/// Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
+#[doc(hidden)]
 pub mod fine;
 mod fine_pack;
 mod kernels;
 #[cfg(test)]
 mod layout_tests;
+/// Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
+#[doc(hidden)]
 pub mod lighterglue;
 /// Test hook, not the API: device runs of the one-pair reference kernels the equivalence tests
 /// hold the production kernels to.
@@ -39,9 +47,17 @@ mod stages;
 mod stats;
 mod timer;
 mod topk;
+/// Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
+#[doc(hidden)]
 pub mod verify;
+/// Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
+#[doc(hidden)]
 pub mod vlad;
+/// Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
+#[doc(hidden)]
 pub mod wgsl;
+/// Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
+#[doc(hidden)]
 pub mod xfeat;
 
 pub use context::{GpuContext, GpuCounters, GpuError, GpuOptions, RESIDENT_FRACTION};

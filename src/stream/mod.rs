@@ -479,8 +479,8 @@ fn watch_edge(seq: &SequenceMatcher, cfg: &crate::config::SequenceConfig, rate: 
         rate.warned = true;
         log::warn!(
             "sequence: the best trajectory has run at the edge of the velocity range ({lo:.2} to {hi:.2} positions per frame) for {} frames: \
-             the camera may move faster than the range follows (a map and a stream at other frame rates?); give both timestamps \
-             (map build/add --timestamps, localize --timestamps) or set sequence.velocity_scale (localize --velocity-scale)",
+             the camera may move faster than the range follows (a map and a stream at other frame rates?); give the map's \
+             images and the stream's frames timestamps, or set sequence.velocity_scale (docs/streams.md, \"Rates\")",
             rate.edge_run
         );
     }

@@ -653,7 +653,7 @@ mod tests {
         let c = s.config(&combos[4], "g").unwrap();
         assert_eq!(
             (c.verification.inliers, c.verification.unusual_above, c.verification.w_inliers),
-            (crate::config::InlierEvidence::Unusual, 1.5, 1.0)
+            (crate::config::InlierEvidence::Unusual, 1.5, Config::default().verification.w_inliers)
         );
         let c = s.config(&combos[1], "g").unwrap();
         assert_eq!((c.verification.inliers, c.verification.w_inliers), (crate::config::InlierEvidence::Count, 2.0));
