@@ -1,6 +1,6 @@
 //! Our exporter of the default segmenter (issue 17 part 1): `python/tools/export_segmenter.py`
 //! converts the authors' ESPNetv2 checkpoint (`../shared/models/espnetv2_s_2.0_city_1024x512.pth`, the
-//! file a user's set-up downloads from EdgeNets) to ONNX, byte for byte the file README names
+//! file a user's set-up downloads from EdgeNets) to ONNX, byte for byte the file docs/models.md names
 //! (`semlook::models::SEGMENTER_SHA256`), and its logits equal those of the reference export
 //! (`../shared/models/espnetv2_cityscapes.onnx`) within 1e-3 with the same argmax on real CamVid
 //! frames at 1024x512, 640x480 and 512x256 (the exporter's `--check`; all 233 frames were checked
@@ -47,5 +47,5 @@ fn the_exporter_converts_the_checkpoint_into_the_reference_segmenter() {
     let log = String::from_utf8_lossy(&run.stdout).to_string() + &String::from_utf8_lossy(&run.stderr);
     assert!(run.status.success() && log.contains("OK"), "the exporter failed or its check did not pass:\n{log}");
     let sha = semlook::util::sha256_file(&out).unwrap();
-    assert_eq!(sha, semlook::models::SEGMENTER_SHA256, "the export is not the file README names:\n{log}");
+    assert_eq!(sha, semlook::models::SEGMENTER_SHA256, "the export is not the file docs/models.md names:\n{log}");
 }
