@@ -847,6 +847,12 @@ pub struct StreamConfig {
     /// Frames without an accepted match after which the whole map is searched again (see
     /// `track_radius`). \[R\] 5.
     pub lost_after: usize,
+    /// Whether a frame searched within the tracking window (`track_radius`) gets its whole-image
+    /// embedding too; off, only the frames that search the whole map are embedded (the window's
+    /// few dozen places are ranked by appearance and SSIM, then verified), which saves the
+    /// embedding network's time on tracked frames (issue 48). \[R\] true (the real-time profile:
+    /// false).
+    pub embed_when_tracking: bool,
     /// Loop-closure mode: an accepted sequence match is a closure when its uniqueness reaches
     /// `closure_uniqueness` (some other place must score: a match with no competitor is not
     /// evidence) and its trajectory moves at least `closure_min_velocity` positions per frame
@@ -875,6 +881,7 @@ impl Default for StreamConfig {
             commit_frames: 25,
             track_radius: 0,
             lost_after: 5,
+            embed_when_tracking: true,
             closure_uniqueness: 1.5,
             closure_min_velocity: 0.5,
             closure_min_score: 2.25,

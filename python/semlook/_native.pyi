@@ -228,6 +228,8 @@ class _FrameResult(TypedDict):
     closure: Optional[dict[str, Any]]
     size_changed: bool
     tracking: bool
+    embedded: bool  # encoded with the whole-image embedding (not a tracked frame with stream.embed_when_tracking off)
+    relative_pose: Optional[dict[str, Any]]  # with camera=, an accepted answer's pose relative to the place's: rotation, quaternion, translation_unit, rotation_deg, inliers, matches
     warming_up: bool
     pose: Optional[dict[str, Any]]
     latency: dict[str, float]
@@ -235,7 +237,7 @@ class _FrameResult(TypedDict):
 @final
 class Localizer:
     """Frames localized one at a time against a map, with sequence matching over the last frames."""
-    def __new__(cls, path: _Path, setting: str = "verified", sequence: bool = True, loop_closure: bool = False, config: Optional[Config] = None, backend: Optional[str] = None, *, segmenter: Optional[_Path | bool] = None) -> Self: ...
+    def __new__(cls, path: _Path, setting: str = "verified", sequence: bool = True, loop_closure: bool = False, config: Optional[Config] = None, backend: Optional[str] = None, *, segmenter: Optional[_Path | bool] = None, camera: Optional[_Path] = None) -> Self: ...
     def push(self, image: Optional[npt.NDArray[np.uint8]] = None, labels: Optional[npt.NDArray[Any]] = None, *, path: Optional[_Path] = None, labels_path: Optional[_Path] = None, data: Optional[bytes] = None, id: Optional[str] = None, timestamp: Optional[float] = None) -> _FrameResult: ...
     def refresh(self) -> bool: ...
     def reset(self) -> None: ...

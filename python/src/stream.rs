@@ -24,7 +24,7 @@ pub struct PyLocalizer {
 #[pymethods]
 impl PyLocalizer {
     #[new]
-    #[pyo3(signature = (path, setting="verified", sequence=true, loop_closure=false, config=None, backend=None, *, segmenter=None))]
+    #[pyo3(signature = (path, setting="verified", sequence=true, loop_closure=false, config=None, backend=None, *, segmenter=None, camera=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -35,7 +35,10 @@ impl PyLocalizer {
         config: Option<PyRef<'_, PyConfig>>,
         backend: Option<&str>,
         segmenter: Option<&Bound<'_, PyAny>>,
+        camera: Option<PathBuf>,
     ) -> PyResult<Self> {
+        // the camera file (`localize --camera`'s) is read and checked before the map is opened
+        let camera = camera.map(|c| semlook::verify::pose::Camera::load(&c)).transpose().py_err()?;
         let s = self::setting(setting)?;
         if loop_closure && !sequence {
             return Err(invalid("sequence", "loop closure finds its closures by sequence matching: keep sequence=True"));
@@ -58,7 +61,10 @@ impl PyLocalizer {
         // frames may come with their label maps (`push(labels=...)`): one without, on a map that
         // holds labels and with no segmenter, is refused when pushed, naming the fix
         let opts = StreamOptions { setting: s, sequence, loop_closure, labelled_frames: true, resume: false };
-        let loc = py.detach(|| Localizer::open(&path, cfg, opts, engine)).py_err()?;
+        let mut loc = py.detach(|| Localizer::open(&path, cfg, opts, engine)).py_err()?;
+        if let Some(c) = camera {
+            loc = loc.with_camera(c).py_err()?;
+        }
         Ok(PyLocalizer { inner: Mutex::new(loc) })
     }
 
@@ -70,7 +76,9 @@ impl PyLocalizer {
     /// uniqueness, accepted, velocity, frames; None without evidence), `answer` (the stream's
     /// answer, a dict: id, index, place, score on the single-frame scale whatever the source,
     /// source "sequence" or "frame", accepted; None without a match), `pose` (the pose the map stores for
-    /// the answer, as `Map.pose` gives it; None where it stores none), `closure`, `generation`,
+    /// the answer, as `Map.pose` gives it; None where it stores none), `relative_pose` (with
+    /// `camera=`, for an accepted answer: rotation, quaternion, translation_unit, rotation_deg,
+    /// inliers, matches; None otherwise), `closure`, `generation`,
     /// `latency` (ms per stage). A frame that cannot be used raises, and the stream goes on.
     #[pyo3(signature = (image=None, labels=None, *, path=None, labels_path=None, data=None, id=None, timestamp=None))]
     #[allow(clippy::too_many_arguments)]

@@ -28,9 +28,13 @@ def samples():
     m.sequence_matched, m.sequence_id, m.sequence_score, m.uniqueness, m.accepted = True, "ref/012", 1.5, 1.75, True
     m.top_ids, m.top_indices, m.top_scores = ["ref/012", "ref/013", "ref/0"], [12, 13, 0], [5.25, 4.5, -0.125]
     m.inliers, m.map_generation, m.latency_ms = 33, 3, 87.5
+    m.has_relative_pose, m.relative_rotation, m.relative_translation = True, [0.0, 0.125, 0.0, 0.9921567416492215], [0.6, 0.0, 0.8]
+    m.relative_rotation_deg, m.pose_inliers = 14.36, 57
     c = LoopClosure()
     c.header = header()
     c.query_id, c.place_id, c.place_index, c.score, c.uniqueness, c.inliers = "1700000123.000456789", "0", 0, 2.5, 1000.0, -1
+    c.has_relative_pose, c.relative_rotation, c.relative_translation = False, [0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0]
+    c.relative_rotation_deg, c.pose_inliers = 0.0, -1
     i = Image()
     i.header = header()
     i.height, i.width, i.encoding, i.is_bigendian, i.step, i.data = 2, 3, "rgb8", 0, 9, bytes(range(18))

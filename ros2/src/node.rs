@@ -180,6 +180,22 @@ pub fn place_match(h: &Header, number: u64, r: &FrameResult, latency_ms: f32) ->
         inliers: best.and_then(|b| b.inliers).map_or(-1, |i| i.min(i32::MAX as u32) as i32),
         map_generation: r.generation,
         latency_ms,
+        ..relative_pose_fields(r.relative_pose.as_ref())
+    }
+}
+
+/// The relative-pose fields of a PlaceMatch (a LoopClosure has the same), from a pose or none.
+fn relative_pose_fields(p: Option<&semlook::verify::pose::RelativePose>) -> PlaceMatch {
+    match p {
+        Some(p) => PlaceMatch {
+            has_relative_pose: true,
+            relative_rotation: p.quaternion,
+            relative_translation: p.translation_unit,
+            relative_rotation_deg: p.rotation_deg,
+            pose_inliers: p.inliers.min(i32::MAX as u32) as i32,
+            ..Default::default()
+        },
+        None => PlaceMatch { relative_rotation: [0.0, 0.0, 0.0, 1.0], pose_inliers: -1, ..Default::default() },
     }
 }
 
@@ -257,7 +273,15 @@ pub fn run(p: Params) -> Result<(), String> {
     }
     let cfg = config(&p)?;
     let opts = StreamOptions { setting, sequence: p.sequence, loop_closure: p.loop_closure, ..Default::default() };
-    let loc = Localizer::open(&p.map, cfg, opts, engine).map_err(|e| e.to_string())?;
+    // the camera's intrinsics are read and checked before the map is opened
+    let camera = match &p.camera_info {
+        Some(path) => Some(semlook::verify::pose::Camera::load(path).map_err(|e| format!("parameter camera_info: {e}"))?),
+        None => None,
+    };
+    let mut loc = Localizer::open(&p.map, cfg, opts, engine).map_err(|e| e.to_string())?;
+    if let Some(c) = camera {
+        loc = loc.with_camera(c).map_err(|e| format!("parameter camera_info: {e}"))?;
+    }
     match loc.map() {
         Some(m) => {
             let (posed, oriented) = m.pose_counts();
@@ -426,6 +450,7 @@ fn declared(p: &Params) -> Vec<(&'static str, ParameterValue)> {
         ("queue_size", ParameterValue::Integer(p.queue_size as i64)),
         ("map_refresh_s", ParameterValue::Double(p.map_refresh_s)),
         ("pose_frame_id", s(&p.pose_frame_id)),
+        ("camera_info", s(&p.camera_info.as_ref().map_or(String::new(), |c| c.display().to_string()))),
     ]
 }
 
@@ -470,6 +495,20 @@ fn localize(
                         score: c.place.score,
                         uniqueness: c.uniqueness,
                         inliers: c.place.inliers.map_or(-1, |i| i.min(i32::MAX as u32) as i32),
+                        has_relative_pose: false,
+                        relative_rotation: [0.0, 0.0, 0.0, 1.0],
+                        relative_translation: [0.0; 3],
+                        relative_rotation_deg: 0.0,
+                        pose_inliers: -1,
+                    };
+                    let rp = relative_pose_fields(c.relative_pose.as_ref());
+                    let msg = LoopClosure {
+                        has_relative_pose: rp.has_relative_pose,
+                        relative_rotation: rp.relative_rotation,
+                        relative_translation: rp.relative_translation,
+                        relative_rotation_deg: rp.relative_rotation_deg,
+                        pose_inliers: rp.pose_inliers,
+                        ..msg
                     };
                     if let Err(e) = out.closures.publish(msg) {
                         log::warn!("closure of frame {id} not published: {e:?}");
@@ -584,6 +623,9 @@ mod tests {
             closure: None,
             size_changed: false,
             tracking: false,
+            embedded: false,
+            relative_pose: None,
+            relative_pose_refused: None,
             warming_up: false,
             pose: None,
             latency: Latency::default(),

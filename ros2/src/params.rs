@@ -22,7 +22,10 @@ parameters (defaults in brackets):
   compressed_topic sensor_msgs/CompressedImage frames [/camera/image_raw/compressed]
   queue_size       frames waiting to be localized; beyond it the oldest is dropped [2]
   map_refresh_s    seconds between checks for a newer map generation; 0: never [1.0]
-  pose_frame_id    frame_id of the ~/pose messages: the frame the map's poses are in [map]";
+  pose_frame_id    frame_id of the ~/pose messages: the frame the map's poses are in [map]
+  camera_info      a camera file (TOML or JSON: fx, fy, cx, cy, width, height of the images they
+                   are for): accepted matches and closures then carry the frame's pose relative
+                   to the place's (relative_rotation, relative_translation) [none]";
 
 /// What the node runs with.
 #[derive(Debug, Clone, PartialEq)]
@@ -42,6 +45,8 @@ pub struct Params {
     pub queue_size: usize,
     pub map_refresh_s: f64,
     pub pose_frame_id: String,
+    /// A camera file: the intrinsics of the relative poses.
+    pub camera_info: Option<PathBuf>,
     pub node_name: String,
     pub namespace: String,
 }
@@ -64,6 +69,7 @@ impl Params {
             queue_size: 2,
             map_refresh_s: 1.0,
             pose_frame_id: "map".into(),
+            camera_info: None,
             node_name: "semlook".into(),
             namespace: "/".into(),
         };
@@ -92,6 +98,7 @@ impl Params {
                         "image_topic" => p.image_topic = v.into(),
                         "compressed_topic" => p.compressed_topic = v.into(),
                         "pose_frame_id" => p.pose_frame_id = v.into(),
+                        "camera_info" => p.camera_info = Some(PathBuf::from(v)),
                         "queue_size" => p.queue_size = v.parse().ok().filter(|&k| k > 0).ok_or_else(|| bad("a positive integer"))?,
                         "map_refresh_s" => {
                             p.map_refresh_s = v.parse().ok().filter(|s: &f64| s.is_finite() && *s >= 0.0).ok_or_else(|| bad("a number of seconds"))?

@@ -756,6 +756,13 @@ pub struct LocalizeArgs {
     /// the stream (--timestamps) both have them, else 1.
     #[arg(long, value_name = "X", conflicts_with = "no_sequence")]
     pub velocity_scale: Option<f64>,
+    /// The camera's intrinsics (TOML `.toml` or JSON: fx, fy, cx, cy, width, height of the images
+    /// they are for): an accepted match (and a loop closure) then carries the frame's pose
+    /// relative to the place's, from the pair's verified keypoint matches (JSON
+    /// `relative_pose`: rotation, quaternion, translation_unit, rotation_deg, inliers, matches;
+    /// CSV columns `rotation_deg` and `pose_inliers`). Read and checked before the stream starts.
+    #[arg(long, value_name = "FILE")]
+    pub camera: Option<PathBuf>,
     /// Before each frame, move to the map's newest generation if another writer committed one.
     #[arg(long)]
     pub follow_map: bool,

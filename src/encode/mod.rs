@@ -280,6 +280,13 @@ impl Encoder {
     pub fn appearance_dim(&self) -> usize {
         self.appearance.as_ref().map_or(0, |a| a.dim())
     }
+    /// This encoder without its whole-image embedding network: its images carry no embedding, so
+    /// the coarse stage ranks them without the embedding term (a stream's tracked frames,
+    /// `stream.embed_when_tracking = false`).
+    pub fn without_embedding(mut self) -> Encoder {
+        self.embedder = None;
+        self
+    }
     /// The whole-image embedding network (none when the encoder makes no embeddings).
     pub fn embedder(&self) -> Option<&crate::embedding::Embedder> {
         self.embedder.as_deref()

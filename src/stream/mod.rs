@@ -25,6 +25,8 @@ use crate::input::{FrameSource, LabelFormat, LabelMap};
 use crate::map::{manifest, ColumnDims, Map, MapWriter, StoreOptions, TraversalPlan};
 use crate::matching::{Candidate, QueryMatch, Setting};
 use crate::util::ms_since;
+use crate::verify::pose::{Camera, PoseParams, RelativePose};
+use crate::verify::VerifyParams;
 use image::RgbImage;
 use sequence::{contributions, SequenceMatch, SequenceMatcher};
 use serde::Serialize;
@@ -178,6 +180,9 @@ pub struct LoopClosure {
     pub uniqueness: f32,
     /// Velocity of the sequence match, in positions per frame.
     pub velocity: f32,
+    /// The frame's pose relative to the place's, where the stream has the camera's intrinsics
+    /// ([`Localizer::with_camera`]) and the verified matches give one.
+    pub relative_pose: Option<RelativePose>,
 }
 
 /// Milliseconds per stage of one frame.
@@ -199,6 +204,9 @@ pub struct Latency {
     pub sequence_ms: f64,
     /// Loop-closure mode: adding the frame to the map (a commit, when one is due).
     pub store_ms: f64,
+    /// The relative pose of an accepted match (matching the pair's keypoints again, the
+    /// essential matrix's RANSAC), with the camera's intrinsics.
+    pub pose_ms: f64,
     /// From the call to the answer.
     pub total_ms: f64,
     /// From the moment the frame's bytes were complete (a piped image read to its end, a
@@ -219,6 +227,7 @@ impl Latency {
             fine_ms: f(self.fine_ms, o.fine_ms),
             sequence_ms: f(self.sequence_ms, o.sequence_ms),
             store_ms: f(self.store_ms, o.store_ms),
+            pose_ms: f(self.pose_ms, o.pose_ms),
             total_ms: f(self.total_ms, o.total_ms),
             arrival_ms: f(self.arrival_ms, o.arrival_ms),
         }
@@ -282,6 +291,7 @@ impl LatencyStats {
                 fine_ms: field(|l| l.fine_ms),
                 sequence_ms: field(|l| l.sequence_ms),
                 store_ms: field(|l| l.store_ms),
+                pose_ms: field(|l| l.pose_ms),
                 total_ms: field(|l| l.total_ms),
                 arrival_ms: field(|l| l.arrival_ms),
             }
@@ -315,6 +325,17 @@ pub struct FrameResult {
     pub size_changed: bool,
     /// Only the references near the tracked place were searched (`stream.track_radius`).
     pub tracking: bool,
+    /// The frame was encoded with its whole-image embedding (false: the map has none, or a
+    /// tracked frame with `stream.embed_when_tracking` off).
+    pub embedded: bool,
+    /// The frame's pose relative to the answer's place, for an accepted answer where the stream
+    /// has the camera's intrinsics ([`Localizer::with_camera`]): from the pair's verified
+    /// keypoint matches ([`crate::verify::pose`]).
+    pub relative_pose: Option<RelativePose>,
+    /// Why an accepted answer has no relative pose where the stream has the intrinsics (too few
+    /// matches, no parallax, a planar scene, a frame of another aspect ratio).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub relative_pose_refused: Option<String>,
     /// Loop-closure mode: no map yet (the first frames train its codebook).
     pub warming_up: bool,
     /// The pose the map stores for the stream's answer ([`FrameResult::place`]), where it stores
@@ -403,6 +424,13 @@ pub struct Localizer {
     format: LabelFormat,
     /// The velocity range's scale and what it follows.
     rate: Rate,
+    /// `stream.embed_when_tracking = false` on a map with embeddings: the encoder of the frames
+    /// searched within the tracking window (no embedding).
+    tracked: Option<Encoder>,
+    /// The camera's intrinsics and the matching of a pair, for the relative poses.
+    camera: Option<(Camera, VerifyParams)>,
+    /// The size of the frame being located, as it came (the intrinsics' scale).
+    frame_size: (u32, u32),
 }
 
 /// Frames in a row whose best trajectory runs at the velocity range's edge before the warning
@@ -456,6 +484,11 @@ fn watch_edge(seq: &SequenceMatcher, cfg: &crate::config::SequenceConfig, rate: 
             rate.edge_run
         );
     }
+}
+
+/// The encoder of tracked frames where `stream.embed_when_tracking` is off and `encoder` embeds.
+fn lean_encoder(cfg: &Config, encoder: &Encoder) -> Option<Encoder> {
+    (!cfg.stream.embed_when_tracking && encoder.embedder().is_some()).then(|| encoder.clone().without_embedding())
 }
 
 /// The median frame interval of the map's timed traversals.
@@ -533,6 +566,9 @@ impl Localizer {
             last_size: None,
             format: LabelFormat::default(),
             rate: Rate::default(),
+            tracked: None,
+            camera: None,
+            frame_size: (0, 0),
         })
     }
 
@@ -552,7 +588,9 @@ impl Localizer {
                 encoder.without_labels(free || map.manifest.without_labels)
             }
         };
+        let tracked = lean_encoder(&cfg, &encoder);
         Ok(Localizer {
+            tracked,
             seq: SequenceMatcher::new(&cfg.sequence),
             engine,
             encoder,
@@ -567,7 +605,29 @@ impl Localizer {
             last_size: None,
             format: LabelFormat::default(),
             rate: Rate::default(),
+            camera: None,
+            frame_size: (0, 0),
         })
+    }
+
+    /// The camera's intrinsics (checked: [`Camera::check`]): an accepted answer (and a loop
+    /// closure) then carries the frame's pose relative to the place's ([`FrameResult::relative_pose`]),
+    /// estimated from the pair's keypoint matches as verification makes them. The map's
+    /// references are taken to be of the same camera (a loop closure's are: the stream's own
+    /// frames); a frame of another aspect ratio gets no pose. A map without verification
+    /// keypoints is refused.
+    pub fn with_camera(mut self, camera: Camera) -> Result<Localizer> {
+        camera.check().map_err(|r| Error::invalid("camera intrinsics", r))?;
+        if self.encoder.keypoint_dim() == 0 {
+            return Err(Error::invalid(
+                "camera intrinsics",
+                "the map stores no verification keypoints (built without appearance), so no relative pose can be estimated",
+            ));
+        }
+        let classes = crate::classes::ClassTable::from_config(&self.cfg.classes)?;
+        let vp = VerifyParams::for_config(&self.cfg.verification, &classes)?;
+        self.camera = Some((camera, vp));
+        Ok(self)
     }
 
     /// How label files of [`Pixels::Files`] frames encode classes (default: ids).
@@ -640,6 +700,7 @@ impl Localizer {
             self.track = Track::default();
         }
         if let Some(e) = encoder {
+            self.tracked = lean_encoder(&self.cfg, &e);
             self.encoder = e;
         }
         self.map = Some(new);
@@ -703,7 +764,9 @@ impl Localizer {
         if self.map.is_none() {
             return self.warm_up(index, frame, loaded, latency, t0);
         }
-        let (img, times) = match self.encode_one(&frame.id, loaded) {
+        // a frame searched within the tracking window goes without its embedding where asked
+        let lean = self.tracked.is_some() && self.map.as_ref().is_some_and(|m| self.search_range(m, frame.timestamp).1);
+        let (img, times) = match self.encode_one(&frame.id, loaded, lean) {
             Ok(v) => v,
             Err(e) => {
                 if !matches!(e, Error::Gpu(_)) {
@@ -715,6 +778,7 @@ impl Localizer {
         add_times(&mut latency, &times);
         let size_changed = self.last_size.is_some_and(|s| s != size);
         self.last_size = Some(size);
+        self.frame_size = size;
         if let Some(t) = frame.timestamp {
             if let Some(step) = self.last_timestamp.map(|last| t - last).filter(|&d| d > 0.0) {
                 if self.rate.steps.len() == INTERVAL_FRAMES {
@@ -724,7 +788,7 @@ impl Localizer {
             }
             self.last_timestamp = Some(t);
         }
-        let mut r = self.locate(index, frame, &img, latency, t0)?;
+        let mut r = self.locate(index, frame, &img, latency, t0, lean)?;
         r.size_changed = size_changed;
         if self.lc.is_some() {
             let t = Instant::now();
@@ -736,8 +800,12 @@ impl Localizer {
         Ok(r)
     }
 
-    fn encode_one(&mut self, id: &str, loaded: Loaded) -> Result<(EncodedImage, StageTimes)> {
-        let mut out = self.engine.encode_loaded(&self.encoder, vec![(id.to_string(), Ok(loaded))])?;
+    fn encode_one(&mut self, id: &str, loaded: Loaded, lean: bool) -> Result<(EncodedImage, StageTimes)> {
+        let encoder = match (lean, &self.tracked) {
+            (true, Some(e)) => e,
+            _ => &self.encoder,
+        };
+        let mut out = self.engine.encode_loaded(encoder, vec![(id.to_string(), Ok(loaded))])?;
         out.pop().unwrap_or_else(|| Err(Error::invalid(format!("frame {id:?}"), "not encoded")))
     }
 
@@ -778,11 +846,14 @@ impl Localizer {
         }
     }
 
-    fn locate(&mut self, index: u64, frame: &FrameMeta, img: &EncodedImage, mut latency: Latency, t0: Instant) -> Result<FrameResult> {
+    fn locate(&mut self, index: u64, frame: &FrameMeta, img: &EncodedImage, mut latency: Latency, t0: Instant, lean: bool) -> Result<FrameResult> {
         let map = self.map.as_ref().ok_or_else(|| Error::invalid("stream", "no map"))?;
         let (range, tracking) = self.search_range(map, frame.timestamp);
         let src = Window::new(map, range);
-        let mut queries = self.encoder.descriptor_set();
+        let mut queries = match (lean, &self.tracked) {
+            (true, Some(e)) => e.descriptor_set(),
+            _ => self.encoder.descriptor_set(),
+        };
         queries.push(img).map_err(|e| e.named(|r| Error::invalid(format!("frame {:?}", frame.id), r)))?;
         let setting = self.opts.setting;
         let full_rows = self.opts.sequence && self.cfg.sequence.rows == SequenceRows::Full;
@@ -870,6 +941,28 @@ impl Localizer {
                 }
             }
         }
+        // the relative pose of an accepted answer, with the camera's intrinsics
+        let (mut relative_pose, mut relative_pose_refused) = (None, None);
+        if let (Some((camera, vp)), Some(a)) = (&self.camera, answer.as_ref().filter(|a| a.accepted)) {
+            let t = Instant::now();
+            let (w, h) = self.frame_size;
+            let found = match camera.fits(w, h) {
+                false => Err(format!(
+                    "the frame is {w} x {h}, the camera's intrinsics are for {} x {} (another aspect ratio)",
+                    camera.width, camera.height
+                )),
+                true => {
+                    let (q, r) = (queries.keypoints(0), map.keypoints(a.index as usize));
+                    let m = crate::verify::pair_matches(vp, q, r)?;
+                    crate::verify::pose::pair_pose(camera, q, r, &m, &PoseParams::for_camera(camera, vp.ransac.seed)).map_err(|e| e.to_string())
+                }
+            };
+            match found {
+                Ok(p) => relative_pose = Some(p),
+                Err(e) => relative_pose_refused = Some(e),
+            }
+            latency.pose_ms = ms_since(t);
+        }
         let st = &self.cfg.stream;
         let closes = |m: &SequenceMatch| {
             m.accepted
@@ -887,6 +980,7 @@ impl Localizer {
                     place: PlaceMatch { index: s.index, id: s.id.clone(), place: s.matched.place, score: s.matched.score, inliers },
                     uniqueness: s.matched.uniqueness,
                     velocity: s.matched.velocity,
+                    relative_pose,
                 })
             }
             _ => None,
@@ -903,6 +997,9 @@ impl Localizer {
             closure,
             size_changed: false,
             tracking,
+            embedded: !img.embedding.is_empty(),
+            relative_pose,
+            relative_pose_refused,
             warming_up: false,
             pose: None,
             latency,
@@ -962,6 +1059,9 @@ impl Localizer {
             closure: None,
             size_changed,
             tracking: false,
+            embedded: false,
+            relative_pose: None,
+            relative_pose_refused: None,
             warming_up: true,
             pose: None,
             latency: Latency { total_ms: ms_since(t0), arrival_ms: ms_since(t0), ..latency },

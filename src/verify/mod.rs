@@ -10,6 +10,7 @@
 pub mod best_columns;
 pub mod homography;
 pub mod lighterglue;
+pub mod pose;
 pub mod ransac;
 
 use crate::classes::{ClassTable, VOID};
@@ -84,13 +85,34 @@ pub fn verify_from_best(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, best
     verify_matches(p, q, r, best_columns::mutual(best, p.min_dot))
 }
 
-/// Verifies one pair from its matches (query keypoint, reference keypoint): those on ignored
-/// classes dropped, then RANSAC.
-fn verify_matches(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, mut m: Vec<(u32, u32)>) -> Verified {
+/// The matches verification counts for one pair (query keypoint, reference keypoint): `p`'s
+/// matcher's (mutual nearest neighbours above the cosine, or LighterGlue's), those on ignored
+/// classes dropped; what [`pose::pair_pose`] estimates a relative pose from. A side without
+/// keypoints has none.
+pub fn pair_matches(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef) -> Result<Vec<(u32, u32)>> {
+    if q.is_empty() || r.is_empty() || q.dim != r.dim {
+        return Ok(vec![]);
+    }
+    let m = match p.matcher {
+        Matcher::Mnn => best_columns::mutual(&best_columns::best_columns(q.descriptors, r.descriptors, q.dim, &mut Vec::new()), p.min_dot),
+        Matcher::Lighterglue => shared_lighterglue()?.match_keypoints(&p.glue, q, r).into_iter().map(|(i, j, _)| (i, j)).collect(),
+    };
+    Ok(drop_ignored(p, q, r, m))
+}
+
+/// `m` without the matches on ignored classes.
+fn drop_ignored(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, mut m: Vec<(u32, u32)>) -> Vec<(u32, u32)> {
     if p.ignored.contains(&true) {
         let on_ignored = |classes: &[u8], i: u32| classes.get(i as usize).is_some_and(|&c| p.ignored[c as usize]);
         m.retain(|&(i, j)| !on_ignored(q.classes, i) && !on_ignored(r.classes, j));
     }
+    m
+}
+
+/// Verifies one pair from its matches (query keypoint, reference keypoint): those on ignored
+/// classes dropped, then RANSAC.
+fn verify_matches(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, m: Vec<(u32, u32)>) -> Verified {
+    let m = drop_ignored(p, q, r, m);
     let mut out = Verified { matches: m.len() as u32, ..Verified::default() };
     if m.len() < 4 {
         return out;

@@ -18,8 +18,10 @@ const AHEAD: usize = 2;
 const REFUSED: &str = "refused";
 /// The CSV header: the stream's answer first (id, place as `traversal:position`, score on the
 /// setting's single-frame scale, source `sequence` or `frame`, accepted), then the single-frame
-/// best, the sequence match, the closure and the frame's milliseconds.
-pub const HEADER: &str = "frame,id,answer,place,score,source,accepted,best,best_score,sequence,sequence_score,uniqueness,closure,ms";
+/// best, the sequence match, the closure and the frame's milliseconds; with `--camera`, the
+/// relative pose of an accepted answer: its rotation's angle in degrees and its inliers.
+pub const HEADER: &str =
+    "frame,id,answer,place,score,source,accepted,best,best_score,sequence,sequence_score,uniqueness,closure,ms,rotation_deg,pose_inliers";
 
 pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
     // the frames a folder holds and their times are checked before any work
@@ -35,6 +37,8 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
     if let Some(k) = a.velocity_scale {
         cfg.sequence.velocity_scale = Some(k);
     }
+    // the camera file is read and checked before any work
+    let camera = a.camera.as_deref().map(semlook::verify::pose::Camera::load).transpose()?;
     let opts = StreamOptions {
         setting: a.setting,
         sequence: !a.no_sequence,
@@ -43,6 +47,9 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
         resume: a.resume,
     };
     let mut loc = Localizer::open(&a.map, Some(cfg), opts, engine)?.with_label_format(a.label_format.unwrap_or_default());
+    if let Some(c) = camera {
+        loc = loc.with_camera(c)?;
+    }
     info(quiet, format!("backend: {}", loc.engine().describe()));
     match loc.map() {
         Some(m) => info(quiet, format!("map {}: {} places, generation {}", a.map.display(), m.len(), m.manifest.generation)),
@@ -179,7 +186,7 @@ pub fn csv_row(r: &FrameResult) -> String {
     let seq = r.sequence.as_ref();
     let a = r.place();
     format!(
-        "{},{},{},{},{},{},{},{},{},{},{},{},{},{:.1}",
+        "{},{},{},{},{},{},{},{},{},{},{},{},{},{:.1},{},{}",
         r.frame,
         csv(&r.id),
         a.map_or(String::new(), |a| csv(&a.id)),
@@ -193,7 +200,9 @@ pub fn csv_row(r: &FrameResult) -> String {
         seq.map_or(String::new(), |s| format!("{:.4}", s.matched.score)),
         seq.map_or(String::new(), |s| format!("{:.3}", s.matched.uniqueness)),
         r.closure.as_ref().map_or(String::new(), |c| csv(&c.place.id)),
-        r.latency.total_ms
+        r.latency.total_ms,
+        r.relative_pose.as_ref().map_or(String::new(), |p| format!("{:.3}", p.rotation_deg)),
+        r.relative_pose.as_ref().map_or(String::new(), |p| p.inliers.to_string()),
     )
 }
 
