@@ -77,7 +77,10 @@ fn bench(c: &mut Criterion) {
     // the whole fine stage of `verified` for one query and its ranking (tree similarity,
     // verification, the score): the score of before issue 51 (`inliers = "count"`) and the
     // default's (evidence weighed against the query's candidates, sweep 17)
-    for (what, toml) in [("inliers = count, the score before issue 51", "[verification]\ninliers = \"count\"\nw_inliers = 1.0\nmin_inliers = 0\n"), ("the default score", "")] {
+    for (what, toml) in [
+        ("inliers = count, the score before issue 51", "[verification]\ninliers = \"count\"\nw_inliers = 1.0\nmin_inliers = 0\n"),
+        ("the default score", ""),
+    ] {
         let c = Config::from_toml(toml, "bench").unwrap();
         g.bench_function(format!("fine_scores + rank (CPU: {what})/1_query_x{K}_candidates_{}_keypoints", cfg.keypoints.stored), |b| {
             b.iter(|| {
