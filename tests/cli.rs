@@ -993,6 +993,30 @@ fn indexed_map(dir: &Path) -> Option<(PathBuf, PathBuf, PathBuf, PathBuf)> {
     Some((data, map, approximate, fog))
 }
 
+/// `eval --setting verified` on a map without labels whose index is forced on
+/// (`index.search = "approximate"`) measures the index's recall for the setting asked for; it
+/// failed with "setting fused: the map was built without semantic labels", `fused` not asked for
+/// (issue 49, failure 4; seen failing with the recall's setting fixed to `fused` again).
+#[test]
+fn eval_with_a_forced_index_on_a_label_free_map_runs_the_setting_asked_for() {
+    if !common::has_xfeat() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let (r, q, truth) = photo_sets(dir.path());
+    let map = dir.path().join("map");
+    ok(&["map", "build", "--images", p(&r), "--map", p(&map), "--no-segmenter", "--index", "ivf", "-q"]);
+    let approximate = dir.path().join("approximate.toml");
+    std::fs::write(&approximate, "[index]\nsearch = \"approximate\"\n").unwrap();
+    let args = ["eval", "--map", p(&map), "--references", p(&r), "--queries", p(&q), "--ground-truth", p(&truth)];
+    let out = semlook(&[&args[..], &["--no-segmenter", "--setting", "verified", "--config", p(&approximate), "--json"]].concat());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(err.contains("coarse search: index (probe") && !err.contains("fused"), "{err}");
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(report.to_string().contains("\"verified\""), "{report}");
+}
+
 /// `map info` clamps the lists it says were probed to those the index has (it said "112 lists
 /// probed" of an index of 8). Seen failing on the build of before.
 #[test]
