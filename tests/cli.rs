@@ -1046,7 +1046,9 @@ fn query_and_eval_say_when_the_index_searched() {
     let dir = tempfile::tempdir().unwrap();
     let Some((data, map, approximate, fog)) = indexed_map(dir.path()) else { return };
     let lists = semlook::map::Map::open(&map).unwrap().manifest.index.unwrap().lists;
-    let out = semlook(&["query", "--map", p(&map), "--images", p(&fog), "--config", p(&approximate)]);
+    // the map holds labels: the queries bring theirs (a machine without a segmenter runs this too)
+    let fog_labels = data.join("fog/GT/LABELS/Stereo_Left/Omni_F");
+    let out = semlook(&["query", "--map", p(&map), "--images", p(&fog), "--labels", p(&fog_labels), "--config", p(&approximate)]);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success() && err.contains(&format!("coarse search: index (probe {lists} of {lists} lists, shortlist ")), "{err}");
     let out = semlook(&["eval", "--dataset", p(&data), "--map", p(&map), "--setting", "fused,forest", "--config", p(&approximate)]);
