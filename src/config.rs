@@ -850,8 +850,8 @@ pub struct StreamConfig {
     /// Whether a frame searched within the tracking window (`track_radius`) gets its whole-image
     /// embedding too; off, only the frames that search the whole map are embedded (the window's
     /// few dozen places are ranked by appearance and SSIM, then verified), which saves the
-    /// embedding network's time on tracked frames (issue 48). \[R\] true (the real-time profile:
-    /// false).
+    /// embedding network's time on tracked frames (issue 48). \[R\] true (off, the real-time
+    /// replay at 1,000 places ran 7 % faster but accepted 0.22 of its frames against 0.52).
     pub embed_when_tracking: bool,
     /// Loop-closure mode: an accepted sequence match is a closure when its uniqueness reaches
     /// `closure_uniqueness` (some other place must score: a match with no competitor is not

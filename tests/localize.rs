@@ -328,7 +328,7 @@ fn eval_reports_sequence_matching_beside_single_frames() {
     assert!(!without.contains("\"sequence\""), "no sequence section unless asked");
 }
 
-/// `stream.embed_when_tracking = false` (the real-time profile's): a frame searched within the
+/// `stream.embed_when_tracking = false`: a frame searched within the
 /// tracking window is encoded without the whole-image embedding, a frame that searches the whole
 /// map (the first, and those after tracking is lost at a jump) with it; on (the default), every
 /// frame is embedded.
