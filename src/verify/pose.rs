@@ -21,7 +21,7 @@
 //! ([`PoseError::NoParallax`]) rather than a direction made up; where one plane holds them (a
 //! homography explains them) two poses fit alike and it is refused too ([`PoseError::Planar`]).
 
-use super::ransac::RansacParams;
+use super::ransac::{iterations_for, sample, RansacParams};
 use crate::descriptors::keypoints::KeypointsRef;
 use crate::error::{Error, Result};
 use crate::util::SplitMix64;
@@ -247,7 +247,7 @@ pub fn estimate(query: &[[f64; 2]], reference: &[[f64; 2]], p: &PoseParams) -> s
     let mut it = 0u32;
     while (it as f64) < bound.min(p.max_iterations as f64) {
         it += 1;
-        let idx = sample5(&mut rng, n);
+        let idx = sample::<5>(&mut rng, n);
         for e in five_point(&idx.map(|i| a[i]), &idx.map(|i| b[i])) {
             let c = count(&e);
             if best.is_some_and(|(_, bc)| c <= bc) {
@@ -265,7 +265,7 @@ pub fn estimate(query: &[[f64; 2]], reference: &[[f64; 2]], p: &PoseParams) -> s
                 }
             }
             best = Some((e, c));
-            bound = iterations_for(c as f64 / n as f64, p.confidence);
+            bound = iterations_for(c as f64 / n as f64, p.confidence, 5);
         }
     }
     let Some((e, _)) = best.filter(|&(_, c)| c >= need) else {
@@ -325,33 +325,6 @@ fn sampson2(e: &M3, a: &V3, b: &V3) -> f64 {
     } else {
         f64::INFINITY
     }
-}
-
-/// Iterations after which a sample of 5 inliers was drawn with probability `confidence`, for
-/// inlier ratio `w`.
-fn iterations_for(w: f64, confidence: f64) -> f64 {
-    let all = w.powi(5);
-    if all >= 1.0 - 1e-12 {
-        return 1.0;
-    }
-    if all <= 0.0 {
-        return f64::INFINITY;
-    }
-    ((1.0 - confidence).ln() / (1.0 - all).ln()).ceil()
-}
-
-/// Five distinct indices below `n` (n >= 5).
-fn sample5(rng: &mut SplitMix64, n: usize) -> [usize; 5] {
-    let mut idx = [0usize; 5];
-    let mut k = 0;
-    while k < 5 {
-        let c = rng.below(n);
-        if !idx[..k].contains(&c) {
-            idx[k] = c;
-            k += 1;
-        }
-    }
-    idx
 }
 
 /// [t]x, the matrix of the cross product with t.

@@ -45,7 +45,7 @@ pub fn ransac_homography(src: &[[f64; 2]], dst: &[[f64; 2]], p: &RansacParams) -
     let count = |h: &Homography| (0..n).filter(|&i| transfer_error2(h, src[i], dst[i]) < t2).count();
     while (it as f64) < bound.min(p.max_iterations as f64) {
         it += 1;
-        let idx = sample4(&mut rng, n);
+        let idx = sample::<4>(&mut rng, n);
         let (s, d) = (idx.map(|i| src[i]), idx.map(|i| dst[i]));
         if !sample_is_valid(&s, &d, min_area) {
             continue;
@@ -70,17 +70,17 @@ pub fn ransac_homography(src: &[[f64; 2]], dst: &[[f64; 2]], p: &RansacParams) -
             }
         }
         best = Some((h, c));
-        bound = iterations_for(c as f64 / n as f64, p.confidence);
+        bound = iterations_for(c as f64 / n as f64, p.confidence, 4);
     }
     let (h, _) = best?;
     let inliers = (0..n).map(|i| transfer_error2(&h, src[i], dst[i]) < t2).collect();
     Some((h, inliers))
 }
 
-/// Iterations after which a sample of 4 inliers was drawn with probability `confidence`, for
-/// inlier ratio `w`.
-fn iterations_for(w: f64, confidence: f64) -> f64 {
-    let all = w.powi(4);
+/// Iterations after which a sample of `size` inliers was drawn with probability `confidence`,
+/// for inlier ratio `w` (the adaptive stop of this RANSAC and of the relative pose's).
+pub(super) fn iterations_for(w: f64, confidence: f64, size: i32) -> f64 {
+    let all = w.powi(size);
     if all >= 1.0 - 1e-12 {
         return 1.0;
     }
@@ -90,11 +90,11 @@ fn iterations_for(w: f64, confidence: f64) -> f64 {
     ((1.0 - confidence).ln() / (1.0 - all).ln()).ceil()
 }
 
-/// Four distinct indices below `n` (n >= 4).
-fn sample4(rng: &mut SplitMix64, n: usize) -> [usize; 4] {
-    let mut idx = [0usize; 4];
+/// `N` distinct indices below `n` (n >= N): a minimal sample.
+pub(super) fn sample<const N: usize>(rng: &mut SplitMix64, n: usize) -> [usize; N] {
+    let mut idx = [0usize; N];
     let mut k = 0;
-    while k < 4 {
+    while k < N {
         let c = rng.below(n);
         if !idx[..k].contains(&c) {
             idx[k] = c;
