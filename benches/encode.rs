@@ -67,7 +67,7 @@ fn bench(c: &mut Criterion) {
             });
             let k = model.keypoints(&rgb).unwrap();
             let objects = semlook::objects::extract_objects(&maps[1], &table, &cfg.objects);
-            let cb = semlook::appearance::vlad::train_codebook(&semlook::appearance::sample_descriptors(&k, 512), k.dim, 16, 10, 1).unwrap();
+            let cb = semlook::global::vlad::train_codebook(&semlook::appearance::sample_descriptors(&k, 512), k.dim, 16, 10, 1).unwrap();
             g.bench_function("appearance: VLAD per object (CPU)", |b| {
                 b.iter(|| {
                     let (d, o) = semlook::appearance::group_by_object(&k, &objects);
@@ -79,7 +79,7 @@ fn bench(c: &mut Criterion) {
     }
     // the whole-image embedding of a 640 x 480 frame (the fused coarse stage's embedding term;
     // needs setup.sh), one call with ONNX Runtime's threads for the whole machine
-    match semlook::embedding::from_config(&Default::default(), &Default::default()) {
+    match semlook::global::embedding::from_config(&Default::default(), &Default::default()) {
         Ok(Some(e)) => {
             let rgb = image::RgbImage::from_fn(640, 480, |x, y| image::Rgb([(x % 256) as u8, (y % 256) as u8, ((x ^ y) % 256) as u8]));
             g.bench_function("embedding: EfficientNet-Lite1 + GeM at 448 x 336 (ONNX Runtime)", |b| b.iter(|| e.embed(&rgb).unwrap()));

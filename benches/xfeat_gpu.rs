@@ -8,7 +8,7 @@
 //! (seconds per frame there: correctness only).
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use semlook::appearance::nn::Chw;
+use semlook::nn::conv::Chw;
 use semlook::gpu::xfeat::XFeatGpu;
 use semlook::gpu::{GpuContext, GpuOptions};
 use std::sync::Arc;

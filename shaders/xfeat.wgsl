@@ -1,7 +1,7 @@
 // The XFeat network (Potje et al., CVPR 2024) on the device: every layer of the native forward
 // pass (src/appearance/xfeat.rs) as a dispatch, with no host round trip between layers (the
 // executor is src/gpu/xfeat.rs). CPU twins: src/kernels/xfeat.rs (same names, bindings and loop
-// shapes); the CPU path runs the fast ops of src/appearance/nn.rs, held to these twins by tests.
+// shapes); the CPU path runs the fast ops of src/nn/conv.rs, held to these twins by tests.
 //
 // instance_norm_partials: one workgroup per CHUNK values of the grey input: their count, mean
 //   and sum of squared deviations (two passes over the chunk, tree reductions over the lanes).

@@ -269,7 +269,7 @@ pub fn new_map(cfg: &crate::config::Config, frames: &[FrameSource], dir: &std::p
         );
     }
     train_codebook_skipping(&mut encoder, frames, opts.skip_invalid, opts.quiet)?;
-    let hog_dim = if opts.hog { crate::hog::HOG_DIM } else { 0 };
+    let hog_dim = if opts.hog { crate::global::hog::HOG_DIM } else { 0 };
     let dims = crate::map::ColumnDims {
         appearance: encoder.appearance_dim(),
         hog: hog_dim,

@@ -207,7 +207,7 @@ pub enum Error {
     },
     /// Values that fail a check, said before the caller names where they come from: what the
     /// low-level checks return (`descriptors::validate`, `DescriptorSet`'s appends and layout
-    /// checks, the tensor operations of `appearance::nn` and `appearance::keypoints`, the pickle
+    /// checks, the tensor operations of `nn::conv` and `appearance::keypoints`, the pickle
     /// and `.npy` readers, ...), which know the values but not the image, file, model or argument
     /// they belong to. A caller that knows it names it with [`Error::named`] (its message is then
     /// that variant's, with this reason); the message alone is the reason.

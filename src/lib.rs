@@ -52,7 +52,6 @@ pub mod classes;
 pub mod config;
 pub mod dataset;
 pub mod descriptors;
-pub mod embedding;
 pub mod encode;
 pub mod engine;
 pub mod error;
@@ -60,7 +59,6 @@ pub mod eval;
 pub mod global;
 pub mod gpu;
 pub mod hloc;
-pub mod hog;
 pub mod index;
 pub mod input;
 // Internal, public for the binary and tests only: the CPU twins of the WGSL kernels and their ABI structs, reached by the GPU equivalence tests and the benchmarks; the API is `engine`, `matching` and `gpu`'s context types.
@@ -70,13 +68,8 @@ pub mod local;
 pub mod map;
 pub mod matching;
 pub mod models;
+pub mod nn;
 pub mod objects;
-/// Internal, public for the binary and tests only: ONNX Runtime loading for the command line and the tests; embedders go through `segmentation` and `appearance`.
-#[doc(hidden)]
-pub mod onnx;
-/// Internal, public for the binary and tests only: the PyTorch checkpoint reader behind `appearance::xfeat` and `segmentation`, public for the fuzz tests only.
-#[doc(hidden)]
-pub mod pickle;
 /// Internal, public for the binary and tests only: the command line's progress bars.
 #[doc(hidden)]
 pub mod progress;

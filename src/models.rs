@@ -1,8 +1,8 @@
 //! The model files the engine uses, where each comes from, and what is installed: the catalog
 //! behind `semlook models` and `setup.sh`'s checks. Files are looked up as the engine finds them
-//! ([`crate::onnx::model_dirs`], `$SEMLOOK_MODELS` first).
+//! ([`crate::nn::onnx::model_dirs`], `$SEMLOOK_MODELS` first).
 
-use crate::onnx::ORT_LIBRARY;
+use crate::nn::onnx::ORT_LIBRARY;
 use serde::Serialize;
 use std::path::PathBuf;
 
@@ -163,8 +163,8 @@ pub fn installed() -> Vec<Installed> {
         .map(|m| {
             // where the engine would take it from (ONNX Runtime also honours $ORT_DYLIB_PATH)
             let path = match m.name {
-                crate::onnx::ORT_LIBRARY => Some(crate::onnx::library_path(None)).filter(|p| p.is_file()),
-                name => crate::onnx::find_model(name, None, m.role).ok(),
+                crate::nn::onnx::ORT_LIBRARY => Some(crate::nn::onnx::library_path(None)).filter(|p| p.is_file()),
+                name => crate::nn::onnx::find_model(name, None, m.role).ok(),
             };
             let sha = path.as_deref().map(crate::util::sha256_file);
             let (path, sha, source) = match sha {

@@ -41,7 +41,7 @@ fn onnx(model: &Path) -> Option<AppearanceModel> {
     }
 }
 
-fn max_diff(a: &semlook::appearance::nn::Chw, b: &semlook::appearance::nn::Chw) -> f32 {
+fn max_diff(a: &semlook::nn::conv::Chw, b: &semlook::nn::conv::Chw) -> f32 {
     assert_eq!((a.c, a.h, a.w), (b.c, b.h, b.w));
     a.data.iter().zip(&b.data).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
 }
@@ -141,7 +141,7 @@ fn vlad_on_a_real_scene() {
     let objects = semlook::objects::extract_objects(&labels, &table, &cfg.objects);
     let k = model.keypoints(&rgb).unwrap();
     let samples = semlook::appearance::sample_descriptors(&k, 400);
-    let cb = semlook::appearance::vlad::train_codebook(&samples, k.dim, 8, 10, 1).unwrap();
+    let cb = semlook::global::vlad::train_codebook(&samples, k.dim, 8, 10, 1).unwrap();
     let (descs, offsets) = semlook::appearance::group_by_object(&k, &objects);
     let vectors = semlook::appearance::object_vlad(&descs, &offsets, &cb, Default::default());
     let present: Vec<bool> = semlook::appearance::object_counts(&offsets).iter().map(|&c| c > 0).collect();
@@ -166,7 +166,7 @@ fn vlad_on_a_real_scene() {
             .map(|i| &k.descriptors[i * k.dim..(i + 1) * k.dim])
             .collect();
         assert_eq!(mine.len(), b - a, "object {o}: keypoints grouped");
-        let r = semlook::appearance::vlad::vlad_reference(&cb.centres, cb.k, cb.dim, &mine, Default::default());
+        let r = semlook::global::vlad::vlad_reference(&cb.centres, cb.k, cb.dim, &mine, Default::default());
         assert!(v.iter().zip(&r).all(|(x, y)| (*x as f64 - y).abs() < 1e-4));
         assert!((v.iter().map(|x| x * x).sum::<f32>() - 1.0).abs() < 1e-4);
     }
@@ -260,5 +260,5 @@ fn hog_leaves_the_encoding_of_a_real_frame_unchanged() {
     assert!(bits(&a.appearance) == bits(&b.appearance), "image appearance differs");
     // and HOG is still VPR-Bench's: from the full-size decode
     let (full, _) = semlook::input::load_rgb_at_least(&dir.join("020.jpg"), |size| size).unwrap();
-    assert!(bits(&b.hog) == bits(&semlook::hog::vprbench_hog(&full)), "HOG is not from the full-size decode");
+    assert!(bits(&b.hog) == bits(&semlook::global::hog::vprbench_hog(&full)), "HOG is not from the full-size decode");
 }

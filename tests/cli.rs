@@ -471,7 +471,7 @@ fn models_lists_what_is_installed_and_where_the_rest_comes_from() {
         [
             "xfeat.pt",
             "xfeat-lighterglue.pt",
-            semlook::onnx::ORT_LIBRARY,
+            semlook::nn::onnx::ORT_LIBRARY,
             "espnetv2_cityscapes.onnx",
             "espnetv2_s_2.0_city_1024x512.pth",
             "efficientnet_lite1_gem.onnx",
@@ -653,7 +653,7 @@ fn every_way_of_building_serves_every_way_of_evaluating() {
     let truth = same_name_truth(&r, &format!("fog/{rgb}/"), &format!("day/{rgb}/"), &data.join("pairs.csv"));
     // (how, build flags, eval flags): label maps alone give no appearance, so that map is
     // evaluated in `global`, its photo queries labelled by the segmenter
-    let segmenter = semlook::onnx::find_model(semlook::segmentation::DEFAULT_SEGMENTER, None, "segmenter").is_ok();
+    let segmenter = semlook::nn::onnx::find_model(semlook::segmentation::DEFAULT_SEGMENTER, None, "segmenter").is_ok();
     let builds: [(&str, Vec<&str>, Vec<&str>); 4] = [
         ("dataset", vec!["--dataset", p(&data)], vec!["--setting", "appearance", "--no-segmenter"]),
         ("images", vec!["--images", p(&r), "--no-segmenter"], vec!["--setting", "appearance", "--no-segmenter"]),
@@ -779,17 +779,17 @@ fn a_map_of_small_frames_stores_compact_hogs_and_its_queries_use_them() {
         let manifest = std::fs::read_to_string(map.join("manifest.json")).unwrap();
         let m: serde_json::Value = serde_json::from_str(&manifest).unwrap();
         match small {
-            true => assert_eq!(m["compact_hog_dim"].as_u64(), Some(semlook::hog::COMPACT_HOG_DIM as u64), "{size}"),
+            true => assert_eq!(m["compact_hog_dim"].as_u64(), Some(semlook::global::hog::COMPACT_HOG_DIM as u64), "{size}"),
             false => assert!(!manifest.contains("compact_hog_dim"), "{size}: {manifest}"),
         }
         let opened = semlook::map::Map::open(&map).unwrap();
         let stored = semlook::descriptors::source::RefSource::image_compact_hog(&opened, 0).to_vec();
-        assert_eq!(stored.len(), if small { semlook::hog::COMPACT_HOG_DIM } else { 0 });
+        assert_eq!(stored.len(), if small { semlook::global::hog::COMPACT_HOG_DIM } else { 0 });
         if small {
             assert!((stored.iter().map(|v| v * v).sum::<f32>() - 1.0).abs() < 1e-2, "unit length");
             // the queries of the map are encoded with one (the map's encoder decides, not the frame)
             let enc = semlook::encode::Encoder::for_map(&opened.query_config(), &opened).unwrap();
-            assert_eq!(enc.compact_hog_dim(), semlook::hog::COMPACT_HOG_DIM);
+            assert_eq!(enc.compact_hog_dim(), semlook::global::hog::COMPACT_HOG_DIM);
         }
         let lq = data.join("fog/GT/LABELS/Stereo_Left/Omni_F");
         let out = semlook(&["query", "--map", p(&map), "--images", p(&q), "--labels", p(&lq), "--setting", "verified", "--json"]);
@@ -1097,7 +1097,7 @@ fn a_damaged_index_says_how_to_mend_it() {
 #[test]
 fn an_untested_default_segmenter_is_named_once() {
     let name = semlook::segmentation::DEFAULT_SEGMENTER;
-    let Ok(segmenter) = semlook::onnx::find_model(name, None, "segmenter") else {
+    let Ok(segmenter) = semlook::nn::onnx::find_model(name, None, "segmenter") else {
         common::no_segmenter("the default segmenter is not installed");
         return;
     };

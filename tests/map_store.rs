@@ -381,7 +381,7 @@ fn an_f16_map_with_appearance_matches_like_its_widened_set() {
     // 300 values: more than one block of the f16 dot product; blocks of 100 (3 "centres")
     let mut set = with_appearance(common::encode(&cfg, &common::label_maps(8, 80, 60), "r"), 300, 1);
     let queries = with_appearance(common::encode(&cfg, &common::label_maps(8, 80, 60)[2..5], "q"), 300, 2);
-    let codebook = semlook::appearance::vlad::Codebook { k: 3, dim: 100, centres: vec![0.0; 300] };
+    let codebook = semlook::global::vlad::Codebook { k: 3, dim: 100, centres: vec![0.0; 300] };
     set.codebook = Some(codebook.sha256().unwrap());
     let map = Map::create_with(
         &path,

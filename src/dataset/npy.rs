@@ -5,7 +5,7 @@
 //! pickle machine: no Python, no code execution.
 
 use crate::error::{Error, Result};
-use crate::pickle::{Id, Node, Pickle};
+use crate::nn::pickle::{Id, Node, Pickle};
 
 /// Most ground-truth rows a file may hold (a guard against absurd shapes in damaged files).
 const MAX_ROWS: usize = 100_000_000;

@@ -114,7 +114,7 @@ pub fn embedding(e: Values) -> Result<()> {
     Ok(())
 }
 
-/// Checks an image's compact HOG ([`crate::hog::compact_hog`]): finite values, none negative (a
+/// Checks an image's compact HOG ([`crate::global::hog::compact_hog`]): finite values, none negative (a
 /// histogram), of length at most 1 (the encoder's are L2-normalised, or all zero for a flat
 /// image), or none.
 pub fn compact_hog(v: Values) -> Result<()> {

@@ -2,7 +2,8 @@
 //! VLAD codebook they are aggregated with (trained on the references), the per-object and
 //! whole-image VLAD vectors, and the verification keypoints a map stores.
 
-use crate::appearance::{self, keypoints::Keypoints, vlad::Codebook, vlad::VladNorm, AppearanceModel, Features};
+use crate::appearance::{self, keypoints::Keypoints, AppearanceModel, Features};
+use crate::global::vlad::{self, Codebook, VladNorm};
 use crate::config::{AppearanceConfig, KeypointsConfig};
 use crate::descriptors::keypoints::ImageKeypoints;
 use crate::error::{Error, Result};
@@ -146,7 +147,7 @@ impl AppearanceEncoder {
         let a = &self.cfg;
         let dim = keypoints.first().map(|k| k.dim).ok_or_else(|| Error::invalid("codebook", "no reference images to train it on"))?;
         let all: Vec<f32> = keypoints.iter().flat_map(|k| appearance::sample_descriptors(k, a.codebook_samples_per_image)).collect();
-        let cb = appearance::vlad::train_codebook(&all, dim, a.vlad_centres, a.codebook_iterations, a.codebook_seed)
+        let cb = vlad::train_codebook(&all, dim, a.vlad_centres, a.codebook_iterations, a.codebook_seed)
             .map_err(|e| e.named(|r| Error::invalid("codebook", format!("{r} (too few keypoints in the reference images)"))))?;
         self.set_codebook(cb);
         Ok(())

@@ -78,8 +78,8 @@ impl LazySegmenter {
 /// label maps cannot be segmented.
 pub fn segmenter_path(cfg: &Config) -> Result<Option<PathBuf>> {
     Ok(match &cfg.models.segmenter_onnx {
-        Some(p) => Some(crate::onnx::find_model(crate::segmentation::DEFAULT_SEGMENTER, Some(p), "segmenter")?),
-        None if cfg.models.default_segmenter => crate::onnx::find_model(crate::segmentation::DEFAULT_SEGMENTER, None, "segmenter").ok(),
+        Some(p) => Some(crate::nn::onnx::find_model(crate::segmentation::DEFAULT_SEGMENTER, Some(p), "segmenter")?),
+        None if cfg.models.default_segmenter => crate::nn::onnx::find_model(crate::segmentation::DEFAULT_SEGMENTER, None, "segmenter").ok(),
         None => None,
     })
 }
@@ -314,7 +314,7 @@ impl FrameLoader {
         let hog = match (f.hog_rgb.as_ref().or(f.rgb.as_ref()), self.hog) {
             (Some(img), true) => {
                 let t = Instant::now();
-                let h = crate::hog::vprbench_hog(img);
+                let h = crate::global::hog::vprbench_hog(img);
                 times.hog_ms = ms_since(t);
                 Some(h)
             }

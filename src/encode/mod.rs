@@ -17,7 +17,8 @@ pub use appearance::{AppearanceEncoder, VladInput};
 pub use load::{segmenter_path, FrameLoader, Loaded};
 pub use times::StageTimes;
 
-use crate::appearance::{keypoints::Keypoints, vlad::Codebook, AppearanceModel, Features};
+use crate::appearance::{keypoints::Keypoints, AppearanceModel, Features};
+use crate::global::vlad::Codebook;
 use crate::classes::ClassTable;
 use crate::config::{Config, EncodingConfig, GlobalConfig};
 use crate::error::{Error, Result};
@@ -71,11 +72,11 @@ pub struct Encoder {
     appearance: Option<AppearanceEncoder>,
     /// The whole-image embedding network (none: `embedding.network = "none"`, not installed, or
     /// appearance off, which loads no RGB image).
-    embedder: Option<std::sync::Arc<crate::embedding::Embedder>>,
+    embedder: Option<std::sync::Arc<crate::global::embedding::Embedder>>,
     /// For an encoder of a map's queries ([`Encoder::for_map`]): whether the map holds semantic
     /// labels, which its queries then need too ([`Encoder::labels_rule`]).
     map_labelled: Option<bool>,
-    /// Whether each image also gets a compact HOG ([`crate::hog::compact_hog`]): maps of small
+    /// Whether each image also gets a compact HOG ([`crate::global::hog::compact_hog`]): maps of small
     /// frames store one ([`Encoder::small_frames`]), and their queries then need one.
     compact_hog: bool,
 }
@@ -93,7 +94,7 @@ impl Encoder {
             .transpose()?;
         let global = GlobalStage { cfg: cfg.global.clone(), used: table.used_mask(), ssim: SsimParams::new(&cfg.global) };
         let embedder = match appearance.is_some() && embed {
-            true => crate::embedding::from_config(&cfg.embedding, &cfg.models)?.map(std::sync::Arc::new),
+            true => crate::global::embedding::from_config(&cfg.embedding, &cfg.models)?.map(std::sync::Arc::new),
             false => None,
         };
         Ok(Encoder {
@@ -116,7 +117,7 @@ impl Encoder {
     /// Values per compact HOG (0 when the encoder makes none).
     pub fn compact_hog_dim(&self) -> usize {
         if self.compact_hog {
-            crate::hog::COMPACT_HOG_DIM
+            crate::global::hog::COMPACT_HOG_DIM
         } else {
             0
         }
@@ -139,7 +140,7 @@ impl Encoder {
             None => Ok(false),
         }
     }
-    /// Whether the encoder also computes the HOG baseline (VPR-Bench's, [`crate::hog`]).
+    /// Whether the encoder also computes the HOG baseline (VPR-Bench's, [`crate::global::hog`]).
     pub fn with_hog(mut self, hog: bool) -> Encoder {
         self.frames.hog = hog;
         self
@@ -221,7 +222,7 @@ impl Encoder {
             Some(_) if enc.appearance.is_none() => {
                 return Err(Error::invalid(format!("map {}", map.path.display()), "the map's embeddings need appearance on"))
             }
-            Some(rec) => Some(std::sync::Arc::new(crate::embedding::for_record(rec, &cfg.models)?)),
+            Some(rec) => Some(std::sync::Arc::new(crate::global::embedding::for_record(rec, &cfg.models)?)),
         };
         enc.map_labelled = Some(!map.manifest.without_labels);
         // a map of small frames: its queries get the compact HOG it stores
@@ -288,11 +289,11 @@ impl Encoder {
         self
     }
     /// The whole-image embedding network (none when the encoder makes no embeddings).
-    pub fn embedder(&self) -> Option<&crate::embedding::Embedder> {
+    pub fn embedder(&self) -> Option<&crate::global::embedding::Embedder> {
         self.embedder.as_deref()
     }
     /// What a new map records of the embedding network (none without one).
-    pub fn embedding_record(&self) -> Option<crate::embedding::EmbeddingRecord> {
+    pub fn embedding_record(&self) -> Option<crate::global::embedding::EmbeddingRecord> {
         self.embedder.as_ref().map(|e| e.record())
     }
     /// Values per whole-image embedding (0 without an embedding network).
@@ -305,7 +306,7 @@ impl Encoder {
     }
     /// An empty descriptor set laid out for this encoder's images.
     pub fn descriptor_set(&self) -> crate::descriptors::DescriptorSet {
-        let hog = if self.frames.hog { crate::hog::HOG_DIM } else { 0 };
+        let hog = if self.frames.hog { crate::global::hog::HOG_DIM } else { 0 };
         let codebook = self.codebook().filter(|_| self.appearance_dim() > 0).and_then(|c| c.sha256().ok());
         crate::descriptors::DescriptorSet::new(&self.global.ssim, self.cfg.local.neighbours, self.appearance_dim(), hog)
             .with_keypoint_dim(self.keypoint_dim())

@@ -72,7 +72,7 @@ impl Encoder {
         let compact_hog = match (self.compact_hog, &loaded.rgb) {
             (true, Some(rgb)) => {
                 // rounded to f16, what a map stores: a stored image reads back the same
-                let mut v = crate::hog::compact_hog(rgb);
+                let mut v = crate::global::hog::compact_hog(rgb);
                 crate::values::round_through_f16(&mut v);
                 v
             }

@@ -5,7 +5,7 @@
 use super::buffers::Reused;
 use super::context::{GpuContext, GpuError};
 use crate::appearance::check_vlad_input;
-use crate::appearance::vlad::{Codebook, VladNorm};
+use crate::global::vlad::{Codebook, VladNorm};
 use crate::kernels::abi::VladParams;
 use crate::kernels::vlad_accumulate::MAX_CENTRES;
 use std::sync::Arc;

@@ -1,5 +1,5 @@
 //! The VLAD kernels' CPU twins (of `shaders/vlad_accumulate.wgsl`: `vlad_assign`,
-//! `vlad_accumulate`), with the same bindings, loop shape and reductions; `appearance::vlad`
+//! `vlad_accumulate`), with the same bindings, loop shape and reductions; `global::vlad`
 //! holds the codebook and the f64 definition (`vlad_reference`).
 
 use super::abi::VladParams;

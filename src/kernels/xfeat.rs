@@ -2,7 +2,7 @@
 //! points under the same names, the same bindings (arguments, in binding order) and the same loop
 //! shape: an outer loop over the dispatch's workgroups, then the shader's phases (between its
 //! barriers) each as a loop over the workgroup's invocations. The CPU path runs the fast ops of
-//! `appearance::nn` (im2col + sgemm, ...), which the tests hold to these twins; the device is
+//! `nn::conv` (im2col + sgemm, ...), which the tests hold to these twins; the device is
 //! held to them too (`tests/gpu/xfeat.rs`).
 //!
 //! Also here, host-side and shared by the twins, the executor (`gpu::xfeat`) and the tests: the

@@ -151,7 +151,7 @@ pub struct Manifest {
     pub appearance_dim: usize,
     /// Values of each image's HOG baseline descriptor (0: the map holds none).
     pub hog_dim: usize,
-    /// Values of each image's compact HOG ([`crate::hog::compact_hog`]; 0: the map holds none).
+    /// Values of each image's compact HOG ([`crate::global::hog::compact_hog`]; 0: the map holds none).
     /// Maps of small frames hold them (`input.compact_hog_long_side`); absent (0) in the
     /// manifests of the others, so their checksums are those of before the field existed.
     #[serde(default, skip_serializing_if = "is_zero_usize")]
@@ -192,11 +192,11 @@ pub struct Manifest {
     /// without one, so their checksums are those of before the field existed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub index: Option<IndexEntry>,
-    /// The network that made the images' whole-image embeddings ([`crate::embedding`]); queries
+    /// The network that made the images' whole-image embeddings ([`crate::global::embedding`]); queries
     /// are embedded by the same file (same SHA-256). Absent in maps without embeddings (and in
     /// those built before them), so their checksums are those of before the field existed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub embedding: Option<crate::embedding::EmbeddingRecord>,
+    pub embedding: Option<crate::global::embedding::EmbeddingRecord>,
     /// SHA-256 of this manifest's content ([`Manifest::content_sha256`]): an edit by hand or a
     /// damaged byte anywhere in the file (a removed row, a config value, a model hash) is refused
     /// at open, never served.

@@ -31,11 +31,11 @@ pub mod segment;
 pub mod shard;
 pub mod writer;
 
-pub use crate::embedding::EmbeddingRecord;
+pub use crate::global::embedding::EmbeddingRecord;
 pub use manifest::{Manifest, SegmentEntry, FORMAT, VERSION};
 pub use writer::{ColumnDims, MapWriter, StoreOptions, TraversalPlan};
 
-use crate::appearance::vlad::Codebook;
+use crate::global::vlad::Codebook;
 use crate::classes::ClassTable;
 use crate::config::{first_difference, EncodingConfig};
 use crate::descriptors::keypoints::KeypointsRef;
@@ -440,7 +440,7 @@ impl RefSource for Map {
     fn embedding_dim(&self) -> usize {
         self.layout().emb
     }
-    fn embedding_record(&self) -> Option<&crate::embedding::EmbeddingRecord> {
+    fn embedding_record(&self) -> Option<&crate::global::embedding::EmbeddingRecord> {
         self.manifest.embedding.as_ref()
     }
     fn image_embedding(&self, i: usize) -> Values<'_> {

@@ -12,7 +12,7 @@ use super::files::{write_atomic, WriteLock};
 use super::manifest::{self, FileEntry, Manifest, SegmentEntry, CODEBOOK, FORMAT, VERSION};
 use super::segment::{self, Layout, Mapped};
 use super::Map;
-use crate::appearance::vlad::Codebook;
+use crate::global::vlad::Codebook;
 use crate::classes::ClassTable;
 use crate::config::EncodingConfig;
 use crate::descriptors::{validate, DescriptorSet, EncodedImage};
@@ -58,7 +58,7 @@ pub struct ColumnDims {
     pub hog: usize,
     /// Values per verification keypoint descriptor.
     pub keypoints: usize,
-    /// Values per compact HOG (maps of small frames; [`crate::hog::COMPACT_HOG_DIM`]).
+    /// Values per compact HOG (maps of small frames; [`crate::global::hog::COMPACT_HOG_DIM`]).
     pub compact_hog: usize,
 }
 
@@ -486,7 +486,7 @@ impl MapWriter {
         }
         if let (Some(map), true) = (&self.manifest.embedding, set.embedding_dim > 0) {
             if !set.embedding.as_ref().is_some_and(|given| given.same_network(map)) {
-                let show = |r: &crate::embedding::EmbeddingRecord| {
+                let show = |r: &crate::global::embedding::EmbeddingRecord| {
                     format!("{} sha256 {} ({} values, long side {})", r.network, r.sha256, r.dim, r.long_side)
                 };
                 return Err(Error::IncompatibleConfig {

@@ -18,7 +18,7 @@ pub const DEFAULT_SEGMENTER: &str = "espnetv2_cityscapes.onnx";
 
 /// An ONNX segmentation network with its adapter (`[segmentation]`): RGB images in, label maps out.
 pub struct Segmenter {
-    sessions: crate::onnx::SessionPool,
+    sessions: crate::nn::onnx::SessionPool,
     cfg: SegmentationConfig,
     class_of_channel: Vec<u8>,
     path: PathBuf,
@@ -56,7 +56,7 @@ pub fn brighten_lut(img: &RgbImage, target: f64) -> [f32; 256] {
 
 impl Segmenter {
     /// Loads the network at `path` (`onnxruntime`: `models.onnxruntime`, see
-    /// [`crate::onnx::library_path`]); fails if `cfg.class_map` names a class `table` lacks, or
+    /// [`crate::nn::onnx::library_path`]); fails if `cfg.class_map` names a class `table` lacks, or
     /// does not name one class per output channel.
     pub fn load(path: &Path, cfg: &SegmentationConfig, table: &ClassTable, onnxruntime: Option<&Path>) -> Result<Segmenter> {
         let class_of_channel = cfg
@@ -73,7 +73,7 @@ impl Segmenter {
                 }
             })
             .collect::<Result<Vec<u8>>>()?;
-        let sessions = crate::onnx::SessionPool::new(path, onnxruntime)?;
+        let sessions = crate::nn::onnx::SessionPool::new(path, onnxruntime)?;
         let (outputs, inputs) = sessions.with_shared(|s| (s.outputs().len(), s.inputs().len()));
         if outputs == 0 || inputs == 0 {
             return Err(Error::Model {
@@ -81,7 +81,7 @@ impl Segmenter {
                 reason: format!("{inputs} inputs and {outputs} outputs; a segmenter has an image input and a logits output"),
             });
         }
-        let channels = sessions.with_shared(|s| crate::onnx::output_shape(s, 0)).get(1).copied().unwrap_or(-1);
+        let channels = sessions.with_shared(|s| crate::nn::onnx::output_shape(s, 0)).get(1).copied().unwrap_or(-1);
         if channels > 0 && channels as usize != class_of_channel.len() {
             return Err(Error::Model {
                 path: path.into(),

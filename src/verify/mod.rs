@@ -143,7 +143,7 @@ pub fn verify_from_glue(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, matc
 }
 
 /// The learned matcher, loaded once per process from `xfeat-lighterglue.pt` in the model folders
-/// ([`crate::onnx::model_dirs`], `$SEMLOOK_MODELS` first); a missing or unreadable file is an
+/// ([`crate::nn::onnx::model_dirs`], `$SEMLOOK_MODELS` first); a missing or unreadable file is an
 /// error naming it (and is looked for again on the next call).
 pub fn shared_lighterglue() -> Result<Arc<LighterGlue>> {
     static NET: Mutex<Option<Arc<LighterGlue>>> = Mutex::new(None);
@@ -151,7 +151,7 @@ pub fn shared_lighterglue() -> Result<Arc<LighterGlue>> {
     if let Some(net) = slot.as_ref() {
         return Ok(net.clone());
     }
-    let path = crate::onnx::find_model(lighterglue::LIGHTERGLUE_WEIGHTS, None, "LighterGlue weights (verification.matcher = \"lighterglue\")")?;
+    let path = crate::nn::onnx::find_model(lighterglue::LIGHTERGLUE_WEIGHTS, None, "LighterGlue weights (verification.matcher = \"lighterglue\")")?;
     let net = Arc::new(LighterGlue::load(&path)?);
     *slot = Some(net.clone());
     Ok(net)

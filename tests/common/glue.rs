@@ -70,7 +70,7 @@ pub fn reference_matches(pair: &Value, run: &str) -> Vec<(u32, u32, f32)> {
 /// The LighterGlue weights setup.sh installs, loaded; without them the test skips with the reason
 /// (or fails under CI or REQUIRE_MODELS=1) and should return.
 pub fn network() -> Option<LighterGlue> {
-    match semlook::onnx::find_model(LIGHTERGLUE_WEIGHTS, None, "LighterGlue") {
+    match semlook::nn::onnx::find_model(LIGHTERGLUE_WEIGHTS, None, "LighterGlue") {
         Ok(path) => Some(LighterGlue::load(&path).unwrap()),
         Err(e) => {
             super::skip_unless_required("REQUIRE_MODELS", format!("LighterGlue weights (run setup.sh): {e}"));

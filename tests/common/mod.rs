@@ -43,7 +43,7 @@ pub fn skip_unless_required(var: &str, reason: impl std::fmt::Display) {
 /// its absence is the point, so it skips there too; elsewhere under CI (or REQUIRE_MODELS=1) it
 /// fails.
 pub fn no_segmenter(reason: impl std::fmt::Display) {
-    match std::env::var(semlook::onnx::MODELS_ONLY_ENV).is_ok_and(|v| v == "1") {
+    match std::env::var(semlook::nn::onnx::MODELS_ONLY_ENV).is_ok_and(|v| v == "1") {
         true => skip(format!("{reason} (a fresh machine's model folder: no segmenter)")),
         false => skip_unless_required("REQUIRE_MODELS", reason),
     }
@@ -52,7 +52,7 @@ pub fn no_segmenter(reason: impl std::fmt::Display) {
 /// Whether the XFeat weights setup.sh installs are found; if not, the test skips with the reason
 /// (or fails under CI or REQUIRE_MODELS=1) and should return.
 pub fn has_xfeat() -> bool {
-    match semlook::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, None, "XFeat") {
+    match semlook::nn::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, None, "XFeat") {
         Ok(_) => true,
         Err(e) => {
             skip_unless_required("REQUIRE_MODELS", format!("XFeat weights (run setup.sh): {e}"));

@@ -7,7 +7,7 @@ use crate::mutate::{random_seeds, Entropy};
 use crate::{Target, Verdict};
 use image::{Rgb, RgbImage};
 use semlook::appearance::keypoints::{self, KeypointParams};
-use semlook::appearance::nn::Chw;
+use semlook::nn::conv::Chw;
 use semlook::appearance::{AppearanceModel, NetOutputs};
 use semlook::config::{AppearanceConfig, AppearanceModelKind, ModelPaths, Sampling, SegmentationConfig};
 use semlook::Error;
@@ -387,7 +387,7 @@ fn onnx_model(e: &mut Entropy, input: &str, in_channels: i64, valid: &[(&str, i6
 /// ONNX Runtime, or `None` after saying why it is missing.
 fn onnx_runtime() -> Option<()> {
     let tiny = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/tiny_segmenter.onnx");
-    match semlook::onnx::session(&tiny, None) {
+    match semlook::nn::onnx::session(&tiny, None) {
         Ok(_) => Some(()),
         Err(e) => {
             crate::common::skip_unless_required("REQUIRE_MODELS", e);

@@ -531,7 +531,7 @@ pub fn pickle() -> Option<Target> {
         })
         .collect();
     seeds.push(crate::models::tiny_xfeat().pickle());
-    let run = |b: &[u8]| match semlook::pickle::Pickle::load(b) {
+    let run = |b: &[u8]| match semlook::nn::pickle::Pickle::load(b) {
         Ok(p) => {
             // every reachable id reads back
             let _ = (p.seq(p.root), p.pairs(p.root), p.int(p.root), p.str(p.root));

@@ -8,7 +8,7 @@
 
 use crate::mutate::{json_mutate, random_seeds, Entropy};
 use crate::{Target, Verdict};
-use semlook::appearance::vlad::Codebook;
+use semlook::global::vlad::Codebook;
 use semlook::config::Config;
 use semlook::descriptors::source::RefSource;
 use semlook::descriptors::DescriptorSet;

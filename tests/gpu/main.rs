@@ -379,7 +379,7 @@ fn end_to_end_matching_equals_the_cpu_path() {
     let dir = tempfile::tempdir().unwrap();
     common::tiny_synth(dir.path(), 10, 21);
     let ds = semlook::dataset::Dataset::open(dir.path(), &Default::default()).unwrap();
-    let cfg = if semlook::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, None, "XFeat").is_ok() {
+    let cfg = if semlook::nn::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, None, "XFeat").is_ok() {
         Config::default()
     } else {
         assert!(std::env::var_os("CI").is_none(), "setup.sh must provide the XFeat weights under CI");
@@ -478,7 +478,7 @@ fn auto_prefers_hardware_and_falls_back_with_a_reason() {
 /// Per frame: descriptors and per-object offsets.
 type VladFrames = Vec<(Vec<f32>, Vec<u32>)>;
 
-fn random_vlad_frames(k: usize, d: usize, seed: u64) -> (semlook::appearance::vlad::Codebook, VladFrames) {
+fn random_vlad_frames(k: usize, d: usize, seed: u64) -> (semlook::global::vlad::Codebook, VladFrames) {
     let mut rng = SplitMix64::new(seed);
     let centres: Vec<f32> = (0..k * d).map(|_| rng.normal() as f32).collect();
     let frames = (0..3)
@@ -493,7 +493,7 @@ fn random_vlad_frames(k: usize, d: usize, seed: u64) -> (semlook::appearance::vl
             ((0..n * d).map(|_| rng.normal() as f32).collect(), offsets)
         })
         .collect();
-    (semlook::appearance::vlad::Codebook { k, dim: d, centres }, frames)
+    (semlook::global::vlad::Codebook { k, dim: d, centres }, frames)
 }
 
 /// VLAD assignment and aggregation on the GPU within 1e-5 of the CPU twin (empty objects,
@@ -506,7 +506,7 @@ fn vlad_kernels_match_the_cpu_twin() {
     for (i, &(k, d, power, intra)) in
         [(16usize, 64usize, false, true), (5, 37, true, true), (3, 100, false, false), (64, 64, true, false), (1, 1, false, true)].iter().enumerate()
     {
-        let norm = semlook::appearance::vlad::VladNorm { intra, power };
+        let norm = semlook::global::vlad::VladNorm { intra, power };
         let (cb, frames) = random_vlad_frames(k, d, i as u64 + 40);
         let inputs: Vec<(&[f32], &[u32])> = frames.iter().map(|(a, b)| (a.as_slice(), b.as_slice())).collect();
         let gpu = vg.run(&cb, norm, &inputs).unwrap();
@@ -535,7 +535,7 @@ fn inconsistent_batches_are_refused_with_typed_errors() {
     let (descs, offsets) = frames.iter().find(|f| !f.0.is_empty()).map(|f| (&f.0, &f.1)).unwrap();
     let mut past = offsets.clone();
     *past.last_mut().unwrap() += 1;
-    let norm = semlook::appearance::vlad::VladNorm { intra: true, power: false };
+    let norm = semlook::global::vlad::VladNorm { intra: true, power: false };
     let mut vg = semlook::gpu::vlad::VladGpu::new(ctx);
     for (what, d, o) in [
         ("no runs", &descs[..], &[][..]),
@@ -546,7 +546,7 @@ fn inconsistent_batches_are_refused_with_typed_errors() {
         let err = vg.run(&cb, norm, &[(d, o)]).unwrap_err();
         assert!(err.to_string().contains("VLAD aggregation"), "{what}: {err}");
     }
-    let short = semlook::appearance::vlad::Codebook { centres: cb.centres[1..].to_vec(), ..cb.clone() };
+    let short = semlook::global::vlad::Codebook { centres: cb.centres[1..].to_vec(), ..cb.clone() };
     assert!(vg.run(&short, norm, &[(descs, offsets)]).is_err(), "a codebook of the wrong size");
     assert_eq!(vg.run(&cb, norm, &[(descs, offsets)]).unwrap().len(), 1);
 }
@@ -586,9 +586,9 @@ fn kernels_on_a_real_street_frame() {
     let small_labels = seg.segment(&small, &frame).unwrap();
     let objects = semlook::objects::extract_objects(&small_labels, &table, &cfg.objects);
     let k = xfeat.keypoints(&small).unwrap();
-    let cb = semlook::appearance::vlad::train_codebook(&semlook::appearance::sample_descriptors(&k, 512), k.dim, 16, 10, 2).unwrap();
+    let cb = semlook::global::vlad::train_codebook(&semlook::appearance::sample_descriptors(&k, 512), k.dim, 16, 10, 2).unwrap();
     let (descs, offsets) = semlook::appearance::group_by_object(&k, &objects);
-    let norm = semlook::appearance::vlad::VladNorm::from_config(&cfg.appearance);
+    let norm = semlook::global::vlad::VladNorm::from_config(&cfg.appearance);
     let cv = semlook::appearance::object_vlad(&descs, &offsets, &cb, norm);
     let g = semlook::gpu::vlad::VladGpu::new(ctx).run(&cb, norm, &[(&descs, &offsets)]).unwrap();
     assert!(g[0].iter().zip(&cv).all(|(a, b)| (a - b).abs() <= 1e-5));

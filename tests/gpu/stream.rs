@@ -71,7 +71,7 @@ fn a_second_batch_creates_nothing_and_uploads_only_its_frames() {
 /// centres are uploaded once.
 #[test]
 fn vlad_uploads_its_centres_once_per_codebook() {
-    use semlook::appearance::vlad::{Codebook, VladNorm};
+    use semlook::global::vlad::{Codebook, VladNorm};
     let Some(ctx) = gpu() else { return };
     let mut rng = semlook::util::SplitMix64::new(3);
     let (k, dim) = (8, 16);

@@ -1,5 +1,5 @@
 //! The XFeat network on the device (`shaders/xfeat.wgsl`, executor `gpu::xfeat`) held to its CPU
-//! twins (`kernels::xfeat`), and the CPU path's fast ops (`appearance::nn`) held to the same
+//! twins (`kernels::xfeat`), and the CPU path's fast ops (`nn::conv`) held to the same
 //! twins. Tolerances, and the largest differences seen on lavapipe (2-core development machine):
 //!
 //! - kernel vs twin, random inputs of awkward sizes: `conv2d` within 1e-5 relative to
@@ -7,7 +7,7 @@
 //!   a GPU may fuse a multiply and an add), instance-norm statistics within 1e-6 relative (seen:
 //!   0), the element-wise kernels within 1e-6 (seen: 0; `bilinear_add` 4.8e-7), space-to-depth
 //!   exactly;
-//! - fast path (`appearance::nn`) vs twin: convolutions (im2col + sgemm, another summation order)
+//! - fast path (`nn::conv`) vs twin: convolutions (im2col + sgemm, another summation order)
 //!   within 1e-4 relative to max(1, |twin|) (seen: 8.7e-6), instance norm (f64 on the fast path)
 //!   within 1e-5 (seen: 2.4e-7); pooling, space-to-depth and resize + add exactly;
 //! - the whole network on the device vs the native forward pass on real frames at the encoder's
@@ -17,7 +17,8 @@
 //!   of the detector's keypoints at identical positions (seen: 384 of 384 on every frame).
 
 use super::{common, gpu, gpu_with};
-use semlook::appearance::nn::{self, Chw, NetOutputs};
+use semlook::appearance::NetOutputs;
+use semlook::nn::conv::{self as nn, Chw};
 use semlook::appearance::xfeat::XFeat;
 use semlook::gpu::xfeat::{forward_on_twins, run_kernel, XFeatGpu};
 use semlook::gpu::{GpuError, GpuOptions};
@@ -157,7 +158,7 @@ fn xfeat_kernels_match_their_twins_on_random_inputs() {
     assert!(max_abs(&dev, &t) <= 1e-6, "bilinear_add: {}", max_abs(&dev, &t));
 }
 
-/// The CPU path's fast ops (`appearance::nn`: im2col + sgemm convolution, batch norm + ReLU,
+/// The CPU path's fast ops (`nn::conv`: im2col + sgemm convolution, batch norm + ReLU,
 /// f64 instance norm, pooling, space-to-depth, resize) equal the twins.
 #[test]
 fn nn_fast_path_matches_the_twins() {

@@ -493,7 +493,7 @@ pub fn bench(a: &StoreBenchArgs, quiet: bool) -> Result<()> {
 /// would be refused); the line says what was checked.
 fn check_installed_embedding(r: &mut edit::VerifyReport) -> Option<String> {
     let rec = r.embedding.clone()?;
-    let Ok(path) = semlook::onnx::find_model(&rec.network, None, "embedding network") else {
+    let Ok(path) = semlook::nn::onnx::find_model(&rec.network, None, "embedding network") else {
         return Some(format!("model    not checked: no {} installed (queries need the one with sha256 {})", rec.network, rec.sha256));
     };
     match semlook::util::sha256_file(&path) {
@@ -524,7 +524,7 @@ fn check_installed_model(r: &mut edit::VerifyReport) -> Option<String> {
     }
     let name = semlook::appearance::XFEAT_WEIGHTS;
     // the folders start with $SEMLOOK_MODELS, as a query's search does
-    let found = semlook::onnx::find_model(name, None, "XFeat weights");
+    let found = semlook::nn::onnx::find_model(name, None, "XFeat weights");
     let Ok(path) = found else {
         return Some(format!("model    not checked: no {name} installed (queries need the one with sha256 {want})"));
     };

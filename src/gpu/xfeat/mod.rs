@@ -20,7 +20,8 @@ pub use twins::forward_on_twins;
 
 use super::context::{GpuContext, GpuError};
 use super::kernels::Kernel;
-use crate::appearance::nn::{Chw, NetOutputs};
+use crate::appearance::NetOutputs;
+use crate::nn::conv::Chw;
 use crate::appearance::xfeat::XFeat;
 use crate::appearance::{network_input, AppearanceModel, Features};
 use image::RgbImage;

@@ -2,7 +2,8 @@
 //! of the forward pass at a frame size (which kernel, its parameters, which buffers, its grid) as
 //! data, which the device executor (`super`) and the twin runner (`super::twins`) both run.
 
-use crate::appearance::nn::{Chw, NetOutputs};
+use crate::appearance::NetOutputs;
+use crate::nn::conv::Chw;
 use crate::appearance::xfeat::{Layer, XFeat};
 use crate::error::Error;
 use crate::kernels::abi::{ConvParams, MapParams, NormParams};

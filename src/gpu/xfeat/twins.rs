@@ -2,7 +2,8 @@
 //! reference the device is held to.
 
 use super::plan::{outputs, pack, Buf, Entry, Params, Plan, PlanError};
-use crate::appearance::nn::{Chw, NetOutputs};
+use crate::appearance::NetOutputs;
+use crate::nn::conv::Chw;
 use crate::appearance::xfeat::XFeat;
 use crate::error::Error;
 use crate::kernels::xfeat as twin;

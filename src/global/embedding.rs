@@ -47,7 +47,7 @@ pub fn working_size(width: u32, height: u32, long_side: u32) -> (u32, u32) {
 
 /// An ONNX embedding network: an RGB image in, one L2-normalised vector out.
 pub struct Embedder {
-    sessions: crate::onnx::SessionPool,
+    sessions: crate::nn::onnx::SessionPool,
     /// The network as `[embedding]` or a map's record names it (a file name or a path).
     name: String,
     path: PathBuf,
@@ -63,7 +63,7 @@ impl std::fmt::Debug for Embedder {
 }
 
 impl Embedder {
-    /// Loads the network at `path` (`onnxruntime`: see [`crate::onnx::library_path`]); fails,
+    /// Loads the network at `path` (`onnxruntime`: see [`crate::nn::onnx::library_path`]); fails,
     /// naming the file, unless it has one input and one output of a static width.
     pub fn new(path: &Path, onnxruntime: Option<&Path>, long_side: u32) -> Result<Embedder> {
         let name = path.file_name().map_or_else(|| path.display().to_string(), |n| n.to_string_lossy().into_owned());
@@ -78,8 +78,8 @@ impl Embedder {
             return Err(Error::check(format!("embedding.long_side {long_side} is outside 32..=4096")));
         }
         let sha256 = crate::util::sha256_file(path)?;
-        let sessions = crate::onnx::SessionPool::new(path, onnxruntime)?;
-        let (inputs, outputs, shape) = sessions.with_shared(|s| (s.inputs().len(), s.outputs().len(), crate::onnx::output_shape(s, 0)));
+        let sessions = crate::nn::onnx::SessionPool::new(path, onnxruntime)?;
+        let (inputs, outputs, shape) = sessions.with_shared(|s| (s.inputs().len(), s.outputs().len(), crate::nn::onnx::output_shape(s, 0)));
         let dim = match shape[..] {
             [_, d] if d > 0 => d as usize,
             _ => return Err(fail(format!("output shape {shape:?}: an embedding network gives [1, D] with a static D"))),
@@ -161,7 +161,7 @@ pub fn from_config(cfg: &crate::config::EmbeddingConfig, models: &crate::config:
         return Ok(None);
     }
     let default = cfg.network == crate::config::EMBEDDING_NETWORK;
-    let path = match crate::onnx::find_model(&cfg.network, None, "embedding network (embedding.network)") {
+    let path = match crate::nn::onnx::find_model(&cfg.network, None, "embedding network (embedding.network)") {
         Ok(p) => p,
         Err(_) if default => {
             log::warn!(
@@ -179,7 +179,7 @@ pub fn from_config(cfg: &crate::config::EmbeddingConfig, models: &crate::config:
 /// the map recorded (queries embedded by another network would be compared with the map's as if
 /// they were alike).
 pub fn for_record(rec: &EmbeddingRecord, models: &crate::config::ModelPaths) -> Result<Embedder> {
-    let path = crate::onnx::find_model(&rec.network, None, "the map's embedding network")?;
+    let path = crate::nn::onnx::find_model(&rec.network, None, "the map's embedding network")?;
     let e = Embedder::named(&rec.network, &path, models.onnxruntime.as_deref(), rec.long_side)?;
     if !e.record().same_network(rec) {
         return Err(Error::Model {

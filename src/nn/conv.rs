@@ -266,17 +266,6 @@ pub fn space_to_depth8(x: &Chw) -> Result<Chw> {
     Ok(out)
 }
 
-/// What a keypoint network gives at 1/8 resolution.
-#[derive(Debug, Clone)]
-pub struct NetOutputs {
-    /// Dense descriptors [D, h, w].
-    pub descriptors: Chw,
-    /// Keypoint logits [65, h, w], SuperPoint cell layout (64 pixels + dustbin).
-    pub logits: Chw,
-    /// Reliability [1, h, w] in [0, 1], when the network has one (XFeat).
-    pub reliability: Option<Chw>,
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -538,12 +538,12 @@ fn models_cmd(json: bool) -> Result<()> {
             }
         }
     }
-    let dirs: Vec<String> = semlook::onnx::model_dirs().iter().map(|d| d.display().to_string()).collect();
+    let dirs: Vec<String> = semlook::nn::onnx::model_dirs().iter().map(|d| d.display().to_string()).collect();
     outln!("looked in, in order: {}", dirs.join(", "));
     if missing + absent > 0 {
         outln!(
             "to install what is missing: `bash setup.sh` in the repository (or put the files in a folder and set {}){}",
-            semlook::onnx::MODELS_ENV,
+            semlook::nn::onnx::MODELS_ENV,
             if all.iter().any(|m| m.name == semlook::segmentation::DEFAULT_SEGMENTER && m.path.is_none()) {
                 "; without the segmenter, photos that have no label maps are encoded without labels (settings hog, appearance, verified)"
             } else {

@@ -1,10 +1,10 @@
 //! Reading a PyTorch state dict (`torch.save(model.state_dict())`, the zip format) without
-//! Python: the archive's `data.pkl` is run on the crate's pickle machine ([`crate::pickle`]), its
+//! Python: the archive's `data.pkl` is run on the crate's pickle machine ([`crate::nn::pickle`]), its
 //! `torch._utils._rebuild_tensor_v2` calls name each tensor's storage, and each tensor is read
 //! from its storage file `data/<key>` (little-endian).
 
 use crate::error::{Error, Result};
-use crate::pickle::{Id, Node, Pickle};
+use crate::nn::pickle::{Id, Node, Pickle};
 use std::collections::HashMap;
 use std::io::Read;
 use std::path::Path;

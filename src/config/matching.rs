@@ -1,0 +1,367 @@
+//! The sections of query time: `[similarity]` (tree and image similarity), `[matching]` (the
+//! coarse stage and the final score), `[verification]` (the `verified` setting) and `[eval]`.
+
+use serde::{Deserialize, Serialize};
+
+/// The `[similarity]` section: tree similarity and image similarity (method.md §2.8).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SimilarityConfig {
+    /// Weights of area, position and appearance inside S_in (normalised by their sum). \[R\]
+    /// 1/3, 1/3, 16 (sweeps 01-02: with segmenter labels, area and position of objects are
+    /// noise on real frames; appearance carries the place: 0.3 -> 0.7 R@1 on Nordland).
+    pub w_area: f64,
+    /// Weight of position inside S_in (see `w_area`). \[R\] 1/3.
+    pub w_position: f64,
+    /// Weight of appearance inside S_in (see `w_area`). \[R\] 16.
+    pub w_appearance: f64,
+    /// Weights of the intrinsic part and the neighbour part of the tree similarity, normalised
+    /// by their sum. \[R\] 0.5 / 0.2 (sweep 02: 0.2 > 0 and > 0.5 in mean R@1).
+    pub w_intrinsic: f64,
+    /// Weight of the neighbour part S_N (see `w_intrinsic`). \[R\] 0.2.
+    pub w_neighbours: f64,
+    /// Position similarity: "linear" max(0, 1 - d) or "gaussian" exp(-d^2 / 2 sigma^2), d in diagonals.
+    pub position: PositionSimilarity,
+    /// sigma of the "gaussian" position term, in image diagonals. \[R\] 0.1.
+    pub position_sigma: f64,
+    /// Appearance missing on either side: "neutral" (score `neutral_appearance`) or "drop" (leave
+    /// the term out and renormalise the weights). \[R\] neutral 0.5.
+    pub missing_appearance: MissingAppearance,
+    /// The appearance score of a pair where a tree has no appearance, with
+    /// `missing_appearance = "neutral"`. \[R\] 0.5.
+    pub neutral_appearance: f64,
+    /// Image similarity from tree similarities: "greedy" one-to-one assignment, or "best_match"
+    /// (each query tree takes its best reference tree). \[R\] greedy.
+    pub assignment: Assignment,
+    /// Weight of a tree in the image similarity: "uniform", "area", "sqrt_area", or
+    /// "descriptors" (its appearance descriptor count + 1; settings without appearance use the
+    /// area instead). A pair counts sqrt(w_t w_u). \[R\] descriptors (sweep 01: the single largest
+    /// gain: many small, fragmented objects no longer outvote the large ones).
+    pub tree_weight: TreeWeight,
+    /// The sum of weighted pair scores is divided by "larger_forest" (the larger total tree
+    /// weight, method.md §2.8) or "geometric_mean" (sqrt of the product of the totals). \[R\] larger_forest.
+    pub normalise: Normalise,
+    /// Which trees may pair (method.md §2.8: only the same class): "class", "category" (the same
+    /// category, e.g. road with sidewalk, building with wall: what an off-domain segmenter swaps),
+    /// or "category_with_appearance" (categories where appearance takes part, classes in the
+    /// label-only Forest settings). \[R\] category_with_appearance (sweep 06, mean R@1 over the
+    /// three dev sets: categories raised `local` and `semlook` from 0.641 to 0.678 and `verified`
+    /// from 0.848 to 0.852, and lowered `forest` from 0.228 to 0.174, which classes keep).
+    pub class_match: ClassMatch,
+}
+
+/// Which trees may pair (`similarity.class_match`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ClassMatch {
+    /// Only trees of the same class (method.md §2.8).
+    Class,
+    /// Trees of the same category (road with sidewalk, building with wall, ...).
+    Category,
+    /// Categories in the settings where appearance takes part, classes in the label-only ones.
+    CategoryWithAppearance,
+}
+
+impl SimilarityConfig {
+    /// The design reference's reconstruction (method.md §2.8) before any sweep: S_in in equal thirds,
+    /// S = 0.5 S_in + 0.5 S_N, uniform tree weights.
+    pub fn spec() -> Self {
+        SimilarityConfig {
+            w_appearance: 1.0 / 3.0,
+            w_neighbours: 0.5,
+            tree_weight: TreeWeight::Uniform,
+            class_match: ClassMatch::Class,
+            ..Default::default()
+        }
+    }
+}
+
+/// The weight of a tree in the image similarity (`similarity.tree_weight`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TreeWeight {
+    /// Every tree weighs 1 (method.md §2.8).
+    Uniform,
+    /// The tree's object area.
+    Area,
+    /// The square root of the tree's object area.
+    SqrtArea,
+    /// The tree's appearance descriptor count + 1 (the area in settings without appearance).
+    Descriptors,
+}
+
+/// What the sum of weighted pair scores is divided by (`similarity.normalise`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Normalise {
+    /// The larger of the two forests' total tree weights (method.md §2.8).
+    LargerForest,
+    /// The square root of the product of the two totals.
+    GeometricMean,
+}
+
+impl Default for SimilarityConfig {
+    fn default() -> Self {
+        SimilarityConfig {
+            w_area: 1.0 / 3.0,
+            w_position: 1.0 / 3.0,
+            w_appearance: 16.0,
+            w_intrinsic: 0.5,
+            w_neighbours: 0.2,
+            position: PositionSimilarity::Linear,
+            position_sigma: 0.1,
+            missing_appearance: MissingAppearance::Neutral,
+            neutral_appearance: 0.5,
+            assignment: Assignment::Greedy,
+            tree_weight: TreeWeight::Descriptors,
+            normalise: Normalise::LargerForest,
+            class_match: ClassMatch::CategoryWithAppearance,
+        }
+    }
+}
+
+/// The position similarity of two trees from their centroid distance d, in image diagonals
+/// (`similarity.position`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PositionSimilarity {
+    /// max(0, 1 - d).
+    Linear,
+    /// exp(-d^2 / 2 sigma^2), sigma = `position_sigma`.
+    Gaussian,
+}
+
+/// What a pair scores for appearance when either tree has none (`similarity.missing_appearance`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MissingAppearance {
+    /// The score `neutral_appearance`.
+    Neutral,
+    /// No score: the term is left out and the weights renormalised.
+    Drop,
+}
+
+/// How tree similarities make the image similarity (`similarity.assignment`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Assignment {
+    /// Greedy one-to-one assignment of tree pairs, best pair first.
+    Greedy,
+    /// Each query tree takes its best reference tree.
+    BestMatch,
+}
+
+/// The `[matching]` section: the coarse stage and the final score.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MatchingConfig {
+    /// Candidates the coarse stage passes to the fine stage. \[R\] 30 (sweep 05: with geometric
+    /// verification, 30 candidates gave `verified` 0.852 mean R@1 over the three real dev sets,
+    /// 20 gave 0.840 and 10 0.825; `semlook` was the same at 20 and 30; sweeps 02-03 had chosen
+    /// 20 over 10 and 40 before verification existed).
+    pub top_k: usize,
+    /// References scored per tile while streaming top-K; bounds the scratch memory.
+    pub tile: usize,
+    /// Final score: "fine" (image similarity) or "fine_times_global" (times the SSIM). \[R\] fine.
+    pub score: ScoreFusion,
+    /// The fused coarse stage (`fused`, `verified`) ranks by cos(whole-image appearance) +
+    /// w_global x SSIM(global descriptors). \[R\] 0.25 (sweep 08: 0, 0.1, 0.25, 0.5, 1 compared).
+    pub w_global: f64,
+    /// The coarse stage of the paper's two-stage settings (`global-forest`, `semlook`): "global",
+    /// the semantic-edge descriptor alone (the paper's reading), or "fused" with the whole-image
+    /// appearance, as `fused` ranks. \[R\] fused (sweep 08: with the edge descriptor alone the right
+    /// place survived to the fine stage for 27 % of the landmark queries at K = 20, and
+    /// coarse-to-fine lost places that the fine stage alone finds).
+    pub coarse: CoarseStage,
+    /// The fused coarse stage of `fused` and `verified` adds w_embedding x the cosine of the
+    /// whole-image embeddings (`[embedding]`) where the map and the queries both have them, made by
+    /// one network; the paper's two-stage settings never (their coarse stage keeps its meaning). \[R\] 2 (sweep 16: 1, 2, 3
+    /// and 4 compared on the three real dev sets).
+    pub w_embedding: f64,
+}
+
+/// Which scores the coarse stage of the paper's two-stage settings ranks by.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CoarseStage {
+    /// SSIM of the semantic-edge global descriptors (method.md §2.7).
+    Global,
+    /// cos(whole-image appearance) + w_global x SSIM.
+    Fused,
+}
+
+impl Default for MatchingConfig {
+    fn default() -> Self {
+        MatchingConfig { top_k: 30, tile: 4096, score: ScoreFusion::Fine, w_global: 0.25, coarse: CoarseStage::Fused, w_embedding: 2.0 }
+    }
+}
+
+/// The final score of a candidate (`matching.score`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ScoreFusion {
+    /// The image similarity of the fine stage.
+    Fine,
+    /// The image similarity times the SSIM of the global descriptors.
+    FineTimesGlobal,
+}
+
+/// Which RANSAC inliers count towards a verified score.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SemanticCheck {
+    /// Every inlier.
+    Off,
+    /// Only inliers whose keypoints lie on the same semantic class in both images.
+    SameClass,
+}
+
+/// How the verified score counts a candidate's inliers (`verification.inliers`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum InlierEvidence {
+    /// `w_inliers` x ln(1 + inliers), whatever the query's other candidates show (the score before
+    /// issue 51).
+    Count,
+    /// `w_inliers` x how far ln(1 + inliers) stands above the query's other candidates: its
+    /// z-score among them beyond `unusual_above` (0 below `min_inliers`).
+    Unusual,
+}
+
+/// How verification pairs up the keypoints of a query and a candidate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Matcher {
+    /// Mutual nearest neighbours of the descriptors above `min_cosine`.
+    Mnn,
+    /// LighterGlue, XFeat's learned matcher (`verify::lighterglue`; weights
+    /// `xfeat-lighterglue.pt` in the model folders).
+    Lighterglue,
+}
+
+/// Geometric verification of candidates (the `verified` setting; beyond the paper, `verify`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct VerificationConfig {
+    /// Keypoints match when each is the other's nearest neighbour and their cosine reaches this.
+    /// \[X\] XFeat's matcher: 0.82.
+    pub min_cosine: f64,
+    /// RANSAC inlier threshold on the homography's transfer error, in fractions of the image's
+    /// long side. \[R\] 0.00625 (4 px at the 640 px working size; sweep 07: 0.003125 and 0.0125
+    /// lower).
+    pub threshold: f64,
+    /// RANSAC iterations at most, and the confidence that stops earlier. \[R\] 1000, 0.999.
+    pub max_iterations: u32,
+    /// RANSAC stops once an all-inlier sample was drawn with this probability, at the best
+    /// model's inlier ratio (see `max_iterations`). \[R\] 0.999.
+    pub confidence: f64,
+    /// Seed of RANSAC's sampling (the same for every pair: results do not depend on the batch).
+    pub seed: u64,
+    /// Least-squares refits on the inliers of each new best model (LO-RANSAC). \[R\] on.
+    pub refine: bool,
+    /// Which inliers count. \[R\] off (sweep 07: `same_class` lost 0.044 mean R@1: the segmenter's
+    /// labels disagree across conditions where the geometry agrees).
+    pub semantic: SemanticCheck,
+    /// The verified score: w_coarse coarse + w_fine fine + w_inliers x the inliers' evidence
+    /// (`inliers`) + w_compact_hog x the compact HOGs' evidence, with the fused coarse score and
+    /// the tree-set similarity of the pair. \[R\] 2 (sweep 17, leave-one-set-out; 1 with
+    /// `inliers = "count"` before, sweep 07).
+    pub w_inliers: f64,
+    /// How the inliers count: "unusual" (how far above the query's other candidates they stand,
+    /// so that where every candidate shows as many, geometry says little and the coarse order
+    /// stands) or "count" (ln(1 + inliers) whatever the others show). \[R\] unusual (sweep 17:
+    /// restricted to either form, leave-one-set-out picks of "unusual" give the higher held-out
+    /// mean R@1 over the six dev sets, 0.801 against 0.785, and over the four real ones, 0.838
+    /// against 0.821).
+    pub inliers: InlierEvidence,
+    /// With `inliers = "unusual"`: the z-score of a candidate's ln(1 + inliers) among its query's
+    /// K candidates counts beyond this. \[R\] 1 (sweep 17).
+    pub unusual_above: f64,
+    /// With `inliers = "unusual"`: fewer inliers than this count nothing (what chance gives a
+    /// homography on few keypoints). \[R\] 8 (sweep 17).
+    pub min_inliers: u32,
+    /// Weight of the compact HOGs' evidence (maps of small frames, `input.compact_hog_long_side`):
+    /// the z-score of the pair's compact HOG cosine among its query's K candidates beyond
+    /// `compact_hog_above`. \[R\] 2 (sweep 17: Nordland 64x32 0.550 -> 1.000).
+    pub w_compact_hog: f64,
+    /// See `w_compact_hog`. \[R\] 1 (sweep 17).
+    pub compact_hog_above: f64,
+    /// Weight of the fused coarse score in the verified score (see `w_inliers`). \[R\] 2.
+    pub w_coarse: f64,
+    /// Weight of the tree-set similarity in the verified score (see `w_inliers`). \[R\] 2.
+    pub w_fine: f64,
+    /// Classes (names of the class table) whose keypoints take no part in verification: a mutual
+    /// match with either end on one of them is dropped before RANSAC (issue 32: dynamic classes
+    /// and sky, whose matches do not say where the camera is). \[R\] none (sweep 13).
+    pub ignore_classes: Vec<String>,
+    /// Which matcher pairs the keypoints up before RANSAC. \[R\] mnn.
+    pub matcher: Matcher,
+    /// LighterGlue: a mutual best match counts when its assignment probability exceeds this.
+    /// \[X\] 0.1 (the authors' `filter_threshold`).
+    pub glue_threshold: f64,
+    /// LighterGlue's point pruning: after each layer but the last, keypoints whose matchability is
+    /// at most 1 - this are dropped; -1 turns it off. \[X\] 0.95 (the authors' `width_confidence`;
+    /// `configs/verified-lighterglue.toml` sets 0.8: sweep 14c).
+    pub glue_width_confidence: f64,
+    /// LighterGlue's early exit: after each layer but the last, stop once more than this share of
+    /// the keypoints is confident; -1 turns it off. \[X\] -1 (the authors' `depth_confidence`).
+    pub glue_depth_confidence: f64,
+    /// With `matcher = "mnn"`: weight of ln(1 + LighterGlue's RANSAC inliers) added to the verified
+    /// score, LighterGlue then also verifying every candidate (those `glue_min_inliers` admits); 0 runs
+    /// only the chosen matcher.
+    /// \[R\] 0 (sweep 14: 0.5 with `glue_threshold` 0.7 and `w_inliers` 2 is the best measured
+    /// fusion, dev mean R@1 0.864 against 0.852; with `glue_min_inliers` 5 and
+    /// `glue_width_confidence` 0.8 at about 25 times the verification time: sweeps 14b and 14c,
+    /// `configs/verified-lighterglue.toml`).
+    pub w_glue: f64,
+    /// With `w_glue` > 0: LighterGlue verifies only the pairs whose MNN verification found at
+    /// least this many inliers (a rule of the pair alone, so a pair scores the same in any batch,
+    /// shard or sequence window); the others add nothing. 0: every pair. \[R\] 0 (sweep 14b: 5,
+    /// more than a homography's minimal sample, keeps the fusion's dev R@1 with LighterGlue on
+    /// 61 % of the pairs).
+    pub glue_min_inliers: u32,
+}
+
+impl Default for VerificationConfig {
+    fn default() -> Self {
+        VerificationConfig {
+            min_cosine: 0.82,
+            threshold: 0.00625,
+            max_iterations: 1000,
+            confidence: 0.999,
+            seed: 1,
+            refine: true,
+            semantic: SemanticCheck::Off,
+            w_inliers: 2.0,
+            inliers: InlierEvidence::Unusual,
+            unusual_above: 1.0,
+            min_inliers: 8,
+            w_compact_hog: 2.0,
+            compact_hog_above: 1.0,
+            w_coarse: 2.0,
+            w_fine: 2.0,
+            ignore_classes: vec![],
+            matcher: Matcher::Mnn,
+            glue_threshold: 0.1,
+            glue_width_confidence: 0.95,
+            glue_depth_confidence: -1.0,
+            w_glue: 0.0,
+            glue_min_inliers: 0,
+        }
+    }
+}
+
+
+/// The `[eval]` section: what evaluation reports.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct EvalConfig {
+    /// N of the Recall@N columns.
+    pub recall_at: Vec<usize>,
+}
+
+impl Default for EvalConfig {
+    fn default() -> Self {
+        EvalConfig { recall_at: vec![1, 5, 10] }
+    }
+}

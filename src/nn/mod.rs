@@ -1,0 +1,19 @@
+//! The network runtime the stages share: what runs a network and reads its weights, apart from
+//! what the networks compute (XFeat in `appearance`, the segmenter in `segmentation`, the
+//! embedding in `global::embedding`, LighterGlue in `verify`).
+//!
+//! - [`conv`]: the CPU operations of the convolutional networks (convolution by im2col and a
+//!   matrix product, batch and instance norm, pooling, resizing), on CHW tensors.
+//! - `onnx`: ONNX Runtime through `ort` (loaded dynamically), one process-wide environment and
+//!   pools of sessions.
+//! - `torch_pt` and `pickle`: PyTorch state dicts read without Python (the zip archive, its
+//!   pickle run on a small safe pickle machine).
+
+pub mod conv;
+// Internal, public for the binary and tests only: ONNX Runtime loading for the command line and the tests; embedders go through `segmentation` and `appearance`.
+#[doc(hidden)]
+pub mod onnx;
+// Internal, public for the binary and tests only: the pickle machine behind `torch_pt` and VPR-Bench's `.npy` ground truth, public for the fuzz tests only.
+#[doc(hidden)]
+pub mod pickle;
+pub mod torch_pt;
