@@ -8,9 +8,9 @@
 //! (seconds per frame there: correctness only).
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use semlook::nn::conv::Chw;
 use semlook::gpu::xfeat::XFeatGpu;
 use semlook::gpu::{GpuContext, GpuOptions};
+use semlook::nn::conv::Chw;
 use std::sync::Arc;
 
 fn bench(c: &mut Criterion) {

@@ -338,6 +338,34 @@ fn the_kernels_import_no_stage() {
     assert!(g["gpu"].contains("kernels") && g["matching"].contains("kernels"), "the graph lacks the kernels' users");
 }
 
+/// The network runtime (`nn`: convolutions, ONNX Runtime, the weight readers) sits under every
+/// network that runs on it (XFeat, the segmenter, the embedding, LighterGlue): it reads errors and
+/// helpers, no stage and no configuration.
+#[test]
+fn the_network_runtime_imports_no_stage() {
+    let g = import_graph();
+    let below = reachable(&g, "nn");
+    let allowed = ["error", "util"];
+    let extra: Vec<&String> = below.iter().filter(|m| !allowed.contains(&m.as_str())).collect();
+    assert!(extra.is_empty(), "nn reaches {extra:?} (allowed: {allowed:?})");
+    for user in ["appearance", "global", "segmentation", "verify"] {
+        assert!(g[user].contains("nn"), "the graph lacks nn's user {user}: {:?}", g[user]);
+    }
+}
+
+/// The whole-image descriptors (`global`: semantic SSIM, VLAD, embedding, HOG) are computed from
+/// one image: they reach no stage after them (objects and forests, the map, matching, encoding,
+/// streams, evaluation), so any of them can be computed, stored or compared by whoever needs it.
+#[test]
+fn the_whole_image_descriptors_reach_no_later_stage() {
+    let g = import_graph();
+    let below = reachable(&g, "global");
+    for later in ["objects", "local", "descriptors", "map", "matching", "encode", "batch", "stream", "eval", "engine", "gpu", "verify"] {
+        assert!(!below.contains(later), "global reaches {later}: {:?}", g["global"]);
+    }
+    assert!(g["encode"].contains("global") && g["matching"].contains("global"), "the graph lacks global's users");
+}
+
 /// The tools sit beside the engine (behind the `tools` feature): no module of the engine reaches
 /// them, so the library builds without them.
 #[test]
@@ -424,14 +452,13 @@ fn library_messages_name_no_command_line_flag() {
 /// The crate's top-level modules: those a library user may rely on, and those public only for the
 /// command line and the tests (each `#[doc(hidden)]` with a reason on the line above). A new
 /// `pub mod` is one or the other by decision, never by default.
-const PUBLIC_MODULES: [&str; 26] = [
+const PUBLIC_MODULES: [&str; 25] = [
     "appearance",
     "batch",
     "classes",
     "config",
     "dataset",
     "descriptors",
-    "embedding",
     "encode",
     "engine",
     "error",
@@ -439,20 +466,20 @@ const PUBLIC_MODULES: [&str; 26] = [
     "global",
     "gpu",
     "hloc",
-    "hog",
     "index",
     "input",
     "local",
     "map",
     "matching",
     "models",
+    "nn",
     "objects",
     "segmentation",
     "stream",
     "values",
     "verify",
 ];
-const INTERNAL_MODULES: [&str; 6] = ["kernels", "onnx", "pickle", "progress", "tools", "util"];
+const INTERNAL_MODULES: [&str; 4] = ["kernels", "progress", "tools", "util"];
 
 /// `pub mod NAME` items of `text` (comments kept out), each with whether `#[doc(hidden)]` and a
 /// reason (a `///` or `//` comment) come before it.

@@ -3,8 +3,8 @@
 
 mod common;
 
-use semlook::global::vlad::Codebook;
 use semlook::config::Config;
+use semlook::global::vlad::Codebook;
 use semlook::map::{edit, Map};
 use std::path::Path;
 

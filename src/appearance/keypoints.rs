@@ -5,8 +5,8 @@
 //! has one); then non-maximum suppression, a threshold, the best N, and descriptors sampled
 //! bilinearly from the dense map and L2-normalised.
 
-use crate::nn::conv::Chw;
 use crate::error::{Error, Result};
+use crate::nn::conv::Chw;
 
 /// What a keypoint network gives at 1/8 resolution.
 #[derive(Debug, Clone)]

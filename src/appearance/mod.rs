@@ -11,18 +11,17 @@ pub use keypoints::NetOutputs;
 use crate::config::{AppearanceConfig, AppearanceModelKind, KeypointsConfig, ModelPaths, Sampling};
 use crate::descriptors::keypoints::{ImageKeypoints, COORD_SCALE};
 use crate::error::{Error, Result};
+use crate::global::vlad::{Codebook, VladNorm};
 use crate::kernels::abi::VladParams;
 use crate::kernels::vlad_accumulate;
+use crate::nn::conv::Chw;
 use crate::objects::{ObjectMap, NO_OBJECT};
 use image::RgbImage;
 use keypoints::{KeypointParams, Keypoints};
-use crate::nn::conv::Chw;
 use std::path::PathBuf;
-use crate::global::vlad::{Codebook, VladNorm};
 
 /// File name of the XFeat weights in the setup folder.
 pub const XFEAT_WEIGHTS: &str = "xfeat.pt";
-
 
 enum Network {
     XFeat(Box<xfeat::XFeat>),
@@ -251,7 +250,11 @@ pub fn network_input(rgb: &RgbImage) -> Result<(Chw, f32, f32)> {
     }
     let data = rgb.pixels().map(|p| (p.0[0] as f32 + p.0[1] as f32 + p.0[2] as f32) / (3.0 * 255.0)).collect();
     let grey = Chw { c: 1, h, w, data };
-    let grey = if (w32, h32) == (w, h) { grey } else { crate::nn::conv::resize_bilinear(&grey, h32, w32).map_err(|e| e.named(|r| Error::invalid("image", r)))? };
+    let grey = if (w32, h32) == (w, h) {
+        grey
+    } else {
+        crate::nn::conv::resize_bilinear(&grey, h32, w32).map_err(|e| e.named(|r| Error::invalid("image", r)))?
+    };
     Ok((grey, w as f32 / w32 as f32, h as f32 / h32 as f32))
 }
 

@@ -351,7 +351,6 @@ impl Default for VerificationConfig {
     }
 }
 
-
 /// The `[eval]` section: what evaluation reports.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]

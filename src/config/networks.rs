@@ -196,7 +196,6 @@ impl Default for ModelPaths {
     }
 }
 
-
 /// The default image-embedding network (EfficientNet-Lite1 ImageNet, GeM pooling), as looked up in
 /// the model folders (`setup.sh` installs it; [`crate::models`] lists it).
 pub const EMBEDDING_NETWORK: &str = "efficientnet_lite1_gem.onnx";

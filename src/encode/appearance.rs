@@ -3,10 +3,10 @@
 //! whole-image VLAD vectors, and the verification keypoints a map stores.
 
 use crate::appearance::{self, keypoints::Keypoints, AppearanceModel, Features};
-use crate::global::vlad::{self, Codebook, VladNorm};
 use crate::config::{AppearanceConfig, KeypointsConfig};
 use crate::descriptors::keypoints::ImageKeypoints;
 use crate::error::{Error, Result};
+use crate::global::vlad::{self, Codebook, VladNorm};
 use crate::input::LabelMap;
 use crate::objects::ObjectMap;
 use std::sync::Arc;

@@ -18,10 +18,10 @@ pub use load::{segmenter_path, FrameLoader, Loaded};
 pub use times::StageTimes;
 
 use crate::appearance::{keypoints::Keypoints, AppearanceModel, Features};
-use crate::global::vlad::Codebook;
 use crate::classes::ClassTable;
 use crate::config::{Config, EncodingConfig, GlobalConfig};
 use crate::error::{Error, Result};
+use crate::global::vlad::Codebook;
 use crate::global::{self, GlobalScratch};
 use crate::input::{FrameSource, LabelFormat, LabelMap};
 use crate::kernels::abi::SsimParams;

@@ -12,9 +12,9 @@
 //! How they are ranked is `matching`'s (`matching::baseline` for the baselines, the coarse
 //! stage for `fused`).
 
-mod semantic;
 pub mod embedding;
 pub mod hog;
+mod semantic;
 pub mod ssim_fast;
 pub mod vlad;
 

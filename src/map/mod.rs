@@ -35,13 +35,13 @@ pub use crate::global::embedding::EmbeddingRecord;
 pub use manifest::{Manifest, SegmentEntry, FORMAT, VERSION};
 pub use writer::{ColumnDims, MapWriter, StoreOptions, TraversalPlan};
 
-use crate::global::vlad::Codebook;
 use crate::classes::ClassTable;
 use crate::config::{first_difference, EncodingConfig};
 use crate::descriptors::keypoints::KeypointsRef;
 use crate::descriptors::source::{GlobalSource, Place, RefSource, TileBuf};
 use crate::descriptors::DescriptorSet;
 use crate::error::{Error, Result};
+use crate::global::vlad::Codebook;
 use crate::kernels::abi::SsimParams;
 use crate::kernels::tree_similarity::ForestRef;
 use crate::values::Values;
@@ -102,6 +102,15 @@ impl Map {
     /// of every segment with its header checked. Checksums and values are checked on first use.
     pub fn open(dir: &Path) -> Result<Map> {
         with_current_manifest(dir, |m| Map::open_generation(dir, m))
+    }
+
+    /// [`Map::open`] where `dir` holds a map's manifest; `None` where it holds none (a new
+    /// folder, or a first build not yet committed).
+    pub fn open_if_exists(dir: &Path) -> Result<Option<Map>> {
+        match dir.join(manifest::MANIFEST).exists() {
+            true => Map::open(dir).map(Some),
+            false => Ok(None),
+        }
     }
 
     pub(crate) fn open_generation(dir: &Path, manifest: Manifest) -> Result<Map> {

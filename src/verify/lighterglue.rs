@@ -17,10 +17,10 @@
 //! Positions enter as fractions of the image's long side (what the map stores): the rotary encoding
 //! depends only on differences of positions, so the image's size beyond its long side is not needed.
 
-use crate::nn::torch_pt::{read_state_dict, Tensor};
 use crate::descriptors::keypoints::{KeypointsRef, COORD_SCALE};
 use crate::error::{Error, Result};
 use crate::kernels::lighterglue::erf_with;
+use crate::nn::torch_pt::{read_state_dict, Tensor};
 use crate::util::lane_sum;
 use ndarray::linalg::general_mat_mul;
 use ndarray::{ArrayView2, ArrayViewMut2, ShapeBuilder};

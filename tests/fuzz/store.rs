@@ -8,10 +8,10 @@
 
 use crate::mutate::{json_mutate, random_seeds, Entropy};
 use crate::{Target, Verdict};
-use semlook::global::vlad::Codebook;
 use semlook::config::Config;
 use semlook::descriptors::source::RefSource;
 use semlook::descriptors::DescriptorSet;
+use semlook::global::vlad::Codebook;
 use semlook::kernels::abi::SsimParams;
 use semlook::kernels::ssim::{ssim_stats, SsimScratch};
 use semlook::map::{edit, Manifest, Map, MapWriter, StoreOptions};

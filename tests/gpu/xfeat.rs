@@ -17,13 +17,13 @@
 //!   of the detector's keypoints at identical positions (seen: 384 of 384 on every frame).
 
 use super::{common, gpu, gpu_with};
-use semlook::appearance::NetOutputs;
-use semlook::nn::conv::{self as nn, Chw};
 use semlook::appearance::xfeat::XFeat;
+use semlook::appearance::NetOutputs;
 use semlook::gpu::xfeat::{forward_on_twins, run_kernel, XFeatGpu};
 use semlook::gpu::{GpuError, GpuOptions};
 use semlook::kernels::abi::{ConvParams, MapParams, NormParams};
 use semlook::kernels::xfeat::{self as twin, pack_conv, Epilogue};
+use semlook::nn::conv::{self as nn, Chw};
 use semlook::util::SplitMix64;
 
 fn randn(rng: &mut SplitMix64, n: usize) -> Vec<f32> {

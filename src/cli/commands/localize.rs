@@ -29,10 +29,14 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
         Some(dir) => Some(folder_frames(dir, a.labels.as_deref(), a.timestamps.as_deref())?),
         None => None,
     };
-    let exists = semlook::map::manifest::read(&a.map)?.is_some();
-    let mut cfg = match exists {
-        true => map_config(&Map::open(&a.map)?, a.config.as_deref(), &a.models)?,
-        false => apply_models(load_config(a.config.as_deref())?, &a.models),
+    // the map is opened once: its configuration, then the localizer over it
+    let map = match a.loop_closure {
+        true => Map::open_if_exists(&a.map)?,
+        false => Some(Map::open(&a.map)?),
+    };
+    let mut cfg = match &map {
+        Some(m) => map_config(m, a.config.as_deref(), &a.models)?,
+        None => apply_models(load_config(a.config.as_deref())?, &a.models),
     };
     if let Some(k) = a.velocity_scale {
         cfg.sequence.velocity_scale = Some(k);
@@ -46,7 +50,11 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
         labelled_frames: a.labels.is_some(),
         resume: a.resume,
     };
-    let mut loc = Localizer::open(&a.map, Some(cfg), opts, engine)?.with_label_format(a.label_format.unwrap_or_default());
+    let loc = match map {
+        Some(m) => Localizer::new(m, Some(cfg), opts, engine)?,
+        None => Localizer::loop_closure(&a.map, Some(cfg), opts, engine)?,
+    };
+    let mut loc = loc.with_label_format(a.label_format.unwrap_or_default());
     if let Some(c) = camera {
         loc = loc.with_camera(c)?;
     }

@@ -20,10 +20,10 @@ pub use twins::forward_on_twins;
 
 use super::context::{GpuContext, GpuError};
 use super::kernels::Kernel;
-use crate::appearance::NetOutputs;
-use crate::nn::conv::Chw;
 use crate::appearance::xfeat::XFeat;
+use crate::appearance::NetOutputs;
 use crate::appearance::{network_input, AppearanceModel, Features};
+use crate::nn::conv::Chw;
 use image::RgbImage;
 use plan::{outputs, pack, twin_uniform_max, Buf, Entry, PackedNet, Plan, PlanError, Shape, ALL};
 use std::sync::atomic::{AtomicU64, Ordering};

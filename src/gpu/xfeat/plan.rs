@@ -2,12 +2,12 @@
 //! of the forward pass at a frame size (which kernel, its parameters, which buffers, its grid) as
 //! data, which the device executor (`super`) and the twin runner (`super::twins`) both run.
 
-use crate::appearance::NetOutputs;
-use crate::nn::conv::Chw;
 use crate::appearance::xfeat::{Layer, XFeat};
+use crate::appearance::NetOutputs;
 use crate::error::Error;
 use crate::kernels::abi::{ConvParams, MapParams, NormParams};
 use crate::kernels::xfeat::pack_conv;
+use crate::nn::conv::Chw;
 
 /// The buffers a plan reads and writes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -2,11 +2,11 @@
 //! reference the device is held to.
 
 use super::plan::{outputs, pack, Buf, Entry, Params, Plan, PlanError};
-use crate::appearance::NetOutputs;
-use crate::nn::conv::Chw;
 use crate::appearance::xfeat::XFeat;
+use crate::appearance::NetOutputs;
 use crate::error::Error;
 use crate::kernels::xfeat as twin;
+use crate::nn::conv::Chw;
 
 /// The executor's plan run on the CPU twins (`kernels::xfeat`), pass by pass, buffer by buffer:
 /// what the device is held to. Slow (the twins are written for equivalence); for tests. What
