@@ -5,7 +5,8 @@
 //! query on the 2-core machine. The same pairs with the learned matcher (`verification.matcher =
 //! "lighterglue"`, the authors' pruning): target (issue 32) <= 150 ms per query at K = 30; and the
 //! fusion of both (`w_glue`: MNN and LighterGlue on all K; and the learned-matcher profile
-//! `configs/verified-lighterglue.toml`, read from its file, through the fine stage). On a GPU (not a software adapter):
+//! `configs/verified-lighterglue.toml`, read from its file, through the fine stage), and the relative
+//! pose of an accepted pair as a stream with `--camera` computes it (issue 48). On a GPU (not a software adapter):
 //! LighterGlue on the device, target (issue 32) <= 5 ms per query at K = 30. Skips, saying why,
 //! without the frames, the weights or an adapter.
 
@@ -74,6 +75,30 @@ fn bench(c: &mut Criterion) {
             CpuStages.verify_pairs(&vp, &refs, &queries, &pairs).unwrap()
         })
     });
+    // the relative pose of an accepted answer, as the localizer computes it with `--camera`
+    // (`verify::pair_matches`, then `verify::pose::pair_pose`): query 010 and its place's
+    // reference 010, with nominal intrinsics (focal length = the long side, principal point at
+    // the centre: Nordland publishes none)
+    {
+        let place = keypoint_set(&cfg, &model, &dir, &["ref/010.jpg".to_string()]);
+        let (qk, rk) = (queries.keypoints(0), place.keypoints(0));
+        let rgb = semlook::input::load_rgb(&dir.join("query/010.jpg")).unwrap();
+        let (w, h) = semlook::input::working_size(rgb.width(), rgb.height(), cfg.input.working_long_side);
+        let camera =
+            semlook::verify::pose::Camera { fx: w.max(h) as f64, fy: w.max(h) as f64, cx: w as f64 / 2.0, cy: h as f64 / 2.0, width: w, height: h };
+        let pp = semlook::verify::pose::PoseParams::for_camera(&camera, vp.ransac.seed);
+        let matches = semlook::verify::pair_matches(&vp, qk, rk).unwrap();
+        match semlook::verify::pose::pair_pose(&camera, qk, rk, &matches, &pp) {
+            Ok(pose) => eprintln!("relative pose of query 010 / ref 010: {} matches, {} inliers", matches.len(), pose.inliers),
+            Err(e) => eprintln!("relative pose of query 010 / ref 010: {} matches, refused ({e})", matches.len()),
+        }
+        g.bench_function(format!("relative pose (CPU: pair_matches + pair_pose)/1_pair_{}_keypoints", cfg.keypoints.stored), |b| {
+            b.iter(|| {
+                let m = semlook::verify::pair_matches(&vp, qk, rk).unwrap();
+                semlook::verify::pose::pair_pose(&camera, qk, rk, &m, &pp)
+            })
+        });
+    }
     // the whole fine stage of `verified` for one query and its ranking (tree similarity,
     // verification, the score): the score of before issue 51 (`inliers = "count"`) and the
     // default's (evidence weighed against the query's candidates, sweep 17)

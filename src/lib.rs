@@ -6,13 +6,18 @@
 //! class, area, position, appearance and neighbours) re-ranks them.
 //!
 //! The modules follow the data through the pipeline:
-//! [`input`] (images, label maps) -> [`objects`] (semantic regions) -> [`global`] and [`local`]
-//! (descriptors; [`encode`] runs both) -> [`map`] (the stored map) -> [`matching`] (coarse top-K,
-//! fine re-ranking) -> [`eval`] (VPR-Bench metrics). Beside the engine, behind the `tools` feature:
-//! [`tools`] (the synthetic benchmark, pictures, benchmarks, sweeps).
-//! [`descriptors`] (descriptor sets, the source traits matching reads, value checks) is the layer
-//! encoding, the map store, matching and appearance share; [`batch`] encodes many frames (into a
-//! set, or streamed into a map).
+//! [`input`] (images, label maps) and [`segmentation`] (labels from a network) -> [`global`]
+//! (whole-image descriptors: the semantic SSIM descriptor, VLAD, the embedding, HOG), [`objects`]
+//! (semantic regions) and [`local`] (their trees), [`appearance`] (XFeat descriptors) ->
+//! [`encode`] (one frame through all of them; [`batch`] for many) -> [`map`] (the stored map;
+//! [`index`], its approximate index) -> [`matching`] (coarse top-K, fine re-ranking) and
+//! [`verify`] (keypoint matches, RANSAC, relative pose) -> [`eval`] (VPR-Bench metrics) and
+//! [`stream`] (frames one at a time, sequences, loop closure). Under the networks, [`nn`] (the
+//! runtime: convolutions, ONNX Runtime, weight readers); under the stages, [`descriptors`]
+//! (descriptor sets, the source traits matching reads, value checks), the layer encoding, the map
+//! store, matching and appearance share. [`engine`] runs encoding and matching on the CPU or
+//! [`gpu`]. Beside the engine, behind the `tools` feature: `tools` (the synthetic benchmark,
+//! pictures, benchmarks, sweeps).
 //!
 //! The example of `docs/library.md` (compiled here):
 //!

@@ -15,6 +15,7 @@
 //! alone builds it, no ROS installation. DDS stays on this host when `ROS_AUTOMATIC_DISCOVERY_RANGE`
 //! is `LOCALHOST` (or `ROS_LOCALHOST_ONLY=1`), as ROS 2 nodes do.
 
+mod error;
 mod msgs;
 mod node;
 mod params;

@@ -5,6 +5,8 @@
 //! ROS user builds with colcon, or rosidl alone: `scripts/build_msgs_py.sh`). Their wire format
 //! is held to bytes rclpy wrote (`tests/golden/`, made by `scripts/golden.py`).
 
+#[cfg(test)]
+use crate::error::CdrError;
 use serde::{Deserialize, Serialize};
 
 /// `builtin_interfaces/msg/Time`.
@@ -134,17 +136,17 @@ pub struct LoopClosure {
 /// The CDR bytes of a message as a DDS sample carries them: the encapsulation header (CDR, little
 /// endian) then the body (ros2-client writes them; the tests hold them to rclpy's).
 #[cfg(test)]
-pub fn to_cdr<T: Serialize>(m: &T) -> Result<Vec<u8>, String> {
-    let body = cdr_encoding::to_vec::<T, byteorder::LittleEndian>(m).map_err(|e| e.to_string())?;
+pub fn to_cdr<T: Serialize>(m: &T) -> Result<Vec<u8>, CdrError> {
+    let body = cdr_encoding::to_vec::<T, byteorder::LittleEndian>(m)?;
     Ok([&[0u8, 1, 0, 0][..], &body].concat())
 }
 
 /// A message from the bytes [`to_cdr`] writes (little-endian CDR only).
 #[cfg(test)]
-pub fn from_cdr<T: for<'de> Deserialize<'de>>(bytes: &[u8]) -> Result<T, String> {
+pub fn from_cdr<T: for<'de> Deserialize<'de>>(bytes: &[u8]) -> Result<T, CdrError> {
     match bytes.get(..4) {
-        Some([0, 1, _, _]) => cdr_encoding::from_bytes::<T, byteorder::LittleEndian>(&bytes[4..]).map(|r| r.0).map_err(|e| e.to_string()),
-        _ => Err("not a little-endian CDR sample".into()),
+        Some([0, 1, _, _]) => cdr_encoding::from_bytes::<T, byteorder::LittleEndian>(&bytes[4..]).map(|r| r.0).map_err(CdrError::from),
+        _ => Err(CdrError::NotLittleEndianCdr),
     }
 }
 

@@ -1,6 +1,7 @@
 //! The node: DDS participant, subscriptions and publishers on one thread (an async executor),
 //! the localizer on another, a bounded queue between them.
 
+use crate::error::{FrameError, NodeError};
 use crate::msgs::{CompressedImage, Header, Image, LoopClosure, PlaceMatch, Point, Pose, PoseStamped, Quaternion};
 use crate::params::Params;
 use futures::{FutureExt, StreamExt};
@@ -103,7 +104,7 @@ struct Counts {
 /// A received frame (its pixels, or why they cannot be used) counted and queued: every frame
 /// gets the next number, whether it is localized, dropped from a full queue or refused, so
 /// that a PlaceMatch's `frame` counts every frame before it.
-fn receive(queue: &Queue, counts: &Counts, header: Header, pixels: Result<Pixels, String>, received: Instant) {
+fn receive(queue: &Queue, counts: &Counts, header: Header, pixels: Result<Pixels, FrameError>, received: Instant) {
     let number = counts.received.fetch_add(1, Ordering::Relaxed);
     match pixels {
         Ok(pixels) => queue.push(Incoming { header, pixels, received, number }),
@@ -115,18 +116,18 @@ fn receive(queue: &Queue, counts: &Counts, header: Header, pixels: Result<Pixels
 }
 
 /// An `Image` as pixels: rgb8, bgr8 and mono8 (rows of `step` bytes); others refused.
-pub fn image_pixels(m: &Image) -> Result<Pixels, String> {
+pub fn image_pixels(m: &Image) -> Result<Pixels, FrameError> {
     let ch = match m.encoding.as_str() {
         "rgb8" | "bgr8" => 3,
         "mono8" => 1,
-        other => return Err(format!("encoding {other:?} is not supported (rgb8, bgr8, mono8)")),
+        other => return Err(FrameError::Encoding { encoding: other.into() }),
     };
     let (w, h, step) = (m.width as u64, m.height as u64, m.step as u64);
     if w == 0 || h == 0 || w * h > MAX_PIXELS {
-        return Err(format!("{w}x{h} pixels (1 to {MAX_PIXELS})"));
+        return Err(FrameError::Size { width: w, height: h, max: MAX_PIXELS });
     }
     if step < w * ch || (m.data.len() as u64) < step * (h - 1) + w * ch {
-        return Err(format!("{} bytes with step {step} for {w}x{h} {} pixels", m.data.len(), m.encoding));
+        return Err(FrameError::Data { len: m.data.len(), step, width: w, height: h, encoding: m.encoding.clone() });
     }
     let mut rgb = Vec::with_capacity((w * h * 3) as usize);
     for y in 0..h as usize {
@@ -137,16 +138,16 @@ pub fn image_pixels(m: &Image) -> Result<Pixels, String> {
             _ => rgb.extend(row.iter().flat_map(|&v| [v, v, v])),
         }
     }
-    let image = image::RgbImage::from_raw(m.width, m.height, rgb).ok_or("pixel count")?;
+    let image = image::RgbImage::from_raw(m.width, m.height, rgb).ok_or(FrameError::PixelCount)?;
     Ok(Pixels::Rgb { image, labels: None })
 }
 
 /// A `CompressedImage` as bytes to decode: jpeg or png (the format string says which, as
 /// image_transport writes it: "jpeg", "png", or "rgb8; jpeg compressed bgr8").
-pub fn compressed_pixels(m: &CompressedImage) -> Result<Pixels, String> {
+pub fn compressed_pixels(m: &CompressedImage) -> Result<Pixels, FrameError> {
     let f = m.format.to_ascii_lowercase();
     if !(f.contains("jpeg") || f.contains("jpg") || f.contains("png")) {
-        return Err(format!("format {:?} is not supported (jpeg, png)", m.format));
+        return Err(FrameError::Format { format: m.format.clone() });
     }
     Ok(Pixels::Bytes { bytes: m.data.clone(), labels: None })
 }
@@ -219,10 +220,10 @@ struct Outputs {
 
 /// The configuration the node localizes with: the file given, else the map's, with the
 /// parameters that override it.
-fn config(p: &Params) -> Result<Option<Config>, String> {
-    let mut cfg = match (&p.config, semlook::map::manifest::read(&p.map).map_err(|e| e.to_string())?) {
-        (Some(f), _) => Config::load(f).map_err(|e| e.to_string())?,
-        (None, Some(_)) => Map::open(&p.map).map_err(|e| e.to_string())?.query_config(),
+fn config(p: &Params, map: Option<&Map>) -> Result<Option<Config>, NodeError> {
+    let mut cfg = match (&p.config, map) {
+        (Some(f), _) => Config::load(f)?,
+        (None, Some(m)) => m.query_config(),
         (None, None) => Config::default(),
     };
     if let Some(k) = p.top_k {
@@ -240,15 +241,15 @@ fn config(p: &Params) -> Result<Option<Config>, String> {
         cfg.sequence.length = n;
         cfg.sequence.min_frames = cfg.sequence.min_frames.min(n);
     }
-    cfg.validate("node parameters").map_err(|e| e.to_string())?;
+    cfg.validate("node parameters")?;
     Ok(Some(cfg))
 }
 
 /// The DDS context: `ROS_DOMAIN_ID`; only the loopback network where ROS 2 would stay on this
 /// host (`ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`, or the older `ROS_LOCALHOST_ONLY=1`).
-fn context() -> Result<Context, String> {
+fn context() -> Result<Context, NodeError> {
     let domain = match std::env::var("ROS_DOMAIN_ID") {
-        Ok(v) if !v.is_empty() => v.parse::<u16>().map_err(|_| format!("ROS_DOMAIN_ID={v:?} is not a domain number"))?,
+        Ok(v) if !v.is_empty() => v.parse::<u16>().map_err(|source| NodeError::DomainId { value: v, source })?,
         _ => 0,
     };
     let local = std::env::var("ROS_AUTOMATIC_DISCOVERY_RANGE").is_ok_and(|v| v.eq_ignore_ascii_case("LOCALHOST"))
@@ -257,30 +258,45 @@ fn context() -> Result<Context, String> {
     if local {
         b = b.with_only_networks([std::net::Ipv4Addr::LOCALHOST]);
     }
-    let dp = b.build().map_err(|e| format!("DDS participant (domain {domain}): {e:?}"))?;
+    let dp = b.build().map_err(|e| ros(format!("DDS participant (domain {domain})"), e))?;
     log::info!("DDS domain {domain}{}", if local { ", loopback only" } else { "" });
-    Context::from_domain_participant(dp).map_err(|e| format!("ROS 2 context: {e:?}"))
+    Context::from_domain_participant(dp).map_err(|e| ros("ROS 2 context", e))
 }
 
-pub fn run(p: Params) -> Result<(), String> {
+/// A ROS 2 stack error: what could not be made, and the stack's error as `Debug` writes it.
+fn ros(what: impl Into<String>, e: impl std::fmt::Debug) -> NodeError {
+    NodeError::Ros { what: what.into(), reason: format!("{e:?}") }
+}
+
+/// Runs the node until SIGINT or SIGTERM (or the end of its subscriptions), then writes its
+/// summary.
+pub fn run(p: Params) -> Result<(), NodeError> {
     // the localizer first: a bad map or parameter fails before any DDS traffic
-    let setting = Setting::parse(&p.setting).map_err(|reason| format!("parameter setting: {reason}"))?;
-    let backend =
-        Backend::ALL.into_iter().find(|b| b.name() == p.backend).ok_or_else(|| format!("backend {:?} is unknown (cpu, gpu, auto)", p.backend))?;
-    let (engine, why) = Engine::new(backend, &Default::default()).map_err(|e| e.to_string())?;
+    let setting = Setting::parse(&p.setting)?;
+    let backend = Backend::ALL.into_iter().find(|b| b.name() == p.backend).ok_or_else(|| NodeError::UnknownBackend { name: p.backend.clone() })?;
+    let (engine, why) = Engine::new(backend, &Default::default())?;
     if let Some(why) = why {
         log::info!("backend auto: {why}");
     }
-    let cfg = config(&p)?;
-    let opts = StreamOptions { setting, sequence: p.sequence, loop_closure: p.loop_closure, ..Default::default() };
     // the camera's intrinsics are read and checked before the map is opened
     let camera = match &p.camera_info {
-        Some(path) => Some(semlook::verify::pose::Camera::load(path).map_err(|e| format!("parameter camera_info: {e}"))?),
+        Some(path) => Some(semlook::verify::pose::Camera::load(path).map_err(|source| NodeError::EngineParam { param: "camera_info", source })?),
         None => None,
     };
-    let mut loc = Localizer::open(&p.map, cfg, opts, engine).map_err(|e| e.to_string())?;
+    // the map is opened once: its configuration, then the localizer over it (in loop-closure
+    // mode a folder without a map gets one from the stream)
+    let map = match p.loop_closure {
+        true => Map::open_if_exists(&p.map)?,
+        false => Some(Map::open(&p.map)?),
+    };
+    let cfg = config(&p, map.as_ref())?;
+    let opts = StreamOptions { setting, sequence: p.sequence, loop_closure: p.loop_closure, ..Default::default() };
+    let mut loc = match map {
+        Some(m) => Localizer::new(m, cfg, opts, engine)?,
+        None => Localizer::loop_closure(&p.map, cfg, opts, engine)?,
+    };
     if let Some(c) = camera {
-        loc = loc.with_camera(c).map_err(|e| format!("parameter camera_info: {e}"))?;
+        loc = loc.with_camera(c).map_err(|source| NodeError::EngineParam { param: "camera_info", source })?;
     }
     match loc.map() {
         Some(m) => {
@@ -309,10 +325,10 @@ pub fn run(p: Params) -> Result<(), String> {
         Some((_, now)) if now == v => Ok(()),
         _ => Err(format!("{name} is read-only: restart the node to change it")),
     }));
-    let node_name = NodeName::new(&p.namespace, &p.node_name).map_err(|e| format!("node name {:?} in {:?}: {e:?}", p.node_name, p.namespace))?;
-    let mut node = ctx.new_node(node_name, options).map_err(|e| format!("node: {e:?}"))?;
+    let node_name = NodeName::new(&p.namespace, &p.node_name).map_err(|e| ros(format!("node name {:?} in {:?}", p.node_name, p.namespace), e))?;
+    let mut node = ctx.new_node(node_name, options).map_err(|e| ros("node", e))?;
     let ex = smol::LocalExecutor::new();
-    ex.spawn(node.spinner().map_err(|e| format!("spinner: {e:?}"))?.spin()).detach();
+    ex.spawn(node.spinner().map_err(|e| ros("spinner", e))?.spin()).detach();
     let sensor =
         QosProfile::subscription_default().reliability_best_effort().durability(Durability::Volatile).history(History::KeepLast { depth: 5 });
     let reliable = QosProfile::publisher_default()
@@ -320,8 +336,8 @@ pub fn run(p: Params) -> Result<(), String> {
         .durability(Durability::Volatile)
         .history(History::KeepLast { depth: 10 });
     let topic = |node: &mut ros2_client::Node, name: &str, pkg: &str, ty: &str, qos: &QosProfile| {
-        let n = Name::parse(name).map_err(|e| format!("topic {name:?}: {e:?}"))?;
-        node.create_topic(&n, MessageTypeName::new(pkg, ty), qos).map_err(|e| format!("topic {name:?}: {e:?}"))
+        let n = Name::parse(name).map_err(|e| ros(format!("topic {name:?}"), e))?;
+        node.create_topic(&n, MessageTypeName::new(pkg, ty), qos).map_err(|e| ros(format!("topic {name:?}"), e))
     };
     let own = |base: &str| format!("{}/{}/{base}", p.namespace.trim_end_matches('/'), p.node_name);
     let t_img = topic(&mut node, &p.image_topic, "sensor_msgs", "Image", &sensor)?;
@@ -333,18 +349,18 @@ pub fn run(p: Params) -> Result<(), String> {
     // sees them matched then sends to a reader that knows it (else its first frames are dropped)
     let known = settle_discovery(&ctx.domain_participant());
     log::info!("discovery settled: {known} remote writers known");
-    let sub_img = node.create_subscription::<Image>(&t_img, None).map_err(|e| format!("subscription: {e:?}"))?;
-    let sub_cmp = node.create_subscription::<CompressedImage>(&t_cmp, None).map_err(|e| format!("subscription: {e:?}"))?;
-    let pub_match = node.create_publisher::<PlaceMatch>(&t_match, None).map_err(|e| format!("publisher: {e:?}"))?;
-    let pub_closure = node.create_publisher::<LoopClosure>(&t_closure, None).map_err(|e| format!("publisher: {e:?}"))?;
-    let pub_pose = node.create_publisher::<PoseStamped>(&t_pose, None).map_err(|e| format!("publisher: {e:?}"))?;
+    let sub_img = node.create_subscription::<Image>(&t_img, None).map_err(|e| ros("subscription", e))?;
+    let sub_cmp = node.create_subscription::<CompressedImage>(&t_cmp, None).map_err(|e| ros("subscription", e))?;
+    let pub_match = node.create_publisher::<PlaceMatch>(&t_match, None).map_err(|e| ros("publisher", e))?;
+    let pub_closure = node.create_publisher::<LoopClosure>(&t_closure, None).map_err(|e| ros("publisher", e))?;
+    let pub_pose = node.create_publisher::<PoseStamped>(&t_pose, None).map_err(|e| ros("publisher", e))?;
     log::info!("subscribed {} and {}; publishing {}, {} and {}", p.image_topic, p.compressed_topic, own("match"), own("closure"), own("pose"));
     let out = Outputs { matches: pub_match, closures: pub_closure, poses: pub_pose, pose_frame_id: p.pose_frame_id.clone() };
 
     let stop = Arc::new(AtomicBool::new(false));
     {
         let stop = stop.clone();
-        ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst)).map_err(|e| format!("signal handler: {e}"))?;
+        ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst))?;
     }
     let queue = Arc::new(Queue { items: Mutex::new(VecDeque::new()), ready: Condvar::new(), cap: p.queue_size, dropped: AtomicU64::new(0) });
     let counts = Arc::new(Counts::default());
@@ -354,7 +370,7 @@ pub fn run(p: Params) -> Result<(), String> {
         std::thread::Builder::new()
             .name("localizer".into())
             .spawn(move || localize(loc, &queue, &counts, &stop, refresh, &out))
-            .map_err(|e| format!("localizer thread: {e}"))?
+            .map_err(NodeError::LocalizerThread)?
     };
     smol::block_on(ex.run(async {
         let mut imgs = Box::pin(sub_img.async_stream());
@@ -377,7 +393,7 @@ pub fn run(p: Params) -> Result<(), String> {
     }));
     stop.store(true, Ordering::SeqCst);
     queue.ready.notify_all();
-    let summary = worker.join().map_err(|_| "the localizer thread panicked".to_string())?;
+    let summary = worker.join().map_err(|_| NodeError::LocalizerPanicked)?;
     // the node tells its spinner to stop while the executor (and the spinner's task) still
     // exists: dropped after it, the node logged an error on every clean stop
     drop(node);
@@ -580,10 +596,10 @@ mod tests {
             (image("rgb8", 0, 2, 0, vec![]), "0x2"),
         ] {
             let e = image_pixels(&m).err().unwrap();
-            assert!(e.contains(says), "{e}");
+            assert!(e.to_string().contains(says), "{e}");
         }
         let c = CompressedImage { header: Header::default(), format: "tiff".into(), data: vec![1] };
-        assert!(compressed_pixels(&c).err().unwrap().contains("tiff"));
+        assert!(compressed_pixels(&c).err().unwrap().to_string().contains("tiff"));
         let c = CompressedImage { format: "rgb8; jpeg compressed bgr8".into(), ..c };
         assert!(compressed_pixels(&c).is_ok());
     }
@@ -599,7 +615,7 @@ mod tests {
             let header = Header { stamp: crate::msgs::Time { sec, nanosec: 0 }, frame_id: String::new() };
             // frame 3 has an encoding the node cannot read
             let pixels = match sec {
-                3 => Err("encoding \"16UC1\" is not supported".to_string()),
+                3 => Err(FrameError::Encoding { encoding: "16UC1".into() }),
                 _ => Ok(Pixels::Bytes { bytes: vec![], labels: None }),
             };
             receive(&q, &counts, header, pixels, Instant::now());

@@ -2,6 +2,7 @@
 //! namespace by `-r __node:=NAME`, `-r __ns:=/NS`), and declared on the node so that parameter
 //! clients see them.
 
+use crate::error::ArgumentError;
 use std::path::PathBuf;
 
 pub const USAGE: &str = "usage: semlook_node --ros-args -p map:=DIR [-p name:=value ...] [-r __node:=NAME] [-r __ns:=/NS]
@@ -53,7 +54,7 @@ pub struct Params {
 
 impl Params {
     /// The parameters of a command line; `None` for `--help`. Every error names the argument.
-    pub fn parse(args: &[String]) -> Result<Option<Params>, String> {
+    pub fn parse(args: &[String]) -> Result<Option<Params>, ArgumentError> {
         let mut p = Params {
             map: PathBuf::new(),
             setting: "verified".into(),
@@ -82,9 +83,13 @@ impl Params {
                 "--ros-args" => in_ros_args = true,
                 "--" => in_ros_args = false,
                 "-p" | "--param" if in_ros_args => {
-                    let kv = it.next().ok_or_else(|| format!("{a} needs name:=value"))?;
-                    let (k, v) = kv.split_once(":=").ok_or_else(|| format!("{a} {kv}: expected name:=value"))?;
-                    let bad = |what: &str| format!("parameter {k}: {v:?} is not {what}");
+                    let kv = it.next().ok_or_else(|| ArgumentError::MissingValue { flag: a.clone(), expected: "name:=value" })?;
+                    let (k, v) = kv.split_once(":=").ok_or_else(|| ArgumentError::Malformed {
+                        flag: a.clone(),
+                        argument: kv.clone(),
+                        expected: "name:=value",
+                    })?;
+                    let bad = |expected: &'static str| ArgumentError::BadValue { name: k.into(), value: v.into(), expected };
                     match k {
                         "map" => map = Some(PathBuf::from(v)),
                         "setting" => p.setting = v.into(),
@@ -103,29 +108,29 @@ impl Params {
                         "map_refresh_s" => {
                             p.map_refresh_s = v.parse().ok().filter(|s: &f64| s.is_finite() && *s >= 0.0).ok_or_else(|| bad("a number of seconds"))?
                         }
-                        other => return Err(format!("unknown parameter {other:?}")),
+                        other => return Err(ArgumentError::UnknownParameter { name: other.into() }),
                     }
                 }
                 "-r" | "--remap" if in_ros_args => {
-                    let kv = it.next().ok_or_else(|| format!("{a} needs from:=to"))?;
+                    let kv = it.next().ok_or_else(|| ArgumentError::MissingValue { flag: a.clone(), expected: "from:=to" })?;
                     match kv.split_once(":=") {
                         Some(("__node" | "__name", v)) => p.node_name = v.into(),
                         Some(("__ns", v)) => p.namespace = if v.starts_with('/') { v.into() } else { format!("/{v}") },
-                        Some((from, _)) => return Err(format!("remapping {from:?} is not supported: set the topic parameters instead")),
-                        None => return Err(format!("{a} {kv}: expected from:=to")),
+                        Some((from, _)) => return Err(ArgumentError::UnsupportedRemapping { from: from.into() }),
+                        None => return Err(ArgumentError::Malformed { flag: a.clone(), argument: kv.clone(), expected: "from:=to" }),
                     }
                 }
-                other if in_ros_args => return Err(format!("unsupported ROS argument {other:?}")),
-                other => return Err(format!("unexpected argument {other:?} (parameters go after --ros-args as -p name:=value)")),
+                other if in_ros_args => return Err(ArgumentError::UnsupportedRosArgument { argument: other.into() }),
+                other => return Err(ArgumentError::UnexpectedArgument { argument: other.into() }),
             }
         }
         if p.sequence_length.is_some() && !p.sequence {
-            return Err("sequence_length is given but sequence is false".into());
+            return Err(ArgumentError::Conflict { param: "sequence_length", reason: "is given but sequence is false" });
         }
         if p.loop_closure && !p.sequence {
-            return Err("loop_closure finds its closures by sequence matching: keep sequence true".into());
+            return Err(ArgumentError::Conflict { param: "loop_closure", reason: "finds its closures by sequence matching: keep sequence true" });
         }
-        p.map = map.ok_or("the map parameter is required (-p map:=DIR)")?;
+        p.map = map.ok_or(ArgumentError::MissingMap)?;
         Ok(Some(p))
     }
 }
@@ -161,7 +166,68 @@ mod tests {
             ("--ros-args -p map:=/m -r /camera:=/cam", "remapping"),
         ] {
             let e = Params::parse(&args(bad)).unwrap_err();
-            assert!(e.contains(says), "{bad}: {e}");
+            assert!(e.to_string().contains(says), "{bad}: {e}");
+        }
+    }
+
+    /// Each refusal is its own variant, with the parameter and value at fault in its fields (a
+    /// caller can act on them without reading the message), and writes the line it always wrote.
+    #[test]
+    fn refusals_are_typed_and_carry_what_is_at_fault() {
+        let e = Params::parse(&args("--ros-args -p top_k:=0 -p map:=/m")).unwrap_err();
+        assert_eq!(e, ArgumentError::BadValue { name: "top_k".into(), value: "0".into(), expected: "a positive integer" });
+        assert_eq!(e.to_string(), r#"parameter top_k: "0" is not a positive integer"#);
+        let e = Params::parse(&args("--ros-args -p setting:=verified")).unwrap_err();
+        assert_eq!(e, ArgumentError::MissingMap);
+        assert_eq!(e.to_string(), "the map parameter is required (-p map:=DIR)");
+        for (bad, is, says) in [
+            ("--ros-args -p", ArgumentError::MissingValue { flag: "-p".into(), expected: "name:=value" }, "-p needs name:=value"),
+            (
+                "--ros-args --param map=/m",
+                ArgumentError::Malformed { flag: "--param".into(), argument: "map=/m".into(), expected: "name:=value" },
+                "--param map=/m: expected name:=value",
+            ),
+            ("--ros-args -r", ArgumentError::MissingValue { flag: "-r".into(), expected: "from:=to" }, "-r needs from:=to"),
+            (
+                "--ros-args -r __node",
+                ArgumentError::Malformed { flag: "-r".into(), argument: "__node".into(), expected: "from:=to" },
+                "-r __node: expected from:=to",
+            ),
+            ("--ros-args -p colour:=red", ArgumentError::UnknownParameter { name: "colour".into() }, r#"unknown parameter "colour""#),
+            (
+                "--ros-args -p map_refresh_s:=-1",
+                ArgumentError::BadValue { name: "map_refresh_s".into(), value: "-1".into(), expected: "a number of seconds" },
+                r#"parameter map_refresh_s: "-1" is not a number of seconds"#,
+            ),
+            (
+                "--ros-args -r /camera:=/cam",
+                ArgumentError::UnsupportedRemapping { from: "/camera".into() },
+                r#"remapping "/camera" is not supported: set the topic parameters instead"#,
+            ),
+            (
+                "--ros-args --log-level",
+                ArgumentError::UnsupportedRosArgument { argument: "--log-level".into() },
+                r#"unsupported ROS argument "--log-level""#,
+            ),
+            (
+                "--map /m",
+                ArgumentError::UnexpectedArgument { argument: "--map".into() },
+                r#"unexpected argument "--map" (parameters go after --ros-args as -p name:=value)"#,
+            ),
+            (
+                "--ros-args -p map:=/m -p sequence:=false -p sequence_length:=4",
+                ArgumentError::Conflict { param: "sequence_length", reason: "is given but sequence is false" },
+                "sequence_length is given but sequence is false",
+            ),
+            (
+                "--ros-args -p map:=/m -p loop_closure:=true -p sequence:=false",
+                ArgumentError::Conflict { param: "loop_closure", reason: "finds its closures by sequence matching: keep sequence true" },
+                "loop_closure finds its closures by sequence matching: keep sequence true",
+            ),
+        ] {
+            let e = Params::parse(&args(bad)).unwrap_err();
+            assert_eq!(e, is, "{bad}");
+            assert_eq!(e.to_string(), says, "{bad}");
         }
     }
 }
