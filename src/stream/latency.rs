@@ -28,8 +28,8 @@ pub struct Latency {
     /// From the call to the answer.
     pub total_ms: f64,
     /// From the moment the frame's bytes were complete (a piped image read to its end, a
-    /// folder's frame taken in turn; [`replay`]) to the answer: `total_ms` plus reading,
-    /// decoding and the wait for the matcher. [`Localizer::push`] alone: `total_ms`.
+    /// folder's frame taken in turn; [`replay`](super::replay())) to the answer: `total_ms` plus reading,
+    /// decoding and the wait for the matcher. [`Localizer::push`](super::Localizer::push) alone: `total_ms`.
     pub arrival_ms: f64,
 }
 

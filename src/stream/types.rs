@@ -49,7 +49,7 @@ pub struct StreamFrame {
 pub struct StreamOptions {
     /// Matching setting.
     pub setting: Setting,
-    /// Sequence matching over the last frames ([`sequence`]; on for streams by default).
+    /// Sequence matching over the last frames ([`sequence`](super::sequence); on for streams by default).
     pub sequence: bool,
     /// Loop-closure mode: query the map, then add the frame to it (one traversal for the stream,
     /// committed every `stream.commit_frames`); the newest `stream.exclude_frames` frames (and
@@ -60,7 +60,7 @@ pub struct StreamOptions {
     /// (without them, opening such a map without a segmenter is refused: `Encoder::labels_rule`).
     pub labelled_frames: bool,
     /// Loop-closure mode, a restarted stream: the map's last traversal is continued rather than
-    /// a new one started, and [`Localizer::holds`] names the frames the map already holds (to be
+    /// a new one started, and [`Localizer::holds`](super::Localizer::holds) names the frames the map already holds (to be
     /// skipped: every frame stored once, whatever was committed before a kill).
     pub resume: bool,
 }
@@ -156,7 +156,7 @@ pub struct LoopClosure {
     /// Velocity of the sequence match, in positions per frame.
     pub velocity: f32,
     /// The frame's pose relative to the place's, where the stream has the camera's intrinsics
-    /// ([`Localizer::with_camera`]) and the verified matches give one.
+    /// ([`Localizer::with_camera`](super::Localizer::with_camera)) and the verified matches give one.
     pub relative_pose: Option<RelativePose>,
 }
 
@@ -188,7 +188,7 @@ pub struct FrameResult {
     /// tracked frame with `stream.embed_when_tracking` off).
     pub embedded: bool,
     /// The frame's pose relative to the answer's place, for an accepted answer where the stream
-    /// has the camera's intrinsics ([`Localizer::with_camera`]): from the pair's verified
+    /// has the camera's intrinsics ([`Localizer::with_camera`](super::Localizer::with_camera)): from the pair's verified
     /// keypoint matches ([`crate::verify::pose`]).
     pub relative_pose: Option<RelativePose>,
     /// Why an accepted answer has no relative pose where the stream has the intrinsics (too few
@@ -232,7 +232,7 @@ pub struct StreamCounts {
     pub accepted: u64,
     /// Loop closures found.
     pub closures: u64,
-    /// Map generations moved to by [`Localizer::refresh`].
+    /// Map generations moved to by [`Localizer::refresh`](super::Localizer::refresh).
     pub reloads: u64,
     /// Loop-closure mode: frames kept to create the map with (answered without a match).
     pub warm_up: u64,
