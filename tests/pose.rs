@@ -2,7 +2,10 @@
 //! random 3-D points seen by two cameras (known R, t), projected with intrinsics, pixel noise
 //! and outlier matches added; and the degenerate inputs (too few matches, none, a camera that
 //! only turned, points on one plane, all the same point), which give a typed error or a pose,
-//! never a panic.
+//! never a panic. And real frames: CamVid's daylight drive, whose poses are not published, held to
+//! what any forward drive shows.
+
+mod common;
 
 use semlook::util::SplitMix64;
 use semlook::verify::pose::{estimate, Camera, PoseError, PoseParams, RelativePose};
@@ -20,6 +23,11 @@ const DIRECTION_TOLERANCE_DEG: f64 = 3.0;
 const RENDERED_DIRECTION_TOLERANCE_DEG: f64 = 5.0;
 /// The rendered pairs at baselines of 0.6-1.4 m: rotation within this, degrees.
 const SHORT_BASELINE_ROTATION_TOLERANCE_DEG: f64 = 2.5;
+
+/// CamVid's consecutive frames (1 s apart): the translation within this of the optical axis, degrees.
+const FORWARD_CONE_DEG: f64 = 30.0;
+/// CamVid's consecutive frames: a turn of less than this, degrees.
+const TURN_DEG: f64 = 30.0;
 
 type M = [[f64; 3]; 3];
 
@@ -325,4 +333,71 @@ fn the_pose_of_a_rendered_pair_is_the_renderers() {
         }
     }
     assert!(seen >= 5, "a pose for most rendered pairs");
+}
+
+/// Real frames: CamVid's daylight drive (`Seq05VD_*`, 480 x 360, frames 1 s apart) from a car that
+/// drives forward, turns at corners and stops at lights. No poses ship with it, so the check is what
+/// a forward drive must show from a frame to the next: the later frame's camera ahead of the
+/// earlier one's (the translation within [`FORWARD_CONE_DEG`] of the optical axis, forward) and a
+/// turn of less than [`TURN_DEG`], for most of the pairs that get a pose. The intrinsics are
+/// nominal (a 50-degree horizontal field of view, the principal point at the centre): the forward
+/// direction does not hinge on the focal length. Pairs of a stopped car are refused as without
+/// parallax, which is right.
+#[test]
+fn consecutive_frames_of_a_real_drive_move_forward() {
+    use semlook::appearance::{verification_keypoints, AppearanceModel};
+    use semlook::config::{AppearanceConfig, ModelPaths, Sampling, VerificationConfig};
+    use semlook::verify::pose::pair_pose;
+    use semlook::verify::{pair_matches, VerifyParams};
+    let Some(dir) = common::shared_or_required("data/camvid-test/images") else { return };
+    let model = match AppearanceModel::load(&AppearanceConfig { sampling: Sampling::Keypoints, ..Default::default() }, &ModelPaths::default()) {
+        Ok(Some(m)) => m,
+        other => return common::skip_unless_required("REQUIRE_MODELS", format!("XFeat weights (setup.sh): {:?}", other.err())),
+    };
+    let mut names: Vec<String> =
+        std::fs::read_dir(&dir).unwrap().filter_map(|e| e.ok()?.file_name().into_string().ok()).filter(|n| n.starts_with("Seq05VD_")).collect();
+    names.sort();
+    assert!(names.len() > 40, "CamVid's daylight drive has 171 frames: {} found", names.len());
+    let names = &names[..41];
+    let f = 240.0 / 25f64.to_radians().tan();
+    let cam = Camera { fx: f, fy: f, cx: 239.5, cy: 179.5, width: 480, height: 360 };
+    let table = semlook::classes::ClassTable::cityscapes();
+    let keypoints = |name: &str| {
+        let rgb = semlook::input::load_rgb(&dir.join(name)).unwrap();
+        assert_eq!(rgb.dimensions(), (480, 360), "{name}");
+        let labels = semlook::input::LabelMap::new(480, 360, vec![2; 480 * 360], &table).unwrap();
+        verification_keypoints(&model.keypoints(&rgb).unwrap(), 1024, &labels, 480)
+    };
+    let vp = VerifyParams::new(&VerificationConfig::default());
+    let (mut posed, mut forward, mut refused) = (0, 0, 0);
+    let mut earlier = keypoints(&names[0]);
+    for pair in names.windows(2) {
+        let later = keypoints(&pair[1]);
+        let m = pair_matches(&vp, later.as_ref(), earlier.as_ref()).unwrap();
+        match pair_pose(&cam, later.as_ref(), earlier.as_ref(), &m, &PoseParams::for_camera(&cam, 5)) {
+            Ok(pose) => {
+                let off_axis = angle(pose.translation_unit, [0.0, 0.0, 1.0]);
+                let ok = off_axis < FORWARD_CONE_DEG && pose.rotation_deg < TURN_DEG;
+                eprintln!(
+                    "{} -> {}: turned {:.1} deg, moved {off_axis:.1} deg off the axis, {} of {} matches{}",
+                    pair[0],
+                    pair[1],
+                    pose.rotation_deg,
+                    pose.inliers,
+                    pose.matches,
+                    if ok { "" } else { "  <- not forward" }
+                );
+                posed += 1;
+                forward += ok as usize;
+            }
+            Err(e) => {
+                eprintln!("{} -> {}: no pose ({e})", pair[0], pair[1]);
+                refused += 1;
+            }
+        }
+        earlier = later;
+    }
+    eprintln!("{posed} of 40 pairs posed ({refused} refused), {forward} of them forward");
+    assert!(posed >= 20, "a pose for most pairs of a moving car: {posed} of 40");
+    assert!(forward as f64 >= 0.9 * posed as f64, "forward motion in most posed pairs: {forward} of {posed}");
 }
