@@ -484,7 +484,10 @@ fn copy_map(from: &Path, to: &Path) {
 
 /// SIGKILL at a random moment of each command, then: the map opens and verifies clean (leftovers
 /// of the interrupted writer allowed), the command run again to its end gives the answers of an
-/// uninterrupted run, bit for bit. 30 kills per command.
+/// uninterrupted run, bit for bit. 30 kills per command. One of them (issue 49) is `map index`
+/// training a new model while this process compacts the map in a loop (each compaction another
+/// segment size, so each rewrites the segments and cleans stale files): the interleaving that
+/// once committed an index whose files the compaction had deleted.
 #[test]
 fn sigkill_during_index_build_add_and_compact_never_breaks_an_indexed_map() {
     const KILLS: usize = 30;
@@ -496,6 +499,8 @@ fn sigkill_during_index_build_add_and_compact_never_breaks_an_indexed_map() {
     // a rebuild that changes only the thumbnails trains the same model: its files must not
     // replace the ones the committed manifest lists
     let cfg0 = index_config(dir.path(), "ix0.toml", "lists = 4\nthumbnail = 0");
+    // a new model (more lists): new file names, which a compaction must not take for stale ones
+    let cfg6 = index_config(dir.path(), "ix6.toml", "lists = 6");
     let q = queries(&Map::open(&base).unwrap(), &night);
     // the three commands, each from its starting map
     let indexed = dir.path().join("indexed");
@@ -532,7 +537,29 @@ fn sigkill_during_index_build_add_and_compact_never_breaks_an_indexed_map() {
             vec!["--resume".into()],
         ),
         ("compact", removed.clone(), vec!["map".into(), "compact".into()], vec![]),
+        ("index-while-compacting", removed.clone(), vec!["map".into(), "index".into(), "--config".into(), p(&cfg6).into()], vec![]),
     ];
+    // compactions of `m` in a loop on a thread until the flag is set; how many committed
+    let compacting = |m: &Path| {
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let (m, flag) = (m.to_path_buf(), stop.clone());
+        let worker = std::thread::spawn(move || {
+            let mut done = 0usize;
+            while !flag.load(std::sync::atomic::Ordering::Relaxed) {
+                let opts = semlook::map::StoreOptions { segment_images: 3 + done % 3, ..Default::default() };
+                match edit::compact(&m, opts) {
+                    Ok(_) => done += 1,
+                    Err(e) => panic!("compaction beside the index build: {e}"),
+                }
+            }
+            done
+        });
+        move || {
+            stop.store(true, std::sync::atomic::Ordering::Relaxed);
+            worker.join().unwrap()
+        }
+    };
+    let mut compactions = 0;
     let mut rng = semlook::util::SplitMix64::new(29);
     for (name, start, args, again) in commands {
         let run = |m: &Path, extra: &[String]| -> Command {
@@ -546,6 +573,8 @@ fn sigkill_during_index_build_add_and_compact_never_breaks_an_indexed_map() {
         copy_map(&start, &whole);
         let generation = |m: &Path| semlook::map::manifest::read(m).ok().flatten().map_or(0, |x| x.generation);
         let g_start = generation(&start);
+        let beside = name == "index-while-compacting";
+        let stop = beside.then(|| compacting(&whole));
         let t = Instant::now();
         let mut child = run(&whole, &[]).spawn().unwrap();
         let (mut first, mut last) = (None, 0.0f64);
@@ -562,8 +591,9 @@ fn sigkill_during_index_build_add_and_compact_never_breaks_an_indexed_map() {
             }
             std::thread::sleep(Duration::from_millis(2));
         };
-        assert!(status.success(), "{name} failed uninterrupted");
         let full = t.elapsed().as_secs_f64();
+        compactions += stop.map_or(0, |s| s());
+        assert!(status.success(), "{name} failed uninterrupted");
         let first = first.unwrap_or(full);
         let want = answers(&Map::open(&whole).unwrap(), &q, IndexSearch::Approximate);
         let (g0, g1) = (g_start, generation(&whole));
@@ -575,6 +605,7 @@ fn sigkill_during_index_build_add_and_compact_never_breaks_an_indexed_map() {
             // manifest shows a chosen commit (the command killed between two of its commits)
             let at = if k % 3 == 0 { rng.range(0.0, full * 1.1) } else { rng.range((first - 0.02).max(0.0), last + 0.02) };
             let target = g0 + 1 + (rng.next_u64() % (g1 - g0).max(1));
+            let stop = beside.then(|| compacting(&m));
             let mut child = run(&m, &[]).spawn().unwrap();
             if k % 3 == 2 {
                 let t = Instant::now();
@@ -589,6 +620,7 @@ fn sigkill_during_index_build_add_and_compact_never_breaks_an_indexed_map() {
             }
             let _ = child.kill(); // SIGKILL
             let _ = child.wait();
+            compactions += stop.map_or(0, |s| s());
             // a build killed before its first commit leaves no manifest: nothing to open yet
             let committed = semlook::map::manifest::read(&m).ok().flatten().is_some();
             assert!(committed || name == "build", "{name}, kill {k} at {at:.3} s: the manifest is gone");
@@ -604,7 +636,7 @@ fn sigkill_during_index_build_add_and_compact_never_breaks_an_indexed_map() {
             partial += usize::from(g > g0 && g < g1);
             // finish the command
             let finished = match name {
-                "index" | "reindex" => run(&m, &[]).status().unwrap(),
+                "index" | "reindex" | "index-while-compacting" => run(&m, &[]).status().unwrap(),
                 _ => run(&m, &again).status().unwrap(),
             };
             assert!(finished.success(), "{name}, kill {k}: finishing failed");
@@ -614,6 +646,12 @@ fn sigkill_during_index_build_add_and_compact_never_breaks_an_indexed_map() {
             std::fs::remove_dir_all(&m).unwrap();
         }
         eprintln!("{name}: {KILLS} kills over {full:.2} s (commits from {first:.3} to {last:.3} s, generation {g0} to {g1}): {before} before its first commit, {partial} between commits");
+        // beside the compactions the map's generation moves without the command: no count of
+        // where the kills landed, but compactions must have run beside them
+        if beside {
+            assert!(compactions >= KILLS, "{name}: only {compactions} compactions ran beside {KILLS} index builds");
+            continue;
+        }
         assert!(before >= 3, "{name}: only {before} kills landed before the command committed: the test did not interrupt it");
         if name == "add" || name == "build" {
             assert!(partial >= 3, "{name}: only {partial} kills landed between its commits");
