@@ -2,7 +2,10 @@
 src/msgs.rs's golden test to. Run once, with the ROS 2 venv and the messages built by
 build_msgs_py.sh:
 
-    PYTHONPATH=OUT/python LD_LIBRARY_PATH=OUT/lib VENV/bin/python ros2/scripts/golden.py ros2/tests/golden
+    PYTHONPATH=OUT/python LD_LIBRARY_PATH=OUT/lib VENV/bin/python ros2/scripts/golden.py ros2/tests/golden [NAME ...]
+
+With names (PlaceMatch, CameraInfo, ...) it writes only those: the others keep their bytes (Fast
+DDS writes whatever its buffer held into alignment padding, different on every run).
 """
 
 import sys
@@ -11,7 +14,7 @@ from pathlib import Path
 from rclpy.serialization import serialize_message
 from semlook_msgs.msg import LoopClosure, PlaceMatch
 from geometry_msgs.msg import PoseStamped
-from sensor_msgs.msg import CompressedImage, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
 
@@ -47,13 +50,24 @@ def samples():
     p.pose.position.x, p.pose.position.y, p.pose.position.z = 12.5, -3.25, 0.75
     o = p.pose.orientation
     o.x, o.y, o.z, o.w = 0.5, -0.5, 0.5, 0.5
-    return {"PlaceMatch": m, "LoopClosure": c, "Image": i, "CompressedImage": j, "PoseStamped": p}
+    ci = CameraInfo()
+    ci.header = header()
+    ci.height, ci.width, ci.distortion_model = 540, 960, "plumb_bob"
+    ci.d = [-0.25, 0.125, 0.001, -0.0005, 0.0]
+    ci.k = [700.0, 0.0, 479.5, 0.0, 701.5, 269.5, 0.0, 0.0, 1.0]
+    ci.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    ci.p = [690.25, 0.0, 480.0, -0.5, 0.0, 692.75, 270.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+    ci.binning_x, ci.binning_y = 2, 3
+    ci.roi.x_offset, ci.roi.y_offset, ci.roi.height, ci.roi.width, ci.roi.do_rectify = 8, 4, 500, 900, True
+    return {"PlaceMatch": m, "LoopClosure": c, "Image": i, "CompressedImage": j, "PoseStamped": p, "CameraInfo": ci}
 
 
-def main(out):
+def main(out, names):
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     for name, msg in samples().items():
+        if names and name not in names:
+            continue
         b = serialize_message(msg)
         lines = [b[k : k + 16].hex(" ") for k in range(0, len(b), 16)]
         (out / f"{name}.hex").write_text("\n".join(lines) + "\n")
@@ -61,4 +75,4 @@ def main(out):
 
 
 if __name__ == "__main__":
-    main(sys.argv[1])
+    main(sys.argv[1], sys.argv[2:])

@@ -123,7 +123,7 @@ pub enum ArgumentError {
         argument: String,
     },
     /// Two parameters given together that the node cannot run with (`sequence_length` or
-    /// `loop_closure` with `sequence` false).
+    /// `loop_closure` with `sequence` false, `camera_info_topic` with `camera_info`).
     #[error("{param} {reason}")]
     Conflict {
         /// The parameter refused because of another's value.
@@ -180,6 +180,45 @@ pub enum FrameError {
     },
 }
 
+/// Why a received `sensor_msgs/CameraInfo` gives no intrinsics for the relative poses (it is
+/// logged and the node goes on with the camera it had, if any).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CameraInfoError {
+    /// No calibrated image size (an uncalibrated camera publishes zeros).
+    #[error("{width}x{height} pixels: the calibrated image size must not be 0 (an uncalibrated camera?)")]
+    Size {
+        /// The message's `width`.
+        width: u32,
+        /// The message's `height`.
+        height: u32,
+    },
+    /// The region of interest reaches outside the calibrated image.
+    #[error("region of interest {width}x{height} at ({x_offset}, {y_offset}) is not inside the calibrated {image_width}x{image_height} image")]
+    Region {
+        /// Its left edge, pixels.
+        x_offset: u32,
+        /// Its top edge, pixels.
+        y_offset: u32,
+        /// Its width, pixels.
+        width: u32,
+        /// Its height, pixels.
+        height: u32,
+        /// The calibrated image's width.
+        image_width: u32,
+        /// The calibrated image's height.
+        image_height: u32,
+    },
+    /// Intrinsics the relative pose cannot use ([`semlook::verify::pose::Camera::check`]: focal
+    /// lengths positive and finite, the principal point inside the image).
+    #[error("fx {fx}, fy {fy}, cx {cx}, cy {cy} for {width}x{height} pixels: {reason}", fx = camera.fx, fy = camera.fy, cx = camera.cx, cy = camera.cy, width = camera.width, height = camera.height)]
+    Intrinsics {
+        /// The intrinsics of the images the camera publishes (binning and region applied).
+        camera: semlook::verify::pose::Camera,
+        /// What `Camera::check` says.
+        reason: String,
+    },
+}
+
 /// A message's CDR bytes could not be written or read (the golden-byte tests' helpers).
 #[cfg(test)]
 #[derive(Debug, thiserror::Error)]
@@ -227,6 +266,17 @@ mod tests {
         ];
         for (e, was) in cases {
             assert_eq!(e.to_string(), was, "{e:?}");
+        }
+        let camera = semlook::verify::pose::Camera { fx: 0.0, fy: 500.0, cx: 320.0, cy: 240.0, width: 640, height: 480 };
+        for (e, says) in [
+            (CameraInfoError::Size { width: 0, height: 0 }, "0x0 pixels: the calibrated image size must not be 0 (an uncalibrated camera?)"),
+            (
+                CameraInfoError::Region { x_offset: 600, y_offset: 0, width: 100, height: 480, image_width: 640, image_height: 480 },
+                "region of interest 100x480 at (600, 0) is not inside the calibrated 640x480 image",
+            ),
+            (CameraInfoError::Intrinsics { camera, reason: "fx = 0: bad".into() }, "fx 0, fy 500, cx 320, cy 240 for 640x480 pixels: fx = 0: bad"),
+        ] {
+            assert_eq!(e.to_string(), says, "{e:?}");
         }
     }
 }

@@ -3,6 +3,8 @@
 //! localizes each against a map with the streaming localizer (sequence matching on by default;
 //! loop-closure mode on a growing map), and publishes a `semlook_msgs/PlaceMatch` for every frame
 //! it localizes on `~/match`, and in loop-closure mode a `semlook_msgs/LoopClosure` on `~/closure`.
+//! With `camera_info` (a file) or `camera_info_topic` (`sensor_msgs/CameraInfo`, usually
+//! `/camera/camera_info`) accepted matches carry the frame's pose relative to the place's.
 //!
 //! ```sh
 //! semlook_node --ros-args -p map:=/data/my-map -p setting:=verified -r __node:=semlook

@@ -1,5 +1,5 @@
 //! The messages the node reads and writes, as serde structs whose fields follow their `.msg`
-//! definitions in order (CDR is positional): `sensor_msgs` Image and CompressedImage in, the
+//! definitions in order (CDR is positional): `sensor_msgs` Image, CompressedImage and CameraInfo in, the
 //! node's own `semlook_msgs` PlaceMatch and LoopClosure out, and `geometry_msgs` PoseStamped (the
 //! matched place's stored pose) out (`semlook_msgs/msg/*.msg`, a package a
 //! ROS user builds with colcon, or rosidl alone: `scripts/build_msgs_py.sh`). Their wire format
@@ -50,6 +50,40 @@ pub struct CompressedImage {
     pub format: String,
     #[serde(with = "serde_bytes")]
     pub data: Vec<u8>,
+}
+
+/// `sensor_msgs/msg/RegionOfInterest`: the part of the calibrated image a camera publishes (all
+/// zeros: the whole image).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RegionOfInterest {
+    pub x_offset: u32,
+    pub y_offset: u32,
+    pub height: u32,
+    pub width: u32,
+    pub do_rectify: bool,
+}
+
+/// `sensor_msgs/msg/CameraInfo`: a camera's calibration, published beside its images (the node
+/// takes the pinhole intrinsics of `k`, with `binning_*` and `roi`; see `node::camera_of`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct CameraInfo {
+    pub header: Header,
+    /// The size of the images the camera was calibrated with.
+    pub height: u32,
+    pub width: u32,
+    pub distortion_model: String,
+    /// The distortion coefficients (their number depends on the model; plumb_bob has 5).
+    pub d: Vec<f64>,
+    /// The intrinsic matrix, row-major: fx 0 cx, 0 fy cy, 0 0 1.
+    pub k: [f64; 9],
+    /// The rectification rotation, row-major (stereo cameras).
+    pub r: [f64; 9],
+    /// The projection matrix of the rectified image, row-major 3x4.
+    pub p: [f64; 12],
+    /// Subsampling of the published images (0 and 1: none).
+    pub binning_x: u32,
+    pub binning_y: u32,
+    pub roi: RegionOfInterest,
 }
 
 /// `geometry_msgs/msg/Point`.
@@ -155,7 +189,7 @@ mod tests {
     use super::*;
 
     /// The messages of `scripts/golden.py`, built here field for field.
-    fn samples() -> (PlaceMatch, LoopClosure, Image, CompressedImage, PoseStamped) {
+    fn samples() -> (PlaceMatch, LoopClosure, Image, CompressedImage, PoseStamped, CameraInfo) {
         let header = Header { stamp: Time { sec: 1_700_000_123, nanosec: 456_789 }, frame_id: "cam0".into() };
         let m = PlaceMatch {
             header: header.clone(),
@@ -200,7 +234,20 @@ mod tests {
             header: Header { frame_id: "map".into(), ..header },
             pose: Pose { position: Point { x: 12.5, y: -3.25, z: 0.75 }, orientation: Quaternion { x: 0.5, y: -0.5, z: 0.5, w: 0.5 } },
         };
-        (m, c, img, jpg, pose)
+        let info = CameraInfo {
+            header: header.clone(),
+            height: 540,
+            width: 960,
+            distortion_model: "plumb_bob".into(),
+            d: vec![-0.25, 0.125, 0.001, -0.0005, 0.0],
+            k: [700.0, 0.0, 479.5, 0.0, 701.5, 269.5, 0.0, 0.0, 1.0],
+            r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            p: [690.25, 0.0, 480.0, -0.5, 0.0, 692.75, 270.0, 0.0, 0.0, 0.0, 1.0, 0.0],
+            binning_x: 2,
+            binning_y: 3,
+            roi: RegionOfInterest { x_offset: 8, y_offset: 4, height: 500, width: 900, do_rectify: true },
+        };
+        (m, c, img, jpg, pose, info)
     }
 
     fn golden(name: &str) -> Vec<u8> {
@@ -225,17 +272,19 @@ mod tests {
     /// bytes read back to the same message.
     #[test]
     fn messages_match_the_bytes_rclpy_writes() {
-        let (m, c, img, jpg, pose) = samples();
+        let (m, c, img, jpg, pose, info) = samples();
         same_but_padding(&to_cdr(&m).unwrap(), &golden("PlaceMatch.hex"), "PlaceMatch");
         same_but_padding(&to_cdr(&c).unwrap(), &golden("LoopClosure.hex"), "LoopClosure");
         same_but_padding(&to_cdr(&img).unwrap(), &golden("Image.hex"), "Image");
         same_but_padding(&to_cdr(&jpg).unwrap(), &golden("CompressedImage.hex"), "CompressedImage");
         same_but_padding(&to_cdr(&pose).unwrap(), &golden("PoseStamped.hex"), "PoseStamped");
+        same_but_padding(&to_cdr(&info).unwrap(), &golden("CameraInfo.hex"), "CameraInfo");
         assert_eq!(from_cdr::<PlaceMatch>(&golden("PlaceMatch.hex")).unwrap(), m);
         assert_eq!(from_cdr::<LoopClosure>(&golden("LoopClosure.hex")).unwrap(), c);
         assert_eq!(from_cdr::<Image>(&golden("Image.hex")).unwrap(), img);
         assert_eq!(from_cdr::<CompressedImage>(&golden("CompressedImage.hex")).unwrap(), jpg);
         assert_eq!(from_cdr::<PoseStamped>(&golden("PoseStamped.hex")).unwrap(), pose);
+        assert_eq!(from_cdr::<CameraInfo>(&golden("CameraInfo.hex")).unwrap(), info);
         assert!(from_cdr::<Image>(&[0, 0, 0, 0, 1]).is_err(), "big-endian or garbage is refused");
     }
 }

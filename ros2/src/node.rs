@@ -1,8 +1,9 @@
 //! The node: DDS participant, subscriptions and publishers on one thread (an async executor),
-//! the localizer on another, a bounded queue between them.
+//! the localizer on another, a bounded queue between them (and, with `camera_info_topic`, a slot
+//! for the newest camera intrinsics the localizer thread takes before its next frame).
 
-use crate::error::{FrameError, NodeError};
-use crate::msgs::{CompressedImage, Header, Image, LoopClosure, PlaceMatch, Point, Pose, PoseStamped, Quaternion};
+use crate::error::{CameraInfoError, FrameError, NodeError};
+use crate::msgs::{CameraInfo, CompressedImage, Header, Image, LoopClosure, PlaceMatch, Point, Pose, PoseStamped, Quaternion};
 use crate::params::Params;
 use futures::{FutureExt, StreamExt};
 use ros2_client::dds::rustdds::DomainParticipantBuilder;
@@ -14,6 +15,7 @@ use semlook::engine::{Backend, Engine};
 use semlook::map::Map;
 use semlook::matching::Setting;
 use semlook::stream::{FrameResult, Latency, LatencyStats, Localizer, Pixels, StreamFrame, StreamOptions};
+use semlook::verify::pose::Camera;
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
@@ -150,6 +152,128 @@ pub fn compressed_pixels(m: &CompressedImage) -> Result<Pixels, FrameError> {
         return Err(FrameError::Format { format: m.format.clone() });
     }
     Ok(Pixels::Bytes { bytes: m.data.clone(), labels: None })
+}
+
+/// The intrinsics a `CameraInfo` gives for the images its camera publishes, as the relative pose
+/// takes them: fx = K[0], fy = K[4], cx = K[2], cy = K[5], the calibrated `width` x `height`. A
+/// region of interest and binning (REP 104: K is of the calibrated image; the camera publishes
+/// the region, binned) are applied: cx - x_offset and cy - y_offset, then fx, cx and the width
+/// divided by `binning_x`, fy, cy and the height by `binning_y` (0 and 1: none; an all-zero region:
+/// the whole image). Refused: no image size, a region outside the image, intrinsics
+/// [`Camera::check`] refuses. The distortion (`d`) is not used: the relative pose takes the
+/// images as undistorted.
+pub fn camera_of(m: &CameraInfo) -> Result<Camera, CameraInfoError> {
+    if m.width == 0 || m.height == 0 {
+        return Err(CameraInfoError::Size { width: m.width, height: m.height });
+    }
+    let roi = m.roi;
+    let (x0, y0, w, h) = match roi.width == 0 || roi.height == 0 {
+        true => (0, 0, m.width, m.height),
+        false => (roi.x_offset, roi.y_offset, roi.width, roi.height),
+    };
+    if x0 as u64 + w as u64 > m.width as u64 || y0 as u64 + h as u64 > m.height as u64 {
+        return Err(CameraInfoError::Region {
+            x_offset: roi.x_offset,
+            y_offset: roi.y_offset,
+            width: roi.width,
+            height: roi.height,
+            image_width: m.width,
+            image_height: m.height,
+        });
+    }
+    let (bx, by) = (m.binning_x.max(1), m.binning_y.max(1));
+    let camera = Camera {
+        fx: m.k[0] / bx as f64,
+        fy: m.k[4] / by as f64,
+        cx: (m.k[2] - x0 as f64) / bx as f64,
+        cy: (m.k[5] - y0 as f64) / by as f64,
+        width: w / bx,
+        height: h / by,
+    };
+    camera.check().map_err(|reason| CameraInfoError::Intrinsics { camera, reason })?;
+    Ok(camera)
+}
+
+/// What the node makes of the `CameraInfo` messages of `camera_info_topic` (a camera publishes
+/// one with every image): the first valid one gives the camera, a later one whose intrinsics
+/// differ replaces it, the same again changes nothing; each refusal and the distortion the
+/// relative pose ignores are logged once, not at the camera's rate.
+struct CameraInfos {
+    topic: String,
+    /// The last message, without its header: the same again is not looked at twice.
+    last: Option<CameraInfo>,
+    /// The intrinsics given to the localizer last.
+    camera: Option<Camera>,
+    /// The distortion warning was logged.
+    distortion_warned: bool,
+}
+
+impl CameraInfos {
+    fn new(topic: &str) -> CameraInfos {
+        CameraInfos { topic: topic.to_string(), last: None, camera: None, distortion_warned: false }
+    }
+
+    /// The intrinsics to give the localizer after `m`: `None` where they stay as they are.
+    fn receive(&mut self, mut m: CameraInfo) -> Option<Camera> {
+        m.header = Header::default();
+        if self.last.as_ref() == Some(&m) {
+            return None;
+        }
+        if !self.distortion_warned && m.d.iter().any(|&c| c != 0.0) {
+            self.distortion_warned = true;
+            log::warn!(
+                "camera info on {}: distortion {:?} with D = {:?} is ignored: relative poses take the images as undistorted (rectified images give better ones)",
+                self.topic,
+                m.distortion_model,
+                m.d
+            );
+        }
+        let got = camera_of(&m);
+        self.last = Some(m);
+        match got {
+            Err(e) => {
+                log::warn!("camera info on {} refused: {e}", self.topic);
+                None
+            }
+            Ok(c) if self.camera == Some(c) => None,
+            Ok(c) => {
+                self.camera = Some(c);
+                Some(c)
+            }
+        }
+    }
+}
+
+/// Intrinsics from `camera_info_topic` waiting for the localizer thread, which takes them before
+/// its next frame (the newest only).
+struct CameraSlot {
+    topic: String,
+    pending: Mutex<Option<Camera>>,
+}
+
+impl CameraSlot {
+    fn put(&self, c: Camera) {
+        *self.pending.lock().unwrap_or_else(|e| e.into_inner()) = Some(c);
+    }
+    fn take(&self) -> Option<Camera> {
+        self.pending.lock().unwrap_or_else(|e| e.into_inner()).take()
+    }
+}
+
+/// The localizer thread gives the localizer the intrinsics waiting in `slot`, if any, and says so.
+fn apply_camera(loc: &mut Localizer, slot: Option<&CameraSlot>, current: &mut Option<Camera>) {
+    let Some((slot, c)) = slot.and_then(|s| s.take().map(|c| (s, c))) else { return };
+    let says = |c: &Camera| format!("fx {}, fy {}, cx {}, cy {} for {}x{} pixels", c.fx, c.fy, c.cx, c.cy, c.width, c.height);
+    match loc.set_camera(c) {
+        Ok(()) => {
+            match current {
+                None => log::info!("camera intrinsics from {}: {}; accepted matches carry relative poses from now on", slot.topic, says(&c)),
+                Some(was) => log::info!("camera intrinsics from {} changed: {} (were {})", slot.topic, says(&c), says(was)),
+            }
+            *current = Some(c);
+        }
+        Err(e) => log::warn!("camera intrinsics from {} not used: {e}", slot.topic),
+    }
 }
 
 /// The id a frame gets (and is stored under in loop-closure mode): its stamp.
@@ -345,16 +469,29 @@ pub fn run(p: Params) -> Result<(), NodeError> {
     let t_match = topic(&mut node, &own("match"), "semlook_msgs", "PlaceMatch", &reliable)?;
     let t_closure = topic(&mut node, &own("closure"), "semlook_msgs", "LoopClosure", &reliable)?;
     let t_pose = topic(&mut node, &own("pose"), "geometry_msgs", "PoseStamped", &reliable)?;
+    // the camera's intrinsics on a topic (best effort as the frames: a reader that takes both
+    // best-effort and reliable writers, and a camera publishes one with every image)
+    let t_info = match &p.camera_info_topic {
+        Some(name) => Some(topic(&mut node, name, "sensor_msgs", "CameraInfo", &sensor)?),
+        None => None,
+    };
     // the publishers already up are known before our subscriptions are announced: a camera that
     // sees them matched then sends to a reader that knows it (else its first frames are dropped)
     let known = settle_discovery(&ctx.domain_participant());
     log::info!("discovery settled: {known} remote writers known");
     let sub_img = node.create_subscription::<Image>(&t_img, None).map_err(|e| ros("subscription", e))?;
     let sub_cmp = node.create_subscription::<CompressedImage>(&t_cmp, None).map_err(|e| ros("subscription", e))?;
+    let sub_info = match &t_info {
+        Some(t) => Some(node.create_subscription::<CameraInfo>(t, None).map_err(|e| ros("subscription", e))?),
+        None => None,
+    };
     let pub_match = node.create_publisher::<PlaceMatch>(&t_match, None).map_err(|e| ros("publisher", e))?;
     let pub_closure = node.create_publisher::<LoopClosure>(&t_closure, None).map_err(|e| ros("publisher", e))?;
     let pub_pose = node.create_publisher::<PoseStamped>(&t_pose, None).map_err(|e| ros("publisher", e))?;
     log::info!("subscribed {} and {}; publishing {}, {} and {}", p.image_topic, p.compressed_topic, own("match"), own("closure"), own("pose"));
+    if let Some(t) = &p.camera_info_topic {
+        log::info!("subscribed {t}: frames answered before its first valid camera info get no relative pose");
+    }
     let out = Outputs { matches: pub_match, closures: pub_closure, poses: pub_pose, pose_frame_id: p.pose_frame_id.clone() };
 
     let stop = Arc::new(AtomicBool::new(false));
@@ -364,23 +501,42 @@ pub fn run(p: Params) -> Result<(), NodeError> {
     }
     let queue = Arc::new(Queue { items: Mutex::new(VecDeque::new()), ready: Condvar::new(), cap: p.queue_size, dropped: AtomicU64::new(0) });
     let counts = Arc::new(Counts::default());
+    let slot = p.camera_info_topic.as_ref().map(|t| Arc::new(CameraSlot { topic: t.clone(), pending: Mutex::new(None) }));
     let worker = {
-        let (queue, counts, stop) = (queue.clone(), counts.clone(), stop.clone());
+        let (queue, counts, stop, slot) = (queue.clone(), counts.clone(), stop.clone(), slot.clone());
         let refresh = (p.map_refresh_s > 0.0).then(|| Duration::from_secs_f64(p.map_refresh_s));
         std::thread::Builder::new()
             .name("localizer".into())
-            .spawn(move || localize(loc, &queue, &counts, &stop, refresh, &out))
+            .spawn(move || localize(loc, &queue, &counts, &stop, refresh, &out, slot.as_deref()))
             .map_err(NodeError::LocalizerThread)?
     };
     smol::block_on(ex.run(async {
         let mut imgs = Box::pin(sub_img.async_stream());
         let mut cmps = Box::pin(sub_cmp.async_stream());
+        // no topic: a stream that never yields
+        let mut infos = match &sub_info {
+            Some(s) => s.async_stream().boxed_local().fuse(),
+            None => futures::stream::pending().boxed_local().fuse(),
+        };
+        let mut cameras = CameraInfos::new(p.camera_info_topic.as_deref().unwrap_or_default());
         while !stop.load(Ordering::SeqCst) {
             let tick = FutureExt::fuse(smol::Timer::after(Duration::from_millis(100)));
             futures::pin_mut!(tick);
             let got = futures::select! {
                 m = imgs.next() => m.map(|r| r.map(|(m, _)| (m.header.clone(), image_pixels(&m)))),
                 m = cmps.next() => m.map(|r| r.map(|(m, _)| (m.header.clone(), compressed_pixels(&m)))),
+                m = infos.next() => {
+                    match m {
+                        Some(Ok((m, _))) => {
+                            if let (Some(c), Some(slot)) = (cameras.receive(m), &slot) {
+                                slot.put(c);
+                            }
+                        }
+                        Some(Err(e)) => log::warn!("a camera info sample could not be read: {e:?}"),
+                        None => break,
+                    }
+                    continue;
+                }
                 _ = tick => continue,
             };
             let received = Instant::now();
@@ -467,10 +623,12 @@ fn declared(p: &Params) -> Vec<(&'static str, ParameterValue)> {
         ("map_refresh_s", ParameterValue::Double(p.map_refresh_s)),
         ("pose_frame_id", s(&p.pose_frame_id)),
         ("camera_info", s(&p.camera_info.as_ref().map_or(String::new(), |c| c.display().to_string()))),
+        ("camera_info_topic", s(p.camera_info_topic.as_deref().unwrap_or_default())),
     ]
 }
 
-/// The localizer thread: frames from the queue, answers to the publishers, until `stop`.
+/// The localizer thread: frames from the queue, answers to the publishers, until `stop`; before
+/// each frame, the camera intrinsics waiting in `camera` (`camera_info_topic`), if any.
 /// Returns the localizer's counts and the latencies (total: receive to publish).
 fn localize(
     mut loc: Localizer,
@@ -479,9 +637,11 @@ fn localize(
     stop: &AtomicBool,
     refresh: Option<Duration>,
     out: &Outputs,
+    camera: Option<&CameraSlot>,
 ) -> (semlook::stream::StreamCounts, semlook::stream::LatencySummary) {
     let mut stats = LatencyStats::default();
     let mut checked = Instant::now();
+    let mut intrinsics = None;
     loop {
         if refresh.is_some_and(|r| checked.elapsed() >= r) {
             checked = Instant::now();
@@ -497,6 +657,7 @@ fn localize(
             }
             continue;
         };
+        apply_camera(&mut loc, camera, &mut intrinsics);
         let id = frame_id(&f.header);
         let frame = StreamFrame { id: id.clone(), pixels: f.pixels, timestamp: Some(f.header.stamp.seconds()) };
         let refused = loc.counts().refused;
@@ -602,6 +763,102 @@ mod tests {
         assert!(compressed_pixels(&c).err().unwrap().to_string().contains("tiff"));
         let c = CompressedImage { format: "rgb8; jpeg compressed bgr8".into(), ..c };
         assert!(compressed_pixels(&c).is_ok());
+    }
+
+    /// A calibrated 960x540 camera, as `camera_calibration` writes one (plumb_bob, 5 coefficients).
+    fn info() -> CameraInfo {
+        CameraInfo {
+            header: Header { stamp: crate::msgs::Time { sec: 5, nanosec: 0 }, frame_id: "cam0".into() },
+            height: 540,
+            width: 960,
+            distortion_model: "plumb_bob".into(),
+            d: vec![0.0; 5],
+            k: [700.0, 0.0, 479.5, 0.0, 701.5, 269.5, 0.0, 0.0, 1.0],
+            r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            p: [700.0, 0.0, 479.5, 0.0, 0.0, 701.5, 269.5, 0.0, 0.0, 0.0, 1.0, 0.0],
+            ..Default::default()
+        }
+    }
+
+    /// fx, fy, cx, cy from K, the calibrated size; binning and a region of interest applied as
+    /// REP 104 has them.
+    #[test]
+    fn camera_info_gives_the_intrinsics_of_its_k() {
+        let c = camera_of(&info()).unwrap();
+        assert_eq!(c, Camera { fx: 700.0, fy: 701.5, cx: 479.5, cy: 269.5, width: 960, height: 540 });
+        // binning 1 is none, as 0 is; a region of all zeros is the whole image
+        let m = CameraInfo { binning_x: 1, binning_y: 1, ..info() };
+        assert_eq!(camera_of(&m).unwrap(), c);
+        // the camera publishes the 800x400 region at (100, 60), binned by 2 across and 4 down
+        let m = CameraInfo {
+            binning_x: 2,
+            binning_y: 4,
+            roi: crate::msgs::RegionOfInterest { x_offset: 100, y_offset: 60, width: 800, height: 400, do_rectify: false },
+            ..info()
+        };
+        assert_eq!(camera_of(&m).unwrap(), Camera { fx: 350.0, fy: 701.5 / 4.0, cx: 189.75, cy: 52.375, width: 400, height: 100 });
+    }
+
+    /// A message the relative pose cannot use is refused with what is wrong in the error's fields:
+    /// no size (an uncalibrated camera's zeros), focal lengths zero, negative or not finite, a
+    /// principal point outside the image, a region outside the image.
+    #[test]
+    fn camera_info_the_pose_cannot_use_is_refused() {
+        let uncalibrated = CameraInfo { width: 0, height: 0, k: [0.0; 9], ..info() };
+        assert_eq!(camera_of(&uncalibrated), Err(CameraInfoError::Size { width: 0, height: 0 }));
+        assert_eq!(camera_of(&CameraInfo { height: 0, ..info() }), Err(CameraInfoError::Size { width: 960, height: 0 }));
+        let with_k = |i: usize, v: f64| {
+            let mut m = info();
+            m.k[i] = v;
+            m
+        };
+        for (m, says) in [
+            (with_k(0, 0.0), "fx = 0"),
+            (with_k(0, -700.0), "fx = -700"),
+            (with_k(4, f64::NAN), "fy = NaN"),
+            (with_k(4, f64::INFINITY), "fy = inf"),
+            (with_k(2, 2000.0), "principal point"),
+            (CameraInfo { k: [0.0; 9], ..info() }, "fx = 0"),
+        ] {
+            match camera_of(&m) {
+                Err(CameraInfoError::Intrinsics { camera, reason }) => {
+                    assert_eq!((camera.fx, camera.cx, camera.width, camera.height), (m.k[0], m.k[2], 960, 540));
+                    assert!(reason.contains(says), "{reason} (want {says})");
+                }
+                other => panic!("{:?}: {other:?}", m.k),
+            }
+        }
+        let outside =
+            CameraInfo { roi: crate::msgs::RegionOfInterest { x_offset: 600, y_offset: 0, width: 400, height: 540, do_rectify: false }, ..info() };
+        assert_eq!(
+            camera_of(&outside),
+            Err(CameraInfoError::Region { x_offset: 600, y_offset: 0, width: 400, height: 540, image_width: 960, image_height: 540 })
+        );
+    }
+
+    /// The first valid message gives the camera; the same again (another stamp) gives nothing;
+    /// other intrinsics replace it; a refused one leaves it; distortion is warned of once.
+    #[test]
+    fn camera_infos_set_the_camera_once_and_replace_it_when_it_changes() {
+        let mut infos = CameraInfos::new("/camera/camera_info");
+        assert_eq!(infos.receive(CameraInfo { width: 0, ..info() }), None, "refused");
+        assert_eq!(infos.camera, None);
+        let first = infos.receive(info()).expect("the first valid one sets the camera");
+        assert_eq!(first.fx, 700.0);
+        let later = CameraInfo { header: Header { stamp: crate::msgs::Time { sec: 6, nanosec: 0 }, ..info().header }, ..info() };
+        assert_eq!(infos.receive(later), None, "the same intrinsics again");
+        assert!(!infos.distortion_warned);
+        // distortion alone changes nothing the pose uses; it is warned of, once
+        let distorted = CameraInfo { d: vec![-0.25, 0.1, 0.0, 0.0, 0.0], ..info() };
+        assert_eq!(infos.receive(distorted.clone()), None);
+        assert!(infos.distortion_warned);
+        let mut zoomed = distorted;
+        zoomed.k[0] = 900.0;
+        zoomed.k[4] = 900.0;
+        assert_eq!(infos.receive(zoomed).map(|c| (c.fx, c.fy)), Some((900.0, 900.0)), "other intrinsics replace the camera");
+        assert_eq!(infos.receive(CameraInfo { k: [0.0; 9], ..info() }), None, "refused: the camera stays");
+        assert_eq!(infos.camera.map(|c| c.fx), Some(900.0));
+        assert_eq!(infos.receive(info()), Some(first), "back to the first");
     }
 
     /// A burst into a full queue: the oldest frames are dropped and counted, the queue never holds

@@ -26,7 +26,13 @@ parameters (defaults in brackets):
   pose_frame_id    frame_id of the ~/pose messages: the frame the map's poses are in [map]
   camera_info      a camera file (TOML or JSON: fx, fy, cx, cy, width, height of the images they
                    are for): accepted matches and closures then carry the frame's pose relative
-                   to the place's (relative_rotation, relative_translation) [none]";
+                   to the place's (relative_rotation, relative_translation) [none]
+  camera_info_topic
+                   sensor_msgs/CameraInfo to take the intrinsics from instead of a file (usually
+                   /camera/camera_info; not with camera_info): fx, fy, cx, cy of its K, its size,
+                   binning and region of interest; the first valid one sets the camera, a later one
+                   that differs replaces it, frames before the first get no relative pose;
+                   distortion (D) is ignored [none: off]";
 
 /// What the node runs with.
 #[derive(Debug, Clone, PartialEq)]
@@ -48,6 +54,8 @@ pub struct Params {
     pub pose_frame_id: String,
     /// A camera file: the intrinsics of the relative poses.
     pub camera_info: Option<PathBuf>,
+    /// A `sensor_msgs/CameraInfo` topic: the intrinsics of the relative poses, as they come.
+    pub camera_info_topic: Option<String>,
     pub node_name: String,
     pub namespace: String,
 }
@@ -71,6 +79,7 @@ impl Params {
             map_refresh_s: 1.0,
             pose_frame_id: "map".into(),
             camera_info: None,
+            camera_info_topic: None,
             node_name: "semlook".into(),
             namespace: "/".into(),
         };
@@ -104,6 +113,7 @@ impl Params {
                         "compressed_topic" => p.compressed_topic = v.into(),
                         "pose_frame_id" => p.pose_frame_id = v.into(),
                         "camera_info" => p.camera_info = Some(PathBuf::from(v)),
+                        "camera_info_topic" => p.camera_info_topic = Some(v.to_string()).filter(|t| !t.is_empty() && t != "none"),
                         "queue_size" => p.queue_size = v.parse().ok().filter(|&k| k > 0).ok_or_else(|| bad("a positive integer"))?,
                         "map_refresh_s" => {
                             p.map_refresh_s = v.parse().ok().filter(|s: &f64| s.is_finite() && *s >= 0.0).ok_or_else(|| bad("a number of seconds"))?
@@ -129,6 +139,12 @@ impl Params {
         }
         if p.loop_closure && !p.sequence {
             return Err(ArgumentError::Conflict { param: "loop_closure", reason: "finds its closures by sequence matching: keep sequence true" });
+        }
+        if p.camera_info.is_some() && p.camera_info_topic.is_some() {
+            return Err(ArgumentError::Conflict {
+                param: "camera_info_topic",
+                reason: "is given with camera_info: the intrinsics come from a file or a topic, not both",
+            });
         }
         p.map = map.ok_or(ArgumentError::MissingMap)?;
         Ok(Some(p))
@@ -156,6 +172,15 @@ mod tests {
         let p = Params::parse(&args("--ros-args -p map:=/m -p top_k:=10 -p sequence:=false -r __node:=loc -r __ns:=robot")).unwrap().unwrap();
         assert_eq!((p.map.to_str(), p.top_k, p.sequence, p.node_name.as_str(), p.namespace.as_str()), (Some("/m"), Some(10), false, "loc", "/robot"));
         assert_eq!(Params::parse(&args("--help")).unwrap(), None);
+        // the camera's intrinsics: off by default, from a topic, from a file, not both
+        let p = Params::parse(&args("--ros-args -p map:=/m")).unwrap().unwrap();
+        assert_eq!((p.camera_info, p.camera_info_topic), (None, None));
+        let p = Params::parse(&args("--ros-args -p map:=/m -p camera_info_topic:=/camera/camera_info")).unwrap().unwrap();
+        assert_eq!((p.camera_info, p.camera_info_topic.as_deref()), (None, Some("/camera/camera_info")));
+        let p = Params::parse(&args("--ros-args -p map:=/m -p camera_info_topic:=none")).unwrap().unwrap();
+        assert_eq!(p.camera_info_topic, None);
+        let p = Params::parse(&args("--ros-args -p map:=/m -p camera_info:=/cam.toml")).unwrap().unwrap();
+        assert_eq!((p.camera_info.as_deref(), p.camera_info_topic), (Some(std::path::Path::new("/cam.toml")), None));
         for (bad, says) in [
             ("--ros-args -p top_k:=0 -p map:=/m", "top_k"),
             ("--ros-args -p colour:=red -p map:=/m", "colour"),
@@ -223,6 +248,14 @@ mod tests {
                 "--ros-args -p map:=/m -p loop_closure:=true -p sequence:=false",
                 ArgumentError::Conflict { param: "loop_closure", reason: "finds its closures by sequence matching: keep sequence true" },
                 "loop_closure finds its closures by sequence matching: keep sequence true",
+            ),
+            (
+                "--ros-args -p map:=/m -p camera_info:=/cam.toml -p camera_info_topic:=/camera/camera_info",
+                ArgumentError::Conflict {
+                    param: "camera_info_topic",
+                    reason: "is given with camera_info: the intrinsics come from a file or a topic, not both",
+                },
+                "camera_info_topic is given with camera_info: the intrinsics come from a file or a topic, not both",
             ),
         ] {
             let e = Params::parse(&args(bad)).unwrap_err();

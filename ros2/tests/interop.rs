@@ -5,7 +5,10 @@
 //! `semlook query` (single frame) and `semlook localize` (sequence) on the same frames. Then the
 //! robustness cases: an unsupported encoding, a corrupt JPEG, the peer vanishing and another
 //! coming, the map growing on disk, and a burst faster than the node serves. The map stores poses
-//! (`map build --poses`): each frame's PoseStamped is the pose of the place it was matched to.
+//! (`map build --poses`): each frame's PoseStamped is the pose of the place it was matched to. The
+//! node takes its camera's intrinsics from a `sensor_msgs/CameraInfo` topic (`camera_info_topic`)
+//! the peer publishes beside its frames: the accepted matches carry the relative pose `semlook
+//! localize --camera` gives with the same intrinsics.
 
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -183,9 +186,40 @@ fn the_node_answers_a_real_ros2_peer() {
             .map(|l| serde_json::from_str(l).unwrap())
             .filter(|v: &serde_json::Value| v.get("frame").is_some())
             .collect();
+    // the camera of the photos (960x540; a plausible focal length, the principal point at the
+    // centre): the peer publishes it as CameraInfo, `semlook localize` reads it from a file
+    let (fx, cx, cy, width, height) = (700.0, 479.5, 269.5, 960, 540);
+    let camera_file = dir.path().join("camera.toml");
+    std::fs::write(&camera_file, format!("fx = {fx}\nfy = {fx}\ncx = {cx}\ncy = {cy}\nwidth = {width}\nheight = {height}\n")).unwrap();
+    let camera_info = serde_json::json!({
+        "topic": "/camera/camera_info",
+        "width": width,
+        "height": height,
+        "k": [fx, 0.0, cx, 0.0, fx, cy, 0.0, 0.0, 1.0],
+        // a distortion the relative pose ignores: the node says so, once
+        "distortion_model": "plumb_bob",
+        "d": [-0.05, 0.01, 0.0, 0.0, 0.0],
+    });
+    let localize_camera: Vec<serde_json::Value> = run(&[
+        "--backend",
+        "cpu",
+        "localize",
+        "--map",
+        map.to_str().unwrap(),
+        "--images",
+        queries.to_str().unwrap(),
+        "--camera",
+        camera_file.to_str().unwrap(),
+        "--json",
+    ])
+    .lines()
+    .map(|l| serde_json::from_str(l).unwrap())
+    .filter(|v: &serde_json::Value| v.get("frame").is_some())
+    .collect();
     let domain = 100 + (std::process::id() % 100) as u16;
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_semlook_node"));
     cmd.args(["--ros-args", "-p", &format!("map:={}", map.display()), "-p", "backend:=cpu", "-p", "queue_size:=2", "-p", "map_refresh_s:=0.5"]);
+    cmd.args(["-p", "camera_info_topic:=/camera/camera_info"]);
     ros_env(&mut cmd, domain);
 
     // phase 1: the ten photos, alternating CompressedImage (jpeg) and Image (rgb8, bgr8), each
@@ -214,7 +248,7 @@ fn the_node_answers_a_real_ros2_peer() {
     // the first peer is up before the node (a camera already publishing): it sends its first
     // frame as soon as it sees the node's subscription, which must not lose it (3 of 4 runs did
     // before the node let discovery settle before subscribing)
-    let plan = serde_json::json!({ "frames": frames, "wait": true, "expect": 10, "timeout": 180, "linger": 2.0 });
+    let plan = serde_json::json!({ "frames": frames, "wait": true, "expect": 10, "timeout": 180, "linger": 2.0, "camera_info": camera_info });
     let (one, node) = std::thread::scope(|s| {
         let first = s.spawn(|| peer(&venv, &plan, dir.path(), "one", domain));
         std::thread::sleep(Duration::from_secs(3));
@@ -242,7 +276,20 @@ fn the_node_answers_a_real_ros2_peer() {
         let l = &localize[i];
         assert_eq!(m["sequence_id"].as_str().unwrap(), l["sequence"]["id"].as_str().unwrap_or(""), "frame {i}: the sequence of `semlook localize`");
         assert_eq!(m["accepted"], l["sequence"]["accepted"].as_bool().unwrap_or(false), "frame {i}");
+        // the intrinsics came on the CameraInfo topic (each frame's just before it): the relative
+        // pose is the one `semlook localize --camera` estimates with them from a file
+        let want = &localize_camera[i]["relative_pose"];
+        assert_eq!(m["has_relative_pose"], !want.is_null(), "frame {i}: {m} against {want}");
+        if !want.is_null() {
+            let (got, deg) = (m["relative_rotation_deg"].as_f64().unwrap(), want["rotation_deg"].as_f64().unwrap());
+            assert!((got - deg).abs() < 1e-6, "frame {i}: rotation {got} against {deg} deg");
+            assert_eq!(m["pose_inliers"].as_u64(), want["inliers"].as_u64(), "frame {i}");
+        } else {
+            assert_eq!(m["pose_inliers"], -1, "frame {i}");
+        }
     }
+    let posed = matches.iter().filter(|m| m["has_relative_pose"] == true).count();
+    assert!(posed > 0, "accepted matches carry a relative pose once CameraInfo came: {matches:?}");
     // every answer's place has a pose: one PoseStamped per frame, under the frame's stamp, in the
     // map frame, the pose of the place the match names (and the one `semlook localize` gives)
     let poses = one["poses"].as_array().unwrap();
@@ -299,6 +346,12 @@ fn the_node_answers_a_real_ros2_peer() {
     assert_eq!(s["unsupported"].as_u64().unwrap(), 1, "{s}");
     assert_eq!(s["localizer"]["refused"].as_u64().unwrap(), 1, "the corrupt JPEG: {s}");
     assert!(err.contains("16UC1") && err.contains("not supported"), "{err}");
+    // the camera was set once (every frame of phase 1 had the same CameraInfo), its distortion
+    // warned of once
+    assert_eq!(err.matches("camera intrinsics from /camera/camera_info: fx 700").count(), 1, "{err}");
+    assert!(!err.contains("camera intrinsics from /camera/camera_info changed"), "{err}");
+    assert_eq!(err.matches("is ignored: relative poses take the images as undistorted").count(), 1, "{err}");
+    eprintln!("{posed} of the 10 frames of phase 1 carry a relative pose");
     // a clean start and a clean Ctrl-C: no error line (the GPU probe's XDG_RUNTIME_DIR complaint,
     // the DDS stack's teardown)
     assert!(!err.contains("ERROR") && !err.contains("XDG_RUNTIME_DIR"), "{err}");

@@ -7,9 +7,12 @@ PLAN: {"frames": [{"kind": "jpeg"|"png"|"rgb8"|"bgr8"|"mono8"|"16UC1", "file": P
         "width": W, "height": H, "sec": S, "nanosec": N}, ...],
        "wait": true|false,        # wait for each frame's answer before the next (else a burst)
        "expect": N,               # answers to wait for at the end
-       "timeout": SECONDS}
+       "timeout": SECONDS,
+       "camera_info": {"topic": T, "width": W, "height": H, "k": [9], "d": [...],
+                       "distortion_model": M}}   # optional
 Raw kinds read FILE as packed pixels (rgb8: RGB, bgr8: BGR, mono8: grey); jpeg/png send FILE's
-bytes as a CompressedImage. OUT: {"matches": [...], "closures": [...], "poses": [...], "published": n}.
+bytes as a CompressedImage. With camera_info, a sensor_msgs/CameraInfo goes on T (sensor data QoS)
+just before every frame, under the frame's stamp, as a camera driver publishes it. OUT: {"matches": [...], "closures": [...], "poses": [...], "published": n}.
 """
 
 import json
@@ -21,7 +24,7 @@ from rclpy.node import Node
 from geometry_msgs.msg import PoseStamped
 from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy, qos_profile_sensor_data
 from semlook_msgs.msg import LoopClosure, PlaceMatch
-from sensor_msgs.msg import CompressedImage, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 
 def as_dict(m):
@@ -44,6 +47,11 @@ def as_dict(m):
         "inliers": m.inliers,
         "map_generation": m.map_generation,
         "latency_ms": m.latency_ms,
+        "has_relative_pose": m.has_relative_pose,
+        "relative_rotation": [float(v) for v in m.relative_rotation],
+        "relative_translation": [float(v) for v in m.relative_translation],
+        "relative_rotation_deg": m.relative_rotation_deg,
+        "pose_inliers": m.pose_inliers,
     }
 
 
@@ -64,6 +72,8 @@ def main(plan_path, out_path):
     node = Node("semlook_test_peer")
     raw = node.create_publisher(Image, "/camera/image_raw", qos_profile_sensor_data)
     comp = node.create_publisher(CompressedImage, "/camera/image_raw/compressed", qos_profile_sensor_data)
+    cam = plan.get("camera_info")
+    info_pub = node.create_publisher(CameraInfo, cam["topic"], qos_profile_sensor_data) if cam else None
     matches, closures, poses = [], [], []
     reliable = QoSProfile(
         reliability=QoSReliabilityPolicy.RELIABLE,
@@ -100,6 +110,15 @@ def main(plan_path, out_path):
             m.data = data
             pub = raw
         m.header.stamp.sec, m.header.stamp.nanosec, m.header.frame_id = f["sec"], f["nanosec"], "cam0"
+        if info_pub is not None:
+            info = CameraInfo()
+            info.header = m.header
+            info.width, info.height, info.distortion_model = cam["width"], cam["height"], cam.get("distortion_model", "")
+            info.d, info.k = [float(v) for v in cam.get("d", [])], [float(v) for v in cam["k"]]
+            info.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+            k = info.k
+            info.p = [k[0], 0.0, k[2], 0.0, 0.0, k[4], k[5], 0.0, 0.0, 0.0, 1.0, 0.0]
+            info_pub.publish(info)
         before = len(matches)
         pub.publish(m)
         published += 1

@@ -260,6 +260,15 @@ impl Localizer {
     /// frames); a frame of another aspect ratio gets no pose. A map without verification
     /// keypoints is refused.
     pub fn with_camera(mut self, camera: Camera) -> Result<Localizer> {
+        self.set_camera(camera)?;
+        Ok(self)
+    }
+
+    /// [`with_camera`](Self::with_camera) on a localizer already running (a ROS 2 node's camera
+    /// intrinsics come on a topic, after the localizer has started): the same checks, then the
+    /// frames pushed from now on get relative poses with these intrinsics (replacing any the
+    /// localizer had). Refused (the intrinsics or the map), the localizer keeps the camera it had.
+    pub fn set_camera(&mut self, camera: Camera) -> Result<()> {
         camera.check().map_err(|r| Error::invalid("camera intrinsics", r))?;
         if self.encoder.keypoint_dim() == 0 {
             return Err(Error::invalid(
@@ -270,7 +279,7 @@ impl Localizer {
         let classes = crate::classes::ClassTable::from_config(&self.cfg.classes)?;
         let vp = VerifyParams::for_config(&self.cfg.verification, &classes)?;
         self.camera = Some((camera, vp));
-        Ok(self)
+        Ok(())
     }
 
     /// How label files of [`Pixels::Files`] frames encode classes (default: ids).
