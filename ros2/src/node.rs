@@ -261,17 +261,15 @@ impl CameraSlot {
 }
 
 /// The localizer thread gives the localizer the intrinsics waiting in `slot`, if any, and says so.
-fn apply_camera(loc: &mut Localizer, slot: Option<&CameraSlot>, current: &mut Option<Camera>) {
+fn apply_camera(loc: &mut Localizer, slot: Option<&CameraSlot>) {
     let Some((slot, c)) = slot.and_then(|s| s.take().map(|c| (s, c))) else { return };
     let says = |c: &Camera| format!("fx {}, fy {}, cx {}, cy {} for {}x{} pixels", c.fx, c.fy, c.cx, c.cy, c.width, c.height);
+    let was = loc.camera();
     match loc.set_camera(c) {
-        Ok(()) => {
-            match current {
-                None => log::info!("camera intrinsics from {}: {}; accepted matches carry relative poses from now on", slot.topic, says(&c)),
-                Some(was) => log::info!("camera intrinsics from {} changed: {} (were {})", slot.topic, says(&c), says(was)),
-            }
-            *current = Some(c);
-        }
+        Ok(()) => match was {
+            None => log::info!("camera intrinsics from {}: {}; accepted matches carry relative poses from now on", slot.topic, says(&c)),
+            Some(was) => log::info!("camera intrinsics from {} changed: {} (were {})", slot.topic, says(&c), says(&was)),
+        },
         Err(e) => log::warn!("camera intrinsics from {} not used: {e}", slot.topic),
     }
 }
@@ -409,16 +407,10 @@ pub fn run(p: Params) -> Result<(), NodeError> {
     };
     // the map is opened once: its configuration, then the localizer over it (in loop-closure
     // mode a folder without a map gets one from the stream)
-    let map = match p.loop_closure {
-        true => Map::open_if_exists(&p.map)?,
-        false => Some(Map::open(&p.map)?),
-    };
+    let map = Localizer::open_map(&p.map, p.loop_closure)?;
     let cfg = config(&p, map.as_ref())?;
     let opts = StreamOptions { setting, sequence: p.sequence, loop_closure: p.loop_closure, ..Default::default() };
-    let mut loc = match map {
-        Some(m) => Localizer::new(m, cfg, opts, engine)?,
-        None => Localizer::loop_closure(&p.map, cfg, opts, engine)?,
-    };
+    let mut loc = Localizer::over(map, &p.map, cfg, opts, engine)?;
     if let Some(c) = camera {
         loc = loc.with_camera(c).map_err(|source| NodeError::EngineParam { param: "camera_info", source })?;
     }
@@ -641,7 +633,6 @@ fn localize(
 ) -> (semlook::stream::StreamCounts, semlook::stream::LatencySummary) {
     let mut stats = LatencyStats::default();
     let mut checked = Instant::now();
-    let mut intrinsics = None;
     loop {
         if refresh.is_some_and(|r| checked.elapsed() >= r) {
             checked = Instant::now();
@@ -657,7 +648,7 @@ fn localize(
             }
             continue;
         };
-        apply_camera(&mut loc, camera, &mut intrinsics);
+        apply_camera(&mut loc, camera);
         let id = frame_id(&f.header);
         let frame = StreamFrame { id: id.clone(), pixels: f.pixels, timestamp: Some(f.header.stamp.seconds()) };
         let refused = loc.counts().refused;

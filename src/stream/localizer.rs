@@ -167,24 +167,42 @@ impl Localizer {
         Localizer::with_map(map, cfg, opts, engine, Some(state))
     }
 
-    /// A localizer over the map in `dir` ([`Localizer::new`] once it is open); in loop-closure
-    /// mode a folder without a map gets one from the stream ([`Localizer::loop_closure`]).
-    pub fn open(dir: &Path, cfg: Option<Config>, opts: StreamOptions, engine: Engine) -> Result<Localizer> {
-        if opts.loop_closure {
-            return Localizer::loop_closure(dir, cfg, opts, engine);
+    /// The map a stream over `dir` runs on, opened once (a caller may read its configuration
+    /// before [`Localizer::over`]): `None` only in loop-closure mode for a folder without a map
+    /// (a new one, or a first build not committed).
+    pub fn open_map(dir: &Path, loop_closure: bool) -> Result<Option<Map>> {
+        match loop_closure {
+            true => Map::open_if_exists(dir),
+            false => Map::open(dir).map(Some),
         }
-        Localizer::new(Map::open(dir)?, cfg, opts, engine)
     }
 
-    /// Loop-closure mode on the map in `dir`: an existing map is opened and gets the stream's
-    /// traversal ([`Localizer::new`]); where there is none, one is created, its codebook trained
-    /// on the first min(`appearance.codebook_images`, `stream.exclude_frames`) frames (answered
-    /// without a match: nothing older exists to match them against).
-    pub fn loop_closure(dir: &Path, cfg: Option<Config>, opts: StreamOptions, engine: Engine) -> Result<Localizer> {
-        let opts = StreamOptions { loop_closure: true, sequence: true, ..opts };
-        if let Some(map) = Map::open_if_exists(dir)? {
-            return Localizer::new(map, cfg, opts, engine);
+    /// A localizer over what [`Localizer::open_map`] gave for `dir`: [`Localizer::new`] over the
+    /// map, or, in loop-closure mode without one, a map started from the stream (its codebook
+    /// trained on the first min(`appearance.codebook_images`, `stream.exclude_frames`) frames,
+    /// answered without a match: nothing older exists to match them against).
+    pub fn over(map: Option<Map>, dir: &Path, cfg: Option<Config>, opts: StreamOptions, engine: Engine) -> Result<Localizer> {
+        match map {
+            Some(map) => Localizer::new(map, cfg, opts, engine),
+            None if opts.loop_closure => Localizer::create(dir, cfg, opts, engine),
+            None => Localizer::new(Map::open(dir)?, cfg, opts, engine),
         }
+    }
+
+    /// A localizer over the map in `dir` ([`Localizer::open_map`], then [`Localizer::over`]).
+    pub fn open(dir: &Path, cfg: Option<Config>, opts: StreamOptions, engine: Engine) -> Result<Localizer> {
+        Localizer::over(Localizer::open_map(dir, opts.loop_closure)?, dir, cfg, opts, engine)
+    }
+
+    /// Loop-closure mode on the map in `dir` ([`Localizer::open`] with `opts.loop_closure`): an
+    /// existing map gets the stream's traversal, a folder without one gets a map from the stream.
+    pub fn loop_closure(dir: &Path, cfg: Option<Config>, opts: StreamOptions, engine: Engine) -> Result<Localizer> {
+        Localizer::open(dir, cfg, StreamOptions { loop_closure: true, ..opts }, engine)
+    }
+
+    /// Loop-closure mode in `dir`, which holds no map yet.
+    fn create(dir: &Path, cfg: Option<Config>, opts: StreamOptions, engine: Engine) -> Result<Localizer> {
+        let opts = StreamOptions { loop_closure: true, sequence: true, ..opts };
         // a stream killed before its map's first commit left no map: it starts anew (files of the
         // unfinished build taken over with `resume`)
         MapWriter::check_new_dir(dir, opts.resume)?;
@@ -286,6 +304,11 @@ impl Localizer {
     pub fn with_label_format(mut self, format: LabelFormat) -> Localizer {
         self.format = format;
         self
+    }
+
+    /// The camera intrinsics of the relative poses ([`Localizer::set_camera`]), if any.
+    pub fn camera(&self) -> Option<Camera> {
+        self.camera.as_ref().map(|(c, _)| *c)
     }
 
     /// The map generation frames are answered from (`None` while a loop-closure map warms up).

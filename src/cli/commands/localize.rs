@@ -6,7 +6,6 @@ use super::shared::{apply_models, info, load_config, map_config};
 use crate::cli::args::LocalizeArgs;
 use semlook::engine::Engine;
 use semlook::error::{Error, Result};
-use semlook::map::Map;
 use semlook::stream::input::{folder_frames, ImageStream};
 use semlook::stream::{replay, FrameResult, Localizer, Pixels, Replayed, StreamFrame, StreamOptions};
 use std::time::Instant;
@@ -30,10 +29,7 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
         None => None,
     };
     // the map is opened once: its configuration, then the localizer over it
-    let map = match a.loop_closure {
-        true => Map::open_if_exists(&a.map)?,
-        false => Some(Map::open(&a.map)?),
-    };
+    let map = Localizer::open_map(&a.map, a.loop_closure)?;
     let mut cfg = match &map {
         Some(m) => map_config(m, a.config.as_deref(), &a.models)?,
         None => apply_models(load_config(a.config.as_deref())?, &a.models),
@@ -50,11 +46,7 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
         labelled_frames: a.labels.is_some(),
         resume: a.resume,
     };
-    let loc = match map {
-        Some(m) => Localizer::new(m, Some(cfg), opts, engine)?,
-        None => Localizer::loop_closure(&a.map, Some(cfg), opts, engine)?,
-    };
-    let mut loc = loc.with_label_format(a.label_format.unwrap_or_default());
+    let mut loc = Localizer::over(map, &a.map, Some(cfg), opts, engine)?.with_label_format(a.label_format.unwrap_or_default());
     if let Some(c) = camera {
         loc = loc.with_camera(c)?;
     }
