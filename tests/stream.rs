@@ -228,6 +228,9 @@ fn closes_the_loop(map: &Path, cfg: &Config, setting: Setting, first_pass: &[Fra
     let (mut first, mut second) = (vec![], vec![]);
     for (k, f) in first_pass.iter().chain(second_pass).enumerate() {
         let r = l.push(frame(f)).unwrap();
+        // each generation the stream moved to was checked before it answered from it (the
+        // checks of a large map are not paid by a frame: Map::prepare)
+        assert_eq!(l.map().map_or(0, Map::unchecked), 0, "frame {k}: files of the map unchecked");
         if let Some(c) = &r.closure {
             // never a recent frame: the match is older than the excluded window
             assert!(c.place.index as usize + cfg.stream.exclude_frames <= k, "frame {k} closed on {}", c.place.index);
@@ -435,4 +438,28 @@ fn the_velocity_range_follows_the_frame_rates_of_map_and_stream() {
     assert!(with >= 0.9, "with timestamps: {with:.2} near");
     assert!(with > without, "with timestamps {with:.2}, without {without:.2}");
     assert!(untimed_counts.velocity_edge > timed_counts.velocity_edge, "{untimed_counts:?} against {timed_counts:?}");
+}
+
+/// A damaged map is refused when the stream starts, naming the file, not at its first frame:
+/// the localizer runs the map's checks before it answers (Map::prepare); before, it opened and
+/// the first frame's search found the damage. Seen failing with the checks left to the search.
+#[test]
+fn a_damaged_map_is_refused_when_the_stream_starts() {
+    let dir = tempfile::tempdir().unwrap();
+    let map = dir.path().join("map");
+    let cfg = Config::without_appearance();
+    let set = common::encode(&cfg, &common::label_maps(4, 80, 60), "r");
+    let m = Map::create(&map, &cfg.encoding(), &set, None).unwrap();
+    let seg = map.join(&m.manifest.segments[0].file);
+    drop(m);
+    let mut bytes = std::fs::read(&seg).unwrap();
+    let k = bytes.len() - 2;
+    bytes[k] ^= 0x10;
+    std::fs::write(&seg, &bytes).unwrap();
+    let opened = Localizer::open(&map, Some(cfg), StreamOptions { setting: Setting::Global, ..Default::default() }, Engine::cpu());
+    match opened {
+        Err(semlook::error::Error::CorruptMap { path, .. }) => assert_eq!(path, seg),
+        Err(e) => panic!("refused otherwise: {e}"),
+        Ok(_) => panic!("a damaged map opened for a stream"),
+    }
 }

@@ -47,28 +47,51 @@ impl Encoder {
         let forest = local::build_forest(&objects, &self.cfg.local);
         let forest_ms = ms_since(t);
         let mut times = StageTimes { global_ms, forest_ms, ..loaded.times };
-        let (vlad, verification) = match (&self.appearance, &loaded.rgb) {
-            (Some(a), Some(rgb)) => {
-                let t = Instant::now();
-                let (input, verification, network_ms) = a.describe(rgb, &loaded.labels, &objects, keypoints)?;
-                // a network run elsewhere (on the device) counts as it took there
-                let elsewhere = if network_ms.is_none() { keypoints.map_or(0.0, |f| f.network_ms) } else { 0.0 };
-                times.network_ms = network_ms.unwrap_or(elsewhere);
-                times.appearance_ms = ms_since(t) + elsewhere;
-                (Some(input), verification)
+        let embed = || -> Result<(Vec<f32>, f64)> {
+            match (&self.embedder, &loaded.rgb) {
+                (Some(e), Some(rgb)) => {
+                    let t = Instant::now();
+                    let v = e.embed(rgb).map_err(|err| err.named(|r| Error::invalid(format!("frame {id:?}"), r)))?;
+                    Ok((v, ms_since(t)))
+                }
+                _ => Ok((vec![], 0.0)),
             }
-            (Some(_), None) => return Err(Error::invalid(format!("frame {id:?}"), "appearance needs the RGB image")),
-            _ => (None, Default::default()),
         };
-        let embedding = match (&self.embedder, &loaded.rgb) {
-            (Some(e), Some(rgb)) => {
-                let t = Instant::now();
-                let v = e.embed(rgb).map_err(|err| err.named(|r| Error::invalid(format!("frame {id:?}"), r)))?;
-                times.embedding_ms = ms_since(t);
-                v
+        let describe = |times: &mut StageTimes| -> Result<(Option<VladInput>, _)> {
+            match (&self.appearance, &loaded.rgb) {
+                (Some(a), Some(rgb)) => {
+                    let t = Instant::now();
+                    let (input, verification, network_ms) = a.describe(rgb, &loaded.labels, &objects, keypoints)?;
+                    // a network run elsewhere (on the device) counts as it took there
+                    let elsewhere = if network_ms.is_none() { keypoints.map_or(0.0, |f| f.network_ms) } else { 0.0 };
+                    times.network_ms = network_ms.unwrap_or(elsewhere);
+                    times.appearance_ms = ms_since(t) + elsewhere;
+                    Ok((Some(input), verification))
+                }
+                (Some(_), None) => Err(Error::invalid(format!("frame {id:?}"), "appearance needs the RGB image")),
+                _ => Ok((None, Default::default())),
             }
-            _ => vec![],
         };
+        // a frame encoded alone (a stream's, outside any thread pool): the embedding runs beside
+        // the appearance stage, each network on its own session (the same threads as one after
+        // the other, so the same values), about 15 % of a streamed frame on 2 cores (docs/streams.md);
+        // inside the pool each worker encodes frames of its own one after the other
+        let beside = rayon::current_thread_index().is_none() && self.embedder.is_some() && self.appearance.is_some();
+        let ((vlad, verification), (embedding, embedding_ms)) = if beside {
+            let t = Instant::now();
+            let (described, embedded) = std::thread::scope(|sc| {
+                let other = sc.spawn(embed);
+                let described = describe(&mut times).map(|d| (d, ms_since(t)));
+                (described, other.join().unwrap_or_else(|_| Err(Error::invalid(format!("frame {id:?}"), "the embedding's thread panicked"))))
+            });
+            let ((described, described_ms), embedded) = (described?, embedded?);
+            // what ran here (a network run on the device is counted in appearance_ms, not here)
+            times.overlap_ms = (described_ms + embedded.1 - ms_since(t)).max(0.0);
+            (described, embedded)
+        } else {
+            (describe(&mut times)?, embed()?)
+        };
+        times.embedding_ms = embedding_ms;
         let compact_hog = match (self.compact_hog, &loaded.rgb) {
             (true, Some(rgb)) => {
                 // rounded to f16, what a map stores: a stored image reads back the same

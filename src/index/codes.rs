@@ -226,6 +226,18 @@ impl MappedCodes {
         self.by_list.get_or_init(|| Inverted::new(self.n, self.lists.max(1), |j| self.list(j) as usize))
     }
 
+    /// Whether [`Self::check`] has run (here or, inherited, on an earlier generation).
+    pub fn checked(&self) -> bool {
+        self.checked.get().is_some()
+    }
+    /// Takes over `prev`'s [`Self::check`] result where `prev` maps the same file with the same
+    /// checksum (codes files never change once in place), so a reopened map does not check it again.
+    pub fn inherit(&self, prev: &MappedCodes) {
+        if let (true, Some(found)) = (prev.path == self.path && prev.sha256 == self.sha256, prev.checked.get()) {
+            let _ = self.checked.set(found.clone());
+        }
+    }
+
     /// The SHA-256 against the manifest, and every value: lists below the model's, finite positive
     /// scales. Once; later calls give the first answer.
     pub fn check(&self) -> Result<()> {

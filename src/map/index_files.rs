@@ -11,6 +11,7 @@ use crate::error::{Error, Result};
 use crate::index::thumb::ThumbSpec;
 use crate::index::{Codes, MappedCodes, Model};
 use crate::util::sha256_hex;
+use rayon::prelude::*;
 use std::collections::HashSet;
 use std::path::Path;
 
@@ -52,6 +53,37 @@ impl MapIndex {
             codes.push(open_codes(dir, m, ix, s, f)?);
         }
         Ok(Some(MapIndex { entry: ix.clone(), model, thumb: ix.thumb(&m.config.global), codes }))
+    }
+
+    /// Takes over the checks of `prev` (the index of an earlier generation of the same map) for
+    /// the codes files both map.
+    pub(super) fn inherit(&self, prev: &MapIndex) {
+        let old: std::collections::HashMap<&Path, &MappedCodes> = prev.codes.iter().map(|c| (c.path.as_path(), c)).collect();
+        for c in &self.codes {
+            if let Some(p) = old.get(c.path.as_path()) {
+                c.inherit(p);
+            }
+        }
+    }
+
+    /// Codes files not checked yet.
+    pub(super) fn unchecked(&self) -> usize {
+        self.codes.iter().filter(|c| !c.checked()).count()
+    }
+
+    /// Checks every segment's codes and groups their rows by list, in parallel ([`Map::prepare`]):
+    /// the first damaged file in manifest order fails.
+    pub(super) fn prepare(&self) -> Result<()> {
+        let found: Vec<Result<()>> = self
+            .codes
+            .par_iter()
+            .map(|c| {
+                c.check().map_err(Error::in_index)?;
+                c.inverted();
+                Ok(())
+            })
+            .collect();
+        found.into_iter().collect()
     }
 
     /// Checks every segment's codes in full (`map verify`): the check of each, in manifest order

@@ -524,6 +524,19 @@ impl Mapped {
             Some(reason) => Err(Error::corrupt(&self.path, reason.clone())),
         }
     }
+    /// Takes over `prev`'s [`Mapped::ensure`] result where `prev` maps the same file with the same
+    /// checksum and size (segment files never change once in place: a later generation of the
+    /// map shares them), so a reopened map does not check them again.
+    pub fn inherit(&self, prev: &Mapped) {
+        let same = prev.path == self.path && prev.entry.sha256 == self.entry.sha256 && prev.entry.bytes == self.entry.bytes;
+        if let (true, Some(found)) = (same, prev.verified.get()) {
+            let _ = self.verified.set(found.clone());
+        }
+    }
+    /// Whether [`Mapped::ensure`] has run (here or, inherited, on an earlier generation).
+    pub fn checked(&self) -> bool {
+        self.verified.get().is_some()
+    }
     /// The stored verification failure (its reason), if the segment was checked and failed.
     pub fn failure(&self) -> Option<&str> {
         self.verified.get().and_then(|r| r.as_deref())

@@ -14,6 +14,8 @@ pub struct Latency {
     pub encode_ms: f64,
     /// Of `encode_ms`, the keypoint network.
     pub network_ms: f64,
+    /// Of `encode_ms`, the whole-image embedding (0 where a tracked frame goes without).
+    pub embedding_ms: f64,
     /// The coarse stage over the map (or the searched part of it).
     pub coarse_ms: f64,
     /// Re-ranking of the candidates (tree similarity, verification).
@@ -41,6 +43,7 @@ impl Latency {
             segment_ms: f(self.segment_ms, o.segment_ms),
             encode_ms: f(self.encode_ms, o.encode_ms),
             network_ms: f(self.network_ms, o.network_ms),
+            embedding_ms: f(self.embedding_ms, o.embedding_ms),
             coarse_ms: f(self.coarse_ms, o.coarse_ms),
             fine_ms: f(self.fine_ms, o.fine_ms),
             sequence_ms: f(self.sequence_ms, o.sequence_ms),
@@ -105,6 +108,7 @@ impl LatencyStats {
                 segment_ms: field(|l| l.segment_ms),
                 encode_ms: field(|l| l.encode_ms),
                 network_ms: field(|l| l.network_ms),
+                embedding_ms: field(|l| l.embedding_ms),
                 coarse_ms: field(|l| l.coarse_ms),
                 fine_ms: field(|l| l.fine_ms),
                 sequence_ms: field(|l| l.sequence_ms),

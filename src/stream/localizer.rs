@@ -250,6 +250,8 @@ impl Localizer {
             }
         };
         let tracked = lean_encoder(&cfg, &encoder);
+        // the map's checks now, not in the first frame's search (a damaged map is refused here)
+        map.prepare()?;
         Ok(Localizer {
             tracked,
             seq: SequenceMatcher::new(&cfg.sequence),
@@ -365,7 +367,8 @@ impl Localizer {
         if m.generation == old.manifest.generation && m.uid == old.manifest.uid {
             return Ok(false);
         }
-        let new = Map::open(&self.dir)?;
+        let new = old.reopen()?;
+        new.prepare()?;
         let encoder = match new.manifest.uid == old.manifest.uid {
             true => None,
             false => Some(Encoder::for_map(&self.cfg, &new)?.with_hog(self.opts.setting == Setting::Hog)),
@@ -782,6 +785,7 @@ impl Localizer {
         lc.writer = Some(w);
         let map = Map::open(&lc.dir)?;
         crate::matching::check_labels(&map, self.opts.setting)?;
+        map.prepare()?;
         self.map = Some(map);
         Ok(())
     }
@@ -868,6 +872,7 @@ fn add_times(l: &mut Latency, t: &StageTimes) {
     l.segment_ms = t.segment_ms.max(l.segment_ms);
     l.encode_ms = t.encode_ms();
     l.network_ms = t.network_ms;
+    l.embedding_ms = t.embedding_ms;
 }
 
 /// A frame's id and time, what matching needs of it besides its pixels.
