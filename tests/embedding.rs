@@ -332,3 +332,48 @@ fn encoders_follow_the_maps_record() {
     assert!(text.contains("manifest.json") && text.contains("embeddings were made by the network of sha256"), "{text}");
     assert_eq!(verify("without").status.code(), Some(0));
 }
+
+/// A frame encoded alone (a stream's, outside any thread pool) runs the embedding on a thread
+/// beside the appearance stage: the same descriptors, bit for bit, as one after the other (a
+/// pool of one worker runs them so), and `overlap_ms` says how much ran beside, so `encode_ms`
+/// stays the wall clock. Seen failing with the embedding left after the appearance stage
+/// (overlap 0) and with the overlap not subtracted (encode_ms above the wall clock).
+#[test]
+fn a_frame_encoded_alone_runs_the_embedding_beside_the_appearance_stage() {
+    if embedder().is_none() || !common::has_xfeat() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let photo = dir.path().join("frame.png");
+    image::RgbImage::from_fn(480, 360, |x, y| image::Rgb(std::array::from_fn(|c| ((x * x / 7 + 5 * y + 60 * c as u32 + (x ^ y)) % 256) as u8)))
+        .save(&photo)
+        .unwrap();
+    let mut encoder = semlook::encode::Encoder::new(&Config::default()).unwrap().without_labels(true);
+    let a = encoder.appearance_mut().unwrap();
+    let kps = a.model().keypoints(&image::open(&photo).unwrap().to_rgb8()).unwrap();
+    a.train_codebook_from(&[&kps]).unwrap();
+    assert!(encoder.embedding_record().is_some() && encoder.appearance().is_some());
+    let src = semlook::input::FrameSource { id: "frame".into(), image: Some(photo), labels: None };
+    let loaded = encoder.frames().load(&src, Default::default()).unwrap();
+    // warm (the sessions' first run allocates)
+    encoder.encode_loaded("frame", &loaded, &mut Default::default()).unwrap();
+    let t = std::time::Instant::now();
+    let (alone, times) = encoder.encode_loaded("frame", &loaded, &mut Default::default()).unwrap();
+    let wall = t.elapsed().as_secs_f64() * 1e3;
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    let (pooled, pooled_times) = pool.install(|| encoder.encode_loaded("frame", &loaded, &mut Default::default())).unwrap();
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>();
+    assert_eq!(bits(&alone.embedding), bits(&pooled.embedding));
+    assert_eq!(bits(&alone.appearance), bits(&pooled.appearance));
+    assert_eq!(alone, pooled);
+    eprintln!(
+        "alone: appearance {:.1} ms, embedding {:.1} ms, beside {:.1} ms, encode {:.1} ms of {wall:.1} ms; in the pool: overlap {:.1} ms",
+        times.appearance_ms,
+        times.embedding_ms,
+        times.overlap_ms,
+        times.encode_ms(),
+        pooled_times.overlap_ms
+    );
+    assert!(times.overlap_ms > 0.0 && pooled_times.overlap_ms == 0.0);
+    assert!(times.encode_ms() <= wall, "encode_ms {} above the wall clock {wall}", times.encode_ms());
+}
