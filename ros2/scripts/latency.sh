@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Receive-to-publish latency of semlook_node against a real ROS 2 peer (the README's ROS 2 figure):
-# CamVid's 233 frames as the map (built without segmentation, a pose per place from a generated
-# pose list, so every answer also publishes a PoseStamped), the night copy of `semlook synth
+# CamVid's 233 frames as the map (built without segmentation and with the real-time profile, a pose per
+# place from a generated pose list, so every answer also publishes a PoseStamped), the night copy of `semlook synth
 # --from-camvid` (960x720 JPEG) sent by rclpy as CompressedImage, each frame answered before the
 # next, with the real-time profile (configs/stream-realtime.toml) on the CPU. Prints the node's
 # summary line (receive_to_publish_ms p50/p99) and the peer's counts. Loopback DDS only.
@@ -25,7 +25,7 @@ ref=$(ls -d "$work"/camvid/*/images | grep -v night | head -1)
 night=$(ls -d "$work"/camvid/night*/images | head -1)
 # a pose per place: along x, turning slowly about the camera's y axis (world-to-camera quaternion, centre)
 ls "$ref" | awk '{ a = 0.01 * NR; printf "%s %.9f 0 %.9f 0 %d -1 0\n", $1, cos(a / 2), sin(a / 2), NR }' > "$work/poses.txt"
-"$bin" -q --backend cpu map build --images "$ref" --poses "$work/poses.txt" --no-segmenter --map "$work/map"
+"$bin" -q --backend cpu map build --images "$ref" --poses "$work/poses.txt" --no-segmenter --config configs/stream-realtime.toml --map "$work/map"
 "$node" --ros-args -p map:="$work/map" -p backend:=cpu -p config:=configs/stream-realtime.toml -p queue_size:=2 \
     > "$work/node.out" 2> "$work/node.err" &
 pid=$!
