@@ -87,6 +87,36 @@ fn bench(c: &mut Criterion) {
         other => eprintln!("embedding benchmark skipped: {:?}", other.err().map_or("not installed".to_string(), |e| e.to_string())),
     }
     g.finish();
+    streamed_frame(c);
+}
+
+/// A stream's frame (CamVid's first photo, 960x720, worked at 640x480) encoded alone, as a stream
+/// encodes it, with the real-time profile (configs/stream-realtime.toml: no labels, XFeat, VLAD,
+/// the embedding at 320): the embedding on a thread beside the appearance stage (the default), and
+/// after it ([`Encoder::embedding_beside`] off). Needs setup.sh's networks and ../shared's CamVid.
+fn streamed_frame(c: &mut Criterion) {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let photo = root.join("../shared/data/camvid-test/images/0001TP_008550.png");
+    let cfg = match Config::load(&root.join("configs/stream-realtime.toml")) {
+        Ok(cfg) if photo.exists() => cfg,
+        _ => return eprintln!("streamed-frame benchmark skipped: no ../shared/data/camvid-test or no profile"),
+    };
+    let mut enc = match Encoder::new(&cfg) {
+        Ok(e) if e.appearance().is_some() && e.embedding_record().is_some() => e.without_labels(true),
+        _ => return eprintln!("streamed-frame benchmark skipped: XFeat or the embedding network not installed (setup.sh)"),
+    };
+    let src = semlook::input::FrameSource { id: "frame".into(), image: Some(photo), labels: None };
+    let loaded = enc.frames().load(&src, Default::default()).unwrap();
+    let a = enc.appearance_mut().unwrap();
+    let kps = a.model().keypoints(loaded.rgb.as_ref().unwrap()).unwrap();
+    a.train_codebook_from(&[&kps]).unwrap();
+    let after = enc.clone().embedding_beside(false);
+    let mut g = c.benchmark_group("encode_streamed_frame_640x480_realtime_profile");
+    g.bench_function("embedding beside the appearance stage (default)", |b| {
+        b.iter(|| enc.encode_loaded("frame", &loaded, &mut Default::default()).unwrap())
+    });
+    g.bench_function("embedding after the appearance stage", |b| b.iter(|| after.encode_loaded("frame", &loaded, &mut Default::default()).unwrap()));
+    g.finish();
 }
 
 criterion_group! {

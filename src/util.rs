@@ -89,3 +89,11 @@ pub fn available_memory_bytes() -> u64 {
         })
         .map_or(4 << 30, |kb| kb * 1024)
 }
+
+/// Takes over the result of a once-per-process check of a file (`None`: sound, `Some(reason)`:
+/// damaged) that `from` ran where `same` says both are the same file, unless `to` has its own.
+pub(crate) fn take_over_check(to: &std::sync::OnceLock<Option<String>>, from: &std::sync::OnceLock<Option<String>>, same: bool) {
+    if let (true, Some(found)) = (same, from.get()) {
+        let _ = to.set(found.clone());
+    }
+}

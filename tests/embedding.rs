@@ -334,9 +334,9 @@ fn encoders_follow_the_maps_record() {
 }
 
 /// A frame encoded alone (a stream's, outside any thread pool) runs the embedding on a thread
-/// beside the appearance stage: the same descriptors, bit for bit, as one after the other (a
-/// pool of one worker runs them so), and `overlap_ms` says how much ran beside, so `encode_ms`
-/// stays the wall clock. Seen failing with the embedding left after the appearance stage
+/// beside the appearance stage: the same descriptors, bit for bit, as one after the other
+/// (`embedding_beside(false)`, and a pool of one worker), and `overlap_ms` says how much ran
+/// beside, so `encode_ms` stays the wall clock. Seen failing with the embedding left after the appearance stage
 /// (overlap 0) and with the overlap not subtracted (encode_ms above the wall clock).
 #[test]
 fn a_frame_encoded_alone_runs_the_embedding_beside_the_appearance_stage() {
@@ -360,6 +360,9 @@ fn a_frame_encoded_alone_runs_the_embedding_beside_the_appearance_stage() {
     let t = std::time::Instant::now();
     let (alone, times) = encoder.encode_loaded("frame", &loaded, &mut Default::default()).unwrap();
     let wall = t.elapsed().as_secs_f64() * 1e3;
+    let (after, after_times) = encoder.clone().embedding_beside(false).encode_loaded("frame", &loaded, &mut Default::default()).unwrap();
+    assert_eq!(alone, after);
+    assert_eq!(after_times.overlap_ms, 0.0);
     let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
     let (pooled, pooled_times) = pool.install(|| encoder.encode_loaded("frame", &loaded, &mut Default::default())).unwrap();
     let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>();

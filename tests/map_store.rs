@@ -261,27 +261,41 @@ fn a_flipped_byte_anywhere_in_a_segment_is_named_by_verify() {
 fn a_reopened_map_checks_only_what_the_commit_added_and_prepare_names_damage() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("m");
-    let (cfg, _, map) = segmented(&path, 6, 3, ValueType::F32);
+    let (cfg, _, mut map) = segmented(&path, 6, 3, ValueType::F32);
     assert_eq!((map.manifest.segments.len(), map.unchecked()), (2, 2));
-    map.prepare().unwrap();
+    map.prepare(true).unwrap();
     assert_eq!(map.unchecked(), 0);
-    let more = common::encode(&cfg, &common::label_maps(2, 80, 60), "added");
-    Map::open(&path).unwrap().add(&more).unwrap();
+    // this map's own add
+    map.add(&common::encode(&cfg, &common::label_maps(2, 80, 60), "mine")).unwrap();
+    assert_eq!((map.manifest.segments.len(), map.unchecked()), (3, 1), "an add checks again what the map had checked");
+    map.prepare(true).unwrap();
+    // another writer's add
+    Map::open(&path).unwrap().add(&common::encode(&cfg, &common::label_maps(2, 80, 60), "theirs")).unwrap();
     let next = map.reopen().unwrap();
-    assert_eq!(next.manifest.segments.len(), 3);
+    assert_eq!(next.manifest.segments.len(), 4);
     assert_eq!(next.unchecked(), 1, "the reopened map checks again what the generation before checked");
     // a fresh open checks everything again
-    assert_eq!(Map::open(&path).unwrap().unchecked(), 3);
-    // the added segment damaged before its check: prepare names it, the rest is served
-    let added = path.join(&next.manifest.segments[2].file);
+    assert_eq!(Map::open(&path).unwrap().unchecked(), 4);
+    // the added segment damaged before its check: prepare names it
+    let added = path.join(&next.manifest.segments[3].file);
     let mut bytes = std::fs::read(&added).unwrap();
     let k = bytes.len() - 1;
     bytes[k] ^= 1;
     std::fs::write(&added, &bytes).unwrap();
     let reopened = next.reopen().unwrap();
-    let e = reopened.prepare().unwrap_err();
+    let e = reopened.prepare(true).unwrap_err();
     assert!(matches!(&e, Error::CorruptMap { path, .. } if path == &added), "{e:?}");
     assert_eq!(reopened.unchecked(), 0);
+    // a generation of another map in the same folder (a rebuild: another uid) takes nothing over
+    let again = Map::open(&path).unwrap();
+    again.inherit_checks(&reopened);
+    assert_eq!(again.unchecked(), 0);
+    let mut rebuilt = Map::open(&path).unwrap();
+    rebuilt.manifest.uid.push_str("-rebuilt");
+    let fresh = Map::open(&path).unwrap();
+    fresh.inherit_checks(&reopened);
+    rebuilt.inherit_checks(&reopened);
+    assert_eq!((fresh.unchecked(), rebuilt.unchecked()), (0, 4), "checks taken over from another map's generation");
 }
 
 #[test]

@@ -463,3 +463,45 @@ fn a_damaged_map_is_refused_when_the_stream_starts() {
         Ok(_) => panic!("a damaged map opened for a stream"),
     }
 }
+
+/// A new generation with a damaged file (another writer's add, damaged on disk): `refresh` refuses
+/// it, naming the file, the stream goes on answering from the old one, the next try is refused
+/// again (at once: its checks are kept), and a later generation is checked anew and taken up once
+/// the damage is gone. Seen failing with the checks left out of `refresh` (the damaged generation
+/// taken up, its first search failing) and with a refused generation's checks kept for the next.
+#[test]
+fn a_damaged_new_generation_is_refused_and_the_stream_goes_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let map = dir.path().join("map");
+    let cfg = Config::without_appearance();
+    let maps = common::label_maps(6, 80, 60);
+    let set = common::encode(&cfg, &maps[..4], "r");
+    drop(Map::create(&map, &cfg.encoding(), &set, None).unwrap());
+    let mut l = Localizer::open(&map, Some(cfg.clone()), StreamOptions { setting: Setting::Global, ..Default::default() }, Engine::cpu()).unwrap();
+    let push =
+        |l: &mut Localizer, k: usize| l.push(StreamFrame { id: format!("q{k}"), pixels: Pixels::Labels(maps[k % 4].clone()), timestamp: None });
+    let first = push(&mut l, 0).unwrap();
+    // another writer adds two places; the new segment is damaged on disk
+    let mut other = Map::open(&map).unwrap();
+    other.add(&common::encode(&cfg, &maps[4..], "added")).unwrap();
+    let seg = map.join(&other.manifest.segments[1].file);
+    let good = std::fs::read(&seg).unwrap();
+    let mut bad = good.clone();
+    let k = bad.len() - 3;
+    bad[k] ^= 0x40;
+    std::fs::write(&seg, &bad).unwrap();
+    for _ in 0..2 {
+        match l.refresh() {
+            Err(semlook::error::Error::CorruptMap { path, .. }) => assert_eq!(path, seg),
+            other => panic!("the damaged generation was not refused: {other:?}"),
+        }
+        let r = push(&mut l, 1).unwrap();
+        assert_eq!(r.generation, first.generation, "answered from the damaged generation");
+    }
+    // the file mended and another generation committed: that one is checked anew and taken up
+    std::fs::write(&seg, &good).unwrap();
+    other.add(&common::encode(&cfg, &maps[..1], "more")).unwrap();
+    assert!(l.refresh().unwrap());
+    let r = push(&mut l, 2).unwrap();
+    assert_eq!(r.generation, other.manifest.generation);
+}

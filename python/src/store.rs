@@ -37,6 +37,8 @@ impl PyMap {
     pub fn replace(&self, m: Map) {
         let mut cur = self.current.write().unwrap_or_else(|p| p.into_inner());
         if m.manifest.generation >= cur.manifest.generation {
+            // the files both generations hold are not checked again
+            m.inherit_checks(&cur);
             *cur = Arc::new(m);
         }
     }

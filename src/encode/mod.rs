@@ -79,6 +79,9 @@ pub struct Encoder {
     /// Whether each image also gets a compact HOG ([`crate::global::hog::compact_hog`]): maps of small
     /// frames store one ([`Encoder::small_frames`]), and their queries then need one.
     compact_hog: bool,
+    /// Whether a frame encoded alone (outside a thread pool) runs the embedding beside the
+    /// appearance stage ([`Encoder::embedding_beside`]).
+    beside: bool,
 }
 
 impl Encoder {
@@ -106,7 +109,18 @@ impl Encoder {
             embedder,
             map_labelled: None,
             compact_hog: false,
+            beside: true,
         })
+    }
+    /// Whether a frame encoded alone, outside a thread pool (a stream's), runs the whole-image
+    /// embedding on a thread beside the appearance stage (the keypoint network and its
+    /// decoding; VLAD follows) rather than after it: on by default. The descriptors are the same
+    /// either way (each network keeps its session); the time differs (benches/encode.rs,
+    /// `encode_streamed_frame_640x480_realtime_profile`). Frames encoded inside a pool, one per
+    /// worker, always run them one after the other.
+    pub fn embedding_beside(mut self, on: bool) -> Encoder {
+        self.beside = on;
+        self
     }
     /// Whether each image also gets a compact HOG (needs appearance on: it is computed from the
     /// RGB image the keypoint network sees; without appearance, none).

@@ -73,10 +73,9 @@ impl Encoder {
             }
         };
         // a frame encoded alone (a stream's, outside any thread pool): the embedding runs beside
-        // the appearance stage, each network on its own session (the same threads as one after
-        // the other, so the same values), about 15 % of a streamed frame on 2 cores (docs/streams.md);
-        // inside the pool each worker encodes frames of its own one after the other
-        let beside = rayon::current_thread_index().is_none() && self.embedder.is_some() && self.appearance.is_some();
+        // the appearance stage, each network on its own session (so the same values); inside the
+        // pool each worker encodes frames of its own one after the other (Encoder::embedding_beside)
+        let beside = self.beside && rayon::current_thread_index().is_none() && self.embedder.is_some() && self.appearance.is_some();
         let ((vlad, verification), (embedding, embedding_ms)) = if beside {
             let t = Instant::now();
             let (described, embedded) = std::thread::scope(|sc| {

@@ -233,9 +233,7 @@ impl MappedCodes {
     /// Takes over `prev`'s [`Self::check`] result where `prev` maps the same file with the same
     /// checksum (codes files never change once in place), so a reopened map does not check it again.
     pub fn inherit(&self, prev: &MappedCodes) {
-        if let (true, Some(found)) = (prev.path == self.path && prev.sha256 == self.sha256, prev.checked.get()) {
-            let _ = self.checked.set(found.clone());
-        }
+        crate::util::take_over_check(&self.checked, &prev.checked, prev.path == self.path && prev.sha256 == self.sha256);
     }
 
     /// The SHA-256 against the manifest, and every value: lists below the model's, finite positive

@@ -55,41 +55,25 @@ impl MapIndex {
         Ok(Some(MapIndex { entry: ix.clone(), model, thumb: ix.thumb(&m.config.global), codes }))
     }
 
-    /// Takes over the checks of `prev` (the index of an earlier generation of the same map) for
-    /// the codes files both map.
-    pub(super) fn inherit(&self, prev: &MapIndex) {
-        let old: std::collections::HashMap<&Path, &MappedCodes> = prev.codes.iter().map(|c| (c.path.as_path(), c)).collect();
-        for c in &self.codes {
-            if let Some(p) = old.get(c.path.as_path()) {
-                c.inherit(p);
-            }
-        }
-    }
-
     /// Codes files not checked yet.
     pub(super) fn unchecked(&self) -> usize {
         self.codes.iter().filter(|c| !c.checked()).count()
     }
 
-    /// Checks every segment's codes and groups their rows by list, in parallel ([`Map::prepare`]):
-    /// the first damaged file in manifest order fails.
+    /// Checks every segment's codes ([`MapIndex::verify_all`]) and groups their rows by list
+    /// ([`super::Map::prepare`]): the first damaged file in manifest order fails.
     pub(super) fn prepare(&self) -> Result<()> {
-        let found: Vec<Result<()>> = self
-            .codes
-            .par_iter()
-            .map(|c| {
-                c.check().map_err(Error::in_index)?;
-                c.inverted();
-                Ok(())
-            })
-            .collect();
-        found.into_iter().collect()
+        self.verify_all().into_iter().try_for_each(|(_, r)| r)?;
+        self.codes.par_iter().for_each(|c| {
+            c.inverted();
+        });
+        Ok(())
     }
 
-    /// Checks every segment's codes in full (`map verify`): the check of each, in manifest order
+    /// Checks every segment's codes in full (`map verify`), in parallel: the check of each, in manifest order
     /// (a damaged one's an [`Error::DamagedIndex`]).
     pub fn verify_all(&self) -> Vec<(&Path, Result<()>)> {
-        self.codes.iter().map(|c| (c.path.as_path(), c.check().map_err(Error::in_index))).collect()
+        self.codes.par_iter().map(|c| (c.path.as_path(), c.check().map_err(Error::in_index))).collect()
     }
 }
 

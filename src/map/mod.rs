@@ -220,42 +220,57 @@ impl Map {
         self.verify_all().into_iter().try_for_each(|(_, r)| r)
     }
 
-    /// The map's newest generation in the same folder ([`Map::open`]), without checking again
-    /// what this generation checked and the new one shares (its segment and index files: they
-    /// never change once in place): a stream that commits to a large map every few frames moves
-    /// to each new generation at the cost of the files the commit added.
+    /// The map's newest generation in the same folder ([`Map::open`]) with the checks of this one
+    /// taken over ([`Map::inherit_checks`]): a stream that commits to a large map every few frames
+    /// moves to each new generation checking only the files the commit added.
     pub fn reopen(&self) -> Result<Map> {
         let new = Map::open(&self.path)?;
-        let old: std::collections::HashMap<&Path, &Mapped> = self.segments.iter().map(|s| (s.path.as_path(), s)).collect();
-        for seg in &new.segments {
-            if let Some(prev) = old.get(seg.path.as_path()) {
-                seg.inherit(prev);
-            }
-        }
-        if let (Some(ix), Some(prev)) = (&new.index, &self.index) {
-            ix.inherit(prev);
-        }
+        new.inherit_checks(self);
         Ok(new)
     }
 
+    /// Takes over the checks `prev` ran (or found failing) of the segment and index files this
+    /// map shares with it: the same path, checksum and size in a generation of the same map
+    /// (its uid; a rebuild makes a new one), whose files never change once in place.
+    pub fn inherit_checks(&self, prev: &Map) {
+        if prev.manifest.uid != self.manifest.uid || prev.path != self.path {
+            return;
+        }
+        let old: std::collections::HashMap<&Path, &Mapped> = prev.segments.iter().map(|s| (s.path.as_path(), s)).collect();
+        for seg in &self.segments {
+            if let Some(p) = old.get(seg.path.as_path()) {
+                seg.inherit(p);
+            }
+        }
+        if let (Some(ix), Some(pix)) = (&self.index, &prev.index) {
+            let old: std::collections::HashMap<&Path, &crate::index::MappedCodes> = pix.codes.iter().map(|c| (c.path.as_path(), c)).collect();
+            for c in &ix.codes {
+                if let Some(p) = old.get(c.path.as_path()) {
+                    c.inherit(p);
+                }
+            }
+        }
+    }
+
     /// Files (segments, index codes) whose checks have not run in this process: 0 after
-    /// [`Map::prepare`].
+    /// [`Map::prepare`] with the index.
     pub fn unchecked(&self) -> usize {
         self.segments.iter().filter(|s| !s.checked()).count() + self.index.as_ref().map_or(0, |ix| ix.unchecked())
     }
 
     /// Runs now, in parallel, the checks a map otherwise runs where a search first reads a file:
-    /// every segment's checksum and values and the index's codes (but what [`Map::reopen`] took
-    /// over), and groups the index's rows by list. A stream does this before its first frame,
-    /// which is then answered at the stream's pace (at 100,000 places the checks took 3-6 s),
-    /// and a damaged map is refused before the stream starts rather than at its first frame.
-    /// Fails with the first damaged file in manifest order, segments before the index
+    /// every segment's checksum and values and, with `index` (a search that will read the index:
+    /// [`crate::matching::searches_index`]), the index's codes, whose rows it also groups by list;
+    /// what [`Map::inherit_checks`] took over is not run again. A stream does this before its
+    /// first frame, which is then answered at the stream's pace (at 100,000 places the checks
+    /// took 3-6 s), and a damaged map is refused before the stream starts rather than at its first
+    /// frame. Fails with the first damaged file in manifest order, segments before the index
     /// ([`Error::CorruptMap`], [`Error::DamagedIndex`]).
-    pub fn prepare(&self) -> Result<()> {
+    pub fn prepare(&self, index: bool) -> Result<()> {
         self.check_all()?;
-        match &self.index {
-            Some(ix) => ix.prepare(),
-            None => Ok(()),
+        match (&self.index, index) {
+            (Some(ix), true) => ix.prepare(),
+            _ => Ok(()),
         }
     }
 

@@ -529,9 +529,7 @@ impl Mapped {
     /// map shares them), so a reopened map does not check them again.
     pub fn inherit(&self, prev: &Mapped) {
         let same = prev.path == self.path && prev.entry.sha256 == self.entry.sha256 && prev.entry.bytes == self.entry.bytes;
-        if let (true, Some(found)) = (same, prev.verified.get()) {
-            let _ = self.verified.set(found.clone());
-        }
+        crate::util::take_over_check(&self.verified, &prev.verified, same);
     }
     /// Whether [`Mapped::ensure`] has run (here or, inherited, on an earlier generation).
     pub fn checked(&self) -> bool {

@@ -669,7 +669,9 @@ impl Map {
     pub fn add_in_segments(&mut self, set: &DescriptorSet, per_segment: usize) -> Result<()> {
         let mut w = MapWriter::append(&self.path, StoreOptions { segment_images: per_segment.max(1), ..StoreOptions::default() })?;
         w.push_set(set)?;
-        *self = w.finish()?;
+        let new = w.finish()?;
+        new.inherit_checks(self);
+        *self = new;
         Ok(())
     }
 }

@@ -427,16 +427,21 @@ impl FusedWeights {
     }
 }
 
+/// Whether `cfg` has a search of `places` references go through their approximate index where
+/// there is one (`index.search`; `auto`: from `index.min_places` references).
+pub fn searches_index(cfg: &Config, places: usize) -> bool {
+    match cfg.index.search {
+        IndexSearch::Exact => false,
+        IndexSearch::Approximate => true,
+        IndexSearch::Auto => places >= cfg.index.min_places,
+    }
+}
+
 /// Whether the fused coarse stage of `queries` against `refs` searches the approximate index:
 /// `index.search` says so (`auto`: from `index.min_places` references), the source has one, and
 /// the queries carry appearance vectors of its width.
 pub fn uses_index(refs: &dyn RefSource, queries: &DescriptorSet, cfg: &Config) -> bool {
-    let wanted = match cfg.index.search {
-        IndexSearch::Exact => false,
-        IndexSearch::Approximate => true,
-        IndexSearch::Auto => refs.len() >= cfg.index.min_places,
-    };
-    wanted && refs.has_index() && queries.appearance_dim == refs.appearance_dim() && queries.appearance_dim > 0
+    searches_index(cfg, refs.len()) && refs.has_index() && queries.appearance_dim == refs.appearance_dim() && queries.appearance_dim > 0
 }
 
 /// The largest SSIM of two descriptors (each window's term is at most 1), with room for rounding.

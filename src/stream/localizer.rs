@@ -74,6 +74,9 @@ pub struct Localizer {
     camera: Option<(Camera, VerifyParams)>,
     /// The size of the frame being located, as it came (the intrinsics' scale).
     frame_size: (u32, u32),
+    /// The newest generation, refused by [`Localizer::refresh`] for a damaged file: a next try
+    /// at the same generation takes its checks over.
+    refused: Option<Map>,
 }
 
 /// Frames in a row whose best trajectory runs at the velocity range's edge before the warning
@@ -230,6 +233,7 @@ impl Localizer {
             tracked: None,
             camera: None,
             frame_size: (0, 0),
+            refused: None,
         })
     }
 
@@ -251,7 +255,7 @@ impl Localizer {
         };
         let tracked = lean_encoder(&cfg, &encoder);
         // the map's checks now, not in the first frame's search (a damaged map is refused here)
-        map.prepare()?;
+        map.prepare(crate::matching::searches_index(&cfg, map.len()))?;
         Ok(Localizer {
             tracked,
             seq: SequenceMatcher::new(&cfg.sequence),
@@ -270,6 +274,7 @@ impl Localizer {
             rate: Rate::default(),
             camera: None,
             frame_size: (0, 0),
+            refused: None,
         })
     }
 
@@ -368,12 +373,22 @@ impl Localizer {
             return Ok(false);
         }
         let new = old.reopen()?;
-        new.prepare()?;
+        // the generation refused last time fails at once; a later one is checked again
+        if let Some(r) = self.refused.as_ref().filter(|r| r.manifest.generation == new.manifest.generation) {
+            new.inherit_checks(r);
+        }
         let encoder = match new.manifest.uid == old.manifest.uid {
             true => None,
             false => Some(Encoder::for_map(&self.cfg, &new)?.with_hog(self.opts.setting == Setting::Hog)),
         };
         crate::matching::check_labels(&new, self.opts.setting)?;
+        // the new files' checks, on this thread between frames; a generation refused for damage
+        // is kept so that the next try takes its checks over and fails at once
+        if let Err(e) = new.prepare(crate::matching::searches_index(&self.cfg, new.len())) {
+            self.refused = Some(new);
+            return Err(e);
+        }
+        self.refused = None;
         if !follow(&mut self.seq, old, &new) {
             self.track = Track::default();
         }
@@ -785,7 +800,7 @@ impl Localizer {
         lc.writer = Some(w);
         let map = Map::open(&lc.dir)?;
         crate::matching::check_labels(&map, self.opts.setting)?;
-        map.prepare()?;
+        map.prepare(crate::matching::searches_index(&self.cfg, map.len()))?;
         self.map = Some(map);
         Ok(())
     }
