@@ -278,10 +278,7 @@ fn a_reopened_map_checks_only_what_the_commit_added_and_prepare_names_damage() {
     assert_eq!(Map::open(&path).unwrap().unchecked(), 4);
     // the added segment damaged before its check: prepare names it
     let added = path.join(&next.manifest.segments[3].file);
-    let mut bytes = std::fs::read(&added).unwrap();
-    let k = bytes.len() - 1;
-    bytes[k] ^= 1;
-    std::fs::write(&added, &bytes).unwrap();
+    common::damage(&added, 1, 1);
     let reopened = next.reopen().unwrap();
     let e = reopened.prepare(true).unwrap_err();
     assert!(matches!(&e, Error::CorruptMap { path, .. } if path == &added), "{e:?}");

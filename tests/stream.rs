@@ -452,10 +452,7 @@ fn a_damaged_map_is_refused_when_the_stream_starts() {
     let m = Map::create(&map, &cfg.encoding(), &set, None).unwrap();
     let seg = map.join(&m.manifest.segments[0].file);
     drop(m);
-    let mut bytes = std::fs::read(&seg).unwrap();
-    let k = bytes.len() - 2;
-    bytes[k] ^= 0x10;
-    std::fs::write(&seg, &bytes).unwrap();
+    common::damage(&seg, 2, 0x10);
     let opened = Localizer::open(&map, Some(cfg), StreamOptions { setting: Setting::Global, ..Default::default() }, Engine::cpu());
     match opened {
         Err(semlook::error::Error::CorruptMap { path, .. }) => assert_eq!(path, seg),
@@ -485,11 +482,7 @@ fn a_damaged_new_generation_is_refused_and_the_stream_goes_on() {
     let mut other = Map::open(&map).unwrap();
     other.add(&common::encode(&cfg, &maps[4..], "added")).unwrap();
     let seg = map.join(&other.manifest.segments[1].file);
-    let good = std::fs::read(&seg).unwrap();
-    let mut bad = good.clone();
-    let k = bad.len() - 3;
-    bad[k] ^= 0x40;
-    std::fs::write(&seg, &bad).unwrap();
+    let good = common::damage(&seg, 3, 0x40);
     for _ in 0..2 {
         match l.refresh() {
             Err(semlook::error::Error::CorruptMap { path, .. }) => assert_eq!(path, seg),

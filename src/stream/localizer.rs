@@ -255,7 +255,7 @@ impl Localizer {
         };
         let tracked = lean_encoder(&cfg, &encoder);
         // the map's checks now, not in the first frame's search (a damaged map is refused here)
-        map.prepare(crate::matching::searches_index(&cfg, map.len()))?;
+        prepare(&map, &cfg)?;
         Ok(Localizer {
             tracked,
             seq: SequenceMatcher::new(&cfg.sequence),
@@ -384,7 +384,7 @@ impl Localizer {
         crate::matching::check_labels(&new, self.opts.setting)?;
         // the new files' checks, on this thread between frames; a generation refused for damage
         // is kept so that the next try takes its checks over and fails at once
-        if let Err(e) = new.prepare(crate::matching::searches_index(&self.cfg, new.len())) {
+        if let Err(e) = prepare(&new, &self.cfg) {
             self.refused = Some(new);
             return Err(e);
         }
@@ -800,7 +800,7 @@ impl Localizer {
         lc.writer = Some(w);
         let map = Map::open(&lc.dir)?;
         crate::matching::check_labels(&map, self.opts.setting)?;
-        map.prepare(crate::matching::searches_index(&self.cfg, map.len()))?;
+        prepare(&map, &self.cfg)?;
         self.map = Some(map);
         Ok(())
     }
@@ -880,6 +880,12 @@ fn follow(seq: &mut SequenceMatcher, old: &Map, new: &Map) -> bool {
     let found: HashMap<&str, usize> = (0..new.len()).map(|i| (new.id(i), i)).filter(|(id, _)| wanted.contains(*id)).collect();
     seq.remap(|p| old.at(p).and_then(|i| found.get(old.id(i))).map(|&j| new.place(j)));
     false
+}
+
+/// The checks of `map` a stream under `cfg` will need (its segments, and the index's codes where
+/// its searches go through the index), run before a frame does.
+fn prepare(map: &Map, cfg: &Config) -> Result<()> {
+    map.prepare(crate::matching::searches_index(cfg, map.len()))
 }
 
 fn add_times(l: &mut Latency, t: &StageTimes) {

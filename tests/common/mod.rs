@@ -183,3 +183,14 @@ pub fn cli_ok(args: &[&str]) -> String {
 pub fn p(path: &Path) -> &str {
     path.to_str().unwrap()
 }
+
+/// Flips the bits `mask` of the byte `from_end` bytes before the end of `path` (a file damaged on
+/// disk); returns the file's bytes as they were.
+pub fn damage(path: &Path, from_end: usize, mask: u8) -> Vec<u8> {
+    let good = std::fs::read(path).unwrap();
+    let mut bad = good.clone();
+    let k = bad.len() - from_end;
+    bad[k] ^= mask;
+    std::fs::write(path, &bad).unwrap();
+    good
+}
