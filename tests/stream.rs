@@ -453,7 +453,8 @@ fn a_damaged_map_is_refused_when_the_stream_starts() {
     let seg = map.join(&m.manifest.segments[0].file);
     drop(m);
     common::damage(&seg, 2, 0x10);
-    let opened = Localizer::open(&map, Some(cfg), StreamOptions { setting: Setting::Global, ..Default::default() }, Engine::cpu());
+    let opened =
+        Localizer::open(&map, Some(cfg), StreamOptions { setting: Setting::Global, labelled_frames: true, ..Default::default() }, Engine::cpu());
     match opened {
         Err(semlook::error::Error::CorruptMap { path, .. }) => assert_eq!(path, seg),
         Err(e) => panic!("refused otherwise: {e}"),
@@ -474,7 +475,13 @@ fn a_damaged_new_generation_is_refused_and_the_stream_goes_on() {
     let maps = common::label_maps(6, 80, 60);
     let set = common::encode(&cfg, &maps[..4], "r");
     drop(Map::create(&map, &cfg.encoding(), &set, None).unwrap());
-    let mut l = Localizer::open(&map, Some(cfg.clone()), StreamOptions { setting: Setting::Global, ..Default::default() }, Engine::cpu()).unwrap();
+    let mut l = Localizer::open(
+        &map,
+        Some(cfg.clone()),
+        StreamOptions { setting: Setting::Global, labelled_frames: true, ..Default::default() },
+        Engine::cpu(),
+    )
+    .unwrap();
     let push =
         |l: &mut Localizer, k: usize| l.push(StreamFrame { id: format!("q{k}"), pixels: Pixels::Labels(maps[k % 4].clone()), timestamp: None });
     let first = push(&mut l, 0).unwrap();
