@@ -119,8 +119,9 @@ impl PyShard {
         Ok(to_arrays(py, &lists, matching::list_len(s, cfg)))
     }
     /// Fine scores of pairs (query index `q[i]`, whole-map reference `r[i]`), all owned here:
-    /// float32 [n, 3], per pair its fine score, its inliers (-1: not verified) and its compact
-    /// HOGs' cosine (NaN: none), what `rank` weighs against each query's other candidates.
+    /// float32 [n, 5], per pair its fine score, its inliers (-1: not verified), its compact
+    /// HOGs' cosine (NaN: none) and the two's tail probabilities under the map's null (NaN: not
+    /// tested), what `rank` weighs against each query's other candidates.
     fn fine<'py>(
         &self,
         py: Python<'py>,
@@ -145,8 +146,14 @@ impl PyShard {
             .collect::<PyResult<Vec<_>>>()?;
         let (map, set, cfg) = (self.map.clone(), queries.inner.clone(), &self.cfg);
         let f = run(py, self.pool.clone(), Some(&self.engine), |e| e.fine_scores(map.as_ref(), &set, s, cfg, &pairs))?;
-        let rows: Vec<f32> = f.iter().flat_map(|p| [p.fine, p.inliers.map_or(-1.0, |i| i as f32), p.compact_hog.unwrap_or(f32::NAN)]).collect();
-        Ok(Array2::from_shape_vec((f.len(), 3), rows).map_err(|e| invalid("fine", e.to_string()))?.into_pyarray(py))
+        let rows: Vec<f32> = f
+            .iter()
+            .flat_map(|p| {
+                let nan = |v: Option<f32>| v.unwrap_or(f32::NAN);
+                [p.fine, p.inliers.map_or(-1.0, |i| i as f32), nan(p.compact_hog), nan(p.p_inliers), nan(p.p_compact_hog)]
+            })
+            .collect();
+        Ok(Array2::from_shape_vec((f.len(), 5), rows).map_err(|e| invalid("fine", e.to_string()))?.into_pyarray(py))
     }
     /// Ids of whole-map references `r`, all owned here.
     fn reference_ids(&self, r: Vec<i64>) -> PyResult<Vec<String>> {
@@ -215,7 +222,7 @@ pub fn rank(
     }
     let fine: Option<Vec<matching::PairScore>> = match fine {
         None => None,
-        Some(f) if f.shape()[1] != 3 => return Err(invalid("rank", format!("fine holds {} columns, Shard.fine gives 3", f.shape()[1]))),
+        Some(f) if f.shape()[1] != 5 => return Err(invalid("rank", format!("fine holds {} columns, Shard.fine gives 5", f.shape()[1]))),
         Some(f) => Some(
             f.as_array()
                 .rows()
@@ -224,6 +231,8 @@ pub fn rank(
                     fine: r[0],
                     inliers: (r[1] >= 0.0).then_some(r[1] as u32),
                     compact_hog: (!r[2].is_nan()).then_some(r[2]),
+                    p_inliers: (!r[3].is_nan()).then_some(r[3]),
+                    p_compact_hog: (!r[4].is_nan()).then_some(r[4]),
                 })
                 .collect(),
         ),

@@ -309,6 +309,17 @@ pub struct TuneArgs {
     /// dataset, query set and row: what a re-ranking prototype reads.
     #[arg(long, value_name = "DIR")]
     pub candidates: Option<PathBuf>,
+    /// Keep the segmenter's label maps in DIR and read them back for the same pixels (same
+    /// segmenter file and segmentation config): a second sweep over the same sets skips
+    /// segmentation.
+    #[arg(long, value_name = "DIR")]
+    pub label_cache: Option<PathBuf>,
+    /// The null-evidence check (with setting verified): verify each query's candidates against an
+    /// unrelated image (a query of the next dataset listed) instead of the query; column
+    /// `verified~null` gives the share of queries whose verified order is then fused's (R@1
+    /// column) and whose top-1 is (AUC column).
+    #[arg(long)]
+    pub null_evidence: bool,
     #[command(flatten)]
     pub models: ModelArgs,
 }

@@ -226,6 +226,12 @@ pub enum InlierEvidence {
     /// `w_inliers` x how far ln(1 + inliers) stands above the query's other candidates: its
     /// z-score among them beyond `unusual_above` (0 below `min_inliers`).
     Unusual,
+    /// A significance test against an explicit null (issue 60): the inliers count only where
+    /// they are significant under what look-alike references of other places give each other
+    /// (the map's null, [`crate::matching::null`]), the query's K candidates in the
+    /// multiple-testing count; `w_inliers` x the decades of significance beyond
+    /// `null_alarms`, the whole bonus at most `max_bonus`.
+    Significant,
 }
 
 /// How verification pairs up the keypoints of a query and a candidate.
@@ -280,6 +286,20 @@ pub struct VerificationConfig {
     /// With `inliers = "unusual"`: fewer inliers than this count nothing (what chance gives a
     /// homography on few keypoints). \[R\] 8 (sweep 17).
     pub min_inliers: u32,
+    /// With `inliers = "significant"`: a candidate's evidence counts when the expected number of
+    /// candidates of a query that would show as much by chance (K x its tail probability under
+    /// the map's null) is below this. \[R\] see sweeps/README (sweep 19).
+    pub null_alarms: f64,
+    /// With `inliers = "significant"`: the most the evidence terms add to a candidate's score
+    /// (a coarse answer far ahead is not overruled by one test). \[R\] sweep 19.
+    pub max_bonus: f64,
+    /// The map's null (`inliers = "significant"`): references within this many positions of
+    /// each other along a traversal count as one place and never as a null pair. \[R\] 10 (the
+    /// dev sets' places span at most 9 references).
+    pub null_gap: u32,
+    /// The map's null: references (evenly spaced along the map) whose look-alike candidates of
+    /// other places are verified to measure it. \[R\] 200.
+    pub null_sources: u32,
     /// Weight of the compact HOGs' evidence (maps of small frames, `input.compact_hog_long_side`):
     /// the z-score of the pair's compact HOG cosine among its query's K candidates beyond
     /// `compact_hog_above`. \[R\] 2 (sweep 17: Nordland 64x32 0.550 -> 1.000).
@@ -336,6 +356,10 @@ impl Default for VerificationConfig {
             inliers: InlierEvidence::Unusual,
             unusual_above: 1.0,
             min_inliers: 8,
+            null_alarms: 0.01,
+            max_bonus: 1.0,
+            null_gap: 10,
+            null_sources: 200,
             w_compact_hog: 2.0,
             compact_hog_above: 1.0,
             w_coarse: 2.0,

@@ -239,6 +239,10 @@ impl Config {
         v.int("verification.min_inliers", vf.min_inliers as usize, 0, 100_000)?;
         v.real("verification.unusual_above", vf.unusual_above, -10.0, 10.0)?;
         v.real("verification.compact_hog_above", vf.compact_hog_above, -10.0, 10.0)?;
+        v.real("verification.null_alarms", vf.null_alarms, 1e-12, 1e6)?;
+        v.real("verification.max_bonus", vf.max_bonus, 0.0, 1e6)?;
+        v.int("verification.null_gap", vf.null_gap as usize, 0, 1_000_000)?;
+        v.int("verification.null_sources", vf.null_sources as usize, 1, 1_000_000)?;
         v.real("verification.glue_width_confidence", vf.glue_width_confidence, -1.0, 1.0)?;
         v.real("verification.glue_depth_confidence", vf.glue_depth_confidence, -1.0, 1.0)?;
         for (name, w) in [

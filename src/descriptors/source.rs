@@ -216,6 +216,11 @@ pub trait RefSource: GlobalSource {
     fn index_shortlist(&self, query: &crate::index::IndexQuery) -> Option<crate::Result<Vec<(f32, u32)>>> {
         self.index_shortlist_in(query, 0..self.len())
     }
+    /// References `rows` as a descriptor set of their own, to be matched as queries (the null of
+    /// `verified`, [`crate::matching::null`]); a source that cannot says so.
+    fn gather(&self, _rows: &[usize]) -> crate::Result<DescriptorSet> {
+        Err(crate::Error::invalid("references", "this source cannot serve its references as queries"))
+    }
 }
 
 impl RefSource for DescriptorSet {
@@ -260,6 +265,13 @@ impl RefSource for DescriptorSet {
     }
     fn keypoints(&self, i: usize) -> KeypointsRef<'_> {
         DescriptorSet::keypoints(self, i)
+    }
+    fn gather(&self, rows: &[usize]) -> crate::Result<DescriptorSet> {
+        let mut out = self.empty_like();
+        for &r in rows {
+            out.append_range(self, r, r + 1)?;
+        }
+        Ok(out)
     }
 }
 
@@ -369,5 +381,8 @@ impl RefSource for Window<'_> {
         let (a, b) = (self.start + range.start.min(self.len), self.start + range.end.min(self.len));
         let inner = self.inner.index_shortlist_in(query, a..b)?;
         Some(inner.map(|l| l.into_iter().map(|(s, i)| (s, i - self.start as u32)).collect()))
+    }
+    fn gather(&self, rows: &[usize]) -> crate::Result<DescriptorSet> {
+        self.inner.gather(&rows.iter().map(|&r| self.start + r).collect::<Vec<_>>())
     }
 }

@@ -114,6 +114,11 @@ pub struct FrameLoader {
     /// Give frames that have no label map, when there is no segmenter, a void one instead of
     /// refusing them (see `Encoder::without_labels`).
     pub(super) void_labels: bool,
+    /// `semlook dev tune --label-cache DIR`: the segmenter's label maps kept in DIR, one PNG per
+    /// distinct input, keyed by the SHA-256 of the segmenter file's digest, the segmentation
+    /// config, the working size and the input's pixels (so nothing but the same network on the
+    /// same pixels reads a file back).
+    pub(super) label_cache: Option<PathBuf>,
 }
 
 impl FrameLoader {
@@ -135,6 +140,7 @@ impl FrameLoader {
             appearance,
             hog: false,
             void_labels: false,
+            label_cache: None,
         })
     }
 
@@ -303,7 +309,11 @@ impl FrameLoader {
             (Some(l), _, _) => l.resized_nearest(ww, wh),
             (None, Some(seg), Some(img)) => {
                 let t = Instant::now();
-                let l = seg.get()?.segment_to(img, f.image.unwrap_or(Path::new(id)), (ww, wh))?;
+                let name = f.image.unwrap_or(Path::new(id));
+                let l = match &self.label_cache {
+                    Some(dir) => cached_labels(dir, seg.get()?, &self.segmentation, img, name, (ww, wh))?,
+                    None => seg.get()?.segment_to(img, name, (ww, wh))?,
+                };
                 times.segment_ms = ms_since(t);
                 l
             }
@@ -328,4 +338,33 @@ impl FrameLoader {
         times.decode_ms += ms_since(t);
         Ok(Loaded { labels, rgb, source_size, hog, times })
     }
+}
+
+/// The label map `seg` makes of `img` at `size`, read from the cache folder `dir` where it was
+/// made before (same segmenter file, segmentation config, size and pixels), else made and written
+/// there (a temporary file renamed into place: a killed run leaves no partial entry).
+fn cached_labels(dir: &Path, seg: &Segmenter, cfg: &SegmentationConfig, img: &RgbImage, name: &Path, size: (u32, u32)) -> Result<LabelMap> {
+    use sha2::Digest;
+    let mut h = sha2::Sha256::new();
+    h.update(seg.sha256().as_bytes());
+    h.update(serde_json::to_string(cfg).unwrap_or_default().as_bytes());
+    h.update(format!("{}x{} {}x{}", size.0, size.1, img.width(), img.height()).as_bytes());
+    h.update(img.as_raw());
+    let key: String = h.finalize().iter().map(|b| format!("{b:02x}")).collect();
+    let file = dir.join(format!("{key}.png"));
+    if let Ok(cached) = image::open(&file) {
+        let grey = cached.into_luma8();
+        if grey.dimensions() == size {
+            return Ok(LabelMap::from_classes_unchecked(size.0, size.1, grey.into_raw()));
+        }
+    }
+    let l = seg.segment_to(img, name, size)?;
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    let part = dir.join(format!("{key}.{}.part.png", std::process::id()));
+    image::GrayImage::from_raw(size.0, size.1, l.classes().to_vec())
+        .ok_or_else(|| Error::invalid("label cache", "label map size"))?
+        .save(&part)
+        .map_err(|e| Error::invalid(part.display().to_string(), e.to_string()))?;
+    std::fs::rename(&part, &file).map_err(|e| Error::io(&file, e))?;
+    Ok(l)
 }

@@ -159,6 +159,12 @@ impl Encoder {
         self.frames.hog = hog;
         self
     }
+    /// Label maps the segmenter makes are kept in `dir` and read back for the same pixels
+    /// (`semlook dev tune --label-cache`: a sweep's second run skips segmentation).
+    pub fn with_label_cache(mut self, dir: Option<std::path::PathBuf>) -> Encoder {
+        self.frames.label_cache = dir;
+        self
+    }
     /// The encoder for queries matched in `setting`: it computes the HOG baseline's descriptor
     /// only for that setting (maps store HOG only when built with it).
     pub fn for_setting(self, setting: crate::matching::Setting) -> Encoder {

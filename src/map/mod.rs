@@ -278,21 +278,26 @@ impl Map {
     /// for small maps, export and tests). Checks every segment first.
     pub fn to_descriptor_set(&self) -> Result<DescriptorSet> {
         self.check_all()?;
+        let rows = (0..self.segments.len()).flat_map(|s| self.live_rows(s).map(move |j| (s, j)));
+        Ok(self.set_of(rows))
+    }
+
+    /// The images at (segment, row) `rows` in one set, SSIM statistics recomputed; the caller
+    /// has checked their segments.
+    fn set_of(&self, rows: impl Iterator<Item = (usize, usize)>) -> DescriptorSet {
         let l = self.layout();
         let mut set = DescriptorSet::for_storage(l.global_len(), l.slots, l.dim, l.hog)
             .with_keypoint_dim(l.kdim)
             .with_embedding(self.manifest.embedding.clone())
             .with_compact_hog_dim(l.chog)
             .with_codebook(self.manifest.codebook.as_ref().map(|c| c.sha256.clone()));
-        for (s, seg) in self.segments.iter().enumerate() {
-            for j in self.live_rows(s) {
-                seg.append_row(j, &mut set);
-            }
+        for (s, j) in rows {
+            self.segments[s].append_row(j, &mut set);
         }
         set.stats_len = self.ssim.stats_len();
         set.global_stats = vec![0.0; set.len() * set.stats_len];
         compute_stats(&self.ssim, &set.globals, &mut set.global_stats);
-        Ok(set)
+        set
     }
 
     /// Fails naming the difference if images encoded with `model_sha256` (the keypoint network's
@@ -544,5 +549,13 @@ impl RefSource for Map {
     fn index_shortlist_in(&self, query: &crate::index::IndexQuery, range: std::ops::Range<usize>) -> Option<Result<Vec<(f32, u32)>>> {
         self.index.as_ref()?;
         Some(Map::index_shortlist(self, query, range))
+    }
+    /// Checks the segments the rows lie in first.
+    fn gather(&self, rows: &[usize]) -> Result<DescriptorSet> {
+        let at: Vec<(usize, usize)> = rows.iter().map(|&i| self.locate(i)).collect();
+        for &(s, _) in &at {
+            self.segments[s].ensure()?;
+        }
+        Ok(self.set_of(at.into_iter()))
     }
 }

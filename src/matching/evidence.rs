@@ -23,6 +23,10 @@ pub struct PairScore {
     pub inliers: Option<u32>,
     /// `verified`, where both images have compact HOGs (maps of small frames): their cosine.
     pub compact_hog: Option<f32>,
+    /// `verified` tested against the map's null: the inliers' tail probability under it.
+    pub p_inliers: Option<f32>,
+    /// `verified` tested against the map's null: the compact HOGs' tail probability under it.
+    pub p_compact_hog: Option<f32>,
 }
 
 /// How a query's candidates spread in each evidence term of the verified score: the mean and the
@@ -40,6 +44,8 @@ pub struct Evidence {
     pub compact_hog_mean: f32,
     /// Its standard deviation.
     pub compact_hog_std: f32,
+    /// The query's candidates: the multiple-testing count of `inliers = "significant"`.
+    pub candidates: u32,
 }
 
 /// Smallest standard deviation of ln(1 + inliers) a z-score divides by: candidates whose counts
@@ -62,13 +68,16 @@ impl Evidence {
         }
         let (inliers_mean, inliers_std) = mean_std(scores.iter().filter_map(|s| s.inliers).map(|i| (i as f32).ln_1p()));
         let (compact_hog_mean, compact_hog_std) = mean_std(scores.iter().filter_map(|s| s.compact_hog));
-        Evidence { inliers_mean, inliers_std, compact_hog_mean, compact_hog_std }
+        Evidence { inliers_mean, inliers_std, compact_hog_mean, compact_hog_std, candidates: scores.len() as u32 }
     }
     /// The evidence terms of the verified score for pair `s` against these candidates: `w_inliers`
     /// x the z-score of its ln(1 + inliers) beyond `unusual_above` (0 below `min_inliers`; with
     /// `inliers = "count"`, `w_inliers` x ln(1 + inliers) whatever the others show), plus
     /// `w_compact_hog` x the z-score of its compact HOGs' cosine beyond `compact_hog_above`.
     pub fn terms(&self, s: &PairScore, v: &VerificationConfig) -> f32 {
+        if v.inliers == InlierEvidence::Significant {
+            return self.significant(s, v);
+        }
         let beyond = |x: f32, mean: f32, std: f32, floor: f32, above: f64| ((x - mean) / std.max(floor) - above as f32).max(0.0);
         let geometry = match (v.inliers, s.inliers) {
             (InlierEvidence::Unusual, Some(i)) if i >= v.min_inliers => {
@@ -85,6 +94,16 @@ impl Evidence {
         };
         geometry + hog
     }
+    /// `inliers = "significant"`: each term's decades of significance beyond `null_alarms`,
+    /// log10(null_alarms / NFA) with NFA = K x its tail probability under the map's null (K the
+    /// query's candidates), weighed by `w_inliers` and `w_compact_hog`; the sum at most
+    /// `max_bonus`. A term that is not significant adds nothing.
+    fn significant(&self, s: &PairScore, v: &VerificationConfig) -> f32 {
+        let k = self.candidates.max(1) as f64;
+        let decades = |p: Option<f32>| p.map_or(0.0, |p| (v.null_alarms / (k * (p as f64).max(f64::MIN_POSITIVE))).log10().max(0.0));
+        let hog = if v.w_compact_hog > 0.0 { v.w_compact_hog * decades(s.p_compact_hog) } else { 0.0 };
+        (v.w_inliers * decades(s.p_inliers) + hog).min(v.max_bonus) as f32
+    }
 }
 
 #[cfg(test)]
@@ -93,7 +112,7 @@ mod tests {
     use crate::config::VerificationConfig;
 
     fn pairs(inliers: &[u32]) -> Vec<PairScore> {
-        inliers.iter().map(|&i| PairScore { fine: 0.0, inliers: Some(i), compact_hog: None }).collect()
+        inliers.iter().map(|&i| PairScore { fine: 0.0, inliers: Some(i), ..PairScore::default() }).collect()
     }
 
     #[test]
@@ -133,7 +152,8 @@ mod tests {
     #[test]
     fn compact_hogs_count_where_both_sides_have_them() {
         let v = VerificationConfig { w_compact_hog: 2.0, compact_hog_above: 1.0, ..Default::default() };
-        let mut p: Vec<PairScore> = (0..20).map(|k| PairScore { fine: 0.0, inliers: Some(5), compact_hog: Some(0.30 + 0.001 * k as f32) }).collect();
+        let mut p: Vec<PairScore> =
+            (0..20).map(|k| PairScore { fine: 0.0, inliers: Some(5), compact_hog: Some(0.30 + 0.001 * k as f32), ..PairScore::default() }).collect();
         p[7].compact_hog = Some(0.60);
         let e = Evidence::of(&p);
         assert!(e.terms(&p[7], &v) > 2.0 && e.terms(&p[0], &v) == 0.0);
@@ -142,6 +162,81 @@ mod tests {
         assert_eq!(e.terms(&none, &v), 0.0);
         // weight 0: absent
         assert_eq!(e.terms(&p[7], &VerificationConfig { w_compact_hog: 0.0, ..v }), 0.0);
+    }
+
+    /// `inliers = "significant"`: evidence counts by its decades of significance beyond
+    /// `null_alarms`, with the query's K candidates in the multiple-testing count, the bonus
+    /// capped; a term that is not significant adds nothing. Seen failing with K left out of the
+    /// count (a p of 1e-3 then counted among 30 candidates) and with the cap removed.
+    #[test]
+    fn significant_evidence_counts_in_decades_beyond_the_false_alarms_allowed() {
+        let v = VerificationConfig { inliers: InlierEvidence::Significant, null_alarms: 0.01, w_inliers: 1.0, max_bonus: 2.0, ..Default::default() };
+        let at = |p: f32, k: u32| {
+            let e = Evidence { candidates: k, ..Evidence::default() };
+            e.terms(&PairScore { inliers: Some(40), p_inliers: Some(p), ..PairScore::default() }, &v)
+        };
+        // NFA = K p: among 30 candidates a tail probability of 1e-3 is 0.03 expected false
+        // alarms, above the 0.01 allowed: nothing; alone it is 10x below: one decade
+        assert_eq!(at(1e-3, 30), 0.0);
+        assert!((at(1e-3, 1) - 1.0).abs() < 1e-6, "{}", at(1e-3, 1));
+        // two decades beyond among 30 (NFA 3e-6 / 0.01 ...): log10(0.01 / (30 * 1e-6)) = 2.52,
+        // capped at 2
+        assert!((at(1e-6, 30) - 2.0).abs() < 1e-6, "{}", at(1e-6, 30));
+        assert!((at(1e-5, 30) - (0.01f64 / 30e-5).log10() as f32).abs() < 1e-5, "{}", at(1e-5, 30));
+        // no test (a map too small for a null gives p = 1; no verification gives none)
+        assert_eq!(at(1.0, 30), 0.0);
+        let e = Evidence { candidates: 30, ..Evidence::default() };
+        assert_eq!(e.terms(&PairScore { inliers: Some(40), ..PairScore::default() }, &v), 0.0);
+        // the compact HOGs add their own decades, within the same cap
+        let h = VerificationConfig { w_compact_hog: 1.0, ..v.clone() };
+        let both = PairScore { inliers: Some(40), p_inliers: Some(1e-4), p_compact_hog: Some(1e-4), ..PairScore::default() };
+        let one = (0.01f64 / 30e-4).log10() as f32;
+        assert!((e.terms(&both, &h) - 2.0 * one).abs() < 1e-5, "{}", e.terms(&both, &h));
+        assert!((e.terms(&both, &VerificationConfig { w_compact_hog: 0.0, ..h.clone() }) - one).abs() < 1e-5);
+    }
+
+    proptest::proptest! {
+        /// Tested against the null, the coarse order stands wherever no candidate is significant,
+        /// whatever the inliers, the tree similarities and their spread: the verified ranking of
+        /// candidates whose NFA is above `null_alarms` is the coarse ranking, and a significant
+        /// candidate moves up by at most `max_bonus` + its fine score. Random lists. (The
+        /// z-score form fails the first half: the tree similarity alone reorders.)
+        #[test]
+        fn without_significant_evidence_the_coarse_order_stands(
+            lists in proptest::collection::vec(proptest::collection::vec((0.0f32..3.0, 0u32..120, 0.0f32..1.0, -7.0f32..0.0), 2..30), 1..8),
+        ) {
+            let mut cfg = crate::config::Config::default();
+            cfg.verification.inliers = InlierEvidence::Significant;
+            let lists: Vec<Vec<(f32, u32, u32, f32, f32)>> = lists
+                .iter()
+                .map(|l| {
+                    let mut l: Vec<_> = l.iter().enumerate().map(|(r, &(s, n, f, lp))| (s, r as u32, n, f, 10f32.powf(lp))).collect();
+                    l.sort_by(|a, b| b.0.total_cmp(&a.0));
+                    l
+                })
+                .collect();
+            let coarse: Vec<Vec<(f32, u32)>> = lists.iter().map(|l| l.iter().map(|&(s, r, ..)| (s, r)).collect()).collect();
+            let fine: Vec<PairScore> = lists
+                .iter()
+                .flatten()
+                .map(|&(_, _, n, f, p)| PairScore { fine: 2.0 * f, inliers: Some(n), p_inliers: Some(p), ..PairScore::default() })
+                .collect();
+            let ranked = crate::matching::rank(crate::matching::Setting::Verified, &coarse, Some(&fine), &cfg).unwrap();
+            let v = &cfg.verification;
+            for (l, m) in lists.iter().zip(&ranked) {
+                let k = l.len() as f64;
+                let quiet = |p: f32| k * p as f64 >= v.null_alarms;
+                let by_ref = |r: u32| l.iter().find(|c| c.1 == r).unwrap();
+                let order: Vec<f32> = m.ranked.iter().filter(|c| quiet(by_ref(c.reference).4)).map(|c| c.coarse.unwrap()).collect();
+                proptest::prop_assert!(order.windows(2).all(|w| w[0] >= w[1]), "{:?}", order);
+                for c in &m.ranked {
+                    let (s, _, _, f, p) = *by_ref(c.reference);
+                    let lift = c.score - v.w_coarse as f32 * s;
+                    proptest::prop_assert!(lift >= 0.0 && lift <= v.max_bonus as f32 + 2.0 * f + 1e-4, "{lift}");
+                    proptest::prop_assert!(!quiet(p) || lift == 0.0, "a quiet candidate moved by {lift}");
+                }
+            }
+        }
     }
 
     proptest::proptest! {
@@ -166,7 +261,7 @@ mod tests {
                 .collect();
             let coarse: Vec<Vec<(f32, u32)>> = lists.iter().map(|l| l.iter().map(|&(s, r, _)| (s, r)).collect()).collect();
             let fine: Vec<PairScore> =
-                lists.iter().flatten().map(|&(_, _, n)| PairScore { fine: 0.5, inliers: Some(n), compact_hog: None }).collect();
+                lists.iter().flatten().map(|&(_, _, n)| PairScore { fine: 0.5, inliers: Some(n), ..PairScore::default() }).collect();
             let ranked = crate::matching::rank(crate::matching::Setting::Verified, &coarse, Some(&fine), &cfg).unwrap();
             let mut at = 0;
             for (l, m) in lists.iter().zip(&ranked) {

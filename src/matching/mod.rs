@@ -10,6 +10,7 @@
 pub mod baseline;
 pub mod coarse_cpu;
 pub mod evidence;
+pub mod null;
 pub mod setting;
 
 pub use evidence::{Evidence, PairScore};
@@ -285,8 +286,9 @@ fn pair_scores(
 }
 
 /// What the fine stage measures of one pair, before any weight: the tree-set similarity and, for
-/// `verified`, the verification and the compact HOGs' cosine. [`PairTerms::score`] weighs them
-/// (a sweep of the weights measures once, `semlook dev tune`).
+/// `verified`, the verification and the compact HOGs' cosine, with their tail probabilities
+/// under the map's null where the score tests against it. [`PairTerms::score`] weighs them (a
+/// sweep of the weights measures once, `semlook dev tune`).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct PairTerms {
     /// Tree-set similarity.
@@ -295,6 +297,11 @@ pub struct PairTerms {
     pub verified: Option<Verified>,
     /// `verified`, where both images have compact HOGs: their cosine.
     pub compact_hog: Option<f32>,
+    /// `verified` with `inliers = "significant"`: P(null pair shows as many inliers).
+    pub p_inliers: Option<f32>,
+    /// `verified` with `inliers = "significant"`, where both have compact HOGs: P(null pair's are
+    /// as alike).
+    pub p_compact_hog: Option<f32>,
 }
 
 impl PairTerms {
@@ -303,11 +310,13 @@ impl PairTerms {
     /// similarity.
     pub fn score(&self, v: &crate::config::VerificationConfig) -> PairScore {
         match self.verified {
-            None => PairScore { fine: self.similarity, inliers: None, compact_hog: None },
+            None => PairScore { fine: self.similarity, ..PairScore::default() },
             Some(ver) => PairScore {
                 fine: (v.w_glue * (ver.glue_inliers as f64).ln_1p() + v.w_fine * self.similarity as f64) as f32,
                 inliers: Some(ver.inliers),
                 compact_hog: self.compact_hog,
+                p_inliers: self.p_inliers,
+                p_compact_hog: self.p_compact_hog,
             },
         }
     }
@@ -355,6 +364,16 @@ pub fn pair_terms(
         for ((t, v), &(q, r)) in terms.iter_mut().zip(&v).zip(pairs) {
             t.verified = Some(*v);
             t.compact_hog = hog.then(|| Values::F32(queries.image_compact_hog(q as usize)).dot(&refs.image_compact_hog(r as usize)));
+        }
+        // the evidence's tail probabilities under the map's null, where the score tests against it
+        if w.inliers == crate::config::InlierEvidence::Significant && !pairs.is_empty() {
+            let null = null::null_for(stages, refs, cfg)?;
+            let inliers: Vec<Option<u32>> = terms.iter().map(|t| t.verified.map(|v| v.inliers)).collect();
+            let hogs: Vec<Option<f32>> = terms.iter().map(|t| t.compact_hog).collect();
+            let (pi, ph) = null.p_values(&inliers, &hogs);
+            for ((t, pi), ph) in terms.iter_mut().zip(pi).zip(ph) {
+                (t.p_inliers, t.p_compact_hog) = (pi, ph);
+            }
         }
     }
     refs.check()?;
@@ -585,7 +604,17 @@ fn candidate(setting: Setting, cfg: &Config, s: f32, r: u32, f: Option<&PairScor
         (_, true, Some(p)) => {
             let f = p.fine;
             let score = match (setting.verifies(), cfg.matching.score) {
-                (true, _) => f + cfg.verification.w_coarse as f32 * s + e.map_or(0.0, |e| e.terms(p, &cfg.verification)),
+                (true, _) => {
+                    let v = &cfg.verification;
+                    let terms = e.map_or(0.0, |e| e.terms(p, v));
+                    // tested against the null, the fine stage speaks only for a candidate whose
+                    // evidence is significant: elsewhere the coarse order stands
+                    let fine = match v.inliers == crate::config::InlierEvidence::Significant && terms <= 0.0 {
+                        true => 0.0,
+                        false => f,
+                    };
+                    fine + v.w_coarse as f32 * s + terms
+                }
                 (false, ScoreFusion::Fine) => f,
                 (false, ScoreFusion::FineTimesGlobal) => f * s,
             };

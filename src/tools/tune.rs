@@ -208,21 +208,24 @@ struct CachedDataset {
     queries: Vec<(String, Vec<Cached>, Vec<Vec<u32>>)>,
 }
 
+/// `frames` of `ds` decoded (and segmented) and through the keypoint network.
+fn load_frames(frames: &[crate::dataset::Frame], ds: &Dataset, encoder: &Encoder, tick: &(dyn Fn() + Sync)) -> Result<Vec<Cached>> {
+    frames
+        .par_iter()
+        .map(|f| {
+            let loaded = encoder.frames().load(&f.source, ds.label_format)?;
+            let keypoints = match (encoder.appearance_model(), &loaded.rgb) {
+                (Some(m), Some(rgb)) => Some(m.features(rgb)?),
+                _ => None,
+            };
+            tick();
+            Ok(Cached { id: f.source.id.clone(), loaded, keypoints })
+        })
+        .collect()
+}
+
 fn cache_dataset(ds: &Dataset, encoder: &Encoder, tick: &(dyn Fn() + Sync)) -> Result<CachedDataset> {
-    let load = |frames: &[crate::dataset::Frame]| -> Result<Vec<Cached>> {
-        frames
-            .par_iter()
-            .map(|f| {
-                let loaded = encoder.frames().load(&f.source, ds.label_format)?;
-                let keypoints = match (encoder.appearance_model(), &loaded.rgb) {
-                    (Some(m), Some(rgb)) => Some(m.features(rgb)?),
-                    _ => None,
-                };
-                tick();
-                Ok(Cached { id: f.source.id.clone(), loaded, keypoints })
-            })
-            .collect()
-    };
+    let load = |frames: &[crate::dataset::Frame]| load_frames(frames, ds, encoder, tick);
     let refs = load(&ds.reference.frames)?;
     let mut queries = Vec::new();
     for q in &ds.queries {
@@ -262,26 +265,47 @@ impl TuneRow {
     }
 }
 
+/// What a sweep measures beside each setting's R@1 and AUC.
+#[derive(Debug, Clone, Default)]
+pub struct TuneOptions {
+    /// Also stream each query set through sequence matching (`<setting>+seq` columns).
+    pub sequence: bool,
+    /// Write `verified`'s candidate features here ([`write_candidates`]).
+    pub candidates: Option<std::path::PathBuf>,
+    /// Keep the segmenter's label maps here, read back for the same pixels
+    /// ([`Encoder::with_label_cache`]).
+    pub label_cache: Option<std::path::PathBuf>,
+    /// The null-evidence check (issue 60): each query's candidates are verified against an
+    /// unrelated image (a query of the next dataset in the list, encoded as this one's) instead
+    /// of the query; column `verified~null` gives the share of queries whose verified order is
+    /// then `fused`'s (as R@1), and the share whose top-1 is (as AUC).
+    pub null_evidence: bool,
+}
+
+/// The column of the null-evidence check ([`TuneOptions::null_evidence`]).
+pub const NULL_COLUMN: &str = "verified~null";
+
 /// Runs every combination of `sweep` on `datasets` in `settings` (each dataset's class settings
 /// follow it: [`Dataset::adapt_config`]). `progress` hears about each finished dataset and row.
-#[allow(clippy::too_many_arguments)]
 pub fn run(
     datasets: &[Dataset],
     sweep: &Sweep,
     settings: &[Setting],
-    sequence: bool,
-    candidates: Option<&std::path::Path>,
+    opts: &TuneOptions,
     engine: &mut Engine,
     tick: &(dyn Fn() + Sync),
     progress: &mut dyn FnMut(&str, &TuneRow),
 ) -> Result<Vec<TuneRow>> {
+    let (sequence, candidates) = (opts.sequence, opts.candidates.as_deref());
     let combos = sweep.combinations();
     let base: Vec<Config> = combos.iter().map(|c| sweep.config(c, "sweep")).collect::<Result<_>>()?;
     let wants_hog = settings.contains(&Setting::Hog);
     let mut rows: Vec<TuneRow> =
         combos.iter().map(|c| TuneRow { values: c.iter().map(|(k, v)| (k.clone(), v.to_string())).collect(), results: vec![] }).collect();
-    for ds in datasets {
+    for (d, ds) in datasets.iter().enumerate() {
         let configs: Vec<Config> = base.iter().map(|c| ds.adapt_config(c.clone())).collect();
+        // the null-evidence check's unrelated images: the next dataset's queries
+        let unrelated = (opts.null_evidence && settings.contains(&Setting::Verified)).then(|| &datasets[(d + 1) % datasets.len()]);
         // groups of configurations that share decoded frames, in first-appearance order
         let mut groups: Vec<(String, Vec<usize>)> = Vec::new();
         for (i, c) in configs.iter().enumerate() {
@@ -294,10 +318,16 @@ pub fn run(
         for (_, members) in &groups {
             let mut widest = configs[members[0]].clone();
             widest.keypoints.stored = members.iter().map(|&i| configs[i].keypoints.stored).max().unwrap_or(0);
-            let first = Encoder::new(&widest)?.with_hog(wants_hog);
+            let first = Encoder::new(&widest)?.with_hog(wants_hog).with_label_cache(opts.label_cache.clone());
             // small frames: compact HOGs, as `map build` of them would store
             let small = first.small_frames(ds.reference.frames.iter().map(|f| &f.source))?;
             let cd = cache_dataset(ds, &first, tick)?;
+            let unrelated_frames = match unrelated {
+                Some(u) => Some(load_frames(&u.queries.iter().flat_map(|q| q.frames.clone()).collect::<Vec<_>>(), u, &first, tick)?),
+                None => None,
+            };
+            let mut unrelated_sets: HashMap<String, DescriptorSet> = HashMap::new();
+            let mut null_measured: HashMap<(String, String), Vec<crate::matching::PairTerms>> = HashMap::new();
             let mut encoded: HashMap<String, (DescriptorSet, Vec<(String, DescriptorSet, Vec<Vec<u32>>)>)> = HashMap::new();
             let mut matched: HashMap<(String, String, Setting), (Vec<crate::matching::QueryMatch>, f64)> = HashMap::new();
             // `verified`: candidates and unweighed pair terms, shared by the configurations that
@@ -319,10 +349,14 @@ pub fn run(
                     for (name, frames, gt) in &cd.queries {
                         qs.push((name.clone(), encode_cached(&encoder, frames)?, gt.clone()));
                     }
+                    if let Some(frames) = &unrelated_frames {
+                        unrelated_sets.insert(enc_key.clone(), encode_cached(&encoder, frames)?);
+                    }
                     encoded.insert(enc_key.clone(), (refs, qs));
                 }
                 let (refs, qs) = &encoded[&enc_key];
                 let (mut reports, mut skipped): (Vec<SettingReport>, Vec<(Setting, String)>) = (vec![], vec![]);
+                let mut null_rows: Vec<(String, f64, f64)> = vec![];
                 // configurations that differ in their sequence section alone share their matches
                 let no_seq = Config { sequence: Default::default(), ..cfg.clone() };
                 let match_key = format!("{enc_key}|{}", no_seq.to_toml()?);
@@ -362,6 +396,27 @@ pub fn run(
                             let file = dir.join(format!("{}--{}--row{i}.tsv", file_name(&cd.name), file_name(name)));
                             write_candidates(&file, refs, set, gt, cfg)?;
                         }
+                        if let (Some(u), Setting::Verified) = (unrelated_sets.get(&enc_key), st) {
+                            // candidates from the query, evidence from an unrelated image
+                            let terms_key = (format!("{enc_key}|{}", unweighed(&no_seq).to_toml()?), name.clone());
+                            let lists = &measured[&terms_key].0;
+                            if !null_measured.contains_key(&terms_key) {
+                                let picks: Vec<usize> = (0..set.len()).map(|q| q % u.len().max(1)).collect();
+                                let swapped = crate::descriptors::source::RefSource::gather(u, &picks)?;
+                                let terms = engine.pair_terms(refs, &swapped, st, cfg, &crate::matching::pairs_of(lists))?;
+                                null_measured.insert(terms_key.clone(), terms);
+                            }
+                            let fine: Vec<crate::matching::PairScore> =
+                                null_measured[&terms_key].iter().map(|t| t.score(&cfg.verification)).collect();
+                            let ranked = crate::matching::rank(st, lists, Some(&fine), cfg)?;
+                            let same = |m: &crate::matching::QueryMatch, l: &Vec<(f32, u32)>, n: usize| {
+                                m.ranked.iter().take(n).map(|c| c.reference).eq(l.iter().take(n).map(|c| c.1))
+                            };
+                            let n = lists.len().max(1) as f64;
+                            let order = ranked.iter().zip(lists).filter(|(m, l)| same(m, l, usize::MAX)).count() as f64 / n;
+                            let top1 = ranked.iter().zip(lists).filter(|(m, l)| same(m, l, 1)).count() as f64 / n;
+                            null_rows.push((cd.name.clone(), order, top1));
+                        }
                         let mut r = report_matches(engine, refs, name, set, m, gt, st, cfg, *ms, false)?;
                         if sequence {
                             // the scored rows depend on the matching, `rows` and `widen` alone
@@ -393,6 +448,11 @@ pub fn run(
                         rows[i].results.push((cd.name.clone(), format!("{st}+traj"), traj, auc));
                     }
                 }
+                if !null_rows.is_empty() {
+                    let n = null_rows.len() as f64;
+                    let (order, top1) = (null_rows.iter().map(|r| r.1).sum::<f64>() / n, null_rows.iter().map(|r| r.2).sum::<f64>() / n);
+                    rows[i].results.push((cd.name.clone(), NULL_COLUMN.to_string(), order, top1));
+                }
                 progress(&cd.name, &rows[i]);
             }
         }
@@ -404,16 +464,7 @@ pub fn run(
 /// `rank` read, nothing the measurements depend on) at their defaults: configurations equal in
 /// the rest share their candidates and pair terms.
 fn unweighed(cfg: &Config) -> Config {
-    let d = crate::config::VerificationConfig::default();
-    let mut c = cfg.clone();
-    let v = &mut c.verification;
-    (v.w_inliers, v.w_coarse, v.w_fine, v.inliers, v.unusual_above, v.min_inliers, v.w_compact_hog, v.compact_hog_above) =
-        (d.w_inliers, d.w_coarse, d.w_fine, d.inliers, d.unusual_above, d.min_inliers, d.w_compact_hog, d.compact_hog_above);
-    // w_glue's weight alone: whether LighterGlue runs (w_glue > 0) is a measurement
-    if v.w_glue > 0.0 {
-        v.w_glue = 1.0;
-    }
-    c
+    Config { verification: crate::matching::null::measurement(&cfg.verification), ..cfg.clone() }
 }
 
 /// `name` with every character a file name should not hold replaced by `_`.
@@ -475,6 +526,29 @@ fn write_candidates(file: &std::path::Path, refs: &DescriptorSet, queries: &Desc
         std::fs::create_dir_all(d).map_err(|e| Error::io(d, e))?;
     }
     std::fs::write(file, out).map_err(|e| Error::io(file, e))?;
+    // the map's null pairs (`matching::null`): each source reference's candidates of other places
+    let v = &cfg.verification;
+    let src = crate::matching::null::sources(refs.len(), v.null_sources as usize);
+    let sources = crate::descriptors::source::RefSource::gather(refs, &src)?;
+    let mut wide = cfg.clone();
+    wide.matching.top_k = cfg.matching.top_k + 2 * v.null_gap as usize + 1;
+    let (nl, _) = matching::candidates(&mut CpuStages, refs, &sources, st, &wide)?;
+    let np = crate::matching::null::null_pairs(refs, &src, &nl, v.null_gap, cfg.matching.top_k);
+    let nv = CpuStages.verify_pairs(&vp, refs, &sources, &np)?;
+    let mut out = String::from("source\treference\tmatches\tinliers\tcompact_hog\tsource_keypoints\treference_keypoints\n");
+    for (&(s, r), v) in np.iter().zip(&nv) {
+        let (si, ri) = (src[s as usize], r as usize);
+        out += &format!(
+            "{si}\t{ri}\t{}\t{}\t{}\t{}\t{}\n",
+            v.matches,
+            v.inliers,
+            dot(refs.image_compact_hog(si), refs.image_compact_hog(ri)),
+            refs.keypoints(si).len(),
+            refs.keypoints(ri).len()
+        );
+    }
+    let null_file = file.with_extension("null.tsv");
+    std::fs::write(&null_file, out).map_err(|e| Error::io(&null_file, e))?;
     // every pair's coarse terms (a dev set's queries x references: small), for prototypes of the
     // coarse score itself
     let dense = file.with_extension("dense.tsv");

@@ -192,12 +192,17 @@ fn tune_cmd(a: &TuneArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     let n = sweep.combinations().len();
     info(quiet, format!("{n} configurations x {} datasets", datasets.len()));
     let pb = progress::bar(0, "frames", quiet);
-    let rows =
-        semlook::tools::tune::run(&datasets, &sweep, &settings, a.sequence, a.candidates.as_deref(), engine, &|| pb.inc(1), &mut |ds, row| {
-            let vals: Vec<String> = row.values.iter().map(|(k, v)| format!("{k}={v}")).collect();
-            let r: Vec<String> = row.results.iter().filter(|r| r.0 == ds).map(|r| format!("{} {:.3}", r.1, r.2)).collect();
-            pb.suspend(|| info(quiet, format!("{ds}: {} -> R@1 {}", vals.join(" "), r.join(", "))));
-        })?;
+    let opts = semlook::tools::tune::TuneOptions {
+        sequence: a.sequence,
+        candidates: a.candidates.clone(),
+        label_cache: a.label_cache.clone(),
+        null_evidence: a.null_evidence,
+    };
+    let rows = semlook::tools::tune::run(&datasets, &sweep, &settings, &opts, engine, &|| pb.inc(1), &mut |ds, row| {
+        let vals: Vec<String> = row.values.iter().map(|(k, v)| format!("{k}={v}")).collect();
+        let r: Vec<String> = row.results.iter().filter(|r| r.0 == ds).map(|r| format!("{} {:.3}", r.1, r.2)).collect();
+        pb.suspend(|| info(quiet, format!("{ds}: {} -> R@1 {}", vals.join(" "), r.join(", "))));
+    })?;
     pb.finish_and_clear();
     let table = semlook::tools::tune::table(&rows);
     if let Some(file) = &a.table {

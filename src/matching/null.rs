@@ -1,0 +1,333 @@
+//! The explicit null of the verified score's evidence (issue 60): what verification finds between
+//! references that look alike to the coarse stage but are other places.
+//!
+//! A query's wrong candidates are its look-alikes: in a corridor of repeated doors, floors of
+//! one layout or a railway in snow they show inliers and HOG similarity however wrong they are.
+//! Scoring a candidate's evidence against the query's own other candidates (the `unusual`
+//! z-score of issue 51) is not a test: where the candidates' counts are alike, chance
+//! differences become large z-scores, and the score picked noise exactly where geometry says
+//! least (an indoor corridor at 160x120: `verified` 0.532 against its coarse stage's 0.847).
+//!
+//! Here the null is measured, per map, the way an empirical null is in multiple testing (Efron,
+//! "Large-scale simultaneous hypothesis testing: the choice of a null hypothesis", JASA 2004):
+//! `null_sources` references evenly spaced along the map are matched against the map by the
+//! coarse stage of `verified`; of each one's candidates, those that cannot be the same place
+//! (further than `null_gap` positions along its traversal) stand for a query's wrong candidates
+//! and are verified. Their inliers and compact-HOG cosines are the null sample. A candidate's
+//! evidence is then its tail probability under that sample, the query's K candidates in the
+//! multiple-testing count (the expected number of false alarms of an a-contrario test, Desolneux,
+//! Moisan & Morel 2000; Moisan & Stival 2004): NFA = K x P(null >= observed). Beyond the
+//! sample's range the tail is extrapolated (peaks over threshold, Pickands 1975): an exponential
+//! fit to the top tenth of ln(1 + inliers) (a Pareto tail of the counts) and of the cosines.
+//!
+//! The measurement depends on the references and on the config that makes candidates and
+//! verifies them (never on the score's weights): [`key`] names it. It is measured on a source's
+//! first use and kept for the process ([`null_for`]); the same references under the same config
+//! give the same null, so results do not depend on when it was measured. (A stored map does not
+//! keep it yet: each process measures it again, and a shard measures its own.)
+
+use super::{candidates, CandidateLists, Setting, Stages};
+use crate::classes::ClassTable;
+use crate::config::{Config, VerificationConfig};
+use crate::descriptors::source::{Place, RefSource, SourceKey};
+use crate::error::Result;
+use crate::values::Values;
+use crate::verify::VerifyParams;
+use serde::{Deserialize, Serialize};
+use std::sync::{Arc, Mutex};
+
+/// Share of the null sample the tail model is fitted to (its top tenth).
+const TAIL_SHARE: f64 = 0.1;
+/// Least number of exceedances a tail is fitted to.
+const TAIL_MIN: usize = 10;
+/// Smallest scale of the fitted tails: a sample whose top tenth is all one value does not make
+/// every larger one infinitely significant.
+const TAIL_SCALE_FLOOR: f64 = 0.05;
+/// Fewer null pairs than this: no null (a map of a handful of references), so no evidence counts.
+pub const MIN_NULL_PAIRS: usize = 20;
+
+/// The null sample of one map under one measurement config ([`key`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct NullEvidence {
+    /// What it was measured under ([`key`]).
+    pub key: String,
+    /// References matched against the map.
+    pub sources: u32,
+    /// Pairs verified (each a source and one of its candidates of another place).
+    pub pairs: u32,
+    /// `inliers[k]`: null pairs with exactly k inliers.
+    pub inliers: Vec<u32>,
+    /// The null pairs' compact-HOG cosines, ascending (empty where the map holds none).
+    pub compact_hog: Vec<f32>,
+}
+
+/// Tail probabilities of one null sample: the empirical survival function, with an
+/// exponential tail fitted above the threshold.
+struct Tail<'a> {
+    sorted: &'a [f64],
+    threshold: f64,
+    at_threshold: f64,
+    scale: f64,
+}
+
+impl<'a> Tail<'a> {
+    /// `sorted` ascending; `None` for a sample too small to test against.
+    fn fit(sorted: &'a [f64]) -> Option<Tail<'a>> {
+        let n = sorted.len();
+        if n < MIN_NULL_PAIRS {
+            return None;
+        }
+        let m = ((n as f64 * TAIL_SHARE).ceil() as usize).max(TAIL_MIN).min(n);
+        let threshold = sorted[n - m];
+        let scale = (sorted[n - m..].iter().map(|x| x - threshold).sum::<f64>() / m as f64).max(TAIL_SCALE_FLOOR);
+        let at_threshold = Self::empirical(sorted, threshold);
+        Some(Tail { sorted, threshold, at_threshold, scale })
+    }
+    /// (1 + #{x >= v}) / (n + 1): never 0, as a sample of n cannot show less.
+    fn empirical(sorted: &[f64], v: f64) -> f64 {
+        let at_least = sorted.len() - sorted.partition_point(|&x| x < v);
+        (1 + at_least) as f64 / (sorted.len() + 1) as f64
+    }
+    /// P(null >= v).
+    fn p(&self, v: f64) -> f64 {
+        match v > self.threshold {
+            false => Self::empirical(self.sorted, v),
+            true => self.at_threshold * (-(v - self.threshold) / self.scale).exp(),
+        }
+    }
+}
+
+impl NullEvidence {
+    /// ln(1 + inliers) of every null pair, ascending.
+    fn log_inliers(&self) -> Vec<f64> {
+        self.inliers.iter().enumerate().flat_map(|(k, &c)| std::iter::repeat_n((k as f64).ln_1p(), c as usize)).collect()
+    }
+    /// P(a null pair shows at least `k` inliers); 1 where the sample is too small to say.
+    pub fn p_inliers(&self, k: u32) -> f64 {
+        let sorted = self.log_inliers();
+        Tail::fit(&sorted).map_or(1.0, |t| t.p((k as f64).ln_1p()))
+    }
+    /// P(a null pair's compact HOGs are at least `c` alike); 1 where there is no sample.
+    pub fn p_compact_hog(&self, c: f32) -> f64 {
+        let sorted: Vec<f64> = self.compact_hog.iter().map(|&x| x as f64).collect();
+        Tail::fit(&sorted).map_or(1.0, |t| t.p(c as f64))
+    }
+    /// The tail probabilities of many pairs at once (the sample sorted once).
+    pub fn p_values(&self, inliers: &[Option<u32>], hog: &[Option<f32>]) -> (Vec<Option<f32>>, Vec<Option<f32>>) {
+        let li = self.log_inliers();
+        let ti = Tail::fit(&li);
+        let ch: Vec<f64> = self.compact_hog.iter().map(|&x| x as f64).collect();
+        let th = Tail::fit(&ch);
+        let pi = inliers.iter().map(|k| k.map(|k| ti.as_ref().map_or(1.0, |t| t.p((k as f64).ln_1p())) as f32)).collect();
+        let ph = hog.iter().map(|c| c.map(|c| th.as_ref().map_or(1.0, |t| t.p(c as f64)) as f32)).collect();
+        (pi, ph)
+    }
+    /// Inlier count at quantile `q` of the sample (for `map info`).
+    pub fn inliers_quantile(&self, q: f64) -> u32 {
+        let total: u64 = self.inliers.iter().map(|&c| c as u64).sum();
+        let want = (q * total as f64).ceil() as u64;
+        let mut seen = 0;
+        for (k, &c) in self.inliers.iter().enumerate() {
+            seen += c as u64;
+            if seen >= want.max(1) {
+                return k as u32;
+            }
+        }
+        0
+    }
+}
+
+/// What a null is measured under: the config that makes `verified`'s candidates and verifies
+/// them, and the null's own parameters (none of the score's weights).
+pub fn key(cfg: &Config) -> String {
+    let v = measurement(&cfg.verification);
+    serde_json::json!([cfg.matching, cfg.global, cfg.index, cfg.classes, v]).to_string()
+}
+
+/// `v` with the verified score's weights at their defaults: what a measurement depends on.
+pub fn measurement(v: &VerificationConfig) -> VerificationConfig {
+    let d = VerificationConfig::default();
+    let mut m = v.clone();
+    (
+        m.w_inliers,
+        m.w_coarse,
+        m.w_fine,
+        m.inliers,
+        m.unusual_above,
+        m.min_inliers,
+        m.w_compact_hog,
+        m.compact_hog_above,
+        m.null_alarms,
+        m.max_bonus,
+    ) = (
+        d.w_inliers,
+        d.w_coarse,
+        d.w_fine,
+        d.inliers,
+        d.unusual_above,
+        d.min_inliers,
+        d.w_compact_hog,
+        d.compact_hog_above,
+        d.null_alarms,
+        d.max_bonus,
+    );
+    // w_glue's weight alone: whether LighterGlue runs (w_glue > 0) is a measurement
+    if m.w_glue > 0.0 {
+        m.w_glue = 1.0;
+    }
+    m
+}
+
+/// The sources of a map of `n` references: `count` evenly spaced.
+pub fn sources(n: usize, count: usize) -> Vec<usize> {
+    let s = count.min(n);
+    let mut v: Vec<usize> = (0..s).map(|i| i * n / s.max(1)).collect();
+    v.dedup();
+    v
+}
+
+/// The null pairs of candidate lists (`lists[i]` those of reference `sources[i]`): per source
+/// its candidates (best first) that are not within `gap` positions of it along the same
+/// traversal, at most `k` of them.
+pub fn null_pairs(refs: &dyn RefSource, sources: &[usize], lists: &CandidateLists, gap: u32, k: usize) -> Vec<(u32, u32)> {
+    pairs_apart(&|i| refs.place(i), sources, lists, gap, k)
+}
+
+/// [`null_pairs`] with the references' places given by `place`.
+fn pairs_apart(place: &dyn Fn(usize) -> Place, sources: &[usize], lists: &CandidateLists, gap: u32, k: usize) -> Vec<(u32, u32)> {
+    let mut out = Vec::new();
+    for (i, (&s, list)) in sources.iter().zip(lists).enumerate() {
+        let a = place(s);
+        let other = |r: u32| {
+            let b = place(r as usize);
+            a.traversal == b.traversal && a.position.abs_diff(b.position) > gap
+        };
+        out.extend(list.iter().filter(|&&(_, r)| other(r)).take(k).map(|&(_, r)| (i as u32, r)));
+    }
+    out
+}
+
+/// Measures the null of `refs` under `cfg` ([module docs](self)).
+pub fn measure(stages: &mut dyn Stages, refs: &dyn RefSource, cfg: &Config) -> Result<NullEvidence> {
+    let v = &cfg.verification;
+    let src = sources(refs.len(), v.null_sources as usize);
+    let key = key(cfg);
+    let empty = NullEvidence { key: key.clone(), sources: src.len() as u32, pairs: 0, inliers: vec![], compact_hog: vec![] };
+    if src.is_empty() || refs.keypoint_dim() == 0 {
+        return Ok(empty);
+    }
+    let queries = refs.gather(&src)?;
+    // each source's K candidates of other places: enough candidates asked for that the gap's
+    // own references (at most 2 gap + 1 of them) leave K
+    let mut wide = cfg.clone();
+    wide.matching.top_k = cfg.matching.top_k + 2 * v.null_gap as usize + 1;
+    let (lists, _) = candidates(stages, refs, &queries, Setting::Verified, &wide)?;
+    let pairs = null_pairs(refs, &src, &lists, v.null_gap, cfg.matching.top_k);
+    let vp = VerifyParams::for_config(v, &ClassTable::from_config(&cfg.classes)?)?;
+    let verified = stages.verify_pairs(&vp, refs, &queries, &pairs)?;
+    let mut inliers: Vec<u32> = vec![];
+    for r in &verified {
+        let k = r.inliers as usize;
+        if inliers.len() <= k {
+            inliers.resize(k + 1, 0);
+        }
+        inliers[k] += 1;
+    }
+    let hog = queries.compact_hog_dim > 0 && refs.compact_hog_dim() == queries.compact_hog_dim;
+    let mut compact_hog: Vec<f32> = match hog {
+        true => pairs.iter().map(|&(q, r)| Values::F32(queries.image_compact_hog(q as usize)).dot(&refs.image_compact_hog(r as usize))).collect(),
+        false => vec![],
+    };
+    compact_hog.sort_by(f32::total_cmp);
+    refs.check()?;
+    Ok(NullEvidence { pairs: pairs.len() as u32, inliers, compact_hog, ..empty })
+}
+
+/// Nulls measured in this process, most recent last: (source, key) -> null.
+type Measured = Vec<((SourceKey, String), Arc<NullEvidence>)>;
+static MEASURED: Mutex<Measured> = Mutex::new(Vec::new());
+/// Nulls kept at most (sources matched against in one process: a few).
+const KEPT: usize = 16;
+
+/// The null of `refs` under `cfg`: measured on first use, then kept for the rest of the process.
+pub fn null_for(stages: &mut dyn Stages, refs: &dyn RefSource, cfg: &Config) -> Result<Arc<NullEvidence>> {
+    let id = (SourceKey::of(refs), key(cfg));
+    if let Some(n) = MEASURED.lock().unwrap_or_else(|e| e.into_inner()).iter().find(|e| e.0 == id).map(|e| e.1.clone()) {
+        return Ok(n);
+    }
+    let n = Arc::new(measure(stages, refs, cfg)?);
+    let mut kept = MEASURED.lock().unwrap_or_else(|e| e.into_inner());
+    if kept.len() >= KEPT {
+        kept.remove(0);
+    }
+    kept.push((id, n.clone()));
+    Ok(n)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn null(counts: &[u32]) -> NullEvidence {
+        let mut inliers = vec![];
+        for &k in counts {
+            if inliers.len() <= k as usize {
+                inliers.resize(k as usize + 1, 0);
+            }
+            inliers[k as usize] += 1;
+        }
+        NullEvidence { key: String::new(), sources: 0, pairs: counts.len() as u32, inliers, compact_hog: vec![] }
+    }
+
+    #[test]
+    fn the_tail_is_the_sample_below_its_top_tenth_and_an_exponential_above() {
+        // 100 null pairs: 0..=9 inliers ten times each
+        let counts: Vec<u32> = (0..100).map(|i| i % 10).collect();
+        let n = null(&counts);
+        // within the body: the empirical survival function, (1 + #{x >= k}) / 101
+        assert!((n.p_inliers(0) - 101.0 / 101.0).abs() < 1e-12);
+        assert!((n.p_inliers(5) - 51.0 / 101.0).abs() < 1e-12);
+        // above the threshold (the top tenth: all 9s) the tail decays, floored scale: monotone,
+        // and far below 1 / 101 well above the sample
+        let (p10, p20, p60) = (n.p_inliers(10), n.p_inliers(20), n.p_inliers(60));
+        assert!(p10 < 11.0 / 101.0 && p20 < p10 && p60 < p20, "{p10} {p20} {p60}");
+        assert!(p60 < 1e-6, "{p60}");
+        // monotone everywhere
+        let p: Vec<f64> = (0..80).map(|k| n.p_inliers(k)).collect();
+        assert!(p.windows(2).all(|w| w[1] <= w[0]), "{p:?}");
+    }
+
+    #[test]
+    fn a_heavy_null_makes_many_inliers_ordinary() {
+        // a corridor: look-alikes of other places show 10 to 40 inliers
+        let corridor: Vec<u32> = (0..300).map(|i| 10 + (i * 7919 % 31)).collect();
+        let quiet: Vec<u32> = (0..300).map(|i| i % 6).collect();
+        let (c, q) = (null(&corridor), null(&quiet));
+        assert!(c.p_inliers(35) > 0.05, "{}", c.p_inliers(35));
+        assert!(q.p_inliers(35) < 1e-4, "{}", q.p_inliers(35));
+    }
+
+    #[test]
+    fn too_small_a_sample_says_nothing() {
+        let n = null(&[3, 4, 5]);
+        assert_eq!(n.p_inliers(500), 1.0);
+        assert_eq!(NullEvidence { compact_hog: vec![0.1, 0.2], ..n.clone() }.p_compact_hog(0.99), 1.0);
+        let (pi, ph) = n.p_values(&[Some(100), None], &[Some(0.9)]);
+        assert_eq!((pi, ph), (vec![Some(1.0), None], vec![Some(1.0)]));
+    }
+
+    #[test]
+    fn sources_are_spread_and_null_pairs_keep_away_from_their_source() {
+        assert_eq!(sources(10, 4), vec![0, 2, 5, 7]);
+        assert_eq!(sources(3, 200), vec![0, 1, 2]);
+        assert!(sources(0, 5).is_empty());
+        // references 0..20 on traversal 0, 20..30 on traversal 1 (a second pass of a route)
+        let place = |i: usize| Place { traversal: (i >= 20) as u32, position: (i % 20) as u32 };
+        let list = |rs: &[u32]| rs.iter().map(|&r| (1.0, r)).collect::<Vec<_>>();
+        let lists = vec![list(&[5, 6, 9, 2, 12, 25, 19, 18]), list(&[21, 3, 29, 27])];
+        // source 5: 6, 9, 2 are within 4 positions; 25 is another traversal (maybe the same
+        // place); 12, 19, 18 are other places, at most 2 kept, best first
+        assert_eq!(pairs_apart(&place, &[5, 22], &lists, 4, 2), vec![(0, 12), (0, 19), (1, 29), (1, 27)]);
+        assert!(pairs_apart(&place, &[], &vec![], 2, 5).is_empty());
+    }
+}
