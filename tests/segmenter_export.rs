@@ -4,7 +4,8 @@
 //! (`semlook::models::SEGMENTER_SHA256`), and its logits equal those of the reference export
 //! (`../shared/models/espnetv2_cityscapes.onnx`) within 1e-3 with the same argmax on real CamVid
 //! frames at 1024x512, 640x480 and 512x256 (the exporter's `--check`; all 233 frames were checked
-//! once: bit-identical). Needs the exporter's venv (`setup.sh` makes `.venv-export` when it converts).
+//! once: bit-identical). Needs the exporter's venv with PyTorch (`setup.sh` installs it into `.venv-export`
+//! where it converts the segmenter).
 
 mod common;
 
@@ -14,10 +15,15 @@ fn export_python() -> Option<PathBuf> {
     let venv =
         std::env::var_os("SEMLOOK_EXPORT_VENV").map(PathBuf::from).unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv-export"));
     let python = venv.join("bin/python");
-    if python.exists() {
+    // the embedding's exporter needs no PyTorch: a venv made for it alone cannot convert the segmenter
+    let torch = python.exists() && std::process::Command::new(&python).args(["-c", "import torch, onnxscript"]).output().is_ok_and(|o| o.status.success());
+    if torch {
         return Some(python);
     }
-    common::skip_unless_required("REQUIRE_MODELS", format!("no exporter venv at {} (setup.sh makes it)", venv.display()));
+    common::skip_unless_required(
+        "REQUIRE_MODELS",
+        format!("no exporter venv with PyTorch at {} (setup.sh installs it where it converts the segmenter)", venv.display()),
+    );
     None
 }
 

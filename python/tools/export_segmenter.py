@@ -26,7 +26,7 @@ With --check REFERENCE.onnx --frames DIR it also runs both graphs on the frames 
 640x480 and 512x256) and prints the max |logit difference| and the argmax agreement per size; it exits 1 if the
 logits differ by more than 1e-3 or the argmax differs at any pixel.
 
-Needs the packages in requirements-export.txt (torch, onnx, onnxscript, onnxruntime, numpy, pillow).
+Needs the packages in requirements-export-torch.txt (torch, onnxscript, and requirements-export.txt: onnx, onnxruntime, numpy, pillow).
 """
 
 from __future__ import annotations
