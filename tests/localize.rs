@@ -163,6 +163,21 @@ fn piped_images_are_localized_and_garbage_costs_one_frame() {
     assert!(refused[0].starts_with("8,") && refused[0].split(',').skip(2).filter(|c| !c.is_empty()).eq(["refused"]), "{text}");
     assert!(text.contains("# 17 frames (1 refused)"), "{text}");
     assert!(String::from_utf8_lossy(&out.stderr).contains("neither a JPEG nor a PNG"));
+    // honest ends (issue 57 part 3): an empty stream fails, as an empty folder does; --timestamps
+    // cannot name piped frames and is refused, not ignored (a file that does not exist too)
+    let empty = std::process::Command::new(env!("CARGO_BIN_EXE_semlook"))
+        .args(["--backend", "cpu", "localize", "--map", p(&map), "--stdin", "--no-segmenter", "-q"])
+        .stdin(std::process::Stdio::null())
+        .output()
+        .unwrap();
+    assert!(!empty.status.success(), "empty standard input exited 0:\n{}", String::from_utf8_lossy(&empty.stdout));
+    assert!(String::from_utf8_lossy(&empty.stderr).contains("no frames"), "{}", String::from_utf8_lossy(&empty.stderr));
+    let timed = std::process::Command::new(env!("CARGO_BIN_EXE_semlook"))
+        .args(["--backend", "cpu", "localize", "--map", p(&map), "--stdin", "--timestamps", "/no/such/times.csv", "--no-segmenter", "-q"])
+        .stdin(std::process::Stdio::null())
+        .output()
+        .unwrap();
+    assert!(!timed.status.success() && String::from_utf8_lossy(&timed.stderr).contains("--timestamps"), "{}", String::from_utf8_lossy(&timed.stderr));
 }
 
 /// `localize --stdin` answers piped JPEGs exactly as `localize --images` answers the same files:

@@ -23,6 +23,13 @@ pub const HEADER: &str =
     "frame,id,answer,place,score,source,accepted,best,best_score,sequence,sequence_score,uniqueness,closure,ms,rotation_deg,pose_inliers";
 
 pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
+    // options that cannot apply are refused, not ignored
+    if let (true, Some(t)) = (a.stdin, &a.timestamps) {
+        return Err(Error::invalid(
+            t.display().to_string(),
+            "--timestamps gives the times of --images frames by file name; frames on standard input have no names to give times to",
+        ));
+    }
     // the frames a folder holds and their times are checked before any work
     let listed = match &a.images {
         Some(dir) => Some(folder_frames(dir, a.labels.as_deref(), a.timestamps.as_deref())?),
@@ -114,6 +121,11 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
     loc.finish()?;
     let wall = start.elapsed().as_secs_f64();
     let counts = loc.counts();
+    // a stream that never came (`ffmpeg -i missing.mp4 ... | semlook localize --stdin`) is a failure,
+    // as an empty --images folder is
+    if a.stdin && counts.frames == 0 && skipped.load(std::sync::atomic::Ordering::Relaxed) == 0 {
+        return Err(Error::invalid("standard input", "no frames: the stream was empty"));
+    }
     let summary = stats.summary();
     let rate = counts.frames as f64 / wall.max(1e-9);
     let skipped = skipped.load(std::sync::atomic::Ordering::Relaxed);
