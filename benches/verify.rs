@@ -104,6 +104,8 @@ fn bench(c: &mut Criterion) {
     // default's (evidence weighed against the query's candidates, sweep 17)
     for (what, toml) in [
         ("inliers = count, the score before issue 51", "[verification]\ninliers = \"count\"\nw_inliers = 1.0\nmin_inliers = 0\n"),
+        ("inliers = unusual, the score of issue 51", "[verification]\ninliers = \"unusual\"\n"),
+        ("inliers = significant, against the map's null (measured before)", "[verification]\ninliers = \"significant\"\n"),
         ("the default score", ""),
     ] {
         let c = Config::from_toml(toml, "bench").unwrap();
@@ -119,6 +121,12 @@ fn bench(c: &mut Criterion) {
             })
         });
     }
+    // what the significance test costs once per map and config: the null measured (each of
+    // `null_sources` references through the coarse stage against the map, its candidates of other
+    // places verified)
+    g.bench_function(format!("null::measure (CPU)/{}_references_{}_keypoints", refs.len(), cfg.keypoints.stored), |b| {
+        b.iter(|| semlook::matching::null::measure(&mut CpuStages, &refs, &cfg).unwrap())
+    });
     let glue_cfg = Config::from_toml("[verification]\nmatcher = \"lighterglue\"\n", "bench").unwrap();
     let gp = VerifyParams::new(&glue_cfg.verification);
     match semlook::verify::shared_lighterglue() {

@@ -270,15 +270,16 @@ pub struct VerificationConfig {
     pub semantic: SemanticCheck,
     /// The verified score: w_coarse coarse + w_fine fine + w_inliers x the inliers' evidence
     /// (`inliers`) + w_compact_hog x the compact HOGs' evidence, with the fused coarse score and
-    /// the tree-set similarity of the pair. \[R\] 2 (sweep 17, leave-one-set-out; 1 with
-    /// `inliers = "count"` before, sweep 07).
+    /// the tree-set similarity of the pair. \[R\] 4 (sweep 19: per decade of significance beyond
+    /// `null_alarms`; 2 with `inliers = "unusual"`, sweep 17; 1 with `"count"`, sweep 07).
     pub w_inliers: f64,
-    /// How the inliers count: "unusual" (how far above the query's other candidates they stand,
-    /// so that where every candidate shows as many, geometry says little and the coarse order
-    /// stands) or "count" (ln(1 + inliers) whatever the others show). \[R\] unusual (sweep 17:
-    /// restricted to either form, leave-one-set-out picks of "unusual" give the higher held-out
-    /// mean R@1 over the six dev sets, 0.801 against 0.785, and over the four real ones, 0.838
-    /// against 0.821).
+    /// How the inliers count: "significant" (against the map's null: what look-alike references
+    /// of other places give each other), "unusual" (how far above the query's other candidates
+    /// they stand) or "count" (ln(1 + inliers) whatever the others show). \[R\] significant
+    /// (sweep 19: over the four dev sets at full size, 320x240, 160x120 and 64x32, held out, at
+    /// least `fused` on every set, and silent on unrelated images on every set, where "unusual"
+    /// changed the order of every query's candidates and lost 37 queries to `fused` on landmarks
+    /// at 160x120).
     pub inliers: InlierEvidence,
     /// With `inliers = "unusual"`: the z-score of a candidate's ln(1 + inliers) among its query's
     /// K candidates counts beyond this. \[R\] 1 (sweep 17).
@@ -288,10 +289,12 @@ pub struct VerificationConfig {
     pub min_inliers: u32,
     /// With `inliers = "significant"`: a candidate's evidence counts when the expected number of
     /// candidates of a query that would show as much by chance (K x its tail probability under
-    /// the map's null) is below this. \[R\] see sweeps/README (sweep 19).
+    /// the map's null) is below this. \[R\] 0.01 (sweep 19; 10, a test per pair at p <= 1/3,
+    /// is `configs/verified-aliasing.toml`'s).
     pub null_alarms: f64,
     /// With `inliers = "significant"`: the most the evidence terms add to a candidate's score
-    /// (a coarse answer far ahead is not overruled by one test). \[R\] sweep 19.
+    /// (a coarse answer far ahead is not overruled by one test: the bonus grows with the decades
+    /// of significance). \[R\] 8 (sweep 19).
     pub max_bonus: f64,
     /// The map's null (`inliers = "significant"`): references within this many positions of
     /// each other along a traversal count as one place and never as a null pair. \[R\] 10 (the
@@ -308,7 +311,10 @@ pub struct VerificationConfig {
     pub compact_hog_above: f64,
     /// Weight of the fused coarse score in the verified score (see `w_inliers`). \[R\] 2.
     pub w_coarse: f64,
-    /// Weight of the tree-set similarity in the verified score (see `w_inliers`). \[R\] 2.
+    /// Weight of the tree-set similarity in the verified score (see `w_inliers`; with `inliers =
+    /// "significant"` it counts only for a candidate whose evidence is significant). \[R\] 0
+    /// (sweep 19, the same R@1 as 2 on every set but one, Nordland, +1 query; 2 with the other forms,
+    /// sweeps 07 and 17: the profiles of `configs/` that use them set it).
     pub w_fine: f64,
     /// Classes (names of the class table) whose keypoints take no part in verification: a mutual
     /// match with either end on one of them is dropped before RANSAC (issue 32: dynamic classes
@@ -352,18 +358,18 @@ impl Default for VerificationConfig {
             seed: 1,
             refine: true,
             semantic: SemanticCheck::Off,
-            w_inliers: 2.0,
-            inliers: InlierEvidence::Unusual,
+            w_inliers: 4.0,
+            inliers: InlierEvidence::Significant,
             unusual_above: 1.0,
             min_inliers: 8,
             null_alarms: 0.01,
-            max_bonus: 1.0,
+            max_bonus: 8.0,
             null_gap: 10,
             null_sources: 200,
             w_compact_hog: 2.0,
             compact_hog_above: 1.0,
             w_coarse: 2.0,
-            w_fine: 2.0,
+            w_fine: 0.0,
             ignore_classes: vec![],
             matcher: Matcher::Mnn,
             glue_threshold: 0.1,

@@ -117,7 +117,7 @@ mod tests {
 
     #[test]
     fn inliers_count_only_where_they_stand_out_from_the_querys_candidates() {
-        let v = VerificationConfig { w_inliers: 1.0, unusual_above: 1.0, min_inliers: 0, ..Default::default() };
+        let v = VerificationConfig { inliers: InlierEvidence::Unusual, w_inliers: 1.0, unusual_above: 1.0, min_inliers: 0, ..Default::default() };
         // every candidate as many inliers (a corridor): nothing counts, however many
         for n in [0, 12, 80] {
             let p = pairs(&[n; 30]);
@@ -151,7 +151,7 @@ mod tests {
 
     #[test]
     fn compact_hogs_count_where_both_sides_have_them() {
-        let v = VerificationConfig { w_compact_hog: 2.0, compact_hog_above: 1.0, ..Default::default() };
+        let v = VerificationConfig { inliers: InlierEvidence::Unusual, w_compact_hog: 2.0, compact_hog_above: 1.0, ..Default::default() };
         let mut p: Vec<PairScore> =
             (0..20).map(|k| PairScore { fine: 0.0, inliers: Some(5), compact_hog: Some(0.30 + 0.001 * k as f32), ..PairScore::default() }).collect();
         p[7].compact_hog = Some(0.60);
@@ -250,6 +250,7 @@ mod tests {
             lists in proptest::collection::vec(proptest::collection::vec((0.0f32..3.0, 0u32..120), 2..30), 1..8),
         ) {
             let mut cfg = crate::config::Config::default();
+            cfg.verification.inliers = InlierEvidence::Unusual;
             cfg.verification.w_fine = 0.0;
             let lists: Vec<Vec<(f32, u32, u32)>> = lists
                 .iter()

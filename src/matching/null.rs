@@ -255,7 +255,17 @@ pub fn null_for(stages: &mut dyn Stages, refs: &dyn RefSource, cfg: &Config) -> 
     if let Some(n) = MEASURED.lock().unwrap_or_else(|e| e.into_inner()).iter().find(|e| e.0 == id).map(|e| e.1.clone()) {
         return Ok(n);
     }
+    let t = std::time::Instant::now();
     let n = Arc::new(measure(stages, refs, cfg)?);
+    log::info!(
+        "verified: the null of {} references measured in {:.0} ms ({} sources, {} pairs of other places verified; median {} inliers, 99th percentile {})",
+        refs.len(),
+        crate::util::ms_since(t),
+        n.sources,
+        n.pairs,
+        n.inliers_quantile(0.5),
+        n.inliers_quantile(0.99)
+    );
     let mut kept = MEASURED.lock().unwrap_or_else(|e| e.into_inner());
     if kept.len() >= KEPT {
         kept.remove(0);

@@ -380,7 +380,7 @@ pub fn run(
                             if !measured.contains_key(&terms_key) {
                                 let t = std::time::Instant::now();
                                 let (lists, _) = engine.candidates(refs, set, st, cfg)?;
-                                let terms = engine.pair_terms(refs, set, st, cfg, &crate::matching::pairs_of(&lists))?;
+                                let terms = engine.pair_terms(refs, set, st, &tested(cfg), &crate::matching::pairs_of(&lists))?;
                                 measured.insert(terms_key.clone(), (lists, terms, crate::util::ms_since(t)));
                             }
                             let (lists, terms, ms) = &measured[&terms_key];
@@ -403,7 +403,7 @@ pub fn run(
                             if !null_measured.contains_key(&terms_key) {
                                 let picks: Vec<usize> = (0..set.len()).map(|q| q % u.len().max(1)).collect();
                                 let swapped = crate::descriptors::source::RefSource::gather(u, &picks)?;
-                                let terms = engine.pair_terms(refs, &swapped, st, cfg, &crate::matching::pairs_of(lists))?;
+                                let terms = engine.pair_terms(refs, &swapped, st, &tested(cfg), &crate::matching::pairs_of(lists))?;
                                 null_measured.insert(terms_key.clone(), terms);
                             }
                             let fine: Vec<crate::matching::PairScore> =
@@ -463,6 +463,14 @@ pub fn run(
 /// `cfg` with the weights of the verified score (what [`crate::matching::PairTerms::score`] and
 /// `rank` read, nothing the measurements depend on) at their defaults: configurations equal in
 /// the rest share their candidates and pair terms.
+/// `cfg` measuring the evidence's tail probabilities under the null too: the pair terms every
+/// form of the verified score reads (the forms differ in weights only, and share one measurement).
+fn tested(cfg: &Config) -> Config {
+    let mut c = cfg.clone();
+    c.verification.inliers = crate::config::InlierEvidence::Significant;
+    c
+}
+
 fn unweighed(cfg: &Config) -> Config {
     Config { verification: crate::matching::null::measurement(&cfg.verification), ..cfg.clone() }
 }
