@@ -124,8 +124,8 @@ fn bench(c: &mut Criterion) {
     // what the significance test costs once per map and config: the null measured (each of
     // `null_sources` references through the coarse stage against the map, its candidates of other
     // places verified)
-    g.bench_function(format!("null::measure (CPU)/{}_references_{}_keypoints", refs.len(), cfg.keypoints.stored), |b| {
-        b.iter(|| semlook::matching::null::measure(&mut CpuStages, &refs, &cfg).unwrap())
+    g.bench_function(format!("measure_null (CPU)/{}_references_{}_keypoints", refs.len(), cfg.keypoints.stored), |b| {
+        b.iter(|| semlook::matching::measure_null(&mut CpuStages, &refs, &cfg).unwrap())
     });
     let glue_cfg = Config::from_toml("[verification]\nmatcher = \"lighterglue\"\n", "bench").unwrap();
     let gp = VerifyParams::new(&glue_cfg.verification);

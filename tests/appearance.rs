@@ -238,7 +238,8 @@ fn appearance_in_maps_and_evaluation() {
 fn hog_leaves_the_encoding_of_a_real_frame_unchanged() {
     use semlook::input::{FrameSource, LabelFormat};
     let Some(dir) = shared("data/real-vpr/nordland-spring-winter/query") else { return };
-    let mut enc = match semlook::encode::Encoder::new(&semlook::config::Config::default()) {
+    let Some(cfg) = common::with_real_segmenter(semlook::config::Config::default()) else { return };
+    let mut enc = match semlook::encode::Encoder::new(&cfg) {
         Ok(e) => e,
         Err(e) => return common::skip_unless_required("REQUIRE_MODELS", format!("XFeat weights (setup.sh): {e}")),
     };

@@ -653,7 +653,6 @@ fn every_way_of_building_serves_every_way_of_evaluating() {
     let truth = same_name_truth(&r, &format!("fog/{rgb}/"), &format!("day/{rgb}/"), &data.join("pairs.csv"));
     // (how, build flags, eval flags): label maps alone give no appearance, so that map is
     // evaluated in `global`, its photo queries labelled by the segmenter
-    let segmenter = semlook::nn::onnx::find_model(semlook::segmentation::DEFAULT_SEGMENTER, None, "segmenter").is_ok();
     let builds: [(&str, Vec<&str>, Vec<&str>); 4] = [
         ("dataset", vec!["--dataset", p(&data)], vec!["--setting", "appearance", "--no-segmenter"]),
         ("images", vec!["--images", p(&r), "--no-segmenter"], vec!["--setting", "appearance", "--no-segmenter"]),
@@ -666,11 +665,14 @@ fn every_way_of_building_serves_every_way_of_evaluating() {
         let map = dir.path().join(format!("map-{built}"));
         ok(&[&["map", "build", "--map", p(&map), "-q"][..], args].concat());
         for (named, eargs) in &evals {
-            if *built == "labels" && *named == "folders" && !segmenter {
-                common::no_segmenter("the default segmenter (photo queries against a map of label maps)");
-                continue;
+            // photo queries against a map of label maps: labelled by the real segmenter, named
+            let mut eargs: Vec<String> = eargs.iter().map(|a| a.to_string()).collect();
+            if *built == "labels" && *named == "folders" {
+                let Some(seg) = common::real_segmenter() else { continue };
+                eargs.extend(["--segmenter".to_string(), seg.display().to_string()]);
             }
-            let out = semlook(&[&["eval", "--map", p(&map), "--json"][..], setting, eargs].concat());
+            let eargs: Vec<&str> = eargs.iter().map(String::as_str).collect();
+            let out = semlook(&[&["eval", "--map", p(&map), "--json"][..], setting, &eargs].concat());
             let err = String::from_utf8_lossy(&out.stderr);
             assert!(out.status.success(), "map built from {built}, eval by {named}: {err}");
             let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
@@ -1097,26 +1099,28 @@ fn a_damaged_index_says_how_to_mend_it() {
 #[test]
 fn an_untested_default_segmenter_is_named_once() {
     let name = semlook::segmentation::DEFAULT_SEGMENTER;
-    let Ok(segmenter) = semlook::nn::onnx::find_model(name, None, "segmenter") else {
-        common::no_segmenter("the default segmenter is not installed");
-        return;
-    };
+    let Some(segmenter) = common::real_segmenter() else { return };
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
     ok(&["synth", "--out", p(&data), "--places", "3", "--size", "96x72", "--query-condition", "fog", "-q"]);
     let map = dir.path().join("map");
     ok(&["map", "build", "--labels", p(&data.join("day/GT/LABELS/Stereo_Left/Omni_F")), "--map", p(&map), "--no-appearance", "-q"]);
-    // the models folder, the segmenter with an unknown protobuf field appended (other bytes,
-    // the same network)
-    let models = dir.path().join("models");
-    std::fs::create_dir(&models).unwrap();
-    for e in std::fs::read_dir(segmenter.parent().unwrap()).unwrap().flatten() {
-        std::os::unix::fs::symlink(e.path(), models.join(e.file_name())).unwrap();
-    }
-    std::fs::remove_file(models.join(name)).unwrap();
-    let mut bytes = std::fs::read(&segmenter).unwrap();
-    bytes.extend_from_slice(&[0xa0, 0x06, 0x01]);
-    std::fs::write(models.join(name), bytes).unwrap();
+    // model folders of what is installed (ONNX Runtime) with the real segmenter as the default
+    // one: pinned, and with an unknown protobuf field appended (other bytes, the same network)
+    let installed =
+        std::env::var_os("SEMLOOK_MODELS").map(std::path::PathBuf::from).unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join(".semlook"));
+    let folder = |tag: &str, bytes: &[u8]| {
+        let models = dir.path().join(tag);
+        std::fs::create_dir(&models).unwrap();
+        for e in std::fs::read_dir(&installed).into_iter().flatten().flatten().filter(|e| e.file_name() != name) {
+            std::os::unix::fs::symlink(e.path(), models.join(e.file_name())).unwrap();
+        }
+        std::fs::write(models.join(name), bytes).unwrap();
+        models
+    };
+    let pristine = std::fs::read(&segmenter).unwrap();
+    let pinned = folder("pinned", &pristine);
+    let models = folder("models", &[&pristine[..], &[0xa0, 0x06, 0x01]].concat());
     let query = |models: &Path| {
         let out = Command::new(common::bin())
             .args(["query", "--map", p(&map), "--images", p(&data.join("fog/RGB/Stereo_Left/Omni_F")), "--no-appearance", "-q"])
@@ -1129,5 +1133,5 @@ fn an_untested_default_segmenter_is_named_once() {
     let err = query(&models);
     assert_eq!(err.matches("is not the tested build").count(), 1, "{err}");
     assert!(err.contains(&*models.join(name).to_string_lossy()), "{err}");
-    assert!(!query(segmenter.parent().unwrap()).contains("tested build"));
+    assert!(!query(&pinned).contains("tested build"));
 }

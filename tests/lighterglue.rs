@@ -169,10 +169,10 @@ fn w_glue_adds_the_learned_matchers_inliers_to_every_candidate() {
     let img = |k: usize, side: &str| Stored::of(&fx["pairs"][k], side);
     let (q0, q1) = (img(0, "image0"), img(1, "image0"));
     let r = [img(0, "image1"), img(1, "image1"), img(2, "image1"), img(2, "image0")];
-    let base = Config::from_toml("[verification]\nglue_threshold = 0.7\n", "t.toml").unwrap();
+    let base = Config::from_toml("[verification]\ninliers = \"count\"\nglue_threshold = 0.7\n", "t.toml").unwrap();
     let queries = keypoint_set(&base, &[&q0, &q1]);
     let refs = keypoint_set(&base, &r.iter().collect::<Vec<_>>());
-    let with = Config::from_toml("[verification]\nglue_threshold = 0.7\nw_glue = 0.5\n", "t.toml").unwrap();
+    let with = Config::from_toml("[verification]\ninliers = \"count\"\nglue_threshold = 0.7\nw_glue = 0.5\n", "t.toml").unwrap();
     let (plain, _) = semlook::matching::match_batch(&refs, &queries, semlook::matching::Setting::Verified, &base).unwrap();
     let (fused, _) = semlook::matching::match_batch(&refs, &queries, semlook::matching::Setting::Verified, &with).unwrap();
     let glue_cfg = Config::from_toml("[verification]\nmatcher = \"lighterglue\"\nglue_threshold = 0.7\n", "t.toml").unwrap();
@@ -228,15 +228,15 @@ fn glue_min_inliers_runs_the_learned_matcher_only_where_mnn_found_enough() {
     let img = |k: usize, side: &str| Stored::of(&fx["pairs"][k], side);
     let qs = [img(0, "image0"), img(1, "image0"), img(2, "image0")];
     let r = [img(0, "image1"), img(1, "image1"), img(2, "image1"), img(2, "image0"), img(0, "image0")];
-    let base = Config::from_toml("[verification]\nglue_threshold = 0.7\n", "t.toml").unwrap();
+    let base = Config::from_toml("[verification]\ninliers = \"count\"\nglue_threshold = 0.7\n", "t.toml").unwrap();
     let queries = keypoint_set(&base, &qs.iter().collect::<Vec<_>>());
     let refs = keypoint_set(&base, &r.iter().collect::<Vec<_>>());
     let run = |toml: &str| {
         let cfg = Config::from_toml(toml, "t.toml").unwrap();
         semlook::matching::match_batch(&refs, &queries, semlook::matching::Setting::Verified, &cfg).unwrap().0
     };
-    let plain = run("[verification]\nglue_threshold = 0.7\n");
-    let all = run("[verification]\nglue_threshold = 0.7\nw_glue = 0.5\n");
+    let plain = run("[verification]\ninliers = \"count\"\nglue_threshold = 0.7\n");
+    let all = run("[verification]\ninliers = \"count\"\nglue_threshold = 0.7\nw_glue = 0.5\n");
     // the floor: the median MNN inliers of the pairs where LighterGlue adds something
     let find = |lists: &Vec<semlook::matching::QueryMatch>, q: usize, r: u32| *lists[q].ranked.iter().find(|c| c.reference == r).unwrap();
     let mut lifted: Vec<u32> = Vec::new();
@@ -249,7 +249,7 @@ fn glue_min_inliers_runs_the_learned_matcher_only_where_mnn_found_enough() {
     }
     lifted.sort();
     let floor = lifted[lifted.len() / 2].max(1);
-    let gated_toml = format!("[verification]\nglue_threshold = 0.7\nw_glue = 0.5\nglue_min_inliers = {floor}\n");
+    let gated_toml = format!("[verification]\ninliers = \"count\"\nglue_threshold = 0.7\nw_glue = 0.5\nglue_min_inliers = {floor}\n");
     let gated = run(&gated_toml);
     let (mut kept, mut dropped) = (0, 0);
     for (q, p) in plain.iter().enumerate() {

@@ -16,7 +16,8 @@ fn export_python() -> Option<PathBuf> {
         std::env::var_os("SEMLOOK_EXPORT_VENV").map(PathBuf::from).unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv-export"));
     let python = venv.join("bin/python");
     // the embedding's exporter needs no PyTorch: a venv made for it alone cannot convert the segmenter
-    let torch = python.exists() && std::process::Command::new(&python).args(["-c", "import torch, onnxscript"]).output().is_ok_and(|o| o.status.success());
+    let torch =
+        python.exists() && std::process::Command::new(&python).args(["-c", "import torch, onnxscript"]).output().is_ok_and(|o| o.status.success());
     if torch {
         return Some(python);
     }

@@ -53,7 +53,8 @@ fn build(dir: &Path, frames: &[FrameSource], traversals: &[usize]) {
 }
 
 fn localizer(map: &Path, setting: Setting) -> Localizer {
-    Localizer::open(map, Some(config()), StreamOptions { setting, ..Default::default() }, Engine::cpu()).unwrap()
+    // the frames come with their label maps: no segmenter is looked for
+    Localizer::open(map, Some(config()), StreamOptions { setting, labelled_frames: true, ..Default::default() }, Engine::cpu()).unwrap()
 }
 
 fn frame(f: &FrameSource) -> StreamFrame {

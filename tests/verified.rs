@@ -90,9 +90,10 @@ fn a_map_of_the_previous_format_is_refused_saying_what_it_lacks() {
 #[test]
 fn a_default_map_of_real_frames_fits_64_kb_per_reference_and_reports_coarse_recall() {
     let Some(set) = common::shared_or_required("data/real-vpr/gardenspoint-day-night-mini") else { return };
+    let Some(segmenter) = common::real_segmenter() else { return };
     let dir = tempfile::tempdir().unwrap();
     let map = dir.path().join("map");
-    semlook(&["map", "build", "--images", p(&set.join("ref")), "--map", p(&map), "--backend", "cpu", "-q"]);
+    semlook(&["map", "build", "--images", p(&set.join("ref")), "--map", p(&map), "--backend", "cpu", "--segmenter", p(&segmenter), "-q"]);
     let info: serde_json::Value = serde_json::from_str(&semlook(&["map", "info", "--map", p(&map), "--json"])).unwrap();
     let per = &info["bytes_per_reference"];
     let total = per["total"].as_u64().unwrap();
@@ -102,7 +103,8 @@ fn a_default_map_of_real_frames_fits_64_kb_per_reference_and_reports_coarse_reca
     assert!(cols.values().map(|v| v.as_u64().unwrap()).sum::<u64>().abs_diff(total) <= cols.len() as u64, "columns add up: {per}");
     let (r, q, gt) = (set.join("ref"), set.join("query"), set.join("ground_truth.csv"));
     let args = |json: bool| {
-        let mut a = vec!["eval", "--references", p(&r), "--queries", p(&q), "--ground-truth", p(&gt), "--backend", "cpu", "-q"];
+        let mut a =
+            vec!["eval", "--references", p(&r), "--queries", p(&q), "--ground-truth", p(&gt), "--backend", "cpu", "--segmenter", p(&segmenter), "-q"];
         if json {
             a.push("--json");
         }

@@ -48,6 +48,13 @@ pub trait GlobalSource: Sync {
     fn generation(&self) -> Option<u64> {
         None
     }
+    /// A number that stays the same while a source grows and shrinks as one lineage (a stored map
+    /// across its generations: adds, removals, compactions; a rebuild is another): what may keep
+    /// a statistic of the source that does not need to follow every commit (the null of
+    /// `verified`, [`crate::matching::null`]). None (the default): the source's content alone.
+    fn lineage(&self) -> Option<u64> {
+        None
+    }
 }
 
 /// References hashed into a [`SourceKey`]'s fingerprint (evenly spaced, first and last included):
@@ -312,6 +319,9 @@ impl GlobalSource for Window<'_> {
     }
     fn check(&self) -> crate::Result<()> {
         self.inner.check()
+    }
+    fn lineage(&self) -> Option<u64> {
+        self.inner.lineage()
     }
     fn generation(&self) -> Option<u64> {
         let g = self.inner.generation()?;

@@ -452,6 +452,13 @@ impl GlobalSource for Map {
         (&self.manifest.uid, self.manifest.generation).hash(&mut h);
         Some(h.finish())
     }
+    /// The map's identity (random at creation), whatever its generation.
+    fn lineage(&self) -> Option<u64> {
+        use std::hash::{Hash, Hasher};
+        let mut h = std::hash::DefaultHasher::new();
+        self.manifest.uid.hash(&mut h);
+        Some(h.finish())
+    }
     fn check(&self) -> Result<()> {
         match self.segments.iter().find_map(|s| s.failure().map(|r| (s, r))) {
             Some((s, reason)) => Err(Error::corrupt(&s.path, reason)),

@@ -367,7 +367,7 @@ pub fn pair_terms(
         }
         // the evidence's tail probabilities under the map's null, where the score tests against it
         if w.inliers == crate::config::InlierEvidence::Significant && !pairs.is_empty() {
-            let null = null::null_for(stages, refs, cfg)?;
+            let null = null::kept_or(refs, cfg, || measure_null(stages, refs, cfg))?;
             let inliers: Vec<Option<u32>> = terms.iter().map(|t| t.verified.map(|v| v.inliers)).collect();
             let hogs: Vec<Option<f32>> = terms.iter().map(|t| t.compact_hog).collect();
             let (pi, ph) = null.p_values(&inliers, &hogs);
@@ -378,6 +378,33 @@ pub fn pair_terms(
     }
     refs.check()?;
     Ok(terms)
+}
+
+/// Measures the null of `verified`'s evidence over `refs` under `cfg` ([`null`]'s docs): the
+/// `null_sources` references matched by `verified`'s coarse stage against the map, their
+/// candidates of other places verified.
+pub fn measure_null(stages: &mut dyn Stages, refs: &dyn RefSource, cfg: &Config) -> Result<null::NullEvidence> {
+    let v = &cfg.verification;
+    let src = null::sources(refs.len(), v.null_sources as usize);
+    if src.is_empty() || refs.keypoint_dim() == 0 {
+        return Ok(null::NullEvidence::from_pairs(null::key(cfg), src.len(), std::iter::empty(), vec![]));
+    }
+    let queries = refs.gather(&src)?;
+    // each source's K candidates of other places: enough candidates asked for that the gap's
+    // own references (at most 2 gap + 1 of them) leave K
+    let mut wide = cfg.clone();
+    wide.matching.top_k = cfg.matching.top_k + 2 * v.null_gap as usize + 1;
+    let (lists, _) = candidates(stages, refs, &queries, Setting::Verified, &wide)?;
+    let pairs = null::null_pairs(refs, &src, &lists, v.null_gap, cfg.matching.top_k);
+    let vp = VerifyParams::for_config(v, &ClassTable::from_config(&cfg.classes)?)?;
+    let verified = stages.verify_pairs(&vp, refs, &queries, &pairs)?;
+    let hog = queries.compact_hog_dim > 0 && refs.compact_hog_dim() == queries.compact_hog_dim;
+    let compact_hog: Vec<f32> = match hog {
+        true => pairs.iter().map(|&(q, r)| Values::F32(queries.image_compact_hog(q as usize)).dot(&refs.image_compact_hog(r as usize))).collect(),
+        false => vec![],
+    };
+    refs.check()?;
+    Ok(null::NullEvidence::from_pairs(null::key(cfg), src.len(), verified.iter().map(|r| r.inliers), compact_hog))
 }
 
 /// The fused coarse stage: for each query, the `k` references of highest

@@ -22,17 +22,16 @@
 //!
 //! The measurement depends on the references and on the config that makes candidates and
 //! verifies them (never on the score's weights): [`key`] names it. It is measured on a source's
-//! first use and kept for the process ([`null_for`]); the same references under the same config
-//! give the same null, so results do not depend on when it was measured. (A stored map does not
-//! keep it yet: each process measures it again, and a shard measures its own.)
+//! first use and kept for the process ([`kept_or`], measured by `matching::measure_null`); the same references under the same config
+//! give the same null. A stored map keeps it across its generations until it has doubled or
+//! halved (a loop-closure stream commits every few frames and would otherwise measure it at every
+//! commit), so a growing map's answers can depend on when in the process it was measured; a
+//! fresh process over the map measures it anew. (A stored map does not store it yet, and a shard
+//! measures its own.)
 
-use super::{candidates, CandidateLists, Setting, Stages};
-use crate::classes::ClassTable;
 use crate::config::{Config, VerificationConfig};
 use crate::descriptors::source::{Place, RefSource, SourceKey};
 use crate::error::Result;
-use crate::values::Values;
-use crate::verify::VerifyParams;
 use serde::{Deserialize, Serialize};
 use std::sync::{Arc, Mutex};
 
@@ -189,12 +188,12 @@ pub fn sources(n: usize, count: usize) -> Vec<usize> {
 /// The null pairs of candidate lists (`lists[i]` those of reference `sources[i]`): per source
 /// its candidates (best first) that are not within `gap` positions of it along the same
 /// traversal, at most `k` of them.
-pub fn null_pairs(refs: &dyn RefSource, sources: &[usize], lists: &CandidateLists, gap: u32, k: usize) -> Vec<(u32, u32)> {
+pub fn null_pairs(refs: &dyn RefSource, sources: &[usize], lists: &[Vec<(f32, u32)>], gap: u32, k: usize) -> Vec<(u32, u32)> {
     pairs_apart(&|i| refs.place(i), sources, lists, gap, k)
 }
 
 /// [`null_pairs`] with the references' places given by `place`.
-fn pairs_apart(place: &dyn Fn(usize) -> Place, sources: &[usize], lists: &CandidateLists, gap: u32, k: usize) -> Vec<(u32, u32)> {
+fn pairs_apart(place: &dyn Fn(usize) -> Place, sources: &[usize], lists: &[Vec<(f32, u32)>], gap: u32, k: usize) -> Vec<(u32, u32)> {
     let mut out = Vec::new();
     for (i, (&s, list)) in sources.iter().zip(lists).enumerate() {
         let a = place(s);
@@ -207,56 +206,70 @@ fn pairs_apart(place: &dyn Fn(usize) -> Place, sources: &[usize], lists: &Candid
     out
 }
 
-/// Measures the null of `refs` under `cfg` ([module docs](self)).
-pub fn measure(stages: &mut dyn Stages, refs: &dyn RefSource, cfg: &Config) -> Result<NullEvidence> {
-    let v = &cfg.verification;
-    let src = sources(refs.len(), v.null_sources as usize);
-    let key = key(cfg);
-    let empty = NullEvidence { key: key.clone(), sources: src.len() as u32, pairs: 0, inliers: vec![], compact_hog: vec![] };
-    if src.is_empty() || refs.keypoint_dim() == 0 {
-        return Ok(empty);
-    }
-    let queries = refs.gather(&src)?;
-    // each source's K candidates of other places: enough candidates asked for that the gap's
-    // own references (at most 2 gap + 1 of them) leave K
-    let mut wide = cfg.clone();
-    wide.matching.top_k = cfg.matching.top_k + 2 * v.null_gap as usize + 1;
-    let (lists, _) = candidates(stages, refs, &queries, Setting::Verified, &wide)?;
-    let pairs = null_pairs(refs, &src, &lists, v.null_gap, cfg.matching.top_k);
-    let vp = VerifyParams::for_config(v, &ClassTable::from_config(&cfg.classes)?)?;
-    let verified = stages.verify_pairs(&vp, refs, &queries, &pairs)?;
-    let mut inliers: Vec<u32> = vec![];
-    for r in &verified {
-        let k = r.inliers as usize;
-        if inliers.len() <= k {
-            inliers.resize(k + 1, 0);
+impl NullEvidence {
+    /// The null of `sources` references under config key `key` from its pairs' verified inliers
+    /// and compact-HOG cosines (empty where the map holds none).
+    pub fn from_pairs(key: String, sources: usize, inliers: impl Iterator<Item = u32>, mut compact_hog: Vec<f32>) -> NullEvidence {
+        let mut hist: Vec<u32> = vec![];
+        let mut pairs = 0;
+        for k in inliers {
+            let k = k as usize;
+            if hist.len() <= k {
+                hist.resize(k + 1, 0);
+            }
+            hist[k] += 1;
+            pairs += 1;
         }
-        inliers[k] += 1;
+        compact_hog.sort_by(f32::total_cmp);
+        NullEvidence { key, sources: sources as u32, pairs, inliers: hist, compact_hog }
     }
-    let hog = queries.compact_hog_dim > 0 && refs.compact_hog_dim() == queries.compact_hog_dim;
-    let mut compact_hog: Vec<f32> = match hog {
-        true => pairs.iter().map(|&(q, r)| Values::F32(queries.image_compact_hog(q as usize)).dot(&refs.image_compact_hog(r as usize))).collect(),
-        false => vec![],
-    };
-    compact_hog.sort_by(f32::total_cmp);
-    refs.check()?;
-    Ok(NullEvidence { pairs: pairs.len() as u32, inliers, compact_hog, ..empty })
 }
 
-/// Nulls measured in this process, most recent last: (source, key) -> null.
-type Measured = Vec<((SourceKey, String), Arc<NullEvidence>)>;
-static MEASURED: Mutex<Measured> = Mutex::new(Vec::new());
+/// What a kept null was measured on: the source's content, or its lineage (a stored map across its
+/// generations) with the references it had then.
+#[derive(Debug, Clone, PartialEq)]
+enum Measured {
+    Content(SourceKey),
+    Lineage(u64, usize),
+}
+
+impl Measured {
+    fn of(refs: &dyn RefSource) -> Measured {
+        match refs.lineage() {
+            Some(l) => Measured::Lineage(l, refs.len()),
+            None => Measured::Content(SourceKey::of(refs)),
+        }
+    }
+    /// Whether `null`, measured on `self`, serves `now`: the same content; or the same lineage
+    /// that has not yet doubled, nor halved, since (a stream that grows its map by a commit every
+    /// few frames measures its null again as the map doubles, not at every commit), and a null too
+    /// small to test against only at the size it was measured.
+    fn serves(&self, null: &NullEvidence, now: &Measured) -> bool {
+        match (self, now) {
+            (Measured::Lineage(a, then), Measured::Lineage(b, n)) => {
+                let usable = null.pairs as usize >= MIN_NULL_PAIRS;
+                a == b && (n == then || (usable && *n <= 2 * *then && 2 * *n >= *then))
+            }
+            (a, b) => a == b,
+        }
+    }
+}
+
+/// Nulls measured in this process, most recent last: (what on, key) -> null.
+static MEASURED: Mutex<Vec<(Measured, String, Arc<NullEvidence>)>> = Mutex::new(Vec::new());
 /// Nulls kept at most (sources matched against in one process: a few).
 const KEPT: usize = 16;
 
-/// The null of `refs` under `cfg`: measured on first use, then kept for the rest of the process.
-pub fn null_for(stages: &mut dyn Stages, refs: &dyn RefSource, cfg: &Config) -> Result<Arc<NullEvidence>> {
-    let id = (SourceKey::of(refs), key(cfg));
-    if let Some(n) = MEASURED.lock().unwrap_or_else(|e| e.into_inner()).iter().find(|e| e.0 == id).map(|e| e.1.clone()) {
+/// The null of `refs` under `cfg`: the one kept, else `measure`'s (then kept for the rest of the
+/// process; for a stored map, across its generations until it doubles or halves).
+pub fn kept_or(refs: &dyn RefSource, cfg: &Config, measure: impl FnOnce() -> Result<NullEvidence>) -> Result<Arc<NullEvidence>> {
+    let (on, k) = (Measured::of(refs), key(cfg));
+    let kept = MEASURED.lock().unwrap_or_else(|e| e.into_inner()).iter().rev().find(|e| e.1 == k && e.0.serves(&e.2, &on)).map(|e| e.2.clone());
+    if let Some(n) = kept {
         return Ok(n);
     }
     let t = std::time::Instant::now();
-    let n = Arc::new(measure(stages, refs, cfg)?);
+    let n = Arc::new(measure()?);
     log::info!(
         "verified: the null of {} references measured in {:.0} ms ({} sources, {} pairs of other places verified; median {} inliers, 99th percentile {})",
         refs.len(),
@@ -270,7 +283,7 @@ pub fn null_for(stages: &mut dyn Stages, refs: &dyn RefSource, cfg: &Config) -> 
     if kept.len() >= KEPT {
         kept.remove(0);
     }
-    kept.push((id, n.clone()));
+    kept.push((on, k, n.clone()));
     Ok(n)
 }
 
@@ -317,6 +330,19 @@ mod tests {
         assert!(q.p_inliers(35) < 1e-4, "{}", q.p_inliers(35));
     }
 
+    /// A stored map keeps its null across commits until it has doubled or halved; a null too small
+    /// to test against serves only the size it was measured at; other content never shares one.
+    #[test]
+    fn a_growing_map_keeps_its_null_until_it_doubles() {
+        let usable = null(&[3; 50]);
+        let small = null(&[3; 5]);
+        let at = |n: usize| Measured::Lineage(7, n);
+        assert!(at(100).serves(&usable, &at(100)) && at(100).serves(&usable, &at(199)) && at(100).serves(&usable, &at(200)));
+        assert!(!at(100).serves(&usable, &at(201)) && at(100).serves(&usable, &at(50)) && !at(100).serves(&usable, &at(49)));
+        assert!(!at(100).serves(&usable, &Measured::Lineage(8, 100)), "another map");
+        assert!(at(10).serves(&small, &at(10)) && !at(10).serves(&small, &at(11)));
+    }
+
     #[test]
     fn too_small_a_sample_says_nothing() {
         let n = null(&[3, 4, 5]);
@@ -338,6 +364,6 @@ mod tests {
         // source 5: 6, 9, 2 are within 4 positions; 25 is another traversal (maybe the same
         // place); 12, 19, 18 are other places, at most 2 kept, best first
         assert_eq!(pairs_apart(&place, &[5, 22], &lists, 4, 2), vec![(0, 12), (0, 19), (1, 29), (1, 27)]);
-        assert!(pairs_apart(&place, &[], &vec![], 2, 5).is_empty());
+        assert!(pairs_apart(&place, &[], &[], 2, 5).is_empty());
     }
 }

@@ -270,7 +270,7 @@ impl TuneRow {
 pub struct TuneOptions {
     /// Also stream each query set through sequence matching (`<setting>+seq` columns).
     pub sequence: bool,
-    /// Write `verified`'s candidate features here ([`write_candidates`]).
+    /// Write `verified`'s candidate features here (`--candidates`).
     pub candidates: Option<std::path::PathBuf>,
     /// Keep the segmenter's label maps here, read back for the same pixels
     /// ([`Encoder::with_label_cache`]).

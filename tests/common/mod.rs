@@ -38,15 +38,19 @@ pub fn skip_unless_required(var: &str, reason: impl std::fmt::Display) {
     skip(reason);
 }
 
-/// The default segmenter is missing: the test skips with `reason`. In CI's newcomer step
-/// (`SEMLOOK_MODELS_ONLY=1`, a model folder without the segmenter: `scripts/newcomer-tests.sh`)
-/// its absence is the point, so it skips there too; elsewhere under CI (or REQUIRE_MODELS=1) it
-/// fails.
-pub fn no_segmenter(reason: impl std::fmt::Display) {
-    match std::env::var(semlook::nn::onnx::MODELS_ONLY_ENV).is_ok_and(|v| v == "1") {
-        true => skip(format!("{reason} (a fresh machine's model folder: no segmenter)")),
-        false => skip_unless_required("REQUIRE_MODELS", reason),
-    }
+/// `cfg` with the real default segmenter named explicitly, from `../shared/models` (the reference
+/// export of the authors' checkpoint), for a test that needs real labels of real photos. Tests never
+/// reach the segmenter a machine happened to install: where `../shared` is absent the test skips with
+/// the reason (or fails under CI / REQUIRE_SHARED=1), as it does on a fresh machine.
+pub fn with_real_segmenter(mut cfg: Config) -> Option<Config> {
+    cfg.models.segmenter_onnx = Some(real_segmenter()?);
+    Some(cfg)
+}
+
+/// The real default segmenter's file, named explicitly from `../shared/models` ([`with_real_segmenter`];
+/// for a command line, `--segmenter` it); else the test skips (fails under CI / REQUIRE_SHARED=1).
+pub fn real_segmenter() -> Option<std::path::PathBuf> {
+    shared_or_required(&format!("models/{}", semlook::segmentation::DEFAULT_SEGMENTER))
 }
 
 /// Whether the XFeat weights setup.sh installs are found; if not, the test skips with the reason

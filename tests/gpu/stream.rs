@@ -218,7 +218,7 @@ fn real_camvid_photos_segmented_and_described_alike_on_both_paths() {
         .take(8)
         .map(|f| FrameSource { id: f.file_stem().unwrap().to_string_lossy().into(), image: Some(f.clone()), labels: None })
         .collect();
-    let cfg = Config::default();
+    let Some(cfg) = common::with_real_segmenter(Config::default()) else { return };
     let mut enc = match Encoder::new(&cfg) {
         Ok(e) => e,
         Err(e) => return common::skip_unless_required("REQUIRE_MODELS", format!("an encoder with appearance: {e}")),

@@ -405,7 +405,7 @@ fn the_gpu_engine_runs_xfeat_on_the_device_when_encoding() {
     }
     let Some(ctx) = gpu() else { return };
     use semlook::input::{FrameSource, LabelFormat};
-    let cfg = semlook::config::Config::default();
+    let Some(cfg) = common::with_real_segmenter(semlook::config::Config::default()) else { return };
     let frame = |id: &str| FrameSource { id: id.into(), image: Some(dir.join(format!("query/{id}.jpg"))), labels: None };
     let frames = [frame("001"), frame("002")];
     let mut enc = match semlook::encode::Encoder::new(&cfg) {
