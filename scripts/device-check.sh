@@ -3,11 +3,13 @@
 # suite with REQUIRE_GPU=1, then the benchmark rows, and writes one JSON with the adapter and every row's
 # figures (throughput, fraction of the device's peak where the built-in table knows it).
 #
-#   bash scripts/device-check.sh [--budget SECONDS] [--out FILE] [--bin PATH] [--smoke]
+#   bash scripts/device-check.sh [--budget SECONDS] [--out FILE] [--bin PATH] [--smoke] [--segmenter FILE]
 #
 # --budget (default 480): the rows are planned against it; the largest coarse rows are dropped first
 #   when the time left (measured as the script goes) cannot hold them.
 # --out (default target/device-check.json). --bin: an already-built semlook (skips the build).
+# --segmenter: the segmenter the encoding row labels its photos with (default: the installed one; the
+#   smoke test names the real one of ../shared/models: tests never read what a machine installed).
 # --smoke: the reduced form CI runs on lavapipe so the script cannot rot: no build or test suite (the
 #   caller is the test suite), a 1,000-reference coarse row and a 4-frame encoding row at 320x240.
 # Rows: coarse top-K (`semlook dev bench`, 100k and 1M references x 1,000 queries, CPU and GPU), encoding
@@ -22,13 +24,14 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-budget=480 out=target/device-check.json bin="" smoke=0
+budget=480 out=target/device-check.json bin="" smoke=0 segmenter=()
 while [ $# -gt 0 ]; do
     case "$1" in
         --budget) budget=$2; shift 2 ;;
         --out) out=$2; shift 2 ;;
         --bin) bin=$2; shift 2 ;;
         --smoke) smoke=1; shift ;;
+        --segmenter) segmenter=(--segmenter "$2"); shift 2 ;;
         *) echo "device-check: unknown argument $1" >&2; exit 2 ;;
     esac
 done
@@ -39,6 +42,12 @@ work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
 rows="$work/rows.jsonl"
 : > "$rows"
+# the index row's queries are photos of a labelled map: dev index-bench takes the segmenter in a config
+segmenter_config=()
+if [ ${#segmenter[@]} -gt 0 ]; then
+    printf '[models]\nsegmenter_onnx = "%s"\n' "${segmenter[1]}" > "$work/segmenter.toml"
+    segmenter_config=(--config "$work/segmenter.toml")
+fi
 note() { # kind, name, reason: a row that did not run, with why
     python3 -c 'import json,sys; print(json.dumps({"row": sys.argv[1], "name": sys.argv[2], "status": "not run", "reason": sys.argv[3]}))' "$1" "$2" "$3" >> "$rows"
 }
@@ -70,7 +79,7 @@ if [ $smoke = 1 ]; then size=320x240 frames=4; else size=1920x1080 frames=60; fi
 if [ "$(left)" -gt 20 ]; then
     say "encoding $frames frames at $size on the GPU backend"
     "$bin" synth --out "$work/frames" --places "$frames" --size "$size" --query-condition night -q
-    "$bin" dev bench-encode --images "$work/frames/day/RGB/Stereo_Left/Omni_F" --frames "$frames" --backend gpu --json -q \
+    "$bin" dev bench-encode --images "$work/frames/day/RGB/Stereo_Left/Omni_F" --frames "$frames" --backend gpu ${segmenter[@]+"${segmenter[@]}"} --json -q \
         | python3 -c 'import json,sys; r = json.load(sys.stdin); print(json.dumps({"row": "encode", "size": sys.argv[1], "result": r}))' "$size" >> "$rows" \
         || note encode "encode $size" "dev bench-encode failed (see the log above)"
 else
@@ -100,7 +109,7 @@ if [ "$(left)" -gt 120 ] || [ $smoke = 1 ]; then
     say "index: $isizes references, exact on the device, the index on the CPU"
     [ -d "$work/stream" ] || "$bin" synth --out "$work/stream" --places "$sframes" --size "$ssize" --query-condition night -q
     "$bin" map build --images "$work/stream/day/RGB/$cam" --labels "$work/stream/day/GT/LABELS/$cam" --map "$work/index-base" --index none -q \
-        && "$bin" --backend gpu dev index-bench --from "$work/index-base" --queries "$work/stream/night/RGB/$cam" --sizes "$isizes" \
+        && "$bin" --backend gpu dev index-bench --from "$work/index-base" --queries "$work/stream/night/RGB/$cam" --sizes "$isizes" ${segmenter_config[@]+"${segmenter_config[@]}"} \
             --exact-queries "$iq" --exact-timed "$itimed" --batch "$ibatch" --search "$isearch" --dir "$work" --json -q \
         | python3 -c 'import json,sys
 for line in sys.stdin:

@@ -8,9 +8,12 @@ mod common;
 fn the_device_check_smoke_run_writes_its_json() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("device-check.json");
+    // the encoding row's photos are labelled by the real segmenter, named (never the installed one)
+    let segmenter: Vec<String> = common::real_segmenter().map(|s| vec!["--segmenter".into(), s.display().to_string()]).unwrap_or_default();
     let run = std::process::Command::new("bash")
         .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/device-check.sh"))
         .args(["--smoke", "--bin", env!("CARGO_BIN_EXE_semlook"), "--out", common::p(&out)])
+        .args(&segmenter)
         .output()
         .expect("bash runs");
     let log = String::from_utf8_lossy(&run.stderr);

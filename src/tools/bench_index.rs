@@ -133,7 +133,7 @@ pub fn run(cfg: &Config, opts: &IndexBenchOptions, engine: &mut Engine, tick: &m
         return Err(Error::invalid(format!("map {}", opts.from.display()), "needs a map with appearance and labels (the fused score uses both)"));
     }
     let base = from.to_descriptor_set()?;
-    let qcfg = Config { index: cfg.index.clone(), ..from.query_config() };
+    let qcfg = Config { index: cfg.index.clone(), models: cfg.models.clone(), ..from.query_config() };
     let encoder = Encoder::for_map(&qcfg, &from)?;
     let queries = crate::batch::encode_frames(engine, &encoder, &opts.queries, Default::default(), "queries", false, opts.quiet)?.set;
     if queries.is_empty() {
