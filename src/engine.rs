@@ -5,7 +5,7 @@
 //! never picks it; `gpu` accepts it, which is what the equivalence tests run on).
 
 use crate::config::Config;
-use crate::descriptors::source::RefSource;
+use crate::descriptors::source::{GlobalSource, RefSource};
 use crate::descriptors::DescriptorSet;
 use crate::descriptors::EncodedImage;
 use crate::encode::phases::Pending;
@@ -252,6 +252,40 @@ impl Engine {
         evidence: Option<&[Option<crate::matching::Evidence>]>,
     ) -> Result<Vec<crate::matching::Candidate>> {
         self.on_stages(|st| crate::matching::score_pairs(st, refs, queries, setting, cfg, pairs, evidence))
+    }
+
+    /// Measures the null of `verified`'s evidence over `refs` under `cfg` (see
+    /// [`crate::matching::measure_null`]).
+    pub fn measure_null(&mut self, refs: &dyn RefSource, cfg: &Config) -> Result<crate::matching::null::NullEvidence> {
+        self.on_stages(|st| crate::matching::measure_null(st, refs, cfg))
+    }
+
+    /// Measures the null of `verified`'s evidence over the stored map `map` under `cfg` and
+    /// stores it in the map's manifest, so every process and every shard of the map tests
+    /// candidates against the same one (`map build`, `map add`; [`crate::matching::null`]). Does
+    /// nothing where `cfg` does not test evidence against a null, the map stores no verification
+    /// keypoints, or it keeps one measured under `cfg` already. Returns the map as it is then,
+    /// with the null stored and the milliseconds its measurement took (None: nothing stored; also
+    /// where another writer committed meanwhile).
+    pub fn store_null(
+        &mut self,
+        map: crate::map::Map,
+        cfg: &Config,
+    ) -> Result<(crate::map::Map, Option<(Arc<crate::matching::null::NullEvidence>, f64)>)> {
+        use crate::matching::null;
+        let wanted = cfg.verification.inliers == crate::config::InlierEvidence::Significant && map.keypoint_dim() > 0 && !map.is_empty();
+        if !wanted || map.stored_null().is_some_and(|n| n.key == null::key(cfg)) {
+            return Ok((map, None));
+        }
+        let t = Instant::now();
+        let n = self.measure_null(&map, cfg)?;
+        let ms = ms_since(t);
+        if !crate::map::edit::store_null(&map.path, map.manifest.generation, n)? {
+            return Ok((map, None));
+        }
+        let map = crate::map::Map::open(&map.path)?;
+        let stored = map.stored_null().map(|n| (n, ms));
+        Ok((map, stored))
     }
 
     /// Encodes frames, in input order; `tick` is called per frame. Per-frame input errors are

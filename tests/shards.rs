@@ -140,3 +140,74 @@ fn a_driver_needs_only_the_manifest_and_the_codebook() {
     let err = Map::open_header(&driver).unwrap_err().to_string();
     assert!(err.contains(&*cb_file.file_name().unwrap().to_string_lossy()), "{err}");
 }
+
+/// Issue 60: `map build` measures the null of `verified`'s evidence and stores it in the manifest;
+/// every shard of the map then tests its candidates against that one, so a sharded `verified`
+/// equals the whole map's bit for bit (shards measuring their own nulls gave other tail
+/// probabilities). `map add` keeps it until the map has doubled, then measures it again; a
+/// removal that halves the map drops it; `map info` says which.
+#[test]
+fn the_null_is_stored_at_build_and_every_shard_tests_against_it() {
+    use common::{cli_ok, p};
+    use semlook::descriptors::source::{GlobalSource, RefSource};
+    use semlook::matching::null;
+    if !common::has_xfeat() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    common::tiny_synth(&data, 40, 7);
+    let cam = semlook::dataset::SYNTHIA_CAMERA;
+    let f = |t: &str, k: &str| data.join(t).join(k).join(cam);
+    let map = dir.path().join("map");
+    let build = |out: &Path, t: &str| {
+        let (rgb, lab) = (f(t, "RGB"), f(t, "GT/LABELS"));
+        let args = ["--backend", "cpu", "map", "build", "--images", p(&rgb), "--labels", p(&lab), "--map", p(out)];
+        cli_ok(&[&args[..], &["--segment-images", "7", "-q"]].concat())
+    };
+    build(&map, "day");
+    let whole = Map::open(&map).unwrap();
+    // the bonus uncapped, so that every candidate's score says how far in the null's tail its
+    // inliers lie (the overcast frames' few inliers say nothing; the day frames' own many)
+    let mut cfg = whole.query_config();
+    cfg.verification.max_bonus = 1e6;
+    let stored = whole.stored_null().expect("map build stores the null");
+    assert_eq!(stored.key, null::key(&cfg), "measured under the config queries of the map use");
+    assert!(stored.pairs as usize >= null::MIN_NULL_PAIRS && stored.sources == 40, "{stored:?}");
+    let frames = semlook::dataset::frames_from_folders(Some(&f("overcast", "RGB")), Some(&f("overcast", "GT/LABELS"))).unwrap();
+    let enc = semlook::encode::Encoder::for_map(&cfg, &whole).unwrap();
+    let mut queries =
+        semlook::batch::encode_frames(&mut semlook::engine::Engine::cpu(), &enc, &frames, Default::default(), "queries", false, true).unwrap().set;
+    queries.append(&whole.gather(&[3, 17, 30]).unwrap()).unwrap();
+    assert!(queries.keypoint_dim > 0);
+    let (single, _) = match_with(&mut CpuStages, &whole, &queries, Setting::Verified, &cfg).unwrap();
+    // evidence counted: the day frames' own references score above their coarse terms
+    let bonus = |c: &semlook::matching::Candidate| c.score - cfg.verification.w_coarse as f32 * c.coarse.unwrap();
+    assert!(single.iter().rev().take(3).all(|m| bonus(&m.ranked[0]) > 8.0), "no evidence counted: {:?}", &single[single.len() - 1].ranked[..3]);
+    for n in [2, 3] {
+        // a shard's own null would differ from the whole map's
+        let m = Map::open(&map).unwrap().manifest;
+        let s = &shard::plan(&m, n).unwrap()[0];
+        let (part, _) = Map::open_range(&map, s.segments.clone(), Some(s.generation)).unwrap();
+        assert_ne!(semlook::matching::measure_null(&mut CpuStages, &part, &cfg).unwrap(), *stored, "{n} shards");
+        assert_eq!(bits(&sharded(&map, n, &queries, Setting::Verified, &cfg)), bits(&single), "verified over {n} shards");
+    }
+    let info = |m: &Path| -> serde_json::Value { serde_json::from_str(&cli_ok(&["map", "info", "--map", p(m), "--json"])).unwrap() };
+    assert_eq!(info(&map)["null"]["images"], 40);
+    // 80 images: the null of 40 still stands; 120: measured again
+    let add = |t: &str, prefix: &str| {
+        let (rgb, lab) = (f(t, "RGB"), f(t, "GT/LABELS"));
+        let args = ["--backend", "cpu", "map", "add", "--images", p(&rgb), "--labels", p(&lab), "--map", p(&map)];
+        cli_ok(&[&args[..], &["--id-prefix", prefix, "-q"]].concat())
+    };
+    add("night", "n");
+    assert_eq!(info(&map)["null"]["images"], 40);
+    add("day", "again");
+    assert_eq!(info(&map)["null"]["images"], 120);
+    // a removal below half: dropped (queries measure their own)
+    let ids: Vec<String> = (0..40).map(|i| format!("again{i:06}")).collect();
+    let ids: Vec<String> = ids.into_iter().chain((0..21).map(|i| format!("n{i:06}"))).collect();
+    edit::remove(&map, &ids).unwrap();
+    let after = info(&map);
+    assert!(after["images"].as_u64().unwrap() < 60 && after["null"].is_null(), "{after}");
+}

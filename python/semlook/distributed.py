@@ -133,8 +133,9 @@ class ShardedMap:
         flat_r = refs[real]
         owner = np.searchsorted(self.starts, flat_r, side="right") - 1
         two_stages = semlook.reranks(setting)
-        # per candidate: fine score, inliers (-1: none), compact HOGs' cosine (NaN: none)
-        fine = np.full((len(flat_r), 3), np.nan, dtype=np.float32)
+        # per candidate: fine score, inliers (-1: none), compact HOGs' cosine, and the two tail
+        # probabilities against the shard's null (NaN: none), the columns of Shard.fine
+        fine = np.full((len(flat_r), 5), np.nan, dtype=np.float32)
         ids = [""] * len(flat_r)
         calls = []
         for s, actor in enumerate(self.actors):

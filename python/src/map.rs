@@ -81,7 +81,8 @@ impl PyMap {
     /// `images` and/or `labels`: lists of paths (one per id), or a folder of images (png, jpg:
     /// ids are the file stems; label maps `<stem>.png` in the `labels` folder). `segmenter` as
     /// `Encoder`'s (False: photos without label maps make a map without labels, for the
-    /// settings that need none). `ids`: with lists, default the file stems.
+    /// settings that need none). `ids`: with lists, default the file stems. Like the command,
+    /// it measures the null of `verified`'s evidence under `config` and stores it in the map.
     #[staticmethod]
     #[pyo3(signature = (path, images=None, labels=None, ids=None, config=None, segmenter=None, segment_images=None, f16=false, engine=None))]
     #[allow(clippy::too_many_arguments)]
@@ -105,7 +106,8 @@ impl PyMap {
             let (enc, mut w) = semlook::batch::new_map(&cfg, &frames, &path, &opts)?;
             let into = semlook::batch::IntoOptions { quiet: true, ..Default::default() };
             semlook::batch::encode_into(e, &enc, &frames, Default::default(), &mut w, into)?;
-            w.finish()
+            // the null of `verified`'s evidence, stored as `semlook map build` stores it
+            Ok(e.store_null(w.finish()?, &cfg)?.0)
         })?;
         Ok(wrap(m))
     }

@@ -4,6 +4,7 @@
 //! none of those stages, so none of them imports another in a circle.
 
 pub mod keypoints;
+pub mod null;
 mod pose;
 mod set;
 pub mod source;

@@ -55,6 +55,12 @@ pub trait GlobalSource: Sync {
     fn lineage(&self) -> Option<u64> {
         None
     }
+    /// The null of `verified`'s evidence the source keeps (a stored map: the one measured at
+    /// build, [`crate::descriptors::null::StoredNull`]), whatever config it was measured under
+    /// (its `key` says). None (the default): matching measures one.
+    fn stored_null(&self) -> Option<std::sync::Arc<crate::descriptors::null::NullEvidence>> {
+        None
+    }
 }
 
 /// References hashed into a [`SourceKey`]'s fingerprint (evenly spaced, first and last included):
@@ -322,6 +328,9 @@ impl GlobalSource for Window<'_> {
     }
     fn lineage(&self) -> Option<u64> {
         self.inner.lineage()
+    }
+    fn stored_null(&self) -> Option<std::sync::Arc<crate::descriptors::null::NullEvidence>> {
+        self.inner.stored_null()
     }
     fn generation(&self) -> Option<u64> {
         let g = self.inner.generation()?;

@@ -57,6 +57,21 @@ pub fn remove(dir: &Path, ids: &[String]) -> Result<usize> {
     Ok(found.len())
 }
 
+/// Stores `null`, measured on the map's generation `generation`, in its manifest (one commit).
+/// Returns false, storing nothing, where the map has had another commit since: the null was
+/// measured on references it no longer holds.
+pub fn store_null(dir: &Path, generation: u64, null: crate::descriptors::null::NullEvidence) -> Result<bool> {
+    let _lock = WriteLock::take(dir)?;
+    let mut m = manifest::read_existing(dir)?;
+    if m.generation != generation {
+        return Ok(false);
+    }
+    m.null = Some(crate::descriptors::null::StoredNull { images: m.live_images(), evidence: null });
+    m.generation += 1;
+    manifest::write(dir, &m)?;
+    Ok(true)
+}
+
 /// What `compact` did.
 #[derive(Debug, Clone, Serialize)]
 pub struct CompactReport {

@@ -197,6 +197,13 @@ pub struct Manifest {
     /// those built before them), so their checksums are those of before the field existed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub embedding: Option<crate::global::embedding::EmbeddingRecord>,
+    /// The null of `verified`'s evidence measured when the map was built
+    /// ([`crate::descriptors::null::StoredNull`], `map build`): what every process and every
+    /// shard of the map tests candidates against under the config it was measured with. A commit
+    /// that takes the map past double or half the size it was measured at drops it ([`write`]).
+    /// Absent in maps built without one, so their checksums are those of before the field existed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub null: Option<crate::descriptors::null::StoredNull>,
     /// SHA-256 of this manifest's content ([`Manifest::content_sha256`]): an edit by hand or a
     /// damaged byte anywhere in the file (a removed row, a config value, a model hash) is refused
     /// at open, never served.
@@ -424,8 +431,19 @@ pub fn query_config(m: &Manifest) -> crate::config::Config {
     crate::config::Config::default().with_encoding(&m.config)
 }
 
-/// Writes the manifest atomically (the caller holds the write lock).
+/// Writes the manifest atomically (the caller holds the write lock). A stored null the commit
+/// takes past double or half the size it was measured at is dropped.
 pub fn write(dir: &Path, m: &Manifest) -> Result<()> {
+    // a null measured at another size no longer stands for the map's look-alikes
+    let stale = m.null.as_ref().is_some_and(|n| !n.evidence.serves_size(n.images, m.live_images()));
+    let kept;
+    let m = match stale {
+        true => {
+            kept = Manifest { null: None, ..m.clone() };
+            &kept
+        }
+        false => m,
+    };
     let bytes = m.to_json().map_err(|e| Error::invalid(format!("map {}", dir.display()), format!("the manifest does not serialise: {e}")))?;
     super::files::write_atomic(dir, MANIFEST, &bytes)
 }

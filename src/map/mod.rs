@@ -72,6 +72,8 @@ pub struct Map {
     routes: Routes,
     /// The approximate index of the coarse stage, when the map has one.
     index: Option<index_files::MapIndex>,
+    /// The null of `verified`'s evidence measured at build, when the manifest keeps one.
+    null: Option<std::sync::Arc<crate::descriptors::null::NullEvidence>>,
 }
 
 /// The traversals of a map's live images: each segment's first position along its traversal, and
@@ -130,6 +132,7 @@ impl Map {
             ssim: SsimParams::new(&cfg.global),
             routes: Routes::of(&manifest),
             index: index_files::MapIndex::open(dir, &manifest)?,
+            null: manifest.null.as_ref().map(|n| std::sync::Arc::new(n.evidence.clone())),
             manifest: manifest.clone(),
         };
         for entry in &manifest.segments {
@@ -458,6 +461,9 @@ impl GlobalSource for Map {
         let mut h = std::hash::DefaultHasher::new();
         self.manifest.uid.hash(&mut h);
         Some(h.finish())
+    }
+    fn stored_null(&self) -> Option<std::sync::Arc<crate::descriptors::null::NullEvidence>> {
+        self.null.clone()
     }
     fn check(&self) -> Result<()> {
         match self.segments.iter().find_map(|s| s.failure().map(|r| (s, r))) {

@@ -163,6 +163,7 @@ impl MapWriter {
             frame_intervals: Default::default(),
             index: None,
             embedding: None,
+            null: None,
             checksum: String::new(),
         };
         let layout = super::layout_of(&manifest, n_classes);

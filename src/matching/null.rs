@@ -21,18 +21,20 @@
 //! fit to the top tenth of ln(1 + inliers) (a Pareto tail of the counts) and of the cosines.
 //!
 //! The measurement depends on the references and on the config that makes candidates and
-//! verifies them (never on the score's weights): [`key`] names it. It is measured on a source's
-//! first use and kept for the process ([`kept_or`], measured by `matching::measure_null`); the same references under the same config
-//! give the same null. A stored map keeps it across its generations until it has doubled or
-//! halved (a loop-closure stream commits every few frames and would otherwise measure it at every
-//! commit), so a growing map's answers can depend on when in the process it was measured; a
-//! fresh process over the map measures it anew. (A stored map does not store it yet, and a shard
-//! measures its own.)
+//! verifies them (never on the score's weights): [`key`] names it. `map build` measures it under
+//! the build's config and stores it in the manifest ([`StoredNull`]; `map add` and `map remove`
+//! measure it again once the map has doubled or halved): then every process and every shard of
+//! the map tests against that one. Elsewhere (another config, a map built without one, sources
+//! in memory) it is measured on a source's first use and kept for the process ([`kept_or`],
+//! measured by `matching::measure_null`); the same references under the same config give the
+//! same null, and a stored map keeps it across its generations until it has doubled or halved
+//! (a loop-closure stream commits every few frames and would otherwise measure it at every
+//! commit).
 
 use crate::config::{Config, VerificationConfig};
+pub use crate::descriptors::null::{NullEvidence, StoredNull, MIN_NULL_PAIRS};
 use crate::descriptors::source::{Place, RefSource, SourceKey};
 use crate::error::Result;
-use serde::{Deserialize, Serialize};
 use std::sync::{Arc, Mutex};
 
 /// Share of the null sample the tail model is fitted to (its top tenth).
@@ -42,24 +44,6 @@ const TAIL_MIN: usize = 10;
 /// Smallest scale of the fitted tails: a sample whose top tenth is all one value does not make
 /// every larger one infinitely significant.
 const TAIL_SCALE_FLOOR: f64 = 0.05;
-/// Fewer null pairs than this: no null (a map of a handful of references), so no evidence counts.
-pub const MIN_NULL_PAIRS: usize = 20;
-
-/// The null sample of one map under one measurement config ([`key`]).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct NullEvidence {
-    /// What it was measured under ([`key`]).
-    pub key: String,
-    /// References matched against the map.
-    pub sources: u32,
-    /// Pairs verified (each a source and one of its candidates of another place).
-    pub pairs: u32,
-    /// `inliers[k]`: null pairs with exactly k inliers.
-    pub inliers: Vec<u32>,
-    /// The null pairs' compact-HOG cosines, ascending (empty where the map holds none).
-    pub compact_hog: Vec<f32>,
-}
-
 /// Tail probabilities of one null sample: the empirical survival function, with an
 /// exponential tail fitted above the threshold.
 struct Tail<'a> {
@@ -241,15 +225,10 @@ impl Measured {
         }
     }
     /// Whether `null`, measured on `self`, serves `now`: the same content; or the same lineage
-    /// that has not yet doubled, nor halved, since (a stream that grows its map by a commit every
-    /// few frames measures its null again as the map doubles, not at every commit), and a null too
-    /// small to test against only at the size it was measured.
+    /// within [`NullEvidence::serves_size`].
     fn serves(&self, null: &NullEvidence, now: &Measured) -> bool {
         match (self, now) {
-            (Measured::Lineage(a, then), Measured::Lineage(b, n)) => {
-                let usable = null.pairs as usize >= MIN_NULL_PAIRS;
-                a == b && (n == then || (usable && *n <= 2 * *then && 2 * *n >= *then))
-            }
+            (Measured::Lineage(a, then), Measured::Lineage(b, n)) => a == b && null.serves_size(*then, *n),
             (a, b) => a == b,
         }
     }
@@ -260,10 +239,16 @@ static MEASURED: Mutex<Vec<(Measured, String, Arc<NullEvidence>)>> = Mutex::new(
 /// Nulls kept at most (sources matched against in one process: a few).
 const KEPT: usize = 16;
 
-/// The null of `refs` under `cfg`: the one kept, else `measure`'s (then kept for the rest of the
+/// The null of `refs` under `cfg`: the one the source stores, if measured under `cfg`
+/// ([`RefSource::stored_null`]); else the one kept in this process; else `measure`'s (then kept for the rest of the
 /// process; for a stored map, across its generations until it doubles or halves).
 pub fn kept_or(refs: &dyn RefSource, cfg: &Config, measure: impl FnOnce() -> Result<NullEvidence>) -> Result<Arc<NullEvidence>> {
     let (on, k) = (Measured::of(refs), key(cfg));
+    // the one the map stores (measured at build under the same config): every process and every
+    // shard of the map tests against it
+    if let Some(n) = refs.stored_null().filter(|n| n.key == k) {
+        return Ok(n);
+    }
     let kept = MEASURED.lock().unwrap_or_else(|e| e.into_inner()).iter().rev().find(|e| e.1 == k && e.0.serves(&e.2, &on)).map(|e| e.2.clone());
     if let Some(n) = kept {
         return Ok(n);

@@ -65,12 +65,14 @@ pub fn build(engine: &mut Engine, s: &SourceArgs, out: &Path, config: Option<&Pa
     let opts = store_options(f.store.f16, f.store.segment_images);
     let map = if f.force && out.exists() {
         edit::build_replacing(out, |dir| {
-            build_into(engine, &cfg, sources, dir, f, opts, s.skip_invalid, quiet).and_then(|m| with_index(m, &cfg, f.index, quiet))
+            let m = build_into(engine, &cfg, sources, dir, f, opts, s.skip_invalid, quiet).and_then(|m| with_index(m, &cfg, f.index, quiet))?;
+            with_null(engine, m, &cfg, quiet)
         })?;
         Map::open(out)?
     } else {
         let m = build_into(engine, &cfg, sources, out, f, opts, s.skip_invalid, quiet)?;
-        with_index(m, &cfg, f.index, quiet)?
+        let m = with_index(m, &cfg, f.index, quiet)?;
+        with_null(engine, m, &cfg, quiet)?
     };
     info(
         quiet,
@@ -126,6 +128,27 @@ fn build_into(
     let r = batch::encode_into(engine, &encoder, frames, fmt, &mut writer, into)?;
     report_encoding(&r, quiet);
     writer.finish()
+}
+
+/// `map build` and `map add`: measures the null of `verified`'s evidence under `cfg` and stores
+/// it in the manifest (after the index, whose candidates queries then see), where the config
+/// tests evidence against one ([`Engine::store_null`]); says what it found and what it cost.
+fn with_null(engine: &mut Engine, map: Map, cfg: &Config, quiet: bool) -> Result<Map> {
+    let (map, stored) = engine.store_null(map, cfg)?;
+    if let Some((n, ms)) = stored {
+        info(
+            quiet,
+            format!(
+                "null of verified's evidence: {} pairs of other places verified from {} references (median {} inliers, 99th percentile {}), {:.1} s, stored in the manifest",
+                n.pairs,
+                n.sources,
+                n.inliers_quantile(0.5),
+                n.inliers_quantile(0.99),
+                ms / 1000.0
+            ),
+        );
+    }
+    Ok(map)
 }
 
 /// `map build --index`: builds the index where asked (`auto`: from `index.min_places` images
@@ -260,7 +283,8 @@ fn add(engine: &mut Engine, s: &SourceArgs, p: &PoseArgs, dir: &Path, f: AddFlag
     let into = IntoOptions { skip_invalid: s.skip_invalid, skip_stored: resume, quiet, poses: Some(&poses) };
     let r = batch::encode_into(engine, &encoder, &frames, fmt, &mut writer, into)?;
     report_encoding(&r, quiet);
-    let map = writer.finish()?;
+    // the add may have taken the map past the size its stored null stands for
+    let map = with_null(engine, writer.finish()?, &cfg, quiet)?;
     info(
         quiet,
         format!(
@@ -311,6 +335,12 @@ fn show(dir: &Path, json: bool) -> Result<()> {
             "poses": { "images": poses.0, "with_orientation": poses.1 },
             "index": m.index,
             "embedding": m.embedding,
+            "frame_intervals": m.frame_intervals,
+            "null": m.null.as_ref().map(|n| serde_json::json!({
+                "images": n.images, "sources": n.evidence.sources, "pairs": n.evidence.pairs,
+                "median_inliers": n.evidence.inliers_quantile(0.5), "p99_inliers": n.evidence.inliers_quantile(0.99),
+                "compact_hog": n.evidence.compact_hog.len(),
+            })),
             "config": m.config,
         });
         outln!("{}", to_json(&v)?);
@@ -338,6 +368,24 @@ fn show(dir: &Path, json: bool) -> Result<()> {
         match &m.embedding {
             Some(e) => outln!("embeddings: {} values by {} at {} px long side (sha256 {})", e.dim, e.network, e.long_side, e.sha256),
             None => outln!("embeddings: none (the fused score has no embedding term)"),
+        }
+        match m.frame_intervals.is_empty() {
+            true => outln!("timestamps: none stored (a stream's velocity range cannot follow its camera rate)"),
+            false => {
+                let t: Vec<String> = m.frame_intervals.iter().map(|(t, s)| format!("traversal {t} every {s:.3} s")).collect();
+                outln!("timestamps: {}", t.join(", "))
+            }
+        }
+        match &m.null {
+            Some(n) => outln!(
+                "null of verified's evidence: measured at {} images, {} pairs of other places from {} references, median {} inliers, 99th percentile {} (queries under the config the map was built with test against it; under another, they measure their own)",
+                n.images,
+                n.evidence.pairs,
+                n.evidence.sources,
+                n.evidence.inliers_quantile(0.5),
+                n.evidence.inliers_quantile(0.99)
+            ),
+            None => outln!("null of verified's evidence: none stored (queries measure it on first use)"),
         }
         match &m.index {
             Some(ix) => outln!("{}", describe_index(ix, &m.config.global)),
