@@ -219,6 +219,7 @@ fn appearance_in_maps_and_evaluation() {
             skip_invalid: false,
             quiet: true,
             sequence: false,
+            label_cache: None,
         },
         &mut engine,
     )

@@ -56,6 +56,7 @@ fn folders_layout_like_extended_cmu_seasons() {
             skip_invalid: false,
             quiet: true,
             sequence: false,
+            label_cache: None,
         },
         &mut semlook::engine::Engine::cpu(),
     )

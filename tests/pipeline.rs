@@ -116,7 +116,7 @@ fn evaluation_on_a_tiny_benchmark_reports_every_setting() {
     let report = evaluate(
         &ds,
         &cfg,
-        &EvalOptions { settings: Setting::ALL.to_vec(), map: None, skip_invalid: false, quiet: true, sequence: false },
+        &EvalOptions { settings: Setting::ALL.to_vec(), map: None, skip_invalid: false, quiet: true, sequence: false, label_cache: None },
         &mut semlook::engine::Engine::cpu(),
     )
     .unwrap();

@@ -536,7 +536,7 @@ pub fn evaluate<'py>(
             (None, Some(m)) => m.query_config(),
             (None, None) => ds.adapt_config(Config::default()),
         };
-        let eo = semlook::eval::EvalOptions { settings, map: map.as_deref(), skip_invalid: false, quiet: true, sequence: false };
+        let eo = semlook::eval::EvalOptions { settings, map: map.as_deref(), skip_invalid: false, quiet: true, sequence: false, label_cache: None };
         semlook::eval::evaluate(&ds, &cfg, &eo, e)
     })?;
     to_py_object(py, &report)

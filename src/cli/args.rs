@@ -845,6 +845,11 @@ pub struct EvalArgs {
     /// frames, `[sequence]` in the config) and report its R@1 beside the single-frame one.
     #[arg(long)]
     pub sequence: bool,
+    /// Keep the segmenter's label maps in DIR and read them back for the same pixels (same
+    /// segmenter file and segmentation config): a second evaluation of the same frames skips
+    /// segmentation (as `dev tune --label-cache`).
+    #[arg(long, value_name = "DIR")]
+    pub label_cache: Option<PathBuf>,
     /// Write DIR/index.html, one self-contained page: the metrics table, precision-recall and
     /// recall@N charts, the worst queries' sheets (the N of --explain, else 6) and what ran.
     #[arg(long, value_name = "DIR")]

@@ -213,6 +213,9 @@ pub struct EvalOptions<'a> {
     pub quiet: bool,
     /// Also sequence matching over each query set in its order ([`SequenceReport`]).
     pub sequence: bool,
+    /// Keep the segmenter's label maps here and read them back for the same pixels, segmenter
+    /// and segmentation config ([`Encoder::with_label_cache`]): a second run skips segmentation.
+    pub label_cache: Option<std::path::PathBuf>,
 }
 
 /// Evaluates `ds`: encodes its references (or takes `opts.map`) and its queries, and matches
@@ -226,7 +229,8 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
     let base = match opts.map {
         Some(m) => Encoder::for_map(cfg, m)?,
         None => Encoder::new(cfg)?,
-    };
+    }
+    .with_label_cache(opts.label_cache.clone());
     fn sources(frames: &[crate::dataset::Frame]) -> impl Iterator<Item = &crate::input::FrameSource> {
         frames.iter().map(|f| &f.source)
     }
@@ -281,7 +285,14 @@ pub fn evaluate(ds: &Dataset, cfg: &Config, opts: &EvalOptions, engine: &mut Eng
             runs.map(|s| s.name()).collect::<Vec<_>>().join(", ")
         );
     }
-    let opts = &EvalOptions { settings, map: opts.map, skip_invalid: opts.skip_invalid, quiet: opts.quiet, sequence: opts.sequence };
+    let opts = &EvalOptions {
+        settings,
+        map: opts.map,
+        skip_invalid: opts.skip_invalid,
+        quiet: opts.quiet,
+        sequence: opts.sequence,
+        label_cache: opts.label_cache.clone(),
+    };
     let wants_hog = opts.settings.contains(&Setting::Hog);
     let owned;
     let mut encoder = base.with_hog(wants_hog && opts.map.is_none_or(|m| m.manifest.hog_dim > 0)).without_labels(without_labels);

@@ -141,6 +141,7 @@ mod tests {
             frame_intervals: Default::default(),
             index: None,
             embedding: None,
+            null: None,
             checksum: String::new(),
         }
     }

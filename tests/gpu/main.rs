@@ -387,7 +387,7 @@ fn end_to_end_matching_equals_the_cpu_path() {
         Config::without_appearance()
     };
     let mut gpu_engine = Engine::with_context(ctx);
-    let opts = |s| semlook::eval::EvalOptions { settings: s, map: None, skip_invalid: false, quiet: true, sequence: false };
+    let opts = |s| semlook::eval::EvalOptions { settings: s, map: None, skip_invalid: false, quiet: true, sequence: false, label_cache: None };
     let g = semlook::eval::evaluate(&ds, &cfg, &opts(Setting::ALL.to_vec()), &mut gpu_engine).unwrap();
     let c = semlook::eval::evaluate(&ds, &cfg, &opts(Setting::ALL.to_vec()), &mut Engine::cpu()).unwrap();
     for (a, b) in g.results.iter().zip(&c.results) {

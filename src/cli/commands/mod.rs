@@ -113,7 +113,7 @@ fn camvid_cmd(camvid: &Path, a: &SynthArgs, engine: &dyn Fn() -> Result<Engine>,
     let cfg = apply_models(Config::camvid(), &a.models);
     let ds = Dataset::open(&a.out, &DatasetOptions::default())?;
     let mut engine = engine()?;
-    let opts = EvalOptions { settings: Setting::ALL.to_vec(), map: None, skip_invalid: false, quiet, sequence: false };
+    let opts = EvalOptions { settings: Setting::ALL.to_vec(), map: None, skip_invalid: false, quiet, sequence: false, label_cache: None };
     info(quiet, "evaluating with the real labels");
     let real = evaluate(&ds, &cfg, &opts, &mut engine)?;
     info(quiet, "evaluating with the segmenter's labels");
@@ -320,7 +320,14 @@ fn eval_cmd(engine: &mut Engine, a: &EvalArgs, quiet: bool) -> Result<()> {
     let report = evaluate(
         &ds,
         &cfg,
-        &EvalOptions { settings: settings.clone(), map: map.as_ref(), skip_invalid: a.skip_invalid, quiet, sequence: a.sequence },
+        &EvalOptions {
+            settings: settings.clone(),
+            map: map.as_ref(),
+            skip_invalid: a.skip_invalid,
+            quiet,
+            sequence: a.sequence,
+            label_cache: a.label_cache.clone(),
+        },
         engine,
     )?;
     for line in eval_coarse_searches(&report, map.as_ref(), &cfg) {
@@ -482,8 +489,12 @@ fn demo(a: &DemoArgs, engine: &mut Engine, quiet: bool) -> Result<()> {
     write_file(&results.join(format!("query-{hardest}.json")), &json)?;
     info(quiet, "[4/4] evaluating every setting on every query traversal");
     let ds = Dataset::open(&data, &DatasetOptions::default())?;
-    let report =
-        evaluate(&ds, &cfg, &EvalOptions { settings: Setting::ALL.to_vec(), map: Some(&map), skip_invalid: false, quiet, sequence: false }, engine)?;
+    let report = evaluate(
+        &ds,
+        &cfg,
+        &EvalOptions { settings: Setting::ALL.to_vec(), map: Some(&map), skip_invalid: false, quiet, sequence: false, label_cache: None },
+        engine,
+    )?;
     write_file(&results.join("eval.json"), &to_json(&report)?)?;
     print_report(&report, a.json)?;
     if !a.json {
