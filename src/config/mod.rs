@@ -273,6 +273,7 @@ impl Config {
         v.real("sequence.refine_share", sq.refine_share, 0.0, 1.0)?;
         v.real("sequence.stop_velocity", sq.stop_velocity, 0.0, 16.0)?;
         v.real("sequence.stillness", sq.stillness, 0.0, 2.0)?;
+        v.real("sequence.support", sq.support, 0.0, 1.0)?;
         let ix = &self.index;
         v.int("index.min_places", ix.min_places, 0, usize::MAX)?;
         v.int("index.probe", ix.probe, 1, 65536)?;

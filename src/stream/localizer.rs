@@ -106,25 +106,28 @@ impl Rate {
     }
 }
 
-/// Counts the frames whose best trajectory runs at the velocity range's edge, and warns once
-/// [`EDGE_FRAMES`] of them come in a row: the camera is likely faster than the range follows.
+/// Counts the frames whose best trajectory runs at the velocity range's edge, or is refused for
+/// want of the newest frame's support (a trajectory left behind a camera the range does not
+/// follow), and warns once [`EDGE_FRAMES`] of them come in a row: the camera is likely faster than
+/// the range follows.
 fn watch_edge(seq: &SequenceMatcher, cfg: &crate::config::SequenceConfig, rate: &mut Rate, counts: &mut StreamCounts, m: Option<&SequenceMatch>) {
     let (lo, hi) = seq.velocity_range();
     let at_edge = m.is_some_and(|m| {
         let v = m.velocity as f64;
         m.frames > 1 && ((v - hi).abs() < 1e-3 * hi.abs().max(1.0) || (lo < 0.0 && (v - lo).abs() < 1e-3 * lo.abs().max(1.0)))
     });
-    match at_edge {
-        true => {
-            counts.velocity_edge += 1;
-            rate.edge_run += 1;
-        }
+    let unsupported = m.is_some_and(|m| m.frames >= cfg.min_frames && !m.supported);
+    counts.velocity_edge += u64::from(at_edge);
+    counts.unsupported += u64::from(unsupported);
+    match at_edge || unsupported {
+        true => rate.edge_run += 1,
         false => rate.edge_run = 0,
     }
     if rate.edge_run >= EDGE_FRAMES.min(cfg.length).max(2) && !rate.warned {
         rate.warned = true;
         log::warn!(
-            "sequence: the best trajectory has run at the edge of the velocity range ({lo:.2} to {hi:.2} positions per frame) for {} frames: \
+            "sequence: the best trajectory has run at the edge of the velocity range ({lo:.2} to {hi:.2} positions per frame), or without \
+             the newest frame's support, for {} frames: \
              the camera may move faster than the range follows (a map and a stream at other frame rates?); give the map's \
              images and the stream's frames timestamps, or set sequence.velocity_scale (docs/streams.md, \"Rates\")",
             rate.edge_run

@@ -50,11 +50,15 @@ pub struct SequenceMatch {
     /// How alike the newest frame's evidence is to the frame's before it (the cosine of their
     /// rows): 1 where a camera stands still.
     pub stillness: f32,
-    /// `uniqueness >= sequence.min_uniqueness`, `frames >= sequence.min_frames`, and the
+    /// `uniqueness >= sequence.min_uniqueness`, `frames >= sequence.min_frames`, the
     /// trajectory moves (|velocity| at least `sequence.stop_velocity`) or the frames stand still
     /// (`stillness` at least `sequence.stillness`): a standing trajectory is taken only where the
-    /// camera stands, not where one place matches every frame of a moving camera.
+    /// camera stands, not where one place matches every frame of a moving camera; and the newest
+    /// frame vouches for it (`sequence.support`).
     pub accepted: bool,
+    /// The newest frame gives a place within `sequence.refine` positions of the trajectory's
+    /// end at least `sequence.support` of its strongest evidence (what acceptance asks of it).
+    pub supported: bool,
 }
 
 /// The uniqueness of a match no other place competes with.
@@ -434,6 +438,10 @@ fn decide(cfg: &SequenceConfig, grid: &Grid, ends: &Ends, rows: &[&[(Place, f32)
         .filter(|(p, _)| p.traversal == place.traversal && p.position.abs_diff(place.position) <= r)
         .max_by(|a, b| a.1.total_cmp(&b.1).then_with(|| b.0.cmp(&a.0)))
         .filter(|e| e.1 as f64 >= cfg.refine_share * strongest as f64);
+    // the newest frame vouches for the match: evidence near the end, at least `support` of its strongest
+    let supported = newest.iter().any(|(p, c)| {
+        p.traversal == place.traversal && p.position.abs_diff(place.position) <= r && *c > 0.0 && *c as f64 >= cfg.support * strongest as f64
+    });
     let velocity = grid.velocities[vi];
     let moving = velocity.abs() >= cfg.stop_velocity;
     Some(SequenceMatch {
@@ -444,7 +452,8 @@ fn decide(cfg: &SequenceConfig, grid: &Grid, ends: &Ends, rows: &[&[(Place, f32)
         frames,
         uniqueness,
         stillness: still,
-        accepted: uniqueness as f64 >= cfg.min_uniqueness && frames >= cfg.min_frames && (moving || still as f64 >= cfg.stillness),
+        accepted: uniqueness as f64 >= cfg.min_uniqueness && frames >= cfg.min_frames && (moving || still as f64 >= cfg.stillness) && supported,
+        supported,
     })
 }
 
@@ -622,6 +631,43 @@ mod tests {
         assert!(smooth.velocity <= 0.25, "slowing down at the end: {smooth:?}");
         let (straight, _) = run(1e9);
         assert_ne!(straight.end, place(0, truth), "{straight:?}");
+    }
+
+    /// A camera three places a frame on (a stream at a third of the map's frame rate, issue 57):
+    /// within 0 to 2 positions a frame no trajectory follows it, and without the newest frame's
+    /// support the trajectory left behind is accepted far from the camera; with `support` no
+    /// accepted match is; with the range to 4 the camera is followed and accepted where it is.
+    #[test]
+    fn a_camera_faster_than_the_range_is_never_accepted_behind_itself() {
+        let run = |vmax: f64, steps: usize, support: f64| {
+            let cfg = SequenceConfig { velocity_max: vmax, velocity_steps: steps, support, ..SequenceConfig::default() };
+            let mut m = SequenceMatcher::new(&cfg);
+            let (mut wrong, mut right) = (0, 0);
+            for t in 0..30u32 {
+                let truth = 3 * t;
+                // the true place and its neighbours, and two scattered look-alikes
+                let mut row =
+                    vec![(place(0, truth), 1.0), (place(0, truth + 1), 0.6), (place(0, (t * 37) % 100), 0.7), (place(0, (t * 53 + 11) % 100), 0.5)];
+                if truth > 0 {
+                    row.push((place(0, truth - 1), 0.6));
+                }
+                row.sort_by_key(|x| x.0);
+                row.dedup_by_key(|x| x.0);
+                let row = contributions(&cfg, &row, &|_| 100);
+                if let Some(s) = m.push(row, &|_| 100).filter(|s| s.accepted) {
+                    match s.place.position.abs_diff(truth) <= 1 {
+                        true => right += 1,
+                        false => wrong += 1,
+                    }
+                }
+            }
+            (wrong, right)
+        };
+        let (wrong, _) = run(2.0, 9, 0.0);
+        assert!(wrong > 0, "the failure of before: accepted behind the camera");
+        assert_eq!(run(2.0, 9, 0.5).0, 0, "support: never accepted behind");
+        let (wrong, right) = run(4.0, 17, 0.5);
+        assert!(wrong == 0 && right >= 15, "followed: {wrong} wrong, {right} right");
     }
 
     /// One place that scores well against every frame of a moving camera makes a standing

@@ -240,4 +240,8 @@ pub struct StreamCounts {
     /// the camera may move faster than the range follows (a warning is logged once 8 come in a
     /// row).
     pub velocity_edge: u64,
+    /// Frames whose best trajectory the newest frame did not vouch for (`sequence.support`), so
+    /// not accepted: a camera faster than the range follows leaves its trajectories behind it.
+    /// Such frames and those at the velocity range's edge, 8 in a row, log the warning.
+    pub unsupported: u64,
 }

@@ -446,6 +446,12 @@ pub fn run(
                         rows[i].results.push((cd.name.clone(), format!("{st}+seq"), r1, auc));
                         let traj = seq.iter().map(|s| s.trajectory_recall_at_1).sum::<f64>() / m;
                         rows[i].results.push((cd.name.clone(), format!("{st}+traj"), traj, auc));
+                        // the accepted flag: precision (R@1 column) and recall (AUC column) over
+                        // the queries, pooled over the query sets
+                        let (acc, ok) = seq.iter().fold((0, 0), |a, s| (a.0 + s.accepted, a.1 + s.accepted_correct));
+                        let total: usize = seq.iter().map(|s| s.outcomes.len()).sum();
+                        let precision = if acc > 0 { ok as f64 / acc as f64 } else { 1.0 };
+                        rows[i].results.push((cd.name.clone(), format!("{st}+acc"), precision, ok as f64 / total.max(1) as f64));
                     }
                 }
                 if !null_rows.is_empty() {

@@ -1,0 +1,62 @@
+#!/usr/bin/env bash
+# The camera-rate regimes of issue 57's rate check: streams played at another rate than their map
+# was recorded at, as ref/ + query/ + ground_truth.csv datasets (links to the frames, no copies)
+# that `semlook dev tune --sequence` streams in name order:
+#   nordland-x1..x4   Nordland dev: the map of ref/, the stream every 1st..4th query/ frame
+#   nordland-slow     every query/ frame twice (a camera at twice the map's rate)
+#   camvid-x1..x4     CamVid's Seq05VD drive (frames 1 s apart): the map of its even frames, the
+#   camvid-slow       stream its odd frames (half a place on), every 1st..4th, or each twice
+# Ground truth: Nordland's own (query k <-> ref k-1..k+1); CamVid's odd frame 2i+1 <-> even 2i, 2i+2.
+# No timestamps: what a stream without them gets. OUT default target/rate-data; a copy that exists
+# is kept.   bash scripts/rate/make-rate-copies.sh [OUT]
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+shared=../shared/data
+out=${1:-target/rate-data}
+[ -d "$shared/real-vpr/nordland-spring-winter" ] || { echo "no $shared (the shared data folder beside the repository)" >&2; exit 1; }
+mkdir -p "$out"
+python3 - "$shared" "$out" <<'PY'
+import csv, os, sys
+shared, out = sys.argv[1], sys.argv[2]
+
+def write(name, refs, queries, truth):
+    """refs: [(name, path)]; queries: [(name, path, source query name)]; truth: source query -> [ref names]."""
+    dest = os.path.join(out, name)
+    if os.path.exists(os.path.join(dest, "ground_truth.csv")):
+        print(f"{dest} exists", file=sys.stderr)
+        return
+    for sub in ("ref", "query"):
+        os.makedirs(os.path.join(dest, sub), exist_ok=True)
+    for n, p in refs:
+        os.symlink(os.path.realpath(p), os.path.join(dest, "ref", n))
+    rows = []
+    for n, p, src in queries:
+        os.symlink(os.path.realpath(p), os.path.join(dest, "query", n))
+        rows += [(f"query/{n}", f"ref/{r}") for r in truth[src]]
+    with open(os.path.join(dest, "ground_truth.csv"), "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["query", "reference"])
+        w.writerows(rows)
+    print(f"{dest}: {len(refs)} references, {len(queries)} stream frames", file=sys.stderr)
+
+def plays(prefix, refs, qs, truth):
+    """qs: [(name, path)] in stream order."""
+    for step in (1, 2, 3, 4):
+        write(f"{prefix}-x{step}", refs, [(n, p, n) for n, p in qs[::step]], truth)
+    ext = lambda n: os.path.splitext(n)
+    write(f"{prefix}-slow", refs, [(f"{ext(n)[0]}-{k}{ext(n)[1]}", p, n) for n, p in qs for k in (0, 1)], truth)
+
+nord = os.path.join(shared, "real-vpr", "nordland-spring-winter")
+truth = {}
+for r in csv.DictReader(open(os.path.join(nord, "ground_truth.csv"))):
+    truth.setdefault(os.path.basename(r["query"]), []).append(os.path.basename(r["reference"]))
+listing = lambda d: sorted((n, os.path.join(d, n)) for n in os.listdir(d))
+plays("nordland", listing(os.path.join(nord, "ref")), listing(os.path.join(nord, "query")), truth)
+
+cam = os.path.join(shared, "camvid-test", "images")
+drive = sorted(n for n in os.listdir(cam) if n.startswith("Seq05VD_"))
+refs = [(n, os.path.join(cam, n)) for n in drive[0::2]]
+qs = [(n, os.path.join(cam, n)) for n in drive[1::2]]
+truth = {n: [drive[i - 1]] + ([drive[i + 1]] if i + 1 < len(drive) else []) for i, n in enumerate(drive) if i % 2 == 1}
+plays("camvid", refs, qs, truth)
+PY
