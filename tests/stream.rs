@@ -397,9 +397,10 @@ fn places_follow_traversals_through_add_remove_and_compact() {
 /// A camera at an eighth of the map's frame rate moves 8 positions a frame, beyond the default
 /// range (0 to 4): with timestamps on both sides the range follows the rate, the stream's answers
 /// stay near the truth and its sequence matches are accepted; without them the best trajectory
-/// runs at the range's edge (counted) and is accepted less often, and none it accepts lies behind
-/// the camera (`sequence.support`; before it, trajectories left behind were accepted far off), so
-/// the answers are the single frames' there.
+/// runs at the range's edge or without the newest frame's support (both counted, toward the
+/// warning) and is accepted less often; what it accepts lies behind the camera unless the newest
+/// frame must vouch for it strongly (`sequence.support` 0.5, which costs streams of look-alike
+/// places, sweep 20).
 #[test]
 fn the_velocity_range_follows_the_frame_rates_of_map_and_stream() {
     let dir = tempfile::tempdir().unwrap();
@@ -443,7 +444,7 @@ fn the_velocity_range_follows_the_frame_rates_of_map_and_stream() {
     assert!((scale - 8.0).abs() < 1e-6, "the stream's interval over the map's: {scale}");
     let (with, without) = (near(&timed[10..], &refs, 2), near(&untimed[10..], &refs, 2));
     assert!(with >= 0.9, "with timestamps: {with:.2} near");
-    assert!(without >= 0.9, "without timestamps: {without:.2} near");
+    assert!(without >= 0.8, "without timestamps: {without:.2} near");
     let off = |c: &semlook::stream::StreamCounts| c.velocity_edge + c.unsupported;
     assert!(off(&untimed_counts) > off(&timed_counts), "{untimed_counts:?} against {timed_counts:?}");
     // what the untimed stream accepts is where the camera is
@@ -452,16 +453,18 @@ fn the_velocity_range_follows_the_frame_rates_of_map_and_stream() {
     };
     let (a_timed, a_untimed) = (accepted(&timed), accepted(&untimed));
     assert!(a_timed.len() > a_untimed.len(), "accepted with timestamps {}, without {}", a_timed.len(), a_untimed.len());
-    // behind the camera: at most one accepted, where without the support rule more were
+    // behind the camera: with the default's support (any evidence of the newest frame near the
+    // match) most of the few accepted are (a camera beyond the range: give timestamps); where the
+    // newest frame must give half of its strongest evidence there, at most one
     let behind = |a: &[(usize, FrameResult)]| a.len() - (near(a, &refs, 2) * a.len() as f64).round() as usize;
-    let unsupported = accepted(&stream_with(false, 0.0).0);
+    let strict = accepted(&stream_with(false, 0.5).0);
     assert!(
-        behind(&a_untimed) <= 1 && behind(&a_untimed) < behind(&unsupported),
-        "behind the camera: {} of {} accepted, {} of {} without support",
+        behind(&strict) <= 1 && behind(&strict) < behind(&a_untimed),
+        "behind the camera: {} of {} accepted, {} of {} at support 0.5",
         behind(&a_untimed),
         a_untimed.len(),
-        behind(&unsupported),
-        unsupported.len()
+        behind(&strict),
+        strict.len()
     );
 }
 
