@@ -200,7 +200,7 @@ pub struct Manifest {
     /// The null of `verified`'s evidence measured when the map was built
     /// ([`crate::descriptors::null::StoredNull`], `map build`): what every process and every
     /// shard of the map tests candidates against under the config it was measured with. A commit
-    /// that takes the map past double or half the size it was measured at drops it ([`write`]).
+    /// that takes the map past double or half the size it was measured at drops it ([`write()`]).
     /// Absent in maps built without one, so their checksums are those of before the field existed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub null: Option<crate::descriptors::null::StoredNull>,

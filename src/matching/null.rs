@@ -240,7 +240,7 @@ static MEASURED: Mutex<Vec<(Measured, String, Arc<NullEvidence>)>> = Mutex::new(
 const KEPT: usize = 16;
 
 /// The null of `refs` under `cfg`: the one the source stores, if measured under `cfg`
-/// ([`RefSource::stored_null`]); else the one kept in this process; else `measure`'s (then kept for the rest of the
+/// ([`GlobalSource::stored_null`](crate::descriptors::source::GlobalSource::stored_null)); else the one kept in this process; else `measure`'s (then kept for the rest of the
 /// process; for a stored map, across its generations until it doubles or halves).
 pub fn kept_or(refs: &dyn RefSource, cfg: &Config, measure: impl FnOnce() -> Result<NullEvidence>) -> Result<Arc<NullEvidence>> {
     let (on, k) = (Measured::of(refs), key(cfg));
