@@ -121,10 +121,11 @@ impl NullEvidence {
 }
 
 /// What a null is measured under: the config that makes `verified`'s candidates and verifies
-/// them, and the null's own parameters (none of the score's weights).
+/// them, and the null's own parameters (none of the score's weights), as a SHA-256.
 pub fn key(cfg: &Config) -> String {
     let v = measurement(&cfg.verification);
-    serde_json::json!([cfg.matching, cfg.global, cfg.index, cfg.classes, v]).to_string()
+    // the SHA-256 of those sections' JSON: compact in a manifest, and no config text there
+    crate::util::sha256_hex(serde_json::json!([cfg.matching, cfg.global, cfg.index, cfg.classes, v]).to_string().as_bytes())
 }
 
 /// `v` with the verified score's weights at their defaults: what a measurement depends on.
