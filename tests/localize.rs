@@ -323,6 +323,65 @@ fn a_killed_loop_closure_run_resumes_and_stores_every_frame_once() {
     assert_eq!(semlook::map::manifest::traversal_names(&m.manifest).len(), 1, "the restart continued the stream's traversal");
 }
 
+/// SIGINT (Ctrl-C) or SIGTERM during `--loop-closure` on standard input, the camera still
+/// connected but silent: the stream stops between frames, commits every frame it answered (the
+/// number the summary prints is the map's), prints the summary and exits 128 + the signal (130,
+/// 143), instead of dying with frames buffered and no summary (issue 57: 6 of 56 frames lost).
+#[test]
+#[cfg(unix)]
+fn a_signal_during_loop_closure_commits_every_answered_frame_and_prints_the_summary() {
+    use std::io::BufRead;
+    use std::os::unix::process::ExitStatusExt;
+    if !common::has_xfeat() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    common::tiny_synth(&data, 16, 9);
+    let (_, _, q_rgb, _) = folders(&data);
+    let frames: Vec<Vec<u8>> = (0..16).map(|i| std::fs::read(q_rgb.join(format!("{i:06}.png"))).unwrap()).collect();
+    // the first 8 frames make the map, then a commit every 4: 11 answered leave 3 buffered
+    let cfg = dir.path().join("lc.toml");
+    std::fs::write(&cfg, "[stream]\nexclude_frames = 8\ncommit_frames = 4\n").unwrap();
+    for (signal, name, sent) in [("-INT", "SIGINT", 11), ("-TERM", "SIGTERM", 14)] {
+        let map = dir.path().join(format!("map{name}"));
+        let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_semlook"))
+            .args(["--backend", "cpu", "localize", "--map", p(&map), "--stdin", "--loop-closure", "--no-segmenter", "--config", p(&cfg), "-q"])
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut stdin = child.stdin.take().unwrap();
+        for f in &frames[..sent] {
+            stdin.write_all(f).unwrap();
+        }
+        stdin.flush().unwrap();
+        let mut out = std::io::BufReader::new(child.stdout.take().unwrap());
+        let (mut answered, mut line) = (0, String::new());
+        while answered < sent {
+            line.clear();
+            assert!(out.read_line(&mut line).unwrap() > 0, "{name}: the run ended early");
+            answered += usize::from(line.starts_with(char::is_numeric));
+        }
+        // the camera stays connected (stdin open) and sends nothing more
+        let kill = std::process::Command::new("kill").args([signal, &child.id().to_string()]).status().unwrap();
+        assert!(kill.success());
+        let mut rest = String::new();
+        std::io::Read::read_to_string(&mut out, &mut rest).unwrap();
+        let status = child.wait().unwrap();
+        let mut err = String::new();
+        std::io::Read::read_to_string(&mut child.stderr.take().unwrap(), &mut err).unwrap();
+        drop(stdin);
+        assert_eq!(status.code(), Some(if name == "SIGINT" { 130 } else { 143 }), "{name}: {status:?} {err}");
+        assert!(status.signal().is_none(), "{name}: ended by the signal's default action, not by the stream");
+        assert!(rest.contains(&format!("# interrupted by {name}")), "{name}: {rest}");
+        assert!(rest.contains(&format!("# {sent} frames (0 refused)")), "{name}: the summary counts every answered frame: {rest}");
+        let m = semlook::map::Map::open(&map).unwrap();
+        assert_eq!(m.len(), sent, "{name}: every answered frame committed to the map");
+    }
+}
+
 #[test]
 fn eval_reports_sequence_matching_beside_single_frames() {
     let dir = tempfile::tempdir().unwrap();

@@ -182,10 +182,13 @@ fn trajectories_stop_at_a_traversal_boundary() {
 fn loop_closure_finds_the_repeated_drive_and_nothing_recent() {
     let dir = tempfile::tempdir().unwrap();
     let Some((refs, shift)) = drive(&dir.path().join("data")) else { return };
-    closes_the_loop(&dir.path().join("loop-map"), &config(), Setting::Forest, &refs, &shift);
+    closes_the_loop(&dir.path().join("loop-map"), &config(), Setting::Forest, &refs, &shift, None);
 }
 
-/// A synthetic route driven twice (by day, then overcast), photos and label maps, `verified`.
+/// A synthetic route driven twice (by day, then overcast), photos and label maps, `verified`,
+/// with the renderer's camera from the first frame on (the map does not exist yet: its keypoints
+/// come with the codebook its first frames train): the second pass's closures carry relative
+/// poses (issue 57: `--loop-closure --camera` on a new map was refused for a map without keypoints).
 #[test]
 fn loop_closure_finds_the_repeated_synthetic_route_and_nothing_recent() {
     if !common::has_xfeat() {
@@ -217,15 +220,28 @@ fn loop_closure_finds_the_repeated_synthetic_route_and_nothing_recent() {
             .collect()
     };
     let cfg = Config::default();
-    closes_the_loop(&dir.path().join("loop-map"), &cfg, Setting::Verified, &frames("day"), &frames("overcast"));
+    let f = 160.0 / 40f64.to_radians().tan();
+    let camera = semlook::verify::pose::Camera { fx: f, fy: f, cx: 159.5, cy: 119.5, width: 320, height: 240 };
+    closes_the_loop(&dir.path().join("loop-map"), &cfg, Setting::Verified, &frames("day"), &frames("overcast"), Some(camera));
 }
 
 /// Streams `first` and then `second` (the same route again) through a loop-closure localizer
 /// that starts the map at `map`: the second pass closes loops on the right places (within two),
-/// the first almost never, and no closure is on a frame of the excluded recent window.
-fn closes_the_loop(map: &Path, cfg: &Config, setting: Setting, first_pass: &[FrameSource], second_pass: &[FrameSource]) {
+/// the first almost never, and no closure is on a frame of the excluded recent window. With a
+/// `camera`, set before the first frame, most closures carry the relative pose.
+fn closes_the_loop(
+    map: &Path,
+    cfg: &Config,
+    setting: Setting,
+    first_pass: &[FrameSource],
+    second_pass: &[FrameSource],
+    camera: Option<semlook::verify::pose::Camera>,
+) {
     let opts = StreamOptions { setting, loop_closure: true, ..Default::default() };
     let mut l = Localizer::open(map, Some(cfg.clone()), opts, Engine::cpu()).unwrap();
+    if let Some(c) = camera {
+        l = l.with_camera(c).expect("a camera on a map the stream starts");
+    }
     let (mut first, mut second) = (vec![], vec![]);
     for (k, f) in first_pass.iter().chain(second_pass).enumerate() {
         let r = l.push(frame(f)).unwrap();
@@ -248,6 +264,11 @@ fn closes_the_loop(map: &Path, cfg: &Config, setting: Setting, first_pass: &[Fra
     assert!(second.len() >= first_pass.len() / 2, "{} closures in the second pass", second.len());
     assert!(wrong.len() as f64 <= 0.05 * second.len() as f64, "{} of {} wrong: {wrong:?}", wrong.len(), second.len());
     assert!(first.len() <= first_pass.len() / 20, "{} closures in the first pass, where the route does not repeat", first.len());
+    if camera.is_some() {
+        let posed = second.iter().filter(|(_, c)| c.relative_pose.is_some()).count();
+        eprintln!("{posed} of the {} closures with a relative pose", second.len());
+        assert!(posed * 2 >= second.len(), "most closures carry a relative pose: {posed} of {}", second.len());
+    }
     // the map holds the stream, committed through the store
     let m = Map::open(map).unwrap();
     assert_eq!(m.len(), first_pass.len() + second_pass.len());

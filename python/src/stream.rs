@@ -70,7 +70,8 @@ impl PyLocalizer {
 
     /// Localizes the next frame: `image` (uint8 [H, W, 3] RGB) and/or `labels` (integer [H, W]
     /// label ids), or a `path` to an image file (and `labels_path`), or the `data` of a JPEG or
-    /// PNG file; `id` names it (default frame-N; in loop-closure mode the id it is stored under),
+    /// PNG file; `id` names it (default: the file's stem for `path`, else frame-N; in loop-closure
+    /// mode the id it is stored under),
     /// `timestamp` in seconds must not go backwards. Returns a dict: `top_k` (the single-frame
     /// ranking: id, index, place, score, inliers), `sequence` (the sequence match: id, score,
     /// uniqueness, accepted, velocity, frames; None without evidence), `answer` (the stream's
@@ -94,7 +95,9 @@ impl PyLocalizer {
         timestamp: Option<f64>,
     ) -> PyResult<Bound<'py, PyAny>> {
         let mut loc = self.inner.lock().map_err(|_| invalid("localizer", "poisoned by a panic in an earlier call"))?;
-        let id = id.unwrap_or_else(|| format!("frame-{:06}", loc.counts().frames));
+        // a file's frame is named by its stem, as `localize --images` names it
+        let stem = path.as_deref().and_then(|p| p.file_stem()).map(|s| s.to_string_lossy().into_owned());
+        let id = id.or(stem).unwrap_or_else(|| format!("frame-{:06}", loc.counts().frames));
         let lab = labels.map(|l| labels_from_array(py, l, "labels", loc.encoder())).transpose()?;
         let pixels = match (image, path, data) {
             (Some(img), None, None) => Pixels::Rgb { image: rgb_from_array(py, img, "image")?, labels: lab },
@@ -131,6 +134,17 @@ impl PyLocalizer {
         let mut loc = self.inner.lock().map_err(|_| invalid("localizer", "poisoned"))?;
         let l: &mut Localizer = &mut loc;
         py.detach(|| l.finish()).py_err()
+    }
+    /// `with Localizer(...) as loc:` commits on leaving the block, however it is left: an
+    /// exception, or Ctrl-C's KeyboardInterrupt between frames, keeps every frame answered.
+    fn __enter__(slf: PyRef<'_, Self>) -> PyRef<'_, Self> {
+        slf
+    }
+    /// Commits ([`finish`](Self::finish)); the block's exception, if any, goes on.
+    #[pyo3(signature = (*_exc))]
+    fn __exit__(&self, py: Python<'_>, _exc: &Bound<'_, pyo3::types::PyTuple>) -> PyResult<bool> {
+        self.finish(py)?;
+        Ok(false)
     }
     /// Frames, refused frames, accepted sequence matches, closures, reloads, warm-up frames.
     #[getter]

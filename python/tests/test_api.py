@@ -368,6 +368,32 @@ def test_localizer_streams_frames_with_sequence_matching(tmp_path, encoder):
         loc.push()
 
 
+def test_a_localizer_in_a_with_block_commits_every_answered_frame_on_ctrl_c(tmp_path):
+    """Issue 57: Ctrl-C (KeyboardInterrupt between frames) in loop-closure mode left the frames
+    buffered since the last commit out of the map while the localizer lived on. In a `with`
+    block, leaving it commits them: every frame answered is in the map. And `push(path=)` names
+    a frame by its file's stem, as `localize --images` does (it was frame-N)."""
+    cfg = semlook.Config.without_appearance()
+    commit = tomllib.loads(cfg.to_toml())["stream"]["commit_frames"]
+    assert commit > 14, "the buffer holds frames past the last commit"
+    for t in range(14):
+        write_png(tmp_path / f"cam-{t:03d}.png", np.full((72, 96), 128, np.uint8))
+        write_png(tmp_path / f"cam-{t:03d}-labels.png", place(t))
+    answered = 0
+    with pytest.raises(KeyboardInterrupt):
+        with semlook.Localizer(tmp_path / "lc", setting="forest", loop_closure=True, config=cfg, backend="cpu") as loc:
+            for t in range(13):
+                loc.push(labels=place(t), timestamp=float(t))
+                answered += 1
+            r = loc.push(path=tmp_path / "cam-013.png", labels_path=tmp_path / "cam-013-labels.png", timestamp=13.0)
+            answered += 1
+            assert r["id"] == "cam-013", r["id"]
+            raise KeyboardInterrupt
+    assert loc.counts["frames"] == answered == 14
+    m = semlook.Map.open(tmp_path / "lc")
+    assert len(m) == 14, f"{len(m)} of the 14 answered frames in the map"
+
+
 def test_what_a_new_python_user_reaches_for(tmp_path, small_map, queries, encoder):
     """Issue 30's Python stumbles, each seen failing before: `Config` took TOML text only (a path
     was parsed as TOML); `Matches` was neither indexable nor iterable and `==` was identity;

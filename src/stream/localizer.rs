@@ -286,7 +286,8 @@ impl Localizer {
     /// estimated from the pair's keypoint matches as verification makes them. The map's
     /// references are taken to be of the same camera (a loop closure's are: the stream's own
     /// frames); a frame of another aspect ratio gets no pose. A map without verification
-    /// keypoints is refused.
+    /// keypoints is refused (a loop-closure map the stream starts: an encoder whose network
+    /// detects none); the first closures of a new map get poses.
     pub fn with_camera(mut self, camera: Camera) -> Result<Localizer> {
         self.set_camera(camera)?;
         Ok(self)
@@ -298,7 +299,13 @@ impl Localizer {
     /// localizer had). Refused (the intrinsics or the map), the localizer keeps the camera it had.
     pub fn set_camera(&mut self, camera: Camera) -> Result<()> {
         camera.check().map_err(|r| Error::invalid("camera intrinsics", r))?;
-        if self.encoder.keypoint_dim() == 0 {
+        // a map this stream starts has its keypoints once its first frames trained the codebook:
+        // what counts until then is whether the encoder's network detects them
+        let keypoints = match &self.map {
+            Some(_) => self.encoder.keypoint_dim() > 0,
+            None => self.encoder.appearance().is_some_and(|a| a.model().detects()),
+        };
+        if !keypoints {
             return Err(Error::invalid(
                 "camera intrinsics",
                 "the map stores no verification keypoints (built without appearance), so no relative pose can be estimated",

@@ -7,7 +7,8 @@ use super::types::{FrameResult, StreamFrame};
 use crate::encode::Loaded;
 use crate::error::{Error, Result};
 use crate::util::ms_since;
-use std::time::Instant;
+use std::sync::mpsc::RecvTimeoutError;
+use std::time::{Duration, Instant};
 
 /// What [`replay`] reports of each frame.
 pub enum Replayed {
@@ -23,43 +24,68 @@ pub enum Replayed {
 /// not a frame's own (the map, the device) end it. Returns the latencies of the frames answered.
 pub fn replay(
     loc: &mut Localizer,
-    frames: impl Iterator<Item = Result<StreamFrame>> + Send,
+    frames: impl Iterator<Item = Result<StreamFrame>> + Send + 'static,
     ahead: usize,
+    on: impl FnMut(&mut Localizer, Replayed) -> Result<()>,
+) -> Result<LatencyStats> {
+    replay_until(loc, frames, ahead, || false, on)
+}
+
+/// How often a replay waiting for the next frame looks at its `stopped` condition.
+const STOP_POLL: Duration = Duration::from_millis(50);
+
+/// [`replay`] that also ends between frames once `stopped` says so (a signal handler's flag:
+/// SIGINT or SIGTERM), looked at after each frame and every [`STOP_POLL`] while the next is
+/// awaited: every frame answered until then has been reported to `on`, the one being matched
+/// is finished first. The source's thread is then left to end on its own (a read of standard
+/// input blocked on a silent camera would hold a join), which it does at its next frame.
+pub fn replay_until(
+    loc: &mut Localizer,
+    frames: impl Iterator<Item = Result<StreamFrame>> + Send + 'static,
+    ahead: usize,
+    stopped: impl Fn() -> bool,
     mut on: impl FnMut(&mut Localizer, Replayed) -> Result<()>,
 ) -> Result<LatencyStats> {
     let decoder = loc.loader();
     let (tx, rx) = std::sync::mpsc::sync_channel::<(String, Option<f64>, Result<Loaded>, Instant)>(ahead.max(1));
     let mut stats = LatencyStats::default();
-    std::thread::scope(|s| -> Result<()> {
-        s.spawn(move || {
-            for (k, f) in frames.enumerate() {
-                // the source has handed the frame over: its bytes are complete
-                let arrived = Instant::now();
-                let item = match f {
-                    Ok(StreamFrame { id, pixels, timestamp }) => {
-                        let l = decoder.load(&id, pixels);
-                        (id, timestamp, l, arrived)
-                    }
-                    Err(e) => (format!("frame-{k:06}"), None, Err(e), arrived),
-                };
-                if tx.send(item).is_err() {
-                    return;
+    let source = std::thread::spawn(move || {
+        for (k, f) in frames.enumerate() {
+            // the source has handed the frame over: its bytes are complete
+            let arrived = Instant::now();
+            let item = match f {
+                Ok(StreamFrame { id, pixels, timestamp }) => {
+                    let l = decoder.load(&id, pixels);
+                    (id, timestamp, l, arrived)
                 }
-            }
-        });
-        for (id, ts, loaded, arrived) in rx {
-            let (frame, refused) = (loc.counts().frames, loc.counts().refused);
-            match loc.push_loaded(id.clone(), ts, loaded) {
-                Ok(mut r) => {
-                    r.latency.arrival_ms = ms_since(arrived);
-                    stats.push(&r.latency);
-                    on(&mut *loc, Replayed::Answered(Box::new(r)))?;
-                }
-                Err(e) if loc.counts().refused > refused => on(&mut *loc, Replayed::Refused(frame, id, e))?,
-                Err(e) => return Err(e),
+                Err(e) => (format!("frame-{k:06}"), None, Err(e), arrived),
+            };
+            if tx.send(item).is_err() {
+                return;
             }
         }
-        Ok(())
-    })?;
+    });
+    while !stopped() {
+        let (id, ts, loaded, arrived) = match rx.recv_timeout(STOP_POLL) {
+            Ok(item) => item,
+            Err(RecvTimeoutError::Timeout) => continue,
+            Err(RecvTimeoutError::Disconnected) => {
+                return match source.join() {
+                    Ok(()) => Ok(stats),
+                    Err(_) => Err(Error::invalid("stream", "the thread that reads and decodes the frames panicked")),
+                };
+            }
+        };
+        let (frame, refused) = (loc.counts().frames, loc.counts().refused);
+        match loc.push_loaded(id.clone(), ts, loaded) {
+            Ok(mut r) => {
+                r.latency.arrival_ms = ms_since(arrived);
+                stats.push(&r.latency);
+                on(&mut *loc, Replayed::Answered(Box::new(r)))?;
+            }
+            Err(e) if loc.counts().refused > refused => on(&mut *loc, Replayed::Refused(frame, id, e))?,
+            Err(e) => return Err(e),
+        }
+    }
     Ok(stats)
 }

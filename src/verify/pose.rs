@@ -181,9 +181,14 @@ pub struct PoseParams {
 pub const THRESHOLD_OF_LONG_SIDE: f64 = 0.003;
 /// Fewest inliers of an accepted pose (of [`PoseParams::for_camera`]).
 pub const MIN_INLIERS: usize = 12;
-/// Share of the inliers a rotation alone (or one homography) may explain before the pose is refused
-/// as without parallax (or as planar).
-const NO_PARALLAX_SHARE: f64 = 0.9;
+/// Share of the inliers a rotation alone may explain before the pose is refused as without
+/// parallax: where most are (a car waiting at a light), the translation rests on the few that
+/// moved, mostly other traffic. On CamVid's drive a rotation explains 5-23 % of the inliers of a
+/// moving car's consecutive frames (1 s apart) and 82-93 % of those of a stopped car's
+/// (`tests/pose.rs`); 0.9 let the 82 % pair through with a translation straight down the image.
+const NO_PARALLAX_SHARE: f64 = 0.5;
+/// Share of the inliers one homography may explain before the pose is refused as planar.
+const PLANAR_SHARE: f64 = 0.9;
 /// Least-squares refits of a new best model (each kept only if it gathers more inliers).
 const REFINE_ROUNDS: usize = 3;
 /// Levenberg-Marquardt steps of the final refinement.
@@ -286,7 +291,7 @@ pub fn estimate(query: &[[f64; 2]], reference: &[[f64; 2]], p: &PoseParams) -> s
     let plane_inliers =
         super::ransac::ransac_homography(&ia.iter().map(plane).collect::<Vec<_>>(), &ib.iter().map(plane).collect::<Vec<_>>(), &homography)
             .map_or(0, |(_, f)| f.iter().filter(|&&b| b).count());
-    if plane_inliers as f64 >= NO_PARALLAX_SHARE * inl.len() as f64 {
+    if plane_inliers as f64 >= PLANAR_SHARE * inl.len() as f64 {
         return Err(PoseError::Planar { inliers: inl.len(), plane_inliers });
     }
     let (r, t) = decompose(&e, &ia, &ib).ok_or(PoseError::NoModel { matches: n, need })?;

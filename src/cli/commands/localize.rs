@@ -7,7 +7,9 @@ use crate::cli::args::LocalizeArgs;
 use semlook::engine::Engine;
 use semlook::error::{Error, Result};
 use semlook::stream::input::{folder_frames, ImageStream};
-use semlook::stream::{replay, FrameResult, Localizer, Pixels, Replayed, StreamFrame, StreamOptions};
+use semlook::stream::{replay_until, FrameResult, Localizer, Pixels, Replayed, StreamFrame, StreamOptions};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::Arc;
 use std::time::Instant;
 
 /// Frames decoded ahead of the one being matched.
@@ -73,13 +75,13 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
             .unwrap_or_default(),
         false => Default::default(),
     };
-    let skipped = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let skipped = Arc::new(std::sync::atomic::AtomicU64::new(0));
     let skip = {
         let skipped = skipped.clone();
         move |f: &Result<StreamFrame>| {
             let hold = f.as_ref().is_ok_and(|f| held.contains(&f.id));
             if hold {
-                skipped.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                skipped.fetch_add(1, Ordering::Relaxed);
             }
             !hold
         }
@@ -95,49 +97,84 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
                 .filter(skip),
         ),
     };
+    // SIGINT (Ctrl-C) and SIGTERM end the stream between frames: what was answered is committed
+    // and summarised, then the process exits 128 + the signal; a second signal ends it at once
+    let (signal, seen) = (Arc::new(AtomicUsize::new(0)), Arc::new(AtomicBool::new(false)));
+    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        // in this order: the exit looks at `seen` before the first signal sets it
+        signal_hook::flag::register_conditional_shutdown(sig, 128 + sig, seen.clone())
+            .and_then(|_| signal_hook::flag::register(sig, seen.clone()))
+            .and_then(|_| signal_hook::flag::register_usize(sig, signal.clone(), sig as usize))
+            .map_err(|e| Error::io(std::path::Path::new("signal handler"), e))?;
+    }
+    let interrupted = || signal.load(Ordering::Relaxed);
     let start = Instant::now();
     let mut first_refusal: Option<String> = None;
-    let stats = replay(&mut loc, frames, AHEAD, |loc, r| {
-        if a.follow_map {
-            // between frames: the next one is answered from the newest generation
-            if let Err(e) = loc.refresh() {
-                log::warn!("map {}: kept generation {}: {e}", a.map.display(), loc.map().map_or(0, |m| m.manifest.generation));
-            }
-        }
-        match r {
-            Replayed::Answered(r) => print_frame(&r, a.json),
-            Replayed::Refused(frame, id, e) => {
-                log::warn!("frame {frame} ({id}) skipped: {e}");
-                first_refusal.get_or_insert_with(|| format!("frame {frame} ({id}): {e}"));
-                match a.json {
-                    true => outln!("{}", serde_json::json!({ "frame": frame, "id": id, "refused": e.to_string() })),
-                    // the frame's row with no match and `refused` in the accepted column
-                    false => outln!("{}", refused_row(frame, &id)),
+    let stats = replay_until(
+        &mut loc,
+        frames,
+        AHEAD,
+        || interrupted() != 0,
+        |loc, r| {
+            if a.follow_map {
+                // between frames: the next one is answered from the newest generation
+                if let Err(e) = loc.refresh() {
+                    log::warn!("map {}: kept generation {}: {e}", a.map.display(), loc.map().map_or(0, |m| m.manifest.generation));
                 }
-                Ok(())
             }
-        }
-    })?;
+            match r {
+                Replayed::Answered(r) => print_frame(&r, a.json),
+                Replayed::Refused(frame, id, e) => {
+                    log::warn!("frame {frame} ({id}) skipped: {e}");
+                    first_refusal.get_or_insert_with(|| format!("frame {frame} ({id}): {e}"));
+                    match a.json {
+                        true => outln!("{}", serde_json::json!({ "frame": frame, "id": id, "refused": e.to_string() })),
+                        // the frame's row with no match and `refused` in the accepted column
+                        false => outln!("{}", refused_row(frame, &id)),
+                    }
+                    Ok(())
+                }
+            }
+        },
+    )?;
     loc.finish()?;
     let wall = start.elapsed().as_secs_f64();
     let counts = loc.counts();
+    let signal = interrupted();
     // a stream that never came (`ffmpeg -i missing.mp4 ... | semlook localize --stdin`) is a failure,
     // as an empty --images folder is
-    if a.stdin && counts.frames == 0 && skipped.load(std::sync::atomic::Ordering::Relaxed) == 0 {
+    if signal == 0 && a.stdin && counts.frames == 0 && skipped.load(Ordering::Relaxed) == 0 {
         return Err(Error::invalid("standard input", "no frames: the stream was empty"));
     }
     let summary = stats.summary();
     let rate = counts.frames as f64 / wall.max(1e-9);
-    let skipped = skipped.load(std::sync::atomic::Ordering::Relaxed);
+    let skipped = skipped.load(Ordering::Relaxed);
     if a.resume {
         info(quiet, format!("resumed: skipped {skipped} frames the map already held"));
+    }
+    let signal_name = match signal {
+        0 => None,
+        s if s == signal_hook::consts::SIGINT as usize => Some("SIGINT"),
+        _ => Some("SIGTERM"),
+    };
+    if let Some(name) = signal_name {
+        info(
+            quiet,
+            format!(
+                "{name}: stopped after {} frames; every frame answered is in the output (and, with --loop-closure, committed to the map)",
+                counts.frames
+            ),
+        );
     }
     if a.json {
         outln!(
             "{}",
-            serde_json::json!({ "summary": { "counts": counts, "skipped": skipped, "wall_s": wall, "frames_per_s": rate, "latency": summary } })
+            serde_json::json!({ "summary": { "counts": counts, "skipped": skipped, "wall_s": wall, "frames_per_s": rate, "latency": summary, "interrupted": signal_name } })
         );
     } else {
+        if let Some(name) = signal_name {
+            outln!("# interrupted by {name}");
+        }
         if a.resume {
             outln!("# resumed: {skipped} frames skipped (the map already held them)");
         }
@@ -172,6 +209,14 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
             p50.store_ms,
             p99.store_ms
         );
+    }
+    // interrupted: the summary is out and the map committed (`loc.finish` above); the exit
+    // status says which signal ended the run, as the default action's would
+    if signal != 0 {
+        drop(loc);
+        use std::io::Write;
+        let _ = std::io::stdout().flush();
+        std::process::exit(128 + signal as i32);
     }
     // a stream none of whose frames could be used is a failed run, not an empty success
     match first_refusal {
