@@ -1135,3 +1135,106 @@ fn an_untested_default_segmenter_is_named_once() {
     assert!(err.contains(&*models.join(name).to_string_lossy()), "{err}");
     assert!(!query(&pinned).contains("tested build"));
 }
+
+/// docs/cli.md says it lists every command and option: each command `--help` lists (walked from
+/// `semlook --help` down every `Commands:` section) has a line of its own there, and each of its
+/// long options is on its lines or among the options the page documents for every command (the
+/// paragraph that begins "Global options"). Issue 57 found five missing (`localize --no-sequence`,
+/// `eval --sequence`, `synth --stream-from`, `dev bench-pipe`, `dev downscale`); a new option
+/// without its line fails here.
+#[test]
+fn docs_cli_md_lists_every_command_and_option_help_does() {
+    let doc = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/cli.md")).unwrap();
+    let help = |path: &[&str]| -> String {
+        let out = Command::new(common::bin()).args(path).arg("--help").output().unwrap();
+        assert!(out.status.success(), "{path:?} --help");
+        String::from_utf8(out.stdout).unwrap()
+    };
+    let long_options = |text: &str| -> Vec<String> {
+        text.split(|c: char| !(c.is_ascii_alphanumeric() || c == '-'))
+            .filter(|w| w.starts_with("--") && w.len() > 2 && w.as_bytes()[2].is_ascii_alphabetic())
+            .map(str::to_string)
+            .collect()
+    };
+    // the options documented for every command: the paragraph after the synopsis
+    let everywhere: Vec<String> = {
+        let at = doc.find("Global options").expect("docs/cli.md's 'Global options' paragraph");
+        let end = doc[at..].find("\n\n").map_or(doc.len(), |e| at + e);
+        long_options(&doc[at..end])
+    };
+    // the synopsis lines of a command: those that begin `semlook PATH ` and the indented ones after
+    let synopsis = |path: &[&str]| -> Option<String> {
+        let head = format!("semlook {} ", path.join(" "));
+        let mut text = String::new();
+        let mut inside = false;
+        for line in doc.lines() {
+            if line.starts_with(&head) || line == head.trim_end() {
+                inside = true;
+            } else if !line.starts_with(' ') {
+                inside = false;
+            }
+            if inside {
+                text.push_str(line);
+                text.push('\n');
+            }
+        }
+        (!text.is_empty()).then_some(text)
+    };
+    let mut missing = vec![];
+    let mut stack: Vec<Vec<&str>> = vec![vec![]];
+    let mut names: Vec<String> = vec![];
+    let mut checked = 0;
+    while let Some(path) = stack.pop() {
+        let text = help(&path);
+        let commands: Vec<&str> = match text.find("Commands:") {
+            Some(at) => text[at..]
+                .lines()
+                .skip(1)
+                .take_while(|l| l.starts_with("  "))
+                .filter_map(|l| l.split_whitespace().next())
+                .filter(|&c| c != "help")
+                .collect(),
+            None => vec![],
+        };
+        if !commands.is_empty() {
+            for c in commands {
+                names.push(c.to_string());
+                let mut p = path.clone();
+                // the names live as long as the test: leaked to keep the paths as &str
+                p.push(Box::leak(c.to_string().into_boxed_str()));
+                stack.push(p);
+            }
+            continue;
+        }
+        checked += 1;
+        let Some(lines) = synopsis(&path) else {
+            missing.push(format!("semlook {}: no line", path.join(" ")));
+            continue;
+        };
+        let documented = long_options(&lines);
+        // the options help defines: its lines `  -q, --quiet` and `      --map <MAP>` (not the
+        // options its descriptions mention)
+        let defined = text.lines().filter_map(|l| {
+            let t = l.trim_start();
+            if l.len() - t.len() > 6 {
+                return None;
+            }
+            let t = match t.as_bytes() {
+                [b'-', c, b',', b' ', ..] if c.is_ascii_alphanumeric() => &t[4..],
+                _ => t,
+            };
+            t.starts_with("--").then(|| t.split(|c: char| !(c.is_ascii_alphanumeric() || c == '-')).next().unwrap_or("").to_string())
+        });
+        for o in defined.collect::<Vec<_>>() {
+            if o == "--help" || o == "--version" || documented.contains(&o) || everywhere.contains(&o) {
+                continue;
+            }
+            missing.push(format!("semlook {} {o}", path.join(" ")));
+        }
+    }
+    missing.sort();
+    missing.dedup();
+    eprintln!("{checked} commands checked against docs/cli.md");
+    assert!(checked >= 20, "the walk found {checked} commands: {names:?}");
+    assert!(missing.is_empty(), "docs/cli.md lacks:\n{}", missing.join("\n"));
+}
