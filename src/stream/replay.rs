@@ -21,7 +21,8 @@ pub enum Replayed {
 /// Localizes `frames` (each a frame, or an error from the source for one) in order, decoding the
 /// next `ahead` frames on a second thread while the current one is matched; `on` hears about
 /// every frame as it is answered and may stop the replay by returning an error. Errors that are
-/// not a frame's own (the map, the device) end it. Returns the latencies of the frames answered.
+/// not a frame's own (the map, the device) end it. Returns the latencies of the frames answered
+/// (a loop-closure map's warm-up frames, which are buffered and not matched, left out).
 pub fn replay(
     loc: &mut Localizer,
     frames: impl Iterator<Item = Result<StreamFrame>> + Send + 'static,
@@ -35,7 +36,7 @@ pub fn replay(
 const STOP_POLL: Duration = Duration::from_millis(50);
 
 /// [`replay`] that also ends between frames once `stopped` says so (a signal handler's flag:
-/// SIGINT or SIGTERM), looked at after each frame and every [`STOP_POLL`] while the next is
+/// SIGINT or SIGTERM), looked at after each frame and every 50 ms (`STOP_POLL`) while the next is
 /// awaited: every frame answered until then has been reported to `on`, the one being matched
 /// is finished first. The source's thread is then left to end on its own (a read of standard
 /// input blocked on a silent camera would hold a join), which it does at its next frame.
@@ -80,7 +81,11 @@ pub fn replay_until(
         match loc.push_loaded(id.clone(), ts, loaded) {
             Ok(mut r) => {
                 r.latency.arrival_ms = ms_since(arrived);
-                stats.push(&r.latency);
+                // a loop-closure map's warm-up frames are buffered, not matched: their near-zero
+                // times are not the stream's latency
+                if !r.warming_up {
+                    stats.push(&r.latency);
+                }
                 on(&mut *loc, Replayed::Answered(Box::new(r)))?;
             }
             Err(e) if loc.counts().refused > refused => on(&mut *loc, Replayed::Refused(frame, id, e))?,

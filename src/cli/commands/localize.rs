@@ -147,7 +147,10 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
         return Err(Error::invalid("standard input", "no frames: the stream was empty"));
     }
     let summary = stats.summary();
-    let rate = counts.frames as f64 / wall.max(1e-9);
+    // the rate of answers: refused frames (a bad file is refused in microseconds) are not
+    // frames localized, and a loop-closure map's warm-up frames are buffered, not matched
+    let answered = counts.frames.saturating_sub(counts.refused);
+    let rate = answered as f64 / wall.max(1e-9);
     let skipped = skipped.load(Ordering::Relaxed);
     if a.resume {
         info(quiet, format!("resumed: skipped {skipped} frames the map already held"));
@@ -179,7 +182,7 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
             outln!("# resumed: {skipped} frames skipped (the map already held them)");
         }
         outln!(
-            "# {} frames ({} refused), {} accepted sequence matches, {} loop closures; {:.2} frames/s over {:.1} s",
+            "# {} frames ({} refused), {} accepted sequence matches, {} loop closures; {:.2} frames/s answered over {:.1} s",
             counts.frames,
             counts.refused,
             counts.accepted,
@@ -187,6 +190,9 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
             rate,
             wall
         );
+        if counts.warm_up > 0 {
+            outln!("# {} frames started the map (buffered, not matched): not in the latencies", counts.warm_up);
+        }
         let (p50, p99) = (summary.p50, summary.p99);
         outln!(
             "# latency ms p50/p99: from the frame's bytes {:.1}/{:.1} | total {:.1}/{:.1} | decode {:.1}/{:.1} segment {:.1}/{:.1} encode {:.1}/{:.1} coarse {:.1}/{:.1} fine {:.1}/{:.1} sequence {:.1}/{:.1} store {:.1}/{:.1}",
