@@ -277,7 +277,8 @@ pub fn new_map(cfg: &crate::config::Config, frames: &[FrameSource], dir: &std::p
         compact_hog: encoder.compact_hog_dim(),
     };
     let writer = MapWriter::create(dir, &cfg.encoding(), dims, encoder.appearance_record(), opts.store, opts.resume)?
-        .with_embedding(encoder.embedding_record())?;
+        .with_embedding(encoder.embedding_record())?
+        .with_profile(cfg)?;
     let writer = if without_labels { writer.without_labels()? } else { writer };
     let writer = match &opts.traversal {
         Some(name) => writer.with_traversal(crate::map::TraversalPlan::Named(name.clone()))?,

@@ -460,6 +460,51 @@ fn tracked_frames_go_without_the_embedding_where_asked() {
     assert!(full.iter().any(|v| flag(v, "tracking")));
 }
 
+/// A map built with a profile (`map build --config FILE`) keeps its query sections, and queries and
+/// streams without a `--config` take them (issue 57: a map built with configs/stream-realtime.toml
+/// was localized with the default matching sections, though help says the default is the map's);
+/// `map info` shows the profile; a `--config` replaces it; a map built with the defaults stores none.
+#[test]
+fn a_map_built_with_a_profile_is_searched_with_it() {
+    if !common::has_xfeat() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    common::tiny_synth(&data, 16, 3);
+    let (ref_rgb, _, q_rgb, _) = folders(&data);
+    let profile = dir.path().join("profile.toml");
+    std::fs::write(&profile, "[matching]\ntop_k = 7\n[sequence]\nlength = 6\n").unwrap();
+    let (map, plain) = (dir.path().join("map"), dir.path().join("plain"));
+    cli_ok(&["--backend", "cpu", "map", "build", "--images", p(&ref_rgb), "--no-segmenter", "--map", p(&map), "--config", p(&profile), "-q"]);
+    cli_ok(&["--backend", "cpu", "map", "build", "--images", p(&ref_rgb), "--no-segmenter", "--map", p(&plain), "-q"]);
+    let info = cli_ok(&["map", "info", "--map", p(&map)]);
+    assert!(info.contains("profile: built with query sections of its own ([matching], [sequence] differ"), "{info}");
+    assert!(cli_ok(&["map", "info", "--map", p(&plain)]).contains("profile: none"));
+    let m = semlook::map::Map::open(&map).unwrap();
+    assert_eq!((m.query_config().matching.top_k, m.query_config().sequence.length), (7, 6));
+    assert!(semlook::map::Map::open(&plain).unwrap().manifest.profile.is_none(), "the defaults store no profile");
+    // the single-frame ranking of each frame: the profile's 7, the defaults' 16 (all places)
+    let top_k = |map: &Path, config: Option<&Path>| -> Vec<usize> {
+        let mut args = vec!["--backend", "cpu", "localize", "--map", p(map), "--images", p(&q_rgb), "--no-segmenter", "--json", "-q"];
+        if let Some(c) = config {
+            args.extend(["--config", p(c)]);
+        }
+        cli_ok(&args)
+            .lines()
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+            .filter(|v| v.get("frame").is_some())
+            .map(|v| v["top_k"].as_array().unwrap().len())
+            .collect()
+    };
+    let with_profile = top_k(&map, None);
+    assert!(!with_profile.is_empty() && with_profile.iter().all(|&n| n == 7), "the map's profile: {with_profile:?}");
+    assert!(top_k(&plain, None).iter().all(|&n| n == 16));
+    let defaults = dir.path().join("defaults.toml");
+    std::fs::write(&defaults, "").unwrap();
+    assert!(top_k(&map, Some(&defaults)).iter().all(|&n| n == 16), "a --config replaces the profile");
+}
+
 /// `localize --camera FILE`: accepted matches carry the frame's pose relative to the place's
 /// (JSON `relative_pose`, CSV `rotation_deg` and `pose_inliers`), the synthetic street's camera
 /// (hfov 80 degrees, principal point at the centre) against the renderer's frames; a missing or

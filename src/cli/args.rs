@@ -192,7 +192,8 @@ pub struct BenchPipeArgs {
     /// Which stages rank the map per frame.
     #[arg(long, value_enum, default_value_t = Setting::RECOMMENDED)]
     pub setting: Setting,
-    /// Configuration file (TOML); default: the map's.
+    /// Configuration file (TOML); default: the map's (its encoding, and the query sections it was
+    /// built with where they are not the defaults: `map info` says).
     #[arg(long, value_name = "FILE.toml")]
     pub config: Option<PathBuf>,
     /// One JSON object per row and line.
@@ -778,7 +779,8 @@ pub struct LocalizeArgs {
     /// Before each frame, move to the map's newest generation if another writer committed one.
     #[arg(long)]
     pub follow_map: bool,
-    /// Configuration file (TOML; `semlook config` prints the defaults); default: the map's.
+    /// Configuration file (TOML; `semlook config` prints the defaults); default: the map's (its
+    /// encoding, and the query sections it was built with where they are not the defaults).
     #[arg(long, value_name = "FILE.toml")]
     pub config: Option<PathBuf>,
     /// One JSON object per frame and line (JSON Lines), then one with the summary.

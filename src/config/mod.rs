@@ -81,7 +81,54 @@ config_sections! {
     }
 }
 
+/// The sections of a config that say how a map is searched, not what it stores: a map built with
+/// a profile (`map build --config configs/stream-realtime.toml`) keeps those that differ from the
+/// defaults ([`crate::map::Manifest::profile`]), and its queries and streams take them as their
+/// defaults (a `--config` replaces them all).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct QueryProfile {
+    #[allow(missing_docs)]
+    pub similarity: SimilarityConfig,
+    #[allow(missing_docs)]
+    pub matching: MatchingConfig,
+    #[allow(missing_docs)]
+    pub verification: VerificationConfig,
+    #[allow(missing_docs)]
+    pub sequence: SequenceConfig,
+    #[allow(missing_docs)]
+    pub stream: StreamConfig,
+    #[allow(missing_docs)]
+    pub index: IndexConfig,
+}
+
 impl Config {
+    /// The query sections ([`QueryProfile`]) where any differs from the defaults; `None` where
+    /// none does (a map built so follows the defaults of the code that queries it).
+    pub fn profile(&self) -> Option<QueryProfile> {
+        let of = |c: &Config| QueryProfile {
+            similarity: c.similarity.clone(),
+            matching: c.matching.clone(),
+            verification: c.verification.clone(),
+            sequence: c.sequence.clone(),
+            stream: c.stream.clone(),
+            index: c.index.clone(),
+        };
+        let p = of(self);
+        (p != of(&Config::default())).then_some(p)
+    }
+
+    /// Replaces the query sections with a map's profile.
+    pub fn with_profile(mut self, p: &QueryProfile) -> Config {
+        self.similarity = p.similarity.clone();
+        self.matching = p.matching.clone();
+        self.verification = p.verification.clone();
+        self.sequence = p.sequence.clone();
+        self.stream = p.stream.clone();
+        self.index = p.index.clone();
+        self
+    }
+
     /// Parses and validates a TOML config; `source_name` names it in errors.
     pub fn from_toml(text: &str, source_name: &str) -> Result<Config> {
         let cfg: Config = toml::from_str(text).map_err(|e| Error::InvalidConfig { source_name: source_name.into(), reason: e.to_string() })?;

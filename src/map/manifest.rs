@@ -204,6 +204,12 @@ pub struct Manifest {
     /// Absent in maps built without one, so their checksums are those of before the field existed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub null: Option<crate::descriptors::null::StoredNull>,
+    /// The query sections of the config the map was built with, where they differ from the
+    /// defaults ([`crate::config::QueryProfile`]): queries and streams without a `--config` take
+    /// them ([`query_config`]). Absent in maps built with the defaults (and before the field
+    /// existed), so their checksums are those of before.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub profile: Option<crate::config::QueryProfile>,
     /// SHA-256 of this manifest's content ([`Manifest::content_sha256`]): an edit by hand or a
     /// damaged byte anywhere in the file (a removed row, a config value, a model hash) is refused
     /// at open, never served.
@@ -428,7 +434,11 @@ pub fn being_built(dir: &Path) -> Error {
 /// The configuration queries of a map are encoded and matched with when none is given: the map's
 /// encoding (appearance network included) and default matching parameters.
 pub fn query_config(m: &Manifest) -> crate::config::Config {
-    crate::config::Config::default().with_encoding(&m.config)
+    let cfg = crate::config::Config::default().with_encoding(&m.config);
+    match &m.profile {
+        Some(p) => cfg.with_profile(p),
+        None => cfg,
+    }
 }
 
 /// Writes the manifest atomically (the caller holds the write lock). A stored null the commit

@@ -142,6 +142,7 @@ mod tests {
             index: None,
             embedding: None,
             null: None,
+            profile: None,
             checksum: String::new(),
         }
     }

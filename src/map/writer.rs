@@ -164,6 +164,7 @@ impl MapWriter {
             index: None,
             embedding: None,
             null: None,
+            profile: None,
             checksum: String::new(),
         };
         let layout = super::layout_of(&manifest, n_classes);
@@ -271,6 +272,17 @@ impl MapWriter {
         self.manifest.embedding = rec;
         self.layout.emb = self.manifest.embedding.as_ref().map_or(0, |e| e.dim);
         self.pending = self.layout.storage_set();
+        Ok(self)
+    }
+
+    /// A new map that keeps `cfg`'s query sections where they differ from the defaults
+    /// ([`crate::config::Config::profile`]): its queries and streams take them as their defaults.
+    /// Only before the first commit.
+    pub fn with_profile(mut self, cfg: &crate::config::Config) -> Result<MapWriter> {
+        if self.first.is_none() {
+            return Err(Error::invalid(format!("map {}", self.dir.display()), "a stored map's profile cannot be changed"));
+        }
+        self.manifest.profile = cfg.profile();
         Ok(self)
     }
 

@@ -790,7 +790,8 @@ impl Localizer {
         };
         let mut w =
             MapWriter::create(&lc.dir, &self.cfg.encoding(), dims, self.encoder.appearance_record(), StoreOptions::default(), self.opts.resume)?
-                .with_embedding(self.encoder.embedding_record())?;
+                .with_embedding(self.encoder.embedding_record())?
+                .with_profile(&self.cfg)?;
         if void && !self.encoder.frames().can_segment() {
             w = w.without_labels()?;
         }

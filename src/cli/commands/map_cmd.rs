@@ -342,6 +342,7 @@ fn show(dir: &Path, json: bool) -> Result<()> {
                 "compact_hog": n.evidence.compact_hog.len(),
             })),
             "config": m.config,
+            "profile": m.profile,
         });
         outln!("{}", to_json(&v)?);
     } else {
@@ -386,6 +387,27 @@ fn show(dir: &Path, json: bool) -> Result<()> {
                 n.evidence.inliers_quantile(0.99)
             ),
             None => outln!("null of verified's evidence: none stored (queries measure it on first use)"),
+        }
+        match &m.profile {
+            Some(p) => {
+                let d = Config::default();
+                let differ: Vec<&str> = [
+                    ("similarity", p.similarity != d.similarity),
+                    ("matching", p.matching != d.matching),
+                    ("verification", p.verification != d.verification),
+                    ("sequence", p.sequence != d.sequence),
+                    ("stream", p.stream != d.stream),
+                    ("index", p.index != d.index),
+                ]
+                .into_iter()
+                .filter_map(|(n, differs)| differs.then_some(n))
+                .collect();
+                outln!(
+                    "profile: built with query sections of its own ([{}] differ from the defaults): queries and streams take them unless given a --config",
+                    differ.join("], [")
+                )
+            }
+            None => outln!("profile: none (built with the default query sections: queries and streams follow the defaults)"),
         }
         match &m.index {
             Some(ix) => outln!("{}", describe_index(ix, &m.config.global)),
