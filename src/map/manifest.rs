@@ -322,7 +322,7 @@ pub fn read(dir: &Path) -> Result<Option<Manifest>> {
     check(&m).map_err(|e| e.named(|r| Error::corrupt(&path, r)))?;
     // the values a query is encoded and matched with, in the ranges a config file is held to
     // (a resealed edit such as `ssim_window = 0` is refused here, by open and verify alike)
-    crate::config::Config::default().with_encoding(&m.config).validate(&path.display().to_string())?;
+    query_config(&m).validate(&path.display().to_string())?;
     Ok(Some(m))
 }
 

@@ -772,6 +772,12 @@ impl Localizer {
     }
 
     fn create_map(&mut self) -> Result<()> {
+        // the stream's velocity scale (`--velocity-scale`) is this camera's, not the map's
+        fn profile_of(cfg: &Config) -> Config {
+            let mut c = cfg.clone();
+            c.sequence.velocity_scale = Config::default().sequence.velocity_scale;
+            c
+        }
         let Some(lc) = &mut self.lc else { return Ok(()) };
         let warm = std::mem::take(&mut lc.warm);
         if let Some(a) = self.encoder.appearance_mut() {
@@ -791,7 +797,7 @@ impl Localizer {
         let mut w =
             MapWriter::create(&lc.dir, &self.cfg.encoding(), dims, self.encoder.appearance_record(), StoreOptions::default(), self.opts.resume)?
                 .with_embedding(self.encoder.embedding_record())?
-                .with_profile(&self.cfg)?;
+                .with_profile(&profile_of(&self.cfg))?;
         if void && !self.encoder.frames().can_segment() {
             w = w.without_labels()?;
         }

@@ -148,7 +148,7 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
     }
     let summary = stats.summary();
     // the rate of answers: refused frames (a bad file is refused in microseconds) are not
-    // frames localized, and a loop-closure map's warm-up frames are buffered, not matched
+    // frames localized (a loop-closure map's warm-up frames count: they are answered, unmatched)
     let answered = counts.frames.saturating_sub(counts.refused);
     let rate = answered as f64 / wall.max(1e-9);
     let skipped = skipped.load(Ordering::Relaxed);
@@ -217,12 +217,15 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
         );
     }
     // interrupted: the summary is out and the map committed (`loc.finish` above); the exit
-    // status says which signal ended the run, as the default action's would
+    // status says which signal ended the run, as the default action's would. `_exit`, not
+    // `exit`: the frame reader may still be inside a network (left behind by the replay), and
+    // the loaded runtimes' exit handlers must not run under it
     if signal != 0 {
         drop(loc);
         use std::io::Write;
         let _ = std::io::stdout().flush();
-        std::process::exit(128 + signal as i32);
+        let _ = std::io::stderr().flush();
+        signal_hook::low_level::exit(128 + signal as i32);
     }
     // a stream none of whose frames could be used is a failed run, not an empty success
     match first_refusal {
