@@ -17,5 +17,11 @@ for f in "$installed"/*; do
         *) ln -s "$(readlink -f "$f")" "$models/$(basename "$f")" ;;
     esac
 done
-echo "[as-fresh] models: $(ls "$models" | tr '\n' ' ')(no segmenter; the lookup searches this folder alone)" >&2
+# AS_FRESH_SEGMENTER=FILE puts FILE in as the installed segmenter (scripts/poisoned-tests.sh's poison)
+if [ -n "${AS_FRESH_SEGMENTER:-}" ]; then
+    ln -s "$(readlink -f "$AS_FRESH_SEGMENTER")" "$models/espnetv2_cityscapes.onnx"
+    echo "[as-fresh] models: $(ls "$models" | tr '\n' ' ')(the segmenter: $AS_FRESH_SEGMENTER; the lookup searches this folder alone)" >&2
+else
+    echo "[as-fresh] models: $(ls "$models" | tr '\n' ' ')(no segmenter; the lookup searches this folder alone)" >&2
+fi
 SEMLOOK_MODELS="$models" SEMLOOK_MODELS_ONLY=1 "$@"

@@ -15,6 +15,50 @@ fn folders(root: &Path) -> (std::path::PathBuf, std::path::PathBuf, std::path::P
     (f("day", "RGB"), f("day", "GT/LABELS"), f("night", "RGB"), f("night", "GT/LABELS"))
 }
 
+/// The loop-closure runs on standard input: the night frames of a tiny synthetic set of `places`
+/// (`seed`) as PNG bytes, and a config whose first 8 frames make the map, then a commit every 4.
+fn piped_loop_closure(dir: &Path, places: usize, seed: u64) -> (Vec<Vec<u8>>, std::path::PathBuf) {
+    let data = dir.join("data");
+    common::tiny_synth(&data, places, seed);
+    let (_, _, q_rgb, _) = folders(&data);
+    let frames = (0..places).map(|i| std::fs::read(q_rgb.join(format!("{i:06}.png"))).unwrap()).collect();
+    let cfg = dir.join("lc.toml");
+    std::fs::write(&cfg, "[stream]\nexclude_frames = 8\ncommit_frames = 4\n").unwrap();
+    (frames, cfg)
+}
+
+/// `localize --stdin --loop-closure` on `map` with `cfg` (and `extra` arguments), its pipes open.
+fn spawn_loop_closure(map: &Path, cfg: &Path, extra: &[&str]) -> std::process::Child {
+    let args = ["--backend", "cpu", "localize", "--map", p(map), "--stdin", "--loop-closure", "--no-segmenter", "--config", p(cfg), "-q"];
+    std::process::Command::new(env!("CARGO_BIN_EXE_semlook"))
+        .args(args)
+        .args(extra)
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+/// Writes `frames` to the child's standard input and reads its output until each has its answer
+/// line; returns the pipes, still open (the camera connected, silent).
+fn feed_and_await(child: &mut std::process::Child, frames: &[Vec<u8>]) -> (std::process::ChildStdin, std::io::BufReader<std::process::ChildStdout>) {
+    use std::io::BufRead;
+    let mut stdin = child.stdin.take().unwrap();
+    for f in frames {
+        stdin.write_all(f).unwrap();
+    }
+    stdin.flush().unwrap();
+    let mut out = std::io::BufReader::new(child.stdout.take().unwrap());
+    let (mut answered, mut line) = (0, String::new());
+    while answered < frames.len() {
+        line.clear();
+        assert!(out.read_line(&mut line).unwrap() > 0, "the run ended after {answered} of {} frames", frames.len());
+        answered += usize::from(line.starts_with(char::is_numeric));
+    }
+    (stdin, out)
+}
+
 #[test]
 fn a_folder_in_time_order_is_localized_frame_by_frame() {
     let dir = tempfile::tempdir().unwrap();
@@ -250,49 +294,17 @@ fn piped_jpegs_are_answered_as_the_folder_answers_them() {
 /// once, whatever was committed before the kill.
 #[test]
 fn a_killed_loop_closure_run_resumes_and_stores_every_frame_once() {
-    use std::io::BufRead;
     if !common::has_xfeat() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let data = dir.path().join("data");
-    common::tiny_synth(&data, 24, 7);
-    let (_, _, q_rgb, _) = folders(&data);
-    let frames: Vec<Vec<u8>> = (0..24).map(|i| std::fs::read(q_rgb.join(format!("{i:06}.png"))).unwrap()).collect();
-    // the first 8 frames make the map, then a commit every 4
-    let cfg = dir.path().join("lc.toml");
-    std::fs::write(&cfg, "[stream]\nexclude_frames = 8\ncommit_frames = 4\n").unwrap();
+    let (frames, cfg) = piped_loop_closure(dir.path(), 24, 7);
     let map = dir.path().join("map");
-    let run = |resume: bool| {
-        let mut args =
-            vec!["--backend", "cpu", "localize", "--map", p(&map), "--stdin", "--loop-closure", "--no-segmenter", "--config", p(&cfg), "-q"];
-        if resume {
-            args.push("--resume");
-        }
-        std::process::Command::new(env!("CARGO_BIN_EXE_semlook"))
-            .args(args)
-            .stdin(std::process::Stdio::piped())
-            .stdout(std::process::Stdio::piped())
-            .stderr(std::process::Stdio::piped())
-            .spawn()
-            .unwrap()
-    };
+    let run = |resume: bool| spawn_loop_closure(&map, &cfg, if resume { &["--resume"] } else { &[] });
     // the first run gets 14 frames, answers them, and is killed waiting for the 15th: frames 0-11
     // are committed (the map's 8, then 4), 12 and 13 were buffered
     let mut first = run(false);
-    let mut stdin = first.stdin.take().unwrap();
-    for f in &frames[..14] {
-        stdin.write_all(f).unwrap();
-    }
-    stdin.flush().unwrap();
-    let mut out = std::io::BufReader::new(first.stdout.take().unwrap());
-    let mut answered = 0;
-    let mut line = String::new();
-    while answered < 14 {
-        line.clear();
-        assert!(out.read_line(&mut line).unwrap() > 0, "the first run ended early");
-        answered += usize::from(line.starts_with(char::is_numeric));
-    }
+    let (stdin, _out) = feed_and_await(&mut first, &frames[..14]);
     first.kill().unwrap(); // SIGKILL
     first.wait().unwrap();
     drop(stdin);
@@ -330,40 +342,17 @@ fn a_killed_loop_closure_run_resumes_and_stores_every_frame_once() {
 #[test]
 #[cfg(unix)]
 fn a_signal_during_loop_closure_commits_every_answered_frame_and_prints_the_summary() {
-    use std::io::BufRead;
     use std::os::unix::process::ExitStatusExt;
     if !common::has_xfeat() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let data = dir.path().join("data");
-    common::tiny_synth(&data, 16, 9);
-    let (_, _, q_rgb, _) = folders(&data);
-    let frames: Vec<Vec<u8>> = (0..16).map(|i| std::fs::read(q_rgb.join(format!("{i:06}.png"))).unwrap()).collect();
     // the first 8 frames make the map, then a commit every 4: 11 answered leave 3 buffered
-    let cfg = dir.path().join("lc.toml");
-    std::fs::write(&cfg, "[stream]\nexclude_frames = 8\ncommit_frames = 4\n").unwrap();
+    let (frames, cfg) = piped_loop_closure(dir.path(), 16, 9);
     for (signal, name, sent) in [("-INT", "SIGINT", 11), ("-TERM", "SIGTERM", 14)] {
         let map = dir.path().join(format!("map{name}"));
-        let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_semlook"))
-            .args(["--backend", "cpu", "localize", "--map", p(&map), "--stdin", "--loop-closure", "--no-segmenter", "--config", p(&cfg), "-q"])
-            .stdin(std::process::Stdio::piped())
-            .stdout(std::process::Stdio::piped())
-            .stderr(std::process::Stdio::piped())
-            .spawn()
-            .unwrap();
-        let mut stdin = child.stdin.take().unwrap();
-        for f in &frames[..sent] {
-            stdin.write_all(f).unwrap();
-        }
-        stdin.flush().unwrap();
-        let mut out = std::io::BufReader::new(child.stdout.take().unwrap());
-        let (mut answered, mut line) = (0, String::new());
-        while answered < sent {
-            line.clear();
-            assert!(out.read_line(&mut line).unwrap() > 0, "{name}: the run ended early");
-            answered += usize::from(line.starts_with(char::is_numeric));
-        }
+        let mut child = spawn_loop_closure(&map, &cfg, &[]);
+        let (stdin, mut out) = feed_and_await(&mut child, &frames[..sent]);
         // the camera stays connected (stdin open) and sends nothing more
         let kill = std::process::Command::new("kill").args([signal, &child.id().to_string()]).status().unwrap();
         assert!(kill.success());
