@@ -332,6 +332,100 @@ impl Error {
             _ => false,
         }
     }
+    /// What kind of error this is, for a program to tell errors apart without reading messages:
+    /// the Python exception's class and the `kind` of the command line's JSON refusals.
+    pub fn kind(&self) -> ErrorKind {
+        match self {
+            e if e.is_missing_file() => ErrorKind::MissingFile,
+            Error::Io { .. }
+            | Error::ImageDecode { .. }
+            | Error::EmptyImage { .. }
+            | Error::UnknownClassId { .. }
+            | Error::UnknownClassColor { .. }
+            | Error::UnsupportedLabelFormat { .. }
+            | Error::SizeMismatch { .. }
+            | Error::NoLabels { .. } => ErrorKind::InputFile,
+            Error::InvalidConfig { .. } => ErrorKind::InvalidConfig,
+            // a file of a map's index that is there but damaged: as any damaged map file
+            Error::CorruptMap { .. } | Error::DamagedIndex { .. } => ErrorKind::CorruptMap,
+            Error::MapVersion { .. } => ErrorKind::MapVersion,
+            Error::IncompatibleConfig { .. } => ErrorKind::IncompatibleConfig,
+            Error::DuplicateImageId { .. } | Error::RepeatedImageId { .. } => ErrorKind::DuplicateImageId,
+            Error::InvalidImage { .. } => ErrorKind::InvalidImage,
+            Error::Dataset { .. } => ErrorKind::Dataset,
+            // a refusal is about what was asked; a check its caller did not name, a bad value all the same
+            Error::InvalidInput { .. } | Error::Refused { .. } | Error::Check { .. } => ErrorKind::InvalidInput,
+            Error::Model { .. } => ErrorKind::Model,
+            Error::Gpu(_) => ErrorKind::Gpu,
+        }
+    }
+}
+
+/// The kinds of [`Error`] a program tells apart ([`Error::kind`]), each with a stable name
+/// ([`ErrorKind::name`]): what the Python exceptions' classes and the command line's JSON
+/// refusals say.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[non_exhaustive]
+pub enum ErrorKind {
+    /// A file or folder that does not exist.
+    MissingFile,
+    /// An image or label file that cannot be read or decoded, or whose content is not usable.
+    InputFile,
+    /// A configuration value out of range or unreadable.
+    InvalidConfig,
+    /// A map file that fails its checks.
+    CorruptMap,
+    /// A map written by an unsupported format version.
+    MapVersion,
+    /// Queries encoded differently from the map.
+    IncompatibleConfig,
+    /// An image id the map already stores, or one given to two images.
+    DuplicateImageId,
+    /// Descriptors refused before anything was written.
+    InvalidImage,
+    /// A dataset folder, manifest or ground-truth file that cannot be used.
+    Dataset,
+    /// An argument or request the engine cannot serve (refusals included).
+    InvalidInput,
+    /// A model file that is missing, of the wrong kind, or fails to run.
+    Model,
+    /// A failure of the GPU backend.
+    Gpu,
+}
+
+impl ErrorKind {
+    /// Every kind, in the order of the declaration.
+    pub const ALL: [ErrorKind; 12] = [
+        ErrorKind::MissingFile,
+        ErrorKind::InputFile,
+        ErrorKind::InvalidConfig,
+        ErrorKind::CorruptMap,
+        ErrorKind::MapVersion,
+        ErrorKind::IncompatibleConfig,
+        ErrorKind::DuplicateImageId,
+        ErrorKind::InvalidImage,
+        ErrorKind::Dataset,
+        ErrorKind::InvalidInput,
+        ErrorKind::Model,
+        ErrorKind::Gpu,
+    ];
+    /// The kind's stable name (snake case: `missing_file`, `input_file`, ...).
+    pub fn name(self) -> &'static str {
+        match self {
+            ErrorKind::MissingFile => "missing_file",
+            ErrorKind::InputFile => "input_file",
+            ErrorKind::InvalidConfig => "invalid_config",
+            ErrorKind::CorruptMap => "corrupt_map",
+            ErrorKind::MapVersion => "map_version",
+            ErrorKind::IncompatibleConfig => "incompatible_config",
+            ErrorKind::DuplicateImageId => "duplicate_image_id",
+            ErrorKind::InvalidImage => "invalid_image",
+            ErrorKind::Dataset => "dataset",
+            ErrorKind::InvalidInput => "invalid_input",
+            ErrorKind::Model => "model",
+            ErrorKind::Gpu => "gpu",
+        }
+    }
 }
 
 /// What went wrong on the GPU path (`crate::gpu`): defined here, below every stage, so that the

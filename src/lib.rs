@@ -91,4 +91,4 @@ pub mod util;
 pub mod values;
 pub mod verify;
 
-pub use error::{Error, Result};
+pub use error::{Error, ErrorKind, Result};

@@ -187,16 +187,20 @@ fn piped_images_are_localized_and_garbage_costs_one_frame() {
             piped.extend_from_slice(b"this is not an image");
         }
     }
-    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_semlook"))
-        .args(["--backend", "cpu", "localize", "--map", p(&map), "--stdin", "--no-segmenter", "-q"])
-        .stdin(std::process::Stdio::piped())
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    child.stdin.take().unwrap().write_all(&piped).unwrap();
-    let out = child.wait_with_output().unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let run = |json: &[&str]| {
+        let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_semlook"))
+            .args([&["--backend", "cpu", "localize", "--map", p(&map), "--stdin", "--no-segmenter", "-q"][..], json].concat())
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        child.stdin.take().unwrap().write_all(&piped).unwrap();
+        let out = child.wait_with_output().unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        out
+    };
+    let out = run(&[]);
     let text = String::from_utf8(out.stdout).unwrap();
     let rows: Vec<&str> = text.lines().filter(|l| !l.starts_with('#') && !l.starts_with("frame,")).collect();
     // the garbage's row says `refused` in the accepted column, with no match
@@ -207,6 +211,13 @@ fn piped_images_are_localized_and_garbage_costs_one_frame() {
     assert!(refused[0].starts_with("8,") && refused[0].split(',').skip(2).filter(|c| !c.is_empty()).eq(["refused"]), "{text}");
     assert!(text.contains("# 17 frames (1 refused)"), "{text}");
     assert!(String::from_utf8_lossy(&out.stderr).contains("neither a JPEG nor a PNG"));
+    // with --json the refusal's object says its reason and its kind (issue 57: free text before)
+    let json = String::from_utf8(run(&["--json"]).stdout).unwrap();
+    let refusals: Vec<serde_json::Value> =
+        json.lines().filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok()).filter(|v| v.get("refused").is_some()).collect();
+    assert_eq!(refusals.len(), 1, "{json}");
+    assert_eq!((refusals[0]["frame"].as_u64(), refusals[0]["kind"].as_str()), (Some(8), Some("invalid_input")), "{json}");
+    assert!(refusals[0]["refused"].as_str().unwrap().contains("neither a JPEG nor a PNG"), "{json}");
     // honest ends (issue 57 part 3): an empty stream fails, as an empty folder does; --timestamps
     // cannot name piped frames and is refused, not ignored (a file that does not exist too)
     let empty = std::process::Command::new(env!("CARGO_BIN_EXE_semlook"))

@@ -7,7 +7,7 @@
 use pyo3::prelude::*;
 use pyo3::sync::PyOnceLock;
 use pyo3::types::{PyDict, PyTuple, PyType};
-use semlook::Error;
+use semlook::{Error, ErrorKind};
 
 /// Each class: name, its semlook parent (`None`: `SemlookError` itself), the builtin it also
 /// derives from, and its doc.
@@ -65,36 +65,51 @@ fn class(py: Python<'_>, name: &str) -> PyResult<Py<PyType>> {
     Ok(types(py)?[k].clone_ref(py))
 }
 
-/// The Python exception of an engine error.
+/// The class of each [`ErrorKind`] (the engine says which kind an error is: `Error::kind`).
+fn class_name(kind: ErrorKind) -> &'static str {
+    match kind {
+        ErrorKind::MissingFile => "MissingFileError",
+        ErrorKind::InputFile => "InputFileError",
+        ErrorKind::InvalidConfig => "InvalidConfigError",
+        ErrorKind::CorruptMap => "CorruptMapError",
+        ErrorKind::MapVersion => "MapVersionError",
+        ErrorKind::IncompatibleConfig => "IncompatibleConfigError",
+        ErrorKind::DuplicateImageId => "DuplicateImageIdError",
+        ErrorKind::InvalidImage => "InvalidImageError",
+        ErrorKind::Dataset => "DatasetError",
+        ErrorKind::InvalidInput => "InvalidInputError",
+        ErrorKind::Model => "ModelError",
+        ErrorKind::Gpu => "GpuError",
+        _ => "SemlookError",
+    }
+}
+
+/// The Python exception of an engine error: the class of its kind, and the `path`, `field` and
+/// `id` it names.
 pub fn to_py(e: Error) -> PyErr {
     let msg = e.to_string();
+    let name = class_name(e.kind());
     let shown = |p: &std::path::Path| Some(p.display().to_string());
-    let (name, path, field, id): (&str, Option<String>, Option<String>, Option<String>) = match &e {
-        Error::Io { path, source } if source.kind() == std::io::ErrorKind::NotFound => ("MissingFileError", shown(path), None, None),
+    let (path, field, id): (Option<String>, Option<String>, Option<String>) = match &e {
         Error::Io { path, .. }
         | Error::ImageDecode { path, .. }
         | Error::EmptyImage { path, .. }
         | Error::UnknownClassId { path, .. }
         | Error::UnknownClassColor { path, .. }
-        | Error::UnsupportedLabelFormat { path, .. } => ("InputFileError", shown(path), None, None),
-        Error::SizeMismatch { labels, .. } => ("InputFileError", shown(labels), None, None),
-        Error::NoLabels { image } => ("InputFileError", shown(image), None, None),
-        Error::InvalidConfig { source_name, .. } => ("InvalidConfigError", Some(source_name.clone()), None, None),
-        Error::CorruptMap { path, .. } => ("CorruptMapError", shown(path), None, None),
-        // a file of a map's index: missing as any missing file, damaged as any damaged map file
-        Error::DamagedIndex { path, missing: true, .. } => ("MissingFileError", shown(path), None, None),
-        Error::DamagedIndex { path, .. } => ("CorruptMapError", shown(path), None, None),
-        Error::MapVersion { path, .. } => ("MapVersionError", shown(path), None, None),
-        Error::IncompatibleConfig { map, field, .. } => ("IncompatibleConfigError", shown(map), Some(field.clone()), None),
-        Error::DuplicateImageId { map, id } | Error::RepeatedImageId { map, id, .. } => ("DuplicateImageIdError", shown(map), None, Some(id.clone())),
-        Error::InvalidImage { id, .. } => ("InvalidImageError", None, None, Some(id.clone())),
-        Error::Dataset { path, .. } => ("DatasetError", shown(path), None, None),
-        Error::InvalidInput { what, .. } | Error::Refused { what, .. } => ("InvalidInputError", None, Some(what.clone()), None),
-        Error::Model { path, .. } => ("ModelError", shown(path), None, None),
-        Error::Gpu(_) => ("GpuError", None, None, None),
-        // a check its caller did not name: a bad value all the same
-        Error::Check { .. } => ("InvalidInputError", None, None, None),
-        _ => ("SemlookError", None, None, None),
+        | Error::UnsupportedLabelFormat { path, .. }
+        | Error::CorruptMap { path, .. }
+        | Error::DamagedIndex { path, .. }
+        | Error::MapVersion { path, .. }
+        | Error::Dataset { path, .. }
+        | Error::Model { path, .. } => (shown(path), None, None),
+        Error::SizeMismatch { labels, .. } => (shown(labels), None, None),
+        Error::NoLabels { image } => (shown(image), None, None),
+        Error::InvalidConfig { source_name, .. } => (Some(source_name.clone()), None, None),
+        Error::IncompatibleConfig { map, field, .. } => (shown(map), Some(field.clone()), None),
+        Error::DuplicateImageId { map, id } | Error::RepeatedImageId { map, id, .. } => (shown(map), None, Some(id.clone())),
+        Error::InvalidImage { id, .. } => (None, None, Some(id.clone())),
+        Error::InvalidInput { what, .. } | Error::Refused { what, .. } => (None, Some(what.clone()), None),
+        _ => (None, None, None),
     };
     Python::attach(|py| {
         let err = match class(py, name) {

@@ -15,7 +15,10 @@ use std::sync::Mutex;
 /// the stream where there is none). `setting` ranks the map (default "verified"); `sequence`
 /// turns sequence matching over the last frames on (default); `config` as `Map.query`'s (default:
 /// the map's); `backend` "cpu", "gpu" or "auto" (default `DEFAULT_BACKEND`): each localizer has
-/// an engine of its own, which keeps the map resident on a GPU.
+/// an engine of its own, which keeps the map resident on a GPU. `labelled_frames=True` says every
+/// frame will come with its label map (`push(labels=)` or `labels_path=`): without it, a map that
+/// holds labels and no segmenter (`segmenter=`, the config's, or the installed one) is refused
+/// here, as `semlook localize` refuses it without `--labels`, with `InvalidInputError`.
 #[pyclass(frozen, module = "semlook._native", name = "Localizer")]
 pub struct PyLocalizer {
     inner: Mutex<Localizer>,
@@ -24,7 +27,7 @@ pub struct PyLocalizer {
 #[pymethods]
 impl PyLocalizer {
     #[new]
-    #[pyo3(signature = (path, setting="verified", sequence=true, loop_closure=false, config=None, backend=None, *, segmenter=None, camera=None))]
+    #[pyo3(signature = (path, setting="verified", sequence=true, loop_closure=false, config=None, backend=None, *, segmenter=None, camera=None, labelled_frames=false))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -36,6 +39,7 @@ impl PyLocalizer {
         backend: Option<&str>,
         segmenter: Option<&Bound<'_, PyAny>>,
         camera: Option<PathBuf>,
+        labelled_frames: bool,
     ) -> PyResult<Self> {
         // the camera file (`localize --camera`'s) is read and checked before the map is opened
         let camera = camera.map(|c| semlook::verify::pose::Camera::load(&c)).transpose().py_err()?;
@@ -58,10 +62,18 @@ impl PyLocalizer {
                 Some(crate::encoder::with_segmenter(base, seg)?)
             }
         };
-        // frames may come with their label maps (`push(labels=...)`): one without, on a map that
-        // holds labels and with no segmenter, is refused when pushed, naming the fix
-        let opts = StreamOptions { setting: s, sequence, loop_closure, labelled_frames: true, resume: false };
-        let mut loc = py.detach(|| Localizer::open(&path, cfg, opts, engine)).py_err()?;
+        // photos without label maps on a map that holds labels, and no segmenter: refused now
+        // (the command line's rule and error), unless the caller says every frame brings its labels
+        let opts = StreamOptions { setting: s, sequence, loop_closure, labelled_frames, resume: false };
+        let loc = py.detach(|| Localizer::open(&path, cfg, opts, engine)).map_err(|e| match e {
+            semlook::Error::Refused { what, reason, remedy: remedy @ semlook::error::Remedy::GiveLabels } => semlook::Error::Refused {
+                what,
+                reason: format!("{reason}; pass segmenter=MODEL.onnx, or labelled_frames=True and every frame's labels"),
+                remedy,
+            },
+            e => e,
+        });
+        let mut loc = loc.py_err()?;
         if let Some(c) = camera {
             loc = loc.with_camera(c).py_err()?;
         }

@@ -341,7 +341,7 @@ def test_localizer_streams_frames_with_sequence_matching(tmp_path, encoder):
     cfg = semlook.Config.without_appearance()
     refs = semlook.Descriptors.concat([encoder.encode(f"p{s:02d}", labels=place(s)) for s in range(30)])
     m = semlook.Map.create(str(tmp_path / "map"), refs, encoder)
-    loc = semlook.Localizer(tmp_path / "map", setting="forest", config=cfg, backend="cpu")
+    loc = semlook.Localizer(tmp_path / "map", setting="forest", config=cfg, backend="cpu", labelled_frames=True)
     queries = [place(s, shift=3) for s in range(30)]
     single = m.query(queries, "forest", config=cfg, engine=semlook.Engine("cpu"))
     accepted = 0
@@ -372,6 +372,26 @@ def test_localizer_streams_frames_with_sequence_matching(tmp_path, encoder):
         loc.push()
 
 
+def test_a_localizer_refuses_photos_on_a_labelled_map_up_front_as_the_command_line_does(tmp_path, encoder):
+    """Issue 57 part 4: on a map that holds labels, with no segmenter, a Localizer constructed and
+    then raised an OSError (InputFileError) at every push, where `semlook localize` refuses up front
+    and `Map.query` raises InvalidInputError. It is now refused when constructed, with the same
+    class as Map.query's, naming both fixes; `labelled_frames=True` (every frame brings its labels)
+    opens it."""
+    cfg = semlook.Config.without_appearance()
+    refs = semlook.Descriptors.concat([encoder.encode(f"p{s:02d}", labels=place(s)) for s in range(6)])
+    m = semlook.Map.create(str(tmp_path / "map"), refs, encoder)
+    photo = np.full((72, 96, 3), 128, np.uint8)
+    with pytest.raises(semlook.InvalidInputError) as query_refusal:
+        m.query(setting="forest", config=cfg, engine=semlook.Engine("cpu"), images=[photo], segmenter=False)
+    with pytest.raises(semlook.InvalidInputError, match="segmenter=MODEL.onnx, or labelled_frames=True") as stream_refusal:
+        semlook.Localizer(tmp_path / "map", setting="forest", config=cfg, backend="cpu", segmenter=False)
+    reason = "the map holds semantic labels, and photos without label maps need a segmenter"
+    assert reason in str(query_refusal.value) and reason in str(stream_refusal.value)
+    loc = semlook.Localizer(tmp_path / "map", setting="forest", config=cfg, backend="cpu", segmenter=False, labelled_frames=True)
+    assert loc.push(labels=place(3))["top_k"][0]["id"] == "p03"
+
+
 def test_a_localizer_in_a_with_block_commits_every_answered_frame_on_ctrl_c(tmp_path):
     """Issue 57: Ctrl-C (KeyboardInterrupt between frames) in loop-closure mode left the frames
     buffered since the last commit out of the map while the localizer lived on. In a `with`
@@ -385,7 +405,7 @@ def test_a_localizer_in_a_with_block_commits_every_answered_frame_on_ctrl_c(tmp_
         write_png(tmp_path / f"cam-{t:03d}-labels.png", place(t))
     answered = 0
     with pytest.raises(KeyboardInterrupt):
-        with semlook.Localizer(tmp_path / "lc", setting="forest", loop_closure=True, config=cfg, backend="cpu") as loc:
+        with semlook.Localizer(tmp_path / "lc", setting="forest", loop_closure=True, config=cfg, backend="cpu", labelled_frames=True) as loc:
             for t in range(13):
                 loc.push(labels=place(t), timestamp=float(t))
                 answered += 1
@@ -461,7 +481,7 @@ def test_poses_a_map_stores_are_read_back_and_answered(tmp_path, synth_dataset):
         assert axis == pytest.approx(v[8:11], abs=1e-5), (id, p, v[8:11])
     with pytest.raises(IndexError):
         m.pose(len(m))
-    loc = semlook.Localizer(path, setting="forest", config=semlook.Config.without_appearance(), backend="cpu")
+    loc = semlook.Localizer(path, setting="forest", config=semlook.Config.without_appearance(), backend="cpu", labelled_frames=True)
     labels = sorted((synth_dataset / "sunset" / "GT" / "LABELS" / "Stereo_Left" / "Omni_F").glob("*.png"))
     for t, f in enumerate(labels):
         r = loc.push(labels_path=f, timestamp=float(t))

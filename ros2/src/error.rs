@@ -66,6 +66,24 @@ pub enum NodeError {
     LocalizerPanicked,
 }
 
+impl NodeError {
+    /// What the person starting the node can do about this error, in the node's terms (its
+    /// parameters), where the engine says what would help.
+    pub fn hint(&self) -> Option<&'static str> {
+        let engine = match self {
+            NodeError::Engine(e) | NodeError::EngineParam { source: e, .. } => e,
+            _ => return None,
+        };
+        match engine.remedy()? {
+            // camera frames bring no label maps: a segmenter is the node's one way to label them
+            semlook::error::Remedy::GiveLabels => {
+                Some("start the node with a segmenter (-p segmenter:=MODEL.onnx, an ONNX segmentation model), or serve a map built without labels")
+            }
+            _ => None,
+        }
+    }
+}
+
 /// A command line the node does not take. Every one names the argument, parameter or value at
 /// fault.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

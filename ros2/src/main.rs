@@ -45,6 +45,9 @@ fn main() {
     };
     if let Err(e) = node::run(params) {
         log::error!("{e}");
+        if let Some(hint) = e.hint() {
+            log::error!("hint: {hint}");
+        }
         std::process::exit(1);
     }
 }

@@ -728,6 +728,47 @@ fn localize(
 mod tests {
     use super::*;
 
+    /// Issue 57 part 4: a map that holds labels and a node without a segmenter
+    /// (`segmenter:=none`): refused before any frame or DDS traffic, in words about frames (it said
+    /// "this photo" before any frame came), with a hint naming the node's own remedy,
+    /// `-p segmenter:=`.
+    #[test]
+    fn a_labelled_map_without_a_segmenter_is_refused_with_the_segmenter_hint() {
+        let dir = tempfile::tempdir().unwrap();
+        let map = dir.path().join("map");
+        let cfg = Config::without_appearance();
+        let enc = semlook::encode::Encoder::new(&cfg).unwrap();
+        let table = semlook::classes::ClassTable::cityscapes();
+        let mut set = enc.descriptor_set();
+        let mut scratch = Default::default();
+        for k in 0..3usize {
+            // road below, sky above, a building whose width differs per place
+            let classes: Vec<u8> = (0..64 * 48)
+                .map(|i| {
+                    if i / 64 >= 24 {
+                        0
+                    } else if i % 64 < 10 + 15 * k {
+                        2
+                    } else {
+                        10
+                    }
+                })
+                .collect();
+            let labels = semlook::input::LabelMap::new(64, 48, classes, &table).unwrap();
+            set.push(&enc.encode_labels(&format!("p{k}"), &labels, &mut scratch).unwrap().0).unwrap();
+        }
+        Map::create(&map, &cfg.encoding(), &set, None).unwrap();
+        let args: Vec<String> =
+            ["--ros-args", "-p", &format!("map:={}", map.display()), "-p", "segmenter:=none", "-p", "backend:=cpu", "-p", "setting:=forest"]
+                .iter()
+                .map(|a| a.to_string())
+                .collect();
+        let e = run(Params::parse(&args).unwrap().unwrap()).unwrap_err();
+        let text = e.to_string();
+        assert!(text.contains("photos without label maps need a segmenter") && !text.contains("this photo"), "{text}");
+        assert!(e.hint().is_some_and(|h| h.contains("-p segmenter:=")), "{text}: {:?}", e.hint());
+    }
+
     fn image(encoding: &str, w: u32, h: u32, step: u32, data: Vec<u8>) -> Image {
         Image { header: Header::default(), height: h, width: w, encoding: encoding.into(), is_bigendian: 0, step, data }
     }

@@ -216,7 +216,7 @@ impl Encoder {
         match self.map_labelled {
             Some(true) if reads_labels => Err(Error::refused(
                 name.to_string(),
-                "the map holds semantic labels, and this photo has no label map and no segmenter is configured or installed to make one (label-free scores against labelled references would be wrong)",
+                "the map holds semantic labels, and photos without label maps need a segmenter to make them, but none is configured or installed (label-free scores against labelled references would be wrong)",
                 crate::error::Remedy::GiveLabels,
             )),
             _ => Ok(true),

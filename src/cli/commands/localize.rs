@@ -128,7 +128,8 @@ pub fn run(engine: Engine, a: &LocalizeArgs, quiet: bool) -> Result<()> {
                     log::warn!("frame {frame} ({id}) skipped: {e}");
                     first_refusal.get_or_insert_with(|| format!("frame {frame} ({id}): {e}"));
                     match a.json {
-                        true => outln!("{}", serde_json::json!({ "frame": frame, "id": id, "refused": e.to_string() })),
+                        // the reason, and its kind for a program to tell refusals apart (`ErrorKind::name`)
+                        true => outln!("{}", serde_json::json!({ "frame": frame, "id": id, "refused": e.to_string(), "kind": e.kind().name() })),
                         // the frame's row with no match and `refused` in the accepted column
                         false => outln!("{}", refused_row(frame, &id)),
                     }
