@@ -6,7 +6,11 @@
 #   nordland-slow     every query/ frame twice (a camera at twice the map's rate)
 #   camvid-x1..x4     CamVid's Seq05VD drive (frames 1 s apart): the map of its even frames, the
 #   camvid-slow       stream its odd frames (half a place on), every 1st..4th, or each twice
-# Ground truth: Nordland's own (query k <-> ref k-1..k+1); CamVid's odd frame 2i+1 <-> even 2i, 2i+2.
+# Ground truth: Nordland's own (query k <-> ref k-1..k+1); CamVid's odd frame 2i+1 <-> even 2i, 2i+2,
+# and where the car stands still (a stop: consecutive frames whose median absolute grey difference,
+# at 160x120, is at most 2 of 255; moving frames differ by 3 or more) every frame of the stop is one
+# place: Seq05VD waits at a red light from f01920 to f02850, 30 s in which frame numbers move and the
+# camera does not. Needs numpy and PIL (.venv-export of setup.sh, or $PYTHON).
 # No timestamps: what a stream without them gets. OUT default target/rate-data; a copy that exists
 # is kept.   bash scripts/rate/make-rate-copies.sh [OUT]
 set -euo pipefail
@@ -15,8 +19,12 @@ shared=../shared/data
 out=${1:-target/rate-data}
 [ -d "$shared/real-vpr/nordland-spring-winter" ] || { echo "no $shared (the shared data folder beside the repository)" >&2; exit 1; }
 mkdir -p "$out"
-python3 - "$shared" "$out" <<'PY'
+py=${PYTHON:-.venv-export/bin/python}
+"$py" -c 'import numpy, PIL' 2>/dev/null || { echo "$py lacks numpy or PIL: run setup.sh, or set PYTHON" >&2; exit 1; }
+"$py" - "$shared" "$out" <<'PY'
 import csv, os, sys
+import numpy as np
+from PIL import Image
 shared, out = sys.argv[1], sys.argv[2]
 
 def write(name, refs, queries, truth):
@@ -58,5 +66,21 @@ drive = sorted(n for n in os.listdir(cam) if n.startswith("Seq05VD_"))
 refs = [(n, os.path.join(cam, n)) for n in drive[0::2]]
 qs = [(n, os.path.join(cam, n)) for n in drive[1::2]]
 truth = {n: [drive[i - 1]] + ([drive[i + 1]] if i + 1 < len(drive) else []) for i, n in enumerate(drive) if i % 2 == 1}
+# stops: a frame that differs from the one before by a median of at most 2 grey levels joins its stop
+grey = lambda n: np.asarray(Image.open(os.path.join(cam, n)).convert("L").resize((160, 120)), dtype=np.float32)
+stop, prev = {}, None
+for i, n in enumerate(drive):
+    g = grey(n)
+    still = prev is not None and float(np.median(np.abs(g - prev))) <= 2.0
+    stop[n] = stop[drive[i - 1]] if still else n
+    prev = g
+members = {}
+for n in drive:
+    members.setdefault(stop[n], []).append(n)
+for q in truth:
+    same = [r for r in members[stop[q]] if r in dict(refs) and r not in truth[q]]
+    truth[q] += same
+stops = [m for m in members.values() if len(m) > 1]
+print("stops: " + ", ".join(f"{m[0]}..{m[-1]} ({len(m)} frames)" for m in stops), file=sys.stderr)
 plays("camvid", refs, qs, truth)
 PY
