@@ -1,7 +1,7 @@
 //! The `map` subcommands: build (streamed into segments, `--resume`, `--force`, `--f16`), add,
 //! info, remove, compact, verify, and the store benchmark.
 
-use super::shared::{apply_models, frame_sources_posed, info, load_config, map_config, to_json};
+use super::shared::{apply_models, encoding_line, frame_sources_posed, info, load_config, map_config, to_json};
 use crate::cli::args::{IndexChoice, MapCommand, PoseArgs, SourceArgs, StoreArgs, StoreBenchArgs};
 use semlook::batch::PlacePoses;
 use semlook::batch::{self, IntoOptions};
@@ -236,15 +236,8 @@ fn label_free_settings(hog: bool) -> String {
 }
 
 fn report_encoding(r: &batch::IntoReport, quiet: bool) {
-    let m = r.summary.mean;
     let stored = if r.already_stored > 0 { format!(", {} already stored", r.already_stored) } else { String::new() };
-    info(
-        quiet,
-        format!(
-            "encoded {} images{stored} ({:.2} ms per frame: edge {:.2}, forest {:.2}, appearance {:.2} of which network {:.2}, embedding {:.2}; decoding {:.2}, segmentation {:.2})",
-            r.added, m.encode_ms(), m.global_ms, m.forest_ms, m.appearance_ms, m.network_ms, m.embedding_ms, m.decode_ms, m.segment_ms
-        ),
-    );
+    info(quiet, encoding_line(&format!("{} images{stored}", r.added), &r.summary.mean));
     if !r.invalid.is_empty() {
         info(quiet, format!("skipped {} invalid frames", r.invalid.len()));
     }

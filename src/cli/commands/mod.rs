@@ -162,22 +162,7 @@ fn encode_sources(
     for (i, e) in &enc.skipped {
         log::warn!("skipped {}: {e}", frames[*i].id);
     }
-    let m = enc.summary().mean;
-    info(
-        quiet,
-        format!(
-            "encoded {} {what} ({:.2} ms per frame: edge {:.2}, forest {:.2}, appearance {:.2} of which network {:.2}, embedding {:.2}; decoding {:.2}, segmentation {:.2})",
-            enc.set.len(),
-            m.encode_ms(),
-            m.global_ms,
-            m.forest_ms,
-            m.appearance_ms,
-            m.network_ms,
-            m.embedding_ms,
-            m.decode_ms,
-            m.segment_ms
-        ),
-    );
+    info(quiet, shared::encoding_line(&format!("{} {what}", enc.set.len()), &enc.summary().mean));
     Ok(enc.set)
 }
 

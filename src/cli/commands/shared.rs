@@ -18,6 +18,25 @@ pub fn info(quiet: bool, msg: impl AsRef<str>) {
     }
 }
 
+/// The line the commands that encode images print after it (`query`, `eval`'s maps, `map build`
+/// and `add`): `what` encoded, then per image the encoding (descriptors: its stages, which add up
+/// to it) and apart the loading (decoding and segmentation), which runs on the loader threads
+/// beside the encoding, so that a segmentation longer than the encoding is not read as part of it.
+pub fn encoding_line(what: &str, m: &semlook::encode::StageTimes) -> String {
+    format!(
+        "encoded {what}: per image, encoding {:.2} ms (edge {:.2}, forest {:.2}, appearance {:.2} of which network {:.2}, embedding {:.2}); loading {:.2} ms on the loader threads beside it (decoding {:.2}, segmentation {:.2})",
+        m.encode_ms(),
+        m.global_ms,
+        m.forest_ms,
+        m.appearance_ms,
+        m.network_ms,
+        m.embedding_ms,
+        m.decode_ms + m.segment_ms,
+        m.decode_ms,
+        m.segment_ms
+    )
+}
+
 pub fn load_config(path: Option<&Path>) -> Result<Config> {
     match path {
         Some(p) => Config::load(p),
