@@ -350,6 +350,8 @@ fn a_killed_loop_closure_run_resumes_and_stores_every_frame_once() {
 /// connected but silent: the stream stops between frames, commits every frame it answered (the
 /// number the summary prints is the map's), prints the summary and exits 128 + the signal (130,
 /// 143), instead of dying with frames buffered and no summary (issue 57: 6 of 56 frames lost).
+/// The SIGTERM run starts its new map with `--camera` (issue 57: refused before the map existed,
+/// "the map stores no verification keypoints").
 #[test]
 #[cfg(unix)]
 fn a_signal_during_loop_closure_commits_every_answered_frame_and_prints_the_summary() {
@@ -360,9 +362,12 @@ fn a_signal_during_loop_closure_commits_every_answered_frame_and_prints_the_summ
     let dir = tempfile::tempdir().unwrap();
     // the first 8 frames make the map, then a commit every 4: 11 answered leave 3 buffered
     let (frames, cfg) = piped_loop_closure(dir.path(), 16, 9);
+    let camera = dir.path().join("camera.toml");
+    std::fs::write(&camera, "fx = 190.0\nfy = 190.0\ncx = 79.5\ncy = 59.5\nwidth = 160\nheight = 120\n").unwrap();
     for (signal, name, sent) in [("-INT", "SIGINT", 11), ("-TERM", "SIGTERM", 14)] {
         let map = dir.path().join(format!("map{name}"));
-        let mut child = spawn_loop_closure(&map, &cfg, &[]);
+        let extra = if name == "SIGTERM" { vec!["--camera", p(&camera)] } else { vec![] };
+        let mut child = spawn_loop_closure(&map, &cfg, &extra);
         let (stdin, mut out) = feed_and_await(&mut child, &frames[..sent]);
         // the camera stays connected (stdin open) and sends nothing more
         let kill = std::process::Command::new("kill").args([signal, &child.id().to_string()]).status().unwrap();
