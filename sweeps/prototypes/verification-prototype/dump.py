@@ -2,7 +2,7 @@
 API (`Encoder.for_map` on run.sh's maps), and the queries' keypoints at other working sizes (448, 896 and
 1,024 px long side) for geometry.py. The other sizes come from copies of the map whose manifest's working
 size is rewritten (checksum recomputed, index dropped): a measurement hack, not a supported edit.
-Usage: OUT=... .venv/bin/python scripts/verification-prototype/dump.py (about 5 minutes)."""
+Usage: OUT=... .venv/bin/python sweeps/prototypes/verification-prototype/dump.py (about 5 minutes)."""
 import hashlib, json, os, shutil, sys
 import numpy as np, semlook
 sys.path.insert(0, os.path.dirname(__file__))

@@ -2,7 +2,7 @@
 For every query and candidate: T = the verified score less its MNN inlier term (2 coarse + 2 tree similarity, the
 same in both runs: checked), n_mnn and n_glue the RANSAC inliers of each matcher. Ranks by
 T + a ln(1 + n_glue) + b ln(1 + n_mnn) and prints R@1 per set for a grid of (a, b); (0, 1) is today's default.
-Usage: python3 scripts/lighterglue-fusion/fuse.py OUT_DIR KEYPOINTS [path/to/real-vpr]"""
+Usage: python3 sweeps/prototypes/lighterglue-fusion/fuse.py OUT_DIR KEYPOINTS [path/to/real-vpr]"""
 import csv, itertools, json, math, os, sys
 
 out, k = sys.argv[1], sys.argv[2]

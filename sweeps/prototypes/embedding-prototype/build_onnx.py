@@ -3,7 +3,7 @@ wheels (EfficientNet-PyTorch key names) as an ONNX graph with outputs `features`
 average-pooled) and `logits`; features.py reads the head's map itself. The product's graph is
 python/tools/export_embedding.py's (Lite1 only, GeM inside). Runs in .venv-export:
 
-    .venv-export/bin/python scripts/embedding-prototype/build_onnx.py LITE.pth OUT.onnx
+    .venv-export/bin/python sweeps/prototypes/embedding-prototype/build_onnx.py LITE.pth OUT.onnx
 """
 import sys, re, numpy as np, onnx, torch
 from onnx import helper, TensorProto, numpy_helper

@@ -5,7 +5,7 @@ stored keypoints: inliers of OpenCV homographies (RANSAC 4 px; MAGSAC 4 and 8 px
 (RANSAC 2 and 4 px; MAGSAC 2 px), all at a 640 px long side; the homography's inliers with the queries'
 keypoints detected at 448, 896 and 1,024 px; the classes at both ends of the 640 px inliers. Ranks by
 T + w ln(1 + inliers) (T: the verified score less its inlier term) and prints R@1 per set.
-Usage: OUT=... PYTHONPATH=<opencv-python-headless> .venv/bin/python scripts/verification-prototype/geometry.py"""
+Usage: OUT=... PYTHONPATH=<opencv-python-headless> .venv/bin/python sweeps/prototypes/verification-prototype/geometry.py"""
 import itertools, math, os, pickle, sys
 import numpy as np, cv2
 sys.path.insert(0, os.path.dirname(__file__))

@@ -1,5 +1,5 @@
 # Prototype (sweep 16): coarse R@1/10/30/100 of the fused coarse score (cos(appearance) + 0.25 SSIM, from
-# scripts/shortlist-prototype/dump.py's OUT/<set>.npz) plus w x cos(pooled network features of TAG.npz), per dev set.
+# sweeps/prototypes/shortlist-prototype/dump.py's OUT/<set>.npz) plus w x cos(pooled network features of TAG.npz), per dev set.
 import os, sys, numpy as np
 OUT = os.environ.get('OUT', 'embedding-prototype-out')
 tag = sys.argv[1]

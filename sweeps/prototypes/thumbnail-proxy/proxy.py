@@ -1,7 +1,7 @@
 """How well cheap summaries of two global descriptors stand in for their SSIM (issue 29: the index's
 thumbnails). Run with the repository's .venv (the semlook package and numpy):
 
-    MAP=BASE QUERIES=QUERY_PHOTOS .venv/bin/python scripts/thumbnail-proxy/proxy.py
+    MAP=BASE QUERIES=QUERY_PHOTOS .venv/bin/python sweeps/prototypes/thumbnail-proxy/proxy.py
 
 MAP: a labelled map with appearance (`semlook map build --images ... --index none`); QUERIES: a folder of
 photos, encoded for it. Prints, per proxy, the correlation of proxy and exact SSIM over every (query,

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 32 prototypes: per-candidate scores of `verified` on the three real dev sets, written as
 # `semlook localize --json` lines, for gate.py, geometry.py and aliked_lightglue.py: the default (MNN) and LighterGlue with glue_threshold 0.7 (sweep 14's
-# fusion threshold). Maps by the default segmenter. Usage: scripts/verification-prototype/run.sh
+# fusion threshold). Maps by the default segmenter. Usage: sweeps/prototypes/verification-prototype/run.sh
 # [OUT] [path/to/real-vpr]; about 6 minutes on the 2-core development machine.
 set -euo pipefail
 out=${1:-/tmp/verification-prototype}; data=${2:-../shared/data/real-vpr}

@@ -2,7 +2,7 @@
 output. For each candidate: T = the verified score less its MNN inlier term; the fusion ranks by
 T + 2 ln(1 + MNN inliers) + 0.5 ln(1 + LighterGlue inliers) (sweep 14's best), the LighterGlue term only on
 the pairs a rule admits. Prints R@1 per set, the mean and the share of pairs LighterGlue runs on.
-Usage: OUT=... .venv/bin/python scripts/verification-prototype/gate.py [lg | the suffix of another LighterGlue run]"""
+Usage: OUT=... .venv/bin/python sweeps/prototypes/verification-prototype/gate.py [lg | the suffix of another LighterGlue run]"""
 import math, os, sys
 sys.path.insert(0, os.path.dirname(__file__))
 from common import SETS, candidates, ground_truth
