@@ -52,7 +52,7 @@
 
 pub mod appearance;
 pub mod batch;
-
+pub mod choice;
 pub mod classes;
 pub mod config;
 pub mod dataset;
@@ -91,4 +91,5 @@ pub mod util;
 pub mod values;
 pub mod verify;
 
+pub use choice::Choice;
 pub use error::{Error, ErrorKind, Result};

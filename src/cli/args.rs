@@ -1,11 +1,20 @@
 //! The command line's arguments (clap): every command, its options and their help.
 
+use clap::builder::{PossibleValue, PossibleValuesParser, TypedValueParser};
 use clap::{Args, Parser, Subcommand};
 use semlook::engine::Backend;
 use semlook::input::LabelFormat;
 use semlook::matching::Setting;
 use semlook::tools::synth::condition::Condition;
+use semlook::Choice;
 use std::path::PathBuf;
+
+/// The parser of a library's closed set of named values ([`Choice`]): its names, each with its
+/// help, the values clap offers and lists (the library derives nothing of clap).
+fn choice<T: Choice>() -> impl TypedValueParser<Value = T> {
+    PossibleValuesParser::new(T::CHOICES.iter().map(|c| PossibleValue::new(c.name()).help(c.help())))
+        .try_map(|name| T::named(&name).ok_or_else(|| format!("{name:?} is not a possible value")))
+}
 
 #[derive(Parser)]
 #[command(name = "semlook", version, about = "SemLook visual place recognition: build maps of places from label maps, match queries, evaluate.", long_about = None)]
@@ -17,7 +26,7 @@ pub struct Cli {
     /// `auto` (a hardware GPU if there is one, else the CPU; the default). Commands that run on
     /// the CPU only (inspect, map info/remove/compact/verify, synth without --from-camvid, config,
     /// models, dev bench/map-bench/segmenter-accuracy) refuse it rather than ignore it.
-    #[arg(long, global = true, value_enum)]
+    #[arg(long, global = true, value_parser = choice::<Backend>())]
     pub backend: Option<Backend>,
     #[command(subcommand)]
     pub command: Command,
@@ -190,7 +199,7 @@ pub struct BenchPipeArgs {
     #[arg(long)]
     pub images: PathBuf,
     /// Which stages rank the map per frame.
-    #[arg(long, value_enum, default_value_t = Setting::RECOMMENDED)]
+    #[arg(long, value_parser = choice::<Setting>(), default_value_t = Setting::RECOMMENDED)]
     pub setting: Setting,
     /// Configuration file (TOML); default: the map's (its encoding, and the query sections it was
     /// built with where they are not the defaults: `map info` says).
@@ -221,7 +230,7 @@ pub struct BenchStreamArgs {
     #[arg(long, default_value_t = 200)]
     pub frames: usize,
     /// Which stages rank the map per frame.
-    #[arg(long, value_enum, default_value_t = Setting::RECOMMENDED)]
+    #[arg(long, value_parser = choice::<Setting>(), default_value_t = Setting::RECOMMENDED)]
     pub setting: Setting,
     /// Single-frame matching only.
     #[arg(long)]
@@ -270,7 +279,7 @@ pub struct InspectArgs {
     #[arg(long, value_name = "FILE.toml")]
     pub config: Option<PathBuf>,
     /// How label files encode classes (default: auto).
-    #[arg(long, value_enum)]
+    #[arg(long, value_parser = choice::<LabelFormat>())]
     pub label_format: Option<LabelFormat>,
     #[command(flatten)]
     pub models: ModelArgs,
@@ -292,7 +301,7 @@ pub struct TuneArgs {
     #[arg(long, value_name = "FILE.toml")]
     pub config: Option<PathBuf>,
     /// Settings to score, repeated or comma-separated (default: semlook, local, forest, global).
-    #[arg(long = "setting", value_enum, value_delimiter = ',')]
+    #[arg(long = "setting", value_parser = choice::<Setting>(), value_delimiter = ',')]
     pub settings: Vec<Setting>,
     /// Also write the table (tab-separated) to this file.
     #[arg(long, value_name = "FILE.tsv")]
@@ -479,7 +488,7 @@ pub struct SourceArgs {
     #[arg(long, value_name = "DIR")]
     pub labels: Option<PathBuf>,
     /// How label files encode classes.
-    #[arg(long, value_enum)]
+    #[arg(long, value_parser = choice::<LabelFormat>())]
     pub label_format: Option<LabelFormat>,
     /// Skip (and report) images that fail to load instead of stopping.
     #[arg(long)]
@@ -687,7 +696,7 @@ pub struct QueryArgs {
     #[command(flatten)]
     pub source: SourceArgs,
     /// Which stages rank the map (default: the recommended pipeline, `verified`).
-    #[arg(long, value_enum, default_value_t = Setting::RECOMMENDED)]
+    #[arg(long, value_parser = choice::<Setting>(), default_value_t = Setting::RECOMMENDED)]
     pub setting: Setting,
     /// Config for matching (its encoding sections must equal the map's).
     /// Configuration file (TOML; `semlook config` prints the defaults); default: built-in defaults.
@@ -737,7 +746,7 @@ pub struct LocalizeArgs {
     #[arg(long, value_name = "DIR", requires = "images")]
     pub labels: Option<PathBuf>,
     /// How label files encode classes.
-    #[arg(long, value_enum, requires = "labels")]
+    #[arg(long, value_parser = choice::<LabelFormat>(), requires = "labels")]
     pub label_format: Option<LabelFormat>,
     /// A file of `name time` lines (seconds) for the frames of --images: they are taken in time
     /// order, and a time going backwards is refused.
@@ -748,7 +757,7 @@ pub struct LocalizeArgs {
     #[arg(long)]
     pub stdin: bool,
     /// Which stages rank the map (default: the recommended pipeline, `verified`).
-    #[arg(long, value_enum, default_value_t = Setting::RECOMMENDED)]
+    #[arg(long, value_parser = choice::<Setting>(), default_value_t = Setting::RECOMMENDED)]
     pub setting: Setting,
     /// Single-frame matching only (sequence matching over the last frames is on by default).
     #[arg(long)]
@@ -808,7 +817,7 @@ pub struct EvalArgs {
     #[arg(long, requires = "references")]
     pub ground_truth: Option<PathBuf>,
     /// Settings to evaluate, repeated or comma-separated (default: all nine, baselines included).
-    #[arg(long = "setting", value_enum, value_delimiter = ',')]
+    #[arg(long = "setting", value_parser = choice::<Setting>(), value_delimiter = ',')]
     pub settings: Vec<Setting>,
     /// Use this map for the references instead of encoding them.
     #[arg(long)]
@@ -878,7 +887,7 @@ fn parse_positive(s: &str) -> Result<usize, String> {
 
 #[cfg(test)]
 mod tests {
-    use super::Cli;
+    use super::{choice, Backend, Choice, Cli, LabelFormat, Setting, TypedValueParser};
     use clap::CommandFactory;
 
     /// Every option and positional of every command says what it does in `--help` (issue 30:
@@ -900,5 +909,37 @@ mod tests {
         let mut missing = Vec::new();
         walk(&Cli::command(), "semlook", &mut missing);
         assert!(missing.is_empty(), "no help text: {missing:#?}");
+    }
+
+    /// The library's named values reach the command line through [`choice`] (issue 58: clap was
+    /// derived on the library's types): every name parses to its value, another is refused, and
+    /// each option lists every value with its help, in the library's order.
+    #[test]
+    fn library_choices_parse_by_name_and_list_their_help() {
+        fn check<T: Choice + std::fmt::Debug>(command: &[&str], option: &str) {
+            let mut cmd = Cli::command();
+            cmd.build();
+            let mut sub = &cmd;
+            for c in command {
+                sub = sub.find_subcommand(c).unwrap();
+            }
+            let arg = sub.get_arguments().find(|a| a.get_long() == Some(option)).unwrap();
+            let listed: Vec<(String, String)> = arg
+                .get_possible_values()
+                .iter()
+                .map(|v| (v.get_name().to_string(), v.get_help().map(|h| h.to_string()).unwrap_or_default()))
+                .collect();
+            let want: Vec<(String, String)> = T::CHOICES.iter().map(|c| (c.name().to_string(), c.help().to_string())).collect();
+            assert_eq!(listed, want, "{command:?} --{option}");
+            let parser = choice::<T>();
+            for &c in T::CHOICES {
+                assert_eq!(parser.parse_ref(sub, Some(arg), std::ffi::OsStr::new(c.name())).ok(), Some(c));
+            }
+            assert!(parser.parse_ref(sub, Some(arg), std::ffi::OsStr::new("nothing-of-the-kind")).is_err());
+        }
+        check::<Setting>(&["query"], "setting");
+        check::<Setting>(&["eval"], "setting");
+        check::<Backend>(&[], "backend");
+        check::<LabelFormat>(&["query"], "label-format");
     }
 }

@@ -99,7 +99,7 @@ pub fn working_size(width: u32, height: u32, long_side: usize) -> (u32, u32) {
 }
 
 /// How a label-map file encodes classes.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum LabelFormat {
     /// Grey (8 or 16 bit) files hold ids; colour files use the class palette.

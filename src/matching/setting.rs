@@ -6,9 +6,9 @@ use serde::{Deserialize, Serialize};
 /// A matching setting: which stages run and whether appearance takes part.
 ///
 /// Its names are [`Setting::name`]'s: serde writes and reads them (JSON, TOML, the map's files),
-/// and the command line's (clap's kebab-case) are held to them by a test. Every predicate below
+/// and the command line's ([`crate::Choice`]) are the same. Every predicate below
 /// matches every variant, so a new one is decided for each, not counted false by default.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Setting {
     /// Baseline: VPR-Bench's HOG (grey 512 x 512, cosine), the floor any VPR method must beat.
     Hog,
@@ -221,14 +221,11 @@ impl std::fmt::Display for Setting {
 mod tests {
     use super::Setting;
 
-    /// One name per setting: the command line's (clap), serde's and Python's are `Setting::name`,
+    /// One name per setting: the command line's, serde's and Python's are `Setting::name`,
     /// and `ALL` is the command line's list of variants.
     #[test]
     fn setting_names_are_one() {
-        assert_eq!(<Setting as clap::ValueEnum>::value_variants(), &Setting::ALL);
         for s in Setting::ALL {
-            assert_eq!(clap::ValueEnum::to_possible_value(&s).map(|v| v.get_name().to_string()), Some(s.name().to_string()));
-            assert_eq!(<Setting as clap::ValueEnum>::from_str(s.name(), false), Ok(s));
             assert_eq!(serde_json::to_string(&s).ok(), Some(format!("\"{}\"", s.name())));
             assert_eq!(serde_json::from_str::<Setting>(&format!("\"{}\"", s.name())).ok(), Some(s));
             assert_eq!(Setting::from_name(s.name()), Some(s));
