@@ -1,7 +1,8 @@
 //! The docs that restate code are held to it: docs/config.md's table names every key of every
 //! section of `Config::default()` and no other, and where a row's default is a plain value (a
 //! number, a boolean, a quoted string, a list of numbers) it is the code's default, key by key;
-//! docs/library.md's example is the one src/lib.rs compiles (its doc test), line for line.
+//! docs/library.md's example is the one src/lib.rs compiles (its doc test), line for line; every
+//! figure README shows is on a measurement page it links to, beside `semlook` commands that exist.
 
 use serde_json::Value;
 use std::collections::{BTreeMap, BTreeSet};
@@ -207,4 +208,165 @@ fn readme_and_docs_links_resolve() {
         }
     }
     assert!(broken.is_empty(), "links to nothing: {broken:?}");
+}
+
+/// The numbers with a decimal point in `text` (`0.709`, `16.1`, `1,392.5`), each whole: a number
+/// that a letter, digit, `.` or `_` touches (a commit hash, a version `1.2.3`, `v0.8`) is none.
+fn decimal_figures(text: &str) -> BTreeSet<String> {
+    let b = text.as_bytes();
+    let word = |c: u8| c.is_ascii_alphanumeric() || c == b'_';
+    let mut found = BTreeSet::new();
+    let mut i = 0;
+    while i < b.len() {
+        if !b[i].is_ascii_digit() || (i > 0 && (word(b[i - 1]) || b[i - 1] == b'.')) {
+            i += 1;
+            continue;
+        }
+        let start = i;
+        // the whole part, thousands commas included
+        while i < b.len() && (b[i].is_ascii_digit() || (b[i] == b',' && b.get(i + 1).is_some_and(u8::is_ascii_digit))) {
+            i += 1;
+        }
+        if b.get(i) != Some(&b'.') || !b.get(i + 1).is_some_and(u8::is_ascii_digit) {
+            // an integer, or part of a word: skip the rest of it
+            while i < b.len() && (word(b[i]) || b[i] == b'.') {
+                i += 1;
+            }
+            continue;
+        }
+        i += 1;
+        while i < b.len() && b[i].is_ascii_digit() {
+            i += 1;
+        }
+        let touched = b.get(i).is_some_and(|&c| word(c)) || (b.get(i) == Some(&b'.') && b.get(i + 1).is_some_and(u8::is_ascii_digit));
+        if !touched {
+            found.insert(text[start..i].to_string());
+        }
+        while i < b.len() && (word(b[i]) || b[i] == b'.') {
+            i += 1;
+        }
+    }
+    found
+}
+
+/// The prose of a markdown page: fenced code blocks, link targets and web addresses left out.
+fn prose(md: &str) -> String {
+    let mut out = String::new();
+    let mut fenced = false;
+    for line in md.lines() {
+        if line.trim_start().starts_with("```") {
+            fenced = !fenced;
+            continue;
+        }
+        if fenced {
+            continue;
+        }
+        let mut rest = line;
+        while let Some(i) = rest.find("](") {
+            out.push_str(&rest[..i + 1]);
+            rest = rest[i + 2..].split_once(')').map_or("", |(_, after)| after);
+        }
+        out.push_str(&rest.split_whitespace().filter(|w| !w.contains("://")).collect::<Vec<_>>().join(" "));
+        out.push('\n');
+    }
+    out
+}
+
+/// The `semlook` commands of a page's fenced `sh` blocks: for each, the words of its command path
+/// (`["map", "build"]`: after the program and its leading options, the lowercase words up to the
+/// first option or argument) and its line.
+fn semlook_commands(md: &str) -> Vec<(Vec<String>, String)> {
+    let is_word =
+        |w: &str| w.starts_with(|c: char| c.is_ascii_lowercase()) && w.chars().all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-');
+    let mut commands = vec![];
+    let (mut fenced, mut in_sh) = (false, false);
+    for line in md.lines() {
+        if line.trim_start().starts_with("```") {
+            in_sh = !fenced && line.trim() == "```sh";
+            fenced = !fenced;
+            continue;
+        }
+        if !in_sh {
+            continue;
+        }
+        let code = line.split(" #").next().unwrap();
+        let words: Vec<&str> = code.split_whitespace().take_while(|w| !w.starts_with('#')).collect();
+        for (i, w) in words.iter().enumerate() {
+            // the program (`semlook`, `target/release/semlook`), not an option's value (`--bin .../semlook`)
+            let program = *w == "semlook" || w.ends_with("/semlook");
+            let an_option_value = i > 0 && words[i - 1].starts_with('-');
+            if !program || an_option_value {
+                continue;
+            }
+            let mut j = i + 1;
+            while j < words.len() && words[j].starts_with('-') {
+                j += if words[j] == "--backend" { 2 } else { 1 };
+            }
+            let path = words[j.min(words.len())..].iter().take_while(|w| is_word(w)).map(|w| w.to_string()).collect();
+            commands.push((path, line.trim().to_string()));
+        }
+    }
+    commands
+}
+
+/// Every figure README shows is traced (issue 58 part 5): each number with a decimal point in its
+/// prose (fenced code, link targets and web addresses aside) is, word for word, on a measurement
+/// page README links to: a linked `.md` page with a fenced `sh` block that runs `semlook`. The
+/// `semlook` commands of those pages' `sh` blocks name only commands docs/cli.md lists (the
+/// synopsis tests/cli.rs holds to `--help`), so the command beside a figure is one that exists.
+/// Every untraced figure and every unknown command is listed at once.
+#[test]
+fn readme_figures_are_on_measurement_pages() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
+    let figures = decimal_figures(&prose(&readme));
+    assert!(figures.len() >= 40, "only {} figures read from README: {figures:?}", figures.len());
+    // the pages README links to
+    let mut linked = BTreeSet::new();
+    let mut rest = readme.as_str();
+    while let Some(i) = rest.find("](") {
+        rest = &rest[i + 2..];
+        let Some(end) = rest.find(')') else { break };
+        let target = rest[..end].split('#').next().unwrap().trim();
+        if target.ends_with(".md") && !target.contains("://") {
+            linked.insert(target.to_string());
+        }
+        rest = &rest[end..];
+    }
+    // the commands docs/cli.md lists: the `semlook ...` lines of its synopsis (its first fenced block)
+    let cli = std::fs::read_to_string(root.join("docs/cli.md")).unwrap();
+    let synopsis = cli.split("```").nth(1).expect("docs/cli.md's synopsis block");
+    let known: BTreeSet<Vec<String>> = synopsis
+        .lines()
+        .filter_map(|l| l.strip_prefix("semlook "))
+        .map(|l| {
+            let is_word = |w: &&str| w.starts_with(|c: char| c.is_ascii_lowercase()) && w.chars().all(|c| c.is_ascii_lowercase() || c == '-');
+            l.split_whitespace().take_while(is_word).map(str::to_string).collect()
+        })
+        .collect();
+    assert!(known.len() >= 20, "docs/cli.md's commands not read: {known:?}");
+    let mut measurement_pages = vec![];
+    let mut traced = BTreeSet::new();
+    let mut unknown = vec![];
+    for page in &linked {
+        let text = std::fs::read_to_string(root.join(page)).unwrap_or_else(|e| panic!("{page}: {e}"));
+        let commands = semlook_commands(&text);
+        if commands.is_empty() {
+            continue;
+        }
+        for (path, line) in &commands {
+            if !known.iter().any(|k| path.starts_with(k)) {
+                unknown.push(format!("{page}: `{line}`"));
+            }
+        }
+        traced.extend(decimal_figures(&text));
+        measurement_pages.push(page.as_str());
+    }
+    assert!(measurement_pages.len() >= 3, "README links to {} measurement pages: {measurement_pages:?}", measurement_pages.len());
+    let untraced: Vec<&String> = figures.iter().filter(|f| !traced.contains(*f)).collect();
+    assert!(
+        untraced.is_empty() && unknown.is_empty(),
+        "README's figures on no measurement page it links to ({}): {untraced:?}\n`semlook` commands of those pages that docs/cli.md does not list: {unknown:?}",
+        measurement_pages.join(", ")
+    );
 }
