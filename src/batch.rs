@@ -286,3 +286,165 @@ pub fn new_map(cfg: &crate::config::Config, frames: &[FrameSource], dir: &std::p
     };
     Ok((encoder, writer))
 }
+
+/// Whether a map build makes the approximate index (`map build --index`, Python's
+/// `Map.build(index=)`): one policy, so that the front ends build the same map from the same
+/// folder and config.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum IndexPolicy {
+    /// When the map holds at least `index.min_places` images (and appearance).
+    #[default]
+    Auto,
+    /// Always (the map must hold appearance vectors).
+    Ivf,
+    /// Never.
+    None,
+}
+
+impl crate::Choice for IndexPolicy {
+    const CHOICES: &'static [Self] = &[IndexPolicy::Auto, IndexPolicy::Ivf, IndexPolicy::None];
+    fn name(self) -> &'static str {
+        match self {
+            IndexPolicy::Auto => "auto",
+            IndexPolicy::Ivf => "ivf",
+            IndexPolicy::None => "none",
+        }
+    }
+    fn help(self) -> &'static str {
+        match self {
+            IndexPolicy::Auto => "When the map holds at least `index.min_places` images (and appearance)",
+            IndexPolicy::Ivf => "Always (the map must hold appearance vectors)",
+            IndexPolicy::None => "Never",
+        }
+    }
+}
+
+/// How [`build_map`] builds a map: the layout of a new one, its index, its frame interval.
+#[derive(Debug, Clone, Default)]
+pub struct BuildOptions {
+    /// The new map's layout, and whether an interrupted build is continued (`new.resume`).
+    pub new: NewMapOptions,
+    /// Whether the approximate index is built.
+    pub index: IndexPolicy,
+    /// The interval between the frames, in seconds, where they are timed (the stream's rate).
+    pub frame_interval: Option<f64>,
+}
+
+/// What [`build_map`] is about to do, or has just done, as it goes (a front end says it in its
+/// words before the long work that follows).
+#[derive(Debug)]
+pub enum BuildStep<'a> {
+    /// An interrupted build is continued: the images its map holds, and its generation.
+    Resuming {
+        /// Images the map holds.
+        images: usize,
+        /// The map's generation.
+        generation: u64,
+    },
+    /// The frames are encoded and committed.
+    Encoded(&'a IntoReport),
+    /// The approximate index of this many images is being built.
+    BuildingIndex {
+        /// Images the index covers.
+        images: usize,
+    },
+}
+
+/// What [`build_map`] did, for the front ends to report.
+#[derive(Debug)]
+pub struct BuildReport {
+    /// Where an interrupted build was continued: the images its map held, and its generation.
+    pub resumed: Option<(usize, u64)>,
+    /// The frames encoded.
+    pub encoding: IntoReport,
+    /// The index built, if one was.
+    pub index: Option<crate::map::index::IndexReport>,
+    /// The null of `verified`'s evidence measured and stored, with the milliseconds it took.
+    pub null: Option<(std::sync::Arc<crate::matching::null::NullEvidence>, f64)>,
+}
+
+/// The map build every front end runs (`semlook map build`, Python's `Map.build`): a new map in
+/// `dir` of `frames` (or, with `opts.new.resume` and a manifest there, the interrupted build
+/// continued, which must be given the layout it had), every frame encoded and committed, the
+/// index where `opts.index` asks for it (a continued build that has one keeps it current), then
+/// the null of `verified`'s evidence (after the index, whose candidates queries see). `step`
+/// hears each [`BuildStep`] as it comes.
+#[allow(clippy::too_many_arguments)]
+pub fn build_map(
+    engine: &mut Engine,
+    cfg: &crate::config::Config,
+    frames: &[FrameSource],
+    fmt: LabelFormat,
+    poses: Option<&PlacePoses>,
+    dir: &std::path::Path,
+    opts: &BuildOptions,
+    step: &dyn Fn(BuildStep<'_>),
+) -> Result<(crate::map::Map, BuildReport)> {
+    use crate::map::{Map, TraversalPlan};
+    use crate::values::ValueType;
+    let new = &opts.new;
+    let resuming = new.resume && dir.join(crate::map::manifest::MANIFEST).exists();
+    let mut resumed = None;
+    let (encoder, mut writer) = if resuming {
+        let map = Map::open(dir)?;
+        map.check_compatible(&cfg.encoding())?;
+        // every layout option of the interrupted build must be given again as it was
+        let layout = [
+            ("the HOG descriptors (--hog)", map.manifest.hog_dim > 0, new.hog),
+            ("f16 values (--f16)", map.manifest.values == ValueType::F16, new.store.values == ValueType::F16),
+        ];
+        if let Some((what, stored, given)) = layout.into_iter().find(|(_, stored, given)| stored != given) {
+            let say = |on: bool| if on { "asked for" } else { "not asked for" };
+            return Err(Error::invalid(
+                format!("map {}", dir.display()),
+                format!("{what} are {} but the interrupted build had them {}: resume with the same layout options", say(given), say(stored)),
+            ));
+        }
+        let encoder = Encoder::for_map(cfg, &map)?.with_hog(new.hog);
+        step(BuildStep::Resuming { images: map.len(), generation: map.manifest.generation });
+        resumed = Some((map.len(), map.manifest.generation));
+        let plan = new.traversal.clone().map_or(TraversalPlan::Last, TraversalPlan::Named);
+        (encoder, MapWriter::append(dir, new.store)?.with_traversal(plan)?)
+    } else {
+        new_map(cfg, frames, dir, new)?
+    };
+    if let Some(dt) = opts.frame_interval {
+        writer = writer.with_frame_interval(dt)?;
+    }
+    let into = IntoOptions { skip_invalid: new.skip_invalid, skip_stored: new.resume, quiet: new.quiet, poses };
+    let encoding = encode_into(engine, &encoder, frames, fmt, &mut writer, into)?;
+    step(BuildStep::Encoded(&encoding));
+    let map = writer.finish()?;
+    let (map, index) = with_index(map, cfg, opts.index, step)?;
+    let (map, null) = engine.store_null(map, cfg)?;
+    Ok((map, BuildReport { resumed, encoding, index, null }))
+}
+
+/// The index `policy` asks for, built where the map has none yet.
+fn with_index(
+    map: crate::map::Map,
+    cfg: &crate::config::Config,
+    policy: IndexPolicy,
+    step: &dyn Fn(BuildStep<'_>),
+) -> Result<(crate::map::Map, Option<crate::map::index::IndexReport>)> {
+    let wanted = match policy {
+        IndexPolicy::None => false,
+        IndexPolicy::Ivf => true,
+        IndexPolicy::Auto => map.len() >= cfg.index.min_places && map.manifest.appearance_dim > 0,
+    };
+    if !wanted || map.manifest.index.is_some() {
+        return Ok((map, None));
+    }
+    let dir = map.path.clone();
+    if map.manifest.appearance_dim == 0 {
+        return Err(Error::invalid(
+            format!("map {}", dir.display()),
+            "an index (--index ivf) needs appearance vectors (a map built without the keypoint network has none)",
+        ));
+    }
+    let n = map.len();
+    drop(map);
+    step(BuildStep::BuildingIndex { images: n });
+    let r = crate::map::index::build(&dir, &crate::index::IndexParams::from_config(&cfg.index, n), cfg.index.probe, cfg.index.shortlist)?;
+    Ok((crate::map::Map::open(&dir)?, Some(r)))
+}

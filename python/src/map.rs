@@ -81,10 +81,13 @@ impl PyMap {
     /// `images` and/or `labels`: lists of paths (one per id), or a folder of images (png, jpg:
     /// ids are the file stems; label maps `<stem>.png` in the `labels` folder). `segmenter` as
     /// `Encoder`'s (False: photos without label maps make a map without labels, for the
-    /// settings that need none). `ids`: with lists, default the file stems. Like the command,
-    /// it measures the null of `verified`'s evidence under `config` and stores it in the map.
+    /// settings that need none). `ids`: with lists, default the file stems. `index` as
+    /// `semlook map build --index`: "auto" (from `index.min_places` images with appearance),
+    /// "ivf" (always) or "none". It is the command's job (`semlook::batch::build_map`): the same
+    /// folder and config give the same map, its index and the null of `verified`'s evidence
+    /// included.
     #[staticmethod]
-    #[pyo3(signature = (path, images=None, labels=None, ids=None, config=None, segmenter=None, segment_images=None, f16=false, engine=None))]
+    #[pyo3(signature = (path, images=None, labels=None, ids=None, config=None, segmenter=None, segment_images=None, f16=false, engine=None, *, index="auto"))]
     #[allow(clippy::too_many_arguments)]
     fn build(
         py: Python<'_>,
@@ -97,18 +100,17 @@ impl PyMap {
         segment_images: Option<usize>,
         f16: bool,
         engine: Option<PyRef<'_, PyEngine>>,
+        index: &str,
     ) -> PyResult<Self> {
+        use semlook::Choice;
+        let index = semlook::batch::IndexPolicy::named(index).ok_or_else(|| invalid("index", format!("{index:?} is not one of auto, ivf, none")))?;
         let cfg = crate::encoder::with_segmenter(config.map_or_else(Config::default, |c| c.inner.clone()), segmenter)?;
         let frames = build_frames(images, labels, ids, ["images", "labels"])?;
-        let opts = semlook::batch::NewMapOptions { store: store_options(segment_images, f16)?, quiet: true, ..Default::default() };
+        let new = semlook::batch::NewMapOptions { store: store_options(segment_images, f16)?, quiet: true, ..Default::default() };
+        let opts = semlook::batch::BuildOptions { new, index, frame_interval: None };
         let engine = resolve(py, engine)?;
-        let m = run(py, None, engine.as_ref(), |e| {
-            let (enc, mut w) = semlook::batch::new_map(&cfg, &frames, &path, &opts)?;
-            let into = semlook::batch::IntoOptions { quiet: true, ..Default::default() };
-            semlook::batch::encode_into(e, &enc, &frames, Default::default(), &mut w, into)?;
-            // the null of `verified`'s evidence, stored as `semlook map build` stores it
-            Ok(e.store_null(w.finish()?, &cfg)?.0)
-        })?;
+        let m =
+            run(py, None, engine.as_ref(), |e| Ok(semlook::batch::build_map(e, &cfg, &frames, Default::default(), None, &path, &opts, &|_| {})?.0))?;
         Ok(wrap(m))
     }
     /// Adds `descriptors` (encoded by `Encoder.for_map(map)`) as new segments; every image and id

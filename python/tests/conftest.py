@@ -14,6 +14,20 @@ import semlook
 
 REPO = Path(__file__).resolve().parents[2]
 CLI = REPO / "target" / "release" / "semlook"
+# where setup.sh installs the models (importing semlook sets SEMLOOK_MODELS to .semlook/ for a
+# development install)
+MODELS = Path(os.environ.get("SEMLOOK_MODELS", REPO / ".semlook"))
+
+
+def require_models(*names):
+    """The one rule for tests that need installed model files `names` (setup.sh's, in MODELS):
+    where one is missing the test fails under CI or REQUIRE_MODELS=1, and skips saying which
+    elsewhere."""
+    missing = ", ".join(str(MODELS / n) for n in names if not (MODELS / n).is_file())
+    if missing:
+        if os.environ.get("CI") or os.environ.get("REQUIRE_MODELS") == "1":
+            pytest.fail(f"required here (CI or REQUIRE_MODELS=1) but missing: {missing} (run setup.sh)")
+        pytest.skip(f"missing {missing} (run setup.sh)")
 
 # Cityscapes train ids of the default class table: road, sidewalk, building, wall, vegetation,
 # terrain, sky, car, person, pole

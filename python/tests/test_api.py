@@ -14,7 +14,7 @@ import tomllib
 from pathlib import Path
 
 import semlook
-from conftest import CLI, encode_places, place, write_png
+from conftest import CLI, encode_places, place, require_models, write_png
 
 
 def test_descriptor_arrays_round_trip_and_pickle(encoder):
@@ -492,11 +492,7 @@ def test_embeddings_travel_with_their_network(tmp_path, synth_dataset):
     """With the default config a map stores each image's embedding (setup.sh installs the network)
     and records the network; the encoder for the map embeds its queries with it; the arrays carry
     the embeddings and the record, and a map made from them keeps both."""
-    models = os.environ.get("SEMLOOK_MODELS", os.path.join(os.path.dirname(__file__), "..", "..", ".semlook"))
-    if not os.path.isfile(os.path.join(models, "efficientnet_lite1_gem.onnx")) or not os.path.isfile(os.path.join(models, "xfeat.pt")):
-        if os.environ.get("CI") or os.environ.get("REQUIRE_MODELS") == "1":
-            pytest.fail(f"required here (CI or REQUIRE_MODELS=1) but missing: the embedding network or XFeat in {models} (run setup.sh)")
-        pytest.skip(f"no embedding network or XFeat in {models} (run setup.sh)")
+    require_models("efficientnet_lite1_gem.onnx", "xfeat.pt")
     photos = synth_dataset / "day" / "RGB" / "Stereo_Left" / "Omni_F"
     m = semlook.Map.build(tmp_path / "m", images=photos, segmenter=False)
     record = m.manifest()["embedding"]

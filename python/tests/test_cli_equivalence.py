@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import semlook
-from conftest import CLI, place, write_png
+from conftest import CLI, place, require_models, write_png
 
 
 def test_map_query_equals_the_cli(tmp_path, encoder, cpu):
@@ -111,3 +111,46 @@ def test_a_labelled_map_never_scores_photos_without_labels(tmp_path, synth_datas
         assert [t["reference"] for t in cli[q]] == got.ids[i], q
         assert np.array_equal(np.array([t["score"] for t in cli[q]], np.float32), got.scores[i, :got.counts[i]]), q
     assert float(np.max(got.scores)) > 0.0, "segmented queries score above zero"
+
+
+def safetensors_content(path):
+    """A safetensors file's header as a dict and its data bytes (its header's key order is not
+    fixed: the writer's metadata is a hash map)."""
+    raw = Path(path).read_bytes()
+    n = int.from_bytes(raw[:8], "little")
+    return json.loads(raw[8:8 + n]), raw[8 + n:]
+
+
+def test_map_build_gives_the_command_lines_map(tmp_path, synth_dataset):
+    """Issue 58 part 3: Python's `Map.build` built no index at any size while `semlook map build`
+    builds one from `index.min_places` images (`--index auto`): one folder and one config gave two
+    maps. Both now run the library's job (`semlook::batch::build_map`): the same manifest, index
+    included (min_places 4, so the 8 places get one), and the same files, but for the map's uid,
+    the index files' header order and the time the index took."""
+    if not CLI.exists():
+        pytest.skip(f"{CLI} not built (cargo build --release)")
+    require_models("xfeat.pt", "efficientnet_lite1_gem.onnx")
+    photos = synth_dataset / "day" / "RGB" / "Stereo_Left" / "Omni_F"
+    labels = synth_dataset / "day" / "GT" / "LABELS" / "Stereo_Left" / "Omni_F"
+    toml = tmp_path / "index.toml"
+    toml.write_text("[index]\nmin_places = 4\n")
+    semlook.Map.build(tmp_path / "py", images=photos, labels=labels, config=semlook.Config(toml.read_text()), engine=semlook.Engine("cpu"))
+    subprocess.run([str(CLI), "--backend", "cpu", "map", "build", "--images", str(photos), "--labels", str(labels), "--config", str(toml), "--map", str(tmp_path / "cli"), "-q"],
+                   check=True, capture_output=True)
+    py, cli = (json.loads((tmp_path / d / "manifest.json").read_text()) for d in ("py", "cli"))
+    assert "index" in py and "index" in cli, "min_places 4: both maps have their index"
+    files = sorted(f.name for f in (tmp_path / "py").iterdir())
+    assert files == sorted(f.name for f in (tmp_path / "cli").iterdir())
+    for f in files:
+        a, b = tmp_path / "py" / f, tmp_path / "cli" / f
+        if f.startswith("index-"):
+            assert safetensors_content(a) == safetensors_content(b), f
+        elif f != "manifest.json":
+            assert a.read_bytes() == b.read_bytes(), f
+    # what differs: the uid, the checksum over it, the index files' sha256 (their header order),
+    # the time the index took
+    for m in (py, cli):
+        del m["uid"], m["checksum"], m["index"]["build_ms"]
+        for seg in m["segments"]:
+            seg.get("index", {}).pop("sha256", None)
+    assert py == cli

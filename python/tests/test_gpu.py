@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import semlook
-from conftest import place, write_png
+from conftest import place, require_models, write_png
 
 TOL = 1e-5
 
@@ -115,11 +115,7 @@ def test_verified_on_a_map_of_photos_without_labels(gpu, tmp_path, synth_dataset
     (appearance coarse stage, the fine stage over empty forests, verification) on the GPU gives
     the CPU path's lists (the CLI crashed there with wgpu's "binding index 3 is bound with size
     4 where the shader expects 56" before 4b355db)."""
-    weights = os.path.join(os.environ.get("SEMLOOK_MODELS", ""), "xfeat.pt")
-    if not os.path.isfile(weights):
-        if os.environ.get("CI") or os.environ.get("REQUIRE_MODELS") == "1":
-            pytest.fail(f"required here (CI or REQUIRE_MODELS=1) but missing: {weights} (run setup.sh)")
-        pytest.skip(f"no XFeat weights at {weights} (run setup.sh)")
+    require_models("xfeat.pt")
     photos = synth_dataset / "day" / "RGB" / "Stereo_Left" / "Omni_F"
     m = semlook.Map.build(tmp_path / "m", images=photos, segmenter=False)
     assert m.manifest().get("without_labels") is True and len(m) == 8

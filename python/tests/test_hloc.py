@@ -13,7 +13,7 @@ import pytest
 
 import semlook
 import semlook.hloc
-from conftest import CLI
+from conftest import CLI, require_models
 
 OMNI = "RGB/Stereo_Left/Omni_F"
 
@@ -108,11 +108,7 @@ def test_appearance_vectors_and_the_command_line(tmp_path):
     """With XFeat (setup.sh): the whole-image appearance vectors, unit length, as the map holds them."""
     if not CLI.exists():
         pytest.skip(f"{CLI} not built (cargo build --release)")
-    weights = os.path.join(os.environ.get("SEMLOOK_MODELS", ""), "xfeat.pt")
-    if not os.path.isfile(weights):
-        if os.environ.get("CI") or os.environ.get("REQUIRE_MODELS") == "1":
-            pytest.fail(f"required here (CI or REQUIRE_MODELS=1) but missing: {weights} (run setup.sh)")
-        pytest.skip(f"no XFeat weights at {weights} (run setup.sh)")
+    require_models("xfeat.pt")
     data = tmp_path / "data"
     cli("synth", "--out", data, "--places", "4", "--size", "160x128", "--query-condition", "night", "-q")
     day = data / "day" / OMNI

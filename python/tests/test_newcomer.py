@@ -18,7 +18,7 @@ import h5py
 import numpy as np
 import pytest
 
-from conftest import CLI, REPO
+from conftest import CLI, MODELS, REPO, require_models
 
 GARDENS = REPO.parent / "shared" / "data" / "real-vpr" / "gardenspoint-day-night-mini"
 ORT = "libonnxruntime.so.1.31.1"
@@ -33,11 +33,8 @@ def bare(tmp_path_factory):
         if os.environ.get("CI"):
             pytest.fail(f"required under CI but missing: {GARDENS}")
         pytest.skip(f"no {GARDENS} (the shared data folder beside the repository)")
-    models = Path(os.environ.get("SEMLOOK_MODELS", REPO / ".semlook"))
-    if not (models / "xfeat.pt").is_file():
-        if os.environ.get("CI") or os.environ.get("REQUIRE_MODELS") == "1":
-            pytest.fail(f"required here (CI or REQUIRE_MODELS=1) but missing: {models / 'xfeat.pt'} (run setup.sh)")
-        pytest.skip(f"no XFeat weights in {models} (run setup.sh)")
+    require_models("xfeat.pt")
+    models = MODELS
     root = tmp_path_factory.mktemp("newcomer")
     (root / "models").mkdir()
     for name in ("xfeat.pt", ORT):

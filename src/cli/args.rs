@@ -536,18 +536,6 @@ pub struct StoreArgs {
     pub segment_images: Option<usize>,
 }
 
-/// Whether `map build` builds the approximate index.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, clap::ValueEnum)]
-pub enum IndexChoice {
-    /// When the map holds at least `index.min_places` images (and appearance).
-    #[default]
-    Auto,
-    /// Always (the map must hold appearance vectors).
-    Ivf,
-    /// Never.
-    None,
-}
-
 #[derive(Subcommand)]
 pub enum MapCommand {
     /// Encode images into a new map directory, committing a segment at a time.
@@ -579,8 +567,8 @@ pub enum MapCommand {
         /// The approximate index of the coarse stage for large maps: `auto` builds one when the
         /// map holds at least `index.min_places` images, `ivf` always (maps with appearance),
         /// `none` never. `semlook map index` builds or drops one later.
-        #[arg(long, value_enum, default_value_t = IndexChoice::Auto)]
-        index: IndexChoice,
+        #[arg(long, value_parser = choice::<semlook::batch::IndexPolicy>(), default_value = "auto")]
+        index: semlook::batch::IndexPolicy,
         #[command(flatten)]
         store: StoreArgs,
         #[command(flatten)]

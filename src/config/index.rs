@@ -56,7 +56,7 @@ pub struct IndexConfig {
     /// Build: the global descriptors' thumbnails kept beside the codes, pooled by this factor
     /// (8-bit, 768 bytes a reference at 2 for a 64 x 48 descriptor); 0: none. \[R\] 2 (on the
     /// real dev sets the SSIM of thumbnails pooled by 2 follows the exact SSIM at r = 0.990, by 4
-    /// at 0.951: docs/index.md).
+    /// at 0.951: docs/approximate-index.md).
     pub thumbnail: usize,
 }
 

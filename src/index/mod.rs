@@ -19,13 +19,13 @@
 //! commit protocol (a map add writes the new segments' codes in the same commit, a removal needs
 //! nothing, a compaction recomputes the new segments'), the model is content-named, and a kill at
 //! any point leaves the manifest's generation whole; a graph over all references is one mutable
-//! structure across every segment. Measured side by side (docs/index.md) on the same vectors.
+//! structure across every segment. Measured side by side (docs/approximate-index.md) on the same vectors.
 //!
 //! The shortlist follows the fused score, not the appearance alone: the scan's best `index.pool`
 //! by the codes are re-ranked by the codes plus `w_global` x the SSIM of 8-bit thumbnails of the
 //! global descriptors ([`thumb`], kept beside the codes), and the best `index.shortlist` of those
 //! go to the exact score. At a million references with repeated scenes the appearance codes alone
-//! left out references that the SSIM lifts into the exact top-30 (docs/index.md).
+//! left out references that the SSIM lifts into the exact top-30 (docs/approximate-index.md).
 //!
 //! What it costs: `dims` + 6 bytes per reference (262 at the defaults) and the thumbnail
 //! (768 at the default pooling of a 64 x 48 descriptor by 2), and the model (`dims` x the

@@ -6,7 +6,7 @@
 //! coarse stage's own SSIM (`kernels::ssim`, its fast path `global::ssim_fast`: the same
 //! constants `global.ssim_k1`, `ssim_k2`, `ssim_sample_covariance`) with a 3 x 3 window over the
 //! thumbnail's values. Measured on the three real dev sets' 180 queries against their 481
-//! references (docs/index.md): the SSIM of thumbnails pooled by 2 follows the exact SSIM at
+//! references (docs/approximate-index.md): the SSIM of thumbnails pooled by 2 follows the exact SSIM at
 //! r = 0.990 (within-query rank correlation 0.987), by 4 at 0.951; a cosine of the descriptors
 //! only at 0.563.
 

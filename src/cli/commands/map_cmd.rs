@@ -2,14 +2,12 @@
 //! info, remove, compact, verify, and the store benchmark.
 
 use super::shared::{apply_models, encoding_line, frame_sources_posed, info, load_config, map_config, to_json};
-use crate::cli::args::{IndexChoice, MapCommand, PoseArgs, SourceArgs, StoreArgs, StoreBenchArgs};
-use semlook::batch::PlacePoses;
+use crate::cli::args::{MapCommand, PoseArgs, SourceArgs, StoreArgs, StoreBenchArgs};
 use semlook::batch::{self, IntoOptions};
 use semlook::config::Config;
 use semlook::encode::Encoder;
 use semlook::engine::Engine;
 use semlook::error::{Error, Result};
-use semlook::input::{FrameSource, LabelFormat};
 use semlook::map::Map;
 use semlook::map::{edit, MapWriter, StoreOptions, TraversalPlan};
 use semlook::values::ValueType;
@@ -47,7 +45,7 @@ pub struct BuildFlags {
     pub traversal: Option<String>,
     pub store: StoreArgs,
     pub poses: PoseArgs,
-    pub index: IndexChoice,
+    pub index: batch::IndexPolicy,
 }
 
 fn store_options(f16: bool, segment_images: Option<usize>) -> StoreOptions {
@@ -61,18 +59,37 @@ pub fn build(engine: &mut Engine, s: &SourceArgs, out: &Path, config: Option<&Pa
     if frames.is_empty() {
         return Err(Error::invalid("references", "no images found"));
     }
-    let sources = (frames.as_slice(), fmt, &poses);
-    let opts = store_options(f.store.f16, f.store.segment_images);
+    let frame_interval = f.poses.timestamps.as_ref().map(|t| semlook::stream::input::median_interval(t, &frames)).transpose()?;
+    let new = batch::NewMapOptions {
+        hog: f.hog,
+        store: store_options(f.store.f16, f.store.segment_images),
+        traversal: f.traversal.clone(),
+        skip_invalid: s.skip_invalid,
+        resume: f.resume,
+        quiet,
+    };
+    let opts = batch::BuildOptions { new, index: f.index, frame_interval };
+    // the library's job (`batch::build_map`, Python's `Map.build` too); what it does, said here
+    let step = |s: batch::BuildStep<'_>| match s {
+        batch::BuildStep::Resuming { images, generation } => {
+            info(quiet, format!("resuming: the map holds {images} images (generation {generation})"))
+        }
+        batch::BuildStep::Encoded(r) => report_encoding(r, quiet),
+        batch::BuildStep::BuildingIndex { images } => info(quiet, format!("building the index of {images} images")),
+    };
+    let job = |engine: &mut Engine, dir: &Path| -> Result<Map> {
+        let (map, r) = batch::build_map(engine, &cfg, &frames, fmt, Some(&poses), dir, &opts, &step)?;
+        if let Some(ix) = &r.index {
+            info(quiet, describe_index(&ix.entry, &map.manifest.config.global));
+        }
+        report_null(r.null.as_ref(), quiet);
+        Ok(map)
+    };
     let map = if f.force && out.exists() {
-        edit::build_replacing(out, |dir| {
-            let m = build_into(engine, &cfg, sources, dir, f, opts, s.skip_invalid, quiet).and_then(|m| with_index(m, &cfg, f.index, quiet))?;
-            with_null(engine, m, &cfg, quiet)
-        })?;
+        edit::build_replacing(out, |dir| job(engine, dir))?;
         Map::open(out)?
     } else {
-        let m = build_into(engine, &cfg, sources, out, f, opts, s.skip_invalid, quiet)?;
-        let m = with_index(m, &cfg, f.index, quiet)?;
-        with_null(engine, m, &cfg, quiet)?
+        job(engine, out)?
     };
     info(
         quiet,
@@ -88,53 +105,17 @@ pub fn build(engine: &mut Engine, s: &SourceArgs, out: &Path, config: Option<&Pa
     Ok(())
 }
 
-/// Builds (or, with `--resume` and a manifest there, continues building) the map in `dir`.
-#[allow(clippy::too_many_arguments)]
-fn build_into(
-    engine: &mut Engine,
-    cfg: &Config,
-    (frames, fmt, poses): (&[FrameSource], LabelFormat, &PlacePoses),
-    dir: &Path,
-    f: &BuildFlags,
-    opts: StoreOptions,
-    skip: bool,
-    quiet: bool,
-) -> Result<Map> {
-    let resuming = f.resume && dir.join(semlook::map::manifest::MANIFEST).exists();
-    let (encoder, mut writer) = if resuming {
-        let map = Map::open(dir)?;
-        map.check_compatible(&cfg.encoding())?;
-        // every layout option of the interrupted build must be given again as it was
-        let layout = [("--hog", map.manifest.hog_dim > 0, f.hog), ("--f16", map.manifest.values == ValueType::F16, opts.values == ValueType::F16)];
-        if let Some((flag, stored, given)) = layout.into_iter().find(|(_, stored, given)| stored != given) {
-            let say = |on: bool| if on { "given" } else { "not given" };
-            return Err(Error::invalid(
-                format!("map {}", dir.display()),
-                format!("{flag} is {} but the interrupted build had it {}: resume with the same layout options", say(given), say(stored)),
-            ));
-        }
-        let encoder = Encoder::for_map(cfg, &map)?.with_hog(f.hog);
-        info(quiet, format!("resuming: the map holds {} images (generation {})", map.len(), map.manifest.generation));
-        let plan = f.traversal.clone().map_or(TraversalPlan::Last, TraversalPlan::Named);
-        (encoder, MapWriter::append(dir, opts)?.with_traversal(plan)?)
-    } else {
-        let o = batch::NewMapOptions { hog: f.hog, store: opts, traversal: f.traversal.clone(), skip_invalid: skip, resume: f.resume, quiet };
-        batch::new_map(cfg, frames, dir, &o)?
-    };
-    if let Some(t) = &f.poses.timestamps {
-        writer = writer.with_frame_interval(semlook::stream::input::median_interval(t, frames)?)?;
-    }
-    let into = IntoOptions { skip_invalid: skip, skip_stored: f.resume, quiet, poses: Some(poses) };
-    let r = batch::encode_into(engine, &encoder, frames, fmt, &mut writer, into)?;
-    report_encoding(&r, quiet);
-    writer.finish()
-}
-
-/// `map build` and `map add`: measures the null of `verified`'s evidence under `cfg` and stores
-/// it in the manifest (after the index, whose candidates queries then see), where the config
-/// tests evidence against one ([`Engine::store_null`]); says what it found and what it cost.
+/// `map add`: measures the null of `verified`'s evidence under `cfg` and stores it in the
+/// manifest where the config tests evidence against one ([`Engine::store_null`]; `map build`'s
+/// is the library's job, `batch::build_map`); says what it found and what it cost.
 fn with_null(engine: &mut Engine, map: Map, cfg: &Config, quiet: bool) -> Result<Map> {
     let (map, stored) = engine.store_null(map, cfg)?;
+    report_null(stored.as_ref(), quiet);
+    Ok(map)
+}
+
+/// What the null of `verified`'s evidence a build or an add stored holds, and what it cost.
+fn report_null(stored: Option<&(std::sync::Arc<semlook::matching::null::NullEvidence>, f64)>, quiet: bool) {
     if let Some((n, ms)) = stored {
         info(
             quiet,
@@ -148,34 +129,6 @@ fn with_null(engine: &mut Engine, map: Map, cfg: &Config, quiet: bool) -> Result
             ),
         );
     }
-    Ok(map)
-}
-
-/// `map build --index`: builds the index where asked (`auto`: from `index.min_places` images
-/// with appearance) and the map has none yet (a resumed build that had one keeps it current).
-fn with_index(map: Map, cfg: &Config, choice: IndexChoice, quiet: bool) -> Result<Map> {
-    let dir = map.path.clone();
-    let wanted = match choice {
-        IndexChoice::None => false,
-        IndexChoice::Ivf => true,
-        IndexChoice::Auto => map.len() >= cfg.index.min_places && map.manifest.appearance_dim > 0,
-    };
-    if !wanted || map.manifest.index.is_some() {
-        return Ok(map);
-    }
-    if map.manifest.appearance_dim == 0 {
-        return Err(Error::invalid(
-            format!("map {}", dir.display()),
-            "--index ivf needs appearance vectors (a map built without the keypoint network has none)",
-        ));
-    }
-    let n = map.len();
-    drop(map);
-    info(quiet, format!("building the index of {n} images"));
-    let r = semlook::map::index::build(&dir, &semlook::index::IndexParams::from_config(&cfg.index, n), cfg.index.probe, cfg.index.shortlist)?;
-    let map = Map::open(&dir)?;
-    info(quiet, describe_index(&r.entry, &map.manifest.config.global));
-    Ok(map)
 }
 
 /// One line on an index: how it was built and what it measured.
