@@ -395,7 +395,7 @@ fn ros(what: impl Into<String>, e: impl std::fmt::Debug) -> NodeError {
 pub fn run(p: Params) -> Result<(), NodeError> {
     // the localizer first: a bad map or parameter fails before any DDS traffic
     let setting = Setting::parse(&p.setting)?;
-    let backend = Backend::ALL.into_iter().find(|b| b.name() == p.backend).ok_or_else(|| NodeError::UnknownBackend { name: p.backend.clone() })?;
+    let backend = <Backend as semlook::Choice>::named(&p.backend).ok_or_else(|| NodeError::UnknownBackend { name: p.backend.clone() })?;
     let (engine, why) = Engine::new(backend, &Default::default())?;
     if let Some(why) = why {
         log::info!("backend auto: {why}");

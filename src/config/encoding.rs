@@ -101,3 +101,52 @@ impl Default for LocalConfig {
         LocalConfig { neighbours: 3, tie_tolerance: 0.02 }
     }
 }
+
+impl InputConfig {
+    /// Checks that every value of `[input]` is in its range (numbers finite); the error names
+    /// the field ([`super::Config::validate`] checks what spans sections).
+    pub(super) fn validate(&self, v: &super::Check) -> crate::error::Result<()> {
+        v.int("input.compact_hog_long_side", self.compact_hog_long_side, 0, 8192)?;
+        if self.working_long_side != 0 {
+            v.int("input.working_long_side", self.working_long_side, 32, 8192)?;
+        }
+        Ok(())
+    }
+}
+
+impl ObjectsConfig {
+    /// Checks that every value of `[objects]` is in its range (numbers finite); the error names
+    /// the field ([`super::Config::validate`] checks what spans sections).
+    pub(super) fn validate(&self, v: &super::Check) -> crate::error::Result<()> {
+        v.real("objects.min_area_fraction", self.min_area_fraction, 0.0, 0.5)?;
+        v.int("objects.max_objects", self.max_objects, 1, 256)?;
+        Ok(())
+    }
+}
+
+impl GlobalConfig {
+    /// Checks that every value of `[global]` is in its range (numbers finite); the error names
+    /// the field ([`super::Config::validate`] checks what spans sections).
+    pub(super) fn validate(&self, v: &super::Check) -> crate::error::Result<()> {
+        v.real("global.truncation", self.truncation, 1e-3, 1.0)?;
+        v.int("global.ssim_window", self.ssim_window, 3, 1023)?;
+        if self.ssim_window.is_multiple_of(2) {
+            return Err(v.err(format!("global.ssim_window = {} must be odd", self.ssim_window)));
+        }
+        v.int("global.width", self.width, self.ssim_window, 1024)?;
+        v.int("global.height", self.height, self.ssim_window, 1024)?;
+        v.real("global.ssim_k1", self.ssim_k1, 1e-6, 1.0)?;
+        v.real("global.ssim_k2", self.ssim_k2, 1e-6, 1.0)?;
+        Ok(())
+    }
+}
+
+impl LocalConfig {
+    /// Checks that every value of `[local]` is in its range (numbers finite); the error names
+    /// the field ([`super::Config::validate`] checks what spans sections).
+    pub(super) fn validate(&self, v: &super::Check) -> crate::error::Result<()> {
+        v.int("local.neighbours", self.neighbours, 0, 8)?;
+        v.real("local.tie_tolerance", self.tie_tolerance, 0.0, 1.0)?;
+        Ok(())
+    }
+}

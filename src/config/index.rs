@@ -77,3 +77,20 @@ impl Default for IndexConfig {
         }
     }
 }
+
+impl IndexConfig {
+    /// Checks that every value of `[index]` is in its range (numbers finite); the error names
+    /// the field ([`super::Config::validate`] checks what spans sections).
+    pub(super) fn validate(&self, v: &super::Check) -> crate::error::Result<()> {
+        v.int("index.min_places", self.min_places, 0, usize::MAX)?;
+        v.int("index.probe", self.probe, 1, 65536)?;
+        v.int("index.shortlist", self.shortlist, 0, 1 << 20)?;
+        v.int("index.pool", self.pool, 0, 1 << 22)?;
+        v.int("index.thumbnail", self.thumbnail, 0, 64)?;
+        v.int("index.dims", self.dims, 1, 4096)?;
+        v.int("index.lists", self.lists, 0, 65536)?;
+        v.int("index.sample", self.sample, 1, 1 << 24)?;
+        v.int("index.iterations", self.iterations, 1, 100)?;
+        Ok(())
+    }
+}

@@ -394,3 +394,95 @@ impl Default for EvalConfig {
         EvalConfig { recall_at: vec![1, 5, 10] }
     }
 }
+
+impl SimilarityConfig {
+    /// Checks that every value of `[similarity]` is in its range (numbers finite); the error names
+    /// the field ([`super::Config::validate`] checks what spans sections).
+    pub(super) fn validate(&self, v: &super::Check) -> crate::error::Result<()> {
+        for (name, w) in [
+            ("similarity.w_area", self.w_area),
+            ("similarity.w_position", self.w_position),
+            ("similarity.w_appearance", self.w_appearance),
+            ("similarity.w_intrinsic", self.w_intrinsic),
+            ("similarity.w_neighbours", self.w_neighbours),
+        ] {
+            v.real(name, w, 0.0, 1e3)?;
+        }
+        if self.w_area + self.w_position + self.w_appearance <= 0.0 || self.w_intrinsic + self.w_neighbours <= 0.0 {
+            return Err(v.err("similarity weights must not all be zero (w_area + w_position + w_appearance, w_intrinsic + w_neighbours)".into()));
+        }
+        v.real("similarity.position_sigma", self.position_sigma, 1e-4, 10.0)?;
+        v.real("similarity.neutral_appearance", self.neutral_appearance, 0.0, 1.0)?;
+        Ok(())
+    }
+}
+
+impl MatchingConfig {
+    /// Checks that every value of `[matching]` is in its range (numbers finite); the error names
+    /// the field ([`super::Config::validate`] checks what spans sections).
+    pub(super) fn validate(&self, v: &super::Check) -> crate::error::Result<()> {
+        v.int("matching.top_k", self.top_k, 1, 1024)?;
+        v.real("matching.w_global", self.w_global, 0.0, 1e3)?;
+        v.real("matching.w_embedding", self.w_embedding, 0.0, 1e3)?;
+        v.int("matching.tile", self.tile, 1, 65536)?;
+        Ok(())
+    }
+}
+
+impl VerificationConfig {
+    /// Checks that every value of `[verification]` is in its range (numbers finite); the error names
+    /// the field ([`super::Config::validate`] checks what spans sections).
+    pub(super) fn validate(&self, v: &super::Check) -> crate::error::Result<()> {
+        v.real("verification.min_cosine", self.min_cosine, -1.0, 1.0)?;
+        v.real("verification.threshold", self.threshold, 1e-6, 1.0)?;
+        v.int("verification.max_iterations", self.max_iterations as usize, 1, 1_000_000)?;
+        v.real("verification.confidence", self.confidence, 0.0, 1.0 - 1e-12)?;
+        if self.seed > i64::MAX as u64 {
+            return Err(v.err(format!("verification.seed = {} must be at most {}", self.seed, i64::MAX)));
+        }
+        v.real("verification.glue_threshold", self.glue_threshold, 0.0, 1.0)?;
+        if self.matcher == Matcher::Lighterglue && self.w_glue > 0.0 {
+            return Err(v.err(
+                "verification.w_glue adds LighterGlue beside the MNN matcher; with matcher = \"lighterglue\" it would do nothing (set w_inliers)"
+                    .into(),
+            ));
+        }
+        if self.glue_min_inliers > 0 && self.w_glue == 0.0 {
+            return Err(v.err(
+                "verification.glue_min_inliers chooses the pairs LighterGlue verifies beside MNN; without w_glue > 0 it would do nothing".into(),
+            ));
+        }
+        v.int("verification.glue_min_inliers", self.glue_min_inliers as usize, 0, 100_000)?;
+        v.int("verification.min_inliers", self.min_inliers as usize, 0, 100_000)?;
+        v.real("verification.unusual_above", self.unusual_above, -10.0, 10.0)?;
+        v.real("verification.compact_hog_above", self.compact_hog_above, -10.0, 10.0)?;
+        v.real("verification.null_alarms", self.null_alarms, 1e-12, 1e6)?;
+        v.real("verification.max_bonus", self.max_bonus, 0.0, 1e6)?;
+        v.int("verification.null_gap", self.null_gap as usize, 0, 1_000_000)?;
+        v.int("verification.null_sources", self.null_sources as usize, 1, 1_000_000)?;
+        v.real("verification.glue_width_confidence", self.glue_width_confidence, -1.0, 1.0)?;
+        v.real("verification.glue_depth_confidence", self.glue_depth_confidence, -1.0, 1.0)?;
+        for (name, w) in [
+            ("verification.w_inliers", self.w_inliers),
+            ("verification.w_coarse", self.w_coarse),
+            ("verification.w_fine", self.w_fine),
+            ("verification.w_glue", self.w_glue),
+            ("verification.w_compact_hog", self.w_compact_hog),
+        ] {
+            v.real(name, w, 0.0, 1e3)?;
+        }
+        Ok(())
+    }
+}
+
+impl EvalConfig {
+    /// Checks that every value of `[eval]` is in its range (numbers finite); the error names
+    /// the field ([`super::Config::validate`] checks what spans sections).
+    pub(super) fn validate(&self, v: &super::Check) -> crate::error::Result<()> {
+        v.int("eval.recall_at (entries)", self.recall_at.len(), 0, 16)?;
+        for (k, &n) in self.recall_at.iter().enumerate() {
+            v.int(&format!("eval.recall_at[{k}]"), n, 1, 1000)?;
+        }
+        Ok(())
+    }
+}

@@ -188,88 +188,19 @@ impl Config {
                 other => other,
             })?;
         }
-        let i = &self.input;
-        v.int("input.compact_hog_long_side", i.compact_hog_long_side, 0, 8192)?;
-        if i.working_long_side != 0 {
-            v.int("input.working_long_side", i.working_long_side, 32, 8192)?;
-        }
-        v.real("objects.min_area_fraction", self.objects.min_area_fraction, 0.0, 0.5)?;
-        v.int("objects.max_objects", self.objects.max_objects, 1, 256)?;
-        let g = &self.global;
-        v.real("global.truncation", g.truncation, 1e-3, 1.0)?;
-        v.int("global.ssim_window", g.ssim_window, 3, 1023)?;
-        if g.ssim_window.is_multiple_of(2) {
-            return Err(v.err(format!("global.ssim_window = {} must be odd", g.ssim_window)));
-        }
-        v.int("global.width", g.width, g.ssim_window, 1024)?;
-        v.int("global.height", g.height, g.ssim_window, 1024)?;
-        v.real("global.ssim_k1", g.ssim_k1, 1e-6, 1.0)?;
-        v.real("global.ssim_k2", g.ssim_k2, 1e-6, 1.0)?;
-        v.int("local.neighbours", self.local.neighbours, 0, 8)?;
-        v.real("local.tie_tolerance", self.local.tie_tolerance, 0.0, 1.0)?;
-        let a = &self.appearance;
-        v.int("appearance.nms_radius", a.nms_radius, 0, 64)?;
-        v.real("appearance.score_threshold", a.score_threshold, 0.0, 1.0)?;
-        v.int("appearance.max_keypoints", a.max_keypoints, 1, 1 << 20)?;
-        v.int("appearance.border", a.border, 0, 4096)?;
-        v.int("appearance.vlad_centres", a.vlad_centres, 1, 64)?;
-        v.int("appearance.min_descriptors", a.min_descriptors, 0, 1_000_000)?;
-        v.int("appearance.codebook_images", a.codebook_images, 1, 100_000)?;
-        v.int("appearance.codebook_samples_per_image", a.codebook_samples_per_image, 1, 100_000)?;
-        v.int("appearance.codebook_iterations", a.codebook_iterations, 0, 10_000)?;
-        if a.codebook_seed > i64::MAX as u64 {
-            return Err(v.err(format!("appearance.codebook_seed = {} must be at most {}", a.codebook_seed, i64::MAX)));
-        }
-        let sg = &self.segmentation;
-        v.int("segmentation.input_width", sg.input_width, 32, 4096)?;
-        v.int("segmentation.input_height", sg.input_height, 32, 4096)?;
-        v.real("segmentation.scale", sg.scale, 1e-6, 1e6)?;
-        for (c, (&m, &d)) in sg.mean.iter().zip(&sg.std).enumerate() {
-            v.real(&format!("segmentation.mean[{c}]"), m, -1e6, 1e6)?;
-            v.real(&format!("segmentation.std[{c}]"), d.abs(), 1e-6, 1e6)?;
-        }
-        v.real("segmentation.brighten_dark", sg.brighten_dark, 0.0, 0.95)?;
-        // its names are checked against the class table when a segmenter is loaded
-        v.int("segmentation.class_map (entries)", sg.class_map.len(), 1, 4096)?;
-        let s = &self.similarity;
-        for (name, w) in [
-            ("similarity.w_area", s.w_area),
-            ("similarity.w_position", s.w_position),
-            ("similarity.w_appearance", s.w_appearance),
-            ("similarity.w_intrinsic", s.w_intrinsic),
-            ("similarity.w_neighbours", s.w_neighbours),
-        ] {
-            v.real(name, w, 0.0, 1e3)?;
-        }
-        if s.w_area + s.w_position + s.w_appearance <= 0.0 || s.w_intrinsic + s.w_neighbours <= 0.0 {
-            return Err(v.err("similarity weights must not all be zero (w_area + w_position + w_appearance, w_intrinsic + w_neighbours)".into()));
-        }
-        v.real("similarity.position_sigma", s.position_sigma, 1e-4, 10.0)?;
-        v.real("similarity.neutral_appearance", s.neutral_appearance, 0.0, 1.0)?;
-        v.int("matching.top_k", self.matching.top_k, 1, 1024)?;
-        v.real("matching.w_global", self.matching.w_global, 0.0, 1e3)?;
-        v.real("matching.w_embedding", self.matching.w_embedding, 0.0, 1e3)?;
-        v.int("embedding.long_side", self.embedding.long_side as usize, 32, 4096)?;
-        let k = &self.keypoints;
-        v.int("keypoints.stored", k.stored, 0, 8192)?;
-        v.int("keypoints.nms_radius", k.nms_radius, 0, 64)?;
-        v.real("keypoints.score_threshold", k.score_threshold, 0.0, 1.0)?;
-        v.int("keypoints.border", k.border, 0, 4096)?;
+        self.input.validate(&v)?;
+        self.objects.validate(&v)?;
+        self.global.validate(&v)?;
+        self.local.validate(&v)?;
+        self.appearance.validate(&v)?;
+        self.segmentation.validate(&v)?;
+        self.similarity.validate(&v)?;
+        self.matching.validate(&v)?;
+        self.embedding.validate(&v)?;
+        self.keypoints.validate(&v)?;
+        self.verification.validate(&v)?;
+        // across sections: LighterGlue was trained on XFeat's descriptors
         let vf = &self.verification;
-        v.real("verification.min_cosine", vf.min_cosine, -1.0, 1.0)?;
-        v.real("verification.threshold", vf.threshold, 1e-6, 1.0)?;
-        v.int("verification.max_iterations", vf.max_iterations as usize, 1, 1_000_000)?;
-        v.real("verification.confidence", vf.confidence, 0.0, 1.0 - 1e-12)?;
-        if vf.seed > i64::MAX as u64 {
-            return Err(v.err(format!("verification.seed = {} must be at most {}", vf.seed, i64::MAX)));
-        }
-        v.real("verification.glue_threshold", vf.glue_threshold, 0.0, 1.0)?;
-        if vf.matcher == Matcher::Lighterglue && vf.w_glue > 0.0 {
-            return Err(v.err(
-                "verification.w_glue adds LighterGlue beside the MNN matcher; with matcher = \"lighterglue\" it would do nothing (set w_inliers)"
-                    .into(),
-            ));
-        }
         if (vf.matcher == Matcher::Lighterglue || vf.w_glue > 0.0) && self.appearance.model != AppearanceModelKind::Xfeat {
             // LighterGlue was trained on XFeat's descriptors: another network's keypoints would be matched as if they were
             return Err(v.err(format!(
@@ -277,74 +208,10 @@ impl Config {
                 self.appearance.model
             )));
         }
-        if vf.glue_min_inliers > 0 && vf.w_glue == 0.0 {
-            return Err(v.err(
-                "verification.glue_min_inliers chooses the pairs LighterGlue verifies beside MNN; without w_glue > 0 it would do nothing".into(),
-            ));
-        }
-        v.int("verification.glue_min_inliers", vf.glue_min_inliers as usize, 0, 100_000)?;
-        v.int("verification.min_inliers", vf.min_inliers as usize, 0, 100_000)?;
-        v.real("verification.unusual_above", vf.unusual_above, -10.0, 10.0)?;
-        v.real("verification.compact_hog_above", vf.compact_hog_above, -10.0, 10.0)?;
-        v.real("verification.null_alarms", vf.null_alarms, 1e-12, 1e6)?;
-        v.real("verification.max_bonus", vf.max_bonus, 0.0, 1e6)?;
-        v.int("verification.null_gap", vf.null_gap as usize, 0, 1_000_000)?;
-        v.int("verification.null_sources", vf.null_sources as usize, 1, 1_000_000)?;
-        v.real("verification.glue_width_confidence", vf.glue_width_confidence, -1.0, 1.0)?;
-        v.real("verification.glue_depth_confidence", vf.glue_depth_confidence, -1.0, 1.0)?;
-        for (name, w) in [
-            ("verification.w_inliers", vf.w_inliers),
-            ("verification.w_coarse", vf.w_coarse),
-            ("verification.w_fine", vf.w_fine),
-            ("verification.w_glue", vf.w_glue),
-            ("verification.w_compact_hog", vf.w_compact_hog),
-        ] {
-            v.real(name, w, 0.0, 1e3)?;
-        }
-        v.int("matching.tile", self.matching.tile, 1, 65536)?;
-        let sq = &self.sequence;
-        v.int("sequence.length", sq.length, 1, 256)?;
-        v.real("sequence.velocity_min", sq.velocity_min, -16.0, 16.0)?;
-        v.real("sequence.velocity_max", sq.velocity_max, sq.velocity_min, 16.0)?;
-        if let Some(k) = sq.velocity_scale {
-            v.real("sequence.velocity_scale", k, 1.0 / 64.0, 64.0)?;
-        }
-        v.int("sequence.velocity_steps", sq.velocity_steps, 1, 64)?;
-        v.int("sequence.widen", sq.widen, 0, 16)?;
-        v.int("sequence.contrast_window", sq.contrast_window, 1, 1000)?;
-        v.int("sequence.refine", sq.refine, 0, 1000)?;
-        v.int("sequence.uniqueness_window", sq.uniqueness_window, 0, 100_000)?;
-        v.real("sequence.min_uniqueness", sq.min_uniqueness, 0.0, 1e6)?;
-        v.int("sequence.min_frames", sq.min_frames, 1, sq.length)?;
-        v.real("sequence.velocity_change", sq.velocity_change, 0.0, 1e9)?;
-        v.real("sequence.refine_share", sq.refine_share, 0.0, 1.0)?;
-        v.real("sequence.stop_velocity", sq.stop_velocity, 0.0, 16.0)?;
-        v.real("sequence.stillness", sq.stillness, 0.0, 2.0)?;
-        v.real("sequence.support", sq.support, 0.0, 1.0)?;
-        let ix = &self.index;
-        v.int("index.min_places", ix.min_places, 0, usize::MAX)?;
-        v.int("index.probe", ix.probe, 1, 65536)?;
-        v.int("index.shortlist", ix.shortlist, 0, 1 << 20)?;
-        v.int("index.pool", ix.pool, 0, 1 << 22)?;
-        v.int("index.thumbnail", ix.thumbnail, 0, 64)?;
-        v.int("index.dims", ix.dims, 1, 4096)?;
-        v.int("index.lists", ix.lists, 0, 65536)?;
-        v.int("index.sample", ix.sample, 1, 1 << 24)?;
-        v.int("index.iterations", ix.iterations, 1, 100)?;
-        let st = &self.stream;
-        v.int("stream.exclude_frames", st.exclude_frames, 1, 1 << 24)?;
-        v.real("stream.exclude_seconds", st.exclude_seconds, 0.0, 1e7)?;
-        v.int("stream.commit_frames", st.commit_frames, 1, st.exclude_frames)?;
-        v.int("stream.track_radius", st.track_radius, 0, 1 << 20)?;
-        v.int("stream.lost_after", st.lost_after, 1, 1 << 20)?;
-        v.real("stream.closure_uniqueness", st.closure_uniqueness, 1.0, 1e6)?;
-        v.real("stream.closure_min_velocity", st.closure_min_velocity, 0.0, 16.0)?;
-        v.real("stream.closure_min_score", st.closure_min_score, 0.0, 1e6)?;
-        v.int("eval.recall_at (entries)", self.eval.recall_at.len(), 0, 16)?;
-        for (k, &n) in self.eval.recall_at.iter().enumerate() {
-            v.int(&format!("eval.recall_at[{k}]"), n, 1, 1000)?;
-        }
-        Ok(())
+        self.sequence.validate(&v)?;
+        self.index.validate(&v)?;
+        self.stream.validate(&v)?;
+        self.eval.validate(&v)
     }
 }
 

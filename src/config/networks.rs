@@ -223,3 +223,62 @@ impl Default for EmbeddingConfig {
         EmbeddingConfig { network: EMBEDDING_NETWORK.into(), long_side: 448 }
     }
 }
+
+impl AppearanceConfig {
+    /// Checks that every value of `[appearance]` is in its range (numbers finite); the error names
+    /// the field ([`super::Config::validate`] checks what spans sections).
+    pub(super) fn validate(&self, v: &super::Check) -> crate::error::Result<()> {
+        v.int("appearance.nms_radius", self.nms_radius, 0, 64)?;
+        v.real("appearance.score_threshold", self.score_threshold, 0.0, 1.0)?;
+        v.int("appearance.max_keypoints", self.max_keypoints, 1, 1 << 20)?;
+        v.int("appearance.border", self.border, 0, 4096)?;
+        v.int("appearance.vlad_centres", self.vlad_centres, 1, 64)?;
+        v.int("appearance.min_descriptors", self.min_descriptors, 0, 1_000_000)?;
+        v.int("appearance.codebook_images", self.codebook_images, 1, 100_000)?;
+        v.int("appearance.codebook_samples_per_image", self.codebook_samples_per_image, 1, 100_000)?;
+        v.int("appearance.codebook_iterations", self.codebook_iterations, 0, 10_000)?;
+        if self.codebook_seed > i64::MAX as u64 {
+            return Err(v.err(format!("appearance.codebook_seed = {} must be at most {}", self.codebook_seed, i64::MAX)));
+        }
+        Ok(())
+    }
+}
+
+impl SegmentationConfig {
+    /// Checks that every value of `[segmentation]` is in its range (numbers finite); the error names
+    /// the field ([`super::Config::validate`] checks what spans sections).
+    pub(super) fn validate(&self, v: &super::Check) -> crate::error::Result<()> {
+        v.int("segmentation.input_width", self.input_width, 32, 4096)?;
+        v.int("segmentation.input_height", self.input_height, 32, 4096)?;
+        v.real("segmentation.scale", self.scale, 1e-6, 1e6)?;
+        for (c, (&m, &d)) in self.mean.iter().zip(&self.std).enumerate() {
+            v.real(&format!("segmentation.mean[{c}]"), m, -1e6, 1e6)?;
+            v.real(&format!("segmentation.std[{c}]"), d.abs(), 1e-6, 1e6)?;
+        }
+        v.real("segmentation.brighten_dark", self.brighten_dark, 0.0, 0.95)?;
+        // its names are checked against the class table when a segmenter is loaded
+        v.int("segmentation.class_map (entries)", self.class_map.len(), 1, 4096)?;
+        Ok(())
+    }
+}
+
+impl EmbeddingConfig {
+    /// Checks that every value of `[embedding]` is in its range (numbers finite); the error names
+    /// the field ([`super::Config::validate`] checks what spans sections).
+    pub(super) fn validate(&self, v: &super::Check) -> crate::error::Result<()> {
+        v.int("embedding.long_side", self.long_side as usize, 32, 4096)?;
+        Ok(())
+    }
+}
+
+impl KeypointsConfig {
+    /// Checks that every value of `[keypoints]` is in its range (numbers finite); the error names
+    /// the field ([`super::Config::validate`] checks what spans sections).
+    pub(super) fn validate(&self, v: &super::Check) -> crate::error::Result<()> {
+        v.int("keypoints.stored", self.stored, 0, 8192)?;
+        v.int("keypoints.nms_radius", self.nms_radius, 0, 64)?;
+        v.real("keypoints.score_threshold", self.score_threshold, 0.0, 1.0)?;
+        v.int("keypoints.border", self.border, 0, 4096)?;
+        Ok(())
+    }
+}

@@ -195,3 +195,45 @@ impl Default for StreamConfig {
         }
     }
 }
+
+impl SequenceConfig {
+    /// Checks that every value of `[sequence]` is in its range (numbers finite); the error names
+    /// the field ([`super::Config::validate`] checks what spans sections).
+    pub(super) fn validate(&self, v: &super::Check) -> crate::error::Result<()> {
+        v.int("sequence.length", self.length, 1, 256)?;
+        v.real("sequence.velocity_min", self.velocity_min, -16.0, 16.0)?;
+        v.real("sequence.velocity_max", self.velocity_max, self.velocity_min, 16.0)?;
+        if let Some(k) = self.velocity_scale {
+            v.real("sequence.velocity_scale", k, 1.0 / 64.0, 64.0)?;
+        }
+        v.int("sequence.velocity_steps", self.velocity_steps, 1, 64)?;
+        v.int("sequence.widen", self.widen, 0, 16)?;
+        v.int("sequence.contrast_window", self.contrast_window, 1, 1000)?;
+        v.int("sequence.refine", self.refine, 0, 1000)?;
+        v.int("sequence.uniqueness_window", self.uniqueness_window, 0, 100_000)?;
+        v.real("sequence.min_uniqueness", self.min_uniqueness, 0.0, 1e6)?;
+        v.int("sequence.min_frames", self.min_frames, 1, self.length)?;
+        v.real("sequence.velocity_change", self.velocity_change, 0.0, 1e9)?;
+        v.real("sequence.refine_share", self.refine_share, 0.0, 1.0)?;
+        v.real("sequence.stop_velocity", self.stop_velocity, 0.0, 16.0)?;
+        v.real("sequence.stillness", self.stillness, 0.0, 2.0)?;
+        v.real("sequence.support", self.support, 0.0, 1.0)?;
+        Ok(())
+    }
+}
+
+impl StreamConfig {
+    /// Checks that every value of `[stream]` is in its range (numbers finite); the error names
+    /// the field ([`super::Config::validate`] checks what spans sections).
+    pub(super) fn validate(&self, v: &super::Check) -> crate::error::Result<()> {
+        v.int("stream.exclude_frames", self.exclude_frames, 1, 1 << 24)?;
+        v.real("stream.exclude_seconds", self.exclude_seconds, 0.0, 1e7)?;
+        v.int("stream.commit_frames", self.commit_frames, 1, self.exclude_frames)?;
+        v.int("stream.track_radius", self.track_radius, 0, 1 << 20)?;
+        v.int("stream.lost_after", self.lost_after, 1, 1 << 20)?;
+        v.real("stream.closure_uniqueness", self.closure_uniqueness, 1.0, 1e6)?;
+        v.real("stream.closure_min_velocity", self.closure_min_velocity, 0.0, 16.0)?;
+        v.real("stream.closure_min_score", self.closure_min_score, 0.0, 1e6)?;
+        Ok(())
+    }
+}
