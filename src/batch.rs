@@ -390,14 +390,15 @@ pub fn build_map(
         map.check_compatible(&cfg.encoding())?;
         // every layout option of the interrupted build must be given again as it was
         let layout = [
-            ("the HOG descriptors (--hog)", map.manifest.hog_dim > 0, new.hog),
-            ("f16 values (--f16)", map.manifest.values == ValueType::F16, new.store.values == ValueType::F16),
+            ("HOG descriptors", map.manifest.hog_dim > 0, new.hog),
+            ("f16 values", map.manifest.values == ValueType::F16, new.store.values == ValueType::F16),
         ];
         if let Some((what, stored, given)) = layout.into_iter().find(|(_, stored, given)| stored != given) {
             let say = |on: bool| if on { "asked for" } else { "not asked for" };
-            return Err(Error::invalid(
+            return Err(Error::refused(
                 format!("map {}", dir.display()),
                 format!("{what} are {} but the interrupted build had them {}: resume with the same layout options", say(given), say(stored)),
+                crate::error::Remedy::ResumeWithSameLayout,
             ));
         }
         let encoder = Encoder::for_map(cfg, &map)?.with_hog(new.hog);
@@ -437,9 +438,10 @@ fn with_index(
     }
     let dir = map.path.clone();
     if map.manifest.appearance_dim == 0 {
-        return Err(Error::invalid(
+        return Err(Error::refused(
             format!("map {}", dir.display()),
-            "an index (--index ivf) needs appearance vectors (a map built without the keypoint network has none)",
+            "an approximate index needs appearance vectors (a map built without the keypoint network has none)",
+            crate::error::Remedy::NoIndexWithoutAppearance,
         ));
     }
     let n = map.len();

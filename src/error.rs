@@ -254,6 +254,10 @@ pub enum Remedy {
     SkipInvalid,
     /// Wait for the build of the map that another process is running, then ask again.
     WaitForBuild,
+    /// Continue the interrupted build with the layout it had (its HOG descriptors, its value type).
+    ResumeWithSameLayout,
+    /// Build no approximate index: the map has no appearance vectors to index.
+    NoIndexWithoutAppearance,
 }
 
 /// What a map of format `found` lacks, and how to get a readable one.

@@ -452,9 +452,10 @@ fn library_messages_name_no_command_line_flag() {
 /// The crate's top-level modules: those a library user may rely on, and those public only for the
 /// command line and the tests (each `#[doc(hidden)]` with a reason on the line above). A new
 /// `pub mod` is one or the other by decision, never by default.
-const PUBLIC_MODULES: [&str; 25] = [
+const PUBLIC_MODULES: [&str; 26] = [
     "appearance",
     "batch",
+    "choice",
     "classes",
     "config",
     "dataset",

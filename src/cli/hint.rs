@@ -68,6 +68,13 @@ fn ways(r: Remedy) -> &'static [Way] {
         ],
         Remedy::SkipInvalid => &[Way { text: "--skip-invalid skips images that fail to load", needs: Some("--skip-invalid") }],
         Remedy::WaitForBuild => &[Way { text: "wait for the build to finish, then run this again", needs: None }],
+        Remedy::ResumeWithSameLayout => &[
+            Way { text: "--hog as the interrupted build had it (given, or not)", needs: Some("--hog") },
+            Way { text: "--f16 as the interrupted build had it (given, or not)", needs: Some("--f16") },
+        ],
+        Remedy::NoIndexWithoutAppearance => {
+            &[Way { text: "--index auto (or none) builds no index on a map without appearance vectors", needs: Some("--index") }]
+        }
     }
 }
 
@@ -107,7 +114,7 @@ pub fn flags_of(c: &clap::Command) -> Vec<String> {
 
 /// Every remedy (for the tests).
 #[cfg(test)]
-const ALL: [Remedy; 15] = [
+const ALL: [Remedy; 17] = [
     Remedy::AddResumeOrReplace,
     Remedy::ResumeOrReplace,
     Remedy::BuildOrResume,
@@ -123,6 +130,8 @@ const ALL: [Remedy; 15] = [
     Remedy::RebuildIndex,
     Remedy::SkipInvalid,
     Remedy::WaitForBuild,
+    Remedy::ResumeWithSameLayout,
+    Remedy::NoIndexWithoutAppearance,
 ];
 
 #[cfg(test)]
