@@ -153,7 +153,7 @@ impl Localizer {
     /// `engine`. With `opts.loop_closure`, the stream's frames are added to this map as a new
     /// traversal (with `opts.resume`, its last traversal is continued: a restarted stream).
     /// Settings the map cannot serve are refused here.
-    pub fn new(map: Map, cfg: Option<Config>, opts: StreamOptions, engine: Engine) -> Result<Localizer> {
+    fn new(map: Map, cfg: Option<Config>, opts: StreamOptions, engine: Engine) -> Result<Localizer> {
         let cfg = cfg.unwrap_or_else(|| map.query_config());
         if !opts.loop_closure {
             return Localizer::with_map(map, cfg, opts, engine, None);
@@ -183,8 +183,10 @@ impl Localizer {
         }
     }
 
-    /// A localizer over what [`Localizer::open_map`] gave for `dir`: [`Localizer::new`] over the
-    /// map, or, in loop-closure mode without one, a map started from the stream (its codebook
+    /// A localizer over what [`Localizer::open_map`] gave for `dir`: over the map (with `cfg`, its
+    /// encoding the map's; `None`: the map's own configuration; settings the map cannot serve are
+    /// refused here; with `opts.loop_closure` the stream's frames are added to it as a new
+    /// traversal, or with `opts.resume` its last one continued), or, in loop-closure mode without one, a map started from the stream (its codebook
     /// trained on the first min(`appearance.codebook_images`, `stream.exclude_frames`) frames,
     /// answered without a match: nothing older exists to match them against).
     pub fn over(map: Option<Map>, dir: &Path, cfg: Option<Config>, opts: StreamOptions, engine: Engine) -> Result<Localizer> {
@@ -198,12 +200,6 @@ impl Localizer {
     /// A localizer over the map in `dir` ([`Localizer::open_map`], then [`Localizer::over`]).
     pub fn open(dir: &Path, cfg: Option<Config>, opts: StreamOptions, engine: Engine) -> Result<Localizer> {
         Localizer::over(Localizer::open_map(dir, opts.loop_closure)?, dir, cfg, opts, engine)
-    }
-
-    /// Loop-closure mode on the map in `dir` ([`Localizer::open`] with `opts.loop_closure`): an
-    /// existing map gets the stream's traversal, a folder without one gets a map from the stream.
-    pub fn loop_closure(dir: &Path, cfg: Option<Config>, opts: StreamOptions, engine: Engine) -> Result<Localizer> {
-        Localizer::open(dir, cfg, StreamOptions { loop_closure: true, ..opts }, engine)
     }
 
     /// Loop-closure mode in `dir`, which holds no map yet.
