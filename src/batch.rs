@@ -348,13 +348,13 @@ pub enum BuildStep<'a> {
         /// Images the index covers.
         images: usize,
     },
+    /// The approximate index is built (before the null of `verified`'s evidence is measured).
+    Indexed(&'a crate::map::index::IndexReport),
 }
 
 /// What [`build_map`] did, for the front ends to report.
 #[derive(Debug)]
 pub struct BuildReport {
-    /// Where an interrupted build was continued: the images its map held, and its generation.
-    pub resumed: Option<(usize, u64)>,
     /// The frames encoded.
     pub encoding: IntoReport,
     /// The index built, if one was.
@@ -384,7 +384,6 @@ pub fn build_map(
     use crate::values::ValueType;
     let new = &opts.new;
     let resuming = new.resume && dir.join(crate::map::manifest::MANIFEST).exists();
-    let mut resumed = None;
     let (encoder, mut writer) = if resuming {
         let map = Map::open(dir)?;
         map.check_compatible(&cfg.encoding())?;
@@ -393,17 +392,16 @@ pub fn build_map(
             ("HOG descriptors", map.manifest.hog_dim > 0, new.hog),
             ("f16 values", map.manifest.values == ValueType::F16, new.store.values == ValueType::F16),
         ];
-        if let Some((what, stored, given)) = layout.into_iter().find(|(_, stored, given)| stored != given) {
-            let say = |on: bool| if on { "asked for" } else { "not asked for" };
+        if let Some((what, _, given)) = layout.into_iter().find(|(_, stored, given)| stored != given) {
+            let (asked, had) = if given { ("asked for", "stored none") } else { ("not asked for", "stored them") };
             return Err(Error::refused(
                 format!("map {}", dir.display()),
-                format!("{what} are {} but the interrupted build had them {}: resume with the same layout options", say(given), say(stored)),
+                format!("{what} are {asked}, but the interrupted build {had}: resume with the same layout options"),
                 crate::error::Remedy::ResumeWithSameLayout,
             ));
         }
         let encoder = Encoder::for_map(cfg, &map)?.with_hog(new.hog);
         step(BuildStep::Resuming { images: map.len(), generation: map.manifest.generation });
-        resumed = Some((map.len(), map.manifest.generation));
         let plan = new.traversal.clone().map_or(TraversalPlan::Last, TraversalPlan::Named);
         (encoder, MapWriter::append(dir, new.store)?.with_traversal(plan)?)
     } else {
@@ -418,7 +416,7 @@ pub fn build_map(
     let map = writer.finish()?;
     let (map, index) = with_index(map, cfg, opts.index, step)?;
     let (map, null) = engine.store_null(map, cfg)?;
-    Ok((map, BuildReport { resumed, encoding, index, null }))
+    Ok((map, BuildReport { encoding, index, null }))
 }
 
 /// The index `policy` asks for, built where the map has none yet.
@@ -448,5 +446,6 @@ fn with_index(
     drop(map);
     step(BuildStep::BuildingIndex { images: n });
     let r = crate::map::index::build(&dir, &crate::index::IndexParams::from_config(&cfg.index, n), cfg.index.probe, cfg.index.shortlist)?;
+    step(BuildStep::Indexed(&r));
     Ok((crate::map::Map::open(&dir)?, Some(r)))
 }

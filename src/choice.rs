@@ -7,13 +7,18 @@
 pub trait Choice: Copy + PartialEq + Send + Sync + 'static {
     /// Every value, in the order the front ends list them.
     const CHOICES: &'static [Self];
-    /// The value's one name: the command line's, the JSON's, the config's and Python's.
+    /// The value's one name: the command line's and Python's, and serde's (JSON, the config) but
+    /// for the label formats, whose config spelling is snake case (`first_channel`).
     fn name(self) -> &'static str;
     /// One line that says what the value does (the command line's help lists it).
     fn help(self) -> &'static str;
     /// The value named `name`, if any.
     fn named(name: &str) -> Option<Self> {
         Self::CHOICES.iter().copied().find(|c| c.name() == name)
+    }
+    /// The value named `name`, or why there is none (`"x" is not one of a, b, c`).
+    fn parse_name(name: &str) -> Result<Self, String> {
+        Self::named(name).ok_or_else(|| format!("{name:?} is not one of {}", Self::CHOICES.iter().map(|c| c.name()).collect::<Vec<_>>().join(", ")))
     }
 }
 
@@ -87,6 +92,8 @@ mod tests {
             assert!(T::CHOICES[..i].iter().all(|&d| d != c && d.name() != c.name()), "{c:?} listed twice");
             assert!(!c.help().is_empty());
         }
+        let err = T::parse_name("nothing-of-the-kind").unwrap_err();
+        assert!(T::CHOICES.iter().all(|c| err.contains(c.name())), "{err}");
     }
     /// ... and that name is serde's (JSON, TOML, the map's files), so a name read back is the value written.
     fn serde_names<T: Choice + std::fmt::Debug + serde::Serialize + serde::de::DeserializeOwned>() {
@@ -101,6 +108,7 @@ mod tests {
     fn every_choice_has_one_name_which_serde_reads_and_writes() {
         serde_names::<Setting>();
         serde_names::<Backend>();
+        one_name_each::<crate::batch::IndexPolicy>();
         // the config file's `label_format` is snake case (`first_channel`), the command line's kebab
         one_name_each::<LabelFormat>();
         assert_eq!(Setting::CHOICES.len(), 9);

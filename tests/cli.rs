@@ -195,9 +195,10 @@ fn resume_checks_every_layout_option_and_size_options_are_bounded() {
     let map = dir.path().join("map");
     let na = "--no-appearance";
     ok(&["map", "build", "--dataset", p(&data), "--map", p(&map), na, "-q"]);
-    for flag in ["--f16", "--hog"] {
+    for (flag, what) in [("--f16", "f16 values are asked for"), ("--hog", "HOG descriptors are asked for")] {
         let err = fails(&["map", "build", "--dataset", p(&data), "--map", p(&map), "--resume", flag, na, "-q"]);
-        assert!(err.contains(flag) && err.contains("same layout"), "{flag}: {err}");
+        // the message says which layout option differs, the hint names the flags
+        assert!(err.contains(what) && err.contains(flag) && err.contains("same layout"), "{flag}: {err}");
     }
     ok(&["map", "build", "--dataset", p(&data), "--map", p(&map), "--resume", na, "-q"]);
     let err = fails(&["synth", "--out", p(&dir.path().join("huge")), "--places", "4000000000", "-q"]);

@@ -91,12 +91,7 @@ impl PyConfig {
 }
 
 fn label_format(name: &str) -> PyResult<LabelFormat> {
-    match name {
-        "auto" => Ok(LabelFormat::Auto),
-        "first-channel" => Ok(LabelFormat::FirstChannel),
-        "palette" => Ok(LabelFormat::Palette),
-        _ => Err(invalid("label_format", format!("{name:?} is not auto, first-channel or palette"))),
-    }
+    <LabelFormat as semlook::Choice>::parse_name(name).map_err(|why| invalid("label_format", why))
 }
 
 /// Encodes frames with one configuration (and, with appearance, its keypoint network and VLAD

@@ -74,10 +74,7 @@ impl PyEngine {
 pub fn engine_for(py: Python<'_>, backend: Option<&str>, adapter: Option<usize>) -> PyResult<(Engine, Option<String>)> {
     let b = match backend {
         None => Backend::DEFAULT,
-        Some(name) => Backend::ALL.into_iter().find(|b| b.name() == name).ok_or_else(|| {
-            let names: Vec<&str> = Backend::ALL.iter().map(|b| b.name()).collect();
-            invalid("backend", format!("{name:?} is not one of {}", names.join(", ")))
-        })?,
+        Some(name) => <Backend as semlook::Choice>::parse_name(name).map_err(|why| invalid("backend", why))?,
     };
     let opts = GpuOptions { adapter, ..Default::default() };
     py.detach(|| Engine::new(b, &opts)).py_err()

@@ -102,8 +102,7 @@ impl PyMap {
         engine: Option<PyRef<'_, PyEngine>>,
         index: &str,
     ) -> PyResult<Self> {
-        use semlook::Choice;
-        let index = semlook::batch::IndexPolicy::named(index).ok_or_else(|| invalid("index", format!("{index:?} is not one of auto, ivf, none")))?;
+        let index = <semlook::batch::IndexPolicy as semlook::Choice>::parse_name(index).map_err(|why| invalid("index", why))?;
         let cfg = crate::encoder::with_segmenter(config.map_or_else(Config::default, |c| c.inner.clone()), segmenter)?;
         let frames = build_frames(images, labels, ids, ["images", "labels"])?;
         let new = semlook::batch::NewMapOptions { store: store_options(segment_images, f16)?, quiet: true, ..Default::default() };

@@ -12,7 +12,7 @@
 # place: Seq05VD waits at a red light from f01920 to f02850, 30 s in which frame numbers move and the
 # camera does not. Needs numpy and PIL (.venv-export of setup.sh, or $PYTHON).
 # No timestamps: what a stream without them gets. OUT default target/rate-data; a copy that exists
-# is kept.   bash scripts/rate/make-rate-copies.sh [OUT]
+# keeps its links, and gets this version's ground truth where its own differs.   bash scripts/rate/make-rate-copies.sh [OUT]
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 shared=../shared/data
@@ -30,21 +30,23 @@ shared, out = sys.argv[1], sys.argv[2]
 def write(name, refs, queries, truth):
     """refs: [(name, path)]; queries: [(name, path, source query name)]; truth: source query -> [ref names]."""
     dest = os.path.join(out, name)
-    if os.path.exists(os.path.join(dest, "ground_truth.csv")):
-        print(f"{dest} exists", file=sys.stderr)
-        return
+    gt = os.path.join(dest, "ground_truth.csv")
+    rows = [("query", "reference")] + [(f"query/{n}", f"ref/{r}") for n, _, src in queries for r in truth[src]]
+    if os.path.exists(gt):
+        # the links are kept; a ground truth of another version of this script is written anew
+        if list(csv.reader(open(gt, newline=""))) == [list(r) for r in rows]:
+            print(f"{dest} exists", file=sys.stderr)
+            return
+        print(f"{dest}: ground truth rewritten (another version of this script made it)", file=sys.stderr)
     for sub in ("ref", "query"):
         os.makedirs(os.path.join(dest, sub), exist_ok=True)
-    for n, p in refs:
-        os.symlink(os.path.realpath(p), os.path.join(dest, "ref", n))
-    rows = []
-    for n, p, src in queries:
-        os.symlink(os.path.realpath(p), os.path.join(dest, "query", n))
-        rows += [(f"query/{n}", f"ref/{r}") for r in truth[src]]
-    with open(os.path.join(dest, "ground_truth.csv"), "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["query", "reference"])
-        w.writerows(rows)
+    for sub, items in (("ref", refs), ("query", [(n, p) for n, p, _ in queries])):
+        for n, p in items:
+            link = os.path.join(dest, sub, n)
+            if not os.path.lexists(link):
+                os.symlink(os.path.realpath(p), link)
+    with open(gt, "w", newline="") as f:
+        csv.writer(f).writerows(rows)
     print(f"{dest}: {len(refs)} references, {len(queries)} stream frames", file=sys.stderr)
 
 def plays(prefix, refs, qs, truth):

@@ -12,8 +12,7 @@ use std::path::PathBuf;
 /// The parser of a library's closed set of named values ([`Choice`]): its names, each with its
 /// help, the values clap offers and lists (the library derives nothing of clap).
 fn choice<T: Choice>() -> impl TypedValueParser<Value = T> {
-    PossibleValuesParser::new(T::CHOICES.iter().map(|c| PossibleValue::new(c.name()).help(c.help())))
-        .try_map(|name| T::named(&name).ok_or_else(|| format!("{name:?} is not a possible value")))
+    PossibleValuesParser::new(T::CHOICES.iter().map(|c| PossibleValue::new(c.name()).help(c.help()))).try_map(|name| T::parse_name(&name))
 }
 
 #[derive(Parser)]
@@ -929,5 +928,6 @@ mod tests {
         check::<Setting>(&["eval"], "setting");
         check::<Backend>(&[], "backend");
         check::<LabelFormat>(&["query"], "label-format");
+        check::<semlook::batch::IndexPolicy>(&["map", "build"], "index");
     }
 }

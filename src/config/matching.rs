@@ -430,9 +430,10 @@ impl MatchingConfig {
 }
 
 impl VerificationConfig {
-    /// Checks that every value of `[verification]` is in its range (numbers finite); the error names
-    /// the field ([`super::Config::validate`] checks what spans sections).
-    pub(super) fn validate(&self, v: &super::Check) -> crate::error::Result<()> {
+    /// Checks that every value of `[verification]` is in its range (numbers finite), and that
+    /// LighterGlue gets the keypoints it was trained on (`appearance`, `appearance.model`); the
+    /// error names the field.
+    pub(super) fn validate(&self, v: &super::Check, appearance: super::AppearanceModelKind) -> crate::error::Result<()> {
         v.real("verification.min_cosine", self.min_cosine, -1.0, 1.0)?;
         v.real("verification.threshold", self.threshold, 1e-6, 1.0)?;
         v.int("verification.max_iterations", self.max_iterations as usize, 1, 1_000_000)?;
@@ -446,6 +447,12 @@ impl VerificationConfig {
                 "verification.w_glue adds LighterGlue beside the MNN matcher; with matcher = \"lighterglue\" it would do nothing (set w_inliers)"
                     .into(),
             ));
+        }
+        if (self.matcher == Matcher::Lighterglue || self.w_glue > 0.0) && appearance != super::AppearanceModelKind::Xfeat {
+            // LighterGlue was trained on XFeat's descriptors: another network's keypoints would be matched as if they were
+            return Err(
+                v.err(format!("verification.matcher = \"lighterglue\" (or w_glue > 0) matches XFeat keypoints; appearance.model is {appearance:?}"))
+            );
         }
         if self.glue_min_inliers > 0 && self.w_glue == 0.0 {
             return Err(v.err(

@@ -198,16 +198,7 @@ impl Config {
         self.matching.validate(&v)?;
         self.embedding.validate(&v)?;
         self.keypoints.validate(&v)?;
-        self.verification.validate(&v)?;
-        // across sections: LighterGlue was trained on XFeat's descriptors
-        let vf = &self.verification;
-        if (vf.matcher == Matcher::Lighterglue || vf.w_glue > 0.0) && self.appearance.model != AppearanceModelKind::Xfeat {
-            // LighterGlue was trained on XFeat's descriptors: another network's keypoints would be matched as if they were
-            return Err(v.err(format!(
-                "verification.matcher = \"lighterglue\" (or w_glue > 0) matches XFeat keypoints; appearance.model is {:?}",
-                self.appearance.model
-            )));
-        }
+        self.verification.validate(&v, self.appearance.model)?;
         self.sequence.validate(&v)?;
         self.index.validate(&v)?;
         self.stream.validate(&v)?;

@@ -76,12 +76,10 @@ pub fn build(engine: &mut Engine, s: &SourceArgs, out: &Path, config: Option<&Pa
         }
         batch::BuildStep::Encoded(r) => report_encoding(r, quiet),
         batch::BuildStep::BuildingIndex { images } => info(quiet, format!("building the index of {images} images")),
+        batch::BuildStep::Indexed(ix) => info(quiet, describe_index(&ix.entry, &cfg.global)),
     };
     let job = |engine: &mut Engine, dir: &Path| -> Result<Map> {
         let (map, r) = batch::build_map(engine, &cfg, &frames, fmt, Some(&poses), dir, &opts, &step)?;
-        if let Some(ix) = &r.index {
-            info(quiet, describe_index(&ix.entry, &map.manifest.config.global));
-        }
         report_null(r.null.as_ref(), quiet);
         Ok(map)
     };

@@ -20,7 +20,7 @@ pub fn info(quiet: bool, msg: impl AsRef<str>) {
 
 /// The line the commands that encode images print after it (`query`, `eval`'s maps, `map build`
 /// and `add`): `what` encoded, then per image the encoding (descriptors: its stages, which add up
-/// to it) and apart the loading (decoding and segmentation), which runs on the loader threads
+/// to it where they run one after another) and apart the loading (decoding and segmentation), which runs on the loader threads
 /// beside the encoding, so that a segmentation longer than the encoding is not read as part of it.
 pub fn encoding_line(what: &str, m: &semlook::encode::StageTimes) -> String {
     format!(
