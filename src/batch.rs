@@ -350,17 +350,8 @@ pub enum BuildStep<'a> {
     },
     /// The approximate index is built (before the null of `verified`'s evidence is measured).
     Indexed(&'a crate::map::index::IndexReport),
-}
-
-/// What [`build_map`] did, for the front ends to report.
-#[derive(Debug)]
-pub struct BuildReport {
-    /// The frames encoded.
-    pub encoding: IntoReport,
-    /// The index built, if one was.
-    pub index: Option<crate::map::index::IndexReport>,
-    /// The null of `verified`'s evidence measured and stored, with the milliseconds it took.
-    pub null: Option<(std::sync::Arc<crate::matching::null::NullEvidence>, f64)>,
+    /// The null of `verified`'s evidence is measured and stored, in this many milliseconds.
+    NullStored(&'a crate::matching::null::NullEvidence, f64),
 }
 
 /// The map build every front end runs (`semlook map build`, Python's `Map.build`): a new map in
@@ -368,7 +359,7 @@ pub struct BuildReport {
 /// continued, which must be given the layout it had), every frame encoded and committed, the
 /// index where `opts.index` asks for it (a continued build that has one keeps it current), then
 /// the null of `verified`'s evidence (after the index, whose candidates queries see). `step`
-/// hears each [`BuildStep`] as it comes.
+/// hears each [`BuildStep`] as it comes: what the build did is said there, once.
 #[allow(clippy::too_many_arguments)]
 pub fn build_map(
     engine: &mut Engine,
@@ -379,7 +370,7 @@ pub fn build_map(
     dir: &std::path::Path,
     opts: &BuildOptions,
     step: &dyn Fn(BuildStep<'_>),
-) -> Result<(crate::map::Map, BuildReport)> {
+) -> Result<crate::map::Map> {
     use crate::map::{Map, TraversalPlan};
     use crate::values::ValueType;
     let new = &opts.new;
@@ -414,25 +405,23 @@ pub fn build_map(
     let encoding = encode_into(engine, &encoder, frames, fmt, &mut writer, into)?;
     step(BuildStep::Encoded(&encoding));
     let map = writer.finish()?;
-    let (map, index) = with_index(map, cfg, opts.index, step)?;
+    let map = with_index(map, cfg, opts.index, step)?;
     let (map, null) = engine.store_null(map, cfg)?;
-    Ok((map, BuildReport { encoding, index, null }))
+    if let Some((n, ms)) = &null {
+        step(BuildStep::NullStored(n, *ms));
+    }
+    Ok(map)
 }
 
 /// The index `policy` asks for, built where the map has none yet.
-fn with_index(
-    map: crate::map::Map,
-    cfg: &crate::config::Config,
-    policy: IndexPolicy,
-    step: &dyn Fn(BuildStep<'_>),
-) -> Result<(crate::map::Map, Option<crate::map::index::IndexReport>)> {
+fn with_index(map: crate::map::Map, cfg: &crate::config::Config, policy: IndexPolicy, step: &dyn Fn(BuildStep<'_>)) -> Result<crate::map::Map> {
     let wanted = match policy {
         IndexPolicy::None => false,
         IndexPolicy::Ivf => true,
         IndexPolicy::Auto => map.len() >= cfg.index.min_places && map.manifest.appearance_dim > 0,
     };
     if !wanted || map.manifest.index.is_some() {
-        return Ok((map, None));
+        return Ok(map);
     }
     let dir = map.path.clone();
     if map.manifest.appearance_dim == 0 {
@@ -447,5 +436,5 @@ fn with_index(
     step(BuildStep::BuildingIndex { images: n });
     let r = crate::map::index::build(&dir, &crate::index::IndexParams::from_config(&cfg.index, n), cfg.index.probe, cfg.index.shortlist)?;
     step(BuildStep::Indexed(&r));
-    Ok((crate::map::Map::open(&dir)?, Some(r)))
+    crate::map::Map::open(&dir)
 }

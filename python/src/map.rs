@@ -108,8 +108,7 @@ impl PyMap {
         let new = semlook::batch::NewMapOptions { store: store_options(segment_images, f16)?, quiet: true, ..Default::default() };
         let opts = semlook::batch::BuildOptions { new, index, frame_interval: None };
         let engine = resolve(py, engine)?;
-        let m =
-            run(py, None, engine.as_ref(), |e| Ok(semlook::batch::build_map(e, &cfg, &frames, Default::default(), None, &path, &opts, &|_| {})?.0))?;
+        let m = run(py, None, engine.as_ref(), |e| semlook::batch::build_map(e, &cfg, &frames, Default::default(), None, &path, &opts, &|_| {}))?;
         Ok(wrap(m))
     }
     /// Adds `descriptors` (encoded by `Encoder.for_map(map)`) as new segments; every image and id

@@ -77,12 +77,9 @@ pub fn build(engine: &mut Engine, s: &SourceArgs, out: &Path, config: Option<&Pa
         batch::BuildStep::Encoded(r) => report_encoding(r, quiet),
         batch::BuildStep::BuildingIndex { images } => info(quiet, format!("building the index of {images} images")),
         batch::BuildStep::Indexed(ix) => info(quiet, describe_index(&ix.entry, &cfg.global)),
+        batch::BuildStep::NullStored(n, ms) => report_null(n, ms, quiet),
     };
-    let job = |engine: &mut Engine, dir: &Path| -> Result<Map> {
-        let (map, r) = batch::build_map(engine, &cfg, &frames, fmt, Some(&poses), dir, &opts, &step)?;
-        report_null(r.null.as_ref(), quiet);
-        Ok(map)
-    };
+    let job = |engine: &mut Engine, dir: &Path| batch::build_map(engine, &cfg, &frames, fmt, Some(&poses), dir, &opts, &step);
     let map = if f.force && out.exists() {
         edit::build_replacing(out, |dir| job(engine, dir))?;
         Map::open(out)?
@@ -108,25 +105,25 @@ pub fn build(engine: &mut Engine, s: &SourceArgs, out: &Path, config: Option<&Pa
 /// is the library's job, `batch::build_map`); says what it found and what it cost.
 fn with_null(engine: &mut Engine, map: Map, cfg: &Config, quiet: bool) -> Result<Map> {
     let (map, stored) = engine.store_null(map, cfg)?;
-    report_null(stored.as_ref(), quiet);
+    if let Some((n, ms)) = &stored {
+        report_null(n, *ms, quiet);
+    }
     Ok(map)
 }
 
 /// What the null of `verified`'s evidence a build or an add stored holds, and what it cost.
-fn report_null(stored: Option<&(std::sync::Arc<semlook::matching::null::NullEvidence>, f64)>, quiet: bool) {
-    if let Some((n, ms)) = stored {
-        info(
-            quiet,
-            format!(
-                "null of verified's evidence: {} pairs of other places verified from {} references (median {} inliers, 99th percentile {}), {:.1} s, stored in the manifest",
-                n.pairs,
-                n.sources,
-                n.inliers_quantile(0.5),
-                n.inliers_quantile(0.99),
-                ms / 1000.0
-            ),
-        );
-    }
+fn report_null(n: &semlook::matching::null::NullEvidence, ms: f64, quiet: bool) {
+    info(
+        quiet,
+        format!(
+            "null of verified's evidence: {} pairs of other places verified from {} references (median {} inliers, 99th percentile {}), {:.1} s, stored in the manifest",
+            n.pairs,
+            n.sources,
+            n.inliers_quantile(0.5),
+            n.inliers_quantile(0.99),
+            ms / 1000.0
+        ),
+    );
 }
 
 /// One line on an index: how it was built and what it measured.
