@@ -12,9 +12,9 @@ use semlook::config::Config;
 use semlook::global::ssim_fast::{
     interleave, query_lane_terms, query_lane_terms_len, ref_lane_terms, ref_lane_terms_len, ssim_lanes_fast, LaneScratch,
 };
-use semlook::kernels::abi::SsimParams;
-use semlook::kernels::ssim::{ssim_pair, SsimScratch};
 use semlook::tools::synth::condition::Condition;
+use semlook_kernels::abi::SsimParams;
+use semlook_kernels::ssim::{ssim_pair, SsimScratch};
 
 mod common;
 
@@ -51,7 +51,7 @@ impl pulp::WithSimd for Lanes<'_> {
 fn bench(c: &mut Criterion) {
     let cfg = Config::without_appearance();
     let images = common::encode_all(&cfg, &common::street_labels(2, 640, 480, Condition::Day));
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let (x, y) = (&images[0], &images[1]);
     let mut xt = vec![0.0; query_lane_terms_len(&p)];
     query_lane_terms(&p, &x.global_stats, &mut xt);

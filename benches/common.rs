@@ -30,7 +30,7 @@ pub fn encode_all(cfg: &Config, maps: &[LabelMap]) -> Vec<EncodedImage> {
 
 /// A map of `n` references cycling through `images` (ids made unique).
 pub fn map_of(cfg: &Config, images: &[EncodedImage], n: usize) -> DescriptorSet {
-    let p = semlook::kernels::abi::SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let mut set = DescriptorSet::new(&p, cfg.local.neighbours, 0, 0);
     for i in 0..n {
         let mut img = images[i % images.len()].clone();

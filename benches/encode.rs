@@ -6,7 +6,6 @@ use criterion::{criterion_group, criterion_main, Criterion};
 use semlook::config::Config;
 use semlook::encode::Encoder;
 use semlook::global::{encode_global, GlobalScratch};
-use semlook::kernels::abi::SsimParams;
 use semlook::tools::synth::condition::Condition;
 
 mod common;
@@ -16,7 +15,7 @@ fn bench(c: &mut Criterion) {
     let maps = common::street_labels(4, 640, 480, Condition::Day);
     let enc = Encoder::new(&cfg).unwrap();
     let table = enc.class_table().clone();
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let mut g = c.benchmark_group("encode_640x480");
     let mut scratch = GlobalScratch::default();
     let mut k = 0;

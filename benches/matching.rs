@@ -8,11 +8,9 @@
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use semlook::config::Config;
-use semlook::kernels::abi::SsimParams;
-use semlook::kernels::abi::TreeSimParams;
-use semlook::kernels::tree_similarity::{tree_similarity, TreeSimScratch};
 use semlook::matching::{coarse_topk, coarse_topk_twin};
 use semlook::tools::synth::condition::Condition;
+use semlook_kernels::tree_similarity::{tree_similarity, TreeSimScratch};
 
 mod common;
 
@@ -20,7 +18,7 @@ fn bench(c: &mut Criterion) {
     let cfg = Config::without_appearance();
     let images = common::encode_all(&cfg, &common::street_labels(32, 640, 480, Condition::Day));
     let queries = common::map_of(&cfg, &common::encode_all(&cfg, &common::street_labels(4, 640, 480, Condition::Night)), 4);
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let mut g = c.benchmark_group("coarse");
     for n in [1_000usize, 10_000] {
         let refs = common::map_of(&cfg, &images, n);
@@ -57,7 +55,7 @@ fn bench(c: &mut Criterion) {
     let mut g = c.benchmark_group("fine");
     let mut scratch = TreeSimScratch::default();
     for (name, appearance) in [("forest", false), ("forest+appearance (neutral)", true)] {
-        let params = TreeSimParams::new(&cfg.similarity, appearance, cfg.local.neighbours);
+        let params = cfg.similarity.tree_params(appearance, cfg.local.neighbours);
         let mut k = 0;
         g.throughput(Throughput::Elements(1));
         g.bench_function(format!("tree_similarity/{name}"), |b| {

@@ -19,7 +19,7 @@ use std::path::Path;
 
 /// A set of `names`' verification keypoints (labels all one class: the class check is off by default).
 fn keypoint_set(cfg: &Config, model: &semlook::appearance::AppearanceModel, dir: &Path, names: &[String]) -> DescriptorSet {
-    let p = semlook::kernels::abi::SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let table = semlook::classes::ClassTable::cityscapes();
     let mut set = DescriptorSet::new(&p, cfg.local.neighbours, 0, 0).with_keypoint_dim(64);
     for name in names {

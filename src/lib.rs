@@ -66,9 +66,6 @@ pub mod gpu;
 pub mod hloc;
 pub mod index;
 pub mod input;
-// Internal, public for the binary and tests only: the CPU twins of the WGSL kernels and their ABI structs, reached by the GPU equivalence tests and the benchmarks; the API is `engine`, `matching` and `gpu`'s context types.
-#[doc(hidden)]
-pub mod kernels;
 pub mod local;
 pub mod map;
 pub mod matching;
@@ -88,8 +85,9 @@ pub mod tools;
 /// Internal, public for the binary and tests only: small helpers the command line and the tests share (atomic writes, hashing); not the API.
 #[doc(hidden)]
 pub mod util;
-pub mod values;
 pub mod verify;
 
 pub use choice::Choice;
 pub use error::{Error, ErrorKind, Result};
+/// The value views stages read (f32, f16, int8 blocks): the kernels crate's, where the twins read them.
+pub use semlook_kernels::values;

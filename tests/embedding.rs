@@ -96,12 +96,12 @@ fn an_empty_image_is_an_error_not_a_panic() {
 /// `n` images with no trees or appearance, image i's global descriptor `g(i)` and embedding `e(i)`.
 fn set(n: usize, emb: usize, e: impl Fn(usize) -> Vec<f32>) -> DescriptorSet {
     let cfg = Config::default();
-    let p = semlook::kernels::abi::SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let mut s = DescriptorSet::new(&p, cfg.local.neighbours, 0, 0).with_embedding_dim(emb);
     for i in 0..n {
         let global: Vec<f32> = (0..p.len()).map(|k| ((k * 7 + i * 13) % 17) as f32 / 16.0).collect();
         let mut stats = vec![0.0; p.stats_len()];
-        semlook::kernels::ssim::ssim_stats(&p, &global, &mut stats, &mut Default::default());
+        semlook_kernels::ssim::ssim_stats(&p, &global, &mut stats, &mut Default::default());
         s.push(&EncodedImage {
             id: format!("i{i}"),
             width: 64,
@@ -164,7 +164,7 @@ fn a_map_stores_its_embeddings_and_the_fused_stage_adds_their_cosine() {
         q.embedding = Some(rec.clone());
         q
     };
-    let p = semlook::kernels::abi::SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let top = |refs: &dyn semlook::descriptors::source::RefSource, w: FusedWeights| semlook::matching::fused_topk_cpu(refs, &queries, &p, w, 3, 4);
     // without the term: the SSIM decides (reference 8 - i first); with a large one: the embedding
     let plain = top(&back, FusedWeights::global_only(0.25));
@@ -176,7 +176,7 @@ fn a_map_stores_its_embeddings_and_the_fused_stage_adds_their_cosine() {
         // every listed score is 0.25 x SSIM + 10 x the embeddings' cosine, computed here pair by pair
         for &(score, r) in &with[i] {
             let r = r as usize;
-            let ssim = semlook::kernels::ssim::ssim_pair(&p, queries.global(i), queries.stats(i), refs.global(r), refs.stats(r), &mut scratch);
+            let ssim = semlook_kernels::ssim::ssim_pair(&p, queries.global(i), queries.stats(i), refs.global(r), refs.stats(r), &mut scratch);
             let cos: f32 = queries.image_embedding(i).iter().zip(refs.image_embedding(r)).map(|(a, b)| a * b).sum();
             assert!((score - (0.25 * ssim + 10.0 * cos)).abs() < 1e-4, "query {i}, reference {r}: {score} vs {}", 0.25 * ssim + 10.0 * cos);
         }

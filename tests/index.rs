@@ -176,7 +176,7 @@ fn segment_codes(m: &Map, s: usize) -> semlook::index::MappedCodes {
 fn the_pool_reranks_by_the_codes_plus_the_thumbnails_ssim_as_a_brute_force_does() {
     use semlook::index::thumb::widen;
     use semlook::index::{code_dot, IndexQuery, Probe, Shortlist};
-    use semlook::kernels::ssim::{ssim_pair, ssim_stats, SsimScratch};
+    use semlook_kernels::ssim::{ssim_pair, ssim_stats, SsimScratch};
     let dir = tempfile::tempdir().unwrap();
     let Some((refs, night)) = drive(&dir.path().join("data"), 4) else { return };
     let map = dir.path().join("map");

@@ -132,7 +132,7 @@ fn a_batch_of_pairs_verifies_as_each_pair_alone() {
 /// A descriptor set of stored keypoints alone (global descriptors all equal, no trees or
 /// appearance), so that the verified score is the inlier terms plus a constant.
 fn keypoint_set(cfg: &Config, images: &[&Stored]) -> semlook::descriptors::DescriptorSet {
-    let p = semlook::kernels::abi::SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let mut set = semlook::descriptors::DescriptorSet::new(&p, cfg.local.neighbours, 0, 0).with_keypoint_dim(64);
     for (i, s) in images.iter().enumerate() {
         let img = semlook::descriptors::EncodedImage {

@@ -5,7 +5,6 @@ mod common;
 use semlook::config::Config;
 use semlook::dataset::{Dataset, DatasetOptions};
 use semlook::eval::{evaluate, EvalOptions};
-use semlook::kernels::abi::SsimParams;
 use semlook::matching::{coarse_topk, match_batch, Setting};
 
 #[test]
@@ -66,7 +65,7 @@ fn streaming_top_k_does_not_depend_on_the_tile_size() {
     let cfg = Config::without_appearance();
     let refs = common::encode(&cfg, &common::label_maps(23, 80, 60), "r");
     let queries = common::encode(&cfg, &common::label_maps(5, 80, 60), "q");
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let whole = coarse_topk(&refs, &queries, &p, 7, 1_000_000);
     for tile in [1, 2, 5, 22] {
         assert_eq!(coarse_topk(&refs, &queries, &p, 7, tile), whole, "tile {tile}");

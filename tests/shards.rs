@@ -6,8 +6,8 @@ mod common;
 
 use semlook::config::{Config, ScoreFusion};
 use semlook::descriptors::DescriptorSet;
-use semlook::kernels::ssim_topk::merge_lists;
 use semlook::map::{edit, shard, Map, StoreOptions};
+use semlook::matching::merge_lists;
 use semlook::matching::{candidates, fine_scores, list_len, match_with, pairs_of, rank, CpuStages, QueryMatch, Setting};
 use std::path::Path;
 

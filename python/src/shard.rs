@@ -18,9 +18,9 @@ use rayon::ThreadPool;
 use semlook::config::Config;
 use semlook::descriptors::source::RefSource;
 use semlook::engine::Engine;
-use semlook::kernels::ssim_topk::merge_lists;
 use semlook::map::{shard, Map};
 use semlook::matching;
+use semlook::matching::merge_lists;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 

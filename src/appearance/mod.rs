@@ -12,12 +12,12 @@ use crate::config::{AppearanceConfig, AppearanceModelKind, KeypointsConfig, Mode
 use crate::descriptors::keypoints::{ImageKeypoints, COORD_SCALE};
 use crate::error::{Error, Result};
 use crate::global::vlad::{Codebook, VladNorm};
-use crate::kernels::abi::VladParams;
-use crate::kernels::vlad_accumulate;
 use crate::nn::conv::Chw;
 use crate::objects::{ObjectMap, NO_OBJECT};
 use image::RgbImage;
 use keypoints::{KeypointParams, Keypoints};
+use semlook_kernels::abi::VladParams;
+use semlook_kernels::vlad_accumulate;
 use std::path::PathBuf;
 
 /// File name of the XFeat weights in the setup folder.

@@ -6,9 +6,9 @@
 
 use super::NetOutputs;
 use crate::error::{Error, Result};
-use crate::kernels::xfeat::Epilogue;
 use crate::nn::conv::{avg_pool, batchnorm_relu, conv2d, instance_norm, resize_bilinear, space_to_depth8, Chw};
 use crate::nn::torch_pt::{read_state_dict, Tensor};
+use semlook_kernels::xfeat::Epilogue;
 use std::collections::HashMap;
 use std::path::Path;
 

@@ -125,6 +125,11 @@ impl ObjectsConfig {
 }
 
 impl GlobalConfig {
+    /// The SSIM kernels' parameters of this descriptor and window.
+    pub fn ssim_params(&self) -> semlook_kernels::abi::SsimParams {
+        semlook_kernels::abi::SsimParams::new(self.width, self.height, self.ssim_window, (self.ssim_k1, self.ssim_k2), self.ssim_sample_covariance)
+    }
+
     /// Checks that every value of `[global]` is in its range (numbers finite); the error names
     /// the field ([`super::Config::validate`] checks what spans sections).
     pub(super) fn validate(&self, v: &super::Check) -> crate::error::Result<()> {

@@ -1,6 +1,7 @@
 //! The sections of query time: `[similarity]` (tree and image similarity), `[matching]` (the
 //! coarse stage and the final score), `[verification]` (the `verified` setting) and `[eval]`.
 
+use semlook_kernels::abi::{pack_key, TreeSimParams};
 use serde::{Deserialize, Serialize};
 
 /// The `[similarity]` section: tree similarity and image similarity (method.md §2.8).
@@ -396,6 +397,53 @@ impl Default for EvalConfig {
 }
 
 impl SimilarityConfig {
+    /// The tree-similarity kernels' parameters; the intrinsic and neighbour weights are normalised
+    /// to sum to 1, so identical forests score 1 whatever the weights. Two trees pair when their
+    /// classes are equal (see [`SimilarityConfig::tree_params_over`] for the categories).
+    pub fn tree_params(&self, use_appearance: bool, neighbour_slots: usize) -> TreeSimParams {
+        let wsum = (self.w_intrinsic + self.w_neighbours).max(f64::MIN_POSITIVE);
+        TreeSimParams {
+            w_area: self.w_area as f32,
+            w_position: self.w_position as f32,
+            w_appearance: self.w_appearance as f32,
+            w_intrinsic: (self.w_intrinsic / wsum) as f32,
+            w_neighbours: (self.w_neighbours / wsum) as f32,
+            position_sigma: self.position_sigma as f32,
+            neutral: self.neutral_appearance as f32,
+            gaussian_position: (self.position == PositionSimilarity::Gaussian) as u32,
+            drop_missing: (self.missing_appearance == MissingAppearance::Drop) as u32,
+            use_appearance: use_appearance as u32,
+            greedy: (self.assignment == Assignment::Greedy) as u32,
+            neighbour_slots: neighbour_slots as u32,
+            // settings without appearance never see descriptor counts: they weigh by area instead
+            tree_weight: match self.tree_weight {
+                TreeWeight::Uniform => 0,
+                TreeWeight::Area => 1,
+                TreeWeight::SqrtArea => 2,
+                TreeWeight::Descriptors if use_appearance => 3,
+                TreeWeight::Descriptors => 1,
+            },
+            geometric_norm: (self.normalise == Normalise::GeometricMean) as u32,
+            _pad: [0; 2],
+            class_key: pack_key(&std::array::from_fn(|i| i as u8)),
+        }
+    }
+
+    /// [`SimilarityConfig::tree_params`] with the pairing rule of `class_match`: by class, or by
+    /// the category each class has in `categories` (a class table's `category_key`).
+    pub fn tree_params_over(&self, use_appearance: bool, neighbour_slots: usize, categories: &[u8; 256]) -> TreeSimParams {
+        let mut p = self.tree_params(use_appearance, neighbour_slots);
+        let by_category = match self.class_match {
+            ClassMatch::Class => false,
+            ClassMatch::Category => true,
+            ClassMatch::CategoryWithAppearance => use_appearance,
+        };
+        if by_category {
+            p.class_key = pack_key(categories);
+        }
+        p
+    }
+
     /// Checks that every value of `[similarity]` is in its range (numbers finite); the error names
     /// the field ([`super::Config::validate`] checks what spans sections).
     pub(super) fn validate(&self, v: &super::Check) -> crate::error::Result<()> {

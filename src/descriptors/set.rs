@@ -6,10 +6,10 @@
 use crate::descriptors::keypoints::{ImageKeypoints, KeypointsRef};
 use crate::descriptors::pose::PlacePose;
 use crate::error::{Error, Result};
-use crate::kernels::abi::SsimParams;
-use crate::kernels::tree_similarity::ForestRef;
 use crate::local::Forest;
 use crate::values::Values;
+use semlook_kernels::abi::SsimParams;
+use semlook_kernels::tree_similarity::ForestRef;
 
 /// Everything stored for one image.
 #[derive(Debug, Clone, PartialEq)]

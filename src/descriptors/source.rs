@@ -4,8 +4,8 @@
 
 use super::DescriptorSet;
 use crate::descriptors::keypoints::KeypointsRef;
-use crate::kernels::tree_similarity::ForestRef;
 use crate::values::Values;
+use semlook_kernels::tree_similarity::ForestRef;
 
 /// Reusable storage for tiles that a source must assemble (copy or generate).
 #[derive(Debug, Default)]

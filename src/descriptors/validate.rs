@@ -3,8 +3,8 @@
 //! the caller names the image or the file ([`Error::named`]).
 
 use crate::error::{Error, Result};
-use crate::kernels::tree_similarity::ForestRef;
 use crate::values::{ValueType, Values, F16_MAX};
+use semlook_kernels::tree_similarity::ForestRef;
 
 /// Longest image id, in bytes: ids are file stems or dataset keys, and a bound keeps a damaged or
 /// hostile id table from producing megabyte-long messages and lines.

@@ -24,9 +24,9 @@ use crate::error::{Error, Result};
 use crate::global::vlad::Codebook;
 use crate::global::{self, GlobalScratch};
 use crate::input::{FrameSource, LabelFormat, LabelMap};
-use crate::kernels::abi::SsimParams;
 use crate::util::ms_since;
 use rayon::prelude::*;
+use semlook_kernels::abi::SsimParams;
 use std::time::Instant;
 
 use crate::descriptors::EncodedImage;
@@ -95,7 +95,7 @@ impl Encoder {
         let appearance = AppearanceModel::load(&cfg.appearance, &cfg.models)?
             .map(|m| AppearanceEncoder::new(m, &cfg.appearance, &cfg.keypoints).ignoring(&table))
             .transpose()?;
-        let global = GlobalStage { cfg: cfg.global.clone(), used: table.used_mask(), ssim: SsimParams::new(&cfg.global) };
+        let global = GlobalStage { cfg: cfg.global.clone(), used: table.used_mask(), ssim: cfg.global.ssim_params() };
         let embedder = match appearance.is_some() && embed {
             true => crate::global::embedding::from_config(&cfg.embedding, &cfg.models)?.map(std::sync::Arc::new),
             false => None,

@@ -7,10 +7,10 @@ use super::{Encoder, Loaded, StageTimes, VladInput};
 use crate::appearance::{self, Features};
 use crate::descriptors::EncodedImage;
 use crate::error::{Error, Result};
-use crate::kernels;
 use crate::local;
 use crate::objects;
 use crate::util::ms_since;
+use semlook_kernels as kernels;
 use std::time::Instant;
 
 /// A frame encoded up to (not including) its VLAD vectors.

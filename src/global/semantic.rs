@@ -7,9 +7,9 @@
 use crate::config::GlobalConfig;
 use crate::error::{Error, Result};
 use crate::input::LabelMap;
-use crate::kernels::abi::{PoolParams, SsimParams};
-use crate::kernels::ssim::SsimScratch;
-use crate::kernels::{edt, global_pool, semantic_edges, ssim};
+use semlook_kernels::abi::PoolParams;
+use semlook_kernels::ssim::SsimScratch;
+use semlook_kernels::{edt, global_pool, semantic_edges, ssim};
 
 /// Scratch buffers of the global encoder, reused across images (one per worker thread).
 #[derive(Debug, Default)]
@@ -74,7 +74,7 @@ pub fn encode_global(
     edt::edt_columns(&scratch.edges, &mut scratch.g, w, h);
     edt::edt_rows(&scratch.g, &mut scratch.s, &mut scratch.t, &mut scratch.d2, w, h);
     global_pool::global_pool(&pool_params(cfg, w as u32, h as u32), &scratch.d2, desc);
-    ssim::ssim_stats(&SsimParams::new(cfg), desc, stats, &mut scratch.ssim);
+    ssim::ssim_stats(&cfg.ssim_params(), desc, stats, &mut scratch.ssim);
     Ok(())
 }
 
@@ -92,7 +92,7 @@ mod tests {
         let classes = (0..w * h).map(|i| if (30..80).contains(&(i % w)) && (20..60).contains(&(i / w)) { 2 } else { 0 }).collect();
         let lm = LabelMap::new(w, h, classes, &t).unwrap();
         let cfg = GlobalConfig::default();
-        let p = SsimParams::new(&cfg);
+        let p = cfg.ssim_params();
         let (mut d, mut s) = (vec![0.0; p.len()], vec![0.0; p.stats_len()]);
         let mut scratch = GlobalScratch::default();
         encode_global(&lm, &t.used_mask(), &cfg, &mut scratch, &mut d, &mut s).unwrap();
@@ -110,7 +110,7 @@ mod tests {
         #[test]
         fn ssim_equals_definition(seed in any::<u64>(), win in prop::sample::select(vec![3usize, 5, 7])) {
             let cfg = GlobalConfig { width: 16, height: 12, ssim_window: win, ..Default::default() };
-            let p = SsimParams::new(&cfg);
+            let p = cfg.ssim_params();
             let mut rng = crate::util::SplitMix64::new(seed);
             let x: Vec<f32> = (0..p.len()).map(|_| rng.next_f64() as f32).collect();
             let y: Vec<f32> = x.iter().map(|v| v * 0.7 + 0.3 * rng.next_f64() as f32).collect();

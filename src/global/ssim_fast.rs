@@ -1,6 +1,6 @@
 //! The kernels of the fast CPU coarse path (`matching::coarse_cpu`): SSIM of one query against a
 //! group of references ([`ssim_lanes_fast`], equal bit for bit to
-//! [`ssim_pair`](crate::kernels::ssim::ssim_pair) for each pair) and the SSIM statistics of a
+//! [`ssim_pair`](semlook_kernels::ssim::ssim_pair) for each pair) and the SSIM statistics of a
 //! descriptor ([`ssim_stats_fast`], equal to [`ssim_stats`]).
 //!
 //! Algorithm: the twin's arithmetic in the twin's order (product map, direct `win`-tap
@@ -29,9 +29,9 @@
 //! defaults) in windows of near-zero variance, so no tolerance like 1e-5 would hold between them
 //! for every input; direct sums in a fixed order keep every path exactly equal.
 
-use crate::kernels::abi::SsimParams;
-use crate::kernels::ssim::{ssim_stats, window_factors, window_x_terms, SsimScratch, LANES};
 use pulp::Simd;
+use semlook_kernels::abi::SsimParams;
+use semlook_kernels::ssim::{ssim_stats, window_factors, window_x_terms, SsimScratch, LANES};
 
 /// Row padding in f32 lanes: a multiple of every vector width the kernel is built for (8 for
 /// AVX2, 4 for NEON, 1 for the scalar fallback), so every row holds whole vectors.
@@ -630,7 +630,7 @@ mod tests {
         fn fast_stats_equal_the_twin(w in 3usize..40, h in 3usize..30, win in prop::sample::select(vec![3usize, 5, 7]), seed in any::<u64>(), flat in any::<bool>(), batch in 1usize..6) {
             prop_assume!(w >= win && h >= win);
             let cfg = crate::config::GlobalConfig { width: w, height: h, ssim_window: win, ..Default::default() };
-            let p = SsimParams::new(&cfg);
+            let p = cfg.ssim_params();
             let mut rng = crate::util::SplitMix64::new(seed);
             let globals: Vec<f32> = (0..batch * p.len()).map(|_| if flat { 0.5 + 1e-4 * rng.next_f64() as f32 } else { rng.next_f64() as f32 }).collect();
             let mut want = vec![0.0f32; batch * p.stats_len()];
@@ -671,7 +671,7 @@ mod tests {
     /// An empty batch writes nothing.
     #[test]
     fn an_empty_batch_is_nothing_to_do() {
-        let p = SsimParams::new(&crate::config::GlobalConfig::default());
+        let p = crate::config::GlobalConfig::default().ssim_params();
         ssim_stats_batch(&p, &[], &mut []);
     }
 }

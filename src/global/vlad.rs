@@ -158,9 +158,9 @@ pub fn train_codebook(samples: &[f32], dim: usize, k: usize, iterations: usize, 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::kernels::abi::VladParams;
-    use crate::kernels::vlad_accumulate::{vlad_accumulate, vlad_assign};
     use proptest::prelude::*;
+    use semlook_kernels::abi::VladParams;
+    use semlook_kernels::vlad_accumulate::{vlad_accumulate, vlad_assign};
 
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(60))]

@@ -22,10 +22,10 @@ use super::stats::StatsOnDevice;
 use super::topk::{bytes_per_query, TopK, MAX_PASS_REFS};
 use crate::descriptors::source::{GlobalSource, SourceKey, TileBuf};
 use crate::descriptors::DescriptorSet;
-use crate::kernels::abi::PassParams;
-use crate::kernels::abi::SsimParams;
-use crate::kernels::ssim_block::block_shape;
-use crate::kernels::topk_select::SEG;
+use semlook_kernels::abi::PassParams;
+use semlook_kernels::abi::SsimParams;
+use semlook_kernels::ssim_block::block_shape;
+use semlook_kernels::topk_select::SEG;
 use std::sync::Arc;
 
 /// Executor of the coarse stage (SSIM top-K of queries against a map) on the device, the map
@@ -79,7 +79,7 @@ impl CoarseMatcherGpu {
             adapter: ctx.describe(),
             what: "the SSIM block kernel's workgroup arrays (descriptor width, and window x valid windows per row)".into(),
             needed: (p.gw.max(p.win * p.nw)) as u64,
-            available: crate::kernels::ssim_block::PROD_CAP.min(crate::kernels::ssim_block::RING_CAP) as u64,
+            available: semlook_kernels::ssim_block::PROD_CAP.min(semlook_kernels::ssim_block::RING_CAP) as u64,
         })?;
         let params = ctx.uniform("ssim params", &p);
         let stats = Arc::new(StatsOnDevice::new(&ctx, p));

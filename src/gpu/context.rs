@@ -62,12 +62,6 @@ impl Default for GpuOptions {
     }
 }
 
-/// Workgroup memory the hungriest kernel uses (`mnn_match`'s tile: WebGPU's guaranteed 16 KiB;
-/// `tree_similarity_small` takes 16,272 bytes), each variable rounded up to 16 bytes as WebGPU
-/// counts it (`gpu::layout_tests` holds it to naga's reflection): an adapter with less cannot run
-/// the kernels.
-pub(crate) const WORKGROUP_STORAGE: u64 = 16_384;
-
 /// A device and queue with the engine's pipelines, ready for the executors.
 pub struct GpuContext {
     /// The wgpu device the pipelines and buffers live on.
@@ -214,7 +208,7 @@ impl GpuContext {
         let needs = [
             ("storage buffers per shader stage", 8u64, limits.max_storage_buffers_per_shader_stage as u64),
             ("dynamic uniform buffers per pipeline layout", 1, limits.max_dynamic_uniform_buffers_per_pipeline_layout as u64),
-            ("workgroup storage (bytes)", WORKGROUP_STORAGE, limits.max_compute_workgroup_storage_size as u64),
+            ("workgroup storage (bytes)", semlook_kernels::abi::WORKGROUP_STORAGE, limits.max_compute_workgroup_storage_size as u64),
             ("invocations per workgroup", 256, limits.max_compute_invocations_per_workgroup as u64),
             ("bind groups", 2, limits.max_bind_groups as u64),
         ];

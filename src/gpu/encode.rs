@@ -10,8 +10,8 @@ use super::context::{GpuContext, GpuError};
 use crate::config::GlobalConfig;
 use crate::global::pool_params;
 use crate::input::LabelMap;
-use crate::kernels::abi::{Dims, PoolParams, SsimParams};
-use crate::kernels::edt;
+use semlook_kernels::abi::{Dims, PoolParams, SsimParams};
+use semlook_kernels::edt;
 use std::sync::Arc;
 
 struct Buffers {
@@ -78,7 +78,7 @@ impl GlobalEncoderGpu {
         if w as usize > edt::MAX_SIDE || h as usize > edt::MAX_SIDE {
             return Err(GpuError::Failed { what: "encoding".into(), reason: format!("{w}x{h} exceeds the EDT side limit") });
         }
-        let ssim = SsimParams::new(cfg);
+        let ssim = cfg.ssim_params();
         let frames = maps.len() as u64;
         let pixels = frames * w as u64 * h as u64;
         let per_frame = (cfg.width * cfg.height) as u64;

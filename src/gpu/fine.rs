@@ -27,11 +27,11 @@ use super::resident::Resident;
 use super::topk::{bytes_per_query, TopK, MAX_PASS_REFS};
 use crate::descriptors::source::{RefSource, SourceKey};
 use crate::descriptors::DescriptorSet;
-use crate::kernels::abi::PassParams;
-use crate::kernels::abi::TreeSimParams;
-use crate::kernels::abi::{FinePass, MAX_SLOTS, MAX_TREES};
-use crate::kernels::topk_select::SEG;
-use crate::kernels::tree_similarity::{fits_small, PAIRS_PER_GROUP, SMALL_CELLS, SMALL_TREES};
+use semlook_kernels::abi::PassParams;
+use semlook_kernels::abi::TreeSimParams;
+use semlook_kernels::abi::{FinePass, MAX_SLOTS, MAX_TREES};
+use semlook_kernels::topk_select::SEG;
+use semlook_kernels::tree_similarity::{fits_small, PAIRS_PER_GROUP, SMALL_CELLS, SMALL_TREES};
 use std::sync::Arc;
 
 /// What the fine stage's dispatches did since the executor was made (counted on the host).

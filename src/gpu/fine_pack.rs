@@ -4,10 +4,10 @@
 use super::context::{GpuContext, GpuError};
 use super::resident::{ChunkData, ChunkPlan};
 use crate::descriptors::source::{RefSource, SourceKey};
-use crate::kernels::abi::TreeSimParams;
-use crate::kernels::abi::{GpuTree, MAX_SLOTS};
-use crate::kernels::tree_similarity::ForestRef;
 use crate::values::Values;
+use semlook_kernels::abi::TreeSimParams;
+use semlook_kernels::abi::{GpuTree, MAX_SLOTS};
+use semlook_kernels::tree_similarity::ForestRef;
 
 /// Forests packed for the shader.
 #[derive(Default)]
@@ -237,7 +237,7 @@ mod tests {
 
     /// `n` images of 20 trees each with `dim` appearance values per tree.
     fn set(n: usize, dim: usize) -> DescriptorSet {
-        let p = crate::kernels::abi::SsimParams::new(&Default::default());
+        let p = crate::config::GlobalConfig::default().ssim_params();
         let mut set = DescriptorSet::new(&p, 3, dim, 0);
         for i in 0..n {
             let trees = 20;
@@ -276,7 +276,7 @@ mod tests {
     #[test]
     fn a_source_with_a_generation_is_keyed_without_reading_a_forest() {
         let s = set(100, 64);
-        let p = TreeSimParams::new(&Default::default(), true, 3);
+        let p = crate::config::SimilarityConfig::default().tree_params(true, 3);
         let src = Counted { set: &s, generation: Some(7), reads: AtomicUsize::new(0) };
         let key = forest_key(&src, &p);
         assert_eq!(src.reads.load(Ordering::Relaxed), 0, "forests read for a generation's key");
@@ -292,7 +292,7 @@ mod tests {
     /// appearance: it is the same with 16 or 4,096 values a tree except for the sampled values.
     #[test]
     fn a_source_without_one_gets_a_cheap_sampled_key() {
-        let p = TreeSimParams::new(&Default::default(), true, 3);
+        let p = crate::config::SimilarityConfig::default().tree_params(true, 3);
         let mut s = set(200, 4096);
         let key_of = |s: &DescriptorSet| {
             let src = Counted { set: s, generation: None, reads: AtomicUsize::new(0) };

@@ -22,11 +22,11 @@ use super::buffers::{PassBuffer, Reused};
 use super::context::{GpuContext, GpuError};
 use super::kernels::Kernel;
 use crate::descriptors::keypoints::KeypointsRef;
-use crate::kernels::abi::LgParams;
-use crate::kernels::lighterglue::{self as twin, grid, FLAG_ACCUMULATE, FLAG_GELU, LANES, LN_ROWS, NO_PARTNER, TILE};
 use crate::verify::lighterglue::{
     confidence_threshold, network_inputs, sigmoid, GlueMatch, GlueParams, LighterGlue, PackedFfn, PackedGlue, PackedLinear,
 };
+use semlook_kernels::abi::LgParams;
+use semlook_kernels::lighterglue::{self as twin, grid, FLAG_ACCUMULATE, FLAG_GELU, LANES, LN_ROWS, NO_PARTNER, TILE};
 use std::sync::Arc;
 
 /// The buffers of a batch.

@@ -1,5 +1,6 @@
-//! The GPU path: WGSL compute kernels (in `shaders/`) run through wgpu, each held to its CPU twin
-//! (same name, binding order and loop shape) by the equivalence tests.
+//! The GPU path: WGSL compute kernels (in `shaders/`, with their CPU twins in the `semlook-kernels`
+//! crate) run through wgpu, each held to its twin (same name, binding order and loop shape) by the
+//! equivalence tests. The twins below are `semlook_kernels::` paths.
 //!
 //! | shader | entry points | CPU twin |
 //! |---|---|---|
@@ -33,8 +34,6 @@ pub mod encode;
 pub mod fine;
 mod fine_pack;
 mod kernels;
-#[cfg(test)]
-mod layout_tests;
 // Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
 #[doc(hidden)]
 pub mod lighterglue;
@@ -55,14 +54,10 @@ pub mod verify;
 pub mod vlad;
 // Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
 #[doc(hidden)]
-pub mod wgsl;
-// Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
-#[doc(hidden)]
 pub mod xfeat;
 
 pub use context::{GpuContext, GpuCounters, GpuError, GpuOptions, RESIDENT_FRACTION};
 pub use stages::GpuStages;
-pub use wgsl::SHADERS;
 
 /// Creates every kernel's pipeline on `device` (with or without the subgroup variants) and drops
 /// them: the driver checks each bind group layout against its shader's bindings. A test hook;

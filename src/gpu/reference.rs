@@ -5,12 +5,7 @@
 //! them: each call here builds its pipeline (`kernels::reference_kernels`).
 
 use super::context::{GpuContext, GpuError};
-use crate::kernels::abi::SsimParams;
-use crate::kernels::abi::TileParams;
-
-/// Largest global height x valid windows per row that `ssim_tile`'s workgroup array holds: the
-/// shader's `MAX_ROW_SUMS` (15 KiB of the 16 KiB every adapter has).
-pub const MAX_ROW_SUMS: usize = 3840;
+use semlook_kernels::abi::{SsimParams, TileParams, MAX_ROW_SUMS};
 
 /// `ssim_tile` on every (query, reference) pair of one tile: scores query-major.
 pub fn ssim_tile_scores(ctx: &GpuContext, p: &SsimParams, queries: (&[f32], &[f32]), refs: (&[f32], &[f32])) -> Result<Vec<f32>, GpuError> {
@@ -71,8 +66,8 @@ pub fn merge_scores(ctx: &GpuContext, tp: &TileParams, scores: &[f32], top_s: &[
 pub fn select_topk(ctx: &GpuContext, scores: &[f32], nq: usize, k: usize, pass: usize) -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
     use super::buffers::{PassBuffer, Reused};
     use super::topk::{TopK, MAX_PASS_REFS};
-    use crate::kernels::abi::PassParams;
-    use crate::kernels::topk_select::SEG;
+    use semlook_kernels::abi::PassParams;
+    use semlook_kernels::topk_select::SEG;
     let n = scores.len() / nq.max(1);
     let pass = pass.clamp(1, MAX_PASS_REFS);
     let starts: Vec<usize> = (0..n).step_by(pass).collect();

@@ -9,10 +9,10 @@ use super::{
 use crate::descriptors::source::{GlobalSource, RefSource};
 use crate::descriptors::DescriptorSet;
 use crate::error::Result;
-use crate::kernels::abi::{SsimParams, TreeSimParams};
 use crate::matching::{CpuStages, Stages};
 use crate::verify::{Verified, VerifyParams};
 use rayon::prelude::*;
+use semlook_kernels::abi::{SsimParams, TreeSimParams};
 use std::sync::Arc;
 
 /// The GPU executors of an engine; pipelines live in the context, buffers in the executors.

@@ -4,7 +4,7 @@
 //! size instead of 31.8 kB with their statistics, and the host computes none.
 
 use super::context::{GpuContext, GpuError};
-use crate::kernels::abi::{Dims, SsimParams};
+use semlook_kernels::abi::{Dims, SsimParams};
 
 /// References one run computes: bounds the row-sum scratch (2 x gh x nw floats a reference,
 /// 22 kB at the default size: 5.6 MB for a run) and keeps a run's grid within any device's

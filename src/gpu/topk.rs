@@ -5,9 +5,9 @@
 
 use super::buffers::Reused;
 use super::context::{GpuContext, GpuError};
-use crate::kernels::abi::Entry;
-use crate::kernels::abi::PassParams;
-use crate::kernels::topk_select::{MAX_LISTS, SEG};
+use semlook_kernels::abi::Entry;
+use semlook_kernels::abi::PassParams;
+use semlook_kernels::topk_select::{MAX_LISTS, SEG};
 
 /// References one pass may cover: the merge takes the running list and `MAX_LISTS - 1` segments.
 pub(crate) const MAX_PASS_REFS: usize = (MAX_LISTS - 1) * SEG;

@@ -8,9 +8,9 @@ use super::buffers::Reused;
 use super::context::{GpuContext, GpuError};
 use crate::descriptors::source::RefSource;
 use crate::descriptors::DescriptorSet;
-use crate::kernels::abi::{MnnPair, MnnParams};
-use crate::kernels::mnn_match::{pack, MAX_WORDS, ROWS};
 use crate::verify::best_columns::BestColumns;
+use semlook_kernels::abi::{MnnPair, MnnParams};
+use semlook_kernels::mnn_match::{pack, MAX_WORDS, ROWS};
 use std::collections::HashMap;
 use std::sync::Arc;
 

@@ -6,8 +6,8 @@ use super::buffers::Reused;
 use super::context::{GpuContext, GpuError};
 use crate::appearance::check_vlad_input;
 use crate::global::vlad::{Codebook, VladNorm};
-use crate::kernels::abi::VladParams;
-use crate::kernels::vlad_accumulate::MAX_CENTRES;
+use semlook_kernels::abi::VladParams;
+use semlook_kernels::vlad_accumulate::MAX_CENTRES;
 use std::sync::Arc;
 
 /// Buffers kept between batches.

@@ -159,7 +159,7 @@ impl Inverted {
     }
     /// The rows of list `l` (none past the model's lists).
     pub fn rows(&self, l: usize) -> &[u32] {
-        match (self.starts.get(l), self.starts.get(l + 1)) {
+        match (self.starts.get(l), l.checked_add(1).and_then(|e| self.starts.get(e))) {
             (Some(&a), Some(&b)) => &self.rows[a as usize..b as usize],
             _ => &[],
         }

@@ -11,7 +11,7 @@
 //! only at 0.563.
 
 use crate::config::GlobalConfig;
-use crate::kernels::abi::SsimParams;
+use semlook_kernels::abi::SsimParams;
 
 /// The side of the SSIM window over thumbnails.
 pub const WINDOW: usize = 3;
@@ -54,7 +54,7 @@ impl ThumbSpec {
     /// [`WINDOW`] window (only meaningful where there are thumbnails).
     pub fn ssim_params(&self, g: &GlobalConfig) -> SsimParams {
         let (width, height) = self.dims();
-        SsimParams::new(&GlobalConfig { width: width.max(WINDOW), height: height.max(WINDOW), ssim_window: WINDOW, ..g.clone() })
+        (GlobalConfig { width: width.max(WINDOW), height: height.max(WINDOW), ssim_window: WINDOW, ..g.clone() }).ssim_params()
     }
     /// Whether thumbnails are off (or too small to compare).
     pub fn is_empty(&self) -> bool {
@@ -265,8 +265,8 @@ impl<'a, I: Iterator<Item = &'a [u8]>> pulp::WithSimd for Run<'_, I> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::kernels::ssim::{ssim_pair, ssim_stats, SsimScratch};
     use crate::util::SplitMix64;
+    use semlook_kernels::ssim::{ssim_pair, ssim_stats, SsimScratch};
 
     #[test]
     fn thumbnails_compare_by_the_coarse_stages_ssim_fast_path_as_its_twin() {

@@ -7,9 +7,9 @@
 //! read through the index (method.md §2.6 storage note).
 
 use crate::config::LocalConfig;
-use crate::kernels::tree_similarity::ForestRef;
 use crate::objects::ObjectMap;
 use crate::values::Values;
+use semlook_kernels::tree_similarity::ForestRef;
 
 /// Marks an empty neighbour slot.
 pub const NO_NEIGHBOUR: i32 = -1;
@@ -88,22 +88,6 @@ impl Forest {
         self.has_appearance = present;
         self.descriptors = counts;
         Ok(())
-    }
-}
-
-impl<'a> ForestRef<'a> {
-    /// Number of trees.
-    pub fn len(&self) -> usize {
-        self.classes.len()
-    }
-    /// Whether the forest has no trees.
-    pub fn is_empty(&self) -> bool {
-        self.classes.is_empty()
-    }
-    /// Neighbour indices of tree `k` (filled slots only).
-    pub fn neighbours_of(&self, k: usize) -> impl Iterator<Item = usize> + 'a {
-        let n = self.neighbour_slots;
-        self.neighbours[k * n..(k + 1) * n].iter().filter(|&&j| j >= 0).map(|&j| j as usize)
     }
 }
 

@@ -42,11 +42,11 @@ use crate::descriptors::source::{GlobalSource, Place, RefSource, TileBuf};
 use crate::descriptors::DescriptorSet;
 use crate::error::{Error, Result};
 use crate::global::vlad::Codebook;
-use crate::kernels::abi::SsimParams;
-use crate::kernels::tree_similarity::ForestRef;
 use crate::values::Values;
 use rayon::prelude::*;
 use segment::{Layout, Mapped};
+use semlook_kernels::abi::SsimParams;
+use semlook_kernels::tree_similarity::ForestRef;
 use std::path::{Path, PathBuf};
 
 /// How often [`Map::open`] re-reads the manifest when a segment it lists has vanished: compaction
@@ -129,7 +129,7 @@ impl Map {
             starts: vec![0],
             live: vec![],
             codebook,
-            ssim: SsimParams::new(&cfg.global),
+            ssim: cfg.global.ssim_params(),
             routes: Routes::of(&manifest),
             index: index_files::MapIndex::open(dir, &manifest)?,
             null: manifest.null.as_ref().map(|n| std::sync::Arc::new(n.evidence.clone())),

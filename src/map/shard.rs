@@ -3,7 +3,7 @@
 //! [`Map::open_range`] opens one range alone (only its segment files are read), [`Map::open_header`]
 //! what a driver that holds no segment file needs to encode queries. A shard's
 //! reference `i` is the map's reference `global_start + i`, so per-shard candidate lists merge
-//! into exactly the lists of one process ([`crate::kernels::ssim_topk::merge_lists`]).
+//! into exactly the lists of one process ([`crate::matching::merge_lists`]).
 
 use super::{manifest, Manifest, Map};
 use crate::error::{Error, Result};

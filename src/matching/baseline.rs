@@ -52,7 +52,7 @@ pub fn topk(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, k: 
         return Err(Error::invalid(format!("setting {setting}"), why));
     }
     let (query_vec, ref_vec) = vectors(setting);
-    Ok(stream_topk(queries.len(), refs.len(), k, tile, crate::kernels::ssim_topk::topk_merge, |tp, scores| {
+    Ok(stream_topk(queries.len(), refs.len(), k, tile, semlook_kernels::ssim_topk::topk_merge, |tp, scores| {
         let (start, t) = (tp.tile_start as usize, tp.tile_len as usize);
         scores.par_iter_mut().enumerate().for_each(|(i, s)| {
             let (q, r) = (query_vec(queries, i / t), ref_vec(refs, start + i % t));

@@ -23,10 +23,10 @@
 use crate::global::ssim_fast::{
     interleave, query_lane_terms, query_lane_terms_len, ref_lane_terms, ref_lane_terms_len, ssim_lanes_fast, LaneScratch,
 };
-use crate::kernels::abi::{self, SsimParams};
-use crate::kernels::ssim::{ssim_pair, SsimScratch};
-use crate::kernels::ssim_topk;
 use rayon::prelude::*;
+use semlook_kernels::abi::{self, SsimParams};
+use semlook_kernels::ssim::{ssim_pair, SsimScratch};
+use semlook_kernels::ssim_topk;
 use std::sync::{Mutex, PoisonError};
 
 /// References per task: one group of 8 vector lanes with AVX2 (two with NEON). A group's

@@ -2,16 +2,16 @@
 
 use super::*;
 use crate::descriptors::DescriptorSet;
-use crate::kernels::abi::TileParams;
-use crate::kernels::ssim_topk::ssim_tile;
-use crate::kernels::test_data::{params, shape};
 use crate::matching::{coarse_topk, coarse_topk_twin};
 use crate::util::SplitMix64;
 use proptest::prelude::*;
+use semlook_kernels::abi::TileParams;
+use semlook_kernels::ssim_topk::ssim_tile;
+use semlook_kernels::test_data::{params, shape};
 
-/// [`crate::kernels::test_data::set`] as a descriptor set (the sources the coarse stage reads).
+/// [`semlook_kernels::test_data::set`] as a descriptor set (the sources the coarse stage reads).
 fn set(p: &SsimParams, n: usize, pool: usize, rng: &mut SplitMix64) -> DescriptorSet {
-    let g = crate::kernels::test_data::set(p, n, pool, rng);
+    let g = semlook_kernels::test_data::set(p, n, pool, rng);
     let mut s = DescriptorSet::new(p, 1, 0, 0);
     for i in 0..n {
         s.push(&crate::descriptors::EncodedImage {

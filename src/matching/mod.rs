@@ -21,15 +21,15 @@ use crate::config::{Config, IndexSearch, Matcher, ScoreFusion};
 use crate::descriptors::source::{self, GlobalSource, RefSource};
 use crate::descriptors::DescriptorSet;
 use crate::error::{Error, Remedy, Result};
-use crate::kernels::abi::SsimParams;
-use crate::kernels::abi::TreeSimParams;
-use crate::kernels::ssim_topk;
-use crate::kernels::tree_similarity::{tree_similarity, TreeSimScratch};
 use crate::util::ms_since;
 use crate::values::Values;
 use crate::verify::{verify_pairs_cpu, Verified, VerifyParams};
 use coarse_cpu::stream_topk;
 use rayon::prelude::*;
+use semlook_kernels::abi::SsimParams;
+use semlook_kernels::abi::TreeSimParams;
+use semlook_kernels::ssim_topk;
+use semlook_kernels::tree_similarity::{tree_similarity, TreeSimScratch};
 use serde::Serialize;
 use std::time::Instant;
 
@@ -210,7 +210,7 @@ pub fn candidates(
     } else if setting.fuses_coarse(cfg.matching.coarse) {
         fused_topk(stages, refs, queries, cfg, setting, len)?
     } else if setting.uses_coarse() {
-        stages.coarse(refs, queries, &SsimParams::new(&cfg.global), len, cfg.matching.tile)?
+        stages.coarse(refs, queries, &cfg.global.ssim_params(), len, cfg.matching.tile)?
     } else {
         let params = tree_params(cfg, setting, refs.neighbour_slots())?;
         stages.fine_topk(&params, refs, queries, len, cfg.matching.tile)?
@@ -248,7 +248,16 @@ pub fn check_labels(refs: &dyn RefSource, setting: Setting) -> Result<()> {
 /// `similarity.class_match`).
 pub fn tree_params(cfg: &Config, setting: Setting, neighbour_slots: usize) -> Result<TreeSimParams> {
     let table = crate::classes::ClassTable::from_config(&cfg.classes)?;
-    Ok(TreeSimParams::new(&cfg.similarity, setting.uses_appearance(), neighbour_slots).with_classes(&cfg.similarity, &table))
+    Ok(cfg.similarity.tree_params_over(setting.uses_appearance(), neighbour_slots, &table.category_key()))
+}
+
+/// Merges per-shard candidate lists of the same queries (indices in the whole map's index space,
+/// each shard's lists holding the K best of its references) into the whole map's lists: exactly the
+/// lists one process computes, ties across shards included (the twin's fold,
+/// [`ssim_topk::merge_lists`]). Fails if the shards disagree on the number of queries, or a list
+/// holds one reference twice (an [`Error::Check`]).
+pub fn merge_lists(parts: &[&[Vec<(f32, u32)>]], k: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+    ssim_topk::merge_lists(parts, k).map_err(|e| Error::check(e.0))
 }
 
 /// The (query, reference) pairs of candidate lists, in list order.
@@ -422,11 +431,11 @@ fn fused_topk(
     let weights = FusedWeights::of(refs, queries, cfg, setting);
     if baseline::unavailable(refs, queries, Setting::Appearance).is_some() && w > 0.0 && weights.embedding == 0.0 {
         // no cosine term: the global ranking, each score times w (as the fused scan computes it)
-        let mut lists = stages.coarse(refs, queries, &SsimParams::new(&cfg.global), k, cfg.matching.tile)?;
+        let mut lists = stages.coarse(refs, queries, &cfg.global.ssim_params(), k, cfg.matching.tile)?;
         lists.iter_mut().flatten().for_each(|(s, _)| *s *= w);
         return Ok(lists);
     }
-    stages.fused_coarse(refs, queries, &SsimParams::new(&cfg.global), weights, k, cfg.matching.tile)
+    stages.fused_coarse(refs, queries, &cfg.global.ssim_params(), weights, k, cfg.matching.tile)
 }
 
 /// The weights of the fused coarse score's terms beside the appearance cosine.
@@ -503,7 +512,7 @@ const RESCORE_CHUNK: usize = 64;
 /// largest SSIM cannot reach the k-th fused score so far: what is left out could not have entered
 /// the top-K, so the result is that of scoring the whole shortlist.
 pub fn indexed_topk(refs: &dyn RefSource, queries: &DescriptorSet, cfg: &Config, setting: Setting, k: usize) -> Result<CandidateLists> {
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let (glen, slen) = (p.len(), p.stats_len());
     let w = FusedWeights::of(refs, queries, cfg, setting);
     let w_global = w.global;
@@ -715,7 +724,7 @@ pub fn score_pairs(
 /// The score the coarse stage of `setting` gives each pair: SSIM of the global descriptors, plus
 /// the appearance cosine where the stage fuses them (as [`fused_topk`] and [`coarse_topk`]).
 fn coarse_pair_scores(refs: &dyn RefSource, queries: &DescriptorSet, setting: Setting, cfg: &Config, pairs: &[(u32, u32)]) -> Vec<f32> {
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let fw = FusedWeights::of(refs, queries, cfg, setting);
     let w = fw.global;
     let fused = setting.fuses_coarse(cfg.matching.coarse);
@@ -723,11 +732,11 @@ fn coarse_pair_scores(refs: &dyn RefSource, queries: &DescriptorSet, setting: Se
     pairs
         .par_iter()
         .map_init(
-            || (source::TileBuf::default(), crate::kernels::ssim::SsimScratch::default()),
+            || (source::TileBuf::default(), semlook_kernels::ssim::SsimScratch::default()),
             |(buf, scratch), &(q, r)| {
                 let (q, r) = (q as usize, r as usize);
                 let (g, st) = refs.tile(r, r + 1, buf);
-                let ssim = crate::kernels::ssim::ssim_pair(&p, queries.global(q), queries.stats(q), g, st, scratch);
+                let ssim = semlook_kernels::ssim::ssim_pair(&p, queries.global(q), queries.stats(q), g, st, scratch);
                 match (fused, cosine) {
                     (false, _) => ssim,
                     (true, true) => fw.appearance(refs, queries, q, r, true) + w * ssim,
@@ -759,11 +768,11 @@ pub fn coarse_topk(refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimPar
 /// and the GPU path are held to. Descriptors too wide for `ssim_block`'s workgroup arrays (which
 /// the GPU path refuses) are scored by the one-pair reference twins (`ssim_tile`, `topk_merge`).
 pub fn coarse_topk_twin(refs: &dyn GlobalSource, queries: &DescriptorSet, p: &SsimParams, k: usize, tile: usize) -> Vec<Vec<(f32, u32)>> {
-    use crate::kernels::abi::{Entry, PassParams};
-    use crate::kernels::topk_select::{topk_merge_lists, topk_partial, MAX_LISTS, SEG};
+    use semlook_kernels::abi::{Entry, PassParams};
+    use semlook_kernels::topk_select::{topk_merge_lists, topk_partial, MAX_LISTS, SEG};
     let (nq, n) = (queries.len(), refs.len());
     let mut buf = source::TileBuf::default();
-    let Some((rb, qb)) = crate::kernels::ssim_block::block_shape(p) else {
+    let Some((rb, qb)) = semlook_kernels::ssim_block::block_shape(p) else {
         return stream_topk(nq, n, k, tile, ssim_topk::topk_merge, |tp, scores| {
             let (start, end) = (tp.tile_start as usize, (tp.tile_start + tp.tile_len) as usize);
             let (g, st) = refs.tile(start, end, &mut buf);
@@ -793,7 +802,7 @@ pub fn coarse_topk_twin(refs: &dyn GlobalSource, queries: &DescriptorSet, p: &Ss
         };
         let (g, st) = refs.tile(start, start + len, &mut buf);
         let mut scores = vec![0.0; nq * len];
-        crate::kernels::ssim_block::ssim_block(p, &ps, &queries.globals, &queries.global_stats, &mut scores, g, st);
+        semlook_kernels::ssim_block::ssim_block(p, &ps, &queries.globals, &queries.global_stats, &mut scores, g, st);
         let mut partial = vec![Entry::EMPTY; nq * ps.segs as usize * k];
         topk_partial(&ps, &scores, &mut partial);
         topk_merge_lists(&ps, &partial, &mut top_a, &mut top_b);

@@ -37,8 +37,8 @@ use crate::descriptors::source::{GlobalSource, TileBuf};
 use crate::descriptors::DescriptorSet;
 use crate::engine::Engine;
 use crate::error::Result;
-use crate::kernels::abi::SsimParams;
 use crate::matching::{CpuStages, Stages};
+use semlook_kernels::abi::SsimParams;
 use serde::Serialize;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
@@ -232,7 +232,7 @@ pub fn run(
     tick: &mut dyn FnMut(&BenchRow),
 ) -> Result<Vec<BenchRow>> {
     opts.validate()?;
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let (k, tile) = (cfg.matching.top_k, cfg.matching.tile);
     let flops = flops_per_comparison(&p);
     let devices: Vec<peak::Device> = engines.iter_mut().map(|e| peak::Device::of(e, &p, opts.gpu_peak_gflops)).collect();

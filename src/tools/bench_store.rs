@@ -12,12 +12,11 @@ use crate::descriptors::source::{GlobalSource, TileBuf};
 use crate::descriptors::{DescriptorSet, EncodedImage};
 use crate::encode::Encoder;
 use crate::error::{Error, Result};
-use crate::kernels::abi::SsimParams;
-use crate::kernels::ssim::{ssim_pair, ssim_stats, SsimScratch};
 use crate::map::{Map, MapWriter, StoreOptions};
 use crate::matching::{CpuStages, Stages};
 use crate::tools::synth::{self, condition::Condition, SynthConfig};
 use crate::values::ValueType;
+use semlook_kernels::ssim::{ssim_pair, ssim_stats, SsimScratch};
 use serde::Serialize;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -247,7 +246,7 @@ pub fn check_sizes(opts: &StoreBenchOptions, global_len: usize, stats_len: usize
 
 /// Runs the benchmark for every size; `tick` gets each row as it is done.
 pub fn run(cfg: &Config, opts: &StoreBenchOptions, tick: &mut dyn FnMut(&StoreBenchRow)) -> Result<StoreBenchReport> {
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     check_sizes(opts, p.len(), p.stats_len())?;
     let pool = frames(cfg, POOL, Condition::Day, 0)?;
     let qpool = frames(cfg, QUERY_POOL, Condition::Night, 5)?;

@@ -2,12 +2,12 @@
 
 use super::*;
 use crate::descriptors::EncodedImage;
-use crate::kernels::ssim::{ssim_stats, SsimScratch};
 use crate::local::Forest;
+use semlook_kernels::ssim::{ssim_stats, SsimScratch};
 
 /// `n` random descriptors at the default size (stats computed).
 fn pool(n: usize, seed: u64) -> DescriptorSet {
-    let p = SsimParams::new(&Default::default());
+    let p = crate::config::GlobalConfig::default().ssim_params();
     let mut rng = crate::util::SplitMix64::new(seed);
     let mut set = DescriptorSet::new(&p, 1, 0, 0);
     for i in 0..n {

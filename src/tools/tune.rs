@@ -502,17 +502,17 @@ fn write_candidates(file: &std::path::Path, refs: &DescriptorSet, queries: &Desc
     let fine = CpuStages.fine_pairs(&params, refs, queries, &pairs)?;
     let vp = crate::verify::VerifyParams::for_config(&cfg.verification, &crate::classes::ClassTable::from_config(&cfg.classes)?)?;
     let verified = CpuStages.verify_pairs(&vp, refs, queries, &pairs)?;
-    let p = crate::kernels::abi::SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let dot = |a: &[f32], b: &[f32]| if a.is_empty() || b.is_empty() { f32::NAN } else { Values::F32(a).dot(&Values::F32(b)) };
     let mut out = String::from(
         "query\tquery_id\trank\treference\treference_id\tcorrect\tcoarse\tappearance\tembedding\tssim\tfine\tmatches\tinliers\tquery_keypoints\treference_keypoints\tquery_width\tquery_height\treference_width\treference_height\thog\tcompact_hog\n",
     );
-    let mut scratch = crate::kernels::ssim::SsimScratch::default();
+    let mut scratch = semlook_kernels::ssim::SsimScratch::default();
     let mut k = 0;
     for (q, list) in lists.iter().enumerate() {
         for (rank, &(coarse, r)) in list.iter().enumerate() {
             let (qi, ri) = (q, r as usize);
-            let ssim = crate::kernels::ssim::ssim_pair(&p, queries.global(qi), queries.stats(qi), refs.global(ri), refs.stats(ri), &mut scratch);
+            let ssim = semlook_kernels::ssim::ssim_pair(&p, queries.global(qi), queries.stats(qi), refs.global(ri), refs.stats(ri), &mut scratch);
             let (qs, rs) = (queries.sizes[qi], refs.sizes[ri]);
             out += &format!(
                 "{q}\t{}\t{rank}\t{r}\t{}\t{}\t{coarse}\t{}\t{}\t{ssim}\t{}\t{}\t{}\t{}\t{}\t{}\t{}\t{}\t{}\t{}\t{}\n",
@@ -570,8 +570,8 @@ fn write_candidates(file: &std::path::Path, refs: &DescriptorSet, queries: &Desc
     for q in 0..queries.len() {
         let rows: Vec<String> = (0..refs.len())
             .into_par_iter()
-            .map_init(crate::kernels::ssim::SsimScratch::default, |scratch, r| {
-                let ssim = crate::kernels::ssim::ssim_pair(&p, queries.global(q), queries.stats(q), refs.global(r), refs.stats(r), scratch);
+            .map_init(semlook_kernels::ssim::SsimScratch::default, |scratch, r| {
+                let ssim = semlook_kernels::ssim::ssim_pair(&p, queries.global(q), queries.stats(q), refs.global(r), refs.stats(r), scratch);
                 format!(
                     "{q}\t{r}\t{}\t{}\t{}\t{ssim}\n",
                     gt.get(q).is_some_and(|g| g.contains(&(r as u32))) as u8,

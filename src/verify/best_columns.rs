@@ -1,8 +1,8 @@
 //! The fast CPU path of mutual-nearest-neighbour matching (the twin is
-//! [`crate::kernels::mnn_match`]): the dot products of a pair as one f32 matrix product, then the
+//! [`semlook_kernels::mnn_match`]): the dot products of a pair as one f32 matrix product, then the
 //! first maximum of every row and column; the twin's result bit for bit (tested below).
 
-use crate::kernels::mnn_match::NO_MATCH;
+use semlook_kernels::mnn_match::NO_MATCH;
 
 /// Best columns of one pair: per query keypoint (index into the reference's, dot product) and per
 /// reference keypoint (index into the query's).
@@ -86,9 +86,9 @@ pub fn mutual(b: &BestColumns, min_dot: i32) -> Vec<(u32, u32)> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::kernels::abi::{MnnPair, MnnParams};
-    use crate::kernels::mnn_match::{mnn_match, pack};
     use crate::util::SplitMix64;
+    use semlook_kernels::abi::{MnnPair, MnnParams};
+    use semlook_kernels::mnn_match::{mnn_match, pack};
 
     fn random(n: usize, dim: usize, rng: &mut SplitMix64) -> Vec<i8> {
         (0..n * dim).map(|_| (rng.below(255) as i32 - 127) as i8).collect()

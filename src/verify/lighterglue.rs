@@ -19,11 +19,11 @@
 
 use crate::descriptors::keypoints::{KeypointsRef, COORD_SCALE};
 use crate::error::{Error, Result};
-use crate::kernels::lighterglue::erf_with;
 use crate::nn::torch_pt::{read_state_dict, Tensor};
 use crate::util::lane_sum;
 use ndarray::linalg::general_mat_mul;
 use ndarray::{ArrayView2, ArrayViewMut2, ShapeBuilder};
+use semlook_kernels::lighterglue::erf_with;
 use std::collections::HashMap;
 use std::path::Path;
 
@@ -1003,7 +1003,7 @@ mod tests {
             let var = row.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n as f64;
             for i in 0..n {
                 let norm = ((row[i] as f64 - mean) / (var + LN_EPS as f64).sqrt() * g[i] as f64 + b[i] as f64) as f32;
-                let want = 0.5 * norm * (1.0 + crate::kernels::lighterglue::lg_erf(norm * std::f32::consts::FRAC_1_SQRT_2));
+                let want = 0.5 * norm * (1.0 + semlook_kernels::lighterglue::lg_erf(norm * std::f32::consts::FRAC_1_SQRT_2));
                 let got = ln[n + i];
                 assert!((got - want).abs() <= 1e-5 * want.abs().max(1.0), "layer norm + GELU n {n} i {i}: {got} vs {want}");
             }
@@ -1011,7 +1011,7 @@ mod tests {
         // GELU on the fast exp against the device's form on the standard one
         for i in -4000..=4000 {
             let x = i as f32 / 400.0;
-            let want = 0.5 * x * (1.0 + crate::kernels::lighterglue::lg_erf(x * std::f32::consts::FRAC_1_SQRT_2));
+            let want = 0.5 * x * (1.0 + semlook_kernels::lighterglue::lg_erf(x * std::f32::consts::FRAC_1_SQRT_2));
             assert!((gelu(x) - want).abs() <= 1e-6 * want.abs().max(1.0), "gelu({x}): {} vs {want}", gelu(x));
         }
     }

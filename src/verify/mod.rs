@@ -1,7 +1,7 @@
 //! Stage 4c (beyond the paper): geometric verification of the coarse stage's candidates, as
 //! Patch-NetVLAD (Hausler et al., CVPR 2021) and hloc (Sarlin et al., CVPR 2019) re-rank theirs.
 //! Each image stores its best learned keypoints (`descriptors::keypoints`); for a (query, reference) pair
-//! the keypoints are matched by mutual nearest neighbours above a cosine ([`crate::kernels::mnn_match`]) or by
+//! the keypoints are matched by mutual nearest neighbours above a cosine ([`semlook_kernels::mnn_match`]) or by
 //! the learned matcher LighterGlue ([`lighterglue`], `verification.matcher`), and the
 //! matches that one homography explains are counted by RANSAC ([`ransac`]). Optionally only inliers
 //! whose semantic classes agree at both ends count: the labels decide which geometric evidence

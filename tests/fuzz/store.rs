@@ -12,12 +12,11 @@ use semlook::config::Config;
 use semlook::descriptors::source::RefSource;
 use semlook::descriptors::DescriptorSet;
 use semlook::global::vlad::Codebook;
-use semlook::kernels::abi::SsimParams;
-use semlook::kernels::ssim::{ssim_stats, SsimScratch};
 use semlook::map::{edit, Manifest, Map, MapWriter, StoreOptions};
 use semlook::matching::{match_with, CpuStages, Setting};
 use semlook::values::ValueType;
 use semlook::Error;
+use semlook_kernels::ssim::{ssim_stats, SsimScratch};
 use std::path::{Path, PathBuf};
 
 const MANIFEST: &str = "manifest.json";
@@ -219,7 +218,7 @@ fn remove_and_compact(dir: &Path, first: &str, n: usize) -> Verdict {
 /// Gives `rows` (read back from a map, which stores no SSIM statistics) the statistics an
 /// encoder's query set has.
 fn add_ssim_stats(rows: &mut DescriptorSet, cfg: &Config) {
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     rows.stats_len = p.stats_len();
     let mut scratch = SsimScratch::default();
     for i in 0..rows.len() {

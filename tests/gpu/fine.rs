@@ -10,11 +10,11 @@ use semlook::descriptors::source::{GlobalSource, RefSource, TileBuf};
 use semlook::descriptors::DescriptorSet;
 use semlook::gpu::GpuOptions;
 use semlook::gpu::GpuStages;
-use semlook::kernels::abi::TreeSimParams;
-use semlook::kernels::tree_similarity::{fits_small, tree_similarity, tree_similarity_small, ForestRef, TreeSimScratch, PAIRS_PER_GROUP};
 use semlook::local::Forest;
 use semlook::matching::{CpuStages, Setting, Stages};
 use semlook::util::SplitMix64;
+use semlook_kernels::abi::TreeSimParams;
+use semlook_kernels::tree_similarity::{fits_small, tree_similarity, tree_similarity_small, ForestRef, TreeSimScratch, PAIRS_PER_GROUP};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// The same batch twice against the same map: the second writes exactly the map's packed
@@ -27,7 +27,7 @@ fn forests_are_uploaded_once_across_batches() {
     let refs = random_forest_set(40, 16, 201);
     let q = random_forest_set(5, 16, 202);
     let sim = semlook::config::SimilarityConfig::default();
-    let p = TreeSimParams::new(&sim, true, 3);
+    let p = sim.tree_params(true, 3);
     let mut stages = GpuStages::new(ctx.clone());
     let b0 = ctx.bytes_uploaded();
     let l1 = stages.fine_topk(&p, &refs, &q, 6, 4096).unwrap();
@@ -45,7 +45,7 @@ fn forests_are_uploaded_once_across_batches() {
     assert!(b3 - b2 < map, "listed pairs re-uploaded the forests ({} bytes)", b3 - b2);
     let c = CpuStages.fine_pairs(&p, &refs, &q, &pairs).unwrap();
     assert!(s.iter().zip(&c).all(|(a, b)| (a - b).abs() <= 1e-5));
-    let other = TreeSimParams::new(&semlook::config::SimilarityConfig { tree_weight: semlook::config::TreeWeight::SqrtArea, ..sim }, true, 3);
+    let other = (semlook::config::SimilarityConfig { tree_weight: semlook::config::TreeWeight::SqrtArea, ..sim }).tree_params(true, 3);
     stages.fine_topk(&other, &refs, &q, 6, 4096).unwrap();
     assert!(ctx.bytes_uploaded() - b3 >= map, "forests with other weights are another map");
 }
@@ -57,7 +57,7 @@ fn forests_beyond_the_budget_are_streamed() {
     let Some(ctx) = gpu_with(&GpuOptions { resident_budget: Some(20_000), max_binding_size: Some(64 * 1024), ..Default::default() }) else { return };
     let refs = random_forest_set(60, 16, 211);
     let q = random_forest_set(4, 16, 212);
-    let p = TreeSimParams::new(&Default::default(), true, 3);
+    let p = semlook::config::SimilarityConfig::default().tree_params(true, 3);
     let mut stages = GpuStages::new(ctx.clone());
     let cpu = CpuStages.fine_topk(&p, &refs, &q, 7, 4096).unwrap();
     for batch in 0..2 {
@@ -74,7 +74,7 @@ fn forests_beyond_the_budget_are_streamed() {
 /// fifths of the trees); every fourth forest `uniform`: all its trees alike, so that every
 /// same-class cell of its pairs ties and the tie rule decides the assignment.
 pub fn forests_of_sizes(sizes: &[usize], dim: usize, seed: u64) -> DescriptorSet {
-    let p = semlook::kernels::abi::SsimParams::new(&Config::without_appearance().global);
+    let p = Config::without_appearance().global.ssim_params();
     let mut set = DescriptorSet::new(&p, 3, dim, 0);
     let mut rng = SplitMix64::new(seed);
     for (i, &trees) in sizes.iter().enumerate() {
@@ -144,9 +144,7 @@ fn every_option() -> Vec<(String, TreeSimParams)> {
     variants
         .iter()
         .enumerate()
-        .flat_map(|(v, sim)| {
-            [false, true].map(|app| (format!("option {v}, appearance {app}"), TreeSimParams::new(sim, app, 3).with_classes(sim, &table)))
-        })
+        .flat_map(|(v, sim)| [false, true].map(|app| (format!("option {v}, appearance {app}"), sim.tree_params_over(app, 3, &table.category_key()))))
         .collect()
 }
 
@@ -162,7 +160,7 @@ fn twin_scores(
     q: &DescriptorSet,
     r: &DescriptorSet,
     pairs: &[(u32, u32)],
-) -> (Vec<f32>, semlook::kernels::tree_similarity::SmallRounds) {
+) -> (Vec<f32>, semlook_kernels::tree_similarity::SmallRounds) {
     let qf: Vec<ForestRef> = (0..q.len()).map(|i| q.forest(i)).collect();
     let rf: Vec<ForestRef> = (0..r.len()).map(|i| r.forest(i)).collect();
     let list: Vec<[u32; 2]> = pairs.iter().map(|&(a, b)| [a, b]).collect();
@@ -417,7 +415,7 @@ fn a_real_scene_through_several_pairs_per_workgroup() {
 #[test]
 fn forests_without_any_tree_match_on_both_paths() {
     let Some(ctx) = gpu() else { return };
-    let p = TreeSimParams::new(&Default::default(), true, 3);
+    let p = semlook::config::SimilarityConfig::default().tree_params(true, 3);
     let (empty_refs, empty_q) = (forests_of_sizes(&[0; 12], 16, 301), forests_of_sizes(&[0; 3], 16, 302));
     let (refs, q) = (forests_of_sizes(&[3, 0, 7, 1, 0, 12], 16, 303), forests_of_sizes(&[0, 5], 16, 304));
     let mut stages = GpuStages::new(ctx.clone());

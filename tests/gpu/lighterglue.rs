@@ -23,10 +23,10 @@ use super::{gpu, gpu_with};
 use semlook::descriptors::keypoints::KeypointsRef;
 use semlook::gpu::lighterglue::{forward, forward_on_twins, run_kernel, run_pass, Buf, Entry, GlueGpu, Pass, Twins};
 use semlook::gpu::{GpuError, GpuOptions};
-use semlook::kernels::abi::LgParams;
-use semlook::kernels::lighterglue::{FLAG_ACCUMULATE, FLAG_GELU};
 use semlook::util::SplitMix64;
 use semlook::verify::lighterglue::GlueParams;
+use semlook_kernels::abi::LgParams;
+use semlook_kernels::lighterglue::{FLAG_ACCUMULATE, FLAG_GELU};
 
 fn randn(rng: &mut SplitMix64, n: usize) -> Vec<f32> {
     (0..n).map(|_| rng.normal() as f32).collect()

@@ -58,7 +58,7 @@ fn global_encoding_matches_the_cpu_twins() {
     let out = enc.encode(&refs, &table.used_mask(), &cfg.global).unwrap();
     let d2 = enc.last_d2(3 * 97 * 61).unwrap();
     let mut scratch = semlook::global::GlobalScratch::default();
-    let p = semlook::kernels::abi::SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     for (i, m) in maps.iter().enumerate() {
         let (mut d, mut s) = (vec![0.0; p.len()], vec![0.0; p.stats_len()]);
         semlook::global::encode_global(m, &table.used_mask(), &cfg.global, &mut scratch, &mut d, &mut s).unwrap();
@@ -73,10 +73,10 @@ fn global_encoding_matches_the_cpu_twins() {
 /// `stats_windows`) run on the very descriptor the device pooled: within 1e-6 (the same sums in
 /// the same order; a device may fuse a multiply-add).
 pub fn stats_match_the_twins(p: &SsimParams, (desc, stats): &(Vec<f32>, Vec<f32>), what: &str) {
-    use semlook::kernels::ssim_stats::{stats_row_sums, stats_windows};
+    use semlook_kernels::ssim_stats::{stats_row_sums, stats_windows};
     let mut rows = vec![0.0; 2 * p.gh as usize * p.nw as usize];
     let mut want = vec![0.0; p.stats_len()];
-    let dims = semlook::kernels::abi::Dims { frames: 1, ..Default::default() };
+    let dims = semlook_kernels::abi::Dims { frames: 1, ..Default::default() };
     stats_row_sums(p, &dims, desc, &mut rows);
     stats_windows(p, &dims, &rows, &mut want);
     assert_eq!(stats.len(), want.len(), "{what}: stats length");
@@ -91,12 +91,11 @@ fn scratch_d2(s: &semlook::global::GlobalScratch) -> &[u32] {
 use semlook::config::Config;
 use semlook::descriptors::DescriptorSet;
 use semlook::engine::{Backend, Engine};
-use semlook::kernels::abi::SsimParams;
-use semlook::kernels::abi::TreeSimParams;
-use semlook::kernels::tree_similarity::{tree_similarity, TreeSimScratch};
 use semlook::local::Forest;
 use semlook::matching::{coarse_topk_twin, match_batch, Setting, Stages};
 use semlook::util::SplitMix64;
+use semlook_kernels::abi::SsimParams;
+use semlook_kernels::tree_similarity::{tree_similarity, TreeSimScratch};
 
 /// Random label maps of awkward sizes: thin, odd, a single class (no edges), many classes.
 fn random_maps(seed: u64) -> Vec<semlook::input::LabelMap> {
@@ -129,7 +128,7 @@ fn random_maps(seed: u64) -> Vec<semlook::input::LabelMap> {
 
 fn cpu_global(m: &semlook::input::LabelMap, cfg: &Config) -> (Vec<u32>, Vec<u32>, Vec<f32>) {
     let table = semlook::classes::ClassTable::cityscapes();
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let mut scratch = semlook::global::GlobalScratch::default();
     let (mut d, mut s) = (vec![0.0; p.len()], vec![0.0; p.stats_len()]);
     semlook::global::encode_global(m, &table.used_mask(), &cfg.global, &mut scratch, &mut d, &mut s).unwrap();
@@ -163,12 +162,12 @@ fn edges_and_edt_are_exact_and_pooling_within_1e_5() {
         }
         let worst = pooled.iter().zip(&out[0].0).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
         assert!(worst <= 1e-5, "map {i}: pooled values differ by {worst}");
-        stats_match_the_twins(&SsimParams::new(&c.global), &out[0], &format!("map {i}"));
+        stats_match_the_twins(&c.global.ssim_params(), &out[0], &format!("map {i}"));
     }
 }
 
 pub fn random_descriptors(n: usize, cfg: &Config, seed: u64) -> DescriptorSet {
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let mut set = DescriptorSet::new(&p, 3, 0, 0);
     let mut rng = SplitMix64::new(seed);
     for i in 0..n {
@@ -181,7 +180,7 @@ pub fn random_descriptors(n: usize, cfg: &Config, seed: u64) -> DescriptorSet {
             })
             .collect();
         let mut stats = vec![0.0; p.stats_len()];
-        semlook::kernels::ssim::ssim_stats(&p, &g, &mut stats, &mut Default::default());
+        semlook_kernels::ssim::ssim_stats(&p, &g, &mut stats, &mut Default::default());
         let img = semlook::descriptors::EncodedImage {
             id: format!("r{i}"),
             width: 64,
@@ -207,7 +206,7 @@ pub fn random_descriptors(n: usize, cfg: &Config, seed: u64) -> DescriptorSet {
 fn coarse_top_k_matches_the_cpu_twin() {
     let Some(ctx) = gpu() else { return };
     let cfg = Config::without_appearance();
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let refs = random_descriptors(150, &cfg, 3);
     let queries = random_descriptors(9, &cfg, 4);
     let mut stages = semlook::gpu::GpuStages::new(ctx);
@@ -233,7 +232,7 @@ pub fn assert_same_lists(gpu: &[Vec<(f32, u32)>], cpu: &[Vec<(f32, u32)>], tol: 
 
 pub fn random_forest_set(n: usize, dim: usize, seed: u64) -> DescriptorSet {
     let cfg = Config::without_appearance();
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let mut set = DescriptorSet::new(&p, 3, dim, 0);
     let mut rng = SplitMix64::new(seed);
     for i in 0..n {
@@ -317,7 +316,7 @@ fn tree_similarity_matches_the_cpu_twin() {
     for (v, sim) in variants.iter().enumerate() {
         for appearance in [false, true] {
             // trees pair by class, or (the last variant) by Cityscapes category
-            let p = TreeSimParams::new(sim, appearance, 3).with_classes(sim, &table);
+            let p = sim.tree_params_over(appearance, 3, &table.category_key());
             let gpu = stages.fine_pairs(&p, &refs, &queries, &pairs).unwrap();
             let mut scratch = TreeSimScratch::default();
             for (i, &(q, r)) in pairs.iter().enumerate() {
@@ -341,15 +340,15 @@ fn tiling_under_a_small_binding_limit() {
     let cfg = Config::without_appearance();
     let refs = random_descriptors(23, &cfg, 8);
     let queries = random_descriptors(3, &cfg, 9);
-    let m = semlook::gpu::coarse::CoarseMatcherGpu::new(ctx.clone(), SsimParams::new(&cfg.global)).unwrap();
+    let m = semlook::gpu::coarse::CoarseMatcherGpu::new(ctx.clone(), cfg.global.ssim_params()).unwrap();
     let chunk = m.chunk_len();
     assert!(chunk < refs.len() / 4, "chunks of {chunk} references do not split the map");
     let mut stages = semlook::gpu::GpuStages::new(ctx);
-    let gpu = stages.coarse(&refs, &queries, &SsimParams::new(&cfg.global), 10, 4096).unwrap();
-    assert_same_lists(&gpu, &coarse_topk_twin(&refs, &queries, &SsimParams::new(&cfg.global), 10, 4096), 1e-5, "small binding limit");
+    let gpu = stages.coarse(&refs, &queries, &cfg.global.ssim_params(), 10, 4096).unwrap();
+    assert_same_lists(&gpu, &coarse_topk_twin(&refs, &queries, &cfg.global.ssim_params(), 10, 4096), 1e-5, "small binding limit");
     let frefs = random_forest_set(30, 0, 10);
     let fq = random_forest_set(4, 0, 11);
-    let p = TreeSimParams::new(&cfg.similarity, false, 3);
+    let p = cfg.similarity.tree_params(false, 3);
     let g = stages.fine_topk(&p, &frefs, &fq, 10, 4096).unwrap();
     let c = semlook::matching::CpuStages.fine_topk(&p, &frefs, &fq, 10, 4096).unwrap();
     assert_same_lists(&g, &c, 1e-5, "fine under a small binding limit");
@@ -365,7 +364,7 @@ fn too_small_limits_are_a_typed_error() {
     cfg.matching.coarse = semlook::config::CoarseStage::Global;
     let refs = random_descriptors(3, &cfg, 1);
     let mut stages = semlook::gpu::GpuStages::new(ctx);
-    let err = stages.coarse(&refs, &refs, &SsimParams::new(&cfg.global), 2, 10).unwrap_err();
+    let err = stages.coarse(&refs, &refs, &cfg.global.ssim_params(), 2, 10).unwrap_err();
     assert!(matches!(err, semlook::Error::Gpu(semlook::gpu::GpuError::LimitsTooSmall { .. })), "{err}");
 }
 
@@ -578,7 +577,7 @@ fn kernels_on_a_real_street_frame() {
     assert_eq!(enc.last_edges(px).unwrap(), edges);
     assert_eq!(enc.last_d2(px).unwrap(), d2);
     assert!(pooled.iter().zip(&out[0].0).all(|(a, b)| (a - b).abs() <= 1e-5));
-    stats_match_the_twins(&SsimParams::new(&cfg.global), &out[0], "the real street frame");
+    stats_match_the_twins(&cfg.global.ssim_params(), &out[0], "the real street frame");
     let Ok(Some(xfeat)) = semlook::appearance::AppearanceModel::load(&cfg.appearance, &cfg.models) else {
         return common::skip_unless_required("REQUIRE_MODELS", "no XFeat weights (run setup.sh): the VLAD part of the test");
     };
@@ -617,9 +616,9 @@ fn auto_falls_back_to_the_cpu_when_the_gpu_fails_mid_run() {
 #[test]
 fn topk_merge_skips_nan_like_its_twin() {
     let Some(ctx) = gpu() else { return };
-    use semlook::kernels::abi::TileParams;
-    use semlook::kernels::abi::{EMPTY_INDEX, EMPTY_SCORE};
-    use semlook::kernels::ssim_topk::topk_merge;
+    use semlook_kernels::abi::TileParams;
+    use semlook_kernels::abi::{EMPTY_INDEX, EMPTY_SCORE};
+    use semlook_kernels::ssim_topk::topk_merge;
     let (nan, snan, neg_nan) = (f32::NAN, f32::from_bits(0x7f80_0001), f32::from_bits(0xffc0_0000));
     let rows: [[f32; 6]; 5] = [
         [nan, 0.5, 0.2, 0.9, 0.1, 0.3],

@@ -7,7 +7,6 @@ use semlook::descriptors::DescriptorSet;
 use semlook::engine::Engine;
 use semlook::gpu::GpuStages;
 use semlook::gpu::{GpuContext, GpuOptions};
-use semlook::kernels::abi::SsimParams;
 use semlook::matching::{coarse_topk, coarse_topk_twin, Setting, Stages};
 use std::sync::Arc;
 
@@ -18,7 +17,7 @@ fn bytes_of(set: &DescriptorSet) -> u64 {
 /// Bytes a coarse batch writes besides the map: its queries and one parameter entry per pass (no
 /// empty top-K lists: a query chunk's first pass does not read them).
 fn batch_bytes(ctx: &GpuContext, q: &DescriptorSet, passes: u64) -> u64 {
-    bytes_of(q) + passes * (std::mem::size_of::<semlook::kernels::abi::PassParams>() as u64).next_multiple_of(ctx.uniform_offset_alignment() as u64)
+    bytes_of(q) + passes * (std::mem::size_of::<semlook_kernels::abi::PassParams>() as u64).next_multiple_of(ctx.uniform_offset_alignment() as u64)
 }
 
 /// Two consecutive batches against the same map: the first uploads the map, the second writes
@@ -28,7 +27,7 @@ fn batch_bytes(ctx: &GpuContext, q: &DescriptorSet, passes: u64) -> u64 {
 fn the_map_is_uploaded_once_across_batches() {
     let Some(ctx) = gpu() else { return };
     let cfg = Config::without_appearance();
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let (refs, other) = (random_descriptors(40, &cfg, 21), random_descriptors(40, &cfg, 31));
     let (q1, q2) = (random_descriptors(5, &cfg, 22), random_descriptors(7, &cfg, 23));
     let mut stages = GpuStages::new(ctx.clone());
@@ -62,7 +61,7 @@ fn a_map_beyond_the_budget_is_streamed() {
         return;
     };
     let cfg = Config::without_appearance();
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let (refs, q) = (random_descriptors(30, &cfg, 41), random_descriptors(4, &cfg, 42));
     let mut stages = GpuStages::new(ctx.clone());
     for batch in 0..2 {
@@ -80,7 +79,7 @@ fn a_map_beyond_the_budget_is_streamed() {
 fn batches_are_chunked_past_binding_and_dispatch_limits() {
     let Some(ctx) = gpu_with(&GpuOptions { max_binding_size: Some(256 * 1024), max_workgroups: Some(3), ..Default::default() }) else { return };
     let cfg = Config::without_appearance();
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let (refs, q) = (random_descriptors(40, &cfg, 51), random_descriptors(10, &cfg, 52));
     let m = semlook::gpu::coarse::CoarseMatcherGpu::new(ctx.clone(), p).unwrap();
     let (qc, pass) = m.plan(7).unwrap();
@@ -109,7 +108,7 @@ fn a_large_batch_runs_on_the_device_without_falling_back() {
     let limits = GpuOptions { max_binding_size: Some(256 << 10), max_workgroups: Some(400), ..Default::default() };
     let Some(ctx) = gpu_with(&limits) else { return };
     let cfg = small_config();
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let (refs, q) = (random_descriptors(6_000, &cfg, 61), random_descriptors(1_000, &cfg, 62));
     let m = semlook::gpu::coarse::CoarseMatcherGpu::new(ctx.clone(), p).unwrap();
     let (qc, _) = m.plan(cfg.matching.top_k).unwrap();
@@ -151,7 +150,7 @@ fn subgroup_and_workgroup_reductions_give_the_same_lists() {
     }
     assert!(!b.uses_subgroups());
     let cfg = small_config();
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let (refs, q) = (random_descriptors(3000, &cfg, 71), random_descriptors(9, &cfg, 72));
     let run = |ctx: &Arc<GpuContext>| GpuStages::new(ctx.clone()).coarse(&refs, &q, &p, 40, 4096).unwrap();
     assert_eq!(run(&a), run(&b));
@@ -165,7 +164,7 @@ fn kernels_are_timed_where_the_adapter_has_timestamps() {
     let (refs, q) = (random_descriptors(20, &cfg, 81), random_descriptors(3, &cfg, 82));
     let mut stages = GpuStages::new(ctx.clone());
     ctx.take_kernel_seconds().unwrap();
-    stages.coarse(&refs, &q, &SsimParams::new(&cfg.global), 5, 4096).unwrap();
+    stages.coarse(&refs, &q, &cfg.global.ssim_params(), 5, 4096).unwrap();
     match ctx.take_kernel_seconds().unwrap() {
         Some(s) => assert!(s > 0.0 && s < 60.0, "{s} s"),
         None => assert!(!ctx.has_timestamps()),
@@ -178,9 +177,9 @@ fn kernels_are_timed_where_the_adapter_has_timestamps() {
 #[test]
 fn parallel_top_k_on_the_device_keeps_what_the_fold_keeps() {
     let Some(ctx) = gpu() else { return };
-    use semlook::kernels::abi::TileParams;
-    use semlook::kernels::abi::{EMPTY_INDEX, EMPTY_SCORE};
-    use semlook::kernels::ssim_topk::{topk_lists, topk_merge};
+    use semlook_kernels::abi::TileParams;
+    use semlook_kernels::abi::{EMPTY_INDEX, EMPTY_SCORE};
+    use semlook_kernels::ssim_topk::{topk_lists, topk_merge};
     let mut rng = semlook::util::SplitMix64::new(91);
     let specials = [f32::NAN, f32::from_bits(0x7f80_0001), f32::from_bits(0xffc0_0000), f32::INFINITY, f32::NEG_INFINITY, EMPTY_SCORE, -0.0, 0.0];
     let (nq, n) = (3, 2500);
@@ -202,7 +201,7 @@ fn parallel_top_k_on_the_device_keeps_what_the_fold_keeps() {
 fn block_kernel_equals_the_pair_kernel_on_street_scenes() {
     let Some(ctx) = gpu() else { return };
     let cfg = Config::without_appearance();
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     use semlook::tools::synth::condition::Condition;
     let refs = semlook::tools::bench::street_descriptors(&cfg, 12, Condition::Day, 0).unwrap();
     let q = semlook::tools::bench::street_descriptors(&cfg, 5, Condition::Night, 5).unwrap();
@@ -228,7 +227,7 @@ fn block_kernel_equals_the_pair_kernel_on_street_scenes() {
 fn limits_too_small_for_one_reference_name_the_resource() {
     let Some(ctx) = gpu_with(&GpuOptions { max_binding_size: Some(16 * 1024), ..Default::default() }) else { return };
     let cfg = Config::without_appearance();
-    let m = semlook::gpu::coarse::CoarseMatcherGpu::new(ctx, SsimParams::new(&cfg.global)).unwrap();
+    let m = semlook::gpu::coarse::CoarseMatcherGpu::new(ctx, cfg.global.ssim_params()).unwrap();
     match m.plan(10) {
         Err(semlook::gpu::GpuError::LimitsTooSmall { what, needed, .. }) => {
             assert!(what.contains("one reference") && needed == 19_488, "{what} {needed}")
@@ -248,7 +247,7 @@ fn ordered_by_score_then_index(list: &[(f32, u32)]) -> bool {
 fn ties_go_to_the_lower_index_on_every_path() {
     let Some(ctx) = gpu() else { return };
     let cfg = Config::without_appearance();
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let base = random_descriptors(25, &cfg, 101);
     let mut refs = base.clone();
     refs.append(&base).unwrap();
@@ -300,7 +299,7 @@ fn coarse_lists_on_real_camvid_labels_equal_both_cpu_paths() {
         }
     }
     assert!(refs.len() > 100 && q.len() > 100, "{} frames", files.len());
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let k = cfg.matching.top_k;
     let gpu = GpuStages::new(ctx.clone()).coarse(&refs, &q, &p, k, 4096).unwrap();
     let (fast, twin) = (coarse_topk(&refs, &q, &p, k, 4096), coarse_topk_twin(&refs, &q, &p, k, 4096));
@@ -329,7 +328,7 @@ fn coarse_lists_on_real_camvid_labels_equal_both_cpu_paths() {
 fn full_size_one_million_references_by_1000_queries() {
     let Some(ctx) = gpu_with(&GpuOptions { allow_software: false, ..Default::default() }) else { return };
     let cfg = Config::without_appearance();
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     use semlook::tools::synth::condition::Condition;
     let pool = semlook::tools::bench::street_descriptors(&cfg, 64, Condition::Day, 0).unwrap();
     let qpool = semlook::tools::bench::street_descriptors(&cfg, 32, Condition::Night, 5).unwrap();
@@ -359,7 +358,7 @@ fn a_stored_map_sends_its_descriptors_alone() {
     let Some(ctx) = gpu() else { return };
     let dir = tempfile::tempdir().unwrap();
     let cfg = Config::without_appearance();
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let set = random_descriptors(300, &cfg, 41);
     let path = dir.path().join("m");
     semlook::map::Map::create(&path, &cfg.encoding(), &set, None).unwrap();

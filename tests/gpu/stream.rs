@@ -11,7 +11,6 @@ use semlook::descriptors::EncodedImage;
 use semlook::encode::Encoder;
 use semlook::engine::{Engine, STREAM_FRAMES};
 use semlook::input::{FrameSource, LabelFormat};
-use semlook::kernels::abi::SsimParams;
 use semlook::matching::Setting;
 use std::path::Path;
 
@@ -52,7 +51,7 @@ fn a_second_batch_creates_nothing_and_uploads_only_its_frames() {
     let before = ctx.counters();
     let got = encode(&mut engine, &enc, &b);
     let second = ctx.counters() - before;
-    let p = SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     assert_eq!(second.buffers_created, 0, "{second:?}");
     assert_eq!(second.bind_groups_created, 0, "{second:?}");
     assert_eq!(second.bytes_uploaded, (3 * w as u64 * h as u64).next_multiple_of(4), "{second:?}");

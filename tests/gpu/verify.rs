@@ -6,18 +6,18 @@ use super::{common, gpu};
 use semlook::descriptors::keypoints::ImageKeypoints;
 use semlook::descriptors::{DescriptorSet, EncodedImage};
 use semlook::gpu::verify::MnnGpu;
-use semlook::kernels::abi::{MnnPair, MnnParams};
-use semlook::kernels::mnn_match::{mnn_match, pack};
 use semlook::local::Forest;
 use semlook::matching::{CpuStages, Stages};
 use semlook::util::SplitMix64;
 use semlook::verify::best_columns::best_columns;
+use semlook_kernels::abi::{MnnPair, MnnParams};
+use semlook_kernels::mnn_match::{mnn_match, pack};
 
 /// A set of images with `counts[i]` random keypoints of dimension `dim` (ties included: some
 /// descriptors repeat).
 fn keypoint_set(counts: &[usize], dim: usize, rng: &mut SplitMix64) -> DescriptorSet {
     let cfg = semlook::config::Config::without_appearance();
-    let p = semlook::kernels::abi::SsimParams::new(&cfg.global);
+    let p = cfg.global.ssim_params();
     let mut set = DescriptorSet::new(&p, 3, 0, 0).with_keypoint_dim(dim);
     for (i, &n) in counts.iter().enumerate() {
         let mut k = ImageKeypoints { dim, ..Default::default() };
@@ -101,7 +101,7 @@ fn verification_on_the_gpu_equals_the_cpu_on_real_frames() {
         other => return common::skip_unless_required("REQUIRE_MODELS", format!("XFeat weights (setup.sh): {:?}", other.err())),
     };
     let table = semlook::classes::ClassTable::cityscapes();
-    let mut set = DescriptorSet::new(&semlook::kernels::abi::SsimParams::new(&cfg.global), 3, 0, 0).with_keypoint_dim(64);
+    let mut set = DescriptorSet::new(&cfg.global.ssim_params(), 3, 0, 0).with_keypoint_dim(64);
     for name in ["query/020.jpg", "ref/020.jpg", "ref/045.jpg"] {
         let rgb = semlook::input::load_rgb(&dir.join(name)).unwrap();
         let rgb = semlook::input::resize_rgb(&rgb, 640, 360);
@@ -109,7 +109,7 @@ fn verification_on_the_gpu_equals_the_cpu_on_real_frames() {
         let labels = semlook::input::LabelMap::new(640, 360, vec![2; 640 * 360], &table).unwrap();
         let k = semlook::appearance::verification_keypoints(&det, cfg.keypoints.stored, &labels, 640);
         assert!(k.len() > 100, "{name}: {} keypoints", k.len());
-        let p = semlook::kernels::abi::SsimParams::new(&cfg.global);
+        let p = cfg.global.ssim_params();
         let img = EncodedImage {
             id: name.into(),
             width: 640,

@@ -21,10 +21,10 @@ use semlook::appearance::xfeat::XFeat;
 use semlook::appearance::NetOutputs;
 use semlook::gpu::xfeat::{forward_on_twins, run_kernel, XFeatGpu};
 use semlook::gpu::{GpuError, GpuOptions};
-use semlook::kernels::abi::{ConvParams, MapParams, NormParams};
-use semlook::kernels::xfeat::{self as twin, pack_conv, Epilogue};
 use semlook::nn::conv::{self as nn, Chw};
 use semlook::util::SplitMix64;
+use semlook_kernels::abi::{ConvParams, MapParams, NormParams};
+use semlook_kernels::xfeat::{self as twin, pack_conv, Epilogue};
 
 fn randn(rng: &mut SplitMix64, n: usize) -> Vec<f32> {
     (0..n).map(|_| rng.normal() as f32).collect()

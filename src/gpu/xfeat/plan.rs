@@ -5,9 +5,9 @@
 use crate::appearance::xfeat::{Layer, XFeat};
 use crate::appearance::NetOutputs;
 use crate::error::Error;
-use crate::kernels::abi::{ConvParams, MapParams, NormParams};
-use crate::kernels::xfeat::pack_conv;
 use crate::nn::conv::Chw;
+use semlook_kernels::abi::{ConvParams, MapParams, NormParams};
+use semlook_kernels::xfeat::pack_conv;
 
 /// The buffers a plan reads and writes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -5,8 +5,8 @@ use super::plan::{outputs, pack, Buf, Entry, Params, Plan, PlanError};
 use crate::appearance::xfeat::XFeat;
 use crate::appearance::NetOutputs;
 use crate::error::Error;
-use crate::kernels::xfeat as twin;
 use crate::nn::conv::Chw;
+use semlook_kernels::xfeat as twin;
 
 /// The executor's plan run on the CPU twins (`kernels::xfeat`), pass by pass, buffer by buffer:
 /// what the device is held to. Slow (the twins are written for equivalence); for tests. What

@@ -7,8 +7,8 @@
 //!   Software adapters (lavapipe, llvmpipe) have none: their rows are correctness only.
 
 use crate::engine::Engine;
-use crate::kernels::abi::SsimParams;
 use crate::matching::coarse_cpu::CoarseCpu;
+use semlook_kernels::abi::SsimParams;
 use std::time::Instant;
 
 /// Independent FMA chains per thread: latency 4 cycles x 2 FMA pipes needs 8; 12 leaves margin

@@ -1,8 +1,7 @@
 //! The host side of the shaders' structs and limits (`#[repr(C)]`, bytemuck), checked field by
-//! field against naga's reflection of the WGSL (`gpu::layout_tests`): the CPU twins
-//! ([`crate::kernels`]) and the GPU executors ([`crate::gpu`]) both import them from here.
-
-use crate::config::{Assignment, ClassMatch, GlobalConfig, MissingAppearance, Normalise, PositionSimilarity, SimilarityConfig, TreeWeight};
+//! field against naga's reflection of the WGSL (`layout_tests`): the CPU twins (this crate) and
+//! the GPU executors (`semlook::gpu`) both import them from here. They hold numbers only: the
+//! library makes them from its configuration (`semlook::config`).
 
 /// Score of an empty top-K slot (below any SSIM, which lies in [-1, 1]).
 pub const EMPTY_SCORE: f32 = -3.0e38;
@@ -16,29 +15,43 @@ pub const MAX_TREES: usize = 256;
 /// The shader's `Tree`.
 #[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
-pub(crate) struct GpuTree {
+pub struct GpuTree {
+    /// The tree's class (trees pair by its key, `TreeSimParams::key`).
     pub class_id: u32,
+    /// 1 where the tree has an appearance vector.
     pub has_app: u32,
+    /// Area of its object, as a fraction of the image.
     pub area: f32,
+    /// Centroid x, in image diagonals.
     pub cx: f32,
+    /// Centroid y, in image diagonals.
     pub cy: f32,
+    /// The tree's weight (`TreeSimParams::tree_weight`).
     pub weight: f32,
+    /// Neighbour indices into the forest, -1 for an empty slot.
     pub nb: [i32; MAX_SLOTS],
 }
 
 /// The shader's `FinePass`: one pass at a dynamic offset of the batch's parameter buffer.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
-pub(crate) struct FinePass {
+pub struct FinePass {
+    /// Length of an appearance vector.
     pub dim: u32,
+    /// Pairs this pass scores.
     pub pairs: u32,
+    /// Stride of one pair's matrices in the scratch buffer (most trees per forest).
     pub max_trees: u32,
     /// 1: every query against a run of references (grid pair g = `pair_first` + j); 0: pairs
     /// listed in the lookup; 2: listed, each scored where its grid pair's score goes.
     pub grid: u32,
+    /// Queries of the batch: their spans head the lookup.
     pub queries: u32,
+    /// Grid passes: references per query (the row length of the output).
     pub refs: u32,
+    /// Grid passes: the first reference of the chunk.
     pub ref_first: u32,
+    /// Listed passes: where this pass's pairs start after the query spans.
     pub list_first: u32,
     /// Workgroups per row of the dispatch grid (workgroup = x + y * row).
     pub row: u32,
@@ -122,19 +135,21 @@ pub struct SsimParams {
 }
 
 impl SsimParams {
-    /// The sizes and constants of `cfg`'s descriptor and SSIM window.
-    pub fn new(cfg: &GlobalConfig) -> Self {
-        let win = cfg.ssim_window as u32;
+    /// The sizes and constants of a `width` x `height` descriptor compared in `window` x `window`
+    /// windows: SSIM's constants `k` = (K1, K2) (descriptor values range over 1), and sample
+    /// (N - 1) or population covariance.
+    pub fn new(width: usize, height: usize, window: usize, k: (f64, f64), sample_covariance: bool) -> Self {
+        let win = window as u32;
         let n = (win * win) as f32;
         SsimParams {
-            gw: cfg.width as u32,
-            gh: cfg.height as u32,
+            gw: width as u32,
+            gh: height as u32,
             win,
-            nw: (cfg.width - cfg.ssim_window + 1) as u32,
-            nh: (cfg.height - cfg.ssim_window + 1) as u32,
-            c1: (cfg.ssim_k1 * cfg.ssim_k1) as f32,
-            c2: (cfg.ssim_k2 * cfg.ssim_k2) as f32,
-            cov_norm: if cfg.ssim_sample_covariance { n / (n - 1.0) } else { 1.0 },
+            nw: (width - window + 1) as u32,
+            nh: (height - window + 1) as u32,
+            c1: (k.0 * k.0) as f32,
+            c2: (k.1 * k.1) as f32,
+            cov_norm: if sample_covariance { n / (n - 1.0) } else { 1.0 },
         }
     }
     /// Values of one descriptor (gw x gh).
@@ -257,50 +272,6 @@ pub struct TreeSimParams {
 }
 
 impl TreeSimParams {
-    /// Parameters of `cfg`; the intrinsic and neighbour weights are normalised to sum to 1, so
-    /// identical forests score 1 whatever the weights.
-    pub fn new(cfg: &SimilarityConfig, use_appearance: bool, neighbour_slots: usize) -> Self {
-        let wsum = (cfg.w_intrinsic + cfg.w_neighbours).max(f64::MIN_POSITIVE);
-        TreeSimParams {
-            w_area: cfg.w_area as f32,
-            w_position: cfg.w_position as f32,
-            w_appearance: cfg.w_appearance as f32,
-            w_intrinsic: (cfg.w_intrinsic / wsum) as f32,
-            w_neighbours: (cfg.w_neighbours / wsum) as f32,
-            position_sigma: cfg.position_sigma as f32,
-            neutral: cfg.neutral_appearance as f32,
-            gaussian_position: (cfg.position == PositionSimilarity::Gaussian) as u32,
-            drop_missing: (cfg.missing_appearance == MissingAppearance::Drop) as u32,
-            use_appearance: use_appearance as u32,
-            greedy: (cfg.assignment == Assignment::Greedy) as u32,
-            neighbour_slots: neighbour_slots as u32,
-            // settings without appearance never see descriptor counts: they weigh by area instead
-            tree_weight: match cfg.tree_weight {
-                TreeWeight::Uniform => 0,
-                TreeWeight::Area => 1,
-                TreeWeight::SqrtArea => 2,
-                TreeWeight::Descriptors if use_appearance => 3,
-                TreeWeight::Descriptors => 1,
-            },
-            geometric_norm: (cfg.normalise == Normalise::GeometricMean) as u32,
-            _pad: [0; 2],
-            class_key: pack_key(&std::array::from_fn(|i| i as u8)),
-        }
-    }
-
-    /// The parameters with the pairing rule of `cfg.class_match` over `table`'s categories.
-    pub fn with_classes(mut self, cfg: &SimilarityConfig, table: &crate::classes::ClassTable) -> Self {
-        let categories = match cfg.class_match {
-            ClassMatch::Class => false,
-            ClassMatch::Category => true,
-            ClassMatch::CategoryWithAppearance => self.use_appearance != 0,
-        };
-        if categories {
-            self.class_key = pack_key(&table.category_key());
-        }
-        self
-    }
-
     /// The pairing key of class `c`.
     #[inline]
     pub fn key(&self, c: u8) -> u32 {
@@ -372,7 +343,7 @@ pub struct Dims {
 }
 
 /// 256 u8 keys, four to a little-endian word (as the kernel reads them).
-fn pack_key(key: &[u8; 256]) -> [u32; 64] {
+pub fn pack_key(key: &[u8; 256]) -> [u32; 64] {
     std::array::from_fn(|w| (0..4).fold(0u32, |acc, l| acc | (key[4 * w + l] as u32) << (8 * l)))
 }
 
@@ -481,7 +452,7 @@ pub struct NormParams {
 }
 
 /// The uniform of `lighterglue.wgsl`'s kernels, in the shader's field order; which fields a
-/// kernel reads is documented at each twin (`kernels::lighterglue`).
+/// kernel reads is documented at each twin (`lighterglue`).
 #[derive(Debug, Clone, Copy, PartialEq, Default, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 pub struct LgParams {
@@ -519,3 +490,13 @@ pub struct LgParams {
     /// Padding.
     pub _pad2: u32,
 }
+
+/// Workgroup memory the hungriest kernel uses (`mnn_match`'s tile: WebGPU's guaranteed 16 KiB;
+/// `tree_similarity_small` takes 16,272 bytes), each variable rounded up to 16 bytes as WebGPU
+/// counts it (`layout_tests` holds it to naga's reflection): an adapter with less cannot run
+/// the kernels.
+pub const WORKGROUP_STORAGE: u64 = 16_384;
+
+/// Largest global height x valid windows per row that `ssim_tile`'s workgroup array holds: the
+/// shader's `MAX_ROW_SUMS` (15 KiB of the 16 KiB every adapter has).
+pub const MAX_ROW_SUMS: usize = 3840;

@@ -2,12 +2,12 @@
 //! against a run of references, one "workgroup" per block of `rb` references x `qb` queries, the
 //! image streamed row by row through the shader's three workgroup arrays (products of a row, a
 //! ring of `win` rows of horizontal window sums, 64 lane slots per pair). Every score equals
-//! [`ssim_pair`](crate::kernels::ssim::ssim_pair)'s bit for bit: the same operations in the same
+//! [`ssim_pair`](crate::ssim::ssim_pair)'s bit for bit: the same operations in the same
 //! order (tested below).
 
 use super::abi::PassParams;
-use crate::kernels::abi::SsimParams;
-use crate::kernels::ssim::{pair_order_sum, ssim_window, LANES};
+use crate::abi::SsimParams;
+use crate::ssim::{pair_order_sum, ssim_window, LANES};
 
 /// Most pairs (rb x qb) a workgroup scores: the shader's `PAIR_CAP`.
 pub const PAIR_CAP: usize = 8;

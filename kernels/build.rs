@@ -1,16 +1,16 @@
 //! Validates every WGSL shader, in every variant, with naga before the crate compiles (as vello
 //! does): a shader error fails the build with the file, line and column. The pipelines are built
-//! from the same sources (`src/gpu/wgsl.rs`, included here), so what runs is what was checked.
+//! from the same sources (`src/wgsl.rs`, included here), so what runs is what was checked.
 
-#[path = "src/gpu/wgsl.rs"]
+#[path = "src/wgsl.rs"]
 #[allow(dead_code)]
 mod wgsl;
 
 use naga::valid::{Capabilities, ShaderStages, SubgroupOperationSet, ValidationFlags, Validator};
 
 fn main() {
-    println!("cargo:rerun-if-changed=shaders");
-    println!("cargo:rerun-if-changed=src/gpu/wgsl.rs");
+    println!("cargo:rerun-if-changed=../shaders");
+    println!("cargo:rerun-if-changed=src/wgsl.rs");
     let mut failures = Vec::new();
     for (name, src) in wgsl::INCLUDES {
         let path = format!("shaders/{name}");

@@ -2,11 +2,11 @@
 //! block shape; and the reason the kernel keeps direct window sums.
 
 use super::*;
-use crate::kernels::abi::TileParams;
-use crate::kernels::ssim::{ssim_pair, ssim_stats, SsimScratch};
-use crate::kernels::ssim_topk::ssim_tile;
-use crate::kernels::test_data::{params, set, shape};
-use crate::util::SplitMix64;
+use crate::abi::TileParams;
+use crate::rng::SplitMix64;
+use crate::ssim::{ssim_pair, ssim_stats, SsimScratch};
+use crate::ssim_topk::ssim_tile;
+use crate::test_data::{params, set, shape};
 use proptest::prelude::*;
 
 fn same(a: f32, b: f32) -> bool {

@@ -46,7 +46,7 @@ fn same_layout(file: &str, name: &str, rust: (usize, Vec<(&str, usize)>)) {
 
 #[test]
 fn shared_structs_have_the_shaders_layouts() {
-    use crate::kernels::abi::*;
+    use crate::abi::*;
     same_layout("abi.wgsl", "SsimParams", rust!(SsimParams { gw, gh, win, nw, nh, c1, c2, cov_norm }));
     same_layout("ssim_topk.wgsl", "TileParams", rust!(TileParams { queries, tile_len, tile_start, k }));
     same_layout("abi.wgsl", "PassParams", rust!(PassParams { queries, refs, ref_first, ref_index, rb, qb, k, segs, parity, fresh }));
@@ -81,7 +81,7 @@ fn shared_structs_have_the_shaders_layouts() {
     same_layout("vlad_accumulate.wgsl", "VladParams", rust!(VladParams { centres, dim, keypoints, objects, power_norm, intra_norm }));
     same_layout("global_pool.wgsl", "PoolParams", rust!(PoolParams { src_width, src_height, dst_width, dst_height, tau, frames }));
     same_layout("abi.wgsl", "Dims", rust!(Dims { width, height, frames, first }));
-    use crate::kernels::abi::{ConvParams, MapParams, NormParams};
+    use crate::abi::{ConvParams, MapParams, NormParams};
     same_layout(
         "xfeat.wgsl",
         "ConvParams",
@@ -92,7 +92,7 @@ fn shared_structs_have_the_shaders_layouts() {
     same_layout(
         "lighterglue.wgsl",
         "LgParams",
-        rust!(crate::kernels::abi::LgParams { rows, n_in, n_out, split, w_off, b_off, g_off, flags, scale, o_off, q_off, k_off, v_off }),
+        rust!(crate::abi::LgParams { rows, n_in, n_out, split, w_off, b_off, g_off, flags, scale, o_off, q_off, k_off, v_off }),
     );
 }
 
@@ -110,13 +110,13 @@ fn wgsl_const(file: &str, name: &str) -> f64 {
 
 #[test]
 fn shared_constants_agree() {
-    use crate::kernels::lighterglue as lg;
-    use crate::kernels::xfeat as xf;
-    use crate::kernels::{abi, ssim_block as b, topk_select as t};
+    use crate::lighterglue as lg;
+    use crate::xfeat as xf;
+    use crate::{abi, ssim_block as b, topk_select as t};
     let checks: [(&str, &str, f64); 39] = [
-        ("ssim_topk.wgsl", "LANES", crate::kernels::ssim::LANES as f64),
-        ("ssim_topk.wgsl", "MAX_ROW_SUMS", super::reference::MAX_ROW_SUMS as f64),
-        ("ssim_block.wgsl", "LANES", crate::kernels::ssim::LANES as f64),
+        ("ssim_topk.wgsl", "LANES", crate::ssim::LANES as f64),
+        ("ssim_topk.wgsl", "MAX_ROW_SUMS", crate::abi::MAX_ROW_SUMS as f64),
+        ("ssim_block.wgsl", "LANES", crate::ssim::LANES as f64),
         ("ssim_block.wgsl", "PAIR_CAP", b::PAIR_CAP as f64),
         ("ssim_block.wgsl", "PROD_CAP", b::PROD_CAP as f64),
         ("ssim_block.wgsl", "RING_CAP", b::RING_CAP as f64),
@@ -126,15 +126,15 @@ fn shared_constants_agree() {
         ("abi.wgsl", "EMPTY_SCORE", abi::EMPTY_SCORE as f64),
         ("abi.wgsl", "EMPTY_INDEX", abi::EMPTY_INDEX as f64),
         ("topk_select.wgsl", "NONE", abi::EMPTY_INDEX as f64),
-        ("tree_similarity.wgsl", "LANES", crate::kernels::tree_similarity::LANES as f64),
-        ("tree_similarity.wgsl", "PAIRS_PER_GROUP", crate::kernels::tree_similarity::PAIRS_PER_GROUP as f64),
-        ("tree_similarity.wgsl", "SMALL_CELLS", crate::kernels::tree_similarity::SMALL_CELLS as f64),
-        ("tree_similarity.wgsl", "SMALL_TREES", crate::kernels::tree_similarity::SMALL_TREES as f64),
-        ("tree_similarity.wgsl", "MAX_TREES", crate::kernels::abi::MAX_TREES as f64),
-        ("tree_similarity.wgsl", "MAX_SLOTS", crate::kernels::abi::MAX_SLOTS as f64),
-        ("tree_similarity.wgsl", "MISSING", crate::kernels::tree_similarity::MISSING as f64),
-        ("tree_similarity.wgsl", "NOT_A_PAIR", crate::kernels::tree_similarity::NOT_A_PAIR as f64),
-        ("vlad_accumulate.wgsl", "LANES", crate::kernels::vlad_accumulate::LANES as f64),
+        ("tree_similarity.wgsl", "LANES", crate::tree_similarity::LANES as f64),
+        ("tree_similarity.wgsl", "PAIRS_PER_GROUP", crate::tree_similarity::PAIRS_PER_GROUP as f64),
+        ("tree_similarity.wgsl", "SMALL_CELLS", crate::tree_similarity::SMALL_CELLS as f64),
+        ("tree_similarity.wgsl", "SMALL_TREES", crate::tree_similarity::SMALL_TREES as f64),
+        ("tree_similarity.wgsl", "MAX_TREES", crate::abi::MAX_TREES as f64),
+        ("tree_similarity.wgsl", "MAX_SLOTS", crate::abi::MAX_SLOTS as f64),
+        ("tree_similarity.wgsl", "MISSING", crate::tree_similarity::MISSING as f64),
+        ("tree_similarity.wgsl", "NOT_A_PAIR", crate::tree_similarity::NOT_A_PAIR as f64),
+        ("vlad_accumulate.wgsl", "LANES", crate::vlad_accumulate::LANES as f64),
         ("xfeat.wgsl", "LANES", xf::LANES as f64),
         ("xfeat.wgsl", "CHUNK", xf::CHUNK as f64),
         ("xfeat.wgsl", "TILE_W", xf::TILE_W as f64),
@@ -160,11 +160,12 @@ fn shared_constants_agree() {
 }
 
 /// Every entry point of every shader has a CPU twin of the same name in the file of the same name
-/// under `src/kernels/` (`shaders/x.wgsl` -> `src/kernels/x.rs`, `pub fn entry(`), and every
-/// file there but the ABI and the test data is a shader's twin.
+/// in this crate (`shaders/x.wgsl` -> `kernels/src/x.rs`, `pub fn entry(`), and every file here
+/// but the crate's root, the interface (ABI, bindings, sources), the value views, the generator,
+/// the shared SSIM window and the tests is a shader's twin.
 #[test]
 fn every_kernel_has_a_same_name_twin() {
-    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src/kernels");
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
     for (file, _) in SHADERS {
         let twin = dir.join(file.replace(".wgsl", ".rs"));
         let text = std::fs::read_to_string(&twin).unwrap_or_else(|e| panic!("{file}: no twin {}: {e}", twin.display()));
@@ -182,12 +183,13 @@ fn every_kernel_has_a_same_name_twin() {
         let name = e.file_name().to_string_lossy().into_owned();
         let Some(stem) = name.strip_suffix(".rs") else { continue };
         let shader = format!("{}.wgsl", stem.trim_end_matches("_tests"));
-        let known = SHADERS.iter().chain(&INCLUDES).any(|s| s.0 == shader) || ["mod", "test_data", "ssim"].contains(&stem);
-        assert!(known, "src/kernels/{name} mirrors no shader");
+        let known = SHADERS.iter().chain(&INCLUDES).any(|s| s.0 == shader)
+            || ["lib", "bindings", "wgsl", "values", "rng", "layout_tests", "test_data", "ssim"].contains(&stem);
+        assert!(known, "kernels/src/{name} mirrors no shader");
     }
 }
 
-/// The workgroup memory the context requires of an adapter (`context::WORKGROUP_STORAGE`) is
+/// The workgroup memory the context requires of an adapter (`abi::WORKGROUP_STORAGE`) is
 /// what the hungriest entry point uses, in every preprocessing variant: the workgroup variables
 /// it reaches, each rounded up to 16 bytes as WebGPU counts them.
 #[test]
@@ -213,18 +215,18 @@ fn the_context_requires_the_workgroup_memory_the_kernels_use() {
             }
         }
     }
-    assert_eq!(most.0, super::context::WORKGROUP_STORAGE, "the most workgroup memory is {} bytes, in {}", most.0, most.1);
+    assert_eq!(most.0, crate::abi::WORKGROUP_STORAGE, "the most workgroup memory is {} bytes, in {}", most.0, most.1);
     assert!(most.0 <= 16_384, "{}: beyond WebGPU's guaranteed 16 KiB", most.1);
 }
 
-/// Every entry point's bind groups as the host lists them (`kernels::BINDINGS`, what the
+/// Every entry point's bind groups as the host lists them (`bindings::BINDINGS`, what the
 /// pipelines are built from) are the shader's, checked from naga's reflection with no adapter:
 /// each binding the entry point uses (in every preprocessing variant) is listed in its group with
 /// its address space and access (uniform; storage read-only; storage read-write), each listed
 /// slot is a binding of the shader of that kind, and every entry point of every shader is listed.
 #[test]
 fn every_kernels_bind_groups_are_its_shaders() {
-    use super::kernels::{Slot, BINDINGS};
+    use crate::bindings::{Slot, BINDINGS};
     for (file, _) in SHADERS {
         for ep in &module(file).entry_points {
             assert!(BINDINGS.iter().any(|b| b.0 == file && b.1 == ep.name), "{file}: entry point {} has no bind groups listed", ep.name);

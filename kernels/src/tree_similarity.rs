@@ -49,6 +49,22 @@ pub struct ForestRef<'a> {
     pub dim: usize,
 }
 
+impl<'a> ForestRef<'a> {
+    /// Number of trees.
+    pub fn len(&self) -> usize {
+        self.classes.len()
+    }
+    /// Whether the forest has no trees.
+    pub fn is_empty(&self) -> bool {
+        self.classes.is_empty()
+    }
+    /// Neighbour indices of tree `k` (filled slots only).
+    pub fn neighbours_of(&self, k: usize) -> impl Iterator<Item = usize> + 'a {
+        let n = self.neighbour_slots;
+        self.neighbours[k * n..(k + 1) * n].iter().filter(|&&j| j >= 0).map(|&j| j as usize)
+    }
+}
+
 /// Value of a cosine slot whose pair lacks appearance on either side.
 pub const MISSING: f32 = -2.0;
 /// Value of a pair-score slot whose trees differ in class (never assigned).
@@ -245,7 +261,8 @@ pub(crate) fn greedy_assignment(
 
 /// Reference for phase 3: sort all same-class pairs by score (descending, stable in (t, u)) and
 /// accept each whose row and column are free, as method.md §2.8 writes it (unit weights).
-pub fn greedy_assignment_reference(scores: &[f32], nq: usize, nr: usize) -> f32 {
+#[cfg(test)]
+fn greedy_assignment_reference(scores: &[f32], nq: usize, nr: usize) -> f32 {
     let mut pairs: Vec<usize> = (0..nq * nr).filter(|&i| scores[i] > NOT_A_PAIR).collect();
     pairs.sort_by(|&a, &b| scores[b].total_cmp(&scores[a]).then(a.cmp(&b)));
     let (mut rows, mut cols) = (vec![false; nq], vec![false; nr]);
@@ -492,4 +509,23 @@ pub fn tree_similarity_small(
         }
     }
     stats
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        /// Repeated-argmax greedy (the GPU loop shape) equals the sort-based greedy of method.md §2.8.
+        #[test]
+        fn greedy_matches_sorting_reference(nq in 1usize..12, nr in 1usize..12, seed in any::<u64>()) {
+            let mut rng = crate::rng::SplitMix64::new(seed);
+            // few distinct values, so ties happen
+            let scores: Vec<f32> = (0..nq * nr).map(|_| if rng.chance(0.3) { NOT_A_PAIR } else { (rng.below(5) as f32) / 4.0 }).collect();
+            let (mut r, mut c) = (vec![], vec![]);
+            let fast = greedy_assignment(&scores, nq, nr, &vec![1.0; nq], &vec![1.0; nr], &mut r, &mut c);
+            prop_assert_eq!(fast, greedy_assignment_reference(&scores, nq, nr));
+        }
+    }
 }

@@ -4,9 +4,8 @@
 //! is O(queries x (K + tile)), never queries x map.
 
 use super::abi::{TileParams, EMPTY_INDEX, EMPTY_SCORE};
-use crate::error::{Error, Result};
-use crate::kernels::abi::SsimParams;
-use crate::kernels::ssim::{ssim_pair, SsimScratch};
+use crate::abi::SsimParams;
+use crate::ssim::{ssim_pair, SsimScratch};
 use rayon::prelude::*;
 
 /// Pairs per parallel task of the CPU twin: enough work to amortise scheduling, small enough
@@ -80,15 +79,27 @@ fn fold_indexed(items: impl Iterator<Item = (f32, u32)>, ts: &mut [f32], ti: &mu
     }
 }
 
+/// Why [`merge_lists`] refused its parts.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct MergeError(pub String);
+
+impl std::fmt::Display for MergeError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for MergeError {}
+
 /// Merges per-part K-lists of the same queries (indices already in one global index space, each
 /// part's list holding the K best of its references) into the global K-lists: candidates sorted
 /// by index go through the same fold as one pass over the whole map, so the result is the one a
 /// single process computes, ties across parts included. Fails if the parts disagree on the
-/// number of queries, or a list holds one reference twice (an [`Error::Check`]).
-pub fn merge_lists(parts: &[&[Vec<(f32, u32)>]], k: usize) -> Result<Vec<Vec<(f32, u32)>>> {
+/// number of queries, or a list holds one reference twice.
+pub fn merge_lists(parts: &[&[Vec<(f32, u32)>]], k: usize) -> Result<Vec<Vec<(f32, u32)>>, MergeError> {
     let nq = parts.first().map_or(0, |p| p.len());
     if let Some(p) = parts.iter().find(|p| p.len() != nq) {
-        return Err(Error::check(format!("parts hold {} and {nq} queries", p.len())));
+        return Err(MergeError(format!("parts hold {} and {nq} queries", p.len())));
     }
     if k == 0 {
         return Ok(vec![vec![]; nq]);
@@ -98,7 +109,7 @@ pub fn merge_lists(parts: &[&[Vec<(f32, u32)>]], k: usize) -> Result<Vec<Vec<(f3
             let mut all: Vec<(f32, u32)> = parts.iter().flat_map(|p| p[q].iter().copied()).collect();
             all.sort_by_key(|&(_, r)| r);
             if let Some(w) = all.windows(2).find(|w| w[0].1 == w[1].1) {
-                return Err(Error::check(format!("reference {} is a candidate of query {q} twice", w[0].1)));
+                return Err(MergeError(format!("reference {} is a candidate of query {q} twice", w[0].1)));
             }
             let (mut ts, mut ti) = (vec![EMPTY_SCORE; k], vec![EMPTY_INDEX; k]);
             fold_indexed(all.into_iter(), &mut ts, &mut ti);

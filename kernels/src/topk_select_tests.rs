@@ -1,9 +1,9 @@
 //! Partial lists and merges keep what the streaming fold keeps, bit for bit.
 
 use super::*;
-use crate::kernels::abi::TileParams;
-use crate::kernels::ssim_topk::{topk_lists, topk_merge};
-use crate::util::SplitMix64;
+use crate::abi::TileParams;
+use crate::rng::SplitMix64;
+use crate::ssim_topk::{topk_lists, topk_merge};
 use proptest::prelude::*;
 
 /// Scores with exact ties, both zeros, NaN (quiet, signalling, negative), infinities and the

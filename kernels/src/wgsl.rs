@@ -8,7 +8,7 @@
 //! operations where the adapter has them, through workgroup memory where it does not.
 //!
 //! `//#include FILE` appends one of [`INCLUDES`] (structs and constants several shaders share,
-//! the WGSL side of `kernels::abi`) after the shader's last line: WGSL declarations may come in
+//! the WGSL side of `abi`) after the shader's last line: WGSL declarations may come in
 //! any order, and the shader's own lines keep their numbers. Includes hold no directives.
 
 /// The names a shader's variants are chosen by.

@@ -1,10 +1,9 @@
 //! Global descriptors for the coarse kernels' property tests: every kind of input the kernels
 //! must score alike (smooth fields, noise, flat windows and exact ties, constants).
 
-use crate::config::GlobalConfig;
-use crate::kernels::abi::SsimParams;
-use crate::kernels::ssim::{ssim_stats, SsimScratch};
-use crate::util::SplitMix64;
+use crate::abi::SsimParams;
+use crate::rng::SplitMix64;
+use crate::ssim::{ssim_stats, SsimScratch};
 use proptest::prelude::*;
 
 /// A descriptor of one of four kinds: a smooth field (like a distance map), uniform noise,
@@ -24,7 +23,9 @@ pub fn descriptor(p: &SsimParams, rng: &mut SplitMix64) -> Vec<f32> {
 
 /// `n` global descriptors and their SSIM statistics, concatenated as the kernels read them.
 pub struct Globals {
+    /// The descriptors, concatenated.
     pub globals: Vec<f32>,
+    /// Their SSIM statistics, concatenated.
     pub global_stats: Vec<f32>,
 }
 
@@ -41,16 +42,9 @@ pub fn set(p: &SsimParams, n: usize, pool: usize, rng: &mut SplitMix64) -> Globa
     out
 }
 
+/// The parameters of a `w` x `h` descriptor, window `win`, covariance and constants as given.
 pub fn params(w: usize, h: usize, win: usize, sample: bool, k: (f64, f64)) -> SsimParams {
-    SsimParams::new(&GlobalConfig {
-        width: w,
-        height: h,
-        ssim_window: win,
-        ssim_sample_covariance: sample,
-        ssim_k1: k.0,
-        ssim_k2: k.1,
-        ..Default::default()
-    })
+    SsimParams::new(w, h, win, k, sample)
 }
 
 /// Descriptor sizes from one window to 40 x 30 past it, odd windows 3..=11, both covariance

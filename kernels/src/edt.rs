@@ -125,7 +125,7 @@ mod tests {
         /// The transform is exact: it equals the brute-force minimum on random sparse edge maps.
         #[test]
         fn equals_brute_force(w in 1usize..40, h in 1usize..40, density in 0.0f64..0.2, seed in any::<u64>()) {
-            let mut rng = crate::util::SplitMix64::new(seed);
+            let mut rng = crate::rng::SplitMix64::new(seed);
             let edges: Vec<u32> = (0..w * h).map(|_| (rng.next_f64() < density) as u32).collect();
             let fast = run(&edges, w, h);
             let slow = edt_brute_force(&edges, w, h);

@@ -1,6 +1,6 @@
 //! Structural similarity of global descriptors: the CPU path's reference (`ssim_pair`,
-//! `ssim_stats`) that the twins `kernels::ssim_topk`, `kernels::ssim_block` and
-//! `kernels::ssim_stats` are held to.
+//! `ssim_stats`) that the twins `ssim_topk`, `ssim_block` and
+//! `ssim_stats` are held to.
 //!
 //! SSIM (Wang, Bovik, Sheikh & Simoncelli, IEEE TIP 2004; paper ref. 26) with a uniform square
 //! window over all valid window positions, as skimage's `structural_similarity` computes it. Each

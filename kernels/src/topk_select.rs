@@ -5,8 +5,8 @@
 //! reference index, NaN skipped (tested below).
 
 use super::abi::Entry;
-use crate::kernels::abi::PassParams;
-use crate::kernels::abi::{EMPTY_INDEX, EMPTY_SCORE};
+use crate::abi::PassParams;
+use crate::abi::{EMPTY_INDEX, EMPTY_SCORE};
 
 /// References per segment, one workgroup's share of a pass: the shader's `SEG`. Large enough that
 /// a pass of a few thousand references has few partial lists to merge; the workgroup holds the

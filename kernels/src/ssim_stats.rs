@@ -53,9 +53,9 @@ pub fn stats_windows(p: &SsimParams, dims: &Dims, rows: &[f32], stats: &mut [f32
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::kernels::ssim::{ssim_stats, SsimScratch};
-    use crate::kernels::test_data::{set, shape};
-    use crate::util::SplitMix64;
+    use crate::rng::SplitMix64;
+    use crate::ssim::{ssim_stats, SsimScratch};
+    use crate::test_data::{set, shape};
     use proptest::prelude::*;
 
     proptest! {

@@ -3,7 +3,7 @@
 //! runs is `verify::best_columns` (a matrix product; the twin's indices and dot products, bit
 //! for bit).
 //!
-//! Descriptors are int8 ([`crate::descriptors::keypoints::DESCRIPTOR_SCALE`] times the unit vector), four to a
+//! Descriptors are int8 (`semlook::descriptors::keypoints::DESCRIPTOR_SCALE` times the unit vector), four to a
 //! `u32` word. Dot products are exact integers, so the twin, the fast path and the GPU kernel agree
 //! exactly: for every row of one side, the column of the other side with the largest dot product
 //! (the lowest index among equals) and that dot product. A query keypoint i and a reference
