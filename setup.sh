@@ -49,7 +49,7 @@ elif command -v apt-get >/dev/null 2>&1; then
 else
     say "no apt-get: install a Vulkan driver yourself for the GPU path; GPU tests will skip with a message"
 fi
-# 1a. Chromium (headless): tests/report.rs renders `eval --report`'s page in it
+# 1a. Chromium (headless): cli/tests/report.rs renders `eval --report`'s page in it
 if [ $tests = 0 ]; then
     : # the test command's set-up
 elif command -v chromium >/dev/null 2>&1; then

@@ -12,7 +12,7 @@ use semlook::config::Config;
 use semlook::global::ssim_fast::{
     interleave, query_lane_terms, query_lane_terms_len, ref_lane_terms, ref_lane_terms_len, ssim_lanes_fast, LaneScratch,
 };
-use semlook::tools::synth::condition::Condition;
+use semlook_cli::tools::synth::condition::Condition;
 use semlook_kernels::abi::SsimParams;
 use semlook_kernels::ssim::{ssim_pair, SsimScratch};
 

@@ -6,7 +6,7 @@ use semlook::descriptors::DescriptorSet;
 use semlook::descriptors::EncodedImage;
 use semlook::encode::Encoder;
 use semlook::input::LabelMap;
-use semlook::tools::synth::{self, condition::Condition, SynthConfig};
+use semlook_cli::tools::synth::{self, condition::Condition, SynthConfig};
 
 /// `n` label maps of consecutive places at `w` x `h` (degraded as under `cond`).
 pub fn street_labels(n: usize, w: usize, h: usize, cond: Condition) -> Vec<LabelMap> {

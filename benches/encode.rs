@@ -6,7 +6,7 @@ use criterion::{criterion_group, criterion_main, Criterion};
 use semlook::config::Config;
 use semlook::encode::Encoder;
 use semlook::global::{encode_global, GlobalScratch};
-use semlook::tools::synth::condition::Condition;
+use semlook_cli::tools::synth::condition::Condition;
 
 mod common;
 
@@ -38,10 +38,10 @@ fn bench(c: &mut Criterion) {
     // appearance, reported apart from the rest as the paper's Table 2 does (needs setup.sh)
     match semlook::appearance::AppearanceModel::load(&Default::default(), &Default::default()) {
         Ok(Some(model)) => {
-            let scfg = semlook::tools::synth::SynthConfig { places: 3, width: 640, height: 480, ..Default::default() };
-            let scene = semlook::tools::synth::Scene::new(&scfg);
-            let dynamic = semlook::tools::synth::dynamic_objects(&scene.world, scfg.seed, 0, scfg.persistence);
-            let f = semlook::tools::synth::render_frame(&scfg, &scene, &dynamic, 0, 1, Condition::Day);
+            let scfg = semlook_cli::tools::synth::SynthConfig { places: 3, width: 640, height: 480, ..Default::default() };
+            let scene = semlook_cli::tools::synth::Scene::new(&scfg);
+            let dynamic = semlook_cli::tools::synth::dynamic_objects(&scene.world, scfg.seed, 0, scfg.persistence);
+            let f = semlook_cli::tools::synth::render_frame(&scfg, &scene, &dynamic, 0, 1, Condition::Day);
             let rgb = image::RgbImage::from_raw(640, 480, f.rgb).unwrap();
             let (grey, _, _) = semlook::appearance::network_input(&rgb).unwrap();
             // the network as encoding runs it (dense descriptors for VLAD and the keypoint heads

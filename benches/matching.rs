@@ -9,7 +9,7 @@
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use semlook::config::Config;
 use semlook::matching::{coarse_topk, coarse_topk_twin};
-use semlook::tools::synth::condition::Condition;
+use semlook_cli::tools::synth::condition::Condition;
 use semlook_kernels::tree_similarity::{tree_similarity, TreeSimScratch};
 
 mod common;

@@ -1,5 +1,5 @@
-// Structs and constants several shaders share: the WGSL side of `src/kernels/abi.rs` (the Rust
-// structs are checked against these by `gpu::layout_tests`). A shader takes them with
+// Structs and constants several shaders share: the WGSL side of `kernels/src/abi.rs` (the Rust
+// structs are checked against these by the kernels crate's `layout_tests`). A shader takes them with
 // `//#include abi.wgsl`; they are appended after its last line.
 
 // Sizes of the SSIM kernels' descriptors and their constants (`ssim_block`, `ssim_topk`).

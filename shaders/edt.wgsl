@@ -1,5 +1,5 @@
 // Exact Euclidean distance transform, Meijster, Roerdink & Hesselink (ISMM 2000).
-// CPU twin: src/kernels/edt.rs (`edt_columns`, `edt_rows`). 32-bit integer arithmetic only, so the
+// CPU twin: kernels/src/edt.rs (`edt_columns`, `edt_rows`). 32-bit integer arithmetic only, so the
 // squared distances equal the CPU's bit for bit.
 
 //#include abi.wgsl

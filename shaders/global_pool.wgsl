@@ -1,4 +1,4 @@
-// Truncation and area resizing of the distance transform. CPU twin: src/kernels/global_pool.rs
+// Truncation and area resizing of the distance transform. CPU twin: kernels/src/global_pool.rs
 // (`global_pool`). One invocation per output cell (gid.x) of frame gid.y.
 
 struct PoolParams {

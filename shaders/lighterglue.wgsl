@@ -1,6 +1,6 @@
 // LighterGlue (XFeat's LightGlue: Potje et al., CVPR 2024; Lindenberger, Sarlin and Pollefeys,
 // ICCV 2023) on the device: the operations of one forward pass over a batch of keypoint pairs.
-// CPU twins of the same names, bindings and loop shape: src/kernels/lighterglue.rs; the executor
+// CPU twins of the same names, bindings and loop shape: kernels/src/lighterglue.rs; the executor
 // that strings them into the network: src/gpu/lighterglue.rs (the same plan runs on the twins).
 //
 // Every point of every pair is one row of the batch; a row's partners (its own image's points in

@@ -1,6 +1,6 @@
 // Mutual nearest neighbours between the keypoints of (query, reference) pairs: for every row of one
 // side, the column of the other side with the largest dot product (the lowest index among equals)
-// and that dot product. CPU twin: src/kernels/mnn_match.rs (`mnn_match`), which gives the same
+// and that dot product. CPU twin: kernels/src/mnn_match.rs (`mnn_match`), which gives the same
 // indices and dot products bit for bit (integer arithmetic).
 //
 // Descriptors are int8, four to a u32 word. One workgroup scores 64 rows of one side of one pair

@@ -1,4 +1,4 @@
-// Semantic edge extraction. CPU twin: src/kernels/semantic_edges.rs (`semantic_edges`).
+// Semantic edge extraction. CPU twin: kernels/src/semantic_edges.rs (`semantic_edges`).
 // A pixel is an edge pixel when its class is used and a 4-neighbour has a different used class.
 // One invocation per pixel; frames of a batch along z. Class ids are bytes, four to a word
 // (pixel i in byte i % 4 of word i / 4): one byte per pixel crosses to the device.

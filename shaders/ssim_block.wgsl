@@ -1,4 +1,4 @@
-// Block-tiled batched SSIM: the coarse stage's scores. CPU twin: src/kernels/ssim_block.rs
+// Block-tiled batched SSIM: the coarse stage's scores. CPU twin: kernels/src/ssim_block.rs
 // (`ssim_block`), whose scores equal `kernels::ssim::ssim_pair`'s bit for bit.
 //
 // Algorithm: one workgroup scores a block of `rb` references x `qb` queries (the block shape is
@@ -43,7 +43,7 @@ var<workgroup> acc: array<f32, 512>;
 
 // f: the factors (1 / win², 2 cov_norm) (`window_factors`)
 fn ssim_window(f: vec2<f32>, sum_xy: f32, mx: f32, my: f32, vx: f32, vy: f32) -> f32 {
-    // the twin's grouping (src/kernels/ssim.rs, ssim_window_terms)
+    // the twin's grouping (kernels/src/ssim.rs, ssim_window_terms)
     let a = mx * my;
     let num = (2.0 * a + p.c1) * ((sum_xy * f.x - a) * f.y + p.c2);
     let den = ((mx * mx + p.c1) + my * my) * ((vx + p.c2) + vy);

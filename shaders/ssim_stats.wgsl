@@ -1,5 +1,5 @@
 // SSIM window statistics of a batch of pooled global descriptors, on the device so that a
-// descriptor's stats never cross to the host to be computed. CPU twin: src/kernels/ssim_stats.rs
+// descriptor's stats never cross to the host to be computed. CPU twin: kernels/src/ssim_stats.rs
 // (`stats_row_sums`, `stats_windows`), whose values equal `kernels::ssim::ssim_stats`'s bit for
 // bit: the same separable window sums, in the same order.
 //

@@ -1,6 +1,6 @@
 // Batched SSIM of a query batch against one tile of the map, and streaming top-K.
-// CPU twin: src/kernels/ssim_topk.rs (`ssim_tile`, `topk_merge`), which uses
-// src/kernels/ssim.rs (`ssim_pair`) for one pair.
+// CPU twin: kernels/src/ssim_topk.rs (`ssim_tile`, `topk_merge`), which uses
+// kernels/src/ssim.rs (`ssim_pair`) for one pair.
 //
 // ssim_tile: one workgroup per (reference in tile, query) pair. Lanes compute the horizontal
 // window sums of x*y into workgroup memory, then the vertical sums (both in the twin's pair
@@ -38,7 +38,7 @@ var<workgroup> partial: array<f32, 64>;
 
 // f: the factors (1 / win², 2 cov_norm) (`window_factors`)
 fn ssim_window(f: vec2<f32>, sum_xy: f32, mx: f32, my: f32, vx: f32, vy: f32) -> f32 {
-    // the twin's grouping (src/kernels/ssim.rs, ssim_window_terms)
+    // the twin's grouping (kernels/src/ssim.rs, ssim_window_terms)
     let a = mx * my;
     let num = (2.0 * a + p.c1) * ((sum_xy * f.x - a) * f.y + p.c2);
     let den = ((mx * mx + p.c1) + my * my) * ((vx + p.c2) + vy);

@@ -1,5 +1,5 @@
 // Parallel top-K over a pass's scores (queries x refs, query-major), in two steps.
-// CPU twin: src/kernels/topk_select.rs (`topk_partial`, `topk_merge_lists`).
+// CPU twin: kernels/src/topk_select.rs (`topk_partial`, `topk_merge_lists`).
 //
 // Order: a candidate ranks before another if its score is higher, or equal with a lower reference
 // index (the streaming top-K's rule: ties go to the lower index). NaN scores, and scores not above

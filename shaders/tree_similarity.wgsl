@@ -1,4 +1,4 @@
-// Batched forest-to-forest similarity. CPU twin: src/kernels/tree_similarity.rs
+// Batched forest-to-forest similarity. CPU twin: kernels/src/tree_similarity.rs
 // (phase 1 cosines, phase 2 pair scores, phase 3 greedy assignment or best match, normalisation).
 // Two entry points:
 // - `tree_similarity_small`: a workgroup takes PAIRS_PER_GROUP consecutive pairs and scores them

@@ -1,4 +1,4 @@
-// VLAD per object. CPU twin: src/kernels/vlad_accumulate.rs (`vlad_assign`, `vlad_accumulate`).
+// VLAD per object. CPU twin: kernels/src/vlad_accumulate.rs (`vlad_assign`, `vlad_accumulate`).
 // vlad_assign: one invocation per keypoint, nearest centre (ties to the lower index).
 // vlad_accumulate: one workgroup per object; lane l owns dimensions l, l + 64, ... of every
 // centre: residual sums, optional per-centre L2 (intra) normalisation and signed square root, and

@@ -1,6 +1,6 @@
 // The XFeat network (Potje et al., CVPR 2024) on the device: every layer of the native forward
 // pass (src/appearance/xfeat.rs) as a dispatch, with no host round trip between layers (the
-// executor is src/gpu/xfeat.rs). CPU twins: src/kernels/xfeat.rs (same names, bindings and loop
+// executor is src/gpu/xfeat/). CPU twins: kernels/src/xfeat.rs (same names, bindings and loop
 // shapes); the CPU path runs the fast ops of src/nn/conv.rs, held to these twins by tests.
 //
 // instance_norm_partials: one workgroup per CHUNK values of the grey input: their count, mean

@@ -16,8 +16,9 @@
 //! runtime: convolutions, ONNX Runtime, weight readers); under the stages, [`descriptors`]
 //! (descriptor sets, the source traits matching reads, value checks), the layer encoding, the map
 //! store, matching and appearance share. [`engine`] runs encoding and matching on the CPU or
-//! [`gpu`]. Beside the engine, behind the `tools` feature: `tools` (the synthetic benchmark,
-//! pictures, benchmarks, sweeps).
+//! [`gpu`]. Beside the engine, in crates of their own: `semlook-kernels` (the WGSL kernels, their CPU
+//! twins and the host ABI) under it, and `semlook-cli` (the command line and the developer tools:
+//! synthetic benchmark, pictures, benchmarks, sweeps) over it.
 //!
 //! The example of `docs/library.md` (compiled here):
 //!
@@ -77,11 +78,6 @@ pub mod objects;
 pub mod progress;
 pub mod segmentation;
 pub mod stream;
-/// Internal, public for the binary and tests only: the developer tools of the command line
-/// (synthetic benchmark, pictures, benchmarks, sweeps), behind the `tools` feature.
-#[cfg(feature = "tools")]
-#[doc(hidden)]
-pub mod tools;
 /// Internal, public for the binary and tests only: small helpers the command line and the tests share (atomic writes, hashing); not the API.
 #[doc(hidden)]
 pub mod util;
@@ -89,5 +85,9 @@ pub mod verify;
 
 pub use choice::Choice;
 pub use error::{Error, ErrorKind, Result};
+/// The parameters of the SSIM and tree-similarity kernels, which `config` makes
+/// ([`config::GlobalConfig::ssim_params`], [`config::SimilarityConfig::tree_params`]) and the
+/// matching functions take: the kernels crate's.
+pub use semlook_kernels::abi::{SsimParams, TreeSimParams};
 /// The value views stages read (f32, f16, int8 blocks): the kernels crate's, where the twins read them.
 pub use semlook_kernels::values;

@@ -313,7 +313,7 @@ fn semlook_commands(md: &str) -> Vec<(Vec<String>, String)> {
 /// prose (fenced code, link targets and web addresses aside) is, word for word, on a measurement
 /// page README links to: a linked `.md` page with a fenced `sh` block that runs `semlook`. The
 /// `semlook` commands of those pages' `sh` blocks name only commands docs/cli.md lists (the
-/// synopsis tests/cli.rs holds to `--help`), so the command beside a figure is one that exists.
+/// synopsis cli/tests/cli.rs holds to `--help`), so the command beside a figure is one that exists.
 /// Every untraced figure and every unknown command is listed at once.
 #[test]
 fn readme_figures_are_on_measurement_pages() {

@@ -7,7 +7,10 @@
 //! in a file directly under `src/` is `crate::NAME`). No module is exempt, `error` included.
 //!
 //! And no cycle anywhere: among the top-level modules of the library, and among the files of every
-//! folder of it, of the command line and of the Python package (`python/src`). Within a folder,
+//! folder of it, of the kernels crate (`kernels/src`), of the command line's crate (`cli/src`) and
+//! of the Python package (`python/src`). What the crates may import of each other is Cargo's to
+//! say; this test reads their manifests only to hold that the library needs none of the command
+//! line's dependencies. Within a folder,
 //! a file's imports are its `super::NAME` and `crate::PATH::NAME` paths, NAME resolved to the
 //! sibling file that defines it (directly, or through the parent's `pub use`) or else to the
 //! parent (`mod.rs`, or `X.rs` for folder `X/`); the parent's own imports are its `child::`
@@ -270,7 +273,7 @@ fn no_file_imports_itself_through_a_cycle() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let mut problems = vec![];
     let mut seen = 0;
-    for src in [root.join("src"), root.join("kernels/src"), root.join("python/src")] {
+    for src in [root.join("src"), root.join("kernels/src"), root.join("cli/src"), root.join("python/src")] {
         for (dir, path, parent) in folders(&src) {
             seen += 1;
             for c in cycles(&folder_graph(&dir, &path, &parent)) {
@@ -278,20 +281,23 @@ fn no_file_imports_itself_through_a_cycle() {
             }
         }
     }
-    // the Python package's root folder: its files import each other as `crate::NAME`
-    let py = root.join("python/src");
-    let mut g: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
-    for e in std::fs::read_dir(&py).unwrap().flatten() {
-        let p = e.path();
-        let stem = p.file_stem().unwrap().to_string_lossy().into_owned();
-        if p.extension().is_some_and(|x| x == "rs") && stem != "lib" {
-            let refs = named_after(&source(&p), "crate::");
-            g.entry(stem.clone()).or_default().extend(refs.into_iter().filter(|r| *r != stem && py.join(format!("{r}.rs")).exists()));
+    // the root folders of the Python package, the kernels crate and the command line's crate:
+    // their files import each other as `crate::NAME` (the root's subfolders are walked above)
+    for (dir, least) in [("python/src", 5), ("kernels/src", 15), ("cli/src", 1)] {
+        let top = root.join(dir);
+        let mut g: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+        for e in std::fs::read_dir(&top).unwrap().flatten() {
+            let p = e.path();
+            let stem = p.file_stem().unwrap().to_string_lossy().into_owned();
+            if p.extension().is_some_and(|x| x == "rs") && stem != "lib" && stem != "main" {
+                let refs = named_after(&source(&p), "crate::");
+                g.entry(stem.clone()).or_default().extend(refs.into_iter().filter(|r| *r != stem && top.join(format!("{r}.rs")).exists()));
+            }
         }
-    }
-    assert!(g.len() >= 5, "the Python package's files were not read: {:?}", g.keys().collect::<Vec<_>>());
-    for c in cycles(&g) {
-        problems.push(format!("python/src: {c:?}"));
+        assert!(g.len() >= least, "{dir}'s files were not read: {:?}", g.keys().collect::<Vec<_>>());
+        for c in cycles(&g) {
+            problems.push(format!("{dir}: {c:?}"));
+        }
     }
     assert!(seen >= 10, "only {seen} folders read");
     assert!(problems.is_empty(), "files in cycles:\n{}", problems.join("\n"));
@@ -354,15 +360,36 @@ fn the_whole_image_descriptors_reach_no_later_stage() {
     assert!(g["encode"].contains("global") && g["matching"].contains("global"), "the graph lacks global's users");
 }
 
-/// The tools sit beside the engine (behind the `tools` feature): no module of the engine reaches
-/// them, so the library builds without them.
+/// The library's dependencies, read from its manifest (`[dependencies]` and the target-specific
+/// ones): none of the command line's (its parser, its charts, its crate), so an application that
+/// embeds the engine builds none of them; and the kernels crate depends on no part of semlook.
+/// (What a crate may import is then Cargo's to enforce: no test reads the tools' imports.)
 #[test]
-fn the_engine_never_imports_the_tools() {
-    let g = import_graph();
-    assert!(g.contains_key("tools") && g["tools"].contains("eval"), "the graph lacks the tools: {:?}", g.get("tools"));
-    for m in g.keys().filter(|m| !["tools", "cli"].contains(&m.as_str())) {
-        assert!(!reachable(&g, m).contains("tools"), "{m} reaches the tools");
+fn the_library_depends_on_no_command_line_crate() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let deps = |manifest: &str| -> Vec<String> {
+        let text = std::fs::read_to_string(root.join(manifest)).unwrap();
+        let mut out = vec![];
+        let mut in_deps = false;
+        for line in text.lines().map(str::trim) {
+            if line.starts_with('[') {
+                in_deps = line == "[dependencies]" || (line.starts_with("[target.") && line.ends_with(".dependencies]"));
+            } else if in_deps && !line.starts_with('#') {
+                if let Some((name, _)) = line.split_once('=') {
+                    out.push(name.trim().to_string());
+                }
+            }
+        }
+        out
+    };
+    let lib = deps("Cargo.toml");
+    assert!(lib.iter().any(|d| d == "wgpu") && lib.iter().any(|d| d == "semlook-kernels"), "the library's dependencies were not read: {lib:?}");
+    for cli_only in ["clap", "plotters", "semlook-cli", "signal-hook"] {
+        assert!(!lib.iter().any(|d| d == cli_only), "the library depends on {cli_only}, the command line's");
     }
+    let kernels = deps("kernels/Cargo.toml");
+    assert!(kernels.iter().any(|d| d == "bytemuck"), "the kernels' dependencies were not read: {kernels:?}");
+    assert!(!kernels.iter().any(|d| d.starts_with("semlook")), "the kernels crate depends on {kernels:?}");
 }
 
 #[test]
@@ -385,7 +412,7 @@ fn building_a_map_never_passes_through_evaluation() {
         assert!(!reachable(&g, m).contains("eval"), "{m} reaches eval");
     }
     // the map commands of the command line
-    let cli = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("src/cli/commands/map_cmd.rs")).unwrap();
+    let cli = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("cli/src/cli/commands/map_cmd.rs")).unwrap();
     let cli = strip_comments(&cli);
     assert!(!cli.contains("eval::"), "map commands call into eval");
 }
@@ -467,7 +494,7 @@ const PUBLIC_MODULES: [&str; 25] = [
     "stream",
     "verify",
 ];
-const INTERNAL_MODULES: [&str; 3] = ["progress", "tools", "util"];
+const INTERNAL_MODULES: [&str; 2] = ["progress", "util"];
 
 /// `pub mod NAME` items of `text` (comments kept out), each with whether `#[doc(hidden)]` and a
 /// reason (a `///` or `//` comment) come before it.
@@ -508,6 +535,10 @@ fn the_public_surface_is_decided() {
         if !mods.iter().any(|(m, _)| m == name) {
             problems.push(format!("{name}: listed here but not a public module of lib.rs"));
         }
+    }
+    // the value views are the kernels crate's, shown where the stages read them
+    if !lib.lines().any(|l| l.trim() == "pub use semlook_kernels::values;") {
+        problems.push("values: no longer re-exported from the kernels crate".into());
     }
     assert!(problems.is_empty(), "the public surface:\n{}", problems.join("\n"));
 }

@@ -594,7 +594,7 @@ fn two_writers_committing_in_turn_both_land_and_a_raced_id_is_refused() {
 /// An image removed and added again makes a segment of the same bytes as the one that held it
 /// (files are named by their content). The new one gets a name of its own: before, the manifest
 /// listed one file twice (its rows and tombstones shared), and every open then failed with
-/// "segment ... is listed twice" (found by the soak test, `tests/soak.rs`).
+/// "segment ... is listed twice" (found by the soak test, `cli/tests/soak.rs`).
 #[test]
 fn an_image_removed_and_added_again_gets_a_segment_of_its_own() {
     let dir = tempfile::tempdir().unwrap();

@@ -264,9 +264,9 @@ fn camera_files_are_read_and_bad_ones_named() {
 fn the_pose_of_a_rendered_pair_is_the_renderers() {
     use semlook::appearance::{verification_keypoints, AppearanceModel};
     use semlook::config::{AppearanceConfig, ModelPaths, Sampling, VerificationConfig};
-    use semlook::tools::synth::{condition::Condition, render_frame, Scene, SynthConfig};
     use semlook::verify::pose::pair_pose;
     use semlook::verify::{pair_matches, VerifyParams};
+    use semlook_cli::tools::synth::{condition::Condition, render_frame, Scene, SynthConfig};
     let model = match AppearanceModel::load(&AppearanceConfig { sampling: Sampling::Keypoints, ..Default::default() }, &ModelPaths::default()) {
         Ok(Some(m)) => m,
         other => {
@@ -285,7 +285,7 @@ fn the_pose_of_a_rendered_pair_is_the_renderers() {
     let cam = Camera { fx: f, fy: f, cx: 319.5, cy: 239.5, width: 640, height: 480 };
     let scene = Scene::new(&cfg);
     let table = semlook::classes::ClassTable::cityscapes();
-    let keypoints = |frame: &semlook::tools::synth::RenderedFrame| {
+    let keypoints = |frame: &semlook_cli::tools::synth::RenderedFrame| {
         let rgb = image::RgbImage::from_raw(640, 480, frame.rgb.clone()).unwrap();
         let labels = semlook::input::LabelMap::new(640, 480, frame.labels.clone(), &table).unwrap();
         verification_keypoints(&model.keypoints(&rgb).unwrap(), 1024, &labels, 640)

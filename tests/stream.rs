@@ -11,7 +11,7 @@ use semlook::input::FrameSource;
 use semlook::map::{Map, MapWriter, StoreOptions, TraversalPlan};
 use semlook::matching::Setting;
 use semlook::stream::{FrameResult, Localizer, Pixels, StreamFrame, StreamOptions};
-use semlook::tools::synth::camvid::{self, Change};
+use semlook_cli::tools::synth::camvid::{self, Change};
 use std::path::{Path, PathBuf};
 
 /// CamVid's labels as a label-only configuration.
@@ -198,16 +198,16 @@ fn loop_closure_finds_the_repeated_synthetic_route_and_nothing_recent() {
     let data = dir.path().join("synth");
     // a route that repeats, not perceptual aliasing: no repeated layout templates (the
     // renderer's default, 0.6, gives distinct places one layout)
-    let synth = semlook::tools::synth::SynthConfig {
+    let synth = semlook_cli::tools::synth::SynthConfig {
         seed: 11,
         places: 90,
         width: 320,
         height: 240,
         aliasing: 0.0,
-        queries: vec![semlook::tools::synth::condition::Condition::Overcast],
+        queries: vec![semlook_cli::tools::synth::condition::Condition::Overcast],
         ..Default::default()
     };
-    semlook::tools::synth::generate(&synth, &data, &|| {}).unwrap();
+    semlook_cli::tools::synth::generate(&synth, &data, &|| {}).unwrap();
     let frames = |t: &str| -> Vec<FrameSource> {
         let d = data.join(t).join("GT/LABELS").join(semlook::dataset::SYNTHIA_CAMERA);
         let mut v: Vec<PathBuf> = std::fs::read_dir(&d).unwrap().flatten().map(|e| e.path()).collect();

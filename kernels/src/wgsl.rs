@@ -1,5 +1,5 @@
 //! The shader sources and their one preprocessor directive, shared by the pipelines
-//! (`kernels.rs`) and the build script (`build.rs` includes this file), which validates every
+//! (`semlook::gpu`) and the build script (`build.rs` includes this file), which validates every
 //! variant of every shader with naga before the crate compiles.
 //!
 //! A shader may hold lines that only one variant compiles, between `//#if NAME`, an optional
@@ -38,8 +38,8 @@ pub fn defines_used(src: &str) -> Vec<&'static str> {
     DEFINES.iter().copied().filter(|d| src.lines().any(|l| l.trim() == format!("//#if {d}"))).collect()
 }
 
-/// A preprocessor directive out of place (the build script includes this file, so it has an
-/// error type of its own rather than the crate's: `gpu` wraps it into `GpuError::Shader`).
+/// A preprocessor directive out of place (the build script includes this file, so the type stands
+/// alone; `semlook::gpu` wraps it into `GpuError::Shader`).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct DirectiveError {
     /// The directive's line (1-based); `None`: the end of the file.

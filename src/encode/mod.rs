@@ -352,7 +352,7 @@ impl Encoder {
 
     /// [`Encoder::encode_loaded`] with the keypoint network's output given (cached by a caller
     /// that encodes the same frames with several configurations, such as `tune`).
-    pub(crate) fn encode_loaded_with(
+    pub fn encode_loaded_with(
         &self,
         id: &str,
         loaded: &Loaded,

@@ -3,7 +3,7 @@
 //! centre's sum is L2-normalised (intra-normalisation), optionally power-normalised, and the
 //! concatenation is L2-normalised. Here: that definition (`vlad_reference`, in f64) and the
 //! codebook, trained by k-means with k-means++ seeding; the kernels' CPU twins are in
-//! `kernels::vlad_accumulate` (named after `shaders/vlad_accumulate.wgsl`).
+//! `semlook_kernels::vlad_accumulate` (named after `shaders/vlad_accumulate.wgsl`).
 
 use crate::error::{Error, Result};
 use crate::util::SplitMix64;

@@ -167,7 +167,7 @@ fn kernel(device: &wgpu::Device, m: &wgpu::ShaderModule, file: &str, entry: &str
         .find(|b| b.0 == file && b.1 == entry)
         .ok_or_else(|| GpuError::Shader {
             name: format!("{file}:{entry}"),
-            message: "no bind groups listed for this entry point (gpu/kernels.rs BINDINGS)".into(),
+            message: "no bind groups listed for this entry point (semlook_kernels::bindings::BINDINGS)".into(),
         })?
         .2;
     kernel_counted(device, m, file, entry, groups, made)

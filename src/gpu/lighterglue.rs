@@ -5,7 +5,7 @@
 //! (`verify`), as with the MNN kernel.
 //!
 //! The forward pass is written once ([`forward`]) over a [`Backend`]: the device ([`GlueGpu`])
-//! or the CPU twins (`kernels::lighterglue`, [`forward_on_twins`]), which is what the device is
+//! or the CPU twins (`semlook_kernels::lighterglue`, [`forward_on_twins`]), which is what the device is
 //! held to. It follows `verify::lighterglue::LighterGlue::forward` pass for pass: per layer a
 //! self- and a cross-attention block; after each layer but the last, where asked, early exit
 //! (depth confidence, per pair) and point pruning (width confidence): the heads' logits come back

@@ -49,7 +49,7 @@ fn base64_decode(s: &str) -> Vec<u8> {
 
 /// The fixture file.
 pub fn fixtures() -> Value {
-    serde_json::from_str(&std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/lighterglue_pairs.json")).unwrap()).unwrap()
+    serde_json::from_str(&std::fs::read_to_string(super::repo().join("tests/data/lighterglue_pairs.json")).unwrap()).unwrap()
 }
 
 /// The reference's matches of a fixture pair's run ("pruned" or "full"): (i, j, probability).

@@ -5,7 +5,7 @@ use semlook::config::Config;
 use semlook::descriptors::DescriptorSet;
 use semlook::encode::Encoder;
 use semlook::input::LabelMap;
-use semlook::tools::synth::{self, SynthConfig};
+use semlook_cli::tools::synth::{self, SynthConfig};
 use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
@@ -20,7 +20,7 @@ pub fn skip(reason: impl std::fmt::Display) {
     use std::io::Write;
     let n = SKIPS.fetch_add(1, Ordering::Relaxed) + 1;
     let test = std::thread::current().name().unwrap_or("?").to_string();
-    let binary = module_path!().trim_end_matches("::common");
+    let binary = module_path!().split("::").next().unwrap_or("?");
     let _ = writeln!(std::io::stderr(), "SKIPPED ({n} in {binary}): {test}: {reason}");
 }
 
@@ -72,7 +72,7 @@ pub fn tiny_synth(dir: &Path, places: usize, seed: u64) -> SynthConfig {
         places,
         width: 160,
         height: 120,
-        queries: vec![semlook::tools::synth::condition::Condition::Overcast, semlook::tools::synth::condition::Condition::Night],
+        queries: vec![semlook_cli::tools::synth::condition::Condition::Overcast, semlook_cli::tools::synth::condition::Condition::Night],
         ..Default::default()
     };
     synth::generate(&cfg, dir, &|| {}).unwrap();
@@ -140,7 +140,7 @@ pub fn street_scene(w: usize, h: usize) -> LabelMap {
     let cfg = SynthConfig { places: 3, width: w, height: h, ..Default::default() };
     let scene = synth::Scene::new(&cfg);
     let dynamic = synth::dynamic_objects(&scene.world, cfg.seed, 0, cfg.persistence);
-    let f = synth::render_frame(&cfg, &scene, &dynamic, 0, 1, semlook::tools::synth::condition::Condition::Day);
+    let f = synth::render_frame(&cfg, &scene, &dynamic, 0, 1, semlook_cli::tools::synth::condition::Condition::Day);
     LabelMap::new(w as u32, h as u32, f.labels, &semlook::classes::ClassTable::cityscapes()).unwrap()
 }
 
@@ -148,7 +148,7 @@ pub fn street_scene(w: usize, h: usize) -> LabelMap {
 /// test skips with the reason, or fails under CI (`CI` set) or with REQUIRE_SHARED=1, where the
 /// real-image guards must run.
 pub fn shared_or_required(rel: &str) -> Option<std::path::PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared").join(rel);
+    let p = repo().join("../shared").join(rel);
     if p.exists() {
         return Some(p);
     }
@@ -165,24 +165,6 @@ pub fn edit_sealed_manifest(dir: &Path, edit: impl FnOnce(&str) -> String) {
     std::fs::write(&path, parsed.to_json().unwrap()).unwrap();
 }
 
-/// Runs the `semlook` binary with `args`.
-pub fn cli(args: &[&str]) -> std::process::Output {
-    std::process::Command::new(bin()).args(args).output().expect("binary runs")
-}
-
-/// The `semlook` binary under test: this build's, or `$SEMLOOK_TEST_BIN` (an older build, to
-/// see a new test fail on what it was written against).
-pub fn bin() -> std::path::PathBuf {
-    std::env::var_os("SEMLOOK_TEST_BIN").filter(|b| !b.is_empty()).map_or_else(|| env!("CARGO_BIN_EXE_semlook").into(), Into::into)
-}
-
-/// The stdout of a `semlook` run that must succeed.
-pub fn cli_ok(args: &[&str]) -> String {
-    let out = cli(args);
-    assert!(out.status.success(), "semlook {args:?} failed:\n{}", String::from_utf8_lossy(&out.stderr));
-    String::from_utf8(out.stdout).unwrap()
-}
-
 /// A path as the `&str` a command line takes.
 pub fn p(path: &Path) -> &str {
     path.to_str().unwrap()
@@ -197,4 +179,11 @@ pub fn damage(path: &Path, from_end: usize, mask: u8) -> Vec<u8> {
     bad[k] ^= mask;
     std::fs::write(path, &bad).unwrap();
     good
+}
+
+/// The repository's root (the workspace's, where Cargo.lock is), whichever package's tests
+/// include these helpers (the engine's `tests/`, the command line's `cli/tests/`).
+pub fn repo() -> &'static Path {
+    let manifest = Path::new(env!("CARGO_MANIFEST_DIR"));
+    manifest.ancestors().find(|d| d.join("Cargo.lock").is_file()).unwrap_or(manifest)
 }

@@ -4,7 +4,7 @@ use super::{gpu_with, random_descriptors};
 use semlook::config::{Config, GlobalConfig};
 use semlook::engine::Engine;
 use semlook::gpu::GpuOptions;
-use semlook::tools::bench::{run, BenchOptions};
+use semlook_cli::tools::bench::{run, BenchOptions};
 
 /// CPU and GPU rows at small sizes (8 x 8 descriptors), a resident map (300 references) and a
 /// synthetic one (1,200, beyond a 256 KiB binding: several chunks), then the same with a 100 kB

@@ -1,5 +1,5 @@
 //! LighterGlue on the device (`shaders/lighterglue.wgsl`, executor `gpu::lighterglue`) held to
-//! its CPU twins (`kernels::lighterglue`, run by the same executor plan as `gpu::lighterglue::Twins`).
+//! its CPU twins (`semlook_kernels::lighterglue`, run by the same executor plan as `gpu::lighterglue::Twins`).
 //! The twins themselves are held to the authors' model on real pairs by tests/lighterglue.rs
 //! (`the_device_plan_on_the_twins_matches_the_reference`). Tolerances, and what lavapipe showed
 //! (2-core development machine):

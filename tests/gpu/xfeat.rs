@@ -1,5 +1,5 @@
 //! The XFeat network on the device (`shaders/xfeat.wgsl`, executor `gpu::xfeat`) held to its CPU
-//! twins (`kernels::xfeat`), and the CPU path's fast ops (`nn::conv`) held to the same
+//! twins (`semlook_kernels::xfeat`), and the CPU path's fast ops (`nn::conv`) held to the same
 //! twins. Tolerances, and the largest differences seen on lavapipe (2-core development machine):
 //!
 //! - kernel vs twin, random inputs of awkward sizes: `conv2d` within 1e-5 relative to

@@ -2,7 +2,7 @@
 //! [`XFeat::forward_with`] as one submission of dispatches, with no host round trip between
 //! layers; only the grey frame goes up and only the outputs come back.
 //!
-//! Residency: the weights are packed (`kernels::xfeat::pack_conv`) and uploaded once, when the
+//! Residency: the weights are packed (`semlook_kernels::xfeat::pack_conv`) and uploaded once, when the
 //! executor is made. For a frame size, the activation buffers, the one uniform buffer holding
 //! every pass's parameters (at dynamic offsets), the bind groups and the read-back buffer are
 //! made once and kept until a frame of another size comes; a repeated size creates no buffer and

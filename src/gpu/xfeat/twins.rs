@@ -1,4 +1,4 @@
-//! The executor's plan run on the CPU twins (`kernels::xfeat`) instead of the device: the
+//! The executor's plan run on the CPU twins (`semlook_kernels::xfeat`) instead of the device: the
 //! reference the device is held to.
 
 use super::plan::{outputs, pack, Buf, Entry, Params, Plan, PlanError};
@@ -8,7 +8,7 @@ use crate::error::Error;
 use crate::nn::conv::Chw;
 use semlook_kernels::xfeat as twin;
 
-/// The executor's plan run on the CPU twins (`kernels::xfeat`), pass by pass, buffer by buffer:
+/// The executor's plan run on the CPU twins (`semlook_kernels::xfeat`), pass by pass, buffer by buffer:
 /// what the device is held to. Slow (the twins are written for equivalence); for tests. What
 /// does not fit is an [`Error::Check`].
 #[doc(hidden)]
