@@ -73,8 +73,6 @@ pub mod matching;
 pub mod models;
 pub mod nn;
 pub mod objects;
-/// Internal, public for the binary and tests only: the command line's progress bars.
-#[doc(hidden)]
 pub mod progress;
 pub mod segmentation;
 pub mod stream;

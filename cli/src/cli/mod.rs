@@ -6,6 +6,7 @@ mod args;
 mod commands;
 pub mod hint;
 mod logger;
+mod progress;
 
 pub use output::is_broken_pipe;
 
@@ -15,7 +16,7 @@ pub fn run() -> semlook::Result<()> {
     let cli = args::Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
     hint::set_command_flags(command_flags(&matches));
     logger::init(cli.quiet);
-    semlook::progress::show(!cli.quiet);
+    progress::show(!cli.quiet);
     commands::dispatch(cli)
 }
 
