@@ -22,9 +22,8 @@ use super::buffers::{PassBuffer, Reused};
 use super::context::{GpuContext, GpuError};
 use super::kernels::Kernel;
 use crate::descriptors::keypoints::KeypointsRef;
-use crate::verify::lighterglue::{
-    confidence_threshold, network_inputs, sigmoid, GlueMatch, GlueParams, LighterGlue, PackedFfn, PackedGlue, PackedLinear,
-};
+use crate::nn::dense::sigmoid;
+use crate::verify::lighterglue::{confidence_threshold, network_inputs, GlueMatch, GlueParams, LighterGlue, PackedFfn, PackedGlue, PackedLinear};
 use semlook_kernels::abi::LgParams;
 use semlook_kernels::lighterglue::{self as twin, grid, FLAG_ACCUMULATE, FLAG_GELU, LANES, LN_ROWS, NO_PARTNER, TILE};
 use std::sync::Arc;

@@ -4,12 +4,14 @@
 //!
 //! - [`conv`]: the CPU operations of the convolutional networks (convolution by im2col and a
 //!   matrix product, batch and instance norm, pooling, resizing), on CHW tensors.
+//! - [`dense`]: the dense layers of the transformer networks (linear, softmax, layer norm, GELU).
 //! - `onnx`: ONNX Runtime through `ort` (loaded dynamically), one process-wide environment and
 //!   pools of sessions.
 //! - `torch_pt` and `pickle`: PyTorch state dicts read without Python (the zip archive, its
 //!   pickle run on a small safe pickle machine).
 
 pub mod conv;
+pub mod dense;
 // Internal, public for the binary and tests only: ONNX Runtime loading for the command line and the tests; embedders go through `segmentation` and `appearance`.
 #[doc(hidden)]
 pub mod onnx;
