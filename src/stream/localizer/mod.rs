@@ -2,7 +2,7 @@
 //! and, in loop-closure mode, the writer; one frame at a time.
 
 use super::latency::Latency;
-use super::sequence::{contributions, SequenceMatch, SequenceMatcher};
+use super::sequence::{contributions, SequenceMatcher};
 use super::types::{Answer, AnswerSource, FrameResult, LoopClosure, Pixels, PlaceMatch, SequenceResult, StreamCounts, StreamFrame, StreamOptions};
 use crate::config::{Config, SequenceRows};
 use crate::descriptors::source::{GlobalSource, Place, RefSource, Window};
@@ -11,44 +11,21 @@ use crate::encode::{Encoder, Loaded, StageTimes};
 use crate::engine::Engine;
 use crate::error::{Error, Result};
 use crate::input::LabelFormat;
-use crate::map::{manifest, ColumnDims, Map, MapWriter, StoreOptions, TraversalPlan};
+use crate::map::{manifest, Map, MapWriter, StoreOptions, TraversalPlan};
 use crate::matching::{Candidate, QueryMatch, Setting};
 use crate::util::ms_since;
 use crate::verify::pose::{Camera, PoseParams};
 use crate::verify::VerifyParams;
-use std::collections::{HashMap, HashSet, VecDeque};
+mod clock;
+mod closure;
+mod tracking;
+
+use clock::{check_timestamp, follow_rate, watch_edge, Rate};
+use closure::{closes, LoopState};
+use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-
-/// Loop-closure state: the writer of the stream's traversal and what the exclusion needs.
-struct LoopState {
-    writer: Option<MapWriter>,
-    dir: PathBuf,
-    /// Frames of the stream added so far (committed or buffered in the writer).
-    added: u64,
-    /// (position along the stream's traversal, timestamp) of the frames added within
-    /// `stream.exclude_seconds`.
-    recent: VecDeque<(u64, f64)>,
-    /// Before the map exists: the first frames, decoded, to train its codebook on.
-    warm: Vec<(String, Loaded, Option<f64>)>,
-    /// A resumed stream: the traversal it continues (known before the writer's first commit).
-    resumed: Option<u32>,
-    /// A resumed stream: the ids the map held when it was opened.
-    held: HashSet<String>,
-}
-
-impl LoopState {
-    fn new(dir: &Path, writer: Option<MapWriter>) -> LoopState {
-        LoopState { writer, dir: dir.to_path_buf(), added: 0, recent: VecDeque::new(), warm: vec![], resumed: None, held: HashSet::new() }
-    }
-}
-
-/// Tracking: the last accepted sequence match (place, velocity) and the frames since it.
-#[derive(Debug, Clone, Copy, Default)]
-struct Track {
-    at: Option<(Place, f32)>,
-    misses: usize,
-}
+use tracking::{follow, lean_encoder, tracking_window, Track};
 
 /// Localizes a stream of frames against a map, one frame at a time.
 pub struct Localizer {
@@ -77,74 +54,6 @@ pub struct Localizer {
     /// The newest generation, refused by [`Localizer::refresh`] for a damaged file: a next try
     /// at the same generation takes its checks over.
     refused: Option<Map>,
-}
-
-/// Frames in a row whose best trajectory runs at the velocity range's edge before the warning
-/// (at most `sequence.length`).
-const EDGE_FRAMES: usize = 8;
-
-/// Frames to measure a stream's frame interval over (the median step of their timestamps).
-const INTERVAL_FRAMES: usize = 15;
-
-/// The stream's frame rate against the map's, and the trajectories at the velocity range's edge.
-#[derive(Debug, Clone, Default)]
-struct Rate {
-    /// The last steps between the stream's timestamps, seconds.
-    steps: VecDeque<f64>,
-    /// Frames in a row whose best trajectory ran at the range's edge.
-    edge_run: usize,
-    /// The edge was warned about (once per stream).
-    warned: bool,
-}
-
-impl Rate {
-    /// The stream's frame interval: the median of the last steps.
-    fn interval(&self) -> Option<f64> {
-        let mut v: Vec<f64> = self.steps.iter().copied().collect();
-        v.sort_by(f64::total_cmp);
-        v.get(v.len() / 2).copied()
-    }
-}
-
-/// Counts the frames whose best trajectory runs at the velocity range's edge, or is refused for
-/// want of the newest frame's support (a trajectory left behind a camera the range does not
-/// follow), and warns once [`EDGE_FRAMES`] of them come in a row: the camera is likely faster than
-/// the range follows.
-fn watch_edge(seq: &SequenceMatcher, cfg: &crate::config::SequenceConfig, rate: &mut Rate, counts: &mut StreamCounts, m: Option<&SequenceMatch>) {
-    let (lo, hi) = seq.velocity_range();
-    let at_edge = m.is_some_and(|m| {
-        let v = m.velocity as f64;
-        m.frames > 1 && ((v - hi).abs() < 1e-3 * hi.abs().max(1.0) || (lo < 0.0 && (v - lo).abs() < 1e-3 * lo.abs().max(1.0)))
-    });
-    let unsupported = m.is_some_and(|m| m.frames >= cfg.min_frames && !m.supported);
-    counts.velocity_edge += u64::from(at_edge);
-    counts.unsupported += u64::from(unsupported);
-    match at_edge || unsupported {
-        true => rate.edge_run += 1,
-        false => rate.edge_run = 0,
-    }
-    if rate.edge_run >= EDGE_FRAMES.min(cfg.length).max(2) && !rate.warned {
-        rate.warned = true;
-        log::warn!(
-            "sequence: the best trajectory has run at the edge of the velocity range ({lo:.2} to {hi:.2} positions per frame), or without \
-             the newest frame's support, for {} frames: \
-             the camera may move faster than the range follows (a map and a stream at other frame rates?); give the map's \
-             images and the stream's frames timestamps, or set sequence.velocity_scale (docs/streams.md, \"Rates\")",
-            rate.edge_run
-        );
-    }
-}
-
-/// The encoder of tracked frames where `stream.embed_when_tracking` is off and `encoder` embeds.
-fn lean_encoder(cfg: &Config, encoder: &Encoder) -> Option<Encoder> {
-    (!cfg.stream.embed_when_tracking && encoder.embedder().is_some()).then(|| encoder.clone().without_embedding())
-}
-
-/// The median frame interval of the map's timed traversals.
-fn map_interval(map: &Map) -> Option<f64> {
-    let mut v: Vec<f64> = map.manifest.frame_intervals.values().copied().collect();
-    v.sort_by(f64::total_cmp);
-    v.get(v.len() / 2).copied()
 }
 
 impl Localizer {
@@ -420,7 +329,7 @@ impl Localizer {
         let t0 = Instant::now();
         let StreamFrame { id, pixels, timestamp } = frame;
         let meta = FrameMeta { id, timestamp };
-        let loaded = match self.check_timestamp(&meta) {
+        let loaded = match check_timestamp(&meta.id, meta.timestamp, self.last_timestamp) {
             Ok(()) => load_frame(&self.encoder, &meta.id, pixels, self.format),
             Err(e) => Err(e),
         };
@@ -437,23 +346,12 @@ impl Localizer {
     fn push_loaded_at(&mut self, meta: FrameMeta, loaded: Result<Loaded>, t0: Instant) -> Result<FrameResult> {
         let index = self.counts.frames;
         self.counts.frames += 1;
-        match self.check_timestamp(&meta).and(loaded) {
+        match check_timestamp(&meta.id, meta.timestamp, self.last_timestamp).and(loaded) {
             Ok(l) => self.locate_loaded(index, &meta, l, t0),
             Err(e) => {
                 self.counts.refused += 1;
                 Err(e)
             }
-        }
-    }
-
-    fn check_timestamp(&self, frame: &FrameMeta) -> Result<()> {
-        match (frame.timestamp, self.last_timestamp) {
-            (Some(t), _) if !t.is_finite() => Err(Error::invalid(format!("frame {:?}", frame.id), format!("timestamp {t} is not a finite number"))),
-            (Some(t), Some(last)) if t < last => Err(Error::invalid(
-                format!("frame {:?}", frame.id),
-                format!("timestamp {t} is before the previous frame's ({last}): refused (frames must come in time order)"),
-            )),
-            _ => Ok(()),
         }
     }
 
@@ -478,15 +376,7 @@ impl Localizer {
         let size_changed = self.last_size.is_some_and(|s| s != size);
         self.last_size = Some(size);
         self.frame_size = size;
-        if let Some(t) = frame.timestamp {
-            if let Some(step) = self.last_timestamp.map(|last| t - last).filter(|&d| d > 0.0) {
-                if self.rate.steps.len() == INTERVAL_FRAMES {
-                    self.rate.steps.pop_front();
-                }
-                self.rate.steps.push_back(step);
-            }
-            self.last_timestamp = Some(t);
-        }
+        self.rate.note(&mut self.last_timestamp, frame.timestamp);
         let mut r = self.locate(index, frame, &img, latency, t0, lean)?;
         r.size_changed = size_changed;
         if self.lc.is_some() {
@@ -509,39 +399,15 @@ impl Localizer {
     }
 
     /// The part of the map this frame may be matched against (index range), and whether it is a
-    /// tracking window.
+    /// tracking window: in loop-closure mode the map before the stream's recent frames, else the
+    /// tracking window where the stream is tracked, else the whole map.
     fn search_range(&self, map: &Map, timestamp: Option<f64>) -> (std::ops::Range<usize>, bool) {
-        let all = 0..map.len();
         if let Some(lc) = &self.lc {
-            let Some(t) = lc.writer.as_ref().and_then(MapWriter::traversal).or(lc.resumed) else { return (all, false) };
-            let st = &self.cfg.stream;
-            let mut excluded = (st.exclude_frames as u64).min(lc.added);
-            if let (Some(now), true) = (timestamp, st.exclude_seconds > 0.0) {
-                let within = lc.recent.iter().filter(|(_, ts)| now - ts < st.exclude_seconds).count() as u64;
-                excluded = excluded.max(within);
-            }
-            let cutoff = (lc.added - excluded) as u32;
-            return match map.at(Place { traversal: t, position: cutoff }) {
-                Some(i) => (0..i, false),
-                None => (all, false),
-            };
+            return (lc.search_range(map, &self.cfg.stream, timestamp), false);
         }
-        let st = &self.cfg.stream;
-        match self.track.at {
-            Some((p, v)) if st.track_radius > 0 => {
-                // where the last accepted match, moving on at its velocity, is now
-                let ahead = (self.track.misses + 1) as f64;
-                let centre = (p.position as f64 + v as f64 * ahead).round().max(0.0) as u32;
-                let r = st.track_radius as u32;
-                let lo = centre.saturating_sub(r);
-                let hi = (centre + r).min(map.traversal_len(p.traversal).saturating_sub(1));
-                match (map.at(Place { traversal: p.traversal, position: lo }), map.at(Place { traversal: p.traversal, position: hi })) {
-                    // one contiguous run of the map's indices
-                    (Some(a), Some(b)) if b >= a && b - a == (hi - lo) as usize => (a..b + 1, true),
-                    _ => (all, false),
-                }
-            }
-            _ => (all, false),
+        match tracking_window(&self.track, &self.cfg.stream, map) {
+            Some(r) => (r, true),
+            None => (0..map.len(), false),
         }
     }
 
@@ -597,15 +463,7 @@ impl Localizer {
             let lens = |t: u32| map.traversal_len(t);
             let row = contributions(&self.cfg.sequence, &scored, &lens);
             // the velocity range follows the stream's frame rate against the map's
-            let scale = match (self.cfg.sequence.velocity_scale, self.rate.interval(), map_interval(map)) {
-                (Some(k), _, _) => k,
-                (None, Some(stream), Some(map)) => (stream / map).clamp(1.0 / 64.0, 64.0),
-                _ => 1.0,
-            };
-            if (scale / self.seq.velocity_scale() - 1.0).abs() > 0.05 {
-                log::info!("sequence: velocity range x{scale:.3} (the stream's frame interval over the map's)");
-                self.seq.set_velocity_scale(scale);
-            }
+            follow_rate(&mut self.seq, &self.cfg.sequence, &self.rate, map);
             let m = self.seq.push(row, &lens);
             let velocity_scale = self.seq.velocity_scale();
             sequence =
@@ -628,18 +486,9 @@ impl Localizer {
             latency.sequence_ms = ms_since(t);
         }
         // tracking follows accepted matches, and lets go after `lost_after` frames without one
-        match &sequence {
-            Some(s) if s.matched.accepted => {
-                self.track = Track { at: Some((s.matched.place, s.matched.velocity)), misses: 0 };
-                self.counts.accepted += 1;
-            }
-            _ => {
-                self.track.misses += 1;
-                if self.track.misses >= self.cfg.stream.lost_after {
-                    self.track.at = None;
-                }
-            }
-        }
+        let accepted = sequence.as_ref().filter(|s| s.matched.accepted).map(|s| &s.matched);
+        self.track.follow(accepted, self.cfg.stream.lost_after);
+        self.counts.accepted += u64::from(accepted.is_some());
         // the relative pose of an accepted answer, with the camera's intrinsics
         let (mut relative_pose, mut relative_pose_refused) = (None, None);
         if let (Some((camera, vp)), Some(a)) = (&self.camera, answer.as_ref().filter(|a| a.accepted)) {
@@ -662,16 +511,8 @@ impl Localizer {
             }
             latency.pose_ms = ms_since(t);
         }
-        let st = &self.cfg.stream;
-        let closes = |m: &SequenceMatch| {
-            m.accepted
-                && m.uniqueness < super::sequence::UNIQUENESS_CAP
-                && m.uniqueness as f64 >= st.closure_uniqueness
-                && (m.velocity.abs() as f64) >= st.closure_min_velocity
-                && m.score as f64 >= st.closure_min_score
-        };
         let closure = match (&self.lc, &sequence) {
-            (Some(_), Some(s)) if closes(&s.matched) => {
+            (Some(_), Some(s)) if closes(&self.cfg.stream, &s.matched) => {
                 self.counts.closures += 1;
                 let inliers = ranked.iter().find(|c| src.inner_index(c.reference as usize) == s.index as usize).and_then(|c| c.inliers);
                 Some(LoopClosure {
@@ -710,23 +551,9 @@ impl Localizer {
     /// Loop-closure mode: adds the frame to the stream's traversal; commits every
     /// `stream.commit_frames` and moves to the generation of the commit.
     fn store(&mut self, img: &EncodedImage, timestamp: Option<f64>) -> Result<()> {
-        let (commit, exclude_s) = (self.cfg.stream.commit_frames, self.cfg.stream.exclude_seconds);
+        let interval = self.rate.interval();
         let Some(lc) = &mut self.lc else { return Ok(()) };
-        let Some(w) = &mut lc.writer else { return Ok(()) };
-        w.push(img)?;
-        if let Some(t) = timestamp {
-            lc.recent.push_back((lc.added, t));
-            while lc.recent.front().is_some_and(|(_, ts)| t - ts >= exclude_s) {
-                lc.recent.pop_front();
-            }
-        }
-        lc.added += 1;
-        if lc.added % commit as u64 == 0 {
-            // the stream's traversal records its frame interval (what a later stream's range follows)
-            if let Some(dt) = self.rate.interval() {
-                w.set_frame_interval(dt)?;
-            }
-            w.flush()?;
+        if lc.push(img, timestamp, &self.cfg.stream, interval)? {
             self.refresh()?;
         }
         Ok(())
@@ -767,51 +594,10 @@ impl Localizer {
         })
     }
 
+    /// Loop-closure mode before the map exists: the map made of the kept frames, checked and opened.
     fn create_map(&mut self) -> Result<()> {
-        // the stream's velocity scale (`--velocity-scale`) is this camera's, not the map's
-        fn profile_of(cfg: &Config) -> Config {
-            let mut c = cfg.clone();
-            c.sequence.velocity_scale = Config::default().sequence.velocity_scale;
-            c
-        }
         let Some(lc) = &mut self.lc else { return Ok(()) };
-        let warm = std::mem::take(&mut lc.warm);
-        if let Some(a) = self.encoder.appearance_mut() {
-            let model = a.model();
-            let kps: Vec<crate::appearance::keypoints::Keypoints> =
-                warm.iter().filter_map(|(_, l, _)| l.rgb.as_ref()).map(|rgb| model.keypoints(rgb)).collect::<Result<_>>()?;
-            a.train_codebook_from(&kps.iter().collect::<Vec<_>>())?;
-        }
-        // frames without labels and no segmenter to make them: a map without labels
-        let void = warm.iter().all(|(_, l, _)| l.labels.classes().iter().all(|&c| c == crate::classes::VOID));
-        let dims = ColumnDims {
-            appearance: self.encoder.appearance_dim(),
-            hog: 0,
-            keypoints: self.encoder.keypoint_dim(),
-            compact_hog: self.encoder.compact_hog_dim(),
-        };
-        let mut w =
-            MapWriter::create(&lc.dir, &self.cfg.encoding(), dims, self.encoder.appearance_record(), StoreOptions::default(), self.opts.resume)?
-                .with_embedding(self.encoder.embedding_record())?
-                .with_profile(&profile_of(&self.cfg))?;
-        if void && !self.encoder.frames().can_segment() {
-            w = w.without_labels()?;
-        }
-        let mut w = w.with_traversal(TraversalPlan::New)?;
-        let ids: Vec<(String, Option<f64>)> = warm.iter().map(|(id, _, t)| (id.clone(), *t)).collect();
-        let encoded = self.engine.encode_loaded(&self.encoder, warm.into_iter().map(|(id, l, _)| (id, Ok(l))).collect())?;
-        let mut added = 0u64;
-        for (r, (_, t)) in encoded.into_iter().zip(&ids) {
-            w.push(&r?.0)?;
-            if let Some(t) = t {
-                lc.recent.push_back((added, *t));
-            }
-            added += 1;
-        }
-        w.flush()?;
-        lc.added = added;
-        lc.writer = Some(w);
-        let map = Map::open(&lc.dir)?;
+        let map = lc.create_map(&mut self.engine, &mut self.encoder, &self.cfg, self.opts.resume)?;
         crate::matching::check_labels(&map, self.opts.setting)?;
         prepare(&map, &self.cfg)?;
         self.map = Some(map);
@@ -824,10 +610,10 @@ impl Localizer {
         if self.map.is_none() && self.lc.as_ref().is_some_and(|l| !l.warm.is_empty()) {
             self.create_map()?;
         }
-        if let Some(w) = self.lc.as_mut().and_then(|l| l.writer.as_mut()) {
-            w.flush()?;
+        match &mut self.lc {
+            Some(lc) => lc.flush(),
+            None => Ok(()),
         }
-        Ok(())
     }
 }
 
@@ -880,19 +666,6 @@ pub fn scored_rows(
         }
     }
     Ok(rows)
-}
-
-/// Moves the ring's places from generation `old` to `new`: unchanged where `new` only appended
-/// segments (true), else through the images' ids (false).
-fn follow(seq: &mut SequenceMatcher, old: &Map, new: &Map) -> bool {
-    let (a, b) = (&old.manifest.segments, &new.manifest.segments);
-    if new.manifest.uid == old.manifest.uid && b.len() >= a.len() && a.iter().zip(b).all(|(x, y)| x == y) {
-        return true;
-    }
-    let wanted: HashSet<&str> = seq.places().filter_map(|p| old.at(p)).map(|i| old.id(i)).collect();
-    let found: HashMap<&str, usize> = (0..new.len()).map(|i| (new.id(i), i)).filter(|(id, _)| wanted.contains(*id)).collect();
-    seq.remap(|p| old.at(p).and_then(|i| found.get(old.id(i))).map(|&j| new.place(j)));
-    false
 }
 
 /// The checks of `map` a stream under `cfg` will need (its segments, and the index's codes where
