@@ -2,11 +2,11 @@
 //! map's (the velocity range of sequence matching follows it), and the warning when trajectories
 //! run at the range's edge (a camera faster than the range follows).
 
-use crate::stream::sequence::{SequenceMatch, SequenceMatcher};
-use crate::stream::types::StreamCounts;
 use crate::config::SequenceConfig;
 use crate::error::{Error, Result};
 use crate::map::Map;
+use crate::stream::sequence::{SequenceMatch, SequenceMatcher};
+use crate::stream::types::StreamCounts;
 use std::collections::VecDeque;
 
 /// Frames in a row whose best trajectory runs at the velocity range's edge before the warning

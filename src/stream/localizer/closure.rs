@@ -2,7 +2,6 @@
 //! from the stream's first frames where there is none), committed every `stream.commit_frames`;
 //! the part of the map a frame may close a loop with; and when an accepted match closes one.
 
-use crate::stream::sequence::{SequenceMatch, UNIQUENESS_CAP};
 use crate::config::{Config, StreamConfig};
 use crate::descriptors::source::{Place, RefSource};
 use crate::descriptors::EncodedImage;
@@ -10,6 +9,7 @@ use crate::encode::{Encoder, Loaded};
 use crate::engine::Engine;
 use crate::error::Result;
 use crate::map::{ColumnDims, Map, MapWriter, StoreOptions, TraversalPlan};
+use crate::stream::sequence::{SequenceMatch, UNIQUENESS_CAP};
 use std::collections::{HashSet, VecDeque};
 use std::path::{Path, PathBuf};
 

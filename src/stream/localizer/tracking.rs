@@ -2,11 +2,11 @@
 //! tracked frame is searched in, the ring's places carried to a new map generation, and the lean
 //! encoder of tracked frames.
 
-use crate::stream::sequence::{SequenceMatch, SequenceMatcher};
 use crate::config::{Config, StreamConfig};
 use crate::descriptors::source::{Place, RefSource};
 use crate::encode::Encoder;
 use crate::map::Map;
+use crate::stream::sequence::{SequenceMatch, SequenceMatcher};
 use std::collections::{HashMap, HashSet};
 
 /// Tracking: the last accepted sequence match (place, velocity) and the frames since it.
