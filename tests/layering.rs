@@ -367,20 +367,13 @@ fn the_whole_image_descriptors_reach_no_later_stage() {
 #[test]
 fn the_library_depends_on_no_command_line_crate() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    // `[dependencies]` and every `[target.CFG.dependencies]`, read with the crate's TOML parser
     let deps = |manifest: &str| -> Vec<String> {
         let text = std::fs::read_to_string(root.join(manifest)).unwrap();
-        let mut out = vec![];
-        let mut in_deps = false;
-        for line in text.lines().map(str::trim) {
-            if line.starts_with('[') {
-                in_deps = line == "[dependencies]" || (line.starts_with("[target.") && line.ends_with(".dependencies]"));
-            } else if in_deps && !line.starts_with('#') {
-                if let Some((name, _)) = line.split_once('=') {
-                    out.push(name.trim().to_string());
-                }
-            }
-        }
-        out
+        let m: toml::Table = toml::from_str(&text).unwrap_or_else(|e| panic!("{manifest}: {e}"));
+        let targets = m.get("target").and_then(toml::Value::as_table).into_iter().flat_map(|t| t.values());
+        let tables = m.get("dependencies").into_iter().chain(targets.filter_map(|t| t.get("dependencies")));
+        tables.filter_map(toml::Value::as_table).flat_map(|t| t.keys().cloned()).collect()
     };
     let lib = deps("Cargo.toml");
     assert!(lib.iter().any(|d| d == "wgpu") && lib.iter().any(|d| d == "semlook-kernels"), "the library's dependencies were not read: {lib:?}");
