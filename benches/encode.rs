@@ -43,7 +43,7 @@ fn bench(c: &mut Criterion) {
             let dynamic = semlook_cli::tools::synth::dynamic_objects(&scene.world, scfg.seed, 0, scfg.persistence);
             let f = semlook_cli::tools::synth::render_frame(&scfg, &scene, &dynamic, 0, 1, Condition::Day);
             let rgb = image::RgbImage::from_raw(640, 480, f.rgb).unwrap();
-            let (grey, _, _) = semlook::appearance::network_input(&rgb).unwrap();
+            let (grey, _, _) = semlook::networks::network_input(&rgb).unwrap();
             // the network as encoding runs it (dense descriptors for VLAD and the keypoint heads
             // for the stored verification keypoints), and without the heads (appearance alone)
             let kp = Config::default().keypoints;
@@ -78,7 +78,7 @@ fn bench(c: &mut Criterion) {
     }
     // the whole-image embedding of a 640 x 480 frame (the fused coarse stage's embedding term;
     // needs setup.sh), one call with ONNX Runtime's threads for the whole machine
-    match semlook::global::embedding::from_config(&Default::default(), &Default::default()) {
+    match semlook::networks::embedding::from_config(&Default::default(), &Default::default()) {
         Ok(Some(e)) => {
             let rgb = image::RgbImage::from_fn(640, 480, |x, y| image::Rgb([(x % 256) as u8, (y % 256) as u8, ((x ^ y) % 256) as u8]));
             g.bench_function("embedding: EfficientNet-Lite1 + GeM at 448 x 336 (ONNX Runtime)", |b| b.iter(|| e.embed(&rgb).unwrap()));

@@ -1,7 +1,7 @@
 """Writes tests/data/embedding/<name>.json: reference embeddings of the image-embedding network
 (`efficientnet_lite1_gem.onnx`, EfficientNet-Lite1 ImageNet with GeM pooling, made by
 python/tools/export_embedding.py; see docs/models.md) on two real images from ../shared and one synthetic
-image, which the crate's embedding (src/global/embedding.rs) can be held to.
+image, which the crate's embedding (src/networks/embedding.rs) can be held to.
 
 The images (paths relative to ../shared):
     street-frame        data/street-frames/<first image file, sorted>   (Cityscapes, 2048x1024)
@@ -9,7 +9,7 @@ The images (paths relative to ../shared):
 
 Each image is converted to RGB and resized with PIL's BICUBIC filter (Image.resize, which antialiases when it
 shrinks) to the working size: the long side 448, the short side short * 448 / long in float64 rounded half
-away from zero (Rust's f64::round; the same as src/global/embedding.rs::working_size), at least 32. The pixels
+away from zero (Rust's f64::round; the same as src/networks/embedding.rs::working_size), at least 32. The pixels
 go to the network as float32 RGB 0..255, NCHW [1, 3, h, w]; onnxruntime (CPU, one thread) runs it, and the
 output, already L2-normalised by the graph, is stored with every value rounded to 7 significant digits.
 

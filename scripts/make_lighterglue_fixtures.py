@@ -1,6 +1,6 @@
 """Writes tests/data/lighterglue_pairs.json: the reference outputs of LighterGlue (XFeat's LightGlue,
 kornia's `LightGlue` with XFeat's configuration and the authors' weights `xfeat-lighterglue.pt`) on
-real pairs, which tests/lighterglue.rs holds the crate's own implementation (src/verify/lighterglue.rs) to.
+real pairs, which tests/lighterglue.rs holds the crate's own implementation (src/networks/lighterglue/mod.rs) to.
 
 Inputs are what the engine stores and feeds its matcher: XFeat keypoints of real photos (the authors'
 PyTorch XFeat, the 384 best at a 640 px long side), positions quantised to u16 fractions of the long side

@@ -6,14 +6,16 @@
 //! class, area, position, appearance and neighbours) re-ranks them.
 //!
 //! The modules follow the data through the pipeline:
-//! [`input`] (images, label maps) and [`segmentation`] (labels from a network) -> [`global`]
+//! [`input`] (images, label maps; labels from a network, [`networks::segmenter`]) -> [`global`]
 //! (whole-image descriptors: the semantic SSIM descriptor, VLAD, the embedding, HOG), [`objects`]
 //! (semantic regions) and [`local`] (their trees), [`appearance`] (XFeat descriptors) ->
 //! [`encode`] (one frame through all of them; [`batch`] for many) -> [`map`] (the stored map;
 //! [`index`], its approximate index) -> [`matching`] (coarse top-K, fine re-ranking) and
 //! [`verify`] (keypoint matches, RANSAC, relative pose) -> [`eval`] (VPR-Bench metrics) and
-//! [`stream`] (frames one at a time, sequences, loop closure). Under the networks, [`nn`] (the
-//! runtime: convolutions, ONNX Runtime, weight readers); under the stages, [`descriptors`]
+//! [`stream`] (frames one at a time, sequences, loop closure). The stages call the networks of
+//! [`networks`] (XFeat, LighterGlue, the embedding, the segmenter: one module each, forward pass,
+//! weights and device executor together); under them [`nn`] (the runtime: convolutions, ONNX
+//! Runtime, weight readers); under the stages, [`descriptors`]
 //! (descriptor sets, the source traits matching reads, value checks), the layer encoding, the map
 //! store, matching and appearance share. [`engine`] runs encoding and matching on the CPU or
 //! [`gpu`]. Beside the engine, in crates of their own: `semlook-kernels` (the WGSL kernels, their CPU
@@ -58,6 +60,9 @@ pub mod classes;
 pub mod config;
 pub mod dataset;
 pub mod descriptors;
+// the device runtime the GPU executors run on (wgpu: context, pipelines, buffers, timer); its
+// public types are `gpu`'s
+mod device;
 pub mod encode;
 pub mod engine;
 pub mod error;
@@ -71,10 +76,10 @@ pub mod local;
 pub mod map;
 pub mod matching;
 pub mod models;
+pub mod networks;
 pub mod nn;
 pub mod objects;
 pub mod progress;
-pub mod segmentation;
 pub mod stream;
 /// Internal, public for the binary and tests only: small helpers the command line and the tests share (atomic writes, hashing); not the API.
 #[doc(hidden)]

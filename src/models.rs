@@ -53,7 +53,7 @@ pub const EMBEDDING_CHECKPOINT_SHA256: &str = "77cc7160d37bebc1e0d68dc9e8d1e836a
 /// Every model file, in the order `semlook models` lists them.
 pub const CATALOG: [ModelFile; 7] = [
     ModelFile {
-        name: crate::appearance::XFEAT_WEIGHTS,
+        name: crate::networks::xfeat::XFEAT_WEIGHTS,
         role: "keypoint network (XFeat): appearance and verification",
         sha256: "0f5187fd7bedd26c7fe6acc9685444493a165a35ecc087b33c2db3627f3ea10b",
         equivalent: &[],
@@ -61,7 +61,7 @@ pub const CATALOG: [ModelFile; 7] = [
         optional: false,
     },
     ModelFile {
-        name: crate::verify::lighterglue::LIGHTERGLUE_WEIGHTS,
+        name: crate::networks::lighterglue::LIGHTERGLUE_WEIGHTS,
         role: "learned matcher (LighterGlue, XFeat's LightGlue): verification.matcher = \"lighterglue\"",
         sha256: "766102df37f11189efe5b0811d1f47c72b22629b79bfabfcfff9d2a2f84654b8",
         equivalent: &[],
@@ -77,7 +77,7 @@ pub const CATALOG: [ModelFile; 7] = [
         optional: false,
     },
     ModelFile {
-        name: crate::segmentation::DEFAULT_SEGMENTER,
+        name: crate::networks::segmenter::DEFAULT_SEGMENTER,
         role: "default segmenter (ESPNetv2, Cityscapes): label maps for RGB frames that have none",
         sha256: SEGMENTER_SHA256,
         equivalent: &[SEGMENTER_REFERENCE_SHA256],
@@ -121,7 +121,7 @@ pub fn is_pinned(name: &str, sha256: &str) -> Option<bool> {
 /// the build the defaults were tested with; `None` for the tested build, or for a network of
 /// another name (a segmenter of the user's own, which no pinned build describes).
 pub fn segmenter_warning(path: &std::path::Path, sha256: &str) -> Option<String> {
-    let name = crate::segmentation::DEFAULT_SEGMENTER;
+    let name = crate::networks::segmenter::DEFAULT_SEGMENTER;
     if path.file_name().is_none_or(|n| n != name) || is_pinned(name, sha256) != Some(false) {
         return None;
     }
@@ -197,7 +197,7 @@ mod tests {
     /// another name (the user's own) is not judged. Seen failing with the warning removed.
     #[test]
     fn only_an_unpinned_default_segmenter_warns() {
-        let default = Path::new("/models").join(crate::segmentation::DEFAULT_SEGMENTER);
+        let default = Path::new("/models").join(crate::networks::segmenter::DEFAULT_SEGMENTER);
         let other = "0".repeat(64);
         let w = segmenter_warning(&default, &other).expect("an unpinned default segmenter warns");
         assert!(w.contains(&other) && w.contains("not the tested build") && w.contains(&*default.to_string_lossy()), "{w}");

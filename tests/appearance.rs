@@ -4,8 +4,9 @@
 
 mod common;
 
-use semlook::appearance::{network_input, AppearanceModel};
+use semlook::appearance::AppearanceModel;
 use semlook::config::{AppearanceConfig, AppearanceModelKind, ModelPaths, Sampling};
+use semlook::networks::network_input;
 use std::path::{Path, PathBuf};
 
 /// `../shared/REL`, required under CI (the real-image guards must run there).
@@ -136,7 +137,7 @@ fn vlad_on_a_real_scene() {
     let (Some(model), Some(seg_path)) = (native(), shared("models/espnet_cityscapes.onnx")) else { return };
     let cfg = semlook::config::Config::default();
     let table = semlook::classes::ClassTable::cityscapes();
-    let seg = semlook::segmentation::Segmenter::load(&seg_path, &cfg.segmentation, &table, None).unwrap();
+    let seg = semlook::networks::segmenter::Segmenter::load(&seg_path, &cfg.segmentation, &table, None).unwrap();
     let labels = seg.segment(&rgb, Path::new("frame")).unwrap();
     let objects = semlook::objects::extract_objects(&labels, &table, &cfg.objects);
     let k = model.keypoints(&rgb).unwrap();

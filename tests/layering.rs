@@ -333,8 +333,8 @@ fn descriptors_import_no_stage() {
 }
 
 /// The network runtime (`nn`: convolutions, ONNX Runtime, the weight readers) sits under every
-/// network that runs on it (XFeat, the segmenter, the embedding, LighterGlue): it reads errors and
-/// helpers, no stage and no configuration.
+/// network that runs on it (`networks`: XFeat, the segmenter, the embedding, LighterGlue) and the
+/// stages that handle their tensors: it reads errors and helpers, no stage and no configuration.
 #[test]
 fn the_network_runtime_imports_no_stage() {
     let g = import_graph();
@@ -342,7 +342,7 @@ fn the_network_runtime_imports_no_stage() {
     let allowed = ["error", "util"];
     let extra: Vec<&String> = below.iter().filter(|m| !allowed.contains(&m.as_str())).collect();
     assert!(extra.is_empty(), "nn reaches {extra:?} (allowed: {allowed:?})");
-    for user in ["appearance", "global", "segmentation", "verify"] {
+    for user in ["appearance", "networks", "verify"] {
         assert!(g[user].contains("nn"), "the graph lacks nn's user {user}: {:?}", g[user]);
     }
 }
@@ -481,10 +481,10 @@ const PUBLIC_MODULES: [&str; 26] = [
     "map",
     "matching",
     "models",
+    "networks",
     "nn",
     "objects",
     "progress",
-    "segmentation",
     "stream",
     "verify",
 ];

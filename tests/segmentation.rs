@@ -6,7 +6,7 @@ mod common;
 use image::{Rgb, RgbImage};
 use semlook::classes::ClassTable;
 use semlook::config::{Config, SegmentationConfig};
-use semlook::segmentation::Segmenter;
+use semlook::networks::segmenter::Segmenter;
 use std::path::{Path, PathBuf};
 
 fn tiny() -> PathBuf {

@@ -462,7 +462,7 @@ fn a_map_of_photos_without_a_segmenter_serves_the_label_free_settings() {
 #[test]
 fn models_lists_what_is_installed_and_where_the_rest_comes_from() {
     let dir = tempfile::tempdir().unwrap();
-    std::fs::write(dir.path().join(semlook::appearance::XFEAT_WEIGHTS), b"not the weights").unwrap();
+    std::fs::write(dir.path().join(semlook::networks::xfeat::XFEAT_WEIGHTS), b"not the weights").unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_semlook")).args(["models", "--json"]).env("SEMLOOK_MODELS", dir.path()).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let all: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
@@ -1099,7 +1099,7 @@ fn a_damaged_index_says_how_to_mend_it() {
 /// with one warning naming it (before, it ran without a word); the pinned one gives none.
 #[test]
 fn an_untested_default_segmenter_is_named_once() {
-    let name = semlook::segmentation::DEFAULT_SEGMENTER;
+    let name = semlook::networks::segmenter::DEFAULT_SEGMENTER;
     let Some(segmenter) = common::real_segmenter() else { return };
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");

@@ -1,4 +1,4 @@
-//! The whole-image embedding (src/global/embedding.rs: EfficientNet-Lite1 + GeM through ONNX Runtime)
+//! The whole-image embedding (src/networks/embedding.rs: EfficientNet-Lite1 + GeM through ONNX Runtime)
 //! held to reference embeddings that `scripts/make_embedding_fixtures.py` computed once with the
 //! Python onnxruntime on the same graph (tests/data/embedding/*.json), and the embedding's way
 //! through a map: stored, read back, and the fused coarse stage's embedding term.
@@ -12,9 +12,9 @@ mod common;
 
 use semlook::config::Config;
 use semlook::descriptors::{DescriptorSet, EncodedImage};
-use semlook::global::embedding::Embedder;
 use semlook::map::{ColumnDims, EmbeddingRecord, Map, MapWriter, StoreOptions};
 use semlook::matching::{FusedWeights, Setting};
+use semlook::networks::embedding::Embedder;
 
 const VALUE_TOLERANCE: f32 = 1e-6;
 /// The relative rounding of f16 (half its step): the product's embeddings are stored as f16.
@@ -74,7 +74,7 @@ fn matches_the_reference_on_real_photos() {
         let Some(path) = common::shared_or_required(fx["image"].as_str().unwrap()) else { return };
         let img = image::open(&path).unwrap().to_rgb8();
         let size = fx["size"].as_array().unwrap().iter().map(|v| v.as_u64().unwrap() as u32).collect::<Vec<_>>();
-        assert_eq!(semlook::global::embedding::working_size(img.width(), img.height(), 448), (size[0], size[1]), "{name}: working size");
+        assert_eq!(semlook::networks::embedding::working_size(img.width(), img.height(), 448), (size[0], size[1]), "{name}: working size");
         let ours = e.embed(&img).unwrap();
         let c = cosine(&ours, &floats(&fx["embedding"]));
         eprintln!("{name}: cosine with the reference {c:.5} (at least {REAL_COSINE})");

@@ -79,7 +79,7 @@ fn verify_checks_the_installed_keypoint_network() {
     let (_, path) = map_with_a_removal(dir.path());
     let models = dir.path().join("models");
     std::fs::create_dir(&models).unwrap();
-    std::fs::write(models.join(semlook::appearance::XFEAT_WEIGHTS), b"installed weights").unwrap();
+    std::fs::write(models.join(semlook::networks::xfeat::XFEAT_WEIGHTS), b"installed weights").unwrap();
     let installed = semlook::util::sha256_hex(b"installed weights");
     let other = format!("{}0", &installed[..63]);
     let run = |sha: &str| {

@@ -2,13 +2,13 @@
 //! the same entry points under the same names, the same bindings (arguments, in binding order)
 //! and the same loop shape: an outer loop over the dispatch's workgroups, then the shader's phases
 //! (between its barriers) each as a loop over the workgroup's invocations, every sum in the
-//! shader's order. The CPU path runs `verify::lighterglue` (matrix products by sgemm, softmax in
+//! shader's order. The CPU path runs `networks::lighterglue` (matrix products by sgemm, softmax in
 //! two passes), which the tests hold to these twins on real pairs; the device is held to them by
 //! `tests/gpu/lighterglue.rs`.
 //!
 //! Source of the network: Lindenberger, Sarlin and Pollefeys, "LightGlue: Local Feature Matching
 //! at Light Speed", ICCV 2023, in XFeat's configuration (Potje et al., CVPR 2024): see
-//! `verify::lighterglue`. The online softmax of `lg_attention` and `lg_row_lse` is Milakov and
+//! `networks::lighterglue`. The online softmax of `lg_attention` and `lg_row_lse` is Milakov and
 //! Gimelshein, "Online normalizer calculation for softmax", 2018.
 //!
 //! Rows and partners: every point of every pair in a batch is one row; `table` gives each row its
@@ -100,7 +100,7 @@ pub fn lg_erf(x: f32) -> f32 {
 }
 
 /// Abramowitz and Stegun 7.1.26 on the exponential `exp`: [`lg_erf`]'s form, which the CPU
-/// matcher (`verify::lighterglue`) also computes, on its vectorising `exp`.
+/// matcher (`networks::lighterglue`) also computes, on its vectorising `exp`.
 #[inline(always)]
 #[allow(clippy::excessive_precision)]
 pub fn erf_with(x: f32, exp: impl Fn(f32) -> f32) -> f32 {

@@ -122,7 +122,7 @@ fn the_node_answers_a_real_ros2_peer() {
         return skip(&format!("{} is absent", data.display()));
     }
     let Some(semlook) = semlook_bin() else { return skip("the semlook binary is not built beside this test (cargo test --workspace builds it)") };
-    if semlook::nn::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, Some(&repo().join(".semlook/xfeat.pt")), "XFeat").is_err() {
+    if semlook::nn::onnx::find_model(semlook::networks::xfeat::XFEAT_WEIGHTS, Some(&repo().join(".semlook/xfeat.pt")), "XFeat").is_err() {
         return skip("no XFeat weights in .semlook (run setup.sh)");
     }
     let dir = tempfile::tempdir().unwrap();
@@ -377,7 +377,7 @@ fn a_clean_start_and_ctrl_c_log_no_error() {
         return skip(&format!("{} is absent", data.display()));
     }
     let Some(semlook) = semlook_bin() else { return skip("the semlook binary is not built beside this test (cargo test --workspace builds it)") };
-    if semlook::nn::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, Some(&repo().join(".semlook/xfeat.pt")), "XFeat").is_err() {
+    if semlook::nn::onnx::find_model(semlook::networks::xfeat::XFEAT_WEIGHTS, Some(&repo().join(".semlook/xfeat.pt")), "XFeat").is_err() {
         return skip("no XFeat weights in .semlook (run setup.sh)");
     }
     let dir = tempfile::tempdir().unwrap();

@@ -6,18 +6,8 @@
 //! bilinearly from the dense map and L2-normalised.
 
 use crate::error::{Error, Result};
+use crate::networks::NetOutputs;
 use crate::nn::conv::Chw;
-
-/// What a keypoint network gives at 1/8 resolution.
-#[derive(Debug, Clone)]
-pub struct NetOutputs {
-    /// Dense descriptors [D, h, w].
-    pub descriptors: Chw,
-    /// Keypoint logits [65, h, w], SuperPoint cell layout (64 pixels + dustbin).
-    pub logits: Chw,
-    /// Reliability [1, h, w] in [0, 1], when the network has one (XFeat).
-    pub reliability: Option<Chw>,
-}
 
 /// Parameters of keypoint decoding: suppression radius, score threshold, keypoint budget, border.
 #[derive(Debug, Clone, Copy, PartialEq)]

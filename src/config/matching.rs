@@ -241,7 +241,7 @@ pub enum InlierEvidence {
 pub enum Matcher {
     /// Mutual nearest neighbours of the descriptors above `min_cosine`.
     Mnn,
-    /// LighterGlue, XFeat's learned matcher (`verify::lighterglue`; weights
+    /// LighterGlue, XFeat's learned matcher (`networks::lighterglue`; weights
     /// `xfeat-lighterglue.pt` in the model folders).
     Lighterglue,
 }

@@ -175,7 +175,7 @@ pub struct ModelPaths {
     #[serde(serialize_with = "lossy_path")]
     pub segmenter_onnx: Option<std::path::PathBuf>,
     /// Without `segmenter_onnx`, segment frames that have no label map with the default
-    /// segmenter when it is installed (`segmentation::DEFAULT_SEGMENTER`).
+    /// segmenter when it is installed (`networks::segmenter::DEFAULT_SEGMENTER`).
     pub default_segmenter: bool,
     /// The ONNX Runtime shared library (else $ORT_DYLIB_PATH, then the model folders).
     #[serde(serialize_with = "lossy_path")]
@@ -200,7 +200,7 @@ impl Default for ModelPaths {
 /// the model folders (`setup.sh` installs it; [`crate::models`] lists it).
 pub const EMBEDDING_NETWORK: &str = "efficientnet_lite1_gem.onnx";
 
-/// The `[embedding]` section: the whole-image embedding a new map stores ([`crate::global::embedding`]).
+/// The `[embedding]` section: the whole-image embedding a new map stores ([`crate::networks::embedding`]).
 /// Not an encoding section: a map records the network it was built with (its file name and
 /// SHA-256, `map info`) and its queries are embedded with that one, whatever this section says; a
 /// map built without one (or before embeddings) has none, and its fused score no embedding term.

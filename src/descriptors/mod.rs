@@ -3,6 +3,7 @@
 //! reads references through, and the value checks of a stored image ([`validate`]). It imports
 //! none of those stages, so none of them imports another in a circle.
 
+mod embedding;
 pub mod keypoints;
 pub mod null;
 mod pose;
@@ -10,5 +11,6 @@ mod set;
 pub mod source;
 pub mod validate;
 
+pub use embedding::EmbeddingRecord;
 pub use pose::{PlacePose, PoseRowError};
 pub use set::{DescriptorSet, EncodedImage};

@@ -31,7 +31,7 @@ pub struct EncodedImage {
     pub appearance: Vec<f32>,
     /// VPR-Bench HOG (the `hog` baseline); empty unless the encoder computes it.
     pub hog: Vec<f32>,
-    /// The whole-image embedding ([`crate::global::embedding`], L2-normalised); empty unless the encoder
+    /// The whole-image embedding ([`crate::networks::embedding`], L2-normalised); empty unless the encoder
     /// computes it.
     pub embedding: Vec<f32>,
     /// The compact HOG of the whole image ([`crate::global::hog::compact_hog`], L2-normalised); empty
@@ -86,13 +86,13 @@ pub struct DescriptorSet {
     pub hog_dim: usize,
     /// `hog_dim` values per image (zeros for an image without HOG).
     pub image_hog: Vec<f32>,
-    /// Values per whole-image embedding ([`crate::global::embedding`]; 0: the set holds none).
+    /// Values per whole-image embedding ([`crate::networks::embedding`]; 0: the set holds none).
     pub embedding_dim: usize,
     /// `embedding_dim` values per image (zeros for an image without one).
     pub image_embedding: Vec<f32>,
     /// What made the embeddings (the encoder's network; none for a set without embeddings or a
     /// storage buffer): sets of two networks never join.
-    pub embedding: Option<crate::global::embedding::EmbeddingRecord>,
+    pub embedding: Option<crate::descriptors::EmbeddingRecord>,
     /// Values per compact HOG ([`crate::global::hog::COMPACT_HOG_DIM`]; 0: the set holds none).
     pub compact_hog_dim: usize,
     /// `compact_hog_dim` values per image (zeros for an image without one).
@@ -166,7 +166,7 @@ impl DescriptorSet {
 
     /// The same empty set holding the whole-image embeddings of the network `rec` records (none:
     /// no embeddings).
-    pub fn with_embedding(mut self, rec: Option<crate::global::embedding::EmbeddingRecord>) -> Self {
+    pub fn with_embedding(mut self, rec: Option<crate::descriptors::EmbeddingRecord>) -> Self {
         self.embedding_dim = rec.as_ref().map_or(0, |r| r.dim);
         self.embedding = rec;
         self
@@ -179,7 +179,7 @@ impl DescriptorSet {
     }
 
     /// The same empty set with `rec` as what made its embeddings, its width unchanged.
-    fn with_embedding_record(mut self, rec: Option<crate::global::embedding::EmbeddingRecord>) -> Self {
+    fn with_embedding_record(mut self, rec: Option<crate::descriptors::EmbeddingRecord>) -> Self {
         self.embedding = rec;
         self
     }

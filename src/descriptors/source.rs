@@ -172,7 +172,7 @@ pub trait RefSource: GlobalSource {
         0
     }
     /// What made the embeddings (none: the source holds none, or does not say).
-    fn embedding_record(&self) -> Option<&crate::global::embedding::EmbeddingRecord> {
+    fn embedding_record(&self) -> Option<&crate::descriptors::EmbeddingRecord> {
         None
     }
     /// The whole-image embedding of reference i (`embedding_dim` values).
@@ -261,7 +261,7 @@ impl RefSource for DescriptorSet {
     fn embedding_dim(&self) -> usize {
         self.embedding_dim
     }
-    fn embedding_record(&self) -> Option<&crate::global::embedding::EmbeddingRecord> {
+    fn embedding_record(&self) -> Option<&crate::descriptors::EmbeddingRecord> {
         self.embedding.as_ref()
     }
     fn image_embedding(&self, i: usize) -> Values<'_> {
@@ -363,7 +363,7 @@ impl RefSource for Window<'_> {
     fn embedding_dim(&self) -> usize {
         self.inner.embedding_dim()
     }
-    fn embedding_record(&self) -> Option<&crate::global::embedding::EmbeddingRecord> {
+    fn embedding_record(&self) -> Option<&crate::descriptors::EmbeddingRecord> {
         self.inner.embedding_record()
     }
     fn image_embedding(&self, i: usize) -> Values<'_> {

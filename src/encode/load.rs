@@ -3,12 +3,11 @@
 //! working size, and the HOG baseline from the full image. Errors name the file.
 
 use super::times::StageTimes;
-use crate::appearance;
 use crate::classes::ClassTable;
 use crate::config::{Config, SegmentationConfig};
 use crate::error::{Error, Remedy, Result};
 use crate::input::{self, FrameSource, LabelFormat, LabelMap};
-use crate::segmentation::Segmenter;
+use crate::networks::segmenter::Segmenter;
 use crate::util::ms_since;
 use image::RgbImage;
 use std::path::{Path, PathBuf};
@@ -78,8 +77,8 @@ impl LazySegmenter {
 /// label maps cannot be segmented.
 pub fn segmenter_path(cfg: &Config) -> Result<Option<PathBuf>> {
     Ok(match &cfg.models.segmenter_onnx {
-        Some(p) => Some(crate::nn::onnx::find_model(crate::segmentation::DEFAULT_SEGMENTER, Some(p), "segmenter")?),
-        None if cfg.models.default_segmenter => crate::nn::onnx::find_model(crate::segmentation::DEFAULT_SEGMENTER, None, "segmenter").ok(),
+        Some(p) => Some(crate::nn::onnx::find_model(crate::networks::segmenter::DEFAULT_SEGMENTER, Some(p), "segmenter")?),
+        None if cfg.models.default_segmenter => crate::nn::onnx::find_model(crate::networks::segmenter::DEFAULT_SEGMENTER, None, "segmenter").ok(),
         None => None,
     })
 }
@@ -297,9 +296,9 @@ impl FrameLoader {
             }
         }
         let (ww, wh) = input::working_size(source_size.0, source_size.1, self.working_long_side);
-        if self.appearance && (ww < appearance::MIN_NETWORK_SIDE as u32 || wh < appearance::MIN_NETWORK_SIDE as u32) {
+        if self.appearance && (ww < crate::networks::MIN_NETWORK_SIDE as u32 || wh < crate::networks::MIN_NETWORK_SIDE as u32) {
             let what = f.image.map_or_else(|| format!("frame {id:?}"), |p| p.display().to_string());
-            let m = appearance::MIN_NETWORK_SIDE;
+            let m = crate::networks::MIN_NETWORK_SIDE;
             return Err(Error::invalid(
                 what,
                 format!("{}x{} (working size {ww}x{wh}) is below the {m}x{m} a keypoint network needs", source_size.0, source_size.1),

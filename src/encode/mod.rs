@@ -72,7 +72,7 @@ pub struct Encoder {
     appearance: Option<AppearanceEncoder>,
     /// The whole-image embedding network (none: `embedding.network = "none"`, not installed, or
     /// appearance off, which loads no RGB image).
-    embedder: Option<std::sync::Arc<crate::global::embedding::Embedder>>,
+    embedder: Option<std::sync::Arc<crate::networks::embedding::Embedder>>,
     /// For an encoder of a map's queries ([`Encoder::for_map`]): whether the map holds semantic
     /// labels, which its queries then need too ([`Encoder::labels_rule`]).
     map_labelled: Option<bool>,
@@ -97,7 +97,7 @@ impl Encoder {
             .transpose()?;
         let global = GlobalStage { cfg: cfg.global.clone(), used: table.used_mask(), ssim: cfg.global.ssim_params() };
         let embedder = match appearance.is_some() && embed {
-            true => crate::global::embedding::from_config(&cfg.embedding, &cfg.models)?.map(std::sync::Arc::new),
+            true => crate::networks::embedding::from_config(&cfg.embedding, &cfg.models)?.map(std::sync::Arc::new),
             false => None,
         };
         Ok(Encoder {
@@ -242,7 +242,7 @@ impl Encoder {
             Some(_) if enc.appearance.is_none() => {
                 return Err(Error::invalid(format!("map {}", map.path.display()), "the map's embeddings need appearance on"))
             }
-            Some(rec) => Some(std::sync::Arc::new(crate::global::embedding::for_record(rec, &cfg.models)?)),
+            Some(rec) => Some(std::sync::Arc::new(crate::networks::embedding::for_record(rec, &cfg.models)?)),
         };
         enc.map_labelled = Some(!map.manifest.without_labels);
         // a map of small frames: its queries get the compact HOG it stores
@@ -309,11 +309,11 @@ impl Encoder {
         self
     }
     /// The whole-image embedding network (none when the encoder makes no embeddings).
-    pub fn embedder(&self) -> Option<&crate::global::embedding::Embedder> {
+    pub fn embedder(&self) -> Option<&crate::networks::embedding::Embedder> {
         self.embedder.as_deref()
     }
     /// What a new map records of the embedding network (none without one).
-    pub fn embedding_record(&self) -> Option<crate::global::embedding::EmbeddingRecord> {
+    pub fn embedding_record(&self) -> Option<crate::descriptors::EmbeddingRecord> {
         self.embedder.as_ref().map(|e| e.record())
     }
     /// Values per whole-image embedding (0 without an embedding network).

@@ -6,13 +6,12 @@
 //!   ([`ssim_fast`] is its fast CPU path).
 //! - [`vlad`]: the VLAD of an image's appearance descriptors with the map's codebook (setting
 //!   `appearance`, and `fused`'s first term).
-//! - [`embedding`]: the learned whole-image embedding (`fused`'s second term).
+//! - the learned whole-image embedding (`fused`'s second term) is a network: [`crate::networks::embedding`].
 //! - [`hog`]: VPR-Bench's HOG baseline (setting `hog`; the compact HOG of small frames).
 //!
 //! How they are ranked is `matching`'s (`matching::baseline` for the baselines, the coarse
 //! stage for `fused`).
 
-pub mod embedding;
 pub mod hog;
 mod semantic;
 pub mod ssim_fast;

@@ -15,13 +15,13 @@
 //! timestamps). No buffer or bind group is created per pass: bind groups are made once per
 //! resident chunk and once per query chunk.
 
-use super::buffers::{PassBuffer, Reused};
-use super::context::{GpuContext, GpuError};
 use super::resident::{ChunkData, ChunkPlan, Resident};
-use super::stats::StatsOnDevice;
 use super::topk::{bytes_per_query, TopK, MAX_PASS_REFS};
 use crate::descriptors::source::{GlobalSource, SourceKey, TileBuf};
 use crate::descriptors::DescriptorSet;
+use crate::device::buffers::{PassBuffer, Reused};
+use crate::device::context::{GpuContext, GpuError};
+use crate::device::stats::StatsOnDevice;
 use semlook_kernels::abi::PassParams;
 use semlook_kernels::abi::SsimParams;
 use semlook_kernels::ssim_block::block_shape;

@@ -6,8 +6,8 @@
 //! the classes that make edges (uploaded when they change). A batch uploads its label maps, one
 //! byte per pixel, and reads back its descriptors and statistics in one read-back.
 
-use super::context::{GpuContext, GpuError};
 use crate::config::GlobalConfig;
+use crate::device::context::{GpuContext, GpuError};
 use crate::global::pool_params;
 use crate::input::LabelMap;
 use semlook_kernels::abi::{Dims, PoolParams, SsimParams};

@@ -20,13 +20,13 @@
 //! large pairs, listed (where they are few) or by the grid with `skip_small`, in dispatches
 //! bounded by the scratch binding.
 
-use super::buffers::{PassBuffer, Reused};
-use super::context::{GpuContext, GpuError};
 use super::fine_pack::{forest_key, pack, plan_chunks, ChunkedForests, ForestChunks, Packed};
 use super::resident::Resident;
 use super::topk::{bytes_per_query, TopK, MAX_PASS_REFS};
 use crate::descriptors::source::{RefSource, SourceKey};
 use crate::descriptors::DescriptorSet;
+use crate::device::buffers::{PassBuffer, Reused};
+use crate::device::context::{GpuContext, GpuError};
 use semlook_kernels::abi::PassParams;
 use semlook_kernels::abi::TreeSimParams;
 use semlook_kernels::abi::{FinePass, MAX_SLOTS, MAX_TREES};

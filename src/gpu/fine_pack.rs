@@ -1,9 +1,9 @@
 //! Forests in the layout of `shaders/tree_similarity.wgsl`: tree records, appearance vectors and
 //! each forest's (first tree, tree count); the map's forests chunked for residency.
 
-use super::context::{GpuContext, GpuError};
 use super::resident::{ChunkData, ChunkPlan};
 use crate::descriptors::source::{RefSource, SourceKey};
+use crate::device::context::{GpuContext, GpuError};
 use crate::values::Values;
 use semlook_kernels::abi::TreeSimParams;
 use semlook_kernels::abi::{GpuTree, MAX_SLOTS};

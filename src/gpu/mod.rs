@@ -21,11 +21,10 @@
 //! while its key stays the same, within the context's budget (`gpu::resident`); queries are
 //! uploaded once per batch; only top-K lists or pair scores come back.
 
-mod buffers;
+mod appearance;
 // Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
 #[doc(hidden)]
 pub mod coarse;
-mod context;
 // Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
 #[doc(hidden)]
 pub mod encode;
@@ -33,18 +32,12 @@ pub mod encode;
 #[doc(hidden)]
 pub mod fine;
 mod fine_pack;
-mod kernels;
-// Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
-#[doc(hidden)]
-pub mod lighterglue;
 /// Test hook, not the API: device runs of the one-pair reference kernels the equivalence tests
 /// hold the production kernels to.
 #[doc(hidden)]
 pub mod reference;
 mod resident;
 mod stages;
-mod stats;
-mod timer;
 mod topk;
 // Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
 #[doc(hidden)]
@@ -52,11 +45,8 @@ pub mod verify;
 // Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
 #[doc(hidden)]
 pub mod vlad;
-// Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
-#[doc(hidden)]
-pub mod xfeat;
 
-pub use context::{GpuContext, GpuCounters, GpuError, GpuOptions, RESIDENT_FRACTION};
+pub use crate::device::context::{GpuContext, GpuCounters, GpuError, GpuOptions, RESIDENT_FRACTION};
 pub use stages::GpuStages;
 
 /// Creates every kernel's pipeline on `device` (with or without the subgroup variants) and drops
@@ -64,6 +54,6 @@ pub use stages::GpuStages;
 /// contexts build their pipelines once, themselves.
 #[doc(hidden)]
 pub fn create_every_pipeline(device: &wgpu::Device, subgroups: bool) -> Result<(), GpuError> {
-    kernels::Kernels::new(device, subgroups)?;
-    kernels::reference_kernels(device, subgroups).map(|_| ())
+    crate::device::kernels::Kernels::new(device, subgroups)?;
+    crate::device::kernels::reference_kernels(device, subgroups).map(|_| ())
 }

@@ -4,7 +4,7 @@
 //! scores no SSIM produces (NaN). The coarse executor does not use them, and contexts do not build
 //! them: each call here builds its pipeline (`kernels::reference_kernels`).
 
-use super::context::{GpuContext, GpuError};
+use crate::device::context::{GpuContext, GpuError};
 use semlook_kernels::abi::{SsimParams, TileParams, MAX_ROW_SUMS};
 
 /// `ssim_tile` on every (query, reference) pair of one tile: scores query-major.
@@ -29,7 +29,7 @@ pub fn ssim_tile_scores(ctx: &GpuContext, p: &SsimParams, queries: (&[f32], &[f3
         let (qg, qs, rg, rs) = (upload("queries", queries.0), upload("query stats", queries.1), upload("tile", refs.0), upload("tile stats", refs.1));
         let scores = ctx.storage("scores", (nq * nr * 4) as u64);
         let (pb, tpb) = (ctx.uniform("ssim params", p), ctx.uniform("tile params", &tp));
-        let (ssim_tile, _) = super::kernels::reference_kernels(&ctx.device, ctx.uses_subgroups())?;
+        let (ssim_tile, _) = crate::device::kernels::reference_kernels(&ctx.device, ctx.uses_subgroups())?;
         let g = ssim_tile.bind(&ctx.device, &[&pb, &tpb, &qg, &qs, &rg, &rs, &scores]);
         ctx.run("ssim tile", &[(&ssim_tile.pipeline, &g, [nr as u32, nq as u32, 1])])?;
         ctx.read_back_values(&scores, nq * nr)
@@ -53,7 +53,7 @@ pub fn merge_scores(ctx: &GpuContext, tp: &TileParams, scores: &[f32], top_s: &[
             upload("top-k indices", bytemuck::cast_slice(&top_i[..n])),
         );
         let tpb = ctx.uniform("tile params", tp);
-        let (_, topk_merge) = super::kernels::reference_kernels(&ctx.device, ctx.uses_subgroups())?;
+        let (_, topk_merge) = crate::device::kernels::reference_kernels(&ctx.device, ctx.uses_subgroups())?;
         let g = topk_merge.bind(&ctx.device, &[&tpb, &sb, &tsb, &tib]);
         ctx.run("topk merge", &[(&topk_merge.pipeline, &g, [tp.queries.div_ceil(64), 1, 1])])?;
         Ok((ctx.read_back_values(&tsb, n)?, ctx.read_back_values(&tib, n)?))
@@ -64,8 +64,8 @@ pub fn merge_scores(ctx: &GpuContext, tp: &TileParams, scores: &[f32], top_s: &[
 /// (queries x n, query-major), in passes of `pass` references: the device side of
 /// `topk_select`'s twin, fed scores no SSIM produces (NaN, infinities, exact ties).
 pub fn select_topk(ctx: &GpuContext, scores: &[f32], nq: usize, k: usize, pass: usize) -> Result<Vec<Vec<(f32, u32)>>, GpuError> {
-    use super::buffers::{PassBuffer, Reused};
     use super::topk::{TopK, MAX_PASS_REFS};
+    use crate::device::buffers::{PassBuffer, Reused};
     use semlook_kernels::abi::PassParams;
     use semlook_kernels::topk_select::SEG;
     let n = scores.len() / nq.max(1);

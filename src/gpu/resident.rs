@@ -9,9 +9,9 @@
 //!   host's copy of chunk c + 1 overlaps the device's work on chunk c (the queue orders each
 //!   write after the passes that read the slot before).
 
-use super::buffers::Reused;
-use super::context::{GpuContext, GpuError};
 use crate::descriptors::source::SourceKey;
+use crate::device::buffers::Reused;
+use crate::device::context::{GpuContext, GpuError};
 
 /// What a chunk holds: references `first..first + len` of the map in buffers of these sizes.
 #[derive(Debug, Clone, PartialEq)]

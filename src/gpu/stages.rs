@@ -3,13 +3,13 @@
 //! GPU path drives (global descriptors, the keypoint network, VLAD).
 
 use super::{
-    coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, lighterglue::GlueGpu, verify::MnnGpu, vlad::VladGpu,
-    xfeat::NetworkSlot, GpuContext,
+    appearance::NetworkSlot, coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, verify::MnnGpu, vlad::VladGpu, GpuContext,
 };
 use crate::descriptors::source::{GlobalSource, RefSource};
 use crate::descriptors::DescriptorSet;
 use crate::error::Result;
 use crate::matching::{CpuStages, Stages};
+use crate::networks::lighterglue::device::GlueGpu;
 use crate::verify::{Verified, VerifyParams};
 use rayon::prelude::*;
 use semlook_kernels::abi::{SsimParams, TreeSimParams};

@@ -3,8 +3,8 @@
 //! `topk_merge_lists` (into the running lists, ping-pong between two buffers). Only the final
 //! K-lists are read back.
 
-use super::buffers::Reused;
-use super::context::{GpuContext, GpuError};
+use crate::device::buffers::Reused;
+use crate::device::context::{GpuContext, GpuError};
 use semlook_kernels::abi::Entry;
 use semlook_kernels::abi::PassParams;
 use semlook_kernels::topk_select::{MAX_LISTS, SEG};

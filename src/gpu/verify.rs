@@ -4,10 +4,10 @@
 //! every pair, and only the best column and dot product of every row come back. RANSAC then runs
 //! on the CPU (`verify::verify_from_best`): its sampling is sequential and its input small.
 
-use super::buffers::Reused;
-use super::context::{GpuContext, GpuError};
 use crate::descriptors::source::RefSource;
 use crate::descriptors::DescriptorSet;
+use crate::device::buffers::Reused;
+use crate::device::context::{GpuContext, GpuError};
 use crate::verify::best_columns::BestColumns;
 use semlook_kernels::abi::{MnnPair, MnnParams};
 use semlook_kernels::mnn_match::{pack, MAX_WORDS, ROWS};

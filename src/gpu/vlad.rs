@@ -2,9 +2,9 @@
 //! (sorted by object) and object runs are concatenated, assigned to centres by `vlad_assign`,
 //! and aggregated with normalisations by `vlad_accumulate`, one workgroup per object.
 
-use super::buffers::Reused;
-use super::context::{GpuContext, GpuError};
 use crate::appearance::check_vlad_input;
+use crate::device::buffers::Reused;
+use crate::device::context::{GpuContext, GpuError};
 use crate::global::vlad::{Codebook, VladNorm};
 use semlook_kernels::abi::VladParams;
 use semlook_kernels::vlad_accumulate::MAX_CENTRES;

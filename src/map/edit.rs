@@ -222,7 +222,7 @@ pub struct VerifyReport {
     pub appearance_kind: crate::config::AppearanceModelKind,
     /// The network that made the map's whole-image embeddings (queries must use the same file).
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub embedding: Option<crate::global::embedding::EmbeddingRecord>,
+    pub embedding: Option<crate::descriptors::EmbeddingRecord>,
 }
 
 impl VerifyReport {

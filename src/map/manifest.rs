@@ -192,11 +192,11 @@ pub struct Manifest {
     /// without one, so their checksums are those of before the field existed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub index: Option<IndexEntry>,
-    /// The network that made the images' whole-image embeddings ([`crate::global::embedding`]); queries
+    /// The network that made the images' whole-image embeddings ([`crate::networks::embedding`]); queries
     /// are embedded by the same file (same SHA-256). Absent in maps without embeddings (and in
     /// those built before them), so their checksums are those of before the field existed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub embedding: Option<crate::global::embedding::EmbeddingRecord>,
+    pub embedding: Option<crate::descriptors::EmbeddingRecord>,
     /// The null of `verified`'s evidence measured when the map was built
     /// ([`crate::descriptors::null::StoredNull`], `map build`): what every process and every
     /// shard of the map tests candidates against under the config it was measured with. A commit

@@ -31,7 +31,7 @@ pub mod segment;
 pub mod shard;
 pub mod writer;
 
-pub use crate::global::embedding::EmbeddingRecord;
+pub use crate::descriptors::EmbeddingRecord;
 pub use manifest::{Manifest, SegmentEntry, FORMAT, VERSION};
 pub use writer::{ColumnDims, MapWriter, StoreOptions, TraversalPlan};
 
@@ -521,7 +521,7 @@ impl RefSource for Map {
     fn embedding_dim(&self) -> usize {
         self.layout().emb
     }
-    fn embedding_record(&self) -> Option<&crate::global::embedding::EmbeddingRecord> {
+    fn embedding_record(&self) -> Option<&crate::descriptors::EmbeddingRecord> {
         self.manifest.embedding.as_ref()
     }
     fn image_embedding(&self, i: usize) -> Values<'_> {

@@ -499,7 +499,7 @@ impl MapWriter {
         }
         if let (Some(map), true) = (&self.manifest.embedding, set.embedding_dim > 0) {
             if !set.embedding.as_ref().is_some_and(|given| given.same_network(map)) {
-                let show = |r: &crate::global::embedding::EmbeddingRecord| {
+                let show = |r: &crate::descriptors::EmbeddingRecord| {
                     format!("{} sha256 {} ({} values, long side {})", r.network, r.sha256, r.dim, r.long_side)
                 };
                 return Err(Error::IncompatibleConfig {

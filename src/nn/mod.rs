@@ -1,6 +1,6 @@
-//! The network runtime the stages share: what runs a network and reads its weights, apart from
-//! what the networks compute (XFeat in `appearance`, the segmenter in `segmentation`, the
-//! embedding in `global::embedding`, LighterGlue in `verify`).
+//! The network runtime the networks share: what runs a network and reads its weights, apart from
+//! what the networks compute (each in its own module of [`crate::networks`]: XFeat, LighterGlue,
+//! the embedding, the segmenter).
 //!
 //! - [`conv`]: the CPU operations of the convolutional networks (convolution by im2col and a
 //!   matrix product, batch and instance norm, pooling, resizing), on CHW tensors.
@@ -12,7 +12,7 @@
 
 pub mod conv;
 pub mod dense;
-// Internal, public for the binary and tests only: ONNX Runtime loading for the command line and the tests; embedders go through `segmentation` and `appearance`.
+// Internal, public for the binary and tests only: ONNX Runtime loading for the command line and the tests; the networks go through `networks`.
 #[doc(hidden)]
 pub mod onnx;
 // Internal, public for the binary and tests only: the pickle machine behind `torch_pt` and VPR-Bench's `.npy` ground truth, public for the fuzz tests only.

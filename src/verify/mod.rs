@@ -9,7 +9,6 @@
 
 pub mod best_columns;
 pub mod homography;
-pub mod lighterglue;
 pub mod pose;
 pub mod ransac;
 
@@ -17,8 +16,8 @@ use crate::classes::{ClassTable, VOID};
 use crate::config::{Matcher, SemanticCheck, VerificationConfig};
 use crate::descriptors::keypoints::{KeypointsRef, DESCRIPTOR_SCALE};
 use crate::error::Result;
+use crate::networks::lighterglue::{self, GlueParams, LighterGlue};
 use best_columns::BestColumns;
-use lighterglue::{GlueParams, LighterGlue};
 use ransac::RansacParams;
 use std::sync::{Arc, Mutex};
 
@@ -137,7 +136,7 @@ pub fn classes_agree(check: SemanticCheck, a: u8, b: u8) -> bool {
 }
 
 /// Verifies one pair from the learned matcher's matches (the CPU's, or the device's:
-/// `gpu::lighterglue`): those on ignored classes dropped, then RANSAC.
+/// `networks::lighterglue::device`): those on ignored classes dropped, then RANSAC.
 pub fn verify_from_glue(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, matches: &[lighterglue::GlueMatch]) -> Verified {
     verify_matches(p, q, r, matches.iter().map(|&(i, j, _)| (i, j)).collect())
 }

@@ -3,7 +3,7 @@
 //! authors' model's matches. Shared by tests/lighterglue.rs and tests/gpu/lighterglue.rs.
 
 use semlook::descriptors::keypoints::KeypointsRef;
-use semlook::verify::lighterglue::{LighterGlue, LIGHTERGLUE_WEIGHTS};
+use semlook::networks::lighterglue::{LighterGlue, LIGHTERGLUE_WEIGHTS};
 use serde_json::Value;
 
 /// One image's stored keypoints.

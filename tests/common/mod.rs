@@ -50,13 +50,13 @@ pub fn with_real_segmenter(mut cfg: Config) -> Option<Config> {
 /// The real default segmenter's file, named explicitly from `../shared/models` ([`with_real_segmenter`];
 /// for a command line, `--segmenter` it); else the test skips (fails under CI / REQUIRE_SHARED=1).
 pub fn real_segmenter() -> Option<std::path::PathBuf> {
-    shared_or_required(&format!("models/{}", semlook::segmentation::DEFAULT_SEGMENTER))
+    shared_or_required(&format!("models/{}", semlook::networks::segmenter::DEFAULT_SEGMENTER))
 }
 
 /// Whether the XFeat weights setup.sh installs are found; if not, the test skips with the reason
 /// (or fails under CI or REQUIRE_MODELS=1) and should return.
 pub fn has_xfeat() -> bool {
-    match semlook::nn::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, None, "XFeat") {
+    match semlook::nn::onnx::find_model(semlook::networks::xfeat::XFEAT_WEIGHTS, None, "XFeat") {
         Ok(_) => true,
         Err(e) => {
             skip_unless_required("REQUIRE_MODELS", format!("XFeat weights (run setup.sh): {e}"));

@@ -7,8 +7,9 @@ use crate::mutate::{random_seeds, Entropy};
 use crate::{Target, Verdict};
 use image::{Rgb, RgbImage};
 use semlook::appearance::keypoints::{self, KeypointParams};
-use semlook::appearance::{AppearanceModel, NetOutputs};
+use semlook::appearance::AppearanceModel;
 use semlook::config::{AppearanceConfig, AppearanceModelKind, ModelPaths, Sampling, SegmentationConfig};
+use semlook::networks::NetOutputs;
 use semlook::nn::conv::Chw;
 use semlook::Error;
 use std::io::Write;
@@ -432,7 +433,7 @@ pub fn onnx_segmenter() -> Option<Target> {
             ..Default::default()
         };
         let name = path.display().to_string();
-        let seg = match semlook::segmentation::Segmenter::load(path, &cfg, &semlook::classes::ClassTable::cityscapes(), None) {
+        let seg = match semlook::networks::segmenter::Segmenter::load(path, &cfg, &semlook::classes::ClassTable::cityscapes(), None) {
             Ok(s) => s,
             Err(e) => return Verdict::refused(&e, &name, model_kind),
         };

@@ -168,7 +168,7 @@ pub fn rgb_image() -> Option<Target> {
                 Ok((img, _)) => {
                     verdict = Verdict::Accepted;
                     // the keypoint network's input: a typed refusal below 32 x 32
-                    if let Err(e) = semlook::appearance::network_input(&img) {
+                    if let Err(e) = semlook::networks::network_input(&img) {
                         if !matches!(e, Error::InvalidInput { .. }) {
                             return Verdict::Violation(format!("network input: {e:?}"));
                         }

@@ -340,7 +340,7 @@ fn a_real_scene_through_several_pairs_per_workgroup() {
     names.sort();
     // both drives: every fourth frame, the first 40 the map, the next 12 the queries
     let names: Vec<&String> = names.iter().step_by(4).take(52).collect();
-    let appearance = semlook::nn::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, None, "XFeat").is_ok();
+    let appearance = semlook::nn::onnx::find_model(semlook::networks::xfeat::XFEAT_WEIGHTS, None, "XFeat").is_ok();
     if !appearance {
         assert!(std::env::var_os("CI").is_none(), "setup.sh must provide the XFeat weights under CI");
         eprintln!("note: no XFeat weights, the real scene without appearance");

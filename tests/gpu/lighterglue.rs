@@ -1,5 +1,5 @@
-//! LighterGlue on the device (`shaders/lighterglue.wgsl`, executor `gpu::lighterglue`) held to
-//! its CPU twins (`semlook_kernels::lighterglue`, run by the same executor plan as `gpu::lighterglue::Twins`).
+//! LighterGlue on the device (`shaders/lighterglue.wgsl`, executor `networks::lighterglue::device`) held to
+//! its CPU twins (`semlook_kernels::lighterglue`, run by the same executor plan as `networks::lighterglue::device::Twins`).
 //! The twins themselves are held to the authors' model on real pairs by tests/lighterglue.rs
 //! (`the_device_plan_on_the_twins_matches_the_reference`). Tolerances, and what lavapipe showed
 //! (2-core development machine):
@@ -21,10 +21,10 @@
 use super::common::glue::{fixtures, network, Stored};
 use super::{gpu, gpu_with};
 use semlook::descriptors::keypoints::KeypointsRef;
-use semlook::gpu::lighterglue::{forward, forward_on_twins, run_kernel, run_pass, Buf, Entry, GlueGpu, Pass, Twins};
 use semlook::gpu::{GpuError, GpuOptions};
+use semlook::networks::lighterglue::device::{forward, forward_on_twins, run_kernel, run_pass, Buf, Entry, GlueGpu, Pass, Twins};
+use semlook::networks::lighterglue::GlueParams;
 use semlook::util::SplitMix64;
-use semlook::verify::lighterglue::GlueParams;
 use semlook_kernels::abi::LgParams;
 use semlook_kernels::lighterglue::{FLAG_ACCUMULATE, FLAG_GELU};
 

@@ -378,7 +378,7 @@ fn end_to_end_matching_equals_the_cpu_path() {
     let dir = tempfile::tempdir().unwrap();
     common::tiny_synth(dir.path(), 10, 21);
     let ds = semlook::dataset::Dataset::open(dir.path(), &Default::default()).unwrap();
-    let cfg = if semlook::nn::onnx::find_model(semlook::appearance::XFEAT_WEIGHTS, None, "XFeat").is_ok() {
+    let cfg = if semlook::nn::onnx::find_model(semlook::networks::xfeat::XFEAT_WEIGHTS, None, "XFeat").is_ok() {
         Config::default()
     } else {
         assert!(std::env::var_os("CI").is_none(), "setup.sh must provide the XFeat weights under CI");
@@ -563,7 +563,7 @@ fn kernels_on_a_real_street_frame() {
     let Some(ctx) = gpu() else { return };
     let cfg = Config::default();
     let table = semlook::classes::ClassTable::cityscapes();
-    let seg = match semlook::segmentation::Segmenter::load(&model, &cfg.segmentation, &table, None) {
+    let seg = match semlook::networks::segmenter::Segmenter::load(&model, &cfg.segmentation, &table, None) {
         Ok(s) => s,
         Err(e) => return common::skip_unless_required("REQUIRE_MODELS", format!("the ESPNet segmenter does not load: {e}")),
     };

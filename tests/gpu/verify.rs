@@ -90,7 +90,7 @@ fn mnn_kernel_equals_its_twin_and_the_fast_path_exactly() {
 /// Real frames: two Nordland spring/winter views of one place and a third of another; the GPU
 /// verification's matches and inliers equal the CPU path's exactly, with mutual nearest
 /// neighbours and with the learned matcher (LighterGlue on the device, `lighterglue.wgsl`, against
-/// the CPU's `verify::lighterglue`: the same matches, so the same RANSAC inliers).
+/// the CPU's `networks::lighterglue`: the same matches, so the same RANSAC inliers).
 #[test]
 fn verification_on_the_gpu_equals_the_cpu_on_real_frames() {
     let Some(ctx) = gpu() else { return };

@@ -1,4 +1,4 @@
-//! The XFeat network on the device (`shaders/xfeat.wgsl`, executor `gpu::xfeat`) held to its CPU
+//! The XFeat network on the device (`shaders/xfeat.wgsl`, executor `networks::xfeat::device`) held to its CPU
 //! twins (`semlook_kernels::xfeat`), and the CPU path's fast ops (`nn::conv`) held to the same
 //! twins. Tolerances, and the largest differences seen on lavapipe (2-core development machine):
 //!
@@ -17,10 +17,10 @@
 //!   of the detector's keypoints at identical positions (seen: 384 of 384 on every frame).
 
 use super::{common, gpu, gpu_with};
-use semlook::appearance::xfeat::XFeat;
-use semlook::appearance::NetOutputs;
-use semlook::gpu::xfeat::{forward_on_twins, run_kernel, XFeatGpu};
 use semlook::gpu::{GpuError, GpuOptions};
+use semlook::networks::xfeat::device::{forward_on_twins, run_kernel, XFeatGpu};
+use semlook::networks::xfeat::XFeat;
+use semlook::networks::NetOutputs;
 use semlook::nn::conv::{self as nn, Chw};
 use semlook::util::SplitMix64;
 use semlook_kernels::abi::{ConvParams, MapParams, NormParams};
@@ -231,7 +231,7 @@ fn native() -> Option<semlook::appearance::AppearanceModel> {
 fn working_grey(path: &std::path::Path) -> Chw {
     let rgb = image::open(path).unwrap().to_rgb8();
     let (w, h) = semlook::input::working_size(rgb.width(), rgb.height(), semlook::config::Config::default().input.working_long_side);
-    semlook::appearance::network_input(&semlook::input::resize_rgb(&rgb, w, h)).unwrap().0
+    semlook::networks::network_input(&semlook::input::resize_rgb(&rgb, w, h)).unwrap().0
 }
 
 /// Per cell, the cosine of two descriptor maps: (mean, min).

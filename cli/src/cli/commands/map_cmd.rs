@@ -533,7 +533,7 @@ fn check_installed_model(r: &mut edit::VerifyReport) -> Option<String> {
         AppearanceModelKind::Onnx => return Some("model    not checked: the map's keypoint network is an ONNX model, which a query names".into()),
         AppearanceModelKind::None => return None,
     }
-    let name = semlook::appearance::XFEAT_WEIGHTS;
+    let name = semlook::networks::xfeat::XFEAT_WEIGHTS;
     // the folders start with $SEMLOOK_MODELS, as a query's search does
     let found = semlook::nn::onnx::find_model(name, None, "XFeat weights");
     let Ok(path) = found else {

@@ -136,7 +136,7 @@ fn models_cmd(json: bool) -> Result<()> {
         outln!(
             "to install what is missing: `bash setup.sh` in the repository (or put the files in a folder and set {}){}",
             semlook::nn::onnx::MODELS_ENV,
-            if all.iter().any(|m| m.name == semlook::segmentation::DEFAULT_SEGMENTER && m.path.is_none()) {
+            if all.iter().any(|m| m.name == semlook::networks::segmenter::DEFAULT_SEGMENTER && m.path.is_none()) {
                 "; without the segmenter, photos that have no label maps are encoded without labels (settings hog, appearance, verified)"
             } else {
                 ""

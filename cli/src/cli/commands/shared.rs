@@ -57,7 +57,7 @@ pub fn apply_models(mut cfg: Config, m: &ModelArgs) -> Config {
         cfg.models.keypoint_onnx = Some(k.clone());
     }
     // option, then $SEMLOOK_MODELS, then the config key, then the data folders (in the library)
-    if let Some(w) = m.xfeat_weights.clone().or_else(|| semlook::nn::onnx::env_model(semlook::appearance::XFEAT_WEIGHTS)) {
+    if let Some(w) = m.xfeat_weights.clone().or_else(|| semlook::nn::onnx::env_model(semlook::networks::xfeat::XFEAT_WEIGHTS)) {
         cfg.models.xfeat_weights = Some(w);
     }
     if let Some(s) = &m.segmenter {

@@ -2,9 +2,9 @@
 //! reference the device is held to.
 
 use super::plan::{outputs, pack, Buf, Entry, Params, Plan, PlanError};
-use crate::appearance::xfeat::XFeat;
-use crate::appearance::NetOutputs;
 use crate::error::Error;
+use crate::networks::xfeat::XFeat;
+use crate::networks::NetOutputs;
 use crate::nn::conv::Chw;
 use semlook_kernels::xfeat as twin;
 

@@ -2,9 +2,9 @@
 //! of the forward pass at a frame size (which kernel, its parameters, which buffers, its grid) as
 //! data, which the device executor (`super`) and the twin runner (`super::twins`) both run.
 
-use crate::appearance::xfeat::{Layer, XFeat};
-use crate::appearance::NetOutputs;
 use crate::error::Error;
+use crate::networks::xfeat::{Layer, XFeat};
+use crate::networks::NetOutputs;
 use crate::nn::conv::Chw;
 use semlook_kernels::abi::{ConvParams, MapParams, NormParams};
 use semlook_kernels::xfeat::pack_conv;

@@ -17,6 +17,10 @@
 //! Positions enter as fractions of the image's long side (what the map stores): the rotary encoding
 //! depends only on differences of positions, so the image's size beyond its long side is not needed.
 
+// Internal, public for the tests and benchmarks only: the device executor (verification runs it).
+#[doc(hidden)]
+pub mod device;
+
 use crate::descriptors::keypoints::{KeypointsRef, COORD_SCALE};
 use crate::error::{Error, Result};
 use crate::nn::dense::{each_row, gemm_nn_strided, gemm_nt, gemm_nt_strided, log_sigmoid, transpose, LogSoftmax, NormGelu, Softmax};
@@ -403,7 +407,7 @@ pub struct PackedLayer {
     pub token: Option<PackedLinear>,
 }
 
-/// The network's weights in one buffer, as the device executor (`gpu::lighterglue`) uploads
+/// The network's weights in one buffer, as the device executor (`networks::lighterglue::device`) uploads
 /// them, with every layer's offsets.
 #[derive(Debug, Clone)]
 pub struct PackedGlue {

@@ -1,4 +1,4 @@
-//! Stage 2c: the whole-image embedding, a global image descriptor from a convolutional network
+//! The whole-image embedding, a global image descriptor from a convolutional network
 //! trained on ImageNet: EfficientNet-Lite1 (Tan & Le, "EfficientNet: Rethinking Model Scaling for
 //! Convolutional Neural Networks", ICML 2019; the Lite variants of TensorFlow's TPU repository)
 //! with generalized-mean pooling of its last feature map (Radenović, Tolias & Chum, "Fine-tuning
@@ -10,32 +10,10 @@
 //! its score (sweep 16): the VLAD of XFeat descriptors misses places seen from far-apart
 //! viewpoints that the network's pooled features still find.
 
+use crate::descriptors::EmbeddingRecord;
 use crate::error::{Error, Result};
 use image::RgbImage;
-use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
-
-/// What made a set's or a map's whole-image embeddings: the network file's name, its SHA-256, the width of
-/// its output and the long side images were resized to.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct EmbeddingRecord {
-    /// The file name, looked up in the model folders.
-    pub network: String,
-    /// SHA-256 of the file.
-    pub sha256: String,
-    /// Values per embedding.
-    pub dim: usize,
-    /// The long side, in pixels, of the image the network saw.
-    pub long_side: u32,
-}
-
-impl EmbeddingRecord {
-    /// Whether two records name the same network seeing the same size (the file's bytes, its
-    /// width and the long side; the file's name may differ).
-    pub fn same_network(&self, other: &EmbeddingRecord) -> bool {
-        self.sha256 == other.sha256 && self.dim == other.dim && self.long_side == other.long_side
-    }
-}
 
 /// The size the network sees an image at: its long side `long_side`, its short side in
 /// proportion (rounded, at least 32 pixels: the network halves it five times).

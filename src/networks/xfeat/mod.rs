@@ -4,13 +4,22 @@
 //! dense 64-d descriptors, 65-channel keypoint logits (SuperPoint cell layout) and a reliability
 //! map. Held to the ONNX export (`../shared/models/xfeat.onnx`) by the tests.
 
-use super::NetOutputs;
+// Internal, public for the tests and benchmarks only: the device executor (the GPU encoding path runs it).
+#[doc(hidden)]
+pub mod device;
+mod plan;
+mod twins;
+
+use super::{KeypointNetwork, NetOutputs};
 use crate::error::{Error, Result};
 use crate::nn::conv::{avg_pool, batchnorm_relu, conv2d, instance_norm, resize_bilinear, space_to_depth8, Chw};
 use crate::nn::torch_pt::{read_state_dict, Tensor};
 use semlook_kernels::xfeat::Epilogue;
 use std::collections::HashMap;
 use std::path::Path;
+
+/// File name of the XFeat weights in the setup folder.
+pub const XFEAT_WEIGHTS: &str = "xfeat.pt";
 
 /// Conv2d (no bias) + BatchNorm2d(affine = False) + ReLU.
 struct Basic {
@@ -289,5 +298,11 @@ impl XFeat {
         heat.data.iter_mut().for_each(|v| *v = 1.0 / (1.0 + (-*v).exp()));
         let logits = self.keypoint_out.run(&seq(&self.keypoint, space_to_depth8(&x)?)?)?;
         Ok(NetOutputs { descriptors: feats, logits, reliability: Some(heat) })
+    }
+}
+
+impl KeypointNetwork for XFeat {
+    fn run(&self, grey: &Chw, heads: bool) -> Result<NetOutputs> {
+        self.forward_with(grey, heads)
     }
 }

@@ -6,7 +6,7 @@
 //!
 //! The forward pass is written once ([`forward`]) over a [`Backend`]: the device ([`GlueGpu`])
 //! or the CPU twins (`semlook_kernels::lighterglue`, [`forward_on_twins`]), which is what the device is
-//! held to. It follows `verify::lighterglue::LighterGlue::forward` pass for pass: per layer a
+//! held to. It follows `networks::lighterglue::LighterGlue::forward` pass for pass: per layer a
 //! self- and a cross-attention block; after each layer but the last, where asked, early exit
 //! (depth confidence, per pair) and point pruning (width confidence): the heads' logits come back
 //! (one read of one or two values a row), the host decides, and `lg_gather` moves the kept rows
@@ -18,12 +18,12 @@
 //! batches (pairs are independent); one pair too large for the binding is a typed
 //! [`GpuError::LimitsTooSmall`].
 
-use super::buffers::{PassBuffer, Reused};
-use super::context::{GpuContext, GpuError};
-use super::kernels::Kernel;
 use crate::descriptors::keypoints::KeypointsRef;
+use crate::device::buffers::{PassBuffer, Reused};
+use crate::device::context::{GpuContext, GpuError};
+use crate::device::kernels::Kernel;
+use crate::networks::lighterglue::{confidence_threshold, network_inputs, GlueMatch, GlueParams, LighterGlue, PackedFfn, PackedGlue, PackedLinear};
 use crate::nn::dense::sigmoid;
-use crate::verify::lighterglue::{confidence_threshold, network_inputs, GlueMatch, GlueParams, LighterGlue, PackedFfn, PackedGlue, PackedLinear};
 use semlook_kernels::abi::LgParams;
 use semlook_kernels::lighterglue::{self as twin, grid, FLAG_ACCUMULATE, FLAG_GELU, LANES, LN_ROWS, NO_PARTNER, TILE};
 use std::sync::Arc;
@@ -728,7 +728,7 @@ impl GlueGpu {
     }
 }
 
-fn kernel(k: &super::kernels::Kernels, e: Entry) -> &Kernel {
+fn kernel(k: &crate::device::kernels::Kernels, e: Entry) -> &Kernel {
     match e {
         Entry::Linear => &k.lg_linear,
         Entry::LayerNorm => &k.lg_layer_norm,

@@ -77,10 +77,10 @@ pub struct GpuContext {
     /// Bytes of the budget that resident sets hold now.
     resident: AtomicU64,
     uploaded: AtomicU64,
-    pub(super) read_back_bytes: AtomicU64,
+    pub(crate) read_back_bytes: AtomicU64,
     buffers: AtomicU64,
     /// The read-back staging buffer, kept between read-backs (regrown when one needs more).
-    pub(super) staging: Mutex<Option<wgpu::Buffer>>,
+    pub(crate) staging: Mutex<Option<wgpu::Buffer>>,
     subgroups: bool,
     timer: Mutex<Option<Timer>>,
     lost: Arc<Mutex<Option<String>>>,
