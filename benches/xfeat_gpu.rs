@@ -1,5 +1,5 @@
 //! Group `xfeat_forward_with_heads`: the XFeat network on the device (`device WxH`:
-//! `networks::xfeat::device::XFeatGpu::forward_with` with the keypoint heads, as encoding with verification
+//! `networks::xfeat::XFeatGpu::forward_with` with the keypoint heads, as encoding with verification
 //! keypoints runs it; one frame's upload, the 33 dispatches and the read-back of descriptors,
 //! reliability and logits) and on the CPU (`cpu fast path WxH`: `XFeat::forward_with`), at
 //! 640x480 and at 1920x1056 (a 1920x1080 frame rounded down to multiples of 32, as
@@ -9,7 +9,7 @@
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use semlook::gpu::{GpuContext, GpuOptions};
-use semlook::networks::xfeat::device::XFeatGpu;
+use semlook::networks::xfeat::XFeatGpu;
 use semlook::nn::conv::Chw;
 use std::sync::Arc;
 

@@ -286,7 +286,7 @@ fn glue_min_inliers_runs_the_learned_matcher_only_where_mnn_found_enough() {
 }
 
 /// The device executor's forward pass run on the CPU twins of `lighterglue.wgsl`
-/// (`networks::lighterglue::device::forward_on_twins`: the same passes the device runs, the online softmax,
+/// (`networks::lighterglue::forward_on_twins`: the same passes the device runs, the online softmax,
 /// erf by a polynomial) held to the authors' model like the crate's CPU matcher: matches
 /// identical with and without pruning, probabilities within 1e-3; all pairs in one batch, with
 /// an empty pair among them. What the device is then held to (tests/gpu/lighterglue.rs).
@@ -301,7 +301,7 @@ fn the_device_plan_on_the_twins_matches_the_reference() {
         pairs.insert(1, (stored[0].0.as_ref(), KeypointsRef::EMPTY));
         let width = fx["pairs"][0][run]["width_confidence"].as_f64().unwrap() as f32;
         let p = GlueParams { width_confidence: width, ..GlueParams::default() };
-        let got = semlook::networks::lighterglue::device::forward_on_twins(&net, &p, &pairs);
+        let got = semlook::networks::lighterglue::forward_on_twins(&net, &p, &pairs);
         assert_eq!(got.len(), pairs.len());
         assert!(got[1].is_empty(), "a side without keypoints has no matches");
         let got: Vec<_> = got.into_iter().enumerate().filter(|&(k, _)| k != 1).map(|x| x.1).collect();
@@ -320,14 +320,13 @@ fn the_device_plan_on_the_twins_matches_the_reference() {
     // early exit (per pair) and pruning to an empty side, which the fixtures do not cover: the
     // twins' plan against the crate's CPU matcher, which is held to the reference above
     let pairs: Vec<(KeypointsRef, KeypointsRef)> = stored.iter().map(|(a, b)| (a.as_ref(), b.as_ref())).collect();
-    let full =
-        semlook::networks::lighterglue::device::forward_on_twins(&net, &GlueParams { width_confidence: -1.0, ..GlueParams::default() }, &pairs);
+    let full = semlook::networks::lighterglue::forward_on_twins(&net, &GlueParams { width_confidence: -1.0, ..GlueParams::default() }, &pairs);
     for (what, p) in [
         ("early exit after the first layer", GlueParams { width_confidence: -1.0, depth_confidence: 1e-6, ..GlueParams::default() }),
         ("early exit 0.95 with pruning", GlueParams { depth_confidence: 0.95, ..GlueParams::default() }),
         ("pruning nearly every point", GlueParams { width_confidence: 1e-6, ..GlueParams::default() }),
     ] {
-        let twins = semlook::networks::lighterglue::device::forward_on_twins(&net, &p, &pairs);
+        let twins = semlook::networks::lighterglue::forward_on_twins(&net, &p, &pairs);
         for (k, (a, b)) in pairs.iter().enumerate() {
             let cpu = net.match_keypoints(&p, *a, *b);
             let ij = |v: &[(u32, u32, f32)]| v.iter().map(|&(i, j, _)| (i, j)).collect::<Vec<_>>();

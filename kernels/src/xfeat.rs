@@ -5,7 +5,7 @@
 //! `nn::conv` (im2col + sgemm, ...), which the tests hold to these twins; the device is
 //! held to them too (`tests/gpu/xfeat.rs`).
 //!
-//! Also here, host-side and shared by the twins, the executor (`semlook::networks::xfeat::device`) and the
+//! Also here, host-side and shared by the twins, the executor (`semlook::networks::xfeat::XFeatGpu`) and the
 //! tests: the uniform structs (`#[repr(C)]`, checked against naga's reflection of the WGSL by this
 //! crate's `layout_tests`), the shader's constants, and the packing of a layer's weights.
 

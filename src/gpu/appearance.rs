@@ -1,11 +1,11 @@
 //! The appearance stage's keypoint network on the device: the native XFeat run by its device
-//! executor ([`crate::networks::xfeat::device::XFeatGpu`]), its outputs decoded by the stage
+//! executor ([`crate::networks::xfeat::XFeatGpu`]), its outputs decoded by the stage
 //! ([`AppearanceModel::decode`]), as the CPU path decodes its own run.
 
 use crate::appearance::{AppearanceModel, Features};
 use crate::device::context::{GpuContext, GpuError};
 use crate::networks::network_input;
-use crate::networks::xfeat::device::XFeatGpu;
+use crate::networks::xfeat::XFeatGpu;
 use image::RgbImage;
 use std::sync::Arc;
 

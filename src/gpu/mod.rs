@@ -22,15 +22,9 @@
 //! uploaded once per batch; only top-K lists or pair scores come back.
 
 mod appearance;
-// Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
-#[doc(hidden)]
-pub mod coarse;
-// Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
-#[doc(hidden)]
-pub mod encode;
-// Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
-#[doc(hidden)]
-pub mod fine;
+mod coarse;
+mod encode;
+mod fine;
 mod fine_pack;
 /// Test hook, not the API: device runs of the one-pair reference kernels the equivalence tests
 /// hold the production kernels to.
@@ -39,15 +33,19 @@ pub mod reference;
 mod resident;
 mod stages;
 mod topk;
-// Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
-#[doc(hidden)]
-pub mod verify;
-// Internal, public for the tests and benchmarks only: the device executor (plumbing behind `GpuStages`).
-#[doc(hidden)]
-pub mod vlad;
+mod verify;
+mod vlad;
 
 pub use crate::device::context::{GpuContext, GpuCounters, GpuError, GpuOptions, RESIDENT_FRACTION};
 pub use stages::GpuStages;
+// the stage executors `GpuStages` composes, each usable alone on a host's context (its buffers kept
+// between calls): the global descriptors, VLAD, the coarse scan, the tree similarity, the
+// keypoint matching of verification
+pub use coarse::CoarseMatcherGpu;
+pub use encode::GlobalEncoderGpu;
+pub use fine::{FineCounters, FineMatcherGpu};
+pub use verify::MnnGpu;
+pub use vlad::VladGpu;
 
 /// Creates every kernel's pipeline on `device` (with or without the subgroup variants) and drops
 /// them: the driver checks each bind group layout against its shader's bindings. A test hook;

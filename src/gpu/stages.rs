@@ -9,7 +9,7 @@ use crate::descriptors::source::{GlobalSource, RefSource};
 use crate::descriptors::DescriptorSet;
 use crate::error::Result;
 use crate::matching::{CpuStages, Stages};
-use crate::networks::lighterglue::device::GlueGpu;
+use crate::networks::lighterglue::GlueGpu;
 use crate::verify::{Verified, VerifyParams};
 use rayon::prelude::*;
 use semlook_kernels::abi::{SsimParams, TreeSimParams};
@@ -71,7 +71,7 @@ impl GpuStages {
     }
 
     /// What the fine stage's dispatches did so far (pairs and workgroups of each kernel).
-    pub fn fine_counters(&self) -> crate::gpu::fine::FineCounters {
+    pub fn fine_counters(&self) -> super::FineCounters {
         self.fine.counters()
     }
 

@@ -8,9 +8,9 @@
 //!
 //! | network | used by | CPU forward | device forward | weights |
 //! |---|---|---|---|---|
-//! | XFeat | appearance (VLAD), verification keypoints | [`xfeat::XFeat`] (native) | [`xfeat::device`] | `xfeat.pt` ([`xfeat::XFEAT_WEIGHTS`]) |
+//! | XFeat | appearance (VLAD), verification keypoints | [`xfeat::XFeat`] (native) | [`xfeat::XFeatGpu`] | `xfeat.pt` ([`xfeat::XFEAT_WEIGHTS`]) |
 //! | any SuperPoint-layout ONNX model | appearance (`appearance.model = "onnx"`) | [`OnnxKeypoints`] (ONNX Runtime) | none | `models.keypoint_onnx` |
-//! | LighterGlue | verification (`verification.matcher = "lighterglue"`) | [`lighterglue::LighterGlue`] (native) | [`lighterglue::device`] | [`lighterglue::LIGHTERGLUE_WEIGHTS`] |
+//! | LighterGlue | verification (`verification.matcher = "lighterglue"`) | [`lighterglue::LighterGlue`] (native) | [`lighterglue::GlueGpu`] | [`lighterglue::LIGHTERGLUE_WEIGHTS`] |
 //! | EfficientNet-Lite1 + GeM | the fused coarse stage | [`embedding::Embedder`] (ONNX Runtime) | none | `embedding.network` |
 //! | ESPNetv2 (any adapted segmenter) | labels for frames given without them | [`segmenter::Segmenter`] (ONNX Runtime) | none | [`segmenter::DEFAULT_SEGMENTER`] |
 //!

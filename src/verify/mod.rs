@@ -136,7 +136,7 @@ pub fn classes_agree(check: SemanticCheck, a: u8, b: u8) -> bool {
 }
 
 /// Verifies one pair from the learned matcher's matches (the CPU's, or the device's:
-/// `networks::lighterglue::device`): those on ignored classes dropped, then RANSAC.
+/// `networks::lighterglue` (its device executor)): those on ignored classes dropped, then RANSAC.
 pub fn verify_from_glue(p: &VerifyParams, q: KeypointsRef, r: KeypointsRef, matches: &[lighterglue::GlueMatch]) -> Verified {
     verify_matches(p, q, r, matches.iter().map(|&(i, j, _)| (i, j)).collect())
 }

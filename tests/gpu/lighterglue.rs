@@ -1,5 +1,5 @@
-//! LighterGlue on the device (`shaders/lighterglue.wgsl`, executor `networks::lighterglue::device`) held to
-//! its CPU twins (`semlook_kernels::lighterglue`, run by the same executor plan as `networks::lighterglue::device::Twins`).
+//! LighterGlue on the device (`shaders/lighterglue.wgsl`, executor `networks::lighterglue` (its device executor)) held to
+//! its CPU twins (`semlook_kernels::lighterglue`, run by the same executor plan as `networks::lighterglue::Twins`).
 //! The twins themselves are held to the authors' model on real pairs by tests/lighterglue.rs
 //! (`the_device_plan_on_the_twins_matches_the_reference`). Tolerances, and what lavapipe showed
 //! (2-core development machine):
@@ -22,8 +22,8 @@ use super::common::glue::{fixtures, network, Stored};
 use super::{gpu, gpu_with};
 use semlook::descriptors::keypoints::KeypointsRef;
 use semlook::gpu::{GpuError, GpuOptions};
-use semlook::networks::lighterglue::device::{forward, forward_on_twins, run_kernel, run_pass, Buf, Entry, GlueGpu, Pass, Twins};
 use semlook::networks::lighterglue::GlueParams;
+use semlook::networks::lighterglue::{forward, forward_on_twins, run_kernel, run_pass, Buf, Entry, GlueGpu, Pass, Twins};
 use semlook::util::SplitMix64;
 use semlook_kernels::abi::LgParams;
 use semlook_kernels::lighterglue::{FLAG_ACCUMULATE, FLAG_GELU};

@@ -54,7 +54,7 @@ fn global_encoding_matches_the_cpu_twins() {
     let table = semlook::classes::ClassTable::cityscapes();
     let maps = common::label_maps(3, 97, 61);
     let refs: Vec<&semlook::input::LabelMap> = maps.iter().collect();
-    let mut enc = semlook::gpu::encode::GlobalEncoderGpu::new(ctx);
+    let mut enc = semlook::gpu::GlobalEncoderGpu::new(ctx);
     let out = enc.encode(&refs, &table.used_mask(), &cfg.global).unwrap();
     let d2 = enc.last_d2(3 * 97 * 61).unwrap();
     let mut scratch = semlook::global::GlobalScratch::default();
@@ -141,7 +141,7 @@ fn cpu_global(m: &semlook::input::LabelMap, cfg: &Config) -> (Vec<u32>, Vec<u32>
 fn edges_and_edt_are_exact_and_pooling_within_1e_5() {
     let Some(ctx) = gpu() else { return };
     let cfg = Config { global: semlook::config::GlobalConfig { width: 16, height: 12, ..Default::default() }, ..Default::default() };
-    let mut enc = semlook::gpu::encode::GlobalEncoderGpu::new(ctx);
+    let mut enc = semlook::gpu::GlobalEncoderGpu::new(ctx);
     let used = semlook::classes::ClassTable::cityscapes().used_mask();
     let mut maps = random_maps(1);
     maps.extend(random_maps(2));
@@ -340,7 +340,7 @@ fn tiling_under_a_small_binding_limit() {
     let cfg = Config::without_appearance();
     let refs = random_descriptors(23, &cfg, 8);
     let queries = random_descriptors(3, &cfg, 9);
-    let m = semlook::gpu::coarse::CoarseMatcherGpu::new(ctx.clone(), cfg.global.ssim_params()).unwrap();
+    let m = semlook::gpu::CoarseMatcherGpu::new(ctx.clone(), cfg.global.ssim_params()).unwrap();
     let chunk = m.chunk_len();
     assert!(chunk < refs.len() / 4, "chunks of {chunk} references do not split the map");
     let mut stages = semlook::gpu::GpuStages::new(ctx);
@@ -501,7 +501,7 @@ fn random_vlad_frames(k: usize, d: usize, seed: u64) -> (semlook::global::vlad::
 #[test]
 fn vlad_kernels_match_the_cpu_twin() {
     let Some(ctx) = gpu() else { return };
-    let mut vg = semlook::gpu::vlad::VladGpu::new(ctx);
+    let mut vg = semlook::gpu::VladGpu::new(ctx);
     for (i, &(k, d, power, intra)) in
         [(16usize, 64usize, false, true), (5, 37, true, true), (3, 100, false, false), (64, 64, true, false), (1, 1, false, true)].iter().enumerate()
     {
@@ -527,7 +527,7 @@ fn inconsistent_batches_are_refused_with_typed_errors() {
     let table = semlook::classes::ClassTable::cityscapes();
     let a = semlook::input::LabelMap::new(8, 6, vec![0; 48], &table).unwrap();
     let b = semlook::input::LabelMap::new(6, 8, vec![0; 48], &table).unwrap();
-    let mut enc = semlook::gpu::encode::GlobalEncoderGpu::new(ctx.clone());
+    let mut enc = semlook::gpu::GlobalEncoderGpu::new(ctx.clone());
     let err = enc.encode(&[&a, &b], &table.used_mask(), &semlook::config::Config::default().global).unwrap_err();
     assert!(err.to_string().contains("one size per batch"), "{err}");
     let (cb, frames) = random_vlad_frames(4, 8, 3);
@@ -535,7 +535,7 @@ fn inconsistent_batches_are_refused_with_typed_errors() {
     let mut past = offsets.clone();
     *past.last_mut().unwrap() += 1;
     let norm = semlook::global::vlad::VladNorm { intra: true, power: false };
-    let mut vg = semlook::gpu::vlad::VladGpu::new(ctx);
+    let mut vg = semlook::gpu::VladGpu::new(ctx);
     for (what, d, o) in [
         ("no runs", &descs[..], &[][..]),
         ("runs from 1", descs, &[1, 2][..]),
@@ -569,7 +569,7 @@ fn kernels_on_a_real_street_frame() {
     };
     let rgb = image::open(&frame).unwrap().to_rgb8();
     let labels = seg.segment(&rgb, &frame).unwrap();
-    let mut enc = semlook::gpu::encode::GlobalEncoderGpu::new(ctx.clone());
+    let mut enc = semlook::gpu::GlobalEncoderGpu::new(ctx.clone());
     let out = enc.encode(&[&labels], &table.used_mask(), &cfg.global).unwrap();
     let px = (labels.width() * labels.height()) as u64;
     let (edges, d2, pooled) = cpu_global(&labels, &cfg);
@@ -589,7 +589,7 @@ fn kernels_on_a_real_street_frame() {
     let (descs, offsets) = semlook::appearance::group_by_object(&k, &objects);
     let norm = semlook::global::vlad::VladNorm::from_config(&cfg.appearance);
     let cv = semlook::appearance::object_vlad(&descs, &offsets, &cb, norm);
-    let g = semlook::gpu::vlad::VladGpu::new(ctx).run(&cb, norm, &[(&descs, &offsets)]).unwrap();
+    let g = semlook::gpu::VladGpu::new(ctx).run(&cb, norm, &[(&descs, &offsets)]).unwrap();
     assert!(g[0].iter().zip(&cv).all(|(a, b)| (a - b).abs() <= 1e-5));
 }
 

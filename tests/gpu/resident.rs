@@ -81,7 +81,7 @@ fn batches_are_chunked_past_binding_and_dispatch_limits() {
     let cfg = Config::without_appearance();
     let p = cfg.global.ssim_params();
     let (refs, q) = (random_descriptors(40, &cfg, 51), random_descriptors(10, &cfg, 52));
-    let m = semlook::gpu::coarse::CoarseMatcherGpu::new(ctx.clone(), p).unwrap();
+    let m = semlook::gpu::CoarseMatcherGpu::new(ctx.clone(), p).unwrap();
     let (qc, pass) = m.plan(7).unwrap();
     assert_eq!((qc, pass, m.chunk_len()), (3, 6, 13));
     let mut stages = GpuStages::new(ctx);
@@ -110,7 +110,7 @@ fn a_large_batch_runs_on_the_device_without_falling_back() {
     let cfg = small_config();
     let p = cfg.global.ssim_params();
     let (refs, q) = (random_descriptors(6_000, &cfg, 61), random_descriptors(1_000, &cfg, 62));
-    let m = semlook::gpu::coarse::CoarseMatcherGpu::new(ctx.clone(), p).unwrap();
+    let m = semlook::gpu::CoarseMatcherGpu::new(ctx.clone(), p).unwrap();
     let (qc, _) = m.plan(cfg.matching.top_k).unwrap();
     let (chunks, qchunks) = (refs.len().div_ceil(m.chunk_len()), q.len().div_ceil(qc));
     assert!(chunks > 1 && qchunks > 1, "{chunks} map chunks, {qchunks} query chunks");
@@ -227,7 +227,7 @@ fn block_kernel_equals_the_pair_kernel_on_street_scenes() {
 fn limits_too_small_for_one_reference_name_the_resource() {
     let Some(ctx) = gpu_with(&GpuOptions { max_binding_size: Some(16 * 1024), ..Default::default() }) else { return };
     let cfg = Config::without_appearance();
-    let m = semlook::gpu::coarse::CoarseMatcherGpu::new(ctx, cfg.global.ssim_params()).unwrap();
+    let m = semlook::gpu::CoarseMatcherGpu::new(ctx, cfg.global.ssim_params()).unwrap();
     match m.plan(10) {
         Err(semlook::gpu::GpuError::LimitsTooSmall { what, needed, .. }) => {
             assert!(what.contains("one reference") && needed == 19_488, "{what} {needed}")

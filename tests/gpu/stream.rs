@@ -82,8 +82,8 @@ fn vlad_uploads_its_centres_once_per_codebook() {
     let offsets: Vec<u32> = vec![0, 5, 12, 20, 40];
     // each frame's descriptors by object, then all of them (the image run)
     let (f1, f2) = ([d1.as_slice(), &d1].concat(), [d2.as_slice(), &d2].concat());
-    let mut vlad = semlook::gpu::vlad::VladGpu::new(ctx.clone());
-    let run = |vlad: &mut semlook::gpu::vlad::VladGpu, cb: &Codebook, frames: [&[f32]; 2]| {
+    let mut vlad = semlook::gpu::VladGpu::new(ctx.clone());
+    let run = |vlad: &mut semlook::gpu::VladGpu, cb: &Codebook, frames: [&[f32]; 2]| {
         vlad.run(cb, VladNorm::default(), &frames.map(|d| (d, offsets.as_slice()))).unwrap()
     };
     let first = run(&mut vlad, &cb, [&f1, &f2]);

@@ -5,7 +5,7 @@
 use super::{common, gpu};
 use semlook::descriptors::keypoints::ImageKeypoints;
 use semlook::descriptors::{DescriptorSet, EncodedImage};
-use semlook::gpu::verify::MnnGpu;
+use semlook::gpu::MnnGpu;
 use semlook::local::Forest;
 use semlook::matching::{CpuStages, Stages};
 use semlook::util::SplitMix64;

@@ -1,4 +1,4 @@
-//! The XFeat network on the device (`shaders/xfeat.wgsl`, executor `networks::xfeat::device`) held to its CPU
+//! The XFeat network on the device (`shaders/xfeat.wgsl`, executor `networks::xfeat` (its device executor)) held to its CPU
 //! twins (`semlook_kernels::xfeat`), and the CPU path's fast ops (`nn::conv`) held to the same
 //! twins. Tolerances, and the largest differences seen on lavapipe (2-core development machine):
 //!
@@ -18,8 +18,8 @@
 
 use super::{common, gpu, gpu_with};
 use semlook::gpu::{GpuError, GpuOptions};
-use semlook::networks::xfeat::device::{forward_on_twins, run_kernel, XFeatGpu};
 use semlook::networks::xfeat::XFeat;
+use semlook::networks::xfeat::{forward_on_twins, run_kernel, XFeatGpu};
 use semlook::networks::NetOutputs;
 use semlook::nn::conv::{self as nn, Chw};
 use semlook::util::SplitMix64;

@@ -464,7 +464,7 @@ pub fn forward(
     Ok(out)
 }
 
-/// The CPU twins as a [`Backend`]: every buffer a vector, every pass its twin.
+/// The CPU twins as a `Backend`: every buffer a vector, every pass its twin.
 pub struct Twins {
     f: Vec<Vec<f32>>,
     u: Vec<Vec<u32>>,
@@ -533,8 +533,8 @@ impl Backend for Twins {
 }
 
 /// LighterGlue's matches of every pair run on the CPU twins: what the device is held to. Slow
-/// (the twins are written for equivalence); for tests.
-#[doc(hidden)]
+/// (the twins are written for equivalence): the reference a device
+/// or a port is checked against.
 pub fn forward_on_twins(net: &LighterGlue, p: &GlueParams, pairs: &[(KeypointsRef, KeypointsRef)]) -> Vec<Vec<GlueMatch>> {
     let packed = net.pack();
     let mut be = Twins::new(&packed.weights);
@@ -743,7 +743,6 @@ fn kernel(k: &crate::device::kernels::Kernels, e: Entry) -> &Kernel {
 /// One pass alone on `be`: `inputs` (f32 values by buffer) and `tables` (u32) uploaded, its output
 /// buffer holding `out` before it runs; the output and, for `lg_assignment_best`, the best partners
 /// read back. What the kernel tests run on the device ([`run_kernel`]) and on the twins.
-#[doc(hidden)]
 pub fn run_pass(
     be: &mut dyn Backend,
     pass: Pass,
@@ -771,7 +770,6 @@ pub fn run_pass(
 
 /// One `lighterglue.wgsl` kernel alone on the device ([`run_pass`]), the weights `weights`. The
 /// device side of the twins' tests.
-#[doc(hidden)]
 pub fn run_kernel(
     ctx: &Arc<GpuContext>,
     weights: &[f32],

@@ -17,9 +17,13 @@
 //! Positions enter as fractions of the image's long side (what the map stores): the rotary encoding
 //! depends only on differences of positions, so the image's size beyond its long side is not needed.
 
-// Internal, public for the tests and benchmarks only: the device executor (verification runs it).
+mod device;
+
+pub use device::{forward_on_twins, GlueGpu};
+// Test hooks, not the API: the executor's plan (passes, buffers, entry points) run pass by pass and
+// kernel by kernel, on the device and on the twins (the equivalence tests)
 #[doc(hidden)]
-pub mod device;
+pub use device::{forward, run_kernel, run_pass, Buf, Entry, Pass, Twins};
 
 use crate::descriptors::keypoints::{KeypointsRef, COORD_SCALE};
 use crate::error::{Error, Result};
@@ -407,7 +411,7 @@ pub struct PackedLayer {
     pub token: Option<PackedLinear>,
 }
 
-/// The network's weights in one buffer, as the device executor (`networks::lighterglue::device`) uploads
+/// The network's weights in one buffer, as the device executor (`networks::lighterglue` (its device executor)) uploads
 /// them, with every layer's offsets.
 #[derive(Debug, Clone)]
 pub struct PackedGlue {

@@ -13,8 +13,6 @@
 //! The plan of passes (which kernel, its parameters, which buffers) is data (`Plan`); the same
 //! plan runs on the CPU twins in [`forward_on_twins`], the reference the device is held to.
 
-pub use super::twins::forward_on_twins;
-
 use super::plan::{outputs, pack, twin_uniform_max, Buf, Entry, PackedNet, Plan, PlanError, Shape, ALL};
 use super::XFeat;
 use crate::device::context::{GpuContext, GpuError};
@@ -243,7 +241,6 @@ fn kernel(k: &crate::device::kernels::Kernels, e: Entry) -> &Kernel {
 /// One `xfeat.wgsl` kernel alone on the device: `entry` (its name) with the uniform `params`
 /// and `inputs` bound in binding order, the output (`out_len` values, zeros before the kernel
 /// runs) read back. The device side of the twins' tests.
-#[doc(hidden)]
 pub fn run_kernel(ctx: &GpuContext, entry: &str, params: &[u8], grid: [u32; 3], inputs: &[&[f32]], out_len: usize) -> Result<Vec<f32>, GpuError> {
     let e = match entry {
         "instance_norm_partials" => Entry::Partials,

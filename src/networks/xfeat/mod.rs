@@ -4,11 +4,15 @@
 //! dense 64-d descriptors, 65-channel keypoint logits (SuperPoint cell layout) and a reliability
 //! map. Held to the ONNX export (`../shared/models/xfeat.onnx`) by the tests.
 
-// Internal, public for the tests and benchmarks only: the device executor (the GPU encoding path runs it).
-#[doc(hidden)]
-pub mod device;
+mod device;
 mod plan;
 mod twins;
+
+pub use device::{XFeatCounters, XFeatGpu};
+// Test hook, not the API: one kernel of the network run alone on the device (the equivalence tests)
+#[doc(hidden)]
+pub use device::run_kernel;
+pub use twins::forward_on_twins;
 
 use super::{KeypointNetwork, NetOutputs};
 use crate::error::{Error, Result};

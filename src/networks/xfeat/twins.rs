@@ -9,9 +9,9 @@ use crate::nn::conv::Chw;
 use semlook_kernels::xfeat as twin;
 
 /// The executor's plan run on the CPU twins (`semlook_kernels::xfeat`), pass by pass, buffer by buffer:
-/// what the device is held to. Slow (the twins are written for equivalence); for tests. What
+/// what the device is held to. Slow (the twins are written for equivalence): the reference a device
+/// or a port is checked against. What
 /// does not fit is an [`Error::Check`].
-#[doc(hidden)]
 pub fn forward_on_twins(net: &XFeat, grey: &Chw, heads: bool) -> crate::Result<NetOutputs> {
     if grey.c != 1 || !grey.h.is_multiple_of(32) || !grey.w.is_multiple_of(32) || grey.h == 0 || grey.w == 0 || !grey.is_consistent() {
         return Err(Error::check(format!("input is {}x{}x{}; it must be 1 x (32k) x (32k)", grey.c, grey.h, grey.w)));
