@@ -85,6 +85,16 @@ fn bench(c: &mut Criterion) {
         }
         other => eprintln!("embedding benchmark skipped: {:?}", other.err().map_or("not installed".to_string(), |e| e.to_string())),
     }
+    // the same network run natively from its checkpoint (issue 61 part 1; the same input)
+    let native = semlook::networks::embedding::EMBEDDING_CHECKPOINT;
+    match semlook::nn::onnx::find_model(native, None, "embedding checkpoint").and_then(|p| semlook::networks::embedding::Embedder::new(&p, None, 448))
+    {
+        Ok(e) => {
+            let rgb = image::RgbImage::from_fn(640, 480, |x, y| image::Rgb([(x % 256) as u8, (y % 256) as u8, ((x ^ y) % 256) as u8]));
+            g.bench_function("embedding: EfficientNet-Lite1 + GeM at 448 x 336 (native, from the checkpoint)", |b| b.iter(|| e.embed(&rgb).unwrap()));
+        }
+        Err(e) => eprintln!("native embedding benchmark skipped: {e}"),
+    }
     g.finish();
     streamed_frame(c);
 }

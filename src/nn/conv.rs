@@ -1,5 +1,6 @@
-//! The few neural-network operations XFeat needs, on CHW float tensors (batch 1): convolution by
-//! im2col and a matrix product (matrixmultiply's sgemm, parallel over column bands with rayon),
+//! The few neural-network operations XFeat and EfficientNet-Lite need, on CHW float tensors
+//! (batch 1): convolution by im2col and a matrix product (matrixmultiply's sgemm, parallel over
+//! column bands with rayon), depthwise convolution, TensorFlow's SAME padding, ReLU6,
 //! inference-mode batch norm without affine terms fused with ReLU, average pooling, instance
 //! norm, bilinear resizing (PyTorch's align_corners = False) and 8x8 space-to-depth.
 //! Shapes come from a weights file, so every operation checks them and returns an error rather
@@ -156,6 +157,73 @@ pub fn conv2d(x: &Chw, weight: &[f32], bias: Option<&[f32]>, cout: usize, k: usi
     Ok(out)
 }
 
+/// TensorFlow's SAME padding of a side of `n` values for a `k` kernel at `stride`: (before,
+/// after), the odd value after, so that the output has ceil(n / stride) values (what ONNX calls
+/// `SAME_UPPER`). For stride 1 and an odd kernel it is (k - 1) / 2 on each side.
+pub fn same_padding(n: usize, k: usize, stride: usize) -> (usize, usize) {
+    let out = n.div_ceil(stride.max(1));
+    let total = ((out.max(1) - 1) * stride + k).saturating_sub(n);
+    (total / 2, total - total / 2)
+}
+
+/// `x` with zero rows added above (`top`) and below (`bottom`), zero columns left and right.
+pub fn pad(x: &Chw, top: usize, bottom: usize, left: usize, right: usize) -> Chw {
+    let (h, w) = (x.h + top + bottom, x.w + left + right);
+    let mut out = Chw::zeros(x.c, h, w);
+    if x.h * x.w == 0 {
+        return out;
+    }
+    out.data.par_chunks_mut(h * w).zip(x.data.par_chunks(x.h * x.w)).for_each(|(dst, src)| {
+        for (y, row) in src.chunks(x.w).enumerate() {
+            dst[(y + top) * w + left..][..x.w].copy_from_slice(row);
+        }
+    });
+    out
+}
+
+/// Depthwise 2-D convolution without padding: channel c of `x` with kernel `weight[c]` (k x k,
+/// weights [C, 1, k, k]) at `stride`, plus `bias[c]`; each output value is accumulated over the
+/// kernel's rows and columns in order. Fails when the sizes do not fit together.
+pub fn depthwise_conv2d(x: &Chw, weight: &[f32], bias: &[f32], k: usize, stride: usize) -> Result<Chw> {
+    if k == 0 || stride == 0 || x.c.checked_mul(k * k) != Some(weight.len()) || bias.len() != x.c || !x.is_consistent() {
+        return Err(Error::check(format!(
+            "depthwise weights of {} values and {} biases do not fit {} channels and a {k}x{k} kernel (stride {stride})",
+            weight.len(),
+            bias.len(),
+            x.c
+        )));
+    }
+    if x.h < k || x.w < k {
+        return Err(Error::check(format!("{k}x{k} kernel on a {}x{} input", x.h, x.w)));
+    }
+    let (ho, wo) = ((x.h - k) / stride + 1, (x.w - k) / stride + 1);
+    let mut out = Chw::zeros(x.c, ho, wo);
+    out.data.par_chunks_mut(ho * wo).enumerate().for_each(|(c, dst)| {
+        let (src, wt) = (x.plane(c), &weight[c * k * k..(c + 1) * k * k]);
+        dst.fill(bias[c]);
+        for ky in 0..k {
+            for kx in 0..k {
+                let wv = wt[ky * k + kx];
+                for oy in 0..ho {
+                    let line = &src[(oy * stride + ky) * x.w + kx..];
+                    let row = &mut dst[oy * wo..(oy + 1) * wo];
+                    if stride == 1 {
+                        row.iter_mut().zip(line).for_each(|(o, &v)| *o += wv * v);
+                    } else {
+                        row.iter_mut().zip(line.iter().step_by(stride)).for_each(|(o, &v)| *o += wv * v);
+                    }
+                }
+            }
+        }
+    });
+    Ok(out)
+}
+
+/// ReLU6, min(max(v, 0), 6), in place.
+pub fn relu6(x: &mut Chw) {
+    x.data.par_iter_mut().for_each(|v| *v = v.clamp(0.0, 6.0));
+}
+
 /// Inference-mode BatchNorm2d(affine = False), eps 1e-5, followed by ReLU, in place.
 pub fn batchnorm_relu(x: &mut Chw, mean: &[f32], var: &[f32]) -> Result<()> {
     if mean.len() != x.c || var.len() != x.c || !x.is_consistent() {
@@ -309,6 +377,70 @@ mod tests {
             let worst = a.data.iter().zip(&b.data).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
             assert!(worst < 1e-4, "{worst}");
         }
+    }
+
+    /// Depthwise convolution by definition, with TensorFlow's SAME padding made explicit.
+    fn depthwise_reference(x: &Chw, wt: &[f32], bias: &[f32], k: usize, stride: usize) -> Chw {
+        let ((top, _), (left, _)) = (same_padding(x.h, k, stride), same_padding(x.w, k, stride));
+        let (ho, wo) = (x.h.div_ceil(stride), x.w.div_ceil(stride));
+        let mut out = Chw::zeros(x.c, ho, wo);
+        for c in 0..x.c {
+            for oy in 0..ho {
+                for ox in 0..wo {
+                    let mut s = bias[c] as f64;
+                    for ky in 0..k {
+                        for kx in 0..k {
+                            let iy = (oy * stride + ky) as isize - top as isize;
+                            let ix = (ox * stride + kx) as isize - left as isize;
+                            if iy >= 0 && ix >= 0 && (iy as usize) < x.h && (ix as usize) < x.w {
+                                s += x.data[(c * x.h + iy as usize) * x.w + ix as usize] as f64 * wt[(c * k + ky) * k + kx] as f64;
+                            }
+                        }
+                    }
+                    out.data[(c * ho + oy) * wo + ox] = s as f32;
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn same_padding_gives_ceil_n_over_stride_outputs() {
+        for n in 1..40 {
+            for k in [1, 3, 5] {
+                for stride in [1, 2] {
+                    let (a, b) = same_padding(n, k, stride);
+                    assert!(b == a || b == a + 1, "n {n} k {k} s {stride}: ({a}, {b})");
+                    if n + a + b >= k {
+                        assert_eq!((n + a + b - k) / stride + 1, n.div_ceil(stride), "n {n} k {k} s {stride}");
+                    }
+                }
+            }
+        }
+        // TensorFlow: 448 at stride 2 with a 3x3 kernel pads one row, at the bottom
+        assert_eq!(same_padding(448, 3, 2), (0, 1));
+        assert_eq!(same_padding(447, 3, 2), (1, 1));
+        assert_eq!(same_padding(10, 5, 1), (2, 2));
+    }
+
+    #[test]
+    fn padded_depthwise_conv_matches_definition() {
+        let mut rng = crate::util::SplitMix64::new(5);
+        for &(c, h, w, k, stride) in &[(3, 17, 20, 3, 1), (4, 16, 15, 3, 2), (2, 11, 12, 5, 2), (5, 9, 13, 5, 1), (1, 5, 5, 5, 2), (2, 1, 1, 3, 1)] {
+            let x = Chw { c, h, w, data: (0..c * h * w).map(|_| rng.normal() as f32).collect() };
+            let wt: Vec<f32> = (0..c * k * k).map(|_| rng.normal() as f32).collect();
+            let bias: Vec<f32> = (0..c).map(|_| rng.normal() as f32).collect();
+            let ((t, b), (l, r)) = (same_padding(h, k, stride), same_padding(w, k, stride));
+            let got = depthwise_conv2d(&pad(&x, t, b, l, r), &wt, &bias, k, stride).unwrap();
+            let want = depthwise_reference(&x, &wt, &bias, k, stride);
+            assert_eq!((got.c, got.h, got.w), (want.c, want.h, want.w), "{c}x{h}x{w} k {k} s {stride}");
+            let worst = got.data.iter().zip(&want.data).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
+            assert!(worst < 1e-5, "{c}x{h}x{w} k {k} s {stride}: {worst}");
+        }
+        // no channels, and sizes that do not fit
+        assert_eq!(depthwise_conv2d(&Chw::zeros(0, 4, 4), &[], &[], 3, 1).unwrap().data.len(), 0);
+        assert!(depthwise_conv2d(&Chw::zeros(2, 4, 4), &[0.0; 9], &[0.0; 2], 3, 1).is_err());
+        assert!(depthwise_conv2d(&Chw::zeros(1, 2, 4), &[0.0; 9], &[0.0], 3, 1).is_err());
     }
 
     #[test]

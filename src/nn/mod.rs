@@ -7,8 +7,8 @@
 //! - [`dense`]: the dense layers of the transformer networks (linear, softmax, layer norm, GELU).
 //! - `onnx`: ONNX Runtime through `ort` (loaded dynamically), one process-wide environment and
 //!   pools of sessions.
-//! - `torch_pt` and `pickle`: PyTorch state dicts read without Python (the zip archive, its
-//!   pickle run on a small safe pickle machine).
+//! - `torch_pt` and `pickle`: PyTorch state dicts read without Python (the zip archive or the
+//!   legacy file, its pickles run on a small safe pickle machine).
 
 pub mod conv;
 pub mod dense;

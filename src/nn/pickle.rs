@@ -90,6 +90,12 @@ impl Pickle {
     /// Runs the pickle program in `data`; what it cannot run is an [`Error::Check`] (the caller
     /// names the file).
     pub fn load(data: &[u8]) -> Result<Pickle> {
+        Ok(Pickle::load_prefix(data)?.0)
+    }
+
+    /// [`Pickle::load`] of the pickle at the start of `data`, with the bytes it took (up to and
+    /// including its STOP): what a file of several pickles one after another is read with.
+    pub fn load_prefix(data: &[u8]) -> Result<(Pickle, usize)> {
         let budget = data.len().saturating_mul(COPY_BUDGET_PER_BYTE).saturating_add(4096);
         Machine { data, pos: 0, nodes: Vec::new(), stack: Vec::new(), memo: HashMap::new(), budget }.run()
     }
@@ -202,7 +208,7 @@ impl<'a> Machine<'a> {
         Ok(())
     }
 
-    fn run(mut self) -> Result<Pickle> {
+    fn run(mut self) -> Result<(Pickle, usize)> {
         loop {
             let op = self.u8()?;
             match op {
@@ -423,7 +429,7 @@ impl<'a> Machine<'a> {
             }
         }
         let root = self.pop("STOP")?;
-        Ok(Pickle { nodes: self.nodes, root })
+        Ok((Pickle { nodes: self.nodes, root }, self.pos))
     }
 }
 

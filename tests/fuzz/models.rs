@@ -9,6 +9,7 @@ use image::{Rgb, RgbImage};
 use semlook::appearance::keypoints::{self, KeypointParams};
 use semlook::appearance::AppearanceModel;
 use semlook::config::{AppearanceConfig, AppearanceModelKind, ModelPaths, Sampling, SegmentationConfig};
+use semlook::networks::xfeat::XFeat;
 use semlook::networks::NetOutputs;
 use semlook::nn::conv::Chw;
 use semlook::Error;
@@ -71,6 +72,61 @@ pub fn tiny_xfeat() -> StateDict {
     StateDict(t)
 }
 
+/// EfficientNet-Lite's graph with few channels and three blocks (stem 4; a block without
+/// expansion, 4 -> 2; a new stage, stride 2, 2 -> 6 -> 3, 3x3; a residual block 3 -> 6 -> 3, 5x5;
+/// head 5), with its BatchNorms (variances positive).
+pub fn tiny_efficientnet() -> StateDict {
+    let mut t = Vec::new();
+    let mut conv_bn = |conv: &str, bn: &str, shape: [i64; 4]| {
+        let s = t.len() as u32;
+        t.push(contiguous(format!("{conv}.weight"), &shape, s));
+        for (i, part) in ["weight", "bias", "running_mean", "running_var"].iter().enumerate() {
+            t.push(contiguous(format!("{bn}.{part}"), &[shape[0]], s + 1 + i as u32));
+        }
+    };
+    conv_bn("_conv_stem", "_bn0", [4, 3, 3, 3]);
+    conv_bn("_blocks.0._depthwise_conv", "_blocks.0._bn1", [4, 1, 3, 3]);
+    conv_bn("_blocks.0._project_conv", "_blocks.0._bn2", [2, 4, 1, 1]);
+    for (b, cin, k) in [(1, 2, 3), (2, 3, 5)] {
+        conv_bn(&format!("_blocks.{b}._expand_conv"), &format!("_blocks.{b}._bn0"), [6, cin, 1, 1]);
+        conv_bn(&format!("_blocks.{b}._depthwise_conv"), &format!("_blocks.{b}._bn1"), [6, 1, k, k]);
+        conv_bn(&format!("_blocks.{b}._project_conv"), &format!("_blocks.{b}._bn2"), [3, 6, 1, 1]);
+    }
+    conv_bn("_conv_head", "_bn1", [5, 3, 1, 1]);
+    StateDict(t)
+}
+
+/// A small EfficientNet-Lite checkpoint in the legacy format loads with its layout read from the
+/// weights and runs at odd sizes; one with a tensor missing or of the wrong shape is a typed error
+/// naming the file.
+#[test]
+fn a_tiny_efficientnet_checkpoint_loads_runs_and_is_checked() {
+    use semlook::networks::embedding::EfficientNetLite;
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("tiny.pth");
+    let sd = tiny_efficientnet();
+    std::fs::write(&path, sd.legacy(&sd.pickle())).unwrap();
+    let net = EfficientNetLite::load(&path).unwrap();
+    assert_eq!(format!("{net:?}"), "EfficientNetLite(3 blocks, 5 values)");
+    for (h, w) in [(33, 41), (32, 32), (1, 1)] {
+        let rgb = Chw { c: 3, h, w, data: (0..3 * h * w).map(|i| (i * 37 % 256) as f32).collect() };
+        let e = net.forward(&rgb).unwrap();
+        let norm = e.iter().map(|v| v * v).sum::<f32>().sqrt();
+        assert!(e.len() == 5 && (norm - 1.0).abs() < 1e-5, "{h}x{w}: {e:?}");
+    }
+    let mut broken = tiny_efficientnet();
+    broken.0.retain(|t| t.name != "_blocks.1._bn1.running_var");
+    let mut wrong = tiny_efficientnet();
+    wrong.0.iter_mut().filter(|t| t.name == "_blocks.2._expand_conv.weight").for_each(|t| t.shape = vec![6, 2, 1, 1]);
+    for (what, sd) in [("a missing tensor", broken), ("a wrong shape", wrong)] {
+        std::fs::write(&path, sd.legacy(&sd.pickle())).unwrap();
+        match EfficientNetLite::load(&path) {
+            Err(Error::Model { path: p, reason }) => assert!(p == path && !reason.is_empty(), "{what}"),
+            other => panic!("{what}: {other:?}"),
+        }
+    }
+}
+
 /// Pickle opcodes (protocol 2) for what `torch.save` writes.
 struct Pk(Vec<u8>);
 
@@ -112,6 +168,28 @@ impl StateDict {
         }
         p.op(b"u.");
         p.0
+    }
+
+    /// The legacy (non-zip) file `torch.save(..., _use_new_zipfile_serialization=False)` writes:
+    /// the magic number, the protocol version, the system's description, `pickle` (the object), the
+    /// storage keys, then each storage's element count and data.
+    pub fn legacy(&self, pickle: &[u8]) -> Vec<u8> {
+        let mut f = b"\x80\x02\x8a\x0a\x6c\xfc\x9c\x46\xf9\x20\x6a\xa8\x50\x19.".to_vec();
+        f.extend_from_slice(b"\x80\x02M\xe9\x03.");
+        let mut sys = Pk(b"\x80\x02}(".to_vec());
+        sys.str("protocol_version").int(1001).str("little_endian").op(b"\x88").op(b"u.");
+        f.extend_from_slice(&sys.0);
+        f.extend_from_slice(pickle);
+        let mut keys = Pk(b"\x80\x02(".to_vec());
+        for i in 0..self.0.len() {
+            keys.str(&i.to_string());
+        }
+        f.extend_from_slice(&keys.op(b"l.").0);
+        for t in &self.0 {
+            f.extend_from_slice(&t.numel.to_le_bytes());
+            f.extend(t.data.iter().flat_map(|v| v.to_le_bytes()));
+        }
+        f
     }
 
     /// The zip PyTorch writes: `archive/data.pkl` (here `pickle`) and `archive/data/<i>`.
@@ -193,6 +271,40 @@ pub fn pt_archive() -> Option<Target> {
 /// Mutations of `data.pkl`, zipped with the storages (so the zip's checksums hold).
 pub fn pt_pickle() -> Option<Target> {
     pt_target("pt_pickle", vec![tiny_xfeat().pickle()], 150, |b| tiny_xfeat().zip(b))
+}
+
+/// Mutations of the legacy-format file (the five pickles and the storages after them).
+pub fn pt_legacy() -> Option<Target> {
+    let sd = tiny_xfeat();
+    pt_target("pt_legacy", vec![sd.legacy(&sd.pickle())], 150, |b| b.to_vec())
+}
+
+/// The same state dict in the zip and the legacy format reads the same: every tensor, and the
+/// network's outputs on a frame.
+#[test]
+fn the_legacy_format_reads_as_the_zip_format() {
+    let sd = tiny_xfeat();
+    let dir = tempfile::tempdir().unwrap();
+    let (zip, legacy) = (dir.path().join("zip.pt"), dir.path().join("legacy.pt"));
+    std::fs::write(&zip, sd.zip(&sd.pickle())).unwrap();
+    std::fs::write(&legacy, sd.legacy(&sd.pickle())).unwrap();
+    let a = semlook::nn::torch_pt::read_state_dict(&zip).unwrap();
+    let b = semlook::nn::torch_pt::read_state_dict(&legacy).unwrap();
+    assert_eq!(a.len(), sd.0.len());
+    assert_eq!(a, b);
+    let grey = semlook::nn::conv::Chw { c: 1, h: 64, w: 96, data: (0..64 * 96).map(|i| (i % 17) as f32 / 17.0).collect() };
+    let (na, nb) = (XFeat::load(&zip).unwrap(), XFeat::load(&legacy).unwrap());
+    let (oa, ob) = (na.forward(&grey).unwrap(), nb.forward(&grey).unwrap());
+    assert_eq!((oa.descriptors, oa.logits), (ob.descriptors, ob.logits));
+    // a storage cut short, a wrong element count, and a missing key list are typed errors naming the file
+    let full = sd.legacy(&sd.pickle());
+    for (what, bytes) in [("cut", full[..full.len() - 3].to_vec()), ("header only", full[..40].to_vec())] {
+        std::fs::write(&legacy, &bytes).unwrap();
+        match semlook::nn::torch_pt::read_state_dict(&legacy) {
+            Err(semlook::Error::Model { path, .. }) => assert_eq!(path, legacy, "{what}"),
+            other => panic!("{what}: {other:?}"),
+        }
+    }
 }
 
 /// Shapes, strides, offsets and storage sizes chosen by the fuzz bytes: wrong ranks, kernels,

