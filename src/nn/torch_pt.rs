@@ -16,7 +16,7 @@
 use crate::error::{Error, Result};
 use crate::nn::pickle::{Id, Node, Pickle};
 use std::collections::HashMap;
-use std::io::Read;
+use std::io::{Read, Seek};
 use std::path::Path;
 
 /// Most bytes read for the pickle, and for one tensor storage: far above any keypoint network,
@@ -91,18 +91,21 @@ const LEGACY_MAGIC: &[u8] = b"\x80\x02\x8a\x0a\x6c\xfc\x9c\x46\xf9\x20\x6a\xa8\x
 const LEGACY_PROTOCOL: i64 = 1001;
 
 fn read(path: &Path) -> Result<HashMap<String, Tensor>> {
-    let mut file = std::fs::File::open(path).map_err(|e| Error::check(e.to_string()))?;
-    let mut head = [0u8; 16];
-    let n = file.read(&mut head).map_err(|e| Error::check(e.to_string()))?;
-    if head[..n].starts_with(LEGACY_MAGIC) {
-        let len = file.metadata().map_err(|e| Error::check(e.to_string()))?.len();
+    let io = |e: std::io::Error| Error::check(e.to_string());
+    let mut file = std::fs::File::open(path).map_err(io)?;
+    // the first bytes tell the formats apart; one open file serves either reader
+    let mut head = Vec::with_capacity(LEGACY_MAGIC.len());
+    (&mut file).take(LEGACY_MAGIC.len() as u64).read_to_end(&mut head).map_err(io)?;
+    file.rewind().map_err(io)?;
+    if head == LEGACY_MAGIC {
+        let len = file.metadata().map_err(io)?.len();
         if len > MAX_PICKLE_BYTES + MAX_LEGACY_DATA_BYTES {
             return Err(Error::check(format!("a legacy checkpoint of {len} bytes is larger than this reader takes")));
         }
-        let bytes = std::fs::read(path).map_err(|e| Error::check(e.to_string()))?;
+        let mut bytes = Vec::with_capacity(len as usize);
+        file.read_to_end(&mut bytes).map_err(io)?;
         return read_legacy(&bytes);
     }
-    let file = std::fs::File::open(path).map_err(|e| Error::check(e.to_string()))?;
     let mut zip = zip::ZipArchive::new(file)
         .map_err(|e| Error::check(format!("not a PyTorch checkpoint (neither a zip archive nor the legacy format): {e}")))?;
     let names: Vec<String> = zip.file_names().filter_map(|s| s.ok().map(|s| s.to_string())).collect();
@@ -146,10 +149,8 @@ fn read_legacy(bytes: &[u8]) -> Result<HashMap<String, Tensor>> {
     let mut at = LEGACY_MAGIC.len();
     let mut next = |what: &str| -> Result<Pickle> {
         let rest = bytes.get(at..).unwrap_or(&[]);
-        let (p, used) = Pickle::load_prefix(&rest[..rest.len().min(MAX_PICKLE_BYTES as usize)]).map_err(|e| match e {
-            Error::Check { reason } => Error::check(format!("the {what}: {reason}")),
-            other => other,
-        })?;
+        let (p, used) = Pickle::load_prefix(&rest[..rest.len().min(MAX_PICKLE_BYTES as usize)])
+            .map_err(|e| e.named(|reason| Error::check(format!("the {what}: {reason}"))))?;
         at += used;
         Ok(p)
     };
