@@ -120,7 +120,8 @@ else
 fi
 
 # criterion rows (full run only: their build is minutes): the fine stage (group fine, K = 20) and
-# verification with LighterGlue on the device (group verify, K = 30; target <= 5 ms a query)
+# verification with LighterGlue on the device (group verify, K = 30; target <= 5 ms a query), the
+# embedding network on the device and natively on the CPU (group embedding_forward, 448x336 and 448x252)
 criterion_rows() { # row kind, criterion group
     python3 - "$rows" "$1" "$2" <<'PY'
 import glob, json, os, sys
@@ -136,6 +137,7 @@ PY
 if [ $smoke = 1 ]; then
     note fine "fine K=20" "smoke: criterion rows run in the full check only"
     note verify "verify K=30 (GPU: LighterGlue)" "smoke: criterion rows run in the full check only"
+    note embedding "embedding 448x336 (GPU: EfficientNet-Lite1)" "smoke: criterion rows run in the full check only"
 else
     if [ "$(left)" -gt 90 ]; then
         say "fine stage (criterion, group fine)"
@@ -151,6 +153,14 @@ else
         criterion_rows verify verify
     else
         note verify "verify K=30 (GPU: LighterGlue)" "budget"
+    fi
+    if [ "$(left)" -gt 60 ]; then
+        say "the embedding network on the device (criterion, group embedding_forward)"
+        rm -rf target/criterion/embedding_forward
+        cargo bench --bench embedding_gpu -- --warm-up-time 1 --measurement-time 3 >&2
+        criterion_rows embedding embedding_forward
+    else
+        note embedding "embedding 448x336 (GPU: EfficientNet-Lite1)" "budget"
     fi
 fi
 

@@ -9,6 +9,7 @@ use crate::descriptors::source::{GlobalSource, RefSource};
 use crate::descriptors::DescriptorSet;
 use crate::descriptors::EncodedImage;
 use crate::encode::phases::Pending;
+use crate::encode::NetworkRuns;
 use crate::encode::{Encoder, Loaded, StageTimes};
 use crate::error::{Error, Result};
 use crate::gpu::{GpuContext, GpuOptions, GpuStages};
@@ -403,11 +404,16 @@ impl Engine {
             // the keypoint network on the device (native XFeat; None: the CPU path runs it)
             let rgbs: Vec<Option<&image::RgbImage>> = batch.iter().map(|l| l.rgb.as_ref()).collect();
             let features = g.network.features(&g.ctx, encoder.appearance_model(), &rgbs)?;
+            // the embedding on the device (the network run natively; None: the CPU path embeds)
+            let embedded = g.embedding.embeddings(&g.ctx, encoder.embedder(), &rgbs)?;
             let pending: Vec<Result<Pending>> = globals
                 .into_par_iter()
                 .zip(batch.par_iter())
+                .zip(embedded.into_par_iter())
                 .enumerate()
-                .map(|(k, ((glob, stats), l))| encoder.encode_rest(&sources[i + k].id, l, glob, Some(stats), per, features[k].as_ref()))
+                .map(|(k, (((glob, stats), l), e))| {
+                    encoder.encode_rest(&sources[i + k].id, l, glob, Some(stats), per, NetworkRuns { keypoints: features[k].as_ref(), embedding: e })
+                })
                 .collect();
             // VLAD of every frame of the batch in one GPU pass
             let inputs: Vec<(&[f32], &[u32])> = pending

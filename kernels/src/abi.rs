@@ -500,3 +500,75 @@ pub const WORKGROUP_STORAGE: u64 = 16_384;
 /// Largest global height x valid windows per row that `ssim_tile`'s workgroup array holds: the
 /// shader's `MAX_ROW_SUMS` (15 KiB of the 16 KiB every adapter has).
 pub const MAX_ROW_SUMS: usize = 3840;
+
+/// The uniform of `efficientnet.wgsl`'s `conv_direct` (a full or depthwise convolution, one
+/// invocation per output value), in the shader's field order. Invocation i = (x + y * row) x
+/// LANES + lane computes output value i (of n).
+#[derive(Debug, Clone, Copy, PartialEq, Default, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct EffConvParams {
+    /// Input channels.
+    pub cin: u32,
+    /// Output channels (= cin when depthwise).
+    pub cout: u32,
+    /// Input height.
+    pub h: u32,
+    /// Input width.
+    pub w: u32,
+    /// Output height.
+    pub ho: u32,
+    /// Output width.
+    pub wo: u32,
+    /// Kernel side.
+    pub k: u32,
+    /// Stride.
+    pub stride: u32,
+    /// Zero rows above the input (TensorFlow's SAME: the odd row falls below, outside the output).
+    pub pad_top: u32,
+    /// Zero columns left of the input.
+    pub pad_left: u32,
+    /// 1: each output channel reads its own input channel (weights [c, 1, k, k]); 0: every input
+    /// channel (weights [cout, cin, k, k]).
+    pub depthwise: u32,
+    /// 1: ReLU6 after the bias.
+    pub relu6: u32,
+    /// In-bounds input values are read as x * scale + shift (padding stays 0).
+    pub scale: f32,
+    /// See `scale`.
+    pub shift: f32,
+    /// Workgroups per row of the dispatch grid.
+    pub row: u32,
+    /// Output values (cout x ho x wo).
+    pub n: u32,
+}
+
+/// The uniform of `efficientnet.wgsl`'s `pointwise` (a 1x1 convolution as a matrix product), in
+/// the shader's field order.
+#[derive(Debug, Clone, Copy, PartialEq, Default, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct EffPointParams {
+    /// Input channels.
+    pub cin: u32,
+    /// Output channels.
+    pub cout: u32,
+    /// Pixels (h x w).
+    pub hw: u32,
+    /// 1: ReLU6 after the bias.
+    pub relu6: u32,
+    /// 1: the residual tensor is added last.
+    pub residual: u32,
+    /// Padding to the shader's layout.
+    pub _pad: [u32; 3],
+}
+
+/// The uniform of `efficientnet.wgsl`'s `gem_pool`, in the shader's field order.
+#[derive(Debug, Clone, Copy, PartialEq, Default, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct GemParams {
+    /// Channels.
+    pub c: u32,
+    /// Pixels per channel.
+    pub hw: u32,
+    /// Padding to the shader's layout.
+    pub _pad: [u32; 2],
+}

@@ -27,6 +27,10 @@ const XF_MAP: u64 = std::mem::size_of::<crate::abi::MapParams>() as u64;
 const XF_NORM: u64 = std::mem::size_of::<crate::abi::NormParams>() as u64;
 /// Bytes of the LighterGlue kernels' uniform (bound at a dynamic offset of one buffer).
 const LG: u64 = std::mem::size_of::<crate::abi::LgParams>() as u64;
+/// Bytes of the embedding kernels' uniforms (each bound at a dynamic offset of one buffer).
+const EFF_CONV: u64 = std::mem::size_of::<crate::abi::EffConvParams>() as u64;
+const EFF_POINT: u64 = std::mem::size_of::<crate::abi::EffPointParams>() as u64;
+const EFF_GEM: u64 = std::mem::size_of::<crate::abi::GemParams>() as u64;
 
 use Slot::{Read, ReadWrite, Uniform, UniformAt};
 const EDT: &[(u32, Slot)] = &[(0, Uniform), (1, Read), (2, ReadWrite), (3, ReadWrite), (4, ReadWrite), (5, ReadWrite)];
@@ -73,5 +77,8 @@ pub const BINDINGS: &[(&str, &str, &[&[(u32, Slot)]])] = &[
     ("lighterglue.wgsl", "lg_attention", &[&[(0, UniformAt(LG)), (1, Read), (2, Read), (4, ReadWrite), (5, Read)]]),
     ("lighterglue.wgsl", "lg_row_lse", &[&[(0, UniformAt(LG)), (1, Read), (2, Read), (4, ReadWrite), (5, Read)]]),
     ("lighterglue.wgsl", "lg_assignment_best", &[&[(0, UniformAt(LG)), (1, Read), (2, Read), (4, ReadWrite), (5, Read), (6, ReadWrite)]]),
+    ("efficientnet.wgsl", "conv_direct", &[&[(0, UniformAt(EFF_CONV)), (1, Read), (2, Read), (3, Read), (4, ReadWrite)]]),
+    ("efficientnet.wgsl", "pointwise", &[&[(5, UniformAt(EFF_POINT)), (6, Read), (7, Read), (8, Read), (9, Read), (10, ReadWrite)]]),
+    ("efficientnet.wgsl", "gem_pool", &[&[(11, UniformAt(EFF_GEM)), (12, Read), (13, ReadWrite)]]),
     ("lighterglue.wgsl", "lg_gather", &[&[(0, UniformAt(LG)), (1, Read), (4, ReadWrite), (5, Read)]]),
 ];

@@ -89,6 +89,14 @@ fn shared_structs_have_the_shaders_layouts() {
     );
     same_layout("xfeat.wgsl", "MapParams", rust!(MapParams { c, h, w, ho, wo, k, row, n, h1, w1, h2, w2, sy1, sx1, sy2, sx2, inv }));
     same_layout("xfeat.wgsl", "NormParams", rust!(NormParams { n, chunks, row, chunk_row }));
+    use crate::abi::{EffConvParams, EffPointParams, GemParams};
+    same_layout(
+        "efficientnet.wgsl",
+        "EffConvParams",
+        rust!(EffConvParams { cin, cout, h, w, ho, wo, k, stride, pad_top, pad_left, depthwise, relu6, scale, shift, row, n }),
+    );
+    same_layout("efficientnet.wgsl", "EffPointParams", rust!(EffPointParams { cin, cout, hw, relu6, residual }));
+    same_layout("efficientnet.wgsl", "GemParams", rust!(GemParams { c, hw }));
     same_layout(
         "lighterglue.wgsl",
         "LgParams",

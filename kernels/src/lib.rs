@@ -25,6 +25,7 @@
 pub mod abi;
 pub mod bindings;
 pub mod edt;
+pub mod efficientnet;
 pub mod global_pool;
 pub mod lighterglue;
 pub mod mnn_match;

@@ -15,7 +15,7 @@
 pub const DEFINES: [&str; 1] = ["SUBGROUPS"];
 
 /// WGSL sources, by file name.
-pub const SHADERS: [(&str, &str); 12] = [
+pub const SHADERS: [(&str, &str); 13] = [
     ("semantic_edges.wgsl", include_str!("../../shaders/semantic_edges.wgsl")),
     ("edt.wgsl", include_str!("../../shaders/edt.wgsl")),
     ("global_pool.wgsl", include_str!("../../shaders/global_pool.wgsl")),
@@ -28,6 +28,7 @@ pub const SHADERS: [(&str, &str); 12] = [
     ("mnn_match.wgsl", include_str!("../../shaders/mnn_match.wgsl")),
     ("xfeat.wgsl", include_str!("../../shaders/xfeat.wgsl")),
     ("lighterglue.wgsl", include_str!("../../shaders/lighterglue.wgsl")),
+    ("efficientnet.wgsl", include_str!("../../shaders/efficientnet.wgsl")),
 ];
 
 /// Files shaders include, by file name; validated on their own by the build script too.

@@ -99,6 +99,10 @@ pub(crate) struct Kernels {
     pub lg_row_lse: Kernel,
     pub lg_assignment_best: Kernel,
     pub lg_gather: Kernel,
+    /// `efficientnet.wgsl`: the whole-image embedding (issue 61).
+    pub conv_direct: Kernel,
+    pub pointwise: Kernel,
+    pub gem_pool: Kernel,
 }
 
 fn module(device: &wgpu::Device, name: &str, subgroups: bool) -> Result<wgpu::ShaderModule, GpuError> {
@@ -204,6 +208,8 @@ impl Kernels {
         let k = |module: &wgpu::ShaderModule, file: &str, entry: &str| kernel(device, module, file, entry, &made);
         let xk = |entry: &str| k(&xf, "xfeat.wgsl", entry);
         let lk = |entry: &str| k(&lg, "lighterglue.wgsl", entry);
+        let eff = m("efficientnet.wgsl")?;
+        let ek = |entry: &str| k(&eff, "efficientnet.wgsl", entry);
         let tree_sim = k(&tree, "tree_similarity.wgsl", "tree_similarity")?;
         Ok(Kernels {
             made: made.clone(),
@@ -236,6 +242,9 @@ impl Kernels {
             lg_row_lse: lk("lg_row_lse")?,
             lg_assignment_best: lk("lg_assignment_best")?,
             lg_gather: lk("lg_gather")?,
+            conv_direct: ek("conv_direct")?,
+            pointwise: ek("pointwise")?,
+            gem_pool: ek("gem_pool")?,
         })
     }
 }

@@ -62,6 +62,15 @@ impl GlobalStage {
     }
 }
 
+/// What a caller ran of a frame's networks itself (on the device), for
+/// `Encoder::encode_rest` to take instead of running them: the keypoint network's features,
+/// the embedding with its milliseconds.
+#[derive(Default)]
+pub(crate) struct NetworkRuns<'a> {
+    pub keypoints: Option<&'a Features>,
+    pub embedding: Option<(Vec<f32>, f64)>,
+}
+
 /// Encodes frames with one configuration. Cheap to share between threads.
 #[derive(Debug, Clone)]
 pub struct Encoder {
@@ -361,7 +370,7 @@ impl Encoder {
     ) -> Result<(EncodedImage, StageTimes)> {
         let t = Instant::now();
         let (global, stats) = self.global.encode(&loaded.labels, scratch)?;
-        let pending = self.encode_rest(id, loaded, global, Some(stats), ms_since(t), keypoints)?;
+        let pending = self.encode_rest(id, loaded, global, Some(stats), ms_since(t), NetworkRuns { keypoints, embedding: None })?;
         let t = Instant::now();
         let vlad = match (&self.appearance, &pending.vlad) {
             (Some(a), Some(v)) => Some(a.vlad(v)?),

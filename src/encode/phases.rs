@@ -3,8 +3,8 @@
 //! and the network's descriptors grouped for VLAD, and [`Encoder::finish`] takes the VLAD vectors
 //! (computed on the device for a whole batch). The CPU path runs the same phases in one call.
 
-use super::{Encoder, Loaded, StageTimes, VladInput};
-use crate::appearance::{self, Features};
+use super::{Encoder, Loaded, NetworkRuns, StageTimes, VladInput};
+use crate::appearance;
 use crate::descriptors::EncodedImage;
 use crate::error::{Error, Result};
 use crate::local;
@@ -24,6 +24,7 @@ pub(crate) struct Pending {
 impl Encoder {
     /// Everything after the global descriptor (its stats are computed if not given): objects,
     /// forest, and the appearance network (its output given by a caller that ran it, e.g. on the
+    /// device), and the embedding (given, with its milliseconds, by a caller that made it on the
     /// device); VLAD is left to [`Encoder::finish`].
     pub(crate) fn encode_rest(
         &self,
@@ -32,8 +33,9 @@ impl Encoder {
         global: Vec<f32>,
         stats: Option<Vec<f32>>,
         global_ms: f64,
-        keypoints: Option<&Features>,
+        ran: NetworkRuns<'_>,
     ) -> Result<Pending> {
+        let NetworkRuns { keypoints, embedding: embedded } = ran;
         let t = Instant::now();
         let ssim = self.global.ssim;
         let global_stats = stats.unwrap_or_else(|| {
@@ -47,7 +49,11 @@ impl Encoder {
         let forest = local::build_forest(&objects, &self.cfg.local);
         let forest_ms = ms_since(t);
         let mut times = StageTimes { global_ms, forest_ms, ..loaded.times };
+        let (given, embedding_device_ms) = (embedded.is_some(), embedded.as_ref().map_or(0.0, |e| e.1));
         let embed = || -> Result<(Vec<f32>, f64)> {
+            if let Some(e) = embedded {
+                return Ok(e);
+            }
             match (&self.embedder, &loaded.rgb) {
                 (Some(e), Some(rgb)) => {
                     let t = Instant::now();
@@ -65,6 +71,7 @@ impl Encoder {
                     // a network run elsewhere (on the device) counts as it took there
                     let elsewhere = if network_ms.is_none() { keypoints.map_or(0.0, |f| f.network_ms) } else { 0.0 };
                     times.network_ms = network_ms.unwrap_or(elsewhere);
+                    times.network_device_ms = elsewhere;
                     times.appearance_ms = ms_since(t) + elsewhere;
                     Ok((Some(input), verification))
                 }
@@ -75,7 +82,7 @@ impl Encoder {
         // a frame encoded alone (a stream's, outside any thread pool): the embedding runs beside
         // the appearance stage, each network on its own session (so the same values); inside the
         // pool each worker encodes frames of its own one after the other (Encoder::embedding_beside)
-        let beside = self.beside && rayon::current_thread_index().is_none() && self.embedder.is_some() && self.appearance.is_some();
+        let beside = !given && self.beside && rayon::current_thread_index().is_none() && self.embedder.is_some() && self.appearance.is_some();
         let ((vlad, verification), (embedding, embedding_ms)) = if beside {
             let t = Instant::now();
             let (described, embedded) = std::thread::scope(|sc| {
@@ -91,6 +98,7 @@ impl Encoder {
             (describe(&mut times)?, embed()?)
         };
         times.embedding_ms = embedding_ms;
+        times.embedding_device_ms = embedding_device_ms;
         let compact_hog = match (self.compact_hog, &loaded.rgb) {
             (true, Some(rgb)) => {
                 // rounded to f16, what a map stores: a stored image reads back the same

@@ -19,6 +19,12 @@ pub struct StageTimes {
     pub hog_ms: f64,
     /// The whole-image embedding.
     pub embedding_ms: f64,
+    /// Of `network_ms`, the milliseconds the keypoint network ran on the device (the GPU path with
+    /// the native XFeat; 0 where it ran on the host): where the network ran.
+    pub network_device_ms: f64,
+    /// Of `embedding_ms`, the milliseconds the embedding network ran on the device (the GPU path
+    /// with the network run natively from its checkpoint; 0 where it ran on the host).
+    pub embedding_device_ms: f64,
     /// Of the stages above, the milliseconds that ran beside another (a frame encoded alone,
     /// outside a thread pool, runs the embedding beside the appearance stage): `encode_ms`
     /// subtracts them, so that it stays the wall clock of encoding.
@@ -46,6 +52,8 @@ impl StageTimes {
             network_ms: f(self.network_ms, o.network_ms),
             hog_ms: f(self.hog_ms, o.hog_ms),
             embedding_ms: f(self.embedding_ms, o.embedding_ms),
+            network_device_ms: f(self.network_device_ms, o.network_device_ms),
+            embedding_device_ms: f(self.embedding_device_ms, o.embedding_device_ms),
             overlap_ms: f(self.overlap_ms, o.overlap_ms),
         }
     }
@@ -73,6 +81,8 @@ impl StageTimes {
             network_ms: pick(|t| t.network_ms),
             hog_ms: pick(|t| t.hog_ms),
             embedding_ms: pick(|t| t.embedding_ms),
+            network_device_ms: pick(|t| t.network_device_ms),
+            embedding_device_ms: pick(|t| t.embedding_device_ms),
             overlap_ms: pick(|t| t.overlap_ms),
         }
     }

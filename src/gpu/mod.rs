@@ -15,6 +15,8 @@
 //! | `vlad_accumulate.wgsl` | `vlad_assign`, `vlad_accumulate` | `kernels::vlad_accumulate::{vlad_assign, vlad_accumulate}` |
 //! | `mnn_match.wgsl` | `mnn_match` | `kernels::mnn_match::mnn_match` |
 //! | `xfeat.wgsl` | `instance_norm_partials`, `instance_norm_stats`, `instance_norm_apply`, `avg_pool`, `space_to_depth8`, `bilinear_add`, `conv2d` | `kernels::xfeat::*` (same names) |
+//! | `lighterglue.wgsl` | `lg_*` | `kernels::lighterglue::*` (same names) |
+//! | `efficientnet.wgsl` | `conv_direct`, `pointwise`, `gem_pool` | `kernels::efficientnet::*` (same names) |
 //!
 //! Residency is explicit: executors own their device buffers and reuse them between batches;
 //! the map (coarse: descriptors and statistics; fine: packed forests) is uploaded once and kept
@@ -23,6 +25,7 @@
 
 mod appearance;
 mod coarse;
+mod embedding;
 mod encode;
 mod fine;
 mod fine_pack;
@@ -37,6 +40,8 @@ mod verify;
 mod vlad;
 
 pub use crate::device::context::{GpuContext, GpuCounters, GpuError, GpuOptions, RESIDENT_FRACTION};
+// what a network's device executor (`networks::xfeat::XFeatGpu`, `networks::embedding::EmbedderGpu`) did
+pub use crate::device::executor::ExecutorCounters;
 pub use stages::GpuStages;
 // the stage executors `GpuStages` composes, each usable alone on a host's context (its buffers kept
 // between calls): the global descriptors, VLAD, the coarse scan, the tree similarity, the

@@ -3,7 +3,8 @@
 //! GPU path drives (global descriptors, the keypoint network, VLAD).
 
 use super::{
-    appearance::NetworkSlot, coarse::CoarseMatcherGpu, encode::GlobalEncoderGpu, fine::FineMatcherGpu, verify::MnnGpu, vlad::VladGpu, GpuContext,
+    appearance::NetworkSlot, coarse::CoarseMatcherGpu, embedding::EmbeddingSlot, encode::GlobalEncoderGpu, fine::FineMatcherGpu, verify::MnnGpu,
+    vlad::VladGpu, GpuContext,
 };
 use crate::descriptors::source::{GlobalSource, RefSource};
 use crate::descriptors::DescriptorSet;
@@ -30,6 +31,8 @@ pub struct GpuStages {
     glue: Option<GlueGpu>,
     /// The keypoint network (native XFeat) on the device.
     pub(crate) network: NetworkSlot,
+    /// The embedding network (run natively from its checkpoint) on the device.
+    pub(crate) embedding: EmbeddingSlot,
     /// Most frames held decoded at once by an encoding call so far.
     pub(crate) decoded_peak: usize,
 }
@@ -44,6 +47,7 @@ impl GpuStages {
             mnn: MnnGpu::new(ctx.clone()),
             glue: None,
             network: NetworkSlot::default(),
+            embedding: EmbeddingSlot::default(),
             decoded_peak: 0,
             coarse: None,
             ctx,
@@ -98,6 +102,12 @@ impl GpuStages {
     /// Frames whose keypoint network ran on the device (native XFeat) in the current executor.
     pub fn network_frames(&self) -> u64 {
         self.network.frames()
+    }
+
+    /// Frames whose embedding network ran on the device (run natively from its checkpoint) in the
+    /// current executor.
+    pub fn embedding_frames(&self) -> u64 {
+        self.embedding.frames()
     }
 
     /// Kernel time since the last call, from timestamp queries (`None` without them).

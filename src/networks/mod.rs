@@ -11,7 +11,7 @@
 //! | XFeat | appearance (VLAD), verification keypoints | [`xfeat::XFeat`] (native) | [`xfeat::XFeatGpu`] | `xfeat.pt` ([`xfeat::XFEAT_WEIGHTS`]) |
 //! | any SuperPoint-layout ONNX model | appearance (`appearance.model = "onnx"`) | [`OnnxKeypoints`] (ONNX Runtime) | none | `models.keypoint_onnx` |
 //! | LighterGlue | verification (`verification.matcher = "lighterglue"`) | [`lighterglue::LighterGlue`] (native) | [`lighterglue::GlueGpu`] | [`lighterglue::LIGHTERGLUE_WEIGHTS`] |
-//! | EfficientNet-Lite1 + GeM | the fused coarse stage | [`embedding::Embedder`]: the ONNX graph on ONNX Runtime, or natively from the checkpoint ([`embedding::EfficientNetLite`]) | none yet (issue 61) | `embedding.network` |
+//! | EfficientNet-Lite1 + GeM | the fused coarse stage | [`embedding::Embedder`]: the ONNX graph on ONNX Runtime, or natively from the checkpoint ([`embedding::EfficientNetLite`]) | [`embedding::EmbedderGpu`] (the checkpoint's network; the GPU engine runs it where `embedding.network` names the checkpoint) | `embedding.network` |
 //! | ESPNetv2 (any adapted segmenter) | labels for frames given without them | [`segmenter::Segmenter`] (ONNX Runtime) | none | [`segmenter::DEFAULT_SEGMENTER`] |
 //!
 //! [`crate::models`] lists the weight files by these modules' names; a new network (the device

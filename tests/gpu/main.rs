@@ -5,6 +5,7 @@
 mod bench;
 #[path = "../common/mod.rs"]
 mod common;
+mod embedding;
 mod fine;
 mod lighterglue;
 mod resident;

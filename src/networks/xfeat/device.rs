@@ -16,34 +16,11 @@
 use super::plan::{outputs, pack, twin_uniform_max, Buf, Entry, PackedNet, Plan, PlanError, Shape, ALL};
 use super::XFeat;
 use crate::device::context::{GpuContext, GpuError};
+use crate::device::executor::{pass_parameters, staging, submit_and_read, Counters, ExecutorCounters};
 use crate::device::kernels::Kernel;
 use crate::networks::NetOutputs;
 use crate::nn::conv::Chw;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
-
-/// What the executor did since it was made: bytes written to the device (weights, parameters,
-/// frames), bytes read back, buffers created (every kind, the read-back buffer included), frames
-/// run.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct XFeatCounters {
-    /// Bytes written to the device: weights, parameters and frames.
-    pub bytes_uploaded: u64,
-    /// Bytes read back from the device.
-    pub bytes_read_back: u64,
-    /// Device buffers created, the read-back buffer included.
-    pub buffers_created: u64,
-    /// Frames run.
-    pub frames: u64,
-}
-
-#[derive(Default)]
-struct Counters {
-    uploaded: AtomicU64,
-    read_back: AtomicU64,
-    created: AtomicU64,
-    frames: AtomicU64,
-}
 
 /// What is kept for one frame size.
 struct Sized {
@@ -84,20 +61,14 @@ impl XFeatGpu {
             ctx.write(&w, 0, bytemuck::cast_slice(&packed.weights));
             (w, ctx.storage("xfeat unused binding", 16))
         })?;
-        counters.created.fetch_add(2, Ordering::Relaxed);
-        counters.uploaded.fetch_add(bytes, Ordering::Relaxed);
+        counters.created(2);
+        counters.uploaded(bytes);
         Ok(XFeatGpu { ctx, net: packed, weights, unused, sized: Mutex::new(None), counters })
     }
 
     /// What the executor did since it was made.
-    pub fn counters(&self) -> XFeatCounters {
-        let c = &self.counters;
-        XFeatCounters {
-            bytes_uploaded: c.uploaded.load(Ordering::Relaxed),
-            bytes_read_back: c.read_back.load(Ordering::Relaxed),
-            buffers_created: c.created.load(Ordering::Relaxed),
-            frames: c.frames.load(Ordering::Relaxed),
-        }
+    pub fn counters(&self) -> ExecutorCounters {
+        self.counters.get()
     }
 
     /// The context it runs on.
@@ -121,7 +92,7 @@ impl XFeatGpu {
         let out = ctx.scoped("running XFeat on the device", || -> Result<Vec<f32>, GpuError> {
             let grey_buf = s.buffers[Buf::Grey as usize].as_ref().expect("planned");
             ctx.write(grey_buf, 0, bytemuck::cast_slice(&grey.data));
-            self.counters.uploaded.fetch_add((grey.data.len() * 4) as u64, Ordering::Relaxed);
+            self.counters.uploaded((grey.data.len() * 4) as u64);
             let k = &ctx.kernels;
             let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("xfeat") });
             {
@@ -143,20 +114,11 @@ impl XFeatGpu {
                 enc.copy_buffer_to_buffer(s.buffers[b as usize].as_ref().expect("planned"), 0, &s.staging, at, bytes);
                 at += bytes;
             }
-            ctx.queue.submit([enc.finish()]);
-            let slice = s.staging.slice(..at);
-            let (tx, rx) = std::sync::mpsc::channel();
-            slice.map_async(wgpu::MapMode::Read, move |r| {
-                let _ = tx.send(r);
-            });
-            ctx.device.poll(wgpu::PollType::wait_indefinitely()).map_err(|e| GpuError::DeviceLost(format!("waiting for the queue: {e}")))?;
-            rx.recv().map_err(|_| bad("map callback dropped"))?.map_err(|e| bad(e.to_string()))?;
-            let data: Vec<f32> = bytemuck::pod_collect_to_vec(&slice.get_mapped_range().map_err(|e| bad(e.to_string()))?);
-            s.staging.unmap();
-            self.counters.read_back.fetch_add(at, Ordering::Relaxed);
+            let data = submit_and_read(&ctx, enc, &s.staging, at)?;
+            self.counters.read_back(at);
             Ok(data)
         })??;
-        self.counters.frames.fetch_add(1, Ordering::Relaxed);
+        self.counters.frame();
         Ok(outputs(&s.plan, out, heads))
     }
 
@@ -169,12 +131,6 @@ impl XFeatGpu {
         })?;
         for b in ALL {
             ctx.check_binding(&format!("XFeat's {b:?} activations at {w}x{h}"), plan.sizes[b as usize] as u64 * 4)?;
-        }
-        let stride = (twin_uniform_max() as u64).next_multiple_of(ctx.uniform_offset_alignment() as u64);
-        let mut params = vec![0u8; plan.passes.len() * stride as usize];
-        for (i, p) in plan.passes.iter().enumerate() {
-            let b = p.params.bytes();
-            params[i * stride as usize..][..b.len()].copy_from_slice(b);
         }
         let out_bytes = ((plan.desc.0 + plan.heat.0 + plan.logits.0) * plan.desc.1 * plan.desc.2 * 4) as u64;
         let s = ctx.scoped("making XFeat's buffers", || {
@@ -189,23 +145,11 @@ impl XFeatGpu {
                     }
                 })
                 .collect();
-            ctx.count_buffer();
-            let pbuf = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("xfeat pass parameters"),
-                size: params.len() as u64,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            });
-            ctx.write(&pbuf, 0, &params);
-            ctx.count_buffer();
-            let staging = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("xfeat read-back"),
-                size: out_bytes,
-                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            });
-            self.counters.created.fetch_add(created + 2, Ordering::Relaxed);
-            self.counters.uploaded.fetch_add(params.len() as u64, Ordering::Relaxed);
+            let (pbuf, stride, param_bytes) =
+                pass_parameters(ctx, "xfeat pass parameters", plan.passes.iter().map(|p| p.params.bytes()), twin_uniform_max());
+            let staging = staging(ctx, "xfeat read-back", out_bytes);
+            self.counters.created(created + 2);
+            self.counters.uploaded(param_bytes);
             let get = |b: Buf| match b {
                 Buf::Weights => &self.weights,
                 Buf::Unused => &self.unused,

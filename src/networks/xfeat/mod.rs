@@ -8,7 +8,7 @@ mod device;
 mod plan;
 mod twins;
 
-pub use device::{XFeatCounters, XFeatGpu};
+pub use device::XFeatGpu;
 // Test hook, not the API: one kernel of the network run alone on the device (the equivalence tests)
 #[doc(hidden)]
 pub use device::run_kernel;
