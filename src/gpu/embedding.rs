@@ -38,14 +38,16 @@ impl EmbeddingSlot {
         let gpu = &self.0.as_ref().expect("made above").1;
         let mut out = Vec::with_capacity(rgbs.len());
         for rgb in rgbs {
+            // timed as the CPU path times its own: the resize included
+            let t = std::time::Instant::now();
             let Some(Ok(input)) = rgb.map(|r| network_input(r, embedder.long_side())) else {
                 out.push(None);
                 continue;
             };
-            let t = std::time::Instant::now();
-            // a device failure fails the batch; a result the checks refuse goes to the CPU path
-            let v = gpu.forward(&input)?;
-            out.push(embedder.finish(v).ok().map(|v| (v, crate::util::ms_since(t))));
+            // a device failure fails the batch; values the checks refuse (zero, NaN) go to the CPU
+            // path, which reports them for this frame alone
+            let pooled = gpu.pooled(&input)?;
+            out.push(embedder.finish(pooled).ok().map(|v| (v, crate::util::ms_since(t))));
         }
         Ok(out)
     }

@@ -97,8 +97,16 @@ impl EmbedderGpu {
     }
 
     /// [`EfficientNetLite::forward`] on the device: the embedding of an RGB image [3, H, W] with
-    /// values 0..255 (GeM of the head's feature map, L2-normalised in f64 on the host).
+    /// values 0..255 (GeM of the head's feature map, L2-normalised in f64 on the host). An
+    /// embedding with no length (zero, NaN or infinite) is an error.
     pub fn forward(&self, rgb: &Chw) -> Result<Vec<f32>, GpuError> {
+        let pooled = self.pooled(rgb)?;
+        normalise_pooled(&pooled).ok_or_else(|| bad("the embedding is zero, NaN or infinite"))
+    }
+
+    /// The GeM values of `rgb` as the device computes them, before the normalisation (what a
+    /// caller that finishes them itself takes: the GPU engine, through `Embedder::finish`).
+    pub fn pooled(&self, rgb: &Chw) -> Result<Vec<f32>, GpuError> {
         if rgb.c != 3 || rgb.h == 0 || rgb.w == 0 || !rgb.is_consistent() {
             return Err(bad(format!("the network takes an RGB image, not {}x{}x{}", rgb.c, rgb.h, rgb.w)));
         }
@@ -131,7 +139,7 @@ impl EmbedderGpu {
             Ok(data)
         })??;
         self.counters.frame();
-        normalise_pooled(&pooled).ok_or_else(|| bad("the embedding is zero, NaN or infinite"))
+        Ok(pooled)
     }
 
     /// Buffers, parameters, bind groups and the read-back buffer for h x w frames.
