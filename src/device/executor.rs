@@ -104,3 +104,61 @@ pub(crate) fn submit_and_read<T: bytemuck::Pod>(
     ctx.check_lost()?;
     Ok(data)
 }
+
+/// One kernel of a network's shader run alone on host data, the device side of the kernels'
+/// tests against their twins: `params` (at most `uniform_max` bytes) bound at offset 0, `inputs`
+/// uploaded in binding order after it, an output of `out_len` values last, `grid` workgroups
+/// (none dispatched where a dimension is 0: the empty cases), the output read back.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn run_one(
+    ctx: &GpuContext,
+    entry: &str,
+    k: &super::kernels::Kernel,
+    params: &[u8],
+    uniform_max: usize,
+    grid: [u32; 3],
+    inputs: &[&[f32]],
+    out_len: usize,
+) -> Result<Vec<f32>, GpuError> {
+    if params.len() > uniform_max {
+        return Err(GpuError::Failed {
+            what: format!("running {entry}"),
+            reason: format!("{} bytes of parameters, {uniform_max} at most", params.len()),
+        });
+    }
+    if let Some(&d) = grid.iter().find(|&&d| d > ctx.max_workgroups()) {
+        return Err(GpuError::LimitsTooSmall {
+            adapter: ctx.describe(),
+            what: format!("{entry} workgroups"),
+            needed: d as u64,
+            available: ctx.max_workgroups() as u64,
+        });
+    }
+    ctx.scoped(&format!("running {entry}"), || -> Result<Vec<f32>, GpuError> {
+        let (pbuf, _, _) = pass_parameters(ctx, "kernel parameters", std::iter::once(params), uniform_max);
+        let bufs: Vec<wgpu::Buffer> = inputs
+            .iter()
+            .map(|d| {
+                let b = ctx.storage("kernel input", (d.len() * 4) as u64);
+                if !d.is_empty() {
+                    ctx.write(&b, 0, bytemuck::cast_slice(d));
+                }
+                b
+            })
+            .collect();
+        let out = ctx.storage("kernel output", (out_len * 4) as u64);
+        let mut bound: Vec<&wgpu::Buffer> = vec![&pbuf];
+        bound.extend(bufs.iter());
+        bound.push(&out);
+        let g = k.bind(&ctx.device, &bound);
+        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(entry) });
+        if !grid.contains(&0) {
+            let mut pass = ctx.begin_pass(&mut enc, entry)?;
+            pass.set_pipeline(&k.pipeline);
+            pass.set_bind_group(0, Some(&g), &[0]);
+            pass.dispatch_workgroups(grid[0], grid[1], grid[2]);
+        }
+        ctx.queue.submit([enc.finish()]);
+        ctx.read_back_values(&out, out_len)
+    })?
+}

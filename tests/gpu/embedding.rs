@@ -52,7 +52,8 @@ type DirectCase = (usize, usize, usize, usize, usize, usize, bool, bool);
 fn conv_params((cin, cout, h, w, k, stride, depthwise, affine): DirectCase) -> (EffConvParams, [u32; 3]) {
     let (ho, wo) = (h.div_ceil(stride), w.div_ceil(stride));
     let n = cout * ho * wo;
-    let pad = |n: usize| ((n.div_ceil(stride) - 1) * stride + k).saturating_sub(n) / 2;
+    // TensorFlow SAME: the network's own rule
+    let pad = |n: usize| semlook::nn::conv::same_padding(n, k, stride).0;
     let groups = n.div_ceil(LANES);
     let row = groups.clamp(1, 7);
     let p = EffConvParams {

@@ -107,9 +107,7 @@ impl EmbedderGpu {
     /// The GeM values of `rgb` as the device computes them, before the normalisation (what a
     /// caller that finishes them itself takes: the GPU engine, through `Embedder::finish`).
     pub fn pooled(&self, rgb: &Chw) -> Result<Vec<f32>, GpuError> {
-        if rgb.c != 3 || rgb.h == 0 || rgb.w == 0 || !rgb.is_consistent() {
-            return Err(bad(format!("the network takes an RGB image, not {}x{}x{}", rgb.c, rgb.h, rgb.w)));
-        }
+        super::efficientnet::check_rgb(rgb).map_err(bad)?;
         let ctx = self.ctx.clone();
         let mut guard = self.sized.lock().unwrap_or_else(|p| p.into_inner());
         if guard.as_ref().is_none_or(|s| (s.h, s.w) != (rgb.h, rgb.w)) {
@@ -200,40 +198,5 @@ pub fn run_kernel(ctx: &GpuContext, entry: &str, params: &[u8], grid: [u32; 3], 
         "gem_pool" => Entry::Gem,
         other => return Err(bad(format!("no kernel {other:?} in efficientnet.wgsl"))),
     };
-    if let Some(&d) = grid.iter().find(|&&d| d > ctx.max_workgroups()) {
-        return Err(GpuError::LimitsTooSmall {
-            adapter: ctx.describe(),
-            what: format!("{entry} workgroups"),
-            needed: d as u64,
-            available: ctx.max_workgroups() as u64,
-        });
-    }
-    ctx.scoped(&format!("running {entry}"), || -> Result<Vec<f32>, GpuError> {
-        let (pbuf, _, _) = pass_parameters(ctx, "kernel parameters", std::iter::once(params), uniform_max());
-        let bufs: Vec<wgpu::Buffer> = inputs
-            .iter()
-            .map(|d| {
-                let b = ctx.storage("kernel input", (d.len() * 4) as u64);
-                if !d.is_empty() {
-                    ctx.write(&b, 0, bytemuck::cast_slice(d));
-                }
-                b
-            })
-            .collect();
-        let out = ctx.storage("kernel output", (out_len * 4) as u64);
-        let mut bound: Vec<&wgpu::Buffer> = vec![&pbuf];
-        bound.extend(bufs.iter());
-        bound.push(&out);
-        let k = kernel(&ctx.kernels, e);
-        let g = k.bind(&ctx.device, &bound);
-        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(entry) });
-        if !grid.contains(&0) {
-            let mut pass = ctx.begin_pass(&mut enc, entry)?;
-            pass.set_pipeline(&k.pipeline);
-            pass.set_bind_group(0, Some(&g), &[0]);
-            pass.dispatch_workgroups(grid[0], grid[1], grid[2]);
-        }
-        ctx.queue.submit([enc.finish()]);
-        ctx.read_back_values(&out, out_len)
-    })?
+    crate::device::executor::run_one(ctx, entry, kernel(&ctx.kernels, e), params, uniform_max(), grid, inputs, out_len)
 }

@@ -183,9 +183,7 @@ impl EfficientNetLite {
     /// map, L2-normalised (in f64). An image too small for the network, or one whose embedding
     /// is zero or not finite, is an [`Error::Check`].
     pub fn forward(&self, rgb: &Chw) -> Result<Vec<f32>> {
-        if rgb.c != 3 || rgb.h == 0 || rgb.w == 0 || !rgb.is_consistent() {
-            return Err(Error::check(format!("the network takes an RGB image, not {}x{}x{}", rgb.c, rgb.h, rgb.w)));
-        }
+        check_rgb(rgb).map_err(Error::check)?;
         let mut x = rgb.clone();
         x.data.iter_mut().for_each(|v| *v = (*v - INPUT_MEAN) / INPUT_STD);
         let mut x = activate(same_conv(&x, &self.stem, 2)?);
@@ -238,4 +236,13 @@ fn gem(fm: &Chw) -> Option<Vec<f32>> {
         (0..fm.c).map(|c| (fm.plane(c).iter().map(|&v| (v.max(GEM_FLOOR) as f64).powf(GEM_P)).sum::<f64>() / n).powf(1.0 / GEM_P)).collect();
     let norm = g.iter().map(|v| v * v).sum::<f64>().sqrt();
     (norm.is_finite() && norm > 0.0).then(|| g.iter().map(|v| (v / norm) as f32).collect())
+}
+
+/// What every pass of the network (native, device, twins) takes: an RGB image [3, H, W], not
+/// empty, its values as many as its shape says. The refusal's words otherwise.
+pub(super) fn check_rgb(rgb: &Chw) -> std::result::Result<(), String> {
+    match rgb.c != 3 || rgb.h == 0 || rgb.w == 0 || !rgb.is_consistent() {
+        true => Err(format!("the network takes an RGB image, not {}x{}x{}", rgb.c, rgb.h, rgb.w)),
+        false => Ok(()),
+    }
 }

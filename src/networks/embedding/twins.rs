@@ -12,9 +12,7 @@ use semlook_kernels::efficientnet as twin;
 /// as [`super::EmbedderGpu::forward`] normalises what it reads back: what the device is held to.
 /// Slow (the twins are written for equivalence). What does not fit is an [`Error::Check`].
 pub fn forward_on_twins(net: &EfficientNetLite, rgb: &Chw) -> crate::Result<Vec<f32>> {
-    if rgb.c != 3 || !rgb.is_consistent() {
-        return Err(Error::check(format!("the network takes an RGB image, not {}x{}x{}", rgb.c, rgb.h, rgb.w)));
-    }
+    super::efficientnet::check_rgb(rgb).map_err(Error::check)?;
     let plan = Plan::new(net, rgb.h, rgb.w, 65_535).map_err(|e| match e {
         PlanError::Limit(what, n, a) => Error::check(format!("{what}: {n} > {a}")),
         PlanError::Invalid(r) => Error::check(r),

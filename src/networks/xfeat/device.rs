@@ -196,47 +196,5 @@ pub fn run_kernel(ctx: &GpuContext, entry: &str, params: &[u8], grid: [u32; 3], 
         "conv2d" => Entry::Conv,
         other => return Err(bad(format!("no kernel {other:?} in xfeat.wgsl"))),
     };
-    if let Some(&d) = grid.iter().find(|&&d| d > ctx.max_workgroups()) {
-        return Err(GpuError::LimitsTooSmall {
-            adapter: ctx.describe(),
-            what: format!("{entry} workgroups"),
-            needed: d as u64,
-            available: ctx.max_workgroups() as u64,
-        });
-    }
-    ctx.scoped(&format!("running {entry}"), || -> Result<Vec<f32>, GpuError> {
-        let mut p = params.to_vec();
-        p.resize(twin_uniform_max().next_multiple_of(16), 0);
-        ctx.count_buffer();
-        let pbuf = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("kernel parameters"),
-            size: p.len() as u64,
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        ctx.write(&pbuf, 0, &p);
-        let bufs: Vec<wgpu::Buffer> = inputs
-            .iter()
-            .map(|d| {
-                let b = ctx.storage("kernel input", (d.len() * 4) as u64);
-                ctx.write(&b, 0, bytemuck::cast_slice(d));
-                b
-            })
-            .collect();
-        let out = ctx.storage("kernel output", (out_len * 4) as u64);
-        let mut bound: Vec<&wgpu::Buffer> = vec![&pbuf];
-        bound.extend(bufs.iter());
-        bound.push(&out);
-        let k = kernel(&ctx.kernels, e);
-        let g = k.bind(&ctx.device, &bound);
-        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(entry) });
-        {
-            let mut pass = ctx.begin_pass(&mut enc, entry)?;
-            pass.set_pipeline(&k.pipeline);
-            pass.set_bind_group(0, Some(&g), &[0]);
-            pass.dispatch_workgroups(grid[0], grid[1], grid[2]);
-        }
-        ctx.queue.submit([enc.finish()]);
-        ctx.read_back_values(&out, out_len)
-    })?
+    crate::device::executor::run_one(ctx, entry, kernel(&ctx.kernels, e), params, twin_uniform_max(), grid, inputs, out_len)
 }
