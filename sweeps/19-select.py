@@ -9,7 +9,11 @@ image (column `verified~null`). Among the eligible rows of a grid, the one with 
 (ties: mean AUC, then the earlier row). Printed: per set, `verified` held out (the row chosen without it), in
 sample (the row chosen on all sixteen), `fused`, `appearance`, `hog`, the null-evidence share, and whether the
 held-out `verified` is at least `fused` and `hog` minus one query; then the rule of issue 60 part 3.
+Sweep 21 adds a second eligibility rule (--never-below-fused): a row is eligible only where it also gives
+at least `fused`'s R@1 on every set it is chosen on, so that part 3's rule (never below the coarse stage) is part
+of the choice rather than only its check.
 Usage: python3 sweeps/19-select.py 19.tsv
+       python3 sweeps/19-select.py --never-below-fused 21.tsv
 """
 import csv
 import sys
@@ -18,7 +22,9 @@ SIZE = {"": 0}
 QUERIES = {"nordland-spring-winter": 60, "gardenspoint-day-night-mini": 10, "landmarks-multiview-dev": 110, "ie-tower-dev": 294}
 REAL = list(QUERIES)
 
-rows = list(csv.reader(open(sys.argv[1]), delimiter="\t"))
+args = sys.argv[1:]
+NEVER_BELOW_FUSED = "--never-below-fused" in args
+rows = list(csv.reader(open([a for a in args if not a.startswith("--")][0]), delimiter="\t"))
 head, data = rows[0], rows[1:]
 SETS = sorted({h.split(":")[0] for h in head if h.count(":") == 2 and not h.startswith("mean:")}, key=lambda s: head.index(f"{s}:verified:R@1"))
 
@@ -36,7 +42,8 @@ def form(i):
 
 
 def silent(i, sets):
-    return all(col(i, s, "verified~null") >= 0.99 for s in sets)
+    quiet = all(col(i, s, "verified~null") >= 0.99 for s in sets)
+    return quiet and (not NEVER_BELOW_FUSED or all(round((col(i, s, "verified") - col(i, s, "fused")) * queries(s)) >= 0 for s in sets))
 
 
 def best(rows_, sets):
@@ -61,7 +68,8 @@ def describe(i):
 for name, rows_ in [("significant", [i for i in range(len(data)) if form(i) == "significant"]), ("any form", list(range(len(data))))]:
     picks = loso(rows_)
     whole = best([i for i in rows_ if silent(i, SETS)], SETS)
-    print(f"\n== LOSO over the rows of {name} that are silent on unrelated images (>= 99 % on the sets chosen on)")
+    rule = " and never below fused" if NEVER_BELOW_FUSED else ""
+    print(f"\n== LOSO over the rows of {name} that are silent on unrelated images (>= 99 % on the sets chosen on){rule}")
     print("set\tverified held out\t(row)\tin sample\tfused\tappearance\thog\tnull share (held-out row)\tvs fused (queries)\tvs hog (queries)")
     fails = []
     for s in SETS:

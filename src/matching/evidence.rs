@@ -97,12 +97,20 @@ impl Evidence {
     /// `inliers = "significant"`: each term's decades of significance beyond `null_alarms`,
     /// log10(null_alarms / NFA) with NFA = K x its tail probability under the map's null (K the
     /// query's candidates), weighed by `w_inliers` and `w_compact_hog`; the sum at most
-    /// `max_bonus`. A term that is not significant adds nothing.
+    /// `max_bonus`. A term that is not significant adds nothing, and neither do fewer inliers
+    /// than `min_inliers`, however they test: the map's null is its look-alikes, which a
+    /// verification of unrelated images never reaches (those show 0 to 8 inliers on every dev
+    /// set, sweep 21), so where the look-alikes show almost none (a map of far-apart places)
+    /// their tail would make a handful of chance inliers significant.
     fn significant(&self, s: &PairScore, v: &VerificationConfig) -> f32 {
         let k = self.candidates.max(1) as f64;
         let decades = |p: Option<f32>| p.map_or(0.0, |p| (v.null_alarms / (k * (p as f64).max(f64::MIN_POSITIVE))).log10().max(0.0));
         let hog = if v.w_compact_hog > 0.0 { v.w_compact_hog * decades(s.p_compact_hog) } else { 0.0 };
-        (v.w_inliers * decades(s.p_inliers) + hog).min(v.max_bonus) as f32
+        let geometry = match s.inliers {
+            Some(i) if i >= v.min_inliers => v.w_inliers * decades(s.p_inliers),
+            _ => 0.0,
+        };
+        (geometry + hog).min(v.max_bonus) as f32
     }
 }
 
@@ -170,7 +178,14 @@ mod tests {
     /// count (a p of 1e-3 then counted among 30 candidates) and with the cap removed.
     #[test]
     fn significant_evidence_counts_in_decades_beyond_the_false_alarms_allowed() {
-        let v = VerificationConfig { inliers: InlierEvidence::Significant, null_alarms: 0.01, w_inliers: 1.0, max_bonus: 2.0, ..Default::default() };
+        let v = VerificationConfig {
+            inliers: InlierEvidence::Significant,
+            null_alarms: 0.01,
+            w_inliers: 1.0,
+            max_bonus: 2.0,
+            min_inliers: 0,
+            ..Default::default()
+        };
         let at = |p: f32, k: u32| {
             let e = Evidence { candidates: k, ..Evidence::default() };
             e.terms(&PairScore { inliers: Some(40), p_inliers: Some(p), ..PairScore::default() }, &v)
@@ -193,6 +208,14 @@ mod tests {
         let one = (0.01f64 / 30e-4).log10() as f32;
         assert!((e.terms(&both, &h) - 2.0 * one).abs() < 1e-5, "{}", e.terms(&both, &h));
         assert!((e.terms(&both, &VerificationConfig { w_compact_hog: 0.0, ..h.clone() }) - one).abs() < 1e-5);
+        // fewer inliers than `min_inliers` say nothing however they test (a null of look-alikes
+        // that show almost none); the compact HOGs still speak for themselves
+        let gated = VerificationConfig { min_inliers: 41, ..h.clone() };
+        assert!((e.terms(&both, &gated) - one).abs() < 1e-5, "{}", e.terms(&both, &gated));
+        assert!((e.terms(&both, &VerificationConfig { min_inliers: 40, ..h.clone() }) - 2.0 * one).abs() < 1e-5);
+        let few = PairScore { inliers: Some(5), p_inliers: Some(1e-9), ..PairScore::default() };
+        assert_eq!(e.terms(&few, &VerificationConfig { min_inliers: 6, ..v.clone() }), 0.0);
+        assert!(e.terms(&few, &VerificationConfig { min_inliers: 5, ..v.clone() }) > 0.0);
     }
 
     proptest::proptest! {
@@ -225,15 +248,16 @@ mod tests {
             let v = &cfg.verification;
             for (l, m) in lists.iter().zip(&ranked) {
                 let k = l.len() as f64;
-                let quiet = |p: f32| k * p as f64 >= v.null_alarms;
+                // not significant, or too few inliers to count at all
+                let quiet = |p: f32, n: u32| k * p as f64 >= v.null_alarms || n < v.min_inliers;
                 let by_ref = |r: u32| l.iter().find(|c| c.1 == r).unwrap();
-                let order: Vec<f32> = m.ranked.iter().filter(|c| quiet(by_ref(c.reference).4)).map(|c| c.coarse.unwrap()).collect();
+                let order: Vec<f32> = m.ranked.iter().filter(|c| quiet(by_ref(c.reference).4, by_ref(c.reference).2)).map(|c| c.coarse.unwrap()).collect();
                 proptest::prop_assert!(order.windows(2).all(|w| w[0] >= w[1]), "{:?}", order);
                 for c in &m.ranked {
-                    let (s, _, _, f, p) = *by_ref(c.reference);
+                    let (s, _, n, f, p) = *by_ref(c.reference);
                     let lift = c.score - v.w_coarse as f32 * s;
                     proptest::prop_assert!(lift >= 0.0 && lift <= v.max_bonus as f32 + 2.0 * f + 1e-4, "{lift}");
-                    proptest::prop_assert!(!quiet(p) || lift == 0.0, "a quiet candidate moved by {lift}");
+                    proptest::prop_assert!(!quiet(p, n) || lift == 0.0, "a quiet candidate moved by {lift}");
                 }
             }
         }

@@ -404,6 +404,18 @@ pub fn run(
                                 let picks: Vec<usize> = (0..set.len()).map(|q| q % u.len().max(1)).collect();
                                 let swapped = semlook::descriptors::source::RefSource::gather(u, &picks)?;
                                 let terms = engine.pair_terms(refs, &swapped, st, &tested(cfg), &semlook::matching::pairs_of(lists))?;
+                                if let Some(dir) = candidates {
+                                    // the evidence of each candidate from the unrelated image, for prototypes of the check
+                                    let file = dir.join(format!("{}--{}--row{i}.unrelated.tsv", file_name(&cd.name), file_name(name)));
+                                    let mut out = String::from("query\trank\treference\tinliers\tcompact_hog\n");
+                                    let ranks = lists.iter().flat_map(|l| 0..l.len());
+                                    for ((&(q, r), t), rank) in semlook::matching::pairs_of(lists).iter().zip(&terms).zip(ranks) {
+                                        let c = t.compact_hog.map_or(f32::NAN, |c| c);
+                                        let inliers = t.verified.map_or("NaN".to_string(), |v| v.inliers.to_string());
+                                        out += &format!("{q}\t{rank}\t{r}\t{inliers}\t{c}\n");
+                                    }
+                                    std::fs::write(&file, out).map_err(|e| Error::io(&file, e))?;
+                                }
                                 null_measured.insert(terms_key.clone(), terms);
                             }
                             let fine: Vec<semlook::matching::PairScore> =
@@ -469,16 +481,16 @@ pub fn run(
 /// `cfg` with the weights of the verified score (what [`semlook::matching::PairTerms::score`] and
 /// `rank` read, nothing the measurements depend on) at their defaults: configurations equal in
 /// the rest share their candidates and pair terms.
+fn unweighed(cfg: &Config) -> Config {
+    Config { verification: semlook::matching::null::measurement(&cfg.verification), ..cfg.clone() }
+}
+
 /// `cfg` measuring the evidence's tail probabilities under the null too: the pair terms every
 /// form of the verified score reads (the forms differ in weights only, and share one measurement).
 fn tested(cfg: &Config) -> Config {
     let mut c = cfg.clone();
     c.verification.inliers = semlook::config::InlierEvidence::Significant;
     c
-}
-
-fn unweighed(cfg: &Config) -> Config {
-    Config { verification: semlook::matching::null::measurement(&cfg.verification), ..cfg.clone() }
 }
 
 /// `name` with every character a file name should not hold replaced by `_`.
@@ -491,8 +503,13 @@ fn file_name(name: &str) -> String {
 /// fused coarse top-K, each pair with whether the ground truth holds it, the coarse score and its
 /// terms (appearance cosine, embedding cosine, SSIM of the global descriptors), the tree-set
 /// similarity, the verification's mutual matches and inliers, both images' stored keypoints and
-/// source sizes, and the HOG cosine where both have HOG.
+/// source sizes, and the HOG cosine where both have HOG. Beside it: `.null.tsv`, the map's null
+/// pairs (what `verified` tests against); `.near.tsv`, the same sources' pairs 1 or 2 positions
+/// apart along their traversal (what verification finds at the same place, as far as the map
+/// alone shows it); `.dense.tsv`, every pair's coarse terms; and, with `--null-evidence`,
+/// `.unrelated.tsv`, each candidate's evidence from the unrelated image instead of the query.
 fn write_candidates(file: &std::path::Path, refs: &DescriptorSet, queries: &DescriptorSet, gt: &[Vec<u32>], cfg: &Config) -> Result<()> {
+    use semlook::descriptors::source::RefSource;
     use semlook::matching::{self, CpuStages, Stages};
     use semlook::values::Values;
     let st = Setting::Verified;
@@ -563,6 +580,29 @@ fn write_candidates(file: &std::path::Path, refs: &DescriptorSet, queries: &Desc
     }
     let null_file = file.with_extension("null.tsv");
     std::fs::write(&null_file, out).map_err(|e| Error::io(&null_file, e))?;
+    // the same sources' pairs of the same place (1 or 2 positions apart along their traversal):
+    // what verification finds where the answer is right, as the map alone can show it
+    let near: Vec<(u32, u32)> = src
+        .iter()
+        .enumerate()
+        .flat_map(|(i, &s)| {
+            let a = refs.place(s);
+            (s.saturating_sub(2)..(s + 3).min(refs.len()))
+                .filter(move |&r| {
+                    let b = refs.place(r);
+                    r != s && a.traversal == b.traversal && a.position.abs_diff(b.position) <= 2
+                })
+                .map(move |r| (i as u32, r as u32))
+        })
+        .collect();
+    let nv = CpuStages.verify_pairs(&vp, refs, &sources, &near)?;
+    let mut out = String::from("source\treference\tmatches\tinliers\tcompact_hog\n");
+    for (&(s, r), v) in near.iter().zip(&nv) {
+        let (si, ri) = (src[s as usize], r as usize);
+        out += &format!("{si}\t{ri}\t{}\t{}\t{}\n", v.matches, v.inliers, dot(refs.image_compact_hog(si), refs.image_compact_hog(ri)));
+    }
+    let near_file = file.with_extension("near.tsv");
+    std::fs::write(&near_file, out).map_err(|e| Error::io(&near_file, e))?;
     // every pair's coarse terms (a dev set's queries x references: small), for prototypes of the
     // coarse score itself
     let dense = file.with_extension("dense.tsv");
