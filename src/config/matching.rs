@@ -227,11 +227,12 @@ pub enum InlierEvidence {
     /// `w_inliers` x how far ln(1 + inliers) stands above the query's other candidates: its
     /// z-score among them beyond `unusual_above` (0 below `min_inliers`).
     Unusual,
-    /// A significance test against an explicit null (issue 60): the inliers count only where
-    /// they are significant under what look-alike references of other places give each other
-    /// (the map's null, [`crate::matching::null`]), the query's K candidates in the
-    /// multiple-testing count; `w_inliers` x the decades of significance beyond
-    /// `null_alarms`, the whole bonus at most `max_bonus`.
+    /// A test against two explicit nulls (issue 60): the inliers count only from `min_inliers` on
+    /// (above what unrelated images give each other) and where they are significant under what
+    /// look-alike references of other places give each other (the map's null,
+    /// [`crate::matching::null`]), the query's K candidates in the multiple-testing count;
+    /// `w_inliers` x the decades of significance beyond `null_alarms`, the whole bonus at most
+    /// `max_bonus`.
     Significant,
 }
 
@@ -271,31 +272,36 @@ pub struct VerificationConfig {
     pub semantic: SemanticCheck,
     /// The verified score: w_coarse coarse + w_fine fine + w_inliers x the inliers' evidence
     /// (`inliers`) + w_compact_hog x the compact HOGs' evidence, with the fused coarse score and
-    /// the tree-set similarity of the pair. \[R\] 4 (sweep 19: per decade of significance beyond
+    /// the tree-set similarity of the pair. \[R\] 4 (sweep 21: per decade of significance beyond
     /// `null_alarms`; 2 with `inliers = "unusual"`, sweep 17; 1 with `"count"`, sweep 07).
     pub w_inliers: f64,
     /// How the inliers count: "significant" (against the map's null: what look-alike references
     /// of other places give each other), "unusual" (how far above the query's other candidates
     /// they stand) or "count" (ln(1 + inliers) whatever the others show). \[R\] significant
-    /// (sweep 19: over the four dev sets at full size, 320x240, 160x120 and 64x32, held out, at
-    /// least `fused` on every set, and silent on unrelated images on every set, where "unusual"
-    /// changed the order of every query's candidates and lost 37 queries to `fused` on landmarks
-    /// at 160x120).
+    /// (sweeps 19 and 21: over the four dev sets at full size, 320x240, 160x120 and 64x32, held
+    /// out, at least `fused` on every set, and silent on unrelated images on every set, where
+    /// "unusual" changed the order of every query's candidates and lost 37 queries to `fused` on
+    /// landmarks at 160x120).
     pub inliers: InlierEvidence,
     /// With `inliers = "unusual"`: the z-score of a candidate's ln(1 + inliers) among its query's
     /// K candidates counts beyond this. \[R\] 1 (sweep 17).
     pub unusual_above: f64,
-    /// With `inliers = "unusual"`: fewer inliers than this count nothing (what chance gives a
-    /// homography on few keypoints). \[R\] 8 (sweep 17).
+    /// With `inliers = "unusual"` or `"significant"`: fewer inliers than this count nothing (what
+    /// chance gives a homography between unrelated images: 0 to 8 inliers on every dev set,
+    /// sweep 21). \[R\] 15 (sweep 21, leave-one-set-out over 6 to 30: without it the
+    /// significance test needed K in its count to stay silent on unrelated images, and then never
+    /// spoke on ie-tower, whose look-alikes show as many inliers as a right answer; 8 with
+    /// "unusual", sweep 17, whose profiles set it).
     pub min_inliers: u32,
     /// With `inliers = "significant"`: a candidate's evidence counts when the expected number of
     /// candidates of a query that would show as much by chance (K x its tail probability under
-    /// the map's null) is below this. \[R\] 0.01 (sweep 19; 10, a test per pair at p <= 1/3,
-    /// is `configs/verified-aliasing.toml`'s).
+    /// the map's null) is below this, adding w x log10(null_alarms / NFA). \[R\] 1000 (sweep 21:
+    /// with the floor `min_inliers` in place, the best of 0.01 to 10^6 held out; at K = 30 it
+    /// never binds, so every candidate above the floor gains w x (1.5 + its decades of surprise
+    /// against the map's look-alikes); 0.01 without a floor, sweep 19).
     pub null_alarms: f64,
-    /// With `inliers = "significant"`: the most the evidence terms add to a candidate's score
-    /// (a coarse answer far ahead is not overruled by one test: the bonus grows with the decades
-    /// of significance). \[R\] 8 (sweep 19).
+    /// With `inliers = "significant"`: the most the evidence terms add to a candidate's score.
+    /// \[R\] 32 (sweep 21; 8 in sweep 19).
     pub max_bonus: f64,
     /// The map's null (`inliers = "significant"`): references within this many positions of
     /// each other along a traversal count as one place and never as a null pair. \[R\] 10 (the
@@ -306,7 +312,11 @@ pub struct VerificationConfig {
     pub null_sources: u32,
     /// Weight of the compact HOGs' evidence (maps of small frames, `input.compact_hog_long_side`):
     /// the z-score of the pair's compact HOG cosine among its query's K candidates beyond
-    /// `compact_hog_above`. \[R\] 2 (sweep 17: Nordland 64x32 0.550 -> 1.000).
+    /// `compact_hog_above` (with `inliers = "significant"`: its decades of significance against
+    /// the map's null, as the inliers'). \[R\] 0 (sweep 21: of the 101 rows with weight 2, 21 are
+    /// silent on unrelated images and never below `fused`, the best of them the default of
+    /// before; with it, the 64x32 and 160x120 copies of landmarks and ie-tower lost queries to
+    /// `fused`; 2 with "unusual", sweep 17: Nordland 64x32 0.550 -> 1.000).
     pub w_compact_hog: f64,
     /// See `w_compact_hog`. \[R\] 1 (sweep 17).
     pub compact_hog_above: f64,
@@ -362,12 +372,12 @@ impl Default for VerificationConfig {
             w_inliers: 4.0,
             inliers: InlierEvidence::Significant,
             unusual_above: 1.0,
-            min_inliers: 8,
-            null_alarms: 0.01,
-            max_bonus: 8.0,
+            min_inliers: 15,
+            null_alarms: 1000.0,
+            max_bonus: 32.0,
             null_gap: 10,
             null_sources: 200,
-            w_compact_hog: 2.0,
+            w_compact_hog: 0.0,
             compact_hog_above: 1.0,
             w_coarse: 2.0,
             w_fine: 0.0,
