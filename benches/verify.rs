@@ -100,12 +100,16 @@ fn bench(c: &mut Criterion) {
         });
     }
     // the whole fine stage of `verified` for one query and its ranking (tree similarity,
-    // verification, the score): the score of before issue 51 (`inliers = "count"`) and the
-    // default's (evidence weighed against the query's candidates, sweep 17)
+    // verification, the score): the score of before issue 51 (`inliers = "count"`), issue 51's
+    // (evidence weighed against the query's candidates, sweep 17), sweep 19's (against the map's
+    // null, measured before, no floor) and the default's (sweep 21: the same test above a floor)
     for (what, toml) in [
         ("inliers = count, the score before issue 51", "[verification]\ninliers = \"count\"\nw_inliers = 1.0\nmin_inliers = 0\n"),
-        ("inliers = unusual, the score of issue 51", "[verification]\ninliers = \"unusual\"\n"),
-        ("inliers = significant, against the map's null (measured before)", "[verification]\ninliers = \"significant\"\n"),
+        ("inliers = unusual, the score of issue 51", "[verification]\ninliers = \"unusual\"\nmin_inliers = 8\nw_compact_hog = 2.0\n"),
+        (
+            "inliers = significant, no floor: sweep 19's default",
+            "[verification]\ninliers = \"significant\"\nmin_inliers = 0\nnull_alarms = 0.01\nmax_bonus = 8.0\nw_compact_hog = 2.0\n",
+        ),
         ("the default score", ""),
     ] {
         let c = Config::from_toml(toml, "bench").unwrap();
