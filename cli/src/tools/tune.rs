@@ -403,14 +403,15 @@ pub fn run(
                             if !null_measured.contains_key(&terms_key) {
                                 let picks: Vec<usize> = (0..set.len()).map(|q| q % u.len().max(1)).collect();
                                 let swapped = semlook::descriptors::source::RefSource::gather(u, &picks)?;
-                                let terms = engine.pair_terms(refs, &swapped, st, &tested(cfg), &semlook::matching::pairs_of(lists))?;
+                                let pairs = semlook::matching::pairs_of(lists);
+                                let terms = engine.pair_terms(refs, &swapped, st, &tested(cfg), &pairs)?;
                                 if let Some(dir) = candidates {
                                     // the evidence of each candidate from the unrelated image, for prototypes of the check
                                     let file = dir.join(format!("{}--{}--row{i}.unrelated.tsv", file_name(&cd.name), file_name(name)));
                                     let mut out = String::from("query\trank\treference\tinliers\tcompact_hog\n");
                                     let ranks = lists.iter().flat_map(|l| 0..l.len());
-                                    for ((&(q, r), t), rank) in semlook::matching::pairs_of(lists).iter().zip(&terms).zip(ranks) {
-                                        let c = t.compact_hog.map_or(f32::NAN, |c| c);
+                                    for ((&(q, r), t), rank) in pairs.iter().zip(&terms).zip(ranks) {
+                                        let c = t.compact_hog.unwrap_or(f32::NAN);
                                         let inliers = t.verified.map_or("NaN".to_string(), |v| v.inliers.to_string());
                                         out += &format!("{q}\t{rank}\t{r}\t{inliers}\t{c}\n");
                                     }
@@ -587,7 +588,7 @@ fn write_candidates(file: &std::path::Path, refs: &DescriptorSet, queries: &Desc
         .enumerate()
         .flat_map(|(i, &s)| {
             let a = refs.place(s);
-            (s.saturating_sub(2)..(s + 3).min(refs.len()))
+            (0..refs.len())
                 .filter(move |&r| {
                     let b = refs.place(r);
                     r != s && a.traversal == b.traversal && a.position.abs_diff(b.position) <= 2
