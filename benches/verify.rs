@@ -102,7 +102,9 @@ fn bench(c: &mut Criterion) {
     // the whole fine stage of `verified` for one query and its ranking (tree similarity,
     // verification, the score): the score of before issue 51 (`inliers = "count"`), issue 51's
     // (evidence weighed against the query's candidates, sweep 17), sweep 19's (against the map's
-    // null, measured before, no floor) and the default's (sweep 21: the same test above a floor)
+    // null, measured before, no floor; its compact-HOG term, weight 2, now the likelihood ratio
+    // of sweep 22, silent on these full-size frames) and the default's (sweep 21: the same test
+    // above a floor)
     for (what, toml) in [
         ("inliers = count, the score before issue 51", "[verification]\ninliers = \"count\"\nw_inliers = 1.0\nmin_inliers = 0\n"),
         ("inliers = unusual, the score of issue 51", "[verification]\ninliers = \"unusual\"\nmin_inliers = 8\nw_compact_hog = 2.0\n"),

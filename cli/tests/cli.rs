@@ -762,7 +762,7 @@ fn maps_store_the_poses_they_are_given() {
     assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("not a pose format"));
 }
 
-/// Issue 51: a map of small frames (a long side of at most `input.compact_hog_long_side`, 256)
+/// Issue 51: a map of small frames (a long side of at most `input.compact_hog_long_side`, 320)
 /// stores each image's compact HOG, which `verified` weighs as evidence; its queries get one
 /// too, and a map of larger frames stores none and keeps the manifest of before (no
 /// `compact_hog_dim` key, so its checksum is unchanged).
@@ -772,7 +772,7 @@ fn a_map_of_small_frames_stores_compact_hogs_and_its_queries_use_them() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    for (size, small) in [("96x72", true), ("320x240", false)] {
+    for (size, small) in [("96x72", true), ("400x300", false)] {
         let data = dir.path().join(format!("data-{size}"));
         ok(&["synth", "--out", p(&data), "--places", "4", "--size", size, "--query-condition", "fog", "-q"]);
         let rgb = "RGB/Stereo_Left/Omni_F";

@@ -174,6 +174,13 @@ fn the_null_is_stored_at_build_and_every_shard_tests_against_it() {
     let stored = whole.stored_null().expect("map build stores the null");
     assert_eq!(stored.key, null::key(&cfg), "measured under the config queries of the map use");
     assert!(stored.pairs as usize >= null::MIN_NULL_PAIRS && stored.sources == 40, "{stored:?}");
+    // the compact HOGs' same-place sample (frames of 160x120 store compact HOGs): each of the 40
+    // sources with its neighbours along the one traversal, 2 x 40 - 2 pairs, reference 0 with 1
+    // among them; the look-alikes' cosines beside them, one a null pair
+    assert!(whole.compact_hog_dim() > 0);
+    assert_eq!((stored.compact_hog_near.len(), stored.compact_hog.len()), (78, stored.pairs as usize));
+    let c01 = whole.image_compact_hog(0).dot(&whole.image_compact_hog(1));
+    assert!(stored.compact_hog_near.iter().any(|&c| (c - c01).abs() < 1e-5), "{c01} not in {:?}", stored.compact_hog_near);
     let frames = semlook::dataset::frames_from_folders(Some(&f("overcast", "RGB")), Some(&f("overcast", "GT/LABELS"))).unwrap();
     let enc = semlook::encode::Encoder::for_map(&cfg, &whole).unwrap();
     let mut queries =

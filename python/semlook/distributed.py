@@ -133,8 +133,9 @@ class ShardedMap:
         flat_r = refs[real]
         owner = np.searchsorted(self.starts, flat_r, side="right") - 1
         two_stages = semlook.reranks(setting)
-        # per candidate: fine score, inliers (-1: none), compact HOGs' cosine, and the two tail
-        # probabilities against the shard's null (NaN: none), the columns of Shard.fine
+        # per candidate: fine score, inliers (-1: none), compact HOGs' cosine, the inliers' tail
+        # probability and the compact HOGs' likelihood ratio against the map's null (NaN: none),
+        # the columns of Shard.fine
         fine = np.full((len(flat_r), 5), np.nan, dtype=np.float32)
         ids = [""] * len(flat_r)
         calls = []

@@ -120,8 +120,8 @@ impl PyShard {
     }
     /// Fine scores of pairs (query index `q[i]`, whole-map reference `r[i]`), all owned here:
     /// float32 [n, 5], per pair its fine score, its inliers (-1: not verified), its compact
-    /// HOGs' cosine (NaN: none) and the two's tail probabilities under the map's null (NaN: not
-    /// tested), what `rank` weighs against each query's other candidates.
+    /// HOGs' cosine (NaN: none), the inliers' tail probability under the map's null and the
+    /// compact HOGs' likelihood ratio against it (NaN: not tested), what `rank` weighs.
     fn fine<'py>(
         &self,
         py: Python<'py>,
@@ -150,7 +150,7 @@ impl PyShard {
             .iter()
             .flat_map(|p| {
                 let nan = |v: Option<f32>| v.unwrap_or(f32::NAN);
-                [p.fine, p.inliers.map_or(-1.0, |i| i as f32), nan(p.compact_hog), nan(p.p_inliers), nan(p.p_compact_hog)]
+                [p.fine, p.inliers.map_or(-1.0, |i| i as f32), nan(p.compact_hog), nan(p.p_inliers), nan(p.compact_hog_ratio)]
             })
             .collect();
         Ok(Array2::from_shape_vec((f.len(), 5), rows).map_err(|e| invalid("fine", e.to_string()))?.into_pyarray(py))
@@ -194,8 +194,8 @@ pub fn merge_candidates<'py>(
 }
 
 /// The final ranking of merged candidates, as `Map.query` returns it: `fine` holds what
-/// `Shard.fine` gives every candidate in row order (float32 [n, 3]: fine score, inliers or -1,
-/// compact HOGs' cosine or NaN; settings with both stages; else None), `ids` the id of every
+/// `Shard.fine` gives every candidate in row order (float32 [n, 5], `Shard.fine`'s columns;
+/// settings with both stages; else None), `ids` the id of every
 /// candidate in the same order, `queries` the query ids.
 #[pyfunction]
 #[pyo3(signature = (setting, scores, references, counts, fine, queries, ids, fusion="fine", config=None))]
@@ -232,7 +232,7 @@ pub fn rank(
                     inliers: (r[1] >= 0.0).then_some(r[1] as u32),
                     compact_hog: (!r[2].is_nan()).then_some(r[2]),
                     p_inliers: (!r[3].is_nan()).then_some(r[3]),
-                    p_compact_hog: (!r[4].is_nan()).then_some(r[4]),
+                    compact_hog_ratio: (!r[4].is_nan()).then_some(r[4]),
                 })
                 .collect(),
         ),

@@ -231,8 +231,9 @@ pub enum InlierEvidence {
     /// (above what unrelated images give each other) and where they are significant under what
     /// look-alike references of other places give each other (the map's null,
     /// [`crate::matching::null`]), the query's K candidates in the multiple-testing count;
-    /// `w_inliers` x the decades of significance beyond `null_alarms`, the whole bonus at most
-    /// `max_bonus`.
+    /// `w_inliers` x the decades of significance beyond `null_alarms`. The compact HOGs (maps of
+    /// small frames) count by their likelihood ratio, the map's same-place pairs against its
+    /// look-alikes (`w_compact_hog`). The whole bonus at most `max_bonus`.
     Significant,
 }
 
@@ -293,7 +294,7 @@ pub struct VerificationConfig {
     /// spoke on ie-tower, whose look-alikes show as many inliers as a right answer; 8 with
     /// "unusual", sweep 17, whose profiles set it).
     pub min_inliers: u32,
-    /// With `inliers = "significant"`: a candidate's evidence counts when the expected number of
+    /// With `inliers = "significant"`: a candidate's inliers count when the expected number of
     /// candidates of a query that would show as much by chance (K x its tail probability under
     /// the map's null) is below this, adding w x log10(null_alarms / NFA). \[R\] 1000 (sweep 21:
     /// with the floor `min_inliers` in place, the best of 0.01 to 10^6 held out; at K = 30 it
@@ -308,17 +309,24 @@ pub struct VerificationConfig {
     /// dev sets' places span at most 9 references).
     pub null_gap: u32,
     /// The map's null: references (evenly spaced along the map) whose look-alike candidates of
-    /// other places are verified to measure it. \[R\] 200.
+    /// other places are verified to measure it (and, where the map holds compact HOGs, whose
+    /// neighbours along their traversal give the same-place sample). \[R\] 200.
     pub null_sources: u32,
-    /// Weight of the compact HOGs' evidence (maps of small frames, `input.compact_hog_long_side`):
-    /// the z-score of the pair's compact HOG cosine among its query's K candidates beyond
-    /// `compact_hog_above` (with `inliers = "significant"`: its decades of significance against
-    /// the map's null, as the inliers'). \[R\] 0 (sweep 21: of the 101 rows with weight 2, 21 are
-    /// silent on unrelated images and never below `fused`, the best of them the default of
-    /// before; with it, the 64x32 and 160x120 copies of landmarks and ie-tower lost queries to
-    /// `fused`; 2 with "unusual", sweep 17: Nordland 64x32 0.550 -> 1.000).
+    /// Weight of the compact HOGs' evidence (maps of small frames, `input.compact_hog_long_side`).
+    /// With `inliers = "significant"`: w x max(0, log10(ratio) - `compact_hog_above`), the
+    /// ratio P(a same-place pair of the map is as alike) / P(a look-alike of another place is)
+    /// ([`crate::matching::null`]), so that the term speaks only on maps whose own places HOG
+    /// tells apart. With "unusual": w x max(0, z - `compact_hog_above`), z the pair's cosine as a
+    /// z-score among its query's K candidates. \[R\] 2 (sweep 22, leave-one-set-out over the 16
+    /// sets: Nordland 160x120 0.900 -> 1.000, 64x32 0.600 -> 0.983, no other set moved, silent on
+    /// unrelated images; sweep 21 had 0 with the test against the look-alikes alone, which
+    /// spoke on landmarks and ie-tower at 160x120 and 64x32 and lost queries there; 2 with
+    /// "unusual", sweep 17).
     pub w_compact_hog: f64,
-    /// See `w_compact_hog`. \[R\] 1 (sweep 17).
+    /// See `w_compact_hog`: decades of the likelihood ratio (with "unusual": the z-score) below
+    /// which the compact HOGs say nothing. \[R\] 1, a ratio of 10 (sweep 22, over 0.5 to 1.5:
+    /// below 1 the term spoke on unrelated images on Nordland 64x32, above it lost Nordland
+    /// queries; sweep 17 for "unusual").
     pub compact_hog_above: f64,
     /// Weight of the fused coarse score in the verified score (see `w_inliers`). \[R\] 2.
     pub w_coarse: f64,
@@ -377,7 +385,7 @@ impl Default for VerificationConfig {
             max_bonus: 32.0,
             null_gap: 10,
             null_sources: 200,
-            w_compact_hog: 0.0,
+            w_compact_hog: 2.0,
             compact_hog_above: 1.0,
             w_coarse: 2.0,
             w_fine: 0.0,

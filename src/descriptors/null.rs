@@ -1,5 +1,6 @@
 //! The null sample of `verified`'s evidence as a source carries it: what verification found
-//! between references of one map that look alike but are other places. [`crate::matching::null`]
+//! between references of one map that look alike but are other places (and, for the compact
+//! HOGs' likelihood ratio, how alike references of one place are). [`crate::matching::null`]
 //! measures it and tests evidence against it; the map store keeps the one measured at build in its
 //! manifest ([`StoredNull`]), so every process, and every shard of the map, tests against the same
 //! null. It lives here, below both, as the data they share.
@@ -22,6 +23,13 @@ pub struct NullEvidence {
     pub inliers: Vec<u32>,
     /// The null pairs' compact-HOG cosines, ascending (empty where the map holds none).
     pub compact_hog: Vec<f32>,
+    /// The compact-HOG cosines of the same sources with their neighbours one position away along
+    /// their traversal (what the map shows of one place), ascending: the other side of the
+    /// compact HOGs' likelihood ratio. Empty where the map holds no compact HOGs or no
+    /// neighbours (then the ratio is 1 and the term silent). A null stored before this sample
+    /// was measured has another key (`matching::null::key`) and is measured again.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub compact_hog_near: Vec<f32>,
 }
 
 impl NullEvidence {

@@ -25,8 +25,9 @@ pub struct PairScore {
     pub compact_hog: Option<f32>,
     /// `verified` tested against the map's null: the inliers' tail probability under it.
     pub p_inliers: Option<f32>,
-    /// `verified` tested against the map's null: the compact HOGs' tail probability under it.
-    pub p_compact_hog: Option<f32>,
+    /// `verified` tested against the map's null: the compact HOGs' likelihood ratio, how much
+    /// more often the map's same-place pairs are as alike than its look-alikes.
+    pub compact_hog_ratio: Option<f32>,
 }
 
 /// How a query's candidates spread in each evidence term of the verified score: the mean and the
@@ -94,18 +95,23 @@ impl Evidence {
         };
         geometry + hog
     }
-    /// `inliers = "significant"`: each term's decades of significance beyond `null_alarms`,
-    /// log10(null_alarms / NFA) with NFA = K x its tail probability under the map's null (K the
-    /// query's candidates), weighed by `w_inliers` and `w_compact_hog`; the sum at most
-    /// `max_bonus`. A term that is not significant adds nothing, and neither do fewer inliers
-    /// than `min_inliers`, however they test: the map's null is its look-alikes, which a
-    /// verification of unrelated images never reaches (those show 0 to 8 inliers on every dev
-    /// set, sweep 21), so where the look-alikes show almost none (a map of far-apart places)
-    /// their tail would make a handful of chance inliers significant.
+    /// `inliers = "significant"`: the inliers' decades of significance beyond `null_alarms`,
+    /// log10(null_alarms / NFA) with NFA = K x their tail probability under the map's null (K
+    /// the query's candidates), weighed by `w_inliers`; plus the compact HOGs' likelihood ratio's
+    /// decades beyond `compact_hog_above`, log10(ratio) - compact_hog_above, weighed by
+    /// `w_compact_hog` (sweep 22); the sum at most `max_bonus`. A term that is not significant
+    /// adds nothing, and neither do fewer inliers than `min_inliers`, however they test: the
+    /// map's null is its look-alikes, which a verification of unrelated images never reaches
+    /// (those show 0 to 8 inliers on every dev set, sweep 21), so where the look-alikes show
+    /// almost none (a map of far-apart places) their tail would make a handful of chance inliers
+    /// significant.
     fn significant(&self, s: &PairScore, v: &VerificationConfig) -> f32 {
         let k = self.candidates.max(1) as f64;
         let decades = |p: Option<f32>| p.map_or(0.0, |p| (v.null_alarms / (k * (p as f64).max(f64::MIN_POSITIVE))).log10().max(0.0));
-        let hog = if v.w_compact_hog > 0.0 { v.w_compact_hog * decades(s.p_compact_hog) } else { 0.0 };
+        let hog = match s.compact_hog_ratio {
+            Some(r) if v.w_compact_hog > 0.0 => v.w_compact_hog * ((r as f64).max(f64::MIN_POSITIVE).log10() - v.compact_hog_above).max(0.0),
+            _ => 0.0,
+        };
         let geometry = match s.inliers {
             Some(i) if i >= v.min_inliers => v.w_inliers * decades(s.p_inliers),
             _ => 0.0,
@@ -202,17 +208,25 @@ mod tests {
         assert_eq!(at(1.0, 30), 0.0);
         let e = Evidence { candidates: 30, ..Evidence::default() };
         assert_eq!(e.terms(&PairScore { inliers: Some(40), ..PairScore::default() }, &v), 0.0);
-        // the compact HOGs add their own decades, within the same cap
-        let h = VerificationConfig { w_compact_hog: 1.0, ..v.clone() };
-        let both = PairScore { inliers: Some(40), p_inliers: Some(1e-4), p_compact_hog: Some(1e-4), ..PairScore::default() };
+        // the compact HOGs add their likelihood ratio's decades beyond compact_hog_above, within
+        // the same cap: a ratio of 1000 is 3 decades, 2 beyond 1
+        let h = VerificationConfig { w_compact_hog: 0.5, compact_hog_above: 1.0, max_bonus: 4.0, ..v.clone() };
+        let both = PairScore { inliers: Some(40), p_inliers: Some(1e-4), compact_hog_ratio: Some(1000.0), ..PairScore::default() };
         let one = (0.01f64 / 30e-4).log10() as f32;
-        assert!((e.terms(&both, &h) - 2.0 * one).abs() < 1e-5, "{}", e.terms(&both, &h));
+        assert!((e.terms(&both, &h) - (one + 1.0)).abs() < 1e-5, "{}", e.terms(&both, &h));
         assert!((e.terms(&both, &VerificationConfig { w_compact_hog: 0.0, ..h.clone() }) - one).abs() < 1e-5);
+        assert!((e.terms(&both, &VerificationConfig { max_bonus: 1.2, ..h.clone() }) - 1.2).abs() < 1e-6);
+        // a ratio at most 10^compact_hog_above (the same place no likelier than a look-alike, or
+        // barely): nothing
+        for r in [0.01, 1.0, 10.0] {
+            let p = PairScore { compact_hog_ratio: Some(r), ..PairScore::default() };
+            assert_eq!(e.terms(&p, &h), 0.0, "ratio {r}");
+        }
         // fewer inliers than `min_inliers` say nothing however they test (a null of look-alikes
         // that show almost none); the compact HOGs still speak for themselves
         let gated = VerificationConfig { min_inliers: 41, ..h.clone() };
-        assert!((e.terms(&both, &gated) - one).abs() < 1e-5, "{}", e.terms(&both, &gated));
-        assert!((e.terms(&both, &VerificationConfig { min_inliers: 40, ..h.clone() }) - 2.0 * one).abs() < 1e-5);
+        assert!((e.terms(&both, &gated) - 1.0).abs() < 1e-5, "{}", e.terms(&both, &gated));
+        assert!((e.terms(&both, &VerificationConfig { min_inliers: 40, ..h.clone() }) - (one + 1.0)).abs() < 1e-5);
         let few = PairScore { inliers: Some(5), p_inliers: Some(1e-9), ..PairScore::default() };
         assert_eq!(e.terms(&few, &VerificationConfig { min_inliers: 6, ..v.clone() }), 0.0);
         assert!(e.terms(&few, &VerificationConfig { min_inliers: 5, ..v.clone() }) > 0.0);
@@ -221,19 +235,21 @@ mod tests {
     proptest::proptest! {
         /// Tested against the null, the coarse order stands wherever no candidate is significant,
         /// whatever the inliers, the tree similarities and their spread: the verified ranking of
-        /// candidates whose NFA is above `null_alarms` is the coarse ranking, and a significant
+        /// candidates whose NFA is above `null_alarms` (or whose inliers are below the floor) and
+        /// whose compact HOGs' likelihood ratio is at most 10^`compact_hog_above` is the coarse ranking, and a significant
         /// candidate moves up by at most `max_bonus` + its fine score. Random lists. (The
         /// z-score form fails the first half: the tree similarity alone reorders.)
         #[test]
         fn without_significant_evidence_the_coarse_order_stands(
-            lists in proptest::collection::vec(proptest::collection::vec((0.0f32..3.0, 0u32..120, 0.0f32..1.0, -7.0f32..0.0), 2..30), 1..8),
+            lists in proptest::collection::vec(proptest::collection::vec((0.0f32..3.0, 0u32..120, 0.0f32..1.0, -7.0f32..0.0, -2.0f32..4.0), 2..30), 1..8),
         ) {
             let mut cfg = crate::config::Config::default();
             cfg.verification.inliers = InlierEvidence::Significant;
-            let lists: Vec<Vec<(f32, u32, u32, f32, f32)>> = lists
+            cfg.verification.w_compact_hog = 2.0;
+            let lists: Vec<Vec<(f32, u32, u32, f32, f32, f32)>> = lists
                 .iter()
                 .map(|l| {
-                    let mut l: Vec<_> = l.iter().enumerate().map(|(r, &(s, n, f, lp))| (s, r as u32, n, f, 10f32.powf(lp))).collect();
+                    let mut l: Vec<_> = l.iter().enumerate().map(|(r, &(s, n, f, lp, lr))| (s, r as u32, n, f, 10f32.powf(lp), 10f32.powf(lr))).collect();
                     l.sort_by(|a, b| b.0.total_cmp(&a.0));
                     l
                 })
@@ -242,22 +258,25 @@ mod tests {
             let fine: Vec<PairScore> = lists
                 .iter()
                 .flatten()
-                .map(|&(_, _, n, f, p)| PairScore { fine: 2.0 * f, inliers: Some(n), p_inliers: Some(p), ..PairScore::default() })
+                .map(|&(_, _, n, f, p, h)| PairScore { fine: 2.0 * f, inliers: Some(n), p_inliers: Some(p), compact_hog_ratio: Some(h), ..PairScore::default() })
                 .collect();
             let ranked = crate::matching::rank(crate::matching::Setting::Verified, &coarse, Some(&fine), &cfg).unwrap();
             let v = &cfg.verification;
             for (l, m) in lists.iter().zip(&ranked) {
                 let k = l.len() as f64;
-                // not significant, or too few inliers to count at all
-                let quiet = |p: f32, n: u32| k * p as f64 >= v.null_alarms || n < v.min_inliers;
+                // inliers not significant or too few to count at all, and compact HOGs whose
+                // same place is at most 10^compact_hog_above times likelier than a look-alike
+                let quiet = |c: &(f32, u32, u32, f32, f32, f32)| {
+                    (k * c.4 as f64 >= v.null_alarms || c.2 < v.min_inliers) && (c.5 as f64).log10() <= v.compact_hog_above
+                };
                 let by_ref = |r: u32| l.iter().find(|c| c.1 == r).unwrap();
-                let order: Vec<f32> = m.ranked.iter().filter(|c| quiet(by_ref(c.reference).4, by_ref(c.reference).2)).map(|c| c.coarse.unwrap()).collect();
+                let order: Vec<f32> = m.ranked.iter().filter(|c| quiet(by_ref(c.reference))).map(|c| c.coarse.unwrap()).collect();
                 proptest::prop_assert!(order.windows(2).all(|w| w[0] >= w[1]), "{:?}", order);
                 for c in &m.ranked {
-                    let (s, _, n, f, p) = *by_ref(c.reference);
+                    let (s, _, _, f, ..) = *by_ref(c.reference);
                     let lift = c.score - v.w_coarse as f32 * s;
                     proptest::prop_assert!(lift >= 0.0 && lift <= v.max_bonus as f32 + 2.0 * f + 1e-4, "{lift}");
-                    proptest::prop_assert!(!quiet(p, n) || lift == 0.0, "a quiet candidate moved by {lift}");
+                    proptest::prop_assert!(!quiet(by_ref(c.reference)) || lift == 0.0, "a quiet candidate moved by {lift}");
                 }
             }
         }

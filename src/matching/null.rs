@@ -1,5 +1,6 @@
 //! The explicit null of the verified score's evidence (issue 60): what verification finds between
-//! references that look alike to the coarse stage but are other places.
+//! references that look alike to the coarse stage but are other places, and, for the compact
+//! HOGs, what the same place looks like beside it (sweep 22).
 //!
 //! A query's wrong candidates are its look-alikes: in a corridor of repeated doors, floors of
 //! one layout or a railway in snow they show inliers and HOG similarity however wrong they are.
@@ -14,11 +15,22 @@
 //! coarse stage of `verified`; of each one's candidates, those that cannot be the same place
 //! (further than `null_gap` positions along its traversal) stand for a query's wrong candidates
 //! and are verified. Their inliers and compact-HOG cosines are the null sample. A candidate's
-//! evidence is then its tail probability under that sample, the query's K candidates in the
+//! inliers count by their tail probability under that sample, the query's K candidates in the
 //! multiple-testing count (the expected number of false alarms of an a-contrario test, Desolneux,
 //! Moisan & Morel 2000; Moisan & Stival 2004): NFA = K x P(null >= observed). Beyond the
 //! sample's range the tail is extrapolated (peaks over threshold, Pickands 1975): an exponential
 //! fit to the top tenth of ln(1 + inliers) (a Pareto tail of the counts) and of the cosines.
+//!
+//! The compact HOGs (maps of small frames) count by a likelihood ratio instead (sweep 22): how
+//! much more often the map's own same-place pairs (each source with its neighbours one position
+//! away along its traversal) reach a candidate's cosine than its look-alikes do,
+//! P(near >= c) / P(null >= c) (Neyman & Pearson 1933: the most powerful test of "this place" against
+//! "a look-alike", both measured on the map). Where HOG tells the map's places apart (a railway in
+//! snow at 64x32) the ratio of a right candidate is in the hundreds; where it does not (landmarks
+//! seen from other viewpoints, floors of one layout; an unordered collection whose neighbours are
+//! other places) the same-place pairs are no more alike than the look-alikes, the ratio stays
+//! near 1 or below, and the term is silent however alike a candidate looks. A test against the
+//! look-alikes alone could not tell those maps apart: it spoke on both.
 //!
 //! The measurement depends on the references and on the config that makes candidates and
 //! verifies them (never on the score's weights): [`key`] names it. `map build` measures it under
@@ -90,20 +102,36 @@ impl NullEvidence {
         let sorted = self.log_inliers();
         Tail::fit(&sorted).map_or(1.0, |t| t.p((k as f64).ln_1p()))
     }
-    /// P(a null pair's compact HOGs are at least `c` alike); 1 where there is no sample.
-    pub fn p_compact_hog(&self, c: f32) -> f64 {
-        let sorted: Vec<f64> = self.compact_hog.iter().map(|&x| x as f64).collect();
-        Tail::fit(&sorted).map_or(1.0, |t| t.p(c as f64))
+    /// The compact HOGs' likelihood ratio at cosine `c`: P(a same-place pair is at least `c`
+    /// alike) / P(a null pair is), each the survival function of its sample with the same
+    /// exponential tail fitted above its top tenth (so that beyond the largest same-place cosine
+    /// the ratio does not grow by the null's tail alone); 1 (no evidence) where either sample is
+    /// too small to say.
+    pub fn compact_hog_ratio(&self, c: f32) -> f64 {
+        let (null, near) = self.compact_hog_samples();
+        Self::ratio(Tail::fit(&null).as_ref(), Tail::fit(&near).as_ref(), c)
     }
-    /// The tail probabilities of many pairs at once (the sample sorted once).
-    pub fn p_values(&self, inliers: &[Option<u32>], hog: &[Option<f32>]) -> (Vec<Option<f32>>, Vec<Option<f32>>) {
+    /// The compact HOGs' null and same-place samples as f64, ascending.
+    fn compact_hog_samples(&self) -> (Vec<f64>, Vec<f64>) {
+        let f = |v: &[f32]| v.iter().map(|&x| x as f64).collect();
+        (f(&self.compact_hog), f(&self.compact_hog_near))
+    }
+    fn ratio(null: Option<&Tail>, near: Option<&Tail>, c: f32) -> f64 {
+        match (null, near) {
+            (Some(null), Some(near)) => near.p(c as f64) / null.p(c as f64),
+            _ => 1.0,
+        }
+    }
+    /// The inliers' tail probabilities and the compact HOGs' likelihood ratios of many pairs at
+    /// once (the samples sorted once).
+    pub fn tail_and_ratio(&self, inliers: &[Option<u32>], hog: &[Option<f32>]) -> (Vec<Option<f32>>, Vec<Option<f32>>) {
         let li = self.log_inliers();
         let ti = Tail::fit(&li);
-        let ch: Vec<f64> = self.compact_hog.iter().map(|&x| x as f64).collect();
-        let th = Tail::fit(&ch);
+        let (null, near) = self.compact_hog_samples();
+        let (th, tn) = (Tail::fit(&null), Tail::fit(&near));
         let pi = inliers.iter().map(|k| k.map(|k| ti.as_ref().map_or(1.0, |t| t.p((k as f64).ln_1p())) as f32)).collect();
-        let ph = hog.iter().map(|c| c.map(|c| th.as_ref().map_or(1.0, |t| t.p(c as f64)) as f32)).collect();
-        (pi, ph)
+        let rh = hog.iter().map(|c| c.map(|c| Self::ratio(th.as_ref(), tn.as_ref(), c) as f32)).collect();
+        (pi, rh)
     }
     /// Inlier count at quantile `q` of the sample (for `map info`).
     pub fn inliers_quantile(&self, q: f64) -> u32 {
@@ -120,12 +148,18 @@ impl NullEvidence {
     }
 }
 
+/// What a null's sample holds, in its key: the look-alikes' inliers and compact-HOG cosines, and
+/// the same-place pairs' cosines (sweep 22).
+const MEASURED_SAMPLES: &str = "null pairs: inliers, compact hog; near pairs: compact hog";
+
 /// What a null is measured under: the config that makes `verified`'s candidates and verifies
 /// them, and the null's own parameters (none of the score's weights), as a SHA-256.
 pub fn key(cfg: &Config) -> String {
     let v = measurement(&cfg.verification);
     // the SHA-256 of those sections' JSON: compact in a manifest, and no config text there
-    crate::util::sha256_hex(serde_json::json!([cfg.matching, cfg.global, cfg.index, cfg.classes, v]).to_string().as_bytes())
+    // MEASURED_SAMPLES names what is measured: a null of an older release (without its same-place
+    // sample) is measured again rather than read as one that has none
+    crate::util::sha256_hex(serde_json::json!([MEASURED_SAMPLES, cfg.matching, cfg.global, cfg.index, cfg.classes, v]).to_string().as_bytes())
 }
 
 /// `v` with the verified score's weights at their defaults: what a measurement depends on.
@@ -177,6 +211,24 @@ pub fn null_pairs(refs: &dyn RefSource, sources: &[usize], lists: &[Vec<(f32, u3
     pairs_apart(&|i| refs.place(i), sources, lists, gap, k)
 }
 
+/// The same-place pairs of `sources` (indices into `sources`, references): each source with the
+/// references one position before and after it along its traversal, where the map holds them.
+pub fn near_pairs(refs: &dyn RefSource, sources: &[usize]) -> Vec<(u32, u32)> {
+    pairs_beside(&|i| refs.place(i), &|p| refs.at(p), sources)
+}
+
+/// [`near_pairs`] with the references' places given by `place` and the reference at a place by `at`.
+fn pairs_beside(place: &dyn Fn(usize) -> Place, at: &dyn Fn(Place) -> Option<usize>, sources: &[usize]) -> Vec<(u32, u32)> {
+    let mut out = Vec::new();
+    for (i, &s) in sources.iter().enumerate() {
+        let p = place(s);
+        let before = p.position.checked_sub(1).map(|position| Place { position, ..p });
+        let after = p.position.checked_add(1).map(|position| Place { position, ..p });
+        out.extend([before, after].into_iter().flatten().filter_map(at).filter(|&r| r != s).map(|r| (i as u32, r as u32)));
+    }
+    out
+}
+
 /// [`null_pairs`] with the references' places given by `place`.
 fn pairs_apart(place: &dyn Fn(usize) -> Place, sources: &[usize], lists: &[Vec<(f32, u32)>], gap: u32, k: usize) -> Vec<(u32, u32)> {
     let mut out = Vec::new();
@@ -193,8 +245,14 @@ fn pairs_apart(place: &dyn Fn(usize) -> Place, sources: &[usize], lists: &[Vec<(
 
 impl NullEvidence {
     /// The null of `sources` references under config key `key` from its pairs' verified inliers
-    /// and compact-HOG cosines (empty where the map holds none).
-    pub fn from_pairs(key: String, sources: usize, inliers: impl Iterator<Item = u32>, mut compact_hog: Vec<f32>) -> NullEvidence {
+    /// and compact-HOG cosines and its same-place pairs' cosines (empty where the map holds none).
+    pub fn from_pairs(
+        key: String,
+        sources: usize,
+        inliers: impl Iterator<Item = u32>,
+        mut compact_hog: Vec<f32>,
+        mut compact_hog_near: Vec<f32>,
+    ) -> NullEvidence {
         let mut hist: Vec<u32> = vec![];
         let mut pairs = 0;
         for k in inliers {
@@ -206,7 +264,8 @@ impl NullEvidence {
             pairs += 1;
         }
         compact_hog.sort_by(f32::total_cmp);
-        NullEvidence { key, sources: sources as u32, pairs, inliers: hist, compact_hog }
+        compact_hog_near.sort_by(f32::total_cmp);
+        NullEvidence { key, sources: sources as u32, pairs, inliers: hist, compact_hog, compact_hog_near }
     }
 }
 
@@ -285,7 +344,7 @@ mod tests {
             }
             inliers[k as usize] += 1;
         }
-        NullEvidence { key: String::new(), sources: 0, pairs: counts.len() as u32, inliers, compact_hog: vec![] }
+        NullEvidence { key: String::new(), sources: 0, pairs: counts.len() as u32, inliers, compact_hog: vec![], compact_hog_near: vec![] }
     }
 
     #[test]
@@ -333,9 +392,62 @@ mod tests {
     fn too_small_a_sample_says_nothing() {
         let n = null(&[3, 4, 5]);
         assert_eq!(n.p_inliers(500), 1.0);
-        assert_eq!(NullEvidence { compact_hog: vec![0.1, 0.2], ..n.clone() }.p_compact_hog(0.99), 1.0);
-        let (pi, ph) = n.p_values(&[Some(100), None], &[Some(0.9)]);
+        let hogs = NullEvidence { compact_hog: vec![0.1, 0.2], compact_hog_near: vec![0.9; 50], ..n.clone() };
+        assert_eq!(hogs.compact_hog_ratio(0.99), 1.0);
+        let (pi, ph) = n.tail_and_ratio(&[Some(100), None], &[Some(0.9)]);
         assert_eq!((pi, ph), (vec![Some(1.0), None], vec![Some(1.0)]));
+    }
+
+    /// The compact HOGs count by how much more often the map's same-place pairs reach a cosine
+    /// than its look-alikes do: tens of times or more where HOG tells the places apart, about once
+    /// (or less) where the same place is no more alike than a look-alike; nothing without a
+    /// same-place sample.
+    #[test]
+    fn the_compact_hogs_ratio_is_high_only_where_the_map_shows_hog_tells_its_places_apart() {
+        let lookalikes: Vec<f32> = (0..1000).map(|i| 0.60 + 0.15 * (i as f32 / 1000.0)).collect();
+        let apart = NullEvidence::from_pairs(
+            String::new(),
+            100,
+            std::iter::empty(),
+            lookalikes.clone(),
+            (0..200).map(|i| 0.78 + 0.1 * (i as f32 / 200.0)).collect(),
+        );
+        let alike = NullEvidence::from_pairs(
+            String::new(),
+            100,
+            std::iter::empty(),
+            lookalikes.clone(),
+            (0..200).map(|i| 0.55 + 0.2 * (i as f32 / 200.0)).collect(),
+        );
+        // a cosine beyond every look-alike: most same-place pairs reach it on the first map (the
+        // look-alikes' tail extrapolated with its scale floor, 0.05)
+        assert!(apart.compact_hog_ratio(0.80) > 20.0, "{}", apart.compact_hog_ratio(0.80));
+        assert!(alike.compact_hog_ratio(0.80) < 1.0, "{}", alike.compact_hog_ratio(0.80));
+        // nor beyond the largest same-place cosine: both tails fitted alike, the null's alone
+        // does not make a near-duplicate of another place likely
+        for c in [0.9, 0.95, 1.0] {
+            assert!(alike.compact_hog_ratio(c) < 2.0, "{c}: {}", alike.compact_hog_ratio(c));
+        }
+        // a cosine most look-alikes reach says nothing on either
+        assert!(apart.compact_hog_ratio(0.5) < 1.1 && alike.compact_hog_ratio(0.5) < 1.1);
+        let none = NullEvidence::from_pairs(String::new(), 100, std::iter::empty(), lookalikes, vec![0.9; 5]);
+        assert_eq!(none.compact_hog_ratio(0.8), 1.0);
+        // many at once: the same ratios
+        let (_, r) = apart.tail_and_ratio(&[], &[Some(0.80), None, Some(0.5)]);
+        assert_eq!(r, vec![Some(apart.compact_hog_ratio(0.80) as f32), None, Some(apart.compact_hog_ratio(0.5) as f32)]);
+    }
+
+    #[test]
+    fn same_place_pairs_are_a_sources_neighbours_on_its_traversal() {
+        // references 0..20 on traversal 0, 20..30 on traversal 1; reference 7 removed
+        let place = |i: usize| Place { traversal: (i >= 20) as u32, position: (i % 20) as u32 };
+        let at = |p: Place| {
+            let i = p.traversal as usize * 20 + p.position as usize;
+            (i != 7 && p.position < 20 && i < 30).then_some(i)
+        };
+        // source 0: only 1 after it; 8: 9 (7 removed); 19: 18 (20 is another traversal); 25: 24, 26; 29: 28
+        assert_eq!(pairs_beside(&place, &at, &[0, 8, 19, 25, 29]), vec![(0, 1), (1, 9), (2, 18), (3, 24), (3, 26), (4, 28)]);
+        assert!(pairs_beside(&place, &at, &[]).is_empty());
     }
 
     #[test]

@@ -1,5 +1,6 @@
 //! The fine stage and the final ranking: the terms of each candidate pair (tree similarity,
-//! verification, compact HOG, their tail probabilities under the map's null), the pair's score,
+//! verification, compact HOG, what they weigh against the map's null: the inliers' tail
+//! probability, the compact HOGs' likelihood ratio), the pair's score,
 //! the ranking of each query's candidates, and the same scores for any given pairs.
 
 use super::answer::{Candidate, QueryMatch};
@@ -47,8 +48,9 @@ pub(super) fn pair_scores(
 }
 
 /// What the fine stage measures of one pair, before any weight: the tree-set similarity and, for
-/// `verified`, the verification and the compact HOGs' cosine, with their tail probabilities
-/// under the map's null where the score tests against it. [`PairTerms::score`] weighs them (a
+/// `verified`, the verification and the compact HOGs' cosine, weighed against the map's null
+/// where the score tests against it (the inliers' tail probability, the compact HOGs' likelihood
+/// ratio). [`PairTerms::score`] weighs them (a
 /// sweep of the weights measures once, `semlook dev tune`).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct PairTerms {
@@ -60,9 +62,9 @@ pub struct PairTerms {
     pub compact_hog: Option<f32>,
     /// `verified` with `inliers = "significant"`: P(null pair shows as many inliers).
     pub p_inliers: Option<f32>,
-    /// `verified` with `inliers = "significant"`, where both have compact HOGs: P(null pair's are
-    /// as alike).
-    pub p_compact_hog: Option<f32>,
+    /// `verified` with `inliers = "significant"`, where both have compact HOGs: P(a same-place
+    /// pair of the map is as alike) / P(a null pair is).
+    pub compact_hog_ratio: Option<f32>,
 }
 
 impl PairTerms {
@@ -77,7 +79,7 @@ impl PairTerms {
                 inliers: Some(ver.inliers),
                 compact_hog: self.compact_hog,
                 p_inliers: self.p_inliers,
-                p_compact_hog: self.p_compact_hog,
+                compact_hog_ratio: self.compact_hog_ratio,
             },
         }
     }
@@ -126,14 +128,15 @@ pub fn pair_terms(
             t.verified = Some(*v);
             t.compact_hog = hog.then(|| Values::F32(queries.image_compact_hog(q as usize)).dot(&refs.image_compact_hog(r as usize)));
         }
-        // the evidence's tail probabilities under the map's null, where the score tests against it
+        // the evidence weighed against the map's null, where the score tests against it: the
+        // inliers' tail probabilities, the compact HOGs' likelihood ratios
         if w.inliers == crate::config::InlierEvidence::Significant && !pairs.is_empty() {
             let null = null::kept_or(refs, cfg, || measure_null(stages, refs, cfg))?;
             let inliers: Vec<Option<u32>> = terms.iter().map(|t| t.verified.map(|v| v.inliers)).collect();
             let hogs: Vec<Option<f32>> = terms.iter().map(|t| t.compact_hog).collect();
-            let (pi, ph) = null.p_values(&inliers, &hogs);
+            let (pi, ph) = null.tail_and_ratio(&inliers, &hogs);
             for ((t, pi), ph) in terms.iter_mut().zip(pi).zip(ph) {
-                (t.p_inliers, t.p_compact_hog) = (pi, ph);
+                (t.p_inliers, t.compact_hog_ratio) = (pi, ph);
             }
         }
     }
@@ -143,12 +146,13 @@ pub fn pair_terms(
 
 /// Measures the null of `verified`'s evidence over `refs` under `cfg` ([`null`]'s docs): the
 /// `null_sources` references matched by `verified`'s coarse stage against the map, their
-/// candidates of other places verified.
+/// candidates of other places verified; where the map holds compact HOGs, their cosines and the
+/// sources' cosines with their neighbours along their traversal (the same-place sample).
 pub fn measure_null(stages: &mut dyn Stages, refs: &dyn RefSource, cfg: &Config) -> Result<null::NullEvidence> {
     let v = &cfg.verification;
     let src = null::sources(refs.len(), v.null_sources as usize);
     if src.is_empty() || refs.keypoint_dim() == 0 {
-        return Ok(null::NullEvidence::from_pairs(null::key(cfg), src.len(), std::iter::empty(), vec![]));
+        return Ok(null::NullEvidence::from_pairs(null::key(cfg), src.len(), std::iter::empty(), vec![], vec![]));
     }
     let queries = refs.gather(&src)?;
     // each source's K candidates of other places: enough candidates asked for that the gap's
@@ -159,13 +163,17 @@ pub fn measure_null(stages: &mut dyn Stages, refs: &dyn RefSource, cfg: &Config)
     let pairs = null::null_pairs(refs, &src, &lists, v.null_gap, cfg.matching.top_k);
     let vp = VerifyParams::for_config(v, &ClassTable::from_config(&cfg.classes)?)?;
     let verified = stages.verify_pairs(&vp, refs, &queries, &pairs)?;
+    // the compact HOGs' cosines of the null pairs and of the sources' same-place pairs
     let hog = queries.compact_hog_dim > 0 && refs.compact_hog_dim() == queries.compact_hog_dim;
-    let compact_hog: Vec<f32> = match hog {
-        true => pairs.iter().map(|&(q, r)| Values::F32(queries.image_compact_hog(q as usize)).dot(&refs.image_compact_hog(r as usize))).collect(),
-        false => vec![],
+    let cosines = |pairs: &[(u32, u32)]| -> Vec<f32> {
+        match hog {
+            true => pairs.iter().map(|&(q, r)| Values::F32(queries.image_compact_hog(q as usize)).dot(&refs.image_compact_hog(r as usize))).collect(),
+            false => vec![],
+        }
     };
+    let (compact_hog, compact_hog_near) = (cosines(&pairs), cosines(&null::near_pairs(refs, &src)));
     refs.check()?;
-    Ok(null::NullEvidence::from_pairs(null::key(cfg), src.len(), verified.iter().map(|r| r.inliers), compact_hog))
+    Ok(null::NullEvidence::from_pairs(null::key(cfg), src.len(), verified.iter().map(|r| r.inliers), compact_hog, compact_hog_near))
 }
 
 /// The final ranking from candidate lists and, for settings with both stages, the fine score of

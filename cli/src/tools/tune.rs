@@ -505,12 +505,11 @@ fn file_name(name: &str) -> String {
 /// terms (appearance cosine, embedding cosine, SSIM of the global descriptors), the tree-set
 /// similarity, the verification's mutual matches and inliers, both images' stored keypoints and
 /// source sizes, and the HOG cosine where both have HOG. Beside it: `.null.tsv`, the map's null
-/// pairs (what `verified` tests against); `.near.tsv`, the same sources' pairs 1 or 2 positions
-/// apart along their traversal (what verification finds at the same place, as far as the map
-/// alone shows it); `.dense.tsv`, every pair's coarse terms; and, with `--null-evidence`,
+/// pairs (what `verified` tests against); `.near.tsv`, the same sources' pairs 1 position
+/// apart along their traversal (`matching::null::near_pairs`: what verification finds at the
+/// same place, as far as the map alone shows it); `.dense.tsv`, every pair's coarse terms; and, with `--null-evidence`,
 /// `.unrelated.tsv`, each candidate's evidence from the unrelated image instead of the query.
 fn write_candidates(file: &std::path::Path, refs: &DescriptorSet, queries: &DescriptorSet, gt: &[Vec<u32>], cfg: &Config) -> Result<()> {
-    use semlook::descriptors::source::RefSource;
     use semlook::matching::{self, CpuStages, Stages};
     use semlook::values::Values;
     let st = Setting::Verified;
@@ -581,21 +580,10 @@ fn write_candidates(file: &std::path::Path, refs: &DescriptorSet, queries: &Desc
     }
     let null_file = file.with_extension("null.tsv");
     std::fs::write(&null_file, out).map_err(|e| Error::io(&null_file, e))?;
-    // the same sources' pairs of the same place (1 or 2 positions apart along their traversal):
-    // what verification finds where the answer is right, as the map alone can show it
-    let near: Vec<(u32, u32)> = src
-        .iter()
-        .enumerate()
-        .flat_map(|(i, &s)| {
-            let a = refs.place(s);
-            (0..refs.len())
-                .filter(move |&r| {
-                    let b = refs.place(r);
-                    r != s && a.traversal == b.traversal && a.position.abs_diff(b.position) <= 2
-                })
-                .map(move |r| (i as u32, r as u32))
-        })
-        .collect();
+    // the same sources' pairs of the same place (their neighbours along their traversal, the
+    // compact HOGs' other sample): what verification finds where the answer is right, as the
+    // map alone can show it
+    let near = semlook::matching::null::near_pairs(refs, &src);
     let nv = CpuStages.verify_pairs(&vp, refs, &sources, &near)?;
     let mut out = String::from("source\treference\tmatches\tinliers\tcompact_hog\n");
     for (&(s, r), v) in near.iter().zip(&nv) {

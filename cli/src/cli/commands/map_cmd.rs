@@ -116,11 +116,15 @@ fn report_null(n: &semlook::matching::null::NullEvidence, ms: f64, quiet: bool) 
     info(
         quiet,
         format!(
-            "null of verified's evidence: {} pairs of other places verified from {} references (median {} inliers, 99th percentile {}), {:.1} s, stored in the manifest",
+            "null of verified's evidence: {} pairs of other places verified from {} references (median {} inliers, 99th percentile {}){}, {:.1} s, stored in the manifest",
             n.pairs,
             n.sources,
             n.inliers_quantile(0.5),
             n.inliers_quantile(0.99),
+            match n.compact_hog.len() {
+                0 => String::new(),
+                h => format!("; compact HOGs of {h} of those pairs and of {} same-place pairs", n.compact_hog_near.len()),
+            },
             ms / 1000.0
         ),
     );
@@ -280,7 +284,7 @@ fn show(dir: &Path, json: bool) -> Result<()> {
             "null": m.null.as_ref().map(|n| serde_json::json!({
                 "images": n.images, "sources": n.evidence.sources, "pairs": n.evidence.pairs,
                 "median_inliers": n.evidence.inliers_quantile(0.5), "p99_inliers": n.evidence.inliers_quantile(0.99),
-                "compact_hog": n.evidence.compact_hog.len(),
+                "compact_hog": n.evidence.compact_hog.len(), "compact_hog_near": n.evidence.compact_hog_near.len(),
             })),
             "config": m.config,
             "profile": m.profile,
