@@ -133,6 +133,22 @@ fn bench(c: &mut Criterion) {
     g.bench_function(format!("measure_null (CPU)/{}_references_{}_keypoints", refs.len(), cfg.keypoints.stored), |b| {
         b.iter(|| semlook::matching::measure_null(&mut CpuStages, &refs, &cfg).unwrap())
     });
+    // what weighing a query's candidates against the map's null costs (per query, once its pairs
+    // are verified): the inliers' tail probabilities and the compact HOGs' likelihood ratios of
+    // K candidates against a null the size the default measures (200 sources x 30 look-alikes,
+    // 400 same-place pairs; maps of small frames), the samples' tails fitted as `rank` does
+    {
+        let mut rng = semlook::util::SplitMix64::new(7);
+        let mut u = move || (rng.below(1 << 20) as f32) / (1 << 20) as f32;
+        let lookalike: Vec<f32> = (0..6000).map(|_| 0.6 + 0.2 * u()).collect();
+        let near: Vec<f32> = (0..400).map(|_| 0.7 + 0.25 * u()).collect();
+        let null = semlook::matching::null::NullEvidence::from_pairs(String::new(), 200, (0..6000).map(|i| (i * 7919 % 31) as u32), lookalike, near);
+        let inliers: Vec<Option<u32>> = (0..K as u32).map(|k| Some(k * 3)).collect();
+        let hogs: Vec<Option<f32>> = (0..K).map(|k| Some(0.6 + 0.3 * k as f32 / K as f32)).collect();
+        g.bench_function(format!("null tail_and_ratio (CPU)/1_query_x{K}_candidates_6000_null_400_same_place"), |b| {
+            b.iter(|| null.tail_and_ratio(&inliers, &hogs))
+        });
+    }
     let glue_cfg = Config::from_toml("[verification]\nmatcher = \"lighterglue\"\n", "bench").unwrap();
     let gp = VerifyParams::new(&glue_cfg.verification);
     match semlook::verify::shared_lighterglue() {
