@@ -244,8 +244,10 @@ pub fn save(img: &RgbImage, path: &Path) -> Result<()> {
 }
 
 /// One column of an explain sheet: a frame's image and labels under a caption (the image alone
-/// for a frame encoded without labels).
-pub fn frame_column(encoder: &Encoder, src: &FrameSource, format: LabelFormat, caption: &[String]) -> Result<Panel> {
+/// for a frame encoded without labels), `width` pixels wide: the image and labels are scaled to
+/// it (nearest neighbour) before the caption is drawn, so that a caption stays whole and legible
+/// on frames of any size (a 64x32 frame's column is no longer 64 pixels of clipped text scaled up).
+pub fn frame_column(encoder: &Encoder, src: &FrameSource, format: LabelFormat, caption: &[String], width: u32) -> Result<Panel> {
     let loaded = encoder.frames().load(src, format)?;
     let table = encoder.class_table();
     let (w, h) = (loaded.labels.width(), loaded.labels.height());
@@ -255,16 +257,28 @@ pub fn frame_column(encoder: &Encoder, src: &FrameSource, format: LabelFormat, c
         (None, None) => RgbImage::new(w, h),
     };
     let labelled = loaded.labels.classes().iter().any(|&c| c != semlook::classes::VOID);
+    let labels = labelled.then(|| labels_image(&loaded.labels, table));
+    let col = captioned(&base, labels.as_ref(), caption, width);
+    Ok((src.id.clone(), col))
+}
+
+/// `base` (and `labels` under it) scaled to `width` pixels (nearest neighbour) under `caption`,
+/// one line of text a line: the caption drawn after the scaling, so it stays whole on a frame
+/// narrower than its text.
+fn captioned(base: &RgbImage, labels: Option<&RgbImage>, caption: &[String], width: u32) -> RgbImage {
+    let width = width.max(1);
+    let height = ((base.height() as f64 * width as f64 / base.width().max(1) as f64).round() as u32).max(1);
+    let fit = |img: &RgbImage| image::imageops::resize(img, width, height, image::imageops::FilterType::Nearest);
     let text_h = (caption.len() as u32) * font::LINE * 2 + 4;
-    let mut col = RgbImage::from_pixel(w, if labelled { 2 } else { 1 } * h + text_h, Rgb([32, 32, 32]));
+    let mut col = RgbImage::from_pixel(width, if labels.is_some() { 2 } else { 1 } * height + text_h, Rgb([32, 32, 32]));
     for (i, line) in caption.iter().enumerate() {
         label(&mut col, 2, 2 + (i as u32 * font::LINE * 2) as i64, line, 2, Rgb([255, 255, 255]));
     }
-    image::imageops::replace(&mut col, &base, 0, text_h as i64);
-    if labelled {
-        image::imageops::replace(&mut col, &labels_image(&loaded.labels, table), 0, (text_h + h) as i64);
+    image::imageops::replace(&mut col, &fit(base), 0, text_h as i64);
+    if let Some(l) = labels {
+        image::imageops::replace(&mut col, &fit(l), 0, (text_h + height) as i64);
     }
-    Ok((src.id.clone(), col))
+    col
 }
 
 /// The worst queries of an evaluation, worst first: wrong top-1s, most confident first, then
@@ -311,11 +325,12 @@ pub fn worst_sheet(
             _ => Err(Error::dataset(&ds.root, format!("frame {id:?} of the report is not in the dataset"))),
         }
     };
-    let mut cols = vec![frame_column(encoder, find(&o.query)?, ds.label_format, &[format!("query {}", o.query), format!("set {set}, {setting}")])?];
+    let mut cols =
+        vec![frame_column(encoder, find(&o.query)?, ds.label_format, &[format!("query {}", o.query), format!("set {set}, {setting}")], cell_width)?];
     if let Some(top) = &o.top1 {
         let verdict = if o.correct { "correct" } else { "wrong" };
         let caption = [format!("top-1 {top} ({verdict})"), format!("score {:.3}", o.score.unwrap_or(f32::NAN))];
-        cols.push(frame_column(encoder, find(top)?, ds.label_format, &caption)?);
+        cols.push(frame_column(encoder, find(top)?, ds.label_format, &caption, cell_width)?);
     }
     let valid = o
         .best_valid
@@ -323,7 +338,7 @@ pub fn worst_sheet(
         .map(|(id, rank)| (id.clone(), format!("rank {}", rank + 1)))
         .or_else(|| o.a_valid_reference.clone().map(|id| (id, "not in the ranked list".into())));
     if let Some((id, rank)) = valid {
-        cols.push(frame_column(encoder, find(&id)?, ds.label_format, &[format!("valid {id}"), rank])?);
+        cols.push(frame_column(encoder, find(&id)?, ds.label_format, &[format!("valid {id}"), rank], cell_width)?);
     }
     Ok(sheet(&cols, 3, cell_width))
 }
@@ -346,4 +361,36 @@ pub fn explain(
         written.push(p);
     }
     Ok(written)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An explain sheet's column of a 64x32 frame: the frame scaled to the column's width and
+    /// its caption drawn at that width, whole (before, the caption was clipped to the frame's 64
+    /// pixels and then scaled up with it, unreadable).
+    #[test]
+    fn a_small_frames_caption_is_drawn_whole_at_the_columns_width() {
+        let base = RgbImage::from_pixel(64, 32, Rgb([0, 0, 128]));
+        let labels = RgbImage::from_pixel(64, 32, Rgb([0, 128, 0]));
+        let caption = ["top-1 ref/031.png (wrong)".to_string(), "score 4.542".to_string()];
+        let col = captioned(&base, Some(&labels), &caption, 480);
+        let text_h = 2 * font::LINE * 2 + 4;
+        assert_eq!((col.width(), col.height()), (480, text_h + 2 * 240));
+        // the caption's white pixels reach as far as its text at scale 2, far beyond 64 pixels,
+        // and are drawn at that scale (no stroke wider than 2 x the font's)
+        let white: Vec<u32> = (0..text_h)
+            .flat_map(|y| (0..480).map(move |x| (x, y)))
+            .filter(|&(x, y)| col.get_pixel(x, y).0 == [255, 255, 255])
+            .map(|(x, _)| x)
+            .collect();
+        let right = *white.iter().max().unwrap();
+        assert!(right as i64 >= font::width(&caption[0], 2) as i64 - 4 && right > 200, "caption ends at {right}");
+        // the frame and its labels below, scaled whole
+        assert_eq!(col.get_pixel(479, text_h).0, [0, 0, 128]);
+        assert_eq!(col.get_pixel(479, text_h + 479 / 2).0, [0, 0, 128]);
+        assert_eq!(col.get_pixel(0, text_h + 240).0, [0, 128, 0]);
+        assert_eq!(col.get_pixel(479, text_h + 479).0, [0, 128, 0]);
+    }
 }
