@@ -318,15 +318,15 @@ pub struct VerificationConfig {
     /// ([`crate::matching::null`]), so that the term speaks only on maps whose own places HOG
     /// tells apart. With "unusual": w x max(0, z - `compact_hog_above`), z the pair's cosine as a
     /// z-score among its query's K candidates. \[R\] 2 (sweep 22, leave-one-set-out over the 16
-    /// sets: Nordland 160x120 0.900 -> 1.000, 64x32 0.600 -> 0.983, no other set moved, silent on
-    /// unrelated images; sweep 21 had 0 with the test against the look-alikes alone, which
+    /// sets: Nordland 320x240 0.967 -> 0.983 (with `input.compact_hog_long_side` 320), 160x120
+    /// 0.900 -> 1.000, 64x32 0.600 -> 0.983, no other set moved, silent on unrelated images; sweep 21 had 0 with the test against the look-alikes alone, which
     /// spoke on landmarks and ie-tower at 160x120 and 64x32 and lost queries there; 2 with
     /// "unusual", sweep 17).
     pub w_compact_hog: f64,
     /// See `w_compact_hog`: decades of the likelihood ratio (with "unusual": the z-score) below
     /// which the compact HOGs say nothing. \[R\] 1, a ratio of 10 (sweep 22, over 0.5 to 1.5:
-    /// below 1 the term spoke on unrelated images on Nordland 64x32, above it lost Nordland
-    /// queries; sweep 17 for "unusual").
+    /// below 1 the term spoke on unrelated images on Nordland 64x32; at 1.25 with weight 2 and at
+    /// 1.5 it lost Nordland queries; sweep 17 for "unusual").
     pub compact_hog_above: f64,
     /// Weight of the fused coarse score in the verified score (see `w_inliers`). \[R\] 2.
     pub w_coarse: f64,

@@ -28,9 +28,11 @@
 //! "a look-alike", both measured on the map). Where HOG tells the map's places apart (a railway in
 //! snow at 64x32) the ratio of a right candidate is in the hundreds; where it does not (landmarks
 //! seen from other viewpoints, floors of one layout; an unordered collection whose neighbours are
-//! other places) the same-place pairs are no more alike than the look-alikes, the ratio stays
-//! near 1 or below, and the term is silent however alike a candidate looks. A test against the
-//! look-alikes alone could not tell those maps apart: it spoke on both.
+//! other places) the same-place pairs are no more alike than the look-alikes (in their top tenth
+//! at most a little more), the ratio stays within a few times 1, below the
+//! `verification.compact_hog_above` decades the term needs, and the term is silent however alike a
+//! candidate looks. A test against the look-alikes alone could not tell those maps apart: it
+//! spoke on both.
 //!
 //! The measurement depends on the references and on the config that makes candidates and
 //! verifies them (never on the score's weights): [`key`] names it. `map build` measures it under
