@@ -407,20 +407,12 @@ mod tests {
     #[test]
     fn the_compact_hogs_ratio_is_high_only_where_the_map_shows_hog_tells_its_places_apart() {
         let lookalikes: Vec<f32> = (0..1000).map(|i| 0.60 + 0.15 * (i as f32 / 1000.0)).collect();
-        let apart = NullEvidence::from_pairs(
-            String::new(),
-            100,
-            std::iter::empty(),
-            lookalikes.clone(),
-            (0..200).map(|i| 0.78 + 0.1 * (i as f32 / 200.0)).collect(),
-        );
-        let alike = NullEvidence::from_pairs(
-            String::new(),
-            100,
-            std::iter::empty(),
-            lookalikes.clone(),
-            (0..200).map(|i| 0.55 + 0.2 * (i as f32 / 200.0)).collect(),
-        );
+        // a map whose same-place pairs are `n` cosines evenly from `from` to `from + span`
+        let with_near = |n: usize, from: f32, span: f32| {
+            let near = (0..n).map(|i| from + span * (i as f32 / n as f32)).collect();
+            NullEvidence::from_pairs(String::new(), 100, std::iter::empty(), lookalikes.clone(), near)
+        };
+        let (apart, alike) = (with_near(200, 0.78, 0.1), with_near(200, 0.55, 0.2));
         // a cosine beyond every look-alike: most same-place pairs reach it on the first map (the
         // look-alikes' tail extrapolated with its scale floor, 0.05)
         assert!(apart.compact_hog_ratio(0.80) > 20.0, "{}", apart.compact_hog_ratio(0.80));
@@ -432,7 +424,7 @@ mod tests {
         }
         // a cosine most look-alikes reach says nothing on either
         assert!(apart.compact_hog_ratio(0.5) < 1.1 && alike.compact_hog_ratio(0.5) < 1.1);
-        let none = NullEvidence::from_pairs(String::new(), 100, std::iter::empty(), lookalikes, vec![0.9; 5]);
+        let none = with_near(5, 0.9, 0.0);
         assert_eq!(none.compact_hog_ratio(0.8), 1.0);
         // many at once: the same ratios
         let (_, r) = apart.tail_and_ratio(&[], &[Some(0.80), None, Some(0.5)]);

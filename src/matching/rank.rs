@@ -123,10 +123,10 @@ pub fn pair_terms(
             gated.iter().zip(&g).for_each(|(&i, g)| v[i].glue_inliers = g.inliers);
         }
         // the compact HOGs' cosine where both sides have them (maps of small frames)
-        let hog = queries.compact_hog_dim > 0 && refs.compact_hog_dim() == queries.compact_hog_dim;
-        for ((t, v), &(q, r)) in terms.iter_mut().zip(&v).zip(pairs) {
+        let hogs = compact_hog_cosines(refs, queries, pairs);
+        for (i, (t, v)) in terms.iter_mut().zip(&v).enumerate() {
             t.verified = Some(*v);
-            t.compact_hog = hog.then(|| Values::F32(queries.image_compact_hog(q as usize)).dot(&refs.image_compact_hog(r as usize)));
+            t.compact_hog = hogs.as_ref().map(|h| h[i]);
         }
         // the evidence weighed against the map's null, where the score tests against it: the
         // inliers' tail probabilities, the compact HOGs' likelihood ratios
@@ -142,6 +142,13 @@ pub fn pair_terms(
     }
     refs.check()?;
     Ok(terms)
+}
+
+/// The compact HOGs' cosine of each (query, reference) pair, where both sides have compact HOGs
+/// of one size (maps of small frames); `None` where they do not.
+fn compact_hog_cosines(refs: &dyn RefSource, queries: &DescriptorSet, pairs: &[(u32, u32)]) -> Option<Vec<f32>> {
+    let hog = queries.compact_hog_dim > 0 && refs.compact_hog_dim() == queries.compact_hog_dim;
+    hog.then(|| pairs.iter().map(|&(q, r)| Values::F32(queries.image_compact_hog(q as usize)).dot(&refs.image_compact_hog(r as usize))).collect())
 }
 
 /// Measures the null of `verified`'s evidence over `refs` under `cfg` ([`null`]'s docs): the
@@ -164,13 +171,7 @@ pub fn measure_null(stages: &mut dyn Stages, refs: &dyn RefSource, cfg: &Config)
     let vp = VerifyParams::for_config(v, &ClassTable::from_config(&cfg.classes)?)?;
     let verified = stages.verify_pairs(&vp, refs, &queries, &pairs)?;
     // the compact HOGs' cosines of the null pairs and of the sources' same-place pairs
-    let hog = queries.compact_hog_dim > 0 && refs.compact_hog_dim() == queries.compact_hog_dim;
-    let cosines = |pairs: &[(u32, u32)]| -> Vec<f32> {
-        match hog {
-            true => pairs.iter().map(|&(q, r)| Values::F32(queries.image_compact_hog(q as usize)).dot(&refs.image_compact_hog(r as usize))).collect(),
-            false => vec![],
-        }
-    };
+    let cosines = |pairs: &[(u32, u32)]| compact_hog_cosines(refs, &queries, pairs).unwrap_or_default();
     let (compact_hog, compact_hog_near) = (cosines(&pairs), cosines(&null::near_pairs(refs, &src)));
     refs.check()?;
     Ok(null::NullEvidence::from_pairs(null::key(cfg), src.len(), verified.iter().map(|r| r.inliers), compact_hog, compact_hog_near))
